@@ -1,0 +1,3 @@
+"""Brasidas: a control stack for unmanned ground vehicles."""
+
+__version__ = "0.1.0"

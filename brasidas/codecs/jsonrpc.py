@@ -1,0 +1,228 @@
+"""JSON-RPC 2.0: a sans-IO dispatcher. Transports hand it bytes and send back what it returns.
+
+Supports single calls, batches and notifications, and answers the standard errors:
+-32700 parse error, -32600 invalid request, -32601 method not found, -32602 invalid params,
+-32603 internal error; plus -32001 unauthorized for calls that need a session.
+"""
+
+from __future__ import annotations
+
+import inspect
+import json
+import logging
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+_LOGGER = logging.getLogger(__name__)
+
+PARSE_ERROR = -32700
+INVALID_REQUEST = -32600
+METHOD_NOT_FOUND = -32601
+INVALID_PARAMS = -32602
+INTERNAL_ERROR = -32603
+UNAUTHORIZED = -32001
+UNAVAILABLE = -32002
+"""The method exists but what it needs is not on this platform (no camera, ...)."""
+TIMEOUT = -32003
+REQUEST_TOO_LARGE = -32004
+
+
+class RpcError(Exception):
+    """Raised by a method to answer a JSON-RPC error."""
+
+    def __init__(self, code: int, message: str, data: Any = None) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+        self.data = data
+
+    def as_dict(self) -> dict[str, Any]:
+        error: dict[str, Any] = {"code": self.code, "message": self.message}
+        if self.data is not None:
+            error["data"] = self.data
+        return error
+
+
+class Unauthorized(RpcError):
+    def __init__(self, message: str = "unauthorized") -> None:
+        super().__init__(UNAUTHORIZED, message)
+
+
+@dataclass
+class CallContext:
+    """Who is calling: filled by the transport, extended by the authorizer."""
+
+    peer_host: str = ""
+    transport: str = ""
+    session: Any = None
+    """Set by the authorizer for methods that need a session."""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+Handler = Callable[..., Awaitable[Any]]
+Authorizer = Callable[[CallContext, dict[str, Any]], Awaitable[None]]
+"""Checks (and strips) credentials from by-name params before a session method runs."""
+
+
+@dataclass
+class Method:
+    name: str
+    handler: Handler
+    session_required: bool
+    signature: inspect.Signature
+
+
+class Dispatcher:
+    """Method table and the JSON-RPC envelope logic."""
+
+    def __init__(self, authorizer: Authorizer | None = None) -> None:
+        self._methods: dict[str, Method] = {}
+        self._authorizer = authorizer
+        self.counters: dict[str, int] = {
+            "calls": 0,
+            "parse_errors": 0,
+            "invalid_requests": 0,
+            "unknown_methods": 0,
+            "invalid_params": 0,
+            "unauthorized": 0,
+            "internal_errors": 0,
+        }
+
+    def add(self, name: str, handler: Handler, *, session_required: bool = True) -> Callable[[], None]:
+        """Register ``handler(ctx, **params)``; returns the function that removes it."""
+        if name in self._methods:
+            raise ValueError(f"method {name} already registered")
+        signature = inspect.signature(handler)
+        params = list(signature.parameters.values())[1:]  # drop ctx
+        self._methods[name] = Method(name, handler, session_required, signature.replace(parameters=params))
+        return lambda: self._methods.pop(name, None)  # type: ignore[return-value]
+
+    @property
+    def method_names(self) -> list[str]:
+        return sorted(self._methods)
+
+    async def handle_bytes(self, data: bytes | str, ctx: CallContext) -> bytes | None:
+        """Answer one JSON-RPC message (single or batch); None when nothing is to be sent."""
+        try:
+            message = json.loads(data)
+        except (ValueError, UnicodeDecodeError) as err:
+            self.counters["parse_errors"] += 1
+            return _encode(_error_response(None, RpcError(PARSE_ERROR, f"parse error: {err}")))
+        if isinstance(message, list):
+            if not message:
+                self.counters["invalid_requests"] += 1
+                return _encode(_error_response(None, RpcError(INVALID_REQUEST, "empty batch")))
+            responses = [await self.handle_message(item, ctx) for item in message]
+            answered = [item for item in responses if item is not None]
+            return _encode(answered) if answered else None
+        response = await self.handle_message(message, ctx)
+        return _encode(response) if response is not None else None
+
+    async def handle_message(self, message: Any, ctx: CallContext) -> dict[str, Any] | None:
+        """Answer one decoded request object; None for a notification."""
+        if not isinstance(message, dict) or message.get("jsonrpc") != "2.0":
+            self.counters["invalid_requests"] += 1
+            request_id = message.get("id") if isinstance(message, dict) else None
+            return _error_response(_valid_id(request_id), RpcError(INVALID_REQUEST, "invalid request"))
+        is_notification = "id" not in message
+        request_id = message.get("id")
+        if not is_notification and not _is_valid_id(request_id):
+            self.counters["invalid_requests"] += 1
+            return _error_response(None, RpcError(INVALID_REQUEST, "invalid id"))
+        name = message.get("method")
+        params = message.get("params", {})
+        if not isinstance(name, str) or not isinstance(params, dict | list):
+            self.counters["invalid_requests"] += 1
+            return _error_response(request_id, RpcError(INVALID_REQUEST, "invalid request"))
+        self.counters["calls"] += 1
+        try:
+            result = await self._call(name, params, ctx)
+        except RpcError as err:
+            return None if is_notification else _error_response(request_id, err)
+        except Exception:
+            self.counters["internal_errors"] += 1
+            _LOGGER.exception("method %s failed", name)
+            err = RpcError(INTERNAL_ERROR, "internal error")
+            return None if is_notification else _error_response(request_id, err)
+        if is_notification:
+            return None
+        return {"jsonrpc": "2.0", "id": request_id, "result": result}
+
+    async def _call(self, name: str, params: dict[str, Any] | list[Any], ctx: CallContext) -> Any:
+        method = self._methods.get(name)
+        if method is None:
+            self.counters["unknown_methods"] += 1
+            raise RpcError(METHOD_NOT_FOUND, f"method not found: {name}")
+        if isinstance(params, list):
+            try:
+                bound = method.signature.bind(*params)
+            except TypeError as err:
+                self.counters["invalid_params"] += 1
+                raise RpcError(INVALID_PARAMS, f"invalid params: {err}") from None
+            kwargs = dict(bound.arguments)
+        else:
+            kwargs = dict(params)
+        if method.session_required:
+            if self._authorizer is None:
+                raise RpcError(INTERNAL_ERROR, "no authorizer")
+            try:
+                await self._authorizer(ctx, kwargs)
+            except RpcError as err:
+                if err.code == UNAUTHORIZED:
+                    self.counters["unauthorized"] += 1
+                raise
+        try:
+            method.signature.bind(**kwargs)
+        except TypeError as err:
+            self.counters["invalid_params"] += 1
+            raise RpcError(INVALID_PARAMS, f"invalid params: {err}") from None
+        _check_types(method, kwargs, self.counters)
+        return await method.handler(ctx, **kwargs)
+
+
+def _check_types(method: Method, kwargs: dict[str, Any], counters: dict[str, int]) -> None:
+    """Reject params whose JSON type does not match a simple annotation (str/int/float/bool)."""
+    for name, value in kwargs.items():
+        parameter = method.signature.parameters.get(name)
+        if parameter is None:
+            continue
+        annotation = parameter.annotation
+        if isinstance(annotation, str):
+            annotation = {"str": str, "int": int, "float": float, "bool": bool}.get(annotation)
+        if annotation is float and isinstance(value, int | float) and not isinstance(value, bool):
+            continue
+        if annotation in (str, int, bool) and (
+            not isinstance(value, annotation) or (annotation is int and isinstance(value, bool))
+        ):
+            counters["invalid_params"] += 1
+            raise RpcError(INVALID_PARAMS, f"invalid params: '{name}' must be {annotation.__name__}")
+        if annotation is float and not isinstance(value, int | float):
+            counters["invalid_params"] += 1
+            raise RpcError(INVALID_PARAMS, f"invalid params: '{name}' must be a number")
+
+
+def _is_valid_id(value: Any) -> bool:
+    return value is None or (isinstance(value, str | int | float) and not isinstance(value, bool))
+
+
+def _valid_id(value: Any) -> Any:
+    return value if _is_valid_id(value) else None
+
+
+def _error_response(request_id: Any, err: RpcError) -> dict[str, Any]:
+    return {"jsonrpc": "2.0", "id": request_id, "error": err.as_dict()}
+
+
+def _encode(message: Any) -> bytes:
+    return json.dumps(message, separators=(",", ":")).encode()
+
+
+def encode_request(method: str, params: dict[str, Any] | list[Any] | None, request_id: int | None) -> bytes:
+    """A request (or a notification when ``request_id`` is None)."""
+    message: dict[str, Any] = {"jsonrpc": "2.0", "method": method}
+    if params is not None:
+        message["params"] = params
+    if request_id is not None:
+        message["id"] = request_id
+    return _encode(message)

@@ -1,0 +1,329 @@
+"""Configuration: TOML files over documented defaults, with command-line overrides.
+
+Every section is a dataclass declared here, so all keys, types and defaults live in one
+place and ``brasidas-platform config`` can print them. Loading rejects unknown keys and
+wrong types with one line that names the file and the key (:class:`ConfigError`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+C = TypeVar("C")
+
+
+class ConfigError(Exception):
+    """A configuration problem; the message names the file and the key."""
+
+
+# --------------------------------------------------------------------------- platform
+
+
+@dataclass
+class PlatformSection:
+    id: str = "brasidas-1"
+    """Platform id: unique on the network, shown in discovery."""
+    model: str = "Brasidas UGV"
+    max_speed_kmh: float = 6.0
+    """Top speed at full command (R-2.1), reported to stations."""
+
+
+@dataclass
+class SecuritySection:
+    key_file: str = ""
+    """Fleet key path. Empty: $XDG_STATE_HOME/brasidas/fleet.key."""
+    insecure: bool = False
+    """Run without a fleet key: no beacon HMAC, no authenticated connect. Never in the field."""
+
+
+@dataclass
+class SignalingSection:
+    host: str = "127.0.0.1"
+    port: int = 8765
+    advertise_host: str = ""
+    """Host put in the signaling URL of beacons. Empty: ``host``."""
+    session_timeout: float = 5.0
+    """A session with no heartbeat for this long ends (and releases the manual override)."""
+    heartbeat_interval: float = 1.0
+    """How often stations are told to send heartbeats."""
+    max_request_bytes: int = 65536
+    command_timeout: float = 3.0
+    """How long a system command may take to be answered by its actor."""
+
+
+@dataclass
+class BeaconSection:
+    enabled: bool = True
+    port: int = 21000
+    destinations: list[str] = field(default_factory=lambda: ["127.255.255.255"])
+    """Where beacons go. The default is loopback broadcast; deployments name the mesh's."""
+    min_interval: float = 0.6
+    max_interval: float = 3.0
+    move_threshold_m: float = 1.0
+    interface_host: str = "127.0.0.1"
+    """Local address beacons are sent from (picks the interface)."""
+
+
+@dataclass
+class MotorSection:
+    enabled: bool = True
+    port: str = "/dev/ttyUSB0"
+    """Serial device of the AX3500. In --sim, the simulator's pty replaces it."""
+    baudrate: int = 9600
+    bytesize: int = 7
+    parity: str = "E"
+    stopbits: int = 1
+
+
+@dataclass
+class VelocitySection:
+    host: str = "127.0.0.1"
+    """Where the platform listens for $PVEL datagrams."""
+    port: int = 21001
+    advertise_host: str = ""
+    """Host given to stations by get_velocity_connection_info. Empty: ``host``."""
+    deadman: float = 0.3
+    """In teleop, no valid velocity for this long commands zero."""
+
+
+@dataclass
+class GpsSection:
+    enabled: bool = True
+    port: str = "/dev/ttyAMA0"
+    baudrate: int = 9600
+
+
+@dataclass
+class ImuSection:
+    enabled: bool = True
+    i2c_bus: int = 1
+    address: int = 0x68
+    rate_hz: float = 100.0
+
+
+@dataclass
+class TelemetrySection:
+    rate_hz: float = 5.0
+
+
+@dataclass
+class NavCamSection:
+    enabled: bool = True
+    device: str = "/dev/video0"
+    width: int = 640
+    height: int = 480
+    framerate: int = 30
+    idle_framerate: int = 5
+    """Framerate while the manual override is disengaged (seed ch. 10 §3.2)."""
+    bitrate_kbps: int = 1500
+    port: int = 5600
+    """UDP port on the station that the NavCam RTP stream is sent to."""
+
+
+@dataclass
+class SimSection:
+    enabled: bool = False
+    """Set by --sim: simulated controller, GPS, IMU and camera behind the real drivers."""
+
+
+@dataclass
+class PlatformConfig:
+    platform: PlatformSection = field(default_factory=PlatformSection)
+    security: SecuritySection = field(default_factory=SecuritySection)
+    signaling: SignalingSection = field(default_factory=SignalingSection)
+    beacon: BeaconSection = field(default_factory=BeaconSection)
+    motor: MotorSection = field(default_factory=MotorSection)
+    velocity: VelocitySection = field(default_factory=VelocitySection)
+    gps: GpsSection = field(default_factory=GpsSection)
+    imu: ImuSection = field(default_factory=ImuSection)
+    telemetry: TelemetrySection = field(default_factory=TelemetrySection)
+    navcam: NavCamSection = field(default_factory=NavCamSection)
+    sim: SimSection = field(default_factory=SimSection)
+
+
+# --------------------------------------------------------------------------- station
+
+
+@dataclass
+class StationSection:
+    id: str = "station-1"
+    api_host: str = "127.0.0.1"
+    """The station daemon's local API (CLI and browser console). Loopback only by default."""
+    api_port: int = 8780
+    connect_timeout: float = 3.0
+    """How long a command waits for the platform's acknowledgement."""
+
+
+@dataclass
+class DiscoverySection:
+    port: int = 21000
+    bind_host: str = "0.0.0.0"
+    """Receive-only. 0.0.0.0 is needed to hear broadcasts; nothing is sent from here."""
+    expiry: float = 4.0
+    """A platform is dropped this long after its last beacon (R-9.3)."""
+
+
+@dataclass
+class StationConfig:
+    station: StationSection = field(default_factory=StationSection)
+    security: SecuritySection = field(default_factory=SecuritySection)
+    discovery: DiscoverySection = field(default_factory=DiscoverySection)
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def load_config(
+    cls: type[C], path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()
+) -> C:
+    """Build ``cls`` from defaults, then the TOML file at ``path``, then ``overrides``."""
+    config = cls()
+    if path is not None:
+        source = str(path)
+        try:
+            with open(path, "rb") as file:
+                data = tomllib.load(file)
+        except FileNotFoundError:
+            raise ConfigError(f"{source}: file not found") from None
+        except OSError as err:
+            raise ConfigError(f"{source}: cannot read: {err.strerror}") from None
+        except tomllib.TOMLDecodeError as err:
+            raise ConfigError(f"{source}: invalid TOML: {err}") from None
+        _apply_table(config, data, source, "")
+    for item in overrides:
+        apply_override(config, item)
+    return config
+
+
+def apply_override(config: object, item: str) -> None:
+    """Apply one ``SECTION.KEY=VALUE`` override; VALUE is a TOML value or a bare string."""
+    source = f"--set {item}"
+    dotted, sep, raw = item.partition("=")
+    if not sep or "." not in dotted:
+        raise ConfigError(f"{source}: expected SECTION.KEY=VALUE")
+    try:
+        value: Any = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw  # bare strings need no quotes on the command line
+    table: dict[str, Any] = {}
+    cursor = table
+    parts = dotted.strip().split(".")
+    for part in parts[:-1]:
+        cursor = cursor.setdefault(part, {})
+    cursor[parts[-1]] = value
+    _apply_table(config, table, source, "")
+
+
+def _apply_table(target: object, data: dict[str, Any], source: str, prefix: str) -> None:
+    hints = typing.get_type_hints(type(target))
+    known = {f.name for f in dataclasses.fields(target)}  # type: ignore[arg-type]
+    for key, value in data.items():
+        dotted = f"{prefix}{key}"
+        if key not in known:
+            kind = "section" if not prefix else "key"
+            raise ConfigError(f"{source}: unknown {kind} '{dotted}'")
+        expected = hints[key]
+        current = getattr(target, key)
+        if dataclasses.is_dataclass(current):
+            if not isinstance(value, dict):
+                raise ConfigError(f"{source}: '{dotted}' must be a table")
+            _apply_table(current, value, source, f"{dotted}.")
+            continue
+        setattr(target, key, _coerce(value, expected, source, dotted))
+
+
+def _coerce(value: Any, expected: Any, source: str, dotted: str) -> Any:
+    origin = typing.get_origin(expected)
+    if origin in (types.UnionType, typing.Union):
+        options = typing.get_args(expected)
+        for option in options:
+            try:
+                return _coerce(value, option, source, dotted)
+            except ConfigError:
+                continue
+        raise ConfigError(f"{source}: '{dotted}' must be {_type_name(expected)}")
+    if expected is type(None):
+        if value is None:
+            return None
+        raise ConfigError(f"{source}: '{dotted}' must be unset")
+    if origin is list:
+        (item_type,) = typing.get_args(expected)
+        if not isinstance(value, list):
+            raise ConfigError(f"{source}: '{dotted}' must be a list of {_type_name(item_type)}")
+        return [_coerce(item, item_type, source, dotted) for item in value]
+    if expected is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if expected is bool and not isinstance(value, bool):
+        raise ConfigError(f"{source}: '{dotted}' must be true or false, not {value!r}")
+    if expected is int and isinstance(value, bool):
+        raise ConfigError(f"{source}: '{dotted}' must be an integer, not {value!r}")
+    if not isinstance(value, expected):
+        raise ConfigError(f"{source}: '{dotted}' must be {_type_name(expected)}, not {value!r}")
+    return value
+
+
+def _type_name(expected: Any) -> str:
+    names = {str: "a string", int: "an integer", float: "a number", bool: "true or false"}
+    return names.get(expected, str(expected))
+
+
+# --------------------------------------------------------------------------- dumping
+
+
+def dump_toml(config: object) -> str:
+    """The configuration as TOML, every key included, each section with its docstrings."""
+    lines: list[str] = []
+    for section in dataclasses.fields(config):  # type: ignore[arg-type]
+        value = getattr(config, section.name)
+        lines.append(f"[{section.name}]")
+        docs = _field_docs(type(value))
+        for item in dataclasses.fields(value):
+            doc = docs.get(item.name)
+            if doc:
+                lines.extend(f"# {line}" for line in doc.splitlines())
+            lines.append(f"{item.name} = {_toml_value(getattr(value, item.name))}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        escaped = value.replace("\\", "\\\\").replace('"', '\\"')
+        return f'"{escaped}"'
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(item) for item in value) + "]"
+    raise TypeError(f"cannot write {value!r} as TOML")
+
+
+def _field_docs(cls: type) -> dict[str, str]:
+    """Attribute docstrings (the string literal after a field), read from the source."""
+    import ast
+    import inspect
+    import textwrap
+
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    except (OSError, TypeError):
+        return {}
+    docs: dict[str, str] = {}
+    body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+    for node, following in zip(body, body[1:], strict=False):
+        if (
+            isinstance(node, ast.AnnAssign)
+            and isinstance(node.target, ast.Name)
+            and isinstance(following, ast.Expr)
+            and isinstance(following.value, ast.Constant)
+            and isinstance(following.value.value, str)
+        ):
+            docs[node.target.id] = inspect.cleandoc(following.value.value)
+    return docs

@@ -1,0 +1,112 @@
+"""Bus message types: small frozen dataclasses. Topics are in :mod:`brasidas.topics`."""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any
+
+from brasidas.codecs.commands import CommandCode
+
+
+@dataclass(frozen=True)
+class CommandResult:
+    """An actor's answer to a system command."""
+
+    accepted: bool
+    reason: str = ""
+    result: Any = None
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"accepted": self.accepted, "reason": self.reason, "result": self.result}
+
+
+@dataclass(frozen=True, eq=False)
+class SystemCommand:
+    """A signal from a station (R-14), published on ``SYSTEM_COMMANDS``.
+
+    The actor that owns ``code`` calls :meth:`claim` synchronously inside its subscriber
+    callback and completes the returned future (at once or later, from its own task).
+    A command nobody claims is answered by the signaling layer.
+    """
+
+    code: CommandCode
+    payload: str
+    session_id: str | None
+    _reply: asyncio.Future[CommandResult] = field(default_factory=asyncio.Future, repr=False)
+    _claimed: list[str] = field(default_factory=list, repr=False)
+
+    def claim(self, owner: str) -> asyncio.Future[CommandResult]:
+        """Take ownership; returns the future to complete with the answer."""
+        if self._claimed:
+            raise RuntimeError(f"{self.code} already claimed by {self._claimed[0]}")
+        self._claimed.append(owner)
+        return self._reply
+
+    def respond(self, owner: str, result: CommandResult) -> None:
+        """Claim and answer at once."""
+        self.claim(owner).set_result(result)
+
+    @property
+    def claimed_by(self) -> str | None:
+        return self._claimed[0] if self._claimed else None
+
+    @property
+    def reply(self) -> asyncio.Future[CommandResult]:
+        return self._reply
+
+
+class Mode(Enum):
+    AUTONOMOUS = "autonomous"
+    TELEOP = "teleop"
+
+
+@dataclass(frozen=True)
+class OverrideState:
+    """Manual override (MOVRD) state and who holds it."""
+
+    engaged: bool
+    session_id: str | None = None
+    station_id: str | None = None
+
+    @property
+    def mode(self) -> Mode:
+        return Mode.TELEOP if self.engaged else Mode.AUTONOMOUS
+
+
+@dataclass(frozen=True)
+class SessionOpened:
+    session_id: str
+    station_id: str
+    peer_host: str
+
+
+@dataclass(frozen=True)
+class SessionClosed:
+    session_id: str
+    station_id: str
+    reason: str
+    """"disconnect", "timeout" or "shutdown"."""
+
+
+@dataclass(frozen=True)
+class LightsState:
+    main: bool = False
+    positional: bool = False
+
+
+@dataclass(frozen=True)
+class Position:
+    """A geographic position in degrees (WGS-84)."""
+
+    latitude: float
+    longitude: float
+
+
+@dataclass(frozen=True)
+class Velocity:
+    """Platform-agnostic velocity: linear x and angular z, each in [-1, 1] (R-2.2)."""
+
+    linear: float
+    angular: float

@@ -1,0 +1,179 @@
+"""JSON-RPC transports over aiohttp: HTTP POST and WebSocket server routes, and a WebSocket client."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import json
+import logging
+from typing import Any
+
+import aiohttp
+from aiohttp import web
+
+from brasidas.codecs.jsonrpc import (
+    REQUEST_TOO_LARGE,
+    TIMEOUT,
+    UNAUTHORIZED,
+    CallContext,
+    Dispatcher,
+    RpcError,
+    encode_request,
+)
+
+_LOGGER = logging.getLogger(__name__)
+
+
+def add_rpc_routes(app: web.Application, dispatcher: Dispatcher, path: str, max_bytes: int) -> None:
+    """Serve ``dispatcher`` at ``path`` (POST) and ``path/ws`` (WebSocket)."""
+
+    async def post(request: web.Request) -> web.Response:
+        if request.content_length is not None and request.content_length > max_bytes:
+            return _too_large()
+        try:
+            body = await request.content.readexactly(request.content_length) if request.content_length else await request.content.read(max_bytes + 1)
+        except asyncio.IncompleteReadError:
+            return web.Response(status=400, text="incomplete body")
+        if len(body) > max_bytes:
+            return _too_large()
+        ctx = CallContext(peer_host=_peer_host(request), transport="http")
+        answer = await dispatcher.handle_bytes(body, ctx)
+        if answer is None:
+            return web.Response(status=204)
+        status = 401 if _is_unauthorized(answer) else 200
+        return web.Response(body=answer, status=status, content_type="application/json")
+
+    async def websocket(request: web.Request) -> web.WebSocketResponse:
+        ws = web.WebSocketResponse(max_msg_size=max_bytes, heartbeat=None)
+        await ws.prepare(request)
+        ctx = CallContext(peer_host=_peer_host(request), transport="ws")
+        ctx.extra["ws"] = ws
+        async for message in ws:
+            if message.type in (aiohttp.WSMsgType.TEXT, aiohttp.WSMsgType.BINARY):
+                answer = await dispatcher.handle_bytes(message.data, ctx)
+                if answer is not None:
+                    await ws.send_str(answer.decode())
+            elif message.type == aiohttp.WSMsgType.ERROR:
+                _LOGGER.debug("websocket error from %s: %s", ctx.peer_host, ws.exception())
+        for callback in ctx.extra.get("on_close", ()):
+            callback()
+        return ws
+
+    app.router.add_post(path, post)
+    app.router.add_get(path + "/ws", websocket)
+
+
+def _too_large() -> web.Response:
+    body = json.dumps(
+        {"jsonrpc": "2.0", "id": None, "error": {"code": REQUEST_TOO_LARGE, "message": "request too large"}}
+    )
+    return web.Response(status=413, text=body, content_type="application/json")
+
+
+def _is_unauthorized(answer: bytes) -> bool:
+    try:
+        message = json.loads(answer)
+    except ValueError:
+        return False
+    return isinstance(message, dict) and message.get("error", {}).get("code") == UNAUTHORIZED
+
+
+def _peer_host(request: web.Request) -> str:
+    peer = request.transport.get_extra_info("peername") if request.transport else None
+    return str(peer[0]) if peer else ""
+
+
+class RpcClient:
+    """A JSON-RPC client over one WebSocket. ``close()`` is idempotent and fails pending calls."""
+
+    def __init__(self, url: str, *, timeout: float = 3.0) -> None:
+        self.url = url
+        self.timeout = timeout
+        self._session: aiohttp.ClientSession | None = None
+        self._ws: aiohttp.ClientWebSocketResponse | None = None
+        self._reader: asyncio.Task[None] | None = None
+        self._pending: dict[int, asyncio.Future[Any]] = {}
+        self._ids = itertools.count(1)
+        self.closed = asyncio.Event()
+
+    async def open(self) -> None:
+        self._session = aiohttp.ClientSession()
+        try:
+            self._ws = await self._session.ws_connect(self.url, timeout=aiohttp.ClientWSTimeout(ws_close=1.0), autoping=True)
+        except BaseException:
+            await self._session.close()
+            self._session = None
+            raise
+        self._reader = asyncio.get_running_loop().create_task(self._read(), name=f"rpc-client:{self.url}")
+
+    async def call(self, method: str, params: dict[str, Any] | list[Any] | None = None, *, timeout: float | None = None) -> Any:
+        """Call ``method``; raises :class:`RpcError` for an error answer or a timeout."""
+        if self._ws is None or self._ws.closed:
+            raise ConnectionError(f"not connected to {self.url}")
+        request_id = next(self._ids)
+        future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        self._pending[request_id] = future
+        try:
+            await self._ws.send_str(encode_request(method, params, request_id).decode())
+            return await asyncio.wait_for(future, timeout or self.timeout)
+        except TimeoutError:
+            raise RpcError(TIMEOUT, f"no answer to {method} within {timeout or self.timeout:.1f} s") from None
+        finally:
+            self._pending.pop(request_id, None)
+
+    async def _read(self) -> None:
+        assert self._ws is not None
+        try:
+            async for message in self._ws:
+                if message.type != aiohttp.WSMsgType.TEXT:
+                    continue
+                try:
+                    answer = json.loads(message.data)
+                except ValueError:
+                    _LOGGER.warning("unparseable answer from %s", self.url)
+                    continue
+                for item in answer if isinstance(answer, list) else [answer]:
+                    self._resolve(item)
+        finally:
+            self._fail_pending(ConnectionError(f"connection to {self.url} closed"))
+            self.closed.set()
+
+    def _resolve(self, item: Any) -> None:
+        if not isinstance(item, dict):
+            return
+        future = self._pending.get(item.get("id"))  # type: ignore[arg-type]
+        if future is None or future.done():
+            return
+        if "error" in item and isinstance(item["error"], dict):
+            error = item["error"]
+            future.set_exception(RpcError(int(error.get("code", 0)), str(error.get("message", "")), error.get("data")))
+        else:
+            future.set_result(item.get("result"))
+
+    def _fail_pending(self, exc: Exception) -> None:
+        for future in self._pending.values():
+            if not future.done():
+                future.set_exception(exc)
+
+    async def close(self) -> None:
+        self._fail_pending(ConnectionError("client closed"))
+        if self._ws is not None:
+            with contextlib.suppress(Exception):
+                await self._ws.close()
+        if self._reader is not None:
+            self._reader.cancel("client closed")
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self._reader
+            self._reader = None
+        if self._session is not None:
+            await self._session.close()
+            self._session = None
+        self.closed.set()
+
+    async def __aenter__(self) -> RpcClient:
+        await self.open()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()

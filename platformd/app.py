@@ -1,0 +1,63 @@
+"""The platform daemon: builds the context, sets up each subsystem, serves until stopped."""
+
+from __future__ import annotations
+
+import asyncio
+import importlib
+import logging
+import time
+
+from brasidas.actor import Supervisor
+from brasidas.bus import Bus
+from brasidas.codecs.jsonrpc import Dispatcher
+from brasidas.config import PlatformConfig
+from platformd.context import PlatformContext
+
+_LOGGER = logging.getLogger(__name__)
+
+SUBSYSTEMS: tuple[str, ...] = (
+    # Order matters: simulators first (they create the ptys the drivers open), then the
+    # drivers, then what reports on them. Each module has ``async def async_setup(ctx)``.
+    "platformd.sessions",
+    "platformd.mode",
+    "platformd.signaling",
+)
+
+
+class PlatformDaemon:
+    """One platform: ``await start()``, then ``await stop()`` (idempotent, bounded)."""
+
+    def __init__(self, config: PlatformConfig, fleet_key: bytes | None) -> None:
+        self.config = config
+        self.bus = Bus()
+        self.supervisor = Supervisor()
+        self.ctx = PlatformContext(
+            config=config,
+            bus=self.bus,
+            supervisor=self.supervisor,
+            rpc=Dispatcher(),
+            fleet_key=fleet_key,
+        )
+        self._stopped = False
+        self.started_at = time.monotonic()
+
+    async def start(self) -> None:
+        for name in SUBSYSTEMS:
+            module = importlib.import_module(name)
+            await module.async_setup(self.ctx)
+        _LOGGER.info(
+            "platform %s up: signaling %s", self.config.platform.id, self.ctx.sim.get("signaling_url", "")
+        )
+
+    async def stop(self, timeout: float = 0.9) -> None:
+        if self._stopped:
+            return
+        self._stopped = True
+        await self.supervisor.stop(timeout)
+
+    async def run(self, stop: asyncio.Event) -> None:
+        await self.start()
+        try:
+            await stop.wait()
+        finally:
+            await self.stop()

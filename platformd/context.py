@@ -1,0 +1,29 @@
+"""What every platform subsystem gets at setup: config, bus, supervisor, RPC table, capabilities."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from brasidas.actor import Supervisor
+from brasidas.bus import Bus
+from brasidas.codecs.jsonrpc import Dispatcher
+from brasidas.config import PlatformConfig
+
+
+@dataclass
+class PlatformContext:
+    config: PlatformConfig
+    bus: Bus
+    supervisor: Supervisor
+    rpc: Dispatcher
+    """Signaling methods: ``rpc.add(name, handler)``; handlers take ``(ctx: CallContext, **params)``."""
+    fleet_key: bytes | None
+    """None only with --insecure."""
+    capabilities: dict[str, Callable[[], Any]] = field(default_factory=dict)
+    """Sections of the ``connect`` answer's capabilities, each computed when asked."""
+    telemetry_sources: dict[str, Callable[[], Any]] = field(default_factory=dict)
+    """Sections of the telemetry snapshot, each computed when a report is built."""
+    sim: dict[str, Any] = field(default_factory=dict)
+    """Simulated devices by name (only in --sim), for subsystems that need to reach them."""
