@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from brasidas.bus import Topic
 from brasidas.messages import (
     LightsState,
@@ -26,3 +28,8 @@ CMD_VEL: Topic[Velocity] = Topic("cmd_vel")
 # Platform state reported by beacons and telemetry
 LIGHTS_STATE: Topic[LightsState] = Topic("lights_state", retain=True)
 POSITION: Topic[Position] = Topic("position", retain=True)
+
+# --------------------------------------------------------------------------- station
+# Published by the station's connection manager with the stationd.client.PlatformConnection.
+PLATFORM_CONNECTED: Topic[Any] = Topic("platform_connected")
+PLATFORM_DISCONNECTED: Topic[Any] = Topic("platform_disconnected")
