@@ -142,3 +142,8 @@ class Supervisor:
         for actor in self._actors:
             actor.remove_subscriptions()
         self._tasks.clear()
+
+
+async def wait_forever() -> None:
+    """Park an actor whose work is all in callbacks until it is cancelled."""
+    await asyncio.Event().wait()

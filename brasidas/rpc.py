@@ -32,7 +32,11 @@ def add_rpc_routes(app: web.Application, dispatcher: Dispatcher, path: str, max_
         if request.content_length is not None and request.content_length > max_bytes:
             return _too_large()
         try:
-            body = await request.content.readexactly(request.content_length) if request.content_length else await request.content.read(max_bytes + 1)
+            body = (
+                await request.content.readexactly(request.content_length)
+                if request.content_length
+                else await request.content.read(max_bytes + 1)
+            )
         except asyncio.IncompleteReadError:
             return web.Response(status=400, text="incomplete body")
         if len(body) > max_bytes:
@@ -66,7 +70,11 @@ def add_rpc_routes(app: web.Application, dispatcher: Dispatcher, path: str, max_
 
 def _too_large() -> web.Response:
     body = json.dumps(
-        {"jsonrpc": "2.0", "id": None, "error": {"code": REQUEST_TOO_LARGE, "message": "request too large"}}
+        {
+            "jsonrpc": "2.0",
+            "id": None,
+            "error": {"code": REQUEST_TOO_LARGE, "message": "request too large"},
+        }
     )
     return web.Response(status=413, text=body, content_type="application/json")
 
@@ -100,14 +108,24 @@ class RpcClient:
     async def open(self) -> None:
         self._session = aiohttp.ClientSession()
         try:
-            self._ws = await self._session.ws_connect(self.url, timeout=aiohttp.ClientWSTimeout(ws_close=1.0), autoping=True)
+            self._ws = await self._session.ws_connect(
+                self.url, timeout=aiohttp.ClientWSTimeout(ws_close=1.0), autoping=True
+            )
         except BaseException:
             await self._session.close()
             self._session = None
             raise
-        self._reader = asyncio.get_running_loop().create_task(self._read(), name=f"rpc-client:{self.url}")
+        self._reader = asyncio.get_running_loop().create_task(
+            self._read(), name=f"rpc-client:{self.url}"
+        )
 
-    async def call(self, method: str, params: dict[str, Any] | list[Any] | None = None, *, timeout: float | None = None) -> Any:
+    async def call(
+        self,
+        method: str,
+        params: dict[str, Any] | list[Any] | None = None,
+        *,
+        timeout: float | None = None,
+    ) -> Any:
         """Call ``method``; raises :class:`RpcError` for an error answer or a timeout."""
         if self._ws is None or self._ws.closed:
             raise ConnectionError(f"not connected to {self.url}")
@@ -118,7 +136,9 @@ class RpcClient:
             await self._ws.send_str(encode_request(method, params, request_id).decode())
             return await asyncio.wait_for(future, timeout or self.timeout)
         except TimeoutError:
-            raise RpcError(TIMEOUT, f"no answer to {method} within {timeout or self.timeout:.1f} s") from None
+            raise RpcError(
+                TIMEOUT, f"no answer to {method} within {timeout or self.timeout:.1f} s"
+            ) from None
         finally:
             self._pending.pop(request_id, None)
 
@@ -147,7 +167,11 @@ class RpcClient:
             return
         if "error" in item and isinstance(item["error"], dict):
             error = item["error"]
-            future.set_exception(RpcError(int(error.get("code", 0)), str(error.get("message", "")), error.get("data")))
+            future.set_exception(
+                RpcError(
+                    int(error.get("code", 0)), str(error.get("message", "")), error.get("data")
+                )
+            )
         else:
             future.set_result(item.get("result"))
 

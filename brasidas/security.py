@@ -47,7 +47,9 @@ def load_key(path: Path) -> bytes:
     try:
         text = path.read_text().strip()
     except FileNotFoundError:
-        raise FleetKeyError(f"{path}: fleet key not found (create one with 'brasidas-station keygen')") from None
+        raise FleetKeyError(
+            f"{path}: fleet key not found (create one with 'brasidas-station keygen')"
+        ) from None
     except OSError as err:
         raise FleetKeyError(f"{path}: cannot read fleet key: {err.strerror}") from None
     try:
@@ -89,3 +91,17 @@ def verify(expected: bytes, received: bytes) -> bool:
 def session_key(fleet_key: bytes, token: str, platform_nonce: str, station_nonce: str) -> bytes:
     """The per-session key both ends derive after connect; never sent."""
     return tag(fleet_key, b"brasidas-session", token, platform_nonce, station_nonce)
+
+
+def connect_proof(
+    key: bytes, platform_id: str, station_id: str, nonce: str, station_nonce: str
+) -> str:
+    """What the station sends to prove it holds the fleet key."""
+    return tag(key, b"brasidas-connect", platform_id, station_id, nonce, station_nonce).hex()
+
+
+def accept_proof(
+    key: bytes, platform_id: str, station_id: str, nonce: str, station_nonce: str, token: str
+) -> str:
+    """What the platform answers to prove it holds the fleet key too."""
+    return tag(key, b"brasidas-accept", platform_id, station_id, nonce, station_nonce, token).hex()

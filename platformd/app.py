@@ -46,7 +46,7 @@ class PlatformDaemon:
             module = importlib.import_module(name)
             await module.async_setup(self.ctx)
         _LOGGER.info(
-            "platform %s up: signaling %s", self.config.platform.id, self.ctx.sim.get("signaling_url", "")
+            "platform %s up: signaling %s", self.config.platform.id, self.ctx.signaling_url
         )
 
     async def stop(self, timeout: float = 0.9) -> None:

@@ -21,6 +21,10 @@ class PlatformContext:
     """Signaling methods: ``rpc.add(name, handler)``; handlers take ``(ctx: CallContext, **params)``."""
     fleet_key: bytes | None
     """None only with --insecure."""
+    signaling_url: str = ""
+    """Where stations reach signaling; set once the server is bound."""
+    sessions: Any = None
+    """The session manager (platformd.sessions.SessionManager), set by its setup."""
     capabilities: dict[str, Callable[[], Any]] = field(default_factory=dict)
     """Sections of the ``connect`` answer's capabilities, each computed when asked."""
     telemetry_sources: dict[str, Callable[[], Any]] = field(default_factory=dict)

@@ -25,7 +25,8 @@ async def verify_no_lingering_tasks() -> AsyncIterator[None]:
     # Give cancelled tasks one turn of the loop to finish unwinding.
     await asyncio.sleep(0)
     lingering = [
-        task for task in asyncio.all_tasks() - before
+        task
+        for task in asyncio.all_tasks() - before
         if not task.done() and task is not asyncio.current_task()
     ]
     for task in lingering:

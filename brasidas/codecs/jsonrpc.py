@@ -78,7 +78,7 @@ class Dispatcher:
 
     def __init__(self, authorizer: Authorizer | None = None) -> None:
         self._methods: dict[str, Method] = {}
-        self._authorizer = authorizer
+        self.authorizer = authorizer
         self.counters: dict[str, int] = {
             "calls": 0,
             "parse_errors": 0,
@@ -89,13 +89,17 @@ class Dispatcher:
             "internal_errors": 0,
         }
 
-    def add(self, name: str, handler: Handler, *, session_required: bool = True) -> Callable[[], None]:
+    def add(
+        self, name: str, handler: Handler, *, session_required: bool = True
+    ) -> Callable[[], None]:
         """Register ``handler(ctx, **params)``; returns the function that removes it."""
         if name in self._methods:
             raise ValueError(f"method {name} already registered")
         signature = inspect.signature(handler)
         params = list(signature.parameters.values())[1:]  # drop ctx
-        self._methods[name] = Method(name, handler, session_required, signature.replace(parameters=params))
+        self._methods[name] = Method(
+            name, handler, session_required, signature.replace(parameters=params)
+        )
         return lambda: self._methods.pop(name, None)  # type: ignore[return-value]
 
     @property
@@ -124,7 +128,9 @@ class Dispatcher:
         if not isinstance(message, dict) or message.get("jsonrpc") != "2.0":
             self.counters["invalid_requests"] += 1
             request_id = message.get("id") if isinstance(message, dict) else None
-            return _error_response(_valid_id(request_id), RpcError(INVALID_REQUEST, "invalid request"))
+            return _error_response(
+                _valid_id(request_id), RpcError(INVALID_REQUEST, "invalid request")
+            )
         is_notification = "id" not in message
         request_id = message.get("id")
         if not is_notification and not _is_valid_id(request_id):
@@ -164,10 +170,10 @@ class Dispatcher:
         else:
             kwargs = dict(params)
         if method.session_required:
-            if self._authorizer is None:
+            if self.authorizer is None:
                 raise RpcError(INTERNAL_ERROR, "no authorizer")
             try:
-                await self._authorizer(ctx, kwargs)
+                await self.authorizer(ctx, kwargs)
             except RpcError as err:
                 if err.code == UNAUTHORIZED:
                     self.counters["unauthorized"] += 1
@@ -196,7 +202,9 @@ def _check_types(method: Method, kwargs: dict[str, Any], counters: dict[str, int
             not isinstance(value, annotation) or (annotation is int and isinstance(value, bool))
         ):
             counters["invalid_params"] += 1
-            raise RpcError(INVALID_PARAMS, f"invalid params: '{name}' must be {annotation.__name__}")
+            raise RpcError(
+                INVALID_PARAMS, f"invalid params: '{name}' must be {annotation.__name__}"
+            )
         if annotation is float and not isinstance(value, int | float):
             counters["invalid_params"] += 1
             raise RpcError(INVALID_PARAMS, f"invalid params: '{name}' must be a number")
@@ -218,7 +226,9 @@ def _encode(message: Any) -> bytes:
     return json.dumps(message, separators=(",", ":")).encode()
 
 
-def encode_request(method: str, params: dict[str, Any] | list[Any] | None, request_id: int | None) -> bytes:
+def encode_request(
+    method: str, params: dict[str, Any] | list[Any] | None, request_id: int | None
+) -> bytes:
     """A request (or a notification when ``request_id`` is None)."""
     message: dict[str, Any] = {"jsonrpc": "2.0", "method": method}
     if params is not None:

@@ -1,0 +1,5 @@
+import sys
+
+from platformd.cli import main
+
+sys.exit(main())

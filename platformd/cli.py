@@ -1,0 +1,152 @@
+"""``brasidas-platform``: the robot daemon, its configuration, and the standalone simulators."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import importlib
+import logging
+import signal
+import sys
+from collections.abc import Sequence
+
+from brasidas import security
+from brasidas.config import ConfigError, PlatformConfig, dump_toml, load_config
+from brasidas.log import setup_logging
+
+_LOGGER = logging.getLogger("platformd")
+
+SIMULATORS: dict[str, str] = {
+    # name -> "module:function" of ``async def serve_standalone(args)``; prints the pty path first.
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="brasidas-platform", description="Brasidas platform daemon (runs on the robot)."
+    )
+    parser.add_argument("--config", metavar="FILE", help="TOML configuration file")
+    parser.add_argument(
+        "--sim", action="store_true", help="simulated hardware behind the real drivers"
+    )
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override a configuration key (repeatable)",
+    )
+    parser.add_argument(
+        "--insecure", action="store_true", help="run without a fleet key (never in the field)"
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
+    parser.add_argument("--log-level", help="DEBUG, INFO, WARNING or ERROR")
+    sub = parser.add_subparsers(dest="command")
+    sub.add_parser("run", help="run the daemon (default)")
+    sub.add_parser("config", help="print the effective configuration as TOML")
+    simulate = sub.add_parser("simulate", help="run a simulated device on a pty, standalone")
+    simulate.add_argument(
+        "device",
+        help="device to simulate: " + ", ".join(sorted(SIMULATORS))
+        if SIMULATORS
+        else "device to simulate",
+    )
+    return parser
+
+
+def load_platform_config(args: argparse.Namespace) -> PlatformConfig:
+    config = load_config(PlatformConfig, args.config, args.overrides)
+    if args.sim:
+        config.sim.enabled = True
+    if args.insecure:
+        config.security.insecure = True
+    return config
+
+
+def load_fleet_key(config: PlatformConfig) -> bytes | None:
+    """The fleet key; created on first use in simulation, required otherwise."""
+    if config.security.insecure:
+        return None
+    path = security.key_path(config.security.key_file)
+    if config.sim.enabled:
+        return security.load_or_create_key(path)
+    return security.load_key(path)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    setup_logging(args.verbose, args.log_level)
+    try:
+        config = load_platform_config(args)
+    except ConfigError as err:
+        print(f"brasidas-platform: {err}", file=sys.stderr)
+        return 2
+    command = args.command or "run"
+    if command == "config":
+        sys.stdout.write(dump_toml(config))
+        return 0
+    if command == "simulate":
+        return _simulate(args)
+    try:
+        fleet_key = load_fleet_key(config)
+    except security.FleetKeyError as err:
+        print(f"brasidas-platform: {err}; or pass --insecure", file=sys.stderr)
+        return 2
+    if fleet_key is None:
+        _LOGGER.warning("running INSECURE: no fleet key, anyone on the network can connect")
+    try:
+        asyncio.run(run_daemon(config, fleet_key))
+    except OSError as err:
+        print(f"brasidas-platform: {err}", file=sys.stderr)
+        return 1
+    return 0
+
+
+async def run_daemon(config: PlatformConfig, fleet_key: bytes | None) -> None:
+    """Run until SIGTERM or SIGINT, then stop within a second (motors commanded to zero first)."""
+    from platformd.app import PlatformDaemon
+
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(signum, stop.set)
+    daemon = PlatformDaemon(config, fleet_key)
+    try:
+        await daemon.run(stop)
+    finally:
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            loop.remove_signal_handler(signum)
+    _LOGGER.info("platform stopped")
+
+
+def _simulate(args: argparse.Namespace) -> int:
+    target = SIMULATORS.get(args.device)
+    if target is None:
+        known = ", ".join(sorted(SIMULATORS)) or "none"
+        print(
+            f"brasidas-platform: unknown device {args.device!r} (known: {known})", file=sys.stderr
+        )
+        return 2
+    module_name, _, function_name = target.partition(":")
+    serve = getattr(importlib.import_module(module_name), function_name)
+
+    async def runner() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(signum, stop.set)
+        task = loop.create_task(serve(args), name=f"simulate:{args.device}")
+        waiter = loop.create_task(stop.wait())
+        await asyncio.wait({task, waiter}, return_when=asyncio.FIRST_COMPLETED)
+        for pending in (task, waiter):
+            pending.cancel()
+        await asyncio.gather(task, waiter, return_exceptions=True)
+
+    asyncio.run(runner())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

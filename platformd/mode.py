@@ -1,0 +1,77 @@
+"""Mode arbiter: the manual override (MOVRD, command 10.0) and who holds it (R-5, R-17).
+
+Autonomous Mode is the default. One session at a time may hold the override; it is released
+when that session disengages, disconnects or times out.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from brasidas import topics
+from brasidas.actor import Actor, wait_forever
+from brasidas.codecs.commands import MANUAL_OVERRIDE, PayloadError, parse_switch
+from brasidas.messages import CommandResult, OverrideState, SessionClosed, SystemCommand
+from platformd.context import PlatformContext
+
+_LOGGER = logging.getLogger(__name__)
+
+
+class ModeArbiter(Actor):
+    name = "mode"
+
+    def __init__(self, ctx: PlatformContext) -> None:
+        super().__init__(ctx.bus)
+        self.ctx = ctx
+        self.state = OverrideState(engaged=False)
+
+    async def run(self) -> None:
+        self.subscribe(topics.SYSTEM_COMMANDS, self._on_command)
+        self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
+        self.bus.publish(topics.OVERRIDE_STATE, self.state)
+        await wait_forever()
+
+    def _on_command(self, cmd: SystemCommand) -> None:
+        if cmd.code != MANUAL_OVERRIDE:
+            return
+        try:
+            engage = parse_switch(cmd.payload)
+        except PayloadError as err:
+            cmd.respond(self.name, CommandResult(False, str(err)))
+            return
+        cmd.respond(self.name, self.request(engage, cmd.session_id))
+
+    def request(self, engage: bool, session_id: str | None) -> CommandResult:
+        """Engage or disengage on behalf of ``session_id``; the answer says whether it took."""
+        held_by = self.state.session_id
+        if engage:
+            if self.state.engaged and held_by != session_id:
+                return CommandResult(False, f"manual override held by {self.state.station_id}")
+            if session_id is None:
+                return CommandResult(False, "manual override needs a station session")
+            session = self.ctx.sessions.sessions.get(session_id) if self.ctx.sessions else None
+            station = session.station_id if session else None
+            self._set(OverrideState(True, session_id, station))
+            return CommandResult(True, result={"engaged": True})
+        if self.state.engaged and held_by != session_id:
+            return CommandResult(False, f"manual override held by {self.state.station_id}")
+        self._set(OverrideState(False))
+        return CommandResult(True, result={"engaged": False})
+
+    def _on_session_closed(self, event: SessionClosed) -> None:
+        if self.state.engaged and self.state.session_id == event.session_id:
+            _LOGGER.warning(
+                "manual override released: session of %s ended (%s)", event.station_id, event.reason
+            )
+            self._set(OverrideState(False))
+
+    def _set(self, state: OverrideState) -> None:
+        if state == self.state:
+            return
+        self.state = state
+        _LOGGER.info("mode: %s", state.mode.value)
+        self.bus.publish(topics.OVERRIDE_STATE, state)
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    ctx.supervisor.start(ModeArbiter(ctx))

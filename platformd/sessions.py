@@ -1,0 +1,223 @@
+"""Station sessions: authenticated connect (HMAC challenge-response), heartbeats, expiry (R-17).
+
+``challenge`` hands out a one-time nonce; ``connect`` proves knowledge of the fleet key with
+HMAC(nonce, station nonce) and gets back a session token plus the platform's own proof, so both
+ends authenticate each other and derive the same session key without sending it. Every session
+method then carries ``session``: the token. A session ends on ``disconnect``, when its WebSocket
+closes, or after ``signaling.session_timeout`` without a call; ``SESSION_CLOSED`` then tells the
+mode arbiter to release the manual override.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import secrets
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from brasidas import __version__, security, topics
+from brasidas.actor import Actor
+from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError, Unauthorized
+from brasidas.messages import SessionClosed, SessionOpened
+from brasidas.security import accept_proof, connect_proof
+from platformd.context import PlatformContext
+
+_LOGGER = logging.getLogger(__name__)
+
+MAX_PENDING_CHALLENGES = 256
+CHALLENGE_LIFETIME = 10.0
+
+
+@dataclass
+class Session:
+    session_id: str
+    station_id: str
+    peer_host: str
+    session_key: bytes | None
+    opened_at: float
+    last_seen: float
+
+
+class SessionManager(Actor):
+    """Owns the sessions; its ``run`` expires silent ones."""
+
+    name = "sessions"
+
+    def __init__(self, ctx: PlatformContext, clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__(ctx.bus)
+        self.ctx = ctx
+        self._clock = clock
+        self.sessions: dict[str, Session] = {}
+        self._challenges: OrderedDict[str, float] = OrderedDict()
+        self.auth_failures = 0
+
+    # ------------------------------------------------------------------ lifecycle
+
+    async def run(self) -> None:
+        while True:
+            await asyncio.sleep(0.1)
+            self.expire()
+
+    async def async_stop(self) -> None:
+        for session_id in list(self.sessions):
+            self.close(session_id, "shutdown")
+
+    def expire(self) -> None:
+        now = self._clock()
+        timeout = self.ctx.config.signaling.session_timeout
+        for session in list(self.sessions.values()):
+            if now - session.last_seen > timeout:
+                _LOGGER.warning("session of %s timed out", session.station_id)
+                self.close(session.session_id, "timeout")
+
+    def close(self, session_id: str, reason: str) -> None:
+        session = self.sessions.pop(session_id, None)
+        if session is None:
+            return
+        _LOGGER.info("session of %s closed (%s)", session.station_id, reason)
+        self.bus.publish(
+            topics.SESSION_CLOSED, SessionClosed(session_id, session.station_id, reason)
+        )
+
+    # ------------------------------------------------------------------ authorizer
+
+    async def authorize(self, call: CallContext, params: dict[str, Any]) -> None:
+        """Check and strip the ``session`` token; sets ``call.session``."""
+        token = params.pop("session", None)
+        session = self.sessions.get(token) if isinstance(token, str) else None
+        if session is None:
+            self.auth_failures += 1
+            raise Unauthorized("unauthorized: no valid session")
+        session.last_seen = self._clock()
+        call.session = session
+
+    # ------------------------------------------------------------------ methods
+
+    async def rpc_challenge(self, call: CallContext) -> dict[str, Any]:
+        """A one-time nonce for ``connect``."""
+        now = self._clock()
+        while self._challenges and (
+            len(self._challenges) >= MAX_PENDING_CHALLENGES
+            or next(iter(self._challenges.values())) < now
+        ):
+            self._challenges.popitem(last=False)
+        nonce = secrets.token_hex(16)
+        self._challenges[nonce] = now + CHALLENGE_LIFETIME
+        return {
+            "nonce": nonce,
+            "platform_id": self.ctx.config.platform.id,
+            "auth": "none" if self.ctx.fleet_key is None else "hmac-sha256",
+        }
+
+    async def rpc_connect(
+        self,
+        call: CallContext,
+        station_id: str,
+        nonce: str = "",
+        station_nonce: str = "",
+        proof: str = "",
+    ) -> dict[str, Any]:
+        """Open a session; returns it with the platform's parameters and capabilities."""
+        if not station_id or len(station_id) > 64:
+            raise RpcError(INVALID_PARAMS, "invalid params: station_id must be 1-64 characters")
+        key = self.ctx.fleet_key
+        platform_id = self.ctx.config.platform.id
+        token = secrets.token_hex(16)
+        platform_proof = ""
+        session_key: bytes | None = None
+        if key is not None:
+            expires = self._challenges.pop(nonce, None)
+            expected = connect_proof(key, platform_id, station_id, nonce, station_nonce)
+            if (
+                expires is None
+                or expires < self._clock()
+                or not security.verify(expected.encode(), proof.encode())
+            ):
+                self.auth_failures += 1
+                _LOGGER.warning(
+                    "refused connect from %s (%s): bad proof", call.peer_host, station_id
+                )
+                raise Unauthorized("unauthorized: bad or expired challenge proof")
+            platform_proof = accept_proof(key, platform_id, station_id, nonce, station_nonce, token)
+            session_key = security.session_key(key, token, nonce, station_nonce)
+        now = self._clock()
+        session = Session(token, station_id, call.peer_host, session_key, now, now)
+        self.sessions[token] = session
+        if "ws" in call.extra:
+            # A session opened over a WebSocket ends with it: the station is gone.
+            call.extra.setdefault("on_close", []).append(
+                lambda: self.close(token, "connection lost")
+            )
+        _LOGGER.info("session opened by %s from %s", station_id, call.peer_host)
+        self.bus.publish(topics.SESSION_OPENED, SessionOpened(token, station_id, call.peer_host))
+        return {
+            "session": token,
+            "proof": platform_proof,
+            "heartbeat_interval": self.ctx.config.signaling.heartbeat_interval,
+            "session_timeout": self.ctx.config.signaling.session_timeout,
+            "parameters": platform_parameters(self.ctx),
+            "capabilities": capabilities(self.ctx),
+        }
+
+    async def rpc_disconnect(self, call: CallContext) -> bool:
+        self.close(call.session.session_id, "disconnect")
+        return True
+
+    async def rpc_heartbeat(self, call: CallContext) -> dict[str, Any]:
+        override = self.bus.last(topics.OVERRIDE_STATE)
+        return {
+            "time": time.time(),
+            "manual_override": bool(override and override.engaged),
+        }
+
+
+def platform_parameters(ctx: PlatformContext) -> dict[str, Any]:
+    config = ctx.config
+    return {
+        "id": config.platform.id,
+        "model": config.platform.model,
+        "software_version": __version__,
+        "simulated": config.sim.enabled,
+        "limits": {
+            "max_speed_kmh": config.platform.max_speed_kmh,
+            "linear": [-1.0, 1.0],
+            "angular": [-1.0, 1.0],
+        },
+    }
+
+
+def capabilities(ctx: PlatformContext) -> dict[str, Any]:
+    """The connect answer's capabilities: defaults, then what subsystems registered."""
+    result: dict[str, Any] = {
+        "streams": [],
+        "velocity": velocity_endpoint(ctx),
+        "telemetry": {"rate_hz": ctx.config.telemetry.rate_hz, "push": False},
+        "payload_groups": [],
+    }
+    for name, provider in ctx.capabilities.items():
+        result[name] = provider()
+    return result
+
+
+def velocity_endpoint(ctx: PlatformContext) -> dict[str, Any]:
+    velocity = ctx.config.velocity
+    return {
+        "host": velocity.advertise_host or velocity.host,
+        "port": velocity.port,
+        "auth": "none" if ctx.fleet_key is None else "hmac-sha256-64",
+    }
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    manager = SessionManager(ctx)
+    ctx.rpc.authorizer = manager.authorize
+    ctx.rpc.add("challenge", manager.rpc_challenge, session_required=False)
+    ctx.rpc.add("connect", manager.rpc_connect, session_required=False)
+    ctx.rpc.add("disconnect", manager.rpc_disconnect)
+    ctx.rpc.add("heartbeat", manager.rpc_heartbeat)
+    ctx.sessions = manager
+    ctx.supervisor.start(manager)

@@ -1,0 +1,157 @@
+"""Signaling, the common protocol (R-10, R-14): JSON-RPC 2.0 over aiohttp at /rpc and /rpc/ws.
+
+``issue_system_command`` publishes the command on ``SYSTEM_COMMANDS``; the actor that owns the
+code claims it and its answer goes back to the caller. Codes no actor claims are rejected with
+the reason (known codes) or answered with an error (unknown codes), never silence.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from typing import Any
+
+from aiohttp import web
+
+from brasidas import topics
+from brasidas.actor import Actor, wait_forever
+from brasidas.codecs.commands import (
+    MAIN_LIGHTS,
+    MANUAL_OVERRIDE,
+    POSITIONAL_LIGHTS,
+    STATION_ONLY_GROUPS,
+    CommandCode,
+    describe,
+)
+from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, RpcError
+from brasidas.messages import CommandResult, SystemCommand
+from brasidas.rpc import add_rpc_routes
+from platformd.context import PlatformContext
+from platformd.sessions import platform_parameters, velocity_endpoint
+
+_LOGGER = logging.getLogger(__name__)
+
+
+async def dispatch_command(
+    ctx: PlatformContext, code: CommandCode, payload: str, session_id: str | None
+) -> CommandResult:
+    """Publish a system command and wait for its owner's answer."""
+    if code.group in STATION_ONLY_GROUPS:
+        return CommandResult(False, f"group {code.group} is station-only")
+    description = describe(code)
+    command = SystemCommand(code, payload, session_id)
+    ctx.bus.publish(topics.SYSTEM_COMMANDS, command)
+    if command.claimed_by is None:
+        if description is None:
+            raise RpcError(INVALID_PARAMS, f"unknown command code {code}")
+        return CommandResult(False, f"{code} ({description}) is not available on this platform")
+    try:
+        return await asyncio.wait_for(
+            asyncio.shield(command.reply), ctx.config.signaling.command_timeout
+        )
+    except TimeoutError:
+        return CommandResult(False, f"{code} not answered by {command.claimed_by} in time")
+
+
+class Signaling:
+    """The common protocol's methods."""
+
+    def __init__(self, ctx: PlatformContext) -> None:
+        self.ctx = ctx
+
+    async def issue_system_command(
+        self, call: CallContext, group: int, command: int, payload: str = ""
+    ) -> dict[str, Any]:
+        if not 0 <= group <= 255 or not 0 <= command <= 255:
+            raise RpcError(INVALID_PARAMS, "invalid params: group and command must be 0-255")
+        result = await dispatch_command(
+            self.ctx, CommandCode(group, command), payload, call.session.session_id
+        )
+        return result.as_dict()
+
+    async def set_manual_override(self, call: CallContext, engaged: bool) -> bool:
+        result = await dispatch_command(
+            self.ctx, MANUAL_OVERRIDE, "True" if engaged else "False", call.session.session_id
+        )
+        return result.accepted
+
+    async def set_lights(self, call: CallContext, which: str, on: bool) -> dict[str, Any]:
+        """Main (10.6) or positional (10.7) lights; the seed's set_lights/set_pos_lights."""
+        codes = {"main": MAIN_LIGHTS, "positional": POSITIONAL_LIGHTS, "pos": POSITIONAL_LIGHTS}
+        if which not in codes:
+            raise RpcError(INVALID_PARAMS, "invalid params: which must be main or positional")
+        result = await dispatch_command(
+            self.ctx, codes[which], "ON" if on else "OFF", call.session.session_id
+        )
+        return result.as_dict()
+
+    async def get_platform_parameters(self, call: CallContext) -> dict[str, Any]:
+        return platform_parameters(self.ctx)
+
+    async def get_velocity_connection_info(self, call: CallContext) -> dict[str, Any]:
+        return velocity_endpoint(self.ctx)
+
+    async def get_nav_camera_parameters(self, call: CallContext) -> dict[str, Any]:
+        provider = self.ctx.capabilities.get("nav_camera")
+        if provider is None:
+            raise RpcError(UNAVAILABLE, "this platform has no NavCam")
+        return dict(provider())
+
+    async def get_telemetry_report(self, call: CallContext) -> dict[str, Any]:
+        override = self.ctx.bus.last(topics.OVERRIDE_STATE)
+        report: dict[str, Any] = {
+            "platform_id": self.ctx.config.platform.id,
+            "mode": override.mode.value if override else "autonomous",
+            "manual_override": bool(override and override.engaged),
+        }
+        for name, source in self.ctx.telemetry_sources.items():
+            report[name] = source()
+        return report
+
+
+class SignalingServer(Actor):
+    """Owns the aiohttp runner: the site is bound during setup, cleaned up when stopped."""
+
+    name = "signaling"
+    restart = False
+
+    def __init__(self, ctx: PlatformContext, runner: web.AppRunner) -> None:
+        super().__init__(ctx.bus)
+        self.runner = runner
+
+    async def run(self) -> None:
+        try:
+            await wait_forever()
+        finally:
+            with contextlib.suppress(Exception):
+                await asyncio.shield(self.runner.cleanup())
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    signaling = Signaling(ctx)
+    for name in (
+        "issue_system_command",
+        "set_manual_override",
+        "set_lights",
+        "get_platform_parameters",
+        "get_velocity_connection_info",
+        "get_nav_camera_parameters",
+        "get_telemetry_report",
+    ):
+        ctx.rpc.add(name, getattr(signaling, name))
+    config = ctx.config.signaling
+    app = web.Application(client_max_size=config.max_request_bytes)
+    add_rpc_routes(app, ctx.rpc, "/rpc", config.max_request_bytes)
+    runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=0.2)
+    await runner.setup()
+    site = web.TCPSite(runner, config.host, config.port, reuse_address=True)
+    try:
+        await site.start()
+    except OSError:
+        await runner.cleanup()
+        raise
+    port = runner.addresses[0][1] if runner.addresses else config.port
+    config.port = port  # with port 0 the kernel chose one; beacons must carry the real one
+    ctx.signaling_url = f"http://{config.advertise_host or config.host}:{port}"
+    ctx.supervisor.start(SignalingServer(ctx, runner))

@@ -1,0 +1,167 @@
+"""A station's connection to one platform: authenticated connect, heartbeats, signaling calls."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import secrets
+import time
+from typing import Any
+from urllib.parse import urlsplit
+
+from brasidas import security
+from brasidas.codecs.jsonrpc import RpcError
+from brasidas.rpc import RpcClient
+from brasidas.security import accept_proof, connect_proof
+
+_LOGGER = logging.getLogger(__name__)
+
+
+class AuthenticationError(Exception):
+    """The platform refused us, or could not prove it holds the fleet key."""
+
+
+class PlatformConnection:
+    """One session with one platform. Single use: ``open()`` once, ``close()`` any number of times."""
+
+    def __init__(
+        self,
+        platform_id: str,
+        signaling_url: str,
+        *,
+        station_id: str,
+        fleet_key: bytes | None,
+        timeout: float = 3.0,
+    ) -> None:
+        self.platform_id = platform_id
+        self.signaling_url = signaling_url.rstrip("/")
+        self.platform_host = urlsplit(self.signaling_url).hostname or ""
+        self.station_id = station_id
+        self.fleet_key = fleet_key
+        self.timeout = timeout
+        self.session_id = ""
+        self.session_key: bytes | None = None
+        self.parameters: dict[str, Any] = {}
+        self.capabilities: dict[str, Any] = {}
+        self.manual_override = False
+        self.round_trip_ms: float | None = None
+        self.closed = asyncio.Event()
+        self.close_reason = ""
+        self._client = RpcClient(self.signaling_url + "/rpc/ws", timeout=timeout)
+        self._connect_answer: dict[str, Any] = {}
+        self._heartbeat: asyncio.Task[None] | None = None
+        self._watcher: asyncio.Task[None] | None = None
+
+    async def open(self) -> None:
+        """Connect and authenticate (both ways); raises on failure, leaving nothing open."""
+        try:
+            await asyncio.wait_for(self._client.open(), self.timeout)
+            await self._handshake()
+        except BaseException:
+            await self._client.close()
+            raise
+        loop = asyncio.get_running_loop()
+        interval = float(self._connect_answer.get("heartbeat_interval", 1.0))
+        self._heartbeat = loop.create_task(
+            self._heartbeats(interval), name=f"heartbeat:{self.platform_id}"
+        )
+        self._watcher = loop.create_task(self._watch(), name=f"watch:{self.platform_id}")
+
+    async def _handshake(self) -> None:
+        challenge = await self._client.call("challenge")
+        if challenge.get("platform_id") != self.platform_id:
+            raise AuthenticationError(
+                f"{self.signaling_url} is platform {challenge.get('platform_id')!r}, not {self.platform_id!r}"
+            )
+        nonce = str(challenge.get("nonce", ""))
+        station_nonce = secrets.token_hex(16)
+        params: dict[str, Any] = {"station_id": self.station_id}
+        if self.fleet_key is not None:
+            proof = connect_proof(
+                self.fleet_key, self.platform_id, self.station_id, nonce, station_nonce
+            )
+            params.update(nonce=nonce, station_nonce=station_nonce, proof=proof)
+        elif challenge.get("auth") != "none":
+            raise AuthenticationError("platform requires a fleet key and this station has none")
+        try:
+            answer = await self._client.call("connect", params)
+        except RpcError as err:
+            raise AuthenticationError(f"connect refused: {err.message}") from None
+        token = str(answer["session"])
+        if self.fleet_key is not None:
+            expected = accept_proof(
+                self.fleet_key, self.platform_id, self.station_id, nonce, station_nonce, token
+            )
+            if not security.verify(expected.encode(), str(answer.get("proof", "")).encode()):
+                raise AuthenticationError("platform failed to prove it holds the fleet key")
+            self.session_key = security.session_key(self.fleet_key, token, nonce, station_nonce)
+        self.session_id = token
+        self.parameters = dict(answer.get("parameters", {}))
+        self.capabilities = dict(answer.get("capabilities", {}))
+        self._connect_answer = answer
+
+    async def call(self, method: str, **params: Any) -> Any:
+        """A session method call; raises RpcError on an error answer or no answer in time."""
+        if self.closed.is_set():
+            raise ConnectionError(f"connection to {self.platform_id} closed ({self.close_reason})")
+        params["session"] = self.session_id
+        return await self._client.call(method, params)
+
+    async def _heartbeats(self, interval: float) -> None:
+        misses = 0
+        while True:
+            await asyncio.sleep(interval)
+            started = time.perf_counter()
+            try:
+                answer = await self.call("heartbeat")
+            except RpcError as err:
+                misses += 1
+                _LOGGER.warning("heartbeat to %s failed: %s", self.platform_id, err.message)
+                if err.code == -32001 or misses >= 3:
+                    self._mark_closed(f"heartbeat failed: {err.message}")
+                    await self._client.close()
+                    return
+                continue
+            except ConnectionError:
+                return
+            misses = 0
+            self.round_trip_ms = (time.perf_counter() - started) * 1000
+            self.manual_override = bool(answer.get("manual_override"))
+
+    async def _watch(self) -> None:
+        await self._client.closed.wait()
+        self._mark_closed(self.close_reason or "connection lost")
+
+    def _mark_closed(self, reason: str) -> None:
+        if not self.closed.is_set():
+            self.close_reason = reason
+            self.closed.set()
+
+    async def close(self) -> None:
+        """Say goodbye (briefly) and release everything. Idempotent."""
+        if not self.closed.is_set() and self.session_id:
+            with contextlib.suppress(Exception):
+                await self._client.call("disconnect", {"session": self.session_id}, timeout=0.5)
+        self._mark_closed(self.close_reason or "closed by station")
+        current = asyncio.current_task()
+        for task in (self._heartbeat, self._watcher):
+            if task is not None and task is not current:
+                task.cancel("connection closing")
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await task
+        self._heartbeat = self._watcher = None
+        await self._client.close()
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "platform_id": self.platform_id,
+            "signaling_url": self.signaling_url,
+            "session": self.session_id,
+            "connected": not self.closed.is_set(),
+            "close_reason": self.close_reason,
+            "manual_override": self.manual_override,
+            "round_trip_ms": self.round_trip_ms,
+            "parameters": self.parameters,
+            "capabilities": self.capabilities,
+        }
