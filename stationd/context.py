@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from brasidas.actor import Supervisor
 from brasidas.bus import Bus
@@ -24,3 +24,5 @@ class StationContext:
     fleet_key: bytes | None
     connections: dict[str, PlatformConnection] = field(default_factory=dict)
     """Open platform connections by platform id."""
+    connection_manager: Any = None
+    """stationd.connections.ConnectionManager: ``await ctx.connection_manager.ensure(id)``."""

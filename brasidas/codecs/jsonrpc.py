@@ -102,6 +102,13 @@ class Dispatcher:
         )
         return lambda: self._methods.pop(name, None)  # type: ignore[return-value]
 
+    def has(self, name: str) -> bool:
+        return name in self._methods
+
+    async def call_local(self, name: str, **params: Any) -> Any:
+        """Call a method in-process, as a trusted caller (no session check)."""
+        return await self._methods[name].handler(CallContext(transport="local"), **params)
+
     @property
     def method_names(self) -> list[str]:
         return sorted(self._methods)

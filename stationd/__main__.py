@@ -1,0 +1,5 @@
+import sys
+
+from stationd.cli import main
+
+sys.exit(main())
