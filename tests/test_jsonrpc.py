@@ -1,0 +1,164 @@
+"""JSON-RPC 2.0 conformance of the sans-IO dispatcher."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from brasidas.codecs.jsonrpc import CallContext, Dispatcher, RpcError, Unauthorized
+
+
+async def _echo(call: CallContext, value: int, label: str = "x") -> dict[str, Any]:
+    return {"value": value, "label": label}
+
+
+async def _boom(call: CallContext) -> None:
+    raise ZeroDivisionError("secret detail")
+
+
+async def _whoami(call: CallContext) -> str:
+    return str(call.session)
+
+
+async def _authorize(call: CallContext, params: dict[str, Any]) -> None:
+    if params.pop("session", None) != "good":
+        raise Unauthorized()
+    call.session = "alice"
+
+
+@pytest.fixture
+def dispatcher() -> Dispatcher:
+    d = Dispatcher(authorizer=_authorize)
+    d.add("echo", _echo, session_required=False)
+    d.add("boom", _boom, session_required=False)
+    d.add("whoami", _whoami)
+    return d
+
+
+async def ask(d: Dispatcher, payload: Any) -> Any:
+    raw = payload if isinstance(payload, bytes) else json.dumps(payload).encode()
+    answer = await d.handle_bytes(raw, CallContext())
+    return None if answer is None else json.loads(answer)
+
+
+async def test_named_and_positional_params(dispatcher: Dispatcher) -> None:
+    named = await ask(
+        dispatcher, {"jsonrpc": "2.0", "id": 1, "method": "echo", "params": {"value": 3}}
+    )
+    assert named == {"jsonrpc": "2.0", "id": 1, "result": {"value": 3, "label": "x"}}
+    positional = await ask(
+        dispatcher, {"jsonrpc": "2.0", "id": "a", "method": "echo", "params": [4, "y"]}
+    )
+    assert positional["result"] == {"value": 4, "label": "y"}
+
+
+@pytest.mark.parametrize(
+    ("payload", "code"),
+    [
+        (b"{not json", -32700),
+        ({"jsonrpc": "1.0", "id": 1, "method": "echo"}, -32600),
+        ({"jsonrpc": "2.0", "id": 1, "method": 5}, -32600),
+        ({"jsonrpc": "2.0", "id": {"x": 1}, "method": "echo"}, -32600),
+        ({"jsonrpc": "2.0", "id": 1, "method": "echo", "params": "nope"}, -32600),
+        ({"jsonrpc": "2.0", "id": 1, "method": "nope"}, -32601),
+        ({"jsonrpc": "2.0", "id": 1, "method": "echo", "params": {}}, -32602),
+        ({"jsonrpc": "2.0", "id": 1, "method": "echo", "params": {"value": 1, "bogus": 2}}, -32602),
+        ({"jsonrpc": "2.0", "id": 1, "method": "echo", "params": {"value": "1"}}, -32602),
+        ({"jsonrpc": "2.0", "id": 1, "method": "echo", "params": {"value": True}}, -32602),
+        ({"jsonrpc": "2.0", "id": 1, "method": "echo", "params": [1, 2, 3]}, -32602),
+        ({"jsonrpc": "2.0", "id": 1, "method": "boom"}, -32603),
+        ({"jsonrpc": "2.0", "id": 1, "method": "whoami"}, -32001),
+        ({"jsonrpc": "2.0", "id": 1, "method": "whoami", "params": {"session": "bad"}}, -32001),
+        ([], -32600),
+    ],
+)
+async def test_standard_errors(dispatcher: Dispatcher, payload: Any, code: int) -> None:
+    answer = await ask(dispatcher, payload)
+    assert answer["error"]["code"] == code
+    assert "secret detail" not in answer["error"]["message"]
+
+
+async def test_session_method_with_valid_session(dispatcher: Dispatcher) -> None:
+    answer = await ask(
+        dispatcher, {"jsonrpc": "2.0", "id": 1, "method": "whoami", "params": {"session": "good"}}
+    )
+    assert answer["result"] == "alice"
+    assert dispatcher.counters["unauthorized"] == 0
+
+
+async def test_notifications_get_no_answer_even_on_error(dispatcher: Dispatcher) -> None:
+    assert (
+        await ask(dispatcher, {"jsonrpc": "2.0", "method": "echo", "params": {"value": 1}}) is None
+    )
+    assert await ask(dispatcher, {"jsonrpc": "2.0", "method": "boom"}) is None
+    assert await ask(dispatcher, [{"jsonrpc": "2.0", "method": "echo", "params": [1]}]) is None
+
+
+async def test_batch_answers_each_call_in_order(dispatcher: Dispatcher) -> None:
+    batch = [
+        {"jsonrpc": "2.0", "id": 1, "method": "echo", "params": [1]},
+        {"jsonrpc": "2.0", "method": "echo", "params": [2]},
+        {"jsonrpc": "2.0", "id": 3, "method": "nope"},
+        7,
+    ]
+    answer = await ask(dispatcher, batch)
+    assert [item.get("id") for item in answer] == [1, 3, None]
+    assert answer[0]["result"]["value"] == 1
+    assert answer[1]["error"]["code"] == -32601
+    assert answer[2]["error"]["code"] == -32600
+
+
+async def test_counters_count_bad_input(dispatcher: Dispatcher) -> None:
+    await ask(dispatcher, b"\xff\xfe")
+    await ask(dispatcher, {"jsonrpc": "2.0", "id": 1, "method": "nope"})
+    await ask(dispatcher, {"jsonrpc": "2.0", "id": 1, "method": "whoami"})
+    assert dispatcher.counters["parse_errors"] == 1
+    assert dispatcher.counters["unknown_methods"] == 1
+    assert dispatcher.counters["unauthorized"] == 1
+
+
+async def test_rpc_error_from_method_is_passed_through() -> None:
+    async def refuse(call: CallContext) -> None:
+        raise RpcError(-32002, "no camera", {"hint": "x"})
+
+    d = Dispatcher()
+    d.add("refuse", refuse, session_required=False)
+    answer = await ask(d, {"jsonrpc": "2.0", "id": 9, "method": "refuse"})
+    assert answer["error"] == {"code": -32002, "message": "no camera", "data": {"hint": "x"}}
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=200) | st.text(max_size=200).map(str.encode))
+async def test_arbitrary_bytes_never_raise(data: bytes) -> None:
+    d = Dispatcher()
+    d.add("echo", _echo, session_required=False)
+    answer = await d.handle_bytes(data, CallContext())
+    if answer is not None:
+        decoded = json.loads(answer)
+        items = decoded if isinstance(decoded, list) else [decoded]
+        assert all(item["jsonrpc"] == "2.0" for item in items)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.recursive(
+        st.none()
+        | st.booleans()
+        | st.integers()
+        | st.floats(allow_nan=False)
+        | st.text(max_size=10),
+        lambda children: (
+            st.lists(children, max_size=4)
+            | st.dictionaries(st.text(max_size=8), children, max_size=4)
+        ),
+        max_leaves=12,
+    )
+)
+async def test_arbitrary_json_never_raises(value: Any) -> None:
+    d = Dispatcher()
+    d.add("echo", _echo, session_required=False)
+    await d.handle_bytes(json.dumps(value).encode(), CallContext())

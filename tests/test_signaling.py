@@ -1,0 +1,236 @@
+"""Signaling end to end over real sockets: sessions, authentication, commands, R-17."""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import aiohttp
+import pytest
+from conftest import quiet_platform_config, wait_until
+
+from brasidas import topics
+from brasidas.codecs.commands import MAIN_LIGHTS
+from brasidas.codecs.jsonrpc import RpcError
+from brasidas.messages import CommandResult, SystemCommand
+from brasidas.rpc import RpcClient
+from platformd.app import PlatformDaemon
+from stationd.client import AuthenticationError, PlatformConnection
+
+Factory = Callable[..., Awaitable[PlatformDaemon]]
+
+
+def connection(
+    daemon: PlatformDaemon, key: bytes | None, station: str = "st-1"
+) -> PlatformConnection:
+    return PlatformConnection(
+        daemon.config.platform.id, daemon.ctx.signaling_url, station_id=station, fleet_key=key
+    )
+
+
+async def post(daemon: PlatformDaemon, body: bytes) -> tuple[int, Any]:
+    async with (
+        aiohttp.ClientSession() as session,
+        session.post(daemon.ctx.signaling_url + "/rpc", data=body) as response,
+    ):
+        text = await response.text()
+        return response.status, json.loads(text) if text else None
+
+
+async def test_connect_returns_parameters_and_capabilities(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    daemon = await platform_factory(quiet_platform_config("platform.id=rover-9"), fleet_key)
+    conn = connection(daemon, fleet_key)
+    await conn.open()
+    try:
+        assert conn.parameters["id"] == "rover-9"
+        assert conn.parameters["limits"]["max_speed_kmh"] == 6.0
+        assert {"streams", "velocity", "telemetry", "payload_groups"} <= set(conn.capabilities)
+        assert conn.session_key is not None and len(conn.session_key) == 32
+        server_session = daemon.ctx.sessions.sessions[conn.session_id]
+        assert server_session.session_key == conn.session_key  # derived on both ends, never sent
+        assert (await conn.call("heartbeat"))["manual_override"] is False
+    finally:
+        await conn.close()
+    assert daemon.ctx.sessions.sessions == {}
+
+
+async def test_wrong_fleet_key_is_refused_and_counted(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    daemon = await platform_factory(quiet_platform_config(), fleet_key)
+    conn = connection(daemon, os.urandom(32))
+    with pytest.raises(AuthenticationError, match="unauthorized"):
+        await conn.open()
+    assert daemon.ctx.sessions.auth_failures == 1
+    assert daemon.ctx.sessions.sessions == {}
+
+
+async def test_station_refuses_impostor_platform(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    # A platform with another key cannot produce the accept proof: the station must not trust it.
+    impostor = await platform_factory(quiet_platform_config(), os.urandom(32))
+    conn = connection(impostor, fleet_key)
+    with pytest.raises(AuthenticationError):
+        await conn.open()
+
+
+async def test_replayed_challenge_is_refused(platform_factory: Factory, fleet_key: bytes) -> None:
+    from brasidas.security import connect_proof
+
+    daemon = await platform_factory(quiet_platform_config(), fleet_key)
+    async with RpcClient(daemon.ctx.signaling_url + "/rpc/ws") as client:
+        nonce = (await client.call("challenge"))["nonce"]
+        proof = connect_proof(fleet_key, "brasidas-1", "st", nonce, "abc")
+        params = {"station_id": "st", "nonce": nonce, "station_nonce": "abc", "proof": proof}
+        first = await client.call("connect", params)
+        with pytest.raises(RpcError) as err:
+            await client.call("connect", params)
+        assert err.value.code == -32001
+        assert first["session"] in daemon.ctx.sessions.sessions
+        assert len(daemon.ctx.sessions.sessions) == 1
+
+
+async def test_http_post_errors(platform_factory: Factory, fleet_key: bytes) -> None:
+    daemon = await platform_factory(quiet_platform_config(), fleet_key)
+    status, body = await post(
+        daemon, b'{"jsonrpc":"2.0","id":1,"method":"get_platform_parameters"}'
+    )
+    assert status == 401 and body["error"]["code"] == -32001
+    status, body = await post(daemon, b"{garbage")
+    assert status == 200 and body["error"]["code"] == -32700
+    status, body = await post(
+        daemon, b'{"jsonrpc":"2.0","id":1,"method":"x","params":"' + b"a" * 70000 + b'"}'
+    )
+    assert status == 413
+    status, body = await post(daemon, b'{"jsonrpc":"2.0","method":"challenge"}')
+    assert status == 204
+    # Still serving after all that.
+    status, body = await post(daemon, b'{"jsonrpc":"2.0","id":2,"method":"challenge"}')
+    assert status == 200 and body["result"]["platform_id"] == "brasidas-1"
+    counters = daemon.ctx.rpc.counters
+    assert counters["unauthorized"] == 1 and counters["parse_errors"] == 1
+
+
+async def test_oversize_websocket_message_is_refused(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    daemon = await platform_factory(quiet_platform_config(), fleet_key)
+    async with RpcClient(daemon.ctx.signaling_url + "/rpc/ws") as client:
+        with pytest.raises((RpcError, ConnectionError)):
+            await client.call("challenge", {"pad": "a" * 70000}, timeout=2)
+    async with RpcClient(daemon.ctx.signaling_url + "/rpc/ws") as client:
+        assert (await client.call("challenge"))["auth"] == "hmac-sha256"
+
+
+async def test_system_commands_reach_their_owner_and_answer(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    daemon = await platform_factory(quiet_platform_config(), fleet_key)
+    seen: list[SystemCommand] = []
+
+    def lights_owner(cmd: SystemCommand) -> None:
+        if cmd.code == MAIN_LIGHTS:
+            seen.append(cmd)
+            cmd.respond("test-lights", CommandResult(True, result={"main": cmd.payload}))
+
+    unsubscribe = daemon.bus.subscribe(topics.SYSTEM_COMMANDS, lights_owner)
+    conn = connection(daemon, fleet_key)
+    await conn.open()
+    try:
+        answer = await conn.call("issue_system_command", group=10, command=6, payload="ON")
+        assert answer == {"accepted": True, "reason": "", "result": {"main": "ON"}}
+        assert seen[0].session_id == conn.session_id
+        unsubscribe()
+        answer = await conn.call("issue_system_command", group=10, command=6, payload="ON")
+        assert answer["accepted"] is False and "not available" in answer["reason"]
+        answer = await conn.call("issue_system_command", group=91, command=0, payload="")
+        assert answer["accepted"] is False and "station-only" in answer["reason"]
+        with pytest.raises(RpcError) as err:
+            await conn.call("issue_system_command", group=42, command=1, payload="")
+        assert err.value.code == -32602 and "unknown command code 42.1" in err.value.message
+        with pytest.raises(RpcError) as err:
+            await conn.call("issue_system_command", group="10", command=6)
+        assert err.value.code == -32602
+    finally:
+        await conn.close()
+
+
+async def test_slow_owner_times_out_with_a_reason(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    daemon = await platform_factory(
+        quiet_platform_config("signaling.command_timeout=0.2"), fleet_key
+    )
+    daemon.bus.subscribe(topics.SYSTEM_COMMANDS, lambda cmd: cmd.claim("sleepy"))
+    conn = connection(daemon, fleet_key)
+    await conn.open()
+    try:
+        answer = await conn.call("issue_system_command", group=20, command=4, payload="True")
+        assert answer["accepted"] is False and "sleepy" in answer["reason"]
+    finally:
+        await conn.close()
+
+
+async def test_manual_override_is_exclusive_and_released_on_timeout(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    daemon = await platform_factory(
+        quiet_platform_config("signaling.session_timeout=0.5", "signaling.heartbeat_interval=10"),
+        fleet_key,
+    )
+    states: list[bool] = []
+    daemon.bus.subscribe(topics.OVERRIDE_STATE, lambda s: states.append(s.engaged))
+    first, second = connection(daemon, fleet_key, "first"), connection(daemon, fleet_key, "second")
+    await first.open()
+    await second.open()
+    try:
+        assert await first.call("set_manual_override", engaged=True) is True
+        assert await second.call("set_manual_override", engaged=True) is False
+        refused = await second.call("issue_system_command", group=10, command=0, payload="False")
+        assert refused["accepted"] is False and "held by first" in refused["reason"]
+        report = await second.call("get_telemetry_report")
+        assert report["mode"] == "teleop"
+        # "first" goes silent (heartbeats every 10 s, timeout 0.5 s): the override is released.
+        await wait_until(lambda: states[-1] is False)
+        assert first.session_id not in daemon.ctx.sessions.sessions
+    finally:
+        await first.close()
+        await second.close()
+    assert states[:2] == [False, True]
+
+
+async def test_closing_the_websocket_ends_the_session_and_the_override(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    daemon = await platform_factory(quiet_platform_config(), fleet_key)
+    conn = connection(daemon, fleet_key)
+    await conn.open()
+    assert await conn.call("set_manual_override", engaged=True) is True
+    await conn._client.close()  # the link drops without a goodbye
+    await wait_until(lambda: not daemon.bus.last(topics.OVERRIDE_STATE).engaged)
+    assert daemon.ctx.sessions.sessions == {}
+    await conn.close()
+
+
+async def test_insecure_platform_needs_no_key(platform_factory: Factory) -> None:
+    daemon = await platform_factory(quiet_platform_config(), None)
+    conn = connection(daemon, None)
+    await conn.open()
+    try:
+        assert conn.session_key is None
+        assert (await conn.call("get_velocity_connection_info"))["auth"] == "none"
+    finally:
+        await conn.close()
+
+
+async def test_keyless_station_refuses_secure_platform(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    daemon = await platform_factory(quiet_platform_config(), fleet_key)
+    with pytest.raises(AuthenticationError, match="requires a fleet key"):
+        await connection(daemon, None).open()
