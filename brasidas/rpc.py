@@ -132,13 +132,13 @@ class RpcClient:
         request_id = next(self._ids)
         future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
         self._pending[request_id] = future
+        limit = timeout or self.timeout
         try:
             await self._ws.send_str(encode_request(method, params, request_id).decode())
-            return await asyncio.wait_for(future, timeout or self.timeout)
+            async with asyncio.timeout(limit):
+                return await future
         except TimeoutError:
-            raise RpcError(
-                TIMEOUT, f"no answer to {method} within {timeout or self.timeout:.1f} s"
-            ) from None
+            raise RpcError(TIMEOUT, f"no answer to {method} within {limit:.1f} s") from None
         finally:
             self._pending.pop(request_id, None)
 

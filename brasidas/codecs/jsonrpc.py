@@ -65,12 +65,40 @@ Authorizer = Callable[[CallContext, dict[str, Any]], Awaitable[None]]
 """Checks (and strips) credentials from by-name params before a session method runs."""
 
 
+_SIMPLE_TYPES = {"str": str, "int": int, "float": float, "bool": bool}
+
+
 @dataclass
 class Method:
     name: str
     handler: Handler
     session_required: bool
     signature: inspect.Signature
+    names: frozenset[str] = frozenset()
+    required: frozenset[str] = frozenset()
+    types: dict[str, type] = field(default_factory=dict)
+    """Simple JSON types to check, from the handler's annotations (str, int, float, bool)."""
+
+    @classmethod
+    def build(cls, name: str, handler: Handler, session_required: bool) -> Method:
+        signature = inspect.signature(handler)
+        params = list(signature.parameters.values())[1:]  # drop the call context
+        types: dict[str, type] = {}
+        for param in params:
+            annotation = param.annotation
+            if isinstance(annotation, str):
+                annotation = _SIMPLE_TYPES.get(annotation)
+            if annotation in (str, int, float, bool):
+                types[param.name] = annotation
+        return cls(
+            name,
+            handler,
+            session_required,
+            signature.replace(parameters=params),
+            frozenset(p.name for p in params),
+            frozenset(p.name for p in params if p.default is inspect.Parameter.empty),
+            types,
+        )
 
 
 class Dispatcher:
@@ -95,11 +123,7 @@ class Dispatcher:
         """Register ``handler(ctx, **params)``; returns the function that removes it."""
         if name in self._methods:
             raise ValueError(f"method {name} already registered")
-        signature = inspect.signature(handler)
-        params = list(signature.parameters.values())[1:]  # drop ctx
-        self._methods[name] = Method(
-            name, handler, session_required, signature.replace(parameters=params)
-        )
+        self._methods[name] = Method.build(name, handler, session_required)
         return lambda: self._methods.pop(name, None)  # type: ignore[return-value]
 
     def has(self, name: str) -> bool:
@@ -162,6 +186,26 @@ class Dispatcher:
             return None
         return {"jsonrpc": "2.0", "id": request_id, "result": result}
 
+    def _check_params(self, method: Method, kwargs: dict[str, Any]) -> None:
+        """Names and simple JSON types, from what was cached when the method was added."""
+        problem = ""
+        if not method.names.issuperset(kwargs):
+            problem = f"unexpected {sorted(set(kwargs) - method.names)}"
+        elif not method.required.issubset(kwargs):
+            problem = f"missing {sorted(method.required - set(kwargs))}"
+        else:
+            for name, expected in method.types.items():
+                value = kwargs.get(name)
+                if name not in kwargs or _json_type_ok(value, expected):
+                    continue
+                problem = (
+                    f"'{name}' must be {'a number' if expected is float else expected.__name__}"
+                )
+                break
+        if problem:
+            self.counters["invalid_params"] += 1
+            raise RpcError(INVALID_PARAMS, f"invalid params: {problem}")
+
     async def _call(self, name: str, params: dict[str, Any] | list[Any], ctx: CallContext) -> Any:
         method = self._methods.get(name)
         if method is None:
@@ -185,36 +229,16 @@ class Dispatcher:
                 if err.code == UNAUTHORIZED:
                     self.counters["unauthorized"] += 1
                 raise
-        try:
-            method.signature.bind(**kwargs)
-        except TypeError as err:
-            self.counters["invalid_params"] += 1
-            raise RpcError(INVALID_PARAMS, f"invalid params: {err}") from None
-        _check_types(method, kwargs, self.counters)
+        self._check_params(method, kwargs)
         return await method.handler(ctx, **kwargs)
 
 
-def _check_types(method: Method, kwargs: dict[str, Any], counters: dict[str, int]) -> None:
-    """Reject params whose JSON type does not match a simple annotation (str/int/float/bool)."""
-    for name, value in kwargs.items():
-        parameter = method.signature.parameters.get(name)
-        if parameter is None:
-            continue
-        annotation = parameter.annotation
-        if isinstance(annotation, str):
-            annotation = {"str": str, "int": int, "float": float, "bool": bool}.get(annotation)
-        if annotation is float and isinstance(value, int | float) and not isinstance(value, bool):
-            continue
-        if annotation in (str, int, bool) and (
-            not isinstance(value, annotation) or (annotation is int and isinstance(value, bool))
-        ):
-            counters["invalid_params"] += 1
-            raise RpcError(
-                INVALID_PARAMS, f"invalid params: '{name}' must be {annotation.__name__}"
-            )
-        if annotation is float and not isinstance(value, int | float):
-            counters["invalid_params"] += 1
-            raise RpcError(INVALID_PARAMS, f"invalid params: '{name}' must be a number")
+def _json_type_ok(value: Any, expected: type) -> bool:
+    if isinstance(value, bool):
+        return expected is bool
+    if expected is float:
+        return isinstance(value, int | float)
+    return isinstance(value, expected)
 
 
 def _is_valid_id(value: Any) -> bool:

@@ -1,0 +1,54 @@
+"""Shared bench helpers: percentiles, free ports, a platform process and its resource use."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import socket
+import statistics
+import sys
+from pathlib import Path
+
+
+def percentiles(samples_ms: list[float]) -> dict[str, float]:
+    ordered = sorted(samples_ms)
+
+    def at(q: float) -> float:
+        return round(ordered[min(len(ordered) - 1, int(q * len(ordered)))], 3)
+
+    return {"p50": at(0.50), "p99": at(0.99), "mean": round(statistics.fmean(ordered), 3)}
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+async def start_platform(*overrides: str, sim: bool = True) -> asyncio.subprocess.Process:
+    """``brasidas-platform --sim`` as a child process, with every port free."""
+    args = [sys.executable, "-m", "platformd"]
+    if sim:
+        args.append("--sim")
+    defaults = [
+        f"signaling.port={free_port()}",
+        f"beacon.port={free_port(socket.SOCK_DGRAM)}",
+        f"velocity.port={free_port(socket.SOCK_DGRAM)}",
+    ]
+    for item in [*defaults, *overrides]:
+        args += ["--set", item]
+    return await asyncio.create_subprocess_exec(
+        *args, stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE
+    )
+
+
+def rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return round(int(line.split()[1]) / 1024, 1)
+    raise RuntimeError("no VmRSS")
+
+
+def cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")

@@ -1,0 +1,178 @@
+"""``make demo``: a simulated platform and a station daemon on loopback, connected.
+
+Runs both daemons as child processes (exactly as an operator would), waits until the station
+discovers the platform, connects, prints what it got and what to try next, and keeps running
+until Ctrl-C, when it stops both cleanly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+
+from brasidas import security
+from brasidas.codecs.jsonrpc import RpcError
+from brasidas.config import StationConfig, load_config
+from stationd.cli import CliError, _describe_connection, api_call_async
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="brasidas-demo", description=__doc__)
+    parser.add_argument("--platform-id", default="brasidas-sim")
+    parser.add_argument("--signaling-port", type=int, default=8765)
+    parser.add_argument("--api-port", type=int, default=8780)
+    parser.add_argument("--beacon-port", type=int, default=21000)
+    parser.add_argument("--velocity-port", type=int, default=21001)
+    parser.add_argument("--once", action="store_true", help="stop after connecting (for tests)")
+    parser.add_argument("--timeout", type=float, default=15.0, help="seconds to wait for discovery")
+    return parser.parse_args(argv)
+
+
+async def run(args: argparse.Namespace) -> int:
+    key_path = security.default_key_path()
+    security.load_or_create_key(key_path)
+    log_dir = security.state_dir() / "demo"
+    log_dir.mkdir(parents=True, exist_ok=True)
+    python = sys.executable
+    platform_cmd = [
+        python,
+        "-m",
+        "platformd",
+        "--sim",
+        "--set",
+        f"platform.id={args.platform_id}",
+        "--set",
+        f"signaling.port={args.signaling_port}",
+        "--set",
+        f"beacon.port={args.beacon_port}",
+        "--set",
+        f"velocity.port={args.velocity_port}",
+    ]
+    station_overrides = [
+        "--set",
+        f"station.api_port={args.api_port}",
+        "--set",
+        f"discovery.port={args.beacon_port}",
+    ]
+    station_cmd = [python, "-m", "stationd", "serve", *station_overrides]
+    config = load_config(StationConfig, None, station_overrides[1::2])
+
+    processes: list[asyncio.subprocess.Process] = []
+    started = time.monotonic()
+    try:
+        for name, cmd in (("platform", platform_cmd), ("station", station_cmd)):
+            log = open(log_dir / f"{name}.log", "wb")
+            processes.append(
+                await asyncio.create_subprocess_exec(
+                    *cmd, stdout=log, stderr=log, start_new_session=True
+                )
+            )
+            log.close()
+        print(f"Starting a simulated platform and a station (logs in {log_dir}) ...", flush=True)
+        summary = await _discover_and_connect(config, args, processes)
+        print(f"\nDiscovered and connected in {time.monotonic() - started:.1f} s:\n")
+        print(_describe_connection(summary))
+        if args.once:
+            return 0
+        _print_next_steps(args)
+        await _wait_for_interrupt(processes)
+        return 0
+    except (CliError, RpcError, TimeoutError) as err:
+        message = err.message if isinstance(err, RpcError) else str(err) or "timed out"
+        print(f"demo: {message}; see the logs in {log_dir}", file=sys.stderr)
+        for name in ("platform", "station"):
+            tail = (log_dir / f"{name}.log").read_text(errors="replace").splitlines()[-5:]
+            print(f"--- {name}.log (last lines)\n" + "\n".join(tail), file=sys.stderr)
+        return 1
+    finally:
+        await _stop(processes)
+
+
+async def _discover_and_connect(
+    config: StationConfig, args: argparse.Namespace, processes: list[asyncio.subprocess.Process]
+) -> dict:
+    deadline = time.monotonic() + args.timeout
+    while True:
+        for process in processes:
+            if process.returncode is not None:
+                raise CliError(f"a daemon exited early (status {process.returncode})")
+        try:
+            platforms = await api_call_async(config, "list_platforms")
+            if any(entry.get("id") == args.platform_id for entry in platforms):
+                print(
+                    f"Station discovered platform {args.platform_id!r} from its beacon.", flush=True
+                )
+                return await api_call_async(config, "connect", platform_id=args.platform_id)
+        except (CliError, RpcError):
+            pass  # daemons still starting
+        if time.monotonic() > deadline:
+            raise TimeoutError(
+                f"platform {args.platform_id} not discovered within {args.timeout:.0f} s"
+            )
+        await asyncio.sleep(0.2)
+
+
+def _print_next_steps(args: argparse.Namespace) -> None:
+    station = "brasidas-station" if _on_path("brasidas-station") else ".venv/bin/brasidas-station"
+    pid = args.platform_id
+    print(
+        f"""
+The demo is running. In another terminal (from this directory), try:
+
+  {station} list                      # platforms online, from their beacons
+  {station} status {pid}              # parameters, mode, telemetry
+  {station} status {pid} --watch      # live telemetry with the annunciator
+  {station} drive {pid}               # keyboard teleop: arrows/WASD, space stops, q quits
+  {station} movrd {pid} on|off        # manual override (teleop / autonomous)
+  {station} lights {pid} main on      # main lights (10.6)
+  {station} cmd {pid} 10 5 navcam=10  # any system command of table 10.1
+
+Station API: http://127.0.0.1:{args.api_port}/api/rpc   Platform signaling: http://127.0.0.1:{args.signaling_port}/rpc
+Press Ctrl-C to stop both daemons.""",
+        flush=True,
+    )
+
+
+def _on_path(name: str) -> bool:
+    return any(Path(d, name).exists() for d in os.environ.get("PATH", "").split(os.pathsep))
+
+
+async def _wait_for_interrupt(processes: list[asyncio.subprocess.Process]) -> None:
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(signum, stop.set)
+    waiters = [loop.create_task(p.wait()) for p in processes]
+    stopper = loop.create_task(stop.wait())
+    done, _ = await asyncio.wait([stopper, *waiters], return_when=asyncio.FIRST_COMPLETED)
+    for task in [stopper, *waiters]:
+        task.cancel()
+    await asyncio.gather(stopper, *waiters, return_exceptions=True)
+    if stopper not in done:
+        print("demo: a daemon exited; stopping", file=sys.stderr)
+    print("\nStopping ...", flush=True)
+
+
+async def _stop(processes: list[asyncio.subprocess.Process]) -> None:
+    # The station first: its goodbye releases the override before the platform goes down.
+    for process in reversed(processes):
+        if process.returncode is None:
+            process.send_signal(signal.SIGTERM)
+            try:
+                await asyncio.wait_for(process.wait(), 3)
+            except TimeoutError:
+                process.kill()
+                await process.wait()
+
+
+def main(argv: list[str] | None = None) -> int:
+    return asyncio.run(run(parse_args(argv)))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
