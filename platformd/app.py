@@ -56,8 +56,8 @@ class PlatformDaemon:
         await self.supervisor.stop(timeout)
 
     async def run(self, stop: asyncio.Event) -> None:
-        await self.start()
         try:
+            await self.start()
             await stop.wait()
         finally:
             await self.stop()

@@ -93,8 +93,8 @@ class StationDaemon:
         await self.supervisor.stop(timeout)
 
     async def run(self, stop: asyncio.Event) -> None:
-        await self.start()
         try:
+            await self.start()
             await stop.wait()
         finally:
             await self.stop()

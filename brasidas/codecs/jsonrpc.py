@@ -180,8 +180,8 @@ class Dispatcher:
         except Exception:
             self.counters["internal_errors"] += 1
             _LOGGER.exception("method %s failed", name)
-            err = RpcError(INTERNAL_ERROR, "internal error")
-            return None if is_notification else _error_response(request_id, err)
+            internal = RpcError(INTERNAL_ERROR, "internal error")
+            return None if is_notification else _error_response(request_id, internal)
         if is_notification:
             return None
         return {"jsonrpc": "2.0", "id": request_id, "result": result}
