@@ -88,6 +88,56 @@ def _pyro_round_trips(port: int) -> list[float]:
     return samples
 
 
+ECHO_SERVER = """
+import asyncio, sys
+from aiohttp import web
+async def ws(request):
+    socket = web.WebSocketResponse()
+    await socket.prepare(request)
+    async for message in socket:
+        await socket.send_str(message.data)
+    return socket
+async def main():
+    app = web.Application()
+    app.router.add_get("/ws", ws)
+    runner = web.AppRunner(app, access_log=None)
+    await runner.setup()
+    await web.TCPSite(runner, "127.0.0.1", int(sys.argv[1])).start()
+    print("ready", flush=True)
+    await asyncio.Event().wait()
+asyncio.run(main())
+"""
+
+
+async def _aiohttp_echo_floor() -> list[float]:
+    """Bare aiohttp WebSocket echo, no JSON-RPC: the transport's own floor on this machine."""
+    import aiohttp
+
+    port = free_port()
+    server = await asyncio.create_subprocess_exec(
+        sys.executable, "-c", ECHO_SERVER, str(port), stdout=asyncio.subprocess.PIPE
+    )
+    samples = []
+    try:
+        assert server.stdout is not None
+        await asyncio.wait_for(server.stdout.readline(), 10)
+        request = '{"jsonrpc":"2.0","id":1,"method":"heartbeat","params":{"session":"0123"}}'
+        async with (
+            aiohttp.ClientSession() as session,
+            session.ws_connect(f"http://127.0.0.1:{port}/ws") as ws,
+        ):
+            for index in range(CALLS + 100):
+                started = time.perf_counter()
+                await ws.send_str(request)
+                await ws.receive()
+                if index >= 100:
+                    samples.append((time.perf_counter() - started) * 1000)
+    finally:
+        server.kill()
+        await server.wait()
+    return samples
+
+
 async def run() -> dict[str, Any]:
     ours, extra = await _brasidas_round_trips()
     port = free_port()
@@ -101,6 +151,7 @@ async def run() -> dict[str, Any]:
     finally:
         server.kill()
         await server.wait()
+    floor = percentiles(await _aiohttp_echo_floor())
     mine, theirs = percentiles(ours), percentiles(pyro)
     return {
         "ws_jsonrpc_heartbeat_p50_ms": mine["p50"],
@@ -108,6 +159,8 @@ async def run() -> dict[str, Any]:
         "pyro5_call_p50_ms": theirs["p50"],
         "pyro5_call_p99_ms": theirs["p99"],
         "p50_ratio_vs_pyro5": round(mine["p50"] / theirs["p50"], 2),
+        "aiohttp_ws_echo_floor_p50_ms": floor["p50"],
+        "aiohttp_ws_echo_floor_p99_ms": floor["p99"],
         "target": "p50 <= 0.7x Pyro5, p99 < 1 ms",
         **extra,
     }
