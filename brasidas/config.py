@@ -91,6 +91,8 @@ class VelocitySection:
     """Host given to stations by get_velocity_connection_info. Empty: ``host``."""
     deadman: float = 0.3
     """In teleop, no valid velocity for this long commands zero."""
+    stats_interval: float = 1.0
+    """How often the receiver's counters are published for telemetry (when they changed)."""
 
 
 @dataclass
@@ -171,10 +173,44 @@ class DiscoverySection:
 
 
 @dataclass
+class TeleopSection:
+    rate_hz: float = 20.0
+    """$PVEL sentences per second to a platform while this station holds its manual override."""
+    drive_timeout: float = 0.5
+    """A drive client (keyboard, console) silent for this long gets zeros streamed instead."""
+
+
+@dataclass
+class JoystickSection:
+    device: str = ""
+    """Linux joystick device, e.g. /dev/input/js0. Empty: no game controller."""
+    platform: str = ""
+    """Platform the controller drives. Empty: the one whose override this station took last."""
+    enable_button: int = 4
+    """Button that must be held for the sticks to move the robot (LB on an F310 / Xbox pad)."""
+    linear_axis: int = 1
+    """Axis for linear x (1: left stick vertical)."""
+    angular_axis: int = 0
+    """Axis for angular z (0: left stick horizontal; 3: right stick horizontal)."""
+    invert_linear: bool = True
+    """Linux reports stick-up as negative; forward must be positive."""
+    invert_angular: bool = True
+    """Linux reports stick-left as negative; positive angular z turns left."""
+    deadzone: float = 0.1
+    """Stick deflections below this fraction of full scale read as zero."""
+    linear_scale: float = 1.0
+    """Full stick gives this linear command (0-1): a gentler robot for training."""
+    angular_scale: float = 1.0
+    """Full stick gives this angular command (0-1)."""
+
+
+@dataclass
 class StationConfig:
     station: StationSection = field(default_factory=StationSection)
     security: SecuritySection = field(default_factory=SecuritySection)
     discovery: DiscoverySection = field(default_factory=DiscoverySection)
+    teleop: TeleopSection = field(default_factory=TeleopSection)
+    joystick: JoystickSection = field(default_factory=JoystickSection)
 
 
 # --------------------------------------------------------------------------- loading

@@ -110,3 +110,43 @@ class Velocity:
 
     linear: float
     angular: float
+
+
+# --------------------------------------------------------------------------- velocity stream and teleop (issue 3)
+
+
+@dataclass(frozen=True)
+class VelocityLinkStats:
+    """The velocity receiver's counters: datagrams accepted, and dropped by reason (telemetry)."""
+
+    accepted: int
+    dropped: dict[str, int]
+    """By :class:`brasidas.codecs.pvel.DropReason` value; every reason present, zeros included."""
+    last_count: int | None
+    """Count of the last accepted sentence."""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "accepted": self.accepted,
+            "dropped": dict(self.dropped),
+            "last_count": self.last_count,
+        }
+
+
+@dataclass(frozen=True)
+class MotionState:
+    """Which source drives the motors, and whether the teleop deadman holds them at zero."""
+
+    mode: Mode
+    deadman: bool
+    """In teleop: no valid velocity for ``velocity.deadman`` seconds, motors held at zero."""
+    command: Velocity
+    """The last motor command published."""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "mode": self.mode.value,
+            "deadman": self.deadman,
+            "linear": self.command.linear,
+            "angular": self.command.angular,
+        }

@@ -7,12 +7,14 @@ from typing import Any
 from brasidas.bus import Topic
 from brasidas.messages import (
     LightsState,
+    MotionState,
     OverrideState,
     Position,
     SessionClosed,
     SessionOpened,
     SystemCommand,
     Velocity,
+    VelocityLinkStats,
 )
 
 # Signaling
@@ -24,6 +26,8 @@ SESSION_CLOSED: Topic[SessionClosed] = Topic("session_closed")
 OVERRIDE_STATE: Topic[OverrideState] = Topic("override_state", retain=True)
 CMD_VEL: Topic[Velocity] = Topic("cmd_vel")
 """Autonomy's velocity commands; obeyed only in Autonomous Mode."""
+MOTOR_COMMAND: Topic[Velocity] = Topic("motor_command")
+"""What the motors must do now: published only by the motion arbiter, obeyed by the driver."""
 
 # Platform state reported by beacons and telemetry
 LIGHTS_STATE: Topic[LightsState] = Topic("lights_state", retain=True)
@@ -33,3 +37,11 @@ POSITION: Topic[Position] = Topic("position", retain=True)
 # Published by the station's connection manager with the stationd.client.PlatformConnection.
 PLATFORM_CONNECTED: Topic[Any] = Topic("platform_connected")
 PLATFORM_DISCONNECTED: Topic[Any] = Topic("platform_disconnected")
+
+# --------------------------------------------------------------------------- velocity stream (issue 3)
+TELEOP_VELOCITY: Topic[Velocity] = Topic("teleop_velocity")
+"""Valid $PVEL velocities from the session holding the manual override (platformd.velocity)."""
+VELOCITY_LINK_STATS: Topic[VelocityLinkStats] = Topic("velocity_link_stats", retain=True)
+"""The velocity receiver's accepted/dropped counters, published when they change (≤ 1 Hz)."""
+MOTION_STATE: Topic[MotionState] = Topic("motion_state", retain=True)
+"""The motion arbiter's mode, deadman and last motor command (platformd.arbiter)."""

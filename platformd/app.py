@@ -20,6 +20,8 @@ SUBSYSTEMS: tuple[str, ...] = (
     # drivers, then what reports on them. Each module has ``async def async_setup(ctx)``.
     "platformd.sessions",
     "platformd.mode",
+    "platformd.velocity",
+    "platformd.arbiter",
     "platformd.signaling",
 )
 

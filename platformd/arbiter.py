@@ -1,0 +1,159 @@
+"""Motion arbiter: which source drives the motors, by mode (R-5), with the teleop deadman.
+
+Autonomous Mode (the default): ``CMD_VEL`` goes to ``MOTOR_COMMAND``. With the manual override
+engaged: ``TELEOP_VELOCITY`` (the ``$PVEL`` stream) goes to ``MOTOR_COMMAND`` and ``CMD_VEL`` is
+ignored. Every switch commands zero first, so a robot never carries one source's speed into the
+other's mode. The switch happens inside the ``OVERRIDE_STATE`` delivery, which is synchronous,
+so by the time the mode arbiter answers an engage request the motors already obey the stream.
+
+Deadman: in teleop, when no valid velocity has arrived for ``velocity.deadman`` seconds, the
+command becomes zero until the next valid packet.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+from typing import Protocol
+
+from brasidas import topics
+from brasidas.actor import Actor, wait_forever
+from brasidas.bus import Bus
+from brasidas.messages import Mode, MotionState, OverrideState, Velocity
+from platformd.context import PlatformContext
+
+_LOGGER = logging.getLogger(__name__)
+
+STOP = Velocity(0.0, 0.0)
+_TIMER_SLACK = 1e-4
+"""Timers fire on float sums of the clock; never re-arm for a rounding error's worth."""
+
+
+class TimerHandle(Protocol):
+    def cancel(self) -> None: ...
+
+
+Clock = Callable[[], float]
+CallLater = Callable[[float, Callable[[], None]], TimerHandle]
+
+
+class MotionArbiter(Actor):
+    """Routes the mode's velocity source to ``MOTOR_COMMAND``; enforces the teleop deadman.
+
+    ``clock`` and ``call_later`` default to the running loop's; tests pass a manual clock.
+    """
+
+    name = "arbiter"
+
+    def __init__(
+        self,
+        bus: Bus,
+        *,
+        deadman: float,
+        clock: Clock | None = None,
+        call_later: CallLater | None = None,
+    ) -> None:
+        super().__init__(bus)
+        self.deadman = deadman
+        self._clock = clock
+        self._call_later = call_later
+        self.mode = Mode.AUTONOMOUS
+        self.deadman_tripped = False
+        self.deadman_trips = 0
+        self.command = STOP
+        self._last_valid = 0.0
+        self._timer: TimerHandle | None = None
+        self._reported: tuple[Mode, bool, Velocity] | None = None
+
+    async def run(self) -> None:
+        self.start()
+        try:
+            await wait_forever()
+        finally:
+            self._cancel_timer()
+
+    def start(self) -> None:
+        """Subscribe (and take the current override state). Must run on the event loop."""
+        if self._clock is None or self._call_later is None:
+            loop = asyncio.get_running_loop()
+            self._clock = self._clock or loop.time
+            self._call_later = self._call_later or loop.call_later
+        self.subscribe(topics.CMD_VEL, self._on_cmd_vel)
+        self.subscribe(topics.TELEOP_VELOCITY, self._on_teleop_velocity)
+        self.subscribe(topics.OVERRIDE_STATE, self._on_override)
+        self._publish(self.command)
+
+    async def async_stop(self) -> None:
+        self._cancel_timer()
+        self._publish(STOP)
+
+    def snapshot(self) -> MotionState:
+        return MotionState(self.mode, self.deadman_tripped, self.command)
+
+    # ------------------------------------------------------------------ sources
+
+    def _on_override(self, state: OverrideState) -> None:
+        if state.mode is self.mode:
+            return
+        self.mode = state.mode
+        _LOGGER.info("motors now follow %s", "the velocity stream" if state.engaged else "cmd_vel")
+        self._cancel_timer()
+        # Until the first valid packet, teleop holds the motors at zero: the deadman is "tripped".
+        self.deadman_tripped = state.engaged
+        self._publish(STOP)
+
+    def _on_cmd_vel(self, velocity: Velocity) -> None:
+        if self.mode is Mode.AUTONOMOUS:
+            self._publish(velocity)
+
+    def _on_teleop_velocity(self, velocity: Velocity) -> None:
+        if self.mode is not Mode.TELEOP:
+            return
+        assert self._clock is not None
+        self._last_valid = self._clock()
+        self.deadman_tripped = False
+        if self._timer is None:
+            self._arm(self.deadman)
+        self._publish(velocity)
+
+    # ------------------------------------------------------------------ deadman
+
+    def _arm(self, delay: float) -> None:
+        assert self._call_later is not None
+        self._timer = self._call_later(delay, self._on_deadman_timer)
+
+    def _on_deadman_timer(self) -> None:
+        # One timer per deadman period rather than one per packet: at 500 Hz, re-arming on
+        # every datagram would churn the loop's timer heap for nothing.
+        self._timer = None
+        if self.mode is not Mode.TELEOP:
+            return
+        assert self._clock is not None
+        silent = self._clock() - self._last_valid
+        if silent < self.deadman - _TIMER_SLACK:
+            self._arm(self.deadman - silent)
+            return
+        self.deadman_tripped = True
+        self.deadman_trips += 1
+        _LOGGER.warning("deadman: no valid velocity for %.0f ms, motors to zero", silent * 1000)
+        self._publish(STOP)
+
+    def _cancel_timer(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+
+    def _publish(self, velocity: Velocity) -> None:
+        self.command = velocity
+        self.bus.publish(topics.MOTOR_COMMAND, velocity)
+        state = (self.mode, self.deadman_tripped, velocity)
+        if state != self._reported:
+            self._reported = state
+            self.bus.publish(topics.MOTION_STATE, self.snapshot())
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    arbiter = MotionArbiter(ctx.bus, deadman=ctx.config.velocity.deadman)
+    ctx.telemetry_sources["motion"] = lambda: arbiter.snapshot().as_dict()
+    ctx.supervisor.start(arbiter)

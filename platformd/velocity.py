@@ -1,0 +1,212 @@
+"""The velocity stream receiver: ``$PVEL`` datagrams from the override holder onto the bus.
+
+A datagram moves the robot only when it parses, is in range, comes from the host of the
+session holding the manual override, carries that session's tag (unless running insecure),
+and is newer than the last accepted one. Everything else is dropped and counted by reason;
+the counters go on ``VELOCITY_LINK_STATS`` and into telemetry. Accepted velocities go on
+``TELEOP_VELOCITY``; the motion arbiter decides whether they reach the motors.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ipaddress
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from brasidas import topics
+from brasidas.actor import Actor
+from brasidas.codecs import pvel
+from brasidas.codecs.pvel import DropReason, PvelSentence
+from brasidas.messages import OverrideState, Velocity, VelocityLinkStats
+from platformd.context import PlatformContext
+from platformd.sessions import velocity_endpoint
+
+_LOGGER = logging.getLogger(__name__)
+
+
+class Holder:
+    """Who may drive: the override holder's session id, host and key."""
+
+    __slots__ = ("host", "key", "session_id")
+
+    def __init__(self, session_id: str, host: str, key: bytes | None) -> None:
+        self.session_id = session_id
+        self.host = normalize_host(host)
+        self.key = key
+
+
+class VelocityGate:
+    """Sans-IO admission of ``$PVEL`` datagrams for the current override holder.
+
+    ``require_tag`` is set whenever the platform has a fleet key: then an untagged sentence or
+    one tagged with another key is dropped even from the right host.
+    """
+
+    def __init__(self, *, require_tag: bool) -> None:
+        self.require_tag = require_tag
+        self.holder: Holder | None = None
+        self.last_count: int | None = None
+        self.accepted = 0
+        self.dropped: dict[DropReason, int] = dict.fromkeys(DropReason, 0)
+        self._last_session: str | None = None
+
+    def set_holder(self, holder: Holder | None) -> None:
+        """Change who may drive. A new session starts a new count sequence; the same session
+        re-engaging keeps its last count, so its old packets cannot be replayed."""
+        self.holder = holder
+        if holder is not None and holder.session_id != self._last_session:
+            self._last_session = holder.session_id
+            self.last_count = None
+
+    def admit(self, datagram: bytes, host: str) -> PvelSentence | DropReason:
+        """Decide one datagram from ``host``; counts the outcome."""
+        result = self._check(datagram, host)
+        if isinstance(result, DropReason):
+            self.dropped[result] += 1
+        else:
+            self.accepted += 1
+            self.last_count = result.count
+        return result
+
+    def _check(self, datagram: bytes, host: str) -> PvelSentence | DropReason:
+        sentence = pvel.decode(datagram)
+        if isinstance(sentence, DropReason):
+            return sentence
+        holder = self.holder
+        if holder is None:
+            return DropReason.NOT_ENGAGED
+        if host != holder.host and normalize_host(host) != holder.host:
+            return DropReason.NOT_HOLDER
+        if holder.key is not None:
+            if not pvel.verify_tag(sentence, holder.key, holder.session_id):
+                return DropReason.BAD_TAG
+        elif self.require_tag:
+            return DropReason.BAD_TAG
+        if self.last_count is not None and sentence.count <= self.last_count:
+            return DropReason.OUT_OF_ORDER
+        return sentence
+
+    def stats(self) -> VelocityLinkStats:
+        return VelocityLinkStats(
+            self.accepted,
+            {reason.value: count for reason, count in self.dropped.items()},
+            self.last_count,
+        )
+
+
+def normalize_host(host: str) -> str:
+    """``::ffff:10.0.0.2`` and ``10.0.0.2`` are the same peer."""
+    try:
+        address = ipaddress.ip_address(host.split("%", 1)[0])
+    except ValueError:
+        return host
+    if isinstance(address, ipaddress.IPv6Address) and address.ipv4_mapped is not None:
+        return str(address.ipv4_mapped)
+    return str(address)
+
+
+class _VelocityProtocol(asyncio.DatagramProtocol):
+    def __init__(self, on_datagram: Callable[[bytes, str], None]) -> None:
+        self._on_datagram = on_datagram
+
+    def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
+        self._on_datagram(data, str(addr[0]))
+
+    def error_received(self, exc: Exception) -> None:
+        _LOGGER.debug("velocity socket error: %s", exc)
+
+
+class VelocityReceiver(Actor):
+    """Owns the bound UDP socket; publishes accepted velocities and the link counters."""
+
+    name = "velocity"
+    restart = False
+
+    def __init__(self, ctx: PlatformContext, transport: asyncio.DatagramTransport | None = None):
+        super().__init__(ctx.bus)
+        self.ctx = ctx
+        self.gate = VelocityGate(require_tag=ctx.fleet_key is not None)
+        self.transport = transport
+        self._published: VelocityLinkStats | None = None
+
+    def on_datagram(self, data: bytes, host: str) -> None:
+        """Socket callback: admit, then publish. Runs on the loop."""
+        result = self.gate.admit(data, host)
+        if isinstance(result, PvelSentence):
+            self.bus.publish(topics.TELEOP_VELOCITY, Velocity(result.x, result.z))
+        elif result is DropReason.NOT_HOLDER or result is DropReason.BAD_TAG:
+            # Worth a log line, but a flood of spoofed packets must not flood the log.
+            count = self.gate.dropped[result]
+            if count & (count - 1) == 0:
+                _LOGGER.warning(
+                    "velocity from %s dropped (%s), %d so far", host, result.value, count
+                )
+
+    async def run(self) -> None:
+        self.subscribe(topics.OVERRIDE_STATE, self._on_override)
+        self.subscribe(topics.SESSION_CLOSED, lambda _event: self._refresh_holder())
+        try:
+            while True:
+                await asyncio.sleep(self.ctx.config.velocity.stats_interval)
+                self.publish_stats()
+        finally:
+            self.close()
+
+    def publish_stats(self) -> None:
+        """Publish the counters if they changed since last time."""
+        stats = self.gate.stats()
+        if stats != self._published:
+            self._published = stats
+            self.bus.publish(topics.VELOCITY_LINK_STATS, stats)
+
+    def _on_override(self, state: OverrideState) -> None:
+        self._refresh_holder(state)
+        self.publish_stats()
+
+    def _refresh_holder(self, state: OverrideState | None = None) -> None:
+        state = state or self.bus.last(topics.OVERRIDE_STATE)
+        holder: Holder | None = None
+        if state is not None and state.engaged and state.session_id is not None:
+            sessions = getattr(self.ctx.sessions, "sessions", {})
+            session = sessions.get(state.session_id)
+            if session is not None:
+                holder = Holder(session.session_id, session.peer_host, session.session_key)
+        self.gate.set_holder(holder)
+
+    def close(self) -> None:
+        """Close the socket. Idempotent."""
+        if self.transport is not None:
+            self.transport.close()
+            self.transport = None
+
+
+async def open_receiver(ctx: PlatformContext) -> VelocityReceiver:
+    """Bind the velocity socket (a busy port fails here, at startup) and build the receiver."""
+    config = ctx.config.velocity
+    receiver = VelocityReceiver(ctx)
+    loop = asyncio.get_running_loop()
+    transport, _ = await loop.create_datagram_endpoint(
+        lambda: _VelocityProtocol(receiver.on_datagram), local_addr=(config.host, config.port)
+    )
+    receiver.transport = transport
+    config.port = int(transport.get_extra_info("sockname")[1])  # port 0: the kernel's choice
+    return receiver
+
+
+def capability(ctx: PlatformContext) -> dict[str, Any]:
+    """The ``velocity`` section of the connect answer."""
+    return {
+        **velocity_endpoint(ctx),
+        "format": "$PVEL,<count>,<x>,<z>[,<tag>]*<checksum>",
+        "tag_bytes": pvel.TAG_BYTES if ctx.fleet_key is not None else 0,
+        "deadman_s": ctx.config.velocity.deadman,
+    }
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    receiver = await open_receiver(ctx)
+    ctx.capabilities["velocity"] = lambda: capability(ctx)
+    ctx.telemetry_sources["velocity_link"] = lambda: receiver.gate.stats().as_dict()
+    ctx.supervisor.start(receiver)
