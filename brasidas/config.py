@@ -113,6 +113,11 @@ class ImuSection:
 @dataclass
 class TelemetrySection:
     rate_hz: float = 5.0
+    """Datagrams per second pushed to a station that asked (request_telemetry)."""
+    battery_low_v: float = 23.0
+    """Pack voltage below which the coarse battery level is LOW (24 V lead-acid pack)."""
+    battery_high_v: float = 25.0
+    """Pack voltage at or above which the coarse level is HIGH; MEDIUM in between."""
 
 
 @dataclass
@@ -205,10 +210,33 @@ class JoystickSection:
 
 
 @dataclass
+class TelemetryReceiverSection:
+    bind_host: str = ""
+    """Where telemetry is received. Empty: 127.0.0.1 for a platform on loopback, else 0.0.0.0."""
+    rate_hz: float = 0.0
+    """Datagrams per second asked of platforms. 0: the platform's configured rate."""
+    battery_low_v: float = 23.0
+    """Low battery warning below this pack voltage (also raised when the platform says LOW)."""
+    battery_clear_v: float = 23.4
+    """The low battery warning clears at or above this voltage."""
+    controller_max_c: float = 70.0
+    """Controller over-temperature warning at or above this heatsink temperature."""
+    controller_clear_c: float = 65.0
+    """The over-temperature warning clears below this temperature."""
+    loss_warn_pct: float = 10.0
+    """Link degraded when more than this share of recent datagrams was lost."""
+    loss_window: int = 50
+    """How many recent sequence numbers the loss figure covers (10 s at 5 Hz)."""
+    silence_s: float = 1.0
+    """Link degraded when no valid datagram arrived for this long."""
+
+
+@dataclass
 class StationConfig:
     station: StationSection = field(default_factory=StationSection)
     security: SecuritySection = field(default_factory=SecuritySection)
     discovery: DiscoverySection = field(default_factory=DiscoverySection)
+    telemetry: TelemetryReceiverSection = field(default_factory=TelemetryReceiverSection)
     teleop: TeleopSection = field(default_factory=TeleopSection)
     joystick: JoystickSection = field(default_factory=JoystickSection)
 

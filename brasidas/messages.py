@@ -150,3 +150,47 @@ class MotionState:
             "linear": self.command.linear,
             "angular": self.command.angular,
         }
+
+
+# --------------------------------------------------------------------------- telemetry (issue 4)
+
+
+@dataclass(frozen=True)
+class PlatformHealth:
+    """A coarse summary of the platform for the beacon's status word (platformd.telemetry)."""
+
+    battery: Any
+    """A :class:`brasidas.status.Battery` level (UNKNOWN when the monitor is off)."""
+    gps_fix: bool
+    streaming: bool
+    """At least one media stream is sending."""
+    controller: bool
+    """The motor controller answers."""
+    fault: bool
+    faults: tuple[str, ...] = ()
+    """What is wrong, e.g. ("controller", "stream:navcam")."""
+
+
+@dataclass(frozen=True)
+class StationNotification:
+    """A station-side notification (command group 90): a warning raised or cleared."""
+
+    code: CommandCode
+    platform_id: str
+    name: str
+    """Stable warning name, e.g. "low_battery" or "stream_failed:navcam"."""
+    active: bool
+    """True when raised, False when cleared."""
+    message: str
+    time: float
+    """Station wall clock (seconds since the epoch)."""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "code": str(self.code),
+            "platform_id": self.platform_id,
+            "name": self.name,
+            "active": self.active,
+            "message": self.message,
+            "time": self.time,
+        }

@@ -9,9 +9,11 @@ from brasidas.messages import (
     LightsState,
     MotionState,
     OverrideState,
+    PlatformHealth,
     Position,
     SessionClosed,
     SessionOpened,
+    StationNotification,
     SystemCommand,
     Velocity,
     VelocityLinkStats,
@@ -45,3 +47,9 @@ VELOCITY_LINK_STATS: Topic[VelocityLinkStats] = Topic("velocity_link_stats", ret
 """The velocity receiver's accepted/dropped counters, published when they change (≤ 1 Hz)."""
 MOTION_STATE: Topic[MotionState] = Topic("motion_state", retain=True)
 """The motion arbiter's mode, deadman and last motor command (platformd.arbiter)."""
+
+# --------------------------------------------------------------------------- telemetry (issue 4)
+PLATFORM_HEALTH: Topic[PlatformHealth] = Topic("platform_health", retain=True)
+"""Coarse battery, GPS fix, streaming, controller and fault flags (platformd.telemetry; beacon)."""
+STATION_NOTIFICATIONS: Topic[StationNotification] = Topic("station_notifications")
+"""Station only: group 90 notifications, e.g. annunciator warnings raised and cleared."""

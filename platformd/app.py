@@ -22,6 +22,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "platformd.mode",
     "platformd.velocity",
     "platformd.arbiter",
+    "platformd.telemetry",
     "platformd.signaling",
 )
 

@@ -22,6 +22,7 @@ _LOGGER = logging.getLogger(__name__)
 SUBSYSTEMS: tuple[str, ...] = (
     # Each module has ``async def async_setup(ctx: StationContext)``.
     "stationd.connections",
+    "stationd.telemetry",
 )
 
 WEB_ROOT = Path(__file__).resolve().parent.parent / "web"

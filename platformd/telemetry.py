@@ -1,0 +1,635 @@
+"""Telemetry: the latest-value snapshot of the platform, and the push stream to stations.
+
+The aggregator subscribes to every reporting topic and keeps only the last message of each
+(an IMU at 100 Hz costs one assignment per sample); sections are converted to plain values
+only when a snapshot is built. Those sections fill ``ctx.telemetry_sources``, so the
+``get_telemetry_report`` signaling method and the datagram stream carry the same snapshot.
+
+``request_telemetry(port, rate_hz=None, host=None)`` starts pushing authenticated datagrams
+(:mod:`brasidas.codecs.telemetry`) to the caller's host (or loopback) at
+``telemetry.rate_hz``; the stream ends with the session. Command 20.0 switches the diagnostics
+section on or off. A retained :class:`~brasidas.messages.PlatformHealth` summarises the
+state for the beacon's status word.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import ipaddress
+import logging
+import os
+import socket
+import time
+from collections.abc import Callable
+from datetime import date, datetime
+from datetime import time as dtime
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+from brasidas import topics
+from brasidas.actor import Actor
+from brasidas.bus import Topic
+from brasidas.codecs.commands import DIAGNOSTICS, PayloadError, parse_switch
+from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, RpcError
+from brasidas.codecs.telemetry import MAX_DATAGRAM, TAG_LENGTH, VERSION, TelemetryEncoder
+from brasidas.messages import CommandResult, PlatformHealth, SessionClosed, SystemCommand
+from brasidas.status import Battery
+from platformd.context import PlatformContext
+
+_LOGGER = logging.getLogger(__name__)
+
+MAX_RATE_HZ = 50.0
+SYSTEM_INFO_MAX_AGE = 1.0
+"""Seconds a /proc and /sys reading is reused (they cost a few file reads)."""
+THERMAL_ROOT = Path("/sys/class/thermal")
+MEMINFO = Path("/proc/meminfo")
+CPU_ZONE_TYPES = ("cpu-thermal", "cpu_thermal", "x86_pkg_temp", "soc_thermal", "cpu")
+
+# Topics published by other subsystems, by the name they have (or will have) in
+# brasidas.topics. A topic not declared yet reads as null; ``TelemetryAggregator.wire()``
+# subscribes to whatever exists when the actor starts.
+WATCHED: dict[str, tuple[str, ...]] = {
+    "lights": ("LIGHTS_STATE",),
+    "controller": ("CONTROLLER_STATUS", "MOTOR_STATUS", "MOTOR_CONTROLLER_STATUS"),
+    "gps_fix": ("GPS_FIX",),
+    "gps_lost": ("GPS_FIX_LOST",),
+    "gps_stats": ("GPS_STATS",),
+    "attitude": ("ATTITUDE",),
+    "imu": ("IMU_STATUS",),
+    "velocity_link": ("VELOCITY_LINK_STATS",),
+    "motion": ("MOTION_STATE",),
+    "streams": ("STREAM_STATES", "STREAM_STATE", "MEDIA_STREAMS"),
+    "autonomy": ("AUTONOMY_STATE",),
+}
+
+
+class TelemetryAggregator(Actor):
+    """Keeps the latest value of every reporting topic; builds snapshots; runs the streams."""
+
+    name = "telemetry"
+
+    def __init__(
+        self,
+        ctx: PlatformContext,
+        *,
+        clock: Callable[[], float] = time.time,
+        thermal_root: Path = THERMAL_ROOT,
+        meminfo: Path = MEMINFO,
+    ) -> None:
+        super().__init__(ctx.bus)
+        self.ctx = ctx
+        self._clock = clock
+        self._thermal_root = thermal_root
+        self._meminfo = meminfo
+        self.latest: dict[str, Any] = {}
+        """Last message per :data:`WATCHED` key (raw bus messages)."""
+        self.stream_states: dict[str, Any] = {}
+        self.diagnostics = False
+        self.health: PlatformHealth | None = None
+        self.counters: dict[str, int] = {
+            "datagrams_sent": 0,
+            "send_errors": 0,
+            "snapshots": 0,
+            "trimmed_sections": 0,
+        }
+        self.streams: dict[str, TelemetryStream] = {}
+        self._group: asyncio.TaskGroup | None = None
+        self._transport: asyncio.DatagramTransport | None = None
+        self._system: tuple[float, dict[str, Any]] | None = None
+        self._wired: set[str] = set()
+        self._gps_lost_at: float | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+
+    async def run(self) -> None:
+        self.latest.clear()
+        self._wired.clear()
+        self.subscribe(topics.SYSTEM_COMMANDS, self._on_command)
+        self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
+        self.wire()
+        loop = asyncio.get_running_loop()
+        transport, _ = await loop.create_datagram_endpoint(
+            asyncio.DatagramProtocol, family=socket.AF_INET
+        )
+        self._transport = transport
+        try:
+            async with asyncio.TaskGroup() as group:
+                self._group = group
+                group.create_task(self._health_loop(), name="telemetry:health")
+        finally:
+            self._group = None
+            self.streams.clear()
+            transport.close()
+            self._transport = None
+
+    def wire(self) -> list[str]:
+        """Subscribe to the watched topics declared so far; returns the keys newly wired."""
+        added = []
+        for key, names in WATCHED.items():
+            if key in self._wired:
+                continue
+            topic = _find_topic(names)
+            if topic is None:
+                continue
+            self.subscribe(topic, self._store(key))
+            self._wired.add(key)
+            added.append(key)
+        return added
+
+    def _store(self, key: str) -> Callable[[Any], None]:
+        if key == "streams":
+            return self._on_stream_state
+        if key == "gps_fix":
+
+            def on_fix(message: Any) -> None:
+                self.latest["gps_fix"] = message
+                self._gps_lost_at = None
+                self._update_health()
+
+            return on_fix
+        if key == "gps_lost":
+
+            def on_lost(message: Any) -> None:
+                self.latest["gps_lost"] = message
+                self._gps_lost_at = self._clock()
+                self._update_health()
+
+            return on_lost
+        if key in ("attitude", "gps_stats", "velocity_link", "motion"):
+            # High-rate or health-neutral: store only.
+            return lambda message: self.latest.__setitem__(key, message)
+
+        def store_and_check(message: Any) -> None:
+            self.latest[key] = message
+            self._update_health()
+
+        return store_and_check
+
+    def _on_stream_state(self, message: Any) -> None:
+        """One stream's state (``name`` + ``state``) or a map of them, depending on the sender."""
+        plain = to_plain(message)
+        if isinstance(plain, dict) and "name" in plain:
+            self.stream_states[str(plain["name"])] = plain
+        elif isinstance(plain, dict):
+            self.stream_states.update({str(k): v for k, v in plain.items()})
+        self._update_health()
+
+    # ------------------------------------------------------------------ commands and sessions
+
+    def _on_command(self, cmd: SystemCommand) -> None:
+        if cmd.code != DIAGNOSTICS:
+            return
+        try:
+            on = parse_switch(cmd.payload)
+        except PayloadError as err:
+            cmd.respond(self.name, CommandResult(False, str(err)))
+            return
+        self.diagnostics = on
+        _LOGGER.info("diagnostics report %s", "on" if on else "off")
+        cmd.respond(self.name, CommandResult(True, result={"diagnostics": on}))
+
+    def _on_session_closed(self, event: SessionClosed) -> None:
+        self.stop_stream(event.session_id)
+
+    # ------------------------------------------------------------------ streams
+
+    def start_stream(
+        self, session_id: str, key: bytes | None, address: tuple[str, int], rate_hz: float
+    ) -> TelemetryStream:
+        """(Re)start the stream of ``session_id``; must be called on the event loop."""
+        if self._group is None or self._transport is None:
+            raise RpcError(UNAVAILABLE, "telemetry is not running")
+        previous = self.streams.get(session_id)
+        self.stop_stream(session_id)
+        # A new request in the same session continues the sequence: the station's replay
+        # check stays meaningful across re-requests.
+        encoder = (
+            previous.encoder
+            if previous is not None
+            else TelemetryEncoder(self.ctx.config.platform.id, key)
+        )
+        stream = TelemetryStream(session_id, address, rate_hz, encoder)
+        stream.task = self._group.create_task(
+            self._stream(stream), name=f"telemetry:{session_id[:8]}"
+        )
+        self.streams[session_id] = stream
+        _LOGGER.info("telemetry to %s:%d at %.1f Hz", address[0], address[1], rate_hz)
+        return stream
+
+    def stop_stream(self, session_id: str) -> bool:
+        stream = self.streams.pop(session_id, None)
+        if stream is None:
+            return False
+        if stream.task is not None:
+            stream.task.cancel("session closed")
+        return True
+
+    async def _stream(self, stream: TelemetryStream) -> None:
+        loop = asyncio.get_running_loop()
+        period = 1.0 / stream.rate_hz
+        due = loop.time()
+        while True:
+            self.send_snapshot(stream)
+            due += period
+            delay = due - loop.time()
+            if delay < 0:  # fell behind (a stalled loop): skip, never burst
+                due = loop.time()
+                delay = 0.0
+            await asyncio.sleep(delay)
+
+    def send_snapshot(self, stream: TelemetryStream) -> int:
+        """Encode and send one snapshot to ``stream``; returns the number of datagrams."""
+        assert self._transport is not None
+        encoder = stream.encoder
+        trimmed = encoder.trimmed
+        datagrams = encoder.encode(self.snapshot(), self._clock())
+        self.counters["trimmed_sections"] += encoder.trimmed - trimmed
+        for datagram in datagrams:
+            try:
+                self._transport.sendto(datagram, stream.address)
+            except OSError as err:  # unreachable host and the like: count, keep going
+                self.counters["send_errors"] += 1
+                _LOGGER.debug("telemetry send to %s failed: %s", stream.address, err)
+                continue
+            self.counters["datagrams_sent"] += 1
+            stream.sent += 1
+            stream.max_size = max(stream.max_size, len(datagram))
+        return len(datagrams)
+
+    # ------------------------------------------------------------------ snapshot
+
+    def snapshot(self) -> dict[str, Any]:
+        """The full snapshot: mode and override, then every telemetry source."""
+        self.counters["snapshots"] += 1
+        override = self.bus.last(topics.OVERRIDE_STATE)
+        report: dict[str, Any] = {
+            "mode": override.mode.value if override else "autonomous",
+            "manual_override": bool(override and override.engaged),
+        }
+        for name, source in self.ctx.telemetry_sources.items():
+            report[name] = source()
+        return report
+
+    def sources(self) -> dict[str, Callable[[], Any]]:
+        """The sections this aggregator contributes to ``ctx.telemetry_sources``."""
+        return {
+            "override": self.override_section,
+            "lights": lambda: to_plain(self.latest.get("lights")),
+            "battery": self.battery_section,
+            "controller": self.controller_section,
+            "gps": self.gps_section,
+            "attitude": self.attitude_section,
+            "computer": self.computer_section,
+            "link": self.link_section,
+            "streams": self.streams_section,
+            "motion": lambda: to_plain(self.latest.get("motion")),
+            "autonomy": lambda: to_plain(self.latest.get("autonomy")),
+            "diagnostics": self.diagnostics_section,
+        }
+
+    def override_section(self) -> dict[str, Any]:
+        override = self.bus.last(topics.OVERRIDE_STATE)
+        return {
+            "engaged": bool(override and override.engaged),
+            "station": override.station_id if override else None,
+        }
+
+    def battery_section(self) -> dict[str, Any] | None:
+        status = self.latest.get("controller")
+        if status is None:
+            return None
+        volts = _field(status, "battery_volts", "battery_v", "main_volts", "volts")
+        monitor = _field(status, "battery_monitor", "monitor")
+        level = None
+        if volts is not None and monitor is not False:
+            level = battery_level(float(volts), self.ctx.config.telemetry).name.lower()
+        return {
+            "volts": _round(volts, 2),
+            "level": level,
+            "monitor": monitor if isinstance(monitor, bool) else volts is not None,
+        }
+
+    def controller_section(self) -> dict[str, Any] | None:
+        status = self.latest.get("controller")
+        if status is None:
+            return None
+        return {
+            "connected": bool(_field(status, "connected")),
+            "temps_c": _round(_field(status, "heatsink_c", "temperatures_c", "temps_c"), 1),
+            "amps": _round(_field(status, "motor_amps", "amps", "currents_a"), 1),
+            "internal_volts": _round(_field(status, "internal_volts", "internal_v"), 2),
+        }
+
+    def gps_section(self) -> dict[str, Any] | None:
+        fix = self.latest.get("gps_fix")
+        stats = self.latest.get("gps_stats")
+        if fix is None and stats is None and "gps_lost" not in self.latest:
+            return None
+        section: dict[str, Any] = dict(to_plain(fix) or {}) if fix is not None else {}
+        section["fix"] = fix is not None and self._gps_lost_at is None
+        if self._gps_lost_at is not None:
+            section["lost_for_s"] = round(self._clock() - self._gps_lost_at, 1)
+        if stats is not None:
+            section["stats"] = to_plain(stats)
+        return section
+
+    def attitude_section(self) -> dict[str, Any] | None:
+        attitude = self.latest.get("attitude")
+        imu = self.latest.get("imu")
+        if attitude is None and imu is None:
+            return None
+        section: dict[str, Any] = dict(to_plain(attitude) or {}) if attitude is not None else {}
+        if imu is not None:
+            section["imu"] = to_plain(imu)
+        return section
+
+    def computer_section(self) -> dict[str, Any]:
+        now = time.monotonic()
+        if self._system is None or now - self._system[0] > SYSTEM_INFO_MAX_AGE:
+            self._system = (now, system_info(self._thermal_root, self._meminfo))
+        return self._system[1]
+
+    def link_section(self) -> dict[str, Any]:
+        velocity = self.latest.get("velocity_link")
+        sessions = getattr(self.ctx.sessions, "sessions", {}) if self.ctx.sessions else {}
+        return {
+            "velocity": to_plain(velocity),
+            "session_rtt_ms": None,  # measured by the station (heartbeats), not here
+            "sessions": len(sessions),
+            "telemetry_streams": len(self.streams),
+        }
+
+    def streams_section(self) -> dict[str, Any]:
+        return {name: _stream_state(value) for name, value in self.stream_states.items()}
+
+    def diagnostics_section(self) -> dict[str, Any] | None:
+        if not self.diagnostics:
+            return None
+        sessions = self.ctx.sessions
+        return {
+            "actor_restarts": dict(self.ctx.supervisor.restarts),
+            "bus_delivery_errors": self.bus.delivery_errors,
+            "rpc": dict(self.ctx.rpc.counters),
+            "auth_failures": getattr(sessions, "auth_failures", None),
+            "telemetry": dict(self.counters),
+            "gps": to_plain(self.latest.get("gps_stats")),
+            "imu": to_plain(self.latest.get("imu")),
+        }
+
+    # ------------------------------------------------------------------ health
+
+    async def _health_loop(self) -> None:
+        # Some inputs (a stream failing silently, GPS age) change without a message.
+        while True:
+            self._update_health()
+            await asyncio.sleep(1.0)
+
+    def compute_health(self) -> PlatformHealth:
+        battery = self.battery_section()
+        level = Battery[battery["level"].upper()] if battery and battery["level"] else None
+        controller = self.controller_section()
+        faults: list[str] = []
+        if self.ctx.config.motor.enabled and controller is not None and not controller["connected"]:
+            faults.append("controller")
+        imu = to_plain(self.latest.get("imu"))
+        if isinstance(imu, dict) and (imu.get("error") or imu.get("ok") is False):
+            faults.append("imu")
+        states = self.streams_section()
+        faults.extend(f"stream:{name}" for name, state in states.items() if state == "failed")
+        return PlatformHealth(
+            battery=level or Battery.UNKNOWN,
+            gps_fix="gps_fix" in self.latest and self._gps_lost_at is None,
+            streaming=any(state in ("playing", "streaming") for state in states.values()),
+            controller=bool(controller and controller["connected"]),
+            fault=bool(faults),
+            faults=tuple(faults),
+        )
+
+    def _update_health(self) -> None:
+        health = self.compute_health()
+        if health != self.health:
+            self.health = health
+            self.bus.publish(topics.PLATFORM_HEALTH, health)
+
+
+@dataclasses.dataclass(eq=False)
+class TelemetryStream:
+    """One station's telemetry stream (one per session)."""
+
+    session_id: str
+    address: tuple[str, int]
+    rate_hz: float
+    encoder: TelemetryEncoder
+    task: asyncio.Task[None] | None = None
+    sent: int = 0
+    max_size: int = 0
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def battery_level(volts: float, config: Any) -> Battery:
+    """Coarse level from the pack voltage and ``telemetry.battery_*_v`` thresholds."""
+    if volts < config.battery_low_v:
+        return Battery.LOW
+    if volts < config.battery_high_v:
+        return Battery.MEDIUM
+    return Battery.HIGH
+
+
+def system_info(thermal_root: Path = THERMAL_ROOT, meminfo: Path = MEMINFO) -> dict[str, Any]:
+    """CPU temperature (null without a thermal zone), load averages, free memory."""
+    try:
+        load = [round(value, 2) for value in os.getloadavg()]
+    except OSError:
+        load = None
+    memory = _meminfo(meminfo)
+    return {
+        "cpu_temp_c": cpu_temperature(thermal_root),
+        "load": load,
+        "mem_free_mb": memory.get("MemAvailable"),
+        "mem_total_mb": memory.get("MemTotal"),
+    }
+
+
+def cpu_temperature(root: Path = THERMAL_ROOT) -> float | None:
+    """The CPU's thermal zone in °C (the first zone when none is named like a CPU)."""
+    try:
+        zones = sorted(root.glob("thermal_zone*"))
+    except OSError:
+        return None
+    chosen: Path | None = None
+    for zone in zones:
+        try:
+            kind = (zone / "type").read_text().strip().lower()
+        except OSError:
+            continue
+        if chosen is None or kind in CPU_ZONE_TYPES:
+            chosen = zone
+            if kind in CPU_ZONE_TYPES:
+                break
+    if chosen is None:
+        return None
+    try:
+        return round(int((chosen / "temp").read_text().strip()) / 1000, 1)
+    except (OSError, ValueError):
+        return None
+
+
+def _meminfo(path: Path) -> dict[str, float]:
+    values: dict[str, float] = {}
+    try:
+        text = path.read_text()
+    except OSError:
+        return values
+    for line in text.splitlines():
+        name, _, rest = line.partition(":")
+        if name in ("MemAvailable", "MemTotal"):
+            try:
+                values[name] = round(int(rest.split()[0]) / 1024, 1)
+            except (ValueError, IndexError):
+                continue
+    return values
+
+
+def to_plain(value: Any, digits: int = 7) -> Any:
+    """A bus message as JSON-like values: dataclasses to dicts, enums to values, floats rounded."""
+    if value is None or isinstance(value, bool | int | str):
+        return value
+    if isinstance(value, float):
+        return round(value, digits)
+    if isinstance(value, Enum):
+        return to_plain(value.value, digits)
+    if isinstance(value, datetime | date | dtime):
+        return value.isoformat()
+    as_dict = getattr(value, "as_dict", None)
+    if callable(as_dict):
+        return to_plain(as_dict(), digits)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {
+            f.name: to_plain(getattr(value, f.name), digits)
+            for f in dataclasses.fields(value)
+            if not f.name.startswith("_")
+        }
+    if isinstance(value, dict):
+        return {str(k): to_plain(v, digits) for k, v in value.items()}
+    if isinstance(value, list | tuple | set | frozenset):
+        return [to_plain(item, digits) for item in value]
+    return str(value)
+
+
+def _field(message: Any, *names: str) -> Any:
+    for name in names:
+        if isinstance(message, dict) and name in message:
+            return to_plain(message[name])
+        if hasattr(message, name):
+            return to_plain(getattr(message, name))
+    return None
+
+
+def _round(value: Any, digits: int) -> Any:
+    if isinstance(value, float):
+        return round(value, digits)
+    if isinstance(value, list):
+        return [_round(item, digits) for item in value]
+    return value
+
+
+def _stream_state(value: Any) -> Any:
+    if isinstance(value, dict):
+        return value.get("state", value.get("status", value))
+    return value
+
+
+def _find_topic(names: tuple[str, ...]) -> Topic[Any] | None:
+    for name in names:
+        topic = getattr(topics, name, None)
+        if isinstance(topic, Topic):
+            return topic
+    return None
+
+
+def allowed_host(host: str, peer_host: str) -> bool:
+    """Telemetry goes only to the caller's own host or to loopback, never a third host."""
+    try:
+        address = ipaddress.ip_address(host)
+    except ValueError:
+        return False
+    if address.is_loopback:
+        return True
+    try:
+        peer = ipaddress.ip_address(peer_host)
+    except ValueError:
+        return False
+    if isinstance(peer, ipaddress.IPv6Address) and peer.ipv4_mapped is not None:
+        peer = peer.ipv4_mapped
+    return address == peer
+
+
+class TelemetryMethods:
+    """Signaling methods of the telemetry stream."""
+
+    def __init__(self, ctx: PlatformContext, aggregator: TelemetryAggregator) -> None:
+        self.ctx = ctx
+        self.aggregator = aggregator
+
+    async def request_telemetry(
+        self,
+        call: CallContext,
+        port: int,
+        rate_hz: float | None = None,
+        host: str | None = None,
+    ) -> dict[str, Any]:
+        """Push telemetry to ``host:port`` (default host: the caller's) until the session ends."""
+        session = call.session
+        peer = session.peer_host
+        target = peer if host is None else host
+        if not isinstance(target, str) or not allowed_host(target, peer):
+            raise RpcError(
+                INVALID_PARAMS, "invalid params: host must be the caller's address or loopback"
+            )
+        if not isinstance(port, int) or isinstance(port, bool) or not 1 <= port <= 65535:
+            raise RpcError(INVALID_PARAMS, "invalid params: port must be 1-65535")
+        rate = self.ctx.config.telemetry.rate_hz if rate_hz is None else rate_hz
+        if (
+            not isinstance(rate, int | float)
+            or isinstance(rate, bool)
+            or not 0 < rate <= MAX_RATE_HZ
+        ):
+            raise RpcError(INVALID_PARAMS, f"invalid params: rate_hz must be in (0, {MAX_RATE_HZ}]")
+        self.aggregator.start_stream(
+            session.session_id, session.session_key, (target, port), float(rate)
+        )
+        return {
+            "host": target,
+            "port": port,
+            "rate_hz": float(rate),
+            **stream_parameters(session.session_key is not None),
+        }
+
+    async def stop_telemetry(self, call: CallContext) -> bool:
+        return self.aggregator.stop_stream(call.session.session_id)
+
+
+def stream_parameters(authenticated: bool) -> dict[str, Any]:
+    return {
+        "version": VERSION,
+        "max_datagram": MAX_DATAGRAM,
+        "auth": f"hmac-sha256-{TAG_LENGTH * 8}" if authenticated else "none",
+    }
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    aggregator = TelemetryAggregator(ctx)
+    ctx.telemetry_sources.update(aggregator.sources())
+    methods = TelemetryMethods(ctx, aggregator)
+    ctx.rpc.add("request_telemetry", methods.request_telemetry)
+    ctx.rpc.add("stop_telemetry", methods.stop_telemetry)
+    ctx.capabilities["telemetry"] = lambda: {
+        "rate_hz": ctx.config.telemetry.rate_hz,
+        "push": True,
+        **stream_parameters(ctx.fleet_key is not None),
+    }
+    ctx.supervisor.start(aggregator)

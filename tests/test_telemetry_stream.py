@@ -1,0 +1,199 @@
+"""Telemetry end to end: a platform pushing to a station daemon over real UDP on loopback."""
+
+from __future__ import annotations
+
+import socket
+from collections.abc import AsyncIterator, Awaitable, Callable
+
+import pytest
+from conftest import quiet_platform_config, wait_until
+
+from brasidas import topics
+from brasidas.codecs.jsonrpc import INVALID_PARAMS, RpcError
+from brasidas.codecs.telemetry import MAX_DATAGRAM, TelemetryDecoder, TelemetryEncoder
+from brasidas.config import StationConfig, load_config
+from brasidas.messages import LightsState, PlatformHealth, StationNotification
+from brasidas.status import Battery
+from platformd.app import PlatformDaemon
+from platformd.telemetry import TelemetryAggregator
+from stationd.client import PlatformConnection
+from stationd.daemon import StationDaemon
+
+Factory = Callable[..., Awaitable[PlatformDaemon]]
+
+
+@pytest.fixture
+async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
+    config = load_config(
+        StationConfig,
+        None,
+        ["station.api_port=0", "station.connect_timeout=2", "telemetry.rate_hz=20"],
+    )
+    daemon = StationDaemon(config, fleet_key)
+    await daemon.start()
+    yield daemon
+    await daemon.stop()
+
+
+def aggregator(platform: PlatformDaemon) -> TelemetryAggregator:
+    (actor,) = [a for a in platform.supervisor.actors if isinstance(a, TelemetryAggregator)]
+    return actor
+
+
+async def test_station_receives_verified_telemetry_and_refuses_forgeries(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes
+) -> None:
+    platform = await platform_factory(quiet_platform_config("platform.id=rover-7"), fleet_key)
+    notes: list[StationNotification] = []
+    station.bus.subscribe(topics.STATION_NOTIFICATIONS, notes.append)
+    platform.bus.publish(topics.LIGHTS_STATE, LightsState(main=True, positional=False))
+
+    await station.ctx.connection_manager.ensure("rover-7", platform.ctx.signaling_url)
+    api = station.ctx.api
+    await wait_until(lambda: _received(station, "rover-7") >= 3)
+    report = await api.call_local("get_telemetry", platform_id="rover-7")
+    snapshot = report["snapshot"]
+    assert snapshot["mode"] == "autonomous" and snapshot["manual_override"] is False
+    assert snapshot["lights"] == {"main": True, "positional": False}
+    assert snapshot["computer"]["mem_free_mb"] > 0 and len(snapshot["computer"]["load"]) == 3
+    assert snapshot["autonomy"] is None and snapshot["diagnostics"] is None
+    assert report["link"]["loss_pct"] == 0.0 and report["link"]["rejected_total"] == 0
+    assert report["link"]["max_datagram"] < MAX_DATAGRAM
+    # get_telemetry_report over signaling carries the same sections.
+    connection = station.ctx.connections["rover-7"]
+    over_signaling = await connection.call("get_telemetry_report")
+    assert set(snapshot) <= set(over_signaling)
+
+    # The platform follows the operator: the next datagrams show the manual override.
+    await api.call_local("movrd", platform_id="rover-7", engaged=True)
+    await wait_until(lambda: _snapshot(station, "rover-7").get("manual_override") is True)
+    assert _snapshot(station, "rover-7")["override"]["station"] == "station-1"
+
+    # Forged, truncated, garbage and replayed datagrams sent to the station's port.
+    link = _link(station, "rover-7")
+    assert link.transport is not None
+    port = link.transport.get_extra_info("sockname")[1]
+    forger = TelemetryEncoder("rover-7", b"\x00" * 32, first_seq=10**9)
+    replay_capture = TelemetryDecoder("rover-7", connection.session_key)
+    genuine = TelemetryEncoder("rover-7", connection.session_key, first_seq=1)
+    old = genuine.encode({"mode": "autonomous"}, 0.0)[0]  # authentic but seq 1: a replay
+    assert replay_capture.feed(old)
+    before = dict(link.decoder.rejected)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.sendto(forger.encode({"mode": "teleop"}, 0.0)[0], ("127.0.0.1", port))
+        sock.sendto(b"\x01", ("127.0.0.1", port))
+        sock.sendto(b"\x01\x01" + b"\xc1" * 40, ("127.0.0.1", port))
+        sock.sendto(old, ("127.0.0.1", port))
+    await wait_until(lambda: sum(link.decoder.rejected.values()) - sum(before.values()) >= 4)
+    rejected = link.decoder.rejected
+    assert rejected["forged"] - before["forged"] == 2  # bad key; garbage under a bad tag
+    assert rejected["truncated"] - before["truncated"] == 1
+    assert rejected["replayed"] - before["replayed"] == 1
+    assert _snapshot(station, "rover-7")["mode"] == "teleop"  # the real one, not the forger's
+    # Still streaming after the attack.
+    received = _received(station, "rover-7")
+    await wait_until(lambda: _received(station, "rover-7") > received + 2)
+    assert not [n for n in notes if n.name == "link_degraded"]
+
+    # Disconnecting ends the stream on the platform.
+    await api.call_local("disconnect", platform_id="rover-7")
+    await wait_until(lambda: not aggregator(platform).streams)
+
+
+async def test_silence_raises_and_recovery_clears_link_degraded(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes
+) -> None:
+    platform = await platform_factory(quiet_platform_config(), fleet_key)
+    notes: list[StationNotification] = []
+    station.bus.subscribe(topics.STATION_NOTIFICATIONS, notes.append)
+    await station.ctx.connection_manager.ensure("brasidas-1", platform.ctx.signaling_url)
+    await wait_until(lambda: _received(station, "brasidas-1") >= 2)
+    agg = aggregator(platform)
+    (stream,) = agg.streams.values()
+    address, rate = stream.address, stream.rate_hz
+    # The platform goes quiet: the stream is paused, its encoder kept.
+    assert stream.task is not None
+    stream.task.cancel()
+    await wait_until(lambda: any(n.name == "link_degraded" and n.active for n in notes))
+    report = await station.ctx.api.call_local("get_telemetry", platform_id="brasidas-1")
+    assert [w["name"] for w in report["warnings"]] == ["link_degraded"]
+    assert report["warnings"][0]["code"] == "90.13"
+    # The station asks again (same session): the sequence continues and the link recovers.
+    session = next(iter(platform.ctx.sessions.sessions.values()))
+    agg.start_stream(session.session_id, session.session_key, address, rate)
+    await wait_until(lambda: any(n.name == "link_degraded" and not n.active for n in notes))
+    listing = await station.ctx.api.call_local("telemetry_notifications", limit=10)
+    assert [(n["name"], n["active"]) for n in listing][-2:] == [
+        ("link_degraded", True),
+        ("link_degraded", False),
+    ]
+
+
+async def test_request_telemetry_refuses_third_hosts_and_bad_params(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    platform = await platform_factory(quiet_platform_config(), fleet_key)
+    connection = PlatformConnection(
+        "brasidas-1", platform.ctx.signaling_url, station_id="s", fleet_key=fleet_key
+    )
+    await connection.open()
+    try:
+        for params in (
+            {"port": 9, "host": "192.0.2.7"},
+            {"port": 9, "host": "not-an-ip"},
+            {"port": 0},
+            {"port": 70000},
+            {"port": 9, "rate_hz": 0},
+            {"port": 9, "rate_hz": 1000},
+        ):
+            with pytest.raises(RpcError) as info:
+                await connection.call("request_telemetry", **params)
+            assert info.value.code == INVALID_PARAMS, params
+        answer = await connection.call("request_telemetry", port=9, host="127.0.0.2")
+        assert answer["host"] == "127.0.0.2" and answer["auth"] == "hmac-sha256-128"
+        assert answer["rate_hz"] == 5.0
+        assert connection.capabilities["telemetry"]["push"] is True
+        assert await connection.call("stop_telemetry") is True
+    finally:
+        await connection.close()
+
+
+async def test_diagnostics_command_adds_the_section_and_health_is_published(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    platform = await platform_factory(quiet_platform_config(), fleet_key)
+    connection = PlatformConnection(
+        "brasidas-1", platform.ctx.signaling_url, station_id="s", fleet_key=fleet_key
+    )
+    await connection.open()
+    try:
+        answer = await connection.call("issue_system_command", group=20, command=0, payload="True")
+        assert answer == {"accepted": True, "reason": "", "result": {"diagnostics": True}}
+        report = await connection.call("get_telemetry_report")
+        diagnostics = report["diagnostics"]
+        assert diagnostics["rpc"]["calls"] >= 2 and "actor_restarts" in diagnostics
+        answer = await connection.call("issue_system_command", group=20, command=0, payload="x")
+        assert answer["accepted"] is False
+        await connection.call("issue_system_command", group=20, command=0, payload="OFF")
+        assert (await connection.call("get_telemetry_report"))["diagnostics"] is None
+    finally:
+        await connection.close()
+    health = platform.bus.last(topics.PLATFORM_HEALTH)
+    assert isinstance(health, PlatformHealth)
+    assert health.battery is Battery.UNKNOWN and not health.gps_fix and not health.fault
+
+
+def _link(station: StationDaemon, platform_id: str):  # type: ignore[no-untyped-def]
+    (receiver,) = [a for a in station.supervisor.actors if a.name == "telemetry"]
+    return receiver.links[platform_id]  # type: ignore[attr-defined]
+
+
+def _received(station: StationDaemon, platform_id: str) -> int:
+    try:
+        return int(_link(station, platform_id).stats.received)
+    except KeyError:
+        return 0
+
+
+def _snapshot(station: StationDaemon, platform_id: str) -> dict:  # type: ignore[type-arg]
+    return dict(_link(station, platform_id).snapshot)
