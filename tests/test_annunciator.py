@@ -1,0 +1,162 @@
+"""The station's annunciator and link figures, driven by snapshots and an injected clock."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from brasidas.codecs.telemetry import TelemetryEncoder
+from brasidas.config import TelemetryReceiverSection
+from brasidas.messages import StationNotification
+from stationd.telemetry import (
+    CONTROLLER_OVER_TEMPERATURE,
+    GPS_FIX_LOST,
+    LINK_DEGRADED,
+    LOW_BATTERY,
+    STREAM_FAILED,
+    Annunciator,
+    LinkStats,
+    TelemetryLink,
+)
+
+CONFIG = TelemetryReceiverSection()
+HEALTHY: dict[str, Any] = {
+    "battery": {"volts": 25.1, "level": "high", "monitor": True},
+    "controller": {"connected": True, "temps_c": [35.0, 38.0], "amps": [1.0, 1.2]},
+    "gps": {"fix": True, "latitude": 37.98, "longitude": 23.72},
+    "streams": {"navcam": "playing"},
+}
+
+
+def with_(section: str, value: Any) -> dict[str, Any]:
+    return {**HEALTHY, section: value}
+
+
+def names(annunciator: Annunciator) -> set[str]:
+    return set(annunciator.active)
+
+
+def test_healthy_snapshot_raises_nothing() -> None:
+    annunciator = Annunciator(CONFIG)
+    assert annunciator.evaluate(HEALTHY, 0.0, 0.1, now=0.0) == []
+    assert annunciator.evaluate({}, 0.0, None, now=0.0) == []  # nothing known, nothing flagged
+
+
+def test_low_battery_raises_names_the_voltage_and_clears_with_hysteresis() -> None:
+    annunciator = Annunciator(CONFIG)
+    (change,) = annunciator.evaluate(with_("battery", {"volts": 22.6, "level": "low"}), 0, 0, 1.0)
+    assert change.active and change.warning.code == LOW_BATTERY
+    assert change.warning.message == "low battery (22.6 V)" and change.warning.since == 1.0
+    # Recovering a little (under battery_clear_v) keeps the warning up: no flapping.
+    assert annunciator.evaluate(with_("battery", {"volts": 23.2, "level": "medium"}), 0, 0, 2) == []
+    assert names(annunciator) == {"low_battery"}
+    (change,) = annunciator.evaluate(with_("battery", {"volts": 23.5, "level": "medium"}), 0, 0, 3)
+    assert not change.active and change.warning.name == "low_battery"
+    # The platform's own LOW level raises it even without a voltage.
+    (change,) = annunciator.evaluate(with_("battery", {"volts": None, "level": "low"}), 0, 0, 4)
+    assert change.active and change.warning.message == "low battery"
+
+
+def test_controller_over_temperature_raises_and_clears_below_the_clear_threshold() -> None:
+    annunciator = Annunciator(CONFIG)
+    hot = {"connected": True, "temps_c": [41.0, 72.4], "amps": [8.0, 9.0]}
+    (change,) = annunciator.evaluate(with_("controller", hot), 0, 0, 1)
+    assert change.active and change.warning.code == CONTROLLER_OVER_TEMPERATURE
+    assert change.warning.message == "controller over temperature (72 °C)"
+    warm = {**hot, "temps_c": [41.0, 67.0]}
+    assert annunciator.evaluate(with_("controller", warm), 0, 0, 2) == []
+    cool = {**hot, "temps_c": [41.0, 60.0]}
+    (change,) = annunciator.evaluate(with_("controller", cool), 0, 0, 3)
+    assert not change.active
+
+
+def test_gps_fix_lost_raises_and_clears() -> None:
+    annunciator = Annunciator(CONFIG)
+    (change,) = annunciator.evaluate(with_("gps", {"fix": False, "lost_for_s": 3.0}), 0, 0, 1)
+    assert change.active and change.warning.code == GPS_FIX_LOST
+    assert change.warning.message == "GPS fix lost (3 s ago)"
+    # The figure changes: same warning, no new notification.
+    assert annunciator.evaluate(with_("gps", {"fix": False, "lost_for_s": 9.0}), 0, 0, 2) == []
+    assert annunciator.active["gps_fix_lost"].message == "GPS fix lost (9 s ago)"
+    assert annunciator.active["gps_fix_lost"].since == 1
+    (change,) = annunciator.evaluate(HEALTHY, 0, 0, 3)
+    assert not change.active and change.warning.name == "gps_fix_lost"
+    # A platform without a GPS (section null) is not "fix lost".
+    assert annunciator.evaluate(with_("gps", None), 0, 0, 4) == []
+
+
+def test_link_degraded_by_silence_or_loss() -> None:
+    annunciator = Annunciator(CONFIG)
+    (change,) = annunciator.evaluate(HEALTHY, 0.0, silence=1.2, now=5)
+    assert change.active and change.warning.code == LINK_DEGRADED
+    assert change.warning.message == "link degraded: telemetry silent for 1.2 s"
+    (change,) = annunciator.evaluate(HEALTHY, 0.0, silence=0.1, now=6)
+    assert not change.active
+    (change,) = annunciator.evaluate(HEALTHY, 25.0, silence=0.1, now=7)
+    assert change.active and "25% of telemetry lost" in change.warning.message
+    assert annunciator.evaluate(HEALTHY, 10.0, silence=0.1, now=8)[0].active is False
+
+
+def test_each_failed_stream_is_named() -> None:
+    annunciator = Annunciator(CONFIG)
+    streams = {"navcam": "failed", "thermal": "error", "audio": "playing"}
+    changes = annunciator.evaluate(with_("streams", streams), 0, 0, 1)
+    assert {(c.warning.name, c.active) for c in changes} == {
+        ("stream_failed:navcam", True),
+        ("stream_failed:thermal", True),
+    }
+    assert all(c.warning.code == STREAM_FAILED for c in changes)
+    assert annunciator.active["stream_failed:navcam"].message == "stream navcam failed"
+    (change,) = annunciator.evaluate(with_("streams", {**streams, "navcam": "playing"}), 0, 0, 2)
+    assert (change.warning.name, change.active) == ("stream_failed:navcam", False)
+
+
+def test_loss_over_a_sliding_window() -> None:
+    stats = LinkStats(window=10)
+    for seq in range(1, 11):
+        stats.accepted(seq, now=seq * 0.2)
+    assert stats.loss_pct == 0.0
+    for seq in (12, 14, 16, 18, 20):  # every other one lost
+        stats.accepted(seq, now=seq * 0.2)
+    assert stats.loss_pct == 50.0
+    for seq in range(21, 31):
+        stats.accepted(seq, now=seq * 0.2)
+    assert stats.loss_pct == 0.0
+    assert stats.silence(now=6.5) == 0.5
+
+
+def test_silence_counts_from_the_request_until_the_first_datagram() -> None:
+    stats = LinkStats(window=10)
+    assert stats.silence(now=3.0) is None
+    stats.start(now=3.0)
+    assert stats.silence(now=4.5) == 1.5
+
+
+def test_link_announces_raise_and_clear_with_group_90_notifications() -> None:
+    key = bytes(32)
+    now = [100.0]
+    notes: list[StationNotification] = []
+    link = TelemetryLink(
+        "rover-1", key, CONFIG, notes.append, clock=lambda: now[0], wall_clock=lambda: 1e9
+    )
+    link.stats.start(now[0])
+    encoder = TelemetryEncoder("rover-1", key)
+    assert link.feed(encoder.encode(HEALTHY, 1.0)[0])
+    assert notes == []
+    now[0] += 1.5  # silence
+    link.tick()
+    assert [(n.name, n.active, str(n.code)) for n in notes] == [("link_degraded", True, "90.13")]
+    assert link.feed(encoder.encode(with_("battery", {"volts": 22.0, "level": "low"}), 2.0)[0])
+    assert [(n.name, n.active) for n in notes[1:]] == [
+        ("link_degraded", False),
+        ("low_battery", True),
+    ]
+    # Forged datagrams change nothing and are counted.
+    forged = TelemetryEncoder("rover-1", bytes([1]) * 32).encode(HEALTHY, 3.0)[0]
+    assert not link.feed(forged)
+    assert link.decoder.rejected["forged"] == 1
+    report = link.report()
+    assert [w["name"] for w in report["warnings"]] == ["low_battery"]
+    assert report["link"]["received"] == 2 and report["link"]["rejected_total"] == 1
+    link.close()
+    assert (notes[-1].name, notes[-1].active) == ("low_battery", False)
+    assert notes[-1].as_dict()["code"] == "90.10"
