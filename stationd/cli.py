@@ -1,0 +1,331 @@
+"""``brasidas-station``: the station daemon and the operator's commands.
+
+``serve`` runs the daemon (discovery, platform sessions, the local API). ``list`` listens for
+beacons itself. The other commands ask the running daemon through its local API, so sessions
+(and the manual override they hold) outlive a single command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import signal
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+
+from brasidas import security
+from brasidas.codecs.jsonrpc import RpcError, encode_request
+from brasidas.config import ConfigError, StationConfig, load_config
+from brasidas.log import setup_logging
+
+_LOGGER = logging.getLogger("stationd")
+
+
+class CliError(Exception):
+    """Printed as one line; the command exits 1."""
+
+
+# ---------------------------------------------------------------------------- local API client
+
+
+async def api_call_async(config: StationConfig, method: str, **params: Any) -> Any:
+    """Call the running station daemon's local API; raises CliError or RpcError."""
+    station = config.station
+    url = f"http://{station.api_host}:{station.api_port}/api/rpc"
+    timeout = aiohttp.ClientTimeout(total=station.connect_timeout * 2 + 2)
+    try:
+        async with (
+            aiohttp.ClientSession(timeout=timeout) as session,
+            session.post(url, data=encode_request(method, params, 1)) as response,
+        ):
+            answer = await response.json(content_type=None)
+    except aiohttp.ClientConnectionError:
+        raise CliError(
+            f"the station daemon is not running at {url} (start it with 'brasidas-station serve')"
+        ) from None
+    except TimeoutError:
+        raise CliError(f"no answer from the station daemon within {timeout.total:.0f} s") from None
+    if "error" in answer:
+        error = answer["error"]
+        raise RpcError(int(error.get("code", 0)), str(error.get("message", "")), error.get("data"))
+    return answer.get("result")
+
+
+def api_call(config: StationConfig, method: str, **params: Any) -> Any:
+    return asyncio.run(api_call_async(config, method, **params))
+
+
+# ---------------------------------------------------------------------------- commands
+
+
+def _print(args: argparse.Namespace, value: Any, human: Callable[[Any], str]) -> None:
+    print(json.dumps(value, indent=2, sort_keys=True) if args.json else human(value))
+
+
+def _ack(answer: dict[str, Any]) -> str:
+    if answer.get("accepted"):
+        extra = f" {json.dumps(answer['result'])}" if answer.get("result") is not None else ""
+        return f"acknowledged{extra}"
+    return f"rejected: {answer.get('reason') or 'no reason given'}"
+
+
+def _check_ack(answer: Any) -> int:
+    return 0 if isinstance(answer, dict) and answer.get("accepted") else 1
+
+
+def _describe_connection(summary: dict[str, Any]) -> str:
+    params = summary.get("parameters", {})
+    caps = summary.get("capabilities", {})
+    lines = [
+        f"platform   {summary['platform_id']} ({params.get('model', '?')}, "
+        f"software {params.get('software_version', '?')}"
+        f"{', simulated' if params.get('simulated') else ''})",
+        f"signaling  {summary['signaling_url']}  session {summary['session'][:8]}…",
+        f"limits     {json.dumps(params.get('limits', {}))}",
+        f"velocity   {json.dumps(caps.get('velocity', {}))}",
+        f"telemetry  {json.dumps(caps.get('telemetry', {}))}",
+        "streams    "
+        + (
+            ", ".join(
+                f"{s.get('name')} ({s.get('kind')}"
+                + (
+                    f" {s.get('width')}x{s.get('height')}@{s.get('framerate')}"
+                    if s.get("width")
+                    else ""
+                )
+                + ")"
+                for s in caps.get("streams", [])
+            )
+            or "none"
+        ),
+        f"payload    {caps.get('payload_groups') or 'none'}",
+        f"override   {'ENGAGED' if summary.get('manual_override') else 'disengaged'}",
+    ]
+    return "\n".join(lines)
+
+
+def cmd_connect(args: argparse.Namespace, config: StationConfig) -> int:
+    summary = api_call(config, "connect", platform_id=args.id, url=args.url or "")
+    _print(args, summary, _describe_connection)
+    return 0
+
+
+def cmd_disconnect(args: argparse.Namespace, config: StationConfig) -> int:
+    closed = api_call(config, "disconnect", platform_id=args.id)
+    _print(args, closed, lambda c: "disconnected" if c else f"not connected to {args.id}")
+    return 0
+
+
+def cmd_status(args: argparse.Namespace, config: StationConfig) -> int:
+    from stationd import status_view
+
+    if args.watch:
+        return asyncio.run(
+            status_view.watch(config, args.id, interval=args.interval, frames=args.frames)
+        )
+    summary = api_call(config, "status", platform_id=args.id)
+    try:
+        summary["telemetry"] = asyncio.run(status_view.report_once(config, args.id))
+    except RpcError as err:
+        summary["telemetry"] = {"error": err.message}
+
+    def human(s: dict[str, Any]) -> str:
+        report = s.get("report", {})
+        rtt = s.get("round_trip_ms")
+        return "\n".join(
+            [
+                _describe_connection(s),
+                f"mode       {report.get('mode', '?')}",
+                f"round trip {rtt:.2f} ms" if rtt is not None else "round trip -",
+                "",
+                *status_view.render(s["telemetry"], color=sys.stdout.isatty()),
+            ]
+        )
+
+    _print(args, summary, human)
+    return 0
+
+
+def cmd_movrd(args: argparse.Namespace, config: StationConfig) -> int:
+    answer = api_call(config, "movrd", platform_id=args.id, engaged=args.state == "on")
+    _print(args, answer, _ack)
+    return _check_ack(answer)
+
+
+def cmd_cmd(args: argparse.Namespace, config: StationConfig) -> int:
+    answer = api_call(
+        config,
+        "command",
+        platform_id=args.id,
+        group=args.group,
+        command=args.command_id,
+        payload=args.payload,
+    )
+    _print(args, answer, _ack)
+    return _check_ack(answer)
+
+
+def cmd_lights(args: argparse.Namespace, config: StationConfig) -> int:
+    answer = api_call(
+        config, "lights", platform_id=args.id, which=args.which, on=args.state == "on"
+    )
+    _print(args, answer, _ack)
+    return _check_ack(answer)
+
+
+def cmd_keygen(args: argparse.Namespace, config: StationConfig) -> int:
+    path = Path(args.path) if args.path else security.key_path(config.security.key_file)
+    try:
+        security.generate_key(path, overwrite=args.force)
+    except FileExistsError:
+        raise CliError(
+            f"{path} exists; pass --force to replace it (every host needs the new one)"
+        ) from None
+    _print(args, {"path": str(path)}, lambda v: f"fleet key written to {v['path']}")
+    return 0
+
+
+def cmd_list(args: argparse.Namespace, config: StationConfig) -> int:
+    from stationd.discovery import discover
+
+    platforms = asyncio.run(discover(config, station_fleet_key(config), args.wait))
+
+    def human(entries: list[dict[str, Any]]) -> str:
+        if not entries:
+            return f"no platforms heard in {args.wait:.1f} s"
+        return "\n".join(_describe_discovered(entry) for entry in entries)
+
+    _print(args, platforms, human)
+    return 0
+
+
+def _describe_discovered(entry: dict[str, Any]) -> str:
+    status = entry.get("status", {})
+    flags = [name for name, on in status.items() if on is True]
+    position = entry.get("position")
+    where = f" at {position[0]:.6f},{position[1]:.6f}" if position else ""
+    return f"{entry['id']:<16} {entry['url']:<28} {' '.join(flags) or '-'}{where}"
+
+
+def cmd_serve(args: argparse.Namespace, config: StationConfig) -> int:
+    from stationd.daemon import StationDaemon
+
+    fleet_key = station_fleet_key(config)
+
+    async def run() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(signum, stop.set)
+        await StationDaemon(config, fleet_key).run(stop)
+
+    asyncio.run(run())
+    return 0
+
+
+def station_fleet_key(config: StationConfig) -> bytes | None:
+    if config.security.insecure:
+        return None
+    return security.load_key(security.key_path(config.security.key_file))
+
+
+# ---------------------------------------------------------------------------- parser
+
+
+COMMANDS: dict[str, Callable[[argparse.Namespace, StationConfig], int]] = {
+    "serve": cmd_serve,
+    "list": cmd_list,
+    "connect": cmd_connect,
+    "disconnect": cmd_disconnect,
+    "status": cmd_status,
+    "movrd": cmd_movrd,
+    "cmd": cmd_cmd,
+    "lights": cmd_lights,
+    "keygen": cmd_keygen,
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--config", metavar="FILE", help="TOML configuration file")
+    common.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override a configuration key (repeatable)",
+    )
+    common.add_argument("--json", action="store_true", help="machine-readable output")
+    common.add_argument("--insecure", action="store_true", help="no fleet key (never in the field)")
+    common.add_argument("-v", "--verbose", action="count", default=0)
+    common.add_argument("--log-level")
+    parser = argparse.ArgumentParser(
+        prog="brasidas-station", description="Brasidas control station.", parents=[common]
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser("serve", parents=[common], help="run the station daemon")
+    p = sub.add_parser("list", parents=[common], help="platforms online (listens for beacons)")
+    p.add_argument("--wait", type=float, default=3.5, help="seconds to listen (default 3.5)")
+    p = sub.add_parser(
+        "connect", parents=[common], help="connect; print parameters and capabilities"
+    )
+    p.add_argument("id")
+    p.add_argument("--url", help="signaling URL, when the platform is not discovered")
+    p = sub.add_parser("disconnect", parents=[common], help="end the session")
+    p.add_argument("id")
+    p = sub.add_parser("status", parents=[common], help="platform status and telemetry")
+    p.add_argument("id")
+    p.add_argument("--watch", action="store_true", help="live view, refreshed in place")
+    p.add_argument("--interval", type=float, default=0.2, help="seconds between refreshes")
+    p.add_argument("--frames", type=int, default=0, help=argparse.SUPPRESS)
+    p = sub.add_parser("movrd", parents=[common], help="engage or release the manual override")
+    p.add_argument("id")
+    p.add_argument("state", choices=["on", "off"])
+    p = sub.add_parser("cmd", parents=[common], help="issue a system command (table 10.1)")
+    p.add_argument("id")
+    p.add_argument("group", type=int)
+    p.add_argument("command_id", metavar="command", type=int)
+    p.add_argument("payload", nargs="?", default="")
+    p = sub.add_parser("lights", parents=[common], help="main or positional lights")
+    p.add_argument("id")
+    p.add_argument("which", choices=["main", "pos"])
+    p.add_argument("state", choices=["on", "off"])
+    p = sub.add_parser("keygen", parents=[common], help="write a new fleet key")
+    p.add_argument("--path", help="where (default: the configured key file)")
+    p.add_argument("--force", action="store_true", help="replace an existing key")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging(args.verbose if args.command == "serve" else args.verbose - 1, args.log_level)
+    try:
+        config = load_config(StationConfig, args.config, args.overrides)
+        if args.insecure:
+            config.security.insecure = True
+        return COMMANDS[args.command](args, config)
+    except ConfigError as err:
+        print(f"brasidas-station: {err}", file=sys.stderr)
+        return 2
+    except security.FleetKeyError as err:
+        print(f"brasidas-station: {err}; or pass --insecure", file=sys.stderr)
+        return 2
+    except RpcError as err:
+        print(f"brasidas-station: {err.message}", file=sys.stderr)
+        return 1
+    except CliError as err:
+        print(f"brasidas-station: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
