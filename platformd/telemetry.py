@@ -59,7 +59,6 @@ WATCHED: dict[str, tuple[str, ...]] = {
     "attitude": ("ATTITUDE",),
     "imu": ("IMU_STATUS",),
     "velocity_link": ("VELOCITY_LINK_STATS",),
-    "motion": ("MOTION_STATE",),
     "streams": ("STREAM_STATES", "STREAM_STATE", "MEDIA_STREAMS"),
     "autonomy": ("AUTONOMY_STATE",),
 }
@@ -157,7 +156,7 @@ class TelemetryAggregator(Actor):
                 self._update_health()
 
             return on_lost
-        if key in ("attitude", "gps_stats", "velocity_link", "motion"):
+        if key in ("attitude", "gps_stats", "velocity_link"):
             # High-rate or health-neutral: store only.
             return lambda message: self.latest.__setitem__(key, message)
 
@@ -284,7 +283,6 @@ class TelemetryAggregator(Actor):
             "computer": self.computer_section,
             "link": self.link_section,
             "streams": self.streams_section,
-            "motion": lambda: to_plain(self.latest.get("motion")),
             "autonomy": lambda: to_plain(self.latest.get("autonomy")),
             "diagnostics": self.diagnostics_section,
         }
@@ -352,14 +350,16 @@ class TelemetryAggregator(Actor):
         return self._system[1]
 
     def link_section(self) -> dict[str, Any]:
-        velocity = self.latest.get("velocity_link")
         sessions = getattr(self.ctx.sessions, "sessions", {}) if self.ctx.sessions else {}
-        return {
-            "velocity": to_plain(velocity),
+        section: dict[str, Any] = {
             "session_rtt_ms": None,  # measured by the station (heartbeats), not here
             "sessions": len(sessions),
             "telemetry_streams": len(self.streams),
         }
+        if "velocity_link" not in self.ctx.telemetry_sources:
+            # The velocity receiver reports its own section when it is there.
+            section["velocity"] = to_plain(self.latest.get("velocity_link"))
+        return section
 
     def streams_section(self) -> dict[str, Any]:
         return {name: _stream_state(value) for name, value in self.stream_states.items()}
@@ -623,7 +623,8 @@ def stream_parameters(authenticated: bool) -> dict[str, Any]:
 
 async def async_setup(ctx: PlatformContext) -> None:
     aggregator = TelemetryAggregator(ctx)
-    ctx.telemetry_sources.update(aggregator.sources())
+    for name, source in aggregator.sources().items():
+        ctx.telemetry_sources.setdefault(name, source)  # never replace another owner's section
     methods = TelemetryMethods(ctx, aggregator)
     ctx.rpc.add("request_telemetry", methods.request_telemetry)
     ctx.rpc.add("stop_telemetry", methods.stop_telemetry)

@@ -57,7 +57,7 @@ def render(report: dict[str, Any], *, color: bool = True, now: float | None = No
         f"attitude   {_attitude(snap.get('attitude'))}",
         f"computer   {_computer(snap.get('computer'))}",
         f"link       {_link(link)}",
-        f"velocity   {_velocity((snap.get('link') or {}).get('velocity'))}",
+        f"velocity   {_velocity(snap.get('velocity_link') or (snap.get('link') or {}).get('velocity'))}",
         f"streams    {_streams(snap.get('streams'))}",
         f"autonomy   {_text(snap.get('autonomy'))}",
     ]
