@@ -169,9 +169,14 @@ class SessionManager(Actor):
 
     async def rpc_heartbeat(self, call: CallContext) -> dict[str, Any]:
         override = self.bus.last(topics.OVERRIDE_STATE)
+        engaged = bool(override and override.engaged)
         return {
             "time": time.time(),
-            "manual_override": bool(override and override.engaged),
+            # Held by the caller: a station streams velocity only for an override it holds.
+            "manual_override": engaged
+            and override is not None
+            and override.session_id == call.session.session_id,
+            "override_engaged": engaged,
         }
 
 

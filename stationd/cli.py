@@ -179,6 +179,12 @@ def cmd_lights(args: argparse.Namespace, config: StationConfig) -> int:
     return _check_ack(answer)
 
 
+def cmd_drive(args: argparse.Namespace, config: StationConfig) -> int:
+    from stationd.drive import run_drive
+
+    return run_drive(args, config)
+
+
 def cmd_keygen(args: argparse.Namespace, config: StationConfig) -> int:
     path = Path(args.path) if args.path else security.key_path(config.security.key_file)
     try:
@@ -248,6 +254,7 @@ COMMANDS: dict[str, Callable[[argparse.Namespace, StationConfig], int]] = {
     "cmd": cmd_cmd,
     "lights": cmd_lights,
     "keygen": cmd_keygen,
+    "drive": cmd_drive,
 }
 
 
@@ -297,6 +304,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("id")
     p.add_argument("which", choices=["main", "pos"])
     p.add_argument("state", choices=["on", "off"])
+    p = sub.add_parser(
+        "drive", parents=[common], help="drive a platform from the keyboard (takes the terminal)"
+    )
+    p.add_argument("id")
+    p.add_argument("--url", help="signaling URL, when the platform is not discovered")
+    p.add_argument("--step", type=float, default=0.1, help="command change per key press")
     p = sub.add_parser("keygen", parents=[common], help="write a new fleet key")
     p.add_argument("--path", help="where (default: the configured key file)")
     p.add_argument("--force", action="store_true", help="replace an existing key")

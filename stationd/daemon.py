@@ -23,6 +23,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     # Each module has ``async def async_setup(ctx: StationContext)``.
     "stationd.connections",
     "stationd.telemetry",
+    "stationd.teleop",
 )
 
 WEB_ROOT = Path(__file__).resolve().parent.parent / "web"
