@@ -204,10 +204,14 @@ class TelemetryAggregator(Actor):
         self.stop_stream(session_id)
         # A new request in the same session continues the sequence: the station's replay
         # check stays meaningful across re-requests.
+        # A fresh encoder (new session, or this actor restarted) starts from the wall clock in
+        # ms, above any sequence number an earlier encoder of the session can have reached.
         encoder = (
             previous.encoder
             if previous is not None
-            else TelemetryEncoder(self.ctx.config.platform.id, key)
+            else TelemetryEncoder(
+                self.ctx.config.platform.id, key, first_seq=int(self._clock() * 1000)
+            )
         )
         stream = TelemetryStream(session_id, address, rate_hz, encoder)
         stream.task = self._group.create_task(

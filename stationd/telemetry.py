@@ -44,6 +44,8 @@ STREAM_FAILED = CommandCode(NOTIFICATION_GROUP, 14)
 TICK = 0.1
 """How often silence is checked when no datagram arrives."""
 NOTIFICATIONS_KEPT = 100
+REQUEST_AGAIN_FACTOR = 3.0
+"""After this many ``silence_s`` without data the station asks for its stream again."""
 FAILED_STREAM_STATES = frozenset({"failed", "error"})
 
 
@@ -67,8 +69,12 @@ class LinkStats:
         self.started_at = now
 
     def accepted(self, seq: int, now: float) -> None:
-        if self.first_seq is None:
+        if self.first_seq is None or (
+            self.last_seq is not None and seq - self.last_seq > self.window
+        ):
+            # First datagram, or the platform restarted its stream further on: start over.
             self.first_seq = seq
+            self._recent.clear()
         self.received += 1
         self.last_seq = seq
         self.last_at = now
@@ -423,18 +429,30 @@ class TelemetryReceiver(Actor):
         if not _wildcard(host) and not _loopback(connection.platform_host):
             params["host"] = host
         link.stats.start(time.monotonic())
-        try:
-            await connection.call("request_telemetry", **params)
-        except (RpcError, ConnectionError) as err:
-            link.error = f"request_telemetry refused: {getattr(err, 'message', err)}"
-            _LOGGER.warning("%s: %s", connection.platform_id, link.error)
+        requested = await self._request(connection, link, params)
+        again_after = REQUEST_AGAIN_FACTOR * config.silence_s
         while not connection.closed.is_set():
             link.round_trip_ms = connection.round_trip_ms
             link.tick()
+            silence = link.stats.silence(time.monotonic())
+            if silence is not None and silence > again_after:
+                if time.monotonic() - requested > again_after:
+                    # The platform lost our stream (its telemetry actor restarted): ask again.
+                    requested = await self._request(connection, link, params)
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(connection.closed.wait(), TICK)
         if self._workers.get(connection.platform_id) is worker:
             self._stop(connection.platform_id)
+
+    async def _request(self, connection: Any, link: TelemetryLink, params: dict[str, Any]) -> float:
+        """Ask the platform to stream to us; returns when it was asked (monotonic)."""
+        try:
+            await connection.call("request_telemetry", **params)
+            link.error = ""
+        except (RpcError, ConnectionError) as err:
+            link.error = f"request_telemetry refused: {getattr(err, 'message', err)}"
+            _LOGGER.warning("%s: %s", connection.platform_id, link.error)
+        return time.monotonic()
 
     # ------------------------------------------------------------------ local API
 

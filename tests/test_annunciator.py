@@ -160,3 +160,13 @@ def test_link_announces_raise_and_clear_with_group_90_notifications() -> None:
     link.close()
     assert (notes[-1].name, notes[-1].active) == ("low_battery", False)
     assert notes[-1].as_dict()["code"] == "90.10"
+
+
+def test_a_restarted_stream_far_ahead_starts_the_loss_figure_over() -> None:
+    stats = LinkStats(window=10)
+    for seq in range(1, 6):
+        stats.accepted(seq, now=seq)
+    stats.accepted(1_700_000_000_000, now=10)  # the platform's new encoder, clock-based
+    assert stats.loss_pct == 0.0
+    stats.accepted(1_700_000_000_002, now=10.2)
+    assert stats.loss_pct == round(100 / 3, 1)

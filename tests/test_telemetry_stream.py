@@ -100,33 +100,44 @@ async def test_station_receives_verified_telemetry_and_refuses_forgeries(
     await wait_until(lambda: not aggregator(platform).streams)
 
 
-async def test_silence_raises_and_recovery_clears_link_degraded(
-    station: StationDaemon, platform_factory: Factory, fleet_key: bytes
+async def test_station_notices_silence_asks_again_and_the_warning_clears(
+    platform_factory: Factory, fleet_key: bytes
 ) -> None:
     platform = await platform_factory(quiet_platform_config(), fleet_key)
-    notes: list[StationNotification] = []
-    station.bus.subscribe(topics.STATION_NOTIFICATIONS, notes.append)
-    await station.ctx.connection_manager.ensure("brasidas-1", platform.ctx.signaling_url)
-    await wait_until(lambda: _received(station, "brasidas-1") >= 2)
-    agg = aggregator(platform)
-    (stream,) = agg.streams.values()
-    address, rate = stream.address, stream.rate_hz
-    # The platform goes quiet: the stream is paused, its encoder kept.
-    assert stream.task is not None
-    stream.task.cancel()
-    await wait_until(lambda: any(n.name == "link_degraded" and n.active for n in notes))
-    report = await station.ctx.api.call_local("get_telemetry", platform_id="brasidas-1")
-    assert [w["name"] for w in report["warnings"]] == ["link_degraded"]
-    assert report["warnings"][0]["code"] == "90.13"
-    # The station asks again (same session): the sequence continues and the link recovers.
-    session = next(iter(platform.ctx.sessions.sessions.values()))
-    agg.start_stream(session.session_id, session.session_key, address, rate)
-    await wait_until(lambda: any(n.name == "link_degraded" and not n.active for n in notes))
-    listing = await station.ctx.api.call_local("telemetry_notifications", limit=10)
-    assert [(n["name"], n["active"]) for n in listing][-2:] == [
-        ("link_degraded", True),
-        ("link_degraded", False),
-    ]
+    config = load_config(
+        StationConfig,
+        None,
+        ["station.api_port=0", "telemetry.rate_hz=20", "telemetry.silence_s=0.3"],
+    )
+    station = StationDaemon(config, fleet_key)
+    await station.start()
+    try:
+        notes: list[StationNotification] = []
+        station.bus.subscribe(topics.STATION_NOTIFICATIONS, notes.append)
+        await station.ctx.connection_manager.ensure("brasidas-1", platform.ctx.signaling_url)
+        await wait_until(lambda: _received(station, "brasidas-1") >= 2)
+        agg = aggregator(platform)
+        (session_id,) = agg.streams
+        # The platform loses the stream (as when its telemetry actor restarts).
+        agg.stop_stream(session_id)
+        await wait_until(lambda: any(n.name == "link_degraded" and n.active for n in notes))
+        report = await station.ctx.api.call_local("get_telemetry", platform_id="brasidas-1")
+        assert [w["name"] for w in report["warnings"]] == ["link_degraded"]
+        assert report["warnings"][0]["code"] == "90.13"
+        assert "telemetry silent" in report["warnings"][0]["message"]
+        # After 3 x silence_s the station asks again; the new stream's sequence numbers start
+        # above the old ones, so they pass the replay check and the warning clears.
+        await wait_until(lambda: any(n.name == "link_degraded" and not n.active for n in notes))
+        assert session_id in agg.streams
+        link = _link(station, "brasidas-1")
+        assert link.decoder.rejected["replayed"] == 0 and link.stats.loss_pct == 0.0
+        listing = await station.ctx.api.call_local("telemetry_notifications", limit=10)
+        assert [(n["name"], n["active"]) for n in listing][-2:] == [
+            ("link_degraded", True),
+            ("link_degraded", False),
+        ]
+    finally:
+        await station.stop()
 
 
 async def test_request_telemetry_refuses_third_hosts_and_bad_params(
