@@ -118,6 +118,8 @@ class TelemetrySection:
     """Pack voltage below which the coarse battery level is LOW (24 V lead-acid pack)."""
     battery_high_v: float = 25.0
     """Pack voltage at or above which the coarse level is HIGH; MEDIUM in between."""
+    battery_monitor: bool = True
+    """Report the coarse battery level at start-up; command 20.4 switches it at run time."""
 
 
 @dataclass

@@ -31,7 +31,7 @@ from typing import Any
 from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.bus import Topic
-from brasidas.codecs.commands import DIAGNOSTICS, PayloadError, parse_switch
+from brasidas.codecs.commands import BATTERY_MONITOR, DIAGNOSTICS, PayloadError, parse_switch
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, RpcError
 from brasidas.codecs.telemetry import MAX_DATAGRAM, TAG_LENGTH, VERSION, TelemetryEncoder
 from brasidas.messages import CommandResult, PlatformHealth, SessionClosed, SystemCommand
@@ -86,6 +86,8 @@ class TelemetryAggregator(Actor):
         """Last message per :data:`WATCHED` key (raw bus messages)."""
         self.stream_states: dict[str, Any] = {}
         self.diagnostics = False
+        self.battery_monitor = ctx.config.telemetry.battery_monitor
+        """Command 20.4: report the coarse battery level (volts are reported regardless)."""
         self.health: PlatformHealth | None = None
         self.counters: dict[str, int] = {
             "datagrams_sent": 0,
@@ -178,16 +180,23 @@ class TelemetryAggregator(Actor):
     # ------------------------------------------------------------------ commands and sessions
 
     def _on_command(self, cmd: SystemCommand) -> None:
-        if cmd.code != DIAGNOSTICS:
+        if cmd.code == DIAGNOSTICS:
+            switch = "diagnostics"
+        elif cmd.code == BATTERY_MONITOR and cmd.claimed_by is None:
+            # Unless the motor controller's driver owns 20.4 itself, it switches the battery
+            # level on or off in telemetry and the beacon.
+            switch = "battery_monitor"
+        else:
             return
         try:
             on = parse_switch(cmd.payload)
         except PayloadError as err:
             cmd.respond(self.name, CommandResult(False, str(err)))
             return
-        self.diagnostics = on
-        _LOGGER.info("diagnostics report %s", "on" if on else "off")
-        cmd.respond(self.name, CommandResult(True, result={"diagnostics": on}))
+        setattr(self, switch, on)
+        _LOGGER.info("%s %s", switch.replace("_", " "), "on" if on else "off")
+        cmd.respond(self.name, CommandResult(True, result={switch: on}))
+        self._update_health()
 
     def _on_session_closed(self, event: SessionClosed) -> None:
         self.stop_stream(event.session_id)
@@ -304,14 +313,12 @@ class TelemetryAggregator(Actor):
             return None
         volts = _field(status, "battery_volts", "battery_v", "main_volts", "volts")
         monitor = _field(status, "battery_monitor", "monitor")
+        if not isinstance(monitor, bool):
+            monitor = self.battery_monitor
         level = None
-        if volts is not None and monitor is not False:
+        if volts is not None and monitor:
             level = battery_level(float(volts), self.ctx.config.telemetry).name.lower()
-        return {
-            "volts": _round(volts, 2),
-            "level": level,
-            "monitor": monitor if isinstance(monitor, bool) else volts is not None,
-        }
+        return {"volts": _round(volts, 2), "level": level, "monitor": monitor}
 
     def controller_section(self) -> dict[str, Any] | None:
         status = self.latest.get("controller")

@@ -11,8 +11,9 @@ from conftest import quiet_platform_config
 from brasidas import topics
 from brasidas.actor import Supervisor
 from brasidas.bus import Bus, Topic
+from brasidas.codecs.commands import BATTERY_MONITOR
 from brasidas.codecs.jsonrpc import Dispatcher
-from brasidas.messages import OverrideState, PlatformHealth
+from brasidas.messages import CommandResult, OverrideState, PlatformHealth, SystemCommand
 from brasidas.status import Battery
 from platformd.context import PlatformContext
 from platformd.telemetry import (
@@ -196,3 +197,23 @@ def test_to_plain_handles_enums_tuples_and_nested_dataclasses() -> None:
     plain = to_plain(FakeFix(1.123456789, 2.0, 3, {"x": 0.5}))
     assert plain == {"latitude": 1.1234568, "longitude": 2.0, "satellites": 3, "extra": {"x": 0.5}}
     assert to_plain((Battery.LOW, None)) == [1, None]
+
+
+async def test_battery_monitor_command_switches_the_level(
+    fake_topics: dict[str, Topic[object]],
+) -> None:
+    aggregator, bus = make(Clock())
+    aggregator.wire()
+    bus.subscribe(topics.SYSTEM_COMMANDS, aggregator._on_command)
+    bus.publish(
+        fake_topics["CONTROLLER_STATUS"], FakeControllerStatus(True, 22.0, (25, 25), (0, 0))
+    )
+    assert aggregator.snapshot()["battery"] == {"volts": 22.0, "level": "low", "monitor": True}
+    command = SystemCommand(BATTERY_MONITOR, "False", None)
+    bus.publish(topics.SYSTEM_COMMANDS, command)
+    assert command.reply.result() == CommandResult(True, result={"battery_monitor": False})
+    assert aggregator.snapshot()["battery"] == {"volts": 22.0, "level": None, "monitor": False}
+    assert bus.last(topics.PLATFORM_HEALTH).battery is Battery.UNKNOWN
+    bad = SystemCommand(BATTERY_MONITOR, "maybe", None)
+    bus.publish(topics.SYSTEM_COMMANDS, bad)
+    assert bad.reply.result().accepted is False
