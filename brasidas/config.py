@@ -119,7 +119,7 @@ class TelemetrySection:
     battery_high_v: float = 25.0
     """Pack voltage at or above which the coarse level is HIGH; MEDIUM in between."""
     battery_monitor: bool = True
-    """Report the coarse battery level at start-up; command 20.4 switches it at run time."""
+    """Report the coarse battery level when the controller's status has no 20.4 monitor flag."""
 
 
 @dataclass

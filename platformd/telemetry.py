@@ -31,7 +31,7 @@ from typing import Any
 from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.bus import Topic
-from brasidas.codecs.commands import BATTERY_MONITOR, DIAGNOSTICS, PayloadError, parse_switch
+from brasidas.codecs.commands import DIAGNOSTICS, PayloadError, parse_switch
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, RpcError
 from brasidas.codecs.telemetry import MAX_DATAGRAM, TAG_LENGTH, VERSION, TelemetryEncoder
 from brasidas.messages import CommandResult, PlatformHealth, SessionClosed, SystemCommand
@@ -87,7 +87,7 @@ class TelemetryAggregator(Actor):
         self.stream_states: dict[str, Any] = {}
         self.diagnostics = False
         self.battery_monitor = ctx.config.telemetry.battery_monitor
-        """Command 20.4: report the coarse battery level (volts are reported regardless)."""
+        """Report the coarse level when the controller's status does not say (20.4 state)."""
         self.health: PlatformHealth | None = None
         self.counters: dict[str, int] = {
             "datagrams_sent": 0,
@@ -180,23 +180,18 @@ class TelemetryAggregator(Actor):
     # ------------------------------------------------------------------ commands and sessions
 
     def _on_command(self, cmd: SystemCommand) -> None:
-        if cmd.code == DIAGNOSTICS:
-            switch = "diagnostics"
-        elif cmd.code == BATTERY_MONITOR and cmd.claimed_by is None:
-            # Unless the motor controller's driver owns 20.4 itself, it switches the battery
-            # level on or off in telemetry and the beacon.
-            switch = "battery_monitor"
-        else:
+        # 20.4 (battery monitor) belongs to the motor controller's driver: the battery
+        # section follows the ``battery_monitor`` flag of its status when it has one.
+        if cmd.code != DIAGNOSTICS:
             return
         try:
             on = parse_switch(cmd.payload)
         except PayloadError as err:
             cmd.respond(self.name, CommandResult(False, str(err)))
             return
-        setattr(self, switch, on)
-        _LOGGER.info("%s %s", switch.replace("_", " "), "on" if on else "off")
-        cmd.respond(self.name, CommandResult(True, result={switch: on}))
-        self._update_health()
+        self.diagnostics = on
+        _LOGGER.info("diagnostics report %s", "on" if on else "off")
+        cmd.respond(self.name, CommandResult(True, result={"diagnostics": on}))
 
     def _on_session_closed(self, event: SessionClosed) -> None:
         self.stop_stream(event.session_id)

@@ -11,9 +11,8 @@ from conftest import quiet_platform_config
 from brasidas import topics
 from brasidas.actor import Supervisor
 from brasidas.bus import Bus, Topic
-from brasidas.codecs.commands import BATTERY_MONITOR
 from brasidas.codecs.jsonrpc import Dispatcher
-from brasidas.messages import CommandResult, OverrideState, PlatformHealth, SystemCommand
+from brasidas.messages import OverrideState, PlatformHealth
 from brasidas.status import Battery
 from platformd.context import PlatformContext
 from platformd.telemetry import (
@@ -199,21 +198,22 @@ def test_to_plain_handles_enums_tuples_and_nested_dataclasses() -> None:
     assert to_plain((Battery.LOW, None)) == [1, None]
 
 
-async def test_battery_monitor_command_switches_the_level(
-    fake_topics: dict[str, Topic[object]],
-) -> None:
+@dataclass(frozen=True)
+class FakeMonitoredStatus(FakeControllerStatus):
+    battery_monitor: bool = True
+
+
+def test_battery_level_follows_the_monitor_flag(fake_topics: dict[str, Topic[object]]) -> None:
     aggregator, bus = make(Clock())
     aggregator.wire()
-    bus.subscribe(topics.SYSTEM_COMMANDS, aggregator._on_command)
-    bus.publish(
-        fake_topics["CONTROLLER_STATUS"], FakeControllerStatus(True, 22.0, (25, 25), (0, 0))
-    )
+    topic = fake_topics["CONTROLLER_STATUS"]
+    bus.publish(topic, FakeMonitoredStatus(True, 22.0, (25, 25), (0, 0), battery_monitor=True))
     assert aggregator.snapshot()["battery"] == {"volts": 22.0, "level": "low", "monitor": True}
-    command = SystemCommand(BATTERY_MONITOR, "False", None)
-    bus.publish(topics.SYSTEM_COMMANDS, command)
-    assert command.reply.result() == CommandResult(True, result={"battery_monitor": False})
+    bus.publish(topic, FakeMonitoredStatus(True, 22.0, (25, 25), (0, 0), battery_monitor=False))
     assert aggregator.snapshot()["battery"] == {"volts": 22.0, "level": None, "monitor": False}
     assert bus.last(topics.PLATFORM_HEALTH).battery is Battery.UNKNOWN
-    bad = SystemCommand(BATTERY_MONITOR, "maybe", None)
-    bus.publish(topics.SYSTEM_COMMANDS, bad)
-    assert bad.reply.result().accepted is False
+    # Without a flag in the status, the configured default decides.
+    quiet, bus = make(Clock(), "telemetry.battery_monitor=false")
+    quiet.wire()
+    bus.publish(topic, FakeControllerStatus(True, 22.0, (25, 25), (0, 0)))
+    assert quiet.snapshot()["battery"]["level"] is None
