@@ -124,7 +124,9 @@ class VelocityReceiver(Actor):
     name = "velocity"
     restart = False
 
-    def __init__(self, ctx: PlatformContext, transport: asyncio.DatagramTransport | None = None):
+    def __init__(
+        self, ctx: PlatformContext, transport: asyncio.DatagramTransport | None = None
+    ) -> None:
         super().__init__(ctx.bus)
         self.ctx = ctx
         self.gate = VelocityGate(require_tag=ctx.fleet_key is not None)

@@ -62,15 +62,9 @@ class VelocitySender:
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
-        info = await self.connection.call("get_velocity_connection_info")
-        host = str(info.get("host") or "")
-        if host in ("", "0.0.0.0", "::"):
-            host = self.connection.platform_host
-        self.target = (host, int(info["port"]))
-        transport, _ = await loop.create_datagram_endpoint(
-            asyncio.DatagramProtocol, remote_addr=self.target
-        )
-        self._transport = transport
+        self._transport = await self._open()
+        if self._transport is None:
+            return
         period = 1.0 / self.config.rate_hz
         deadline = loop.time()
         try:
@@ -83,6 +77,32 @@ class VelocitySender:
                 await asyncio.sleep(max(0.0, delay))
         finally:
             self.close()
+
+    async def _open(self) -> asyncio.DatagramTransport | None:
+        """Ask for the endpoint and open the socket; retried until the connection closes."""
+        backoff = 0.2
+        while not self.connection.closed.is_set():
+            try:
+                info = await self.connection.call("get_velocity_connection_info")
+                host = str(info.get("host") or "")
+                if host in ("", "0.0.0.0", "::"):
+                    host = self.connection.platform_host
+                target = (host, int(info["port"]))
+                transport, _ = await asyncio.get_running_loop().create_datagram_endpoint(
+                    asyncio.DatagramProtocol, remote_addr=target
+                )
+            except ConnectionError:
+                return None
+            except (RpcError, OSError, KeyError, ValueError, TypeError) as err:
+                _LOGGER.warning(
+                    "no velocity endpoint for %s yet: %s", self.connection.platform_id, err
+                )
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2, 2.0)
+                continue
+            self.target = target
+            return transport
+        return None
 
     def tick(self) -> None:
         """Send one sentence if this station holds the override."""
@@ -169,9 +189,6 @@ class Teleop(Actor):
     async def _run_sender(self, sender: VelocitySender) -> None:
         try:
             await sender.run()
-        except (ConnectionError, RpcError, OSError) as err:
-            # The connection is going away; its watcher reports that. Nothing to stream to.
-            _LOGGER.warning("velocity stream to %s ended: %s", sender.connection.platform_id, err)
         finally:
             if self.senders.get(sender.connection.platform_id) is sender:
                 del self.senders[sender.connection.platform_id]
