@@ -348,3 +348,42 @@ async def test_insecure_platform_accepts_untagged_from_the_holder_host(
         good.close()
         spoof.close()
         await conn.close()
+
+
+async def test_session_timeout_returns_to_autonomous_while_packets_keep_coming(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    config = quiet_platform_config(
+        "signaling.session_timeout=0.3", "signaling.heartbeat_interval=30"
+    )
+    daemon = await platform_factory(config, fleet_key)
+    commands = motor_log(daemon.bus)
+    conn = await open_connection(daemon, fleet_key)
+    sock = udp_socket()
+    stats = daemon.ctx.telemetry_sources["velocity_link"]
+    try:
+        assert await conn.call("set_manual_override", engaged=True) is True
+        target = ("127.0.0.1", daemon.config.velocity.port)
+        encoder = pvel.PvelEncoder(key=conn.session_key, session_id=conn.session_id)
+        closed = asyncio.Event()
+        daemon.bus.subscribe(topics.SESSION_CLOSED, lambda _event: closed.set())
+
+        async def stale_station() -> None:
+            # The station keeps streaming although its session is gone (it missed heartbeats).
+            while True:
+                sock.sendto(encoder.encode(0.8, 0.0), target)
+                await asyncio.sleep(0.02)
+
+        async with asyncio.TaskGroup() as group:
+            streaming = group.create_task(stale_station())
+            await wait_until(lambda: commands[-1] == Velocity(0.8, 0.0))
+            await asyncio.wait_for(closed.wait(), 5)
+            assert commands[-1] == STOP
+            assert not daemon.bus.last(topics.OVERRIDE_STATE).engaged
+            dropped = stats()["dropped"]["not_engaged"]
+            await wait_until(lambda: stats()["dropped"]["not_engaged"] >= dropped + 3)
+            assert commands[-1] == STOP
+            streaming.cancel()
+    finally:
+        sock.close()
+        await conn.close()
