@@ -557,6 +557,17 @@ def _find_topic(names: tuple[str, ...]) -> Topic[Any] | None:
     return None
 
 
+def _ipv4(host: str) -> str:
+    """An IPv4-mapped IPv6 peer address as plain IPv4 (the sending socket is AF_INET)."""
+    try:
+        address = ipaddress.ip_address(host)
+    except ValueError:
+        return host
+    if isinstance(address, ipaddress.IPv6Address) and address.ipv4_mapped is not None:
+        return str(address.ipv4_mapped)
+    return host
+
+
 def allowed_host(host: str, peer_host: str) -> bool:
     """Telemetry goes only to the caller's own host or to loopback, never a third host."""
     try:
@@ -566,11 +577,9 @@ def allowed_host(host: str, peer_host: str) -> bool:
     if address.is_loopback:
         return True
     try:
-        peer = ipaddress.ip_address(peer_host)
+        peer = ipaddress.ip_address(_ipv4(peer_host))
     except ValueError:
         return False
-    if isinstance(peer, ipaddress.IPv6Address) and peer.ipv4_mapped is not None:
-        peer = peer.ipv4_mapped
     return address == peer
 
 
@@ -590,7 +599,7 @@ class TelemetryMethods:
     ) -> dict[str, Any]:
         """Push telemetry to ``host:port`` (default host: the caller's) until the session ends."""
         session = call.session
-        peer = session.peer_host
+        peer = _ipv4(session.peer_host)
         target = peer if host is None else host
         if not isinstance(target, str) or not allowed_host(target, peer):
             raise RpcError(
