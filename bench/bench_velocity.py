@@ -2,8 +2,10 @@
 
 - ``pvel_to_motor_command_*``: datagram sent (a sender thread, its own socket) to the motion
   arbiter's ``MOTOR_COMMAND`` on an in-process platform, at 20 Hz and 500 Hz.
-- ``pvel_to_serial_*``: datagram sent to the first byte of the resulting motor command at the
-  AX3500 simulator's pty master, through the real driver (when the driver and simulator exist).
+- ``pvel_to_serial_*``: datagram sent to the first byte of the resulting motor command, read
+  at a pty master by a tap placed between the real driver and the AX3500 simulator
+  (``bench/serial_tap.py``), at 20 Hz and 500 Hz; with the most commands ever unanswered on the
+  line (latest wins: never more than one).
 - ``platform_cpu_*``: a ``brasidas-platform --sim`` process (no video), idle and then
   teleoperated by a 20 Hz ``$PVEL`` stream: process CPU time over wall time.
 """
@@ -11,18 +13,20 @@
 from __future__ import annotations
 
 import asyncio
+import importlib
 import importlib.util
 import socket
 import time
 from collections.abc import Callable
 from typing import Any
 
+from bench.serial_tap import Command, SerialTap
 from bench.support import cpu_seconds, free_port, percentiles, start_platform
 from brasidas import security, topics
 from brasidas.codecs.pvel import PvelEncoder
 from brasidas.config import PlatformConfig, load_config
 from brasidas.messages import Velocity
-from platformd.app import PlatformDaemon
+from platformd.app import SUBSYSTEMS, PlatformDaemon
 from stationd.client import PlatformConnection
 
 SAMPLES = {20.0: 200, 500.0: 2500}
@@ -113,11 +117,142 @@ async def _motor_command_latency(rate_hz: float) -> dict[str, float]:
     return result
 
 
-async def _serial_latency(rate_hz: float) -> dict[str, Any]:
-    """Datagram sent to the first byte of the motor command at the simulator's pty master."""
-    from bench.velocity_serial import measure  # written against the AX3500 simulator's tap
+AX3500_SIM = "platformd.sim.ax3500"
+LEVELS = (0.2, 0.4, 0.6, 0.8)
+"""Linear commands cycled through, each a different serial value, so every sentence changes it."""
 
-    return await measure(rate_hz, SAMPLES[rate_hz], WARMUP, _in_process_platform, _paced_sender)
+
+async def _platform_with_tap(key: bytes) -> tuple[PlatformDaemon, SerialTap]:
+    """An in-process ``--sim`` platform whose driver talks to the simulator through a tap."""
+    config = load_config(
+        PlatformConfig,
+        None,
+        [
+            "signaling.port=0",
+            "velocity.port=0",
+            "beacon.enabled=false",
+            "gps.enabled=false",
+            "imu.enabled=false",
+            "navcam.enabled=false",
+        ],
+    )
+    config.sim.enabled = True
+    daemon = PlatformDaemon(config, key)
+    tap: SerialTap | None = None
+    # PlatformDaemon.start, unrolled: the tap goes between the simulator's pty and the driver.
+    for name in SUBSYSTEMS:
+        await importlib.import_module(name).async_setup(daemon.ctx)
+        if name == AX3500_SIM:
+            tap = SerialTap(config.motor.port)
+            tap.start()
+            config.motor.port = tap.driver_path
+    if tap is None:
+        await daemon.stop()
+        raise RuntimeError(f"{AX3500_SIM} is not a platform subsystem")
+    return daemon, tap
+
+
+def _velocity_commands(tap: SerialTap) -> list[Command]:
+    """Channel 1 (the common forward/reverse speed in mixed mode) commands, in order."""
+    return [c for c in tap.commands if c.text[:2] in ("!A", "!a")]
+
+
+async def _serial_latency(key: bytes) -> dict[str, Any]:
+    """``$PVEL`` sent to the first byte of the resulting command at the pty master."""
+    daemon, tap = await _platform_with_tap(key)
+    figures: dict[str, Any] = {}
+    try:
+        deadline = time.monotonic() + 10
+        while len(_velocity_commands(tap)) < 3:  # the driver is up and refreshing
+            if time.monotonic() > deadline:
+                raise RuntimeError("the motor driver never commanded the simulator")
+            await asyncio.sleep(0.05)
+        connection = PlatformConnection(
+            daemon.config.platform.id, daemon.ctx.signaling_url, station_id="bench", fleet_key=key
+        )
+        await connection.open()
+        try:
+            if not await connection.call("set_manual_override", engaged=True):
+                raise RuntimeError("manual override refused")
+            encoder = PvelEncoder(key=connection.session_key, session_id=connection.session_id)
+            target = ("127.0.0.1", daemon.config.velocity.port)
+            mapping: dict[float, str] = {}
+            for rate in (20.0, 500.0):
+                tag = f"{int(rate)}hz"
+                sent_at: dict[int, float] = {}
+                values: dict[int, float] = {}
+
+                def level(number: int, values: dict[int, float] = values) -> tuple[float, float]:
+                    values[number] = LEVELS[number % len(LEVELS)]
+                    return values[number], 0.0
+
+                already = len(_velocity_commands(tap))
+                tap.reset_counters()
+                count = SAMPLES[rate] + WARMUP
+                await asyncio.to_thread(_paced_sender, target, encoder, rate, count, sent_at, level)
+                await asyncio.sleep(0.2)
+                written = _velocity_commands(tap)[already:]
+                samples = _match(sent_at, values, written, mapping, learn=rate == 20.0)
+                result = percentiles(samples[WARMUP:] if rate == 20.0 else samples)
+                figures[f"pvel_to_serial_{tag}_p50_ms"] = result["p50"]
+                figures[f"pvel_to_serial_{tag}_p99_ms"] = result["p99"]
+                figures[f"pvel_to_serial_{tag}_matched"] = len(samples)
+                figures[f"serial_{tag}_velocity_commands_written"] = len(written)
+                figures[f"serial_{tag}_max_unanswered_commands"] = tap.max_outstanding
+                figures[f"pvel_{tag}_sent"] = count
+        finally:
+            await connection.close()
+    finally:
+        await daemon.stop()
+        tap.close()
+    return figures
+
+
+def _match(
+    sent_at: dict[int, float],
+    values: dict[int, float],
+    written: list[Command],
+    mapping: dict[float, str],
+    *,
+    learn: bool,
+) -> list[float]:
+    """Latency of each serial command that carried a new value, from the sentence it carried.
+
+    At 20 Hz every sentence changes the value and is written before the next one: the first
+    changed command after a sentence is that sentence's, which also teaches the mapping from
+    level to command text. At 500 Hz the driver coalesces (latest wins): each changed command
+    is matched to the latest sentence sent before it that carries its value.
+    """
+    changes: list[Command] = []
+    previous = ""
+    for command in written:
+        if command.text != previous:
+            changes.append(command)
+        previous = command.text
+    samples: list[float] = []
+    order = sorted(sent_at)
+    if learn:
+        index = 0
+        for number in order:
+            while index < len(changes) and changes[index].first_byte_at < sent_at[number]:
+                index += 1
+            if index == len(changes):
+                break
+            mapping.setdefault(values[number], changes[index].text)
+            samples.append((changes[index].first_byte_at - sent_at[number]) * 1000)
+            index += 1
+        return samples
+    by_text = {text: value for value, text in mapping.items()}
+    cursor = 0
+    latest: dict[float, float] = {}
+    for command in changes:
+        while cursor < len(order) and sent_at[order[cursor]] < command.first_byte_at:
+            latest[values[order[cursor]]] = sent_at[order[cursor]]
+            cursor += 1
+        value = by_text.get(command.text)
+        if value is not None and value in latest:
+            samples.append((command.first_byte_at - latest[value]) * 1000)
+    return samples
 
 
 async def _platform_cpu() -> dict[str, float]:
@@ -189,14 +324,11 @@ async def run() -> dict[str, Any]:
         figures[f"pvel_to_motor_command_{tag}_p50_ms"] = bus["p50"]
         figures[f"pvel_to_motor_command_{tag}_p99_ms"] = bus["p99"]
         figures[f"pvel_to_motor_command_{tag}_lost"] = bus["lost"]
-    if importlib.util.find_spec("bench.velocity_serial") is not None:
-        for rate in (20.0, 500.0):
-            serial = await _serial_latency(rate)
-            tag = f"{int(rate)}hz"
-            for name, value in serial.items():
-                figures[f"pvel_to_serial_{tag}_{name}"] = value
+    if importlib.util.find_spec(AX3500_SIM) is not None and AX3500_SIM in SUBSYSTEMS:
+        key = security.load_or_create_key(security.default_key_path())
+        figures.update(await _serial_latency(key))
     else:
-        figures["pvel_to_serial"] = "not measured: no AX3500 driver and simulator yet"
+        figures["pvel_to_serial"] = "not measured: no AX3500 simulator subsystem"
     figures.update(await _platform_cpu())
     figures["target"] = "20 Hz p99 < 1.5 ms to serial; <= 1 pending velocity at 500 Hz; CPU < 3 %"
     return figures
