@@ -7,7 +7,7 @@
   (``bench/serial_tap.py``), at 20 Hz and 500 Hz; with the most commands ever unanswered on the
   line (latest wins: never more than one).
 - ``platform_cpu_*``: a ``brasidas-platform --sim`` process (no video), idle and then
-  teleoperated by a 20 Hz ``$PVEL`` stream: process CPU time over wall time.
+  teleoperated by a station daemon's 20 Hz sender: process CPU time over wall time.
 """
 
 from __future__ import annotations
@@ -23,11 +23,13 @@ from typing import Any
 from bench.serial_tap import Command, SerialTap
 from bench.support import cpu_seconds, free_port, percentiles, start_platform
 from brasidas import security, topics
+from brasidas.codecs.jsonrpc import RpcError
 from brasidas.codecs.pvel import PvelEncoder
-from brasidas.config import PlatformConfig, load_config
+from brasidas.config import PlatformConfig, StationConfig, load_config
 from brasidas.messages import Velocity
 from platformd.app import SUBSYSTEMS, PlatformDaemon
 from stationd.client import PlatformConnection
+from stationd.daemon import StationDaemon
 
 SAMPLES = {20.0: 200, 500.0: 2500}
 WARMUP = 20
@@ -256,63 +258,57 @@ def _match(
 
 
 async def _platform_cpu() -> dict[str, float]:
+    """The platform process idle, then driven by a real station daemon's 20 Hz sender."""
     signaling, velocity = free_port(), free_port(socket.SOCK_DGRAM)
     process = await start_platform(
         f"signaling.port={signaling}", f"velocity.port={velocity}", "navcam.enabled=false"
     )
     url = f"http://127.0.0.1:{signaling}"
+    key = security.load_or_create_key(security.default_key_path())
+    station = StationDaemon(load_config(StationConfig, None, ["station.api_port=0"]), key)
+    await station.start()
+    api = station.ctx.api
     try:
-        key = security.load_or_create_key(security.default_key_path())
-        connection = PlatformConnection("brasidas-1", url, station_id="bench", fleet_key=key)
         deadline = time.monotonic() + 15
         while True:
             try:
-                await connection.open()
+                await api.call_local("connect", platform_id="brasidas-1", url=url)
                 break
-            except OSError:
+            except RpcError:
                 if time.monotonic() > deadline:
                     raise
                 await asyncio.sleep(0.1)
-                connection = PlatformConnection(
-                    "brasidas-1", url, station_id="bench", fleet_key=key
-                )
-        try:
-            await asyncio.sleep(1.0)  # start-up settles
-            cpu0, wall0 = cpu_seconds(process.pid), time.monotonic()
-            await asyncio.sleep(CPU_IDLE_S)
-            cpu1, wall1 = cpu_seconds(process.pid), time.monotonic()
-            if not await connection.call("set_manual_override", engaged=True):
-                raise RuntimeError("manual override refused")
-            encoder = PvelEncoder(key=connection.session_key, session_id=connection.session_id)
-            sent_at: dict[int, float] = {}
-            count = int(CPU_TELEOP_S * 20)
-            cpu2, wall2 = cpu_seconds(process.pid), time.monotonic()
-            await asyncio.to_thread(
-                _paced_sender,
-                ("127.0.0.1", velocity),
-                encoder,
-                20.0,
-                count,
-                sent_at,
-                lambda n: (0.3, 0.1 * (n % 3)),
-            )
-            cpu3, wall3 = cpu_seconds(process.pid), time.monotonic()
-            report = await connection.call("get_telemetry_report")
-        finally:
-            await connection.close()
+        await asyncio.sleep(1.0)  # start-up settles
+        cpu0, wall0 = cpu_seconds(process.pid), time.monotonic()
+        await asyncio.sleep(CPU_IDLE_S)
+        cpu1, wall1 = cpu_seconds(process.pid), time.monotonic()
+        answer = await api.call_local("movrd", platform_id="brasidas-1", engaged=True)
+        if not answer.get("accepted"):
+            raise RuntimeError(f"manual override refused: {answer}")
+        before = (await api.call_local("teleop_status", platform_id="brasidas-1"))["platform"]
+        cpu2, wall2 = cpu_seconds(process.pid), time.monotonic()
+        while time.monotonic() - wall2 < CPU_TELEOP_S:
+            # What the keyboard client does: a setpoint every 100 ms.
+            await api.call_local("teleop_set", platform_id="brasidas-1", linear=0.3, angular=0.1)
+            await asyncio.sleep(0.1)
+        cpu3, wall3 = cpu_seconds(process.pid), time.monotonic()
+        after = (await api.call_local("teleop_status", platform_id="brasidas-1"))["platform"]
     finally:
+        await station.stop()
         process.terminate()
         try:
             await asyncio.wait_for(process.wait(), 5)
         except TimeoutError:
             process.kill()
             await process.wait()
-    link = report.get("velocity_link", {})
+    link0, link1 = before["velocity_link"], after["velocity_link"]
     return {
         "platform_cpu_idle_pct": round(100 * (cpu1 - cpu0) / (wall1 - wall0), 2),
         "platform_cpu_teleop_20hz_pct": round(100 * (cpu3 - cpu2) / (wall3 - wall2), 2),
-        "teleop_accepted": int(link.get("accepted", -1)),
-        "teleop_dropped": int(sum(link.get("dropped", {}).values())),
+        "station_sender_rate_hz": round(
+            (link1["accepted"] - link0["accepted"]) / (wall3 - wall2), 1
+        ),
+        "teleop_dropped": int(sum(link1["dropped"].values()) - sum(link0["dropped"].values())),
     }
 
 
