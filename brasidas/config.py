@@ -140,6 +140,12 @@ class NavCamSection:
 class SimSection:
     enabled: bool = False
     """Set by --sim: simulated controller, GPS, IMU and camera behind the real drivers."""
+    latitude: float = 37.9415
+    """Where the simulated vehicle starts (degrees, WGS-84)."""
+    longitude: float = 23.6530
+    altitude_m: float = 42.0
+    heading_deg: float = 0.0
+    """Compass heading at start (clockwise from north)."""
 
 
 @dataclass
