@@ -105,6 +105,15 @@ class Position:
 
 
 @dataclass(frozen=True)
+class PlatformSighting:
+    """Station side: a platform discovered or lost (from its beacons)."""
+
+    platform_id: str
+    signaling_url: str
+    address: str
+
+
+@dataclass(frozen=True)
 class Velocity:
     """Platform-agnostic velocity: linear x and angular z, each in [-1, 1] (R-2.2)."""
 

@@ -10,6 +10,7 @@ from brasidas.messages import (
     MotionState,
     OverrideState,
     PlatformHealth,
+    PlatformSighting,
     Position,
     SessionClosed,
     SessionOpened,
@@ -39,6 +40,10 @@ POSITION: Topic[Position] = Topic("position", retain=True)
 # Published by the station's connection manager with the stationd.client.PlatformConnection.
 PLATFORM_CONNECTED: Topic[Any] = Topic("platform_connected")
 PLATFORM_DISCONNECTED: Topic[Any] = Topic("platform_disconnected")
+PLATFORM_DISCOVERED: Topic[PlatformSighting] = Topic("platform_discovered")
+"""A platform's first beacon (stationd.discovery)."""
+PLATFORM_LOST: Topic[PlatformSighting] = Topic("platform_lost")
+"""No beacon from a platform for ``discovery.expiry`` seconds."""
 
 # --------------------------------------------------------------------------- velocity stream (issue 3)
 TELEOP_VELOCITY: Topic[Velocity] = Topic("teleop_velocity")

@@ -11,6 +11,7 @@ from brasidas.actor import Supervisor
 from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.config import PlatformConfig
+from brasidas.sdnotify import Notifier, WatchdogPinger
 from platformd.context import PlatformContext
 
 _LOGGER = logging.getLogger(__name__)
@@ -24,14 +25,18 @@ SUBSYSTEMS: tuple[str, ...] = (
     "platformd.arbiter",
     "platformd.telemetry",
     "platformd.signaling",
+    "platformd.beacon",  # after signaling: the beacon carries its bound URL
 )
 
 
 class PlatformDaemon:
     """One platform: ``await start()``, then ``await stop()`` (idempotent, bounded)."""
 
-    def __init__(self, config: PlatformConfig, fleet_key: bytes | None) -> None:
+    def __init__(
+        self, config: PlatformConfig, fleet_key: bytes | None, notifier: Notifier | None = None
+    ) -> None:
         self.config = config
+        self.notifier = notifier or Notifier()
         self.bus = Bus()
         self.supervisor = Supervisor()
         self.ctx = PlatformContext(
@@ -51,6 +56,9 @@ class PlatformDaemon:
         _LOGGER.info(
             "platform %s up: signaling %s", self.config.platform.id, self.ctx.signaling_url
         )
+        if self.notifier.enabled:  # under systemd (Type=notify)
+            self.supervisor.start(WatchdogPinger(self.bus, self.notifier))
+            self.notifier.ready(f"serving {self.ctx.signaling_url}")
 
     async def stop(self, timeout: float = 0.9) -> None:
         if self._stopped:

@@ -21,6 +21,7 @@ _LOGGER = logging.getLogger(__name__)
 
 SUBSYSTEMS: tuple[str, ...] = (
     # Each module has ``async def async_setup(ctx: StationContext)``.
+    "stationd.discovery",
     "stationd.connections",
     "stationd.telemetry",
     "stationd.teleop",

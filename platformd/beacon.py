@@ -1,0 +1,181 @@
+"""Advertisement (R-16): the platform's UDP beacon.
+
+The advertiser keeps the current status word and position from the bus and sends a beacon
+(:mod:`brasidas.codecs.beacon`) to every configured destination: at least every
+``beacon.max_interval`` seconds, at once when the status word changes or the position moves
+``beacon.move_threshold_m`` or more, but never more often than every
+``beacon.min_interval`` seconds. The default destination is the loopback broadcast address,
+so every station process on this host hears it; a deployment names its mesh's broadcast
+address (and ``interface_host``) explicitly.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import secrets
+import socket
+from typing import Any
+
+from brasidas import topics
+from brasidas.actor import Actor
+from brasidas.bus import Topic
+from brasidas.codecs import beacon as beacon_codec
+from brasidas.messages import (
+    LightsState,
+    OverrideState,
+    PlatformHealth,
+    Position,
+)
+from brasidas.status import Battery, StatusWord
+from platformd.context import PlatformContext
+
+_LOGGER = logging.getLogger(__name__)
+EARTH_RADIUS_M = 6_371_000.0
+
+
+def distance_m(a: tuple[float, float], b: tuple[float, float]) -> float:
+    """Equirectangular distance: exact enough at the metre scale beacons care about."""
+    lat = math.radians((a[0] + b[0]) / 2)
+    dx = math.radians(b[1] - a[1]) * math.cos(lat)
+    dy = math.radians(b[0] - a[0])
+    return EARTH_RADIUS_M * math.hypot(dx, dy)
+
+
+class BeaconAdvertiser(Actor):
+    name = "beacon"
+
+    def __init__(self, ctx: PlatformContext) -> None:
+        super().__init__(ctx.bus)
+        self.ctx = ctx
+        self.config = ctx.config.beacon
+        self.boot = secrets.randbits(32)
+        self.seq = 0
+        self.sent = 0
+        self.send_errors = 0
+        self.last_size = 0
+        self._wake = asyncio.Event()
+        self._sent_word: int | None = None
+        self._sent_position: tuple[float, float] | None = None
+        self._transport: asyncio.DatagramTransport | None = None
+
+    # ------------------------------------------------------------------ state from the bus
+
+    def current(self) -> beacon_codec.Beacon:
+        bus = self.bus
+        override: OverrideState | None = bus.last(topics.OVERRIDE_STATE)
+        lights: LightsState | None = bus.last(topics.LIGHTS_STATE)
+        health: PlatformHealth | None = bus.last(topics.PLATFORM_HEALTH)
+        position: Position | None = bus.last(topics.POSITION)
+        sessions = getattr(self.ctx.sessions, "sessions", None) or {}
+        status = StatusWord(
+            movrd=bool(override and override.engaged),
+            main_lights=bool(lights and lights.main),
+            positional_lights=bool(lights and lights.positional),
+            battery=Battery(health.battery) if health else Battery.UNKNOWN,
+            gps_fix=bool(health and health.gps_fix),
+            streaming=bool(health and health.streaming),
+            session=bool(sessions),
+            controller=bool(health and health.controller),
+            fault=bool(health and health.fault),
+        )
+        return beacon_codec.Beacon(
+            platform_id=self.ctx.config.platform.id,
+            signaling_url=self.ctx.signaling_url,
+            status=status,
+            boot=self.boot,
+            seq=self.seq,
+            position=(position.latitude, position.longitude) if position else None,
+        )
+
+    def _on_change(self, _message: Any) -> None:
+        beacon = self.current()
+        if beacon.status.encode() != self._sent_word:
+            self._wake.set()
+        elif beacon.position is not None and (
+            self._sent_position is None
+            or distance_m(beacon.position, self._sent_position) >= self.config.move_threshold_m
+        ):
+            self._wake.set()
+
+    # ------------------------------------------------------------------ the loop
+
+    async def run(self) -> None:
+        watched: tuple[Topic[Any], ...] = (
+            topics.OVERRIDE_STATE,
+            topics.LIGHTS_STATE,
+            topics.PLATFORM_HEALTH,
+            topics.POSITION,
+            topics.SESSION_OPENED,
+            topics.SESSION_CLOSED,
+        )
+        for topic in watched:
+            self.subscribe(topic, self._on_change)
+        loop = asyncio.get_running_loop()
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+        sock.setblocking(False)
+        try:
+            sock.bind((self.config.interface_host, 0))
+        except OSError:
+            sock.close()
+            raise
+        transport, _ = await loop.create_datagram_endpoint(asyncio.DatagramProtocol, sock=sock)
+        self._transport = transport
+        try:
+            while True:
+                self.send_now()
+                # Never faster than min_interval, whatever changes meanwhile.
+                await asyncio.sleep(self.config.min_interval)
+                if not self._wake.is_set():
+                    remaining = max(0.0, self.config.max_interval - self.config.min_interval)
+                    try:
+                        async with asyncio.timeout(remaining):
+                            await self._wake.wait()
+                    except TimeoutError:
+                        pass
+        finally:
+            self._transport = None
+            transport.close()
+
+    def send_now(self) -> None:
+        assert self._transport is not None
+        self._wake.clear()
+        self.seq = (self.seq + 1) & 0xFFFFFFFF
+        beacon = self.current()
+        try:
+            datagram = beacon_codec.encode(beacon, self.ctx.fleet_key)
+        except ValueError as err:  # an over-long id or URL: a configuration error
+            _LOGGER.error("beacon not sent: %s", err)
+            self.send_errors += 1
+            return
+        self.last_size = len(datagram)
+        for host in self.config.destinations:
+            try:
+                self._transport.sendto(datagram, (host, self.config.port))
+                self.sent += 1
+            except OSError as err:  # unreachable network: count, keep advertising
+                self.send_errors += 1
+                _LOGGER.debug("beacon to %s failed: %s", host, err)
+        self._sent_word = beacon.status.encode()
+        self._sent_position = beacon.position
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "sent": self.sent,
+            "send_errors": self.send_errors,
+            "size": self.last_size,
+            "destinations": list(self.config.destinations),
+        }
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    if not ctx.config.beacon.enabled:
+        return
+    advertiser = BeaconAdvertiser(ctx)
+    ctx.supervisor.start(advertiser)
+    ctx.capabilities["beacon"] = lambda: {
+        "port": ctx.config.beacon.port,
+        "max_interval": ctx.config.beacon.max_interval,
+    }
