@@ -66,7 +66,8 @@ async def run(args: argparse.Namespace) -> int:
     started = time.monotonic()
     try:
         for name, cmd in (("platform", platform_cmd), ("station", station_cmd)):
-            log = open(log_dir / f"{name}.log", "wb")
+            # A local log file opens at once; the child writes it, not this loop.
+            log = open(log_dir / f"{name}.log", "wb")  # noqa: ASYNC230
             processes.append(
                 await asyncio.create_subprocess_exec(
                     *cmd, stdout=log, stderr=log, start_new_session=True
