@@ -121,20 +121,23 @@ async def _discover_and_connect(
 def _print_next_steps(args: argparse.Namespace) -> None:
     station = "brasidas-station" if _on_path("brasidas-station") else ".venv/bin/brasidas-station"
     pid = args.platform_id
+    tries = [
+        ("list", "platforms online, from their beacons"),
+        (f"status {pid}", "parameters, mode, telemetry"),
+        (f"status {pid} --watch", "live telemetry with the annunciator"),
+        (f"drive {pid}", "keyboard teleop: arrows/WASD, space stops, q quits"),
+        (f"movrd {pid} on|off", "manual override (teleop / autonomous)"),
+        (f"lights {pid} main on", "main lights (10.6)"),
+        (f"cmd {pid} 10 5 navcam=10", "any system command of table 10.1"),
+    ]
+    width = max(len(command) for command, _ in tries)
+    lines = "\n".join(f"  {station} {command:<{width}}  # {what}" for command, what in tries)
     print(
-        f"""
-The demo is running. In another terminal (from this directory), try:
-
-  {station} list                      # platforms online, from their beacons
-  {station} status {pid}              # parameters, mode, telemetry
-  {station} status {pid} --watch      # live telemetry with the annunciator
-  {station} drive {pid}               # keyboard teleop: arrows/WASD, space stops, q quits
-  {station} movrd {pid} on|off        # manual override (teleop / autonomous)
-  {station} lights {pid} main on      # main lights (10.6)
-  {station} cmd {pid} 10 5 navcam=10  # any system command of table 10.1
-
-Station API: http://127.0.0.1:{args.api_port}/api/rpc   Platform signaling: http://127.0.0.1:{args.signaling_port}/rpc
-Press Ctrl-C to stop both daemons.""",
+        "\nThe demo is running. In another terminal (from this directory), try:\n\n"
+        f"{lines}\n\n"
+        f"Station API: http://127.0.0.1:{args.api_port}/api/rpc   "
+        f"Platform signaling: http://127.0.0.1:{args.signaling_port}/rpc\n"
+        "Press Ctrl-C to stop both daemons.",
         flush=True,
     )
 
