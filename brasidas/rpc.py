@@ -25,10 +25,38 @@ from brasidas.codecs.jsonrpc import (
 _LOGGER = logging.getLogger(__name__)
 
 
-def add_rpc_routes(app: web.Application, dispatcher: Dispatcher, path: str, max_bytes: int) -> None:
-    """Serve ``dispatcher`` at ``path`` (POST) and ``path/ws`` (WebSocket)."""
+def add_rpc_routes(
+    app: web.Application,
+    dispatcher: Dispatcher,
+    path: str,
+    max_bytes: int,
+    *,
+    local_hosts: frozenset[str] | None = None,
+) -> None:
+    """Serve ``dispatcher`` at ``path`` (POST) and ``path/ws`` (WebSocket).
+
+    ``local_hosts`` makes the routes refuse (403) what a web page elsewhere could send through
+    the operator's browser: a request whose ``Host`` is not one of these names (DNS
+    rebinding) or whose ``Origin``, when present, is not this very server (cross-site POST,
+    and WebSockets, which browsers do not hold to CORS). The station's local API needs it: it
+    has no session of its own and can move the robot.
+    """
+
+    def refused(request: web.Request) -> web.Response | None:
+        if local_hosts is None:
+            return None
+        host = request.host
+        name = host.rsplit(":", 1)[0] if not host.endswith("]") else host
+        if name not in local_hosts:
+            return web.Response(status=403, text=f"host {host!r} not served")
+        origin = request.headers.get("Origin")
+        if origin is not None and origin.split("://", 1)[-1] != host:
+            return web.Response(status=403, text="cross-origin request refused")
+        return None
 
     async def post(request: web.Request) -> web.Response:
+        if (refusal := refused(request)) is not None:
+            return refusal
         if request.content_length is not None and request.content_length > max_bytes:
             return _too_large()
         try:
@@ -48,7 +76,9 @@ def add_rpc_routes(app: web.Application, dispatcher: Dispatcher, path: str, max_
         status = 401 if _is_unauthorized(answer) else 200
         return web.Response(body=answer, status=status, content_type="application/json")
 
-    async def websocket(request: web.Request) -> web.WebSocketResponse:
+    async def websocket(request: web.Request) -> web.StreamResponse:
+        if (refusal := refused(request)) is not None:
+            return refusal
         ws = web.WebSocketResponse(max_msg_size=max_bytes, heartbeat=None)
         await ws.prepare(request)
         ctx = CallContext(peer_host=_peer_host(request), transport="ws")
