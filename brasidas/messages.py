@@ -203,3 +203,31 @@ class StationNotification:
             "message": self.message,
             "time": self.time,
         }
+
+
+# --------------------------------------------------------------------------- media (issue 5)
+
+
+@dataclass(frozen=True)
+class StreamStatus:
+    """One media stream's state (brasidas.media): published on every change."""
+
+    name: str
+    """Stream name, e.g. "navcam"."""
+    kind: str
+    """"video_out", "audio_out", "audio_in" or "payload_camera"."""
+    state: str
+    """"idle", "playing", "paused" or "failed"."""
+    reason: str = ""
+    """Why it failed (readable), empty otherwise."""
+    destination: str = ""
+    """Where it is sent ("host:port") or where it listens; empty when idle."""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "kind": self.kind,
+            "state": self.state,
+            "reason": self.reason,
+            "destination": self.destination,
+        }

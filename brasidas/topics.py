@@ -15,6 +15,7 @@ from brasidas.messages import (
     SessionClosed,
     SessionOpened,
     StationNotification,
+    StreamStatus,
     SystemCommand,
     Velocity,
     VelocityLinkStats,
@@ -58,3 +59,7 @@ PLATFORM_HEALTH: Topic[PlatformHealth] = Topic("platform_health", retain=True)
 """Coarse battery, GPS fix, streaming, controller and fault flags (platformd.telemetry; beacon)."""
 STATION_NOTIFICATIONS: Topic[StationNotification] = Topic("station_notifications")
 """Station only: group 90 notifications, e.g. annunciator warnings raised and cleared."""
+
+# --------------------------------------------------------------------------- media (issue 5)
+STREAM_STATES: Topic[StreamStatus] = Topic("stream_states")
+"""A media stream's state changed (idle, playing, paused, failed with its reason)."""
