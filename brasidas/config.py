@@ -132,8 +132,17 @@ class NavCamSection:
     idle_framerate: int = 5
     """Framerate while the manual override is disengaged (seed ch. 10 §3.2)."""
     bitrate_kbps: int = 1500
+    """H.264 bitrate; 1500 keeps 640x480@30 moving content under the seed's 1.6 Mbit/s."""
     port: int = 5600
     """UDP port on the station that the NavCam RTP stream is sent to."""
+    format: str = "raw"
+    """What the camera delivers at width x height @ framerate: "raw" or "mjpeg"."""
+    encoder: str = ""
+    """Force an H.264 encoder (v4l2h264enc, omxh264enc, x264enc, openh264enc). Empty: first found."""
+    sim_pattern: str = "ball"
+    """--sim source: a videotestsrc pattern (ball moves; smpte with sim_motion for bandwidth)."""
+    sim_motion: int = 0
+    """--sim source: videotestsrc horizontal-speed (pixels per frame); 0 for a still pattern."""
 
 
 @dataclass

@@ -23,6 +23,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "platformd.mode",
     "platformd.velocity",
     "platformd.arbiter",
+    "platformd.media",
     "platformd.telemetry",
     "platformd.signaling",
     "platformd.beacon",  # after signaling: the beacon carries its bound URL

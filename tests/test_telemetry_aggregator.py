@@ -53,7 +53,7 @@ class Clock:
 def fake_topics(monkeypatch: pytest.MonkeyPatch) -> dict[str, Topic[object]]:
     """Stand-ins for topics other subsystems declare, under the names the aggregator looks for."""
     made: dict[str, Topic[object]] = {}
-    for name in ("CONTROLLER_STATUS", "GPS_FIX", "GPS_FIX_LOST", "STREAM_STATE", "IMU_STATUS"):
+    for name in ("CONTROLLER_STATUS", "GPS_FIX", "GPS_FIX_LOST", "STREAM_STATES", "IMU_STATUS"):
         if getattr(topics, name, None) is None:
             made[name] = Topic(name.lower(), retain=True)
             monkeypatch.setattr(topics, name, made[name], raising=False)
@@ -116,9 +116,9 @@ def test_sections_follow_the_bus(fake_topics: dict[str, Topic[object]]) -> None:
     assert gps["fix"] is False and gps["lost_for_s"] == 4.0 and gps["latitude"] == 37.9838096
     assert health[-1].gps_fix is False
 
-    bus.publish(fake_topics["STREAM_STATE"], {"name": "navcam", "state": "playing"})
+    bus.publish(fake_topics["STREAM_STATES"], {"name": "navcam", "state": "playing"})
     assert health[-1].streaming is True
-    bus.publish(fake_topics["STREAM_STATE"], {"name": "navcam", "state": "failed"})
+    bus.publish(fake_topics["STREAM_STATES"], {"name": "navcam", "state": "failed"})
     assert aggregator.snapshot()["streams"] == {"navcam": "failed"}
     assert health[-1].fault and health[-1].faults == ("stream:navcam",)
     bus.publish(fake_topics["CONTROLLER_STATUS"], FakeControllerStatus(False, None, (0, 0), (0, 0)))

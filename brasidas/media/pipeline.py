@@ -1,0 +1,296 @@
+"""The pipeline base class (the seed's PiGstPLBase): start, pause, stop, state.
+
+A :class:`PipelineStream` owns one ``Gst.Pipeline`` built by :meth:`PipelineStream.build`.
+Its public methods must be called on the event loop. GStreamer bus messages arrive on
+GStreamer's threads and reach the loop only through ``loop.call_soon_threadsafe`` (a bus sync
+handler, so no GLib main loop is needed). State changes that may block (opening a device,
+joining streaming threads) run in the loop's default executor.
+
+An error (missing element or device, caps that do not negotiate, a source that vanishes)
+sets ``failed`` with a readable reason. The owner runs :meth:`PipelineStream.supervise` in
+its task group: it tears the failed pipeline down and rebuilds it with capped backoff while
+the stream is still wanted. Each stream fails and recovers on its own.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+import weakref
+from collections.abc import Callable
+from enum import StrEnum
+from typing import Any
+
+from brasidas.media.gst import MediaError, gst, realtime_clock
+
+_LOGGER = logging.getLogger(__name__)
+
+
+class StreamState(StrEnum):
+    IDLE = "idle"
+    PLAYING = "playing"
+    PAUSED = "paused"
+    FAILED = "failed"
+
+
+class PipelineStream:
+    """One GStreamer pipeline with a small state machine; subclasses implement ``build``."""
+
+    kind = "stream"
+
+    def __init__(
+        self,
+        name: str,
+        *,
+        on_change: Callable[[PipelineStream], None] | None = None,
+        retry_initial: float = 1.0,
+        retry_max: float = 30.0,
+        healthy_after: float = 10.0,
+    ) -> None:
+        self.name = name
+        self.on_change = on_change
+        """Called on the loop after every state change (publish it, update telemetry)."""
+        self.retry_initial = retry_initial
+        self.retry_max = retry_max
+        self.healthy_after = healthy_after
+        self.state = StreamState.IDLE
+        self.reason = ""
+        self.failures = 0
+        self.retries = 0
+        self.next_retry_in: float | None = None
+        self.pipeline: Any = None
+        self._wanted = StreamState.IDLE
+        self._generation = 0
+        self._playing_since: float | None = None
+        self._last_error = ""
+        self._attempt_failed = False
+        self._lock = asyncio.Lock()
+        self._failed = asyncio.Event()
+        self._kick = asyncio.Event()
+
+    # ------------------------------------------------------------------ subclass API
+
+    def build(self) -> Any:
+        """A new, linked ``Gst.Pipeline`` (not started); raise MediaError with the reason."""
+        raise NotImplementedError
+
+    def destination(self) -> str:
+        """Where the stream goes or listens ("host:port"), for status messages."""
+        return ""
+
+    def describe(self) -> dict[str, Any]:
+        """Parameters for ``list_streams`` and ``connect`` (subclasses add theirs)."""
+        return {
+            "name": self.name,
+            "kind": self.kind,
+            "state": self.state.value,
+            "reason": self.reason,
+            "destination": self.destination() if self.state is not StreamState.IDLE else "",
+        }
+
+    def on_built(self, pipeline: Any) -> None:
+        """Hook after build, before the first state change (e.g. keep element references)."""
+
+    def on_torn_down(self) -> None:
+        """Hook after the pipeline went to NULL and was dropped."""
+
+    # ------------------------------------------------------------------ control (event loop)
+
+    @property
+    def wanted(self) -> StreamState:
+        return self._wanted
+
+    async def start(self) -> StreamState:
+        """Play (building the pipeline if needed); resumes a paused stream."""
+        async with self._lock:
+            self._wanted = StreamState.PLAYING
+            self._kick.set()
+            await self._go(StreamState.PLAYING)
+            return self.state
+
+    async def pause(self) -> StreamState:
+        """Pause a playing stream (resume with :meth:`start`); an idle one stays idle."""
+        async with self._lock:
+            if self.state is StreamState.IDLE or self._wanted is StreamState.IDLE:
+                return self.state
+            self._wanted = StreamState.PAUSED
+            self._kick.set()
+            if self.state is StreamState.FAILED:
+                return self.state
+            await self._go(StreamState.PAUSED)
+            return self.state
+
+    async def stop(self) -> StreamState:
+        """Stop and release the pipeline; idempotent."""
+        async with self._lock:
+            self._wanted = StreamState.IDLE
+            self._kick.set()
+            await self._teardown()
+            self.reason = ""
+            self._set_state(StreamState.IDLE)
+            return self.state
+
+    async def restart(self) -> StreamState:
+        """Rebuild the pipeline with the current parameters, keeping the wanted state."""
+        async with self._lock:
+            wanted = self._wanted
+            await self._teardown()
+            if wanted is not StreamState.IDLE:
+                await self._go(wanted)
+            return self.state
+
+    async def supervise(self) -> None:
+        """Run by the owner for the stream's lifetime: retry failures with capped backoff."""
+        backoff = self.retry_initial
+        while True:
+            await self._failed.wait()
+            self._failed.clear()
+            async with self._lock:
+                if self.state is not StreamState.FAILED:
+                    continue
+                if (
+                    self._playing_since is not None
+                    and time.monotonic() - self._playing_since > self.healthy_after
+                ):
+                    backoff = self.retry_initial
+                self._playing_since = None
+                await self._teardown()
+            if self._wanted is StreamState.IDLE:
+                continue
+            self.next_retry_in = backoff
+            self._kick.clear()
+            with contextlib.suppress(TimeoutError):
+                # A start/pause/stop in the meantime ends the wait early.
+                await asyncio.wait_for(self._kick.wait(), backoff)
+            self.next_retry_in = None
+            async with self._lock:
+                if self.state is not StreamState.FAILED or self._wanted is StreamState.IDLE:
+                    continue
+                self.retries += 1
+                _LOGGER.info("stream %s: retrying after %.1f s", self.name, backoff)
+                backoff = min(backoff * 2, self.retry_max)
+                await self._go(self._wanted)
+
+    # ------------------------------------------------------------------ internals (event loop)
+
+    async def _go(self, target: StreamState) -> None:
+        Gst = gst()
+        if self.pipeline is None:
+            try:
+                pipeline = self.build()
+            except MediaError as err:
+                self._attempt_failed = False
+                self._fail(str(err))
+                return
+            self._attach(pipeline)
+        self._last_error = ""
+        self._attempt_failed = False
+        gst_state = Gst.State.PLAYING if target is StreamState.PLAYING else Gst.State.PAUSED
+        pipeline = self.pipeline
+        generation = self._generation
+        loop = asyncio.get_running_loop()
+        result = await loop.run_in_executor(None, pipeline.set_state, gst_state)
+        if generation != self._generation:
+            return  # torn down meanwhile
+        if result == Gst.StateChangeReturn.FAILURE:
+            self._fail(self._last_error or f"{self.name}: pipeline refused to start")
+            return
+        if self._attempt_failed:
+            return  # an error message beat us here
+        if target is StreamState.PLAYING and self._playing_since is None:
+            self._playing_since = time.monotonic()
+        self.reason = ""
+        self._set_state(target)
+
+    def _attach(self, pipeline: Any) -> None:
+        self._generation += 1
+        pipeline.use_clock(realtime_clock())
+        bus = pipeline.get_bus()
+        loop = asyncio.get_running_loop()
+        bus.set_sync_handler(_sync_handler, (weakref.ref(self), loop, self._generation))
+        self.pipeline = pipeline
+        self.on_built(pipeline)
+
+    async def _teardown(self) -> None:
+        pipeline = self.pipeline
+        if pipeline is None:
+            return
+        self.pipeline = None
+        self._generation += 1  # late messages from the old pipeline are ignored
+        loop = asyncio.get_running_loop()
+        await loop.run_in_executor(None, pipeline.set_state, gst().State.NULL)
+        pipeline.get_bus().set_sync_handler(None)  # releases the handler's closure
+        self._playing_since = None
+        self.on_torn_down()
+
+    def _fail(self, reason: str) -> None:
+        if self._attempt_failed:
+            return  # the same attempt reported twice (bus error and set_state result)
+        self._attempt_failed = True
+        self.failures += 1
+        self.reason = reason
+        _LOGGER.warning("stream %s failed: %s", self.name, reason)
+        self._set_state(StreamState.FAILED)
+        self._failed.set()
+
+    def _set_state(self, state: StreamState) -> None:
+        changed = state is not self.state
+        self.state = state
+        if state is not StreamState.FAILED and changed:
+            _LOGGER.info("stream %s %s", self.name, state.value)
+        if self.on_change is not None:
+            try:
+                self.on_change(self)
+            except Exception:
+                _LOGGER.exception("stream %s: state listener failed", self.name)
+
+    def _on_message(self, generation: int, kind: str, text: str, detail: str) -> None:
+        """Bus message forwarded to the loop."""
+        if generation != self._generation:
+            return
+        if kind == "error":
+            self._fail(text)
+            if detail:
+                _LOGGER.debug("stream %s error detail: %s", self.name, detail)
+        elif kind == "eos":
+            self._fail(f"{self.name}: end of stream (source stopped)")
+        elif kind == "warning":
+            _LOGGER.warning("stream %s: %s", self.name, text)
+        else:
+            self.on_element_message(kind, text)
+
+    def on_element_message(self, kind: str, text: str) -> None:
+        """Other forwarded messages (``kind`` is the structure name); override as needed."""
+
+
+def _sync_handler(bus: Any, message: Any, data: tuple[Any, ...]) -> Any:
+    """GStreamer thread: forward what matters to the loop; never touch stream state here."""
+    ref, loop, generation = data
+    Gst = gst()
+    kind = ""
+    text = detail = ""
+    mtype = message.type
+    if mtype == Gst.MessageType.ERROR:
+        err, detail = message.parse_error()
+        source = message.src.get_name() if message.src is not None else "pipeline"
+        kind, text = "error", f"{source}: {err.message}"
+        stream = ref()
+        if stream is not None:
+            stream._last_error = text  # read by the executor thread's caller after set_state
+    elif mtype == Gst.MessageType.EOS:
+        kind = "eos"
+    elif mtype == Gst.MessageType.WARNING:
+        warn, detail = message.parse_warning()
+        kind, text = "warning", warn.message
+    elif mtype == Gst.MessageType.ELEMENT:
+        structure = message.get_structure()
+        if structure is not None:
+            kind, text = structure.get_name(), structure.to_string()
+    if kind:
+        stream = ref()
+        if stream is not None:
+            with contextlib.suppress(RuntimeError):  # loop closed: nobody to tell
+                loop.call_soon_threadsafe(stream._on_message, generation, kind, text, detail or "")
+    return Gst.BusSyncReply.DROP

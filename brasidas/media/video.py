@@ -1,0 +1,341 @@
+"""H.264 over RTP: the NavCam sender (the seed's PiGstVideoOut) and the station's receiver.
+
+Sender: camera (V4L2, raw or MJPEG) or a live test source with motion and a clock overlay
+→ capture stamp → ``videorate`` (the framerate changes live) → H.264 encoder (first found of
+:data:`ENCODERS`; constrained baseline, one slice per frame, a keyframe every second) →
+``rtph264pay config-interval=-1 mtu=1200`` with the RFC 6051 NTP-64 header extension on every
+packet → ``udpsink sync=false``.
+
+Receiver: ``udpsrc`` with explicit caps → optional jitter buffer → ``rtph264depay`` →
+``avdec_h264`` → sink, with the glass-to-glass latency of each decoded frame read from the
+header extension.
+"""
+
+from __future__ import annotations
+
+import collections
+import statistics
+import weakref
+from dataclasses import dataclass
+from typing import Any
+
+from brasidas.media.gst import (
+    NTP64_EXT_ID,
+    NTP64_URI,
+    MediaError,
+    caps,
+    capture_age_ms,
+    gst,
+    has_element,
+    link_all,
+    make,
+    ntp_caps,
+    set_prop,
+    stamp_capture_time,
+)
+from brasidas.media.pipeline import PipelineStream
+
+ENCODERS: tuple[str, ...] = ("v4l2h264enc", "omxh264enc", "x264enc", "openh264enc")
+"""Hardware first (current Raspberry Pi, old Raspbian), then software; first found wins."""
+PAYLOAD_TYPE = 96
+RTP_VIDEO_CAPS = (
+    "application/x-rtp,media=video,clock-rate=90000,encoding-name=H264,"
+    f"payload={PAYLOAD_TYPE},extmap-{NTP64_EXT_ID}=(string){NTP64_URI}"
+)
+"""What a receiver must tell ``udpsrc``: plain RTP carries no SDP."""
+
+
+def choose_encoder(forced: str = "") -> str:
+    """The encoder to use: ``forced`` if given (must exist), else the first available."""
+    if forced:
+        if forced not in ENCODERS:
+            raise MediaError(f"unknown encoder '{forced}' (one of {', '.join(ENCODERS)})")
+        if not has_element(forced):
+            raise MediaError(f"encoder '{forced}' is not installed")
+        return forced
+    for name in ENCODERS:
+        if has_element(name):
+            return name
+    raise MediaError(f"no H.264 encoder installed (tried {', '.join(ENCODERS)})")
+
+
+@dataclass
+class VideoSettings:
+    """What a :class:`VideoOut` sends; change fields, then ``set_framerate``/``restart``."""
+
+    width: int = 640
+    height: int = 480
+    camera_framerate: int = 30
+    """What the source delivers; the sent framerate is at most this."""
+    framerate: int = 30
+    bitrate_kbps: int = 1500
+    device: str = "/dev/video0"
+    source_format: str = "raw"
+    """Camera output: "raw" or "mjpeg"."""
+    test_source: bool = False
+    """A live ``videotestsrc`` with a clock overlay instead of the camera (--sim)."""
+    pattern: str = "ball"
+    motion: int = 0
+    """``videotestsrc horizontal-speed``: moves patterns such as smpte (bandwidth tests)."""
+    encoder: str = ""
+    """Force an encoder from :data:`ENCODERS`; empty: the first available."""
+    host: str = "127.0.0.1"
+    port: int = 5600
+    mtu: int = 1200
+
+
+class VideoOut(PipelineStream):
+    """Camera → H.264 → RTP/UDP to one host (the seed's PiGstVideoOut)."""
+
+    kind = "video_out"
+
+    def __init__(self, name: str, settings: VideoSettings, **kwargs: Any) -> None:
+        super().__init__(name, **kwargs)
+        self.settings = settings
+        self.encoder_name = ""
+        self._encoder: Any = None
+        self._rate_filter: Any = None
+
+    def destination(self) -> str:
+        return f"{self.settings.host}:{self.settings.port}"
+
+    def describe(self) -> dict[str, Any]:
+        s = self.settings
+        return {
+            **super().describe(),
+            "width": s.width,
+            "height": s.height,
+            "framerate": s.framerate,
+            "codec": "H264",
+            "encoder": self.encoder_name or None,
+            "bitrate_kbps": s.bitrate_kbps,
+            "rtp_caps": RTP_VIDEO_CAPS,
+            "host": s.host,
+            "port": s.port,
+        }
+
+    def set_framerate(self, fps: int) -> None:
+        """Change the sent framerate; applied live (keyframe interval follows). Event loop."""
+        s = self.settings
+        if not 1 <= fps <= s.camera_framerate:
+            raise ValueError(f"framerate must be 1-{s.camera_framerate} fps, not {fps}")
+        s.framerate = fps
+        if self._encoder is not None and self._rate_filter is not None:
+            _set_keyframe_interval(self._encoder, self.encoder_name, fps)
+            # New caps renegotiate downstream: the encoder restarts with the new rate.
+            self._rate_filter.set_property("caps", caps(f"video/x-raw,framerate={fps}/1"))
+
+    # ------------------------------------------------------------------ pipeline
+
+    def build(self) -> Any:
+        Gst = gst()
+        s = self.settings
+        encoder_name = choose_encoder(s.encoder)
+        pipeline = Gst.Pipeline.new(f"{self.name}-out")
+        source_chain = self._source_elements()
+        stamp = make("identity", "stamp", signal_handoffs=True, silent=True)
+        stamp.connect("handoff", stamp_capture_time, ntp_caps())
+        overlays: list[Any] = []
+        if s.test_source:
+            overlays = [
+                make("clockoverlay", time_format="%H:%M:%S", halignment="left", valignment="top"),
+                make("timeoverlay", halignment="right", valignment="top"),
+            ]
+        rate = make("videorate", drop_only=True)
+        rate_filter = make("capsfilter", caps=caps(f"video/x-raw,framerate={s.framerate}/1"))
+        convert = make("videoconvert")
+        encoder = make(encoder_name, "encoder")
+        _configure_encoder(encoder, encoder_name, s)
+        h264_filter = make(
+            "capsfilter", caps=caps(f"video/x-h264,profile={_profile(encoder_name)}")
+        )
+        pay = make(
+            "rtph264pay", "pay", config_interval=-1, mtu=s.mtu, pt=PAYLOAD_TYPE, aggregate_mode=0
+        )
+        extension = make("rtphdrextntp64", every_packet=True)
+        extension.set_id(NTP64_EXT_ID)
+        pay.emit("add-extension", extension)
+        sink = make("udpsink", "sink", host=s.host, port=s.port, sync=False, async_=False)
+        chain = [
+            *source_chain,
+            stamp,
+            *overlays,
+            rate,
+            rate_filter,
+            convert,
+            encoder,
+            h264_filter,
+            pay,
+            sink,
+        ]
+        for element in chain:
+            pipeline.add(element)
+        link_all(*chain)
+        self.encoder_name = encoder_name
+        self._encoder = encoder
+        self._rate_filter = rate_filter
+        return pipeline
+
+    def on_torn_down(self) -> None:
+        self._encoder = None
+        self._rate_filter = None
+
+    def _source_elements(self) -> list[Any]:
+        s = self.settings
+        size = f"width={s.width},height={s.height},framerate={s.camera_framerate}/1"
+        if s.test_source:
+            source = make("videotestsrc", "source", is_live=True, pattern=s.pattern)
+            if s.motion:
+                source.set_property("horizontal-speed", s.motion)
+            return [source, make("capsfilter", caps=caps(f"video/x-raw,{size}"))]
+        source = make("v4l2src", "source", device=s.device, do_timestamp=True)
+        if s.source_format == "mjpeg":
+            return [source, make("capsfilter", caps=caps(f"image/jpeg,{size}")), make("jpegdec")]
+        if s.source_format == "raw":
+            return [source, make("capsfilter", caps=caps(f"video/x-raw,{size}"))]
+        raise MediaError(f"unknown camera format '{s.source_format}' (raw or mjpeg)")
+
+
+def _profile(encoder_name: str) -> str:
+    # The OMX encoder only announces "baseline"; its output has no B-frames or FMO either.
+    return "baseline" if encoder_name == "omxh264enc" else "constrained-baseline"
+
+
+def _configure_encoder(encoder: Any, name: str, s: VideoSettings) -> None:
+    """Low-latency, one slice per frame, keyframe every second, bitrate from settings."""
+    if name == "x264enc":
+        # threads=1: one slice per frame (Chromium mis-decodes multi-slice) and no frame
+        # threading; zerolatency: no lookahead, no B-frames.
+        set_prop(encoder, "tune", "zerolatency")
+        set_prop(encoder, "speed-preset", "ultrafast")
+        set_prop(encoder, "threads", 1)
+        set_prop(encoder, "sliced-threads", False)
+        set_prop(encoder, "bitrate", s.bitrate_kbps)
+    elif name == "openh264enc":
+        encoder.set_property("bitrate", s.bitrate_kbps * 1000)
+        _nick(encoder, "rate-control", "bitrate")
+        _nick(encoder, "slice-mode", "n-slices")
+        encoder.set_property("num-slices", 1)
+        _nick(encoder, "complexity", "low")
+        encoder.set_property("enable-frame-skip", False)
+    elif name == "v4l2h264enc":
+        encoder.set_property(
+            "extra-controls",
+            gst().Structure.from_string(
+                f"controls,video_bitrate={s.bitrate_kbps * 1000},repeat_sequence_header=1,"
+                "h264_profile=1"
+            )[0],
+        )
+    elif name == "omxh264enc":
+        encoder.set_property("target-bitrate", s.bitrate_kbps * 1000)
+        _nick(encoder, "control-rate", "variable")
+        if encoder.find_property("inline-header") is not None:
+            encoder.set_property("inline-header", True)
+    _set_keyframe_interval(encoder, name, s.framerate)
+
+
+def _set_keyframe_interval(encoder: Any, name: str, fps: int) -> None:
+    """A keyframe every second (nobody can ask for one over plain RTP)."""
+    if name == "x264enc":
+        encoder.set_property("key-int-max", fps)
+    elif name == "openh264enc":
+        encoder.set_property("gop-size", fps)
+    elif name == "omxh264enc" and encoder.find_property("periodicity-idr") is not None:
+        encoder.set_property("periodicity-idr", fps)
+    elif name == "v4l2h264enc":
+        controls = encoder.get_property("extra-controls")
+        if controls is not None:
+            controls = controls.copy()
+            controls.set_value("h264_i_frame_period", fps)
+            encoder.set_property("extra-controls", controls)
+
+
+def _nick(element: Any, key: str, value: str) -> None:
+    set_prop(element, key, value)
+
+
+class VideoIn(PipelineStream):
+    """RTP/UDP H.264 → decoded frames, with a per-frame glass-to-glass latency figure."""
+
+    kind = "video_in"
+
+    def __init__(
+        self,
+        name: str,
+        *,
+        port: int,
+        host: str = "0.0.0.0",
+        sink: str = "fakesink",
+        jitter_ms: int = 0,
+        window: int = 2000,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__(name, **kwargs)
+        self.host = host
+        self.port = port
+        self.sink_factory = sink
+        self.jitter_ms = jitter_ms
+        self.frames = 0
+        self.stamped = 0
+        self.latencies: collections.deque[float] = collections.deque(maxlen=window)
+        """Recent glass-to-glass latencies (ms), appended on the streaming thread."""
+        self.last_latency_ms: float | None = None
+
+    def destination(self) -> str:
+        return f"{self.host}:{self.port}"
+
+    def describe(self) -> dict[str, Any]:
+        return {**super().describe(), **self.latency_stats()}
+
+    def latency_stats(self) -> dict[str, Any]:
+        values = sorted(self.latencies)
+        if not values:
+            return {"frames": self.frames, "latency_ms": None}
+        return {
+            "frames": self.frames,
+            "latency_ms": self.last_latency_ms,
+            "latency_p50_ms": statistics.median(values),
+            "latency_p99_ms": values[min(len(values) - 1, int(len(values) * 0.99))],
+        }
+
+    def build(self) -> Any:
+        Gst = gst()
+        pipeline = Gst.Pipeline.new(f"{self.name}-in")
+        source = make(
+            "udpsrc", "source", address=self.host, port=self.port, caps=caps(RTP_VIDEO_CAPS)
+        )
+        chain = [source]
+        if self.jitter_ms > 0:
+            chain.append(make("rtpjitterbuffer", latency=self.jitter_ms, drop_on_latency=True))
+        decoder = make("avdec_h264", "decoder")
+        if decoder.find_property("thread-type") is not None:
+            # Frame threading would hold a frame back (+33 ms at 30 fps).
+            _nick(decoder, "thread-type", "slice")
+        sink = make(self.sink_factory, "sink")
+        if sink.find_property("sync") is not None:
+            sink.set_property("sync", False)
+        chain += [make("rtph264depay"), decoder, make("videoconvert"), sink]
+        for element in chain:
+            pipeline.add(element)
+        link_all(*chain)
+        decoder.get_static_pad("src").add_probe(
+            Gst.PadProbeType.BUFFER, _latency_probe, (weakref.ref(self), ntp_caps())
+        )
+        return pipeline
+
+
+def _latency_probe(pad: Any, info: Any, data: tuple[weakref.ref[VideoIn], Any]) -> Any:
+    """Streaming thread: count the frame and record its capture-to-decoded age."""
+    ref, reference = data
+    stream = ref()
+    if stream is None:
+        return gst().PadProbeReturn.OK
+    stream.frames += 1
+    buffer = info.get_buffer()
+    if buffer is not None:
+        age = capture_age_ms(buffer, reference)
+        if age is not None:
+            stream.stamped += 1
+            stream.last_latency_ms = age
+            stream.latencies.append(age)
+    return gst().PadProbeReturn.OK

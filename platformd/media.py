@@ -1,0 +1,362 @@
+"""Media streams of the platform (R-11): NavCam video out, each stream managed on its own.
+
+A stream sends only after a station asked for it: system command 10.1 (payload: the station's
+host, ``host=10.0.0.2``; empty means the caller's own address) starts every stream, 10.2 stops
+and 10.3 pauses them all, and the signaling methods ``start_stream(name, host, port)``,
+``pause_stream``, ``stop_stream`` and ``list_streams`` act on one (R-11.4). 10.5
+``navcam=15`` sets a video stream's framerate for the current mode: the NavCam runs at
+``navcam.idle_framerate`` (5 fps) while the manual override is disengaged and at
+``navcam.framerate`` (30 fps) while it is engaged (seed ch. 10 §3.2).
+
+Every state change is published on ``STREAM_STATES`` (telemetry marks a failed stream as a
+fault); a failed stream is rebuilt with backoff by its supervisor task, the others go on.
+Streams started by a session stop when that session ends.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ipaddress
+import logging
+import re
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+from brasidas import topics
+from brasidas.actor import Actor, wait_forever
+from brasidas.codecs.commands import (
+    PAUSE_STREAMS,
+    SET_FRAMERATE,
+    START_STREAMS,
+    STOP_STREAMS,
+    PayloadError,
+    parse_payload,
+)
+from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
+from brasidas.media.pipeline import PipelineStream, StreamState
+from brasidas.media.video import VideoOut, VideoSettings
+from brasidas.messages import (
+    CommandResult,
+    OverrideState,
+    SessionClosed,
+    StreamStatus,
+    SystemCommand,
+)
+from platformd.context import PlatformContext
+
+_LOGGER = logging.getLogger(__name__)
+
+_HOSTNAME = re.compile(
+    r"^(?=.{1,253}$)[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?(\.[A-Za-z0-9-]{1,63})*$"
+)
+
+
+class MediaService(Actor):
+    """Owns the platform's streams and runs their supervisors."""
+
+    name = "media"
+
+    def __init__(self, ctx: PlatformContext) -> None:
+        super().__init__(ctx.bus)
+        self.ctx = ctx
+        self.streams: dict[str, PipelineStream] = {}
+        self.owners: dict[str, str | None] = {}
+        """Session that started each stream (None: started locally)."""
+        self.navcam: VideoOut | None = None
+        navcam = ctx.config.navcam
+        self.framerates = {"engaged": navcam.framerate, "idle": navcam.idle_framerate}
+        self._engaged = False
+        self._group: asyncio.TaskGroup | None = None
+        if navcam.enabled:
+            self.navcam = VideoOut(
+                "navcam",
+                VideoSettings(
+                    width=navcam.width,
+                    height=navcam.height,
+                    camera_framerate=navcam.framerate,
+                    framerate=navcam.idle_framerate,
+                    bitrate_kbps=navcam.bitrate_kbps,
+                    device=navcam.device,
+                    source_format=navcam.format,
+                    test_source=ctx.config.sim.enabled,
+                    pattern=navcam.sim_pattern,
+                    motion=navcam.sim_motion,
+                    encoder=navcam.encoder,
+                    port=navcam.port,
+                ),
+                on_change=self._publish,
+            )
+            self.streams["navcam"] = self.navcam
+
+    # ------------------------------------------------------------------ lifecycle
+
+    async def run(self) -> None:
+        self.subscribe(topics.SYSTEM_COMMANDS, self._on_command)
+        self.subscribe(topics.OVERRIDE_STATE, self._on_override)
+        self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
+        async with asyncio.TaskGroup() as group:
+            self._group = group
+            for stream in self.streams.values():
+                group.create_task(stream.supervise(), name=f"media:{stream.name}")
+            try:
+                await wait_forever()
+            finally:
+                self._group = None
+
+    async def async_stop(self) -> None:
+        """Stop every pipeline (their NULL state changes run in threads, in parallel)."""
+        await asyncio.gather(
+            *(stream.stop() for stream in self.streams.values()), return_exceptions=True
+        )
+
+    # ------------------------------------------------------------------ bus
+
+    def _publish(self, stream: PipelineStream) -> None:
+        self.bus.publish(
+            topics.STREAM_STATES,
+            StreamStatus(
+                name=stream.name,
+                kind=stream.kind,
+                state=stream.state.value,
+                reason=stream.reason,
+                destination=stream.destination() if stream.state is not StreamState.IDLE else "",
+            ),
+        )
+
+    def _on_override(self, state: OverrideState) -> None:
+        self._engaged = state.engaged
+        self._apply_framerate()
+
+    def _apply_framerate(self) -> None:
+        if self.navcam is not None:
+            fps = self.framerates["engaged" if self._engaged else "idle"]
+            fps = max(1, min(fps, self.navcam.settings.camera_framerate))
+            if fps != self.navcam.settings.framerate:
+                _LOGGER.info("navcam framerate %d fps", fps)
+                self.navcam.set_framerate(fps)
+
+    def _on_session_closed(self, event: SessionClosed) -> None:
+        owned = [name for name, owner in self.owners.items() if owner == event.session_id]
+        for name in owned:
+            del self.owners[name]
+            self._spawn(self.streams[name].stop(), f"media:stop:{name}")
+
+    def _spawn(self, work: Awaitable[Any], name: str) -> None:
+        if self._group is None:
+            # Not running (shutting down): the stop hook stops every stream anyway.
+            if asyncio.iscoroutine(work):
+                work.close()
+            return
+        self._group.create_task(_awaited(work), name=name)
+
+    # ------------------------------------------------------------------ system commands
+
+    def _on_command(self, cmd: SystemCommand) -> None:
+        handlers: dict[Any, Callable[[SystemCommand], Awaitable[CommandResult]]] = {
+            START_STREAMS: self._command_start,
+            STOP_STREAMS: self._command_stop,
+            PAUSE_STREAMS: self._command_pause,
+        }
+        if cmd.code == SET_FRAMERATE:
+            cmd.respond(self.name, self._command_framerate(cmd.payload))
+            return
+        handler = handlers.get(cmd.code)
+        if handler is None:
+            return
+        reply = cmd.claim(self.name)
+        if not self.streams or self._group is None:
+            reply.set_result(CommandResult(False, "this platform has no media streams running"))
+            return
+        self._spawn(_answer(reply, handler(cmd)), f"media:{cmd.code}")
+
+    async def _command_start(self, cmd: SystemCommand) -> CommandResult:
+        try:
+            host = self._host_from_payload(cmd.payload, cmd.session_id)
+        except PayloadError as err:
+            return CommandResult(False, str(err))
+        states = {}
+        for name in self.streams:
+            states[name] = await self.start_stream(name, host, session_id=cmd.session_id)
+        return _summary(states)
+
+    async def _command_stop(self, cmd: SystemCommand) -> CommandResult:
+        states = {name: await self.stop_stream(name) for name in self.streams}
+        return _summary(states)
+
+    async def _command_pause(self, cmd: SystemCommand) -> CommandResult:
+        states = {name: await self.pause_stream(name) for name in self.streams}
+        return _summary(states)
+
+    def _command_framerate(self, payload: str) -> CommandResult:
+        try:
+            values = parse_payload(payload)
+        except PayloadError as err:
+            return CommandResult(False, str(err))
+        if not values:
+            return CommandResult(False, "expected <stream>=<fps>, e.g. navcam=15")
+        result = {}
+        for name, raw in values.items():
+            try:
+                result[name] = self.set_framerate(name, raw)
+            except ValueError as err:
+                return CommandResult(False, str(err))
+        return CommandResult(True, result=result)
+
+    def _host_from_payload(self, payload: str, session_id: str | None) -> str:
+        values = parse_payload(payload)
+        host = values.get("host", "")
+        if not host and len(values) == 1 and next(iter(values.values())) == "":
+            host = next(iter(values))  # the seed's bare "host address" payload
+        if not host:
+            host = self._session_host(session_id)
+        if not host:
+            raise PayloadError("expected the station's address, e.g. host=10.0.0.2")
+        return check_host(host)
+
+    def _session_host(self, session_id: str | None) -> str:
+        sessions = getattr(self.ctx.sessions, "sessions", {})
+        session = sessions.get(session_id) if session_id else None
+        if session is None:
+            return ""
+        host = str(session.peer_host)
+        if host.startswith("::ffff:"):
+            host = host.removeprefix("::ffff:")
+        return host
+
+    # ------------------------------------------------------------------ per-stream control
+
+    def get(self, name: str) -> PipelineStream:
+        stream = self.streams.get(name)
+        if stream is None:
+            known = ", ".join(self.streams) or "none"
+            raise KeyError(f"no stream named '{name}' (streams: {known})")
+        return stream
+
+    async def start_stream(
+        self, name: str, host: str = "", port: int = 0, *, session_id: str | None = None
+    ) -> StreamState:
+        """Start (or resume) a stream, sending to ``host:port`` when given."""
+        stream = self.get(name)
+        if isinstance(stream, VideoOut):
+            settings = stream.settings
+            moved = (host and host != settings.host) or (port and port != settings.port)
+            if host:
+                settings.host = host
+            if port:
+                settings.port = port
+            if moved and stream.pipeline is not None:
+                await stream.stop()  # the destination is fixed in the pipeline: rebuild
+        self.owners[name] = session_id
+        return await stream.start()
+
+    async def pause_stream(self, name: str) -> StreamState:
+        return await self.get(name).pause()
+
+    async def stop_stream(self, name: str) -> StreamState:
+        self.owners.pop(name, None)
+        return await self.get(name).stop()
+
+    def set_framerate(self, name: str, raw: Any) -> int:
+        """10.5: the framerate of a video stream in the current mode; ValueError if invalid."""
+        try:
+            stream = self.get(name)
+        except KeyError as err:
+            raise ValueError(err.args[0]) from None
+        if not isinstance(stream, VideoOut):
+            raise ValueError(f"stream '{name}' is not a video stream")
+        try:
+            fps = int(str(raw).strip())
+        except ValueError:
+            raise ValueError(f"framerate must be an integer, not {raw!r}") from None
+        limit = stream.settings.camera_framerate
+        if not 1 <= fps <= limit:
+            raise ValueError(f"framerate must be 1-{limit} fps (camera rate), not {fps}")
+        self.framerates["engaged" if self._engaged else "idle"] = fps
+        stream.set_framerate(fps)
+        return fps
+
+    # ------------------------------------------------------------------ signaling methods
+
+    async def rpc_start_stream(
+        self, call: CallContext, name: str, host: str = "", port: int = 0
+    ) -> dict[str, Any]:
+        session_id = call.session.session_id if call.session is not None else None
+        try:
+            host = check_host(host or self._session_host(session_id))
+        except PayloadError as err:
+            raise RpcError(INVALID_PARAMS, f"invalid params: {err}") from None
+        if port and not 1 <= port <= 65535:
+            raise RpcError(INVALID_PARAMS, "invalid params: port must be 1-65535")
+        await self.start_stream(self._rpc_name(name), host, port, session_id=session_id)
+        return self.streams[name].describe()
+
+    async def rpc_pause_stream(self, call: CallContext, name: str) -> dict[str, Any]:
+        await self.pause_stream(self._rpc_name(name))
+        return self.streams[name].describe()
+
+    async def rpc_stop_stream(self, call: CallContext, name: str) -> dict[str, Any]:
+        await self.stop_stream(self._rpc_name(name))
+        return self.streams[name].describe()
+
+    async def rpc_list_streams(self, call: CallContext) -> list[dict[str, Any]]:
+        return self.describe_streams()
+
+    def _rpc_name(self, name: str) -> str:
+        try:
+            return self.get(name).name
+        except KeyError as err:
+            raise RpcError(INVALID_PARAMS, f"invalid params: {err.args[0]}") from None
+
+    def describe_streams(self) -> list[dict[str, Any]]:
+        return [stream.describe() for stream in self.streams.values()]
+
+    def nav_camera(self) -> dict[str, Any]:
+        assert self.navcam is not None
+        info = self.navcam.describe()
+        info["destination"] = self.navcam.destination() if info["state"] != "idle" else None
+        info["framerates"] = dict(self.framerates)
+        return info
+
+
+def check_host(host: str) -> str:
+    """A literal IP address or a plausible host name; PayloadError otherwise."""
+    host = host.strip()
+    try:
+        return str(ipaddress.ip_address(host))
+    except ValueError:
+        pass
+    if not _HOSTNAME.match(host):
+        raise PayloadError(f"'{host}' is not an IP address or host name")
+    return host
+
+
+def _summary(states: dict[str, StreamState]) -> CommandResult:
+    failed = [name for name, state in states.items() if state is StreamState.FAILED]
+    result = {name: state.value for name, state in states.items()}
+    if failed:
+        return CommandResult(False, f"failed: {', '.join(failed)}", result)
+    return CommandResult(True, result=result)
+
+
+async def _answer(reply: asyncio.Future[CommandResult], work: Awaitable[CommandResult]) -> None:
+    try:
+        result = await work
+    except Exception as err:
+        _LOGGER.exception("media command failed")
+        result = CommandResult(False, f"internal error: {err}")
+    if not reply.done():
+        reply.set_result(result)
+
+
+async def _awaited(work: Awaitable[Any]) -> None:
+    await work
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    service = MediaService(ctx)
+    ctx.capabilities["streams"] = service.describe_streams
+    if service.navcam is not None:
+        ctx.capabilities["nav_camera"] = service.nav_camera
+    for name in ("start_stream", "pause_stream", "stop_stream", "list_streams"):
+        ctx.rpc.add(name, getattr(service, f"rpc_{name}"))
+    ctx.supervisor.start(service)

@@ -1,0 +1,195 @@
+"""Media: real GStreamer pipelines on loopback (NavCam out, station receiver, failures)."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any
+
+import pytest
+from conftest import free_udp_port, quiet_platform_config, wait_until
+
+from brasidas import topics
+from brasidas.codecs.jsonrpc import INVALID_PARAMS, RpcError
+from brasidas.media.pipeline import StreamState
+from brasidas.media.video import VideoIn, VideoOut, VideoSettings
+from brasidas.messages import StreamStatus
+from platformd.app import PlatformDaemon
+from stationd.client import PlatformConnection
+
+Factory = Callable[..., Awaitable[PlatformDaemon]]
+
+
+@pytest.fixture
+async def receiver() -> AsyncIterator[VideoIn]:
+    stream = VideoIn("rx", port=free_udp_port(), host="127.0.0.1")
+    await stream.start()
+    try:
+        yield stream
+    finally:
+        await stream.stop()
+
+
+async def open_session(daemon: PlatformDaemon, key: bytes) -> PlatformConnection:
+    conn = PlatformConnection(
+        daemon.config.platform.id, daemon.ctx.signaling_url, station_id="st-1", fleet_key=key
+    )
+    await conn.open()
+    return conn
+
+
+async def command(conn: PlatformConnection, code: int, payload: str = "") -> dict[str, Any]:
+    answer: dict[str, Any] = await conn.call(
+        "issue_system_command", group=10, command=code, payload=payload
+    )
+    return answer
+
+
+async def frames_in(stream: VideoIn, seconds: float) -> int:
+    before = stream.frames
+    await asyncio.sleep(seconds)
+    return stream.frames - before
+
+
+async def test_navcam_streams_only_when_asked_and_carries_capture_time(
+    platform_factory: Factory, fleet_key: bytes, receiver: VideoIn
+) -> None:
+    daemon = await platform_factory(
+        quiet_platform_config(
+            "sim.enabled=true", "navcam.enabled=true", f"navcam.port={receiver.port}"
+        ),
+        fleet_key,
+    )
+    states: list[StreamStatus] = []
+    daemon.bus.subscribe(topics.STREAM_STATES, states.append)
+    conn = await open_session(daemon, fleet_key)
+    try:
+        navcam = conn.capabilities["nav_camera"]
+        assert (navcam["width"], navcam["height"], navcam["codec"]) == (640, 480, "H264")
+        assert navcam["state"] == "idle" and navcam["destination"] is None
+        assert [s["name"] for s in conn.capabilities["streams"]] == ["navcam"]
+        assert await frames_in(receiver, 0.3) == 0  # nothing until a station asks (R-11.2)
+
+        answer = await command(conn, 1, "host=127.0.0.1")
+        assert answer["accepted"], answer
+        await wait_until(lambda: receiver.stamped >= 3, timeout=8)
+        assert receiver.latencies and all(-50 < ms < 1000 for ms in receiver.latencies)
+        assert states[-1].state == "playing" and states[-1].destination.endswith(
+            f":{receiver.port}"
+        )
+        params = await conn.call("get_nav_camera_parameters")
+        assert params["framerate"] == 5  # manual override disengaged (seed §3.2)
+        assert params["destination"] == f"127.0.0.1:{receiver.port}"
+        report = await conn.call("get_telemetry_report")
+        assert report["streams"]["navcam"] == "playing"
+
+        assert await conn.call("set_manual_override", engaged=True)
+        assert (await conn.call("get_nav_camera_parameters"))["framerate"] == 30
+
+        for payload, reason in (
+            ("navcam=0", "1-30"),
+            ("navcam=1000", "1-30"),
+            ("navcam=fast", "integer"),
+            ("rearcam=10", "no stream named 'rearcam'"),
+            ("", "navcam=15"),
+        ):
+            answer = await command(conn, 5, payload)
+            assert not answer["accepted"] and reason in answer["reason"], (payload, answer)
+        answer = await command(conn, 5, "navcam=15")
+        assert answer["accepted"] and answer["result"] == {"navcam": 15}
+
+        assert (await command(conn, 3))["accepted"]  # pause all
+        await asyncio.sleep(0.2)
+        assert await frames_in(receiver, 0.4) == 0
+        assert states[-1].state == "paused"
+        assert (await command(conn, 1, "127.0.0.1"))["accepted"]  # resume (bare host payload)
+        await wait_until(lambda: receiver.frames > 0 and states[-1].state == "playing")
+        assert (await command(conn, 2))["accepted"]  # stop all
+        assert states[-1].state == "idle"
+    finally:
+        await conn.close()
+
+
+async def test_per_stream_methods_and_bad_names(
+    platform_factory: Factory, fleet_key: bytes, receiver: VideoIn
+) -> None:
+    daemon = await platform_factory(
+        quiet_platform_config("sim.enabled=true", "navcam.enabled=true"), fleet_key
+    )
+    conn = await open_session(daemon, fleet_key)
+    try:
+        with pytest.raises(RpcError) as info:
+            await conn.call("start_stream", name="rearcam")
+        assert info.value.code == INVALID_PARAMS and "no stream named" in info.value.message
+        with pytest.raises(RpcError, match="not an IP address"):
+            await conn.call("start_stream", name="navcam", host="bad host!")
+        started = await conn.call("start_stream", name="navcam", port=receiver.port)
+        # No host given: the stream goes to the caller's own address.
+        assert started["state"] == "playing" and started["host"] == "127.0.0.1"
+        await wait_until(lambda: receiver.frames > 0, timeout=8)
+        assert (await conn.call("pause_stream", name="navcam"))["state"] == "paused"
+        listed = await conn.call("list_streams")
+        assert [(s["name"], s["state"]) for s in listed] == [("navcam", "paused")]
+        assert (await conn.call("stop_stream", name="navcam"))["state"] == "idle"
+        # A session that ends takes its streams with it.
+        await conn.call("start_stream", name="navcam", port=receiver.port)
+    finally:
+        await conn.close()
+    navcam = daemon.ctx.capabilities["nav_camera"]
+    await wait_until(lambda: navcam()["state"] == "idle")
+
+
+async def test_missing_camera_fails_with_reason_and_is_retried(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    daemon = await platform_factory(
+        quiet_platform_config("navcam.enabled=true", "navcam.device=/dev/brasidas-no-camera"),
+        fleet_key,
+    )
+    states: list[StreamStatus] = []
+    daemon.bus.subscribe(topics.STREAM_STATES, states.append)
+    stream = daemon.ctx.capabilities["nav_camera"].__self__.navcam
+    stream.retry_initial = 0.05
+    conn = await open_session(daemon, fleet_key)
+    try:
+        answer = await command(conn, 1, "host=127.0.0.1")
+        assert not answer["accepted"]
+        assert answer["result"] == {"navcam": "failed"}
+        assert states[-1].state == "failed"
+        assert "/dev/brasidas-no-camera" in states[-1].reason
+        await wait_until(lambda: stream.retries >= 2, timeout=8)
+        report = await conn.call("get_telemetry_report")
+        assert report["streams"]["navcam"] == "failed"
+        assert (await command(conn, 2))["accepted"]
+        retries = stream.retries
+        await asyncio.sleep(0.3)
+        assert stream.retries == retries and stream.state is StreamState.IDLE
+    finally:
+        await conn.close()
+
+
+async def test_a_failed_stream_leaves_the_others_running(receiver: VideoIn) -> None:
+    good = VideoOut("good", VideoSettings(test_source=True, port=receiver.port))
+    bad = VideoOut("bad", VideoSettings(test_source=True, encoder="omxh264enc"))
+    broken = VideoOut("broken", VideoSettings(test_source=True, pattern="no-such-pattern"))
+    try:
+        assert await good.start() is StreamState.PLAYING
+        assert await bad.start() is StreamState.FAILED
+        assert "omxh264enc" in bad.reason
+        assert await broken.start() is StreamState.FAILED
+        assert "no-such-pattern" in broken.reason or "pattern" in broken.reason
+        before = receiver.frames
+        await wait_until(lambda: receiver.frames > before + 5, timeout=8)
+    finally:
+        for stream in (good, bad, broken):
+            await stream.stop()
+
+
+async def test_station_not_listening_is_not_a_failure() -> None:
+    stream = VideoOut("navcam", VideoSettings(test_source=True, port=free_udp_port()))
+    try:
+        assert await stream.start() is StreamState.PLAYING
+        await asyncio.sleep(0.5)  # ICMP port unreachable comes back; the sender carries on
+        assert stream.state is StreamState.PLAYING
+    finally:
+        await stream.stop()
