@@ -185,6 +185,12 @@ def cmd_drive(args: argparse.Namespace, config: StationConfig) -> int:
     return run_drive(args, config)
 
 
+def cmd_view(args: argparse.Namespace, config: StationConfig) -> int:
+    from stationd.view import run_view
+
+    return run_view(args, config)
+
+
 def cmd_keygen(args: argparse.Namespace, config: StationConfig) -> int:
     path = Path(args.path) if args.path else security.key_path(config.security.key_file)
     try:
@@ -255,6 +261,7 @@ COMMANDS: dict[str, Callable[[argparse.Namespace, StationConfig], int]] = {
     "lights": cmd_lights,
     "keygen": cmd_keygen,
     "drive": cmd_drive,
+    "view": cmd_view,
 }
 
 
@@ -310,6 +317,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("id")
     p.add_argument("--url", help="signaling URL, when the platform is not discovered")
     p.add_argument("--step", type=float, default=0.1, help="command change per key press")
+    p = sub.add_parser(
+        "view", parents=[common], help="a platform's video in a window, with its latency"
+    )
+    p.add_argument("id")
+    p.add_argument("stream", nargs="?", default="navcam")
+    p.add_argument("--url", help="signaling URL, when the platform is not discovered")
+    p.add_argument("--port", type=int, default=0, help="UDP port to receive on (default: free)")
+    p.add_argument("--sink", default="autovideosink", help="GStreamer sink (fakesink: no window)")
+    p.add_argument("--seconds", type=float, default=0, help="stop after this long")
+    p.add_argument("--sdp", metavar="FILE", help="write an SDP file for ffplay/VLC instead")
     p = sub.add_parser("keygen", parents=[common], help="write a new fleet key")
     p.add_argument("--path", help="where (default: the configured key file)")
     p.add_argument("--force", action="store_true", help="replace an existing key")

@@ -25,6 +25,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "stationd.connections",
     "stationd.telemetry",
     "stationd.teleop",
+    "stationd.media",
 )
 
 WEB_ROOT = Path(__file__).resolve().parent.parent / "web"

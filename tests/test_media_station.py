@@ -1,0 +1,198 @@
+"""Station side of the media: daemon receivers, ``view``, the stock gst-launch receiver, SDP."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import re
+import shlex
+from collections.abc import AsyncIterator, Awaitable, Callable
+from pathlib import Path
+
+import pytest
+from conftest import free_udp_port, quiet_platform_config, wait_until
+
+from brasidas.config import StationConfig, load_config
+from platformd.app import PlatformDaemon
+from stationd import cli
+from stationd.daemon import StationDaemon
+from stationd.media import GST_LAUNCH_RECEIVER, sdp_text
+
+Factory = Callable[..., Awaitable[PlatformDaemon]]
+DECODED_FRAME = re.compile(r"chain.*\(460800 bytes")
+"""fakesink -v: one decoded 640x480 I420 frame."""
+
+
+@pytest.fixture
+async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
+    config = load_config(StationConfig, None, ["station.api_port=0", "station.connect_timeout=2"])
+    daemon = StationDaemon(config, fleet_key)
+    await daemon.start()
+    yield daemon
+    await daemon.stop()
+
+
+async def sim_platform(factory: Factory, key: bytes, *overrides: str) -> PlatformDaemon:
+    return await factory(
+        quiet_platform_config(
+            "platform.id=rover-v", "sim.enabled=true", "navcam.enabled=true", *overrides
+        ),
+        key,
+    )
+
+
+async def run_cli(station: StationDaemon, *argv: str) -> tuple[int, str, str]:
+    import contextlib
+    import io
+
+    out, err = io.StringIO(), io.StringIO()
+    api = ["--set", f"station.api_port={station.config.station.api_port}"]
+
+    def call() -> int:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            return cli.main([*argv, *api])
+
+    code = await asyncio.to_thread(call)
+    return code, out.getvalue(), err.getvalue()
+
+
+async def read_until(process: asyncio.subprocess.Process, pattern: re.Pattern[str]) -> str:
+    """Lines of the process's stdout until one matches; the match is returned."""
+    assert process.stdout is not None
+    while True:
+        line = (await process.stdout.readline()).decode(errors="replace")
+        if not line:
+            raise AssertionError("process ended before producing the expected output")
+        if pattern.search(line):
+            return line
+
+
+async def stop_process(process: asyncio.subprocess.Process) -> None:
+    if process.returncode is None:
+        process.terminate()
+        try:
+            await asyncio.wait_for(process.wait(), 5)
+        except TimeoutError:
+            process.kill()
+            await process.wait()
+
+
+async def test_daemon_receiver_reports_latency_and_stops_with_the_platform(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes
+) -> None:
+    platform = await sim_platform(platform_factory, fleet_key)
+    await station.ctx.api.call_local(
+        "connect", platform_id="rover-v", url=platform.ctx.signaling_url
+    )
+    started = await station.ctx.api.call_local("receive", platform_id="rover-v")
+    assert started["state"] == "playing"
+
+    async def stats() -> dict[str, object]:
+        receivers = await station.ctx.api.call_local("receivers")
+        return dict(receivers[0])
+
+    await asyncio.wait_for(_until_latency(stats), 10)
+    streams = await station.ctx.api.call_local("streams", platform_id="rover-v")
+    assert streams[0]["state"] == "playing" and streams[0]["host"] == "127.0.0.1"
+    assert await station.ctx.api.call_local("stop_receive", platform_id="rover-v")
+    nav = platform.ctx.capabilities["nav_camera"]
+    await wait_until(lambda: nav()["state"] == "idle")
+    assert await station.ctx.api.call_local("receivers") == []
+
+
+async def _until_latency(stats: Callable[[], Awaitable[dict[str, object]]]) -> None:
+    while True:
+        current = await stats()
+        if current.get("latency_ms") is not None and int(str(current["frames"])) >= 3:
+            return
+        await asyncio.sleep(0.05)
+
+
+async def test_view_command_receives_and_stops_the_stream(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes
+) -> None:
+    platform = await sim_platform(platform_factory, fleet_key)
+    url = platform.ctx.signaling_url
+    code, out, err = await run_cli(
+        station, "view", "rover-v", "--url", url, "--sink", "fakesink", "--seconds", "2", "--json"
+    )
+    assert code == 0, err
+    lines = out.strip().splitlines()
+    assert "640x480" in lines[0] and "H264" in lines[0]
+    last = json.loads(lines[-1])
+    assert last["frames"] > 0 and last["latency_ms"] is not None
+    assert platform.ctx.capabilities["nav_camera"]()["state"] == "idle"  # stopped on exit
+
+    code, out, err = await run_cli(
+        station, "view", "rover-v", "nosuchstream", "--url", url, "--sink", "fakesink"
+    )
+    assert code == 1 and "no stream named 'nosuchstream'" in err
+
+
+async def test_view_without_a_display_says_so(
+    station: StationDaemon, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    code, _, err = await run_cli(station, "view", "rover-v")
+    assert code == 1 and "no display" in err and "--sdp" in err
+
+
+async def test_stock_gst_launch_receiver_decodes_the_navcam(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    """The documented command (Annex A style), with fakesink instead of a window."""
+    port = free_udp_port()
+    platform = await sim_platform(platform_factory, fleet_key, f"navcam.port={port}")
+    command = GST_LAUNCH_RECEIVER.format(port=port).replace(
+        "videoconvert ! autovideosink sync=false", "fakesink silent=false"
+    )
+    argv = [*shlex.split(command)]
+    argv.insert(1, "-v")
+    process = await asyncio.create_subprocess_exec(
+        *argv, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT
+    )
+    try:
+        await asyncio.sleep(0.3)  # let udpsrc bind before the first keyframe
+        service = platform.ctx.capabilities["nav_camera"].__self__
+        await service.start_stream("navcam", "127.0.0.1")
+        await asyncio.wait_for(read_until(process, DECODED_FRAME), 10)
+    finally:
+        await stop_process(process)
+
+
+async def test_sdp_file_plays_in_a_stock_sdp_receiver(
+    platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+) -> None:
+    port = free_udp_port()
+    text = sdp_text(port, listen_host="127.0.0.1", platform_host="127.0.0.1")
+    assert f"m=video {port} RTP/AVP 96" in text and "a=rtpmap:96 H264/90000" in text
+    sdp = tmp_path / "navcam.sdp"
+    sdp.write_text(text)
+    platform = await sim_platform(platform_factory, fleet_key, f"navcam.port={port}")
+    # sdpdemux reads the file as ffplay and VLC do: address, port, payload type, codec.
+    process = await asyncio.create_subprocess_exec(
+        "gst-launch-1.0",
+        "-v",
+        "filesrc",
+        f"location={sdp}",
+        "!",
+        "sdpdemux",
+        "latency=0",
+        "!",
+        "rtph264depay",
+        "!",
+        "avdec_h264",
+        "!",
+        "fakesink",
+        "silent=false",
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.STDOUT,
+    )
+    try:
+        await asyncio.sleep(0.3)
+        service = platform.ctx.capabilities["nav_camera"].__self__
+        await service.start_stream("navcam", "127.0.0.1")
+        await asyncio.wait_for(read_until(process, DECODED_FRAME), 10)
+    finally:
+        await stop_process(process)
