@@ -38,6 +38,7 @@ from brasidas.media.pipeline import PipelineStream
 ENCODERS: tuple[str, ...] = ("v4l2h264enc", "omxh264enc", "x264enc", "openh264enc")
 """Hardware first (current Raspberry Pi, old Raspbian), then software; first found wins."""
 PAYLOAD_TYPE = 96
+MIN_BITRATE_KBPS = 150
 RTP_VIDEO_CAPS = (
     "application/x-rtp,media=video,clock-rate=90000,encoding-name=H264,"
     f"payload={PAYLOAD_TYPE},extmap-{NTP64_EXT_ID}=(string){NTP64_URI}"
@@ -69,6 +70,7 @@ class VideoSettings:
     """What the source delivers; the sent framerate is at most this."""
     framerate: int = 30
     bitrate_kbps: int = 1500
+    """At ``camera_framerate``; lower framerates get a proportional share (same quality)."""
     device: str = "/dev/video0"
     source_format: str = "raw"
     """Camera output: "raw" or "mjpeg"."""
@@ -82,6 +84,11 @@ class VideoSettings:
     host: str = "127.0.0.1"
     port: int = 5600
     mtu: int = 1200
+
+    def effective_bitrate_kbps(self) -> int:
+        """Bitrate for the current framerate: 5 fps monitoring needs a sixth of 30 fps."""
+        share = self.bitrate_kbps * self.framerate / max(1, self.camera_framerate)
+        return max(MIN_BITRATE_KBPS, min(self.bitrate_kbps, round(share)))
 
 
 class VideoOut(PipelineStream):
@@ -108,7 +115,7 @@ class VideoOut(PipelineStream):
             "framerate": s.framerate,
             "codec": "H264",
             "encoder": self.encoder_name or None,
-            "bitrate_kbps": s.bitrate_kbps,
+            "bitrate_kbps": s.effective_bitrate_kbps(),
             "rtp_caps": RTP_VIDEO_CAPS,
             "host": s.host,
             "port": s.port,
@@ -122,6 +129,7 @@ class VideoOut(PipelineStream):
         s.framerate = fps
         if self._encoder is not None and self._rate_filter is not None:
             _set_keyframe_interval(self._encoder, self.encoder_name, fps)
+            _set_bitrate(self._encoder, self.encoder_name, s.effective_bitrate_kbps())
             # New caps renegotiate downstream: the encoder restarts with the new rate.
             self._rate_filter.set_property("caps", caps(f"video/x-raw,framerate={fps}/1"))
 
@@ -203,6 +211,7 @@ def _profile(encoder_name: str) -> str:
 
 def _configure_encoder(encoder: Any, name: str, s: VideoSettings) -> None:
     """Low-latency, one slice per frame, keyframe every second, bitrate from settings."""
+    kbps = s.effective_bitrate_kbps()
     if name == "x264enc":
         # threads=1: one slice per frame (Chromium mis-decodes multi-slice) and no frame
         # threading; zerolatency: no lookahead, no B-frames.
@@ -210,9 +219,9 @@ def _configure_encoder(encoder: Any, name: str, s: VideoSettings) -> None:
         set_prop(encoder, "speed-preset", "ultrafast")
         set_prop(encoder, "threads", 1)
         set_prop(encoder, "sliced-threads", False)
-        set_prop(encoder, "bitrate", s.bitrate_kbps)
+        set_prop(encoder, "bitrate", kbps)
     elif name == "openh264enc":
-        encoder.set_property("bitrate", s.bitrate_kbps * 1000)
+        encoder.set_property("bitrate", kbps * 1000)
         _nick(encoder, "rate-control", "bitrate")
         _nick(encoder, "slice-mode", "n-slices")
         encoder.set_property("num-slices", 1)
@@ -222,16 +231,30 @@ def _configure_encoder(encoder: Any, name: str, s: VideoSettings) -> None:
         encoder.set_property(
             "extra-controls",
             gst().Structure.from_string(
-                f"controls,video_bitrate={s.bitrate_kbps * 1000},repeat_sequence_header=1,"
-                "h264_profile=1"
+                f"controls,video_bitrate={kbps * 1000},repeat_sequence_header=1,h264_profile=1"
             )[0],
         )
     elif name == "omxh264enc":
-        encoder.set_property("target-bitrate", s.bitrate_kbps * 1000)
+        encoder.set_property("target-bitrate", kbps * 1000)
         _nick(encoder, "control-rate", "variable")
         if encoder.find_property("inline-header") is not None:
             encoder.set_property("inline-header", True)
     _set_keyframe_interval(encoder, name, s.framerate)
+
+
+def _set_bitrate(encoder: Any, name: str, kbps: int) -> None:
+    if name == "x264enc":
+        encoder.set_property("bitrate", kbps)
+    elif name == "openh264enc":
+        encoder.set_property("bitrate", kbps * 1000)
+    elif name == "omxh264enc":
+        encoder.set_property("target-bitrate", kbps * 1000)
+    elif name == "v4l2h264enc":
+        controls = encoder.get_property("extra-controls")
+        if controls is not None:
+            controls = controls.copy()
+            controls.set_value("video_bitrate", kbps * 1000)
+            encoder.set_property("extra-controls", controls)
 
 
 def _set_keyframe_interval(encoder: Any, name: str, fps: int) -> None:
@@ -277,6 +300,8 @@ class VideoIn(PipelineStream):
         self.jitter_ms = jitter_ms
         self.frames = 0
         self.stamped = 0
+        self.rtp_bytes = 0
+        """RTP bytes received (headers included, UDP/IP not), for the bitrate."""
         self.latencies: collections.deque[float] = collections.deque(maxlen=window)
         """Recent glass-to-glass latencies (ms), appended on the streaming thread."""
         self.last_latency_ms: float | None = None
@@ -290,9 +315,10 @@ class VideoIn(PipelineStream):
     def latency_stats(self) -> dict[str, Any]:
         values = sorted(self.latencies)
         if not values:
-            return {"frames": self.frames, "latency_ms": None}
+            return {"frames": self.frames, "rtp_bytes": self.rtp_bytes, "latency_ms": None}
         return {
             "frames": self.frames,
+            "rtp_bytes": self.rtp_bytes,
             "latency_ms": self.last_latency_ms,
             "latency_p50_ms": statistics.median(values),
             "latency_p99_ms": values[min(len(values) - 1, int(len(values) * 0.99))],
@@ -321,6 +347,9 @@ class VideoIn(PipelineStream):
         decoder.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _latency_probe, (weakref.ref(self), ntp_caps())
         )
+        source.get_static_pad("src").add_probe(
+            Gst.PadProbeType.BUFFER, _bytes_probe, weakref.ref(self)
+        )
         return pipeline
 
 
@@ -338,4 +367,13 @@ def _latency_probe(pad: Any, info: Any, data: tuple[weakref.ref[VideoIn], Any]) 
             stream.stamped += 1
             stream.last_latency_ms = age
             stream.latencies.append(age)
+    return gst().PadProbeReturn.OK
+
+
+def _bytes_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
+    """Streaming thread: count received RTP bytes."""
+    stream = ref()
+    buffer = info.get_buffer()
+    if stream is not None and buffer is not None:
+        stream.rtp_bytes += buffer.get_size()
     return gst().PadProbeReturn.OK
