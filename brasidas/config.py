@@ -146,6 +146,36 @@ class NavCamSection:
 
 
 @dataclass
+class AudioSection:
+    enabled: bool = True
+    """Two-way audio: platform microphone to the station, station microphone to the speaker."""
+    source_device: str = ""
+    """ALSA capture device (e.g. hw:1,0). Empty: the default. In --sim: a test tone."""
+    sink_device: str = ""
+    """ALSA playback device. Empty: the default. In --sim: discarded (fakesink)."""
+    bitrate: int = 24000
+    """Opus bitrate (bit/s) of the platform microphone."""
+    out_port: int = 5602
+    """UDP port on the station that the platform microphone is sent to."""
+    in_host: str = "127.0.0.1"
+    """Where the platform listens for the station's audio (the mesh address in deployments)."""
+    in_port: int = 5604
+    """UDP port the platform listens on for the station's audio."""
+
+
+@dataclass
+class PayloadCameraSection:
+    enabled: bool = False
+    """The payload IP camera (the seed's thermal AXIS), forwarded without re-encoding."""
+    url: str = ""
+    """RTSP URL of the camera, e.g. rtsp://192.168.1.90/axis-media/media.amp."""
+    port: int = 5606
+    """UDP port on the station that the camera's RTP stream is forwarded to."""
+    latency_ms: int = 50
+    """rtspsrc jitter buffer (the camera's own network hop)."""
+
+
+@dataclass
 class SimSection:
     enabled: bool = False
     """Set by --sim: simulated controller, GPS, IMU and camera behind the real drivers."""
@@ -169,6 +199,8 @@ class PlatformConfig:
     imu: ImuSection = field(default_factory=ImuSection)
     telemetry: TelemetrySection = field(default_factory=TelemetrySection)
     navcam: NavCamSection = field(default_factory=NavCamSection)
+    audio: AudioSection = field(default_factory=AudioSection)
+    payload_camera: PayloadCameraSection = field(default_factory=PayloadCameraSection)
     sim: SimSection = field(default_factory=SimSection)
 
 

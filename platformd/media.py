@@ -1,4 +1,8 @@
-"""Media streams of the platform (R-11): NavCam video out, each stream managed on its own.
+"""Media streams of the platform (R-11), each managed on its own (R-11.4).
+
+``navcam`` (H.264 video out), ``audio_out`` (microphone, Opus), ``audio_in`` (the station's
+voice to the speaker; the platform listens on ``audio.in_host:in_port``) and
+``payload_camera`` (an RTSP camera forwarded without re-encoding), as configured.
 
 A stream sends only after a station asked for it: system command 10.1 (payload: the station's
 host, ``host=10.0.0.2``; empty means the caller's own address) starts every stream, 10.2 stops
@@ -33,7 +37,9 @@ from brasidas.codecs.commands import (
     parse_payload,
 )
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
+from brasidas.media.audio import AudioIn, AudioOut, AudioSettings
 from brasidas.media.pipeline import PipelineStream, StreamState
+from brasidas.media.relay import ForwardSettings, RtspForward
 from brasidas.media.video import VideoOut, VideoSettings
 from brasidas.messages import (
     CommandResult,
@@ -87,6 +93,34 @@ class MediaService(Actor):
                 on_change=self._publish,
             )
             self.streams["navcam"] = self.navcam
+        sim = ctx.config.sim.enabled
+        audio = ctx.config.audio
+        if audio.enabled:
+            self.streams["audio_out"] = AudioOut(
+                "audio_out",
+                AudioSettings(
+                    device=audio.source_device,
+                    test_source=sim,
+                    bitrate=audio.bitrate,
+                    port=audio.out_port,
+                ),
+                on_change=self._publish,
+            )
+            self.streams["audio_in"] = AudioIn(
+                "audio_in",
+                host=audio.in_host,
+                port=audio.in_port,
+                device=audio.sink_device,
+                sink="fakesink" if sim else "",
+                on_change=self._publish,
+            )
+        camera = ctx.config.payload_camera
+        if camera.enabled and camera.url:
+            self.streams["payload_camera"] = RtspForward(
+                "payload_camera",
+                ForwardSettings(url=camera.url, latency_ms=camera.latency_ms, port=camera.port),
+                on_change=self._publish,
+            )
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -237,7 +271,7 @@ class MediaService(Actor):
     ) -> StreamState:
         """Start (or resume) a stream, sending to ``host:port`` when given."""
         stream = self.get(name)
-        if isinstance(stream, VideoOut):
+        if isinstance(stream, VideoOut | AudioOut | RtspForward):
             settings = stream.settings
             moved = (host and host != settings.host) or (port and port != settings.port)
             if host:

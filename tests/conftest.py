@@ -77,6 +77,7 @@ def quiet_platform_config(*overrides: str) -> PlatformConfig:
         "gps.enabled=false",
         "imu.enabled=false",
         "navcam.enabled=false",
+        "audio.enabled=false",
     ]
     return load_config(PlatformConfig, None, [*defaults, *overrides])
 

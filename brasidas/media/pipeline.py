@@ -3,8 +3,8 @@
 A :class:`PipelineStream` owns one ``Gst.Pipeline`` built by :meth:`PipelineStream.build`.
 Its public methods must be called on the event loop. GStreamer bus messages arrive on
 GStreamer's threads and reach the loop only through ``loop.call_soon_threadsafe`` (a bus sync
-handler, so no GLib main loop is needed). State changes that may block (opening a device,
-joining streaming threads) run in the loop's default executor.
+handler, so no GLib main loop is needed; the loop then empties the bus queue). State changes
+that may block (opening a device, joining streaming threads) run in the default executor.
 
 An error (missing element or device, caps that do not negotiate, a source that vanishes)
 sets ``failed`` with a readable reason. The owner runs :meth:`PipelineStream.supervise` in
@@ -66,6 +66,7 @@ class PipelineStream:
         self._playing_since: float | None = None
         self._last_error = ""
         self._attempt_failed = False
+        self._drain_pending = False
         self._lock = asyncio.Lock()
         self._failed = asyncio.Event()
         self._kick = asyncio.Event()
@@ -162,8 +163,10 @@ class PipelineStream:
             self.next_retry_in = backoff
             self._kick.clear()
             with contextlib.suppress(TimeoutError):
-                # A start/pause/stop in the meantime ends the wait early.
-                await asyncio.wait_for(self._kick.wait(), backoff)
+                # A start/pause/stop in the meantime ends the wait early. (asyncio.timeout,
+                # not wait_for: 3.11's wait_for can swallow a cancel that races the event.)
+                async with asyncio.timeout(backoff):
+                    await self._kick.wait()
             self.next_retry_in = None
             async with self._lock:
                 if self.state is not StreamState.FAILED or self._wanted is StreamState.IDLE:
@@ -248,10 +251,15 @@ class PipelineStream:
 
     def _on_message(self, generation: int, kind: str, text: str, detail: str) -> None:
         """Bus message forwarded to the loop."""
-        if generation != self._generation:
+        self._drain_pending = False
+        if self.pipeline is not None:
+            bus = self.pipeline.get_bus()
+            while bus.pop() is not None:
+                pass  # already seen by the sync handler
+        if generation != self._generation or not kind:
             return
         if kind == "error":
-            self._fail(text)
+            self._fail(self.explain(text))
             if detail:
                 _LOGGER.debug("stream %s error detail: %s", self.name, detail)
         elif kind == "eos":
@@ -260,6 +268,10 @@ class PipelineStream:
             _LOGGER.warning("stream %s: %s", self.name, text)
         else:
             self.on_element_message(kind, text)
+
+    def explain(self, error: str) -> str:
+        """The readable reason for a GStreamer error (subclasses add context)."""
+        return error
 
     def on_element_message(self, kind: str, text: str) -> None:
         """Other forwarded messages (``kind`` is the structure name); override as needed."""
@@ -288,9 +300,11 @@ def _sync_handler(bus: Any, message: Any, data: tuple[Any, ...]) -> Any:
         structure = message.get_structure()
         if structure is not None:
             kind, text = structure.get_name(), structure.to_string()
-    if kind:
-        stream = ref()
-        if stream is not None:
-            with contextlib.suppress(RuntimeError):  # loop closed: nobody to tell
-                loop.call_soon_threadsafe(stream._on_message, generation, kind, text, detail or "")
-    return Gst.BusSyncReply.DROP
+    stream = ref()
+    if stream is not None and (kind or not stream._drain_pending):
+        stream._drain_pending = True
+        with contextlib.suppress(RuntimeError):  # loop closed: nobody to tell
+            loop.call_soon_threadsafe(stream._on_message, generation, kind, text, detail or "")
+    # PASS, and the loop pops the queue: with PyGObject, a message DROPped here is never
+    # freed, and it holds its source element (and so the whole pipeline) alive.
+    return Gst.BusSyncReply.PASS

@@ -1,0 +1,185 @@
+"""Opus over RTP: a microphone out (the seed's PiGstAudioOut) and a speaker in (PiGstAudioIn).
+
+Out: ALSA capture (or ``audiotestsrc`` in sim and tests) → 48 kHz mono → ``opusenc`` (20 ms
+frames, low-delay) → ``rtpopuspay`` → ``udpsink sync=false``. In: ``udpsrc`` with explicit caps
+→ a small jitter buffer → ``rtpopusdepay`` → ``opusdec`` → S16 → ALSA playback (or
+``fakesink``), with the peak level of what was received, so a test can tell sound from silence.
+"""
+
+from __future__ import annotations
+
+import weakref
+from array import array
+from dataclasses import dataclass
+from typing import Any
+
+from brasidas.media.gst import caps, gst, link_all, make
+from brasidas.media.pipeline import PipelineStream
+
+AUDIO_PAYLOAD_TYPE = 97
+RTP_AUDIO_CAPS = (
+    "application/x-rtp,media=audio,clock-rate=48000,encoding-name=OPUS,"
+    f"payload={AUDIO_PAYLOAD_TYPE}"
+)
+SILENCE_PEAK = 64
+"""A 16-bit peak at or below this is silence (about -54 dBFS)."""
+
+
+@dataclass
+class AudioSettings:
+    device: str = ""
+    """ALSA device (``hw:1,0``); empty: the system default."""
+    test_source: bool = False
+    """A 440 Hz test tone instead of the microphone (sim, tests)."""
+    bitrate: int = 24000
+    host: str = "127.0.0.1"
+    port: int = 5602
+
+
+class AudioOut(PipelineStream):
+    """Microphone → Opus → RTP/UDP."""
+
+    kind = "audio_out"
+
+    def __init__(self, name: str, settings: AudioSettings, **kwargs: Any) -> None:
+        super().__init__(name, **kwargs)
+        self.settings = settings
+
+    def destination(self) -> str:
+        return f"{self.settings.host}:{self.settings.port}"
+
+    def describe(self) -> dict[str, Any]:
+        s = self.settings
+        return {
+            **super().describe(),
+            "codec": "OPUS",
+            "bitrate": s.bitrate,
+            "rtp_caps": RTP_AUDIO_CAPS,
+            "host": s.host,
+            "port": s.port,
+        }
+
+    def build(self) -> Any:
+        s = self.settings
+        pipeline = gst().Pipeline.new(f"{self.name}-out")
+        if s.test_source:
+            source = make("audiotestsrc", "source", is_live=True, freq=440.0, volume=0.3)
+        elif s.device:
+            source = make("alsasrc", "source", device=s.device)
+        else:
+            source = make("autoaudiosrc", "source")
+        chain = [
+            source,
+            make("audioconvert"),
+            make("audioresample"),
+            make("capsfilter", caps=caps("audio/x-raw,rate=48000,channels=1")),
+            make(
+                "opusenc",
+                bitrate=s.bitrate,
+                frame_size=20,
+                audio_type="restricted-lowdelay",
+            ),
+            make("rtpopuspay", pt=AUDIO_PAYLOAD_TYPE),
+            make("udpsink", "sink", host=s.host, port=s.port, sync=False, async_=False),
+        ]
+        for element in chain:
+            pipeline.add(element)
+        link_all(*chain)
+        return pipeline
+
+
+class AudioIn(PipelineStream):
+    """RTP/UDP Opus → speaker, measuring the received peak level."""
+
+    kind = "audio_in"
+
+    def __init__(
+        self,
+        name: str,
+        *,
+        port: int,
+        host: str = "127.0.0.1",
+        device: str = "",
+        sink: str = "",
+        jitter_ms: int = 40,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__(name, **kwargs)
+        self.host = host
+        self.port = port
+        self.device = device
+        self.sink_factory = sink or ("alsasink" if device else "autoaudiosink")
+        self.jitter_ms = jitter_ms
+        self.buffers = 0
+        self.loud_buffers = 0
+        self.peak = 0
+        """Highest 16-bit sample magnitude received so far."""
+
+    def destination(self) -> str:
+        return f"{self.host}:{self.port}"
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            **super().describe(),
+            "codec": "OPUS",
+            "rtp_caps": RTP_AUDIO_CAPS,
+            "host": self.host,
+            "port": self.port,
+            "buffers": self.buffers,
+            "peak": self.peak,
+        }
+
+    @property
+    def hears_sound(self) -> bool:
+        return self.loud_buffers > 0
+
+    def build(self) -> Any:
+        Gst = gst()
+        pipeline = Gst.Pipeline.new(f"{self.name}-in")
+        sink = make(self.sink_factory, "sink")
+        if self.device and sink.find_property("device") is not None:
+            sink.set_property("device", self.device)
+        if sink.find_property("sync") is not None and self.sink_factory == "fakesink":
+            sink.set_property("sync", False)
+        decoder = make("opusdec")
+        s16 = make("capsfilter", caps=caps("audio/x-raw,format=S16LE,channels=1"))
+        chain = [
+            make("udpsrc", "source", address=self.host, port=self.port, caps=caps(RTP_AUDIO_CAPS)),
+            make("rtpjitterbuffer", latency=self.jitter_ms, drop_on_latency=True),
+            make("rtpopusdepay"),
+            decoder,
+            make("audioconvert"),
+            s16,
+            make("audioconvert"),
+            make("audioresample"),
+            sink,
+        ]
+        for element in chain:
+            pipeline.add(element)
+        link_all(*chain)
+        s16.get_static_pad("src").add_probe(
+            Gst.PadProbeType.BUFFER, _level_probe, weakref.ref(self)
+        )
+        return pipeline
+
+
+def _level_probe(pad: Any, info: Any, ref: weakref.ref[AudioIn]) -> Any:
+    """Streaming thread: the peak of each decoded buffer (S16LE mono)."""
+    Gst = gst()
+    stream = ref()
+    buffer = info.get_buffer()
+    if stream is None or buffer is None:
+        return Gst.PadProbeReturn.OK
+    ok, mapped = buffer.map(Gst.MapFlags.READ)
+    if not ok:
+        return Gst.PadProbeReturn.OK
+    try:
+        samples = array("h", bytes(mapped.data[: len(mapped.data) // 2 * 2]))
+    finally:
+        buffer.unmap(mapped)
+    peak = max((abs(v) for v in (max(samples), min(samples))), default=0) if samples else 0
+    stream.buffers += 1
+    stream.peak = max(stream.peak, peak)
+    if peak > SILENCE_PEAK:
+        stream.loud_buffers += 1
+    return Gst.PadProbeReturn.OK

@@ -1,0 +1,212 @@
+"""Two-way audio, the payload camera forwarded from an RTSP server, and pipelines that never leak."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import threading
+from collections.abc import Awaitable, Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import free_tcp_port, free_udp_port, quiet_platform_config, wait_until
+
+from brasidas.media.audio import AudioIn, AudioOut, AudioSettings
+from brasidas.media.gst import gst
+from brasidas.media.pipeline import StreamState
+from brasidas.media.video import VideoIn, VideoOut, VideoSettings
+from platformd.app import PlatformDaemon
+from stationd.client import PlatformConnection
+
+Factory = Callable[..., Awaitable[PlatformDaemon]]
+
+
+async def open_session(daemon: PlatformDaemon, key: bytes) -> PlatformConnection:
+    conn = PlatformConnection(
+        daemon.config.platform.id, daemon.ctx.signaling_url, station_id="st-1", fleet_key=key
+    )
+    await conn.open()
+    return conn
+
+
+async def test_two_way_audio_is_heard_at_both_ends(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    station_port, platform_port = free_udp_port(), free_udp_port()
+    daemon = await platform_factory(
+        quiet_platform_config(
+            "sim.enabled=true",
+            "audio.enabled=true",
+            f"audio.out_port={station_port}",
+            f"audio.in_port={platform_port}",
+        ),
+        fleet_key,
+    )
+    speaker = AudioIn("station-speaker", port=station_port, sink="fakesink")
+    microphone = AudioOut("station-mic", AudioSettings(test_source=True, port=platform_port))
+    conn = await open_session(daemon, fleet_key)
+    try:
+        streams = {s["name"]: s for s in conn.capabilities["streams"]}
+        assert streams["audio_out"]["codec"] == "OPUS" and streams["audio_in"]["state"] == "idle"
+        assert await speaker.start() is StreamState.PLAYING
+        assert await frames_after(speaker, 0.3) == 0  # the platform sends only when asked
+        started = await conn.call("start_stream", name="audio_out")
+        assert started["state"] == "playing"
+        await wait_until(lambda: speaker.hears_sound, timeout=8)  # platform mic -> station
+
+        listening = await conn.call("start_stream", name="audio_in")
+        assert listening["state"] == "playing" and listening["port"] == platform_port
+        assert await microphone.start() is StreamState.PLAYING
+        platform_speaker = daemon.ctx.capabilities["streams"].__self__.streams["audio_in"]
+        await wait_until(lambda: platform_speaker.hears_sound, timeout=8)  # station -> platform
+        assert platform_speaker.peak > 1000
+
+        # Independent streams (R-11.4): pausing one leaves the other running.
+        assert (await conn.call("pause_stream", name="audio_out"))["state"] == "paused"
+        before = platform_speaker.buffers
+        await wait_until(lambda: platform_speaker.buffers > before + 5)
+    finally:
+        await conn.close()
+        await microphone.stop()
+        await speaker.stop()
+
+
+async def frames_after(stream: AudioIn, seconds: float) -> int:
+    before = stream.buffers
+    await asyncio.sleep(seconds)
+    return stream.buffers - before
+
+
+class RtspServer:
+    """A GstRtspServer on loopback with its own GLib main loop thread (a stand-in IP camera)."""
+
+    def __init__(self, port: int) -> None:
+        import gi
+
+        gi.require_version("GstRtspServer", "1.0")
+        from gi.repository import GLib, GstRtspServer
+
+        gst()
+        self.url = f"rtsp://127.0.0.1:{port}/thermal"
+        self.context = GLib.MainContext.new()
+        self.server = GstRtspServer.RTSPServer.new()
+        self.server.set_address("127.0.0.1")
+        self.server.set_service(str(port))
+        factory = GstRtspServer.RTSPMediaFactory.new()
+        factory.set_launch(
+            "( videotestsrc is-live=true ! video/x-raw,width=320,height=240,framerate=15/1 "
+            "! x264enc tune=zerolatency speed-preset=ultrafast key-int-max=15 "
+            "! rtph264pay name=pay0 pt=96 )"
+        )
+        factory.set_shared(True)
+        self.server.get_mount_points().add_factory("/thermal", factory)
+        self.source_id = self.server.attach(self.context)
+        self.loop = GLib.MainLoop.new(self.context, False)
+        self.thread = threading.Thread(target=self.loop.run, name="rtsp-server", daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.loop.quit()
+        self.thread.join(5)
+        source = self.context.find_source_by_id(self.source_id)
+        if source is not None:
+            source.destroy()
+
+
+@pytest.fixture
+def rtsp_camera() -> Iterator[RtspServer]:
+    server = RtspServer(free_tcp_port())
+    try:
+        yield server
+    finally:
+        server.close()
+
+
+async def test_payload_camera_is_forwarded_without_reencoding(
+    platform_factory: Factory, fleet_key: bytes, rtsp_camera: RtspServer
+) -> None:
+    port = free_udp_port()
+    daemon = await platform_factory(
+        quiet_platform_config(
+            "payload_camera.enabled=true",
+            f"payload_camera.url={rtsp_camera.url}",
+            f"payload_camera.port={port}",
+        ),
+        fleet_key,
+    )
+    receiver = VideoIn("station-thermal", host="127.0.0.1", port=port)
+    conn = await open_session(daemon, fleet_key)
+    try:
+        await receiver.start()
+        started = await conn.call("start_stream", name="payload_camera")
+        assert started["state"] == "playing" and started["source"] == rtsp_camera.url
+        await wait_until(lambda: receiver.frames >= 5, timeout=8)
+        forward = daemon.ctx.capabilities["streams"].__self__.streams["payload_camera"]
+        klasses = element_classes(forward.pipeline)
+        assert not [k for k in klasses if "Encoder" in k or "Decoder" in k], klasses
+    finally:
+        await conn.close()
+        await receiver.stop()
+
+
+def element_classes(pipeline: Any) -> list[str]:
+    result: list[str] = []
+    iterator = pipeline.iterate_recurse()
+    while True:
+        ok, element = iterator.next()
+        if ok != gst().IteratorResult.OK:
+            break
+        result.append(element.get_factory().get_metadata("klass"))
+    return result
+
+
+async def test_offline_camera_fails_with_its_url_and_recovers_when_it_appears() -> None:
+    from brasidas.media.relay import ForwardSettings, RtspForward
+
+    port, video_port = free_tcp_port(), free_udp_port()
+    url = f"rtsp://127.0.0.1:{port}/thermal"
+    forward = RtspForward(
+        "payload_camera", ForwardSettings(url=url, port=video_port), retry_initial=0.1
+    )
+    receiver = VideoIn("station-thermal", host="127.0.0.1", port=video_port)
+    camera: RtspServer | None = None
+    async with asyncio.TaskGroup() as group:
+        supervisor = group.create_task(forward.supervise())
+        try:
+            await receiver.start()
+            await forward.start()
+            await wait_until(lambda: forward.state is StreamState.FAILED, timeout=8)
+            assert url in forward.reason and "Could not open" in forward.reason
+            await wait_until(lambda: forward.retries >= 1, timeout=8)
+            camera = RtspServer(port)  # the camera comes online: the next retry gets it
+            await wait_until(lambda: receiver.frames >= 3, timeout=9)
+            assert forward.state is StreamState.PLAYING
+        finally:
+            await forward.stop()
+            await receiver.stop()
+            supervisor.cancel()
+            if camera is not None:
+                camera.close()
+
+
+def rss_mb() -> float:
+    for line in Path(f"/proc/{os.getpid()}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmRSS")
+
+
+async def test_200_starts_and_stops_leave_memory_flat() -> None:
+    stream = VideoOut(
+        "navcam", VideoSettings(test_source=True, width=160, height=120, port=free_udp_port())
+    )
+    for _ in range(20):  # warm up: plugin loading, allocator pools, executor threads
+        await stream.start()
+        await stream.stop()
+    before = rss_mb()
+    for _ in range(200):
+        assert await stream.start() is StreamState.PLAYING
+        await stream.stop()
+    growth = rss_mb() - before
+    assert growth < 6.0, f"RSS grew {growth:.1f} MB over 200 start/stop cycles"
