@@ -281,6 +281,14 @@ class TelemetryReceiverSection:
 
 
 @dataclass
+class StationMediaSection:
+    microphone_device: str = ""
+    """ALSA capture device for talking to a platform. Empty: the default."""
+    speaker_device: str = ""
+    """ALSA playback device for a platform's microphone. Empty: the default."""
+
+
+@dataclass
 class StationConfig:
     station: StationSection = field(default_factory=StationSection)
     security: SecuritySection = field(default_factory=SecuritySection)
@@ -288,6 +296,7 @@ class StationConfig:
     telemetry: TelemetryReceiverSection = field(default_factory=TelemetryReceiverSection)
     teleop: TeleopSection = field(default_factory=TeleopSection)
     joystick: JoystickSection = field(default_factory=JoystickSection)
+    media: StationMediaSection = field(default_factory=StationMediaSection)
 
 
 # --------------------------------------------------------------------------- loading

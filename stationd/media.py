@@ -3,8 +3,10 @@
 Local API (CLI, browser console): ``stream_start(platform_id, stream, host, port)``,
 ``stream_pause``, ``stream_stop`` and ``streams`` ask the platform over its session;
 ``receive(platform_id, stream, sink)`` also runs a receive pipeline in the daemon (a free
-UDP port, the platform asked to send there) whose per-frame latency ``receivers`` reports.
-Receivers of a platform stop when its connection ends.
+UDP port, the platform asked to send there): video with its per-frame latency, or the
+platform's microphone on the station's speaker; ``receivers`` reports them. ``talk`` sends the
+station's microphone to the platform's speaker. All of a platform's pipelines stop when its
+connection ends.
 
 A platform stream also plays in stock tools. GStreamer (the seed's Annex A habit)::
 
@@ -30,8 +32,9 @@ from typing import Any
 from brasidas import topics
 from brasidas.actor import Actor, wait_forever
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
+from brasidas.media.audio import AudioIn, AudioOut, AudioSettings
 from brasidas.media.gst import NTP64_EXT_ID, NTP64_URI, MediaError
-from brasidas.media.pipeline import StreamState
+from brasidas.media.pipeline import PipelineStream, StreamState
 from brasidas.media.video import PAYLOAD_TYPE, VideoIn
 from stationd.context import StationContext
 
@@ -94,7 +97,8 @@ class StationMedia(Actor):
     def __init__(self, ctx: StationContext) -> None:
         super().__init__(ctx.bus)
         self.ctx = ctx
-        self.receivers: dict[tuple[str, str], VideoIn] = {}
+        self.receivers: dict[tuple[str, str], PipelineStream] = {}
+        """Receive pipelines (and the talk sender) by (platform id, stream)."""
         self._group: asyncio.TaskGroup | None = None
 
     async def run(self) -> None:
@@ -161,30 +165,82 @@ class StationMedia(Actor):
     async def api_receive(
         self, call: CallContext, platform_id: str, stream: str = "navcam", sink: str = "fakesink"
     ) -> dict[str, Any]:
-        """Receive ``stream`` here (a free port) and ask the platform to send it."""
-        if sink not in ("fakesink", "autovideosink"):
-            raise RpcError(INVALID_PARAMS, "invalid params: sink must be fakesink or autovideosink")
+        """Receive ``stream`` here (a free port) and ask the platform to send it.
+
+        Video streams decode into ``sink`` (fakesink, or a window: "auto"); the platform's
+        microphone (``audio_out``) plays on the station's speaker ("auto") or fakesink.
+        """
+        if sink not in ("fakesink", "auto", "autovideosink", "autoaudiosink"):
+            raise RpcError(INVALID_PARAMS, "invalid params: sink must be fakesink or auto")
         connection = await self._connection(platform_id)
+        kinds = {s.get("name"): s.get("kind") for s in await connection.call("list_streams")}
+        kind = kinds.get(stream)
+        if kind not in ("video_out", "payload_camera", "audio_out"):
+            known = ", ".join(str(n) for n, k in kinds.items() if k != "audio_in") or "none"
+            raise RpcError(INVALID_PARAMS, f"no stream named '{stream}' to receive ({known})")
         key = (platform_id, stream)
         old = self.receivers.pop(key, None)
         if old is not None:
             await old.stop()
         host = receive_host(connection.platform_host)
-        receiver = VideoIn(
-            f"{platform_id}/{stream}", host=host, port=free_udp_port(host), sink=sink
-        )
+        name, port = f"{platform_id}/{stream}", free_udp_port(host)
+        receiver: PipelineStream
+        if kind == "audio_out":
+            receiver = AudioIn(
+                name,
+                host=host,
+                port=port,
+                device=self.ctx.config.media.speaker_device,
+                sink="fakesink" if sink == "fakesink" else "",
+            )
+        else:
+            video_sink = "fakesink" if sink == "fakesink" else "autovideosink"
+            receiver = VideoIn(name, host=host, port=port, sink=video_sink)
         self.receivers[key] = receiver
         if await receiver.start() is StreamState.FAILED:
             self.receivers.pop(key, None)
             await receiver.stop()
             raise RpcError(INVALID_PARAMS, f"cannot receive: {receiver.reason}")
         try:
-            await connection.call("start_stream", name=stream, port=receiver.port)
+            await connection.call("start_stream", name=stream, port=port)
         except (RpcError, MediaError):
             self.receivers.pop(key, None)
             await receiver.stop()
             raise
         return {"platform_id": platform_id, **receiver.describe()}
+
+    async def api_talk(
+        self, call: CallContext, platform_id: str, on: bool = True, test_tone: bool = False
+    ) -> dict[str, Any]:
+        """The station's microphone (or a test tone) to the platform's speaker, or stop it."""
+        key = (platform_id, "talk")
+        old = self.receivers.pop(key, None)
+        if old is not None:
+            await old.stop()
+        connection = await self._connection(platform_id)
+        if not on:
+            with contextlib.suppress(RpcError, ConnectionError):
+                await connection.call("stop_stream", name="audio_in")
+            return {"platform_id": platform_id, "state": "idle"}
+        listening: dict[str, Any] = await connection.call("start_stream", name="audio_in")
+        host = str(listening.get("host") or "")
+        if host in ("", "0.0.0.0", "::"):
+            host = connection.platform_host
+        microphone = AudioOut(
+            f"{platform_id}/talk",
+            AudioSettings(
+                device=self.ctx.config.media.microphone_device,
+                test_source=test_tone,
+                host=host,
+                port=int(listening["port"]),
+            ),
+        )
+        self.receivers[key] = microphone
+        if await microphone.start() is StreamState.FAILED:
+            self.receivers.pop(key, None)
+            await microphone.stop()
+            raise RpcError(INVALID_PARAMS, f"cannot send audio: {microphone.reason}")
+        return {"platform_id": platform_id, **microphone.describe()}
 
     async def api_stop_receive(
         self, call: CallContext, platform_id: str, stream: str = "navcam"
@@ -216,6 +272,7 @@ async def async_setup(ctx: StationContext) -> None:
         "receive",
         "stop_receive",
         "receivers",
+        "talk",
     ):
         ctx.api.add(name, getattr(media, f"api_{name}"), session_required=False)
     ctx.supervisor.start(media)

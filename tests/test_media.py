@@ -193,3 +193,31 @@ async def test_station_not_listening_is_not_a_failure() -> None:
         assert stream.state is StreamState.PLAYING
     finally:
         await stream.stop()
+
+
+class VanishingCamera(VideoOut):
+    """A source that stops after 20 frames, as a USB camera unplugged mid-stream."""
+
+    def _source_elements(self) -> list[Any]:
+        elements = super()._source_elements()
+        elements[0].set_property("num-buffers", 20)
+        return elements
+
+
+async def test_camera_lost_mid_stream_fails_and_comes_back(receiver: VideoIn) -> None:
+    stream = VanishingCamera(
+        "navcam", VideoSettings(test_source=True, port=receiver.port), retry_initial=0.1
+    )
+    reasons: list[str] = []
+    stream.on_change = lambda s: reasons.append(s.reason) if s.state is StreamState.FAILED else None
+    async with asyncio.TaskGroup() as group:
+        supervisor = group.create_task(stream.supervise())
+        try:
+            assert await stream.start() is StreamState.PLAYING
+            await wait_until(lambda: stream.retries >= 1, timeout=8)
+            assert reasons and "end of stream" in reasons[0]
+            frames = receiver.frames
+            await wait_until(lambda: receiver.frames > frames, timeout=8)  # rebuilt, flowing
+        finally:
+            await stream.stop()
+            supervisor.cancel()

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 from conftest import free_udp_port, quiet_platform_config, wait_until
 
+from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import StationConfig, load_config
 from platformd.app import PlatformDaemon
 from stationd import cli
@@ -196,3 +197,35 @@ async def test_sdp_file_plays_in_a_stock_sdp_receiver(
         await asyncio.wait_for(read_until(process, DECODED_FRAME), 10)
     finally:
         await stop_process(process)
+
+
+async def test_station_hears_the_platform_and_talks_back(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes
+) -> None:
+    platform = await sim_platform(
+        platform_factory, fleet_key, "audio.enabled=true", f"audio.in_port={free_udp_port()}"
+    )
+    api = station.ctx.api
+    await api.call_local("connect", platform_id="rover-v", url=platform.ctx.signaling_url)
+    heard = await api.call_local("receive", platform_id="rover-v", stream="audio_out")
+    assert heard["state"] == "playing" and heard["codec"] == "OPUS"
+
+    async def peak(name: str) -> int:
+        for entry in await api.call_local("receivers"):
+            if entry["stream"] == name:
+                return int(entry.get("peak", 0))
+        return 0
+
+    async def until_loud(name: str) -> None:
+        while await peak(name) < 1000:
+            await asyncio.sleep(0.05)
+
+    await asyncio.wait_for(until_loud("audio_out"), 8)
+    talking = await api.call_local("talk", platform_id="rover-v", test_tone=True)
+    assert talking["state"] == "playing"
+    platform_speaker = platform.ctx.capabilities["streams"].__self__.streams["audio_in"]
+    await wait_until(lambda: platform_speaker.hears_sound, timeout=8)
+    assert (await api.call_local("talk", platform_id="rover-v", on=False))["state"] == "idle"
+    await wait_until(lambda: platform_speaker.state.value == "idle")
+    with pytest.raises(RpcError, match="no stream named 'audio_in' to receive"):
+        await api.call_local("receive", platform_id="rover-v", stream="audio_in")
