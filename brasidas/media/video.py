@@ -340,7 +340,12 @@ class VideoIn(PipelineStream):
         sink = make(self.sink_factory, "sink")
         if sink.find_property("sync") is not None:
             sink.set_property("sync", False)
-        chain += [make("rtph264depay"), decoder, make("videoconvert"), sink]
+        depay = make("rtph264depay")
+        # After packet loss, freeze until the next keyframe instead of smearing (GOP ≤ 1 s).
+        depay.set_property("wait-for-keyframe", True)
+        if decoder.find_property("output-corrupt") is not None:
+            decoder.set_property("output-corrupt", False)
+        chain += [depay, decoder, make("videoconvert"), sink]
         for element in chain:
             pipeline.add(element)
         link_all(*chain)
