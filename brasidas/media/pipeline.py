@@ -89,6 +89,8 @@ class PipelineStream:
             "state": self.state.value,
             "reason": self.reason,
             "destination": self.destination() if self.state is not StreamState.IDLE else "",
+            "failures": self.failures,
+            "retries": self.retries,
         }
 
     def on_built(self, pipeline: Any) -> None:
