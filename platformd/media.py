@@ -38,9 +38,10 @@ from brasidas.codecs.commands import (
 )
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
 from brasidas.media.audio import AudioIn, AudioOut, AudioSettings
+from brasidas.media.navcam import FrameratePolicy, navcam_settings, parse_framerate
 from brasidas.media.pipeline import PipelineStream, StreamState
 from brasidas.media.relay import ForwardSettings, RtspForward
-from brasidas.media.video import VideoOut, VideoSettings
+from brasidas.media.video import VideoOut
 from brasidas.messages import (
     CommandResult,
     OverrideState,
@@ -70,26 +71,14 @@ class MediaService(Actor):
         """Session that started each stream (None: started locally)."""
         self.navcam: VideoOut | None = None
         navcam = ctx.config.navcam
-        self.framerates = {"engaged": navcam.framerate, "idle": navcam.idle_framerate}
-        self._engaged = False
+        self.framerate = FrameratePolicy(
+            engaged_fps=navcam.framerate, idle_fps=navcam.idle_framerate, limit=navcam.framerate
+        )
         self._group: asyncio.TaskGroup | None = None
         if navcam.enabled:
             self.navcam = VideoOut(
                 "navcam",
-                VideoSettings(
-                    width=navcam.width,
-                    height=navcam.height,
-                    camera_framerate=navcam.framerate,
-                    framerate=navcam.idle_framerate,
-                    bitrate_kbps=navcam.bitrate_kbps,
-                    device=navcam.device,
-                    source_format=navcam.format,
-                    test_source=ctx.config.sim.enabled,
-                    pattern=navcam.sim_pattern,
-                    motion=navcam.sim_motion,
-                    encoder=navcam.encoder,
-                    port=navcam.port,
-                ),
+                navcam_settings(navcam, sim=ctx.config.sim.enabled),
                 on_change=self._publish,
             )
             self.streams["navcam"] = self.navcam
@@ -158,16 +147,10 @@ class MediaService(Actor):
         )
 
     def _on_override(self, state: OverrideState) -> None:
-        self._engaged = state.engaged
-        self._apply_framerate()
-
-    def _apply_framerate(self) -> None:
-        if self.navcam is not None:
-            fps = self.framerates["engaged" if self._engaged else "idle"]
-            fps = max(1, min(fps, self.navcam.settings.camera_framerate))
-            if fps != self.navcam.settings.framerate:
-                _LOGGER.info("navcam framerate %d fps", fps)
-                self.navcam.set_framerate(fps)
+        fps = self.framerate.set_override(state.engaged)
+        if self.navcam is not None and fps != self.navcam.settings.framerate:
+            _LOGGER.info("navcam framerate %d fps", fps)
+            self.navcam.set_framerate(fps)
 
     def _on_session_closed(self, event: SessionClosed) -> None:
         owned = [name for name, owner in self.owners.items() if owner == event.session_id]
@@ -237,15 +220,7 @@ class MediaService(Actor):
         return CommandResult(True, result=result)
 
     def _host_from_payload(self, payload: str, session_id: str | None) -> str:
-        values = parse_payload(payload)
-        host = values.get("host", "")
-        if not host and len(values) == 1 and next(iter(values.values())) == "":
-            host = next(iter(values))  # the seed's bare "host address" payload
-        if not host:
-            host = self._session_host(session_id)
-        if not host:
-            raise PayloadError("expected the station's address, e.g. host=10.0.0.2")
-        return check_host(host)
+        return host_from_payload(payload, self._session_host(session_id))
 
     def _session_host(self, session_id: str | None) -> str:
         sessions = getattr(self.ctx.sessions, "sessions", {})
@@ -298,14 +273,10 @@ class MediaService(Actor):
             raise ValueError(err.args[0]) from None
         if not isinstance(stream, VideoOut):
             raise ValueError(f"stream '{name}' is not a video stream")
-        try:
-            fps = int(str(raw).strip())
-        except ValueError:
-            raise ValueError(f"framerate must be an integer, not {raw!r}") from None
-        limit = stream.settings.camera_framerate
-        if not 1 <= fps <= limit:
-            raise ValueError(f"framerate must be 1-{limit} fps (camera rate), not {fps}")
-        self.framerates["engaged" if self._engaged else "idle"] = fps
+        if stream is self.navcam:
+            fps = self.framerate.set_current(raw)
+        else:
+            fps = parse_framerate(raw, stream.settings.camera_framerate)
         stream.set_framerate(fps)
         return fps
 
@@ -348,8 +319,20 @@ class MediaService(Actor):
         assert self.navcam is not None
         info = self.navcam.describe()
         info["destination"] = self.navcam.destination() if info["state"] != "idle" else None
-        info["framerates"] = dict(self.framerates)
+        info["framerates"] = dict(self.framerate.rates)
         return info
+
+
+def host_from_payload(payload: str, default: str = "") -> str:
+    """10.1's payload: ``host=ADDR``, or the seed's bare address; empty: ``default``."""
+    values = parse_payload(payload)
+    host = values.get("host", "")
+    if "host" not in values and len(values) == 1 and next(iter(values.values())) == "":
+        host = next(iter(values))  # the seed's bare "host address" payload
+    host = host or default
+    if not host:
+        raise PayloadError("expected the station's address, e.g. host=10.0.0.2")
+    return check_host(host)
 
 
 def check_host(host: str) -> str:
