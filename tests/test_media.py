@@ -11,6 +11,7 @@ from conftest import free_udp_port, quiet_platform_config, wait_until
 
 from brasidas import topics
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, RpcError
+from brasidas.media.gst import gst
 from brasidas.media.pipeline import StreamState
 from brasidas.media.video import VideoIn, VideoOut, VideoSettings
 from brasidas.messages import StreamStatus
@@ -221,3 +222,40 @@ async def test_camera_lost_mid_stream_fails_and_comes_back(receiver: VideoIn) ->
         finally:
             await stream.stop()
             supervisor.cancel()
+
+
+def slices_per_access_unit(data: bytes) -> int:
+    """Coded slice NAL units (types 1 and 5) in one AVC access unit (4-byte lengths)."""
+    count, index = 0, 0
+    while index + 4 < len(data):
+        length = int.from_bytes(data[index : index + 4], "big")
+        if data[index + 4] & 0x1F in (1, 5):
+            count += 1
+        index += 4 + length
+    return count
+
+
+async def test_every_frame_is_one_slice(receiver: VideoIn) -> None:
+    """Chromium decodes multi-slice H.264 wrongly: the web console needs one slice per frame."""
+    Gst = gst()
+    counts: list[int] = []
+
+    def probe(pad: Any, info: Any) -> Any:
+        buffer = info.get_buffer()
+        ok, mapped = buffer.map(Gst.MapFlags.READ)
+        if ok:
+            counts.append(slices_per_access_unit(bytes(mapped.data)))
+            buffer.unmap(mapped)
+        return Gst.PadProbeReturn.OK
+
+    depay = receiver.pipeline.get_by_name("depay")
+    depay.get_static_pad("src").add_probe(Gst.PadProbeType.BUFFER, probe)
+    stream = VideoOut(
+        "navcam", VideoSettings(test_source=True, pattern="smpte", motion=4, port=receiver.port)
+    )
+    try:
+        await stream.start()
+        await wait_until(lambda: len(counts) >= 45, timeout=8)  # 1.5 s: keyframes included
+    finally:
+        await stream.stop()
+    assert set(counts) == {1}, counts

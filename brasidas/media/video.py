@@ -154,9 +154,7 @@ class VideoOut(PipelineStream):
         convert = make("videoconvert")
         encoder = make(encoder_name, "encoder")
         _configure_encoder(encoder, encoder_name, s)
-        h264_filter = make(
-            "capsfilter", caps=caps(f"video/x-h264,profile={_profile(encoder_name)}")
-        )
+        h264_filter = make("capsfilter", caps=caps(_h264_caps(encoder_name)))
         pay = make(
             "rtph264pay", "pay", config_interval=-1, mtu=s.mtu, pt=PAYLOAD_TYPE, aggregate_mode=0
         )
@@ -204,9 +202,14 @@ class VideoOut(PipelineStream):
         raise MediaError(f"unknown camera format '{s.source_format}' (raw or mjpeg)")
 
 
-def _profile(encoder_name: str) -> str:
-    # The OMX encoder only announces "baseline"; its output has no B-frames or FMO either.
-    return "baseline" if encoder_name == "omxh264enc" else "constrained-baseline"
+def _h264_caps(encoder_name: str) -> str:
+    if encoder_name == "omxh264enc":
+        # The OMX encoder only announces "baseline"; its output has no B-frames or FMO either.
+        return "video/x-h264,profile=baseline"
+    if encoder_name == "v4l2h264enc":
+        # The Pi's encoder does not negotiate without a level.
+        return "video/x-h264,profile=constrained-baseline,level=(string)4"
+    return "video/x-h264,profile=constrained-baseline"
 
 
 def _configure_encoder(encoder: Any, name: str, s: VideoSettings) -> None:
@@ -340,7 +343,7 @@ class VideoIn(PipelineStream):
         sink = make(self.sink_factory, "sink")
         if sink.find_property("sync") is not None:
             sink.set_property("sync", False)
-        depay = make("rtph264depay")
+        depay = make("rtph264depay", "depay")
         # After packet loss, freeze until the next keyframe instead of smearing (GOP ≤ 1 s).
         depay.set_property("wait-for-keyframe", True)
         if decoder.find_property("output-corrupt") is not None:
