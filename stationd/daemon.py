@@ -70,9 +70,7 @@ class StationDaemon:
         for name in SUBSYSTEMS:
             await importlib.import_module(name).async_setup(self.ctx)
         local_hosts = frozenset({"127.0.0.1", "localhost", "[::1]", self.config.station.api_host})
-        add_rpc_routes(
-            self.app, self.ctx.api, "/api/rpc", API_MAX_BYTES, local_hosts=local_hosts
-        )
+        add_rpc_routes(self.app, self.ctx.api, "/api/rpc", API_MAX_BYTES, local_hosts=local_hosts)
         if (WEB_ROOT / "index.html").exists():
             self.app.router.add_get("/", _index)
             self.app.router.add_static("/static", WEB_ROOT)
