@@ -126,6 +126,8 @@ def _print_next_steps(args: argparse.Namespace) -> None:
         (f"status {pid}", "parameters, mode, telemetry"),
         (f"status {pid} --watch", "live telemetry with the annunciator"),
         (f"drive {pid}", "keyboard teleop: arrows/WASD, space stops, q quits"),
+        (f"view {pid}", "the NavCam video in a window, with its latency"),
+        (f"view {pid} --sdp navcam.sdp", "an SDP file for ffplay or VLC"),
         (f"movrd {pid} on|off", "manual override (teleop / autonomous)"),
         (f"lights {pid} main on", "main lights (10.6)"),
         (f"cmd {pid} 10 5 navcam=10", "any system command of table 10.1"),
