@@ -99,15 +99,29 @@ class VelocitySection:
 class GpsSection:
     enabled: bool = True
     port: str = "/dev/ttyAMA0"
+    """Serial device of the NMEA receiver (8N1). In --sim, the simulator's pty replaces it."""
     baudrate: int = 9600
+    fix_timeout: float = 3.0
+    """Seconds without a fix (receiver silent or port gone) before the fix is reported lost."""
+    sim_rate_hz: float = 1.0
+    """Epochs per second of the simulated receiver (1-10; the NEO-6M defaults to 1)."""
 
 
 @dataclass
 class ImuSection:
     enabled: bool = True
     i2c_bus: int = 1
+    """I2C bus number (/dev/i2c-N); the Raspberry Pi header is bus 1."""
     address: int = 0x68
+    """0x68 with AD0 low, 0x69 with AD0 high."""
     rate_hz: float = 100.0
+    """Samples read (and fused) per second."""
+    accel_range_g: int = 2
+    """Accelerometer full scale: 2, 4, 8 or 16 g (ACCEL_CONFIG AFS_SEL)."""
+    gyro_range_dps: int = 250
+    """Gyro full scale: 250, 500, 1000 or 2000 deg/s (GYRO_CONFIG FS_SEL)."""
+    madgwick_beta: float = 0.05
+    """Madgwick filter gain: higher trusts the accelerometer more (faster, noisier)."""
 
 
 @dataclass

@@ -231,3 +231,86 @@ class StreamStatus:
             "reason": self.reason,
             "destination": self.destination,
         }
+
+
+# --------------------------------------------------------------------------- sensors (issue 4)
+
+
+@dataclass(frozen=True)
+class GpsFix:
+    """One epoch's fix from the GPS receiver (platformd.gps)."""
+
+    latitude: float
+    longitude: float
+    altitude_m: float | None
+    """Above mean sea level (GGA); None when the epoch had no GGA."""
+    speed_mps: float | None
+    course_deg: float | None
+    """Course over ground, clockwise from true north."""
+    quality: int
+    """GGA fix quality: 1 GPS, 2 DGPS, 4/5 RTK, 6 dead reckoning."""
+    satellites: int | None
+    hdop: float | None
+    time: str
+    """UTC, ISO 8601 ("2017-01-10T00:09:41.000Z"; time of day only until a date is known)."""
+
+
+@dataclass(frozen=True)
+class GpsFixLost:
+    """The fix went away: the receiver reports none, fell silent, or its port vanished."""
+
+    reason: str
+    last_fix_time: str | None = None
+
+
+@dataclass(frozen=True)
+class GpsStats:
+    """The GPS reader's counters (at most once a second, when they changed)."""
+
+    connected: bool
+    port: str
+    sentences: int
+    by_type: dict[str, int]
+    dropped: dict[str, int]
+    """By :class:`brasidas.codecs.nmea.DropReason` value: checksum, malformed, unknown, noise."""
+    fixes: int
+    incomplete_epochs: int
+    error: str = ""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "connected": self.connected,
+            "port": self.port,
+            "sentences": self.sentences,
+            "by_type": dict(self.by_type),
+            "dropped": dict(self.dropped),
+            "fixes": self.fixes,
+            "incomplete_epochs": self.incomplete_epochs,
+            "error": self.error,
+        }
+
+
+@dataclass(frozen=True)
+class Attitude:
+    """Orientation from the IMU's Madgwick filter (platformd.imu): body to world (ENU)."""
+
+    w: float
+    x: float
+    y: float
+    z: float
+    roll_deg: float
+    pitch_deg: float
+    yaw_deg: float
+    """Counter-clockwise about z-up from the start orientation (no magnetometer: it drifts)."""
+
+
+@dataclass(frozen=True)
+class ImuStatus:
+    """The IMU driver's health, about once a second."""
+
+    ok: bool
+    error: str = ""
+    """Why it is not reading: no device on the bus, wrong WHO_AM_I, read errors."""
+    temperature_c: float | None = None
+    samples: int = 0
+    read_errors: int = 0

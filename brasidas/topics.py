@@ -6,6 +6,11 @@ from typing import Any
 
 from brasidas.bus import Topic
 from brasidas.messages import (
+    Attitude,
+    GpsFix,
+    GpsFixLost,
+    GpsStats,
+    ImuStatus,
     LightsState,
     MotionState,
     OverrideState,
@@ -63,3 +68,15 @@ STATION_NOTIFICATIONS: Topic[StationNotification] = Topic("station_notifications
 # --------------------------------------------------------------------------- media (issue 5)
 STREAM_STATES: Topic[StreamStatus] = Topic("stream_states")
 """A media stream's state changed (idle, playing, paused, failed with its reason)."""
+
+# --------------------------------------------------------------------------- sensors (issue 4)
+GPS_FIX: Topic[GpsFix] = Topic("gps_fix", retain=True)
+"""One fix per receiver epoch (platformd.gps)."""
+GPS_FIX_LOST: Topic[GpsFixLost] = Topic("gps_fix_lost")
+"""The fix went away (receiver says none, silent, or port gone); GPS_FIX resumes it."""
+GPS_STATS: Topic[GpsStats] = Topic("gps_stats", retain=True)
+"""Sentence counters by type and drops by reason, at most once a second."""
+ATTITUDE: Topic[Attitude] = Topic("attitude", retain=True)
+"""IMU orientation (Madgwick), at most about 10 Hz (platformd.imu)."""
+IMU_STATUS: Topic[ImuStatus] = Topic("imu_status", retain=True)
+"""IMU health, temperature and counters, about once a second."""

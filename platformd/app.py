@@ -23,6 +23,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "platformd.mode",
     "platformd.velocity",
     "platformd.arbiter",
+    "platformd.gps",
     "platformd.media",
     "platformd.telemetry",
     "platformd.signaling",

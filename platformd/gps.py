@@ -1,0 +1,208 @@
+"""GPS: NMEA-0183 from the serial receiver (u-blox NEO-6M, 9600 8N1) to fixes on the bus.
+
+The reader opens ``gps.port`` with pyserial-asyncio and hands every byte to the sans-IO
+:mod:`brasidas.codecs.nmea` decoder and epoch assembler. It publishes ``GPS_FIX`` once per
+epoch with a fix (and the retained ``POSITION`` the beacon carries), ``GPS_FIX_LOST`` when the
+receiver says it has none, falls silent for ``gps.fix_timeout`` or its port goes away, and
+``GPS_STATS`` (sentences by type, drops by reason) at most once a second. A port that is
+missing or vanishes is reported and reopened with capped backoff.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+import serial
+import serial_asyncio
+
+from brasidas import topics
+from brasidas.actor import Actor
+from brasidas.bus import Bus
+from brasidas.codecs.nmea import EpochAssembler, NmeaDecoder
+from brasidas.config import GpsSection
+from brasidas.messages import GpsFix, GpsFixLost, GpsStats, Position
+from platformd.context import PlatformContext
+
+_LOGGER = logging.getLogger(__name__)
+
+BACKOFF_INITIAL = 0.2
+BACKOFF_MAX = 5.0
+STATS_INTERVAL = 1.0
+READ_SIZE = 4096
+
+
+class GpsReader(Actor):
+    """Reads the receiver, publishes fixes, fix-lost events and counters."""
+
+    name = "gps"
+
+    def __init__(
+        self, bus: Bus, config: GpsSection, *, clock: Callable[[], float] = time.monotonic
+    ) -> None:
+        super().__init__(bus)
+        self.config = config
+        self._clock = clock
+        self.decoder = NmeaDecoder()
+        self.assembler = EpochAssembler()
+        self.fixes = 0
+        self.connected = False
+        self.error = ""
+        self.last_fix: GpsFix | None = None
+        self._has_fix = False
+        self._last_fix_at = 0.0
+        self._stats: GpsStats | None = None
+
+    async def run(self) -> None:
+        async with asyncio.TaskGroup() as group:
+            group.create_task(self._stats_loop(), name="gps:stats")
+            await self._connect_loop()
+
+    # ------------------------------------------------------------------ serial line
+
+    async def _connect_loop(self) -> None:
+        backoff = BACKOFF_INITIAL
+        failures = 0
+        while True:
+            port = self.config.port
+            try:
+                reader, writer = await serial_asyncio.open_serial_connection(
+                    url=port,
+                    baudrate=self.config.baudrate,
+                    bytesize=serial.EIGHTBITS,
+                    parity=serial.PARITY_NONE,
+                    stopbits=serial.STOPBITS_ONE,
+                )
+            except (OSError, ValueError) as err:  # SerialException is an OSError
+                failures += 1
+                self._port_down(f"cannot open {port}: {err}", log=failures == 1)
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2, BACKOFF_MAX)
+                continue
+            _LOGGER.info("GPS reading %s at %d baud", port, self.config.baudrate)
+            self.connected = True
+            self.error = ""
+            self.decoder.reset()
+            self._publish_stats()
+            try:
+                await self._read(reader)
+                reason = f"{port} closed"
+            except OSError as err:
+                reason = f"{port} lost: {err}"
+            finally:
+                writer.close()
+            failures = 1  # a port that just went away: report once, then retry quietly
+            self._port_down(reason, log=True)
+            backoff = BACKOFF_INITIAL
+            await asyncio.sleep(backoff)
+
+    async def _read(self, reader: asyncio.StreamReader) -> None:
+        """Until EOF (returns) or a read error (raises OSError)."""
+        while True:
+            deadline = self._next_deadline()
+            delay = None if deadline is None else max(0.0, deadline - self._clock())
+            try:
+                async with asyncio.timeout(delay):
+                    data = await reader.read(READ_SIZE)
+            except TimeoutError:
+                self._on_timer()
+                continue
+            if not data:
+                return
+            self.feed(data)
+
+    def _next_deadline(self) -> float | None:
+        deadlines = [
+            d
+            for d in (
+                self.assembler.deadline(),
+                self._last_fix_at + self.config.fix_timeout if self._has_fix else None,
+            )
+            if d is not None
+        ]
+        return min(deadlines) if deadlines else None
+
+    # ------------------------------------------------------------------ decoding (on the loop)
+
+    def feed(self, data: bytes) -> None:
+        """Bytes from the receiver; publishes what completes. Runs on the event loop."""
+        now = self._clock()
+        for sentence in self.decoder.feed(data):
+            for fix in self.assembler.feed(sentence, now):
+                self._on_epoch(fix, now)
+
+    def _on_timer(self) -> None:
+        now = self._clock()
+        for fix in self.assembler.poll(now):
+            self._on_epoch(fix, now)
+        if self._has_fix and now - self._last_fix_at >= self.config.fix_timeout:
+            self._lose(f"no fix for {self.config.fix_timeout:g} s")
+
+    def _on_epoch(self, fix: GpsFix | None, now: float) -> None:
+        if fix is None:
+            if self._has_fix:
+                self._lose("receiver reports no fix")
+            return
+        self.fixes += 1
+        self.last_fix = fix
+        self._has_fix = True
+        self._last_fix_at = now
+        self.bus.publish(topics.GPS_FIX, fix)
+        self.bus.publish(topics.POSITION, Position(fix.latitude, fix.longitude))
+
+    def _lose(self, reason: str) -> None:
+        self._has_fix = False
+        _LOGGER.info("GPS fix lost: %s", reason)
+        last = self.last_fix.time if self.last_fix is not None else None
+        self.bus.publish(topics.GPS_FIX_LOST, GpsFixLost(reason, last))
+
+    def _port_down(self, reason: str, *, log: bool) -> None:
+        self.connected = False
+        self.error = reason
+        if log:
+            _LOGGER.warning("GPS: %s; retrying", reason)
+        else:
+            _LOGGER.debug("GPS: %s; retrying", reason)
+        if self._has_fix:
+            self._lose(reason)
+        self._publish_stats()
+
+    # ------------------------------------------------------------------ counters
+
+    def stats(self) -> GpsStats:
+        return GpsStats(
+            connected=self.connected,
+            port=self.config.port,
+            sentences=self.decoder.sentences,
+            by_type=dict(self.decoder.by_type),
+            dropped=dict(self.decoder.dropped),
+            fixes=self.fixes,
+            incomplete_epochs=self.assembler.incomplete,
+            error=self.error,
+        )
+
+    def _publish_stats(self) -> None:
+        stats = self.stats()
+        if stats != self._stats:
+            self._stats = stats
+            self.bus.publish(topics.GPS_STATS, stats)
+
+    async def _stats_loop(self) -> None:
+        while True:
+            await asyncio.sleep(STATS_INTERVAL)
+            self._publish_stats()
+
+
+def capabilities(config: GpsSection) -> dict[str, Any]:
+    return {"port": config.port, "baudrate": config.baudrate}
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    if not ctx.config.gps.enabled:
+        return
+    reader = GpsReader(ctx.bus, ctx.config.gps)
+    ctx.capabilities["gps"] = lambda: capabilities(ctx.config.gps)
+    ctx.supervisor.start(reader)

@@ -1,0 +1,227 @@
+"""GPS: real receiver logs through a pty against gpsd's reference fixes; bad input; lost ports."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import tty
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+
+from brasidas import topics
+from brasidas.bus import Bus
+from brasidas.codecs.nmea import EpochAssembler, NmeaDecoder, sentence
+from brasidas.config import GpsSection
+from brasidas.messages import GpsFix, GpsFixLost, GpsStats, Position
+from platformd.gps import GpsReader
+from tests.conftest import wait_until
+
+NMEA = Path("/work/shared/testdata/nmea")
+LOGS = ["ublox-lea-5h", "ublox-8", "haicom-305N"]
+
+
+class Pty:
+    """A pseudo-terminal: the test writes the receiver's side (master), the reader opens ``path``."""
+
+    def __init__(self) -> None:
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)
+        self.path = os.ttyname(self.slave)
+        os.set_blocking(self.master, False)
+
+    async def write(self, data: bytes) -> None:
+        """Write everything, waiting (without blocking the loop) while the pty buffer is full."""
+        loop = asyncio.get_running_loop()
+        view = memoryview(data)
+        while view:
+            try:
+                written = os.write(self.master, view)
+            except BlockingIOError:
+                ready = loop.create_future()
+                loop.add_writer(self.master, ready.set_result, None)
+                try:
+                    await ready
+                finally:
+                    loop.remove_writer(self.master)
+                continue
+            view = view[written:]
+
+    def close(self) -> None:
+        for fd in (self.master, self.slave):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
+def receiver_lines(name: str) -> list[bytes]:
+    """What the receiver sent: every line of the log except ``#`` comments, bytes untouched."""
+    raw = (NMEA / f"{name}.log").read_bytes()
+    return [line for line in raw.splitlines(keepends=True) if not line.startswith(b"#")]
+
+
+def reference_fixes(name: str) -> list[tuple[str, float, float]]:
+    """gpsd's TPV reports with a position, one per epoch (time of day, lat, lon)."""
+    fixes: dict[str, tuple[float, float]] = {}
+    for line in (NMEA / f"{name}.log.chk").read_text().splitlines():
+        if not line.startswith("{"):
+            continue
+        report = json.loads(line)
+        if report.get("class") == "TPV" and "lat" in report:
+            fixes.setdefault(report["time"][11:23], (report["lat"], report["lon"]))
+    return [(when, lat, lon) for when, (lat, lon) in fixes.items()]
+
+
+class Recorder:
+    def __init__(self, bus: Bus) -> None:
+        self.fixes: list[GpsFix] = []
+        self.lost: list[GpsFixLost] = []
+        self.stats: list[GpsStats] = []
+        self.positions: list[Position] = []
+        bus.subscribe(topics.GPS_FIX, self.fixes.append)
+        bus.subscribe(topics.GPS_FIX_LOST, self.lost.append)
+        bus.subscribe(topics.GPS_STATS, self.stats.append)
+        bus.subscribe(topics.POSITION, self.positions.append)
+
+
+@contextlib.asynccontextmanager
+async def running(reader: GpsReader) -> AsyncIterator[GpsReader]:
+    task = asyncio.create_task(reader.run(), name="test:gps")
+    try:
+        yield reader
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+
+@pytest.fixture
+async def pty() -> AsyncIterator[Pty]:
+    device = Pty()
+    yield device
+    device.close()
+
+
+@pytest.mark.parametrize("name", LOGS)
+async def test_real_log_through_pty_matches_reference(name: str, pty: Pty) -> None:
+    bus = Bus()
+    seen = Recorder(bus)
+    reader = GpsReader(bus, GpsSection(port=pty.path))
+    expected = reference_fixes(name)
+    async with running(reader):
+        await wait_until(lambda: reader.connected)
+        for line in receiver_lines(name):
+            await pty.write(line)
+            await asyncio.sleep(0)
+        # The last epoch has no cycle ender in the log: it is published once the line is quiet.
+        await wait_until(lambda: len(seen.fixes) >= len(expected) and not reader.assembler.pending)
+        await asyncio.sleep(0.1)
+    assert len(seen.fixes) == len(expected)
+    for fix, (when, lat, lon) in zip(seen.fixes, expected, strict=True):
+        assert fix.time[-13:-1] == when
+        assert fix.latitude == pytest.approx(lat, abs=1e-6)
+        assert fix.longitude == pytest.approx(lon, abs=1e-6)
+    assert seen.positions[-1] == Position(seen.fixes[-1].latitude, seen.fixes[-1].longitude)
+
+
+async def test_fix_fields_from_one_epoch() -> None:
+    decoder, assembler = NmeaDecoder(), EpochAssembler()
+    out = []
+    lines = receiver_lines("ublox-8")[:40]
+    for line in lines:
+        for parsed in decoder.feed(line):
+            out += assembler.feed(parsed, 0.0)
+    first = out[0]
+    assert first is not None
+    assert first.time == "2017-01-10T00:09:41.000Z"
+    assert first.altitude_m == pytest.approx(1144.8)
+    assert first.satellites == 12
+    assert first.hdop == pytest.approx(1.01)
+    assert first.quality == 1
+    assert first.speed_mps == pytest.approx(0.029 * 1852 / 3600)
+    assert decoder.dropped["noise"] == 1  # the UBX binary in front of the first $GNRMC
+    assert decoder.by_type["GSV"] == sum(b"GSV," in line for line in lines)
+    assert decoder.by_type["ZDA"] == sum(b"ZDA," in line for line in lines)
+
+
+async def test_garbage_dropped_and_counted(pty: Pty) -> None:
+    bus = Bus()
+    seen = Recorder(bus)
+    reader = GpsReader(bus, GpsSection(port=pty.path))
+    rmc = "GPRMC,120000.00,A,3756.49000,N,02339.18000,E,0.10,45.0,231126,,,A"
+    gga = "GPGGA,120000.00,3756.49000,N,02339.18000,E,1,09,0.95,42.0,M,34.0,M,,"
+    bad_checksum = sentence(rmc).replace(b"*", b"0*")  # body changed, old checksum
+    async with running(reader):
+        await wait_until(lambda: reader.connected)
+        await pty.write(os.urandom(64).replace(b"\n", b"").replace(b"$", b"") + b"\r\n")
+        await pty.write(bad_checksum)
+        await pty.write(b"$GPGGA,120000.00,3756.49\r\n")  # truncated
+        await pty.write(sentence("GPXYZ,1,2,3"))  # well formed, unknown type
+        await pty.write(b"\x00\xff\xb5b" + sentence(rmc))  # noise glued in front of a sentence
+        await pty.write(sentence(gga))
+        await wait_until(lambda: len(seen.fixes) == 1)
+        await wait_until(lambda: bool(seen.stats) and seen.stats[-1].sentences == 2, 3.0)
+    dropped = seen.stats[-1].dropped
+    assert dropped == {"checksum": 1, "malformed": 1, "unknown": 1, "noise": 2}
+    assert seen.stats[-1].by_type == {"RMC": 1, "GGA": 1}
+    fix = seen.fixes[0]
+    assert fix.latitude == pytest.approx(37.9415)
+    assert fix.longitude == pytest.approx(23.653)
+    assert fix.satellites == 9 and fix.course_deg == pytest.approx(45.0)
+
+
+async def test_no_fix_sentences_report_fix_lost(pty: Pty) -> None:
+    bus = Bus()
+    seen = Recorder(bus)
+    reader = GpsReader(bus, GpsSection(port=pty.path))
+    fix_epoch = [
+        sentence(f"GPRMC,1200{s:02d}.00,A,3756.49000,N,02339.18000,E,0.1,,231126,,,A")
+        + sentence(f"GPGGA,1200{s:02d}.00,3756.49000,N,02339.18000,E,1,08,1.0,42.0,M,34.0,M,,")
+        for s in range(3)
+    ]
+    async with running(reader):
+        await wait_until(lambda: reader.connected)
+        for epoch in fix_epoch:
+            await pty.write(epoch)
+        await wait_until(lambda: len(seen.fixes) == 3)
+        # The NEO-6M without a fix (hardware.md).
+        for _ in range(2):
+            await pty.write(b"$GPRMC,,V,,,,,,,,,,N*53\r\n$GPGGA,,,,,,0,00,99.99,,,,,,*48\r\n")
+        await wait_until(lambda: len(seen.lost) == 1)
+    assert seen.lost[0].reason == "receiver reports no fix"
+    assert seen.lost[0].last_fix_time == seen.fixes[-1].time
+
+
+def epoch(second: int) -> bytes:
+    return sentence(
+        f"GPRMC,1200{second:02d}.00,A,3756.49000,N,02339.18000,E,0.1,,231126,,,A"
+    ) + sentence(f"GPGGA,1200{second:02d}.00,3756.49000,N,02339.18000,E,1,08,1.0,42.0,M,34.0,M,,")
+
+
+async def test_vanished_port_is_retried_and_a_new_one_works() -> None:
+    bus = Bus()
+    seen = Recorder(bus)
+    first, second = Pty(), Pty()
+    config = GpsSection(port=first.path, fix_timeout=30.0)
+    reader = GpsReader(bus, config)
+    try:
+        async with running(reader):
+            await wait_until(lambda: reader.connected)
+            await first.write(epoch(0))
+            await wait_until(lambda: len(seen.fixes) == 1)
+            first.close()  # the USB adapter is pulled
+            await wait_until(lambda: not reader.connected)
+            await wait_until(lambda: len(seen.lost) == 1)
+            assert first.path in seen.lost[0].reason
+            await wait_until(lambda: bool(seen.stats) and not seen.stats[-1].connected)
+            assert seen.stats[-1].error
+            await asyncio.sleep(0.5)  # a few failed reopen attempts, no crash
+            config.port = second.path
+            await wait_until(lambda: reader.connected)
+            await second.write(epoch(1))
+            await wait_until(lambda: len(seen.fixes) == 2)
+    finally:
+        first.close()
+        second.close()
