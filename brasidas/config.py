@@ -80,6 +80,35 @@ class MotorSection:
     bytesize: int = 7
     parity: str = "E"
     stopbits: int = 1
+    linear_scale: float = 1.0
+    """Fraction of full power (7F) that linear x = 1 commands on channel 1 (a gentler robot)."""
+    angular_scale: float = 1.0
+    """Fraction of full power that angular z = 1 commands on channel 2."""
+    linear_limit: float = 1.0
+    """Hard cap on channel 1 after scaling, as a fraction of full power."""
+    angular_limit: float = 1.0
+    """Hard cap on channel 2 after scaling, as a fraction of full power."""
+    invert_linear: bool = False
+    """Channel 1 forward drives this chassis backwards (wiring)."""
+    invert_angular: bool = False
+    """False: a left turn (positive angular z) is !B; true when !b turns left (wiring)."""
+    refresh_hz: float = 10.0
+    """Resend the commanded velocity this often even when unchanged (the watchdog needs >= 2)."""
+    poll_hz: float = 1.0
+    """Status polls (?e battery, ?m heatsinks, ?a amps) per second; 0: never."""
+    reply_timeout: float = 0.3
+    """Seconds to wait for a command's echo and answer."""
+    max_unanswered: int = 3
+    """Consecutive unanswered commands after which the controller counts as gone (reconnect)."""
+    configure_mode: bool = True
+    """When the controller is not in RS-232-with-watchdog, mixed open-loop mode, write those
+    settings and reset it; false: refuse to drive."""
+    reconnect_max: float = 5.0
+    """Longest wait between attempts to reopen a missing or silent controller (backoff cap)."""
+    main_lights_output: str = "C"
+    """Main lights (10.6): a controller output letter, or "gpio:PATH" (a GPIO value file)."""
+    positional_lights_output: str = ""
+    """Positional lights (10.7), as main_lights_output. Empty: not fitted, 10.7 is refused."""
 
 
 @dataclass

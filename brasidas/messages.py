@@ -161,6 +161,22 @@ class MotionState:
         }
 
 
+@dataclass(frozen=True)
+class ControllerStatus:
+    """The motor controller driver's view of the AX3500 (platformd.motor): on every change
+    of connection and after every status poll."""
+
+    connected: bool
+    battery_volts: float | None = None
+    battery_monitor: bool = True
+    """Command 20.4: the coarse battery level is reported (telemetry and beacon)."""
+    heatsink_c: tuple[float, float] | None = None
+    motor_amps: tuple[float, float] | None = None
+    internal_volts: float | None = None
+    error: str = ""
+    """Why it is not driving (port missing, controller silent, wrong mode), else empty."""
+
+
 # --------------------------------------------------------------------------- telemetry (issue 4)
 
 

@@ -7,6 +7,7 @@ from typing import Any
 from brasidas.bus import Topic
 from brasidas.messages import (
     Attitude,
+    ControllerStatus,
     GpsFix,
     GpsFixLost,
     GpsStats,
@@ -58,6 +59,8 @@ VELOCITY_LINK_STATS: Topic[VelocityLinkStats] = Topic("velocity_link_stats", ret
 """The velocity receiver's accepted/dropped counters, published when they change (≤ 1 Hz)."""
 MOTION_STATE: Topic[MotionState] = Topic("motion_state", retain=True)
 """The motion arbiter's mode, deadman and last motor command (platformd.arbiter)."""
+CONTROLLER_STATUS: Topic[ControllerStatus] = Topic("controller_status", retain=True)
+"""The motor controller: connected, battery, heatsinks, currents (platformd.motor)."""
 
 # --------------------------------------------------------------------------- telemetry (issue 4)
 PLATFORM_HEALTH: Topic[PlatformHealth] = Topic("platform_health", retain=True)

@@ -1,0 +1,724 @@
+"""The motor controller driver: a Roboteq AX3500 on a serial line (the seed's "vmci").
+
+Layers: :mod:`brasidas.codecs.ax3500` (sans-IO) → :class:`SerialLink`, one open serial
+connection with one command in flight (pyserial-asyncio; its callbacks only feed the codec) →
+:class:`MotorController`, the actor that reopens the link with capped backoff and decides
+what to send next.
+
+What it sends, in priority order:
+
+1. the velocity, when ``MOTOR_COMMAND`` (the motion arbiter) changed it. **Latest wins**: the
+   newest command replaces any not yet sent, so the line never holds a backlog;
+2. accessory outputs (lights, 10.6/10.7);
+3. a refresh of both channels when nothing was sent for ``1 / refresh_hz`` (the controller's
+   watchdog stops the motors after 1 s of silence). A command that repeats the current one
+   and arrives after most of that period triggers the refresh at once, so in teleop the
+   refreshes go out right behind a stream packet rather than at a random moment;
+4. status polls (``?e ?m ?a``), only right behind a velocity exchange: in teleop the line is
+   then free again before the next packet arrives.
+
+A ``-`` answer is resent once, then reported. ``max_unanswered`` silent commands in a row, an
+I/O error or a vanished port close the link; the actor reports it on ``CONTROLLER_STATUS``,
+retries with backoff and, when the controller is back, starts from zero: a velocity that
+arrived before or during the outage is never replayed. On shutdown (it stops first) it
+commands zero before the line closes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+from collections import deque
+from dataclasses import dataclass
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+import serial
+import serial_asyncio
+
+from brasidas import topics
+from brasidas.actor import Actor
+from brasidas.codecs import ax3500
+from brasidas.codecs.ax3500 import Command, Exchange, LineParser, MotionMapping, Reply, Status
+from brasidas.codecs.commands import (
+    BATTERY_MONITOR,
+    MAIN_LIGHTS,
+    POSITIONAL_LIGHTS,
+    PayloadError,
+    parse_switch,
+)
+from brasidas.config import MotorSection
+from brasidas.messages import (
+    CommandResult,
+    ControllerStatus,
+    LightsState,
+    SystemCommand,
+    Velocity,
+)
+from platformd.context import PlatformContext
+
+_LOGGER = logging.getLogger(__name__)
+
+BANNER_TIMEOUT = 3.0
+"""How long to wait for ``OK`` after ten carriage returns or a reset (the device takes 1-2 s)."""
+RECONNECT_INITIAL = 0.2
+LIGHTS = ("main", "positional")
+
+
+class LinkError(Exception):
+    """The link is unusable: port gone, I/O error, controller silent or in the wrong mode."""
+
+
+class ReplyTimeout(Exception):
+    """One command got no complete answer in time."""
+
+
+class LinkState(Enum):
+    OPEN = "open"
+    CLOSED = "closed"
+
+
+class SerialLink(asyncio.Protocol):
+    """One open serial connection to the controller; single use, one command in flight."""
+
+    def __init__(self, reply_timeout: float) -> None:
+        self.reply_timeout = reply_timeout
+        self.state = LinkState.OPEN
+        self.parser = LineParser()
+        self.banner = asyncio.Event()
+        """Set when an ``OK`` line arrives outside an answer (power-up, reset, RS-232 switch)."""
+        self.closed_reason = ""
+        self.stray_lines = 0
+        self.banners = 0
+        self._transport: asyncio.BaseTransport | None = None
+        self._exchange: Exchange | None = None
+        self._reply: asyncio.Future[Reply] | None = None
+
+    @classmethod
+    async def open(cls, config: MotorSection) -> SerialLink:
+        """Open the configured port (a pty refusing 7E1 is opened 8N1); raises LinkError."""
+        loop = asyncio.get_running_loop()
+        link = cls(config.reply_timeout)
+        framing = (config.bytesize, config.parity, config.stopbits)
+        try:
+            await _create(loop, link, config.port, config.baudrate, framing)
+        except (serial.SerialException, OSError, ValueError) as err:
+            # The kernel's ptys refuse 7 bits and parity (hardware.md); same bytes in 8N1.
+            if not _is_pty(config.port) or framing == (8, "N", 1):
+                raise LinkError(f"cannot open {config.port}: {err}") from None
+            try:
+                await _create(loop, link, config.port, config.baudrate, (8, "N", 1))
+            except (serial.SerialException, OSError, ValueError) as second:
+                raise LinkError(f"cannot open {config.port}: {second}") from None
+            _LOGGER.info("%s is a pty: opened 8N1 instead of %s%s%s", config.port, *framing)
+        return link
+
+    # ------------------------------------------------------------------ protocol callbacks
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._transport = transport
+
+    def data_received(self, data: bytes) -> None:
+        for line in self.parser.feed(data):
+            self._on_line(line)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._closed(f"port lost: {exc}" if exc else "port closed")
+
+    def _on_line(self, line: str) -> None:
+        exchange = self._exchange
+        if exchange is not None:
+            strays = len(exchange.stray)
+            reply = exchange.feed_line(line)
+            if len(exchange.stray) == strays:  # the line was the exchange's
+                if reply is not None and self._reply is not None and not self._reply.done():
+                    self._reply.set_result(reply)
+                return
+        self.stray_lines += 1
+        if line == ax3500.BANNER_OK:
+            self.banners += 1
+            self.banner.set()
+
+    # ------------------------------------------------------------------ requests
+
+    async def request(self, command: Command) -> Reply:
+        """Send ``command`` and wait for its answer; raises ReplyTimeout or LinkError."""
+        if self.state is LinkState.CLOSED or self._transport is None:
+            raise LinkError(self.closed_reason or "link closed")
+        if self._exchange is not None:
+            raise RuntimeError("one command in flight at a time")
+        self._exchange = Exchange(command)
+        reply = self._reply = asyncio.get_running_loop().create_future()
+        try:
+            self._transport.write(command.encode())  # type: ignore[attr-defined]
+            async with asyncio.timeout(self.reply_timeout):
+                return await reply
+        except TimeoutError:
+            raise ReplyTimeout(command.text) from None
+        finally:
+            self._exchange = None
+            self._reply = None
+
+    def write_raw(self, data: bytes) -> None:
+        """Bytes that expect no answer (the ten carriage returns)."""
+        if self._transport is None or self.state is LinkState.CLOSED:
+            raise LinkError(self.closed_reason or "link closed")
+        self._transport.write(data)  # type: ignore[attr-defined]
+
+    async def wait_banner(self, timeout: float) -> bool:
+        """Wait for an ``OK`` line (clear :attr:`banner` before provoking it)."""
+        try:
+            async with asyncio.timeout(timeout):
+                await self.banner.wait()
+        except TimeoutError:
+            return False
+        return True
+
+    def close(self) -> None:
+        """Close the port, failing a pending request. Idempotent."""
+        self._closed("closed by the driver")
+
+    def _closed(self, reason: str) -> None:
+        if self.state is LinkState.CLOSED:
+            return
+        self.state = LinkState.CLOSED
+        self.closed_reason = reason
+        if self._reply is not None and not self._reply.done():
+            self._reply.set_exception(LinkError(reason))
+        if self._transport is not None:
+            self._transport.close()
+
+
+async def _create(
+    loop: asyncio.AbstractEventLoop,
+    link: SerialLink,
+    port: str,
+    baudrate: int,
+    framing: tuple[int, str, int],
+) -> None:
+    bytesize, parity, stopbits = framing
+    transport, _ = await serial_asyncio.create_serial_connection(
+        loop,
+        lambda: link,
+        port,
+        baudrate=baudrate,
+        bytesize=bytesize,
+        parity=parity,
+        stopbits=stopbits,
+    )
+    link._transport = transport  # connection_made comes a loop turn later: usable at once
+
+
+def _is_pty(port: str) -> bool:
+    return os.path.realpath(port).startswith("/dev/pts/")
+
+
+# --------------------------------------------------------------------------- the actor
+
+
+@dataclass
+class _OutputRequest:
+    which: str
+    on: bool
+    reply: asyncio.Future[CommandResult]
+
+
+class MotorController(Actor):
+    """Owns the controller: velocity out (latest wins), lights, status polls, reconnection."""
+
+    name = "motor"
+    stop_priority = 100
+    """Stops before everything else: it commands zero while the line is still open."""
+
+    def __init__(self, ctx: PlatformContext) -> None:
+        super().__init__(ctx.bus)
+        self.ctx = ctx
+        self.config = config = ctx.config.motor
+        self.mapping = MotionMapping(
+            linear_scale=config.linear_scale,
+            angular_scale=config.angular_scale,
+            linear_limit=config.linear_limit,
+            angular_limit=config.angular_limit,
+            invert_linear=config.invert_linear,
+            invert_angular=config.invert_angular,
+        )
+        self.refresh_period = 1.0 / max(2.0, config.refresh_hz)
+        self.poll_period = 1.0 / config.poll_hz if config.poll_hz > 0 else None
+        self.desired = (0, 0)
+        """Channel levels to command (the newest MOTOR_COMMAND)."""
+        self.sent: list[int | None] = [None, None]
+        """Channel levels the controller acknowledged; None: unknown, send again."""
+        self.battery_monitor = ctx.config.telemetry.battery_monitor
+        self.lights = {"main": False, "positional": False}
+        self.status = ControllerStatus(False, battery_monitor=self.battery_monitor)
+        self.counters: dict[str, int] = dict.fromkeys(
+            (
+                "commands",
+                "velocity_commands",
+                "rejected",
+                "resent",
+                "unanswered",
+                "watchdog_w",
+                "stray_lines",
+                "garbage_lines",
+                "reconnects",
+                "controller_restarts",
+            ),
+            0,
+        )
+        self._link: SerialLink | None = None
+        self._ready = False
+        self._stopping = False
+        self._wake = asyncio.Event()
+        self._zero_sent = asyncio.Event()
+        self._outputs: deque[_OutputRequest] = deque()
+        self._polls: deque[Command] = deque()
+        self._poll_values: dict[str, tuple[int, ...]] = {}
+        self._last_velocity_at = float("-inf")
+        self._next_poll = 0.0
+        self._unanswered_in_row = 0
+        self._reported_error = ""
+        self._restore_lights = False
+        self._gpio_requests: asyncio.Queue[_OutputRequest] = asyncio.Queue()
+
+    # ------------------------------------------------------------------ lifecycle
+
+    async def run(self) -> None:
+        self.subscribe(topics.MOTOR_COMMAND, self._on_motor_command)
+        self.subscribe(topics.SYSTEM_COMMANDS, self._on_system_command)
+        self._publish_lights()
+        try:
+            async with asyncio.TaskGroup() as group:
+                group.create_task(self._gpio_worker(), name="motor:gpio")
+                await self._connection_loop()
+        finally:
+            for request in (*self._outputs, *_drain(self._gpio_requests)):
+                if not request.reply.done():
+                    request.reply.set_result(CommandResult(False, "motor controller stopped"))
+            self._outputs.clear()
+
+    async def _gpio_worker(self) -> None:
+        """Lights wired to GPIO value files: switched whether or not the controller is up."""
+        while True:
+            request = await self._gpio_requests.get()
+            await self._serve_output(None, request)
+
+    async def _connection_loop(self) -> None:
+        """Open, bring up and serve the controller; reopen with capped backoff."""
+        backoff = RECONNECT_INITIAL
+        failures = 0
+        try:
+            while True:
+                try:
+                    link = await SerialLink.open(self.config)
+                except LinkError as err:
+                    failures += 1
+                    self._report_down(str(err), first=failures == 1)
+                    await asyncio.sleep(backoff)
+                    backoff = min(backoff * 2, max(RECONNECT_INITIAL, self.config.reconnect_max))
+                    continue
+                self._link = link
+                try:
+                    await self._bring_up(link)
+                    if failures:
+                        self.counters["reconnects"] += 1
+                        _LOGGER.warning("motor controller back on %s", self.config.port)
+                    failures = 0
+                    backoff = RECONNECT_INITIAL
+                    await self._serve(link)
+                except LinkError as err:
+                    failures += 1
+                    self._report_down(str(err), first=failures == 1)
+                finally:
+                    self._disconnected(link)
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2, max(RECONNECT_INITIAL, self.config.reconnect_max))
+        finally:
+            if self._link is not None:
+                self._disconnected(self._link)
+
+    async def async_stop(self) -> None:
+        """Command zero and wait (briefly) for the controller to take it."""
+        self._stopping = True
+        if not self._ready:
+            return
+        self.desired = (0, 0)
+        self.sent = [None, None]
+        self._zero_sent.clear()
+        self._wake.set()
+        try:
+            async with asyncio.timeout(0.5):
+                await self._zero_sent.wait()
+        except TimeoutError:
+            _LOGGER.warning("motor controller did not acknowledge zero before shutdown")
+
+    def _disconnected(self, link: SerialLink) -> None:
+        link.close()
+        self._link = None
+        if self._ready:
+            self._ready = False
+            self._publish_status(connected=False)
+        # Nothing from before the outage is replayed when the controller returns.
+        self.desired = (0, 0)
+        self.sent = [None, None]
+        self._polls.clear()
+        self._zero_sent.set()  # nothing more will be sent on this link
+
+    def _report_down(self, error: str, *, first: bool) -> None:
+        if first:
+            _LOGGER.warning("motor controller unavailable: %s; retrying", error)
+        else:
+            _LOGGER.debug("motor controller still unavailable: %s", error)
+        if error != self._reported_error or self.status.connected:
+            self._reported_error = error
+            self._publish_status(connected=False, error=error)
+
+    # ------------------------------------------------------------------ bring-up
+
+    async def _bring_up(self, link: SerialLink) -> None:
+        """RS-232 mode (ten CRs if needed), the configured mode checked, zero commanded."""
+        reply = await self._probe(link)
+        if reply is None:
+            link.banner.clear()
+            link.write_raw(b"\r" * 10)
+            await link.wait_banner(BANNER_TIMEOUT)
+            reply = await self._probe(link)
+            if reply is None:
+                raise LinkError("controller silent, also after ten carriage returns")
+        input_mode = reply.values[0]
+        motor_mode = await self._read_config(link, ax3500.PARAM_MOTOR_MODE)
+        wanted = (ax3500.INPUT_MODE_RS232_WATCHDOG, ax3500.MOTOR_MODE_MIXED_OPEN_LOOP)
+        if (input_mode, motor_mode) != wanted:
+            described = f"input mode {input_mode:02X}, motor mode {motor_mode:02X}"
+            if not self.config.configure_mode:
+                raise LinkError(
+                    f"controller in {described}; want 02 (RS-232, watchdog), 01 (mixed)"
+                )
+            _LOGGER.warning("controller in %s: configuring 02/01 and resetting it", described)
+            await self._checked(link, ax3500.config_write(ax3500.PARAM_INPUT_MODE, wanted[0]))
+            await self._checked(link, ax3500.config_write(ax3500.PARAM_MOTOR_MODE, wanted[1]))
+            link.banner.clear()
+            await self._checked(link, ax3500.reset())
+            if not await link.wait_banner(BANNER_TIMEOUT):
+                raise LinkError("controller did not restart after %rrrrrr")
+            modes = (
+                await self._read_config(link, ax3500.PARAM_INPUT_MODE),
+                await self._read_config(link, ax3500.PARAM_MOTOR_MODE),
+            )
+            if modes != wanted:
+                raise LinkError(f"controller kept modes {modes[0]:02X}/{modes[1]:02X}")
+        with contextlib.suppress(LinkError, ReplyTimeout):
+            ident = await self._read_config(link, ax3500.PARAM_CONTROLLER_ID)
+            if not ident & ax3500.CONTROLLER_ID_AX3500_BIT:
+                _LOGGER.warning("controller id %02X does not say AX3500", ident)
+        self.desired = (0, 0)
+        self.sent = [None, None]
+        for channel in (1, 2):
+            await self._checked(link, ax3500.motor(channel, 0))
+        self.sent = [0, 0]
+        self._last_velocity_at = asyncio.get_running_loop().time()
+        self._unanswered_in_row = 0
+        self._ready = True
+        self._reported_error = ""
+        _LOGGER.info("motor controller up on %s", self.config.port)
+        self._publish_status(connected=True)
+        for which in LIGHTS:  # a power-up switched the outputs off: put them back
+            if self.lights[which] and self._output_name(which):
+                await self._set_output(link, which, True)
+
+    async def _probe(self, link: SerialLink) -> Reply | None:
+        try:
+            reply = await link.request(ax3500.config_read(ax3500.PARAM_INPUT_MODE))
+        except ReplyTimeout:
+            return None
+        return reply if reply.status is Status.VALUES else None
+
+    async def _read_config(self, link: SerialLink, parameter: int) -> int:
+        reply = await self._checked(link, ax3500.config_read(parameter))
+        return reply.values[0]
+
+    async def _checked(self, link: SerialLink, command: Command) -> Reply:
+        """A bring-up step: it must succeed."""
+        try:
+            reply = await self._send(link, command)
+        except ReplyTimeout:
+            raise LinkError(f"no answer to {command.text}") from None
+        if reply is None:
+            raise LinkError(f"controller refused {command.text}")
+        return reply
+
+    # ------------------------------------------------------------------ sending
+
+    async def _send(self, link: SerialLink, command: Command) -> Reply | None:
+        """One command, resent once on ``-``; None when refused twice. Raises ReplyTimeout."""
+        for attempt in (1, 2):
+            self.counters["commands"] += 1
+            watchdog_before = link.parser.watchdog_chars
+            try:
+                reply = await link.request(command)
+            except ReplyTimeout:
+                self.counters["unanswered"] += 1
+                self._unanswered_in_row += 1
+                if self._unanswered_in_row >= self.config.max_unanswered:
+                    raise LinkError(
+                        f"controller silent ({self._unanswered_in_row} commands unanswered)"
+                    ) from None
+                raise
+            finally:
+                self._account(link, watchdog_before)
+            self._unanswered_in_row = 0
+            if reply.ok:
+                return reply
+            self.counters["rejected"] += 1
+            if attempt == 1:
+                self.counters["resent"] += 1
+        _LOGGER.warning("controller refused %s twice", command.text)
+        return None
+
+    def _account(self, link: SerialLink, watchdog_before: int) -> None:
+        self.counters["stray_lines"] = link.stray_lines
+        self.counters["garbage_lines"] = link.parser.dropped_lines
+        if link.parser.watchdog_chars > watchdog_before:
+            # The controller's watchdog stopped the motors: both channels must be resent.
+            self.counters["watchdog_w"] += link.parser.watchdog_chars - watchdog_before
+            self.sent = [None, None]
+        if link.banners and self._ready:
+            # An OK in mid-session: the controller restarted (power glitch, reset).
+            _LOGGER.warning("motor controller restarted: commanding it again")
+            self.counters["controller_restarts"] += link.banners
+            self.sent = [None, None]
+            self._restore_lights = True
+        link.banners = 0
+
+    async def _serve(self, link: SerialLink) -> None:
+        loop = asyncio.get_running_loop()
+        after_velocity = False
+        while True:
+            self._wake.clear()
+            now = loop.time()
+            if self.desired[0] != self.sent[0] or self.desired[1] != self.sent[1]:
+                await self._send_velocity(link)
+                after_velocity = True
+                continue
+            if self._restore_lights:
+                self._restore_lights = False
+                for which in LIGHTS:
+                    if self.lights[which] and self._output_name(which):
+                        await self._set_output(link, which, True)
+                continue
+            if self._outputs:
+                await self._serve_output(link, self._outputs.popleft())
+                after_velocity = False
+                continue
+            if now - self._last_velocity_at >= self.refresh_period:
+                self.sent = [None, None]
+                continue
+            if self._polls or (
+                after_velocity and self.poll_period is not None and now >= self._next_poll
+            ):
+                if not self._polls:
+                    self._next_poll = now + self.poll_period  # type: ignore[operator]
+                    self._polls.extend(ax3500.query(letter) for letter in "ema")
+                await self._poll(link, self._polls.popleft())
+                continue
+            after_velocity = False
+            delay = self._last_velocity_at + self.refresh_period - now
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(max(0.0, delay)):
+                    await self._wake.wait()
+
+    async def _send_velocity(self, link: SerialLink) -> None:
+        """The channel that differs (channel 1 first), from the newest desired levels."""
+        channel = 1 if self.desired[0] != self.sent[0] else 2
+        level = self.desired[channel - 1]
+        self.counters["velocity_commands"] += 1
+        try:
+            reply = await self._send(link, ax3500.motor(channel, level))
+        except ReplyTimeout:
+            return  # still differs: tried again at once
+        # Refused twice (reported) counts as sent too, so the line is not hammered: the
+        # refresh tries again within one period.
+        del reply
+        self.sent[channel - 1] = level
+        self._last_velocity_at = asyncio.get_running_loop().time()
+        if self._stopping and self.sent == [0, 0] and self.desired == (0, 0):
+            self._zero_sent.set()
+
+    async def _poll(self, link: SerialLink, command: Command) -> None:
+        try:
+            reply = await self._send(link, command)
+        except ReplyTimeout:
+            self._polls.clear()
+            return
+        if reply is not None and reply.status is Status.VALUES:
+            self._poll_values[command.text[1]] = reply.values
+        if not self._polls:
+            self._publish_status(connected=True)
+
+    # ------------------------------------------------------------------ commands from the bus
+
+    def _on_motor_command(self, velocity: Velocity) -> None:
+        if self._stopping or not self._ready:
+            return  # commands from before the link is up are never replayed
+        levels = self.mapping.levels(velocity.linear, velocity.angular)
+        if levels != self.desired:
+            self.desired = levels
+            self._wake.set()
+        elif (
+            asyncio.get_running_loop().time() - self._last_velocity_at >= 0.7 * self.refresh_period
+        ):
+            # Refresh now, right behind this command, rather than at a random moment later.
+            self._last_velocity_at = float("-inf")
+            self._wake.set()
+
+    def _on_system_command(self, command: SystemCommand) -> None:
+        if command.code == BATTERY_MONITOR:
+            try:
+                on = parse_switch(command.payload)
+            except PayloadError as err:
+                command.respond(self.name, CommandResult(False, str(err)))
+                return
+            self.battery_monitor = on
+            self._publish_status(connected=self.status.connected, error=self.status.error)
+            command.respond(self.name, CommandResult(True, result={"battery_monitor": on}))
+            return
+        if command.code not in (MAIN_LIGHTS, POSITIONAL_LIGHTS):
+            return
+        which = "main" if command.code == MAIN_LIGHTS else "positional"
+        try:
+            on = parse_switch(command.payload)
+        except PayloadError as err:
+            command.respond(self.name, CommandResult(False, str(err)))
+            return
+        output = self._output_name(which)
+        if not output:
+            command.respond(
+                self.name,
+                CommandResult(False, f"no {which} lights fitted (motor.{which}_lights_output)"),
+            )
+            return
+        if output.startswith("gpio:"):  # a GPIO line works without the controller
+            self._gpio_requests.put_nowait(_OutputRequest(which, on, command.claim(self.name)))
+        elif self._ready:
+            self._outputs.append(_OutputRequest(which, on, command.claim(self.name)))
+            self._wake.set()
+        else:
+            command.respond(self.name, CommandResult(False, "motor controller not connected"))
+
+    # ------------------------------------------------------------------ outputs (lights)
+
+    def _output_name(self, which: str) -> str:
+        if which == "main":
+            return self.config.main_lights_output.strip()
+        return self.config.positional_lights_output.strip()
+
+    async def _serve_output(self, link: SerialLink | None, request: _OutputRequest) -> None:
+        ok = await self._set_output(link, request.which, request.on)
+        if not request.reply.done():
+            state = "on" if request.on else "off"
+            request.reply.set_result(
+                CommandResult(True, result={request.which: request.on})
+                if ok
+                else CommandResult(
+                    False, f"controller did not switch the {request.which} lights {state}"
+                )
+            )
+
+    async def _set_output(self, link: SerialLink | None, which: str, on: bool) -> bool:
+        output = self._output_name(which)
+        if output.startswith("gpio:"):
+            ok = await _write_gpio(output.removeprefix("gpio:"), on)
+        elif link is None:
+            return False
+        else:
+            try:
+                ok = await self._send(link, ax3500.output(output, on)) is not None
+            except ReplyTimeout:
+                ok = False
+        if ok:
+            self.lights[which] = on
+            self._publish_lights()
+        return ok
+
+    # ------------------------------------------------------------------ reporting
+
+    def _publish_lights(self) -> None:
+        self.bus.publish(
+            topics.LIGHTS_STATE, LightsState(self.lights["main"], self.lights["positional"])
+        )
+
+    def _publish_status(self, *, connected: bool, error: str = "") -> None:
+        values = self._poll_values if connected else {}
+        battery = values.get("e")
+        heat = values.get("m")
+        amps = values.get("a")
+        self.status = ControllerStatus(
+            connected=connected,
+            battery_volts=ax3500.battery_volts(battery[0]) if battery else None,
+            battery_monitor=self.battery_monitor,
+            heatsink_c=(
+                (ax3500.heatsink_celsius(heat[0]), ax3500.heatsink_celsius(heat[1]))
+                if heat and len(heat) >= 2
+                else None
+            ),
+            motor_amps=(
+                (ax3500.motor_amps(amps[0]), ax3500.motor_amps(amps[1]))
+                if amps and len(amps) >= 2
+                else None
+            ),
+            internal_volts=(
+                ax3500.internal_volts(battery[1]) if battery and len(battery) >= 2 else None
+            ),
+            error=error,
+        )
+        if not connected:
+            self._poll_values.clear()
+        self.bus.publish(topics.CONTROLLER_STATUS, self.status)
+
+    def snapshot(self) -> dict[str, Any]:
+        """Driver state for telemetry (``motor`` section)."""
+        return {
+            "connected": self._ready,
+            "port": self.config.port,
+            "desired": list(self.desired),
+            "acknowledged": list(self.sent),
+            "error": self.status.error,
+            **self.counters,
+        }
+
+
+async def _write_gpio(path: str, on: bool) -> bool:
+    try:
+        await asyncio.to_thread(Path(path).write_text, "1\n" if on else "0\n")
+    except OSError as err:
+        _LOGGER.warning("cannot switch %s: %s", path, err)
+        return False
+    return True
+
+
+def capability(controller: MotorController) -> dict[str, Any]:
+    """The ``motor`` section of the connect answer."""
+    return {
+        "controller": "Roboteq AX3500",
+        "lights": [which for which in LIGHTS if controller._output_name(which)],
+        "refresh_hz": round(1.0 / controller.refresh_period, 1),
+    }
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    if not ctx.config.motor.enabled:
+        return
+    controller = MotorController(ctx)
+    ctx.capabilities["motor"] = lambda: capability(controller)
+    ctx.telemetry_sources["motor"] = controller.snapshot
+    ctx.supervisor.start(controller)
+
+
+def _drain(queue: asyncio.Queue[_OutputRequest]) -> list[_OutputRequest]:
+    items = []
+    while not queue.empty():
+        items.append(queue.get_nowait())
+    return items
