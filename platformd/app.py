@@ -19,6 +19,7 @@ _LOGGER = logging.getLogger(__name__)
 SUBSYSTEMS: tuple[str, ...] = (
     # Order matters: simulators first (they create the ptys the drivers open), then the
     # drivers, then what reports on them. Each module has ``async def async_setup(ctx)``.
+    "platformd.sim.gps",
     "platformd.sim.ax3500",  # --sim only: sets motor.port to its pty
     "platformd.sessions",
     "platformd.mode",

@@ -18,6 +18,7 @@ _LOGGER = logging.getLogger("platformd")
 
 SIMULATORS: dict[str, str] = {
     # name -> "module:function" of ``async def serve_standalone(args)``; prints the pty path first.
+    "gps": "platformd.sim.gps:serve",
     "ax3500": "platformd.sim.ax3500:serve",
 }
 

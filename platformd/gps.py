@@ -86,6 +86,10 @@ class GpsReader(Actor):
             self.connected = True
             self.error = ""
             self.decoder.reset()
+            # What the line buffered before we opened it is stale (seconds-old epochs).
+            serial_port = writer.transport.get_extra_info("serial")
+            if serial_port is not None:
+                serial_port.reset_input_buffer()
             self._publish_stats()
             try:
                 await self._read(reader)

@@ -1,0 +1,212 @@
+"""Simulated u-blox NEO-6M: NMEA for the simulated vehicle's pose, on a pseudo-terminal.
+
+Like the receiver (hardware.md): a few ``$GPTXT`` banner lines at power-up, then once per epoch
+(``gps.sim_rate_hz``, 1-10; the NEO-6M defaults to 1 Hz) RMC, VTG, GGA and GSA with ``$GP``
+talker IDs, positions with 5 decimals of minutes, a slowly wandering position error of about
+a metre, HDOP about 1 and 8-10 satellites. The real GPS reader opens the pty unchanged
+(``gps.port`` is set to it in --sim). A pty has no baud rate: at 10 Hz a real NEO-6M needs
+38400 baud or more for these four sentences, 9600 only carries about 3 epochs a second.
+
+The UART of a receiver never blocks: when nobody reads the pty and its buffer is full, the
+epoch is dropped (counted in ``overruns``), as bytes sent to an unplugged cable are lost.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import datetime as dt
+import logging
+import math
+import os
+import random
+import sys
+import tty
+from collections.abc import Callable
+
+from brasidas.actor import Actor
+from brasidas.bus import Bus
+from brasidas.codecs.nmea import sentence
+from platformd.context import PlatformContext
+from platformd.sim.vehicle import EARTH_RADIUS_M, Pose, VehicleModel, shared_vehicle
+
+_LOGGER = logging.getLogger(__name__)
+
+BANNER = (
+    "GPTXT,01,01,02,u-blox ag - www.u-blox.com",
+    "GPTXT,01,01,02,HW  UBX-G60xx  00040007 FF7FFFFFp",
+    "GPTXT,01,01,02,ROM CORE 7.03 (45969) Mar 17 2011 16:18:34",
+    "GPTXT,01,01,02,ANTSUPERV=AC SD PDoS SR",
+    "GPTXT,01,01,02,ANTSTATUS=OK",
+)
+GEOID_SEPARATION_M = 34.0
+KNOTS_PER_MPS = 3600.0 / 1852.0
+NOISE_SIGMA_M = 0.8
+"""Steady-state standard deviation of the horizontal error (a good sky view)."""
+NOISE_CORRELATION_S = 20.0
+"""Time constant of the error's wander: GPS error is slow, not white."""
+
+
+class NmeaGenerator:
+    """Sans-IO: a pose and a UTC time in, one epoch of NEO-6M sentences out."""
+
+    def __init__(self, rng: random.Random | None = None) -> None:
+        self.rng = rng or random.Random()
+        self._north_m = self.rng.gauss(0.0, NOISE_SIGMA_M)
+        self._east_m = self.rng.gauss(0.0, NOISE_SIGMA_M)
+        self._alt_m = self.rng.gauss(0.0, 1.5 * NOISE_SIGMA_M)
+        self._last: float | None = None
+        self.satellites = self.rng.randint(8, 10)
+        self.hdop = round(self.rng.uniform(0.9, 1.1), 2)
+
+    def banner(self) -> bytes:
+        return b"".join(sentence(line) for line in BANNER)
+
+    def epoch(self, pose: Pose, utc: dt.datetime) -> bytes:
+        """RMC, VTG, GGA and GSA for ``pose`` at ``utc`` (the error model advances with time)."""
+        self._wander(utc.timestamp())
+        lat0 = math.radians(pose.latitude)
+        latitude = pose.latitude + math.degrees(self._north_m / EARTH_RADIUS_M)
+        longitude = pose.longitude + math.degrees(self._east_m / (EARTH_RADIUS_M * math.cos(lat0)))
+        altitude = pose.altitude_m + self._alt_m
+        speed = abs(pose.speed_mps)
+        knots = speed * KNOTS_PER_MPS
+        # u-blox leaves the course empty while (nearly) stationary.
+        course = f"{pose.course_deg:.2f}" if speed > 0.1 else ""
+        hhmmss = f"{utc:%H%M%S}.{utc.microsecond // 10000:02d}"
+        lat, ns = _ddmm(latitude, 2), "N" if latitude >= 0 else "S"
+        lon, ew = _ddmm(longitude, 3), "E" if longitude >= 0 else "W"
+        svs = [3, 6, 7, 9, 14, 16, 19, 21, 22, 26, 27, 31][: self.satellites]
+        sv_fields = ",".join([f"{sv:02d}" for sv in svs] + [""] * (12 - len(svs)))
+        pdop, vdop = round(self.hdop * 1.6, 2), round(self.hdop * 1.3, 2)
+        return b"".join(
+            (
+                sentence(
+                    f"GPRMC,{hhmmss},A,{lat},{ns},{lon},{ew},{knots:.3f},{course},{utc:%d%m%y},,,A"
+                ),
+                sentence(f"GPVTG,{course},T,,M,{knots:.3f},N,{speed * 3.6:.3f},K,A"),
+                sentence(
+                    f"GPGGA,{hhmmss},{lat},{ns},{lon},{ew},1,{self.satellites:02d},"
+                    f"{self.hdop:.2f},{altitude:.1f},M,{GEOID_SEPARATION_M:.1f},M,,"
+                ),
+                sentence(f"GPGSA,A,3,{sv_fields},{pdop:.2f},{self.hdop:.2f},{vdop:.2f}"),
+            )
+        )
+
+    def _wander(self, now: float) -> None:
+        dt_s = 1.0 if self._last is None else max(0.0, now - self._last)
+        self._last = now
+        keep = math.exp(-dt_s / NOISE_CORRELATION_S)
+        kick = NOISE_SIGMA_M * math.sqrt(1.0 - keep * keep)
+        self._north_m = self._north_m * keep + self.rng.gauss(0.0, kick)
+        self._east_m = self._east_m * keep + self.rng.gauss(0.0, kick)
+        self._alt_m = self._alt_m * keep + self.rng.gauss(0.0, 1.5 * kick)
+        if self.rng.random() < 0.02 * dt_s:  # a satellite rises or sets now and then
+            self.satellites = min(10, max(8, self.satellites + self.rng.choice((-1, 1))))
+            self.hdop = round(min(1.3, max(0.8, 1.0 + (9 - self.satellites) * 0.08)), 2)
+
+
+class GpsSimulator(Actor):
+    """Writes the generator's sentences to a pty at ``rate_hz`` (the slave is ``path``)."""
+
+    name = "sim:gps"
+
+    def __init__(
+        self,
+        bus: Bus,
+        vehicle: VehicleModel,
+        rate_hz: float = 1.0,
+        *,
+        generator: NmeaGenerator | None = None,
+        utcnow: Callable[[], dt.datetime] = lambda: dt.datetime.now(dt.UTC),
+    ) -> None:
+        super().__init__(bus)
+        self.vehicle = vehicle
+        self.rate_hz = min(10.0, max(1.0, rate_hz))
+        self.generator = generator or NmeaGenerator()
+        self._utcnow = utcnow
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        os.set_blocking(self._master, False)
+        self.path = os.ttyname(self._slave)
+        self.epochs = 0
+        self.overruns = 0
+        self._closed = False
+
+    async def run(self) -> None:
+        period = 1.0 / self.rate_hz
+        self._write(self.generator.banner())
+        # Epochs on the UTC grid, like a receiver's (hhmmss.00 at 1 Hz, .10 .20 at 10 Hz).
+        while True:
+            now = self._utcnow().timestamp()
+            tick = math.floor(now / period) + 1
+            await asyncio.sleep(max(0.0, tick * period - now))
+            centis = round(tick * period * 100)
+            utc = dt.datetime.fromtimestamp(centis // 100, dt.UTC)
+            utc = utc.replace(microsecond=(centis % 100) * 10_000)
+            self.epochs += 1
+            self._write(self.generator.epoch(self.vehicle.pose(), utc))
+
+    def _write(self, data: bytes) -> None:
+        if self._closed:
+            return
+        try:
+            os.write(self._master, data)
+        except BlockingIOError:
+            self.overruns += 1  # nobody reads the line: the bytes are lost, as on a UART
+        except OSError as err:
+            self.overruns += 1
+            _LOGGER.debug("simulated GPS write failed: %s", err)
+
+    async def async_stop(self) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the pty (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        for fd in (self._master, self._slave):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
+def _ddmm(degrees: float, width: int) -> str:
+    """``ddmm.mmmmm`` (``dddmm.mmmmm`` for longitude) as the NEO-6M prints it."""
+    degrees = abs(degrees)
+    whole = int(degrees)
+    minutes = round((degrees - whole) * 60.0, 5)
+    if minutes >= 60.0:
+        whole, minutes = whole + 1, 0.0
+    return f"{whole:0{width}d}{minutes:08.5f}"
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    if not (ctx.config.sim.enabled and ctx.config.gps.enabled):
+        return
+    simulator = GpsSimulator(ctx.bus, shared_vehicle(ctx), ctx.config.gps.sim_rate_hz)
+    ctx.config.gps.port = simulator.path
+    ctx.sim["gps"] = simulator
+    ctx.supervisor.start(simulator)
+
+
+async def serve(args: argparse.Namespace) -> None:
+    """``brasidas-platform simulate gps``: the pty path on stdout's first line, then serve."""
+    from platformd.cli import load_platform_config
+
+    config = load_platform_config(args)
+    sim = config.sim
+    vehicle = VehicleModel(
+        latitude=sim.latitude,
+        longitude=sim.longitude,
+        altitude_m=sim.altitude_m,
+        heading_deg=sim.heading_deg,
+    )
+    simulator = GpsSimulator(Bus(), vehicle, config.gps.sim_rate_hz)
+    try:
+        sys.stdout.write(simulator.path + "\n")
+        sys.stdout.flush()
+        await simulator.run()
+    finally:
+        simulator.close()

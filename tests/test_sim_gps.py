@@ -1,0 +1,155 @@
+"""Simulated NEO-6M: valid NMEA for the vehicle's pose; the real reader in --sim; standalone."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import datetime as dt
+import math
+import os
+import random
+import sys
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import pynmea2
+import pytest
+
+from brasidas import topics
+from brasidas.codecs.nmea import EpochAssembler, NmeaDecoder
+from brasidas.config import PlatformConfig
+from brasidas.messages import GpsFix
+from platformd.app import PlatformDaemon
+from platformd.sim.gps import NmeaGenerator
+from platformd.sim.vehicle import VehicleModel
+from tests.conftest import quiet_platform_config, wait_until
+
+
+def metres_between(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
+    north = math.radians(lat2 - lat1) * 6_371_000.0
+    east = math.radians(lon2 - lon1) * 6_371_000.0 * math.cos(math.radians(lat1))
+    return math.hypot(north, east)
+
+
+def test_every_sentence_parses_with_a_valid_checksum() -> None:
+    clock = [0.0]
+    vehicle = VehicleModel(latitude=-33.8568, longitude=151.2153, clock=lambda: clock[0])
+    vehicle.set_command(1.0, 0.3)  # moving and turning: course and speed are filled in
+    generator = NmeaGenerator(random.Random(4))
+    start = dt.datetime(2026, 11, 23, 23, 59, 50, tzinfo=dt.UTC)  # across midnight
+    stream = generator.banner()
+    poses = []
+    for second in range(600):
+        clock[0] = second / 10
+        pose = vehicle.pose()
+        poses.append(pose)
+        stream += generator.epoch(pose, start + dt.timedelta(seconds=second / 10))
+    lines = stream.decode("ascii").split("\r\n")
+    assert lines[-1] == ""
+    assert lines[0].startswith("$GPTXT,")
+    kinds = []
+    for line in lines[:-1]:
+        parsed = pynmea2.parse(line, check=True)  # raises on a bad checksum
+        assert line.startswith("$GP")
+        kinds.append(parsed.sentence_type)
+    assert kinds[5:9] == ["RMC", "VTG", "GGA", "GSA"]
+    decoder, assembler = NmeaDecoder(), EpochAssembler()
+    fixes: list[GpsFix | None] = []
+    for parsed in decoder.feed(stream):
+        fixes += assembler.feed(parsed, 0.0)
+    fixes += assembler.poll(1.0)
+    assert decoder.dropped == {"checksum": 0, "malformed": 0, "unknown": 0, "noise": 0}
+    assert len(fixes) == 600 and all(fix is not None for fix in fixes)
+    errors = []
+    for fix, pose in zip(fixes, poses, strict=True):
+        assert fix is not None
+        errors.append(metres_between(pose.latitude, pose.longitude, fix.latitude, fix.longitude))
+        assert 8 <= (fix.satellites or 0) <= 10
+        assert fix.hdop is not None and 0.7 <= fix.hdop <= 1.4
+    assert max(errors) < 5.0  # about a metre of wander, never a jump
+    assert sum(errors) / len(errors) > 0.05  # but there is noise
+    moving = fixes[-1]
+    assert moving is not None and moving.speed_mps is not None
+    assert moving.speed_mps == pytest.approx(abs(poses[-1].speed_mps), abs=0.01)
+    assert moving.time.startswith("2026-11-24T00:00:49.90")
+
+
+async def test_real_reader_in_sim_platform(
+    platform_factory: Callable[[PlatformConfig, bytes | None], Awaitable[PlatformDaemon]],
+    fleet_key: bytes,
+) -> None:
+    config = quiet_platform_config(
+        "sim.enabled=true",
+        "gps.enabled=true",
+        "gps.sim_rate_hz=10",
+        "sim.latitude=44.0689",
+        "sim.longitude=-121.3143",
+    )
+    daemon = await platform_factory(config, fleet_key)
+    fixes: list[GpsFix] = []
+    daemon.bus.subscribe(topics.GPS_FIX, fixes.append)
+    assert daemon.config.gps.port == daemon.ctx.sim["gps"].path
+    await wait_until(lambda: len(fixes) >= 5, timeout=10.0)
+    for fix in fixes:
+        assert metres_between(44.0689, -121.3143, fix.latitude, fix.longitude) < 10.0
+        assert fix.quality == 1 and fix.altitude_m is not None
+    position = daemon.bus.last(topics.POSITION)
+    assert position is not None and abs(position.latitude - 44.0689) < 1e-4
+    section = daemon.ctx.telemetry_sources["gps"]()
+    assert section["fix"] is True
+
+    def stats() -> dict[str, Any]:
+        return daemon.ctx.telemetry_sources["gps"]().get("stats") or {}
+
+    await wait_until(lambda: stats().get("by_type", {}).get("RMC", 0) >= 5, 5.0)
+    assert stats()["connected"] is True
+    assert sum(stats()["dropped"].values()) == 0
+
+
+async def test_simulate_gps_standalone_prints_a_pty_that_yields_nmea() -> None:
+    process = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "platformd",
+        "--set",
+        "gps.sim_rate_hz=5",
+        "simulate",
+        "gps",
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+    )
+    fd = -1
+    try:
+        assert process.stdout is not None
+        first = await asyncio.wait_for(process.stdout.readline(), 20.0)
+        path = first.decode().strip()
+        assert path.startswith("/dev/pts/")
+        # Raw mode is the simulator's (termios belongs to the pty); setting it here would
+        # flush the banner already waiting.
+        fd = os.open(path, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
+        received = b""
+        loop = asyncio.get_running_loop()
+
+        async def read_until_rmc() -> None:
+            nonlocal received
+            while b"$GPGGA" not in received:
+                ready = loop.create_future()
+                loop.add_reader(fd, ready.set_result, None)
+                try:
+                    await ready
+                finally:
+                    loop.remove_reader(fd)
+                with contextlib.suppress(BlockingIOError):
+                    received += os.read(fd, 4096)
+
+        await asyncio.wait_for(read_until_rmc(), 10.0)
+    finally:
+        if fd >= 0:
+            os.close(fd)
+        with contextlib.suppress(ProcessLookupError):
+            process.terminate()
+        await asyncio.wait_for(process.wait(), 10.0)
+    assert b"$GPTXT,01,01,02,u-blox ag - www.u-blox.com*50" in received
+    lines = [line for line in received.split(b"\r\n") if line.startswith(b"$GPRMC")]
+    assert lines and pynmea2.parse(lines[0].decode(), check=True).status == "A"
+    assert process.returncode == 0
