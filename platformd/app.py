@@ -20,6 +20,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     # Order matters: simulators first (they create the ptys the drivers open), then the
     # drivers, then what reports on them. Each module has ``async def async_setup(ctx)``.
     "platformd.sim.gps",
+    "platformd.sim.mpu6050",
     "platformd.sim.ax3500",  # --sim only: sets motor.port to its pty
     "platformd.sessions",
     "platformd.mode",
@@ -27,6 +28,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "platformd.arbiter",
     "platformd.motor",  # obeys the arbiter's MOTOR_COMMAND
     "platformd.gps",
+    "platformd.imu",
     "platformd.media",
     "platformd.telemetry",
     "platformd.signaling",

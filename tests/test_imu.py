@@ -1,0 +1,258 @@
+"""IMU: Madgwick filter, the emulated MPU-6050 register map, the driver and actor against it."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any
+
+import pytest
+
+from brasidas import topics
+from brasidas.bus import Bus
+from brasidas.config import ImuSection, PlatformConfig
+from brasidas.madgwick import Madgwick, euler_deg, from_euler
+from brasidas.messages import Attitude, ImuStatus
+from platformd.app import PlatformDaemon
+from platformd.imu import ImuReader, Mpu6050Driver
+from platformd.sim.mpu6050 import (
+    ACCEL_CONFIG,
+    DATA_START,
+    GYRO_CONFIG,
+    PWR_MGMT_1,
+    WHO_AM_I,
+    EmulatedI2CBus,
+    Motion,
+    Mpu6050,
+)
+from tests.conftest import quiet_platform_config, wait_until
+
+G = 9.80665
+LEVEL = Motion(accel_mps2=(0.0, 0.0, G), gyro_rad_s=(0.0, 0.0, 0.0), temperature_c=25.0)
+
+
+# --------------------------------------------------------------------------- Madgwick
+
+
+def test_madgwick_static_level_stays_level() -> None:
+    fusion = Madgwick(beta=0.1)
+    for _ in range(500):
+        fusion.update((0.0, 0.0, 0.0), (0.0, 0.0, G), 0.01)
+    roll, pitch, yaw = euler_deg(fusion.q)
+    assert abs(roll) < 0.01 and abs(pitch) < 0.01 and abs(yaw) < 0.01
+
+
+def test_madgwick_converges_to_gravity_from_a_wrong_start() -> None:
+    fusion = Madgwick(beta=0.2, q=from_euler(math.radians(20), math.radians(-10), 0.0))
+    fusion.initialized = True  # skip the first-sample snap: exercise the gradient step
+    for _ in range(2000):
+        fusion.update((0.0, 0.0, 0.0), (0.0, 0.0, G), 0.01)
+    roll, pitch, _ = euler_deg(fusion.q)
+    assert abs(roll) < 0.5 and abs(pitch) < 0.5
+
+
+def test_madgwick_first_sample_sets_tilt() -> None:
+    roll = math.radians(15)
+    fusion = Madgwick()
+    # Rolled right side down by 15 deg: gravity appears on +y and z.
+    fusion.update((0.0, 0.0, 0.0), (0.0, G * math.sin(roll), G * math.cos(roll)), 0.01)
+    got_roll, got_pitch, _ = euler_deg(fusion.q)
+    assert got_roll == pytest.approx(15.0, abs=0.01)
+    assert got_pitch == pytest.approx(0.0, abs=0.01)
+
+
+def test_madgwick_integrates_yaw_rate_counter_clockwise() -> None:
+    fusion = Madgwick(beta=0.05)
+    rate = math.radians(30)
+    for _ in range(300):  # 3 s at 30 deg/s
+        fusion.update((0.0, 0.0, rate), (0.0, 0.0, G), 0.01)
+    _, _, yaw = euler_deg(fusion.q)
+    assert yaw == pytest.approx(90.0, abs=0.5)
+
+
+def test_euler_round_trip() -> None:
+    q = from_euler(math.radians(10), math.radians(-20), math.radians(135))
+    assert euler_deg(q) == pytest.approx((10.0, -20.0, 135.0), abs=1e-9)
+
+
+# --------------------------------------------------------------------------- the emulated chip
+
+
+def test_chip_sleeps_until_woken_and_scales() -> None:
+    chip = Mpu6050(lambda: LEVEL)
+    bus = EmulatedI2CBus({0x68: chip})
+    assert bus.read_byte_data(0x68, WHO_AM_I) == 0x68
+    assert bus.read_byte_data(0x68, PWR_MGMT_1) == 0x40  # asleep after power-on
+    assert bus.read_i2c_block_data(0x68, DATA_START, 14) == [0] * 14
+    bus.write_byte_data(0x68, PWR_MGMT_1, 0x01)
+    raw = bytes(bus.read_i2c_block_data(0x68, DATA_START, 14))
+    assert raw[4:6] == (16384).to_bytes(2, "big")  # +1 g on z at +-2 g
+    temperature = int.from_bytes(raw[6:8], "big", signed=True)
+    assert temperature / 340 + 36.53 == pytest.approx(25.0, abs=0.01)
+    bus.write_byte_data(0x68, ACCEL_CONFIG, 2 << 3)  # +-8 g
+    raw = bytes(bus.read_i2c_block_data(0x68, DATA_START, 14))
+    assert int.from_bytes(raw[4:6], "big") == 4096
+    bus.write_byte_data(0x68, PWR_MGMT_1, 0x80)  # device reset: asleep again, registers cleared
+    assert bus.read_byte_data(0x68, PWR_MGMT_1) == 0x40
+    assert bus.read_byte_data(0x68, ACCEL_CONFIG) == 0
+    with pytest.raises(OSError):
+        bus.read_byte_data(0x69, WHO_AM_I)  # nothing at AD0 high
+
+
+def test_driver_reads_si_units_through_the_chip() -> None:
+    spin = Motion((0.5, -0.25, G), (0.0, 0.0, math.radians(100.0)), 30.0)
+    chip = Mpu6050(lambda: spin)
+    driver = Mpu6050Driver(EmulatedI2CBus({0x68: chip}), 0x68, 4, 500)
+    driver.init(100.0)
+    assert chip.registers[GYRO_CONFIG] == 1 << 3 and chip.registers[ACCEL_CONFIG] == 1 << 3
+    sample = driver.read()
+    assert sample.accel_mps2 == pytest.approx((0.5, -0.25, G), abs=0.005)
+    assert math.degrees(sample.gyro_rad_s[2]) == pytest.approx(100.0, abs=0.02)
+    assert sample.temperature_c == pytest.approx(30.0, abs=0.01)
+
+
+class Turntable:
+    """Yaws at ``rate`` deg/s (counter-clockwise) from ``start`` until ``total`` degrees."""
+
+    def __init__(self, rate: float, total: float, clock: Callable[[], float]) -> None:
+        self.rate, self.total, self.clock = rate, total, clock
+        self.start: float | None = None
+
+    def __call__(self) -> Motion:
+        now = self.clock()
+        if self.start is None:
+            self.start = now
+        turning = (now - self.start) * self.rate < self.total
+        rate = math.radians(self.rate) if turning else 0.0
+        return Motion((0.0, 0.0, G), (0.0, 0.0, rate), 28.0)
+
+
+def test_known_rotation_gives_yaw_within_two_degrees() -> None:
+    now = [0.0]
+    chip = Mpu6050(Turntable(45.0, 90.0, lambda: now[0]))
+    driver = Mpu6050Driver(EmulatedI2CBus({0x68: chip}), 0x68, 2, 250)
+    driver.init(100.0)
+    fusion = Madgwick(0.05)
+    last = None
+    for k in range(300):  # 3 s at 100 Hz; the turn lasts 2 s
+        now[0] = k / 100
+        raw = bytes(driver.bus.read_i2c_block_data(0x68, DATA_START, 14))
+        sample = driver.convert(now[0], raw)
+        fusion.update(sample.gyro_rad_s, sample.accel_mps2, 0.0 if last is None else now[0] - last)
+        last = now[0]
+    _, _, yaw = euler_deg(fusion.q)
+    assert yaw == pytest.approx(90.0, abs=2.0)
+
+
+# --------------------------------------------------------------------------- the actor
+
+
+class Recorder:
+    def __init__(self, bus: Bus) -> None:
+        self.attitudes: list[Attitude] = []
+        self.statuses: list[ImuStatus] = []
+        bus.subscribe(topics.ATTITUDE, self.attitudes.append)
+        bus.subscribe(topics.IMU_STATUS, self.statuses.append)
+
+
+@contextlib.asynccontextmanager
+async def running(reader: ImuReader) -> AsyncIterator[ImuReader]:
+    task = asyncio.create_task(reader.run(), name="test:imu")
+    try:
+        yield reader
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+
+async def test_actor_turn_through_emulated_chip() -> None:
+    bus = Bus()
+    seen = Recorder(bus)
+    table = Turntable(45.0, 90.0, time.monotonic)
+    chip = Mpu6050(table)
+    reader = ImuReader(bus, ImuSection(), lambda number: EmulatedI2CBus({0x68: chip}))
+    async with running(reader):
+        await wait_until(lambda: table.start is not None)
+        await asyncio.sleep(2.5)  # the turn takes 2 s
+        count = len(seen.attitudes)
+        await wait_until(lambda: len(seen.attitudes) > count)
+        await wait_until(lambda: bool(seen.statuses) and seen.statuses[-1].samples > 100)
+    assert seen.attitudes[-1].yaw_deg == pytest.approx(90.0, abs=2.0)
+    assert abs(seen.attitudes[-1].roll_deg) < 1.0 and abs(seen.attitudes[-1].pitch_deg) < 1.0
+    status = seen.statuses[-1]
+    assert status.ok and status.error == "" and status.read_errors == 0
+    assert status.temperature_c == pytest.approx(28.0, abs=0.01)
+    # About 10 Hz of attitude for about 100 Hz of samples, not one per sample.
+    assert len(seen.attitudes) < reader.samples / 5
+
+
+async def test_wrong_who_am_i_is_an_error_then_recovers() -> None:
+    bus = Bus()
+    seen = Recorder(bus)
+    chip = Mpu6050(lambda: LEVEL, who_am_i=0x72)  # an MPU-9250-like part
+    reader = ImuReader(bus, ImuSection(), lambda number: EmulatedI2CBus({0x68: chip}))
+    async with running(reader):
+        await wait_until(lambda: bool(seen.statuses) and "WHO_AM_I" in seen.statuses[-1].error)
+        assert not seen.statuses[-1].ok
+        assert "0x72" in seen.statuses[-1].error
+        await asyncio.sleep(0.5)  # retried with backoff, never a crash
+        chip.who_am_i = 0x68
+        chip.reset()
+        await wait_until(lambda: bool(seen.statuses) and seen.statuses[-1].ok, 10.0)
+        await wait_until(lambda: bool(seen.attitudes))
+
+
+async def test_missing_device_and_missing_bus_are_reported() -> None:
+    bus = Bus()
+    seen = Recorder(bus)
+    reader = ImuReader(bus, ImuSection(), lambda number: EmulatedI2CBus({}))
+    async with running(reader):
+        await wait_until(lambda: bool(seen.statuses) and seen.statuses[-1].error != "")
+    assert "no MPU-6050 at 0x68 on I2C bus 1" in seen.statuses[-1].error
+
+    def no_bus(number: int) -> EmulatedI2CBus:
+        raise FileNotFoundError(2, "No such file or directory", f"/dev/i2c-{number}")
+
+    bus2 = Bus()
+    seen2 = Recorder(bus2)
+    async with running(ImuReader(bus2, ImuSection(i2c_bus=7), no_bus)):
+        await wait_until(lambda: bool(seen2.statuses) and seen2.statuses[-1].error != "")
+    assert seen2.statuses[-1].error.startswith("[Errno 2] no I2C bus 7")
+
+
+async def test_device_vanishing_mid_run_is_reported_and_reopened() -> None:
+    bus = Bus()
+    seen = Recorder(bus)
+    chip = Mpu6050(lambda: LEVEL)
+    devices = {0x68: chip}
+    reader = ImuReader(bus, ImuSection(), lambda number: EmulatedI2CBus(devices))
+    async with running(reader):
+        await wait_until(lambda: bool(seen.statuses) and seen.statuses[-1].ok)
+        del devices[0x68]  # a loose wire
+        await wait_until(lambda: "I2C read failed" in seen.statuses[-1].error, 5.0)
+        assert reader.read_errors >= 10
+        devices[0x68] = chip
+        await wait_until(lambda: seen.statuses[-1].ok, 10.0)
+
+
+async def test_sim_platform_publishes_attitude(
+    platform_factory: Callable[[PlatformConfig, bytes | None], Awaitable[PlatformDaemon]],
+    fleet_key: bytes,
+) -> None:
+    config = quiet_platform_config("sim.enabled=true", "imu.enabled=true")
+    daemon = await platform_factory(config, fleet_key)
+    assert "i2c_bus" in daemon.ctx.sim
+    await wait_until(lambda: daemon.bus.last(topics.ATTITUDE) is not None, 10.0)
+
+    def imu() -> dict[str, Any]:
+        return (daemon.ctx.telemetry_sources["attitude"]() or {}).get("imu") or {}
+
+    await wait_until(lambda: imu().get("temperature_c") is not None, 5.0)
+    section = daemon.ctx.telemetry_sources["attitude"]()
+    assert abs(section["roll_deg"]) < 2.0 and abs(section["pitch_deg"]) < 2.0
+    assert section["imu"]["error"] == ""
+    assert 20.0 < section["imu"]["temperature_c"] < 40.0
