@@ -30,6 +30,7 @@ import asyncio
 import contextlib
 import logging
 import os
+import termios
 from collections import deque
 from dataclasses import dataclass
 from enum import Enum
@@ -65,6 +66,8 @@ _LOGGER = logging.getLogger(__name__)
 BANNER_TIMEOUT = 3.0
 """How long to wait for ``OK`` after ten carriage returns or a reset (the device takes 1-2 s)."""
 RECONNECT_INITIAL = 0.2
+_OPEN_ERRORS = (serial.SerialException, OSError, ValueError, termios.error)
+"""What opening a port raises: missing device, busy, refused settings (a pty and 7E1)."""
 LIGHTS = ("main", "positional")
 
 
@@ -105,13 +108,13 @@ class SerialLink(asyncio.Protocol):
         framing = (config.bytesize, config.parity, config.stopbits)
         try:
             await _create(loop, link, config.port, config.baudrate, framing)
-        except (serial.SerialException, OSError, ValueError) as err:
+        except _OPEN_ERRORS as err:
             # The kernel's ptys refuse 7 bits and parity (hardware.md); same bytes in 8N1.
             if not _is_pty(config.port) or framing == (8, "N", 1):
                 raise LinkError(f"cannot open {config.port}: {err}") from None
             try:
                 await _create(loop, link, config.port, config.baudrate, (8, "N", 1))
-            except (serial.SerialException, OSError, ValueError) as second:
+            except _OPEN_ERRORS as second:
                 raise LinkError(f"cannot open {config.port}: {second}") from None
             _LOGGER.info("%s is a pty: opened 8N1 instead of %s%s%s", config.port, *framing)
         return link
@@ -321,6 +324,7 @@ class MotorController(Actor):
                     backoff = min(backoff * 2, max(RECONNECT_INITIAL, self.config.reconnect_max))
                     continue
                 self._link = link
+                error = ""
                 try:
                     await self._bring_up(link)
                     if failures:
@@ -331,14 +335,15 @@ class MotorController(Actor):
                     await self._serve(link)
                 except LinkError as err:
                     failures += 1
-                    self._report_down(str(err), first=failures == 1)
+                    error = str(err)
+                    self._report_down(error, first=failures == 1)
                 finally:
-                    self._disconnected(link)
+                    self._disconnected(link, error)
                 await asyncio.sleep(backoff)
                 backoff = min(backoff * 2, max(RECONNECT_INITIAL, self.config.reconnect_max))
         finally:
             if self._link is not None:
-                self._disconnected(self._link)
+                self._disconnected(self._link, "driver stopped")
 
     async def async_stop(self) -> None:
         """Command zero and wait (briefly) for the controller to take it."""
@@ -355,12 +360,13 @@ class MotorController(Actor):
         except TimeoutError:
             _LOGGER.warning("motor controller did not acknowledge zero before shutdown")
 
-    def _disconnected(self, link: SerialLink) -> None:
+    def _disconnected(self, link: SerialLink, error: str) -> None:
         link.close()
         self._link = None
         if self._ready:
             self._ready = False
-            self._publish_status(connected=False)
+            self._reported_error = error
+            self._publish_status(connected=False, error=error)
         # Nothing from before the outage is replayed when the controller returns.
         self.desired = (0, 0)
         self.sent = [None, None]
@@ -425,8 +431,13 @@ class MotorController(Actor):
         self._reported_error = ""
         _LOGGER.info("motor controller up on %s", self.config.port)
         self._publish_status(connected=True)
-        for which in LIGHTS:  # a power-up switched the outputs off: put them back
-            if self.lights[which] and self._output_name(which):
+        await self._restore_outputs(link)
+
+    async def _restore_outputs(self, link: SerialLink) -> None:
+        """A power-up switched the controller's outputs off: put the lights back."""
+        for which in LIGHTS:
+            output = self._output_name(which)
+            if self.lights[which] and output and not output.startswith("gpio:"):
                 await self._set_output(link, which, True)
 
     async def _probe(self, link: SerialLink) -> Reply | None:
@@ -505,9 +516,7 @@ class MotorController(Actor):
                 continue
             if self._restore_lights:
                 self._restore_lights = False
-                for which in LIGHTS:
-                    if self.lights[which] and self._output_name(which):
-                        await self._set_output(link, which, True)
+                await self._restore_outputs(link)
                 continue
             if self._outputs:
                 await self._serve_output(link, self._outputs.popleft())
@@ -516,7 +525,9 @@ class MotorController(Actor):
             if now - self._last_velocity_at >= self.refresh_period:
                 self.sent = [None, None]
                 continue
-            if self._polls or (
+            if self._stopping:
+                pass  # zero is the last word: no polls or outputs any more
+            elif self._polls or (
                 after_velocity and self.poll_period is not None and now >= self._next_poll
             ):
                 if not self._polls:

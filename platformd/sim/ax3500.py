@@ -105,6 +105,8 @@ class Ax3500Device:
         self.outputs: dict[str, bool] = {"C": False}
         self.received: list[str] = []
         """Every command line received, in order (for tests)."""
+        self.received_bytes = bytearray()
+        """The raw input, the last 64 KiB of it (for tests)."""
         self.errors = 0
         """Commands answered ``-``."""
         self.watchdog_trips = 0
@@ -195,6 +197,9 @@ class Ax3500Device:
             return b""
         self._last_rx = now
         self._tripped = False  # any character resets the watchdog
+        self.received_bytes += data
+        if len(self.received_bytes) > 65536:
+            del self.received_bytes[:-32768]
         out = bytearray()
         for byte in data:
             out += self._on_byte(byte & 0x7F, now)  # 7 data bits on the wire
@@ -220,6 +225,8 @@ class Ax3500Device:
             self._line.clear()
             self._overlong = False
             self.received.append(line)
+            if len(self.received) > 20000:  # a long --sim run: keep the recent ones
+                del self.received[:10000]
             if overlong:
                 self.errors += 1
                 return echo + b"-\r"
@@ -440,7 +447,8 @@ class Ax3500Simulator:
             os.replace(temporary, self.link)
         self._line_free_at = 0.0
         self._loop.add_reader(master, self._on_readable)
-        self._emit(self.device.power_up(self._loop.time()))
+        # Written at once: the controller powered up before anyone could open the port.
+        self._write(self.device.power_up(self._loop.time()))
         self._schedule()
 
     # ------------------------------------------------------------------ I/O

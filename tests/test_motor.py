@@ -1,0 +1,338 @@
+"""The motor controller driver against the real simulator on a pty, then end to end in --sim."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+from collections.abc import AsyncIterator, Awaitable, Callable
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+
+from conftest import quiet_platform_config, wait_until
+
+from brasidas import topics
+from brasidas.actor import Supervisor
+from brasidas.bus import Bus
+from brasidas.codecs import ax3500, pvel
+from brasidas.codecs.commands import BATTERY_MONITOR, MAIN_LIGHTS, POSITIONAL_LIGHTS
+from brasidas.codecs.jsonrpc import Dispatcher
+from brasidas.messages import ControllerStatus, LightsState, Velocity
+from platformd import motor
+from platformd.app import PlatformDaemon
+from platformd.context import PlatformContext
+from platformd.motor import MotorController
+from platformd.signaling import dispatch_command
+from platformd.sim.ax3500 import Ax3500Simulator, SimOptions
+from platformd.sim.vehicle import shared_vehicle
+from stationd.client import PlatformConnection
+
+Factory = Callable[..., Awaitable[PlatformDaemon]]
+
+
+@asynccontextmanager
+async def driven(
+    tmp_path: Path, *overrides: str, options: SimOptions | None = None
+) -> AsyncIterator[tuple[PlatformContext, Ax3500Simulator]]:
+    """A simulator behind a stable link and the driver on it, in a bare platform context."""
+    sim = Ax3500Simulator(options or SimOptions(), link=str(tmp_path / "ax3500"))
+    sim.start()
+    config = quiet_platform_config("motor.enabled=true", f"motor.port={sim.path}", *overrides)
+    ctx = PlatformContext(
+        config=config, bus=Bus(), supervisor=Supervisor(), rpc=Dispatcher(), fleet_key=None
+    )
+    await motor.async_setup(ctx)
+    try:
+        yield ctx, sim
+    finally:
+        await ctx.supervisor.stop()
+        sim.close()
+
+
+def driver_of(ctx: PlatformContext) -> MotorController:
+    actor = next(a for a in ctx.supervisor.actors if a.name == "motor")
+    assert isinstance(actor, MotorController)
+    return actor
+
+
+def status(ctx: PlatformContext) -> ControllerStatus | None:
+    return ctx.bus.last(topics.CONTROLLER_STATUS)
+
+
+async def connected(ctx: PlatformContext, timeout: float = 10) -> None:
+    await wait_until(lambda: (s := status(ctx)) is not None and s.connected, timeout)
+
+
+def since(sim: Ax3500Simulator, mark: int) -> list[str]:
+    return sim.device.received[mark:]
+
+
+# --------------------------------------------------------------------------- the serial line
+
+
+async def test_exact_bytes_for_velocities(tmp_path: Path) -> None:
+    # 7E1 from the defaults: the driver falls back to 8N1 because the port is a pty.
+    async with driven(tmp_path) as (ctx, sim):
+        await connected(ctx)
+        mark = len(sim.device.received_bytes)
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.5, -0.25))
+        await wait_until(lambda: sim.device.channels == (0x40, -0x20))
+        assert bytes(sim.device.received_bytes[mark:]).startswith(b"!A40\r!b20\r")
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(-1.0, 1.0))
+        await wait_until(lambda: sim.device.channels == (-0x7F, 0x7F))
+        assert b"!a7F\r!B7F\r" in sim.device.received_bytes
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.01, 0.0))
+        await wait_until(lambda: sim.device.channels == (1, 0))
+        assert "!A01" in sim.device.received  # two digits, always
+
+
+async def test_scaling_inversion_and_limits_from_config(tmp_path: Path) -> None:
+    overrides = ("motor.linear_scale=0.5", "motor.angular_limit=0.25", "motor.invert_angular=true")
+    async with driven(tmp_path, *overrides, options=SimOptions(left_turn="b")) as (ctx, sim):
+        await connected(ctx)
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(1.0, 1.0))
+        await wait_until(lambda: sim.device.channels == (64, -32))
+        assert sim.device.command[1] > 0  # on this chassis "b" turns left: still a left turn
+
+
+async def test_refused_command_is_resent_once_then_reported(tmp_path: Path) -> None:
+    async with driven(tmp_path, "motor.refresh_hz=2") as (ctx, sim):
+        await connected(ctx)
+        driver = driver_of(ctx)
+        sim.device.fail_next = 1
+        mark = len(sim.device.received)
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.25, 0.0))
+        await wait_until(lambda: sim.device.channels == (32, 0))
+        assert since(sim, mark)[:2] == ["!A20", "!A20"]
+        assert driver.counters["rejected"] == 1 and driver.counters["resent"] == 1
+        # Refused twice: reported, the driver carries on, and the refresh gets it through.
+        sim.device.fail_next = 2
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.5, 0.0))
+        await wait_until(lambda: driver.counters["rejected"] == 3)
+        await wait_until(lambda: sim.device.channels == (64, 0))
+        assert status(ctx).connected  # type: ignore[union-attr]
+
+
+async def test_ten_seconds_at_zero_without_one_watchdog_w(tmp_path: Path) -> None:
+    async with driven(tmp_path) as (ctx, sim):
+        await connected(ctx)
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.0, 0.0))
+        await asyncio.sleep(10.0)
+        assert sim.device.w_sent == 0 and sim.device.watchdog_trips == 0
+        driver = driver_of(ctx)
+        assert driver.counters["watchdog_w"] == 0 and driver.counters["unanswered"] == 0
+        # 10 Hz refresh, both channels: about 200 commands, never fewer than the 2 Hz minimum.
+        assert sim.device.received.count("!A00") >= 20
+
+
+async def test_latest_wins_no_backlog(tmp_path: Path) -> None:
+    async with driven(tmp_path) as (ctx, sim):
+        await connected(ctx)
+        mark = len(sim.device.received)
+        for step in range(1, 101):  # a burst far faster than 9600 baud can carry
+            ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(step / 100, 0.0))
+        await wait_until(lambda: sim.device.channels == (127, 0))
+        sent = [line for line in since(sim, mark) if line[:2] in ("!A", "!a")]
+        assert sent[-1] == "!A7F" and len(sent) <= 3, sent
+
+
+async def test_watchdog_w_is_stripped_and_both_channels_resent(tmp_path: Path) -> None:
+    async with driven(tmp_path) as (ctx, sim):
+        await connected(ctx)
+        driver = driver_of(ctx)
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.5, 0.5))
+        await wait_until(lambda: sim.device.channels == (64, 64))
+        sim._write(b"W")  # as if the watchdog had tripped (say, the host stalled)
+        sim.device._set_channels(0, 0)
+        await wait_until(lambda: sim.device.channels == (64, 64))
+        assert driver.counters["watchdog_w"] >= 1 and status(ctx).connected  # type: ignore[union-attr]
+
+
+async def test_garbage_from_the_controller_is_dropped(tmp_path: Path) -> None:
+    async with driven(tmp_path) as (ctx, sim):
+        await connected(ctx)
+        driver = driver_of(ctx)
+        sim._write(b"\x00\xff\xfegarbage\r:01020304\r" + b"Z" * 200 + b"\r")
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.25, 0.0))
+        await wait_until(lambda: sim.device.channels == (32, 0))
+        await wait_until(lambda: driver.counters["garbage_lines"] >= 2)
+        assert status(ctx).connected  # type: ignore[union-attr]
+
+
+async def test_unplug_and_replug_without_replaying_a_stale_command(tmp_path: Path) -> None:
+    async with driven(tmp_path, "motor.reconnect_max=0.5") as (ctx, sim):
+        await connected(ctx)
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.5, 0.0))
+        await wait_until(lambda: sim.device.channels == (64, 0))
+        sim.unplug()
+        await wait_until(lambda: not status(ctx).connected)  # type: ignore[union-attr]
+        assert status(ctx).error  # type: ignore[union-attr]
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.75, 0.0))  # into the void
+        await asyncio.sleep(0.5)  # a few failed attempts on a missing port
+        sim.replug()
+        await connected(ctx)
+        mark = len(sim.device.received)
+        await asyncio.sleep(0.3)
+        assert sim.device.channels == (0, 0)
+        assert all(line in ("!A00", "!B00") for line in since(sim, mark) if line[:2] in "!A!B")
+        assert driver_of(ctx).counters["reconnects"] == 1
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.25, 0.0))  # a fresh command moves it
+        await wait_until(lambda: sim.device.channels == (32, 0))
+
+
+async def test_silent_controller_is_reported_and_recovered(tmp_path: Path) -> None:
+    async with driven(tmp_path, "motor.reply_timeout=0.1", "motor.reconnect_max=0.3") as (
+        ctx,
+        sim,
+    ):
+        await connected(ctx)
+        sim.device.silent = True
+        await wait_until(lambda: not status(ctx).connected)  # type: ignore[union-attr]
+        assert "silent" in status(ctx).error  # type: ignore[union-attr]
+        sim.device.silent = False
+        await connected(ctx)
+
+
+async def test_rc_mode_and_wrong_motor_mode_are_fixed_at_bring_up(tmp_path: Path) -> None:
+    options = SimOptions(extra_config_line="00", reset_time=0.2)
+    options.parameters[ax3500.PARAM_INPUT_MODE] = ax3500.INPUT_MODE_RC
+    options.parameters[ax3500.PARAM_MOTOR_MODE] = 0x00  # separate channels
+    async with driven(tmp_path, "motor.reply_timeout=0.2", options=options) as (ctx, sim):
+        await connected(ctx)
+        assert sim.device.resets == 1 and sim.device.mixed and sim.device.watchdog
+        assert sim.device.parameters[ax3500.PARAM_MOTOR_MODE] == 1
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.5, 0.0))
+        await wait_until(lambda: sim.device.channels == (64, 0))
+
+
+async def test_wrong_mode_refused_when_not_allowed_to_configure(tmp_path: Path) -> None:
+    options = SimOptions()
+    options.parameters[ax3500.PARAM_MOTOR_MODE] = 0x00
+    async with driven(tmp_path, "motor.configure_mode=false", options=options) as (ctx, sim):
+        await wait_until(lambda: status(ctx) is not None and "motor mode 00" in status(ctx).error)  # type: ignore[union-attr]
+        assert not status(ctx).connected and sim.device.resets == 0  # type: ignore[union-attr]
+
+
+async def test_shutdown_commands_zero_first(tmp_path: Path) -> None:
+    async with driven(tmp_path) as (ctx, sim):
+        await connected(ctx)
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.8, -0.3))
+        await wait_until(lambda: sim.device.channels == (102, -38))
+        await ctx.supervisor.stop()
+        assert sim.device.channels == (0, 0)
+        assert sim.device.received[-2:] == ["!A00", "!B00"]
+
+
+async def test_lights_and_battery_monitor_commands(tmp_path: Path) -> None:
+    gpio = tmp_path / "gpio17"
+    gpio.write_text("0\n")
+    async with driven(tmp_path, f"motor.positional_lights_output=gpio:{gpio}") as (ctx, sim):
+        lights: list[LightsState] = []
+        ctx.bus.subscribe(topics.LIGHTS_STATE, lights.append)
+        await connected(ctx)
+        result = await dispatch_command(ctx, MAIN_LIGHTS, "ON", None)
+        assert result.accepted and sim.device.outputs["C"] and lights[-1] == LightsState(True)
+        result = await dispatch_command(ctx, POSITIONAL_LIGHTS, "ON", None)
+        assert result.accepted and gpio.read_text() == "1\n"
+        assert lights[-1] == LightsState(True, True)
+        result = await dispatch_command(ctx, MAIN_LIGHTS, "maybe", None)
+        assert not result.accepted
+        result = await dispatch_command(ctx, MAIN_LIGHTS, "OFF", None)
+        assert result.accepted and not sim.device.outputs["C"]
+        # A controller restart switches its outputs off: the driver puts the lights back.
+        await dispatch_command(ctx, MAIN_LIGHTS, "ON", None)
+        sim.device.outputs["C"] = False
+        sim._write(b"\rOK\r")
+        await wait_until(lambda: sim.device.outputs["C"])
+        result = await dispatch_command(ctx, BATTERY_MONITOR, "OFF", None)
+        assert result.accepted and not status(ctx).battery_monitor  # type: ignore[union-attr]
+        # While the controller is away, its output cannot switch; the GPIO still can.
+        sim.unplug()
+        await wait_until(lambda: not status(ctx).connected)  # type: ignore[union-attr]
+        assert not (await dispatch_command(ctx, MAIN_LIGHTS, "OFF", None)).accepted
+        assert (await dispatch_command(ctx, POSITIONAL_LIGHTS, "OFF", None)).accepted
+        assert gpio.read_text() == "0\n"
+
+
+async def test_positional_lights_not_fitted(tmp_path: Path) -> None:
+    async with driven(tmp_path) as (ctx, _sim):
+        await connected(ctx)
+        result = await dispatch_command(ctx, POSITIONAL_LIGHTS, "ON", None)
+        assert not result.accepted and "positional_lights_output" in result.reason
+
+
+async def test_status_polls_reach_telemetry_names(tmp_path: Path) -> None:
+    async with driven(tmp_path, "motor.poll_hz=10") as (ctx, _sim):
+        await connected(ctx)
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.5, 0.0))
+        await wait_until(lambda: (s := status(ctx)) is not None and s.motor_amps is not None)
+        report = status(ctx)
+        assert report is not None and 23.0 < report.battery_volts < 25.0  # type: ignore[operator]
+        assert report.heatsink_c is not None and 20.0 < report.heatsink_c[0] < 60.0
+        assert report.internal_volts is not None and 11.5 < report.internal_volts < 13.0
+        assert report.motor_amps is not None and report.motor_amps[0] > 1.0
+
+
+# --------------------------------------------------------------------------- end to end, --sim
+
+
+def sim_config(*overrides: str) -> Any:
+    config = quiet_platform_config("motor.enabled=true", *overrides)
+    config.sim.enabled = True
+    return config
+
+
+async def open_connection(daemon: PlatformDaemon, key: bytes) -> PlatformConnection:
+    conn = PlatformConnection(
+        daemon.config.platform.id, daemon.ctx.signaling_url, station_id="test", fleet_key=key
+    )
+    await conn.open()
+    return conn
+
+
+async def test_sim_platform_teleop_override_and_deadman(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    daemon = await platform_factory(sim_config("velocity.deadman=0.2"), fleet_key)
+    sim: Ax3500Simulator = daemon.ctx.sim["ax3500"]
+    ctx = daemon.ctx
+    await connected(ctx)
+    vehicle = shared_vehicle(ctx)
+    # Autonomous Mode: cmd_vel drives the controller.
+    daemon.bus.publish(topics.CMD_VEL, Velocity(0.3, 0.0))
+    await wait_until(lambda: sim.device.channels == (38, 0))
+    conn = await open_connection(daemon, fleet_key)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    try:
+        # Engaged: acknowledged with the motors at zero, then they follow the stream.
+        assert await conn.call("set_manual_override", engaged=True) is True
+        await wait_until(lambda: sim.device.channels == (0, 0))
+        daemon.bus.publish(topics.CMD_VEL, Velocity(0.9, 0.0))  # ignored now
+        encoder = pvel.PvelEncoder(key=conn.session_key, session_id=conn.session_id)
+        target = ("127.0.0.1", daemon.config.velocity.port)
+        for _ in range(10):
+            sock.sendto(encoder.encode(1.0, 0.0), target)
+            await asyncio.sleep(0.05)
+        assert sim.device.channels == (127, 0)
+        assert vehicle.pose().speed_mps > 0.5  # the simulated vehicle moves
+        # The stream stops: the deadman brings the controller's outputs to zero.
+        await wait_until(lambda: sim.device.channels == (0, 0))
+        sock.sendto(encoder.encode(-0.5, 0.5), target)
+        await wait_until(lambda: sim.device.channels == (-64, 64))
+        # Disengaged: zero, then autonomy again.
+        assert await conn.call("set_manual_override", engaged=False) is True
+        await wait_until(lambda: sim.device.channels == (0, 0))
+        daemon.bus.publish(topics.CMD_VEL, Velocity(0.3, 0.0))
+        await wait_until(lambda: sim.device.channels == (38, 0))
+        # Lights through the common protocol, into the simulated controller.
+        answer = await conn.call("set_lights", which="main", on=True)
+        assert answer["accepted"] and sim.device.outputs["C"]
+        telemetry = await conn.call("get_telemetry_report")
+        assert telemetry["controller"]["connected"] and telemetry["lights"]["main"]
+    finally:
+        sock.close()
+        await conn.close()
+    await daemon.stop()
+    assert sim.device.channels == (0, 0) and sim.device.received[-2:] == ["!A00", "!B00"]
+    assert not sim.plugged  # the simulator closed after the driver
