@@ -270,6 +270,21 @@ class GpsFix:
     time: str
     """UTC, ISO 8601 ("2017-01-10T00:09:41.000Z"; time of day only until a date is known)."""
 
+    def as_dict(self) -> dict[str, Any]:
+        """Short keys for telemetry (a snapshot must fit one datagram); unknowns left out."""
+        plain = {
+            "lat": self.latitude,
+            "lon": self.longitude,
+            "alt": self.altitude_m,
+            "speed": self.speed_mps,
+            "course": self.course_deg,
+            "quality": self.quality,
+            "sats": self.satellites,
+            "hdop": self.hdop,
+            "time": self.time,
+        }
+        return {key: value for key, value in plain.items() if value is not None}
+
 
 @dataclass(frozen=True)
 class GpsFixLost:
@@ -294,16 +309,18 @@ class GpsStats:
     error: str = ""
 
     def as_dict(self) -> dict[str, Any]:
-        return {
+        """Compact, for telemetry (one datagram): no port or counts by type, zeros left out."""
+        plain: dict[str, Any] = {
             "connected": self.connected,
-            "port": self.port,
             "sentences": self.sentences,
-            "by_type": dict(self.by_type),
-            "dropped": dict(self.dropped),
             "fixes": self.fixes,
-            "incomplete_epochs": self.incomplete_epochs,
-            "error": self.error,
+            "dropped": {reason: count for reason, count in self.dropped.items() if count},
         }
+        if self.incomplete_epochs:
+            plain["incomplete_epochs"] = self.incomplete_epochs
+        if self.error:
+            plain["error"] = self.error
+        return plain
 
 
 @dataclass(frozen=True)
@@ -319,6 +336,15 @@ class Attitude:
     yaw_deg: float
     """Counter-clockwise about z-up from the start orientation (no magnetometer: it drifts)."""
 
+    def as_dict(self) -> dict[str, Any]:
+        """Telemetry form: degrees to 0.01, quaternion to 1e-4 (one datagram per snapshot)."""
+        return {
+            "roll": round(self.roll_deg, 2),
+            "pitch": round(self.pitch_deg, 2),
+            "yaw": round(self.yaw_deg, 2),
+            "q": [round(self.w, 4), round(self.x, 4), round(self.y, 4), round(self.z, 4)],
+        }
+
 
 @dataclass(frozen=True)
 class ImuStatus:
@@ -330,3 +356,14 @@ class ImuStatus:
     temperature_c: float | None = None
     samples: int = 0
     read_errors: int = 0
+
+    def as_dict(self) -> dict[str, Any]:
+        plain: dict[str, Any] = {
+            "ok": self.ok,
+            "temp_c": self.temperature_c,
+            "samples": self.samples,
+            "read_errors": self.read_errors,
+        }
+        if self.error:
+            plain["error"] = self.error
+        return plain

@@ -251,8 +251,9 @@ async def test_sim_platform_publishes_attitude(
     def imu() -> dict[str, Any]:
         return (daemon.ctx.telemetry_sources["attitude"]() or {}).get("imu") or {}
 
-    await wait_until(lambda: imu().get("temperature_c") is not None, 5.0)
+    await wait_until(lambda: imu().get("temp_c") is not None, 5.0)
     section = daemon.ctx.telemetry_sources["attitude"]()
-    assert abs(section["roll_deg"]) < 2.0 and abs(section["pitch_deg"]) < 2.0
-    assert section["imu"]["error"] == ""
-    assert 20.0 < section["imu"]["temperature_c"] < 40.0
+    assert abs(section["roll"]) < 2.0 and abs(section["pitch"]) < 2.0
+    assert len(section["q"]) == 4
+    assert section["imu"]["ok"] is True and "error" not in section["imu"]
+    assert 20.0 < section["imu"]["temp_c"] < 40.0

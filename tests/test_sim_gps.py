@@ -101,9 +101,12 @@ async def test_real_reader_in_sim_platform(
     def stats() -> dict[str, Any]:
         return daemon.ctx.telemetry_sources["gps"]().get("stats") or {}
 
-    await wait_until(lambda: stats().get("by_type", {}).get("RMC", 0) >= 5, 5.0)
+    await wait_until(lambda: stats().get("fixes", 0) >= 5, 5.0)
     assert stats()["connected"] is True
-    assert sum(stats()["dropped"].values()) == 0
+    assert stats()["sentences"] >= 20 and stats()["dropped"] == {}
+    assert section["lat"] == fixes[-1].latitude or section["lat"] == pytest.approx(
+        44.0689, abs=1e-4
+    )
 
 
 async def test_simulate_gps_standalone_prints_a_pty_that_yields_nmea() -> None:

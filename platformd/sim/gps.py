@@ -135,6 +135,15 @@ class GpsSimulator(Actor):
         self._closed = False
 
     async def run(self) -> None:
+        try:
+            await self._serve()
+        except asyncio.CancelledError:
+            # Closed on cancellation, not in a stop hook: stop hooks run before the reader is
+            # cancelled, and it would log the vanished port on every shutdown.
+            self.close()
+            raise
+
+    async def _serve(self) -> None:
         period = 1.0 / self.rate_hz
         self._write(self.generator.banner())
         # Epochs on the UTC grid, like a receiver's (hhmmss.00 at 1 Hz, .10 .20 at 10 Hz).
@@ -158,9 +167,6 @@ class GpsSimulator(Actor):
         except OSError as err:
             self.overruns += 1
             _LOGGER.debug("simulated GPS write failed: %s", err)
-
-    async def async_stop(self) -> None:
-        self.close()
 
     def close(self) -> None:
         """Close the pty (idempotent)."""

@@ -1,0 +1,197 @@
+"""Sensors: GPS sentence-to-fix latency, and platform CPU with GPS 10 Hz, IMU 100 Hz, telemetry 5 Hz.
+
+Latency: an in-process GPS reader on a real pty. Each epoch (RMC VTG GGA GSA from the
+simulator's generator) is written except its last byte; after a pause the last byte is
+written and timed to the ``GPS_FIX`` callback on the bus (which runs in the publishing call).
+
+CPU: a ``brasidas-platform --sim`` child process (GPS simulator at 10 Hz on its pty and the
+real reader, the emulated MPU-6050 sampled at 100 Hz and fused, the simulated motor
+controller when present), a station session pulling telemetry at 5 Hz for 10 s, no media.
+utime+stime of the child over the window; the same with GPS and IMU disabled as a baseline.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import datetime as dt
+import os
+import time
+import tty
+from collections.abc import Callable
+from typing import Any
+
+from bench.support import cpu_seconds, free_port, percentiles, start_platform
+from brasidas import security, topics
+from brasidas.bus import Bus
+from brasidas.codecs.telemetry import TelemetryDecoder
+from brasidas.config import GpsSection
+from brasidas.messages import GpsFix
+from platformd.gps import GpsReader
+from platformd.sim.gps import NmeaGenerator
+from platformd.sim.vehicle import VehicleModel
+from stationd.client import PlatformConnection
+
+EPOCHS = 250
+PAUSE_S = 0.01
+WINDOW_S = 10.0
+MEDIA_OFF = ("navcam.enabled=false", "audio.enabled=false", "payload_camera.enabled=false")
+
+
+async def _write_all(fd: int, data: bytes) -> None:
+    loop = asyncio.get_running_loop()
+    view = memoryview(data)
+    while view:
+        try:
+            view = view[os.write(fd, view) :]
+        except BlockingIOError:
+            ready = loop.create_future()
+            loop.add_writer(fd, ready.set_result, None)
+            try:
+                await ready
+            finally:
+                loop.remove_writer(fd)
+
+
+async def gps_latency() -> dict[str, Any]:
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+    bus = Bus()
+    reader = GpsReader(bus, GpsSection(port=os.ttyname(slave)))
+    published: list[float] = []
+    arrived = asyncio.Event()
+
+    def on_fix(_fix: GpsFix) -> None:
+        published.append(time.perf_counter())  # in the publishing call: no loop hop
+        arrived.set()
+
+    bus.subscribe(topics.GPS_FIX, on_fix)
+    generator = NmeaGenerator()
+    vehicle = VehicleModel()
+    start = dt.datetime.now(dt.UTC).replace(microsecond=0)
+    samples: list[float] = []
+    task = asyncio.create_task(reader.run(), name="bench:gps")
+    try:
+        await _until(lambda: reader.connected)
+        for k in range(EPOCHS + 1):
+            epoch = generator.epoch(vehicle.pose(), start + dt.timedelta(seconds=k / 10))
+            await _write_all(master, epoch[:-1])
+            await asyncio.sleep(PAUSE_S)  # the reader has consumed all but the last byte
+            arrived.clear()
+            sent = time.perf_counter()
+            await _write_all(master, epoch[-1:])
+            try:
+                await asyncio.wait_for(arrived.wait(), 2.0)
+            except TimeoutError:
+                continue
+            if k > 0:  # the first epoch teaches the reader its cycle ender (then 0.3 s quiet)
+                samples.append((published[-1] - sent) * 1000)
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        os.close(master)
+        os.close(slave)
+    figures = {f"gps_last_byte_to_fix_ms_{k}": v for k, v in percentiles(samples).items()}
+    figures["gps_latency_epochs"] = len(samples)
+    figures["gps_dropped"] = sum(reader.decoder.dropped.values())
+    return figures
+
+
+async def _until(predicate: Callable[[], bool], timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise TimeoutError("condition not met")
+        await asyncio.sleep(0.01)
+
+
+class _Counter(asyncio.DatagramProtocol):
+    def __init__(self, decoder: TelemetryDecoder) -> None:
+        self.decoder = decoder
+        self.accepted = 0
+
+    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
+        self.accepted += len(self.decoder.feed(data))
+
+
+async def _wait_ready(port: int) -> None:
+    deadline = time.monotonic() + 15
+    while time.monotonic() < deadline:
+        try:
+            _, writer = await asyncio.open_connection("127.0.0.1", port)
+            writer.close()
+            await writer.wait_closed()
+            return
+        except OSError:
+            await asyncio.sleep(0.05)
+    raise TimeoutError("platform did not start")
+
+
+async def platform_cpu(*overrides: str) -> dict[str, Any]:
+    port = free_port()
+    process = await start_platform(
+        f"signaling.port={port}", "beacon.enabled=false", *MEDIA_OFF, *overrides
+    )
+    try:
+        await _wait_ready(port)
+        key = security.load_key(security.default_key_path())
+        connection = PlatformConnection(
+            "brasidas-1", f"http://127.0.0.1:{port}", station_id="bench", fleet_key=key
+        )
+        await connection.open()
+        loop = asyncio.get_running_loop()
+        counter = _Counter(TelemetryDecoder("brasidas-1", connection.session_key))
+        transport, _ = await loop.create_datagram_endpoint(
+            lambda: counter, local_addr=("127.0.0.1", 0)
+        )
+        try:
+            udp_port = transport.get_extra_info("sockname")[1]
+            await connection.call("request_telemetry", port=udp_port, rate_hz=5.0)
+            await asyncio.sleep(2.0)  # start-up settles
+            cpu0, wall0, received0 = cpu_seconds(process.pid), time.monotonic(), counter.accepted
+            await asyncio.sleep(WINDOW_S)
+            cpu = cpu_seconds(process.pid) - cpu0
+            wall = time.monotonic() - wall0
+            received = counter.accepted - received0
+            report = await connection.call("get_telemetry_report")
+        finally:
+            transport.close()
+            await connection.close()
+    finally:
+        if process.returncode is None:
+            process.terminate()
+            try:
+                await asyncio.wait_for(process.wait(), 5)
+            except TimeoutError:
+                process.kill()
+                await process.wait()
+    gps = report.get("gps") or {}
+    attitude = report.get("attitude") or {}
+    return {
+        "cpu_pct": round(100 * cpu / wall, 2),
+        "telemetry_hz": round(received / wall, 2),
+        "gps_fix": gps.get("fix"),
+        "gps_fixes": (gps.get("stats") or {}).get("fixes"),
+        "imu_samples": (attitude.get("imu") or {}).get("samples"),
+    }
+
+
+async def run() -> dict[str, Any]:
+    figures = await gps_latency()
+    full = await platform_cpu("gps.sim_rate_hz=10", "imu.rate_hz=100", "telemetry.rate_hz=5")
+    base = await platform_cpu("gps.enabled=false", "imu.enabled=false", "telemetry.rate_hz=5")
+    figures.update(
+        {
+            "platform_cpu_pct_one_core": full["cpu_pct"],
+            "platform_cpu_pct_without_gps_imu": base["cpu_pct"],
+            "telemetry_rate_measured_hz": full["telemetry_hz"],
+            "gps_fix_in_telemetry": full["gps_fix"],
+            "gps_fixes_at_end": full["gps_fixes"],
+            "imu_samples_at_end": full["imu_samples"],
+            "cpu_window_s": WINDOW_S,
+            "target": "platform CPU < 5 % of one core (GPS 10 Hz, IMU 100 Hz, telemetry 5 Hz)",
+        }
+    )
+    return figures
