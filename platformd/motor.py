@@ -10,8 +10,8 @@ What it sends, in priority order:
 1. the velocity, when ``MOTOR_COMMAND`` (the motion arbiter) changed it. **Latest wins**: the
    newest command replaces any not yet sent, so the line never holds a backlog;
 2. accessory outputs (lights, 10.6/10.7);
-3. a refresh of both channels when nothing was sent for ``1 / refresh_hz`` (the controller's
-   watchdog stops the motors after 1 s of silence). A command that repeats the current one
+3. a refresh (channel 1 again) when nothing was sent for ``1 / refresh_hz`` (the controller's
+   watchdog stops the motors after 1 s of silence; a ``W`` or ``OK`` resends both channels). A command that repeats the current one
    and arrives after most of that period triggers the refresh at once, so in teleop the
    refreshes go out right behind a stream packet rather than at a random moment;
 4. status polls (``?e ?m ?a``), only right behind a velocity exchange: in teleop the line is
@@ -32,6 +32,7 @@ import logging
 import os
 import termios
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
@@ -99,6 +100,8 @@ class SerialLink(asyncio.Protocol):
         self._transport: asyncio.BaseTransport | None = None
         self._exchange: Exchange | None = None
         self._reply: asyncio.Future[Reply] | None = None
+        self.on_unsolicited: Callable[[], None] | None = None
+        """Called when a W or an OK line arrives (the owner looks at the counters)."""
 
     @classmethod
     async def open(cls, config: MotorSection) -> SerialLink:
@@ -125,8 +128,12 @@ class SerialLink(asyncio.Protocol):
         self._transport = transport
 
     def data_received(self, data: bytes) -> None:
+        watchdog, banners = self.parser.watchdog_chars, self.banners
         for line in self.parser.feed(data):
             self._on_line(line)
+        changed = self.parser.watchdog_chars != watchdog or self.banners != banners
+        if changed and self.on_unsolicited is not None:
+            self.on_unsolicited()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._closed(f"port lost: {exc}" if exc else "port closed")
@@ -285,6 +292,9 @@ class MotorController(Actor):
         self._unanswered_in_row = 0
         self._reported_error = ""
         self._restore_lights = False
+        self._watchdog_seen = 0
+        self._generation = 0
+        """Bumped whenever the controller's outputs were lost (W, restart)."""
         self._gpio_requests: asyncio.Queue[_OutputRequest] = asyncio.Queue()
 
     # ------------------------------------------------------------------ lifecycle
@@ -386,6 +396,8 @@ class MotorController(Actor):
 
     async def _bring_up(self, link: SerialLink) -> None:
         """RS-232 mode (ten CRs if needed), the configured mode checked, zero commanded."""
+        self._watchdog_seen = 0
+        link.on_unsolicited = self._wake.set
         reply = await self._probe(link)
         if reply is None:
             link.banner.clear()
@@ -467,7 +479,6 @@ class MotorController(Actor):
         """One command, resent once on ``-``; None when refused twice. Raises ReplyTimeout."""
         for attempt in (1, 2):
             self.counters["commands"] += 1
-            watchdog_before = link.parser.watchdog_chars
             try:
                 reply = await link.request(command)
             except ReplyTimeout:
@@ -479,7 +490,7 @@ class MotorController(Actor):
                     ) from None
                 raise
             finally:
-                self._account(link, watchdog_before)
+                self._account(link)
             self._unanswered_in_row = 0
             if reply.ok:
                 return reply
@@ -489,26 +500,36 @@ class MotorController(Actor):
         _LOGGER.warning("controller refused %s twice", command.text)
         return None
 
-    def _account(self, link: SerialLink, watchdog_before: int) -> None:
+    def _account(self, link: SerialLink) -> None:
+        """Take note of what the controller said on its own: W (watchdog), OK (restart)."""
         self.counters["stray_lines"] = link.stray_lines
         self.counters["garbage_lines"] = link.parser.dropped_lines
-        if link.parser.watchdog_chars > watchdog_before:
+        if link.parser.watchdog_chars > self._watchdog_seen:
             # The controller's watchdog stopped the motors: both channels must be resent.
-            self.counters["watchdog_w"] += link.parser.watchdog_chars - watchdog_before
-            self.sent = [None, None]
+            self.counters["watchdog_w"] += link.parser.watchdog_chars - self._watchdog_seen
+            self._watchdog_seen = link.parser.watchdog_chars
+            if self._ready:
+                _LOGGER.warning("controller watchdog tripped (W): commanding it again")
+            self._invalidate()
         if link.banners and self._ready:
             # An OK in mid-session: the controller restarted (power glitch, reset).
             _LOGGER.warning("motor controller restarted: commanding it again")
             self.counters["controller_restarts"] += link.banners
-            self.sent = [None, None]
+            self._invalidate()
             self._restore_lights = True
         link.banners = 0
+
+    def _invalidate(self) -> None:
+        """The controller's outputs are not what it acknowledged: send both channels again."""
+        self.sent = [None, None]
+        self._generation += 1
 
     async def _serve(self, link: SerialLink) -> None:
         loop = asyncio.get_running_loop()
         after_velocity = False
         while True:
             self._wake.clear()
+            self._account(link)
             now = loop.time()
             if self.desired[0] != self.sent[0] or self.desired[1] != self.sent[1]:
                 await self._send_velocity(link)
@@ -523,7 +544,9 @@ class MotorController(Actor):
                 after_velocity = False
                 continue
             if now - self._last_velocity_at >= self.refresh_period:
-                self.sent = [None, None]
+                # Channel 1 again keeps the watchdog fed; channel 2 was acknowledged and only
+                # a watchdog trip or a restart (both seen: W, OK) would undo it.
+                self.sent[0] = None
                 continue
             if self._stopping:
                 pass  # zero is the last word: no polls or outputs any more
@@ -546,10 +569,13 @@ class MotorController(Actor):
         channel = 1 if self.desired[0] != self.sent[0] else 2
         level = self.desired[channel - 1]
         self.counters["velocity_commands"] += 1
+        generation = self._generation
         try:
             reply = await self._send(link, ax3500.motor(channel, level))
         except ReplyTimeout:
             return  # still differs: tried again at once
+        if generation != self._generation:
+            return  # a W or a restart during the exchange: it may not have stuck
         # Refused twice (reported) counts as sent too, so the line is not hammered: the
         # refresh tries again within one period.
         del reply
