@@ -339,7 +339,7 @@ class MotorController(Actor):
                     await self._bring_up(link)
                     if failures:
                         self.counters["reconnects"] += 1
-                        _LOGGER.warning("motor controller back on %s", self.config.port)
+                        _LOGGER.info("motor controller back on %s", self.config.port)
                     failures = 0
                     backoff = RECONNECT_INITIAL
                     await self._serve(link)
@@ -397,6 +397,7 @@ class MotorController(Actor):
     async def _bring_up(self, link: SerialLink) -> None:
         """RS-232 mode (ten CRs if needed), the configured mode checked, zero commanded."""
         self._watchdog_seen = 0
+        self._unanswered_in_row = 0
         link.on_unsolicited = self._wake.set
         reply = await self._probe(link)
         if reply is None:
