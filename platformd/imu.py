@@ -123,8 +123,11 @@ class Mpu6050Driver:
             raise ImuError("the MPU-6050 stays asleep after PWR_MGMT_1 = 0x01")
 
     def read(self) -> Sample:
-        raw = bytes(self.bus.read_i2c_block_data(self.address, DATA_START, DATA_LENGTH))
-        return self.convert(time.monotonic(), raw)
+        return self.convert(time.monotonic(), bytes(self.read_raw()))
+
+    def read_raw(self) -> list[int]:
+        """The 14 data bytes (blocking I2C transfer)."""
+        return self.bus.read_i2c_block_data(self.address, DATA_START, DATA_LENGTH)
 
     def convert(self, when: float, raw: bytes) -> Sample:
         ax, ay, az, temp, gx, gy, gz = struct.unpack(">7h", raw)
@@ -256,23 +259,26 @@ class ImuReader(Actor):
         """The sampling thread: reads at ``rate_hz`` on a steady clock, hands over batches."""
         period = 1.0 / self.config.rate_hz
         per_batch = max(1, round(BATCH_SECONDS / period))
-        batch: list[Sample] = []
+        # Raw bytes and times only: the thread holds the GIL as briefly as it can; the
+        # conversion runs on the loop with the fusion.
+        batch: list[tuple[float, list[int]]] = []
         errors = 0
         in_a_row = 0
         due = time.monotonic()
         while not stop.is_set():
             try:
-                batch.append(driver.read())
+                raw = driver.read_raw()
+                batch.append((time.monotonic(), raw))
                 in_a_row = 0
             except OSError as err:
                 errors += 1
                 in_a_row += 1
                 if in_a_row >= MAX_CONSECUTIVE_ERRORS:
-                    self._to_loop(loop, self._on_batch, batch, errors)
+                    self._to_loop(loop, self._on_batch, driver, batch, errors)
                     self._to_loop(loop, _set_result, failed, f"I2C read failed: {err}")
                     return
             if len(batch) >= per_batch or (errors and in_a_row == 1):
-                self._to_loop(loop, self._on_batch, batch, errors)
+                self._to_loop(loop, self._on_batch, driver, batch, errors)
                 batch, errors = [], 0
             due += period
             delay = due - time.monotonic()
@@ -292,18 +298,21 @@ class ImuReader(Actor):
 
     # ------------------------------------------------------------------ on the loop
 
-    def _on_batch(self, batch: list[Sample], errors: int) -> None:
-        """Fuse a batch and publish; must run on the event loop."""
+    def _on_batch(
+        self, driver: Mpu6050Driver, batch: list[tuple[float, list[int]]], errors: int
+    ) -> None:
+        """Convert, fuse and publish a batch; must run on the event loop."""
         self.read_errors += errors
-        for sample in batch:
-            dt = 0.0 if self._last_time is None else sample.time - self._last_time
-            self._last_time = sample.time
+        for when, raw in batch:
+            sample = driver.convert(when, bytes(raw))
+            dt = 0.0 if self._last_time is None else when - self._last_time
+            self._last_time = when
             self.filter.update(sample.gyro_rad_s, sample.accel_mps2, min(dt, 0.1))
             self.temperature_c = sample.temperature_c
         self.samples += len(batch)
         if not batch:
             return
-        now = batch[-1].time
+        now = batch[-1][0]
         if now - self._last_attitude_at >= ATTITUDE_INTERVAL * 0.9:
             self._last_attitude_at = now
             w, x, y, z = self.filter.q

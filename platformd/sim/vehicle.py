@@ -13,6 +13,7 @@ heading (clockwise from north) that GPS course and the operator use.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -76,6 +77,9 @@ class VehicleModel:
         self.max_yaw_rate = max_yaw_rate_rad_s
         self.tau = time_constant_s
         self._clock = clock
+        # The emulated IMU samples the pose from its driver's thread while the other
+        # simulators use the loop: integration steps must not interleave.
+        self._lock = threading.Lock()
         self._t = clock()
         self._x = 0.0
         self._y = 0.0
@@ -88,9 +92,10 @@ class VehicleModel:
 
     def set_command(self, speed: float, steering: float) -> None:
         """Normalized forward speed and turn rate (positive = left), each clamped to [-1, 1]."""
-        self._advance()
-        self._target_speed = max(-1.0, min(1.0, speed)) * self.max_speed
-        self._target_yaw_rate = max(-1.0, min(1.0, steering)) * self.max_yaw_rate
+        with self._lock:
+            self._advance()
+            self._target_speed = max(-1.0, min(1.0, speed)) * self.max_speed
+            self._target_yaw_rate = max(-1.0, min(1.0, steering)) * self.max_yaw_rate
 
     @property
     def command(self) -> tuple[float, float]:
@@ -98,7 +103,11 @@ class VehicleModel:
         return (self._target_speed / self.max_speed, self._target_yaw_rate / self.max_yaw_rate)
 
     def pose(self) -> Pose:
-        self._advance()
+        with self._lock:
+            self._advance()
+            return self._pose()
+
+    def _pose(self) -> Pose:
         lat0, lon0, alt0 = self.origin
         latitude = lat0 + math.degrees(self._y / EARTH_RADIUS_M)
         longitude = lon0 + math.degrees(self._x / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
