@@ -156,3 +156,35 @@ async def test_simulate_gps_standalone_prints_a_pty_that_yields_nmea() -> None:
     lines = [line for line in received.split(b"\r\n") if line.startswith(b"$GPRMC")]
     assert lines and pynmea2.parse(lines[0].decode(), check=True).status == "A"
     assert process.returncode == 0
+
+
+async def test_sim_platform_reads_an_explicit_gps_port_instead(
+    platform_factory: Callable[[PlatformConfig, bytes | None], Awaitable[PlatformDaemon]],
+    fleet_key: bytes,
+) -> None:
+    master, slave = os.openpty()
+    try:
+        config = quiet_platform_config(
+            "sim.enabled=true", "gps.enabled=true", f"gps.port={os.ttyname(slave)}"
+        )
+        daemon = await platform_factory(config, fleet_key)
+        assert "gps" not in daemon.ctx.sim
+        fixes: list[GpsFix] = []
+        daemon.bus.subscribe(topics.GPS_FIX, fixes.append)
+
+        def connected() -> bool:
+            stats = daemon.bus.last(topics.GPS_STATS)
+            return stats is not None and stats.connected
+
+        await wait_until(connected)
+        generator = NmeaGenerator(random.Random(1))
+        pose = VehicleModel(latitude=-27.21, longitude=153.05).pose()
+        when = dt.datetime(2026, 11, 23, 12, 0, 0, tzinfo=dt.UTC)
+        os.write(
+            master, generator.epoch(pose, when) + generator.epoch(pose, when.replace(second=1))
+        )
+        await wait_until(lambda: len(fixes) >= 1)
+        assert metres_between(-27.21, 153.05, fixes[0].latitude, fixes[0].longitude) < 10.0
+    finally:
+        os.close(master)
+        os.close(slave)

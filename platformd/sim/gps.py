@@ -28,6 +28,7 @@ from collections.abc import Callable
 from brasidas.actor import Actor
 from brasidas.bus import Bus
 from brasidas.codecs.nmea import sentence
+from brasidas.config import GpsSection
 from platformd.context import PlatformContext
 from platformd.sim.vehicle import EARTH_RADIUS_M, Pose, VehicleModel, shared_vehicle
 
@@ -190,6 +191,10 @@ def _ddmm(degrees: float, width: int) -> str:
 
 async def async_setup(ctx: PlatformContext) -> None:
     if not (ctx.config.sim.enabled and ctx.config.gps.enabled):
+        return
+    if ctx.config.gps.port != GpsSection().port:
+        # ``--set gps.port=...`` names a pty or a real receiver: read that instead.
+        _LOGGER.info("gps.port is %s: no simulated receiver", ctx.config.gps.port)
         return
     simulator = GpsSimulator(ctx.bus, shared_vehicle(ctx), ctx.config.gps.sim_rate_hz)
     ctx.config.gps.port = simulator.path
