@@ -11,6 +11,8 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from brasidas import topics
 from brasidas.bus import Bus
@@ -225,3 +227,53 @@ async def test_vanished_port_is_retried_and_a_new_one_works() -> None:
     finally:
         first.close()
         second.close()
+
+
+async def test_silent_receiver_loses_the_fix(pty: Pty) -> None:
+    bus = Bus()
+    seen = Recorder(bus)
+    reader = GpsReader(bus, GpsSection(port=pty.path, fix_timeout=0.5))
+    async with running(reader):
+        await wait_until(lambda: reader.connected)
+        await pty.write(epoch(0))
+        await wait_until(lambda: len(seen.fixes) == 1)
+        await wait_until(lambda: len(seen.lost) == 1)  # the antenna cable is cut: silence
+        assert seen.lost[0].reason == "no fix for 0.5 s"
+        await pty.write(epoch(5))
+        await wait_until(lambda: len(seen.fixes) == 2)
+    assert len(seen.lost) == 1
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.binary(max_size=200) | st.sampled_from(receiver_lines("ublox-8")[:30])))
+def test_decoder_survives_any_bytes(chunks: list[bytes]) -> None:
+    decoder, assembler = NmeaDecoder(), EpochAssembler()
+    for chunk in chunks:
+        for parsed in decoder.feed(chunk):
+            assembler.feed(parsed, 0.0)
+    assembler.poll(1.0)
+    assert decoder.sentences >= 0 and all(count >= 0 for count in decoder.dropped.values())
+
+
+_FIELD = st.text(alphabet="0123456789.,-+NSEWAVMKTxyz ", max_size=14)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(
+        st.tuples(
+            st.sampled_from(["GPRMC", "GNGGA", "GPGLL", "GPVTG", "GNGSA", "GNZDA"]),
+            st.lists(_FIELD, max_size=14),
+        ),
+        max_size=20,
+    )
+)
+def test_valid_checksums_with_garbage_fields_never_raise(
+    bodies: list[tuple[str, list[str]]],
+) -> None:
+    decoder, assembler = NmeaDecoder(), EpochAssembler()
+    for address, fields in bodies:
+        for parsed in decoder.feed(sentence(",".join([address, *fields]))):
+            for fix in assembler.feed(parsed, 0.0):
+                assert fix is None or -90 <= fix.latitude <= 90
+    assembler.poll(1.0)

@@ -137,7 +137,11 @@ class NmeaDecoder:
             return
         try:
             parsed = pynmea2.parse(text, check=False)
-        except (pynmea2.ParseError, ValueError):
+            # pynmea2 hands back the raw string when a time does not parse: not a sentence
+            # to build an epoch on.
+            if kind in TIMED and isinstance(parsed.timestamp, str) and parsed.timestamp:
+                raise ValueError(f"bad time {parsed.timestamp!r}")
+        except (pynmea2.ParseError, ValueError, TypeError):
             self._drop(DropReason.MALFORMED)
             self.sentences -= 1
             self.by_type[kind] -= 1
