@@ -55,6 +55,7 @@ class GpsReader(Actor):
         self._has_fix = False
         self._last_fix_at = 0.0
         self._stats: GpsStats | None = None
+        self._stats_at = -STATS_INTERVAL
 
     async def run(self) -> None:
         async with asyncio.TaskGroup() as group:
@@ -189,9 +190,13 @@ class GpsReader(Actor):
         )
 
     def _publish_stats(self) -> None:
+        """Publish the counters if they changed, at most about once a second."""
+        if self._clock() - self._stats_at < 0.9 * STATS_INTERVAL:
+            return  # e.g. a port flapping fast: the next tick reports it
         stats = self.stats()
         if stats != self._stats:
             self._stats = stats
+            self._stats_at = self._clock()
             self.bus.publish(topics.GPS_STATS, stats)
 
     async def _stats_loop(self) -> None:
