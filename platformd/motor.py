@@ -210,15 +210,26 @@ async def _create(
     framing: tuple[int, str, int],
 ) -> None:
     bytesize, parity, stopbits = framing
-    transport, _ = await serial_asyncio.create_serial_connection(
-        loop,
-        lambda: link,
+    device = serial.serial_for_url(
         port,
         baudrate=baudrate,
         bytesize=bytesize,
         parity=parity,
         stopbits=stopbits,
+        timeout=0,
+        write_timeout=0,
+        # flock: a second daemon (or any program asking for exclusivity) cannot drive the
+        # same controller at the same time.
+        exclusive=True,
+        do_not_open=True,
     )
+    try:
+        device.open()
+        transport, _ = await serial_asyncio.connection_for_serial(loop, lambda: link, device)
+    except BaseException:
+        # Settings refused after the open (a pty and 7E1) leave the port open and locked.
+        device.close()
+        raise
     link._transport = transport  # connection_made comes a loop turn later: usable at once
 
 
