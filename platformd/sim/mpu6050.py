@@ -92,14 +92,22 @@ class Mpu6050:
         return list(self.registers[register : register + length].ljust(length, b"\x00"))
 
     def _latch(self) -> None:
+        # Runs at the sampling rate in the driver's thread: kept to one pack and few calls.
         motion = self.source()
-        lsb_per_g = 16384 >> ((self.registers[ACCEL_CONFIG] >> 3) & 0x3)
-        lsb_per_dps = 131.0 / (1 << ((self.registers[GYRO_CONFIG] >> 3) & 0x3))
-        accel = [_int16(a / GRAVITY * lsb_per_g) for a in motion.accel_mps2]
-        gyro = [_int16(math.degrees(g) * lsb_per_dps) for g in motion.gyro_rad_s]
-        temperature = _int16((motion.temperature_c - 36.53) * 340.0)
-        self.registers[DATA_START : DATA_START + DATA_LENGTH] = struct.pack(
-            ">7h", *accel, temperature, *gyro
+        accel = (16384 >> ((self.registers[ACCEL_CONFIG] >> 3) & 0x3)) / GRAVITY
+        gyro = 131.0 / (1 << ((self.registers[GYRO_CONFIG] >> 3) & 0x3)) * _DEG_PER_RAD
+        ax, ay, az = motion.accel_mps2
+        gx, gy, gz = motion.gyro_rad_s
+        _PACK_DATA(
+            self.registers,
+            DATA_START,
+            _int16(ax * accel),
+            _int16(ay * accel),
+            _int16(az * accel),
+            _int16((motion.temperature_c - 36.53) * 340.0),
+            _int16(gx * gyro),
+            _int16(gy * gyro),
+            _int16(gz * gyro),
         )
 
 
@@ -164,8 +172,16 @@ def vehicle_motion(
     return sense
 
 
+_PACK_DATA = struct.Struct(">7h").pack_into
+_DEG_PER_RAD = 180.0 / math.pi
+
+
 def _int16(value: float) -> int:
-    return max(-32768, min(32767, round(value)))
+    if value >= 32767.0:
+        return 32767
+    if value <= -32768.0:
+        return -32768
+    return round(value)
 
 
 async def async_setup(ctx: PlatformContext) -> None:
