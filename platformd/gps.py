@@ -76,6 +76,7 @@ class GpsReader(Actor):
                     bytesize=serial.EIGHTBITS,
                     parity=serial.PARITY_NONE,
                     stopbits=serial.STOPBITS_ONE,
+                    exclusive=True,  # flock: a second reader would steal half the bytes
                 )
             except (OSError, ValueError) as err:  # SerialException is an OSError
                 failures += 1

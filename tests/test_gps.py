@@ -277,3 +277,15 @@ def test_valid_checksums_with_garbage_fields_never_raise(
             for fix in assembler.feed(parsed, 0.0):
                 assert fix is None or -90 <= fix.latitude <= 90
     assembler.poll(1.0)
+
+
+async def test_a_second_reader_cannot_share_the_port(pty: Pty) -> None:
+    first, second = (
+        GpsReader(Bus(), GpsSection(port=pty.path)),
+        GpsReader(Bus(), GpsSection(port=pty.path)),
+    )
+    async with running(first):
+        await wait_until(lambda: first.connected)
+        async with running(second):
+            await wait_until(lambda: second.error != "")
+            assert not second.connected and "lock" in second.error
