@@ -102,7 +102,7 @@ class MotorSection:
     """Consecutive unanswered commands after which the controller counts as gone (reconnect)."""
     configure_mode: bool = True
     """When the controller is not in RS-232-with-watchdog, mixed open-loop mode, write those
-    settings and reset it; false: refuse to drive."""
+    settings and reset it. False: a wrong motor mode refuses to drive (the input mode warns)."""
     reconnect_max: float = 5.0
     """Longest wait between attempts to reopen a missing or silent controller (backoff cap)."""
     main_lights_output: str = "C"
@@ -151,6 +151,8 @@ class ImuSection:
     """Gyro full scale: 250, 500, 1000 or 2000 deg/s (GYRO_CONFIG FS_SEL)."""
     madgwick_beta: float = 0.05
     """Madgwick filter gain: higher trusts the accelerometer more (faster, noisier)."""
+    calibrate_s: float = 1.0
+    """Seconds of stillness at start used to measure the gyro's zero-rate offset (0: off)."""
 
 
 @dataclass

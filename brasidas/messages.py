@@ -356,6 +356,8 @@ class ImuStatus:
     temperature_c: float | None = None
     samples: int = 0
     read_errors: int = 0
+    calibrated: bool = False
+    """The gyro's zero-rate offset was measured (the first still second after start)."""
 
     def as_dict(self) -> dict[str, Any]:
         plain: dict[str, Any] = {
@@ -366,4 +368,6 @@ class ImuStatus:
         }
         if self.error:
             plain["error"] = self.error
+        if not self.calibrated:
+            plain["calibrated"] = False
         return plain

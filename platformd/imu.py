@@ -140,6 +140,60 @@ class Mpu6050Driver:
         )
 
 
+class GyroBias:
+    """The gyro's zero-rate offset, from the first still stretch of samples.
+
+    An MPU-6050 reads up to ±20 °/s with no rotation (a few °/s is typical), which would turn
+    straight into yaw drift. The first ``needed`` samples whose spread stays within
+    ``max_spread`` (rad/s) on every axis, and whose mean is under ``max_offset``, are
+    averaged; a robot moving at start delays the measure, and after ``max_attempts`` windows
+    it gives up (offset 0). A turn slower than ``max_offset`` at start is taken for an offset.
+    """
+
+    def __init__(
+        self,
+        needed: int,
+        max_spread: float = math.radians(2.0),
+        max_offset: float = math.radians(10.0),
+        max_attempts: int = 30,
+    ) -> None:
+        self.needed = needed
+        self.max_spread = max_spread
+        self.max_offset = max_offset
+        """A steady turn looks like an offset: means larger than this are refused as one."""
+        self.max_attempts = max_attempts
+        self.offset = (0.0, 0.0, 0.0)
+        self.done = needed <= 0
+        self.measured = False
+        self.attempts = 0
+        self._window: list[tuple[float, float, float]] = []
+
+    def add(self, gyro: tuple[float, float, float]) -> bool:
+        """One sample; True when the measure has just ended (measured or given up)."""
+        if self.done:
+            return False
+        self._window.append(gyro)
+        if len(self._window) < self.needed:
+            return False
+        axes = list(zip(*self._window, strict=True))
+        self._window.clear()
+        x, y, z = (sum(axis) / len(axis) for axis in axes)
+        still = all(max(axis) - min(axis) <= self.max_spread for axis in axes)
+        if still and max(abs(x), abs(y), abs(z)) <= self.max_offset:
+            self.offset = (x, y, z)
+            self.done = self.measured = True
+            return True
+        self.attempts += 1
+        if self.attempts >= self.max_attempts:
+            self.done = True
+            return True
+        return False
+
+    def correct(self, gyro: tuple[float, float, float]) -> tuple[float, float, float]:
+        bx, by, bz = self.offset
+        return (gyro[0] - bx, gyro[1] - by, gyro[2] - bz)
+
+
 def smbus_factory(bus_number: int) -> SMBusLike:
     import smbus2  # imported here: only a real platform needs /dev/i2c-N
 
@@ -157,6 +211,7 @@ class ImuReader(Actor):
         self.config = config
         self.bus_factory = bus_factory or smbus_factory
         self.filter = Madgwick(config.madgwick_beta)
+        self.gyro_bias = GyroBias(0)
         self.samples = 0
         self.read_errors = 0
         self.error = ""
@@ -199,6 +254,7 @@ class ImuReader(Actor):
             self.error = ""
             self.filter.reset()
             self._last_time = None
+            self.gyro_bias = GyroBias(round(self.config.calibrate_s * self.config.rate_hz))
             self._publish_status()
             reason = await self._sample(driver, loop)
             failures = 1
@@ -303,11 +359,15 @@ class ImuReader(Actor):
     ) -> None:
         """Convert, fuse and publish a batch; must run on the event loop."""
         self.read_errors += errors
+        bias = self.gyro_bias
         for when, raw in batch:
             sample = driver.convert(when, bytes(raw))
             dt = 0.0 if self._last_time is None else when - self._last_time
             self._last_time = when
-            self.filter.update(sample.gyro_rad_s, sample.accel_mps2, min(dt, 0.1))
+            if bias.add(sample.gyro_rad_s):
+                self._calibrated(bias)
+            gyro = bias.correct(sample.gyro_rad_s)
+            self.filter.update(gyro, sample.accel_mps2, min(dt, 0.1))
             self.temperature_c = sample.temperature_c
         self.samples += len(batch)
         if not batch:
@@ -319,6 +379,17 @@ class ImuReader(Actor):
             roll, pitch, yaw = euler_deg(self.filter.q)
             self.attitude = Attitude(w, x, y, z, roll, pitch, yaw)
             self.bus.publish(topics.ATTITUDE, self.attitude)
+
+    def _calibrated(self, bias: GyroBias) -> None:
+        if bias.measured:
+            _LOGGER.info(
+                "IMU: gyro zero-rate offset %s deg/s",
+                ", ".join(f"{math.degrees(v):+.2f}" for v in bias.offset),
+            )
+            # Start over from gravity: what was integrated with the offset is wrong.
+            self.filter.reset()
+        else:
+            _LOGGER.warning("IMU: never still at start; gyro offset not measured (yaw drifts)")
 
     def _set_error(self, error: str, *, log: bool) -> None:
         self.error = error
@@ -335,6 +406,7 @@ class ImuReader(Actor):
             temperature_c=None if self.temperature_c is None else round(self.temperature_c, 2),
             samples=self.samples,
             read_errors=self.read_errors,
+            calibrated=self.gyro_bias.measured,
         )
 
     def _publish_status(self) -> None:

@@ -17,7 +17,7 @@ from brasidas.config import ImuSection, PlatformConfig
 from brasidas.madgwick import Madgwick, euler_deg, from_euler
 from brasidas.messages import Attitude, ImuStatus
 from platformd.app import PlatformDaemon
-from platformd.imu import ImuReader, Mpu6050Driver
+from platformd.imu import GyroBias, ImuReader, Mpu6050Driver
 from platformd.sim.mpu6050 import (
     ACCEL_CONFIG,
     DATA_START,
@@ -115,19 +115,36 @@ def test_driver_reads_si_units_through_the_chip() -> None:
 
 
 class Turntable:
-    """Yaws at ``rate`` deg/s (counter-clockwise) from ``start`` until ``total`` degrees."""
+    """Still for ``delay`` s after the first read, then yaws at ``rate`` deg/s (CCW) for
+    ``total`` degrees; the chip's gyro reads ``bias`` deg/s more on each axis."""
 
-    def __init__(self, rate: float, total: float, clock: Callable[[], float]) -> None:
-        self.rate, self.total, self.clock = rate, total, clock
+    def __init__(
+        self,
+        rate: float,
+        total: float,
+        clock: Callable[[], float],
+        delay: float = 0.0,
+        bias: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> None:
+        self.rate, self.total, self.clock, self.delay = rate, total, clock, delay
+        self.bias = tuple(math.radians(b) for b in bias)
         self.start: float | None = None
+
+    def done(self) -> bool:
+        return (
+            self.start is not None
+            and self.clock() - self.start > self.delay + self.total / self.rate
+        )
 
     def __call__(self) -> Motion:
         now = self.clock()
         if self.start is None:
             self.start = now
-        turning = (now - self.start) * self.rate < self.total
+        elapsed = now - self.start - self.delay
+        turning = 0.0 <= elapsed and elapsed * self.rate < self.total
         rate = math.radians(self.rate) if turning else 0.0
-        return Motion((0.0, 0.0, G), (0.0, 0.0, rate), 28.0)
+        bx, by, bz = self.bias
+        return Motion((0.0, 0.0, G), (bx, by, bz + rate), 28.0)
 
 
 def test_known_rotation_gives_yaw_within_two_degrees() -> None:
@@ -172,19 +189,21 @@ async def running(reader: ImuReader) -> AsyncIterator[ImuReader]:
 async def test_actor_turn_through_emulated_chip() -> None:
     bus = Bus()
     seen = Recorder(bus)
-    table = Turntable(45.0, 90.0, time.monotonic)
+    # A chip with a real-looking zero-rate offset: uncorrected, it alone would add ~5 deg.
+    table = Turntable(45.0, 90.0, time.monotonic, delay=1.5, bias=(0.5, -0.8, 1.5))
     chip = Mpu6050(table)
     reader = ImuReader(bus, ImuSection(), lambda number: EmulatedI2CBus({0x68: chip}))
     async with running(reader):
-        await wait_until(lambda: table.start is not None)
-        await asyncio.sleep(2.5)  # the turn takes 2 s
+        await wait_until(lambda: table.done(), 15.0)  # still 1.5 s, then a 2 s turn
+        await asyncio.sleep(0.2)
         count = len(seen.attitudes)
         await wait_until(lambda: len(seen.attitudes) > count)
         await wait_until(lambda: bool(seen.statuses) and seen.statuses[-1].samples > 100)
     assert seen.attitudes[-1].yaw_deg == pytest.approx(90.0, abs=2.0)
     assert abs(seen.attitudes[-1].roll_deg) < 1.0 and abs(seen.attitudes[-1].pitch_deg) < 1.0
     status = seen.statuses[-1]
-    assert status.ok and status.error == "" and status.read_errors == 0
+    assert status.ok and status.error == "" and status.read_errors == 0 and status.calibrated
+    assert math.degrees(reader.gyro_bias.offset[2]) == pytest.approx(1.5, abs=0.05)
     assert status.temperature_c == pytest.approx(28.0, abs=0.01)
     # About 10 Hz of attitude for about 100 Hz of samples, not one per sample.
     assert len(seen.attitudes) < reader.samples / 5
@@ -257,3 +276,24 @@ async def test_sim_platform_publishes_attitude(
     assert len(section["q"]) == 4
     assert section["imu"]["ok"] is True and "error" not in section["imu"]
     assert 20.0 < section["imu"]["temp_c"] < 40.0
+
+
+def test_gyro_offset_from_a_still_window_only() -> None:
+    offset = math.radians(1.2)
+    bias = GyroBias(100)
+    moving = [(0.0, 0.0, offset + math.radians(10) * math.sin(k / 5)) for k in range(100)]
+    assert not any(bias.add(g) for g in moving)  # a wobble: not still, measured later
+    assert bias.attempts == 1 and not bias.done
+    turning = [(0.0, 0.0, math.radians(30.0))] * 100  # steady, but far above any offset
+    assert not any(bias.add(g) for g in turning)
+    still = [(0.001 * (k % 3), 0.0, offset) for k in range(100)]
+    assert [bias.add(g) for g in still][-1] is True
+    assert bias.measured and bias.offset[2] == pytest.approx(offset)
+    assert bias.correct((0.0, 0.0, offset)) == pytest.approx((-0.001, 0.0, 0.0), abs=0.001)
+
+
+def test_gyro_offset_gives_up_when_never_still() -> None:
+    bias = GyroBias(10, max_attempts=3)
+    results = [bias.add((0.0, 0.0, 0.1 * (k % 2))) for k in range(30)]
+    assert results[-1] is True and bias.done and not bias.measured
+    assert bias.offset == (0.0, 0.0, 0.0)

@@ -147,11 +147,13 @@ def vehicle_motion(
     """The chip mounted level, x forward: forward/lateral acceleration plus gravity, yaw rate.
 
     Noise about the MPU-6050's datasheet density at a 44 Hz bandwidth (gyro ~0.03 °/s rms is
-    too optimistic for a vibrating rover; 0.05 °/s and 0.004 g are used), no bias.
+    too optimistic for a vibrating rover; 0.05 °/s and 0.004 g are used), and a gyro offset.
     """
     random_ = rng or random.Random()
     gyro_sigma = math.radians(0.05) if noise else 0.0
     accel_sigma = 0.004 * GRAVITY if noise else 0.0
+    # Each chip has its own zero-rate offset (datasheet: up to ±20 °/s; ~1 °/s typical).
+    bx, by, bz = (math.radians(random_.uniform(-1.0, 1.0)) if noise else 0.0 for _ in range(3))
 
     def sense() -> Motion:
         pose = vehicle.pose()
@@ -162,9 +164,9 @@ def vehicle_motion(
                 GRAVITY + random_.gauss(0.0, accel_sigma),
             ),
             gyro_rad_s=(
-                random_.gauss(0.0, gyro_sigma),
-                random_.gauss(0.0, gyro_sigma),
-                pose.yaw_rate_rad_s + random_.gauss(0.0, gyro_sigma),
+                bx + random_.gauss(0.0, gyro_sigma),
+                by + random_.gauss(0.0, gyro_sigma),
+                bz + pose.yaw_rate_rad_s + random_.gauss(0.0, gyro_sigma),
             ),
             temperature_c=31.0 + random_.gauss(0.0, 0.05),
         )
