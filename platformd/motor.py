@@ -418,28 +418,7 @@ class MotorController(Actor):
             reply = await self._probe(link)
             if reply is None:
                 raise LinkError("controller silent, also after ten carriage returns")
-        input_mode = reply.values[0]
-        motor_mode = await self._read_config(link, ax3500.PARAM_MOTOR_MODE)
-        wanted = (ax3500.INPUT_MODE_RS232_WATCHDOG, ax3500.MOTOR_MODE_MIXED_OPEN_LOOP)
-        if (input_mode, motor_mode) != wanted:
-            described = f"input mode {input_mode:02X}, motor mode {motor_mode:02X}"
-            if not self.config.configure_mode:
-                raise LinkError(
-                    f"controller in {described}; want 02 (RS-232, watchdog), 01 (mixed)"
-                )
-            _LOGGER.warning("controller in %s: configuring 02/01 and resetting it", described)
-            await self._checked(link, ax3500.config_write(ax3500.PARAM_INPUT_MODE, wanted[0]))
-            await self._checked(link, ax3500.config_write(ax3500.PARAM_MOTOR_MODE, wanted[1]))
-            link.banner.clear()
-            await self._checked(link, ax3500.reset())
-            if not await link.wait_banner(BANNER_TIMEOUT):
-                raise LinkError("controller did not restart after %rrrrrr")
-            modes = (
-                await self._read_config(link, ax3500.PARAM_INPUT_MODE),
-                await self._read_config(link, ax3500.PARAM_MOTOR_MODE),
-            )
-            if modes != wanted:
-                raise LinkError(f"controller kept modes {modes[0]:02X}/{modes[1]:02X}")
+        await self._check_mode(link, reply.values[0])
         with contextlib.suppress(LinkError, ReplyTimeout):
             ident = await self._read_config(link, ax3500.PARAM_CONTROLLER_ID)
             if not ident & ax3500.CONTROLLER_ID_AX3500_BIT:
@@ -456,6 +435,43 @@ class MotorController(Actor):
         _LOGGER.info("motor controller up on %s", self.config.port)
         self._publish_status(connected=True)
         await self._restore_outputs(link)
+
+    async def _check_mode(self, link: SerialLink, input_mode: int) -> None:
+        """Mixed open-loop mode is required (else commands mean something else); RS-232 with
+        the watchdog is wanted. What differs is written and the controller reset, when
+        ``configure_mode`` allows; otherwise a wrong motor mode refuses to drive."""
+        motor_mode = await self._read_config(link, ax3500.PARAM_MOTOR_MODE)
+        writes: list[tuple[int, int]] = []
+        if input_mode != ax3500.INPUT_MODE_RS232_WATCHDOG:
+            # RS-232 without the watchdog, or R/C / analog left by ten carriage returns.
+            writes.append((ax3500.PARAM_INPUT_MODE, ax3500.INPUT_MODE_RS232_WATCHDOG))
+        if motor_mode != ax3500.MOTOR_MODE_MIXED_OPEN_LOOP:
+            writes.append((ax3500.PARAM_MOTOR_MODE, ax3500.MOTOR_MODE_MIXED_OPEN_LOOP))
+        if not writes:
+            return
+        described = f"input mode {input_mode:02X}, motor mode {motor_mode:02X}"
+        if not self.config.configure_mode:
+            if motor_mode != ax3500.MOTOR_MODE_MIXED_OPEN_LOOP:
+                raise LinkError(f"controller in {described}; needs motor mode 01 (mixed)")
+            _LOGGER.warning(
+                "controller in %s: its watchdog may be off, a lost link might not stop it",
+                described,
+            )
+            return
+        _LOGGER.warning("controller in %s: writing ^00 02, ^01 01 and resetting it", described)
+        for parameter, value in writes:
+            await self._checked(link, ax3500.config_write(parameter, value))
+        link.banner.clear()
+        await self._checked(link, ax3500.reset())
+        if not await link.wait_banner(BANNER_TIMEOUT):
+            raise LinkError("controller did not restart after %rrrrrr")
+        modes = (
+            await self._read_config(link, ax3500.PARAM_INPUT_MODE),
+            await self._read_config(link, ax3500.PARAM_MOTOR_MODE),
+        )
+        wanted = (ax3500.INPUT_MODE_RS232_WATCHDOG, ax3500.MOTOR_MODE_MIXED_OPEN_LOOP)
+        if modes != wanted:
+            raise LinkError(f"controller kept modes {modes[0]:02X}/{modes[1]:02X}")
 
     async def _restore_outputs(self, link: SerialLink) -> None:
         """A power-up switched the controller's outputs off: put the lights back."""

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import serial_asyncio
 from conftest import wait_until
+from hypothesis import given
+from hypothesis import strategies as st
 
 from brasidas.codecs import ax3500
 from platformd.sim.ax3500 import Ax3500Device, Ax3500Simulator, SimOptions
@@ -104,6 +106,18 @@ def test_outputs_drive_the_vehicle_with_the_configured_left() -> None:
     device.feed(b"!A7F\r!b7F\r", 0.0)
     assert seen[-1] == (1.0, 1.0)  # "b" turns left on this chassis
     assert device.query_values("v") == [0, 127]  # mixed: one side stopped, the other full
+
+
+@given(st.lists(st.binary(max_size=24), max_size=12))
+def test_any_input_keeps_the_device_sane(chunks: list[bytes]) -> None:
+    device = powered(SimOptions(reset_time=0.0))
+    now = 0.0
+    for chunk in chunks:
+        now += 0.01
+        device.feed(chunk, now)
+        device.tick(now)
+        assert all(-127 <= level <= 127 for level in device.channels)
+        assert device.mode in ("rs232", "resetting")
 
 
 # --------------------------------------------------------------------------- on a pty

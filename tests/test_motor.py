@@ -209,7 +209,9 @@ async def test_wrong_mode_refused_when_not_allowed_to_configure(tmp_path: Path) 
     options = SimOptions()
     options.parameters[ax3500.PARAM_MOTOR_MODE] = 0x00
     async with driven(tmp_path, "motor.configure_mode=false", options=options) as (ctx, sim):
-        await wait_until(lambda: status(ctx) is not None and "motor mode 00" in status(ctx).error)  # type: ignore[union-attr]
+        await wait_until(
+            lambda: status(ctx) is not None and "needs motor mode 01" in status(ctx).error
+        )  # type: ignore[union-attr]
         assert not status(ctx).connected and sim.device.resets == 0  # type: ignore[union-attr]
 
 
@@ -336,3 +338,16 @@ async def test_sim_platform_teleop_override_and_deadman(
     await daemon.stop()
     assert sim.device.channels == (0, 0) and sim.device.received[-2:] == ["!A00", "!B00"]
     assert not sim.plugged  # the simulator closed after the driver
+
+
+async def test_rc_mode_left_by_carriage_returns_drives_without_configuring(
+    tmp_path: Path,
+) -> None:
+    options = SimOptions()
+    options.parameters[ax3500.PARAM_INPUT_MODE] = ax3500.INPUT_MODE_RC
+    overrides = ("motor.configure_mode=false", "motor.reply_timeout=0.2")
+    async with driven(tmp_path, *overrides, options=options) as (ctx, sim):
+        await connected(ctx)
+        assert sim.device.resets == 0 and sim.device.mode == "rs232"
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.5, 0.0))
+        await wait_until(lambda: sim.device.channels == (64, 0))
