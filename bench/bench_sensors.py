@@ -9,7 +9,8 @@ real reader, the emulated MPU-6050 sampled at 100 Hz and fused, the simulated mo
 controller when present), a station session pulling telemetry at 5 Hz for 10 s, no media.
 CPU of the child: the median of five 2 s windows from schedstat (ns; their spread shows a
 shared machine's noise) and bench.support's utime+stime over the 10 s; the same with GPS and
-IMU disabled as a baseline.
+IMU disabled as a baseline, and with the GPS simulator in a process of its own (``simulate
+gps``, read through ``gps.port``) so that only the reader's cost is the platform's.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import contextlib
 import datetime as dt
 import os
 import statistics
+import sys
 import time
 import tty
 from collections.abc import Callable
@@ -205,12 +207,34 @@ async def run() -> dict[str, Any]:
     figures = await gps_latency()
     full = await platform_cpu("gps.sim_rate_hz=10", "imu.rate_hz=100", "telemetry.rate_hz=5")
     base = await platform_cpu("gps.enabled=false", "imu.enabled=false", "telemetry.rate_hz=5")
+    # The GPS simulator in its own process (as a receiver would be): the platform's share is
+    # the reader's alone.
+    receiver = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "platformd",
+        "--set",
+        "gps.sim_rate_hz=10",
+        "simulate",
+        "gps",
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.DEVNULL,
+    )
+    try:
+        assert receiver.stdout is not None
+        pty = (await asyncio.wait_for(receiver.stdout.readline(), 15)).decode().strip()
+        external = await platform_cpu(f"gps.port={pty}", "imu.rate_hz=100", "telemetry.rate_hz=5")
+    finally:
+        receiver.terminate()
+        await receiver.wait()
     figures.update(
         {
             "platform_cpu_pct_one_core": full["cpu_pct"],
             "platform_cpu_pct_windows_2s": full["cpu_pct_windows"],
             "platform_cpu_pct_utime_stime_10s": full["cpu_pct_ticks"],
             "platform_cpu_pct_without_gps_imu": base["cpu_pct"],
+            "platform_cpu_pct_gps_simulator_outside": external["cpu_pct"],
+            "gps_fix_with_simulator_outside": external["gps_fix"],
             "telemetry_rate_measured_hz": full["telemetry_hz"],
             "gps_fix_in_telemetry": full["gps_fix"],
             "gps_fixes_at_end": full["gps_fixes"],
