@@ -98,6 +98,7 @@ class SerialLink(asyncio.Protocol):
         self.stray_lines = 0
         self.banners = 0
         self._transport: asyncio.BaseTransport | None = None
+        self._device: serial.Serial | None = None
         self._exchange: Exchange | None = None
         self._reply: asyncio.Future[Reply] | None = None
         self.on_unsolicited: Callable[[], None] | None = None
@@ -163,7 +164,7 @@ class SerialLink(asyncio.Protocol):
         self._exchange = Exchange(command)
         reply = self._reply = asyncio.get_running_loop().create_future()
         try:
-            self._transport.write(command.encode())  # type: ignore[attr-defined]
+            self._write(command.encode())
             async with asyncio.timeout(self.reply_timeout):
                 return await reply
         except TimeoutError:
@@ -176,7 +177,23 @@ class SerialLink(asyncio.Protocol):
         """Bytes that expect no answer (the ten carriage returns)."""
         if self._transport is None or self.state is LinkState.CLOSED:
             raise LinkError(self.closed_reason or "link closed")
-        self._transport.write(data)  # type: ignore[attr-defined]
+        self._write(data)
+
+    def _write(self, data: bytes) -> None:
+        transport: Any = self._transport
+        device = self._device
+        if device is not None and transport.get_write_buffer_size() == 0:
+            # pyserial-asyncio queues every write for the next loop turn (a writer callback
+            # and two epoll changes); a command fits the idle line's buffer, so write now.
+            try:
+                written = device.write(data)  # non-blocking: write_timeout=0
+            except serial.SerialException as err:
+                self._closed(f"port lost: {err}")  # fails the pending answer, if any
+                return
+            data = data[written or 0 :]
+            if not data:
+                return
+        transport.write(data)
 
     async def wait_banner(self, timeout: float) -> bool:
         """Wait for an ``OK`` line (clear :attr:`banner` before provoking it)."""
@@ -231,6 +248,7 @@ async def _create(
         device.close()
         raise
     link._transport = transport  # connection_made comes a loop turn later: usable at once
+    link._device = device
 
 
 def _is_pty(port: str) -> bool:
