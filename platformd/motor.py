@@ -299,6 +299,7 @@ class MotorController(Actor):
                 "velocity_commands",
                 "rejected",
                 "resent",
+                "refused_twice",
                 "unanswered",
                 "watchdog_w",
                 "stray_lines",
@@ -322,6 +323,7 @@ class MotorController(Actor):
         self._reported_error = ""
         self._restore_lights = False
         self._watchdog_seen = 0
+        self._refresh_both = False
         self._generation = 0
         """Bumped whenever the controller's outputs were lost (W, restart)."""
         self._gpio_requests: asyncio.Queue[_OutputRequest] = asyncio.Queue()
@@ -543,7 +545,10 @@ class MotorController(Actor):
             self.counters["rejected"] += 1
             if attempt == 1:
                 self.counters["resent"] += 1
-        _LOGGER.warning("controller refused %s twice", command.text)
+        self.counters["refused_twice"] += 1
+        count = self.counters["refused_twice"]
+        if count & (count - 1) == 0:  # 1, 2, 4, 8...: reported without flooding the log
+            _LOGGER.warning("controller refused %s twice (%d so far)", command.text, count)
         return None
 
     def _account(self, link: SerialLink) -> None:
@@ -593,6 +598,9 @@ class MotorController(Actor):
                 # Channel 1 again keeps the watchdog fed; channel 2 was acknowledged and only
                 # a watchdog trip or a restart (both seen: W, OK) would undo it.
                 self.sent[0] = None
+                if self._refresh_both:
+                    self._refresh_both = False
+                    self.sent[1] = None
                 continue
             if self._stopping:
                 pass  # zero is the last word: no polls or outputs any more
@@ -622,9 +630,10 @@ class MotorController(Actor):
             return  # still differs: tried again at once
         if generation != self._generation:
             return  # a W or a restart during the exchange: it may not have stuck
-        # Refused twice (reported) counts as sent too, so the line is not hammered: the
-        # refresh tries again within one period.
-        del reply
+        if reply is None:
+            # Refused twice (reported): counted as sent so the line is not hammered; the
+            # next refresh sends both channels again.
+            self._refresh_both = True
         self.sent[channel - 1] = level
         self._last_velocity_at = asyncio.get_running_loop().time()
         if self._stopping and self.sent == [0, 0] and self.desired == (0, 0):

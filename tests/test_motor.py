@@ -110,6 +110,11 @@ async def test_refused_command_is_resent_once_then_reported(tmp_path: Path) -> N
         ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.5, 0.0))
         await wait_until(lambda: driver.counters["rejected"] == 3)
         await wait_until(lambda: sim.device.channels == (64, 0))
+        # Channel 2 refused twice: the refresh (channel 1 otherwise) sends both again.
+        sim.device.fail_next = 2
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.5, 0.25))
+        await wait_until(lambda: driver.counters["refused_twice"] == 2)
+        await wait_until(lambda: sim.device.channels == (64, 32))
         assert status(ctx).connected  # type: ignore[union-attr]
 
 
