@@ -136,6 +136,7 @@ class GpsReader(Actor):
     def feed(self, data: bytes) -> None:
         """Bytes from the receiver; publishes what completes. Runs on the event loop."""
         now = self._clock()
+        self.assembler.touch(now)
         for sentence in self.decoder.feed(data):
             for fix in self.assembler.feed(sentence, now):
                 self._on_epoch(fix, now)

@@ -289,3 +289,23 @@ async def test_a_second_reader_cannot_share_the_port(pty: Pty) -> None:
         async with running(second):
             await wait_until(lambda: second.error != "")
             assert not second.connected and "lock" in second.error
+
+
+def test_fix_is_published_once_rmc_and_gga_arrive_not_at_the_end_of_the_cycle() -> None:
+    """A NEO-6M-style cycle ends with GSV and GLL (~0.3 s of line at 9600 baud after GGA):
+    once the reader has seen a full cycle, it publishes as soon as RMC and GGA are in."""
+    log = NMEA / "ublox-lea-5h.log"
+    decoder, assembler = NmeaDecoder(), EpochAssembler()
+    triggers: list[str] = []
+    now = 0.0
+    for raw in log.read_bytes().splitlines():
+        if not raw.startswith(b"$"):
+            continue
+        now += 0.01
+        for msg in decoder.feed(raw + b"\r\n"):
+            fixes = [fix for fix in assembler.feed(msg, now) if fix is not None]
+            triggers.extend(msg.sentence_type for _ in fixes)
+    assert len(triggers) > 10
+    # Only the first fix, and the first after the fix came back, wait for the learned end of
+    # the cycle (GLL); every other goes out on GGA, right after RMC.
+    assert triggers.count("GGA") >= len(triggers) - 3

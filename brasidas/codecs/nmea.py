@@ -33,6 +33,8 @@ KNOTS_TO_MPS = 1852.0 / 3600.0
 HANDLED = frozenset({"RMC", "GGA", "GSA", "VTG", "GLL", "ZDA"})
 """Sentence types that feed fixes; other known types (GSV, TXT...) are counted and ignored."""
 TIMED = frozenset({"RMC", "GGA", "GLL", "ZDA"})
+EARLY = frozenset({"RMC", "GGA"})
+"""An epoch whose cycle carries these is published once both arrived, before its ender."""
 
 _SENTENCE = re.compile(rb"^\$([A-Z0-9]{3,6}),([\x20-\x7e]*)\*([0-9A-Fa-f]{2})$")
 
@@ -182,6 +184,8 @@ class EpochAssembler:
         self._epoch: _Epoch | None = None
         self._orphans: list[pynmea2.NMEASentence] = []
         self._candidate: str | None = None
+        self.cycle: frozenset[str] = frozenset()
+        """Sentence types of the last complete cycle (ended by the ender)."""
         self._date: date | None = None
         self._last_input = 0.0
 
@@ -214,9 +218,18 @@ class EpochAssembler:
         epoch.last_type = kind
         if not epoch.published:
             self._merge(epoch, msg)
-            if kind == self.ender:
+            if kind == self.ender or self._early(epoch):
                 out.append(self._publish(epoch))
         return out
+
+    def touch(self, now: float) -> None:
+        """Bytes arrived (of any sentence, GSV included): the line is not quiet."""
+        self._last_input = now
+
+    def _early(self, epoch: _Epoch) -> bool:
+        """The epoch already holds every fix sentence its cycle brings (RMC and GGA)."""
+        need = self.cycle & EARLY
+        return bool(need) and need <= epoch.types and epoch.fix_asserted and not epoch.fix_denied
 
     def poll(self, now: float) -> list[GpsFix | None]:
         """Publish an epoch left pending by a line quiet since ``quiet`` seconds."""
@@ -231,11 +244,14 @@ class EpochAssembler:
         epoch = self._epoch
         if epoch is None:
             return
+        if epoch.last_type == self.ender:
+            self.cycle = frozenset(epoch.types)
         if epoch.published:
             return
         if self.ender is None:
             # Still learning: the first complete epoch tells where the cycle ends.
             self.ender = epoch.last_type
+            self.cycle = frozenset(epoch.types)
             out.append(self._publish(epoch))
             return
         self.incomplete += 1
