@@ -9,7 +9,7 @@ and retried with capped backoff.
 
 Threading: smbus2 calls are blocking ioctls (a 14-byte burst is ~0.5 ms at 400 kHz, far more
 when the bus stretches or times out), so they never run on the event loop. One sampling
-thread, owned by the actor (started in ``run``, stopped and joined in its ``finally``), reads
+thread, owned by the actor (started in ``run``, told to stop in its ``finally``), reads
 on a steady clock and hands samples over in batches of ~100 ms through
 ``loop.call_soon_threadsafe``: ten loop wake-ups a second instead of a hundred. The fusion runs
 on the loop (pure Python, ~20 µs a sample).
@@ -291,18 +291,18 @@ class ImuReader(Actor):
         self._failed = failed
         stop = threading.Event()
         thread = threading.Thread(
-            target=self._thread_main, args=(driver, stop, loop, failed), name="imu-sampler"
+            target=self._thread_main,
+            args=(driver, stop, loop, failed),
+            name="imu-sampler",
+            daemon=True,  # a read hung in the kernel must not keep the daemon from exiting
         )
         thread.start()
         try:
             return await failed
         finally:
+            # The thread sees ``stop`` within one period and closes the bus itself on its way
+            # out: joining here would block the loop for as long as a hung I2C read lasts.
             stop.set()
-            # The thread checks ``stop`` every period: it ends within one period (10 ms).
-            thread.join(timeout=0.5)
-            if thread.is_alive():
-                _LOGGER.warning("IMU sampling thread did not stop in time")
-            driver.bus.close()
             self._failed = None
 
     def _thread_main(
@@ -313,6 +313,18 @@ class ImuReader(Actor):
         failed: asyncio.Future[str],
     ) -> None:
         """The sampling thread: reads at ``rate_hz`` on a steady clock, hands over batches."""
+        try:
+            self._sample_until(driver, stop, loop, failed)
+        finally:
+            driver.bus.close()
+
+    def _sample_until(
+        self,
+        driver: Mpu6050Driver,
+        stop: threading.Event,
+        loop: asyncio.AbstractEventLoop,
+        failed: asyncio.Future[str],
+    ) -> None:
         period = 1.0 / self.config.rate_hz
         per_batch = max(1, round(BATCH_SECONDS / period))
         # Raw bytes and times only: the thread holds the GIL as briefly as it can; the
