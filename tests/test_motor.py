@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import os
 import socket
+import sys
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -17,6 +19,7 @@ from brasidas.bus import Bus
 from brasidas.codecs import ax3500, pvel
 from brasidas.codecs.commands import BATTERY_MONITOR, MAIN_LIGHTS, POSITIONAL_LIGHTS
 from brasidas.codecs.jsonrpc import Dispatcher
+from brasidas.config import StationConfig, load_config
 from brasidas.messages import ControllerStatus, LightsState, Velocity
 from platformd import motor
 from platformd.app import PlatformDaemon
@@ -26,6 +29,7 @@ from platformd.signaling import dispatch_command
 from platformd.sim.ax3500 import Ax3500Simulator, SimOptions
 from platformd.sim.vehicle import shared_vehicle
 from stationd.client import PlatformConnection
+from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 
@@ -214,9 +218,7 @@ async def test_wrong_mode_refused_when_not_allowed_to_configure(tmp_path: Path) 
     options = SimOptions()
     options.parameters[ax3500.PARAM_MOTOR_MODE] = 0x00
     async with driven(tmp_path, "motor.configure_mode=false", options=options) as (ctx, sim):
-        await wait_until(
-            lambda: status(ctx) is not None and "needs motor mode 01" in status(ctx).error
-        )  # type: ignore[union-attr]
+        await wait_until(lambda: "needs motor mode 01" in getattr(status(ctx), "error", ""))
         assert not status(ctx).connected and sim.device.resets == 0  # type: ignore[union-attr]
 
 
@@ -356,3 +358,60 @@ async def test_rc_mode_left_by_carriage_returns_drives_without_configuring(
         assert sim.device.resets == 0 and sim.device.mode == "rs232"
         ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.5, 0.0))
         await wait_until(lambda: sim.device.channels == (64, 0))
+
+
+async def test_keyboard_drive_moves_the_simulated_controller(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    """The whole chain as an operator uses it: 'brasidas-station drive' in a terminal, the
+    station's $PVEL sender, the platform's stream, arbiter and driver, the simulated AX3500."""
+    platform = await platform_factory(sim_config(), fleet_key)
+    sim: Ax3500Simulator = platform.ctx.sim["ax3500"]
+    await connected(platform.ctx)
+    station = StationDaemon(load_config(StationConfig, None, ["station.api_port=0"]), fleet_key)
+    await station.start()
+    master, slave = os.openpty()
+    output = bytearray()
+    loop = asyncio.get_running_loop()
+
+    def drain() -> None:
+        try:
+            output.extend(os.read(master, 4096))
+        except OSError:
+            loop.remove_reader(master)
+
+    loop.add_reader(master, drain)
+    process = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "stationd",
+        "drive",
+        "brasidas-1",
+        "--url",
+        platform.ctx.signaling_url,
+        "--set",
+        f"station.api_port={station.config.station.api_port}",
+        stdin=slave,
+        stdout=slave,
+        stderr=slave,
+    )
+    os.close(slave)
+    try:
+        await wait_until(lambda: b"platform teleop" in output, timeout=15)
+        os.write(master, b"www")  # three steps forward: 0.3
+        await wait_until(lambda: sim.device.channels == (38, 0))
+        os.write(master, b"\x1b[D")  # left arrow: a left turn, !B on this chassis
+        await wait_until(lambda: sim.device.channels == (38, 13))
+        await wait_until(lambda: shared_vehicle(platform.ctx).pose().speed_mps > 0.3)
+        os.write(master, b" ")
+        await wait_until(lambda: sim.device.channels == (0, 0))
+        os.write(master, b"q")
+        assert await asyncio.wait_for(process.wait(), 10) == 0
+        assert sim.device.w_sent == 0  # the stream and the refresh kept the watchdog fed
+    finally:
+        if process.returncode is None:
+            process.kill()
+            await process.wait()
+        loop.remove_reader(master)
+        os.close(master)
+        await station.stop()
