@@ -265,23 +265,41 @@ COMMANDS: dict[str, Callable[[argparse.Namespace, StationConfig], int]] = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _common_options(*, top_level: bool) -> argparse.ArgumentParser:
+    """Options every command takes, before or after its name.
+
+    The top level holds the defaults; a subcommand's copy leaves absent options out
+    (``SUPPRESS``) so it never overwrites what was given before the command name, and its
+    ``--set`` items are kept apart and applied after the top level's.
+    """
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--config", metavar="FILE", help="TOML configuration file")
+    default: dict[str, Any] = {} if top_level else {"default": argparse.SUPPRESS}
+    common.add_argument("--config", metavar="FILE", help="TOML configuration file", **default)
     common.add_argument(
         "--set",
-        dest="overrides",
+        dest="overrides" if top_level else "command_overrides",
         action="append",
         default=[],
         metavar="SECTION.KEY=VALUE",
         help="override a configuration key (repeatable)",
     )
-    common.add_argument("--json", action="store_true", help="machine-readable output")
-    common.add_argument("--insecure", action="store_true", help="no fleet key (never in the field)")
-    common.add_argument("-v", "--verbose", action="count", default=0)
-    common.add_argument("--log-level")
+    common.add_argument("--json", action="store_true", help="machine-readable output", **default)
+    common.add_argument(
+        "--insecure", action="store_true", help="no fleet key (never in the field)", **default
+    )
+    common.add_argument(
+        "-v", "--verbose", action="count", **({"default": 0} if top_level else default)
+    )
+    common.add_argument("--log-level", **default)
+    return common
+
+
+def build_parser() -> argparse.ArgumentParser:
+    common = _common_options(top_level=False)
     parser = argparse.ArgumentParser(
-        prog="brasidas-station", description="Brasidas control station.", parents=[common]
+        prog="brasidas-station",
+        description="Brasidas control station.",
+        parents=[_common_options(top_level=True)],
     )
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("serve", parents=[common], help="run the station daemon")
@@ -337,7 +355,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.verbose if args.command == "serve" else args.verbose - 1, args.log_level)
     try:
-        config = load_config(StationConfig, args.config, args.overrides)
+        overrides = [*args.overrides, *getattr(args, "command_overrides", [])]
+        config = load_config(StationConfig, args.config, overrides)
         if args.insecure:
             config.security.insecure = True
         return COMMANDS[args.command](args, config)

@@ -1,0 +1,16 @@
+"""Command-line options work before or after the command name."""
+
+from __future__ import annotations
+
+from stationd.cli import build_parser
+
+
+def test_station_options_before_and_after_the_command_name() -> None:
+    parser = build_parser()
+    before = parser.parse_args(["--set", "station.api_port=1", "--json", "status", "rover"])
+    assert before.overrides == ["station.api_port=1"] and before.json is True
+    after = parser.parse_args(["status", "rover", "--set", "station.api_port=2", "--json"])
+    assert after.command_overrides == ["station.api_port=2"] and after.json is True
+    both = parser.parse_args(["--set", "a.b=1", "list", "--set", "c.d=2"])
+    assert (both.overrides, both.command_overrides) == (["a.b=1"], ["c.d=2"])
+    assert both.json is False and both.config is None
