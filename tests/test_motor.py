@@ -151,8 +151,8 @@ async def test_watchdog_w_is_stripped_and_both_channels_resent(tmp_path: Path) -
         driver = driver_of(ctx)
         ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.5, 0.5))
         await wait_until(lambda: sim.device.channels == (64, 64))
-        sim._write(b"W")  # as if the watchdog had tripped (say, the host stalled)
-        sim.device._set_channels(0, 0)
+        sim.inject(b"W")  # as if the watchdog had tripped (say, the host stalled)
+        sim.device.stop_motors()
         await wait_until(lambda: sim.device.channels == (64, 64))
         assert driver.counters["watchdog_w"] >= 1 and status(ctx).connected  # type: ignore[union-attr]
 
@@ -161,7 +161,7 @@ async def test_garbage_from_the_controller_is_dropped(tmp_path: Path) -> None:
     async with driven(tmp_path) as (ctx, sim):
         await connected(ctx)
         driver = driver_of(ctx)
-        sim._write(b"\x00\xff\xfegarbage\r:01020304\r" + b"Z" * 200 + b"\r")
+        sim.inject(b"\x00\xff\xfegarbage\r:01020304\r" + b"Z" * 200 + b"\r")
         ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.25, 0.0))
         await wait_until(lambda: sim.device.channels == (32, 0))
         await wait_until(lambda: driver.counters["garbage_lines"] >= 2)
@@ -251,7 +251,7 @@ async def test_lights_and_battery_monitor_commands(tmp_path: Path) -> None:
         # A controller restart switches its outputs off: the driver puts the lights back.
         await dispatch_command(ctx, MAIN_LIGHTS, "ON", None)
         sim.device.outputs["C"] = False
-        sim._write(b"\rOK\r")
+        sim.inject(b"\rOK\r")
         await wait_until(lambda: sim.device.outputs["C"])
         result = await dispatch_command(ctx, BATTERY_MONITOR, "OFF", None)
         assert result.accepted and not status(ctx).battery_monitor  # type: ignore[union-attr]
@@ -271,7 +271,8 @@ async def test_positional_lights_not_fitted(tmp_path: Path) -> None:
 
 
 async def test_status_polls_reach_telemetry_names(tmp_path: Path) -> None:
-    async with driven(tmp_path, "motor.poll_hz=10") as (ctx, _sim):
+    options = SimOptions(lowercase_hex=True)  # "accept both cases in replies"
+    async with driven(tmp_path, "motor.poll_hz=10", options=options) as (ctx, _sim):
         await connected(ctx)
         ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.5, 0.0))
         await wait_until(lambda: (s := status(ctx)) is not None and s.motor_amps is not None)

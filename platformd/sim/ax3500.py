@@ -58,6 +58,8 @@ class SimOptions:
     """Which of "B" (channel 2 forward) or "b" turns the vehicle left."""
     extra_config_line: str | None = None
     """A line some units send after a config read's answer (e.g. "00"); None: nothing."""
+    lowercase_hex: bool = False
+    """Answer hex values in lowercase (drivers must accept both cases)."""
     reset_time: float = 0.3
     """Seconds from ``%rrrrrr`` to the banner and ``OK`` (the real device takes 1-2 s)."""
     banner: tuple[str, ...] = ("Roboteq v1.9b AX3500", "OK")
@@ -147,6 +149,15 @@ class Ax3500Device:
         self.mode = "rc"
         self._next_data_line = now + self.options.rc_line_period
         return b""
+
+    def power_off(self) -> None:
+        """No power: deaf, and the motors stop."""
+        self.mode = "off"
+        self._set_channels(0, 0)
+
+    def stop_motors(self) -> None:
+        """The outputs go to zero as the watchdog would make them (tests: a missed trip)."""
+        self._set_channels(0, 0)
 
     def deadline(self) -> float | None:
         """When :meth:`tick` next has something to do."""
@@ -253,6 +264,10 @@ class Ax3500Device:
             return ""
         return self._refuse()
 
+    def _hex(self, value: int) -> str:
+        text = f"{value & 0xFF:02X}\r"
+        return text.lower() if self.options.lowercase_hex else text
+
     def _refuse(self) -> str:
         self.errors += 1
         return "-\r"
@@ -282,7 +297,7 @@ class Ax3500Device:
         values = self.query_values(body) if len(body) == 1 else None
         if values is None:
             return self._refuse()
-        return "".join(f"{value & 0xFF:02X}\r" for value in values)
+        return "".join(self._hex(value) for value in values)
 
     def _config(self, body: str) -> str:
         parts = body.split(" ")
@@ -291,7 +306,7 @@ class Ax3500Device:
         parameter = int(parts[0], 16)
         if len(parts) == 1:
             extra = self.options.extra_config_line
-            answer = f"{self.parameters.get(parameter, 0):02X}\r"
+            answer = self._hex(self.parameters.get(parameter, 0))
             return answer + (f"{extra}\r" if extra is not None else "")
         self.parameters[parameter] = int(parts[1], 16)  # takes effect at the next reset
         return "+\r"
@@ -422,8 +437,7 @@ class Ax3500Simulator:
         if self.link is not None:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(self.link)
-        self.device.mode = "off"
-        self.device._set_channels(0, 0)  # no power, no motion
+        self.device.power_off()
 
     def replug(self) -> None:
         """Plugged back in (a new pty behind the same link): a controller just powered up."""
@@ -516,6 +530,10 @@ class Ax3500Simulator:
         except OSError:
             written = 0  # buffer full with nobody reading: a real line loses it too
         self.dropped_bytes += len(data) - written
+
+    def inject(self, data: bytes) -> None:
+        """Put ``data`` on the line as if the controller had sent it (noise, a stray W)."""
+        self._write(data)
 
     def _on_output(self, speed: float, turn: float) -> None:
         if self.vehicle is not None:
