@@ -100,9 +100,10 @@ class MotorSection:
     """Seconds to wait for a command's echo and answer."""
     max_unanswered: int = 3
     """Consecutive unanswered commands after which the controller counts as gone (reconnect)."""
-    configure_mode: bool = True
+    configure_mode: bool = False
     """When the controller is not in RS-232-with-watchdog, mixed open-loop mode, write those
-    settings and reset it. False: a wrong motor mode refuses to drive (the input mode warns)."""
+    settings to its flash and reset it. False (the default: never rewrite a controller's stored
+    setup unasked): a wrong motor mode refuses to drive, with the reason (the input mode warns)."""
     reconnect_max: float = 5.0
     """Longest wait between attempts to reopen a missing or silent controller (backoff cap)."""
     main_lights_output: str = "C"

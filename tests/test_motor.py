@@ -206,7 +206,8 @@ async def test_rc_mode_and_wrong_motor_mode_are_fixed_at_bring_up(tmp_path: Path
     options = SimOptions(extra_config_line="00", reset_time=0.2)
     options.parameters[ax3500.PARAM_INPUT_MODE] = ax3500.INPUT_MODE_RC
     options.parameters[ax3500.PARAM_MOTOR_MODE] = 0x00  # separate channels
-    async with driven(tmp_path, "motor.reply_timeout=0.2", options=options) as (ctx, sim):
+    overrides = ("motor.reply_timeout=0.2", "motor.configure_mode=true")
+    async with driven(tmp_path, *overrides, options=options) as (ctx, sim):
         await connected(ctx)
         assert sim.device.resets == 1 and sim.device.mixed and sim.device.watchdog
         assert sim.device.parameters[ax3500.PARAM_MOTOR_MODE] == 1
