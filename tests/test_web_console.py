@@ -53,6 +53,8 @@ async def test_console_lists_connects_and_takes_the_override(
         f"beacon.port={station.config.discovery.port}",
         'beacon.destinations=["127.0.0.1"]',
         "beacon.max_interval=1.0",
+        "sim.enabled=true",  # a simulated GPS receiver behind the real reader
+        "gps.enabled=true",
     )
     platform = await platform_factory(config, fleet_key)
     async with async_playwright() as playwright:
@@ -71,8 +73,11 @@ async def test_console_lists_connects_and_takes_the_override(
             await expect(card.locator(".mode")).to_have_text("TELEOP", timeout=10_000)
             await wait_until(lambda: platform.bus.last(topics.OVERRIDE_STATE).engaged)
             await expect(card.locator(".answer")).to_contain_text("acknowledged")
-            # Telemetry reaches the page (the computer section is always there).
-            await expect(card.locator("dl.telemetry")).to_contain_text("free", timeout=10_000)
+            # Telemetry reaches the page: the computer section, and the simulated GPS fix.
+            telemetry = card.locator("dl.telemetry")
+            await expect(telemetry).to_contain_text("free", timeout=10_000)
+            await expect(telemetry).to_contain_text("sats  hdop", timeout=10_000)
+            await expect(telemetry).to_contain_text("37.94", timeout=10_000)
             await card.locator("button.movrd").click()
             await wait_until(lambda: not platform.bus.last(topics.OVERRIDE_STATE).engaged)
             assert errors == []

@@ -154,8 +154,10 @@ function telemetryRows(snapshot) {
   const rows = [];
   const add = (name, value) => { if (value !== null && value !== undefined) rows.push([name, value]); };
   add("battery", snapshot.battery && `${snapshot.battery.volts ?? "?"} V ${snapshot.battery.level ?? ""}`);
-  add("controller", snapshot.controller && `${snapshot.controller.connected ? "connected" : "LOST"} ${JSON.stringify(snapshot.controller.temps_c ?? "")} °C`);
-  add("gps", snapshot.gps && (snapshot.gps.fix ? `${snapshot.gps.latitude?.toFixed(6)}, ${snapshot.gps.longitude?.toFixed(6)}` : "no fix"));
+  const controller = snapshot.controller;
+  add("controller", controller && `${controller.connected ? "connected" : "LOST"}  heatsinks ${(controller.temps_c ?? []).join("/")} °C  motors ${(controller.amps ?? []).join("/")} A`);
+  const gps = snapshot.gps;
+  add("gps", gps && (gps.fix ? `${gps.lat?.toFixed(6)}, ${gps.lon?.toFixed(6)}  ${gps.sats ?? "?"} sats  hdop ${gps.hdop ?? "?"}` : "no fix"));
   add("attitude", snapshot.attitude && ["roll", "pitch", "yaw"].map((k) => `${k} ${snapshot.attitude[k]?.toFixed?.(1) ?? "?"}`).join("  "));
   add("streams", snapshot.streams && Object.keys(snapshot.streams).length ? JSON.stringify(snapshot.streams) : null);
   add("computer", snapshot.computer && `load ${JSON.stringify(snapshot.computer.load)}  free ${snapshot.computer.mem_free_mb} MB`);
@@ -166,6 +168,11 @@ async function refreshTelemetry() {
   for (const [platformId, element] of cards) {
     let report;
     try { report = await api.call("get_telemetry", { platform_id: platformId }); } catch { continue; }
+    const lights = report.snapshot?.lights;
+    if (lights) {
+      $(".lights-main", element).classList.toggle("on", Boolean(lights.main));
+      $(".lights-pos", element).classList.toggle("on", Boolean(lights.positional));
+    }
     const list = $(".telemetry", element);
     const rows = report.snapshot ? telemetryRows(report.snapshot) : [];
     rows.push(["link", `loss ${report.link?.loss_pct ?? "?"}%`]);
