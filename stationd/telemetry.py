@@ -145,7 +145,9 @@ class Annunciator:
             lost = gps.get("lost_for_s")
             wanted["gps_fix_lost"] = (
                 GPS_FIX_LOST,
-                "GPS fix lost" + (f" ({lost:.0f} s ago)" if isinstance(lost, int | float) else ""),
+                f"GPS fix lost ({lost:.0f} s ago)"
+                if isinstance(lost, int | float)
+                else "no GPS fix yet",  # the receiver has not had one since it started
             )
         link: list[str] = []
         if silence is not None and silence >= self.config.silence_s:
