@@ -16,6 +16,7 @@ import asyncio
 import importlib
 import importlib.util
 import socket
+import sys
 import time
 from collections.abc import Callable
 from typing import Any
@@ -257,12 +258,32 @@ def _match(
     return samples
 
 
-async def _platform_cpu() -> dict[str, float]:
-    """The platform process idle, then driven by a real station daemon's 20 Hz sender."""
+async def _platform_cpu(*, teleop_path_only: bool = False) -> dict[str, float]:
+    """The platform process idle, then driven by a real station daemon's 20 Hz sender.
+
+    By default a whole ``--sim`` platform (simulated controller, GPS and IMU in the process).
+    ``teleop_path_only``: what a robot's own daemon spends on teleop: the AX3500 simulator runs
+    in a process of its own (as the real controller is a device), sensors off.
+    """
     signaling, velocity = free_port(), free_port(socket.SOCK_DGRAM)
-    process = await start_platform(
-        f"signaling.port={signaling}", f"velocity.port={velocity}", "navcam.enabled=false"
-    )
+    controller: asyncio.subprocess.Process | None = None
+    overrides = [f"signaling.port={signaling}", f"velocity.port={velocity}", "navcam.enabled=false"]
+    if teleop_path_only:
+        controller = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "platformd", "simulate", "ax3500",
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL,
+        )  # fmt: skip
+        assert controller.stdout is not None
+        pty = (await asyncio.wait_for(controller.stdout.readline(), 10)).decode().strip()
+        overrides += [
+            f"motor.port={pty}",
+            "motor.bytesize=8",  # a pty refuses 7E1; the bytes are the same
+            "motor.parity=N",
+            "gps.enabled=false",
+            "imu.enabled=false",
+            "audio.enabled=false",
+        ]
+    process = await start_platform(*overrides, sim=not teleop_path_only)
     url = f"http://127.0.0.1:{signaling}"
     key = security.load_or_create_key(security.default_key_path())
     station = StationDaemon(load_config(StationConfig, None, ["station.api_port=0"]), key)
@@ -295,12 +316,15 @@ async def _platform_cpu() -> dict[str, float]:
         after = (await api.call_local("teleop_status", platform_id="brasidas-1"))["platform"]
     finally:
         await station.stop()
-        process.terminate()
-        try:
-            await asyncio.wait_for(process.wait(), 5)
-        except TimeoutError:
-            process.kill()
-            await process.wait()
+        for child in (process, controller):
+            if child is None:
+                continue
+            child.terminate()
+            try:
+                await asyncio.wait_for(child.wait(), 5)
+            except TimeoutError:
+                child.kill()
+                await child.wait()
     link0, link1 = before["velocity_link"], after["velocity_link"]
     return {
         "platform_cpu_idle_pct": round(100 * (cpu1 - cpu0) / (wall1 - wall0), 2),
@@ -326,5 +350,8 @@ async def run() -> dict[str, Any]:
     else:
         figures["pvel_to_serial"] = "not measured: no AX3500 simulator subsystem"
     figures.update(await _platform_cpu())
+    own = await _platform_cpu(teleop_path_only=True)
+    figures["platform_cpu_teleop_path_only_idle_pct"] = own["platform_cpu_idle_pct"]
+    figures["platform_cpu_teleop_path_only_20hz_pct"] = own["platform_cpu_teleop_20hz_pct"]
     figures["target"] = "20 Hz p99 < 1.5 ms to serial; <= 1 pending velocity at 500 Hz; CPU < 3 %"
     return figures
