@@ -146,6 +146,9 @@ class ImuSection:
     """0x68 with AD0 low, 0x69 with AD0 high."""
     rate_hz: float = 100.0
     """Samples read (and fused) per second."""
+    fifo: bool = True
+    """Let the chip queue samples in its FIFO and drain it ~10 times a second (a tenth of the
+    wake-ups); false reads one 14-byte burst per sample, waking at rate_hz."""
     accel_range_g: int = 2
     """Accelerometer full scale: 2, 4, 8 or 16 g (ACCEL_CONFIG AFS_SEL)."""
     gyro_range_dps: int = 250

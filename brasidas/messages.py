@@ -358,6 +358,8 @@ class ImuStatus:
     read_errors: int = 0
     calibrated: bool = False
     """The gyro's zero-rate offset was measured (the first still second after start)."""
+    fifo_overflows: int = 0
+    """FIFO overflows (samples lost, FIFO reset) since start."""
 
     def as_dict(self) -> dict[str, Any]:
         plain: dict[str, Any] = {
@@ -370,4 +372,6 @@ class ImuStatus:
             plain["error"] = self.error
         if not self.calibrated:
             plain["calibrated"] = False
+        if self.fifo_overflows:
+            plain["fifo_overflows"] = self.fifo_overflows
         return plain

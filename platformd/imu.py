@@ -1,8 +1,14 @@
 """IMU: an MPU-6050 on I2C (smbus2), fused with a Madgwick filter into the platform's attitude.
 
 The driver wakes the chip, checks WHO_AM_I, sets the sample rate, low-pass filter and ranges
-(``imu.accel_range_g``, ``imu.gyro_range_dps``), then reads the 14-byte burst from 0x3B at
-``imu.rate_hz``. It publishes ``ATTITUDE`` (quaternion, roll, pitch, yaw) about 10 times a
+(``imu.accel_range_g``, ``imu.gyro_range_dps``). With ``imu.fifo`` (the default) the chip
+queues accel + gyro samples (12 bytes each) in its 1024-byte FIFO at ``imu.rate_hz`` and the
+driver drains it about 10 times a second: FIFO_COUNT, then whole samples from FIFO_R_W in
+24-byte reads (an SMBus block carries at most 32), their times rebuilt evenly spaced from the
+sample rate; the temperature is a separate 2-byte read once a second. An overflow (INT_STATUS
+FIFO_OFLOW, a count that is not whole samples, or a full FIFO) resets the FIFO and is counted.
+With ``imu.fifo=false`` it reads the 14-byte burst from 0x3B at ``imu.rate_hz`` instead (one
+wake-up per sample). It publishes ``ATTITUDE`` (quaternion, roll, pitch, yaw) about 10 times a
 second and ``IMU_STATUS`` (ok or the error, chip temperature, counters) about once a second.
 A missing bus or chip, a wrong WHO_AM_I or repeated read errors are reported in IMU_STATUS
 and retried with capped backoff.
@@ -12,7 +18,7 @@ when the bus stretches or times out), so they never run on the event loop. One s
 thread, owned by the actor (started in ``run``, told to stop in its ``finally``), reads
 on a steady clock and hands samples over in batches of ~100 ms through
 ``loop.call_soon_threadsafe``: ten loop wake-ups a second instead of a hundred. The fusion runs
-on the loop (pure Python, ~20 µs a sample).
+on the loop, sample by sample (pure Python, ~20 µs a sample).
 """
 
 from __future__ import annotations
@@ -44,8 +50,25 @@ SMPLRT_DIV = 0x19
 CONFIG = 0x1A
 GYRO_CONFIG = 0x1B
 ACCEL_CONFIG = 0x1C
+FIFO_EN = 0x23
+INT_ENABLE = 0x38
+INT_STATUS = 0x3A
 DATA_START = 0x3B
 DATA_LENGTH = 14
+TEMP_OUT = 0x41
+USER_CTRL = 0x6A
+FIFO_COUNTH = 0x72
+FIFO_R_W = 0x74
+FIFO_ACCEL_GYRO = 0x78
+"""FIFO_EN: accel X/Y/Z and gyro X/Y/Z, 12 bytes a sample (accel first: register order)."""
+FIFO_SAMPLE = 12
+FIFO_SIZE = 1024
+FIFO_CHUNK = 24
+"""Bytes per FIFO read: two whole samples within SMBus's 32-byte block limit."""
+USER_FIFO_EN = 0x40
+USER_FIFO_RESET = 0x04
+FIFO_OFLOW = 0x10
+"""INT_STATUS / INT_ENABLE bit 4."""
 CLOCK_PLL_X_GYRO = 0x01
 """PWR_MGMT_1 value: awake, clocked from the X gyro's PLL (the datasheet's advice)."""
 DLPF_44_HZ = 0x03
@@ -62,6 +85,8 @@ BACKOFF_MAX = 5.0
 STATUS_INTERVAL = 1.0
 ATTITUDE_INTERVAL = 0.1
 BATCH_SECONDS = 0.1
+TEMPERATURE_INTERVAL = 1.0
+"""FIFO mode: seconds between reads of the chip temperature."""
 MAX_CONSECUTIVE_ERRORS = 10
 """Read errors in a row before the device is declared gone and reopened."""
 
@@ -116,6 +141,8 @@ class Mpu6050Driver:
         self.bus.write_byte_data(self.address, PWR_MGMT_1, CLOCK_PLL_X_GYRO)
         self.bus.write_byte_data(self.address, CONFIG, DLPF_44_HZ)
         divider = max(0, min(255, round(1000.0 / rate_hz) - 1))
+        self.sample_period = (1 + divider) / 1000.0
+        """Seconds between the chip's samples (1 kHz gyro output rate with the DLPF on)."""
         self.bus.write_byte_data(self.address, SMPLRT_DIV, divider)
         self.bus.write_byte_data(self.address, GYRO_CONFIG, GYRO_RANGES[self.gyro_range_dps] << 3)
         self.bus.write_byte_data(self.address, ACCEL_CONFIG, ACCEL_RANGES[self.accel_range_g] << 3)
@@ -124,6 +151,49 @@ class Mpu6050Driver:
 
     def read(self) -> Sample:
         return self.convert(time.monotonic(), bytes(self.read_raw()))
+
+    def fifo_start(self) -> None:
+        """Queue accel + gyro in the FIFO from empty (also the recovery after an overflow)."""
+        # FIFO_RESET only acts while FIFO_EN is clear: stop, reset, then enable.
+        self.bus.write_byte_data(self.address, USER_CTRL, 0)
+        self.bus.write_byte_data(self.address, FIFO_EN, FIFO_ACCEL_GYRO)
+        self.bus.write_byte_data(self.address, INT_ENABLE, FIFO_OFLOW)
+        self.bus.read_byte_data(self.address, INT_STATUS)  # clears a stale overflow flag
+        self.bus.write_byte_data(self.address, USER_CTRL, USER_FIFO_RESET)
+        self.bus.write_byte_data(self.address, USER_CTRL, USER_FIFO_EN)
+
+    def fifo_count(self) -> tuple[int, bool]:
+        """Bytes queued and whether the FIFO overflowed since the last look (blocking)."""
+        overflowed = bool(self.bus.read_byte_data(self.address, INT_STATUS) & FIFO_OFLOW)
+        high, low = self.bus.read_i2c_block_data(self.address, FIFO_COUNTH, 2)
+        return (high << 8) | low, overflowed
+
+    def fifo_read(self, samples: int) -> bytes:
+        """``samples`` whole samples from FIFO_R_W, in reads of at most FIFO_CHUNK bytes."""
+        data = bytearray()
+        remaining = samples * FIFO_SAMPLE
+        while remaining > 0:
+            size = min(FIFO_CHUNK, remaining)
+            data += bytes(self.bus.read_i2c_block_data(self.address, FIFO_R_W, size))
+            remaining -= size
+        return bytes(data)
+
+    def read_temperature(self) -> float:
+        high, low = self.bus.read_i2c_block_data(self.address, TEMP_OUT, 2)
+        return _TEMP.unpack(bytes((high, low)))[0] / 340.0 + 36.53
+
+    def convert_fifo(self, start: float, data: bytes, temperature_c: float) -> list[Sample]:
+        """FIFO samples (12 bytes each) timed ``start``, ``start`` + period, ..."""
+        a, g, period = self.accel_scale, self.gyro_scale, self.sample_period
+        return [
+            Sample(
+                time=start + k * period,
+                accel_mps2=(ax * a, ay * a, az * a),
+                gyro_rad_s=(gx * g, gy * g, gz * g),
+                temperature_c=temperature_c,
+            )
+            for k, (ax, ay, az, gx, gy, gz) in enumerate(_FIFO_SAMPLE.iter_unpack(data))
+        ]
 
     def read_raw(self) -> list[int]:
         """The 14 data bytes (blocking I2C transfer)."""
@@ -138,6 +208,58 @@ class Mpu6050Driver:
             gyro_rad_s=(gx * g, gy * g, gz * g),
             temperature_c=temp / 340.0 + 36.53,
         )
+
+
+_FIFO_SAMPLE = struct.Struct(">6h")
+_TEMP = struct.Struct(">h")
+
+
+@dataclass
+class FifoBatch:
+    """What the sampling thread hands over in FIFO mode (raw: converted on the loop)."""
+
+    start: float
+    """Time of the first sample; the others follow at the sample period."""
+    data: bytes
+    temperature_c: float | None
+    errors: int
+    overflows: int
+
+
+def fifo_overflowed(count: int, flagged: bool) -> bool:
+    """A FIFO to reset: flagged, full (it then overwrites its oldest bytes), or misaligned."""
+    return flagged or count >= FIFO_SIZE or count % FIFO_SAMPLE != 0
+
+
+class SampleClock:
+    """Times for FIFO samples: evenly spaced at the nominal period, kept near the host clock.
+
+    The last sample counted at a FIFO_COUNT read was taken at most one period before it. The
+    chip's oscillator is off by up to a few per cent, so a run of nominal periods drifts from
+    the host's clock; when the rebuilt time of the newest sample leaves that one-period window
+    it is moved to its edge (a step of a fraction of a millisecond a batch).
+    """
+
+    def __init__(self, period: float) -> None:
+        self.period = period
+        self.next: float | None = None
+
+    def reset(self) -> None:
+        self.next = None
+
+    def place(self, samples: int, counted_at: float) -> float:
+        """Time of the first of ``samples`` samples counted at ``counted_at``."""
+        if self.next is None:
+            start = counted_at - (samples - 1) * self.period
+        else:
+            start = self.next
+            newest = start + (samples - 1) * self.period
+            if newest > counted_at:
+                start -= newest - counted_at
+            elif newest < counted_at - self.period:
+                start += counted_at - self.period - newest
+        self.next = start + samples * self.period
+        return start
 
 
 class GyroBias:
@@ -214,6 +336,7 @@ class ImuReader(Actor):
         self.gyro_bias = GyroBias(0)
         self.samples = 0
         self.read_errors = 0
+        self.fifo_overflows = 0
         self.error = ""
         self.temperature_c: float | None = None
         self.attitude: Attitude | None = None
@@ -325,6 +448,9 @@ class ImuReader(Actor):
         loop: asyncio.AbstractEventLoop,
         failed: asyncio.Future[str],
     ) -> None:
+        if self.config.fifo:
+            self._drain_fifo_until(driver, stop, loop, failed)
+            return
         period = 1.0 / self.config.rate_hz
         per_batch = max(1, round(BATCH_SECONDS / period))
         # Raw bytes and times only: the thread holds the GIL as briefly as it can; the
@@ -357,6 +483,65 @@ class ImuReader(Actor):
             # wake-up (Condition machinery); stop is seen within one period.
             time.sleep(delay if delay > 0 else 0)
 
+    def _drain_fifo_until(
+        self,
+        driver: Mpu6050Driver,
+        stop: threading.Event,
+        loop: asyncio.AbstractEventLoop,
+        failed: asyncio.Future[str],
+    ) -> None:
+        """FIFO mode: wake ~10 times a second, hand over what the chip queued meanwhile."""
+        # Wake before the FIFO is half full, whatever the rate (at 1 kHz it fills in 85 ms).
+        interval = min(BATCH_SECONDS, FIFO_SIZE // FIFO_SAMPLE // 2 * driver.sample_period)
+        clock = SampleClock(driver.sample_period)
+        errors = overflows = in_a_row = 0
+        restart = True
+        temperature: float | None = None
+        temperature_due = 0.0
+        due = time.monotonic()
+        while not stop.is_set():
+            data = b""
+            start = 0.0
+            try:
+                if restart:
+                    driver.fifo_start()
+                    clock.reset()
+                    restart = False
+                if time.monotonic() >= temperature_due:
+                    temperature = driver.read_temperature()
+                    temperature_due = time.monotonic() + TEMPERATURE_INTERVAL
+                counted_at = time.monotonic()
+                count, flagged = driver.fifo_count()
+                if fifo_overflowed(count, flagged):
+                    # Samples were lost and the rest may not start on a sample: start over.
+                    overflows += 1
+                    restart = True
+                elif count:
+                    samples = count // FIFO_SAMPLE
+                    data = driver.fifo_read(samples)
+                    start = clock.place(samples, counted_at)
+                in_a_row = 0
+            except OSError as err:
+                errors += 1
+                in_a_row += 1
+                restart = True  # a transfer cut short leaves the FIFO's alignment unknown
+                if in_a_row >= MAX_CONSECUTIVE_ERRORS:
+                    batch = FifoBatch(start, data, temperature, errors, overflows)
+                    self._to_loop(loop, self._on_fifo_batch, driver, batch)
+                    self._to_loop(loop, _set_result, failed, f"I2C read failed: {err}")
+                    return
+            if data or errors or overflows or temperature is not None:
+                batch = FifoBatch(start, data, temperature, errors, overflows)
+                self._to_loop(loop, self._on_fifo_batch, driver, batch)
+                errors = overflows = 0
+                temperature = None
+            due += interval
+            delay = due - time.monotonic()
+            if delay < -interval:  # fell behind (a stalled bus): the FIFO holds the samples
+                due = time.monotonic()
+                delay = 0.0
+            time.sleep(delay if delay > 0 else 0)
+
     @staticmethod
     def _to_loop(loop: asyncio.AbstractEventLoop, callback: Callable[..., Any], *args: Any) -> None:
         try:
@@ -371,20 +556,36 @@ class ImuReader(Actor):
     ) -> None:
         """Convert, fuse and publish a batch; must run on the event loop."""
         self.read_errors += errors
+        samples = [driver.convert(when, bytes(raw)) for when, raw in batch]
+        if samples:
+            self.temperature_c = samples[-1].temperature_c
+        self._fuse(samples)
+
+    def _on_fifo_batch(self, driver: Mpu6050Driver, batch: FifoBatch) -> None:
+        """FIFO mode's batch: convert, fuse sample by sample, publish; runs on the loop."""
+        self.read_errors += batch.errors
+        self.fifo_overflows += batch.overflows
+        if batch.temperature_c is not None:
+            self.temperature_c = batch.temperature_c
+        if not batch.data:
+            return
+        samples = driver.convert_fifo(batch.start, batch.data, self.temperature_c or 0.0)
+        self._fuse(samples)
+
+    def _fuse(self, samples: list[Sample]) -> None:
         bias = self.gyro_bias
-        for when, raw in batch:
-            sample = driver.convert(when, bytes(raw))
+        for sample in samples:
+            when = sample.time
             dt = 0.0 if self._last_time is None else when - self._last_time
             self._last_time = when
             if bias.add(sample.gyro_rad_s):
                 self._calibrated(bias)
             gyro = bias.correct(sample.gyro_rad_s)
             self.filter.update(gyro, sample.accel_mps2, min(dt, 0.1))
-            self.temperature_c = sample.temperature_c
-        self.samples += len(batch)
-        if not batch:
+        self.samples += len(samples)
+        if not samples:
             return
-        now = batch[-1][0]
+        now = samples[-1].time
         if now - self._last_attitude_at >= ATTITUDE_INTERVAL * 0.9:
             self._last_attitude_at = now
             w, x, y, z = self.filter.q
@@ -419,6 +620,7 @@ class ImuReader(Actor):
             samples=self.samples,
             read_errors=self.read_errors,
             calibrated=self.gyro_bias.measured,
+            fifo_overflows=self.fifo_overflows,
         )
 
     def _publish_status(self) -> None:
@@ -453,5 +655,6 @@ async def async_setup(ctx: PlatformContext) -> None:
         "i2c_bus": ctx.config.imu.i2c_bus,
         "address": ctx.config.imu.address,
         "rate_hz": ctx.config.imu.rate_hz,
+        "fifo": ctx.config.imu.fifo,
     }
     ctx.supervisor.start(reader)

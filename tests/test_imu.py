@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
+import struct
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
@@ -17,12 +18,20 @@ from brasidas.config import ImuSection, PlatformConfig
 from brasidas.madgwick import Madgwick, euler_deg, from_euler
 from brasidas.messages import Attitude, ImuStatus
 from platformd.app import PlatformDaemon
-from platformd.imu import GyroBias, ImuReader, Mpu6050Driver
+from platformd.imu import GyroBias, ImuReader, Mpu6050Driver, SampleClock, fifo_overflowed
 from platformd.sim.mpu6050 import (
     ACCEL_CONFIG,
+    CONFIG,
     DATA_START,
+    FIFO_COUNTH,
+    FIFO_EN,
+    FIFO_R_W,
     GYRO_CONFIG,
+    INT_ENABLE,
+    INT_STATUS,
     PWR_MGMT_1,
+    SMPLRT_DIV,
+    USER_CTRL,
     WHO_AM_I,
     EmulatedI2CBus,
     Motion,
@@ -82,7 +91,7 @@ def test_euler_round_trip() -> None:
 
 
 def test_chip_sleeps_until_woken_and_scales() -> None:
-    chip = Mpu6050(lambda: LEVEL)
+    chip = Mpu6050(lambda at: LEVEL)
     bus = EmulatedI2CBus({0x68: chip})
     assert bus.read_byte_data(0x68, WHO_AM_I) == 0x68
     assert bus.read_byte_data(0x68, PWR_MGMT_1) == 0x40  # asleep after power-on
@@ -104,7 +113,7 @@ def test_chip_sleeps_until_woken_and_scales() -> None:
 
 def test_driver_reads_si_units_through_the_chip() -> None:
     spin = Motion((0.5, -0.25, G), (0.0, 0.0, math.radians(100.0)), 30.0)
-    chip = Mpu6050(lambda: spin)
+    chip = Mpu6050(lambda at: spin)
     driver = Mpu6050Driver(EmulatedI2CBus({0x68: chip}), 0x68, 4, 500)
     driver.init(100.0)
     assert chip.registers[GYRO_CONFIG] == 1 << 3 and chip.registers[ACCEL_CONFIG] == 1 << 3
@@ -136,8 +145,7 @@ class Turntable:
             and self.clock() - self.start > self.delay + self.total / self.rate
         )
 
-    def __call__(self) -> Motion:
-        now = self.clock()
+    def __call__(self, now: float) -> Motion:
         if self.start is None:
             self.start = now
         elapsed = now - self.start - self.delay
@@ -149,7 +157,7 @@ class Turntable:
 
 def test_known_rotation_gives_yaw_within_two_degrees() -> None:
     now = [0.0]
-    chip = Mpu6050(Turntable(45.0, 90.0, lambda: now[0]))
+    chip = Mpu6050(Turntable(45.0, 90.0, lambda: now[0]), clock=lambda: now[0])
     driver = Mpu6050Driver(EmulatedI2CBus({0x68: chip}), 0x68, 2, 250)
     driver.init(100.0)
     fusion = Madgwick(0.05)
@@ -160,6 +168,146 @@ def test_known_rotation_gives_yaw_within_two_degrees() -> None:
         sample = driver.convert(now[0], raw)
         fusion.update(sample.gyro_rad_s, sample.accel_mps2, 0.0 if last is None else now[0] - last)
         last = now[0]
+    _, _, yaw = euler_deg(fusion.q)
+    assert yaw == pytest.approx(90.0, abs=2.0)
+
+
+class Ramp:
+    """Each sample's gyro z tells its time: 1 deg/s per ms since 0 (wraps every 250 ms)."""
+
+    def __call__(self, at: float) -> Motion:
+        return Motion((0.0, 0.0, G), (0.0, 0.0, math.radians((at * 1000) % 250)), 25.0)
+
+
+def fifo_chip(now: list[float], source: Any = None) -> tuple[Mpu6050, EmulatedI2CBus]:
+    chip = Mpu6050(source or (lambda at: LEVEL), clock=lambda: now[0])
+    bus = EmulatedI2CBus({0x68: chip})
+    bus.write_byte_data(0x68, PWR_MGMT_1, 0x01)
+    bus.write_byte_data(0x68, CONFIG, 0x03)  # DLPF on: 1 kHz gyro output rate
+    bus.write_byte_data(0x68, SMPLRT_DIV, 9)  # 100 Hz
+    bus.write_byte_data(0x68, FIFO_EN, 0x78)
+    bus.write_byte_data(0x68, USER_CTRL, 0x40)
+    return chip, bus
+
+
+def fifo_count(bus: EmulatedI2CBus) -> int:
+    return int.from_bytes(bytes(bus.read_i2c_block_data(0x68, FIFO_COUNTH, 2)), "big")
+
+
+def test_fifo_fills_at_the_sample_rate_and_pops_on_read() -> None:
+    now = [10.0]
+    _, bus = fifo_chip(now, Ramp())
+    assert fifo_count(bus) == 0
+    now[0] += 0.0995
+    assert fifo_count(bus) == 9 * 12  # ticks at +10 ms, +20 ms ... +90 ms
+    now[0] += 0.001
+    assert fifo_count(bus) == 10 * 12
+    first = bytes(bus.read_i2c_block_data(0x68, FIFO_R_W, 24))  # a burst stays on FIFO_R_W
+    assert fifo_count(bus) == 8 * 12
+    ax, ay, az, gx, gy, gz = struct.unpack(">6h", first[:12])
+    assert (ax, ay, az, gx, gy) == (0, 0, 16384, 0, 0)  # accel first, then gyro: register order
+    assert gz == 10 * 131  # sampled at its own tick, +10 ms, not at the read
+    assert struct.unpack(">6h", first[12:])[5] == 20 * 131
+    rest = b"".join(bytes(bus.read_i2c_block_data(0x68, FIFO_R_W, 24)) for _ in range(4))
+    assert [struct.unpack(">6h", rest[k : k + 12])[5] for k in range(0, 96, 12)] == [
+        round(ms * 131) for ms in range(30, 110, 10)
+    ]
+    assert fifo_count(bus) == 0
+    assert bus.read_i2c_block_data(0x68, FIFO_R_W, 3) == [rest[-1]] * 3  # empty: last byte again
+    # 8 kHz without the DLPF; FIFO_EN picks the record (here gyro z alone: 2 bytes).
+    bus.write_byte_data(0x68, CONFIG, 0x00)
+    bus.write_byte_data(0x68, SMPLRT_DIV, 7)  # 1 kHz
+    bus.write_byte_data(0x68, FIFO_EN, 0x10)
+    now[0] += 0.0105  # the tick already due at the old rate, then 1 kHz
+    queued = fifo_count(bus)
+    now[0] += 0.010
+    assert fifo_count(bus) == queued + 2 * 10
+    # FIFO_RESET is ignored while FIFO_EN stays set, acts once it is clear, and self-clears.
+    bus.write_byte_data(0x68, USER_CTRL, 0x44)
+    assert fifo_count(bus) > 0
+    bus.write_byte_data(0x68, USER_CTRL, 0x04)
+    assert fifo_count(bus) == 0 and bus.read_byte_data(0x68, USER_CTRL) == 0
+    now[0] += 1.0  # disabled: nothing queued
+    assert fifo_count(bus) == 0
+    bus.write_byte_data(0x68, PWR_MGMT_1, 0x40)  # asleep: nothing queued either
+    bus.write_byte_data(0x68, USER_CTRL, 0x40)
+    now[0] += 1.0
+    assert fifo_count(bus) == 0
+
+
+def test_fifo_overflow_drops_the_oldest_bytes_and_flags() -> None:
+    now = [0.0]
+    chip, bus = fifo_chip(now, Ramp())
+    bus.write_byte_data(0x68, INT_ENABLE, 0x10)
+    now[0] += 0.85  # 85 records: 1020 bytes, still whole
+    assert fifo_count(bus) == 1020 and bus.read_byte_data(0x68, INT_STATUS) == 0
+    now[0] += 0.02  # two more: 1044 bytes offered, the oldest 20 go
+    assert fifo_count(bus) == 1024
+    assert bus.read_byte_data(0x68, INT_STATUS) & 0x10
+    assert bus.read_byte_data(0x68, INT_STATUS) == 0  # cleared by the read
+    data = bytes(bus.read_i2c_block_data(0x68, FIFO_R_W, 32))
+    # The head is now 20 bytes into the stream: mid-record (record 2's gyro y, then z).
+    assert struct.unpack(">h", data[2:4])[0] == 20 * 131
+    assert struct.unpack(">6h", data[4:16])[5] == 30 * 131  # record 3 whole after it
+    now[0] += 100.0  # a long stall: the newest 1024 bytes only, computed without 10^4 records
+    assert fifo_count(bus) == 1024 and bus.read_byte_data(0x68, INT_STATUS) & 0x10
+    assert chip.overflows == 2
+    bus.write_byte_data(0x68, USER_CTRL, 0x04)
+    bus.write_byte_data(0x68, USER_CTRL, 0x40)
+    assert fifo_count(bus) == 0
+
+
+def test_driver_fifo_mode_through_the_chip() -> None:
+    now = [5.0]
+    spin = Motion((0.5, -0.25, G), (0.0, 0.0, math.radians(100.0)), 30.0)
+    chip = Mpu6050(lambda at: spin, clock=lambda: now[0])
+    driver = Mpu6050Driver(EmulatedI2CBus({0x68: chip}), 0x68, 4, 500)
+    driver.init(100.0)
+    driver.fifo_start()
+    assert chip.registers[FIFO_EN] == 0x78 and chip.registers[USER_CTRL] == 0x40
+    now[0] += 0.1001
+    count, flagged = driver.fifo_count()
+    assert (count, flagged) == (120, False) and not fifo_overflowed(count, flagged)
+    samples = driver.convert_fifo(1.0, driver.fifo_read(count // 12), 30.0)
+    assert [s.time for s in samples] == pytest.approx([1.0 + k / 100 for k in range(10)])
+    assert samples[3].accel_mps2 == pytest.approx((0.5, -0.25, G), abs=0.005)
+    assert math.degrees(samples[3].gyro_rad_s[2]) == pytest.approx(100.0, abs=0.02)
+    assert driver.read_temperature() == pytest.approx(30.0, abs=0.01)
+    now[0] += 2.0
+    assert fifo_overflowed(*driver.fifo_count())
+    driver.fifo_start()
+    assert driver.fifo_count() == (0, False)
+    assert fifo_overflowed(1020, False) is False and fifo_overflowed(1021, False) is True
+    assert fifo_overflowed(1024, False) is True and fifo_overflowed(0, True) is True
+
+
+def test_sample_clock_evenly_spaced_and_kept_near_the_host() -> None:
+    clock = SampleClock(0.01)
+    assert clock.place(10, 1.0) == pytest.approx(0.91)  # the newest taken at the count
+    assert clock.place(10, 1.1) == pytest.approx(1.01)  # continues, evenly spaced
+    assert clock.place(10, 1.3) == pytest.approx(1.2)  # fell behind the window: nudged
+    assert clock.place(10, 1.35) == pytest.approx(1.26)  # ran ahead of the count: held back
+
+
+def test_known_rotation_through_the_fifo_within_two_degrees() -> None:
+    now = [0.0]
+    chip = Mpu6050(Turntable(45.0, 90.0, lambda: now[0]), clock=lambda: now[0])
+    driver = Mpu6050Driver(EmulatedI2CBus({0x68: chip}), 0x68, 2, 250)
+    driver.init(100.0)
+    driver.fifo_start()
+    clock = SampleClock(driver.sample_period)
+    fusion = Madgwick(0.05)
+    last = None
+    for k in range(1, 31):  # 3 s, drained every 100 ms (a little late, as a thread would be)
+        now[0] = k / 10 + 0.003
+        count, flagged = driver.fifo_count()
+        assert not fifo_overflowed(count, flagged)
+        start = clock.place(count // 12, now[0])
+        for sample in driver.convert_fifo(start, driver.fifo_read(count // 12), 25.0):
+            dt = 0.0 if last is None else sample.time - last
+            assert last is None or dt == pytest.approx(0.01)
+            fusion.update(sample.gyro_rad_s, sample.accel_mps2, dt)
+            last = sample.time
     _, _, yaw = euler_deg(fusion.q)
     assert yaw == pytest.approx(90.0, abs=2.0)
 
@@ -186,13 +334,15 @@ async def running(reader: ImuReader) -> AsyncIterator[ImuReader]:
             await task
 
 
-async def test_actor_turn_through_emulated_chip() -> None:
+@pytest.mark.parametrize("fifo", [True, False], ids=["fifo", "burst"])
+async def test_actor_turn_through_emulated_chip(fifo: bool) -> None:
     bus = Bus()
     seen = Recorder(bus)
     # A chip with a real-looking zero-rate offset: uncorrected, it alone would add ~5 deg.
     table = Turntable(45.0, 90.0, time.monotonic, delay=1.5, bias=(0.5, -0.8, 1.5))
     chip = Mpu6050(table)
-    reader = ImuReader(bus, ImuSection(), lambda number: EmulatedI2CBus({0x68: chip}))
+    config = ImuSection(fifo=fifo)
+    reader = ImuReader(bus, config, lambda number: EmulatedI2CBus({0x68: chip}))
     async with running(reader):
         await wait_until(lambda: table.done(), 15.0)  # still 1.5 s, then a 2 s turn
         await asyncio.sleep(0.2)
@@ -209,10 +359,31 @@ async def test_actor_turn_through_emulated_chip() -> None:
     assert len(seen.attitudes) < reader.samples / 5
 
 
+async def test_fifo_overflow_is_detected_counted_and_recovered() -> None:
+    bus = Bus()
+    seen = Recorder(bus)
+    skew = [0.0]
+    chip = Mpu6050(lambda at: LEVEL, clock=lambda: time.monotonic() + skew[0])
+    reader = ImuReader(bus, ImuSection(), lambda number: EmulatedI2CBus({0x68: chip}))
+    async with running(reader):
+        await wait_until(lambda: bool(seen.statuses) and seen.statuses[-1].ok)
+        before = reader.samples
+        skew[0] += 2.0  # the chip ran 2 s ahead of the reader: 200 samples for 85 places
+        await wait_until(lambda: reader.fifo_overflows >= 1, 5.0)
+        after = reader.samples
+        await wait_until(lambda: reader.samples > after + 50, 5.0)  # draining again
+        await wait_until(lambda: seen.statuses[-1].fifo_overflows >= 1, 5.0)
+    assert chip.overflows >= 1
+    assert reader.fifo_overflows == 1 and reader.read_errors == 0
+    assert reader.samples - before < 200 + 150  # what overflowed was dropped, not read
+    assert seen.statuses[-1].ok and seen.statuses[-1].as_dict()["fifo_overflows"] == 1
+    assert abs(seen.attitudes[-1].roll_deg) < 1.0 and abs(seen.attitudes[-1].pitch_deg) < 1.0
+
+
 async def test_wrong_who_am_i_is_an_error_then_recovers() -> None:
     bus = Bus()
     seen = Recorder(bus)
-    chip = Mpu6050(lambda: LEVEL, who_am_i=0x72)  # an MPU-9250-like part
+    chip = Mpu6050(lambda at: LEVEL, who_am_i=0x72)  # an MPU-9250-like part
     reader = ImuReader(bus, ImuSection(), lambda number: EmulatedI2CBus({0x68: chip}))
     async with running(reader):
         await wait_until(lambda: bool(seen.statuses) and "WHO_AM_I" in seen.statuses[-1].error)
@@ -246,7 +417,7 @@ async def test_missing_device_and_missing_bus_are_reported() -> None:
 async def test_device_vanishing_mid_run_is_reported_and_reopened() -> None:
     bus = Bus()
     seen = Recorder(bus)
-    chip = Mpu6050(lambda: LEVEL)
+    chip = Mpu6050(lambda at: LEVEL)
     devices = {0x68: chip}
     reader = ImuReader(bus, ImuSection(), lambda number: EmulatedI2CBus(devices))
     async with running(reader):
