@@ -1,8 +1,10 @@
 """Sensors: GPS sentence-to-fix latency, and platform CPU with GPS 10 Hz, IMU 100 Hz, telemetry 5 Hz.
 
-Latency: an in-process GPS reader on a real pty. Each epoch (RMC VTG GGA GSA from the
-simulator's generator) is written except its last byte; after a pause the last byte is
-written and timed to the ``GPS_FIX`` callback on the bus (which runs in the publishing call).
+Latency: an in-process GPS reader on a real pty. Each sentence of an epoch (RMC VTG GGA GSA
+from the simulator's generator) is written except its last byte; after a pause the last byte
+is written and its time noted. The fix is timed from the last byte written before the
+``GPS_FIX`` callback ran (it runs in the publishing call): the reader publishes as soon as the
+epoch holds what its cycle brings (RMC and GGA), so that byte is GGA's, not the epoch's last.
 
 CPU: a ``brasidas-platform --sim`` child process (GPS simulator at 10 Hz on its pty and the
 real reader, the emulated MPU-6050 sampled at 100 Hz and fused, the simulated motor
@@ -83,17 +85,21 @@ async def gps_latency() -> dict[str, Any]:
         await _until(lambda: reader.connected)
         for k in range(EPOCHS + 1):
             epoch = generator.epoch(vehicle.pose(), start + dt.timedelta(seconds=k / 10))
-            await _write_all(master, epoch[:-1])
-            await asyncio.sleep(PAUSE_S)  # the reader has consumed all but the last byte
             arrived.clear()
-            sent = time.perf_counter()
-            await _write_all(master, epoch[-1:])
+            sent: list[float] = []
+            for line in epoch.splitlines(keepends=True):
+                await _write_all(master, line[:-1])
+                await asyncio.sleep(PAUSE_S)  # the reader has consumed all but the last byte
+                sent.append(time.perf_counter())
+                await _write_all(master, line[-1:])
             try:
                 await asyncio.wait_for(arrived.wait(), 2.0)
             except TimeoutError:
                 continue
-            if k > 0:  # the first epoch teaches the reader its cycle ender (then 0.3 s quiet)
-                samples.append((published[-1] - sent) * 1000)
+            if k > 1:  # the first epochs teach the reader its cycle (then 0.3 s quiet)
+                before = [t for t in sent if t <= published[-1]]
+                if before:
+                    samples.append((published[-1] - before[-1]) * 1000)
     finally:
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
