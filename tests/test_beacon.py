@@ -404,3 +404,30 @@ async def test_list_command_prints_the_platforms_heard(platform_factory: Factory
     assert code == 0, out.getvalue()
     [entry] = json.loads(out.getvalue())
     assert entry["id"] == "rover-9" and entry["url"] == platform.ctx.signaling_url
+
+
+async def test_sim_platform_beacon_carries_battery_controller_gps_and_position(
+    platform_factory: Factory, fleet_key: bytes, collector: tuple[int, Collector]
+) -> None:
+    """The status word and position come from the drivers: controller, battery, GPS fix."""
+    port, protocol = collector
+    config = quiet_platform_config(
+        *beacon_config(port, "beacon.max_interval=0.7"),
+        "sim.enabled=true",
+        "motor.enabled=true",
+        "gps.enabled=true",
+    )
+    await platform_factory(config, fleet_key)
+
+    async def complete() -> Beacon:
+        while True:
+            _, beacon = await protocol.beacons.get()
+            status = beacon.status
+            if status.controller and status.gps_fix and beacon.position is not None:
+                if status.battery is not Battery.UNKNOWN:
+                    return beacon
+
+    beacon = await asyncio.wait_for(complete(), 20)
+    assert beacon.status.battery is Battery.MEDIUM  # the simulated 24.6 V pack under load
+    assert beacon.position == pytest.approx((config.sim.latitude, config.sim.longitude), abs=1e-4)
+    assert not beacon.status.fault
