@@ -6,6 +6,7 @@ import asyncio
 import signal
 import socket
 import sys
+from pathlib import Path
 
 from conftest import free_tcp_port, free_udp_port
 
@@ -46,6 +47,9 @@ async def test_sim_platform_creates_key_serves_and_stops_cleanly_on_sigterm() ->
         assert security.default_key_path().exists()  # --sim made one in the state dir
         async with RpcClient(f"http://127.0.0.1:{port}/rpc/ws") as client:
             assert (await client.call("challenge"))["auth"] == "hmac-sha256"
+        # The entry point keeps Python's ssl module (and OpenSSL's libssl) out: ~4 MB of RSS.
+        maps = await asyncio.to_thread(Path(f"/proc/{process.pid}/maps").read_text)
+        assert "libssl" not in maps and "_ssl." not in maps
         process.send_signal(signal.SIGTERM)
         assert await asyncio.wait_for(process.wait(), 10) == 0
         assert process.stderr is not None
