@@ -147,3 +147,29 @@ class Supervisor:
 async def wait_forever() -> None:
     """Park an actor whose work is all in callbacks until it is cancelled."""
     await asyncio.Event().wait()
+
+
+class Daemon:
+    """A daemon's lifecycle: ``start()`` sets up its actors, ``stop()`` stops them (idempotent,
+    bounded), ``run()`` does both around a stop event. Subclasses implement ``start``."""
+
+    def __init__(self) -> None:
+        self.bus = Bus()
+        self.supervisor = Supervisor()
+        self._stopped = False
+
+    async def start(self) -> None:
+        raise NotImplementedError
+
+    async def stop(self, timeout: float = 0.9) -> None:
+        if self._stopped:
+            return
+        self._stopped = True
+        await self.supervisor.stop(timeout)
+
+    async def run(self, stop: asyncio.Event) -> None:
+        try:
+            await self.start()
+            await stop.wait()
+        finally:
+            await self.stop()

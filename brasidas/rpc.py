@@ -12,6 +12,8 @@ from typing import Any
 import aiohttp
 from aiohttp import web
 
+from brasidas.actor import Actor, Supervisor, wait_forever
+from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import (
     REQUEST_TOO_LARGE,
     TIMEOUT,
@@ -96,6 +98,41 @@ def add_rpc_routes(
 
     app.router.add_post(path, post)
     app.router.add_get(path + "/ws", websocket)
+
+
+class WebServer(Actor):
+    """Owns a bound aiohttp runner: cleaned up (connections closed) when the daemon stops."""
+
+    restart = False
+
+    def __init__(self, bus: Bus, runner: web.AppRunner, name: str) -> None:
+        super().__init__(bus)
+        self.runner = runner
+        self.name = name
+
+    async def run(self) -> None:
+        try:
+            await wait_forever()
+        finally:
+            with contextlib.suppress(Exception):
+                await asyncio.shield(self.runner.cleanup())
+
+
+async def serve_app(
+    app: web.Application, host: str, port: int, *, supervisor: Supervisor, bus: Bus, name: str
+) -> int:
+    """Bind ``app`` on ``host:port`` (0: the kernel chooses), hand it to a supervised
+    :class:`WebServer`, and return the bound port. A port in use raises ``OSError``."""
+    runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=0.2)
+    await runner.setup()
+    site = web.TCPSite(runner, host, port, reuse_address=True)
+    try:
+        await site.start()
+    except OSError:
+        await runner.cleanup()
+        raise
+    supervisor.start(WebServer(bus, runner, name))
+    return int(runner.addresses[0][1]) if runner.addresses else port
 
 
 def _too_large() -> web.Response:

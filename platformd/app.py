@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import asyncio
 import importlib
 import logging
 import time
 
-from brasidas.actor import Supervisor
-from brasidas.bus import Bus
+from brasidas.actor import Daemon
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.config import PlatformConfig
 from brasidas.sdnotify import Notifier, WatchdogPinger
@@ -36,7 +34,7 @@ SUBSYSTEMS: tuple[str, ...] = (
 )
 
 
-class PlatformDaemon:
+class PlatformDaemon(Daemon):
     """One platform: ``await start()``, then ``await stop()`` (idempotent, bounded)."""
 
     def __init__(
@@ -44,8 +42,7 @@ class PlatformDaemon:
     ) -> None:
         self.config = config
         self.notifier = notifier or Notifier()
-        self.bus = Bus()
-        self.supervisor = Supervisor()
+        super().__init__()
         self.ctx = PlatformContext(
             config=config,
             bus=self.bus,
@@ -53,7 +50,6 @@ class PlatformDaemon:
             rpc=Dispatcher(),
             fleet_key=fleet_key,
         )
-        self._stopped = False
         self.started_at = time.monotonic()
 
     async def start(self) -> None:
@@ -66,16 +62,3 @@ class PlatformDaemon:
         if self.notifier.enabled:  # under systemd (Type=notify)
             self.supervisor.start(WatchdogPinger(self.bus, self.notifier))
             self.notifier.ready(f"serving {self.ctx.signaling_url}")
-
-    async def stop(self, timeout: float = 0.9) -> None:
-        if self._stopped:
-            return
-        self._stopped = True
-        await self.supervisor.stop(timeout)
-
-    async def run(self, stop: asyncio.Event) -> None:
-        try:
-            await self.start()
-            await stop.wait()
-        finally:
-            await self.stop()

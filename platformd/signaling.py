@@ -8,14 +8,12 @@ the reason (known codes) or answered with an error (unknown codes), never silenc
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 from typing import Any
 
 from aiohttp import web
 
 from brasidas import topics
-from brasidas.actor import Actor, wait_forever
 from brasidas.codecs.commands import (
     MAIN_LIGHTS,
     MANUAL_OVERRIDE,
@@ -26,7 +24,7 @@ from brasidas.codecs.commands import (
 )
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, RpcError
 from brasidas.messages import CommandResult, SystemCommand
-from brasidas.rpc import add_rpc_routes
+from brasidas.rpc import add_rpc_routes, serve_app
 from platformd.context import PlatformContext
 from platformd.sessions import platform_parameters, velocity_endpoint
 
@@ -110,24 +108,6 @@ class Signaling:
         return report
 
 
-class SignalingServer(Actor):
-    """Owns the aiohttp runner: the site is bound during setup, cleaned up when stopped."""
-
-    name = "signaling"
-    restart = False
-
-    def __init__(self, ctx: PlatformContext, runner: web.AppRunner) -> None:
-        super().__init__(ctx.bus)
-        self.runner = runner
-
-    async def run(self) -> None:
-        try:
-            await wait_forever()
-        finally:
-            with contextlib.suppress(Exception):
-                await asyncio.shield(self.runner.cleanup())
-
-
 async def async_setup(ctx: PlatformContext) -> None:
     signaling = Signaling(ctx)
     for name in (
@@ -143,15 +123,8 @@ async def async_setup(ctx: PlatformContext) -> None:
     config = ctx.config.signaling
     app = web.Application(client_max_size=config.max_request_bytes)
     add_rpc_routes(app, ctx.rpc, "/rpc", config.max_request_bytes)
-    runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=0.2)
-    await runner.setup()
-    site = web.TCPSite(runner, config.host, config.port, reuse_address=True)
-    try:
-        await site.start()
-    except OSError:
-        await runner.cleanup()
-        raise
-    port = runner.addresses[0][1] if runner.addresses else config.port
+    port = await serve_app(
+        app, config.host, config.port, supervisor=ctx.supervisor, bus=ctx.bus, name="signaling"
+    )
     config.port = port  # with port 0 the kernel chose one; beacons must carry the real one
     ctx.signaling_url = f"http://{config.advertise_host or config.host}:{port}"
-    ctx.supervisor.start(SignalingServer(ctx, runner))
