@@ -18,27 +18,19 @@ import socket
 import time
 from typing import Any
 
-from bench.support import cpu_seconds, free_port, percentiles, rss_mb, start_platform
-from brasidas import security
+from bench.support import (
+    connect_to_platform,
+    cpu_seconds,
+    free_port,
+    percentiles,
+    rss_mb,
+    start_platform,
+)
 from brasidas.media.audio import AudioIn, AudioOut, AudioSettings
 from brasidas.media.video import VideoIn
-from stationd.client import PlatformConnection
 
 WINDOW_S = float(os.environ.get("BENCH_MEDIA_SECONDS", "20"))
 IDLE_WINDOW_S = 5.0
-
-
-async def _wait_ready(port: int) -> None:
-    deadline = time.monotonic() + 15
-    while time.monotonic() < deadline:
-        try:
-            _, writer = await asyncio.open_connection("127.0.0.1", port)
-            writer.close()
-            await writer.wait_closed()
-            return
-        except OSError:
-            await asyncio.sleep(0.05)
-    raise TimeoutError("platform did not start")
 
 
 def _own_cpu() -> float:
@@ -82,12 +74,7 @@ async def run() -> dict[str, Any]:
     microphone = AudioOut("bench-mic", AudioSettings(test_source=True, port=audio_in_port))
     figures: dict[str, Any] = {}
     try:
-        await _wait_ready(signaling_port)
-        key = security.load_key(security.default_key_path())
-        connection = PlatformConnection(
-            "brasidas-1", f"http://127.0.0.1:{signaling_port}", station_id="bench", fleet_key=key
-        )
-        await connection.open()
+        connection = await connect_to_platform(signaling_port)
         try:
             await receiver.start()
             await speaker.start()

@@ -29,8 +29,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from bench.support import cpu_seconds, free_port, percentiles, start_platform
-from brasidas import security, topics
+from bench.support import connect_to_platform, cpu_seconds, free_port, percentiles, start_platform
+from brasidas import topics
 from brasidas.bus import Bus
 from brasidas.codecs.telemetry import TelemetryDecoder
 from brasidas.config import GpsSection
@@ -38,7 +38,6 @@ from brasidas.messages import GpsFix
 from platformd.gps import GpsReader
 from platformd.sim.gps import NmeaGenerator
 from platformd.sim.vehicle import VehicleModel
-from stationd.client import PlatformConnection
 
 EPOCHS = 250
 PAUSE_S = 0.01
@@ -138,31 +137,13 @@ class _Counter(asyncio.DatagramProtocol):
         self.accepted += len(self.decoder.feed(data))
 
 
-async def _wait_ready(port: int) -> None:
-    deadline = time.monotonic() + 15
-    while time.monotonic() < deadline:
-        try:
-            _, writer = await asyncio.open_connection("127.0.0.1", port)
-            writer.close()
-            await writer.wait_closed()
-            return
-        except OSError:
-            await asyncio.sleep(0.05)
-    raise TimeoutError("platform did not start")
-
-
 async def platform_cpu(*overrides: str) -> dict[str, Any]:
     port = free_port()
     process = await start_platform(
         f"signaling.port={port}", "beacon.enabled=false", *MEDIA_OFF, *overrides
     )
     try:
-        await _wait_ready(port)
-        key = security.load_key(security.default_key_path())
-        connection = PlatformConnection(
-            "brasidas-1", f"http://127.0.0.1:{port}", station_id="bench", fleet_key=key
-        )
-        await connection.open()
+        connection = await connect_to_platform(port)
         loop = asyncio.get_running_loop()
         counter = _Counter(TelemetryDecoder("brasidas-1", connection.session_key))
         transport, _ = await loop.create_datagram_endpoint(

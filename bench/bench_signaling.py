@@ -8,9 +8,14 @@ import sys
 import time
 from typing import Any
 
-from bench.support import free_port, percentiles, rss_mb, start_platform
-from brasidas import security
-from stationd.client import PlatformConnection
+from bench.support import (
+    connect_to_platform,
+    free_port,
+    percentiles,
+    rss_mb,
+    start_platform,
+    wait_ready,
+)
 
 CALLS = 2000
 
@@ -27,31 +32,15 @@ daemon.requestLoop()
 """
 
 
-async def _wait_ready(url: str) -> None:
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:
-        try:
-            _, writer = await asyncio.open_connection(*url.removeprefix("http://").split(":"))
-            writer.close()
-            await writer.wait_closed()
-            return
-        except OSError:
-            await asyncio.sleep(0.05)
-    raise TimeoutError(url)
-
-
 async def _brasidas_round_trips() -> tuple[list[float], dict[str, Any]]:
     port = free_port()
     process = await start_platform(f"signaling.port={port}")
-    url = f"http://127.0.0.1:{port}"
     extra: dict[str, Any] = {}
     try:
-        await _wait_ready(url)
+        await wait_ready(port)
         await asyncio.sleep(1.0)  # let start-up settle before measuring idle memory
         extra["platform_rss_idle_mb"] = rss_mb(process.pid)
-        key = security.load_key(security.default_key_path())
-        connection = PlatformConnection("brasidas-1", url, station_id="bench", fleet_key=key)
-        await connection.open()
+        connection = await connect_to_platform(port)
         samples = []
         try:
             for _ in range(100):  # warm-up

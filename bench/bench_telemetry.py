@@ -14,11 +14,9 @@ import statistics
 import time
 from typing import Any
 
-from bench.support import cpu_seconds, start_platform
-from brasidas import security
+from bench.support import connect_to_platform, cpu_seconds, start_platform
 from brasidas.codecs.telemetry import TelemetryDecoder, TelemetryEncoder
 from brasidas.config import PlatformConfig
-from stationd.client import PlatformConnection
 
 WINDOW_S = 10.0
 SIZE_SAMPLE_S = 3.0
@@ -64,19 +62,6 @@ def _simulators_present() -> dict[str, bool]:
         except ImportError:
             found[name] = False
     return found
-
-
-async def _wait_ready(port: int) -> None:
-    deadline = time.monotonic() + 15
-    while time.monotonic() < deadline:
-        try:
-            _, writer = await asyncio.open_connection("127.0.0.1", port)
-            writer.close()
-            await writer.wait_closed()
-            return
-        except OSError:
-            await asyncio.sleep(0.05)
-    raise TimeoutError("platform did not start")
 
 
 def _synthetic_full_snapshot() -> dict[str, Any]:
@@ -135,12 +120,7 @@ async def run() -> dict[str, Any]:
     process = await start_platform(f"signaling.port={signaling_port}", *overrides)
     figures: dict[str, Any] = {}
     try:
-        await _wait_ready(signaling_port)
-        key = security.load_key(security.default_key_path())
-        connection = PlatformConnection(
-            "brasidas-1", f"http://127.0.0.1:{signaling_port}", station_id="bench", fleet_key=key
-        )
-        await connection.open()
+        connection = await connect_to_platform(signaling_port)
         loop = asyncio.get_running_loop()
         collector = _Collector(TelemetryDecoder("brasidas-1", connection.session_key))
         transport, _ = await loop.create_datagram_endpoint(

@@ -7,7 +7,11 @@ import os
 import socket
 import statistics
 import sys
+import time
 from pathlib import Path
+
+from brasidas import security
+from stationd.client import PlatformConnection
 
 
 def percentiles(samples_ms: list[float]) -> dict[str, float]:
@@ -52,3 +56,30 @@ def rss_mb(pid: int) -> float:
 def cpu_seconds(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+async def wait_ready(port: int, timeout: float = 15.0) -> None:
+    """Until something accepts TCP connections on 127.0.0.1:``port``."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            _, writer = await asyncio.open_connection("127.0.0.1", port)
+            writer.close()
+            await writer.wait_closed()
+            return
+        except OSError:
+            await asyncio.sleep(0.05)
+    raise TimeoutError(f"platform did not start: nothing on port {port}")
+
+
+async def connect_to_platform(port: int, platform_id: str = "brasidas-1") -> PlatformConnection:
+    """Wait for a platform process's signaling port, then open a session as a station would."""
+    await wait_ready(port)
+    connection = PlatformConnection(
+        platform_id,
+        f"http://127.0.0.1:{port}",
+        station_id="bench",
+        fleet_key=security.load_key(security.default_key_path()),
+    )
+    await connection.open()
+    return connection
