@@ -1,4 +1,5 @@
-"""Signaling round trip (WebSocket JSON-RPC vs a Pyro5 proxy), shutdown time, idle RSS."""
+"""Signaling round trip (WebSocket JSON-RPC vs a Pyro5 proxy and a bare aiohttp echo),
+shutdown time, idle RSS."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import asyncio
 import signal
 import sys
 import time
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 from bench.support import (
@@ -16,6 +18,7 @@ from bench.support import (
     start_platform,
     wait_ready,
 )
+from stationd.client import PlatformConnection
 
 CALLS = 2000
 
@@ -32,50 +35,9 @@ daemon.requestLoop()
 """
 
 
-async def _brasidas_round_trips() -> tuple[list[float], dict[str, Any]]:
-    port = free_port()
-    process = await start_platform(f"signaling.port={port}")
-    extra: dict[str, Any] = {}
-    try:
-        await wait_ready(port)
-        await asyncio.sleep(1.0)  # let start-up settle before measuring idle memory
-        extra["platform_rss_idle_mb"] = rss_mb(process.pid)
-        connection = await connect_to_platform(port)
-        samples = []
-        try:
-            for _ in range(100):  # warm-up
-                await connection.call("heartbeat")
-            for _ in range(CALLS):
-                started = time.perf_counter()
-                await connection.call("heartbeat")
-                samples.append((time.perf_counter() - started) * 1000)
-        finally:
-            await connection.close()
-        sent = time.perf_counter()
-        process.send_signal(signal.SIGTERM)
-        await asyncio.wait_for(process.wait(), 5)
-        extra["platform_sigterm_exit_ms"] = round((time.perf_counter() - sent) * 1000, 1)
-        extra["platform_sigterm_exit_status"] = process.returncode
-        return samples, extra
-    finally:
-        if process.returncode is None:
-            process.kill()
-            await process.wait()
-
-
-def _pyro_round_trips(port: int) -> list[float]:
-    import Pyro5.api
-
-    samples = []
-    with Pyro5.api.Proxy(f"PYRO:target@127.0.0.1:{port}") as proxy:
-        for _ in range(100):
-            proxy.heartbeat()
-        for _ in range(CALLS):
-            started = time.perf_counter()
-            proxy.heartbeat()
-            samples.append((time.perf_counter() - started) * 1000)
-    return samples
-
+ROUNDS = 10
+"""The three are measured in alternating rounds of CALLS / ROUNDS calls, so a change in the
+machine's load or clock speed during the bench touches all three alike."""
 
 ECHO_SERVER = """
 import asyncio, sys
@@ -97,51 +59,91 @@ async def main():
 asyncio.run(main())
 """
 
+Call = Callable[[], Awaitable[object]]
 
-async def _aiohttp_echo_floor() -> list[float]:
-    """Bare aiohttp WebSocket echo, no JSON-RPC: the transport's own floor on this machine."""
-    import aiohttp
 
+async def _timed(call: Call, count: int, samples: list[float]) -> None:
+    for _ in range(count):
+        started = time.perf_counter()
+        await call()
+        samples.append((time.perf_counter() - started) * 1000)
+
+
+async def _server(script: str) -> tuple[asyncio.subprocess.Process, int]:
     port = free_port()
-    server = await asyncio.create_subprocess_exec(
-        sys.executable, "-c", ECHO_SERVER, str(port), stdout=asyncio.subprocess.PIPE
+    process = await asyncio.create_subprocess_exec(
+        sys.executable, "-c", script, str(port), stdout=asyncio.subprocess.PIPE
     )
-    samples = []
+    assert process.stdout is not None
+    await asyncio.wait_for(process.stdout.readline(), 10)
+    return process, port
+
+
+async def _measure(connection: PlatformConnection) -> dict[str, list[float]]:
+    """Heartbeats over our WebSocket, a Pyro5 proxy's trivial call, a bare aiohttp echo."""
+    import aiohttp
+    import Pyro5.api
+
+    async def ours() -> object:
+        return await connection.call("heartbeat")
+
+    pyro_server, pyro_port = await _server(PYRO_SERVER)
+    echo_server, echo_port = await _server(ECHO_SERVER)
+    request = '{"jsonrpc":"2.0","id":1,"method":"heartbeat","params":{"session":"0123"}}'
     try:
-        assert server.stdout is not None
-        await asyncio.wait_for(server.stdout.readline(), 10)
-        request = '{"jsonrpc":"2.0","id":1,"method":"heartbeat","params":{"session":"0123"}}'
         async with (
             aiohttp.ClientSession() as session,
-            session.ws_connect(f"http://127.0.0.1:{port}/ws") as ws,
+            session.ws_connect(f"http://127.0.0.1:{echo_port}/ws") as ws,
         ):
-            for index in range(CALLS + 100):
-                started = time.perf_counter()
-                await ws.send_str(request)
-                await ws.receive()
-                if index >= 100:
-                    samples.append((time.perf_counter() - started) * 1000)
+            with Pyro5.api.Proxy(f"PYRO:target@127.0.0.1:{pyro_port}") as proxy:
+
+                async def pyro() -> object:
+                    # A blocking call on the loop: nothing else of the bench runs meanwhile,
+                    # and a thread hop would only add to Pyro5's figure.
+                    return proxy.heartbeat()
+
+                async def echo() -> object:
+                    await ws.send_str(request)
+                    return await ws.receive()
+
+                calls = {"ours": ours, "pyro5": pyro, "echo": echo}
+                samples: dict[str, list[float]] = {name: [] for name in calls}
+                for call in calls.values():
+                    await _timed(call, 100, [])  # warm-up
+                for _ in range(ROUNDS):
+                    for name, call in calls.items():
+                        await _timed(call, CALLS // ROUNDS, samples[name])
+                return samples
     finally:
-        server.kill()
-        await server.wait()
-    return samples
+        for server in (pyro_server, echo_server):
+            server.kill()
+            await server.wait()
 
 
 async def run() -> dict[str, Any]:
-    ours, extra = await _brasidas_round_trips()
     port = free_port()
-    server = await asyncio.create_subprocess_exec(
-        sys.executable, "-c", PYRO_SERVER, str(port), stdout=asyncio.subprocess.PIPE
-    )
+    process = await start_platform(f"signaling.port={port}")
+    figures: dict[str, Any] = {}
     try:
-        assert server.stdout is not None
-        await asyncio.wait_for(server.stdout.readline(), 10)
-        pyro = await asyncio.to_thread(_pyro_round_trips, port)
+        await wait_ready(port)
+        await asyncio.sleep(1.0)  # let start-up settle before measuring idle memory
+        figures["platform_rss_idle_mb"] = rss_mb(process.pid)
+        connection = await connect_to_platform(port)
+        try:
+            samples = await _measure(connection)
+        finally:
+            await connection.close()
+        sent = time.perf_counter()
+        process.send_signal(signal.SIGTERM)
+        await asyncio.wait_for(process.wait(), 5)
+        figures["platform_sigterm_exit_ms"] = round((time.perf_counter() - sent) * 1000, 1)
+        figures["platform_sigterm_exit_status"] = process.returncode
     finally:
-        server.kill()
-        await server.wait()
-    floor = percentiles(await _aiohttp_echo_floor())
-    mine, theirs = percentiles(ours), percentiles(pyro)
+        if process.returncode is None:
+            process.kill()
+            await process.wait()
+    mine, theirs = percentiles(samples["ours"]), percentiles(samples["pyro5"])
+    floor = percentiles(samples["echo"])
     return {
         "ws_jsonrpc_heartbeat_p50_ms": mine["p50"],
         "ws_jsonrpc_heartbeat_p99_ms": mine["p99"],
@@ -150,6 +152,7 @@ async def run() -> dict[str, Any]:
         "p50_ratio_vs_pyro5": round(mine["p50"] / theirs["p50"], 2),
         "aiohttp_ws_echo_floor_p50_ms": floor["p50"],
         "aiohttp_ws_echo_floor_p99_ms": floor["p99"],
+        "rounds": ROUNDS,
         "target": "p50 <= 0.7x Pyro5, p99 < 1 ms",
-        **extra,
+        **figures,
     }

@@ -9,9 +9,12 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import BinaryIO
 
 from brasidas import security
 from stationd.client import PlatformConnection
+
+PLATFORM_LOG = Path(__file__).resolve().parent / "results" / "platform.log"
 
 
 def percentiles(samples_ms: list[float]) -> dict[str, float]:
@@ -41,9 +44,17 @@ async def start_platform(*overrides: str, sim: bool = True) -> asyncio.subproces
     ]
     for item in [*defaults, *overrides]:
         args += ["--set", item]
-    return await asyncio.create_subprocess_exec(
-        *args, stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE
-    )
+    # Its log goes to a file: a pipe nobody reads would fill and block the platform's loop.
+    with _platform_log() as log:
+        return await asyncio.create_subprocess_exec(
+            *args, stdout=asyncio.subprocess.DEVNULL, stderr=log
+        )
+
+
+def _platform_log() -> BinaryIO:
+    """bench/results/platform.log, appended to by every platform a bench starts."""
+    PLATFORM_LOG.parent.mkdir(exist_ok=True)
+    return PLATFORM_LOG.open("ab")
 
 
 def rss_mb(pid: int) -> float:
