@@ -20,11 +20,14 @@ from brasidas.codecs.jsonrpc import (
     UNAUTHORIZED,
     CallContext,
     Dispatcher,
+    Incoming,
     RpcError,
     encode_request,
 )
 
 _LOGGER = logging.getLogger(__name__)
+
+MAX_IN_FLIGHT_PER_SOCKET = 32
 
 
 def add_rpc_routes(
@@ -85,15 +88,40 @@ def add_rpc_routes(
         await ws.prepare(request)
         ctx = CallContext(peer_host=_peer_host(request), transport="ws")
         ctx.extra["ws"] = ws
-        async for message in ws:
-            if message.type in (aiohttp.WSMsgType.TEXT, aiohttp.WSMsgType.BINARY):
-                answer = await dispatcher.handle_bytes(message.data, ctx)
-                if answer is not None:
-                    await ws.send_str(answer.decode())
-            elif message.type == aiohttp.WSMsgType.ERROR:
-                _LOGGER.debug("websocket error from %s: %s", ctx.peer_host, ws.exception())
-        for callback in ctx.extra.get("on_close", ()):
-            callback()
+
+        async def answer(incoming: Incoming) -> None:
+            reply = await dispatcher.answer(incoming, ctx)
+            if reply is not None and not ws.closed:
+                with contextlib.suppress(ConnectionError):
+                    await ws.send_str(reply.decode())
+
+        # A request whose method may wait (a command waiting seconds for its actor) is answered
+        # in its own task, owned by this connection, so it does not hold up the heartbeats
+        # behind it; answers carry their ids and may come back out of order. Methods that
+        # answer at once run inline: no task, no extra turn of the loop. Past the cap,
+        # requests wait in line.
+        in_flight: set[asyncio.Task[None]] = set()
+        try:
+            async for message in ws:
+                if message.type in (aiohttp.WSMsgType.TEXT, aiohttp.WSMsgType.BINARY):
+                    incoming = dispatcher.parse(message.data)
+                    if (
+                        dispatcher.answers_at_once(incoming)
+                        or len(in_flight) >= MAX_IN_FLIGHT_PER_SOCKET
+                    ):
+                        await answer(incoming)
+                        continue
+                    task = asyncio.get_running_loop().create_task(answer(incoming))
+                    in_flight.add(task)
+                    task.add_done_callback(in_flight.discard)
+                elif message.type == aiohttp.WSMsgType.ERROR:
+                    _LOGGER.debug("websocket error from %s: %s", ctx.peer_host, ws.exception())
+        finally:
+            for task in list(in_flight):
+                task.cancel("websocket closed")
+            await asyncio.gather(*in_flight, return_exceptions=True)
+            for callback in ctx.extra.get("on_close", ()):
+                callback()
         return ws
 
     app.router.add_post(path, post)

@@ -85,7 +85,7 @@ class SessionManager(Actor):
 
     # ------------------------------------------------------------------ authorizer
 
-    async def authorize(self, call: CallContext, params: dict[str, Any]) -> None:
+    def authorize(self, call: CallContext, params: dict[str, Any]) -> None:
         """Check and strip the ``session`` token; sets ``call.session``."""
         token = params.pop("session", None)
         session = self.sessions.get(token) if isinstance(token, str) else None
@@ -97,7 +97,7 @@ class SessionManager(Actor):
 
     # ------------------------------------------------------------------ methods
 
-    async def rpc_challenge(self, call: CallContext) -> dict[str, Any]:
+    def rpc_challenge(self, call: CallContext) -> dict[str, Any]:
         """A one-time nonce for ``connect``."""
         now = self._clock()
         while self._challenges and (
@@ -113,7 +113,7 @@ class SessionManager(Actor):
             "auth": "none" if self.ctx.fleet_key is None else "hmac-sha256",
         }
 
-    async def rpc_connect(
+    def rpc_connect(
         self,
         call: CallContext,
         station_id: str,
@@ -163,11 +163,11 @@ class SessionManager(Actor):
             "capabilities": capabilities(self.ctx),
         }
 
-    async def rpc_disconnect(self, call: CallContext) -> bool:
+    def rpc_disconnect(self, call: CallContext) -> bool:
         self.close(call.session.session_id, "disconnect")
         return True
 
-    async def rpc_heartbeat(self, call: CallContext) -> dict[str, Any]:
+    def rpc_heartbeat(self, call: CallContext) -> dict[str, Any]:
         override = self.bus.last(topics.OVERRIDE_STATE)
         engaged = bool(override and override.engaged)
         return {

@@ -84,19 +84,19 @@ class Signaling:
         )
         return result.as_dict()
 
-    async def get_platform_parameters(self, call: CallContext) -> dict[str, Any]:
+    def get_platform_parameters(self, call: CallContext) -> dict[str, Any]:
         return platform_parameters(self.ctx)
 
-    async def get_velocity_connection_info(self, call: CallContext) -> dict[str, Any]:
+    def get_velocity_connection_info(self, call: CallContext) -> dict[str, Any]:
         return velocity_endpoint(self.ctx)
 
-    async def get_nav_camera_parameters(self, call: CallContext) -> dict[str, Any]:
+    def get_nav_camera_parameters(self, call: CallContext) -> dict[str, Any]:
         provider = self.ctx.capabilities.get("nav_camera")
         if provider is None:
             raise RpcError(UNAVAILABLE, "this platform has no NavCam")
         return dict(provider())
 
-    async def get_telemetry_report(self, call: CallContext) -> dict[str, Any]:
+    def get_telemetry_report(self, call: CallContext) -> dict[str, Any]:
         override = self.ctx.bus.last(topics.OVERRIDE_STATE)
         report: dict[str, Any] = {
             "platform_id": self.ctx.config.platform.id,

@@ -24,7 +24,7 @@ async def _whoami(call: CallContext) -> str:
     return str(call.session)
 
 
-async def _authorize(call: CallContext, params: dict[str, Any]) -> None:
+def _authorize(call: CallContext, params: dict[str, Any]) -> None:
     if params.pop("session", None) != "good":
         raise Unauthorized()
     call.session = "alice"

@@ -10,7 +10,7 @@ from __future__ import annotations
 import inspect
 import json
 import logging
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -60,8 +60,10 @@ class CallContext:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-Handler = Callable[..., Awaitable[Any]]
-Authorizer = Callable[[CallContext, dict[str, Any]], Awaitable[None]]
+Handler = Callable[..., Any]
+"""``handler(ctx, **params)``: a plain function answers at once; a coroutine function may wait
+(on another actor, the network) and transports then answer it without holding up others."""
+Authorizer = Callable[[CallContext, dict[str, Any]], None]
 """Checks (and strips) credentials from by-name params before a session method runs."""
 
 
@@ -78,6 +80,8 @@ class Method:
     required: frozenset[str] = frozenset()
     types: dict[str, type] = field(default_factory=dict)
     """Simple JSON types to check, from the handler's annotations (str, int, float, bool)."""
+    waits: bool = True
+    """The handler is a coroutine function: answering may take a while."""
 
     @classmethod
     def build(cls, name: str, handler: Handler, session_required: bool) -> Method:
@@ -98,7 +102,16 @@ class Method:
             frozenset(p.name for p in params),
             frozenset(p.name for p in params if p.default is inspect.Parameter.empty),
             types,
+            inspect.iscoroutinefunction(handler),
         )
+
+
+@dataclass(slots=True)
+class Incoming:
+    """A received message, decoded (``message``) or not (``parse_error`` is its answer)."""
+
+    message: Any = None
+    parse_error: bytes | None = None
 
 
 class Dispatcher:
@@ -131,7 +144,9 @@ class Dispatcher:
 
     async def call_local(self, name: str, **params: Any) -> Any:
         """Call a method in-process, as a trusted caller (no session check)."""
-        return await self._methods[name].handler(CallContext(transport="local"), **params)
+        method = self._methods[name]
+        result = method.handler(CallContext(transport="local"), **params)
+        return await result if method.waits else result
 
     @property
     def method_names(self) -> list[str]:
@@ -139,11 +154,34 @@ class Dispatcher:
 
     async def handle_bytes(self, data: bytes | str, ctx: CallContext) -> bytes | None:
         """Answer one JSON-RPC message (single or batch); None when nothing is to be sent."""
+        return await self.answer(self.parse(data), ctx)
+
+    def parse(self, data: bytes | str) -> Incoming:
+        """Decode a message; what cannot be decoded already carries its parse-error answer."""
         try:
-            message = json.loads(data)
+            return Incoming(json.loads(data))
         except (ValueError, UnicodeDecodeError) as err:
             self.counters["parse_errors"] += 1
-            return _encode(_error_response(None, RpcError(PARSE_ERROR, f"parse error: {err}")))
+            error = RpcError(PARSE_ERROR, f"parse error: {err}")
+            return Incoming(None, _encode(_error_response(None, error)))
+
+    def answers_at_once(self, incoming: Incoming) -> bool:
+        """True when answering cannot wait on anything: a parse error, or a single request
+        for an unknown method or one whose handler is a plain function. Transports answer
+        these inline and give the rest a task of their own."""
+        if incoming.parse_error is not None:
+            return True
+        message = incoming.message
+        if not isinstance(message, dict):
+            return not isinstance(message, list)  # a batch may hold a method that waits
+        method = self._methods.get(message.get("method"))  # type: ignore[arg-type]
+        return method is None or not method.waits
+
+    async def answer(self, incoming: Incoming, ctx: CallContext) -> bytes | None:
+        """The encoded answer to a parsed message; None when nothing is to be sent."""
+        if incoming.parse_error is not None:
+            return incoming.parse_error
+        message = incoming.message
         if isinstance(message, list):
             if not message:
                 self.counters["invalid_requests"] += 1
@@ -224,13 +262,14 @@ class Dispatcher:
             if self.authorizer is None:
                 raise RpcError(INTERNAL_ERROR, "no authorizer")
             try:
-                await self.authorizer(ctx, kwargs)
+                self.authorizer(ctx, kwargs)
             except RpcError as err:
                 if err.code == UNAUTHORIZED:
                     self.counters["unauthorized"] += 1
                 raise
         self._check_params(method, kwargs)
-        return await method.handler(ctx, **kwargs)
+        result = method.handler(ctx, **kwargs)
+        return await result if method.waits else result
 
 
 def _json_type_ok(value: Any, expected: type) -> bool:
