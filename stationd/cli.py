@@ -191,6 +191,12 @@ def cmd_view(args: argparse.Namespace, config: StationConfig) -> int:
     return run_view(args, config)
 
 
+def cmd_audio(args: argparse.Namespace, config: StationConfig) -> int:
+    from stationd.intercom import run_audio
+
+    return run_audio(args, config)
+
+
 def cmd_keygen(args: argparse.Namespace, config: StationConfig) -> int:
     path = Path(args.path) if args.path else security.key_path(config.security.key_file)
     try:
@@ -262,6 +268,7 @@ COMMANDS: dict[str, Callable[[argparse.Namespace, StationConfig], int]] = {
     "keygen": cmd_keygen,
     "drive": cmd_drive,
     "view": cmd_view,
+    "audio": cmd_audio,
 }
 
 
@@ -345,6 +352,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sink", default="autovideosink", help="GStreamer sink (fakesink: no window)")
     p.add_argument("--seconds", type=float, default=0, help="stop after this long")
     p.add_argument("--sdp", metavar="FILE", help="write an SDP file for ffplay/VLC instead")
+    p = sub.add_parser(
+        "audio", parents=[common], help="hear a platform's microphone; --talk to answer"
+    )
+    p.add_argument("id")
+    p.add_argument("--url", help="signaling URL, when the platform is not discovered")
+    p.add_argument("--talk", action="store_true", help="send this station's microphone too")
+    p.add_argument("--test-tone", action="store_true", help="with --talk: a 440 Hz tone instead")
+    p.add_argument(
+        "--sink", choices=["auto", "fakesink"], default="auto", help="fakesink: do not play"
+    )
+    p.add_argument("--seconds", type=float, default=0, help="stop after this long")
     p = sub.add_parser("keygen", parents=[common], help="write a new fleet key")
     p.add_argument("--path", help="where (default: the configured key file)")
     p.add_argument("--force", action="store_true", help="replace an existing key")

@@ -128,6 +128,7 @@ def _print_next_steps(args: argparse.Namespace) -> None:
         (f"drive {pid}", "keyboard teleop: arrows/WASD, space stops, q quits"),
         (f"view {pid}", "the NavCam video in a window, with its latency"),
         (f"view {pid} --sdp navcam.sdp", "an SDP file for ffplay or VLC"),
+        (f"audio {pid} --talk", "hear the platform's microphone, talk back"),
         (f"movrd {pid} on|off", "manual override (teleop / autonomous)"),
         (f"lights {pid} main on", "main lights (10.6)"),
         (f"cmd {pid} 10 5 navcam=10", "any system command of table 10.1"),

@@ -229,3 +229,40 @@ async def test_station_hears_the_platform_and_talks_back(
     await wait_until(lambda: platform_speaker.state.value == "idle")
     with pytest.raises(RpcError, match="no stream named 'audio_in' to receive"):
         await api.call_local("receive", platform_id="rover-v", stream="audio_in")
+
+
+async def test_audio_command_hears_the_platform_talks_back_and_stops_both(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes
+) -> None:
+    platform = await sim_platform(
+        platform_factory, fleet_key, "audio.enabled=true", f"audio.in_port={free_udp_port()}"
+    )
+    streams = platform.ctx.capabilities["streams"].__self__.streams
+    cli_run = asyncio.ensure_future(
+        run_cli(
+            station,
+            "audio",
+            "rover-v",
+            "--url",
+            platform.ctx.signaling_url,
+            "--talk",
+            "--test-tone",
+            "--sink",
+            "fakesink",
+            "--seconds",
+            "3",
+            "--json",
+        )
+    )
+    try:
+        # While the command runs, the platform's speaker hears the station's test tone.
+        await wait_until(lambda: streams["audio_in"].hears_sound, timeout=10)
+    finally:
+        code, out, err = await asyncio.wait_for(cli_run, 30)
+    assert code == 0, err
+    levels = [json.loads(line) for line in out.strip().splitlines()[2:]]
+    assert levels and levels[-1]["buffers"] > 0 and levels[-1]["peak"] > 1000
+    # Ended: both directions stopped, on the platform and in the station daemon.
+    await wait_until(lambda: streams["audio_in"].state.value == "idle")
+    await wait_until(lambda: streams["audio_out"].state.value == "idle")
+    assert await station.ctx.api.call_local("receivers") == []

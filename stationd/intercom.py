@@ -1,0 +1,88 @@
+"""``brasidas-station audio ID [--talk]``: two-way audio with a platform (R-11.3).
+
+The station daemon plays the platform's microphone (its ``audio_out`` stream) on this
+station's speaker and, with ``--talk``, sends this station's microphone (or ``--test-tone``)
+to the platform's speaker (``audio_in``). The command prints what arrives once a second and,
+when it ends (Ctrl-C, ``--seconds``), stops both streams.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import signal
+from typing import Any
+
+from brasidas.codecs.jsonrpc import RpcError
+from brasidas.config import StationConfig
+
+
+def run_audio(args: argparse.Namespace, config: StationConfig) -> int:
+    return asyncio.run(_audio(args, config))
+
+
+async def _audio(args: argparse.Namespace, config: StationConfig) -> int:
+    from stationd.cli import CliError, api_call_async
+
+    await api_call_async(config, "connect", platform_id=args.id, url=args.url or "")
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(ValueError, RuntimeError):  # not the main thread (tests)
+            loop.add_signal_handler(signum, stop.set)
+    listening = talking = False
+    try:
+        heard = await api_call_async(
+            config, "receive", platform_id=args.id, stream="audio_out", sink=args.sink
+        )
+        listening = True
+        _say(args, f"listening: {args.id}'s microphone on UDP {heard.get('port')}", heard)
+        if args.talk:
+            sent = await api_call_async(
+                config, "talk", platform_id=args.id, on=True, test_tone=args.test_tone
+            )
+            talking = True
+            source = "a test tone" if args.test_tone else "this station's microphone"
+            _say(args, f"talking: {source} to {sent.get('host')}:{sent.get('port')}", sent)
+        deadline = loop.time() + args.seconds if args.seconds else None
+        heard_anything = False
+        while not stop.is_set():
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), 1.0)
+            receiver = await _receiver(config, args.id)
+            if receiver is None:
+                raise CliError("the station stopped receiving (platform gone?)")
+            if receiver.get("state") == "failed":
+                raise CliError(f"receiver failed: {receiver.get('reason')}")
+            heard_anything = heard_anything or int(receiver.get("buffers", 0)) > 0
+            _say(
+                args,
+                f"buffers {receiver.get('buffers')}  peak {receiver.get('peak')}",
+                {"buffers": receiver.get("buffers"), "peak": receiver.get("peak")},
+            )
+            if deadline is not None and loop.time() >= deadline:
+                break
+        return 0 if heard_anything else 1
+    finally:
+        with contextlib.suppress(RpcError, CliError):
+            if talking:
+                await api_call_async(config, "talk", platform_id=args.id, on=False)
+            if listening:
+                await api_call_async(
+                    config, "stop_receive", platform_id=args.id, stream="audio_out"
+                )
+
+
+async def _receiver(config: StationConfig, platform_id: str) -> dict[str, Any] | None:
+    from stationd.cli import api_call_async
+
+    for entry in await api_call_async(config, "receivers"):
+        if entry.get("platform_id") == platform_id and entry.get("stream") == "audio_out":
+            return dict(entry)
+    return None
+
+
+def _say(args: argparse.Namespace, text: str, value: dict[str, Any]) -> None:
+    print(json.dumps(value) if args.json else text, flush=True)
