@@ -191,6 +191,30 @@ def cmd_view(args: argparse.Namespace, config: StationConfig) -> int:
     return run_view(args, config)
 
 
+STREAM_ACTIONS = {"start": "stream_start", "pause": "stream_pause", "stop": "stream_stop"}
+
+
+def _describe_stream(stream: dict[str, Any]) -> str:
+    where = f" -> {stream['destination']}" if stream.get("destination") else ""
+    why = f" ({stream['reason']})" if stream.get("reason") else ""
+    return f"{stream.get('name', '?'):<16} {stream.get('kind', ''):<15} {stream.get('state')}{where}{why}"
+
+
+def cmd_stream(args: argparse.Namespace, config: StationConfig) -> int:
+    if args.name is None:
+        streams = api_call(config, "streams", platform_id=args.id)
+        _print(args, streams, lambda v: "\n".join(map(_describe_stream, v)) or "no streams")
+        return 0
+    if args.action is None:
+        raise CliError("say what to do with the stream: start, pause or stop")
+    params: dict[str, Any] = {"platform_id": args.id, "stream": args.name}
+    if args.action == "start":
+        params.update(host=args.host or "", port=args.port or 0)
+    answer = api_call(config, STREAM_ACTIONS[args.action], **params)
+    _print(args, answer, _describe_stream)
+    return 1 if answer.get("state") == "failed" else 0
+
+
 def cmd_audio(args: argparse.Namespace, config: StationConfig) -> int:
     from stationd.intercom import run_audio
 
@@ -269,6 +293,7 @@ COMMANDS: dict[str, Callable[[argparse.Namespace, StationConfig], int]] = {
     "drive": cmd_drive,
     "view": cmd_view,
     "audio": cmd_audio,
+    "stream": cmd_stream,
 }
 
 
@@ -352,6 +377,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sink", default="autovideosink", help="GStreamer sink (fakesink: no window)")
     p.add_argument("--seconds", type=float, default=0, help="stop after this long")
     p.add_argument("--sdp", metavar="FILE", help="write an SDP file for ffplay/VLC instead")
+    p = sub.add_parser(
+        "stream",
+        parents=[common],
+        help="a platform's streams; start, pause or stop one (10.1-10.3 act on all)",
+    )
+    p.add_argument("id")
+    p.add_argument("name", nargs="?", help="stream name (navcam, audio_out, ...); none: list")
+    p.add_argument("action", nargs="?", choices=sorted(STREAM_ACTIONS))
+    p.add_argument("--host", help="start: where to send it (default: this station)")
+    p.add_argument("--port", type=int, default=0, help="start: UDP port (default: configured)")
     p = sub.add_parser(
         "audio", parents=[common], help="hear a platform's microphone; --talk to answer"
     )

@@ -266,3 +266,34 @@ async def test_audio_command_hears_the_platform_talks_back_and_stops_both(
     await wait_until(lambda: streams["audio_in"].state.value == "idle")
     await wait_until(lambda: streams["audio_out"].state.value == "idle")
     assert await station.ctx.api.call_local("receivers") == []
+
+
+async def test_stream_command_lists_starts_pauses_and_stops_one_stream(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes
+) -> None:
+    platform = await sim_platform(platform_factory, fleet_key)
+    code, _, err = await run_cli(station, "connect", "rover-v", "--url", platform.ctx.signaling_url)
+    assert code == 0, err
+    code, out, err = await run_cli(station, "stream", "rover-v")
+    assert code == 0, err
+    assert re.search(r"^navcam\s+video_out\s+idle$", out, re.MULTILINE), out
+
+    port = free_udp_port()
+    code, out, err = await run_cli(
+        station, "stream", "rover-v", "navcam", "start", "--port", str(port), "--json"
+    )
+    assert code == 0, err
+    started = json.loads(out)
+    assert started["state"] == "playing" and started["destination"] == f"127.0.0.1:{port}"
+    nav = platform.ctx.capabilities["nav_camera"]
+    code, out, err = await run_cli(station, "stream", "rover-v", "navcam", "pause")
+    assert code == 0 and "paused" in out, err
+    assert nav()["state"] == "paused"
+    code, out, err = await run_cli(station, "stream", "rover-v", "navcam", "stop")
+    assert code == 0 and "idle" in out, err
+    assert nav()["state"] == "idle"
+
+    code, out, err = await run_cli(station, "stream", "rover-v", "nosuch", "start")
+    assert code == 1 and "nosuch" in err
+    code, out, err = await run_cli(station, "stream", "rover-v", "navcam")
+    assert code == 1 and "start, pause or stop" in err
