@@ -29,5 +29,7 @@ class PlatformContext:
     """Sections of the ``connect`` answer's capabilities, each computed when asked."""
     telemetry_sources: dict[str, Callable[[], Any]] = field(default_factory=dict)
     """Sections of the telemetry snapshot, each computed when a report is built."""
+    diagnostics_sources: dict[str, Callable[[], Any]] = field(default_factory=dict)
+    """Entries of the ``diagnostics`` section (sent only after 20.0): counters and the like."""
     sim: dict[str, Any] = field(default_factory=dict)
     """Simulated devices by name (only in --sim), for subsystems that need to reach them."""

@@ -771,14 +771,12 @@ class MotorController(Actor):
         self.bus.publish(topics.CONTROLLER_STATUS, self.status)
 
     def snapshot(self) -> dict[str, Any]:
-        """Driver state for telemetry (``motor`` section)."""
+        """Driver state for telemetry (``motor`` section); its counters go with diagnostics."""
         return {
             "connected": self._ready,
-            "port": self.config.port,
             "desired": list(self.desired),
             "acknowledged": list(self.sent),
             "error": self.status.error,
-            **self.counters,
         }
 
 
@@ -795,6 +793,7 @@ def capability(controller: MotorController) -> dict[str, Any]:
     """The ``motor`` section of the connect answer."""
     return {
         "controller": "Roboteq AX3500",
+        "port": controller.config.port,
         "lights": [which for which in LIGHTS if controller._output_name(which)],
         "refresh_hz": round(1.0 / controller.refresh_period, 1),
     }
@@ -806,6 +805,7 @@ async def async_setup(ctx: PlatformContext) -> None:
     controller = MotorController(ctx)
     ctx.capabilities["motor"] = lambda: capability(controller)
     ctx.telemetry_sources["motor"] = controller.snapshot
+    ctx.diagnostics_sources["motor"] = lambda: dict(controller.counters)
     ctx.supervisor.start(controller)
 
 

@@ -368,7 +368,12 @@ class TelemetryAggregator(Actor):
         return section
 
     def streams_section(self) -> dict[str, Any]:
-        return {name: _stream_state(value) for name, value in self.stream_states.items()}
+        states = {name: _stream_state(value) for name, value in self.stream_states.items()}
+        # Streams that never changed state (idle since start) are still worth listing.
+        describe = self.ctx.capabilities.get("streams")
+        for stream in describe() if describe is not None else ():
+            states.setdefault(str(stream["name"]), stream["state"])
+        return states
 
     def diagnostics_section(self) -> dict[str, Any] | None:
         if not self.diagnostics:
@@ -382,6 +387,7 @@ class TelemetryAggregator(Actor):
             "telemetry": dict(self.counters),
             "gps": to_plain(self.latest.get("gps_stats")),
             "imu": to_plain(self.latest.get("imu")),
+            **{name: source() for name, source in self.ctx.diagnostics_sources.items()},
         }
 
     # ------------------------------------------------------------------ health

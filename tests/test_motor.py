@@ -132,6 +132,17 @@ async def test_ten_seconds_at_zero_without_one_watchdog_w(tmp_path: Path) -> Non
         assert driver.counters["watchdog_w"] == 0 and driver.counters["unanswered"] == 0
         # 10 Hz refresh, both channels: about 200 commands, never fewer than the 2 Hz minimum.
         assert sim.device.received.count("!A00") >= 20
+        # Telemetry carries the state; the counters go with diagnostics (20.0), the port with
+        # the capabilities: a 5 Hz datagram has no room for what does not change.
+        assert ctx.telemetry_sources["motor"]() == {
+            "connected": True,
+            "desired": [0, 0],
+            "acknowledged": [0, 0],
+            "error": "",
+        }
+        counters = ctx.diagnostics_sources["motor"]()
+        assert counters["watchdog_w"] == 0 and counters["velocity_commands"] >= 20
+        assert ctx.capabilities["motor"]()["port"] == driver.config.port
 
 
 async def test_latest_wins_no_backlog(tmp_path: Path) -> None:

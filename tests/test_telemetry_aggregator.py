@@ -116,10 +116,16 @@ def test_sections_follow_the_bus(fake_topics: dict[str, Topic[object]]) -> None:
     assert gps["fix"] is False and gps["lost_for_s"] == 4.0 and gps["latitude"] == 37.9838096
     assert health[-1].gps_fix is False
 
+    # Streams the media service has but that never changed state are listed as they are.
+    aggregator.ctx.capabilities["streams"] = lambda: [
+        {"name": "navcam", "state": "idle"},
+        {"name": "audio_out", "state": "idle"},
+    ]
+    assert aggregator.snapshot()["streams"] == {"navcam": "idle", "audio_out": "idle"}
     bus.publish(fake_topics["STREAM_STATES"], {"name": "navcam", "state": "playing"})
     assert health[-1].streaming is True
     bus.publish(fake_topics["STREAM_STATES"], {"name": "navcam", "state": "failed"})
-    assert aggregator.snapshot()["streams"] == {"navcam": "failed"}
+    assert aggregator.snapshot()["streams"] == {"navcam": "failed", "audio_out": "idle"}
     assert health[-1].fault and health[-1].faults == ("stream:navcam",)
     bus.publish(fake_topics["CONTROLLER_STATUS"], FakeControllerStatus(False, None, (0, 0), (0, 0)))
     assert health[-1].faults == ("controller", "stream:navcam") and not health[-1].controller
