@@ -245,7 +245,7 @@ class RpcClient:
                     continue
                 try:
                     answer = json.loads(message.data)
-                except ValueError:
+                except (ValueError, RecursionError):
                     _LOGGER.warning("unparseable answer from %s", self.url)
                     continue
                 for item in answer if isinstance(answer, list) else [answer]:

@@ -121,6 +121,12 @@ async def test_counters_count_bad_input(dispatcher: Dispatcher) -> None:
     assert dispatcher.counters["unauthorized"] == 1
 
 
+async def test_nesting_deeper_than_the_parser_is_a_parse_error(dispatcher: Dispatcher) -> None:
+    answer = await ask(dispatcher, b"[" * 100_000)
+    assert answer["error"]["code"] == -32700 and answer["id"] is None
+    assert dispatcher.counters["parse_errors"] == 1
+
+
 async def test_rpc_error_from_method_is_passed_through() -> None:
     async def refuse(call: CallContext) -> None:
         raise RpcError(-32002, "no camera", {"hint": "x"})

@@ -127,6 +127,25 @@ async def test_oversize_websocket_message_is_refused(
         assert (await client.call("challenge"))["auth"] == "hmac-sha256"
 
 
+async def test_hostile_websocket_messages_get_errors_and_the_socket_keeps_serving(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    daemon = await platform_factory(quiet_platform_config(), fleet_key)
+    async with (
+        aiohttp.ClientSession() as session,
+        session.ws_connect(daemon.ctx.signaling_url + "/rpc/ws") as ws,
+    ):
+        for hostile in ("[" * 60_000, "{garbage", '{"jsonrpc":"2.0","id":1}', "[]"):
+            await ws.send_str(hostile)
+            answer = json.loads((await ws.receive(timeout=5)).data)
+            assert answer["error"]["code"] in (-32700, -32600), hostile[:20]
+        await ws.send_bytes(b"\xff\xfe")
+        assert json.loads((await ws.receive(timeout=5)).data)["error"]["code"] == -32700
+        await ws.send_str('{"jsonrpc":"2.0","id":9,"method":"challenge"}')
+        assert json.loads((await ws.receive(timeout=5)).data)["id"] == 9
+    assert daemon.ctx.rpc.counters["parse_errors"] == 3
+
+
 async def test_system_commands_reach_their_owner_and_answer(
     platform_factory: Factory, fleet_key: bytes
 ) -> None:

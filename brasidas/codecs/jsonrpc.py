@@ -160,6 +160,10 @@ class Dispatcher:
         """Decode a message; what cannot be decoded already carries its parse-error answer."""
         try:
             return Incoming(json.loads(data))
+        except RecursionError:  # "[[[[…": nesting deeper than the parser's stack
+            self.counters["parse_errors"] += 1
+            error = RpcError(PARSE_ERROR, "parse error: nested too deeply")
+            return Incoming(None, _encode(_error_response(None, error)))
         except (ValueError, UnicodeDecodeError) as err:
             self.counters["parse_errors"] += 1
             error = RpcError(PARSE_ERROR, f"parse error: {err}")
