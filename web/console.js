@@ -159,8 +159,14 @@ function telemetryRows(snapshot) {
   const gps = snapshot.gps;
   add("gps", gps && (gps.fix ? `${gps.lat?.toFixed(6)}, ${gps.lon?.toFixed(6)}  ${gps.sats ?? "?"} sats  hdop ${gps.hdop ?? "?"}` : "no fix"));
   add("attitude", snapshot.attitude && ["roll", "pitch", "yaw"].map((k) => `${k} ${snapshot.attitude[k]?.toFixed?.(1) ?? "?"}`).join("  "));
-  add("streams", snapshot.streams && Object.keys(snapshot.streams).length ? JSON.stringify(snapshot.streams) : null);
-  add("computer", snapshot.computer && `load ${JSON.stringify(snapshot.computer.load)}  free ${snapshot.computer.mem_free_mb} MB`);
+  const streams = Object.entries(snapshot.streams ?? {});
+  add("streams", streams.length ? streams.map(([name, state]) => `${name} ${state}`).join("  ") : null);
+  const computer = snapshot.computer;
+  add("computer", computer && [
+    computer.cpu_temp_c == null ? null : `cpu ${computer.cpu_temp_c} °C`,
+    `load ${(computer.load ?? []).map((v) => v.toFixed(2)).join(" ")}`,
+    `free ${Math.round(computer.mem_free_mb ?? 0)} MB`,
+  ].filter(Boolean).join("  "));
   return rows;
 }
 
