@@ -30,11 +30,20 @@ from typing import Any
 
 from brasidas import topics
 from brasidas.actor import Actor
-from brasidas.bus import Topic
 from brasidas.codecs.commands import DIAGNOSTICS, PayloadError, parse_switch
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, RpcError
 from brasidas.codecs.telemetry import MAX_DATAGRAM, TAG_LENGTH, VERSION, TelemetryEncoder
-from brasidas.messages import CommandResult, PlatformHealth, SessionClosed, SystemCommand
+from brasidas.messages import (
+    CommandResult,
+    ControllerStatus,
+    GpsFix,
+    GpsFixLost,
+    ImuStatus,
+    PlatformHealth,
+    SessionClosed,
+    StreamStatus,
+    SystemCommand,
+)
 from brasidas.status import Battery
 from platformd.context import PlatformContext
 
@@ -46,22 +55,6 @@ SYSTEM_INFO_MAX_AGE = 1.0
 THERMAL_ROOT = Path("/sys/class/thermal")
 MEMINFO = Path("/proc/meminfo")
 CPU_ZONE_TYPES = ("cpu-thermal", "cpu_thermal", "x86_pkg_temp", "soc_thermal", "cpu")
-
-# Topics published by other subsystems, by the name they have (or will have) in
-# brasidas.topics. A topic not declared yet reads as null; ``TelemetryAggregator.wire()``
-# subscribes to whatever exists when the actor starts.
-WATCHED: dict[str, tuple[str, ...]] = {
-    "lights": ("LIGHTS_STATE",),
-    "controller": ("CONTROLLER_STATUS", "MOTOR_STATUS", "MOTOR_CONTROLLER_STATUS"),
-    "gps_fix": ("GPS_FIX",),
-    "gps_lost": ("GPS_FIX_LOST",),
-    "gps_stats": ("GPS_STATS",),
-    "attitude": ("ATTITUDE",),
-    "imu": ("IMU_STATUS",),
-    "velocity_link": ("VELOCITY_LINK_STATS",),
-    "streams": ("STREAM_STATES", "STREAM_STATE", "MEDIA_STREAMS"),
-    "autonomy": ("AUTONOMY_STATE",),
-}
 
 
 class TelemetryAggregator(Actor):
@@ -83,11 +76,9 @@ class TelemetryAggregator(Actor):
         self._thermal_root = thermal_root
         self._meminfo = meminfo
         self.latest: dict[str, Any] = {}
-        """Last message per :data:`WATCHED` key (raw bus messages)."""
-        self.stream_states: dict[str, Any] = {}
+        """The last report of each subsystem, by section name (see :meth:`subscribe_reports`)."""
+        self.stream_states: dict[str, StreamStatus] = {}
         self.diagnostics = False
-        self.battery_monitor = ctx.config.telemetry.battery_monitor
-        """Report the coarse level when the controller's status does not say (20.4 state)."""
         self.health: PlatformHealth | None = None
         self.counters: dict[str, int] = {
             "datagrams_sent": 0,
@@ -99,17 +90,15 @@ class TelemetryAggregator(Actor):
         self._group: asyncio.TaskGroup | None = None
         self._transport: asyncio.DatagramTransport | None = None
         self._system: tuple[float, dict[str, Any]] | None = None
-        self._wired: set[str] = set()
         self._gps_lost_at: float | None = None
 
     # ------------------------------------------------------------------ lifecycle
 
     async def run(self) -> None:
         self.latest.clear()
-        self._wired.clear()
         self.subscribe(topics.SYSTEM_COMMANDS, self._on_command)
         self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
-        self.wire()
+        self.subscribe_reports()
         loop = asyncio.get_running_loop()
         transport, _ = await loop.create_datagram_endpoint(
             asyncio.DatagramProtocol, family=socket.AF_INET
@@ -125,63 +114,46 @@ class TelemetryAggregator(Actor):
             transport.close()
             self._transport = None
 
-    def wire(self) -> list[str]:
-        """Subscribe to the watched topics declared so far; returns the keys newly wired."""
-        added = []
-        for key, names in WATCHED.items():
-            if key in self._wired:
-                continue
-            topic = _find_topic(names)
-            if topic is None:
-                continue
-            self.subscribe(topic, self._store(key))
-            self._wired.add(key)
-            added.append(key)
-        return added
+    def subscribe_reports(self) -> None:
+        """Keep the last report of every subsystem; retained topics hand theirs over at once.
+        (Autonomy has no topic yet: its section stays null until it does.)"""
+        self.subscribe(topics.LIGHTS_STATE, self._keep("lights"))
+        self.subscribe(topics.CONTROLLER_STATUS, self._keep("controller", health=True))
+        self.subscribe(topics.GPS_FIX, self._on_fix)
+        self.subscribe(topics.GPS_FIX_LOST, self._on_fix_lost)
+        self.subscribe(topics.GPS_STATS, self._keep("gps_stats"))
+        self.subscribe(topics.ATTITUDE, self._keep("attitude"))  # ~10 Hz: store only
+        self.subscribe(topics.IMU_STATUS, self._keep("imu", health=True))
+        self.subscribe(topics.VELOCITY_LINK_STATS, self._keep("velocity_link"))
+        self.subscribe(topics.STREAM_STATES, self._on_stream_state)
 
-    def _store(self, key: str) -> Callable[[Any], None]:
-        if key == "streams":
-            return self._on_stream_state
-        if key == "gps_fix":
-
-            def on_fix(message: Any) -> None:
-                self.latest["gps_fix"] = message
-                self._gps_lost_at = None
-                self._update_health()
-
-            return on_fix
-        if key == "gps_lost":
-
-            def on_lost(message: Any) -> None:
-                self.latest["gps_lost"] = message
-                self._gps_lost_at = self._clock()
-                self._update_health()
-
-            return on_lost
-        if key in ("attitude", "gps_stats", "velocity_link"):
-            # High-rate or health-neutral: store only.
-            return lambda message: self.latest.__setitem__(key, message)
-
-        def store_and_check(message: Any) -> None:
+    def _keep(self, key: str, *, health: bool = False) -> Callable[[Any], None]:
+        def keep(message: Any) -> None:
             self.latest[key] = message
-            self._update_health()
+            if health:
+                self._update_health()
 
-        return store_and_check
+        return keep
 
-    def _on_stream_state(self, message: Any) -> None:
-        """One stream's state (``name`` + ``state``) or a map of them, depending on the sender."""
-        plain = to_plain(message)
-        if isinstance(plain, dict) and "name" in plain:
-            self.stream_states[str(plain["name"])] = plain
-        elif isinstance(plain, dict):
-            self.stream_states.update({str(k): v for k, v in plain.items()})
+    def _on_fix(self, fix: GpsFix) -> None:
+        self.latest["gps_fix"] = fix
+        self._gps_lost_at = None
+        self._update_health()
+
+    def _on_fix_lost(self, lost: GpsFixLost) -> None:
+        self.latest["gps_lost"] = lost
+        self._gps_lost_at = self._clock()
+        self._update_health()
+
+    def _on_stream_state(self, status: StreamStatus) -> None:
+        self.stream_states[status.name] = status
         self._update_health()
 
     # ------------------------------------------------------------------ commands and sessions
 
     def _on_command(self, cmd: SystemCommand) -> None:
         # 20.4 (battery monitor) belongs to the motor controller's driver: the battery
-        # section follows the ``battery_monitor`` flag of its status when it has one.
+        # section follows the ``battery_monitor`` flag of its status.
         if cmd.code != DIAGNOSTICS:
             return
         try:
@@ -303,27 +275,24 @@ class TelemetryAggregator(Actor):
         }
 
     def battery_section(self) -> dict[str, Any] | None:
-        status = self.latest.get("controller")
+        status: ControllerStatus | None = self.latest.get("controller")
         if status is None:
             return None
-        volts = _field(status, "battery_volts", "battery_v", "main_volts", "volts")
-        monitor = _field(status, "battery_monitor", "monitor")
-        if not isinstance(monitor, bool):
-            monitor = self.battery_monitor
+        volts, monitor = status.battery_volts, status.battery_monitor
         level = None
         if volts is not None and monitor:
-            level = battery_level(float(volts), self.ctx.config.telemetry).name.lower()
+            level = battery_level(volts, self.ctx.config.telemetry).name.lower()
         return {"volts": _round(volts, 2), "level": level, "monitor": monitor}
 
     def controller_section(self) -> dict[str, Any] | None:
-        status = self.latest.get("controller")
+        status: ControllerStatus | None = self.latest.get("controller")
         if status is None:
             return None
         return {
-            "connected": bool(_field(status, "connected")),
-            "temps_c": _round(_field(status, "heatsink_c", "temperatures_c", "temps_c"), 1),
-            "amps": _round(_field(status, "motor_amps", "amps", "currents_a"), 1),
-            "internal_volts": _round(_field(status, "internal_volts", "internal_v"), 2),
+            "connected": status.connected,
+            "temps_c": _round(to_plain(status.heatsink_c), 1),
+            "amps": _round(to_plain(status.motor_amps), 1),
+            "internal_volts": _round(status.internal_volts, 2),
         }
 
     def gps_section(self) -> dict[str, Any] | None:
@@ -368,7 +337,7 @@ class TelemetryAggregator(Actor):
         return section
 
     def streams_section(self) -> dict[str, Any]:
-        states = {name: _stream_state(value) for name, value in self.stream_states.items()}
+        states = {name: status.state for name, status in self.stream_states.items()}
         # Streams that never changed state (idle since start) are still worth listing.
         describe = self.ctx.capabilities.get("streams")
         for stream in describe() if describe is not None else ():
@@ -405,8 +374,8 @@ class TelemetryAggregator(Actor):
         faults: list[str] = []
         if self.ctx.config.motor.enabled and controller is not None and not controller["connected"]:
             faults.append("controller")
-        imu = to_plain(self.latest.get("imu"))
-        if isinstance(imu, dict) and (imu.get("error") or imu.get("ok") is False):
+        imu: ImuStatus | None = self.latest.get("imu")
+        if imu is not None and (imu.error or not imu.ok):
             faults.append("imu")
         states = self.streams_section()
         faults.extend(f"stream:{name}" for name, state in states.items() if state == "failed")
@@ -532,35 +501,12 @@ def to_plain(value: Any, digits: int = 7) -> Any:
     return str(value)
 
 
-def _field(message: Any, *names: str) -> Any:
-    for name in names:
-        if isinstance(message, dict) and name in message:
-            return to_plain(message[name])
-        if hasattr(message, name):
-            return to_plain(getattr(message, name))
-    return None
-
-
 def _round(value: Any, digits: int) -> Any:
     if isinstance(value, float):
         return round(value, digits)
     if isinstance(value, list):
         return [_round(item, digits) for item in value]
     return value
-
-
-def _stream_state(value: Any) -> Any:
-    if isinstance(value, dict):
-        return value.get("state", value.get("status", value))
-    return value
-
-
-def _find_topic(names: tuple[str, ...]) -> Topic[Any] | None:
-    for name in names:
-        topic = getattr(topics, name, None)
-        if isinstance(topic, Topic):
-            return topic
-    return None
 
 
 def _ipv4(host: str) -> str:

@@ -5,18 +5,23 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import pytest
 from conftest import quiet_platform_config
 
 from brasidas import topics
 from brasidas.actor import Supervisor
-from brasidas.bus import Bus, Topic
+from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import Dispatcher
-from brasidas.messages import OverrideState, PlatformHealth
+from brasidas.messages import (
+    ControllerStatus,
+    GpsFix,
+    GpsFixLost,
+    OverrideState,
+    PlatformHealth,
+    StreamStatus,
+)
 from brasidas.status import Battery
 from platformd.context import PlatformContext
 from platformd.telemetry import (
-    WATCHED,
     TelemetryAggregator,
     allowed_host,
     cpu_temperature,
@@ -26,19 +31,20 @@ from platformd.telemetry import (
 
 
 @dataclass(frozen=True)
-class FakeControllerStatus:
-    connected: bool
-    battery_volts: float | None
-    heatsink_c: tuple[float, float]
-    motor_amps: tuple[float, float]
-
-
-@dataclass(frozen=True)
-class FakeFix:
+class Sample:
     latitude: float
     longitude: float
     satellites: int
     extra: dict[str, float] = field(default_factory=dict)
+
+
+def controller(
+    connected: bool, volts: float | None, *, monitor: bool = True, amps: float = 0.0
+) -> ControllerStatus:
+    return ControllerStatus(connected, volts, monitor, (25.0, 25.0), (amps, amps))
+
+
+FIX = GpsFix(37.98380961, 23.72753882, 95.0, 0.0, None, 1, 9, 0.9, "12:00:00.000Z")
 
 
 class Clock:
@@ -47,19 +53,6 @@ class Clock:
 
     def __call__(self) -> float:
         return self.now
-
-
-@pytest.fixture
-def fake_topics(monkeypatch: pytest.MonkeyPatch) -> dict[str, Topic[object]]:
-    """Stand-ins for topics other subsystems declare, under the names the aggregator looks for."""
-    made: dict[str, Topic[object]] = {}
-    for name in ("CONTROLLER_STATUS", "GPS_FIX", "GPS_FIX_LOST", "STREAM_STATES", "IMU_STATUS"):
-        if getattr(topics, name, None) is None:
-            made[name] = Topic(name.lower(), retain=True)
-            monkeypatch.setattr(topics, name, made[name], raising=False)
-        else:
-            made[name] = getattr(topics, name)
-    return made
 
 
 def make(clock: Clock, *overrides: str) -> tuple[TelemetryAggregator, Bus]:
@@ -76,10 +69,10 @@ def make(clock: Clock, *overrides: str) -> tuple[TelemetryAggregator, Bus]:
     return aggregator, bus
 
 
-def test_sections_follow_the_bus(fake_topics: dict[str, Topic[object]]) -> None:
+def test_sections_follow_the_bus() -> None:
     clock = Clock()
     aggregator, bus = make(clock, "motor.enabled=true")
-    assert {"controller", "gps_fix", "gps_lost", "streams", "imu"} <= set(aggregator.wire())
+    aggregator.subscribe_reports()
     health: list[PlatformHealth] = []
     bus.subscribe(topics.PLATFORM_HEALTH, health.append)
 
@@ -89,8 +82,8 @@ def test_sections_follow_the_bus(fake_topics: dict[str, Topic[object]]) -> None:
 
     bus.publish(topics.OVERRIDE_STATE, OverrideState(True, "s1", "station-9"))
     bus.publish(
-        fake_topics["CONTROLLER_STATUS"],
-        FakeControllerStatus(True, 22.512, (41.26, 39.0), (3.04, 2.5)),
+        topics.CONTROLLER_STATUS,
+        ControllerStatus(True, 22.512, True, (41.26, 39.0), (3.04, 2.5), 12.251),
     )
     snap = aggregator.snapshot()
     assert snap["mode"] == "teleop" and snap["override"] == {
@@ -102,18 +95,18 @@ def test_sections_follow_the_bus(fake_topics: dict[str, Topic[object]]) -> None:
         "connected": True,
         "temps_c": [41.3, 39.0],
         "amps": [3.0, 2.5],
-        "internal_volts": None,
+        "internal_volts": 12.25,
     }
     assert health[-1].battery is Battery.LOW and health[-1].controller and not health[-1].fault
 
-    bus.publish(fake_topics["GPS_FIX"], FakeFix(37.98380961, 23.72753882, 9))
+    bus.publish(topics.GPS_FIX, FIX)
     assert aggregator.snapshot()["gps"]["fix"] is True
-    assert aggregator.snapshot()["gps"]["latitude"] == 37.9838096
+    assert aggregator.snapshot()["gps"]["lat"] == 37.9838096
     assert health[-1].gps_fix is True
-    bus.publish(fake_topics["GPS_FIX_LOST"], object())
+    bus.publish(topics.GPS_FIX_LOST, GpsFixLost("receiver silent"))
     clock.now += 4
     gps = aggregator.snapshot()["gps"]
-    assert gps["fix"] is False and gps["lost_for_s"] == 4.0 and gps["latitude"] == 37.9838096
+    assert gps["fix"] is False and gps["lost_for_s"] == 4.0 and gps["lat"] == 37.9838096
     assert health[-1].gps_fix is False
 
     # Streams the media service has but that never changed state are listed as they are.
@@ -122,31 +115,27 @@ def test_sections_follow_the_bus(fake_topics: dict[str, Topic[object]]) -> None:
         {"name": "audio_out", "state": "idle"},
     ]
     assert aggregator.snapshot()["streams"] == {"navcam": "idle", "audio_out": "idle"}
-    bus.publish(fake_topics["STREAM_STATES"], {"name": "navcam", "state": "playing"})
+    bus.publish(topics.STREAM_STATES, StreamStatus("navcam", "video_out", "playing"))
     assert health[-1].streaming is True
-    bus.publish(fake_topics["STREAM_STATES"], {"name": "navcam", "state": "failed"})
+    bus.publish(topics.STREAM_STATES, StreamStatus("navcam", "video_out", "failed", "no camera"))
     assert aggregator.snapshot()["streams"] == {"navcam": "failed", "audio_out": "idle"}
     assert health[-1].fault and health[-1].faults == ("stream:navcam",)
-    bus.publish(fake_topics["CONTROLLER_STATUS"], FakeControllerStatus(False, None, (0, 0), (0, 0)))
+    bus.publish(topics.CONTROLLER_STATUS, controller(False, None))
     assert health[-1].faults == ("controller", "stream:navcam") and not health[-1].controller
     assert health[-1].battery is Battery.UNKNOWN
     # Only changes are published.
     count = len(health)
-    bus.publish(fake_topics["CONTROLLER_STATUS"], FakeControllerStatus(False, None, (0, 0), (0, 0)))
+    bus.publish(topics.CONTROLLER_STATUS, controller(False, None))
     assert len(health) == count
     assert bus.last(topics.PLATFORM_HEALTH) == health[-1]
 
 
-def test_battery_levels_follow_the_configured_thresholds(
-    fake_topics: dict[str, Topic[object]],
-) -> None:
+def test_battery_levels_follow_the_configured_thresholds() -> None:
     aggregator, bus = make(Clock(), "telemetry.battery_low_v=11.5", "telemetry.battery_high_v=12.4")
-    aggregator.wire()
+    aggregator.subscribe_reports()
     levels = []
     for volts in (11.0, 11.5, 12.39, 12.4, 13.0):
-        bus.publish(
-            fake_topics["CONTROLLER_STATUS"], FakeControllerStatus(True, volts, (25, 25), (0, 0))
-        )
+        bus.publish(topics.CONTROLLER_STATUS, controller(True, volts))
         levels.append(aggregator.snapshot()["battery"]["level"])
     assert levels == ["low", "medium", "medium", "high", "high"]
 
@@ -157,13 +146,6 @@ def test_diagnostics_section_only_when_switched_on() -> None:
     aggregator.diagnostics = True
     diagnostics = aggregator.snapshot()["diagnostics"]
     assert diagnostics["telemetry"]["snapshots"] == 2 and diagnostics["actor_restarts"] == {}
-
-
-def test_every_watched_topic_that_exists_is_a_topic() -> None:
-    for names in WATCHED.values():
-        for name in names:
-            value = getattr(topics, name, None)
-            assert value is None or isinstance(value, Topic), name
 
 
 def test_cpu_temperature_prefers_the_cpu_zone(tmp_path: Path) -> None:
@@ -199,27 +181,16 @@ def test_only_loopback_or_the_callers_host_may_receive() -> None:
 
 
 def test_to_plain_handles_enums_tuples_and_nested_dataclasses() -> None:
-    plain = to_plain(FakeFix(1.123456789, 2.0, 3, {"x": 0.5}))
+    plain = to_plain(Sample(1.123456789, 2.0, 3, {"x": 0.5}))
     assert plain == {"latitude": 1.1234568, "longitude": 2.0, "satellites": 3, "extra": {"x": 0.5}}
     assert to_plain((Battery.LOW, None)) == [1, None]
 
 
-@dataclass(frozen=True)
-class FakeMonitoredStatus(FakeControllerStatus):
-    battery_monitor: bool = True
-
-
-def test_battery_level_follows_the_monitor_flag(fake_topics: dict[str, Topic[object]]) -> None:
+def test_battery_level_follows_the_monitor_flag() -> None:
     aggregator, bus = make(Clock())
-    aggregator.wire()
-    topic = fake_topics["CONTROLLER_STATUS"]
-    bus.publish(topic, FakeMonitoredStatus(True, 22.0, (25, 25), (0, 0), battery_monitor=True))
+    aggregator.subscribe_reports()
+    bus.publish(topics.CONTROLLER_STATUS, controller(True, 22.0, monitor=True))
     assert aggregator.snapshot()["battery"] == {"volts": 22.0, "level": "low", "monitor": True}
-    bus.publish(topic, FakeMonitoredStatus(True, 22.0, (25, 25), (0, 0), battery_monitor=False))
+    bus.publish(topics.CONTROLLER_STATUS, controller(True, 22.0, monitor=False))
     assert aggregator.snapshot()["battery"] == {"volts": 22.0, "level": None, "monitor": False}
     assert bus.last(topics.PLATFORM_HEALTH).battery is Battery.UNKNOWN
-    # Without a flag in the status, the configured default decides.
-    quiet, bus = make(Clock(), "telemetry.battery_monitor=false")
-    quiet.wire()
-    bus.publish(topic, FakeControllerStatus(True, 22.0, (25, 25), (0, 0)))
-    assert quiet.snapshot()["battery"]["level"] is None
