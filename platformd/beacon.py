@@ -68,7 +68,6 @@ class BeaconAdvertiser(Actor):
         lights: LightsState | None = bus.last(topics.LIGHTS_STATE)
         health: PlatformHealth | None = bus.last(topics.PLATFORM_HEALTH)
         position: Position | None = bus.last(topics.POSITION)
-        sessions = getattr(self.ctx.sessions, "sessions", None) or {}
         status = StatusWord(
             movrd=bool(override and override.engaged),
             main_lights=bool(lights and lights.main),
@@ -76,7 +75,7 @@ class BeaconAdvertiser(Actor):
             battery=Battery(health.battery) if health else Battery.UNKNOWN,
             gps_fix=bool(health and health.gps_fix),
             streaming=bool(health and health.streaming),
-            session=bool(sessions),
+            session=self.ctx.session_count > 0,
             controller=bool(health and health.controller),
             fault=bool(health and health.fault),
         )

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from brasidas.actor import Supervisor
 from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.config import PlatformConfig
+
+if TYPE_CHECKING:  # sessions imports this module
+    from platformd.sessions import Session, SessionManager
 
 
 @dataclass
@@ -23,8 +26,8 @@ class PlatformContext:
     """None only with --insecure."""
     signaling_url: str = ""
     """Where stations reach signaling; set once the server is bound."""
-    sessions: Any = None
-    """The session manager (platformd.sessions.SessionManager), set by its setup."""
+    sessions: SessionManager | None = None
+    """The session manager, set by its setup (platformd.sessions)."""
     capabilities: dict[str, Callable[[], Any]] = field(default_factory=dict)
     """Sections of the ``connect`` answer's capabilities, each computed when asked."""
     telemetry_sources: dict[str, Callable[[], Any]] = field(default_factory=dict)
@@ -33,3 +36,13 @@ class PlatformContext:
     """Entries of the ``diagnostics`` section (sent only after 20.0): counters and the like."""
     sim: dict[str, Any] = field(default_factory=dict)
     """Simulated devices by name (only in --sim), for subsystems that need to reach them."""
+
+    def session(self, session_id: str | None) -> Session | None:
+        """The open session with this token, or None."""
+        if self.sessions is None or session_id is None:
+            return None
+        return self.sessions.sessions.get(session_id)
+
+    @property
+    def session_count(self) -> int:
+        return len(self.sessions.sessions) if self.sessions is not None else 0

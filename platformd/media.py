@@ -223,8 +223,7 @@ class MediaService(Actor):
         return host_from_payload(payload, self._session_host(session_id))
 
     def _session_host(self, session_id: str | None) -> str:
-        sessions = getattr(self.ctx.sessions, "sessions", {})
-        session = sessions.get(session_id) if session_id else None
+        session = self.ctx.session(session_id)
         if session is None:
             return ""
         host = str(session.peer_host)

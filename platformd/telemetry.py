@@ -325,10 +325,9 @@ class TelemetryAggregator(Actor):
         return self._system[1]
 
     def link_section(self) -> dict[str, Any]:
-        sessions = getattr(self.ctx.sessions, "sessions", {}) if self.ctx.sessions else {}
         section: dict[str, Any] = {
             "session_rtt_ms": None,  # measured by the station (heartbeats), not here
-            "sessions": len(sessions),
+            "sessions": self.ctx.session_count,
             "telemetry_streams": len(self.streams),
         }
         if "velocity_link" not in self.ctx.telemetry_sources:
@@ -352,7 +351,7 @@ class TelemetryAggregator(Actor):
             "actor_restarts": dict(self.ctx.supervisor.restarts),
             "bus_delivery_errors": self.bus.delivery_errors,
             "rpc": dict(self.ctx.rpc.counters),
-            "auth_failures": getattr(sessions, "auth_failures", None),
+            "auth_failures": sessions.auth_failures if sessions is not None else None,
             "telemetry": dict(self.counters),
             "gps": to_plain(self.latest.get("gps_stats")),
             "imu": to_plain(self.latest.get("imu")),

@@ -171,8 +171,7 @@ class VelocityReceiver(Actor):
         state = state or self.bus.last(topics.OVERRIDE_STATE)
         holder: Holder | None = None
         if state is not None and state.engaged and state.session_id is not None:
-            sessions = getattr(self.ctx.sessions, "sessions", {})
-            session = sessions.get(state.session_id)
+            session = self.ctx.session(state.session_id)
             if session is not None:
                 holder = Holder(session.session_id, session.peer_host, session.session_key)
         self.gate.set_holder(holder)
