@@ -8,6 +8,7 @@ from enum import Enum
 from typing import Any
 
 from brasidas.codecs.commands import CommandCode
+from brasidas.status import Battery
 
 
 @dataclass(frozen=True)
@@ -184,8 +185,8 @@ class ControllerStatus:
 class PlatformHealth:
     """A coarse summary of the platform for the beacon's status word (platformd.telemetry)."""
 
-    battery: Any
-    """A :class:`brasidas.status.Battery` level (UNKNOWN when the monitor is off)."""
+    battery: Battery
+    """The coarse level (UNKNOWN when the monitor is off)."""
     gps_fix: bool
     streaming: bool
     """At least one media stream is sending."""

@@ -121,9 +121,6 @@ class StationMedia(Actor):
             if self._group is not None:
                 self._group.create_task(receiver.stop(), name=f"media:stop:{key[1]}")
 
-    async def _connection(self, platform_id: str) -> Any:
-        return await self.ctx.connection_manager.ensure(platform_id)
-
     # ------------------------------------------------------------------ local API
 
     async def api_stream_start(
@@ -134,7 +131,7 @@ class StationMedia(Actor):
         host: str = "",
         port: int = 0,
     ) -> dict[str, Any]:
-        connection = await self._connection(platform_id)
+        connection = await self.ctx.connection(platform_id)
         params: dict[str, Any] = {"name": stream}
         if host:
             params["host"] = host
@@ -146,19 +143,19 @@ class StationMedia(Actor):
     async def api_stream_pause(
         self, call: CallContext, platform_id: str, stream: str = "navcam"
     ) -> dict[str, Any]:
-        connection = await self._connection(platform_id)
+        connection = await self.ctx.connection(platform_id)
         answer: dict[str, Any] = await connection.call("pause_stream", name=stream)
         return answer
 
     async def api_stream_stop(
         self, call: CallContext, platform_id: str, stream: str = "navcam"
     ) -> dict[str, Any]:
-        connection = await self._connection(platform_id)
+        connection = await self.ctx.connection(platform_id)
         answer: dict[str, Any] = await connection.call("stop_stream", name=stream)
         return answer
 
     async def api_streams(self, call: CallContext, platform_id: str) -> list[dict[str, Any]]:
-        connection = await self._connection(platform_id)
+        connection = await self.ctx.connection(platform_id)
         answer: list[dict[str, Any]] = await connection.call("list_streams")
         return answer
 
@@ -172,7 +169,7 @@ class StationMedia(Actor):
         """
         if sink not in ("fakesink", "auto", "autovideosink", "autoaudiosink"):
             raise RpcError(INVALID_PARAMS, "invalid params: sink must be fakesink or auto")
-        connection = await self._connection(platform_id)
+        connection = await self.ctx.connection(platform_id)
         kinds = {s.get("name"): s.get("kind") for s in await connection.call("list_streams")}
         kind = kinds.get(stream)
         if kind not in ("video_out", "payload_camera", "audio_out"):
@@ -217,7 +214,7 @@ class StationMedia(Actor):
         old = self.receivers.pop(key, None)
         if old is not None:
             await old.stop()
-        connection = await self._connection(platform_id)
+        connection = await self.ctx.connection(platform_id)
         if not on:
             with contextlib.suppress(RpcError, ConnectionError):
                 await connection.call("stop_stream", name="audio_in")

@@ -462,10 +462,7 @@ class TelemetryReceiver(Actor):
         """The platform's latest telemetry, link figures and active warnings (connects first)."""
         worker = self._workers.get(platform_id)
         if worker is None:
-            manager = self.ctx.connection_manager
-            if manager is None:
-                raise RpcError(UNAVAILABLE, f"not connected to {platform_id}")
-            await manager.ensure(platform_id)
+            await self.ctx.connection(platform_id)
             worker = self._workers.get(platform_id)
             if worker is None:
                 raise RpcError(UNAVAILABLE, f"no telemetry from {platform_id}")
