@@ -180,7 +180,8 @@ class Mpu6050Driver:
 
     def read_temperature(self) -> float:
         high, low = self.bus.read_i2c_block_data(self.address, TEMP_OUT, 2)
-        return _TEMP.unpack(bytes((high, low)))[0] / 340.0 + 36.53
+        (raw,) = _TEMP.unpack(bytes((high, low)))
+        return float(raw) / 340.0 + 36.53
 
     def convert_fifo(self, start: float, data: bytes, temperature_c: float) -> list[Sample]:
         """FIFO samples (12 bytes each) timed ``start``, ``start`` + period, ..."""

@@ -162,7 +162,8 @@ class SerialLink(asyncio.Protocol):
         if self._exchange is not None:
             raise RuntimeError("one command in flight at a time")
         self._exchange = Exchange(command)
-        reply = self._reply = asyncio.get_running_loop().create_future()
+        reply: asyncio.Future[Reply] = asyncio.get_running_loop().create_future()
+        self._reply = reply
         try:
             self._write(command.encode())
             async with asyncio.timeout(self.reply_timeout):

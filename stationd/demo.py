@@ -14,6 +14,7 @@ import signal
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from brasidas import security
 from brasidas.codecs.jsonrpc import RpcError
@@ -96,7 +97,7 @@ async def run(args: argparse.Namespace) -> int:
 
 async def _discover_and_connect(
     config: StationConfig, args: argparse.Namespace, processes: list[asyncio.subprocess.Process]
-) -> dict:
+) -> dict[str, Any]:
     deadline = time.monotonic() + args.timeout
     while True:
         for process in processes:
@@ -108,7 +109,10 @@ async def _discover_and_connect(
                 print(
                     f"Station discovered platform {args.platform_id!r} from its beacon.", flush=True
                 )
-                return await api_call_async(config, "connect", platform_id=args.platform_id)
+                summary: dict[str, Any] = await api_call_async(
+                    config, "connect", platform_id=args.platform_id
+                )
+                return summary
         except (CliError, RpcError):
             pass  # daemons still starting
         if time.monotonic() > deadline:

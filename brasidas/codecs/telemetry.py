@@ -237,4 +237,5 @@ def _plain(value: Any, depth: int) -> bool:
 
 
 def _packb(value: Any) -> bytes:
-    return msgpack.packb(value, use_bin_type=True)
+    packed: bytes = msgpack.packb(value, use_bin_type=True)
+    return packed

@@ -152,4 +152,5 @@ def capture_age_ms(buffer: Any, reference: Any) -> float | None:
     meta = buffer.get_reference_timestamp_meta(reference)
     if meta is None or meta.timestamp == 0:
         return None
-    return (time.time_ns() + NTP_UNIX_OFFSET_NS - meta.timestamp) / 1e6
+    captured_ns: int = meta.timestamp
+    return (time.time_ns() + NTP_UNIX_OFFSET_NS - captured_ns) / 1e6

@@ -144,6 +144,11 @@ class PipelineStream:
                 await self._go(wanted)
             return self.state
 
+    def _stopped_on_purpose(self) -> bool:
+        """Stopped by its owner: a failure then is not retried. (A method, not an inline test,
+        because the answer can change across every await in :meth:`supervise`.)"""
+        return self._wanted is StreamState.IDLE
+
     async def supervise(self) -> None:
         """Run by the owner for the stream's lifetime: retry failures with capped backoff."""
         backoff = self.retry_initial
@@ -160,7 +165,7 @@ class PipelineStream:
                     backoff = self.retry_initial
                 self._playing_since = None
                 await self._teardown()
-            if self._wanted is StreamState.IDLE:
+            if self._stopped_on_purpose():
                 continue
             self.next_retry_in = backoff
             self._kick.clear()
@@ -171,7 +176,7 @@ class PipelineStream:
                     await self._kick.wait()
             self.next_retry_in = None
             async with self._lock:
-                if self.state is not StreamState.FAILED or self._wanted is StreamState.IDLE:
+                if self.state is not StreamState.FAILED or self._stopped_on_purpose():
                     continue
                 self.retries += 1
                 _LOGGER.info("stream %s: retrying after %.1f s", self.name, backoff)
