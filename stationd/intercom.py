@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import json
 import signal
+import sys
 from typing import Any
 
 from brasidas.codecs.jsonrpc import RpcError
@@ -66,13 +67,20 @@ async def _audio(args: argparse.Namespace, config: StationConfig) -> int:
                 break
         return 0 if heard_anything else 1
     finally:
-        with contextlib.suppress(RpcError, CliError):
-            if talking:
-                await api_call_async(config, "talk", platform_id=args.id, on=False)
-            if listening:
-                await api_call_async(
-                    config, "stop_receive", platform_id=args.id, stream="audio_out"
-                )
+        # Each on its own: one that fails must not leave the other stream running.
+        if talking:
+            await _undo(config, "talk", platform_id=args.id, on=False)
+        if listening:
+            await _undo(config, "stop_receive", platform_id=args.id, stream="audio_out")
+
+
+async def _undo(config: StationConfig, method: str, **params: Any) -> None:
+    from stationd.cli import CliError, api_call_async
+
+    try:
+        await api_call_async(config, method, **params)
+    except (RpcError, CliError) as err:
+        print(f"brasidas-station: {method} failed, a stream may still run: {err}", file=sys.stderr)
 
 
 async def _receiver(config: StationConfig, platform_id: str) -> dict[str, Any] | None:

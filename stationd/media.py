@@ -117,9 +117,18 @@ class StationMedia(Actor):
 
     def _on_disconnected(self, connection: Any) -> None:
         for key in [key for key in self.receivers if key[0] == connection.platform_id]:
-            receiver = self.receivers.pop(key)
             if self._group is not None:
-                self._group.create_task(receiver.stop(), name=f"media:stop:{key[1]}")
+                self._group.create_task(self._stop_receiver(key), name=f"media:stop:{key[1]}")
+
+    async def _stop_receiver(self, key: tuple[str, str]) -> None:
+        # Stays listed until stopped: a daemon stopping meanwhile (async_stop) stops it too,
+        # rather than dropping a pipeline that is still PLAYING.
+        receiver = self.receivers.get(key)
+        if receiver is None:
+            return
+        await receiver.stop()
+        if self.receivers.get(key) is receiver:
+            del self.receivers[key]
 
     # ------------------------------------------------------------------ local API
 

@@ -263,8 +263,9 @@ async def test_audio_command_hears_the_platform_talks_back_and_stops_both(
     levels = [json.loads(line) for line in out.strip().splitlines()[2:]]
     assert levels and levels[-1]["buffers"] > 0 and levels[-1]["peak"] > 1000
     # Ended: both directions stopped, on the platform and in the station daemon.
-    await wait_until(lambda: streams["audio_in"].state.value == "idle")
-    await wait_until(lambda: streams["audio_out"].state.value == "idle")
+    assert "may still run" not in err
+    await wait_until(lambda: streams["audio_in"].state.value == "idle", timeout=15)
+    await wait_until(lambda: streams["audio_out"].state.value == "idle", timeout=15)
     assert await station.ctx.api.call_local("receivers") == []
 
 

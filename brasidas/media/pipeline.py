@@ -27,6 +27,9 @@ from brasidas.media.gst import MediaError, gst, realtime_clock
 
 _LOGGER = logging.getLogger(__name__)
 
+SLOW_STATE_CHANGE_S = 1.0
+"""A state change slower than this is logged: a device or the network is holding it up."""
+
 
 class StreamState(StrEnum):
     IDLE = "idle"
@@ -200,8 +203,7 @@ class PipelineStream:
         gst_state = Gst.State.PLAYING if target is StreamState.PLAYING else Gst.State.PAUSED
         pipeline = self.pipeline
         generation = self._generation
-        loop = asyncio.get_running_loop()
-        result = await loop.run_in_executor(None, pipeline.set_state, gst_state)
+        result = await self._change_state(pipeline, gst_state)
         if generation != self._generation:
             return  # torn down meanwhile
         if result == Gst.StateChangeReturn.FAILURE:
@@ -213,6 +215,15 @@ class PipelineStream:
             self._playing_since = time.monotonic()
         self.reason = ""
         self._set_state(target)
+
+    async def _change_state(self, pipeline: Any, state: Any) -> Any:
+        """``set_state`` in a worker thread (it can block on devices and the network)."""
+        started = time.monotonic()
+        result = await asyncio.get_running_loop().run_in_executor(None, pipeline.set_state, state)
+        took = time.monotonic() - started
+        if took > SLOW_STATE_CHANGE_S:
+            _LOGGER.warning("stream %s: %s took %.1f s", self.name, state.value_nick, took)
+        return result
 
     def _attach(self, pipeline: Any) -> None:
         self._generation += 1
@@ -229,8 +240,7 @@ class PipelineStream:
             return
         self.pipeline = None
         self._generation += 1  # late messages from the old pipeline are ignored
-        loop = asyncio.get_running_loop()
-        await loop.run_in_executor(None, pipeline.set_state, gst().State.NULL)
+        await self._change_state(pipeline, gst().State.NULL)
         pipeline.get_bus().set_sync_handler(None)  # releases the handler's closure
         self._playing_since = None
         self.on_torn_down()
