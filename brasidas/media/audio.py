@@ -170,13 +170,10 @@ def _level_probe(pad: Any, info: Any, ref: weakref.ref[AudioIn]) -> Any:
     buffer = info.get_buffer()
     if stream is None or buffer is None:
         return Gst.PadProbeReturn.OK
-    ok, mapped = buffer.map(Gst.MapFlags.READ)
-    if not ok:
-        return Gst.PadProbeReturn.OK
-    try:
-        samples = array("h", bytes(mapped.data[: len(mapped.data) // 2 * 2]))
-    finally:
-        buffer.unmap(mapped)
+    # A copy (a few hundred bytes a buffer) rather than map/unmap through introspection, which
+    # leaves the buffer's lock count to the binding's bookkeeping.
+    data = buffer.extract_dup(0, buffer.get_size())
+    samples = array("h", data[: len(data) // 2 * 2])
     peak = max((abs(v) for v in (max(samples), min(samples))), default=0) if samples else 0
     stream.buffers += 1
     stream.peak = max(stream.peak, peak)
