@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import threading
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
@@ -12,7 +13,7 @@ from conftest import free_udp_port, quiet_platform_config, wait_until
 from brasidas import topics
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, RpcError
 from brasidas.media.gst import gst
-from brasidas.media.pipeline import StreamState
+from brasidas.media.pipeline import PipelineStream, StreamState
 from brasidas.media.video import VideoIn, VideoOut, VideoSettings
 from brasidas.messages import StreamStatus
 from platformd.app import PlatformDaemon
@@ -259,3 +260,50 @@ async def test_every_frame_is_one_slice(receiver: VideoIn) -> None:
     finally:
         await stream.stop()
     assert set(counts) == {1}, counts
+
+
+class _StuckPipeline:
+    """Stands in for a GStreamer pipeline whose NULL transition never returns (the
+    rtpjitterbuffer deadlock seen once in CI): everything else answers at once."""
+
+    def __init__(self) -> None:
+        self.release = threading.Event()
+        self.bus_touched_after_null = False
+        self._nulling = False
+
+    def use_clock(self, clock: object) -> None:
+        pass
+
+    def get_bus(self) -> _StuckPipeline:
+        self.bus_touched_after_null = self.bus_touched_after_null or self._nulling
+        return self
+
+    def set_sync_handler(self, *args: object) -> None:
+        pass
+
+    def set_state(self, state: object) -> object:
+        Gst = gst()
+        if state == Gst.State.NULL:
+            self._nulling = True
+            self.release.wait()  # never set: stuck, like the deadlocked set_state
+        return Gst.StateChangeReturn.SUCCESS
+
+
+class _StuckStream(PipelineStream):
+    def __init__(self) -> None:
+        super().__init__("stuck", state_change_timeout=0.3)
+        self.fake = _StuckPipeline()
+
+    def build(self) -> object:
+        return self.fake
+
+
+async def test_a_state_change_that_never_returns_is_abandoned_not_waited_for() -> None:
+    stream = _StuckStream()
+    assert await stream.start() is StreamState.PLAYING
+    await asyncio.wait_for(stream.stop(), 5)  # not forever
+    assert stream.state is StreamState.IDLE and stream.abandoned == 1
+    assert not stream.fake.bus_touched_after_null
+    (stuck,) = [t for t in threading.enumerate() if t.name == "gst-state:stuck"]
+    assert stuck.daemon  # the process can still exit
+    stream.fake.release.set()

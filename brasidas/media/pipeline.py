@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import threading
 import time
 import weakref
 from collections.abc import Callable
@@ -51,6 +52,7 @@ class PipelineStream:
         retry_initial: float = 1.0,
         retry_max: float = 30.0,
         healthy_after: float = 10.0,
+        state_change_timeout: float = 5.0,
     ) -> None:
         self.name = name
         self.on_change = on_change
@@ -58,10 +60,13 @@ class PipelineStream:
         self.retry_initial = retry_initial
         self.retry_max = retry_max
         self.healthy_after = healthy_after
+        self.state_change_timeout = state_change_timeout
         self.state = StreamState.IDLE
         self.reason = ""
         self.failures = 0
         self.retries = 0
+        self.abandoned = 0
+        """Pipelines given up on because a state change never returned (a GStreamer deadlock)."""
         self.next_retry_in: float | None = None
         self.pipeline: Any = None
         self._wanted = StreamState.IDLE
@@ -94,6 +99,7 @@ class PipelineStream:
             "destination": self.destination() if self.state is not StreamState.IDLE else "",
             "failures": self.failures,
             "retries": self.retries,
+            "abandoned": self.abandoned,
         }
 
     def on_built(self, pipeline: Any) -> None:
@@ -217,9 +223,25 @@ class PipelineStream:
         self._set_state(target)
 
     async def _change_state(self, pipeline: Any, state: Any) -> Any:
-        """``set_state`` in a worker thread (it can block on devices and the network)."""
+        """``set_state`` in a thread of its own (it can block on devices and the network, and
+        GStreamer 1.22's rtpjitterbuffer can deadlock against its own task while deactivating):
+        a change that has not returned after ``state_change_timeout`` is given up as a
+        failure, and the daemon thread it is stuck in does not keep the process from exiting.
+        """
         started = time.monotonic()
-        result = await asyncio.get_running_loop().run_in_executor(None, pipeline.set_state, state)
+        done = _in_daemon_thread(f"gst-state:{self.name}", pipeline.set_state, state)
+        try:
+            async with asyncio.timeout(self.state_change_timeout):
+                result = await asyncio.shield(done)
+        except TimeoutError:
+            _LOGGER.error(
+                "stream %s: GStreamer did not reach %s in %.0f s; pipeline abandoned",
+                self.name,
+                state.value_nick,
+                self.state_change_timeout,
+            )
+            self.abandoned += 1
+            return gst().StateChangeReturn.FAILURE
         took = time.monotonic() - started
         if took > SLOW_STATE_CHANGE_S:
             _LOGGER.warning("stream %s: %s took %.1f s", self.name, state.value_nick, took)
@@ -240,8 +262,10 @@ class PipelineStream:
             return
         self.pipeline = None
         self._generation += 1  # late messages from the old pipeline are ignored
+        abandoned = self.abandoned
         await self._change_state(pipeline, gst().State.NULL)
-        pipeline.get_bus().set_sync_handler(None)  # releases the handler's closure
+        if self.abandoned == abandoned:  # an abandoned one may hold locks get_bus() needs
+            pipeline.get_bus().set_sync_handler(None)  # releases the handler's closure
         self._playing_since = None
         self.on_torn_down()
 
@@ -325,3 +349,30 @@ def _sync_handler(bus: Any, message: Any, data: tuple[Any, ...]) -> Any:
     # PASS, and the loop pops the queue: with PyGObject, a message DROPped here is never
     # freed, and it holds its source element (and so the whole pipeline) alive.
     return Gst.BusSyncReply.PASS
+
+
+def _in_daemon_thread(name: str, function: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:
+    """Run ``function(*args)`` in a new daemon thread; its result arrives on the loop."""
+    loop = asyncio.get_running_loop()
+    future: asyncio.Future[Any] = loop.create_future()
+
+    def deliver(result: Any, error: BaseException | None) -> None:
+        if future.done():
+            return
+        if error is not None:
+            future.set_exception(error)
+        else:
+            future.set_result(result)
+
+    def run() -> None:
+        try:
+            result = function(*args)
+        except BaseException as err:  # handed to the awaiting coroutine
+            with contextlib.suppress(RuntimeError):  # the loop closed meanwhile
+                loop.call_soon_threadsafe(deliver, None, err)
+            return
+        with contextlib.suppress(RuntimeError):
+            loop.call_soon_threadsafe(deliver, result, None)
+
+    threading.Thread(target=run, name=name, daemon=True).start()
+    return future
