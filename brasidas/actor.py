@@ -8,9 +8,11 @@ left, all within a deadline.
 
 from __future__ import annotations
 
+import abc
 import asyncio
 import contextlib
 import logging
+import signal
 import time
 from collections.abc import Callable
 from typing import TypeVar
@@ -149,17 +151,30 @@ async def wait_forever() -> None:
     await asyncio.Event().wait()
 
 
-class Daemon:
+def stop_on_signals() -> asyncio.Event:
+    """An event that SIGTERM and SIGINT (Ctrl-C) set, for a daemon or command to wind down on.
+    Off the main thread (tests run commands in threads) signals cannot be caught; the event is
+    then set only by its holder."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        with contextlib.suppress(ValueError, RuntimeError):
+            loop.add_signal_handler(signum, stop.set)
+    return stop
+
+
+class Daemon(abc.ABC):
     """A daemon's lifecycle: ``start()`` sets up its actors, ``stop()`` stops them (idempotent,
-    bounded), ``run()`` does both around a stop event. Subclasses implement ``start``."""
+    bounded), ``run()`` does both around a stop event."""
 
     def __init__(self) -> None:
         self.bus = Bus()
         self.supervisor = Supervisor()
         self._stopped = False
 
+    @abc.abstractmethod
     async def start(self) -> None:
-        raise NotImplementedError
+        """Set up every subsystem and start its actors."""
 
     async def stop(self, timeout: float = 0.9) -> None:
         if self._stopped:

@@ -11,6 +11,7 @@ import sys
 from collections.abc import Sequence
 
 from brasidas import security
+from brasidas.actor import stop_on_signals
 from brasidas.config import ConfigError, PlatformConfig, dump_toml, load_config
 from brasidas.log import setup_logging
 
@@ -110,14 +111,12 @@ async def run_daemon(config: PlatformConfig, fleet_key: bytes | None) -> None:
     """Run until SIGTERM or SIGINT, then stop within a second (motors commanded to zero first)."""
     from platformd.app import PlatformDaemon
 
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for signum in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(signum, stop.set)
+    stop = stop_on_signals()
     daemon = PlatformDaemon(config, fleet_key)
     try:
         await daemon.run(stop)
     finally:
+        loop = asyncio.get_running_loop()
         for signum in (signal.SIGTERM, signal.SIGINT):
             loop.remove_signal_handler(signum)
     _LOGGER.info("platform stopped")
@@ -135,10 +134,8 @@ def _simulate(args: argparse.Namespace) -> int:
     serve = getattr(importlib.import_module(module_name), function_name)
 
     async def runner() -> None:
-        stop = asyncio.Event()
+        stop = stop_on_signals()
         loop = asyncio.get_running_loop()
-        for signum in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(signum, stop.set)
         task = loop.create_task(serve(args), name=f"simulate:{args.device}")
         waiter = loop.create_task(stop.wait())
         await asyncio.wait({task, waiter}, return_when=asyncio.FIRST_COMPLETED)

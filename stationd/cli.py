@@ -11,7 +11,6 @@ import argparse
 import asyncio
 import json
 import logging
-import signal
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -20,6 +19,7 @@ from typing import Any
 import aiohttp
 
 from brasidas import security
+from brasidas.actor import stop_on_signals
 from brasidas.codecs.jsonrpc import RpcError, encode_request
 from brasidas.config import ConfigError, StationConfig, load_config
 from brasidas.log import setup_logging
@@ -261,11 +261,7 @@ def cmd_serve(args: argparse.Namespace, config: StationConfig) -> int:
     fleet_key = station_fleet_key(config)
 
     async def run() -> None:
-        stop = asyncio.Event()
-        loop = asyncio.get_running_loop()
-        for signum in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(signum, stop.set)
-        await StationDaemon(config, fleet_key).run(stop)
+        await StationDaemon(config, fleet_key).run(stop_on_signals())
 
     asyncio.run(run())
     return 0

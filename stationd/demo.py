@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from brasidas import security
+from brasidas.actor import stop_on_signals
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import StationConfig, load_config
 from stationd.cli import CliError, _describe_connection, api_call_async
@@ -156,10 +157,8 @@ def _on_path(name: str) -> bool:
 
 
 async def _wait_for_interrupt(processes: list[asyncio.subprocess.Process]) -> None:
-    stop = asyncio.Event()
+    stop = stop_on_signals()
     loop = asyncio.get_running_loop()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(signum, stop.set)
     waiters = [loop.create_task(p.wait()) for p in processes]
     stopper = loop.create_task(stop.wait())
     done, _ = await asyncio.wait([stopper, *waiters], return_when=asyncio.FIRST_COMPLETED)

@@ -12,10 +12,10 @@ import argparse
 import asyncio
 import contextlib
 import json
-import signal
 import sys
 from typing import Any
 
+from brasidas.actor import stop_on_signals
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import StationConfig
 
@@ -28,11 +28,8 @@ async def _audio(args: argparse.Namespace, config: StationConfig) -> int:
     from stationd.cli import CliError, api_call_async
 
     await api_call_async(config, "connect", platform_id=args.id, url=args.url or "")
-    stop = asyncio.Event()
+    stop = stop_on_signals()
     loop = asyncio.get_running_loop()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(ValueError, RuntimeError):  # not the main thread (tests)
-            loop.add_signal_handler(signum, stop.set)
     listening = talking = False
     try:
         heard = await api_call_async(

@@ -14,10 +14,10 @@ import asyncio
 import contextlib
 import json
 import os
-import signal
 from pathlib import Path
 from typing import Any
 
+from brasidas.actor import stop_on_signals
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import StationConfig
 from brasidas.media.gst import MediaError
@@ -88,11 +88,8 @@ async def _view(args: argparse.Namespace, config: StationConfig) -> int:
     receiver = VideoIn(
         args.stream, host=host, port=args.port or free_udp_port(host), sink=args.sink
     )
-    stop = asyncio.Event()
+    stop = stop_on_signals()
     loop = asyncio.get_running_loop()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(ValueError, RuntimeError):  # not the main thread (tests)
-            loop.add_signal_handler(signum, stop.set)
     try:
         if await receiver.start() is StreamState.FAILED:
             raise CliError(f"cannot receive: {receiver.reason}")

@@ -105,6 +105,10 @@ class Method:
             inspect.iscoroutinefunction(handler),
         )
 
+    async def invoke(self, ctx: CallContext, **params: Any) -> Any:
+        result = self.handler(ctx, **params)
+        return await result if self.waits else result
+
 
 @dataclass(slots=True)
 class Incoming:
@@ -144,9 +148,7 @@ class Dispatcher:
 
     async def call_local(self, name: str, **params: Any) -> Any:
         """Call a method in-process, as a trusted caller (no session check)."""
-        method = self._methods[name]
-        result = method.handler(CallContext(transport="local"), **params)
-        return await result if method.waits else result
+        return await self._methods[name].invoke(CallContext(transport="local"), **params)
 
     @property
     def method_names(self) -> list[str]:
@@ -160,11 +162,8 @@ class Dispatcher:
         """Decode a message; what cannot be decoded already carries its parse-error answer."""
         try:
             return Incoming(json.loads(data))
-        except RecursionError:  # "[[[[…": nesting deeper than the parser's stack
-            self.counters["parse_errors"] += 1
-            error = RpcError(PARSE_ERROR, "parse error: nested too deeply")
-            return Incoming(None, _encode(_error_response(None, error)))
-        except (ValueError, UnicodeDecodeError) as err:
+        except (ValueError, UnicodeDecodeError, RecursionError) as err:
+            # RecursionError: "[[[[…", nested deeper than the parser's stack.
             self.counters["parse_errors"] += 1
             error = RpcError(PARSE_ERROR, f"parse error: {err}")
             return Incoming(None, _encode(_error_response(None, error)))
@@ -272,8 +271,7 @@ class Dispatcher:
                     self.counters["unauthorized"] += 1
                 raise
         self._check_params(method, kwargs)
-        result = method.handler(ctx, **kwargs)
-        return await result if method.waits else result
+        return await method.invoke(ctx, **kwargs)
 
 
 def _json_type_ok(value: Any, expected: type) -> bool:
