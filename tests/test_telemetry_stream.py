@@ -97,7 +97,7 @@ async def test_station_receives_verified_telemetry_and_refuses_forgeries(
 
     # Disconnecting ends the stream on the platform.
     await api.call_local("disconnect", platform_id="rover-7")
-    await wait_until(lambda: not aggregator(platform).streams)
+    await wait_until(lambda: not aggregator(platform).sender.streams)
 
 
 async def test_station_notices_silence_asks_again_and_the_warning_clears(
@@ -117,9 +117,9 @@ async def test_station_notices_silence_asks_again_and_the_warning_clears(
         await station.ctx.connection_manager.ensure("brasidas-1", platform.ctx.signaling_url)
         await wait_until(lambda: _received(station, "brasidas-1") >= 2)
         agg = aggregator(platform)
-        (session_id,) = agg.streams
+        (session_id,) = agg.sender.streams
         # The platform loses the stream (as when its telemetry actor restarts).
-        agg.stop_stream(session_id)
+        agg.sender.stop_stream(session_id)
         await wait_until(lambda: any(n.name == "link_degraded" and n.active for n in notes))
         report = await station.ctx.api.call_local("get_telemetry", platform_id="brasidas-1")
         assert [w["name"] for w in report["warnings"]] == ["link_degraded"]
@@ -128,7 +128,7 @@ async def test_station_notices_silence_asks_again_and_the_warning_clears(
         # After 3 x silence_s the station asks again; the new stream's sequence numbers start
         # above the old ones, so they pass the replay check and the warning clears.
         await wait_until(lambda: any(n.name == "link_degraded" and not n.active for n in notes))
-        assert session_id in agg.streams
+        assert session_id in agg.sender.streams
         link = _link(station, "brasidas-1")
         assert link.decoder.rejected["replayed"] == 0 and link.stats.loss_pct == 0.0
         listing = await station.ctx.api.call_local("telemetry_notifications", limit=10)

@@ -1,24 +1,18 @@
-"""Telemetry: the latest-value snapshot of the platform, and the push stream to stations.
+"""The aggregator: the latest value of every reporting topic, snapshots, and platform health.
 
 The aggregator subscribes to every reporting topic and keeps only the last message of each
 (an IMU at 100 Hz costs one assignment per sample); sections are converted to plain values
 only when a snapshot is built. Those sections fill ``ctx.telemetry_sources``, so the
 ``get_telemetry_report`` signaling method and the datagram stream carry the same snapshot.
-
-``request_telemetry(port, rate_hz=None, host=None)`` starts pushing authenticated datagrams
-(:mod:`brasidas.codecs.telemetry`) to the caller's host (or loopback) at
-``telemetry.rate_hz``; the stream ends with the session. Command 20.0 switches the diagnostics
-section on or off. A retained :class:`~brasidas.messages.PlatformHealth` summarises the
-state for the beacon's status word.
+Command 20.0 switches the diagnostics section on or off. A retained
+:class:`~brasidas.messages.PlatformHealth` summarises the state for the beacon's status word.
 """
 
 from __future__ import annotations
 
 import asyncio
 import dataclasses
-import ipaddress
 import logging
-import os
 import socket
 import time
 from collections.abc import Callable
@@ -31,8 +25,6 @@ from typing import Any
 from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.codecs.commands import DIAGNOSTICS, PayloadError, parse_switch
-from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, RpcError
-from brasidas.codecs.telemetry import MAX_DATAGRAM, TAG_LENGTH, VERSION, TelemetryEncoder
 from brasidas.messages import (
     CommandResult,
     ControllerStatus,
@@ -46,15 +38,10 @@ from brasidas.messages import (
 )
 from brasidas.status import Battery
 from platformd.context import PlatformContext
+from platformd.telemetry.stream import StreamSender
+from platformd.telemetry.system import MEMINFO, SYSTEM_INFO_MAX_AGE, THERMAL_ROOT, system_info
 
 _LOGGER = logging.getLogger(__name__)
-
-MAX_RATE_HZ = 50.0
-SYSTEM_INFO_MAX_AGE = 1.0
-"""Seconds a /proc and /sys reading is reused (they cost a few file reads)."""
-THERMAL_ROOT = Path("/sys/class/thermal")
-MEMINFO = Path("/proc/meminfo")
-CPU_ZONE_TYPES = ("cpu-thermal", "cpu_thermal", "x86_pkg_temp", "soc_thermal", "cpu")
 
 
 class TelemetryAggregator(Actor):
@@ -80,15 +67,8 @@ class TelemetryAggregator(Actor):
         self.stream_states: dict[str, StreamStatus] = {}
         self.diagnostics = False
         self.health: PlatformHealth | None = None
-        self.counters: dict[str, int] = {
-            "datagrams_sent": 0,
-            "send_errors": 0,
-            "snapshots": 0,
-            "trimmed_sections": 0,
-        }
-        self.streams: dict[str, TelemetryStream] = {}
-        self._group: asyncio.TaskGroup | None = None
-        self._transport: asyncio.DatagramTransport | None = None
+        self.snapshots = 0
+        self.sender = StreamSender(ctx.config.platform.id, self.snapshot, clock)
         self._system: tuple[float, dict[str, Any]] | None = None
         self._gps_lost_at: float | None = None
 
@@ -103,16 +83,13 @@ class TelemetryAggregator(Actor):
         transport, _ = await loop.create_datagram_endpoint(
             asyncio.DatagramProtocol, family=socket.AF_INET
         )
-        self._transport = transport
         try:
             async with asyncio.TaskGroup() as group:
-                self._group = group
+                self.sender.attach(group, transport)
                 group.create_task(self._health_loop(), name="telemetry:health")
         finally:
-            self._group = None
-            self.streams.clear()
+            self.sender.detach()
             transport.close()
-            self._transport = None
 
     def subscribe_reports(self) -> None:
         """Keep the last report of every subsystem; retained topics hand theirs over at once.
@@ -166,82 +143,13 @@ class TelemetryAggregator(Actor):
         cmd.respond(self.name, CommandResult(True, result={"diagnostics": on}))
 
     def _on_session_closed(self, event: SessionClosed) -> None:
-        self.stop_stream(event.session_id)
-
-    # ------------------------------------------------------------------ streams
-
-    def start_stream(
-        self, session_id: str, key: bytes | None, address: tuple[str, int], rate_hz: float
-    ) -> TelemetryStream:
-        """(Re)start the stream of ``session_id``; must be called on the event loop."""
-        if self._group is None or self._transport is None:
-            raise RpcError(UNAVAILABLE, "telemetry is not running")
-        previous = self.streams.get(session_id)
-        self.stop_stream(session_id)
-        # A new request in the same session continues the sequence: the station's replay
-        # check stays meaningful across re-requests.
-        # A fresh encoder (new session, or this actor restarted) starts from the wall clock in
-        # ms, above any sequence number an earlier encoder of the session can have reached.
-        encoder = (
-            previous.encoder
-            if previous is not None
-            else TelemetryEncoder(
-                self.ctx.config.platform.id, key, first_seq=int(self._clock() * 1000)
-            )
-        )
-        stream = TelemetryStream(session_id, address, rate_hz, encoder)
-        stream.task = self._group.create_task(
-            self._stream(stream), name=f"telemetry:{session_id[:8]}"
-        )
-        self.streams[session_id] = stream
-        _LOGGER.info("telemetry to %s:%d at %.1f Hz", address[0], address[1], rate_hz)
-        return stream
-
-    def stop_stream(self, session_id: str) -> bool:
-        stream = self.streams.pop(session_id, None)
-        if stream is None:
-            return False
-        if stream.task is not None:
-            stream.task.cancel("session closed")
-        return True
-
-    async def _stream(self, stream: TelemetryStream) -> None:
-        loop = asyncio.get_running_loop()
-        period = 1.0 / stream.rate_hz
-        due = loop.time()
-        while True:
-            self.send_snapshot(stream)
-            due += period
-            delay = due - loop.time()
-            if delay < 0:  # fell behind (a stalled loop): skip, never burst
-                due = loop.time()
-                delay = 0.0
-            await asyncio.sleep(delay)
-
-    def send_snapshot(self, stream: TelemetryStream) -> int:
-        """Encode and send one snapshot to ``stream``; returns the number of datagrams."""
-        assert self._transport is not None
-        encoder = stream.encoder
-        trimmed = encoder.trimmed
-        datagrams = encoder.encode(self.snapshot(), self._clock())
-        self.counters["trimmed_sections"] += encoder.trimmed - trimmed
-        for datagram in datagrams:
-            try:
-                self._transport.sendto(datagram, stream.address)
-            except OSError as err:  # unreachable host and the like: count, keep going
-                self.counters["send_errors"] += 1
-                _LOGGER.debug("telemetry send to %s failed: %s", stream.address, err)
-                continue
-            self.counters["datagrams_sent"] += 1
-            stream.sent += 1
-            stream.max_size = max(stream.max_size, len(datagram))
-        return len(datagrams)
+        self.sender.stop_stream(event.session_id)
 
     # ------------------------------------------------------------------ snapshot
 
     def snapshot(self) -> dict[str, Any]:
         """The full snapshot: mode and override, then every telemetry source."""
-        self.counters["snapshots"] += 1
+        self.snapshots += 1
         override = self.bus.last(topics.OVERRIDE_STATE)
         report: dict[str, Any] = {
             "mode": override.mode.value if override else "autonomous",
@@ -328,7 +236,7 @@ class TelemetryAggregator(Actor):
         section: dict[str, Any] = {
             "session_rtt_ms": None,  # measured by the station (heartbeats), not here
             "sessions": self.ctx.session_count,
-            "telemetry_streams": len(self.streams),
+            "telemetry_streams": len(self.sender.streams),
         }
         if "velocity_link" not in self.ctx.telemetry_sources:
             # The velocity receiver reports its own section when it is there.
@@ -352,11 +260,15 @@ class TelemetryAggregator(Actor):
             "bus_delivery_errors": self.bus.delivery_errors,
             "rpc": dict(self.ctx.rpc.counters),
             "auth_failures": sessions.auth_failures if sessions is not None else None,
-            "telemetry": dict(self.counters),
+            "telemetry": self.counters(),
             "gps": to_plain(self.latest.get("gps_stats")),
             "imu": to_plain(self.latest.get("imu")),
             **{name: source() for name, source in self.ctx.diagnostics_sources.items()},
         }
+
+    def counters(self) -> dict[str, int]:
+        """Snapshots built, datagrams sent, send errors, sections trimmed."""
+        return {"snapshots": self.snapshots, **self.sender.counters}
 
     # ------------------------------------------------------------------ health
 
@@ -394,19 +306,6 @@ class TelemetryAggregator(Actor):
             self.bus.publish(topics.PLATFORM_HEALTH, health)
 
 
-@dataclasses.dataclass(eq=False)
-class TelemetryStream:
-    """One station's telemetry stream (one per session)."""
-
-    session_id: str
-    address: tuple[str, int]
-    rate_hz: float
-    encoder: TelemetryEncoder
-    task: asyncio.Task[None] | None = None
-    sent: int = 0
-    max_size: int = 0
-
-
 # --------------------------------------------------------------------------- helpers
 
 
@@ -417,61 +316,6 @@ def battery_level(volts: float, config: Any) -> Battery:
     if volts < config.battery_high_v:
         return Battery.MEDIUM
     return Battery.HIGH
-
-
-def system_info(thermal_root: Path = THERMAL_ROOT, meminfo: Path = MEMINFO) -> dict[str, Any]:
-    """CPU temperature (null without a thermal zone), load averages, free memory."""
-    try:
-        load = [round(value, 2) for value in os.getloadavg()]
-    except OSError:
-        load = None
-    memory = _meminfo(meminfo)
-    return {
-        "cpu_temp_c": cpu_temperature(thermal_root),
-        "load": load,
-        "mem_free_mb": memory.get("MemAvailable"),
-        "mem_total_mb": memory.get("MemTotal"),
-    }
-
-
-def cpu_temperature(root: Path = THERMAL_ROOT) -> float | None:
-    """The CPU's thermal zone in °C (the first zone when none is named like a CPU)."""
-    try:
-        zones = sorted(root.glob("thermal_zone*"))
-    except OSError:
-        return None
-    chosen: Path | None = None
-    for zone in zones:
-        try:
-            kind = (zone / "type").read_text().strip().lower()
-        except OSError:
-            continue
-        if chosen is None or kind in CPU_ZONE_TYPES:
-            chosen = zone
-            if kind in CPU_ZONE_TYPES:
-                break
-    if chosen is None:
-        return None
-    try:
-        return round(int((chosen / "temp").read_text().strip()) / 1000, 1)
-    except (OSError, ValueError):
-        return None
-
-
-def _meminfo(path: Path) -> dict[str, float]:
-    values: dict[str, float] = {}
-    try:
-        text = path.read_text()
-    except OSError:
-        return values
-    for line in text.splitlines():
-        name, _, rest = line.partition(":")
-        if name in ("MemAvailable", "MemTotal"):
-            try:
-                values[name] = round(int(rest.split()[0]) / 1024, 1)
-            except (ValueError, IndexError):
-                continue
-    return values
 
 
 def to_plain(value: Any, digits: int = 7) -> Any:
@@ -506,97 +350,3 @@ def _round(value: Any, digits: int) -> Any:
     if isinstance(value, list):
         return [_round(item, digits) for item in value]
     return value
-
-
-def _ipv4(host: str) -> str:
-    """An IPv4-mapped IPv6 peer address as plain IPv4 (the sending socket is AF_INET)."""
-    try:
-        address = ipaddress.ip_address(host)
-    except ValueError:
-        return host
-    if isinstance(address, ipaddress.IPv6Address) and address.ipv4_mapped is not None:
-        return str(address.ipv4_mapped)
-    return host
-
-
-def allowed_host(host: str, peer_host: str) -> bool:
-    """Telemetry goes only to the caller's own host or to loopback, never a third host."""
-    try:
-        address = ipaddress.ip_address(host)
-    except ValueError:
-        return False
-    if address.is_loopback:
-        return True
-    try:
-        peer = ipaddress.ip_address(_ipv4(peer_host))
-    except ValueError:
-        return False
-    return address == peer
-
-
-class TelemetryMethods:
-    """Signaling methods of the telemetry stream."""
-
-    def __init__(self, ctx: PlatformContext, aggregator: TelemetryAggregator) -> None:
-        self.ctx = ctx
-        self.aggregator = aggregator
-
-    async def request_telemetry(
-        self,
-        call: CallContext,
-        port: int,
-        rate_hz: float | None = None,
-        host: str | None = None,
-    ) -> dict[str, Any]:
-        """Push telemetry to ``host:port`` (default host: the caller's) until the session ends."""
-        session = call.session
-        peer = _ipv4(session.peer_host)
-        target = peer if host is None else host
-        if not isinstance(target, str) or not allowed_host(target, peer):
-            raise RpcError(
-                INVALID_PARAMS, "invalid params: host must be the caller's address or loopback"
-            )
-        if not isinstance(port, int) or isinstance(port, bool) or not 1 <= port <= 65535:
-            raise RpcError(INVALID_PARAMS, "invalid params: port must be 1-65535")
-        rate = self.ctx.config.telemetry.rate_hz if rate_hz is None else rate_hz
-        if (
-            not isinstance(rate, int | float)
-            or isinstance(rate, bool)
-            or not 0 < rate <= MAX_RATE_HZ
-        ):
-            raise RpcError(INVALID_PARAMS, f"invalid params: rate_hz must be in (0, {MAX_RATE_HZ}]")
-        self.aggregator.start_stream(
-            session.session_id, session.session_key, (target, port), float(rate)
-        )
-        return {
-            "host": target,
-            "port": port,
-            "rate_hz": float(rate),
-            **stream_parameters(session.session_key is not None),
-        }
-
-    async def stop_telemetry(self, call: CallContext) -> bool:
-        return self.aggregator.stop_stream(call.session.session_id)
-
-
-def stream_parameters(authenticated: bool) -> dict[str, Any]:
-    return {
-        "version": VERSION,
-        "max_datagram": MAX_DATAGRAM,
-        "auth": f"hmac-sha256-{TAG_LENGTH * 8}" if authenticated else "none",
-    }
-
-
-async def async_setup(ctx: PlatformContext) -> None:
-    aggregator = TelemetryAggregator(ctx)
-    for name, source in aggregator.sources().items():
-        ctx.telemetry_sources.setdefault(name, source)  # never replace another owner's section
-    methods = TelemetryMethods(ctx, aggregator)
-    ctx.rpc.add("request_telemetry", methods.request_telemetry)
-    ctx.rpc.add("stop_telemetry", methods.stop_telemetry)
-    ctx.capabilities["telemetry"] = lambda: {
-        "rate_hz": ctx.config.telemetry.rate_hz,
-        "push": True,
-        **stream_parameters(ctx.fleet_key is not None),
-    }
-    ctx.supervisor.start(aggregator)

@@ -1,0 +1,137 @@
+"""The annunciator (the seed's Status Display, ch. 11 §4.2): named warnings from snapshots. Pure.
+
+Feed it a snapshot and the link figures with the time; it answers which warnings were raised
+and cleared (low battery, controller over-temperature, GPS fix lost, link degraded, failed
+streams), each with its group 90 code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from brasidas.codecs.commands import CommandCode
+from brasidas.config import TelemetryReceiverSection
+
+NOTIFICATION_GROUP = 90
+"""Station-only notifications (seed ch. 11 §1)."""
+LOW_BATTERY = CommandCode(NOTIFICATION_GROUP, 10)
+CONTROLLER_OVER_TEMPERATURE = CommandCode(NOTIFICATION_GROUP, 11)
+GPS_FIX_LOST = CommandCode(NOTIFICATION_GROUP, 12)
+LINK_DEGRADED = CommandCode(NOTIFICATION_GROUP, 13)
+STREAM_FAILED = CommandCode(NOTIFICATION_GROUP, 14)
+FAILED_STREAM_STATES = frozenset({"failed", "error"})
+
+
+@dataclass(frozen=True)
+class Alert:
+    """One annunciator warning, active since ``since`` (station clock)."""
+
+    name: str
+    code: CommandCode
+    message: str
+    since: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "code": str(self.code),
+            "message": self.message,
+            "since": self.since,
+        }
+
+
+@dataclass(frozen=True)
+class Change:
+    """A warning raised (``active``) or cleared."""
+
+    warning: Alert
+    active: bool
+
+
+class Annunciator:
+    """Pure: feed snapshots and link figures with the time; get warnings raised and cleared."""
+
+    def __init__(self, config: TelemetryReceiverSection) -> None:
+        self.config = config
+        self.active: dict[str, Alert] = {}
+
+    def evaluate(
+        self, snapshot: dict[str, Any], loss_pct: float, silence: float | None, now: float
+    ) -> list[Change]:
+        """Update the warnings from the latest values; returns what changed."""
+        wanted: dict[str, tuple[CommandCode, str]] = {}
+        keep: set[str] = set()
+        self._battery(snapshot.get("battery"), wanted, keep)
+        self._temperature(snapshot.get("controller"), wanted, keep)
+        gps = snapshot.get("gps")
+        if isinstance(gps, dict) and gps.get("fix") is False:
+            lost = gps.get("lost_for_s")
+            wanted["gps_fix_lost"] = (
+                GPS_FIX_LOST,
+                f"GPS fix lost ({lost:.0f} s ago)"
+                if isinstance(lost, int | float)
+                else "no GPS fix yet",  # the receiver has not had one since it started
+            )
+        link: list[str] = []
+        if silence is not None and silence >= self.config.silence_s:
+            link.append(f"telemetry silent for {silence:.1f} s")
+        if loss_pct > self.config.loss_warn_pct:
+            link.append(f"{loss_pct:.0f}% of telemetry lost")
+        if link:
+            wanted["link_degraded"] = (LINK_DEGRADED, "link degraded: " + ", ".join(link))
+        streams = snapshot.get("streams")
+        if isinstance(streams, dict):
+            for name, state in streams.items():
+                if isinstance(state, str) and state.lower() in FAILED_STREAM_STATES:
+                    wanted[f"stream_failed:{name}"] = (STREAM_FAILED, f"stream {name} failed")
+        changes: list[Change] = []
+        for name in list(self.active):
+            if name not in wanted and name not in keep:
+                changes.append(Change(self.active.pop(name), False))
+        for name, (code, message) in wanted.items():
+            current = self.active.get(name)
+            if current is None:
+                self.active[name] = Alert(name, code, message, now)
+                changes.append(Change(self.active[name], True))
+            elif current.message != message:
+                # Same warning, fresher wording (the figure changed): no new notification.
+                self.active[name] = Alert(name, code, message, current.since)
+        return changes
+
+    def _battery(self, battery: Any, wanted: dict[str, Any], keep: set[str]) -> None:
+        if not isinstance(battery, dict):
+            return
+        volts = battery.get("volts")
+        volts = volts if isinstance(volts, int | float) and not isinstance(volts, bool) else None
+        low_level = battery.get("level") == "low"
+        config = self.config
+        if low_level or (volts is not None and volts < config.battery_low_v):
+            figure = f" ({volts:.1f} V)" if volts is not None else ""
+            wanted["low_battery"] = (LOW_BATTERY, f"low battery{figure}")
+        elif "low_battery" in self.active and volts is not None and volts < config.battery_clear_v:
+            keep.add("low_battery")  # hysteresis: not yet recovered
+
+    def _temperature(self, controller: Any, wanted: dict[str, Any], keep: set[str]) -> None:
+        if not isinstance(controller, dict):
+            return
+        temps = controller.get("temps_c")
+        values = temps if isinstance(temps, list) else [temps]
+        readings = [t for t in values if isinstance(t, int | float) and not isinstance(t, bool)]
+        if not readings:
+            return
+        hottest = max(readings)
+        if hottest >= self.config.controller_max_c:
+            wanted["controller_over_temperature"] = (
+                CONTROLLER_OVER_TEMPERATURE,
+                f"controller over temperature ({hottest:.0f} °C)",
+            )
+        elif "controller_over_temperature" in self.active and hottest >= (
+            self.config.controller_clear_c
+        ):
+            keep.add("controller_over_temperature")
+
+    def clear_all(self) -> list[Change]:
+        changes = [Change(warning, False) for warning in self.active.values()]
+        self.active.clear()
+        return changes
