@@ -38,7 +38,7 @@ def main(argv: list[str]) -> int:
             print(f"   {key:<44} {value}")
         results[name] = figures
     (HERE / "results").mkdir(exist_ok=True)
-    text = json.dumps(results, indent=2, sort_keys=True)
+    text = json.dumps(results, indent=2, sort_keys=True, allow_nan=False)
     (HERE / "results" / "latest.json").write_text(text + "\n")
     print("\nJSON:")
     print(text)

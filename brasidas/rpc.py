@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
-import json
 import logging
 from typing import Any
 
@@ -15,14 +14,20 @@ from aiohttp import web
 from brasidas.actor import Actor, Supervisor, wait_forever
 from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import (
+    INTERNAL_ERROR,
     REQUEST_TOO_LARGE,
     TIMEOUT,
     UNAUTHORIZED,
+    BadAnswer,
     CallContext,
     Dispatcher,
     Incoming,
     RpcError,
+    decode,
+    decode_answers,
+    encode_error,
     encode_request,
+    read_answer,
 )
 
 _LOGGER = logging.getLogger(__name__)
@@ -68,7 +73,7 @@ def add_rpc_routes(
             body = (
                 await request.content.readexactly(request.content_length)
                 if request.content_length
-                else await request.content.read(max_bytes + 1)
+                else await _read_at_most(request.content, max_bytes + 1)
             )
         except asyncio.IncompleteReadError:
             return web.Response(status=400, text="incomplete body")
@@ -90,7 +95,11 @@ def add_rpc_routes(
         ctx.extra["ws"] = ws
 
         async def answer(incoming: Incoming) -> None:
-            reply = await dispatcher.answer(incoming, ctx)
+            try:
+                reply = await dispatcher.answer(incoming, ctx)
+            except Exception:  # a bug must cost one answer, never the station's connection
+                _LOGGER.exception("answering on the websocket of %s failed", ctx.peer_host)
+                reply = encode_error(None, RpcError(INTERNAL_ERROR, "internal error"))
             if reply is not None and not ws.closed:
                 with contextlib.suppress(ConnectionError):
                     await ws.send_str(reply.decode())
@@ -163,23 +172,29 @@ async def serve_app(
     return int(runner.addresses[0][1]) if runner.addresses else port
 
 
+async def _read_at_most(stream: aiohttp.StreamReader, limit: int) -> bytes:
+    """A body of unknown length (chunked), read until its end or ``limit`` bytes."""
+    body = bytearray()
+    while len(body) < limit and not stream.at_eof():
+        chunk = await stream.read(limit - len(body))
+        if not chunk:
+            break
+        body += chunk
+    return bytes(body)
+
+
 def _too_large() -> web.Response:
-    body = json.dumps(
-        {
-            "jsonrpc": "2.0",
-            "id": None,
-            "error": {"code": REQUEST_TOO_LARGE, "message": "request too large"},
-        }
-    )
-    return web.Response(status=413, text=body, content_type="application/json")
+    body = encode_error(None, RpcError(REQUEST_TOO_LARGE, "request too large"))
+    return web.Response(status=413, body=body, content_type="application/json")
 
 
 def _is_unauthorized(answer: bytes) -> bool:
     try:
-        message = json.loads(answer)
-    except ValueError:
+        message = decode(answer)
+    except (ValueError, RecursionError):
         return False
-    return isinstance(message, dict) and message.get("error", {}).get("code") == UNAUTHORIZED
+    error = message.get("error") if isinstance(message, dict) else None
+    return isinstance(error, dict) and error.get("code") == UNAUTHORIZED
 
 
 def _peer_host(request: web.Request) -> str:
@@ -199,6 +214,8 @@ class RpcClient:
         self._pending: dict[int, asyncio.Future[Any]] = {}
         self._ids = itertools.count(1)
         self.closed = asyncio.Event()
+        self.bad_answers = 0
+        """Received messages (or items of a batch) that answer nothing valid: dropped."""
 
     async def open(self) -> None:
         self._session = aiohttp.ClientSession()
@@ -241,34 +258,41 @@ class RpcClient:
         assert self._ws is not None
         try:
             async for message in self._ws:
-                if message.type != aiohttp.WSMsgType.TEXT:
-                    continue
-                try:
-                    answer = json.loads(message.data)
-                except (ValueError, RecursionError):
-                    _LOGGER.warning("unparseable answer from %s", self.url)
-                    continue
-                for item in answer if isinstance(answer, list) else [answer]:
-                    self._resolve(item)
+                if message.type in (aiohttp.WSMsgType.TEXT, aiohttp.WSMsgType.BINARY):
+                    self.feed(message.data)
         finally:
             self._fail_pending(ConnectionError(f"connection to {self.url} closed"))
             self.closed.set()
 
-    def _resolve(self, item: Any) -> None:
-        if not isinstance(item, dict):
+    def feed(self, data: bytes | str) -> None:
+        """Resolve the calls a received message answers. What is not a valid answer to one
+        of ours is counted in ``bad_answers`` and dropped (a call it names fails at once)."""
+        try:
+            items = decode_answers(data)
+        except (ValueError, RecursionError) as err:
+            self._bad_answer(f"unparseable ({err})")
             return
-        future = self._pending.get(item.get("id"))  # type: ignore[arg-type]
-        if future is None or future.done():
-            return
-        if "error" in item and isinstance(item["error"], dict):
-            error = item["error"]
-            future.set_exception(
-                RpcError(
-                    int(error.get("code", 0)), str(error.get("message", "")), error.get("data")
-                )
-            )
-        else:
-            future.set_result(item.get("result"))
+        for item in items:
+            try:
+                answer = read_answer(item)
+            except BadAnswer as err:
+                self._bad_answer(str(err), err.request_id)
+                continue
+            future = self._pending.get(answer.request_id)
+            if future is None or future.done():
+                continue  # answered after its call gave up
+            if answer.error is not None:
+                future.set_exception(answer.error)
+            else:
+                future.set_result(answer.result)
+
+    def _bad_answer(self, reason: str, request_id: int | None = None) -> None:
+        self.bad_answers += 1
+        level = logging.WARNING if self.bad_answers == 1 else logging.DEBUG  # no log flood
+        _LOGGER.log(level, "bad answer from %s: %s (%d so far)", self.url, reason, self.bad_answers)
+        future = self._pending.get(request_id) if request_id is not None else None
+        if future is not None and not future.done():
+            future.set_exception(RpcError(INTERNAL_ERROR, f"malformed answer: {reason}"))
 
     def _fail_pending(self, exc: Exception) -> None:
         for future in self._pending.values():

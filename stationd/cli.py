@@ -16,45 +16,17 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import aiohttp
-
 from brasidas import security
 from brasidas.actor import stop_on_signals
-from brasidas.codecs.jsonrpc import RpcError, encode_request
+from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import ConfigError, StationConfig, load_config
 from brasidas.log import setup_logging
+from stationd.api_client import CliError, api_call_async
 
 _LOGGER = logging.getLogger("stationd")
 
 
-class CliError(Exception):
-    """Printed as one line; the command exits 1."""
-
-
 # ---------------------------------------------------------------------------- local API client
-
-
-async def api_call_async(config: StationConfig, method: str, **params: Any) -> Any:
-    """Call the running station daemon's local API; raises CliError or RpcError."""
-    station = config.station
-    url = f"http://{station.api_host}:{station.api_port}/api/rpc"
-    timeout = aiohttp.ClientTimeout(total=station.connect_timeout * 2 + 2)
-    try:
-        async with (
-            aiohttp.ClientSession(timeout=timeout) as session,
-            session.post(url, data=encode_request(method, params, 1)) as response,
-        ):
-            answer = await response.json(content_type=None)
-    except aiohttp.ClientConnectionError:
-        raise CliError(
-            f"the station daemon is not running at {url} (start it with 'brasidas-station serve')"
-        ) from None
-    except TimeoutError:
-        raise CliError(f"no answer from the station daemon within {timeout.total:.0f} s") from None
-    if "error" in answer:
-        error = answer["error"]
-        raise RpcError(int(error.get("code", 0)), str(error.get("message", "")), error.get("data"))
-    return answer.get("result")
 
 
 def api_call(config: StationConfig, method: str, **params: Any) -> Any:
@@ -65,12 +37,18 @@ def api_call(config: StationConfig, method: str, **params: Any) -> Any:
 
 
 def _print(args: argparse.Namespace, value: Any, human: Callable[[Any], str]) -> None:
-    print(json.dumps(value, indent=2, sort_keys=True) if args.json else human(value))
+    print(
+        json.dumps(value, indent=2, sort_keys=True, allow_nan=False) if args.json else human(value)
+    )
 
 
 def _ack(answer: dict[str, Any]) -> str:
     if answer.get("accepted"):
-        extra = f" {json.dumps(answer['result'])}" if answer.get("result") is not None else ""
+        extra = (
+            f" {json.dumps(answer['result'], allow_nan=False)}"
+            if answer.get("result") is not None
+            else ""
+        )
         return f"acknowledged{extra}"
     return f"rejected: {answer.get('reason') or 'no reason given'}"
 
@@ -87,9 +65,9 @@ def _describe_connection(summary: dict[str, Any]) -> str:
         f"software {params.get('software_version', '?')}"
         f"{', simulated' if params.get('simulated') else ''})",
         f"signaling  {summary['signaling_url']}  session {summary['session'][:8]}…",
-        f"limits     {json.dumps(params.get('limits', {}))}",
-        f"velocity   {json.dumps(caps.get('velocity', {}))}",
-        f"telemetry  {json.dumps(caps.get('telemetry', {}))}",
+        f"limits     {json.dumps(params.get('limits', {}), allow_nan=False)}",
+        f"velocity   {json.dumps(caps.get('velocity', {}), allow_nan=False)}",
+        f"telemetry  {json.dumps(caps.get('telemetry', {}), allow_nan=False)}",
         "streams    "
         + (
             ", ".join(

@@ -16,6 +16,14 @@ async def _echo(call: CallContext, value: int, label: str = "x") -> dict[str, An
     return {"value": value, "label": label}
 
 
+def _scale(call: CallContext, factor: float) -> float:
+    return factor * 2
+
+
+def _nan(call: CallContext) -> float:
+    return float("nan")  # a sensor that failed
+
+
 async def _boom(call: CallContext) -> None:
     raise ZeroDivisionError("secret detail")
 
@@ -36,13 +44,23 @@ def dispatcher() -> Dispatcher:
     d.add("echo", _echo, session_required=False)
     d.add("boom", _boom, session_required=False)
     d.add("whoami", _whoami)
+    d.add("scale", _scale, session_required=False)
+    d.add("nan", _nan, session_required=False)
     return d
 
 
 async def ask(d: Dispatcher, payload: Any) -> Any:
+    """The answer through both doors a transport uses (``answers_at_once``, then ``answer``),
+    checked to be JSON proper (no NaN or Infinity)."""
     raw = payload if isinstance(payload, bytes) else json.dumps(payload).encode()
-    answer = await d.handle_bytes(raw, CallContext())
-    return None if answer is None else json.loads(answer)
+    incoming = d.parse(raw)
+    d.answers_at_once(incoming)  # must not raise, whatever the message
+    answer = await d.answer(incoming, CallContext())
+    return None if answer is None else json.loads(answer, parse_constant=_not_json)
+
+
+def _not_json(name: str) -> Any:
+    raise AssertionError(f"{name} is not JSON")
 
 
 async def test_named_and_positional_params(dispatcher: Dispatcher) -> None:
@@ -74,11 +92,21 @@ async def test_named_and_positional_params(dispatcher: Dispatcher) -> None:
         ({"jsonrpc": "2.0", "id": 1, "method": "whoami"}, -32001),
         ({"jsonrpc": "2.0", "id": 1, "method": "whoami", "params": {"session": "bad"}}, -32001),
         ([], -32600),
+        ({"jsonrpc": "2.0", "id": 1, "method": [1]}, -32600),
+        ({"jsonrpc": "2.0", "id": 1, "method": {"echo": 1}}, -32600),
+        (b'{"jsonrpc":"2.0","id":1e999,"method":"echo","params":[1]}', -32600),
+        (b'{"jsonrpc":"2.0","id":-1e999,"method":"echo","params":[1]}', -32600),
+        (b'{"jsonrpc":"2.0","id":NaN,"method":"echo","params":[1]}', -32700),
+        (b'{"jsonrpc":"2.0","id":1,"method":"echo","params":[Infinity]}', -32700),
+        (b'{"jsonrpc":"2.0","id":1,"method":"scale","params":[1e999]}', -32602),
+        (b'{"jsonrpc":"2.0","id":1,"method":"nan"}', -32603),
     ],
 )
 async def test_standard_errors(dispatcher: Dispatcher, payload: Any, code: int) -> None:
     answer = await ask(dispatcher, payload)
     assert answer["error"]["code"] == code
+    if code in (-32600, -32700):
+        assert answer["id"] in (None, 1)
     assert "secret detail" not in answer["error"]["message"]
 
 

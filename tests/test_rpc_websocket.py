@@ -1,4 +1,5 @@
-"""The JSON-RPC WebSocket transport: a method that waits does not hold up the ones behind it."""
+"""The JSON-RPC WebSocket transport: a method that waits does not hold up the ones behind it;
+malformed input is answered on a socket that stays open."""
 
 from __future__ import annotations
 
@@ -10,11 +11,13 @@ from typing import Any
 import aiohttp
 import pytest
 from aiohttp import web
+from conftest import quiet_platform_config
 
 from brasidas.actor import Supervisor
 from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import CallContext, Dispatcher, encode_request
 from brasidas.rpc import RpcClient, add_rpc_routes, serve_app
+from platformd.app import PlatformDaemon
 
 
 class SlowService:
@@ -37,6 +40,9 @@ class SlowService:
     def ping(self, call: CallContext) -> str:
         return "pong"
 
+    def reading(self, call: CallContext) -> dict[str, float]:
+        return {"pitch": float("nan"), "roll": 0.5}  # a sensor that failed
+
 
 @pytest.fixture
 async def served() -> AsyncIterator[tuple[str, SlowService]]:
@@ -44,6 +50,7 @@ async def served() -> AsyncIterator[tuple[str, SlowService]]:
     dispatcher = Dispatcher()
     dispatcher.add("slow", service.slow, session_required=False)
     dispatcher.add("ping", service.ping, session_required=False)
+    dispatcher.add("reading", service.reading, session_required=False)
     app = web.Application()
     add_rpc_routes(app, dispatcher, "/rpc", 65536)
     supervisor = Supervisor()
@@ -92,3 +99,65 @@ async def test_closing_the_socket_cancels_what_is_still_waiting(
         await asyncio.wait_for(service.started.wait(), 10)
         await ws.close()
     await asyncio.wait_for(service.cancelled.wait(), 10)
+
+
+def strict_json(text: str) -> Any:
+    """Parse as JSON proper: NaN and Infinity are not JSON."""
+
+    def refuse(name: str) -> Any:
+        raise AssertionError(f"{name} in {text!r}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+async def ask(ws: aiohttp.ClientWebSocketResponse, raw: str) -> Any:
+    await ws.send_str(raw)
+    message = await asyncio.wait_for(ws.receive(), 10)
+    assert message.type == aiohttp.WSMsgType.TEXT, message
+    return strict_json(message.data)
+
+
+async def test_malformed_requests_are_answered_and_the_session_survives(
+    platform_factory: Any,
+) -> None:
+    daemon: PlatformDaemon = await platform_factory(quiet_platform_config(), None)
+    async with (
+        aiohttp.ClientSession() as session,
+        session.ws_connect(daemon.ctx.signaling_url + "/rpc/ws") as ws,
+    ):
+        connect = {"jsonrpc": "2.0", "id": 0, "method": "connect", "params": ["st-1"]}
+        token = (await ask(ws, json.dumps(connect)))["result"]["session"]
+        # An unhashable method name used to raise TypeError outside any handler and close
+        # the socket (ending the session, releasing the override).
+        for method in ("[1]", '{"a":1}', "null", "1.5"):
+            raw = f'{{"jsonrpc":"2.0","method":{method},"id":1}}'
+            answer = await ask(ws, raw)
+            assert answer["id"] == 1 and answer["error"]["code"] == -32600, raw
+        # A non-finite id was echoed as Infinity, which is not JSON.
+        for raw_id in ("1e999", "-1e999"):
+            raw = f'{{"jsonrpc":"2.0","method":"heartbeat","id":{raw_id}}}'
+            answer = await ask(ws, raw)
+            assert answer["id"] is None and answer["error"]["code"] == -32600, raw
+        answer = await ask(ws, '{"jsonrpc":"2.0","method":"heartbeat","id":NaN}')
+        assert answer["id"] is None and answer["error"]["code"] == -32700
+        heartbeat = {"jsonrpc": "2.0", "id": 2, "method": "heartbeat", "params": {"session": token}}
+        assert "manual_override" in (await ask(ws, json.dumps(heartbeat)))["result"]
+        assert not ws.closed
+        assert token in daemon.ctx.sessions.sessions
+
+
+async def test_a_result_json_cannot_hold_is_an_internal_error_not_invalid_json(
+    served: tuple[str, SlowService],
+) -> None:
+    url, _ = served
+    async with aiohttp.ClientSession() as session, session.ws_connect(url) as ws:
+        answer = await ask(ws, encode_request("reading", None, 5).decode())
+        assert answer["id"] == 5 and answer["error"]["code"] == -32603
+        assert "not valid JSON" in answer["error"]["message"]
+        batch = [
+            {"jsonrpc": "2.0", "id": 6, "method": "reading"},
+            {"jsonrpc": "2.0", "id": 7, "method": "ping"},
+        ]
+        answers = await ask(ws, json.dumps(batch))
+        assert [(a["id"], "error" in a) for a in answers] == [(6, True), (7, False)]
+        assert (await ask(ws, encode_request("ping", None, 8).decode()))["result"] == "pong"

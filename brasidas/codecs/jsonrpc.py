@@ -10,6 +10,7 @@ from __future__ import annotations
 import inspect
 import json
 import logging
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -161,8 +162,8 @@ class Dispatcher:
     def parse(self, data: bytes | str) -> Incoming:
         """Decode a message; what cannot be decoded already carries its parse-error answer."""
         try:
-            return Incoming(json.loads(data))
-        except (ValueError, UnicodeDecodeError, RecursionError) as err:
+            return Incoming(decode(data))
+        except (ValueError, RecursionError) as err:
             # RecursionError: "[[[[…", nested deeper than the parser's stack.
             self.counters["parse_errors"] += 1
             error = RpcError(PARSE_ERROR, f"parse error: {err}")
@@ -177,7 +178,8 @@ class Dispatcher:
         message = incoming.message
         if not isinstance(message, dict):
             return not isinstance(message, list)  # a batch may hold a method that waits
-        method = self._methods.get(message.get("method"))  # type: ignore[arg-type]
+        name = message.get("method")
+        method = self._methods.get(name) if type(name) is str else None
         return method is None or not method.waits
 
     async def answer(self, incoming: Incoming, ctx: CallContext) -> bytes | None:
@@ -191,9 +193,24 @@ class Dispatcher:
                 return _encode(_error_response(None, RpcError(INVALID_REQUEST, "empty batch")))
             responses = [await self.handle_message(item, ctx) for item in message]
             answered = [item for item in responses if item is not None]
-            return _encode(answered) if answered else None
+            if not answered:
+                return None
+            try:
+                return _encode(answered)
+            except (ValueError, TypeError, RecursionError):
+                return b"[" + b",".join(self._encode_response(item) for item in answered) + b"]"
         response = await self.handle_message(message, ctx)
-        return _encode(response) if response is not None else None
+        return self._encode_response(response) if response is not None else None
+
+    def _encode_response(self, response: dict[str, Any]) -> bytes:
+        """Encoded; a result JSON cannot hold (NaN, an object) is answered -32603 instead."""
+        try:
+            return _encode(response)
+        except (ValueError, TypeError, RecursionError) as err:
+            self.counters["internal_errors"] += 1
+            _LOGGER.error("result of a call cannot be sent as JSON: %s", err)
+            error = RpcError(INTERNAL_ERROR, f"internal error: result is not valid JSON ({err})")
+            return _encode(_error_response(response.get("id"), error))
 
     async def handle_message(self, message: Any, ctx: CallContext) -> dict[str, Any] | None:
         """Answer one decoded request object; None for a notification."""
@@ -239,8 +256,8 @@ class Dispatcher:
                 value = kwargs.get(name)
                 if name not in kwargs or _json_type_ok(value, expected):
                     continue
-                problem = (
-                    f"'{name}' must be {'a number' if expected is float else expected.__name__}"
+                problem = f"'{name}' must be " + (
+                    "a finite number" if expected is float else expected.__name__
                 )
                 break
         if problem:
@@ -278,12 +295,13 @@ def _json_type_ok(value: Any, expected: type) -> bool:
     if isinstance(value, bool):
         return expected is bool
     if expected is float:
-        return isinstance(value, int | float)
+        return isinstance(value, int) or (isinstance(value, float) and math.isfinite(value))
     return isinstance(value, expected)
 
 
 def _is_valid_id(value: Any) -> bool:
-    return value is None or (isinstance(value, str | int | float) and not isinstance(value, bool))
+    kind = type(value)
+    return value is None or kind is str or kind is int or (kind is float and math.isfinite(value))
 
 
 def _valid_id(value: Any) -> Any:
@@ -294,12 +312,32 @@ def _error_response(request_id: Any, err: RpcError) -> dict[str, Any]:
     return {"jsonrpc": "2.0", "id": request_id, "error": err.as_dict()}
 
 
-# One encoder for every message: json.dumps with non-default options builds a new one per call.
-_ENCODER = json.JSONEncoder(separators=(",", ":"))
+def _refuse_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not JSON")
+
+
+# One decoder and one encoder for every message: json.loads/dumps with non-default options
+# build a new one per call. NaN and Infinity are not JSON: refused both ways.
+_DECODER = json.JSONDecoder(parse_constant=_refuse_constant)
+_ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
+
+
+def decode(data: bytes | str) -> Any:
+    """A JSON document (``NaN``/``Infinity`` refused); raises ``ValueError``/``RecursionError``.
+
+    A number too large for a float (``1e999``) still decodes, to ``inf``: the envelope checks
+    refuse it where it matters (ids, float params) and the encoder never sends one back.
+    """
+    return _DECODER.decode(data if isinstance(data, str) else _text(data))
 
 
 def _encode(message: Any) -> bytes:
     return _ENCODER.encode(message).encode()
+
+
+def encode_error(request_id: Any, err: RpcError) -> bytes:
+    """An error answer (``request_id`` None when the request's could not be read)."""
+    return _encode(_error_response(_valid_id(request_id), err))
 
 
 def encode_request(
@@ -312,3 +350,69 @@ def encode_request(
     if request_id is not None:
         message["id"] = request_id
     return _encode(message)
+
+
+class BadAnswer(ValueError):
+    """An answer that is not a JSON-RPC 2.0 response; ``request_id`` when one could be read."""
+
+    def __init__(self, reason: str, request_id: int | None = None) -> None:
+        super().__init__(reason)
+        self.request_id = request_id
+
+
+@dataclass(slots=True)
+class Answer:
+    """One response to a request of ours: its ``result``, or the ``error`` it carries."""
+
+    request_id: int
+    result: Any = None
+    error: RpcError | None = None
+
+    def value(self) -> Any:
+        """The result; raises the :class:`RpcError` of an error answer."""
+        if self.error is not None:
+            raise self.error
+        return self.result
+
+
+def read_answer(item: Any) -> Answer:
+    """Check one decoded response object (our requests carry int ids); raises
+    :class:`BadAnswer` for anything else: clients count and drop it, never die on it."""
+    if type(item) is not dict:
+        raise BadAnswer(f"not an object: {type(item).__name__}")
+    request_id = item.get("id")
+    if type(request_id) is not int:
+        raise BadAnswer(f"id {request_id!r:.40} is not one of ours")
+    if "error" in item:
+        error = item["error"]
+        if type(error) is not dict:
+            raise BadAnswer("error is not an object", request_id)
+        code, message = error.get("code"), error.get("message", "")
+        if type(code) is not int or type(message) is not str:
+            raise BadAnswer(f"error code {code!r:.40} or message is malformed", request_id)
+        return Answer(request_id, error=RpcError(code, message, error.get("data")))
+    if "result" not in item:
+        raise BadAnswer("neither result nor error", request_id)
+    return Answer(request_id, item["result"])
+
+
+def decode_answers(data: bytes | str) -> list[Any]:
+    """The response objects in a received message (one, or a batch's); raises ``ValueError``
+    (or ``RecursionError``) when it is not JSON, or when it holds a number no float can
+    represent (``1e999``), which no conforming peer sends."""
+    answer = _ANSWER_DECODER.decode(data if isinstance(data, str) else _text(data))
+    return answer if isinstance(answer, list) else [answer]
+
+
+def _text(data: bytes) -> str:
+    return data.decode(json.detect_encoding(data), "surrogatepass")
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"{text:.40} does not fit a float")
+    return value
+
+
+_ANSWER_DECODER = json.JSONDecoder(parse_constant=_refuse_constant, parse_float=_finite_float)

@@ -1,0 +1,138 @@
+"""The JSON-RPC clients (the platform's WebSocket client and the station's local-API client)
+against real servers that answer badly: a bad answer is dropped and counted, never fatal."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator, Callable
+from typing import Any
+
+import pytest
+from aiohttp import web
+
+from brasidas.actor import Supervisor
+from brasidas.bus import Bus
+from brasidas.codecs.jsonrpc import INTERNAL_ERROR, RpcError
+from brasidas.config import StationConfig, load_config
+from brasidas.rpc import RpcClient, serve_app
+from stationd.api_client import api_call_async
+
+Script = Callable[[int], list[str]]
+"""Given a request's id, the raw messages the server sends back."""
+
+
+class ScriptedServer:
+    """A WebSocket and an HTTP endpoint whose answers a test writes by hand."""
+
+    def __init__(self) -> None:
+        self.script: Script = lambda request_id: []
+        self.url = ""
+
+    async def websocket(self, request: web.Request) -> web.StreamResponse:
+        ws = web.WebSocketResponse()
+        await ws.prepare(request)
+        async for message in ws:
+            for raw in self.script(json.loads(message.data)["id"]):
+                await ws.send_str(raw)
+        return ws
+
+    async def post(self, request: web.Request) -> web.Response:
+        request_id = json.loads(await request.read())["id"]
+        return web.Response(text=self.script(request_id)[0], content_type="application/json")
+
+
+@pytest.fixture
+async def server() -> AsyncIterator[ScriptedServer]:
+    scripted = ScriptedServer()
+    app = web.Application()
+    app.router.add_get("/ws", scripted.websocket)
+    app.router.add_post("/api/rpc", scripted.post)
+    supervisor = Supervisor()
+    port = await serve_app(app, "127.0.0.1", 0, supervisor=supervisor, bus=Bus(), name="scripted")
+    scripted.url = f"http://127.0.0.1:{port}"
+    yield scripted
+    await supervisor.stop(2.0)
+
+
+def ok(request_id: int, result: Any = "fine") -> str:
+    return json.dumps({"jsonrpc": "2.0", "id": request_id, "result": result})
+
+
+BAD_ANSWERS: list[Callable[[int], str]] = [
+    lambda i: json.dumps({"jsonrpc": "2.0", "id": [i], "result": 1}),  # was TypeError
+    lambda i: json.dumps({"jsonrpc": "2.0", "id": {"x": i}, "result": 1}),
+    lambda i: json.dumps({"jsonrpc": "2.0", "id": float(i), "result": 1}),
+    lambda i: json.dumps({"jsonrpc": "2.0", "id": True, "result": 1}),
+    lambda i: '{"jsonrpc":"2.0","id":1e999,"result":1}',
+    lambda i: "[7]",
+    lambda i: "not json",
+    lambda i: "[" * 100_000,
+    lambda i: f'{{"jsonrpc":"2.0","id":{i},"result":NaN}}',
+    lambda i: f'{{"jsonrpc":"2.0","id":{i},"result":1e999}}',
+]
+"""Answers that name no call of ours: dropped and counted; the real answer still arrives."""
+
+MALFORMED_FOR_A_CALL: list[Callable[[int], str]] = [
+    lambda i: json.dumps({"jsonrpc": "2.0", "id": i, "error": {"code": "x", "message": "m"}}),
+    lambda i: json.dumps({"jsonrpc": "2.0", "id": i, "error": {"code": 1.5}}),
+    lambda i: json.dumps({"jsonrpc": "2.0", "id": i, "error": {"code": 1, "message": 7}}),
+    lambda i: json.dumps({"jsonrpc": "2.0", "id": i, "error": "broken"}),
+    lambda i: json.dumps({"jsonrpc": "2.0", "id": i}),
+]
+"""Answers that name a call but cannot be read: that call fails at once, the client lives."""
+
+
+async def test_answers_that_name_no_call_are_dropped_and_counted(server: ScriptedServer) -> None:
+    server.script = lambda i: [bad(i) for bad in BAD_ANSWERS] + [ok(i)]
+    async with RpcClient(server.url + "/ws", timeout=10) as client:
+        assert await client.call("anything") == "fine"
+        assert await client.call("again") == "fine"
+        assert client.bad_answers == 2 * len(BAD_ANSWERS)
+        assert not client.closed.is_set()
+
+
+@pytest.mark.parametrize("bad", MALFORMED_FOR_A_CALL)
+async def test_a_malformed_answer_fails_its_call_and_the_reader_goes_on(
+    server: ScriptedServer, bad: Callable[[int], str]
+) -> None:
+    server.script = lambda i: [bad(i)] if i == 1 else [ok(i)]
+    async with RpcClient(server.url + "/ws", timeout=10) as client:
+        with pytest.raises(RpcError) as failed:
+            await client.call("first")
+        assert failed.value.code == INTERNAL_ERROR and "malformed" in failed.value.message
+        assert await client.call("second") == "fine"  # the reader task is still alive
+        assert client.bad_answers == 1
+
+
+async def test_an_error_answer_is_raised_with_its_code(server: ScriptedServer) -> None:
+    error = {"code": -32002, "message": "no camera", "data": {"hint": 1}}
+    server.script = lambda i: [json.dumps({"jsonrpc": "2.0", "id": i, "error": error})]
+    async with RpcClient(server.url + "/ws", timeout=10) as client:
+        with pytest.raises(RpcError) as failed:
+            await client.call("camera")
+        assert (failed.value.code, failed.value.message, failed.value.data) == (
+            -32002,
+            "no camera",
+            {"hint": 1},
+        )
+        assert client.bad_answers == 0
+
+
+def _station_config(server: ScriptedServer) -> StationConfig:
+    port = server.url.rsplit(":", 1)[1]
+    return load_config(
+        StationConfig, None, ["station.api_host=127.0.0.1", f"station.api_port={port}"]
+    )
+
+
+@pytest.mark.parametrize("bad", [*BAD_ANSWERS, *MALFORMED_FOR_A_CALL, lambda i: "[]"])
+async def test_the_local_api_client_reads_answers_the_same_way(
+    server: ScriptedServer, bad: Callable[[int], str]
+) -> None:
+    server.script = lambda i: [bad(i)]
+    with pytest.raises(RpcError) as failed:
+        await asyncio.wait_for(api_call_async(_station_config(server), "status"), 10)
+    assert failed.value.code == INTERNAL_ERROR
+    server.script = lambda i: [ok(i, {"platforms": []})]
+    assert await api_call_async(_station_config(server), "status") == {"platforms": []}
