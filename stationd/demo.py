@@ -20,7 +20,8 @@ from brasidas import security
 from brasidas.actor import stop_on_signals
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import StationConfig, load_config
-from stationd.cli import CliError, _describe_connection, api_call_async
+from stationd.api_client import CliError, api_call_async
+from stationd.cli import _describe_connection
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

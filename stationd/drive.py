@@ -23,6 +23,7 @@ from typing import Any, TextIO
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import StationConfig
 from brasidas.rpc import RpcClient
+from stationd.api_client import CliError
 
 SEND_INTERVAL = 0.1
 """How often the command is repeated to the daemon (its drive timeout is 0.5 s)."""
@@ -248,8 +249,6 @@ async def drive(
     out: TextIO | None = None,
 ) -> int:
     """Engage, drive until q, then stop and release the override. Returns the exit code."""
-    from stationd.cli import CliError
-
     fd = sys.stdin.fileno() if fd is None else fd
     out = out or sys.stdout
     if not os.isatty(fd):

@@ -18,6 +18,7 @@ from typing import Any
 from brasidas.actor import stop_on_signals
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import StationConfig
+from stationd.api_client import CliError, api_call_async
 
 
 def run_audio(args: argparse.Namespace, config: StationConfig) -> int:
@@ -25,8 +26,6 @@ def run_audio(args: argparse.Namespace, config: StationConfig) -> int:
 
 
 async def _audio(args: argparse.Namespace, config: StationConfig) -> int:
-    from stationd.cli import CliError, api_call_async
-
     await api_call_async(config, "connect", platform_id=args.id, url=args.url or "")
     stop = stop_on_signals()
     loop = asyncio.get_running_loop()
@@ -72,8 +71,6 @@ async def _audio(args: argparse.Namespace, config: StationConfig) -> int:
 
 
 async def _undo(config: StationConfig, method: str, **params: Any) -> None:
-    from stationd.cli import CliError, api_call_async
-
     try:
         await api_call_async(config, method, **params)
     except (RpcError, CliError) as err:
@@ -81,8 +78,6 @@ async def _undo(config: StationConfig, method: str, **params: Any) -> None:
 
 
 async def _receiver(config: StationConfig, platform_id: str) -> dict[str, Any] | None:
-    from stationd.cli import api_call_async
-
     for entry in await api_call_async(config, "receivers"):
         if entry.get("platform_id") == platform_id and entry.get("stream") == "audio_out":
             return dict(entry)
@@ -90,4 +85,4 @@ async def _receiver(config: StationConfig, platform_id: str) -> dict[str, Any] |
 
 
 def _say(args: argparse.Namespace, text: str, value: dict[str, Any]) -> None:
-    print(json.dumps(value) if args.json else text, flush=True)
+    print(json.dumps(value, allow_nan=False) if args.json else text, flush=True)

@@ -15,7 +15,7 @@ from typing import Any, TextIO
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import StationConfig
 from brasidas.rpc import RpcClient
-from stationd.cli import CliError
+from stationd.api_client import CliError
 
 RED = "\x1b[1;37;41m"
 YELLOW = "\x1b[33m"

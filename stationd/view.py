@@ -23,12 +23,11 @@ from brasidas.config import StationConfig
 from brasidas.media.gst import MediaError
 from brasidas.media.pipeline import StreamState
 from brasidas.media.video import VideoIn
+from stationd.api_client import CliError, api_call_async
 from stationd.media import free_udp_port, receive_host, sdp_text
 
 
 def run_view(args: argparse.Namespace, config: StationConfig) -> int:
-    from stationd.cli import CliError
-
     try:
         if args.sdp:
             return asyncio.run(_write_sdp(args, config))
@@ -40,15 +39,11 @@ def run_view(args: argparse.Namespace, config: StationConfig) -> int:
 async def _platform_host(args: argparse.Namespace, config: StationConfig) -> str:
     from urllib.parse import urlsplit
 
-    from stationd.cli import api_call_async
-
     summary = await api_call_async(config, "connect", platform_id=args.id, url=args.url or "")
     return urlsplit(str(summary.get("signaling_url", ""))).hostname or ""
 
 
 async def _write_sdp(args: argparse.Namespace, config: StationConfig) -> int:
-    from stationd.cli import api_call_async
-
     platform_host = await _platform_host(args, config)
     port = args.port or free_udp_port(receive_host(platform_host))
     answer = await api_call_async(
@@ -63,7 +58,11 @@ async def _write_sdp(args: argparse.Namespace, config: StationConfig) -> int:
     path = Path(args.sdp)
     await asyncio.to_thread(path.write_text, text)
     if args.json:
-        print(json.dumps({"sdp": str(path), "port": port, "stream": answer}, indent=2))
+        print(
+            json.dumps(
+                {"sdp": str(path), "port": port, "stream": answer}, indent=2, allow_nan=False
+            )
+        )
     else:
         print(f"{path}: {args.stream} of {args.id} arrives on UDP {port} ({answer.get('state')})")
         print(f"  ffplay -protocol_whitelist file,udp,rtp -fflags nobuffer {path}")
@@ -72,8 +71,6 @@ async def _write_sdp(args: argparse.Namespace, config: StationConfig) -> int:
 
 
 async def _view(args: argparse.Namespace, config: StationConfig) -> int:
-    from stationd.cli import CliError, api_call_async
-
     if args.sink == "autovideosink" and not (
         os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
     ):
@@ -120,7 +117,7 @@ async def _view(args: argparse.Namespace, config: StationConfig) -> int:
 
 def _report(args: argparse.Namespace, stats: dict[str, Any]) -> None:
     if args.json:
-        print(json.dumps(stats), flush=True)
+        print(json.dumps(stats, allow_nan=False), flush=True)
         return
     latency = stats.get("latency_ms")
     if latency is None:
