@@ -15,10 +15,11 @@ import pytest
 from brasidas import topics
 from brasidas.bus import Bus
 from brasidas.config import ImuSection, PlatformConfig
+from brasidas.drivers.mpu6050 import Mpu6050Driver, SampleClock, fifo_overflowed
 from brasidas.madgwick import Madgwick, euler_deg, from_euler
 from brasidas.messages import Attitude, ImuStatus
 from platformd.app import PlatformDaemon
-from platformd.imu import GyroBias, ImuReader, Mpu6050Driver, SampleClock, fifo_overflowed
+from platformd.imu import GyroBias, ImuReader
 from platformd.sim.mpu6050 import (
     ACCEL_CONFIG,
     CONFIG,

@@ -25,7 +25,7 @@ reading INT_STATUS clears it.
 
 :class:`EmulatedI2CBus` answers like ``smbus2.SMBus``: an address with no device raises
 ``OSError(EREMOTEIO)`` as the kernel does on a NACK. In --sim the module puts a bus factory in
-``ctx.sim["i2c_bus"]``; the real driver (platformd.imu) uses it instead of ``smbus2.SMBus``.
+``ctx.sim["i2c_bus"]``; the actor (platformd.imu) uses it instead of ``smbus2.SMBus``.
 
 The register constants below repeat the driver's on purpose: the chip is written from the
 datasheet on its own, so a wrong address or bit in the driver fails against it, as it would

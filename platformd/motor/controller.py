@@ -1,27 +1,6 @@
-"""The motor controller driver: a Roboteq AX3500 on a serial line (the seed's "vmci").
+"""The motor controller actor: brings the AX3500 up, decides what to send next, reconnects.
 
-Layers: :mod:`brasidas.codecs.ax3500` (sans-IO) → :class:`SerialLink`, one open serial
-connection with one command in flight (pyserial-asyncio; its callbacks only feed the codec) →
-:class:`MotorController`, the actor that reopens the link with capped backoff and decides
-what to send next.
-
-What it sends, in priority order:
-
-1. the velocity, when ``MOTOR_COMMAND`` (the motion arbiter) changed it. **Latest wins**: the
-   newest command replaces any not yet sent, so the line never holds a backlog;
-2. accessory outputs (lights, 10.6/10.7);
-3. a refresh (channel 1 again) when nothing was sent for ``1 / refresh_hz`` (the controller's
-   watchdog stops the motors after 1 s of silence; a ``W`` or ``OK`` resends both channels). A command that repeats the current one
-   and arrives after most of that period triggers the refresh at once, so in teleop the
-   refreshes go out right behind a stream packet rather than at a random moment;
-4. status polls (``?e ?m ?a``), only right behind a velocity exchange: in teleop the line is
-   then free again before the next packet arrives.
-
-A ``-`` answer is resent once, then reported. ``max_unanswered`` silent commands in a row, an
-I/O error or a vanished port close the link; the actor reports it on ``CONTROLLER_STATUS``,
-retries with backoff and, when the controller is back, starts from zero: a velocity that
-arrived before or during the outage is never replayed. On shutdown (it stops first) it
-commands zero before the line closes.
+See :mod:`platformd.motor` for the send priorities and the failure handling.
 """
 
 from __future__ import annotations
@@ -29,22 +8,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import os
-import termios
 from collections import deque
-from collections.abc import Callable
-from dataclasses import dataclass
-from enum import Enum
-from pathlib import Path
 from typing import Any
-
-import serial
-import serial_asyncio
 
 from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.codecs import ax3500
-from brasidas.codecs.ax3500 import Command, Exchange, LineParser, MotionMapping, Reply, Status
+from brasidas.codecs.ax3500 import Command, MotionMapping, Reply, Status
 from brasidas.codecs.commands import (
     BATTERY_MONITOR,
     MAIN_LIGHTS,
@@ -52,218 +22,16 @@ from brasidas.codecs.commands import (
     PayloadError,
     parse_switch,
 )
-from brasidas.config import MotorSection
-from brasidas.messages import (
-    CommandResult,
-    ControllerStatus,
-    LightsState,
-    SystemCommand,
-    Velocity,
-)
+from brasidas.messages import CommandResult, ControllerStatus, SystemCommand, Velocity
 from platformd.context import PlatformContext
+from platformd.motor.lights import Lights, OutputRequest, Send
+from platformd.motor.link import LinkError, ReplyTimeout, SerialLink
 
 _LOGGER = logging.getLogger(__name__)
 
 BANNER_TIMEOUT = 3.0
 """How long to wait for ``OK`` after ten carriage returns or a reset (the device takes 1-2 s)."""
 RECONNECT_INITIAL = 0.2
-_OPEN_ERRORS = (serial.SerialException, OSError, ValueError, termios.error)
-"""What opening a port raises: missing device, busy, refused settings (a pty and 7E1)."""
-LIGHTS = ("main", "positional")
-
-
-class LinkError(Exception):
-    """The link is unusable: port gone, I/O error, controller silent or in the wrong mode."""
-
-
-class ReplyTimeout(Exception):
-    """One command got no complete answer in time."""
-
-
-class LinkState(Enum):
-    OPEN = "open"
-    CLOSED = "closed"
-
-
-class SerialLink(asyncio.Protocol):
-    """One open serial connection to the controller; single use, one command in flight."""
-
-    def __init__(self, reply_timeout: float) -> None:
-        self.reply_timeout = reply_timeout
-        self.state = LinkState.OPEN
-        self.parser = LineParser()
-        self.banner = asyncio.Event()
-        """Set when an ``OK`` line arrives outside an answer (power-up, reset, RS-232 switch)."""
-        self.closed_reason = ""
-        self.stray_lines = 0
-        self.banners = 0
-        self._transport: asyncio.BaseTransport | None = None
-        self._device: serial.Serial | None = None
-        self._exchange: Exchange | None = None
-        self._reply: asyncio.Future[Reply] | None = None
-        self.on_unsolicited: Callable[[], None] | None = None
-        """Called when a W or an OK line arrives (the owner looks at the counters)."""
-
-    @classmethod
-    async def open(cls, config: MotorSection) -> SerialLink:
-        """Open the configured port (a pty refusing 7E1 is opened 8N1); raises LinkError."""
-        loop = asyncio.get_running_loop()
-        link = cls(config.reply_timeout)
-        framing = (config.bytesize, config.parity, config.stopbits)
-        try:
-            await _create(loop, link, config.port, config.baudrate, framing)
-        except _OPEN_ERRORS as err:
-            # The kernel's ptys refuse 7 bits and parity (hardware.md); same bytes in 8N1.
-            if not _is_pty(config.port) or framing == (8, "N", 1):
-                raise LinkError(f"cannot open {config.port}: {err}") from None
-            try:
-                await _create(loop, link, config.port, config.baudrate, (8, "N", 1))
-            except _OPEN_ERRORS as second:
-                raise LinkError(f"cannot open {config.port}: {second}") from None
-            _LOGGER.info("%s is a pty: opened 8N1 instead of %s%s%s", config.port, *framing)
-        return link
-
-    # ------------------------------------------------------------------ protocol callbacks
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self._transport = transport
-
-    def data_received(self, data: bytes) -> None:
-        watchdog, banners = self.parser.watchdog_chars, self.banners
-        for line in self.parser.feed(data):
-            self._on_line(line)
-        changed = self.parser.watchdog_chars != watchdog or self.banners != banners
-        if changed and self.on_unsolicited is not None:
-            self.on_unsolicited()
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        self._closed(f"port lost: {exc}" if exc else "port closed")
-
-    def _on_line(self, line: str) -> None:
-        exchange = self._exchange
-        if exchange is not None:
-            strays = len(exchange.stray)
-            reply = exchange.feed_line(line)
-            if len(exchange.stray) == strays:  # the line was the exchange's
-                if reply is not None and self._reply is not None and not self._reply.done():
-                    self._reply.set_result(reply)
-                return
-        self.stray_lines += 1
-        if line == ax3500.BANNER_OK:
-            self.banners += 1
-            self.banner.set()
-
-    # ------------------------------------------------------------------ requests
-
-    async def request(self, command: Command) -> Reply:
-        """Send ``command`` and wait for its answer; raises ReplyTimeout or LinkError."""
-        if self.state is LinkState.CLOSED or self._transport is None:
-            raise LinkError(self.closed_reason or "link closed")
-        if self._exchange is not None:
-            raise RuntimeError("one command in flight at a time")
-        self._exchange = Exchange(command)
-        reply: asyncio.Future[Reply] = asyncio.get_running_loop().create_future()
-        self._reply = reply
-        try:
-            self._write(command.encode())
-            async with asyncio.timeout(self.reply_timeout):
-                return await reply
-        except TimeoutError:
-            raise ReplyTimeout(command.text) from None
-        finally:
-            self._exchange = None
-            self._reply = None
-
-    def write_raw(self, data: bytes) -> None:
-        """Bytes that expect no answer (the ten carriage returns)."""
-        if self._transport is None or self.state is LinkState.CLOSED:
-            raise LinkError(self.closed_reason or "link closed")
-        self._write(data)
-
-    def _write(self, data: bytes) -> None:
-        transport: Any = self._transport
-        device = self._device
-        if device is not None and transport.get_write_buffer_size() == 0:
-            # pyserial-asyncio queues every write for the next loop turn (a writer callback
-            # and two epoll changes); a command fits the idle line's buffer, so write now.
-            try:
-                written = device.write(data)  # non-blocking: write_timeout=0
-            except serial.SerialException as err:
-                self._closed(f"port lost: {err}")  # fails the pending answer, if any
-                return
-            data = data[written or 0 :]
-            if not data:
-                return
-        transport.write(data)
-
-    async def wait_banner(self, timeout: float) -> bool:
-        """Wait for an ``OK`` line (clear :attr:`banner` before provoking it)."""
-        try:
-            async with asyncio.timeout(timeout):
-                await self.banner.wait()
-        except TimeoutError:
-            return False
-        return True
-
-    def close(self) -> None:
-        """Close the port, failing a pending request. Idempotent."""
-        self._closed("closed by the driver")
-
-    def _closed(self, reason: str) -> None:
-        if self.state is LinkState.CLOSED:
-            return
-        self.state = LinkState.CLOSED
-        self.closed_reason = reason
-        if self._reply is not None and not self._reply.done():
-            self._reply.set_exception(LinkError(reason))
-        if self._transport is not None:
-            self._transport.close()
-
-
-async def _create(
-    loop: asyncio.AbstractEventLoop,
-    link: SerialLink,
-    port: str,
-    baudrate: int,
-    framing: tuple[int, str, int],
-) -> None:
-    bytesize, parity, stopbits = framing
-    device = serial.serial_for_url(
-        port,
-        baudrate=baudrate,
-        bytesize=bytesize,
-        parity=parity,
-        stopbits=stopbits,
-        timeout=0,
-        write_timeout=0,
-        # flock: a second daemon (or any program asking for exclusivity) cannot drive the
-        # same controller at the same time.
-        exclusive=True,
-        do_not_open=True,
-    )
-    try:
-        device.open()
-        transport, _ = await serial_asyncio.connection_for_serial(loop, lambda: link, device)
-    except BaseException:
-        # Settings refused after the open (a pty and 7E1) leave the port open and locked.
-        device.close()
-        raise
-    link._transport = transport  # connection_made comes a loop turn later: usable at once
-    link._device = device
-
-
-def _is_pty(port: str) -> bool:
-    return os.path.realpath(port).startswith("/dev/pts/")
-
-
-# --------------------------------------------------------------------------- the actor
-
-
-@dataclass
-class _OutputRequest:
-    which: str
-    on: bool
-    reply: asyncio.Future[CommandResult]
 
 
 class MotorController(Actor):
@@ -292,7 +60,7 @@ class MotorController(Actor):
         self.sent: list[int | None] = [None, None]
         """Channel levels the controller acknowledged; None: unknown, send again."""
         self.battery_monitor = ctx.config.telemetry.battery_monitor
-        self.lights = {"main": False, "positional": False}
+        self.lights = Lights(ctx.bus, config)
         self.status = ControllerStatus(False, battery_monitor=self.battery_monitor)
         self.counters: dict[str, int] = dict.fromkeys(
             (
@@ -315,7 +83,6 @@ class MotorController(Actor):
         self._stopping = False
         self._wake = asyncio.Event()
         self._zero_sent = asyncio.Event()
-        self._outputs: deque[_OutputRequest] = deque()
         self._polls: deque[Command] = deque()
         self._poll_values: dict[str, tuple[int, ...]] = {}
         self._last_velocity_at = float("-inf")
@@ -327,29 +94,19 @@ class MotorController(Actor):
         self._refresh_both = False
         self._generation = 0
         """Bumped whenever the controller's outputs were lost (W, restart)."""
-        self._gpio_requests: asyncio.Queue[_OutputRequest] = asyncio.Queue()
 
     # ------------------------------------------------------------------ lifecycle
 
     async def run(self) -> None:
         self.subscribe(topics.MOTOR_COMMAND, self._on_motor_command)
         self.subscribe(topics.SYSTEM_COMMANDS, self._on_system_command)
-        self._publish_lights()
+        self.lights.publish()
         try:
             async with asyncio.TaskGroup() as group:
-                group.create_task(self._gpio_worker(), name="motor:gpio")
+                group.create_task(self.lights.gpio_worker(), name="motor:gpio")
                 await self._connection_loop()
         finally:
-            for request in (*self._outputs, *_drain(self._gpio_requests)):
-                if not request.reply.done():
-                    request.reply.set_result(CommandResult(False, "motor controller stopped"))
-            self._outputs.clear()
-
-    async def _gpio_worker(self) -> None:
-        """Lights wired to GPIO value files: switched whether or not the controller is up."""
-        while True:
-            request = await self._gpio_requests.get()
-            await self._serve_output(None, request)
+            self.lights.fail_pending("motor controller stopped")
 
     async def _connection_loop(self) -> None:
         """Open, bring up and serve the controller; reopen with capped backoff."""
@@ -455,7 +212,7 @@ class MotorController(Actor):
         self._reported_error = ""
         _LOGGER.info("motor controller up on %s", self.config.port)
         self._publish_status(connected=True)
-        await self._restore_outputs(link)
+        await self.lights.restore(self._sender(link))
 
     async def _check_mode(self, link: SerialLink, input_mode: int) -> None:
         """Mixed open-loop mode is required (else commands mean something else); RS-232 with
@@ -493,13 +250,6 @@ class MotorController(Actor):
         wanted = (ax3500.INPUT_MODE_RS232_WATCHDOG, ax3500.MOTOR_MODE_MIXED_OPEN_LOOP)
         if modes != wanted:
             raise LinkError(f"controller kept modes {modes[0]:02X}/{modes[1]:02X}")
-
-    async def _restore_outputs(self, link: SerialLink) -> None:
-        """A power-up switched the controller's outputs off: put the lights back."""
-        for which in LIGHTS:
-            output = self._output_name(which)
-            if self.lights[which] and output and not output.startswith("gpio:"):
-                await self._set_output(link, which, True)
 
     async def _probe(self, link: SerialLink) -> Reply | None:
         try:
@@ -589,10 +339,10 @@ class MotorController(Actor):
                 continue
             if self._restore_lights:
                 self._restore_lights = False
-                await self._restore_outputs(link)
+                await self.lights.restore(self._sender(link))
                 continue
-            if self._outputs:
-                await self._serve_output(link, self._outputs.popleft())
+            if self.lights.pending:
+                await self.lights.serve(self._sender(link), self.lights.pending.popleft())
                 after_velocity = False
                 continue
             if now - self._last_velocity_at >= self.refresh_period:
@@ -686,62 +436,32 @@ class MotorController(Actor):
         except PayloadError as err:
             command.respond(self.name, CommandResult(False, str(err)))
             return
-        output = self._output_name(which)
-        if not output:
+        if not self.lights.output(which):
             command.respond(
                 self.name,
                 CommandResult(False, f"no {which} lights fitted (motor.{which}_lights_output)"),
             )
             return
-        if output.startswith("gpio:"):  # a GPIO line works without the controller
-            self._gpio_requests.put_nowait(_OutputRequest(which, on, command.claim(self.name)))
+        if self.lights.on_gpio(which):  # a GPIO line works without the controller
+            self.lights.request_gpio(OutputRequest(which, on, command.claim(self.name)))
         elif self._ready:
-            self._outputs.append(_OutputRequest(which, on, command.claim(self.name)))
+            self.lights.pending.append(OutputRequest(which, on, command.claim(self.name)))
             self._wake.set()
         else:
             command.respond(self.name, CommandResult(False, "motor controller not connected"))
 
-    # ------------------------------------------------------------------ outputs (lights)
+    def _sender(self, link: SerialLink) -> Send:
+        """The line as the lights see it: one command, True when acknowledged."""
 
-    def _output_name(self, which: str) -> str:
-        if which == "main":
-            return self.config.main_lights_output.strip()
-        return self.config.positional_lights_output.strip()
-
-    async def _serve_output(self, link: SerialLink | None, request: _OutputRequest) -> None:
-        ok = await self._set_output(link, request.which, request.on)
-        if not request.reply.done():
-            state = "on" if request.on else "off"
-            request.reply.set_result(
-                CommandResult(True, result={request.which: request.on})
-                if ok
-                else CommandResult(
-                    False, f"controller did not switch the {request.which} lights {state}"
-                )
-            )
-
-    async def _set_output(self, link: SerialLink | None, which: str, on: bool) -> bool:
-        output = self._output_name(which)
-        if output.startswith("gpio:"):
-            ok = await _write_gpio(output.removeprefix("gpio:"), on)
-        elif link is None:
-            return False
-        else:
+        async def send(command: Command) -> bool:
             try:
-                ok = await self._send(link, ax3500.output(output, on)) is not None
+                return await self._send(link, command) is not None
             except ReplyTimeout:
-                ok = False
-        if ok:
-            self.lights[which] = on
-            self._publish_lights()
-        return ok
+                return False
+
+        return send
 
     # ------------------------------------------------------------------ reporting
-
-    def _publish_lights(self) -> None:
-        self.bus.publish(
-            topics.LIGHTS_STATE, LightsState(self.lights["main"], self.lights["positional"])
-        )
 
     def _publish_status(self, *, connected: bool, error: str = "") -> None:
         values = self._poll_values if connected else {}
@@ -779,39 +499,3 @@ class MotorController(Actor):
             "acknowledged": list(self.sent),
             "error": self.status.error,
         }
-
-
-async def _write_gpio(path: str, on: bool) -> bool:
-    try:
-        await asyncio.to_thread(Path(path).write_text, "1\n" if on else "0\n")
-    except OSError as err:
-        _LOGGER.warning("cannot switch %s: %s", path, err)
-        return False
-    return True
-
-
-def capability(controller: MotorController) -> dict[str, Any]:
-    """The ``motor`` section of the connect answer."""
-    return {
-        "controller": "Roboteq AX3500",
-        "port": controller.config.port,
-        "lights": [which for which in LIGHTS if controller._output_name(which)],
-        "refresh_hz": round(1.0 / controller.refresh_period, 1),
-    }
-
-
-async def async_setup(ctx: PlatformContext) -> None:
-    if not ctx.config.motor.enabled:
-        return
-    controller = MotorController(ctx)
-    ctx.capabilities["motor"] = lambda: capability(controller)
-    ctx.telemetry_sources["motor"] = controller.snapshot
-    ctx.diagnostics_sources["motor"] = lambda: dict(controller.counters)
-    ctx.supervisor.start(controller)
-
-
-def _drain(queue: asyncio.Queue[_OutputRequest]) -> list[_OutputRequest]:
-    items = []
-    while not queue.empty():
-        items.append(queue.get_nowait())
-    return items

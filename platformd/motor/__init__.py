@@ -1,0 +1,55 @@
+"""The motor controller driver: a Roboteq AX3500 on a serial line (the seed's "vmci").
+
+Layers: :mod:`brasidas.codecs.ax3500` (sans-IO) → :mod:`.link` (one open serial
+connection with one command in flight; pyserial-asyncio's callbacks only feed the codec) →
+:mod:`.controller` (the actor that reopens the link with capped backoff, brings the controller
+up and decides what to send next); :mod:`.lights` holds the lights and their outputs.
+
+What it sends, in priority order:
+
+1. the velocity, when ``MOTOR_COMMAND`` (the motion arbiter) changed it. **Latest wins**: the
+   newest command replaces any not yet sent, so the line never holds a backlog;
+2. accessory outputs (lights, 10.6/10.7);
+3. a refresh (channel 1 again) when nothing was sent for ``1 / refresh_hz`` (the controller's
+   watchdog stops the motors after 1 s of silence; a ``W`` or ``OK`` resends both channels). A command that repeats the current one
+   and arrives after most of that period triggers the refresh at once, so in teleop the
+   refreshes go out right behind a stream packet rather than at a random moment;
+4. status polls (``?e ?m ?a``), only right behind a velocity exchange: in teleop the line is
+   then free again before the next packet arrives.
+
+A ``-`` answer is resent once, then reported. ``max_unanswered`` silent commands in a row, an
+I/O error or a vanished port close the link; the actor reports it on ``CONTROLLER_STATUS``,
+retries with backoff and, when the controller is back, starts from zero: a velocity that
+arrived before or during the outage is never replayed. On shutdown (it stops first) it
+commands zero before the line closes.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from platformd.context import PlatformContext
+from platformd.motor.controller import MotorController
+from platformd.motor.link import LinkError, ReplyTimeout, SerialLink
+
+__all__ = ["LinkError", "MotorController", "ReplyTimeout", "SerialLink", "async_setup"]
+
+
+def capability(controller: MotorController) -> dict[str, Any]:
+    """The ``motor`` section of the connect answer."""
+    return {
+        "controller": "Roboteq AX3500",
+        "port": controller.config.port,
+        "lights": controller.lights.fitted(),
+        "refresh_hz": round(1.0 / controller.refresh_period, 1),
+    }
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    if not ctx.config.motor.enabled:
+        return
+    controller = MotorController(ctx)
+    ctx.capabilities["motor"] = lambda: capability(controller)
+    ctx.telemetry_sources["motor"] = controller.snapshot
+    ctx.diagnostics_sources["motor"] = lambda: dict(controller.counters)
+    ctx.supervisor.start(controller)
