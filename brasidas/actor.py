@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable
 from typing import TypeVar
 
+from brasidas.backoff import Backoff
 from brasidas.bus import Bus, Topic, Unsubscribe
 
 _LOGGER = logging.getLogger(__name__)
@@ -89,7 +90,7 @@ class Supervisor:
         )
 
     async def _supervise(self, actor: Actor) -> None:
-        backoff = self._backoff_initial
+        backoff = Backoff(self._backoff_initial, self._backoff_max)
         while True:
             started = time.monotonic()
             try:
@@ -103,11 +104,11 @@ class Supervisor:
                     _LOGGER.exception("actor %s failed; not restarting", actor.name)
                     return
                 if time.monotonic() - started > self._healthy_after:
-                    backoff = self._backoff_initial
+                    backoff.reset()
                 self.restarts[actor.name] = self.restarts.get(actor.name, 0) + 1
-                _LOGGER.exception("actor %s crashed; restarting in %.1f s", actor.name, backoff)
-                await asyncio.sleep(backoff)
-                backoff = min(backoff * 2, self._backoff_max)
+                delay = backoff.next()
+                _LOGGER.exception("actor %s crashed; restarting in %.1f s", actor.name, delay)
+                await asyncio.sleep(delay)
                 continue
             actor.remove_subscriptions()
             _LOGGER.debug("actor %s finished", actor.name)

@@ -21,6 +21,7 @@ import serial_asyncio
 
 from brasidas import topics
 from brasidas.actor import Actor
+from brasidas.backoff import Backoff
 from brasidas.bus import Bus
 from brasidas.codecs.nmea import EpochAssembler, NmeaDecoder
 from brasidas.config import GpsSection
@@ -65,7 +66,7 @@ class GpsReader(Actor):
     # ------------------------------------------------------------------ serial line
 
     async def _connect_loop(self) -> None:
-        backoff = BACKOFF_INITIAL
+        backoff = Backoff(BACKOFF_INITIAL, BACKOFF_MAX)
         failures = 0
         while True:
             port = self.config.port
@@ -81,8 +82,7 @@ class GpsReader(Actor):
             except (OSError, ValueError) as err:  # SerialException is an OSError
                 failures += 1
                 self._port_down(f"cannot open {port}: {err}", log=failures == 1)
-                await asyncio.sleep(backoff)
-                backoff = min(backoff * 2, BACKOFF_MAX)
+                await asyncio.sleep(backoff.next())
                 continue
             _LOGGER.info("GPS reading %s at %d baud", port, self.config.baudrate)
             self.connected = True
@@ -102,8 +102,8 @@ class GpsReader(Actor):
                 writer.close()
             failures = 1  # a port that just went away: report once, then retry quietly
             self._port_down(reason, log=True)
-            backoff = BACKOFF_INITIAL
-            await asyncio.sleep(backoff)
+            backoff.reset()
+            await asyncio.sleep(backoff.next())
 
     async def _read(self, reader: asyncio.StreamReader) -> None:
         """Until EOF (returns) or a read error (raises OSError)."""

@@ -34,6 +34,7 @@ from typing import Any
 
 from brasidas import topics
 from brasidas.actor import Actor
+from brasidas.backoff import Backoff
 from brasidas.bus import Bus
 from brasidas.config import ImuSection
 from brasidas.drivers.mpu6050 import (
@@ -166,7 +167,7 @@ class ImuReader(Actor):
 
     async def _device_loop(self) -> None:
         loop = asyncio.get_running_loop()
-        backoff = BACKOFF_INITIAL
+        backoff = Backoff(BACKOFF_INITIAL, BACKOFF_MAX)
         failures = 0
         while True:
             opening = loop.run_in_executor(None, self._open)
@@ -179,8 +180,7 @@ class ImuReader(Actor):
             except (OSError, ImuError) as err:
                 failures += 1
                 self._set_error(str(err), log=failures == 1)
-                await asyncio.sleep(backoff)
-                backoff = min(backoff * 2, BACKOFF_MAX)
+                await asyncio.sleep(backoff.next())
                 continue
             _LOGGER.info(
                 "IMU: MPU-6050 at 0x%02x on i2c-%d, %g Hz",
@@ -195,9 +195,9 @@ class ImuReader(Actor):
             self._publish_status()
             reason = await self._sample(driver, loop)
             failures = 1
-            backoff = BACKOFF_INITIAL
+            backoff.reset()
             self._set_error(reason, log=True)
-            await asyncio.sleep(backoff)
+            await asyncio.sleep(backoff.next())
 
     def _open(self) -> Mpu6050Driver:
         """Open the bus and set the chip up (blocking: runs in an executor thread)."""

@@ -22,6 +22,7 @@ import struct
 from dataclasses import dataclass
 
 from brasidas.actor import Actor
+from brasidas.backoff import Backoff
 from brasidas.bus import Bus
 from brasidas.config import JoystickSection
 from brasidas.messages import Velocity
@@ -149,7 +150,7 @@ class JoystickReader(Actor):
         return gamepad_velocity(self.pad, self.config)
 
     async def run(self) -> None:
-        backoff = 0.2
+        backoff = Backoff(0.2, 2.0)
         reported = False
         loop = asyncio.get_running_loop()
         while True:
@@ -159,8 +160,7 @@ class JoystickReader(Actor):
                 if not reported:
                     _LOGGER.warning("joystick %s: %s; retrying", self.config.device, err.strerror)
                     reported = True
-                await asyncio.sleep(backoff)
-                backoff = min(backoff * 2, 2.0)
+                await asyncio.sleep(backoff.next())
                 continue
             _LOGGER.info("joystick %s open", self.config.device)
             reported = False
@@ -179,8 +179,9 @@ class JoystickReader(Actor):
             self.disconnects += 1
             _LOGGER.warning("joystick %s lost (%s)", self.config.device, reason)
             # A device that opens and fails at once must not become a busy loop.
-            backoff = 0.2 if loop.time() - opened > 5.0 else min(backoff * 2, 2.0)
-            await asyncio.sleep(backoff)
+            if loop.time() - opened > 5.0:
+                backoff.reset()
+            await asyncio.sleep(backoff.next())
 
     def _on_readable(self, fd: int, lost: asyncio.Future[str]) -> None:
         try:

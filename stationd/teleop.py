@@ -21,6 +21,7 @@ from typing import Any
 
 from brasidas import topics
 from brasidas.actor import Actor, wait_forever
+from brasidas.backoff import Backoff
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
 from brasidas.codecs.pvel import PvelEncoder
 from brasidas.config import TeleopSection
@@ -80,7 +81,7 @@ class VelocitySender:
 
     async def _open(self) -> asyncio.DatagramTransport | None:
         """Ask for the endpoint and open the socket; retried until the connection closes."""
-        backoff = 0.2
+        backoff = Backoff(0.2, 2.0)
         while not self.connection.closed.is_set():
             try:
                 info = await self.connection.call("get_velocity_connection_info")
@@ -97,8 +98,7 @@ class VelocitySender:
                 _LOGGER.warning(
                     "no velocity endpoint for %s yet: %s", self.connection.platform_id, err
                 )
-                await asyncio.sleep(backoff)
-                backoff = min(backoff * 2, 2.0)
+                await asyncio.sleep(backoff.next())
                 continue
             self.target = target
             return transport

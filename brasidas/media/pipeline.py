@@ -24,6 +24,7 @@ from collections.abc import Callable
 from enum import StrEnum
 from typing import Any
 
+from brasidas.backoff import Backoff
 from brasidas.media.gst import MediaError, gst, realtime_clock
 
 _LOGGER = logging.getLogger(__name__)
@@ -160,7 +161,8 @@ class PipelineStream:
 
     async def supervise(self) -> None:
         """Run by the owner for the stream's lifetime: retry failures with capped backoff."""
-        backoff = self.retry_initial
+        backoff = Backoff(self.retry_initial, max(self.retry_initial, self.retry_max))
+        delay = backoff.next()
         while True:
             await self._failed.wait()
             self._failed.clear()
@@ -171,25 +173,26 @@ class PipelineStream:
                     self._playing_since is not None
                     and time.monotonic() - self._playing_since > self.healthy_after
                 ):
-                    backoff = self.retry_initial
+                    backoff.reset()
+                    delay = backoff.next()
                 self._playing_since = None
                 await self._teardown()
             if self._stopped_on_purpose():
                 continue
-            self.next_retry_in = backoff
+            self.next_retry_in = delay
             self._kick.clear()
             with contextlib.suppress(TimeoutError):
                 # A start/pause/stop in the meantime ends the wait early. (asyncio.timeout,
                 # not wait_for: 3.11's wait_for can swallow a cancel that races the event.)
-                async with asyncio.timeout(backoff):
+                async with asyncio.timeout(delay):
                     await self._kick.wait()
             self.next_retry_in = None
             async with self._lock:
                 if self.state is not StreamState.FAILED or self._stopped_on_purpose():
                     continue
                 self.retries += 1
-                _LOGGER.info("stream %s: retrying after %.1f s", self.name, backoff)
-                backoff = min(backoff * 2, self.retry_max)
+                _LOGGER.info("stream %s: retrying after %.1f s", self.name, delay)
+                delay = backoff.next()
                 await self._go(self._wanted)
 
     # ------------------------------------------------------------------ internals (event loop)

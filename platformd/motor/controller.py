@@ -13,6 +13,7 @@ from typing import Any
 
 from brasidas import topics
 from brasidas.actor import Actor
+from brasidas.backoff import Backoff
 from brasidas.codecs import ax3500
 from brasidas.codecs.ax3500 import Command, MotionMapping, Reply, Status
 from brasidas.codecs.commands import (
@@ -110,7 +111,7 @@ class MotorController(Actor):
 
     async def _connection_loop(self) -> None:
         """Open, bring up and serve the controller; reopen with capped backoff."""
-        backoff = RECONNECT_INITIAL
+        backoff = Backoff(RECONNECT_INITIAL, max(RECONNECT_INITIAL, self.config.reconnect_max))
         failures = 0
         try:
             while True:
@@ -119,8 +120,7 @@ class MotorController(Actor):
                 except LinkError as err:
                     failures += 1
                     self._report_down(str(err), first=failures == 1)
-                    await asyncio.sleep(backoff)
-                    backoff = min(backoff * 2, max(RECONNECT_INITIAL, self.config.reconnect_max))
+                    await asyncio.sleep(backoff.next())
                     continue
                 self._link = link
                 error = ""
@@ -130,7 +130,7 @@ class MotorController(Actor):
                         self.counters["reconnects"] += 1
                         _LOGGER.info("motor controller back on %s", self.config.port)
                     failures = 0
-                    backoff = RECONNECT_INITIAL
+                    backoff.reset()
                     await self._serve(link)
                 except LinkError as err:
                     failures += 1
@@ -138,8 +138,7 @@ class MotorController(Actor):
                     self._report_down(error, first=failures == 1)
                 finally:
                     self._disconnected(link, error)
-                await asyncio.sleep(backoff)
-                backoff = min(backoff * 2, max(RECONNECT_INITIAL, self.config.reconnect_max))
+                await asyncio.sleep(backoff.next())
         finally:
             if self._link is not None:
                 self._disconnected(self._link, "driver stopped")
