@@ -11,7 +11,7 @@ APT_PACKAGES := python3 python3-venv python3-dev gcc pkg-config \
 	gstreamer1.0-plugins-good gstreamer1.0-plugins-bad gstreamer1.0-plugins-ugly \
 	gstreamer1.0-libav gstreamer1.0-x iproute2 chromium
 
-.PHONY: demo test bench lint deps apt venv clean
+.PHONY: demo test bench lint deps apt venv clean net-demo soak
 
 deps: $(STAMP_APT) $(STAMP_PIP)
 
@@ -32,6 +32,10 @@ $(STAMP_PIP): pyproject.toml $(STAMP_APT)
 
 demo: deps
 	$(PY) -m stationd.demo
+
+# The test network by hand (root): namespaces, a station and two --sim platforms, one link to impair.
+net-demo: deps
+	$(PY) -m brasidas.netem
 
 test: deps
 	$(PY) -m pytest -q -p no:cacheprovider

@@ -15,7 +15,7 @@ from typing import Any
 
 from bench.support import free_port, percentiles, start_platform
 from brasidas import security
-from stationd.discovery import PlatformDirectory, listen_socket
+from brasidas.discovery import PlatformDirectory, listen_socket
 
 RUNS = 5
 

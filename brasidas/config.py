@@ -63,12 +63,23 @@ class BeaconSection:
     enabled: bool = True
     port: int = 21000
     destinations: list[str] = field(default_factory=lambda: ["127.255.255.255"])
-    """Where beacons go. The default is loopback broadcast; deployments name the mesh's."""
+    """Where beacons go: broadcast, multicast group (R-0.6.1) or unicast addresses. The default
+    is the loopback broadcast; deployments name the mesh's broadcast address or a group."""
     min_interval: float = 0.6
     max_interval: float = 3.0
     move_threshold_m: float = 1.0
     interface_host: str = "127.0.0.1"
-    """Local address beacons are sent from (picks the interface)."""
+    """Local address beacons are sent from (picks the interface, multicast ones included)."""
+    multicast_ttl: int = 1
+    """Hops a beacon to a multicast destination may cross: 1 stays on the segment; a routed
+    mesh (OLSR, BATMAN at layer 3) needs its diameter."""
+    listen: bool = True
+    """Keep the list of the other platforms online from their beacons (R-9): list_platforms."""
+    listen_host: str = "0.0.0.0"
+    """Where this platform hears the others' beacons (on ``port``; it joins the multicast
+    destinations on the interface of ``interface_host``)."""
+    expiry: float = 4.0
+    """Another platform is dropped from the list this long after its last beacon."""
 
 
 @dataclass
@@ -273,6 +284,10 @@ class DiscoverySection:
     """Receive-only. 0.0.0.0 is needed to hear broadcasts; nothing is sent from here."""
     expiry: float = 4.0
     """A platform is dropped this long after its last beacon (R-9.3)."""
+    groups: list[str] = field(default_factory=list)
+    """Multicast groups to hear beacons on (R-0.6.1), e.g. ["239.255.21.0"]."""
+    interfaces: list[str] = field(default_factory=list)
+    """Local addresses of the interfaces to join ``groups`` on. Empty: every interface."""
 
 
 @dataclass

@@ -6,7 +6,11 @@ The advertiser keeps the current status word and position from the bus and sends
 ``beacon.move_threshold_m`` or more, but never more often than every
 ``beacon.min_interval`` seconds. The default destination is the loopback broadcast address,
 so every station process on this host hears it; a deployment names its mesh's broadcast
-address (and ``interface_host``) explicitly.
+address or a multicast group (R-0.6.1; sent with ``IP_MULTICAST_IF`` = ``interface_host`` and
+``multicast_ttl``) and ``interface_host`` explicitly.
+
+Each platform also keeps the list of the other platforms online (R-9), with the station's
+code (:mod:`brasidas.discovery`): ``list_platforms`` on signaling, ``platforms`` in telemetry.
 """
 
 from __future__ import annotations
@@ -18,10 +22,11 @@ import secrets
 import socket
 from typing import Any
 
-from brasidas import topics
+from brasidas import discovery, topics
 from brasidas.actor import Actor
 from brasidas.bus import Topic
 from brasidas.codecs import beacon as beacon_codec
+from brasidas.codecs.jsonrpc import CallContext
 from brasidas.messages import (
     LightsState,
     OverrideState,
@@ -112,14 +117,7 @@ class BeaconAdvertiser(Actor):
         for topic in watched:
             self.subscribe(topic, self._on_change)
         loop = asyncio.get_running_loop()
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
-        sock.setblocking(False)
-        try:
-            sock.bind((self.config.interface_host, 0))
-        except OSError:
-            sock.close()
-            raise
+        sock = sender_socket(self.config.interface_host, self.config.multicast_ttl)
         transport, _ = await loop.create_datagram_endpoint(asyncio.DatagramProtocol, sock=sock)
         self._transport = transport
         try:
@@ -169,9 +167,64 @@ class BeaconAdvertiser(Actor):
         }
 
 
+def sender_socket(interface_host: str, multicast_ttl: int) -> socket.socket:
+    """A UDP socket for beacons to broadcast, multicast and unicast destinations."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, multicast_ttl)
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+        if interface_host not in ("", "0.0.0.0"):
+            # Multicast leaves by this interface, not by the routing table's choice.
+            sock.setsockopt(
+                socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(interface_host)
+            )
+        sock.setblocking(False)
+        sock.bind((interface_host, 0))
+    except OSError:
+        sock.close()
+        raise
+    return sock
+
+
+def listen_settings(ctx: PlatformContext) -> discovery.ListenSettings:
+    """Hear the others where this platform's own beacons go (same port, same groups)."""
+    config = ctx.config.beacon
+    interface = config.interface_host
+    return discovery.ListenSettings(
+        port=config.port,
+        host=config.listen_host,
+        groups=tuple(d for d in config.destinations if discovery.is_multicast(d)),
+        interfaces=() if interface in ("", "0.0.0.0") else (interface,),
+        expiry=config.expiry,
+    )
+
+
+def setup_directory(ctx: PlatformContext) -> discovery.PlatformDirectory:
+    """R-9: the other platforms online, served by ``list_platforms`` and in telemetry."""
+    directory = discovery.PlatformDirectory(
+        ctx.fleet_key, ctx.config.beacon.expiry, self_id=ctx.config.platform.id
+    )
+    settings = listen_settings(ctx)
+    ctx.supervisor.start(discovery.BeaconListener(ctx.bus, directory, settings))
+
+    async def list_platforms(call: CallContext) -> list[dict[str, Any]]:
+        """The other platforms online (heard within ``beacon.expiry`` seconds)."""
+        return directory.entries()
+
+    ctx.rpc.add("list_platforms", list_platforms)
+    ctx.telemetry_sources["platforms"] = lambda: [
+        {"id": entry["id"], "age_s": round(entry["age_s"], 1)} for entry in directory.entries()
+    ]
+    ctx.diagnostics_sources["discovery"] = directory.stats
+    return directory
+
+
 async def async_setup(ctx: PlatformContext) -> None:
     if not ctx.config.beacon.enabled:
         return
+    if ctx.config.beacon.listen:
+        setup_directory(ctx)
     advertiser = BeaconAdvertiser(ctx)
     ctx.supervisor.start(advertiser)
     ctx.capabilities["beacon"] = lambda: {

@@ -20,6 +20,7 @@ from brasidas import security, topics
 from brasidas.codecs import beacon as codec
 from brasidas.codecs.beacon import Beacon, BeaconError, DropReason, ReplayGuard
 from brasidas.config import StationConfig, load_config
+from brasidas.discovery import PlatformDirectory
 from brasidas.messages import Position
 from brasidas.status import Battery, StatusWord
 from platformd.app import PlatformDaemon
@@ -27,7 +28,6 @@ from platformd.beacon import distance_m
 from stationd import cli
 from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
-from stationd.discovery import PlatformDirectory
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 KEY = bytes(range(32))
@@ -235,6 +235,7 @@ def beacon_config(port: int, *extra: str) -> list[str]:
         "beacon.enabled=true",
         f"beacon.port={port}",
         'beacon.destinations=["127.0.0.1"]',
+        "beacon.listen=false",  # the collector holds the port alone
         *extra,
     ]
 

@@ -1,0 +1,101 @@
+"""Discovery and driving across hosts: broadcast and multicast beacons (R-0.6.1), platforms'
+own lists (R-9), a station connecting and driving over the test network's bridge."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from netns import (
+    MULTICAST_GROUP,
+    QUIET,
+    SIGNALING_PORT,
+    Fleet,
+    network_fixture,
+    open_session,
+    requires_netns,
+    rpc,
+    wait_for,
+)
+
+from brasidas.netem.netns import TestNetwork
+
+pytestmark = requires_netns
+network = network_fixture("disc")
+
+
+@pytest.fixture(scope="module")
+def fleet(network: TestNetwork, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
+    fleet = Fleet(network, Path(tmp_path_factory.mktemp("fleet")))
+    broadcast_host = network.add_host("rover1")
+    multicast_host = network.add_host("rover2")
+    plain_station = network.add_host("st1")
+    group_station = network.add_host("st2")
+    fleet.platform(broadcast_host, "rover-1", *QUIET)
+    fleet.platform(multicast_host, "rover-2", *QUIET, destinations=(MULTICAST_GROUP,))
+    fleet.station(plain_station, "station-1")
+    fleet.station(group_station, "station-2", f'discovery.groups=["{MULTICAST_GROUP}"]')
+    yield fleet
+    fleet.stop()
+
+
+def _ids(entries: list[dict[str, object]]) -> list[object]:
+    return [entry["id"] for entry in entries]
+
+
+async def test_broadcast_and_multicast_beacons_cross_hosts(fleet: Fleet) -> None:
+    plain, group = (d for d in fleet.daemons if d.name.startswith("station"))
+    started = time.monotonic()
+    for station in (plain, group):
+        await fleet.wait_listening(station, "127.0.0.1", 8780)
+
+    async def listed(station: object, wanted: set[str]) -> bool:
+        entries = await fleet.api(station, "list_platforms")  # type: ignore[arg-type]
+        return wanted <= set(_ids(entries))
+
+    await wait_for(lambda: listed(group, {"rover-1", "rover-2"}), 20)
+    print(
+        f"\nstation-2 (joined {MULTICAST_GROUP}) lists both platforms after "
+        f"{time.monotonic() - started:.1f} s (processes started included)"
+    )
+    entries = {e["id"]: e for e in await fleet.api(group, "list_platforms")}
+    assert entries["rover-1"]["address"] == fleet.net.hosts["rover1"].address
+    rover2 = fleet.net.hosts["rover2"].address
+    assert entries["rover-2"]["url"] == f"http://{rover2}:{SIGNALING_PORT}"  # advertise_host
+    # station-1 did not join the group: it hears rover-1's broadcasts only.
+    await wait_for(lambda: listed(plain, {"rover-1"}), 10)
+    plain_ids = _ids(await fleet.api(plain, "list_platforms"))
+    assert plain_ids == ["rover-1"], plain_ids
+    stats = await fleet.api(group, "discovery_stats")
+    print(f"station-2 discovery: {stats}")
+    assert sum(stats["dropped"].values()) == 0
+
+
+async def test_each_platform_keeps_its_own_list(fleet: Fleet) -> None:
+    net = fleet.net
+    rover1, rover2 = net.hosts["rover1"], net.hosts["rover2"]
+    station = net.hosts["st1"]
+    sessions = {
+        name: await open_session(station.namespace, host.address, name, fleet.key)
+        for name, host in (("rover-1", rover1), ("rover-2", rover2))
+    }
+
+    async def platform_list(name: str, host_address: str) -> list[object]:
+        return _ids(
+            await rpc(
+                station.namespace,
+                host_address,
+                SIGNALING_PORT,
+                "/rpc",
+                "list_platforms",
+                session=sessions[name],
+            )
+        )
+
+    # rover-2 listens on the group it sends to (joined on its mesh interface) and hears
+    # rover-1's broadcasts; rover-1 is not in the group. Neither lists itself.
+    assert await wait_for(lambda: platform_list("rover-2", rover2.address), 10) == ["rover-1"]
+    assert await platform_list("rover-1", rover1.address) == []
+    print(f"\nrover-2 lists {await platform_list('rover-2', rover2.address)}, rover-1 lists []")
