@@ -51,7 +51,8 @@ async def test_console_lists_connects_and_takes_the_override(
         "platform.id=web-rover",
         "beacon.enabled=true",
         f"beacon.port={station.config.discovery.port}",
-        'beacon.destinations=["127.255.255.255"]',  # the platform listens on the port too
+        'beacon.destinations=["127.0.0.1"]',
+        "beacon.listen=false",  # unicast: the station alone must hold the port
         "beacon.max_interval=1.0",
         "sim.enabled=true",  # a simulated GPS receiver behind the real reader
         "gps.enabled=true",
