@@ -353,6 +353,18 @@ class StationMediaSection:
 
 
 @dataclass
+class ConsoleSection:
+    drive_timeout: float = 0.2
+    """A console page's drive input lasts this long unless repeated (it sends at 20 Hz): a
+    page that goes quiet stops the robot within this plus one $PVEL period."""
+    tls_cert: str = ""
+    """PEM certificate for serving the console over HTTPS (an operator on another host: the
+    browser's video decoder needs a secure context). Empty: plain HTTP (loopback)."""
+    tls_key: str = ""
+    """PEM private key of ``tls_cert``."""
+
+
+@dataclass
 class StationConfig:
     station: StationSection = field(default_factory=StationSection)
     security: SecuritySection = field(default_factory=SecuritySection)
@@ -361,6 +373,7 @@ class StationConfig:
     teleop: TeleopSection = field(default_factory=TeleopSection)
     joystick: JoystickSection = field(default_factory=JoystickSection)
     media: StationMediaSection = field(default_factory=StationMediaSection)
+    console: ConsoleSection = field(default_factory=ConsoleSection)
 
 
 # --------------------------------------------------------------------------- loading

@@ -13,6 +13,7 @@ from brasidas.config import StationConfig
 if TYPE_CHECKING:
     from stationd.client import PlatformConnection
     from stationd.connections import ConnectionManager
+    from stationd.teleop import Teleop
 
 
 @dataclass
@@ -27,6 +28,8 @@ class StationContext:
     """Open platform connections by platform id."""
     connection_manager: ConnectionManager | None = None
     """Set by stationd.connections: ``await ctx.connection_manager.ensure(platform_id)``."""
+    teleop: Teleop | None = None
+    """Set by stationd.teleop: the velocity senders and the operator's drive inputs."""
 
     async def connection(self, platform_id: str) -> PlatformConnection:
         """The open connection to ``platform_id``, connecting first if needed."""

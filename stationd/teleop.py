@@ -260,6 +260,7 @@ class Teleop(Actor):
 async def async_setup(ctx: StationContext) -> None:
     joystick = JoystickReader(ctx.bus, ctx.config.joystick) if ctx.config.joystick.device else None
     teleop = Teleop(ctx, joystick)
+    ctx.teleop = teleop
     ctx.api.add("teleop_set", teleop.api_teleop_set, session_required=False)
     ctx.api.add("teleop_status", teleop.api_teleop_status, session_required=False)
     if joystick is not None:

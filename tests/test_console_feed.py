@@ -1,0 +1,152 @@
+"""The console's NavCam feed: the fan-out's rules, and access units over the real WebSocket."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any
+
+import aiohttp
+import pytest
+from conftest import free_udp_port, quiet_platform_config
+
+from brasidas.config import StationConfig, load_config
+from platformd.app import PlatformDaemon
+from stationd.daemon import StationDaemon
+from stationd.video_feed import AccessUnit, FanOut, Viewer, decode_header
+
+Factory = Callable[..., Awaitable[PlatformDaemon]]
+
+
+def unit(key: bool, *, gap: bool = False, size: int = 10) -> AccessUnit:
+    return AccessUnit(b"\x00" * size, key, 1000.0, 1001.0, after_gap=gap)
+
+
+def drain(viewer: Viewer) -> list[dict[str, Any]]:
+    out = [decode_header(m) for m in viewer.queue]
+    viewer.queue.clear()
+    viewer.allowance = 0
+    return out
+
+
+def test_a_new_viewer_gets_the_current_gop_replayed() -> None:
+    fanout = FanOut()
+    for key in (True, False, False, True, False):
+        fanout.feed(unit(key))
+    viewer = Viewer(feed=7)
+    fanout.add(viewer)
+    replay = drain(viewer)
+    assert [(m["keyframe"], m["replayed"], m["feed"]) for m in replay] == [
+        (True, True, 7),
+        (False, True, 7),
+    ]
+    fanout.feed(unit(False))
+    live = drain(viewer)
+    assert [(m["seq"], m["replayed"]) for m in live] == [(6, False)]
+
+
+def test_nothing_before_the_first_keyframe_and_a_gap_freezes_until_the_next() -> None:
+    fanout = FanOut()
+    viewer = Viewer(feed=1)
+    fanout.add(viewer)
+    fanout.feed(unit(False))  # joined mid-GOP: not decodable
+    assert drain(viewer) == []
+    fanout.feed(unit(True))
+    fanout.feed(unit(False))
+    fanout.feed(unit(False, gap=True))  # lost packets before this one
+    fanout.feed(unit(False))
+    assert [m["keyframe"] for m in drain(viewer)] == [True, False]
+    fanout.feed(unit(True))
+    assert [m["keyframe"] for m in drain(viewer)] == [True]
+    assert fanout.gaps == 1 and fanout.held == 3
+
+
+def test_a_viewer_that_falls_behind_skips_to_the_next_keyframe() -> None:
+    fanout = FanOut()
+    slow, fast = Viewer(feed=1, limit=3), Viewer(feed=1, limit=3)
+    fanout.feed(unit(True))
+    fanout.add(slow)
+    fanout.add(fast)
+    drain(fast)
+    for _ in range(6):
+        fanout.feed(unit(False))
+        drain(fast)  # keeps up
+    # slow: replayed key (allowance 1) + 3 live fit; the 4th live unit overflows.
+    assert slow.cutbacks == 1 and slow.waiting_for_key
+    assert len(slow.queue) == 0
+    fanout.feed(unit(True))
+    fanout.feed(unit(False))
+    assert [m["keyframe"] for m in drain(slow)] == [True, False]
+    assert fast.cutbacks == 0 and fast.skipped == 0
+
+
+@pytest.fixture
+async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
+    config = load_config(
+        StationConfig,
+        None,
+        [
+            "station.api_port=0",
+            f"discovery.port={free_udp_port()}",
+            "discovery.bind_host=127.0.0.1",
+        ],
+    )
+    daemon = StationDaemon(config, fleet_key)
+    await daemon.start()
+    yield daemon
+    await daemon.stop()
+
+
+async def test_access_units_reach_a_websocket_viewer_with_capture_times(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes
+) -> None:
+    platform = await platform_factory(
+        quiet_platform_config("platform.id=feed-rover", "sim.enabled=true", "navcam.enabled=true"),
+        fleet_key,
+    )
+    api = f"http://127.0.0.1:{station.config.station.api_port}/api/rpc/ws"
+    ids = iter(range(1, 1000))
+
+    async with aiohttp.ClientSession() as http, http.ws_connect(api) as ws:
+
+        async def call(method: str, **params: Any) -> Any:
+            number = next(ids)
+            await ws.send_str(
+                json.dumps({"jsonrpc": "2.0", "id": number, "method": method, "params": params})
+            )
+            while True:
+                message = await ws.receive(timeout=10)
+                if message.type is not aiohttp.WSMsgType.TEXT:
+                    continue
+                answer = json.loads(message.data)
+                if answer.get("id") == number:
+                    assert "error" not in answer, answer
+                    return answer["result"]
+
+        hello = await call("console_subscribe")
+        assert hello["session"] >= 1
+        await call("connect", platform_id="feed-rover", url=platform.ctx.signaling_url)
+        watching = await call("video_watch", platform_id="feed-rover")
+        assert watching["watching"] == "feed-rover"
+        frames: list[dict[str, Any]] = []
+        pushed: set[str] = set()
+        async with asyncio.timeout(15):
+            while len(frames) < 8:
+                message = await ws.receive()
+                if message.type is aiohttp.WSMsgType.BINARY:
+                    frames.append(decode_header(message.data))
+                    assert message.data[24:28] == b"\x00\x00\x00\x01"  # Annex B start code
+                elif message.type is aiohttp.WSMsgType.TEXT:
+                    pushed.add(json.loads(message.data).get("method", ""))
+        assert frames[0]["keyframe"], "the first frame a viewer gets is a keyframe"
+        assert all(f["feed"] == watching["feed"] for f in frames)
+        seqs = [f["seq"] for f in frames]
+        assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+        # The platform stamped every frame; on loopback one clock: a few ms old on arrival.
+        for f in frames:
+            assert f["capture_ms"] > 0
+            assert -5 < f["arrival_ms"] - f["capture_ms"] < 2000
+        assert {"platforms", "connections"} <= pushed
+        feeds = await call("video_feeds")
+        assert feeds[0]["viewers"] == 1 and feeds[0]["units"] >= 8
