@@ -1,219 +1,415 @@
-// Brasidas browser console: the station daemon's local API over a WebSocket (JSON-RPC 2.0).
-// The same API the CLI uses; the station daemon holds the platform sessions.
+// Brasidas browser console: the operator's station in one page. The station daemon's local
+// API over one WebSocket (JSON-RPC 2.0): telemetry, platforms and warnings are pushed, the
+// NavCam arrives as H.264 access units decoded in a Worker (WebCodecs), and the keyboard or a
+// game controller drives the platform whose override this console engaged.
+
+import { StationApi } from "./api.js";
+import { PlatformMap } from "./map.js";
+import { Teleop } from "./teleop.js";
 
 const $ = (selector, root = document) => root.querySelector(selector);
+const STALE_MS = 2000;
 
-class Api {
-  constructor(url) {
-    this.url = url;
-    this.nextId = 1;
-    this.pending = new Map();
-    this.ready = this.open();
-  }
+const state = {
+  current: null,          // the platform shown, controlled and driven
+  platforms: [],          // beacons heard (pushed)
+  connections: new Map(), // platform id → connection summary (pushed)
+  telemetry: new Map(),   // platform id → { report, at }
+  warnings: new Map(),    // "platform/name" → { note, acknowledged }
+  session: null,
+  clockOffsetMs: 0,       // station clock − page clock
+  override: "idle",       // idle | pending | engaged | error
+  videoStats: null,
+};
 
-  open() {
-    return new Promise((resolve, reject) => {
-      const ws = new WebSocket(this.url);
-      ws.onopen = () => { this.ws = ws; setApiState("station connected", "ok"); resolve(); };
-      ws.onerror = () => reject(new Error("station API unreachable"));
-      ws.onclose = () => {
-        setApiState("station disconnected", "bad");
-        for (const { reject: fail } of this.pending.values()) fail(new Error("closed"));
-        this.pending.clear();
-        setTimeout(() => { this.ready = this.open(); }, 1000);
-      };
-      ws.onmessage = (event) => {
-        const answer = JSON.parse(event.data);
-        const call = this.pending.get(answer.id);
-        if (!call) return;
-        this.pending.delete(answer.id);
-        if (answer.error) call.reject(new Error(answer.error.message));
-        else call.resolve(answer.result);
-      };
-    });
-  }
+// ---------------------------------------------------------------- video
 
-  async call(method, params = {}) {
-    await this.ready;
-    const id = this.nextId++;
-    return new Promise((resolve, reject) => {
-      this.pending.set(id, { resolve, reject });
-      this.ws.send(JSON.stringify({ jsonrpc: "2.0", id, method, params }));
-    });
+const canvas = $("#video");
+const videoMessage = $("#video-message");
+let worker = null;
+if (!window.isSecureContext) {
+  showVideoMessage("No video: this page is not a secure context. Open it as http://127.0.0.1 or localhost, or over HTTPS (console.tls_cert).");
+} else if (typeof VideoDecoder === "undefined" || typeof OffscreenCanvas === "undefined") {
+  showVideoMessage("No video: this browser has no WebCodecs VideoDecoder. Use a current Chromium or Firefox.");
+} else {
+  worker = new Worker("/static/video-worker.js");
+  const offscreen = canvas.transferControlToOffscreen();
+  worker.postMessage({ type: "init", canvas: offscreen }, [offscreen]);
+  worker.onmessage = (event) => onWorkerMessage(event.data);
+}
+window.navcam = {
+  stats: () => state.videoStats,
+  keepLatencies: (on) => worker?.postMessage({ type: "keep", on }),
+  dump: () => new Promise((resolve) => { dumpWaiters.push(resolve); worker?.postMessage({ type: "dump" }); }),
+};
+const dumpWaiters = [];
+
+function showVideoMessage(text) {
+  videoMessage.textContent = text;
+  videoMessage.hidden = !text;
+}
+
+function onWorkerMessage(message) {
+  if (message.type === "stats") {
+    state.videoStats = message;
+    canvas.dataset.framesDecoded = String(message.decoded);
+    $("#latency").textContent = message.lastLatencyMs == null ? "—" : `${message.lastLatencyMs.toFixed(1)} ms`;
+    $("#latency").dataset.ms = message.lastLatencyMs == null ? "" : message.lastLatencyMs.toFixed(2);
+    $("#fps").textContent = `${message.fps} fps`;
+    if (message.decoded > 0 && state.current) showVideoMessage("");
+  } else if (message.type === "unsupported") {
+    showVideoMessage("No video: WebCodecs VideoDecoder is missing in workers of this browser.");
+  } else if (message.type === "error") {
+    console.warn("decoder:", message.message);
+  } else if (message.type === "dump") {
+    for (const resolve of dumpWaiters.splice(0)) resolve(message);
   }
 }
 
-function setApiState(text, kind) {
-  const pill = $("#api-state");
+async function watch(platformId) {
+  if (!worker) return;
+  worker.postMessage({ type: "clear" });
+  canvas.setAttribute("aria-label", `NavCam ${platformId}`);
+  showVideoMessage(`Waiting for ${platformId}'s NavCam…`);
+  try {
+    await api.call("video_watch", { platform_id: platformId }, 10000);
+  } catch (error) {
+    showVideoMessage(`No video from ${platformId}: ${error.message}`);
+  }
+}
+
+// ---------------------------------------------------------------- station connection
+
+const api = new StationApi(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/rpc/ws`, {
+  onState: (text) => setPill("#api-state", text === "connected" ? "station connected" : `station ${text}…`, text === "connected" ? "ok" : "bad"),
+  onBinary: (buffer) => worker?.postMessage({ type: "frame", buffer }, [buffer]),
+  onOpen: () => { subscribe().catch((error) => console.warn("subscribe failed", error)); },
+});
+
+async function subscribe() {
+  const hello = await api.call("console_subscribe");
+  state.session = hello.session;
+  await measureClock();
+  if (state.current) {
+    await api.call("connect", { platform_id: state.current }, 8000).catch(() => {});
+    await watch(state.current);
+  }
+}
+
+async function measureClock() {
+  // Station clock − page clock, from the best of five round trips (midpoint).
+  let best = null;
+  for (let i = 0; i < 5; i++) {
+    const sent = performance.timeOrigin + performance.now();
+    const station = await api.call("station_time", {}, 2000);
+    const back = performance.timeOrigin + performance.now();
+    if (!best || back - sent < best.rtt) best = { rtt: back - sent, offset: station - (sent + back) / 2 };
+  }
+  state.clockOffsetMs = best.offset;
+  worker?.postMessage({ type: "clock", offsetMs: best.offset });
+}
+
+api.on("platforms", (platforms) => { state.platforms = platforms; renderPlatforms(); });
+api.on("connections", (connections) => {
+  state.connections = new Map(connections.map((c) => [c.platform_id, c]));
+  if (state.current && !state.connections.has(state.current) && state.override !== "pending") state.override = "idle";
+  renderPlatforms();
+  renderControls();
+});
+api.on("telemetry", (report) => {
+  state.telemetry.set(report.platform_id, { report, at: performance.now() });
+  for (const warning of report.warnings ?? []) noteWarning({ ...warning, platform_id: report.platform_id, active: true });
+  if (report.platform_id === state.current) { renderStatus(); renderControls(); }
+  updateMap(report.platform_id);
+});
+api.on("notification", (note) => { noteWarning(note); addNotification(note); });
+api.on("video", () => {});
+
+function setPill(selector, text, kind) {
+  const pill = $(selector);
   pill.textContent = text;
   pill.className = `pill ${kind}`;
 }
 
-const api = new Api(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/rpc/ws`);
-const cards = new Map();
+// ---------------------------------------------------------------- platforms and map
 
-function flags(status) {
-  return Object.entries(status).filter(([, on]) => on === true).map(([name]) => name).join(" ");
-}
+const map = new PlatformMap($("#map"), { onSelect: (id) => select(id) });
 
-async function refreshPlatforms() {
-  const platforms = await api.call("list_platforms");
+function renderPlatforms() {
   const body = $("#platforms tbody");
-  body.replaceChildren(...platforms.map((entry) => {
+  body.replaceChildren(...state.platforms.map((entry) => {
     const row = document.createElement("tr");
     row.dataset.platform = entry.id;
-    const position = entry.position ? entry.position.map((v) => v.toFixed(6)).join(", ") : "—";
-    for (const text of [entry.id, entry.url, flags(entry.status) || "—", position, `${entry.age_s.toFixed(1)} s ago`]) {
+    if (entry.id === state.current) row.classList.add("current");
+    const flags = Object.entries(entry.status ?? {}).filter(([, on]) => on === true).map(([name]) => name).join(" ");
+    for (const text of [entry.id, flags || "—", `${entry.age_s.toFixed(1)} s ago`]) {
       const cell = document.createElement("td");
       cell.textContent = text;
       row.append(cell);
     }
     const action = document.createElement("td");
     const button = document.createElement("button");
-    button.textContent = cards.has(entry.id) ? "connected" : "connect";
-    button.disabled = cards.has(entry.id);
+    button.type = "button";
     button.className = "connect";
-    button.onclick = () => connect(entry.id);
+    const connected = state.connections.has(entry.id);
+    button.textContent = entry.id === state.current ? "shown" : connected ? "show" : "connect";
+    button.disabled = entry.id === state.current;
+    button.setAttribute("aria-label", `${connected ? "show" : "connect to"} ${entry.id}`);
+    button.onclick = () => select(entry.id);
     action.append(button);
     row.append(action);
+    map.update(entry.id, entry.position, heading(entry.id), { current: entry.id === state.current, connected });
     return row;
   }));
-  $("#no-platforms").hidden = platforms.length > 0;
+  const heard = new Set(state.platforms.map((p) => p.id));
+  for (const id of map.ids()) if (!heard.has(id)) map.remove(id);
+  $("#no-platforms").hidden = state.platforms.length > 0;
 }
 
-async function connect(platformId) {
+function heading(platformId) {
+  const snapshot = state.telemetry.get(platformId)?.report.snapshot;
+  return snapshot?.gps?.course ?? (snapshot?.attitude ? 90 - snapshot.attitude.yaw : 0);
+}
+
+function updateMap(platformId) {
+  const snapshot = state.telemetry.get(platformId)?.report.snapshot;
+  const gps = snapshot?.gps;
+  if (gps?.fix && gps.lat != null) {
+    map.update(platformId, [gps.lat, gps.lon], heading(platformId), {
+      current: platformId === state.current, connected: true,
+    });
+  }
+}
+
+/** Show, control and drive ``platformId``; connects first. Others stay connected. */
+async function select(platformId) {
+  if (platformId === state.current) return;
+  teleop.halt("switched platform");
+  state.current = platformId;
+  state.override = "idle";
+  setPill("#current", platformId, "ok");
+  renderPlatforms();
+  renderStatus();
+  renderControls();
   try {
-    await api.call("connect", { platform_id: platformId });
-    await refreshConnections();
+    await api.call("connect", { platform_id: platformId }, 8000);
   } catch (error) {
-    showAnswer(platformId, `connect failed: ${error.message}`);
+    answer(`connect to ${platformId} failed: ${error.message}`);
+    return;
+  }
+  if (state.current === platformId) await watch(platformId);
+}
+
+// ---------------------------------------------------------------- controls
+
+const teleop = new Teleop({
+  send: (linear, angular) => api.call("console_drive", { platform_id: state.current, linear, angular }, 1000),
+  onOverrideButton: () => $("#override").click(),
+  onLightsButton: () => $("#lights-main").click(),
+});
+
+function answer(text) { $("#answer").textContent = text; }
+
+function describe(result) {
+  if (result && result.accepted === false) return `rejected: ${result.reason}`;
+  return `acknowledged ${JSON.stringify(result?.result ?? result)}`;
+}
+
+async function command(label, method, params, timeoutMs = 5000) {
+  if (!state.current) return null;
+  try {
+    const result = await api.call(method, { platform_id: state.current, ...params }, timeoutMs);
+    answer(`${label}: ${describe(result)}`);
+    return result;
+  } catch (error) {
+    answer(`${label}: ${error.message}`);
+    return null;
   }
 }
 
-function showAnswer(platformId, text) {
-  const card = cards.get(platformId);
-  if (card) $(".answer", card).textContent = text;
-}
+$("#override").onclick = async () => {
+  if (!state.current || state.override === "pending") return;
+  const engage = !engagedHere();
+  state.override = "pending";
+  renderControls();
+  const result = await command("manual override", "console_override", { engaged: engage }, 6000);
+  if (result && result.accepted) state.override = engage ? "engaged" : "idle";
+  else { state.override = "error"; state.overrideError = result ? result.reason : $("#answer").textContent; }
+  renderControls();
+};
 
-function describeResult(result) {
-  return result.accepted === false ? `rejected: ${result.reason}` : `acknowledged ${JSON.stringify(result.result ?? result)}`;
-}
-
-function card(platformId) {
-  let element = cards.get(platformId);
-  if (element) return element;
-  element = $("#platform-card").content.firstElementChild.cloneNode(true);
-  element.dataset.platform = platformId;
-  $(".pid", element).textContent = platformId;
-  $(".movrd", element).onclick = async () => {
-    const engaged = !element.classList.contains("teleop");
-    try {
-      showAnswer(platformId, describeResult(await api.call("movrd", { platform_id: platformId, engaged })));
-    } catch (error) { showAnswer(platformId, error.message); }
-    refreshConnections();
+for (const [selector, which, field] of [["#lights-main", "main", "main"], ["#lights-pos", "pos", "positional"]]) {
+  $(selector).onclick = async (event) => {
+    const on = event.currentTarget.getAttribute("aria-pressed") !== "true";
+    const result = await command(`${which} lights`, "lights", { which, on });
+    if (result && result.accepted !== false) $(selector).setAttribute("aria-pressed", String(on));
+    void field;
   };
-  for (const [selector, which] of [[".lights-main", "main"], [".lights-pos", "positional"]]) {
-    $(selector, element).onclick = async (event) => {
-      const on = !event.target.classList.contains("on");
-      try {
-        const result = await api.call("lights", { platform_id: platformId, which, on });
-        showAnswer(platformId, describeResult(result));
-        if (result.accepted !== false) event.target.classList.toggle("on", on);
-      } catch (error) { showAnswer(platformId, error.message); }
-    };
-  }
-  $(".disconnect", element).onclick = async () => {
-    await api.call("disconnect", { platform_id: platformId });
-    refreshConnections();
-  };
-  cards.set(platformId, element);
-  $("#connected").append(element);
-  return element;
+}
+$("#set-framerate").onclick = () => command("NavCam framerate", "command", { group: 10, command: 5, payload: `navcam=${$("#framerate").value}` });
+$("#diagnostics").onclick = () => command("diagnostics", "command", { group: 20, command: 0, payload: "" });
+$("#battery-monitor").onclick = () => command("battery monitor", "command", { group: 20, command: 4, payload: "" });
+$("#disconnect").onclick = async () => {
+  const platformId = state.current;
+  if (!platformId) return;
+  teleop.halt("disconnect");
+  await command("disconnect", "disconnect", {});
+  worker?.postMessage({ type: "clear" });
+  state.current = null;
+  state.override = "idle";
+  setPill("#current", "no platform", "");
+  showVideoMessage("Select a platform to see its NavCam.");
+  renderPlatforms();
+  renderControls();
+  renderStatus();
+};
+
+function engagedHere() {
+  const connection = state.connections.get(state.current);
+  return Boolean(connection && connection.this_console_drives && connection.manual_override);
 }
 
-async function refreshConnections() {
-  const connections = await api.call("connections");
-  const live = new Set();
-  for (const summary of connections) {
-    live.add(summary.platform_id);
-    const element = card(summary.platform_id);
-    const teleop = Boolean(summary.manual_override);
-    element.classList.toggle("teleop", teleop);
-    const mode = $(".mode", element);
-    mode.textContent = teleop ? "TELEOP" : "AUTONOMOUS";
-    mode.className = `mode pill ${teleop ? "teleop" : "ok"}`;
-    $(".movrd", element).textContent = teleop ? "release override" : "take manual override";
-    $(".rtt", element).textContent = summary.round_trip_ms == null ? "" : `${summary.round_trip_ms.toFixed(2)} ms`;
+function renderControls() {
+  const connection = state.current ? state.connections.get(state.current) : null;
+  $("#controls").hidden = !connection;
+  const drives = Boolean(connection && connection.this_console_drives && connection.manual_override);
+  if (state.override !== "pending" && state.override !== "error") state.override = drives ? "engaged" : "idle";
+  const button = $("#override");
+  button.setAttribute("aria-pressed", String(drives));
+  button.dataset.state = state.override;
+  const holder = state.telemetry.get(state.current)?.report.snapshot?.override;
+  button.textContent = {
+    idle: holder?.engaged ? `override: held by ${holder.station ?? "another station"}` : "override: autonomous",
+    pending: "override: pending…",
+    engaged: "override: ENGAGED",
+    error: `override: error (${state.overrideError ?? "no answer"})`,
+  }[state.override];
+  teleop.setActive(drives);
+  setPill("#driving", drives ? `this console is driving ${state.current}` : "not driving", drives ? "teleop" : "");
+  const lights = state.telemetry.get(state.current)?.report.snapshot?.lights;
+  if (lights) {
+    $("#lights-main").setAttribute("aria-pressed", String(Boolean(lights.main)));
+    $("#lights-pos").setAttribute("aria-pressed", String(Boolean(lights.positional)));
   }
-  for (const [platformId, element] of cards) {
-    if (!live.has(platformId)) { element.remove(); cards.delete(platformId); }
-  }
+  renderStreams();
 }
 
-function telemetryRows(snapshot) {
+function renderStreams() {
+  const streams = Object.entries(state.telemetry.get(state.current)?.report.snapshot?.streams ?? {});
+  const body = $("#streams tbody");
+  const wanted = streams.map(([name, stream]) => `${name}:${stream}`).join(",");
+  if (body.dataset.shown === wanted) return;
+  body.dataset.shown = wanted;
+  body.replaceChildren(...streams.map(([name, stream]) => {
+    const row = document.createElement("tr");
+    row.dataset.stream = name;
+    const label = document.createElement("td");
+    label.textContent = `${name}: ${stream}`;
+    row.append(label);
+    for (const action of ["start", "pause", "stop"]) {
+      const cell = document.createElement("td");
+      const button = document.createElement("button");
+      button.type = "button";
+      button.textContent = action;
+      button.setAttribute("aria-label", `${action} ${name}`);
+      button.onclick = () => command(`${action} ${name}`, "console_stream", { name, action });
+      cell.append(button);
+      row.append(cell);
+    }
+    return row;
+  }));
+}
+
+// ---------------------------------------------------------------- status and annunciator
+
+function telemetryRows(snapshot, link) {
   const rows = [];
   const add = (name, value) => { if (value !== null && value !== undefined) rows.push([name, value]); };
+  const override = snapshot.override;
+  add("mode", override && `${override.mode ?? (override.engaged ? "teleop" : "autonomous")}${override.engaged ? ` (override: ${override.station ?? "?"})` : ""}`);
   add("battery", snapshot.battery && `${snapshot.battery.volts ?? "?"} V ${snapshot.battery.level ?? ""}`);
   const controller = snapshot.controller;
   add("controller", controller && `${controller.connected ? "connected" : "LOST"}  heatsinks ${(controller.temps_c ?? []).join("/")} °C  motors ${(controller.amps ?? []).join("/")} A`);
   const gps = snapshot.gps;
   add("gps", gps && (gps.fix ? `${gps.lat?.toFixed(6)}, ${gps.lon?.toFixed(6)}  ${gps.sats ?? "?"} sats  hdop ${gps.hdop ?? "?"}` : "no fix"));
-  add("attitude", snapshot.attitude && ["roll", "pitch", "yaw"].map((k) => `${k} ${snapshot.attitude[k]?.toFixed?.(1) ?? "?"}`).join("  "));
+  const attitude = snapshot.attitude;
+  add("attitude", attitude && ["roll", "pitch", "yaw"].map((k) => `${k} ${attitude[k]?.toFixed?.(1) ?? "?"}°`).join("  "));
   const streams = Object.entries(snapshot.streams ?? {});
-  add("streams", streams.length ? streams.map(([name, state]) => `${name} ${state}`).join("  ") : null);
+  add("streams", streams.length ? streams.map(([name, stream]) => `${name} ${stream}`).join("  ") : null);
   const computer = snapshot.computer;
   add("computer", computer && [
     computer.cpu_temp_c == null ? null : `cpu ${computer.cpu_temp_c} °C`,
     `load ${(computer.load ?? []).map((v) => v.toFixed(2)).join(" ")}`,
     `free ${Math.round(computer.mem_free_mb ?? 0)} MB`,
   ].filter(Boolean).join("  "));
+  if (link) add("link", `loss ${link.loss_pct ?? "?"}%  rtt ${link.round_trip_ms ?? "?"} ms  silence ${link.silence_s ?? "?"} s`);
   return rows;
 }
 
-async function refreshTelemetry() {
-  for (const [platformId, element] of cards) {
-    let report;
-    try { report = await api.call("get_telemetry", { platform_id: platformId }); } catch { continue; }
-    const lights = report.snapshot?.lights;
-    if (lights) {
-      $(".lights-main", element).classList.toggle("on", Boolean(lights.main));
-      $(".lights-pos", element).classList.toggle("on", Boolean(lights.positional));
-    }
-    const list = $(".telemetry", element);
-    const rows = report.snapshot ? telemetryRows(report.snapshot) : [];
-    rows.push(["link", `loss ${report.link?.loss_pct ?? "?"}%`]);
-    list.replaceChildren(...rows.flatMap(([name, value]) => {
-      const term = document.createElement("dt"); term.textContent = name;
-      const detail = document.createElement("dd"); detail.textContent = value;
-      return [term, detail];
-    }));
-    $(".warnings", element).replaceChildren(...report.warnings.map((warning) => {
-      const badge = document.createElement("span");
-      badge.textContent = warning.message || warning.name;
-      return badge;
-    }));
-  }
+function renderStatus() {
+  const list = $("#status");
+  const entry = state.current ? state.telemetry.get(state.current) : null;
+  if (!entry) { list.replaceChildren(); return; }
+  const { report, at } = entry;
+  const stale = performance.now() - at > STALE_MS || (report.link?.silence_s ?? 0) > STALE_MS / 1000;
+  list.classList.toggle("stale", stale);
+  const rows = report.snapshot ? telemetryRows(report.snapshot, report.link) : [];
+  if (stale) rows.unshift(["data", `STALE (nothing new for ${((performance.now() - at) / 1000).toFixed(1)} s)`]);
+  list.replaceChildren(...rows.flatMap(([name, value]) => {
+    const term = document.createElement("dt");
+    term.textContent = name;
+    const detail = document.createElement("dd");
+    detail.textContent = value;
+    return [term, detail];
+  }));
+}
+setInterval(renderStatus, 500);
+
+function noteWarning(note) {
+  const key = `${note.platform_id}/${note.name}`;
+  const known = state.warnings.get(key);
+  if (!note.active) { state.warnings.delete(key); renderAnnunciator(); return; }
+  if (known) return;
+  state.warnings.set(key, { note, acknowledged: false });
+  renderAnnunciator();
 }
 
-async function refreshNotifications() {
-  const notes = await api.call("telemetry_notifications", { limit: 10 });
-  $("#notifications").replaceChildren(...notes.reverse().map((note) => {
-    const item = document.createElement("li");
-    item.textContent = `${new Date(note.time * 1000).toLocaleTimeString()} ${note.platform_id} ${note.active ? "⚠" : "✓"} ${note.message}`;
-    return item;
+function renderAnnunciator() {
+  const box = $("#annunciator");
+  box.replaceChildren(...[...state.warnings.entries()].map(([key, { note, acknowledged }]) => {
+    const button = document.createElement("button");
+    button.type = "button";
+    button.className = `warning${acknowledged ? "" : " unacknowledged"}`;
+    button.textContent = `⚠ ${note.platform_id}: ${note.message || note.name}`;
+    button.setAttribute("aria-pressed", String(acknowledged));
+    button.setAttribute("aria-label", `warning ${note.platform_id} ${note.message || note.name}: ${acknowledged ? "acknowledged" : "acknowledge"}`);
+    button.onclick = () => { state.warnings.get(key).acknowledged = true; renderAnnunciator(); };
+    return button;
   }));
 }
 
-async function tick() {
-  try {
-    await refreshPlatforms();
-    await refreshConnections();
-    await refreshTelemetry();
-    await refreshNotifications();
-  } catch (error) {
-    console.warn("refresh failed", error);
-  }
+function addNotification(note) {
+  const item = document.createElement("li");
+  item.textContent = `${new Date(note.time * 1000).toLocaleTimeString()} ${note.platform_id} ${note.active ? "⚠" : "✓"} ${note.message}`;
+  const list = $("#notifications");
+  list.prepend(item);
+  while (list.children.length > 20) list.lastElementChild.remove();
 }
 
-tick();
-setInterval(tick, 1000);
+// ---------------------------------------------------------------- map backgrounds
+
+$("#map-image").onchange = (event) => {
+  const file = event.target.files[0];
+  const corners = $("#map-bounds").value.split(",").map(Number);
+  if (!file || corners.length !== 4 || corners.some(Number.isNaN)) {
+    answer("area image: give the corners as south,west,north,east first");
+    return;
+  }
+  map.setImage(URL.createObjectURL(file), ...corners);
+};
+$("#map-geojson").onchange = async (event) => {
+  const file = event.target.files[0];
+  if (!file) return;
+  try { map.setGeoJson(JSON.parse(await file.text())); } catch (error) { answer(`GeoJSON: ${error.message}`); }
+};
+$("#map-clear").onclick = () => map.clearBackground();

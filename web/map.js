@@ -1,0 +1,121 @@
+// The map: offline only. Leaflet (Debian's libjs-leaflet, served by the station) in a local
+// metric frame (CRS.Simple: x east, y north, in metres from an origin), over a plain grid, an
+// operator-loaded area image with its corner coordinates, or a GeoJSON background.
+
+const L = window.L;
+const EARTH_M_PER_DEG = 111_320;
+const TRACK_POINTS = 600;
+
+export class PlatformMap {
+  constructor(element, { onSelect }) {
+    this.onSelect = onSelect;
+    this.origin = null; // [lat, lon] of local (0, 0)
+    this.markers = new Map();
+    this.background = null;
+    this.available = Boolean(L);
+    if (!this.available) {
+      element.textContent = "Map unavailable: Leaflet not installed on the station (make deps installs libjs-leaflet).";
+      return;
+    }
+    this.map = L.map(element, { crs: L.CRS.Simple, minZoom: -6, maxZoom: 6, zoomSnap: 0.5, attributionControl: false });
+    this.map.setView([0, 0], 1);
+    new (metricGrid())().addTo(this.map);
+    this.fitted = false;
+  }
+
+  /** Local metres [north, east] (Leaflet's [y, x] in CRS.Simple) of a WGS-84 position. */
+  local(lat, lon) {
+    if (!this.origin) this.origin = [lat, lon];
+    const [lat0, lon0] = this.origin;
+    return [(lat - lat0) * EARTH_M_PER_DEG, (lon - lon0) * EARTH_M_PER_DEG * Math.cos((lat0 * Math.PI) / 180)];
+  }
+
+  /** One platform at ``position`` [lat, lon] with ``heading`` degrees (0 north, clockwise). */
+  update(id, position, heading, { current = false, connected = false } = {}) {
+    if (!this.available || !position) return;
+    const point = this.local(position[0], position[1]);
+    let entry = this.markers.get(id);
+    if (!entry) {
+      const marker = L.marker(point, { icon: platformIcon(id, 0, false, false), keyboard: true, title: id, alt: `platform ${id}` });
+      marker.on("click", () => this.onSelect(id));
+      const track = L.polyline([], { color: "#e8a33d", weight: 2, opacity: 0.7 });
+      marker.addTo(this.map);
+      track.addTo(this.map);
+      entry = { marker, track, points: [] };
+      this.markers.set(id, entry);
+    }
+    entry.marker.setLatLng(point);
+    entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected));
+    const last = entry.points[entry.points.length - 1];
+    if (!last || Math.hypot(last[0] - point[0], last[1] - point[1]) > 0.05) {
+      entry.points.push(point);
+      if (entry.points.length > TRACK_POINTS) entry.points.shift();
+      entry.track.setLatLngs(entry.points);
+    }
+    if (!this.fitted) { this.map.setView(point, 2); this.fitted = true; }
+  }
+
+  remove(id) {
+    const entry = this.markers.get(id);
+    if (!entry) return;
+    entry.marker.remove();
+    entry.track.remove();
+    this.markers.delete(id);
+  }
+
+  ids() { return [...this.markers.keys()]; }
+
+  setImage(url, south, west, north, east) {
+    this.clearBackground();
+    const sw = this.local(south, west), ne = this.local(north, east);
+    this.background = L.imageOverlay(url, [sw, ne], { opacity: 0.9 }).addTo(this.map);
+    this.background.bringToBack();
+    this.map.fitBounds([sw, ne]);
+  }
+
+  setGeoJson(data) {
+    this.clearBackground();
+    this.background = L.geoJSON(data, {
+      coordsToLatLng: (coords) => L.latLng(this.local(coords[1], coords[0])),
+      style: { color: "#7aa2d6", weight: 1, fillOpacity: 0.15 },
+    }).addTo(this.map);
+    const bounds = this.background.getBounds();
+    if (bounds.isValid()) this.map.fitBounds(bounds);
+  }
+
+  clearBackground() {
+    if (this.background) { this.background.remove(); this.background = null; }
+  }
+}
+
+function platformIcon(id, heading, current, connected) {
+  const element = document.createElement("div");
+  element.className = `platform-icon${current ? " current" : ""}${connected ? " connected" : ""}`;
+  const arrow = document.createElement("div");
+  arrow.className = "arrow";
+  arrow.style.transform = `rotate(${Number(heading) || 0}deg)`;
+  const label = document.createElement("span");
+  label.textContent = id;
+  element.append(arrow, label);
+  return L.divIcon({ html: element, className: "", iconSize: [24, 24], iconAnchor: [12, 12] });
+}
+
+function metricGrid() {
+  // Each tile's border is a grid line; its label is the tile's south-west corner in metres.
+  return L.GridLayer.extend({
+    createTile(coords) {
+      const tile = document.createElement("canvas");
+      const size = this.getTileSize();
+      tile.width = size.x;
+      tile.height = size.y;
+      const g = tile.getContext("2d");
+      g.strokeStyle = "#2c3a46";
+      g.strokeRect(0.5, 0.5, size.x, size.y);
+      const metres = size.x / 2 ** coords.z;
+      g.fillStyle = "#50606e";
+      g.font = "10px sans-serif";
+      g.fillText(`${Math.round(coords.x * metres)} E, ${Math.round(-(coords.y + 1) * metres)} N (${metres} m)`, 3, size.y - 4);
+      return tile;
+    },
+  });
+}

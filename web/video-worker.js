@@ -1,0 +1,143 @@
+// NavCam decoder (a Worker): H.264 access units (Annex B, as the station forwards them) →
+// WebCodecs VideoDecoder (optimizeForLatency) → the page's canvas as an OffscreenCanvas.
+//
+// Message header (big-endian, see stationd/video_feed.py): u8 type, u8 flags (1 key,
+// 2 replayed, 4 after gap), u16 feed, u32 seq, f64 capture ms (platform clock), f64 arrival
+// ms (station clock), then the access unit.
+//
+// Glass-to-glass latency = time the frame is drawn − capture time. The capture stamp is the
+// platform's wall clock; the draw time is this page's wall clock (performance.timeOrigin +
+// performance.now()) corrected by the station's clock offset the page measured. It assumes the
+// platform's and station's clocks agree (one host on loopback; NTP between hosts otherwise).
+
+const HEADER = 24;
+const FLAG_KEY = 1, FLAG_REPLAYED = 2;
+let canvas = null, context = null, decoder = null;
+let codec = "", waitingForKey = true, lastSeq = -1, feed = -1;
+let clockOffsetMs = 0;
+const inFlight = new Map();
+const stats = { received: 0, decoded: 0, dropped: 0, errors: 0, replayed: 0, gaps: 0, lastLatencyMs: null };
+const recent = [];      // latencies of the last ~300 live frames
+const drawnTimes = [];  // draw times of the last second
+let keepAll = null;     // every latency, while a benchmark asks for them
+
+function now() { return performance.timeOrigin + performance.now(); }
+
+function codecFromSps(bytes) {
+  // Find NAL type 7 (SPS) after a start code; avc1.PPCCLL from profile, constraints, level.
+  for (let i = 0; i + 7 < bytes.length; i++) {
+    if (bytes[i] === 0 && bytes[i + 1] === 0 && bytes[i + 2] === 1 && (bytes[i + 3] & 0x1f) === 7) {
+      const hex = (v) => v.toString(16).padStart(2, "0");
+      return `avc1.${hex(bytes[i + 4])}${hex(bytes[i + 5])}${hex(bytes[i + 6])}`;
+    }
+  }
+  return "";
+}
+
+function makeDecoder() {
+  if (decoder && decoder.state !== "closed") decoder.close();
+  decoder = new VideoDecoder({ output: draw, error: (e) => { stats.errors += 1; post({ type: "error", message: String(e) }); reset(); } });
+  if (codec) decoder.configure({ codec, optimizeForLatency: true });
+}
+
+function reset() {
+  waitingForKey = true;
+  inFlight.clear();
+  try { makeDecoder(); } catch (e) { post({ type: "error", message: String(e) }); }
+}
+
+function draw(frame) {
+  const info = inFlight.get(frame.timestamp);
+  inFlight.delete(frame.timestamp);
+  if (canvas.width !== frame.displayWidth || canvas.height !== frame.displayHeight) {
+    canvas.width = frame.displayWidth;
+    canvas.height = frame.displayHeight;
+  }
+  context.drawImage(frame, 0, 0);
+  frame.close();
+  const drawn = now();
+  stats.decoded += 1;
+  drawnTimes.push(drawn);
+  while (drawnTimes.length && drawn - drawnTimes[0] > 1000) drawnTimes.shift();
+  if (info && !info.replayed && info.captureMs > 0) {
+    const latency = drawn + clockOffsetMs - info.captureMs;
+    stats.lastLatencyMs = latency;
+    recent.push(latency);
+    if (recent.length > 300) recent.shift();
+    if (keepAll) keepAll.push(latency);
+  }
+}
+
+function onFrame(buffer) {
+  const view = new DataView(buffer);
+  if (buffer.byteLength <= HEADER || view.getUint8(0) !== 1) return;
+  const flags = view.getUint8(1), number = view.getUint16(2), seq = view.getUint32(4);
+  const captureMs = view.getFloat64(8);
+  const key = (flags & FLAG_KEY) !== 0, replayed = (flags & FLAG_REPLAYED) !== 0;
+  const data = new Uint8Array(buffer, HEADER);
+  stats.received += 1;
+  if (replayed) stats.replayed += 1;
+  if (number !== feed) { feed = number; lastSeq = -1; waitingForKey = true; }
+  if (lastSeq >= 0 && seq !== lastSeq + 1 && !key) { stats.gaps += 1; waitingForKey = true; }
+  lastSeq = seq;
+  if (key) {
+    const found = codecFromSps(data);
+    if (found && found !== codec) { codec = found; makeDecoder(); }
+    waitingForKey = false;
+  }
+  // Freeze instead of smearing: nothing but a keyframe after a gap; and a decoder that is
+  // falling behind skips to the next keyframe as the station does.
+  if (waitingForKey || !codec || decoder.state !== "configured" || (!key && decoder.decodeQueueSize > 4)) {
+    stats.dropped += 1;
+    if (!key && decoder && decoder.decodeQueueSize > 4) waitingForKey = true;
+    return;
+  }
+  inFlight.set(seq, { captureMs, replayed });
+  try {
+    decoder.decode(new EncodedVideoChunk({ type: key ? "key" : "delta", timestamp: seq, data }));
+  } catch (e) {
+    stats.errors += 1;
+    post({ type: "error", message: String(e) });
+    reset();
+  }
+}
+
+function percentile(values, p) {
+  if (!values.length) return null;
+  const sorted = [...values].sort((a, b) => a - b);
+  return sorted[Math.min(sorted.length - 1, Math.floor(sorted.length * p))];
+}
+
+function post(message) { self.postMessage(message); }
+
+function report() {
+  post({
+    type: "stats",
+    ...stats,
+    fps: drawnTimes.length,
+    p50: percentile(recent, 0.5),
+    p95: percentile(recent, 0.95),
+    codec,
+    width: canvas ? canvas.width : 0,
+    height: canvas ? canvas.height : 0,
+  });
+}
+
+self.onmessage = (event) => {
+  const message = event.data;
+  if (message.type === "frame") onFrame(message.buffer);
+  else if (message.type === "init") {
+    canvas = message.canvas;
+    context = canvas.getContext("2d", { alpha: false });
+    if (typeof VideoDecoder === "undefined") { post({ type: "unsupported" }); return; }
+    setInterval(report, 250);
+  } else if (message.type === "clock") clockOffsetMs = message.offsetMs;
+  else if (message.type === "clear") {
+    feed = -1; lastSeq = -1; waitingForKey = true; codec = ""; recent.length = 0; drawnTimes.length = 0;
+    stats.lastLatencyMs = null;
+    if (decoder && decoder.state !== "closed") decoder.close();
+    decoder = null;
+    if (context) { context.fillStyle = "#000"; context.fillRect(0, 0, canvas.width, canvas.height); }
+  } else if (message.type === "keep") { keepAll = message.on ? [] : null; }
+  else if (message.type === "dump") { post({ type: "dump", latencies: keepAll ? [...keepAll] : [], stats: { ...stats } }); }
+};
