@@ -134,7 +134,7 @@ self.onmessage = (event) => {
   } else if (message.type === "clock") clockOffsetMs = message.offsetMs;
   else if (message.type === "clear") {
     feed = -1; lastSeq = -1; waitingForKey = true; codec = ""; recent.length = 0; drawnTimes.length = 0;
-    stats.lastLatencyMs = null;
+    for (const name of Object.keys(stats)) stats[name] = name === "lastLatencyMs" ? null : 0;
     if (decoder && decoder.state !== "closed") decoder.close();
     decoder = null;
     if (context) { context.fillStyle = "#000"; context.fillRect(0, 0, canvas.width, canvas.height); }

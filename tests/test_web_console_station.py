@@ -1,0 +1,217 @@
+"""The operator's whole station in a real headless Chromium, end to end against two --sim
+platforms on loopback: map and list, NavCam decoded in the page's Worker, override, driving
+with the keyboard, stopping on release and on blur, switching platforms, disconnecting.
+
+One browser and one page for the whole scenario (each launch costs seconds here)."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import re
+import shutil
+from collections.abc import AsyncIterator, Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import pytest
+from conftest import free_udp_port, quiet_platform_config, wait_until
+
+from brasidas import topics
+from brasidas.config import StationConfig, load_config
+from platformd.app import PlatformDaemon
+from platformd.sim.vehicle import shared_vehicle
+from stationd.daemon import StationDaemon
+
+Factory = Callable[..., Awaitable[PlatformDaemon]]
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-sync"]
+SCREENSHOT = Path(__file__).resolve().parent.parent / "docs" / "console.png"
+"""Kept current in the README: written when BRASIDAS_SCREENSHOT=1."""
+
+
+@pytest.fixture
+async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
+    config = load_config(
+        StationConfig,
+        None,
+        [
+            "station.api_port=0",
+            f"discovery.port={free_udp_port()}",
+            "discovery.bind_host=127.0.0.1",
+        ],
+    )
+    daemon = StationDaemon(config, fleet_key)
+    await daemon.start()
+    yield daemon
+    await daemon.stop()
+
+
+async def sim_platform(
+    factory: Factory, key: bytes, station: StationDaemon, name: str, longitude: float
+) -> PlatformDaemon:
+    config = quiet_platform_config(
+        f"platform.id={name}",
+        "beacon.enabled=true",
+        f"beacon.port={station.config.discovery.port}",
+        'beacon.destinations=["127.0.0.1"]',
+        "beacon.max_interval=1.0",
+        "sim.enabled=true",
+        f"sim.longitude={longitude}",
+        "gps.enabled=true",
+        "gps.sim_rate_hz=10",
+        "motor.enabled=true",
+        "navcam.enabled=true",
+        "navcam.sim_pattern=smpte",
+        "navcam.sim_motion=4",
+    )
+    return await factory(config, key)
+
+
+async def telemetry_position(station: StationDaemon, platform_id: str) -> tuple[float, float]:
+    """The platform's position in its telemetry (the report the page is pushed)."""
+    report = await station.ctx.api.call_local("get_telemetry", platform_id=platform_id)
+    gps = report["snapshot"]["gps"]
+    return (gps["lat"], gps["lon"])
+
+
+async def frames_decoded(page: Any, at_least: int, timeout: float = 15.0) -> int:
+    """Wait until the page's Worker has decoded ``at_least`` frames (counted in the Worker;
+    polled from here: the page's CSP forbids the eval that wait_for_function needs)."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    count = 0
+    while loop.time() < deadline:
+        count = int(await page.locator("#video").get_attribute("data-frames-decoded") or 0)
+        if count >= at_least:
+            return count
+        await asyncio.sleep(0.1)
+    raise AssertionError(f"only {count} frames decoded in {timeout} s")
+
+
+async def test_operator_station_in_the_browser(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+) -> None:
+    from playwright.async_api import async_playwright, expect
+
+    rover = await sim_platform(platform_factory, fleet_key, station, "web-rover", 23.6530)
+    other = await sim_platform(platform_factory, fleet_key, station, "rover-2", 23.6534)
+    base = f"http://127.0.0.1:{station.config.station.api_port}"
+    async with aiohttp.ClientSession() as http, http.get(base + "/") as response:
+        policy = response.headers["Content-Security-Policy"]
+        assert "script-src 'self'" in policy and "unsafe-inline" not in policy
+        assert "<script>" not in await response.text()  # no inline script
+
+    async with async_playwright() as playwright:
+        browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        try:
+            page = await browser.new_page(viewport={"width": 1280, "height": 860})
+            errors: list[str] = []
+            page.on("pageerror", lambda error: errors.append(str(error)))
+            page.on(
+                "console",
+                lambda m: errors.append(m.text) if "Content Security Policy" in m.text else None,
+            )
+            await page.goto(base + "/")
+
+            # Both platforms in the list and on the map (Leaflet from Debian's package).
+            for name in ("web-rover", "rover-2"):
+                await expect(page.locator(f'#platforms tr[data-platform="{name}"]')).to_be_visible(
+                    timeout=10_000
+                )
+            await expect(page.locator("#map .platform-icon")).to_have_count(2, timeout=10_000)
+
+            # Click the platform on the map: connected, and its NavCam decoded in the Worker.
+            await page.locator("#map .platform-icon", has_text="web-rover").click()
+            video = page.get_by_label("NavCam web-rover")
+            await expect(video).to_be_visible(timeout=10_000)
+            await frames_decoded(page, at_least=15)
+            latency = page.get_by_label("glass-to-glass latency")
+            await expect(latency).to_have_text(re.compile(r"^\d+\.\d ms$"), timeout=5_000)
+            assert float(await latency.get_attribute("data-ms") or "nan") > 0
+            assert "web-rover" in station.ctx.connections
+
+            # Take the override: this console drives.
+            override = page.get_by_role("button", name="manual override")
+            await override.click()
+            await expect(override).to_have_attribute("aria-pressed", "true", timeout=10_000)
+            await expect(page.locator("#driving")).to_have_text("this console is driving web-rover")
+            await wait_until(lambda: rover.bus.last(topics.OVERRIDE_STATE).engaged)
+            vehicle = shared_vehicle(rover.ctx)
+
+            # Hold W: the robot moves (its position in telemetry changes); release: it stops.
+            start = await telemetry_position(station, "web-rover")
+            await page.keyboard.down("KeyW")
+            await wait_until(lambda: vehicle.command[0] > 0.3, timeout=5)
+
+            async def moved() -> bool:
+                return await telemetry_position(station, "web-rover") != start
+
+            for _ in range(100):
+                if await moved():
+                    break
+                await page.wait_for_timeout(100)
+            assert await moved(), "telemetry position did not change while W was held"
+            await page.keyboard.up("KeyW")
+            await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
+
+            # Drive again, then the page loses focus: it stops without a key release.
+            await page.keyboard.down("KeyW")
+            await wait_until(lambda: vehicle.command[0] > 0.3, timeout=5)
+            await page.evaluate("window.dispatchEvent(new Event('blur'))")
+            await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
+            await page.keyboard.up("KeyW")
+
+            if os.environ.get("BRASIDAS_SCREENSHOT") == "1":
+                SCREENSHOT.parent.mkdir(exist_ok=True)
+                await page.screenshot(path=str(SCREENSHOT))
+            await page.screenshot(path=str(tmp_path / "console.png"))
+
+            # Switch to the other platform without disconnecting the first.
+            await page.locator('#platforms tr[data-platform="rover-2"] button.connect').click()
+            await expect(page.get_by_label("NavCam rover-2")).to_be_visible(timeout=10_000)
+            await frames_decoded(page, at_least=10)
+            assert {"web-rover", "rover-2"} <= set(station.ctx.connections)
+            await expect(page.locator("#driving")).to_have_text("not driving")
+            assert other.bus.last(topics.OVERRIDE_STATE) is None or not (
+                other.bus.last(topics.OVERRIDE_STATE).engaged
+            )
+
+            # Back to the first and disconnect: it returns to Autonomous Mode.
+            await page.locator('#platforms tr[data-platform="web-rover"] button.connect').click()
+            await expect(page.locator("#disconnect")).to_be_visible(timeout=10_000)
+            await page.locator("#disconnect").click()
+            await wait_until(lambda: not rover.bus.last(topics.OVERRIDE_STATE).engaged)
+            assert rover.bus.last(topics.OVERRIDE_STATE).mode.value == "autonomous"
+            await wait_until(lambda: "web-rover" not in station.ctx.connections)
+            assert errors == []
+        finally:
+            await browser.close()
+
+
+async def test_closing_the_page_while_driving_stops_the_robot(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes
+) -> None:
+    """The station's safety net: the page's socket closes with no JavaScript left to stop."""
+    from playwright.async_api import async_playwright, expect
+
+    rover = await sim_platform(platform_factory, fleet_key, station, "web-rover", 23.6530)
+    async with async_playwright() as playwright:
+        browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        try:
+            page = await browser.new_page()
+            await page.goto(f"http://127.0.0.1:{station.config.station.api_port}/")
+            await page.locator('#platforms tr[data-platform="web-rover"] button.connect').click(
+                timeout=10_000
+            )
+            override = page.get_by_role("button", name="manual override")
+            await override.click()
+            await expect(override).to_have_attribute("aria-pressed", "true", timeout=10_000)
+            vehicle = shared_vehicle(rover.ctx)
+            await page.keyboard.down("KeyW")
+            await wait_until(lambda: vehicle.command[0] > 0.3, timeout=5)
+            await page.close(run_before_unload=False)
+            await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
+        finally:
+            await browser.close()
