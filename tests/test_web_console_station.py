@@ -56,6 +56,7 @@ async def sim_platform(
         "beacon.enabled=true",
         f"beacon.port={station.config.discovery.port}",
         'beacon.destinations=["127.0.0.1"]',
+        "beacon.listen=false",  # unicast: the station alone must hold the port
         "beacon.max_interval=1.0",
         "sim.enabled=true",
         f"sim.longitude={longitude}",
