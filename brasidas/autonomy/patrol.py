@@ -1,0 +1,273 @@
+"""The patrol's decisions, sans-IO: map, route, override and pose in; a velocity and a state out.
+
+:class:`Patrol` is stepped by its actor ten times a second with the current pose; every
+other input (a new map or route, start/stop, the manual override) is a method call. It
+plans with :class:`~brasidas.autonomy.planner.Planner`, follows with
+:class:`~brasidas.autonomy.follower.PurePursuit` and holds still, saying why, when it cannot
+drive safely: no fix or a stale one, the pose outside the boundary or inside a keep-out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+from shapely import Point
+
+from brasidas.autonomy.areamap import AreaMap
+from brasidas.autonomy.follower import FollowerParameters, PurePursuit
+from brasidas.autonomy.localization import Estimate
+from brasidas.autonomy.planner import Path, Planner, Unreachable
+from brasidas.autonomy.route import Cursor, Route
+
+XY = tuple[float, float]
+
+
+class PatrolState(StrEnum):
+    IDLE = "idle"
+    """Nothing to do: no map or no waypoints."""
+    PATROLLING = "patrolling"
+    SUSPENDED = "suspended"
+    """The operator holds the manual override; resumes when released."""
+    HOLDING = "holding"
+    """Stopped for safety (``reason``); resumes when the cause clears."""
+    STOPPED = "stopped"
+    """Stopped by the operator, a map reload or a route with nothing reachable."""
+
+
+@dataclass(frozen=True)
+class PatrolParameters:
+    follower: FollowerParameters
+    clearance_m: float = 1.0
+    fix_stale_s: float = 2.0
+    """A pose whose last fix is older than this is not trusted: hold."""
+    corridor_m: float = 3.0
+    """Replan when the robot is further than this from its planned path."""
+    align_speed: float = 0.3
+    """Normalized forward command while the heading is not known yet (driving straight)."""
+    align_room_m: float = 3.0
+    """Room needed straight ahead to drive for a heading."""
+
+
+@dataclass(frozen=True)
+class PatrolEvent:
+    """Something the operator should hear about: arrived, skipped (unreachable), replanned."""
+
+    kind: str
+    waypoint: int
+    message: str
+
+
+@dataclass(frozen=True)
+class PatrolStatus:
+    """What ``get_patrol``, telemetry and the CLI show."""
+
+    state: PatrolState
+    waypoint: int | None
+    """Index in the route of the current target."""
+    distance_m: float | None
+    """Along the planned path to the target."""
+    lap: int
+    reason: str
+    enabled: bool
+    waypoints: int
+    path: tuple[XY, ...] = field(default=())
+    """The planned path in the map's local frame (metres)."""
+
+
+@dataclass(frozen=True)
+class Command:
+    linear: float
+    angular: float
+
+
+STOP = Command(0.0, 0.0)
+
+
+class Patrol:
+    def __init__(self, parameters: PatrolParameters) -> None:
+        self.p = parameters
+        self.area: AreaMap | None = None
+        self.route = Route()
+        self.cursor = Cursor()
+        self.state = PatrolState.IDLE
+        self.reason = ""
+        self.enabled = True
+        self._running = False
+        """The operator wants it to patrol (start), as against stop."""
+        self._override = False
+        self._planner: Planner | None = None
+        self._follower = PurePursuit(parameters.follower)
+        self._path: Path | None = None
+        self._needs_plan = True
+        self._distance: float | None = None
+        self.events: list[PatrolEvent] = []
+        """Drained by the actor."""
+
+    # ------------------------------------------------------------------ inputs
+
+    def set_map(self, area: AreaMap | None) -> None:
+        """A new map: the waypoints are wiped and the patrol stops (R-5.3.3.5)."""
+        self.area = area
+        self._planner = None if area is None else self._build(area)
+        self.route = Route()
+        self.cursor = Cursor()
+        self._running = False
+        self._path = None
+        self._settle(PatrolState.STOPPED, "map loaded: waypoints cleared")
+
+    def update_map(self, area: AreaMap) -> None:
+        """Keep-out zones changed: same route, a new plan."""
+        self.area = area
+        self._planner = self._build(area)
+        self._needs_plan = True
+
+    def set_route(self, route: Route) -> None:
+        """New waypoints, on the fly: the patrol goes on toward the new first waypoint."""
+        self.route = route
+        self.cursor = Cursor()
+        self._needs_plan = True
+        if not route.waypoints:
+            self._path = None
+
+    def start(self) -> None:
+        self._running = True
+        self._needs_plan = True
+
+    def stop(self, reason: str = "stopped by the operator") -> None:
+        self._running = False
+        self._path = None
+        self._settle(PatrolState.STOPPED, reason)
+
+    def set_enabled(self, enabled: bool) -> None:
+        """The patrol automation switched on or off (R-3): off stops it and refuses start."""
+        self.enabled = enabled
+        if not enabled:
+            self.stop("patrol switched off")
+
+    def set_override(self, engaged: bool) -> None:
+        if engaged == self._override:
+            return
+        self._override = engaged
+        if not engaged:
+            self._needs_plan = True  # from wherever the operator left the robot
+
+    # ------------------------------------------------------------------ stepping
+
+    def step(self, estimate: Estimate | None, fix_age: float | None) -> Command:
+        """The command for now: ``estimate`` in the map's frame, ``fix_age`` seconds since the
+        last GPS fix (None: never)."""
+        if not self.enabled:
+            return self._settle(PatrolState.STOPPED, "patrol switched off")
+        if self.area is None:
+            return self._settle(PatrolState.IDLE, "no map")
+        if not self.route.waypoints:
+            return self._settle(PatrolState.IDLE, "no waypoints")
+        if not self._running:
+            return self._settle(PatrolState.STOPPED, self.reason or "stopped")
+        if self._override:
+            return self._settle(PatrolState.SUSPENDED, "manual override engaged")
+        hold = self._hazard(estimate, fix_age)
+        if hold:
+            self._needs_plan = True
+            return self._settle(PatrolState.HOLDING, hold)
+        assert estimate is not None
+        here = (estimate.x, estimate.y)
+        if not estimate.heading_known:
+            return self._align(here)
+        for _ in range(self.route.stops):
+            if self._needs_plan or self._path is None:
+                if not self._plan(here):
+                    continue
+            steering = self._follower.step(here[0], here[1], estimate.yaw)
+            self._distance = steering.remaining_m
+            if steering.arrived:
+                index = self.cursor.index
+                self.events.append(PatrolEvent("arrived", index, f"reached {self._label(index)}"))
+                self.cursor = self.cursor.advance(self.route)
+                self._needs_plan = True
+                if self.route.stops == 1:
+                    return self._settle(PatrolState.PATROLLING, "at the only waypoint")
+                continue
+            if steering.cross_track_m > self.p.corridor_m:
+                self._needs_plan = True
+                continue
+            self._settle(PatrolState.PATROLLING, "")
+            return Command(steering.linear, steering.angular)
+        self._running = False
+        return self._settle(PatrolState.STOPPED, "no waypoint can be reached")
+
+    def status(self) -> PatrolStatus:
+        active = self.state in (PatrolState.PATROLLING, PatrolState.SUSPENDED, PatrolState.HOLDING)
+        return PatrolStatus(
+            state=self.state,
+            waypoint=self.cursor.index if self.route.waypoints else None,
+            distance_m=round(self._distance, 1) if active and self._distance is not None else None,
+            lap=self.cursor.lap,
+            reason=self.reason,
+            enabled=self.enabled,
+            waypoints=len(self.route.waypoints),
+            path=self._path.points if self._path is not None and active else (),
+        )
+
+    # ------------------------------------------------------------------ helpers
+
+    def _build(self, area: AreaMap) -> Planner:
+        return Planner(area.boundary, area.keepouts.values(), self.p.clearance_m)
+
+    def _settle(self, state: PatrolState, reason: str) -> Command:
+        self.state, self.reason = state, reason
+        return STOP
+
+    def _hazard(self, estimate: Estimate | None, fix_age: float | None) -> str:
+        if estimate is None or fix_age is None:
+            return "no GPS fix"
+        if fix_age > self.p.fix_stale_s:
+            return f"GPS fix lost or stale ({fix_age:.1f} s old)"
+        assert self.area is not None
+        if not self.area.inside(estimate.x, estimate.y):
+            return "outside the map's boundary"
+        zone = self.area.keepout_at(estimate.x, estimate.y)
+        if zone is not None:
+            return f"inside keep-out zone {zone!r}"
+        return ""
+
+    def _align(self, here: XY) -> Command:
+        """Drive straight ahead for a course over ground (the heading is unknown at start)."""
+        assert self.area is not None
+        # The heading is unknown, so "ahead" is unknown: need room all round.
+        room = Point(here).buffer(self.p.align_room_m, quad_segs=4)
+        blocked = not self.area.boundary.contains(room) or any(
+            zone.intersects(room) for zone in self.area.keepouts.values()
+        )
+        if blocked:
+            return self._settle(
+                PatrolState.HOLDING,
+                f"heading unknown and no {self.p.align_room_m:g} m of room to drive for one",
+            )
+        self._settle(PatrolState.PATROLLING, "finding the heading (driving straight)")
+        return Command(self.p.align_speed, 0.0)
+
+    def _plan(self, here: XY) -> bool:
+        """Plan to the current target; an unreachable one is skipped (False)."""
+        assert self.area is not None and self._planner is not None
+        index = self.cursor.index
+        waypoint = self.route.waypoints[index]
+        goal = self.area.local(waypoint.latitude, waypoint.longitude)
+        try:
+            path = self._planner.plan(here, goal)
+        except Unreachable as exc:
+            self.events.append(
+                PatrolEvent("skipped", index, f"{self._label(index)} skipped: {exc}")
+            )
+            self.cursor = self.cursor.advance(self.route)
+            self._path = None
+            return False
+        self._path = path
+        self._follower.set_path(path.points)
+        self._needs_plan = False
+        self._distance = path.length
+        return True
+
+    def _label(self, index: int) -> str:
+        return self.route.waypoints[index].label(index)

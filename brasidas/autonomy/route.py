@@ -1,0 +1,270 @@
+"""Waypoint routes: parsing, the order they are driven in, and their file on the platform.
+
+A route whose last waypoint is its first is *closed*: it loops (0, 1, ..., n-2, 0, ...). An
+open route is driven to its end and back in reverse order (0, ..., n-1, n-2, ..., 0, 1, ...).
+A lap is counted each time the route comes back to its first waypoint.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from brasidas.autonomy.areamap import AreaMap, MapError
+
+MAX_WAYPOINTS = 1000
+SAME_POINT_DEG = 1e-7
+"""Waypoints closer than this (about 1 cm) are the same place."""
+
+
+class RouteError(ValueError):
+    """Waypoints refused; the message is the reason, for the operator."""
+
+
+@dataclass(frozen=True)
+class Waypoint:
+    latitude: float
+    longitude: float
+    name: str = ""
+    """The map's named point it came from, if any."""
+
+    def same_place(self, other: Waypoint) -> bool:
+        return (
+            abs(self.latitude - other.latitude) < SAME_POINT_DEG
+            and abs(self.longitude - other.longitude) < SAME_POINT_DEG
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        plain: dict[str, Any] = {"lat": self.latitude, "lon": self.longitude}
+        if self.name:
+            plain["name"] = self.name
+        return plain
+
+    def label(self, index: int) -> str:
+        return f"waypoint {index}" + (f" ({self.name})" if self.name else "")
+
+
+@dataclass(frozen=True)
+class Route:
+    waypoints: tuple[Waypoint, ...] = ()
+
+    @property
+    def closed(self) -> bool:
+        """The last waypoint is the first: the route loops."""
+        return len(self.waypoints) >= 3 and self.waypoints[0].same_place(self.waypoints[-1])
+
+    @property
+    def stops(self) -> int:
+        """How many distinct waypoints are driven to (a closed route's last is its first)."""
+        return len(self.waypoints) - 1 if self.closed else len(self.waypoints)
+
+    def as_list(self) -> list[dict[str, Any]]:
+        return [waypoint.as_dict() for waypoint in self.waypoints]
+
+
+@dataclass(frozen=True)
+class Cursor:
+    """Where on a route the patrol is: the target's index, the direction and the lap."""
+
+    index: int = 0
+    forward: bool = True
+    lap: int = 0
+
+    def advance(self, route: Route) -> Cursor:
+        """The next target after arriving at (or skipping) this one."""
+        stops = route.stops
+        if stops <= 1:
+            return self
+        if route.closed:
+            index = (self.index + 1) % stops
+            return Cursor(index, True, self.lap + (1 if index == 0 else 0))
+        step = 1 if self.forward else -1
+        index = self.index + step
+        if not 0 <= index < stops:  # an end: turn back
+            forward = not self.forward
+            index = self.index + (1 if forward else -1)
+            return Cursor(index, forward, self.lap)
+        return Cursor(index, self.forward, self.lap + (1 if index == 0 else 0))
+
+
+def parse_waypoints(
+    items: Iterable[Any], points: Mapping[str, tuple[float, float]] | None = None
+) -> Route:
+    """Waypoints from "LAT,LON" strings, named points of the map, [lat, lon] pairs or
+    {"lat", "lon"[, "name"]} / {"name"} objects. Raises RouteError with the item's index."""
+    points = points or {}
+    waypoints = []
+    for index, item in enumerate(items):
+        if index >= MAX_WAYPOINTS:
+            raise RouteError(f"more than {MAX_WAYPOINTS} waypoints")
+        waypoints.append(_waypoint(item, points, f"waypoint {index}"))
+    return Route(tuple(waypoints))
+
+
+def parse_route_file(text: str, points: Mapping[str, tuple[float, float]] | None = None) -> Route:
+    """A route file: GeoJSON (a LineString, or Point features in order), a JSON list of
+    waypoints, or text with one waypoint ("LAT,LON" or a point name) per line."""
+    stripped = text.strip()
+    if stripped.startswith(("{", "[")):
+        try:
+            data = json.loads(stripped)
+        except ValueError as exc:
+            raise RouteError(f"not JSON: {exc}") from None
+        if isinstance(data, list):
+            return parse_waypoints(data, points)
+        return parse_waypoints(_geojson_waypoints(data), points)
+    lines = [line.split("#", 1)[0].strip() for line in stripped.splitlines()]
+    return parse_waypoints([line for line in lines if line], points)
+
+
+class RouteStore:
+    """The route's file on the platform: JSON, replaced atomically so a crash keeps one."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def load(self) -> Route:
+        """The stored route (empty when there is no file). Raises RouteError when unreadable."""
+        try:
+            text = self.path.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            return Route()
+        except OSError as exc:
+            raise RouteError(f"cannot read {self.path}: {exc}") from None
+        try:
+            data = json.loads(text)
+        except ValueError as exc:
+            raise RouteError(f"{self.path}: not JSON: {exc}") from None
+        if not isinstance(data, Mapping) or not isinstance(data.get("waypoints"), list):
+            raise RouteError(f"{self.path}: no 'waypoints' list")
+        return parse_waypoints(data["waypoints"])
+
+    def save(self, route: Route) -> None:
+        """Write the route: a temporary file beside it, fsync, rename over, fsync the folder."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        payload = json.dumps({"waypoints": route.as_list()}, indent=1, allow_nan=False)
+        fd, temporary = tempfile.mkstemp(prefix=f".{self.path.name}.", dir=self.path.parent)
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8") as file:
+                file.write(payload + "\n")
+                file.flush()
+                os.fsync(file.fileno())
+            os.replace(temporary, self.path)
+        except BaseException:
+            Path(temporary).unlink(missing_ok=True)
+            raise
+        folder = os.open(self.path.parent, os.O_RDONLY)
+        try:
+            os.fsync(folder)
+        finally:
+            os.close(folder)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _waypoint(item: Any, points: Mapping[str, tuple[float, float]], where: str) -> Waypoint:
+    if isinstance(item, str):
+        text = item.strip()
+        if text in points:
+            lat, lon = points[text]
+            return Waypoint(lat, lon, text)
+        parts = text.split(",")
+        if len(parts) != 2:
+            known = ", ".join(sorted(points)) or "none"
+            raise RouteError(f"{where}: {text!r} is neither LAT,LON nor a named point ({known})")
+        try:
+            lat, lon = float(parts[0]), float(parts[1])
+        except ValueError:
+            raise RouteError(f"{where}: {text!r} is not LAT,LON in degrees") from None
+        return _checked(lat, lon, "", where)
+    if isinstance(item, list | tuple) and len(item) == 2:
+        return _checked(_number(item[0], where), _number(item[1], where), "", where)
+    if isinstance(item, Mapping):
+        name = item.get("name", "")
+        if not isinstance(name, str):
+            raise RouteError(f"{where}: 'name' must be a string")
+        if "lat" not in item and "lon" not in item:
+            if name not in points:
+                raise RouteError(f"{where}: no named point {name!r} on the map")
+            lat, lon = points[name]
+            return Waypoint(lat, lon, name)
+        return _checked(
+            _number(item.get("lat"), where), _number(item.get("lon"), where), name, where
+        )
+    raise RouteError(f'{where}: expected "LAT,LON", a point name, [lat, lon] or {{lat, lon}}')
+
+
+def _number(value: Any, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise RouteError(f"{where}: latitude and longitude must be numbers")
+    return float(value)
+
+
+def _checked(lat: float, lon: float, name: str, where: str) -> Waypoint:
+    if not (math.isfinite(lat) and math.isfinite(lon)) or abs(lat) > 90 or abs(lon) > 180:
+        raise RouteError(f"{where}: {lat}, {lon} is not a latitude, longitude")
+    return Waypoint(lat, lon, name)
+
+
+def _geojson_waypoints(data: Any) -> list[Any]:
+    if not isinstance(data, Mapping):
+        raise RouteError("expected GeoJSON or a list of waypoints")
+    kind = data.get("type")
+    if kind == "FeatureCollection":
+        features = data.get("features")
+        if not isinstance(features, list):
+            raise RouteError("a FeatureCollection needs a 'features' list")
+        lines = [f for f in features if _geometry_type(f) == "LineString"]
+        if len(lines) == 1:
+            return _geojson_waypoints(lines[0])
+        items: list[Any] = []
+        for feature in features:
+            if _geometry_type(feature) == "Point":
+                items.extend(_geojson_waypoints(feature))
+        return items
+    if kind == "Feature":
+        geometry = data.get("geometry")
+        properties = data.get("properties")
+        name = properties.get("name", "") if isinstance(properties, Mapping) else ""
+        items = _geojson_waypoints(geometry)
+        if _geometry_type(data) == "Point" and isinstance(name, str) and name:
+            items = [dict(items[0], name=name)]
+        return items
+    coordinates = data.get("coordinates")
+    if kind == "Point":
+        return [_lonlat(coordinates)]
+    if kind == "LineString" and isinstance(coordinates, list):
+        return [_lonlat(position) for position in coordinates]
+    raise RouteError(f"GeoJSON {kind!r}: a route is a LineString or Point features")
+
+
+def _geometry_type(feature: Any) -> str | None:
+    if not isinstance(feature, Mapping):
+        return None
+    geometry = feature.get("geometry")
+    kind = geometry.get("type") if isinstance(geometry, Mapping) else None
+    return kind if isinstance(kind, str) else None
+
+
+def _lonlat(position: Any) -> dict[str, Any]:
+    if not isinstance(position, list) or len(position) not in (2, 3):
+        raise RouteError("a GeoJSON position is [longitude, latitude]")
+    return {"lat": position[1], "lon": position[0]}
+
+
+def check_route(route: Route, area: AreaMap | None) -> None:
+    """Raise RouteError when a waypoint is outside the map's boundary or in a keep-out zone."""
+    if area is None:
+        return
+    for index, waypoint in enumerate(route.waypoints):
+        try:
+            area.check_position(waypoint.latitude, waypoint.longitude, waypoint.label(index))
+        except MapError as exc:
+            raise RouteError(str(exc)) from None

@@ -1,0 +1,350 @@
+"""The autonomy's pure parts: map, route, planner, pose filter, pure pursuit, patrol decisions."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import pytest
+from shapely import LineString, box
+
+from brasidas.autonomy.areamap import MapError, parse_map
+from brasidas.autonomy.follower import FollowerParameters, PurePursuit
+from brasidas.autonomy.geo import LocalFrame
+from brasidas.autonomy.localization import FilterParameters, PoseFilter
+from brasidas.autonomy.patrol import Patrol, PatrolParameters, PatrolState
+from brasidas.autonomy.planner import Planner, Unreachable
+from brasidas.autonomy.route import (
+    Cursor,
+    Route,
+    RouteError,
+    RouteStore,
+    check_route,
+    parse_route_file,
+    parse_waypoints,
+)
+from platformd.sim.demo_area import LOOP, demo_map, demo_route, offset
+from platformd.sim.kinematic import KinematicRun
+
+LAT, LON = 37.9415, 23.6530
+SPEED = 6.0 / 3.6
+
+
+def demo() -> dict[str, Any]:
+    return demo_map(LAT, LON)
+
+
+def patrol(**overrides: Any) -> Patrol:
+    follower = FollowerParameters(
+        cruise_speed=SPEED, max_turn_rate=1.0, full_speed=SPEED, full_turn_rate=1.5, tolerance_m=0.5
+    )
+    return Patrol(PatrolParameters(follower=follower, clearance_m=1.5, **overrides))
+
+
+# --------------------------------------------------------------------------- frame
+
+
+def test_local_frame_round_trip_and_scale() -> None:
+    frame = LocalFrame(LAT, LON)
+    x, y = frame.to_local(LAT + 0.001, LON + 0.001)
+    assert 110.9 < y < 111.1  # a thousandth of a degree of latitude, ~111 m
+    assert 87.5 < x < 88.3  # of longitude at 38°: 111 km x cos(lat)
+    lat, lon = frame.to_geo(x, y)
+    assert abs(lat - (LAT + 0.001)) < 1e-9 and abs(lon - (LON + 0.001)) < 1e-9
+
+
+# --------------------------------------------------------------------------- map
+
+
+def test_map_parses_boundary_keepouts_and_points() -> None:
+    area = parse_map(json.dumps(demo()))
+    assert set(area.keepouts) == {"shed"} and set(area.points) == set(LOOP)
+    assert 2900 < area.boundary.area < 3100  # 60 m x 50 m
+    shed = area.local(*offset(LAT, LON, 20, 15))
+    assert area.keepout_at(*shed) == "shed"
+    area.check_position(LAT, LON)
+    with pytest.raises(MapError, match="keep-out zone 'shed'"):
+        area.check_position(*offset(LAT, LON, 20, 15))
+    with pytest.raises(MapError, match="outside the map's boundary"):
+        area.check_position(*offset(LAT, LON, 100, 0))
+    assert parse_map(area.geojson()).summary() == area.summary()
+
+
+def bowtie(data: dict[str, Any]) -> dict[str, Any]:
+    ring = data["features"][1]["geometry"]["coordinates"][0]
+    ring[1], ring[2] = ring[2], ring[1]  # crossing edges
+    return data
+
+
+@pytest.mark.parametrize(
+    ("mangle", "reason"),
+    [
+        (lambda d: "{not json", "not JSON"),
+        (lambda d: {"type": "Feature"}, "not a GeoJSON FeatureCollection"),
+        (
+            lambda d: d | {"features": d["features"][1:]},
+            "exactly one Polygon feature with role 'boundary'",
+        ),
+        (bowtie, "keep-out 'shed'.*self-intersection at 37.94"),
+        (lambda d: d | {"features": [*d["features"], d["features"][1]]}, "'shed' used twice"),
+        (
+            lambda d: (
+                d
+                | {
+                    "features": [
+                        *d["features"],
+                        {"type": "Feature", "properties": {"role": "lake"}, "geometry": None},
+                    ]
+                }
+            ),
+            "unknown role 'lake'",
+        ),
+    ],
+)
+def test_invalid_maps_are_refused_with_a_reason(mangle: Any, reason: str) -> None:
+    with pytest.raises(MapError, match=reason):
+        parse_map(mangle(copy.deepcopy(demo())))
+
+
+def test_unclosed_ring_and_bad_coordinates_refused() -> None:
+    data = demo()
+    data["features"][0]["geometry"]["coordinates"][0].pop()
+    with pytest.raises(MapError, match="not closed"):
+        parse_map(data)
+    data = demo()
+    data["features"][2]["geometry"]["coordinates"] = [LON, 95.0]
+    with pytest.raises(MapError, match="not a longitude, latitude"):
+        parse_map(data)
+
+
+def test_keepouts_added_and_removed_without_reload() -> None:
+    area = parse_map(demo())
+    data = demo()
+    zone = copy.deepcopy(data["features"][1]) | {"id": "pond"}
+    with pytest.raises(MapError, match="exists already"):
+        area.with_keepouts(add=[data["features"][1]])
+    both = area.with_keepouts(add=[zone])
+    assert set(both.keepouts) == {"shed", "pond"}
+    assert set(both.with_keepouts(remove=["shed"]).keepouts) == {"pond"}
+    with pytest.raises(MapError, match="no keep-out zone 'barn'"):
+        area.with_keepouts(remove=["barn"])
+
+
+# --------------------------------------------------------------------------- routes
+
+
+def test_closed_route_loops_and_open_route_reverses() -> None:
+    closed = parse_waypoints(["1,1", "1,2", "2,2", "1,1"])
+    assert closed.closed and closed.stops == 3
+    cursor, seen = Cursor(), []
+    for _ in range(7):
+        cursor = cursor.advance(closed)
+        seen.append((cursor.index, cursor.lap))
+    assert seen == [(1, 0), (2, 0), (0, 1), (1, 1), (2, 1), (0, 2), (1, 2)]
+    open_route = parse_waypoints(["1,1", "1,2", "2,2"])
+    assert not open_route.closed
+    cursor, indices = Cursor(), []
+    for _ in range(7):
+        cursor = cursor.advance(open_route)
+        indices.append(cursor.index)
+    assert indices == [1, 2, 1, 0, 1, 2, 1]
+    assert cursor.lap == 1
+
+
+def test_waypoints_from_names_text_and_geojson() -> None:
+    area = parse_map(demo())
+    route = parse_waypoints(demo_route(), area.points)
+    assert route.closed and [w.name for w in route.waypoints] == ["sw", "se", "ne", "nw", "sw"]
+    text = parse_route_file("# patrol\n37.9415,23.653\nne\n", area.points)
+    assert text.waypoints[1].name == "ne" and text.waypoints[0].latitude == 37.9415
+    line = {"type": "LineString", "coordinates": [[23.653, 37.9415], [23.6531, 37.9416]]}
+    assert len(parse_route_file(json.dumps(line)).waypoints) == 2
+    assert parse_route_file(json.dumps([{"name": "se"}]), area.points).waypoints[0].name == "se"
+
+
+@pytest.mark.parametrize(
+    ("items", "reason"),
+    [
+        (["91,0"], "waypoint 0: 91.0, 0.0 is not a latitude"),
+        (["1,1", "pond"], "waypoint 1: 'pond' is neither LAT,LON nor a named point"),
+        ([{"lat": "x", "lon": 1}], "must be numbers"),
+        ([42], "expected"),
+    ],
+)
+def test_bad_waypoints_refused(items: list[Any], reason: str) -> None:
+    with pytest.raises(RouteError, match=reason):
+        parse_waypoints(items)
+
+
+def test_waypoint_outside_the_map_or_in_a_keepout_refused() -> None:
+    area = parse_map(demo())
+    outside = "{},{}".format(*offset(LAT, LON, 0, 100))
+    with pytest.raises(RouteError, match=r"waypoint 1 \(37.94.*\) is outside the map.s boundary"):
+        check_route(parse_waypoints(["sw", outside], area.points), area)
+    shed = "{},{}".format(*offset(LAT, LON, 20, 15))
+    with pytest.raises(RouteError, match="waypoint 0 .* keep-out zone 'shed'"):
+        check_route(parse_waypoints([shed]), area)
+
+
+def test_route_store_survives_and_replaces_atomically(tmp_path: Path) -> None:
+    store = RouteStore(tmp_path / "autonomy" / "route.json")
+    assert store.load() == Route()
+    route = parse_waypoints(demo_route(), parse_map(demo()).points)
+    store.save(route)
+    store.save(route)
+    assert RouteStore(store.path).load() == route
+    assert os.listdir(store.path.parent) == ["route.json"]  # no temporary left behind
+    store.path.write_text("{half")
+    with pytest.raises(RouteError, match="not JSON"):
+        store.load()
+
+
+# --------------------------------------------------------------------------- planner
+
+
+def test_planner_goes_around_a_keepout_with_clearance() -> None:
+    zone = box(40, -20, 60, 20)
+    planner = Planner(box(0, -50, 100, 50), [zone], clearance=2.0)
+    path = planner.plan((10, 0), (90, 0))
+    assert len(path.points) == 4  # around two corners of the inflated zone
+    assert LineString(path.points).distance(zone) >= 2.0 * 0.97
+    assert 80 < path.length < 100
+    assert planner.plan((10, 30), (90, 30)).points == ((10, 30), (90, 30))  # clear: straight
+
+
+def test_unreachable_goals_are_refused_with_the_reason() -> None:
+    ring = [box(40, 40, 60, 42), box(40, 58, 60, 60), box(40, 40, 42, 60), box(58, 40, 60, 60)]
+    planner = Planner(box(0, 0, 100, 100), ring, clearance=1.0)
+    with pytest.raises(Unreachable, match="no path"):
+        planner.plan((10, 10), (50, 50))  # inside a walled yard
+    with pytest.raises(Unreachable, match="outside the boundary or in a keep-out"):
+        planner.plan((10, 10), (50, 41))
+    with pytest.raises(Unreachable, match=r"0\.5 m from a keep-out zone"):
+        planner.plan((10, 10), (50, 39.5))
+    # A start inside the clearance (the operator left it there) may still leave.
+    assert planner.plan((50, 39.5), (10, 10)).points[-1] == (10, 10)
+
+
+# --------------------------------------------------------------------------- pose filter
+
+
+def test_filter_finds_the_heading_by_driving_and_dead_reckons_between_fixes() -> None:
+    f = PoseFilter(FilterParameters(max_speed=SPEED, max_yaw_rate=1.5))
+    f.gps(0.0, 0.0, 0.0)
+    assert not f.estimate(0.0).heading_known
+    f.command(0.0, 1.0, 0.0)
+    yaw = math.radians(30)
+    for step in range(1, 31):  # 3 s north-east-ish at full speed, fixes at 10 Hz
+        t = step * 0.1
+        distance = SPEED * max(0.0, t - 0.25)
+        f.gps(
+            t,
+            distance * math.cos(yaw),
+            distance * math.sin(yaw),
+            1.0,
+            SPEED if t > 0.5 else 0.0,
+            yaw,
+        )
+    estimate = f.estimate(3.0)
+    assert estimate.heading_known and abs(estimate.yaw - yaw) < math.radians(3)
+    assert abs(estimate.speed - SPEED) < 0.1
+    ahead = f.estimate(4.0)  # a second without fixes: dead reckoned, less certain
+    assert abs(math.hypot(ahead.x, ahead.y) - math.hypot(estimate.x, estimate.y) - SPEED) < 0.2
+    assert ahead.sigma_xy > estimate.sigma_xy
+
+
+# --------------------------------------------------------------------------- follower
+
+
+def test_pure_pursuit_turns_on_the_spot_then_steers_and_arrives() -> None:
+    follower = PurePursuit(
+        FollowerParameters(cruise_speed=1.0, max_turn_rate=1.0, full_speed=2.0, full_turn_rate=2.0)
+    )
+    follower.set_path([(0, 0), (10, 0)])
+    behind = follower.step(0, 0, math.pi)
+    assert behind.linear == 0 and abs(behind.angular) == 0.5
+    left = follower.step(0, -1, 0.0)  # right of the path: steer left
+    assert left.linear > 0 and left.angular > 0 and left.cross_track_m == pytest.approx(1.0)
+    assert follower.step(9.5, 0.0, 0.0).arrived
+
+
+# --------------------------------------------------------------------------- patrol
+
+
+def test_patrol_states_map_reload_override_and_stale_fix() -> None:
+    p = patrol()
+    assert p.step(None, None) == (p.step(None, None)) and p.status().state is PatrolState.IDLE
+    area = parse_map(demo())
+    p.set_map(area)
+    p.set_route(parse_waypoints(demo_route(), area.points))
+    p.start()
+    run = KinematicRun(p, area, start=(LAT, LON))
+    for _ in range(40):
+        run.tick()
+    assert p.status().state is PatrolState.PATROLLING
+    p.set_override(True)
+    assert run.tick().command.linear == 0 and p.status().state is PatrolState.SUSPENDED
+    p.set_override(False)
+    run.tick()
+    assert p.status().state is PatrolState.PATROLLING
+    run.gps_on = False
+    for _ in range(25):
+        run.tick()
+    assert p.status().state is PatrolState.HOLDING and "GPS fix" in p.status().reason
+    assert run.tick().command.linear == 0
+    run.gps_on = True
+    for _ in range(5):
+        run.tick()
+    assert p.status().state is PatrolState.PATROLLING
+    p.set_map(area)  # a reload wipes the waypoints and stops
+    assert run.tick().command.linear == 0
+    assert p.status().waypoints == 0 and p.status().state is PatrolState.IDLE
+
+
+def test_closed_route_driven_twice_passes_every_waypoint_and_avoids_the_keepout() -> None:
+    """By its own pose the robot passes within 1 m of each waypoint, each lap; its true
+    position is off by the GPS error (the simulator's wanders 0.8 m per axis)."""
+    area = parse_map(demo())
+    p = patrol()
+    p.set_map(area)
+    route = parse_waypoints(demo_route(), area.points)
+    p.set_route(route)
+    p.start()
+    run = KinematicRun(p, area, start=(LAT, LON), seed=5)
+    targets = [area.local(w.latitude, w.longitude) for w in route.waypoints[:-1]]
+    believed = [[math.inf, math.inf] for _ in targets]
+    true = [[math.inf, math.inf] for _ in targets]
+    while p.cursor.lap < 2 and run.now < 400:
+        tick = run.tick()
+        assert area.keepout_at(*tick.truth_xy) is None
+        if tick.estimate is None:
+            continue
+        lap = min(p.cursor.lap, 1)
+        for index, target in enumerate(targets):
+            here = (tick.estimate.x, tick.estimate.y)
+            believed[index][lap] = min(believed[index][lap], math.dist(target, here))
+            true[index][lap] = min(true[index][lap], math.dist(target, tick.truth_xy))
+    assert p.cursor.lap == 2
+    # The start is waypoint 0: lap 0 passes 1..3 and ends at 0, lap 1 passes all.
+    passes = [*believed[1], *believed[2], *believed[3], believed[0][1]]
+    assert max(passes) < 1.0, believed
+    assert max([*true[1], *true[2], *true[3], true[0][1]]) < 3.0, true
+
+
+def test_unreachable_waypoint_is_skipped_with_a_notification() -> None:
+    area = parse_map(demo())
+    p = patrol()
+    p.set_map(area)
+    near_shed = "{},{}".format(*offset(LAT, LON, 20, 9.5))  # 0.5 m from the shed
+    p.set_route(parse_waypoints(["se", near_shed, "ne"], area.points))
+    p.start()
+    run = KinematicRun(p, area, start=(LAT, LON))
+    while p.cursor.index != 2 and run.now < 120:
+        run.tick()
+    kinds = [(e.kind, e.waypoint) for e in p.events]
+    assert ("arrived", 0) in kinds and ("skipped", 1) in kinds
+    assert "clearance" in next(e.message for e in p.events if e.kind == "skipped")
