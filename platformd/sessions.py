@@ -89,7 +89,9 @@ class SessionManager(Actor):
         """Check and strip the ``session`` token; sets ``call.session``."""
         token = params.pop("session", None)
         session = self.sessions.get(token) if isinstance(token, str) else None
-        if session is None:
+        # A token is good only from the host that connected: one captured on the mesh and
+        # replayed from elsewhere is refused (a TCP peer address cannot be spoofed blind).
+        if session is None or (call.peer_host and call.peer_host != session.peer_host):
             self.auth_failures += 1
             raise Unauthorized("unauthorized: no valid session")
         session.last_seen = self._clock()

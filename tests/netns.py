@@ -10,11 +10,13 @@ host's namespace (the station's local API answers its own host only, as in the f
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -27,6 +29,7 @@ from brasidas import security
 from brasidas.codecs.jsonrpc import encode_request
 from brasidas.netem import mesh
 from brasidas.netem.netns import BROADCAST, Host, TestNetwork, socket_in, unavailable_reason
+from platformd.sim.ax3500 import Ax3500Device, Ax3500Simulator, SimOptions
 
 UNAVAILABLE = unavailable_reason()
 requires_netns = pytest.mark.skipif(UNAVAILABLE is not None, reason=UNAVAILABLE or "")
@@ -252,3 +255,69 @@ QUIET = (
     "audio.enabled=false",
 )
 """Settings for a platform that only advertises and answers (lighter, faster to start)."""
+
+
+class ControllerThread:
+    """A simulated AX3500 on a pty, on a thread and event loop of its own, for a platform
+    process to open as ``motor.port``; it logs each motor output change with its time."""
+
+    def __init__(self) -> None:
+        self.outputs: list[tuple[float, float, float]] = []
+        """(time.monotonic(), speed, turn) at each change of the controller's outputs."""
+        self.path = ""
+        self.device: Ax3500Device | None = None
+        self._ready = threading.Event()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self._thread = threading.Thread(target=self._main, name="ax3500-sim", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+        if not self._ready.wait(10):
+            raise RuntimeError("simulated controller did not start")
+
+    def close(self) -> None:
+        if self._loop is not None and self._stop is not None:
+            self._loop.call_soon_threadsafe(self._stop.set)
+        self._thread.join(10)
+
+    def commands(self) -> list[str]:
+        """The command lines the controller received, in order (its own log)."""
+        return list(self.device.received) if self.device is not None else []
+
+    def _main(self) -> None:
+        asyncio.run(self._serve())
+
+    async def _serve(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        simulator = Ax3500Simulator(SimOptions())
+        device = self.device = simulator.device
+
+        def record(speed: float, turn: float) -> None:
+            self.outputs.append((time.monotonic(), speed, turn))
+
+        device.on_output = record
+        simulator.start()
+        self.path = simulator.path
+        self._ready.set()
+        try:
+            await self._stop.wait()
+        finally:
+            simulator.close()
+
+
+def speed_commands(lines: list[str]) -> list[int]:
+    """The signed channel-1 (speed) values of ``!A``/``!a`` commands, in order."""
+    values = []
+    for line in lines:
+        if len(line) >= 4 and line[:2] in ("!A", "!a"):
+            with contextlib.suppress(ValueError):
+                value = int(line[2:4], 16)
+                values.append(value if line[1] == "A" else -value)
+    return values
+
+
+def percentile(values: list[float], share: float) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, max(0, round(share * (len(ordered) - 1))))]
