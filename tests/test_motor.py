@@ -6,16 +6,21 @@ import asyncio
 import os
 import socket
 import sys
+import threading
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
 
+import pytest
+import serial
 from conftest import quiet_platform_config, wait_until
 
 from brasidas import topics
 from brasidas.actor import Supervisor
 from brasidas.bus import Bus
+from brasidas.clock import ManualClock
 from brasidas.codecs import ax3500, pvel
 from brasidas.codecs.commands import BATTERY_MONITOR, MAIN_LIGHTS, POSITIONAL_LIGHTS
 from brasidas.codecs.jsonrpc import Dispatcher
@@ -36,16 +41,20 @@ Factory = Callable[..., Awaitable[PlatformDaemon]]
 
 @asynccontextmanager
 async def driven(
-    tmp_path: Path, *overrides: str, options: SimOptions | None = None
+    tmp_path: Path,
+    *overrides: str,
+    options: SimOptions | None = None,
+    clock: ManualClock | None = None,
 ) -> AsyncIterator[tuple[PlatformContext, Ax3500Simulator]]:
-    """A simulator behind a stable link and the driver on it, in a bare platform context."""
-    sim = Ax3500Simulator(options or SimOptions(), link=str(tmp_path / "ax3500"))
+    """A simulator behind a stable link and the driver on it, in a bare platform context;
+    with ``clock``, both keep time by it (the serial line stays real)."""
+    sim = Ax3500Simulator(options or SimOptions(), link=str(tmp_path / "ax3500"), clock=clock)
     sim.start()
     config = quiet_platform_config("motor.enabled=true", f"motor.port={sim.path}", *overrides)
     ctx = PlatformContext(
         config=config, bus=Bus(), supervisor=Supervisor(), rpc=Dispatcher(), fleet_key=None
     )
-    await motor.async_setup(ctx)
+    await motor.async_setup(ctx, clock=clock)
     try:
         yield ctx, sim
     finally:
@@ -123,12 +132,21 @@ async def test_refused_command_is_resent_once_then_reported(tmp_path: Path) -> N
 
 
 async def test_ten_seconds_at_zero_without_one_watchdog_w(tmp_path: Path) -> None:
-    async with driven(tmp_path) as (ctx, sim):
+    clock = ManualClock()
+    unpaced = SimOptions(char_time=0)  # the line's speed is not what this test is about
+    async with driven(tmp_path, clock=clock, options=unpaced) as (ctx, sim):
         await connected(ctx)
-        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.0, 0.0))
-        await asyncio.sleep(10.0)
-        assert sim.device.w_sent == 0 and sim.device.watchdog_trips == 0
         driver = driver_of(ctx)
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.0, 0.0))
+        # Ten seconds of the driver's and the controller's time, in 0.1 s steps: each step
+        # must put a refresh on the (real) line, and the controller's 1 s watchdog never trips.
+        for _ in range(100):
+            mark = len(sim.device.received)
+            clock.advance(0.1)
+            async with asyncio.timeout(5.0):
+                while not (len(sim.device.received) > mark and driver.sent == [0, 0]):
+                    await asyncio.sleep(0.0005)
+        assert sim.device.w_sent == 0 and sim.device.watchdog_trips == 0
         assert driver.counters["watchdog_w"] == 0 and driver.counters["unanswered"] == 0
         # 10 Hz refresh, both channels: about 200 commands, never fewer than the 2 Hz minimum.
         assert sim.device.received.count("!A00") >= 20
@@ -428,3 +446,42 @@ async def test_keyboard_drive_moves_the_simulated_controller(
         loop.remove_reader(master)
         os.close(master)
         await station.stop()
+
+
+async def test_a_hung_port_open_is_reported_and_never_stalls_the_loop(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A USB adapter whose driver does not answer: the open blocks in the kernel. The other
+    actors keep running, the hang is reported, and the port is used once the open returns."""
+    release = threading.Event()
+    calls: list[float] = []
+    real_open = serial.Serial.open
+
+    def hung_open(self: serial.Serial) -> None:
+        calls.append(time.monotonic())
+        release.wait(3.0)  # bounded: code that blocks the loop here must fail, not hang
+        real_open(self)
+
+    monkeypatch.setattr(serial.Serial, "open", hung_open)
+    gaps: list[float] = []
+
+    async def ticker() -> None:
+        last = time.monotonic()
+        while True:
+            await asyncio.sleep(0.01)
+            now = time.monotonic()
+            gaps.append(now - last)
+            last = now
+
+    async with driven(tmp_path) as (ctx, sim), asyncio.TaskGroup() as group:
+        driver_of(ctx).opener.timeout = 0.2
+        ticking = group.create_task(ticker())
+        await wait_until(lambda: "hangs" in getattr(status(ctx), "error", ""))
+        await asyncio.sleep(0.3)  # more attempts time out meanwhile
+        assert len(calls) == 1  # a hung attempt is awaited again, not doubled
+        release.set()
+        await connected(ctx)
+        ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.25, 0.0))
+        await wait_until(lambda: sim.device.channels == (32, 0))
+        ticking.cancel()
+    assert max(gaps) < 1.0, max(gaps)

@@ -17,7 +17,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import threading
 import time
 import weakref
 from collections.abc import Callable
@@ -26,6 +25,7 @@ from typing import Any
 
 from brasidas.backoff import Backoff
 from brasidas.media.gst import MediaError, gst, realtime_clock
+from brasidas.threads import in_daemon_thread
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -232,7 +232,7 @@ class PipelineStream:
         failure, and the daemon thread it is stuck in does not keep the process from exiting.
         """
         started = time.monotonic()
-        done = _in_daemon_thread(f"gst-state:{self.name}", pipeline.set_state, state)
+        done = in_daemon_thread(f"gst-state:{self.name}", pipeline.set_state, state)
         try:
             async with asyncio.timeout(self.state_change_timeout):
                 result = await asyncio.shield(done)
@@ -352,30 +352,3 @@ def _sync_handler(bus: Any, message: Any, data: tuple[Any, ...]) -> Any:
     # PASS, and the loop pops the queue: with PyGObject, a message DROPped here is never
     # freed, and it holds its source element (and so the whole pipeline) alive.
     return Gst.BusSyncReply.PASS
-
-
-def _in_daemon_thread(name: str, function: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:
-    """Run ``function(*args)`` in a new daemon thread; its result arrives on the loop."""
-    loop = asyncio.get_running_loop()
-    future: asyncio.Future[Any] = loop.create_future()
-
-    def deliver(result: Any, error: BaseException | None) -> None:
-        if future.done():
-            return
-        if error is not None:
-            future.set_exception(error)
-        else:
-            future.set_result(result)
-
-    def run() -> None:
-        try:
-            result = function(*args)
-        except BaseException as err:  # handed to the awaiting coroutine
-            with contextlib.suppress(RuntimeError):  # the loop closed meanwhile
-                loop.call_soon_threadsafe(deliver, None, err)
-            return
-        with contextlib.suppress(RuntimeError):
-            loop.call_soon_threadsafe(deliver, result, None)
-
-    threading.Thread(target=run, name=name, daemon=True).start()
-    return future

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from brasidas.clock import Clock
 from platformd.context import PlatformContext
 from platformd.motor.controller import MotorController
 from platformd.motor.link import LinkError, ReplyTimeout, SerialLink
@@ -45,10 +46,11 @@ def capability(controller: MotorController) -> dict[str, Any]:
     }
 
 
-async def async_setup(ctx: PlatformContext) -> None:
+async def async_setup(ctx: PlatformContext, *, clock: Clock | None = None) -> None:
+    """Start the driver (``clock``: a test's, else the event loop's)."""
     if not ctx.config.motor.enabled:
         return
-    controller = MotorController(ctx)
+    controller = MotorController(ctx, clock=clock)
     ctx.capabilities["motor"] = lambda: capability(controller)
     ctx.telemetry_sources["motor"] = controller.snapshot
     ctx.diagnostics_sources["motor"] = lambda: dict(controller.counters)

@@ -14,6 +14,7 @@ from typing import Any
 from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.backoff import Backoff
+from brasidas.clock import Clock, LoopClock, sleep
 from brasidas.codecs import ax3500
 from brasidas.codecs.ax3500 import Command, MotionMapping, Reply, Status
 from brasidas.codecs.commands import (
@@ -26,7 +27,7 @@ from brasidas.codecs.commands import (
 from brasidas.messages import CommandResult, ControllerStatus, SystemCommand, Velocity
 from platformd.context import PlatformContext
 from platformd.motor.lights import Lights, OutputRequest, Send
-from platformd.motor.link import LinkError, ReplyTimeout, SerialLink
+from platformd.motor.link import LinkError, PortOpener, ReplyTimeout, SerialLink
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -42,10 +43,13 @@ class MotorController(Actor):
     stop_priority = 100
     """Stops before everything else: it commands zero while the line is still open."""
 
-    def __init__(self, ctx: PlatformContext) -> None:
+    def __init__(self, ctx: PlatformContext, *, clock: Clock | None = None) -> None:
         super().__init__(ctx.bus)
         self.ctx = ctx
         self.config = config = ctx.config.motor
+        self.clock: Clock = clock or LoopClock()
+        """Drives the schedule (refreshes, polls, reconnection); answers are awaited in real time."""
+        self.opener = PortOpener(config)
         self.mapping = MotionMapping(
             linear_scale=config.linear_scale,
             angular_scale=config.angular_scale,
@@ -116,11 +120,11 @@ class MotorController(Actor):
         try:
             while True:
                 try:
-                    link = await SerialLink.open(self.config)
+                    link = await self.opener.open()
                 except LinkError as err:
                     failures += 1
                     self._report_down(str(err), first=failures == 1)
-                    await asyncio.sleep(backoff.next())
+                    await sleep(self.clock, backoff.next())
                     continue
                 self._link = link
                 error = ""
@@ -138,8 +142,9 @@ class MotorController(Actor):
                     self._report_down(error, first=failures == 1)
                 finally:
                     self._disconnected(link, error)
-                await asyncio.sleep(backoff.next())
+                await sleep(self.clock, backoff.next())
         finally:
+            self.opener.close()
             if self._link is not None:
                 self._disconnected(self._link, "driver stopped")
 
@@ -205,7 +210,7 @@ class MotorController(Actor):
         for channel in (1, 2):
             await self._checked(link, ax3500.motor(channel, 0))
         self.sent = [0, 0]
-        self._last_velocity_at = asyncio.get_running_loop().time()
+        self._last_velocity_at = self.clock.time()
         self._unanswered_in_row = 0
         self._ready = True
         self._reported_error = ""
@@ -326,12 +331,11 @@ class MotorController(Actor):
         self._generation += 1
 
     async def _serve(self, link: SerialLink) -> None:
-        loop = asyncio.get_running_loop()
         after_velocity = False
         while True:
             self._wake.clear()
             self._account(link)
-            now = loop.time()
+            now = self.clock.time()
             if self.desired[0] != self.sent[0] or self.desired[1] != self.sent[1]:
                 await self._send_velocity(link)
                 after_velocity = True
@@ -363,10 +367,13 @@ class MotorController(Actor):
                 await self._poll(link, self._polls.popleft())
                 continue
             after_velocity = False
-            delay = self._last_velocity_at + self.refresh_period - now
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(max(0.0, delay)):
-                    await self._wake.wait()
+            refresh = self.clock.call_at(
+                self._last_velocity_at + self.refresh_period, self._wake.set
+            )
+            try:
+                await self._wake.wait()
+            finally:
+                refresh.cancel()
 
     async def _send_velocity(self, link: SerialLink) -> None:
         """The channel that differs (channel 1 first), from the newest desired levels."""
@@ -385,7 +392,7 @@ class MotorController(Actor):
             # next refresh sends both channels again.
             self._refresh_both = True
         self.sent[channel - 1] = level
-        self._last_velocity_at = asyncio.get_running_loop().time()
+        self._last_velocity_at = self.clock.time()
         if self._stopping and self.sent == [0, 0] and self.desired == (0, 0):
             self._zero_sent.set()
 
@@ -409,9 +416,7 @@ class MotorController(Actor):
         if levels != self.desired:
             self.desired = levels
             self._wake.set()
-        elif (
-            asyncio.get_running_loop().time() - self._last_velocity_at >= 0.7 * self.refresh_period
-        ):
+        elif self.clock.time() - self._last_velocity_at >= 0.7 * self.refresh_period:
             # Refresh now, right behind this command, rather than at a random moment later.
             self._last_velocity_at = float("-inf")
             self._wake.set()

@@ -12,7 +12,6 @@ import os
 import termios
 from collections.abc import Callable
 from enum import Enum
-from typing import Any
 
 import serial
 import serial_asyncio
@@ -20,9 +19,12 @@ import serial_asyncio
 from brasidas.codecs import ax3500
 from brasidas.codecs.ax3500 import Command, Exchange, LineParser, Reply
 from brasidas.config import MotorSection
+from brasidas.threads import in_daemon_thread
 
 _LOGGER = logging.getLogger(__name__)
 
+OPEN_TIMEOUT = 5.0
+"""Longest wait for the port to open before the attempt is reported as hung."""
 _OPEN_ERRORS = (serial.SerialException, OSError, ValueError, termios.error)
 """What opening a port raises: missing device, busy, refused settings (a pty and 7E1)."""
 
@@ -52,35 +54,24 @@ class SerialLink(asyncio.Protocol):
         self.closed_reason = ""
         self.stray_lines = 0
         self.banners = 0
-        self._transport: asyncio.BaseTransport | None = None
-        self._device: serial.Serial | None = None
+        self._transport: asyncio.WriteTransport | None = None
         self._exchange: Exchange | None = None
         self._reply: asyncio.Future[Reply] | None = None
         self.on_unsolicited: Callable[[], None] | None = None
         """Called when a W or an OK line arrives (the owner looks at the counters)."""
 
     @classmethod
-    async def open(cls, config: MotorSection) -> SerialLink:
-        """Open the configured port (a pty refusing 7E1 is opened 8N1); raises LinkError."""
-        loop = asyncio.get_running_loop()
-        link = cls(config.reply_timeout)
-        framing = (config.bytesize, config.parity, config.stopbits)
-        try:
-            await _create(loop, link, config.port, config.baudrate, framing)
-        except _OPEN_ERRORS as err:
-            # The kernel's ptys refuse 7 bits and parity (hardware.md); same bytes in 8N1.
-            if not _is_pty(config.port) or framing == (8, "N", 1):
-                raise LinkError(f"cannot open {config.port}: {err}") from None
-            try:
-                await _create(loop, link, config.port, config.baudrate, (8, "N", 1))
-            except _OPEN_ERRORS as second:
-                raise LinkError(f"cannot open {config.port}: {second}") from None
-            _LOGGER.info("%s is a pty: opened 8N1 instead of %s%s%s", config.port, *framing)
+    def attach(cls, device: serial.Serial, reply_timeout: float) -> SerialLink:
+        """A link over an open port (from :class:`PortOpener`). Must run on the event loop."""
+        link = cls(reply_timeout)
+        # Usable at once: the transport's connection_made comes a loop turn later.
+        link._transport = _EagerSerialTransport(asyncio.get_running_loop(), link, device)
         return link
 
     # ------------------------------------------------------------------ protocol callbacks
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.WriteTransport)
         self._transport = transport
 
     def data_received(self, data: bytes) -> None:
@@ -136,20 +127,8 @@ class SerialLink(asyncio.Protocol):
         self._write(data)
 
     def _write(self, data: bytes) -> None:
-        transport: Any = self._transport
-        device = self._device
-        if device is not None and transport.get_write_buffer_size() == 0:
-            # pyserial-asyncio queues every write for the next loop turn (a writer callback
-            # and two epoll changes); a command fits the idle line's buffer, so write now.
-            try:
-                written = device.write(data)  # non-blocking: write_timeout=0
-            except serial.SerialException as err:
-                self._closed(f"port lost: {err}")  # fails the pending answer, if any
-                return
-            data = data[written or 0 :]
-            if not data:
-                return
-        transport.write(data)
+        assert self._transport is not None
+        self._transport.write(data)
 
     async def wait_banner(self, timeout: float) -> bool:
         """Wait for an ``OK`` line (clear :attr:`banner` before provoking it)."""
@@ -175,13 +154,86 @@ class SerialLink(asyncio.Protocol):
             self._transport.close()
 
 
-async def _create(
-    loop: asyncio.AbstractEventLoop,
-    link: SerialLink,
-    port: str,
-    baudrate: int,
-    framing: tuple[int, str, int],
-) -> None:
+class _EagerSerialTransport(serial_asyncio.SerialTransport):  # type: ignore[misc]
+    """pyserial-asyncio's transport, writing at once when nothing is queued.
+
+    The base class queues every write for the next loop turn (a writer callback and two epoll
+    changes); a command fits an idle line's buffer, so the first try is made now, as asyncio's
+    own socket transports do. What does not go out (or an error) takes the queued path, which
+    reports a lost port through ``connection_lost``.
+    """
+
+    def write(self, data: bytes) -> None:
+        if data and not self.is_closing() and self.get_write_buffer_size() == 0:
+            try:
+                written = self.serial.write(data)  # non-blocking: write_timeout=0
+            except (serial.SerialException, OSError):
+                written = 0
+            data = data[written or 0 :]
+            if not data:
+                return
+        super().write(data)
+
+
+class PortOpener:
+    """Opens the configured port in a daemon thread of its own, one attempt at a time.
+
+    An open can hang in a USB adapter's driver: each call waits at most ``timeout`` and then
+    reports it (LinkError); a hung attempt is not doubled but awaited again by the next call,
+    and a port it opens after everyone gave up is closed. Never blocks the event loop.
+    """
+
+    def __init__(self, config: MotorSection, timeout: float = OPEN_TIMEOUT) -> None:
+        self.config = config
+        self.timeout = timeout
+        self._attempt: asyncio.Future[serial.Serial] | None = None
+
+    async def open(self) -> SerialLink:
+        """A link on the port; raises LinkError when it cannot be opened (or hangs)."""
+        port = self.config.port
+        if self._attempt is None:
+            self._attempt = in_daemon_thread(f"motor-open:{port}", open_port, self.config)
+        attempt = self._attempt
+        try:
+            async with asyncio.timeout(self.timeout):
+                device = await asyncio.shield(attempt)
+        except TimeoutError:
+            raise LinkError(
+                f"opening {port} hangs (nothing after {self.timeout:g} s); still waiting"
+            ) from None
+        except _OPEN_ERRORS as err:
+            raise LinkError(f"cannot open {port}: {err}") from None
+        finally:
+            if attempt.done():
+                self._attempt = None
+        try:
+            return SerialLink.attach(device, self.config.reply_timeout)
+        except _OPEN_ERRORS as err:
+            device.close()
+            raise LinkError(f"cannot set up {port}: {err}") from None
+
+    def close(self) -> None:
+        """Give up a pending attempt: what it opens later is closed. Idempotent."""
+        attempt, self._attempt = self._attempt, None
+        if attempt is not None:
+            attempt.add_done_callback(_close_unused)
+
+
+def open_port(config: MotorSection) -> serial.Serial:
+    """Open and set up the port (blocking); a pty refusing 7E1 is opened 8N1."""
+    framing = (config.bytesize, config.parity, config.stopbits)
+    try:
+        return _open_serial(config.port, config.baudrate, framing)
+    except _OPEN_ERRORS:
+        # The kernel's ptys refuse 7 bits and parity (hardware.md); same bytes in 8N1.
+        if not _is_pty(config.port) or framing == (8, "N", 1):
+            raise
+    device = _open_serial(config.port, config.baudrate, (8, "N", 1))
+    _LOGGER.info("%s is a pty: opened 8N1 instead of %s%s%s", config.port, *framing)
+    return device
+
+
+def _open_serial(port: str, baudrate: int, framing: tuple[int, str, int]) -> serial.Serial:
     bytesize, parity, stopbits = framing
     device = serial.serial_for_url(
         port,
@@ -198,13 +250,19 @@ async def _create(
     )
     try:
         device.open()
-        transport, _ = await serial_asyncio.connection_for_serial(loop, lambda: link, device)
+        # The transport sets the timeouts again, applying every setting once more: on a pty
+        # that second tcsetattr is the one refusing 7E1. Here it happens in this thread.
+        device.timeout = 0
     except BaseException:
         # Settings refused after the open (a pty and 7E1) leave the port open and locked.
         device.close()
         raise
-    link._transport = transport  # connection_made comes a loop turn later: usable at once
-    link._device = device
+    return device
+
+
+def _close_unused(attempt: asyncio.Future[serial.Serial]) -> None:
+    if not attempt.cancelled() and attempt.exception() is None:
+        attempt.result().close()
 
 
 def _is_pty(port: str) -> bool:

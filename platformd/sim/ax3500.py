@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from brasidas.actor import Actor, wait_forever
+from brasidas.clock import Cancellable, Clock, LoopClock
 from brasidas.codecs import ax3500
 from platformd.context import PlatformContext
 from platformd.sim.vehicle import VehicleModel, shared_vehicle
@@ -382,8 +383,11 @@ class Ax3500Simulator:
         *,
         vehicle: VehicleModel | None = None,
         link: str | None = None,
+        clock: Clock | None = None,
     ) -> None:
         self.device = Ax3500Device(options, on_output=self._on_output)
+        self.clock: Clock = clock or LoopClock()
+        """The device's time (watchdog, reset, R/C lines); the line's pacing is real time."""
         self.vehicle = vehicle
         self.link = link
         """A symlink kept pointing at the current pty (like /dev/serial/by-id), or None."""
@@ -397,7 +401,8 @@ class Ax3500Simulator:
         self._pending: deque[tuple[float, bytes]] = deque()
         self._line_free_at = 0.0
         self._flush_timer: asyncio.TimerHandle | None = None
-        self._device_timer: asyncio.TimerHandle | None = None
+        self._device_timer: Cancellable | None = None
+        self._device_deadline: float | None = None
 
     @property
     def path(self) -> str:
@@ -462,7 +467,7 @@ class Ax3500Simulator:
         self._line_free_at = 0.0
         self._loop.add_reader(master, self._on_readable)
         # Written at once: the controller powered up before anyone could open the port.
-        self._write(self.device.power_up(self._loop.time()))
+        self._write(self.device.power_up(self.clock.time()))
         self._schedule()
 
     # ------------------------------------------------------------------ I/O
@@ -475,27 +480,26 @@ class Ax3500Simulator:
             return
         except OSError:
             return  # EIO: no reader on the slave side (cannot happen while we hold it)
-        self._emit(self.device.feed(data, self._loop.time()))
+        self._emit(self.device.feed(data, self.clock.time()))
         self._schedule()
 
     def _on_device_timer(self) -> None:
         self._device_timer = None
-        assert self._loop is not None
-        self._emit(self.device.tick(self._loop.time()))
+        self._emit(self.device.tick(self.clock.time()))
         self._schedule()
 
     def _schedule(self) -> None:
         """Arm one timer for the device's next deadline."""
-        assert self._loop is not None
         deadline = self.device.deadline()
         if self._device_timer is not None:
-            if deadline is not None and abs(self._device_timer.when() - deadline) < 1e-6:
+            if deadline is not None and deadline == self._device_deadline:
                 return
             self._device_timer.cancel()
             self._device_timer = None
         if deadline is not None:
             # A hair late, so "more than 1 s" has passed when it fires.
-            self._device_timer = self._loop.call_at(deadline + 1e-4, self._on_device_timer)
+            self._device_deadline = deadline
+            self._device_timer = self.clock.call_at(deadline + 1e-4, self._on_device_timer)
 
     def _emit(self, data: bytes) -> None:
         """Send ``data``, paced at the line's character time."""
