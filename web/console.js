@@ -39,6 +39,7 @@ if (!window.isSecureContext) {
 }
 window.navcam = {
   stats: () => state.videoStats,
+  marks: () => Object.fromEntries(performance.getEntriesByType("mark").map((m) => [m.name, m.startTime])),
   keepLatencies: (on) => worker?.postMessage({ type: "keep", on }),
   dump: () => new Promise((resolve) => { dumpWaiters.push(resolve); worker?.postMessage({ type: "dump" }); }),
 };
@@ -72,7 +73,9 @@ async function watch(platformId) {
   canvas.setAttribute("aria-label", `NavCam ${platformId}`);
   showVideoMessage(`Waiting for ${platformId}'s NavCam…`);
   try {
+    performance.mark("watch");
     await api.call("video_watch", { platform_id: platformId }, 10000);
+    performance.mark("watching");
   } catch (error) {
     showVideoMessage(`No video from ${platformId}: ${error.message}`);
   }
@@ -87,14 +90,18 @@ const api = new StationApi(`${location.protocol === "https:" ? "wss" : "ws"}://$
 });
 
 async function subscribe() {
+  performance.mark("station-open");
   const hello = await api.call("console_subscribe");
   state.session = hello.session;
-  await measureClock();
+  measureClock().catch((error) => console.warn("clock offset not measured", error));
   if (state.current) {
     await api.call("connect", { platform_id: state.current }, 8000).catch(() => {});
     await watch(state.current);
+  } else if (requestedPlatform) {
+    await select(requestedPlatform);
   }
 }
+const requestedPlatform = new URLSearchParams(location.search).get("platform"); // ?platform=ID
 
 async function measureClock() {
   // Station clock − page clock, from the best of five round trips (midpoint).

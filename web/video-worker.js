@@ -16,7 +16,7 @@ let canvas = null, context = null, decoder = null;
 let codec = "", waitingForKey = true, lastSeq = -1, feed = -1;
 let clockOffsetMs = 0;
 const inFlight = new Map();
-const stats = { received: 0, decoded: 0, dropped: 0, errors: 0, replayed: 0, gaps: 0, lastLatencyMs: null };
+const stats = { firstDrawMs: 0, received: 0, decoded: 0, dropped: 0, errors: 0, replayed: 0, gaps: 0, lastLatencyMs: null };
 const recent = [];      // latencies of the last ~300 live frames
 const drawnTimes = [];  // draw times of the last second
 let keepAll = null;     // every latency, while a benchmark asks for them
@@ -56,6 +56,7 @@ function draw(frame) {
   context.drawImage(frame, 0, 0);
   frame.close();
   const drawn = now();
+  if (!stats.firstDrawMs) stats.firstDrawMs = drawn;
   stats.decoded += 1;
   drawnTimes.push(drawn);
   while (drawnTimes.length && drawn - drawnTimes[0] > 1000) drawnTimes.shift();
