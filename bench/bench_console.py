@@ -1,7 +1,7 @@
 """The browser console (issue 11): NavCam glass-to-glass in headless Chromium, the station
 daemon's CPU while pages watch, and page open → first frame.
 
-A ``--sim`` platform (640×480 at 30 fps, x264, moving SMPTE bars) and a station daemon run as
+A ``--sim`` platform (640x480 at 30 fps, x264, moving SMPTE bars) and a station daemon run as
 processes; Debian's Chromium (headless, software decoding) opens the console with
 ``?platform=ID``. Latency is capture stamp (platform wall clock) → frame drawn on the page's
 canvas (page wall clock, corrected by the station's clock offset): one host, one clock.

@@ -358,10 +358,20 @@ class ConsoleSection:
     """A console page's drive input lasts this long unless repeated (it sends at 20 Hz): a
     page that goes quiet stops the robot within this plus one $PVEL period."""
     tls_cert: str = ""
-    """PEM certificate for serving the console over HTTPS (an operator on another host: the
-    browser's video decoder needs a secure context). Empty: plain HTTP (loopback)."""
+    """PEM certificate (chain) for serving the console and local API over HTTPS as well, for an
+    operator on another host (the browser's video decoder needs a secure context: plain HTTP
+    qualifies only on 127.0.0.1/localhost). Empty: no HTTPS."""
     tls_key: str = ""
     """PEM private key of ``tls_cert``."""
+    https_host: str = "0.0.0.0"
+    """Where the HTTPS console listens (with ``tls_cert``)."""
+    https_port: int = 8743
+    https_names: list[str] = field(default_factory=list)
+    """Host names (or addresses) operators open the HTTPS console by, e.g. ["station.local"]:
+    any other Host header is refused (DNS rebinding), as on the loopback API."""
+    tls_client_ca: str = ""
+    """PEM CA bundle: when set, HTTPS clients must present a certificate it signed (the local
+    API has no login of its own, and it can move the robot)."""
 
 
 @dataclass

@@ -6,6 +6,8 @@ import asyncio
 import contextlib
 import itertools
 import logging
+import ssl
+from collections.abc import Sequence
 from typing import Any
 
 import aiohttp
@@ -160,16 +162,37 @@ async def serve_app(
 ) -> int:
     """Bind ``app`` on ``host:port`` (0: the kernel chooses), hand it to a supervised
     :class:`WebServer`, and return the bound port. A port in use raises ``OSError``."""
+    ports = await serve_app_sites(app, host, port, supervisor=supervisor, bus=bus, name=name)
+    return ports[0]
+
+
+async def serve_app_sites(
+    app: web.Application,
+    host: str,
+    port: int,
+    *,
+    supervisor: Supervisor,
+    bus: Bus,
+    name: str,
+    tls_sites: Sequence[tuple[str, int, ssl.SSLContext]] = (),
+) -> list[int]:
+    """:func:`serve_app`, and also on each of ``tls_sites`` over TLS (one runner): the bound
+    ports, plain first."""
     runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=0.2)
     await runner.setup()
-    site = web.TCPSite(runner, host, port, reuse_address=True)
+    sites = [web.TCPSite(runner, host, port, reuse_address=True)]
+    sites += [
+        web.TCPSite(runner, tls_host, tls_port, reuse_address=True, ssl_context=context)
+        for tls_host, tls_port, context in tls_sites
+    ]
     try:
-        await site.start()
+        for site in sites:
+            await site.start()
     except OSError:
         await runner.cleanup()
         raise
     supervisor.start(WebServer(bus, runner, name))
-    return int(runner.addresses[0][1]) if runner.addresses else port
+    return [int(address[1]) for address in runner.addresses]
 
 
 async def _read_at_most(stream: aiohttp.StreamReader, limit: int) -> bytes:

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import importlib
 import logging
+import ssl
 from pathlib import Path
 
 from aiohttp import web
 
 from brasidas.actor import Daemon
 from brasidas.codecs.jsonrpc import Dispatcher
-from brasidas.config import StationConfig
-from brasidas.rpc import add_rpc_routes, serve_app
+from brasidas.config import ConfigError, ConsoleSection, StationConfig
+from brasidas.rpc import add_rpc_routes, serve_app_sites
 from stationd.context import StationContext
 
 _LOGGER = logging.getLogger(__name__)
@@ -53,26 +54,57 @@ class StationDaemon(Daemon):
         )
         self.app = web.Application(client_max_size=API_MAX_BYTES)
         self.api_url = ""
+        self.console_https_port: int | None = None
+        """The HTTPS console's bound port (with ``console.tls_cert``)."""
 
     async def start(self) -> None:
+        console = self.config.console
+        tls_sites = []
+        if console.tls_cert:  # a bad certificate stops the daemon before anything starts
+            tls_sites.append((console.https_host, console.https_port, tls_context(console)))
         for name in SUBSYSTEMS:
             await importlib.import_module(name).async_setup(self.ctx)
-        local_hosts = frozenset({"127.0.0.1", "localhost", "[::1]", self.config.station.api_host})
+        local_hosts = frozenset(
+            {"127.0.0.1", "localhost", "[::1]", self.config.station.api_host, *console.https_names}
+        )
         add_rpc_routes(self.app, self.ctx.api, "/api/rpc", API_MAX_BYTES, local_hosts=local_hosts)
         if (WEB_ROOT / "index.html").exists():
             _add_console_routes(self.app)
         station = self.config.station
-        port = await serve_app(
+        port, *tls_ports = await serve_app_sites(
             self.app,
             station.api_host,
             station.api_port,
             supervisor=self.supervisor,
             bus=self.bus,
             name="api",
+            tls_sites=tls_sites,
         )
         station.api_port = port
         self.api_url = f"http://{station.api_host}:{port}"
         _LOGGER.info("station %s up: local API %s", station.id, self.api_url)
+        if tls_ports:
+            self.console_https_port = tls_ports[0]
+            names = ", ".join(console.https_names) or "no host names (console.https_names)"
+            _LOGGER.info("console over HTTPS on port %d for %s", tls_ports[0], names)
+
+
+def tls_context(console: ConsoleSection) -> ssl.SSLContext:
+    """The HTTPS console's server context; ConfigError names the key that cannot be loaded."""
+    if not console.tls_key:
+        raise ConfigError("console.tls_key: required with console.tls_cert")
+    context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    try:
+        context.load_cert_chain(console.tls_cert, console.tls_key)
+    except (OSError, ssl.SSLError) as err:
+        raise ConfigError(f"console.tls_cert: cannot load with console.tls_key: {err}") from None
+    if console.tls_client_ca:
+        try:
+            context.load_verify_locations(console.tls_client_ca)
+        except (OSError, ssl.SSLError) as err:
+            raise ConfigError(f"console.tls_client_ca: cannot load: {err}") from None
+        context.verify_mode = ssl.CERT_REQUIRED
+    return context
 
 
 def _add_console_routes(app: web.Application) -> None:

@@ -216,3 +216,56 @@ async def test_closing_the_page_while_driving_stops_the_robot(
             await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
         finally:
             await browser.close()
+
+
+async def test_a_remote_operator_needs_https_and_gets_video_over_it(
+    platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+) -> None:
+    """Plain HTTP by a host name is no secure context: the page says why there is no video.
+    The HTTPS console (console.tls_cert) by a configured name decodes the NavCam."""
+    from playwright.async_api import async_playwright, expect
+
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    openssl = await asyncio.create_subprocess_exec(
+        "openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256",
+        "-nodes", "-days", "1", "-subj", "/CN=station.test", "-keyout", str(key),
+        "-out", str(cert), stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL,
+    )  # fmt: skip
+    assert await openssl.wait() == 0
+    config = load_config(
+        StationConfig,
+        None,
+        [
+            "station.api_port=0",
+            f"discovery.port={free_udp_port()}",
+            "discovery.bind_host=127.0.0.1",
+            f"console.tls_cert={cert}",
+            f"console.tls_key={key}",
+            "console.https_host=127.0.0.1",
+            "console.https_port=0",
+            'console.https_names=["station.test"]',
+        ],
+    )
+    daemon = StationDaemon(config, fleet_key)
+    await daemon.start()
+    try:
+        await sim_platform(platform_factory, fleet_key, daemon, "web-rover", 23.6530)
+        async with async_playwright() as playwright:
+            browser = await playwright.chromium.launch(
+                executable_path=CHROMIUM,
+                args=[*CHROMIUM_ARGS, "--host-resolver-rules=MAP station.test 127.0.0.1"],
+            )
+            try:
+                context = await browser.new_context(ignore_https_errors=True)
+                page = await context.new_page()
+                await page.goto(f"http://station.test:{config.station.api_port}/")
+                await expect(page.locator("#video-message")).to_contain_text("not a secure context")
+                await page.goto(
+                    f"https://station.test:{daemon.console_https_port}/?platform=web-rover"
+                )
+                await expect(page.locator("#api-state")).to_have_text("station connected")
+                await frames_decoded(page, at_least=5)
+            finally:
+                await browser.close()
+    finally:
+        await daemon.stop()
