@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import time
-from collections.abc import Callable
 from typing import Any
 
 import serial
@@ -23,6 +21,7 @@ from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.backoff import Backoff
 from brasidas.bus import Bus
+from brasidas.clock import Clock, LoopClock, sleep, timeout_at
 from brasidas.codecs.nmea import EpochAssembler, NmeaDecoder
 from brasidas.config import GpsSection
 from brasidas.messages import GpsFix, GpsFixLost, GpsStats, Position
@@ -41,12 +40,11 @@ class GpsReader(Actor):
 
     name = "gps"
 
-    def __init__(
-        self, bus: Bus, config: GpsSection, *, clock: Callable[[], float] = time.monotonic
-    ) -> None:
+    def __init__(self, bus: Bus, config: GpsSection, *, clock: Clock | None = None) -> None:
         super().__init__(bus)
         self.config = config
-        self._clock = clock
+        self.clock: Clock = clock or LoopClock()
+        """Drives fix timeouts, the epoch assembler's deadline, stats and retries."""
         self.decoder = NmeaDecoder()
         self.assembler = EpochAssembler()
         self.fixes = 0
@@ -82,7 +80,7 @@ class GpsReader(Actor):
             except (OSError, ValueError) as err:  # SerialException is an OSError
                 failures += 1
                 self._port_down(f"cannot open {port}: {err}", log=failures == 1)
-                await asyncio.sleep(backoff.next())
+                await sleep(self.clock, backoff.next())
                 continue
             _LOGGER.info("GPS reading %s at %d baud", port, self.config.baudrate)
             self.connected = True
@@ -103,15 +101,13 @@ class GpsReader(Actor):
             failures = 1  # a port that just went away: report once, then retry quietly
             self._port_down(reason, log=True)
             backoff.reset()
-            await asyncio.sleep(backoff.next())
+            await sleep(self.clock, backoff.next())
 
     async def _read(self, reader: asyncio.StreamReader) -> None:
         """Until EOF (returns) or a read error (raises OSError)."""
         while True:
-            deadline = self._next_deadline()
-            delay = None if deadline is None else max(0.0, deadline - self._clock())
             try:
-                async with asyncio.timeout(delay):
+                async with timeout_at(self.clock, self._next_deadline()):
                     data = await reader.read(READ_SIZE)
             except TimeoutError:
                 self._on_timer()
@@ -135,14 +131,14 @@ class GpsReader(Actor):
 
     def feed(self, data: bytes) -> None:
         """Bytes from the receiver; publishes what completes. Runs on the event loop."""
-        now = self._clock()
+        now = self.clock.time()
         self.assembler.touch(now)
         for sentence in self.decoder.feed(data):
             for fix in self.assembler.feed(sentence, now):
                 self._on_epoch(fix, now)
 
     def _on_timer(self) -> None:
-        now = self._clock()
+        now = self.clock.time()
         for fix in self.assembler.poll(now):
             self._on_epoch(fix, now)
         if self._has_fix and now - self._last_fix_at >= self.config.fix_timeout:
@@ -193,17 +189,17 @@ class GpsReader(Actor):
 
     def _publish_stats(self) -> None:
         """Publish the counters if they changed, at most about once a second."""
-        if self._clock() - self._stats_at < 0.9 * STATS_INTERVAL:
+        if self.clock.time() - self._stats_at < 0.9 * STATS_INTERVAL:
             return  # e.g. a port flapping fast: the next tick reports it
         stats = self.stats()
         if stats != self._stats:
             self._stats = stats
-            self._stats_at = self._clock()
+            self._stats_at = self.clock.time()
             self.bus.publish(topics.GPS_STATS, stats)
 
     async def _stats_loop(self) -> None:
         while True:
-            await asyncio.sleep(STATS_INTERVAL)
+            await sleep(self.clock, STATS_INTERVAL)
             self._publish_stats()
 
 

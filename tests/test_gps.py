@@ -7,7 +7,7 @@ import contextlib
 import json
 import os
 import tty
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
 import pytest
@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 
 from brasidas import topics
 from brasidas.bus import Bus
+from brasidas.clock import ManualClock
 from brasidas.codecs.nmea import EpochAssembler, NmeaDecoder, sentence
 from brasidas.config import GpsSection
 from brasidas.messages import GpsFix, GpsFixLost, GpsStats, Position
@@ -88,6 +89,14 @@ class Recorder:
         bus.subscribe(topics.POSITION, self.positions.append)
 
 
+async def advancing(clock: ManualClock, predicate: Callable[[], bool]) -> None:
+    """Let ``clock`` run (0.1 s a step, the loop turning between steps) until ``predicate``."""
+    async with asyncio.timeout(5.0):
+        while not predicate():
+            clock.advance(0.1)
+            await asyncio.sleep(0.002)
+
+
 @contextlib.asynccontextmanager
 async def running(reader: GpsReader) -> AsyncIterator[GpsReader]:
     task = asyncio.create_task(reader.run(), name="test:gps")
@@ -151,7 +160,8 @@ async def test_fix_fields_from_one_epoch() -> None:
 async def test_garbage_dropped_and_counted(pty: Pty) -> None:
     bus = Bus()
     seen = Recorder(bus)
-    reader = GpsReader(bus, GpsSection(port=pty.path))
+    clock = ManualClock()
+    reader = GpsReader(bus, GpsSection(port=pty.path), clock=clock)
     rmc = "GPRMC,120000.00,A,3756.49000,N,02339.18000,E,0.10,45.0,231126,,,A"
     gga = "GPGGA,120000.00,3756.49000,N,02339.18000,E,1,09,0.95,42.0,M,34.0,M,,"
     bad_checksum = sentence(rmc).replace(b"*", b"0*")  # body changed, old checksum
@@ -163,8 +173,11 @@ async def test_garbage_dropped_and_counted(pty: Pty) -> None:
         await pty.write(sentence("GPXYZ,1,2,3"))  # well formed, unknown type
         await pty.write(b"\x00\xff\xb5b" + sentence(rmc))  # noise glued in front of a sentence
         await pty.write(sentence(gga))
-        await wait_until(lambda: len(seen.fixes) == 1)
-        await wait_until(lambda: bool(seen.stats) and seen.stats[-1].sentences == 2, 3.0)
+        await wait_until(lambda: reader.decoder.sentences == 2)
+        # The first fix waits for the end of the receiver's cycle; the counters go out once
+        # a second: both are the clock's business.
+        await advancing(clock, lambda: bool(seen.stats) and seen.stats[-1].sentences == 2)
+        assert len(seen.fixes) == 1
     dropped = seen.stats[-1].dropped
     assert dropped == {"checksum": 1, "malformed": 1, "unknown": 1, "noise": 2}
     assert seen.stats[-1].by_type == {"RMC": 1, "GGA": 1}
@@ -207,23 +220,28 @@ async def test_vanished_port_is_retried_and_a_new_one_works() -> None:
     seen = Recorder(bus)
     first, second = Pty(), Pty()
     config = GpsSection(port=first.path, fix_timeout=30.0)
-    reader = GpsReader(bus, config)
+    clock = ManualClock()
+    reader = GpsReader(bus, config, clock=clock)
     try:
         async with running(reader):
             await wait_until(lambda: reader.connected)
             await first.write(epoch(0))
-            await wait_until(lambda: len(seen.fixes) == 1)
+            await wait_until(lambda: reader.decoder.sentences == 2)
+            await advancing(clock, lambda: len(seen.fixes) == 1)
             first.close()  # the USB adapter is pulled
             await wait_until(lambda: not reader.connected)
             await wait_until(lambda: len(seen.lost) == 1)
             assert first.path in seen.lost[0].reason
-            await wait_until(lambda: bool(seen.stats) and not seen.stats[-1].connected)
+            await advancing(clock, lambda: bool(seen.stats) and not seen.stats[-1].connected)
             assert seen.stats[-1].error
-            await asyncio.sleep(0.5)  # a few failed reopen attempts, no crash
+            gone_at = clock.time()
+            await advancing(clock, lambda: clock.time() > gone_at + 5)  # reopen attempts fail
+            assert not reader.connected
             config.port = second.path
-            await wait_until(lambda: reader.connected)
+            await advancing(clock, lambda: reader.connected)
             await second.write(epoch(1))
-            await wait_until(lambda: len(seen.fixes) == 2)
+            await wait_until(lambda: reader.decoder.sentences == 2)  # the decoder starts over
+            await advancing(clock, lambda: len(seen.fixes) == 2)
     finally:
         first.close()
         second.close()
@@ -232,15 +250,20 @@ async def test_vanished_port_is_retried_and_a_new_one_works() -> None:
 async def test_silent_receiver_loses_the_fix(pty: Pty) -> None:
     bus = Bus()
     seen = Recorder(bus)
-    reader = GpsReader(bus, GpsSection(port=pty.path, fix_timeout=0.5))
+    clock = ManualClock()
+    reader = GpsReader(bus, GpsSection(port=pty.path, fix_timeout=0.5), clock=clock)
     async with running(reader):
         await wait_until(lambda: reader.connected)
         await pty.write(epoch(0))
-        await wait_until(lambda: len(seen.fixes) == 1)
-        await wait_until(lambda: len(seen.lost) == 1)  # the antenna cable is cut: silence
+        await wait_until(lambda: reader.decoder.sentences == 2)
+        await advancing(clock, lambda: len(seen.fixes) == 1)
+        fixed_at = clock.time()
+        await advancing(clock, lambda: len(seen.lost) == 1)  # the antenna cable is cut
         assert seen.lost[0].reason == "no fix for 0.5 s"
+        assert 0.5 <= clock.time() - fixed_at <= 0.6
         await pty.write(epoch(5))
-        await wait_until(lambda: len(seen.fixes) == 2)
+        await wait_until(lambda: reader.decoder.sentences == 4)
+        await advancing(clock, lambda: len(seen.fixes) == 2)
     assert len(seen.lost) == 1
 
 
