@@ -3,9 +3,11 @@ own lists (R-9), a station connecting and driving over the test network's bridge
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from netns import (
@@ -20,6 +22,7 @@ from netns import (
     wait_for,
 )
 
+from brasidas.netem.core import Profile
 from brasidas.netem.netns import TestNetwork
 
 pytestmark = requires_netns
@@ -29,11 +32,12 @@ network = network_fixture("disc")
 @pytest.fixture(scope="module")
 def fleet(network: TestNetwork, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
     fleet = Fleet(network, Path(tmp_path_factory.mktemp("fleet")))
-    broadcast_host = network.add_host("rover1")
+    broadcast_host = network.add_host("rover1", impaired=True)
     multicast_host = network.add_host("rover2")
     plain_station = network.add_host("st1")
     group_station = network.add_host("st2")
-    fleet.platform(broadcast_host, "rover-1", *QUIET)
+    # rover-1 streams its (simulated) NavCam across the link emulator.
+    fleet.platform(broadcast_host, "rover-1", *QUIET, "navcam.enabled=true")
     fleet.platform(multicast_host, "rover-2", *QUIET, destinations=(MULTICAST_GROUP,))
     fleet.station(plain_station, "station-1")
     fleet.station(group_station, "station-2", f'discovery.groups=["{MULTICAST_GROUP}"]')
@@ -99,3 +103,46 @@ async def test_each_platform_keeps_its_own_list(fleet: Fleet) -> None:
     assert await wait_for(lambda: platform_list("rover-2", rover2.address), 10) == ["rover-1"]
     assert await platform_list("rover-1", rover1.address) == []
     print(f"\nrover-2 lists {await platform_list('rover-2', rover2.address)}, rover-1 lists []")
+
+
+async def test_video_across_a_lossy_link_recovers_at_the_next_keyframe(fleet: Fleet) -> None:
+    station = next(d for d in fleet.daemons if d.name == "station-1")
+    relay = fleet.net.hosts["rover1"].relay
+    assert relay is not None
+    await fleet.wait_listening(station, "127.0.0.1", 8780)
+    await wait_for(lambda: _listed(fleet, station, "rover-1"), 20)
+    await fleet.api(station, "receive", platform_id="rover-1", stream="navcam")
+
+    async def receiver() -> dict[str, Any]:
+        [entry] = [r for r in await fleet.api(station, "receivers") if "navcam" in r["name"]]
+        return dict(entry)
+
+    await wait_for(lambda: _frames_at_least(receiver, 5), 20)
+    clean = await receiver()
+    relay.set_profiles(up=Profile(loss=0.02))  # platform → station: the video's direction
+    try:
+        await asyncio.sleep(6)
+        lossy = await receiver()
+    finally:
+        relay.clear()
+    await fleet.api(station, "stop_receive", platform_id="rover-1", stream="navcam")
+    frames = lossy["frames"] - clean["frames"]
+    lost = lossy["rtp_lost"] - clean["rtp_lost"]
+    packets = lossy["rtp_packets"] - clean["rtp_packets"]
+    print(
+        f"\nNavCam over 2 % loss for 6 s: {packets} RTP packets received, {lost} reported lost "
+        f"by the station, {frames} frames decoded, longest freeze "
+        f"{lossy['longest_freeze_ms']:.0f} ms (keyframe every second; "
+        f"{clean['longest_freeze_ms']:.0f} ms on the clean link)"
+    )
+    assert lost > 0  # the station sees and reports the loss
+    assert frames > 0  # the picture comes back
+    assert lossy["longest_freeze_ms"] < 2500  # next keyframe; two if one is hit too
+
+
+async def _listed(fleet: Fleet, station: Any, platform_id: str) -> bool:
+    return platform_id in _ids(await fleet.api(station, "list_platforms"))
+
+
+async def _frames_at_least(receiver: Any, count: int) -> bool:
+    return int((await receiver())["frames"]) >= count

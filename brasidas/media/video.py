@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import collections
 import statistics
+import time
 import weakref
 from dataclasses import dataclass
 from typing import Any
@@ -308,12 +309,41 @@ class VideoIn(PipelineStream):
         self.latencies: collections.deque[float] = collections.deque(maxlen=window)
         """Recent glass-to-glass latencies (ms), appended on the streaming thread."""
         self.last_latency_ms: float | None = None
+        self.rtp_packets = 0
+        self.rtp_lost = 0
+        """RTP sequence numbers skipped (packets lost on the way, or late beyond reorder)."""
+        self._last_seq: int | None = None
+        self.last_frame_at: float | None = None
+        self.longest_freeze_ms = 0.0
+        """The longest wait between two decoded frames (a loss freezes to the next keyframe)."""
 
     def destination(self) -> str:
         return f"{self.host}:{self.port}"
 
     def describe(self) -> dict[str, Any]:
-        return {**super().describe(), **self.latency_stats()}
+        return {
+            **super().describe(),
+            **self.latency_stats(),
+            "rtp_packets": self.rtp_packets,
+            "rtp_lost": self.rtp_lost,
+            "longest_freeze_ms": round(self.longest_freeze_ms, 1),
+        }
+
+    def count_packet(self, seq: int) -> None:
+        """Streaming thread: one RTP packet; a gap in the sequence counts as lost."""
+        self.rtp_packets += 1
+        if self._last_seq is not None:
+            gap = (seq - self._last_seq) & 0xFFFF
+            if gap >= 0x8000:  # older than the last: late or duplicated, not a gap
+                return
+            self.rtp_lost += max(0, gap - 1)
+        self._last_seq = seq
+
+    def count_frame(self, now: float) -> None:
+        """Streaming thread: one decoded frame."""
+        if self.last_frame_at is not None:
+            self.longest_freeze_ms = max(self.longest_freeze_ms, (now - self.last_frame_at) * 1000)
+        self.last_frame_at = now
 
     def latency_stats(self) -> dict[str, Any]:
         values = sorted(self.latencies)
@@ -368,6 +398,7 @@ def _latency_probe(pad: Any, info: Any, data: tuple[weakref.ref[VideoIn], Any]) 
     if stream is None:
         return gst().PadProbeReturn.OK
     stream.frames += 1
+    stream.count_frame(time.monotonic())
     buffer = info.get_buffer()
     if buffer is not None:
         age = capture_age_ms(buffer, reference)
@@ -384,4 +415,7 @@ def _bytes_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
     buffer = info.get_buffer()
     if stream is not None and buffer is not None:
         stream.rtp_bytes += buffer.get_size()
+        header = buffer.extract_dup(0, 4)
+        if len(header) == 4:
+            stream.count_packet(int.from_bytes(header[2:4], "big"))
     return gst().PadProbeReturn.OK
