@@ -6,9 +6,8 @@ import asyncio
 import contextlib
 import itertools
 import logging
-import ssl
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import aiohttp
 from aiohttp import web
@@ -31,6 +30,9 @@ from brasidas.codecs.jsonrpc import (
     encode_request,
     read_answer,
 )
+
+if TYPE_CHECKING:
+    import ssl  # only the station's HTTPS console: the platform keeps ssl out (~4 MB)
 
 _LOGGER = logging.getLogger(__name__)
 
