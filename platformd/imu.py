@@ -50,6 +50,7 @@ from brasidas.drivers.mpu6050 import (
 )
 from brasidas.madgwick import Madgwick, euler_deg
 from brasidas.messages import Attitude, ImuStatus
+from brasidas.threads import in_daemon_thread
 from platformd.context import PlatformContext
 
 _LOGGER = logging.getLogger(__name__)
@@ -61,6 +62,8 @@ ATTITUDE_INTERVAL = 0.1
 BATCH_SECONDS = 0.1
 TEMPERATURE_INTERVAL = 1.0
 """FIFO mode: seconds between reads of the chip temperature."""
+HEALTHY_AFTER = 10.0
+"""A sampler that ran this long before failing restarts the backoff from its start."""
 MAX_CONSECUTIVE_ERRORS = 10
 """Read errors in a row before the device is declared gone and reopened."""
 
@@ -170,7 +173,9 @@ class ImuReader(Actor):
         backoff = Backoff(BACKOFF_INITIAL, BACKOFF_MAX)
         failures = 0
         while True:
-            opening = loop.run_in_executor(None, self._open)
+            # A thread of its own: an open hung in the kernel must not hold an executor worker
+            # (which would keep the process from exiting).
+            opening: asyncio.Future[Mpu6050Driver] = in_daemon_thread("imu-open", self._open)
             try:
                 driver = await asyncio.shield(opening)
             except asyncio.CancelledError:
@@ -180,6 +185,12 @@ class ImuReader(Actor):
             except (OSError, ImuError) as err:
                 failures += 1
                 self._set_error(str(err), log=failures == 1)
+                await asyncio.sleep(backoff.next())
+                continue
+            except Exception as err:  # a driver bug or a bus misbehaving: reported, retried
+                failures += 1
+                _LOGGER.debug("IMU open failed", exc_info=True)
+                self._set_error(f"open failed: {type(err).__name__}: {err}", log=failures == 1)
                 await asyncio.sleep(backoff.next())
                 continue
             _LOGGER.info(
@@ -193,9 +204,11 @@ class ImuReader(Actor):
             self._last_time = None
             self.gyro_bias = GyroBias(round(self.config.calibrate_s * self.config.rate_hz))
             self._publish_status()
+            started = loop.time()
             reason = await self._sample(driver, loop)
             failures = 1
-            backoff.reset()
+            if loop.time() - started > HEALTHY_AFTER:
+                backoff.reset()  # else a sampler failing at once is restarted ever more slowly
             self._set_error(reason, log=True)
             await asyncio.sleep(backoff.next())
 
@@ -249,9 +262,17 @@ class ImuReader(Actor):
         loop: asyncio.AbstractEventLoop,
         failed: asyncio.Future[str],
     ) -> None:
-        """The sampling thread: reads at ``rate_hz`` on a steady clock, hands over batches."""
+        """The sampling thread: reads at ``rate_hz`` on a steady clock, hands over batches.
+
+        Whatever ends it is reported through ``failed`` (an IMU error, then a restart): a
+        thread dying quietly would leave a frozen attitude reported as healthy."""
         try:
             self._sample_until(driver, stop, loop, failed)
+            if not stop.is_set():
+                self._to_loop(loop, _set_result, failed, "sampler ended unexpectedly")
+        except BaseException as err:  # the thread's boundary: nothing may end it unreported
+            _LOGGER.error("IMU sampler failed", exc_info=True)
+            self._to_loop(loop, _set_result, failed, f"sampler failed: {type(err).__name__}: {err}")
         finally:
             driver.bus.close()
 

@@ -335,6 +335,40 @@ async def running(reader: ImuReader) -> AsyncIterator[ImuReader]:
             await task
 
 
+class FaultyMotion:
+    """A level chip whose emulation raises once when armed: not an OSError (a driver or
+    conversion bug, a bus library raising something else)."""
+
+    def __init__(self) -> None:
+        self.armed = False
+
+    def __call__(self, now: float) -> Motion:
+        if self.armed:
+            self.armed = False
+            raise RuntimeError("emulated chip fault")
+        return LEVEL
+
+
+@pytest.mark.parametrize("fifo", [True, False], ids=["fifo", "burst"])
+async def test_sampler_thread_failure_is_reported_and_sampling_restarts(fifo: bool) -> None:
+    bus = Bus()
+    seen = Recorder(bus)
+    motion = FaultyMotion()
+    chip = Mpu6050(motion)
+    reader = ImuReader(bus, ImuSection(fifo=fifo), lambda number: EmulatedI2CBus({0x68: chip}))
+    async with running(reader):
+        await wait_until(lambda: reader.samples > 20)
+        motion.armed = True
+        # Reported as an IMU error on IMU_STATUS: not a frozen attitude that looks healthy.
+        await wait_until(lambda: any("RuntimeError" in s.error for s in seen.statuses))
+        failed = next(s for s in seen.statuses if "RuntimeError" in s.error)
+        assert not failed.ok and "emulated chip fault" in failed.error
+        # The actor restarts the sampler (with backoff) and the attitude flows again.
+        count = reader.samples
+        await wait_until(lambda: reader.samples > count + 20)
+        assert reader.status().ok and reader.error == ""
+
+
 @pytest.mark.parametrize("fifo", [True, False], ids=["fifo", "burst"])
 async def test_actor_turn_through_emulated_chip(fifo: bool) -> None:
     bus = Bus()
