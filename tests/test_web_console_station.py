@@ -7,6 +7,7 @@ One browser and one page for the whole scenario (each launch costs seconds here)
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import re
 import shutil
@@ -31,8 +32,8 @@ SCREENSHOT = Path(__file__).resolve().parent.parent / "docs" / "console.png"
 """Kept current in the README: written when BRASIDAS_SCREENSHOT=1."""
 
 
-@pytest.fixture
-async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
+@contextlib.asynccontextmanager
+async def running_station(key: bytes, *overrides: str) -> AsyncIterator[StationDaemon]:
     config = load_config(
         StationConfig,
         None,
@@ -40,12 +41,22 @@ async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
             "station.api_port=0",
             f"discovery.port={free_udp_port()}",
             "discovery.bind_host=127.0.0.1",
+            *overrides,
         ],
     )
-    daemon = StationDaemon(config, fleet_key)
+    daemon = StationDaemon(config, key)
     await daemon.start()
-    yield daemon
-    await daemon.stop()
+    try:
+        yield daemon
+    finally:
+        await daemon.stop()
+
+
+@pytest.fixture
+async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
+    # The CLI's drive timeout far away: only the console's own stops can stop the robot in time.
+    async with running_station(fleet_key, "teleop.drive_timeout=30") as daemon:
+        yield daemon
 
 
 async def sim_platform(
@@ -191,21 +202,34 @@ async def test_operator_station_in_the_browser(
             await browser.close()
 
 
-async def test_closing_the_page_while_driving_stops_the_robot(
-    station: StationDaemon, platform_factory: Factory, fleet_key: bytes
+async def test_warnings_flash_until_acknowledged_and_a_closed_page_stops_the_robot(
+    platform_factory: Factory, fleet_key: bytes
 ) -> None:
-    """The station's safety net: the page's socket closes with no JavaScript left to stop."""
+    """A group 90 warning (low battery: the simulated pack's 24.7 V is under a 30 V limit)
+    flashes until the operator acknowledges it. Then the station's safety net: the page's
+    socket closes while a key is held, with no JavaScript left to send a stop."""
     from playwright.async_api import async_playwright, expect
 
-    rover = await sim_platform(platform_factory, fleet_key, station, "web-rover", 23.6530)
-    async with async_playwright() as playwright:
+    async with (
+        running_station(
+            fleet_key, "telemetry.battery_low_v=30", "telemetry.battery_clear_v=31"
+        ) as station,
+        async_playwright() as playwright,
+    ):
+        rover = await sim_platform(platform_factory, fleet_key, station, "web-rover", 23.6530)
         browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         try:
             page = await browser.new_page()
-            await page.goto(f"http://127.0.0.1:{station.config.station.api_port}/")
-            await page.locator('#platforms tr[data-platform="web-rover"] button.connect').click(
-                timeout=10_000
+            await page.goto(
+                f"http://127.0.0.1:{station.config.station.api_port}/?platform=web-rover"
             )
+            warning = page.locator("#annunciator button.warning", has_text="web-rover")
+            await expect(warning).to_have_class(re.compile("unacknowledged"), timeout=10_000)
+            await expect(warning).to_have_attribute("aria-pressed", "false")
+            await warning.click()
+            await expect(warning).to_have_attribute("aria-pressed", "true")
+            await expect(warning).not_to_have_class(re.compile("unacknowledged"))
+
             override = page.get_by_role("button", name="manual override")
             await override.click()
             await expect(override).to_have_attribute("aria-pressed", "true", timeout=10_000)

@@ -125,7 +125,14 @@ api.on("connections", (connections) => {
 });
 api.on("telemetry", (report) => {
   state.telemetry.set(report.platform_id, { report, at: performance.now() });
+  // The report lists the warnings active now: one missing there has cleared (a clearing
+  // notification can be missed while the socket reconnects).
+  const active = new Set((report.warnings ?? []).map((warning) => warning.name));
+  for (const [key, { note }] of state.warnings) {
+    if (note.platform_id === report.platform_id && !active.has(note.name)) state.warnings.delete(key);
+  }
   for (const warning of report.warnings ?? []) noteWarning({ ...warning, platform_id: report.platform_id, active: true });
+  renderAnnunciator();
   if (report.platform_id === state.current) { renderStatus(); renderControls(); }
   updateMap(report.platform_id);
 });

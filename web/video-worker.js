@@ -11,12 +11,13 @@
 // platform's and station's clocks agree (one host on loopback; NTP between hosts otherwise).
 
 const HEADER = 24;
+const LATE_MS = 150; // a delta frame that reached the station longer ago than this is skipped
 const FLAG_KEY = 1, FLAG_REPLAYED = 2;
 let canvas = null, context = null, decoder = null;
 let codec = "", waitingForKey = true, lastSeq = -1, feed = -1;
 let clockOffsetMs = 0;
 const inFlight = new Map();
-const stats = { firstDrawMs: 0, received: 0, decoded: 0, dropped: 0, errors: 0, replayed: 0, gaps: 0, lastLatencyMs: null };
+const stats = { firstDrawMs: 0, late: 0, received: 0, decoded: 0, dropped: 0, errors: 0, replayed: 0, gaps: 0, lastLatencyMs: null };
 const recent = [];      // latencies of the last ~300 live frames
 const drawnTimes = [];  // draw times of the last second
 let keepAll = null;     // every latency, while a benchmark asks for them
@@ -73,7 +74,7 @@ function onFrame(buffer) {
   const view = new DataView(buffer);
   if (buffer.byteLength <= HEADER || view.getUint8(0) !== 1) return;
   const flags = view.getUint8(1), number = view.getUint16(2), seq = view.getUint32(4);
-  const captureMs = view.getFloat64(8);
+  const captureMs = view.getFloat64(8), arrivalMs = view.getFloat64(16);
   const key = (flags & FLAG_KEY) !== 0, replayed = (flags & FLAG_REPLAYED) !== 0;
   const data = new Uint8Array(buffer, HEADER);
   stats.received += 1;
@@ -86,11 +87,14 @@ function onFrame(buffer) {
     if (found && found !== codec) { codec = found; makeDecoder(); }
     waitingForKey = false;
   }
-  // Freeze instead of smearing: nothing but a keyframe after a gap; and a decoder that is
-  // falling behind skips to the next keyframe as the station does.
-  if (waitingForKey || !codec || decoder.state !== "configured" || (!key && decoder.decodeQueueSize > 4)) {
+  // Freeze instead of smearing: nothing but a keyframe after a gap. A page that falls behind
+  // (its decoder's queue grows, or frames sat in socket buffers: late against the station's
+  // arrival stamp) skips to the next keyframe, as the station does for its send queue.
+  const behind = !key && !replayed && decoder &&
+    (decoder.decodeQueueSize > 4 || now() + clockOffsetMs - arrivalMs > LATE_MS);
+  if (behind) { stats.late += 1; waitingForKey = true; }
+  if (waitingForKey || !codec || decoder.state !== "configured") {
     stats.dropped += 1;
-    if (!key && decoder && decoder.decodeQueueSize > 4) waitingForKey = true;
     return;
   }
   inFlight.set(seq, { captureMs, replayed });
