@@ -4,15 +4,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from brasidas.actor import Supervisor
 from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.config import PlatformConfig
-
-if TYPE_CHECKING:  # sessions imports this module
-    from platformd.sessions import Session, SessionManager
+from platformd.session_table import Session, SessionTable
 
 
 @dataclass
@@ -26,8 +24,8 @@ class PlatformContext:
     """None only with --insecure."""
     signaling_url: str = ""
     """Where stations reach signaling; set once the server is bound."""
-    sessions: SessionManager | None = None
-    """The session manager, set by its setup (platformd.sessions)."""
+    sessions: SessionTable = field(default_factory=SessionTable)
+    """The open sessions, kept by the session manager (platformd.sessions)."""
     capabilities: dict[str, Callable[[], Any]] = field(default_factory=dict)
     """Sections of the ``connect`` answer's capabilities, each computed when asked."""
     telemetry_sources: dict[str, Callable[[], Any]] = field(default_factory=dict)
@@ -39,10 +37,8 @@ class PlatformContext:
 
     def session(self, session_id: str | None) -> Session | None:
         """The open session with this token, or None."""
-        if self.sessions is None or session_id is None:
-            return None
-        return self.sessions.sessions.get(session_id)
+        return self.sessions.get(session_id)
 
     @property
     def session_count(self) -> int:
-        return len(self.sessions.sessions) if self.sessions is not None else 0
+        return len(self.sessions)

@@ -49,7 +49,7 @@ class ModeArbiter(Actor):
                 return CommandResult(False, f"manual override held by {self.state.station_id}")
             if session_id is None:
                 return CommandResult(False, "manual override needs a station session")
-            session = self.ctx.sessions.sessions.get(session_id) if self.ctx.sessions else None
+            session = self.ctx.session(session_id)
             station = session.station_id if session else None
             self._set(OverrideState(True, session_id, station))
             return CommandResult(True, result={"engaged": True})

@@ -16,7 +16,6 @@ import secrets
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 from brasidas import __version__, security, topics
@@ -25,6 +24,7 @@ from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError, Unaut
 from brasidas.messages import SessionClosed, SessionOpened
 from brasidas.security import accept_proof, connect_proof
 from platformd.context import PlatformContext
+from platformd.session_table import Session
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -32,18 +32,9 @@ MAX_PENDING_CHALLENGES = 256
 CHALLENGE_LIFETIME = 10.0
 
 
-@dataclass
-class Session:
-    session_id: str
-    station_id: str
-    peer_host: str
-    session_key: bytes | None
-    opened_at: float
-    last_seen: float
-
-
 class SessionManager(Actor):
-    """Owns the sessions; its ``run`` expires silent ones."""
+    """Opens, refreshes and closes the sessions of ``ctx.sessions``; its ``run`` expires
+    silent ones."""
 
     name = "sessions"
 
@@ -51,9 +42,9 @@ class SessionManager(Actor):
         super().__init__(ctx.bus)
         self.ctx = ctx
         self._clock = clock
-        self.sessions: dict[str, Session] = {}
+        self.table = ctx.sessions
+        self.sessions: dict[str, Session] = ctx.sessions.sessions
         self._challenges: OrderedDict[str, float] = OrderedDict()
-        self.auth_failures = 0
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -92,7 +83,7 @@ class SessionManager(Actor):
         # A token is good only from the host that connected: one captured on the mesh and
         # replayed from elsewhere is refused (a TCP peer address cannot be spoofed blind).
         if session is None or (call.peer_host and call.peer_host != session.peer_host):
-            self.auth_failures += 1
+            self.table.auth_failures += 1
             raise Unauthorized("unauthorized: no valid session")
         session.last_seen = self._clock()
         call.session = session
@@ -139,7 +130,7 @@ class SessionManager(Actor):
                 or expires < self._clock()
                 or not security.verify(expected.encode(), proof.encode())
             ):
-                self.auth_failures += 1
+                self.table.auth_failures += 1
                 _LOGGER.warning(
                     "refused connect from %s (%s): bad proof", call.peer_host, station_id
                 )
@@ -226,5 +217,4 @@ async def async_setup(ctx: PlatformContext) -> None:
     ctx.rpc.add("connect", manager.rpc_connect, session_required=False)
     ctx.rpc.add("disconnect", manager.rpc_disconnect)
     ctx.rpc.add("heartbeat", manager.rpc_heartbeat)
-    ctx.sessions = manager
     ctx.supervisor.start(manager)

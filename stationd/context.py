@@ -3,17 +3,30 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from brasidas.actor import Supervisor
 from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import UNAVAILABLE, Dispatcher, RpcError
 from brasidas.config import StationConfig
+from brasidas.messages import Velocity
+from stationd.client import PlatformConnection
 
-if TYPE_CHECKING:
-    from stationd.client import PlatformConnection
-    from stationd.connections import ConnectionManager
-    from stationd.teleop import Teleop
+
+class Connector(Protocol):
+    """What the context needs of the connection manager (stationd.connections)."""
+
+    async def ensure(self, platform_id: str, url: str = "") -> PlatformConnection:
+        """The open connection to ``platform_id``, connecting first if needed."""
+        ...
+
+
+class DriveInputs(Protocol):
+    """What the context needs of the teleop actor (stationd.teleop)."""
+
+    def set_drive(self, platform_id: str, velocity: Velocity) -> None:
+        """The operator's velocity for ``platform_id`` now (it lapses unless repeated)."""
+        ...
 
 
 @dataclass
@@ -26,9 +39,9 @@ class StationContext:
     fleet_key: bytes | None
     connections: dict[str, PlatformConnection] = field(default_factory=dict)
     """Open platform connections by platform id."""
-    connection_manager: ConnectionManager | None = None
+    connection_manager: Connector | None = None
     """Set by stationd.connections: ``await ctx.connection_manager.ensure(platform_id)``."""
-    teleop: Teleop | None = None
+    teleop: DriveInputs | None = None
     """Set by stationd.teleop: the velocity senders and the operator's drive inputs."""
 
     async def connection(self, platform_id: str) -> PlatformConnection:

@@ -254,12 +254,11 @@ class TelemetryAggregator(Actor):
     def diagnostics_section(self) -> dict[str, Any] | None:
         if not self.diagnostics:
             return None
-        sessions = self.ctx.sessions
         return {
             "actor_restarts": dict(self.ctx.supervisor.restarts),
             "bus_delivery_errors": self.bus.delivery_errors,
             "rpc": dict(self.ctx.rpc.counters),
-            "auth_failures": sessions.auth_failures if sessions is not None else None,
+            "auth_failures": self.ctx.sessions.auth_failures,
             "telemetry": self.counters(),
             "gps": to_plain(self.latest.get("gps_stats")),
             "imu": to_plain(self.latest.get("imu")),
