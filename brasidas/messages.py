@@ -115,6 +115,17 @@ class PlatformSighting:
 
 
 @dataclass(frozen=True)
+class PlatformLink:
+    """Station side: a session with a platform opened or ended (stationd.connections).
+    The connection itself is ``ctx.connections[platform_id]`` while its session is open."""
+
+    platform_id: str
+    session_id: str
+    reason: str = ""
+    """Why it ended (PLATFORM_DISCONNECTED only)."""
+
+
+@dataclass(frozen=True)
 class Velocity:
     """Platform-agnostic velocity: linear x and angular z, each in [-1, 1] (R-2.2)."""
 

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 from brasidas.bus import Topic
 from brasidas.messages import (
     Attitude,
@@ -16,6 +14,7 @@ from brasidas.messages import (
     MotionState,
     OverrideState,
     PlatformHealth,
+    PlatformLink,
     PlatformSighting,
     Position,
     SessionClosed,
@@ -44,9 +43,10 @@ LIGHTS_STATE: Topic[LightsState] = Topic("lights_state", retain=True)
 POSITION: Topic[Position] = Topic("position", retain=True)
 
 # --------------------------------------------------------------------------- station
-# Published by the station's connection manager with the stationd.client.PlatformConnection.
-PLATFORM_CONNECTED: Topic[Any] = Topic("platform_connected")
-PLATFORM_DISCONNECTED: Topic[Any] = Topic("platform_disconnected")
+PLATFORM_CONNECTED: Topic[PlatformLink] = Topic("platform_connected")
+"""A session with a platform opened (stationd.connections); the connection is in ctx.connections."""
+PLATFORM_DISCONNECTED: Topic[PlatformLink] = Topic("platform_disconnected")
+"""That session ended (closed, lost or refused), with the reason."""
 PLATFORM_DISCOVERED: Topic[PlatformSighting] = Topic("platform_discovered")
 """A platform's first beacon (stationd.discovery)."""
 PLATFORM_LOST: Topic[PlatformSighting] = Topic("platform_lost")

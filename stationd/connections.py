@@ -15,6 +15,7 @@ from brasidas import topics
 from brasidas.actor import Actor, wait_forever
 from brasidas.codecs.commands import MAIN_LIGHTS, MANUAL_OVERRIDE, POSITIONAL_LIGHTS
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, RpcError
+from brasidas.messages import PlatformLink
 from stationd.client import AuthenticationError, PlatformConnection
 from stationd.context import StationContext
 
@@ -76,7 +77,9 @@ class ConnectionManager(Actor):
             if self._watchers is not None:
                 self._watchers.create_task(self._watch(connection), name=f"watch:{platform_id}")
             _LOGGER.info("connected to %s at %s", platform_id, url)
-            self.bus.publish(topics.PLATFORM_CONNECTED, connection)
+            self.bus.publish(
+                topics.PLATFORM_CONNECTED, PlatformLink(platform_id, connection.session_id)
+            )
             return connection
 
     async def _resolve(self, platform_id: str) -> str:
@@ -95,7 +98,10 @@ class ConnectionManager(Actor):
         )
         with contextlib.suppress(Exception):
             await connection.close()
-        self.bus.publish(topics.PLATFORM_DISCONNECTED, connection)
+        self.bus.publish(
+            topics.PLATFORM_DISCONNECTED,
+            PlatformLink(connection.platform_id, connection.session_id, connection.close_reason),
+        )
 
     def connected(self, platform_id: str) -> PlatformConnection:
         connection = self.ctx.connections.get(platform_id)

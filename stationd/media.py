@@ -36,6 +36,7 @@ from brasidas.media.audio import AudioIn, AudioOut, AudioSettings
 from brasidas.media.gst import NTP64_EXT_ID, NTP64_URI, MediaError
 from brasidas.media.pipeline import PipelineStream, StreamState
 from brasidas.media.video import PAYLOAD_TYPE, VideoIn
+from brasidas.messages import PlatformLink
 from stationd.context import StationContext
 
 _LOGGER = logging.getLogger(__name__)
@@ -115,8 +116,8 @@ class StationMedia(Actor):
         self.receivers.clear()
         await asyncio.gather(*(r.stop() for r in receivers), return_exceptions=True)
 
-    def _on_disconnected(self, connection: Any) -> None:
-        for key in [key for key in self.receivers if key[0] == connection.platform_id]:
+    def _on_disconnected(self, link: PlatformLink) -> None:
+        for key in [key for key in self.receivers if key[0] == link.platform_id]:
             if self._group is not None:
                 self._group.create_task(self._stop_receiver(key), name=f"media:stop:{key[1]}")
 

@@ -25,7 +25,7 @@ from brasidas.backoff import Backoff
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
 from brasidas.codecs.pvel import PvelEncoder
 from brasidas.config import TeleopSection
-from brasidas.messages import Velocity
+from brasidas.messages import PlatformLink, Velocity
 from stationd.client import PlatformConnection
 from stationd.context import StationContext
 from stationd.joystick import JoystickReader
@@ -169,13 +169,18 @@ class Teleop(Actor):
             self.subscribe(topics.PLATFORM_CONNECTED, self._on_connected)
             self.subscribe(topics.PLATFORM_DISCONNECTED, self._on_disconnected)
             for connection in list(self.ctx.connections.values()):
-                self._on_connected(connection)
+                self._start_sender(connection)
             try:
                 await wait_forever()
             finally:
                 self._group = None
 
-    def _on_connected(self, connection: PlatformConnection) -> None:
+    def _on_connected(self, link: PlatformLink) -> None:
+        connection = self.ctx.connections.get(link.platform_id)
+        if connection is not None and connection.session_id == link.session_id:
+            self._start_sender(connection)
+
+    def _start_sender(self, connection: PlatformConnection) -> None:
         if self._group is None or connection.closed.is_set():
             return
         platform_id = connection.platform_id
@@ -193,8 +198,8 @@ class Teleop(Actor):
             if self.senders.get(sender.connection.platform_id) is sender:
                 del self.senders[sender.connection.platform_id]
 
-    def _on_disconnected(self, connection: PlatformConnection) -> None:
-        self._drive.pop(connection.platform_id, None)
+    def _on_disconnected(self, link: PlatformLink) -> None:
+        self._drive.pop(link.platform_id, None)
 
     def _note_engaged(self, platform_id: str) -> None:
         self.last_engaged = platform_id

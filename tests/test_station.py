@@ -11,6 +11,7 @@ from conftest import free_tcp_port, quiet_platform_config, wait_until
 
 from brasidas import topics
 from brasidas.config import StationConfig, load_config
+from brasidas.messages import PlatformLink
 from platformd.app import PlatformDaemon
 from stationd import cli
 from stationd.daemon import StationDaemon
@@ -99,14 +100,19 @@ async def test_platform_going_away_is_noticed(
     station: StationDaemon, platform_factory: Factory, fleet_key: bytes
 ) -> None:
     platform = await platform_factory(quiet_platform_config(), fleet_key)
-    lost: list[str] = []
-    station.bus.subscribe(topics.PLATFORM_DISCONNECTED, lambda c: lost.append(c.platform_id))
+    opened: list[PlatformLink] = []
+    lost: list[PlatformLink] = []
+    station.bus.subscribe(topics.PLATFORM_CONNECTED, opened.append)
+    station.bus.subscribe(topics.PLATFORM_DISCONNECTED, lost.append)
     code, _, _ = await run_cli(
         station, "connect", "brasidas-1", "--url", platform.ctx.signaling_url
     )
     assert code == 0
+    session_id = station.ctx.connections["brasidas-1"].session_id
+    assert opened == [PlatformLink("brasidas-1", session_id)]
     await platform.stop()
-    await wait_until(lambda: lost == ["brasidas-1"])
+    await wait_until(lambda: [link.platform_id for link in lost] == ["brasidas-1"])
+    assert lost[0].session_id == session_id and lost[0].reason
     assert station.ctx.connections == {}
     code, _, err = await run_cli(station, "movrd", "brasidas-1", "on")
     assert code == 1 and "brasidas-1" in err

@@ -23,7 +23,8 @@ from typing import Any
 from brasidas import topics
 from brasidas.actor import Actor, wait_forever
 from brasidas.codecs.jsonrpc import UNAVAILABLE, CallContext, RpcError
-from brasidas.messages import StationNotification
+from brasidas.messages import PlatformLink, StationNotification
+from stationd.client import PlatformConnection
 from stationd.context import StationContext
 from stationd.telemetry.link import TelemetryLink
 
@@ -38,7 +39,7 @@ REQUEST_AGAIN_FACTOR = 3.0
 
 @dataclass(eq=False)
 class _Worker:
-    connection: Any
+    connection: PlatformConnection
     link: TelemetryLink
     task: asyncio.Task[None] | None = None
 
@@ -69,7 +70,7 @@ class TelemetryReceiver(Actor):
             async with asyncio.TaskGroup() as group:
                 self._group = group
                 for connection in list(self.ctx.connections.values()):
-                    self._on_connected(connection)
+                    self._start(connection)
                 await wait_forever()
         finally:
             self._group = None
@@ -77,7 +78,12 @@ class TelemetryReceiver(Actor):
                 worker.link.close()
             self._workers.clear()
 
-    def _on_connected(self, connection: Any) -> None:
+    def _on_connected(self, link: PlatformLink) -> None:
+        connection = self.ctx.connections.get(link.platform_id)
+        if connection is not None and connection.session_id == link.session_id:
+            self._start(connection)
+
+    def _start(self, connection: PlatformConnection) -> None:
         if self._group is None:
             return
         platform_id = connection.platform_id
@@ -93,10 +99,10 @@ class TelemetryReceiver(Actor):
         self._workers[platform_id] = worker
         worker.task = self._group.create_task(self._serve(worker), name=f"telemetry:{platform_id}")
 
-    def _on_disconnected(self, connection: Any) -> None:
-        worker = self._workers.get(connection.platform_id)
-        if worker is not None and worker.connection is connection:
-            self._stop(connection.platform_id)
+    def _on_disconnected(self, link: PlatformLink) -> None:
+        worker = self._workers.get(link.platform_id)
+        if worker is not None and worker.connection.session_id == link.session_id:
+            self._stop(link.platform_id)
 
     def _stop(self, platform_id: str) -> None:
         worker = self._workers.pop(platform_id, None)
@@ -140,7 +146,9 @@ class TelemetryReceiver(Actor):
         if self._workers.get(connection.platform_id) is worker:
             self._stop(connection.platform_id)
 
-    async def _request(self, connection: Any, link: TelemetryLink, params: dict[str, Any]) -> float:
+    async def _request(
+        self, connection: PlatformConnection, link: TelemetryLink, params: dict[str, Any]
+    ) -> float:
         """Ask the platform to stream to us; returns when it was asked (monotonic)."""
         try:
             await connection.call("request_telemetry", **params)
