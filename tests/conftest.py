@@ -1,11 +1,16 @@
-"""Shared fixtures. Every test fails if it leaves tasks running (STYLE.md §9)."""
+"""Shared fixtures. Every test fails if it leaves tasks, timers or threads behind (STYLE.md §9)."""
 
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures.thread
 import logging
 import os
 import socket
+import sys
+import threading
+import time
+import types
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
 
@@ -13,6 +18,8 @@ import pytest
 
 from brasidas.config import PlatformConfig, load_config
 from platformd.app import PlatformDaemon
+
+pytest_plugins = ["pytester"]
 
 
 @pytest.fixture(autouse=True)
@@ -33,20 +40,70 @@ def _restore_logging() -> Iterator[None]:
     root.setLevel(level)
 
 
+THREAD_GRACE = 2.0
+"""Seconds a test's threads get to finish after it (a pipeline's last state change)."""
+
+
 @pytest.fixture(autouse=True)
 async def verify_no_lingering_tasks() -> AsyncIterator[None]:
-    before = asyncio.all_tasks()
+    """Fail a test that leaves tasks running, timers scheduled or threads working."""
+    loop = asyncio.get_running_loop()
+    tasks_before = asyncio.all_tasks()
+    timers_before = set(_timers(loop))
+    threads_before = set(threading.enumerate())
     yield
     # Give cancelled tasks one turn of the loop to finish unwinding.
     await asyncio.sleep(0)
     lingering = [
         task
-        for task in asyncio.all_tasks() - before
+        for task in asyncio.all_tasks() - tasks_before
         if not task.done() and task is not asyncio.current_task()
     ]
     for task in lingering:
         task.cancel()
     assert not lingering, f"test left tasks running: {[t.get_name() for t in lingering]}"
+
+    timers = [timer for timer in _timers(loop) if timer not in timers_before]
+    described = [repr(timer) for timer in timers]
+    for timer in timers:
+        timer.cancel()
+    assert not timers, f"test left timers scheduled: {described}"
+
+    deadline = time.monotonic() + THREAD_GRACE
+    while threads := _working_threads(threads_before):
+        if time.monotonic() > deadline:
+            break
+        await asyncio.sleep(0.02)
+    assert not threads, f"test left threads working: {[t.name for t in threads]}"
+
+
+def _timers(loop: asyncio.AbstractEventLoop) -> list[asyncio.TimerHandle]:
+    """The loop's ``call_later``/``call_at`` handles still due (the asyncio event loop's
+    private list: there is no public one)."""
+    scheduled: list[asyncio.TimerHandle] = getattr(loop, "_scheduled", [])
+    return [timer for timer in scheduled if not timer.cancelled()]
+
+
+def _working_threads(before: set[threading.Thread]) -> list[threading.Thread]:
+    """Threads started since ``before`` that are still alive and not an idle pool worker."""
+    frames = sys._current_frames()
+    return [
+        thread
+        for thread in threading.enumerate()
+        if thread not in before
+        and thread.is_alive()
+        and not _idle_pool_worker(frames.get(thread.ident or -1))
+    ]
+
+
+def _idle_pool_worker(frame: types.FrameType | None) -> bool:
+    """A ``concurrent.futures`` worker waiting for work (an executor that is not shut down
+    yet, like the loop's default one until the loop closes); a busy one runs a work item."""
+    return (
+        frame is not None
+        and frame.f_code.co_name == "_worker"
+        and frame.f_code.co_filename == concurrent.futures.thread.__file__
+    )
 
 
 async def wait_until(predicate: Callable[[], bool], timeout: float = 5.0) -> None:
