@@ -8,6 +8,7 @@ Importing ``a.b.c`` also runs the packages ``a`` and ``a.b``.
 from __future__ import annotations
 
 import ast
+from collections.abc import Iterable
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -25,30 +26,38 @@ def module_files() -> dict[str, Path]:
     return modules
 
 
-def imports_of(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
-    """The project modules that importing ``name`` runs first (its direct imports)."""
-    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+def imports_of(name: str, source: str, is_package: bool, modules: Iterable[str]) -> set[str]:
+    """The project modules that importing ``name`` runs first (its direct imports).
+
+    Importing ``a.b.c`` runs ``a`` and ``a.b`` too, except those ``name`` is inside (they are
+    already running: a package's ``__init__`` importing its submodules is no cycle)."""
+    modules = set(modules)
+    package = name if is_package else name.rpartition(".")[0]
     targets: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    for node in ast.walk(ast.parse(source, name)):
         if isinstance(node, ast.Import):
             targets.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package.split(".")
                 base = base[: len(base) - (node.level - 1)]
-                source = ".".join([*base, node.module] if node.module else base)
+                origin = ".".join([*base, node.module] if node.module else base)
             else:
-                source = node.module or ""
-            targets.add(source)
-            # ``from package import module`` imports the module.
-            targets.update(f"{source}.{alias.name}" for alias in node.names)
+                origin = node.module or ""
+            submodules = {f"{origin}.{alias.name}" for alias in node.names} & modules
+            targets.update(submodules)
+            if len(submodules) < len(node.names):  # a name defined in ``origin`` itself
+                targets.add(origin)
+    inside = {".".join(name.split(".")[:end]) for end in range(1, name.count(".") + 2)}
     found: set[str] = set()
     for target in targets:
         parts = target.split(".")
-        for end in range(1, len(parts) + 1):
-            candidate = ".".join(parts[:end])
-            if candidate in modules and candidate != name:
-                found.add(candidate)
+        if target in modules and target != name:
+            found.add(target)
+        for end in range(1, len(parts)):
+            parent = ".".join(parts[:end])
+            if parent in modules and parent not in inside:
+                found.add(parent)
     return found
 
 
@@ -89,7 +98,10 @@ def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 def import_graph() -> dict[str, set[str]]:
     modules = module_files()
-    return {name: imports_of(name, path, modules) for name, path in modules.items()}
+    return {
+        name: imports_of(name, path.read_text(), path.name == "__init__.py", modules)
+        for name, path in modules.items()
+    }
 
 
 def test_the_checker_finds_a_cycle() -> None:
@@ -102,8 +114,15 @@ def test_the_graph_sees_every_kind_of_import() -> None:
     graph = import_graph()
     assert "brasidas.bus" in graph["brasidas.topics"]  # from brasidas.bus import Topic
     assert "brasidas.codecs.commands" in graph["brasidas.messages"]
-    assert "brasidas" in graph["platformd.sessions"]  # from brasidas import security
-    assert "brasidas.security" in graph["platformd.sessions"]
+    assert "brasidas" in graph["platformd.sessions"]  # from brasidas import __version__
+    assert "brasidas.security" in graph["platformd.sessions"]  # from brasidas import security
+    assert "brasidas.codecs" in graph["platformd.signaling"]  # runs the package first
+    # A package's __init__ importing its modules is no cycle; a module importing from the
+    # package that imports it is one.
+    assert "platformd.telemetry" not in graph["platformd.telemetry.aggregator"]
+    assert imports_of("p.a", "from p import b", False, ["p", "p.a", "p.b"]) == {"p.b"}
+    assert imports_of("p.a", "from p import helper", False, ["p", "p.a"]) == {"p"}
+    assert imports_of("q", "import p.b", False, ["p", "p.b", "q"]) == {"p", "p.b"}
     assert "platformd.context" in graph["platformd.signaling"]
 
 
