@@ -116,7 +116,10 @@ def add_rpc_routes(
         in_flight: set[asyncio.Task[None]] = set()
         try:
             async for message in ws:
-                if message.type in (aiohttp.WSMsgType.TEXT, aiohttp.WSMsgType.BINARY):
+                if message.type is aiohttp.WSMsgType.BINARY and "on_binary" in ctx.extra:
+                    # A method made this socket carry media too (the console's push-to-talk).
+                    ctx.extra["on_binary"](message.data)
+                elif message.type in (aiohttp.WSMsgType.TEXT, aiohttp.WSMsgType.BINARY):
                     incoming = dispatcher.parse(message.data)
                     if (
                         dispatcher.answers_at_once(incoming)

@@ -30,12 +30,12 @@ from aiohttp import web
 from brasidas import topics
 from brasidas.actor import Actor, wait_forever
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
-from brasidas.media.pipeline import StreamState
+from brasidas.media.pipeline import PipelineStream, StreamState
 from brasidas.messages import StationNotification
 from stationd.context import StationContext
 from stationd.media import free_udp_port, receive_host
 from stationd.teleop import STOP
-from stationd.video_feed import H264Feed, Viewer, pump
+from stationd.video_feed import FRAME_TYPE_TALK, HEADER, Feed, OpusSender, Viewer, pump
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -51,16 +51,26 @@ SEND_TIMEOUT_S = 5.0
 
 
 @dataclass(eq=False)
+class Watch:
+    """One feed a page receives: its viewer and the task sending to the page."""
+
+    feed: Feed
+    viewer: Viewer
+    remove: Callable[[], None]
+    task: asyncio.Task[None]
+
+
+@dataclass(eq=False)
 class ConsoleSession:
-    """One page: its socket, what it watches, and whether it drives."""
+    """One page: its socket, what it watches and listens to, and whether it drives."""
 
     number: int
     ws: web.WebSocketResponse
     tasks: set[asyncio.Task[None]] = field(default_factory=set)
-    viewer: Viewer | None = None
-    feed: H264Feed | None = None
-    remove_viewer: Callable[[], None] | None = None
-    pump_task: asyncio.Task[None] | None = None
+    watches: dict[str, Watch] = field(default_factory=dict)
+    """By kind: "video" (one NavCam at a time) and "audio" (one microphone)."""
+    talk: OpusSender | None = None
+    talk_platform: str = ""
     dirty: asyncio.Event = field(default_factory=asyncio.Event)
     notes: list[dict[str, Any]] = field(default_factory=list)
     telemetry_seen: dict[str, Any] = field(default_factory=dict)
@@ -77,13 +87,16 @@ class ConsoleHub(Actor):
         super().__init__(ctx.bus)
         self.ctx = ctx
         self.sessions: dict[int, ConsoleSession] = {}
-        self.feeds: dict[str, H264Feed] = {}
+        self.feeds: dict[tuple[str, str], Feed] = {}
+        """By (platform id, stream): the NavCam and the microphone, each received once."""
         self.drivers: dict[str, int] = {}
         """Platform id → the console session that engaged its override (and may drive it)."""
         self._numbers = itertools.count(1)
         self._feed_numbers = itertools.count(1)
-        self._unwatched_since: dict[str, float] = {}
+        self._unwatched_since: dict[tuple[str, str], float] = {}
         self._feed_lock = asyncio.Lock()
+        self.dropped_binary = 0
+        """Binary messages from pages that were not push-to-talk audio while talking."""
         self._group: asyncio.TaskGroup | None = None
 
     async def run(self) -> None:
@@ -101,9 +114,10 @@ class ConsoleHub(Actor):
             self._group = None
 
     async def async_stop(self) -> None:
-        feeds = list(self.feeds.values())
+        pipelines: list[PipelineStream] = [f.depayloader for f in self.feeds.values()]
+        pipelines += [s.talk for s in self.sessions.values() if s.talk is not None]
         self.feeds.clear()
-        await asyncio.gather(*(f.depayloader.stop() for f in feeds), return_exceptions=True)
+        await asyncio.gather(*(p.stop() for p in pipelines), return_exceptions=True)
 
     # ------------------------------------------------------------------ bus
 
@@ -119,12 +133,17 @@ class ConsoleHub(Actor):
     def _on_disconnected(self, connection: Any) -> None:
         platform_id = connection.platform_id
         self.drivers.pop(platform_id, None)
-        feed = self.feeds.pop(platform_id, None)
-        if feed is not None and self._group is not None:
+        for key in [key for key in self.feeds if key[0] == platform_id]:
+            feed = self.feeds.pop(key)
             for session in self.sessions.values():
-                if session.feed is feed:
-                    self._unwatch(session)
-            self._group.create_task(feed.depayloader.stop(), name=f"console:stop:{platform_id}")
+                for kind, watch in list(session.watches.items()):
+                    if watch.feed is feed:
+                        self._unwatch(session, kind)
+            if self._group is not None:
+                self._group.create_task(feed.depayloader.stop(), name=f"console:stop:{key}")
+        for session in self.sessions.values():
+            if session.talk_platform == platform_id:
+                self._stop_talk(session)
         self._mark_dirty()
 
     # ------------------------------------------------------------------ sessions
@@ -154,6 +173,7 @@ class ConsoleHub(Actor):
         session = ConsoleSession(next(self._numbers), ws)
         call.extra["console"] = session
         call.extra.setdefault("on_close", []).append(lambda: self._close(session))
+        call.extra["on_binary"] = lambda data: self._on_binary(session, data)
         self.sessions[session.number] = session
         self._spawn(session, self._push(session), f"console:{session.number}:push")
         session.dirty.set()
@@ -175,7 +195,9 @@ class ConsoleHub(Actor):
         """The page's socket closed: stop what it drove at once, drop its tasks."""
         session.closed = True
         self.sessions.pop(session.number, None)
-        self._unwatch(session)
+        for kind in list(session.watches):
+            self._unwatch(session, kind)
+        self._stop_talk(session)
         for platform_id, number in list(self.drivers.items()):
             if number == session.number:
                 self._stop_driving(session, platform_id)
@@ -215,7 +237,7 @@ class ConsoleHub(Actor):
                             session.telemetry_seen[platform_id] = stamp
                             report["received_ms"] = time.time_ns() / 1e6
                             await self._send(session, "telemetry", report)
-                if session.viewer is not None and session.feed is not None and full:
+                if "video" in session.watches and full:
                     await self._send(session, "video", self._video_state(session))
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(TELEMETRY_CHECK_S):
@@ -235,94 +257,163 @@ class ConsoleHub(Actor):
             answer.append(summary)
         return answer
 
-    # ------------------------------------------------------------------ video
+    # ------------------------------------------------------------------ video and audio
 
     async def api_video_watch(
         self, call: CallContext, platform_id: str, stream: str = "navcam"
     ) -> dict[str, Any]:
         """Send ``platform_id``'s NavCam to this page (its current GOP first); one at a time."""
         session = self._session(call)
-        feed = await self._feed(platform_id, stream)
-        if session.feed is not feed:
-            self._unwatch(session)
-            viewer = Viewer(feed.number)
-            session.viewer, session.feed = viewer, feed
-            session.remove_viewer = feed.fanout.add(viewer)
-            session.pump_task = self._spawn(
-                session, self._pump(session, viewer), f"console:{session.number}:video"
-            )
-        self._unwatched_since.pop(platform_id, None)
+        await self._watch(session, "video", platform_id, stream)
         return self._video_state(session)
 
     def api_video_unwatch(self, call: CallContext) -> bool:
+        return self._unwatch(self._session(call), "video")
+
+    async def api_audio_listen(
+        self, call: CallContext, platform_id: str, on: bool = True, stream: str = "audio_out"
+    ) -> dict[str, Any]:
+        """The platform's microphone to this page as Opus packets (decoded there), or stop."""
         session = self._session(call)
-        watching = session.viewer is not None
-        self._unwatch(session)
-        return watching
+        if not on:
+            self._unwatch(session, "audio")
+            return {"listening": None}
+        watch = await self._watch(session, "audio", platform_id, stream)
+        return {"listening": platform_id, **watch.feed.describe()}
 
     def api_video_feeds(self, call: CallContext) -> list[dict[str, Any]]:
         """Every feed: its pipeline, fan-out counters and viewers."""
         return [feed.describe() for feed in self.feeds.values()]
 
+    async def _watch(
+        self, session: ConsoleSession, kind: str, platform_id: str, stream: str
+    ) -> Watch:
+        feed = await self._feed(platform_id, stream, audio=kind == "audio")
+        watch = session.watches.get(kind)
+        if watch is None or watch.feed is not feed:
+            self._unwatch(session, kind)
+            viewer = feed.viewer()
+            task = self._spawn(
+                session, self._pump(session, viewer), f"console:{session.number}:{kind}"
+            )
+            watch = Watch(feed, viewer, feed.fanout.add(viewer), task)
+            session.watches[kind] = watch
+        self._unwatched_since.pop((platform_id, stream), None)
+        return watch
+
     async def _pump(self, session: ConsoleSession, viewer: Viewer) -> None:
         with contextlib.suppress(ConnectionError, RuntimeError):
             await pump(viewer, session.ws.send_bytes)
 
-    def _unwatch(self, session: ConsoleSession) -> None:
-        if session.remove_viewer is not None:
-            session.remove_viewer()
-        if session.pump_task is not None:
-            session.pump_task.cancel("unwatched")
-        if session.feed is not None and not session.feed.fanout.viewers:
-            self._unwatched_since[session.feed.platform_id] = time.monotonic()
-        session.viewer = session.feed = None
-        session.remove_viewer = session.pump_task = None
+    def _unwatch(self, session: ConsoleSession, kind: str) -> bool:
+        watch = session.watches.pop(kind, None)
+        if watch is None:
+            return False
+        watch.remove()
+        watch.task.cancel("unwatched")
+        if not watch.feed.fanout.viewers:
+            self._unwatched_since[(watch.feed.platform_id, watch.feed.stream)] = time.monotonic()
+        return True
 
     def _video_state(self, session: ConsoleSession) -> dict[str, Any]:
-        feed, viewer = session.feed, session.viewer
-        if feed is None or viewer is None:
+        watch = session.watches.get("video")
+        if watch is None:
             return {"watching": None}
-        return {"watching": feed.platform_id, **feed.describe(), "viewer": viewer.stats()}
+        return {
+            "watching": watch.feed.platform_id,
+            **watch.feed.describe(),
+            "viewer": watch.viewer.stats(),
+        }
 
-    async def _feed(self, platform_id: str, stream: str) -> H264Feed:
+    async def _feed(self, platform_id: str, stream: str, *, audio: bool) -> Feed:
         async with self._feed_lock:
-            feed = self.feeds.get(platform_id)
+            key = (platform_id, stream)
+            feed = self.feeds.get(key)
             if feed is not None and feed.depayloader.state is not StreamState.IDLE:
                 return feed
             connection = await self.ctx.connection(platform_id)
             host = receive_host(connection.platform_host)
-            feed = H264Feed(
-                platform_id, next(self._feed_numbers), host=host, port=free_udp_port(host)
+            feed = Feed(
+                platform_id,
+                next(self._feed_numbers),
+                host=host,
+                port=free_udp_port(host),
+                stream=stream,
+                audio=audio,
             )
             state = await feed.depayloader.start()
             if state is StreamState.FAILED:
                 await feed.depayloader.stop()
-                raise RpcError(INVALID_PARAMS, f"cannot receive video: {feed.depayloader.reason}")
+                raise RpcError(
+                    INVALID_PARAMS, f"cannot receive {stream}: {feed.depayloader.reason}"
+                )
             try:
                 await connection.call("start_stream", name=stream, port=feed.port)
             except BaseException:
                 await feed.depayloader.stop()
                 raise
-            self.feeds[platform_id] = feed
+            self.feeds[key] = feed
             assert self._group is not None
-            self._group.create_task(
-                feed.depayloader.supervise(), name=f"console:feed:{platform_id}"
-            )
+            self._group.create_task(feed.depayloader.supervise(), name=f"console:feed:{key}")
             return feed
+
+    # ------------------------------------------------------------------ push-to-talk
+
+    async def api_audio_talk(
+        self, call: CallContext, platform_id: str, on: bool = True
+    ) -> dict[str, Any]:
+        """Push-to-talk: this page's Opus packets (binary messages of type 3) to the platform's
+        speaker while on; off stops the platform's speaker stream."""
+        session = self._session(call)
+        connection = await self.ctx.connection(platform_id)
+        if not on:
+            self._stop_talk(session)
+            with contextlib.suppress(RpcError, ConnectionError, TimeoutError):
+                await connection.call("stop_stream", name="audio_in")
+            return {"talking": None}
+        if session.talk is not None and session.talk_platform == platform_id:
+            return {"talking": platform_id, **session.talk.describe()}
+        self._stop_talk(session)
+        listening: dict[str, Any] = await connection.call("start_stream", name="audio_in")
+        host = str(listening.get("host") or "")
+        if host in ("", "0.0.0.0", "::"):
+            host = connection.platform_host
+        sender = OpusSender(f"{platform_id}/talk", host=host, port=int(listening["port"]))
+        if await sender.start() is StreamState.FAILED:
+            await sender.stop()
+            raise RpcError(INVALID_PARAMS, f"cannot send audio: {sender.reason}")
+        session.talk, session.talk_platform = sender, platform_id
+        return {"talking": platform_id, **sender.describe()}
+
+    def _on_binary(self, session: ConsoleSession, data: bytes) -> None:
+        """A binary message from the page: push-to-talk audio; anything else is dropped."""
+        if len(data) <= HEADER.size or data[0] != FRAME_TYPE_TALK or session.talk is None:
+            self.dropped_binary += 1
+            return
+        try:
+            session.talk.push(data[HEADER.size :])
+        except Exception:  # never the page's socket for one bad packet
+            self.dropped_binary += 1
+            _LOGGER.exception("console %d: push-to-talk packet refused", session.number)
+
+    def _stop_talk(self, session: ConsoleSession) -> None:
+        sender, session.talk, session.talk_platform = session.talk, None, ""
+        if sender is not None and self._group is not None:
+            self._group.create_task(sender.stop(), name=f"console:{session.number}:talk-stop")
 
     async def _reap_feeds(self) -> None:
         while True:
             await asyncio.sleep(1.0)
             now = time.monotonic()
-            for platform_id, since in list(self._unwatched_since.items()):
-                feed = self.feeds.get(platform_id)
+            for key, since in list(self._unwatched_since.items()):
+                feed = self.feeds.get(key)
                 if feed is None or feed.fanout.viewers:
-                    self._unwatched_since.pop(platform_id, None)
+                    self._unwatched_since.pop(key, None)
                 elif now - since > FEED_LINGER_S:
-                    self._unwatched_since.pop(platform_id, None)
-                    self.feeds.pop(platform_id, None)
+                    self._unwatched_since.pop(key, None)
+                    self.feeds.pop(key, None)
                     await feed.depayloader.stop()
-                    connection = self.ctx.connections.get(platform_id)
+                    connection = self.ctx.connections.get(feed.platform_id)
                     if connection is not None:
                         with contextlib.suppress(RpcError, ConnectionError, TimeoutError):
                             await connection.call("stop_stream", name=feed.stream)
@@ -335,8 +426,8 @@ class ConsoleHub(Actor):
             raise RpcError(INVALID_PARAMS, "invalid params: action must be start, pause or stop")
         connection = await self.ctx.connection(platform_id)
         params: dict[str, Any] = {"name": name}
-        feed = self.feeds.get(platform_id)
-        if action == "start" and feed is not None and feed.stream == name:
+        feed = self.feeds.get((platform_id, name))
+        if action == "start" and feed is not None:
             params["port"] = feed.port
         answer: dict[str, Any] = await connection.call(f"{action}_stream", **params)
         return answer
@@ -394,6 +485,8 @@ async def async_setup(ctx: StationContext) -> None:
         "video_watch",
         "video_unwatch",
         "video_feeds",
+        "audio_listen",
+        "audio_talk",
         "console_stream",
         "console_override",
         "console_drive",

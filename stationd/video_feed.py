@@ -1,4 +1,4 @@
-"""The NavCam in the browser: H.264 access units fanned out to console pages, no re-encoding.
+"""The NavCam (and the platform's microphone) in the browser: fanned out, no re-encoding.
 
 One :class:`H264Feed` per platform depayloads its RTP once (``udpsrc ! rtph264depay !
 h264parse ! appsink``: Annex B byte-stream, one access unit per buffer, SPS/PPS in-band) and
@@ -15,7 +15,8 @@ header (big-endian) followed by the Annex B bytes.
 =======  ====  ===============================================================
 offset   type  meaning
 =======  ====  ===============================================================
-0        u8    message type, 1 = video access unit
+0        u8    message type: 1 video access unit, 2 platform audio (Opus packet),
+               3 push-to-talk audio from the page (Opus packet)
 1        u8    flags: 1 keyframe, 2 replayed from the GOP cache, 4 after a gap
 2        u16   feed number (a page watching several feeds tells them apart)
 4        u32   sequence number of the access unit in its feed
@@ -37,6 +38,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
+from brasidas.media.audio import AUDIO_PAYLOAD_TYPE, RTP_AUDIO_CAPS
 from brasidas.media.gst import NTP_UNIX_OFFSET_NS, caps, gst, link_all, make, ntp_caps
 from brasidas.media.pipeline import PipelineStream
 from brasidas.media.video import RTP_VIDEO_CAPS
@@ -44,6 +46,10 @@ from brasidas.media.video import RTP_VIDEO_CAPS
 _LOGGER = logging.getLogger(__name__)
 
 FRAME_TYPE_VIDEO = 1
+FRAME_TYPE_AUDIO = 2
+"""Opus packets of a platform's microphone (``audio_out``), one per message, same header."""
+FRAME_TYPE_TALK = 3
+"""Opus packets from the page's microphone to the platform's speaker (page → station)."""
 FLAG_KEY = 1
 FLAG_REPLAYED = 2
 FLAG_AFTER_GAP = 4
@@ -55,11 +61,14 @@ GOP_MAX_FRAMES = 300
 VIEWER_QUEUE_FRAMES = 6
 """Frames a viewer may have waiting beyond its replay before it is cut back to a keyframe
 (200 ms at 30 fps)."""
+AUDIO_QUEUE_PACKETS = 10
+"""Opus packets (20 ms each) a listener may have waiting before its queue is dropped."""
 
 
 @dataclass(frozen=True, slots=True)
 class AccessUnit:
-    """One H.264 access unit (Annex B) with its timing."""
+    """One H.264 access unit (Annex B), or one Opus packet (always a "keyframe"), with its
+    timing."""
 
     data: bytes
     keyframe: bool
@@ -70,12 +79,14 @@ class AccessUnit:
     after_gap: bool = False
 
 
-def encode_frame(feed: int, seq: int, unit: AccessUnit, *, replayed: bool = False) -> bytes:
+def encode_frame(
+    feed: int, seq: int, unit: AccessUnit, *, replayed: bool = False, kind: int = FRAME_TYPE_VIDEO
+) -> bytes:
     """The binary WebSocket message for ``unit``."""
     flags = (FLAG_KEY if unit.keyframe else 0) | (FLAG_REPLAYED if replayed else 0)
     flags |= FLAG_AFTER_GAP if unit.after_gap else 0
     header = HEADER.pack(
-        FRAME_TYPE_VIDEO, flags, feed & 0xFFFF, seq & 0xFFFFFFFF, unit.capture_ms, unit.arrival_ms
+        kind, flags, feed & 0xFFFF, seq & 0xFFFFFFFF, unit.capture_ms, unit.arrival_ms
     )
     return header + unit.data
 
@@ -102,8 +113,11 @@ def decode_header(message: bytes) -> dict[str, Any]:
 class Viewer:
     """One page's queue of messages for one feed; its owner drains it with :meth:`next`."""
 
-    def __init__(self, feed: int, limit: int = VIEWER_QUEUE_FRAMES) -> None:
+    def __init__(
+        self, feed: int, limit: int = VIEWER_QUEUE_FRAMES, kind: int = FRAME_TYPE_VIDEO
+    ) -> None:
         self.feed = feed
+        self.kind = kind
         self.limit = limit
         self.queue: collections.deque[bytes] = collections.deque()
         self.allowance = 0
@@ -129,13 +143,15 @@ class Viewer:
                 self.waiting_for_key = True
                 return
         self.waiting_for_key = False
-        self.queue.append(encode_frame(self.feed, seq, unit))
+        self.queue.append(encode_frame(self.feed, seq, unit, kind=self.kind))
         self._ready.set()
 
     def replay(self, gop: list[tuple[int, AccessUnit]]) -> None:
         """Queue the current GOP (a new viewer, or one that switched feeds)."""
         self.queue.clear()
-        self.queue.extend(encode_frame(self.feed, seq, unit, replayed=True) for seq, unit in gop)
+        self.queue.extend(
+            encode_frame(self.feed, seq, unit, replayed=True, kind=self.kind) for seq, unit in gop
+        )
         self.allowance = len(gop)
         self.waiting_for_key = not gop
         if gop:
@@ -217,10 +233,11 @@ class FanOut:
 # --------------------------------------------------------------------------- GStreamer
 
 
-class H264Depayloader(PipelineStream):
-    """RTP/UDP H.264 → access units (``on_unit`` is called on the event loop)."""
+class RtpDepayloader(PipelineStream):
+    """RTP/UDP → one encoded unit per buffer (``on_unit`` is called on the event loop)."""
 
-    kind = "video_feed"
+    kind = "feed"
+    rtp_caps = ""
 
     def __init__(
         self, name: str, *, host: str, port: int, on_unit: Callable[[AccessUnit], None], **kw: Any
@@ -234,21 +251,19 @@ class H264Depayloader(PipelineStream):
     def destination(self) -> str:
         return f"{self.host}:{self.port}"
 
+    def depayload(self) -> list[Any]:
+        """The elements between ``udpsrc`` and the appsink."""
+        raise NotImplementedError
+
     def build(self) -> Any:
         Gst = gst()
         self._loop = asyncio.get_running_loop()
         pipeline = Gst.Pipeline.new(f"{self.name}-feed")
         source = make(
-            "udpsrc", "source", address=self.host, port=self.port, caps=caps(RTP_VIDEO_CAPS)
+            "udpsrc", "source", address=self.host, port=self.port, caps=caps(self.rtp_caps)
         )
-        depay = make("rtph264depay", "depay")
-        # After packet loss the depayloader drops delta units until a keyframe and flags the
-        # next output DISCONT; the fan-out freezes on that flag too.
-        depay.set_property("wait-for-keyframe", True)
-        parse = make("h264parse", "parse", config_interval=-1)
-        au = make("capsfilter", caps=caps("video/x-h264,stream-format=byte-stream,alignment=au"))
         sink = make("appsink", "sink", emit_signals=True, sync=False, max_buffers=0, drop=False)
-        chain = [source, depay, parse, au, sink]
+        chain = [source, *self.depayload(), sink]
         for element in chain:
             pipeline.add(element)
         link_all(*chain)
@@ -260,10 +275,88 @@ class H264Depayloader(PipelineStream):
         try:
             self.on_unit(unit)
         except Exception:
-            _LOGGER.exception("video feed %s: access unit handler failed", self.name)
+            _LOGGER.exception("feed %s: unit handler failed", self.name)
 
 
-def _on_sample(sink: Any, data: tuple[weakref.ref[H264Depayloader], Any]) -> Any:
+class H264Depayloader(RtpDepayloader):
+    """The NavCam: H.264 access units, Annex B byte-stream, SPS/PPS in-band."""
+
+    kind = "video_feed"
+    rtp_caps = RTP_VIDEO_CAPS
+
+    def depayload(self) -> list[Any]:
+        depay = make("rtph264depay", "depay")
+        # After packet loss the depayloader drops delta units until a keyframe and flags the
+        # next output DISCONT; the fan-out freezes on that flag too.
+        depay.set_property("wait-for-keyframe", True)
+        parse = make("h264parse", "parse", config_interval=-1)
+        au = make("capsfilter", caps=caps("video/x-h264,stream-format=byte-stream,alignment=au"))
+        return [depay, parse, au]
+
+
+class OpusDepayloader(RtpDepayloader):
+    """A platform's microphone: Opus packets (20 ms each), decoded in the page."""
+
+    kind = "audio_feed"
+    rtp_caps = RTP_AUDIO_CAPS
+
+    def depayload(self) -> list[Any]:
+        return [make("rtpopusdepay", "depay")]
+
+
+class OpusSender(PipelineStream):
+    """Opus packets pushed from the loop (the page's push-to-talk) → RTP/UDP to a platform."""
+
+    kind = "talk"
+
+    def __init__(self, name: str, *, host: str, port: int, **kw: Any) -> None:
+        super().__init__(name, **kw)
+        self.host = host
+        self.port = port
+        self.packets = 0
+        self._source: Any = None
+
+    def destination(self) -> str:
+        return f"{self.host}:{self.port}"
+
+    def describe(self) -> dict[str, Any]:
+        return {**super().describe(), "packets": self.packets}
+
+    def build(self) -> Any:
+        pipeline = gst().Pipeline.new(f"{self.name}-talk")
+        source = make(
+            "appsrc",
+            "source",
+            is_live=True,
+            do_timestamp=True,
+            format="time",
+            caps=caps("audio/x-opus,channel-mapping-family=0,channels=1,rate=48000"),
+        )
+        chain = [
+            source,
+            make("rtpopuspay", pt=AUDIO_PAYLOAD_TYPE),
+            make("udpsink", "sink", host=self.host, port=self.port, sync=False, async_=False),
+        ]
+        for element in chain:
+            pipeline.add(element)
+        link_all(*chain)
+        self._source = source
+        return pipeline
+
+    def on_torn_down(self) -> None:
+        self._source = None
+
+    def push(self, packet: bytes) -> None:
+        """Event loop: send one Opus packet (dropped when the pipeline is not running)."""
+        if self._source is None or not packet:
+            return
+        buffer = gst().Buffer.new_wrapped(packet)
+        buffer.duration = 20 * gst().MSECOND
+        self._source.emit("push-buffer", buffer)
+        self.packets += 1
+
+
+def _on_sample(sink: Any, data: tuple[weakref.ref[RtpDepayloader], Any]) -> Any:
     """Streaming thread: copy the access unit out and pass it to the loop."""
     ref, reference = data
     Gst = gst()
@@ -291,8 +384,8 @@ def _on_sample(sink: Any, data: tuple[weakref.ref[H264Depayloader], Any]) -> Any
     return Gst.FlowReturn.OK
 
 
-class H264Feed:
-    """One platform's NavCam for the console: the depayloader, its fan-out, and the ask."""
+class Feed:
+    """One platform stream for the console: its depayloader, its fan-out, and its viewers."""
 
     def __init__(
         self,
@@ -302,18 +395,27 @@ class H264Feed:
         host: str,
         port: int,
         stream: str = "navcam",
+        audio: bool = False,
     ) -> None:
         self.platform_id = platform_id
         self.number = number
         self.stream = stream
+        self.frame_type = FRAME_TYPE_AUDIO if audio else FRAME_TYPE_VIDEO
         self.fanout = FanOut()
-        self.depayloader = H264Depayloader(
+        depayloader = OpusDepayloader if audio else H264Depayloader
+        self.depayloader: RtpDepayloader = depayloader(
             f"{platform_id}/{stream}", host=host, port=port, on_unit=self.fanout.feed
         )
 
     @property
     def port(self) -> int:
         return self.depayloader.port
+
+    def viewer(self) -> Viewer:
+        """A new viewer of this feed (not yet added)."""
+        if self.frame_type == FRAME_TYPE_AUDIO:
+            return Viewer(self.number, limit=AUDIO_QUEUE_PACKETS, kind=FRAME_TYPE_AUDIO)
+        return Viewer(self.number)
 
     def describe(self) -> dict[str, Any]:
         return {

@@ -27,7 +27,14 @@ from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-sync"]
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--no-first-run",
+    "--disable-sync",
+    "--use-fake-device-for-media-stream",  # a beeping microphone for push-to-talk
+    "--use-fake-ui-for-media-stream",  # its permission granted
+]
 SCREENSHOT = Path(__file__).resolve().parent.parent / "docs" / "console.png"
 """Kept current in the README: written when BRASIDAS_SCREENSHOT=1."""
 
@@ -77,6 +84,7 @@ async def sim_platform(
         "navcam.enabled=true",
         "navcam.sim_pattern=smpte",
         "navcam.sim_motion=4",
+        "audio.enabled=true",  # a test tone as the microphone
     )
     return await factory(config, key)
 
@@ -202,12 +210,13 @@ async def test_operator_station_in_the_browser(
             await browser.close()
 
 
-async def test_warnings_flash_until_acknowledged_and_a_closed_page_stops_the_robot(
+async def test_warnings_audio_both_ways_and_a_closed_page_stops_the_robot(
     platform_factory: Factory, fleet_key: bytes
 ) -> None:
     """A group 90 warning (low battery: the simulated pack's 24.7 V is under a 30 V limit)
-    flashes until the operator acknowledges it. Then the station's safety net: the page's
-    socket closes while a key is held, with no JavaScript left to send a stop."""
+    flashes until the operator acknowledges it. The platform's microphone is decoded in the
+    page, and push-to-talk reaches the platform's speaker. Then the station's safety net: the
+    page's socket closes while a key is held, with no JavaScript left to send a stop."""
     from playwright.async_api import async_playwright, expect
 
     async with (
@@ -229,6 +238,20 @@ async def test_warnings_flash_until_acknowledged_and_a_closed_page_stops_the_rob
             await warning.click()
             await expect(warning).to_have_attribute("aria-pressed", "true")
             await expect(warning).not_to_have_class(re.compile("unacknowledged"))
+
+            listen = page.get_by_role("button", name="listen")
+            await listen.click()
+            await expect(listen).to_have_attribute("aria-pressed", "true")
+            await expect(listen).to_have_attribute(
+                "data-decoded", re.compile(r"^([2-9]\d|\d{3,})$"), timeout=10_000
+            )  # 20 packets of 20 ms decoded in the page
+            speaker = rover.ctx.capabilities["streams"].__self__.streams["audio_in"]
+            await page.locator("#talk").hover()
+            await page.mouse.down()
+            await wait_until(lambda: speaker.hears_sound, timeout=10)
+            await page.mouse.up()
+            await expect(page.locator("#talk")).to_have_attribute("aria-pressed", "false")
+            await wait_until(lambda: speaker.state.value == "idle", timeout=5)
 
             override = page.get_by_role("button", name="manual override")
             await override.click()

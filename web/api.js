@@ -69,6 +69,9 @@ export class StationApi {
     });
   }
 
+  /** Send a binary message (push-to-talk audio); dropped while the socket is down. */
+  sendBinary(buffer) { if (this.connected) this.ws.send(buffer); }
+
   /** True when the socket has more than ``bytes`` waiting to be sent (a stalled link). */
   backedUp(bytes = 4096) { return !this.connected || this.ws.bufferedAmount > bytes; }
 }

@@ -4,6 +4,7 @@
 // game controller drives the platform whose override this console engaged.
 
 import { StationApi } from "./api.js";
+import { PlatformAudio } from "./audio.js";
 import { PlatformMap } from "./map.js";
 import { Teleop } from "./teleop.js";
 
@@ -40,6 +41,7 @@ if (!window.isSecureContext) {
 window.navcam = {
   stats: () => state.videoStats,
   marks: () => Object.fromEntries(performance.getEntriesByType("mark").map((m) => [m.name, m.startTime])),
+  audio: () => ({ ...audio.stats }),
   keepLatencies: (on) => worker?.postMessage({ type: "keep", on }),
   dump: () => new Promise((resolve) => { dumpWaiters.push(resolve); worker?.postMessage({ type: "dump" }); }),
 };
@@ -85,7 +87,11 @@ async function watch(platformId) {
 
 const api = new StationApi(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/rpc/ws`, {
   onState: (text) => setPill("#api-state", text === "connected" ? "station connected" : `station ${text}…`, text === "connected" ? "ok" : "bad"),
-  onBinary: (buffer) => worker?.postMessage({ type: "frame", buffer }, [buffer]),
+  onBinary: (buffer) => {
+    const type = new Uint8Array(buffer, 0, 1)[0];
+    if (type === 1) worker?.postMessage({ type: "frame", buffer }, [buffer]);
+    else if (type === 2) audio.onPacket(buffer);
+  },
   onOpen: () => { subscribe().catch((error) => console.warn("subscribe failed", error)); },
 });
 
@@ -113,6 +119,7 @@ async function measureClock() {
     if (!best || back - sent < best.rtt) best = { rtt: back - sent, offset: station - (sent + back) / 2 };
   }
   state.clockOffsetMs = best.offset;
+  audio.clockOffsetMs = best.offset;
   worker?.postMessage({ type: "clock", offsetMs: best.offset });
 }
 
@@ -144,6 +151,48 @@ function setPill(selector, text, kind) {
   pill.textContent = text;
   pill.className = `pill ${kind}`;
 }
+
+// ---------------------------------------------------------------- audio
+
+const audio = new PlatformAudio(api, {
+  onStats: (stats) => {
+    const listen = $("#listen");
+    listen.dataset.decoded = String(stats.decoded);
+    $("#audio-latency").textContent = stats.latencyMs == null ? "" : `audio ${stats.latencyMs.toFixed(0)} ms`;
+  },
+});
+
+$("#listen").onclick = async (event) => {
+  const button = event.currentTarget;
+  if (button.getAttribute("aria-pressed") === "true") {
+    button.setAttribute("aria-pressed", "false");
+    await audio.stopListening();
+    return;
+  }
+  try {
+    await audio.listen(state.current);
+    button.setAttribute("aria-pressed", "true");
+  } catch (error) { answer(`listen: ${error.message}`); }
+};
+
+async function talk(on) {
+  const button = $("#talk");
+  if (on === (button.getAttribute("aria-pressed") === "true")) return;
+  button.setAttribute("aria-pressed", String(on));
+  try {
+    if (on) await audio.startTalking(state.current);
+    else await audio.stopTalking(state.current);
+  } catch (error) {
+    button.setAttribute("aria-pressed", "false");
+    answer(`push-to-talk: ${error.message}`);
+    await audio.stopTalking(state.current);
+  }
+}
+$("#talk").addEventListener("pointerdown", () => talk(true));
+for (const name of ["pointerup", "pointerleave", "pointercancel"]) $("#talk").addEventListener(name, () => talk(false));
+$("#talk").addEventListener("keydown", (event) => { if (event.key === "Enter" || event.key === " ") { event.preventDefault(); talk(true); } });
+$("#talk").addEventListener("keyup", (event) => { if (event.key === "Enter" || event.key === " ") talk(false); });
+window.addEventListener("blur", () => talk(false));
 
 // ---------------------------------------------------------------- platforms and map
 
@@ -199,6 +248,8 @@ function updateMap(platformId) {
 async function select(platformId) {
   if (platformId === state.current) return;
   teleop.halt("switched platform");
+  await talk(false);
+  if (audio.listening) { $("#listen").setAttribute("aria-pressed", "false"); await audio.stopListening(); }
   state.current = platformId;
   state.override = "idle";
   setPill("#current", platformId, "ok");
