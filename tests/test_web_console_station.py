@@ -35,6 +35,17 @@ CHROMIUM_ARGS = [
     "--use-fake-device-for-media-stream",  # a beeping microphone for push-to-talk
     "--use-fake-ui-for-media-stream",  # its permission granted
 ]
+FAKE_GAMEPAD = """
+(() => {
+  // A standard-mapping game controller the test moves: window.__pad.
+  const pad = { connected: false, axes: [0, 0, 0, 0], pressed: new Array(17).fill(false) };
+  window.__pad = pad;
+  navigator.getGamepads = () => pad.connected ? [{
+    id: "fake F310", index: 0, mapping: "standard", connected: true, timestamp: performance.now(),
+    axes: pad.axes.slice(), buttons: pad.pressed.map((p) => ({ pressed: p, touched: p, value: p ? 1 : 0 })),
+  }] : [];
+})();
+"""
 SCREENSHOT = Path(__file__).resolve().parent.parent / "docs" / "console.png"
 """Kept current in the README: written when BRASIDAS_SCREENSHOT=1."""
 
@@ -127,6 +138,7 @@ async def test_operator_station_in_the_browser(
         browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         try:
             page = await browser.new_page(viewport={"width": 1280, "height": 860})
+            await page.add_init_script(FAKE_GAMEPAD)
             errors: list[str] = []
             page.on("pageerror", lambda error: errors.append(str(error)))
             page.on(
@@ -182,6 +194,33 @@ async def test_operator_station_in_the_browser(
             await page.evaluate("window.dispatchEvent(new Event('blur'))")
             await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
             await page.keyboard.up("KeyW")
+
+            # The game controller: the stick moves the robot only while LB (enable) is held.
+            await page.evaluate("window.__pad.connected = true; window.__pad.axes[1] = -1")
+            await page.wait_for_timeout(300)
+            assert vehicle.command == (0.0, 0.0), "moved without the enable button"
+            await page.evaluate("window.__pad.pressed[4] = true")
+            await wait_until(lambda: vehicle.command[0] > 0.9, timeout=5)
+            await page.evaluate("window.__pad.pressed[4] = false")
+            await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
+            await page.evaluate("window.__pad.pressed[4] = true")
+            await wait_until(lambda: vehicle.command[0] > 0.9, timeout=5)
+            await page.evaluate(  # unplugged while driving
+                "window.__pad.connected = false;"
+                "window.dispatchEvent(new Event('gamepaddisconnected'))"
+            )
+            await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
+            # A toggles the override: released, then engaged again.
+            await page.evaluate(
+                "Object.assign(window.__pad, {connected: true, axes: [0, 0, 0, 0]})"
+            )
+            await page.evaluate("window.__pad.pressed.fill(false); window.__pad.pressed[0] = true")
+            await wait_until(lambda: not rover.bus.last(topics.OVERRIDE_STATE).engaged)
+            await page.evaluate("window.__pad.pressed[0] = false")
+            await expect(override).to_have_attribute("aria-pressed", "false", timeout=10_000)
+            await page.evaluate("window.__pad.pressed[0] = true")
+            await expect(override).to_have_attribute("aria-pressed", "true", timeout=10_000)
+            await page.evaluate("window.__pad.pressed[0] = false")
 
             if os.environ.get("BRASIDAS_SCREENSHOT") == "1":
                 SCREENSHOT.parent.mkdir(exist_ok=True)

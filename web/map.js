@@ -1,6 +1,11 @@
 // The map: offline only. Leaflet (Debian's libjs-leaflet, served by the station) in a local
 // metric frame (CRS.Simple: x east, y north, in metres from an origin), over a plain grid, an
 // operator-loaded area image with its corner coordinates, or a GeoJSON background.
+//
+// For autonomous patrol: setRoute / setPlannedPath draw a platform's waypoint route and the
+// path its planner chose; editWaypoints(points, onChange) lets the operator edit a route
+// (click the map to append, drag a waypoint to move it, right-click one to delete it). Points
+// are [lat, lon] throughout.
 
 const L = window.L;
 const EARTH_M_PER_DEG = 111_320;
@@ -81,6 +86,49 @@ export class PlatformMap {
     }).addTo(this.map);
     const bounds = this.background.getBounds();
     if (bounds.isValid()) this.map.fitBounds(bounds);
+  }
+
+  /** Draw ``platformId``'s waypoint route ([lat, lon] points; closed when last = first). */
+  setRoute(platformId, points) { this.setLine(`route:${platformId}`, points, { color: "#d6d67a", weight: 2, dashArray: "6 4" }); }
+
+  /** Draw the path ``platformId``'s planner chose. */
+  setPlannedPath(platformId, points) { this.setLine(`path:${platformId}`, points, { color: "#5fd0a0", weight: 3 }); }
+
+  setLine(key, points, style) {
+    if (!this.available) return;
+    this.lines ??= new Map();
+    this.lines.get(key)?.remove();
+    if (!points || !points.length) { this.lines.delete(key); return; }
+    this.lines.set(key, L.polyline(points.map(([lat, lon]) => this.local(lat, lon)), style).addTo(this.map));
+  }
+
+  /** Let the operator edit ``points``; ``onChange(points)`` after every edit. Returns a stop
+   * function. */
+  editWaypoints(points, onChange) {
+    if (!this.available) return () => {};
+    const frame = this;
+    let current = points.map((p) => [...p]);
+    const layer = L.layerGroup().addTo(this.map);
+    const toGeo = (latlng) => {
+      const [lat0, lon0] = frame.origin;
+      const lat = lat0 + latlng.lat / EARTH_M_PER_DEG;
+      return [lat, lon0 + latlng.lng / (EARTH_M_PER_DEG * Math.cos((lat0 * Math.PI) / 180))];
+    };
+    const draw = () => {
+      layer.clearLayers();
+      L.polyline(current.map(([lat, lon]) => frame.local(lat, lon)), { color: "#d6d67a", weight: 2 }).addTo(layer);
+      current.forEach(([lat, lon], index) => {
+        const marker = L.marker(frame.local(lat, lon), { draggable: true, title: `waypoint ${index + 1}`, alt: `waypoint ${index + 1}` });
+        marker.on("dragend", () => { current[index] = toGeo(marker.getLatLng()); changed(); });
+        marker.on("contextmenu", () => { current.splice(index, 1); changed(); });
+        marker.addTo(layer);
+      });
+    };
+    const changed = () => { draw(); onChange(current.map((p) => [...p])); };
+    const append = (event) => { if (frame.origin) { current.push(toGeo(event.latlng)); changed(); } };
+    this.map.on("click", append);
+    draw();
+    return () => { this.map.off("click", append); layer.remove(); };
   }
 
   clearBackground() {
