@@ -27,8 +27,8 @@ from brasidas.codecs.jsonrpc import (
     decode,
     decode_answers,
     encode_error,
-    encode_request,
     read_answer,
+    request_text,
 )
 
 if TYPE_CHECKING:
@@ -98,39 +98,57 @@ def add_rpc_routes(
         ctx = CallContext(peer_host=_peer_host(request), transport="ws")
         ctx.extra["ws"] = ws
 
+        def broken() -> str:
+            # A bug must cost one answer, never the station's connection.
+            _LOGGER.exception("answering on the websocket of %s failed", ctx.peer_host)
+            return encode_error(None, RpcError(INTERNAL_ERROR, "internal error")).decode()
+
+        async def send(reply: str | None) -> None:
+            if reply is not None and not ws.closed:
+                try:
+                    await ws.send_str(reply)
+                except ConnectionError:
+                    pass
+
         async def answer(incoming: Incoming) -> None:
             try:
                 reply = await dispatcher.answer(incoming, ctx)
-            except Exception:  # a bug must cost one answer, never the station's connection
-                _LOGGER.exception("answering on the websocket of %s failed", ctx.peer_host)
-                reply = encode_error(None, RpcError(INTERNAL_ERROR, "internal error"))
-            if reply is not None and not ws.closed:
-                with contextlib.suppress(ConnectionError):
-                    await ws.send_str(reply.decode())
+            except Exception:
+                reply = broken()
+            await send(reply)
 
         # A request whose method may wait (a command waiting seconds for its actor) is answered
         # in its own task, owned by this connection, so it does not hold up the heartbeats
         # behind it; answers carry their ids and may come back out of order. Methods that
-        # answer at once run inline: no task, no extra turn of the loop. Past the cap,
+        # answer at once run inline, without a task or even a coroutine. Past the cap,
         # requests wait in line.
         in_flight: set[asyncio.Task[None]] = set()
+        loop = asyncio.get_running_loop()
         try:
             async for message in ws:
-                if message.type is aiohttp.WSMsgType.BINARY and "on_binary" in ctx.extra:
+                kind = message.type
+                if kind is aiohttp.WSMsgType.BINARY and "on_binary" in ctx.extra:
                     # A method made this socket carry media too (the console's push-to-talk).
                     ctx.extra["on_binary"](message.data)
-                elif message.type in (aiohttp.WSMsgType.TEXT, aiohttp.WSMsgType.BINARY):
+                elif kind is aiohttp.WSMsgType.TEXT or kind is aiohttp.WSMsgType.BINARY:
                     incoming = dispatcher.parse(message.data)
-                    if (
-                        dispatcher.answers_at_once(incoming)
-                        or len(in_flight) >= MAX_IN_FLIGHT_PER_SOCKET
-                    ):
+                    if dispatcher.answers_at_once(incoming):
+                        try:
+                            reply = dispatcher.answer_at_once(incoming, ctx)
+                        except Exception:
+                            reply = broken()
+                        if reply is not None and not ws.closed:
+                            try:
+                                await ws.send_str(reply)
+                            except ConnectionError:
+                                pass
+                    elif len(in_flight) >= MAX_IN_FLIGHT_PER_SOCKET:
                         await answer(incoming)
-                        continue
-                    task = asyncio.get_running_loop().create_task(answer(incoming))
-                    in_flight.add(task)
-                    task.add_done_callback(in_flight.discard)
-                elif message.type == aiohttp.WSMsgType.ERROR:
+                    else:
+                        task = loop.create_task(answer(incoming))
+                        in_flight.add(task)
+                        task.add_done_callback(in_flight.discard)
+                elif kind is aiohttp.WSMsgType.ERROR:
                     _LOGGER.debug("websocket error from %s: %s", ctx.peer_host, ws.exception())
         finally:
             for task in list(in_flight):
@@ -239,7 +257,10 @@ class RpcClient:
         self._session: aiohttp.ClientSession | None = None
         self._ws: aiohttp.ClientWebSocketResponse | None = None
         self._reader: asyncio.Task[None] | None = None
-        self._pending: dict[int, asyncio.Future[Any]] = {}
+        self._pending: dict[int, tuple[asyncio.Future[Any], float, str, float]] = {}
+        """Calls waiting for their answer: future, deadline (loop time), method, time limit."""
+        self._expiry: asyncio.TimerHandle | None = None
+        """One timer for every pending call, at the earliest deadline (none per call)."""
         self._ids = itertools.count(1)
         self.closed = asyncio.Event()
         self.bad_answers = 0
@@ -267,20 +288,42 @@ class RpcClient:
         timeout: float | None = None,
     ) -> Any:
         """Call ``method``; raises :class:`RpcError` for an error answer or a timeout."""
-        if self._ws is None or self._ws.closed:
+        ws = self._ws
+        if ws is None or ws.closed:
             raise ConnectionError(f"not connected to {self.url}")
         request_id = next(self._ids)
-        future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
-        self._pending[request_id] = future
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[Any] = loop.create_future()
         limit = timeout or self.timeout
+        deadline = loop.time() + limit
+        self._pending[request_id] = (future, deadline, method, limit)
+        expiry = self._expiry
+        if expiry is None or deadline < expiry.when():
+            if expiry is not None:
+                expiry.cancel()
+            self._expiry = loop.call_at(deadline, self._expire)
         try:
-            await self._ws.send_str(encode_request(method, params, request_id).decode())
-            async with asyncio.timeout(limit):
-                return await future
-        except TimeoutError:
-            raise RpcError(TIMEOUT, f"no answer to {method} within {limit:.1f} s") from None
+            await ws.send_str(request_text(method, params, request_id))
+            return await future
         finally:
-            self._pending.pop(request_id, None)
+            del self._pending[request_id]
+
+    def _expire(self) -> None:
+        """Fail the calls past their deadline; set the timer for the next one."""
+        self._expiry = None
+        loop = asyncio.get_running_loop()
+        now = loop.time() + 0.001  # a timer may run up to the clock's resolution early
+        following = None
+        for future, deadline, method, limit in self._pending.values():
+            if future.done():
+                continue
+            if deadline <= now:
+                message = f"no answer to {method} within {limit:.1f} s"
+                future.set_exception(RpcError(TIMEOUT, message))
+            elif following is None or deadline < following:
+                following = deadline
+        if following is not None:
+            self._expiry = loop.call_at(following, self._expire)
 
     async def _read(self) -> None:
         assert self._ws is not None
@@ -306,8 +349,8 @@ class RpcClient:
             except BadAnswer as err:
                 self._bad_answer(str(err), err.request_id)
                 continue
-            future = self._pending.get(answer.request_id)
-            if future is None or future.done():
+            pending = self._pending.get(answer.request_id)
+            if pending is None or (future := pending[0]).done():
                 continue  # answered after its call gave up
             if answer.error is not None:
                 future.set_exception(answer.error)
@@ -318,12 +361,15 @@ class RpcClient:
         self.bad_answers += 1
         level = logging.WARNING if self.bad_answers == 1 else logging.DEBUG  # no log flood
         _LOGGER.log(level, "bad answer from %s: %s (%d so far)", self.url, reason, self.bad_answers)
-        future = self._pending.get(request_id) if request_id is not None else None
-        if future is not None and not future.done():
+        pending = self._pending.get(request_id) if request_id is not None else None
+        if pending is not None and not (future := pending[0]).done():
             future.set_exception(RpcError(INTERNAL_ERROR, f"malformed answer: {reason}"))
 
     def _fail_pending(self, exc: Exception) -> None:
-        for future in self._pending.values():
+        if self._expiry is not None:
+            self._expiry.cancel()
+            self._expiry = None
+        for future, *_ in self._pending.values():
             if not future.done():
                 future.set_exception(exc)
 

@@ -13,7 +13,7 @@ from aiohttp import web
 
 from brasidas.actor import Supervisor
 from brasidas.bus import Bus
-from brasidas.codecs.jsonrpc import INTERNAL_ERROR, RpcError
+from brasidas.codecs.jsonrpc import INTERNAL_ERROR, TIMEOUT, RpcError
 from brasidas.config import StationConfig, load_config
 from brasidas.rpc import RpcClient, serve_app
 from stationd.api_client import api_call_async
@@ -136,3 +136,19 @@ async def test_the_local_api_client_reads_answers_the_same_way(
     assert failed.value.code == INTERNAL_ERROR
     server.script = lambda i: [ok(i, {"platforms": []})]
     assert await api_call_async(_station_config(server), "status") == {"platforms": []}
+
+
+async def test_a_call_without_answer_times_out_and_the_next_one_is_answered(
+    server: ScriptedServer,
+) -> None:
+    server.script = lambda i: [] if i <= 2 else [ok(i)]
+    async with RpcClient(server.url + "/ws", timeout=30) as client:
+        slow = asyncio.ensure_future(client.call("long", timeout=30))
+        with pytest.raises(RpcError) as failed:  # a shorter limit after a longer one
+            await client.call("short", timeout=0.2)
+        assert failed.value.code == TIMEOUT and "short within 0.2 s" in failed.value.message
+        assert not slow.done()
+        assert await client.call("third") == "fine"
+        slow.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await slow

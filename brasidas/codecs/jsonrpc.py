@@ -116,7 +116,17 @@ class Incoming:
     """A received message, decoded (``message``) or not (``parse_error`` is its answer)."""
 
     message: Any = None
-    parse_error: bytes | None = None
+    parse_error: str | None = None
+
+
+@dataclass(slots=True)
+class _Call:
+    """A request that passed every check: what remains is to run its handler."""
+
+    request_id: Any
+    notification: bool
+    method: Method
+    kwargs: dict[str, Any]
 
 
 class Dispatcher:
@@ -157,7 +167,8 @@ class Dispatcher:
 
     async def handle_bytes(self, data: bytes | str, ctx: CallContext) -> bytes | None:
         """Answer one JSON-RPC message (single or batch); None when nothing is to be sent."""
-        return await self.answer(self.parse(data), ctx)
+        answer = await self.answer(self.parse(data), ctx)
+        return None if answer is None else answer.encode()
 
     def parse(self, data: bytes | str) -> Incoming:
         """Decode a message; what cannot be decoded already carries its parse-error answer."""
@@ -172,22 +183,31 @@ class Dispatcher:
     def answers_at_once(self, incoming: Incoming) -> bool:
         """True when answering cannot wait on anything: a parse error, or a single request
         for an unknown method or one whose handler is a plain function. Transports answer
-        these inline and give the rest a task of their own."""
+        these inline (:meth:`answer_at_once`) and give the rest a task of their own."""
         if incoming.parse_error is not None:
             return True
         message = incoming.message
-        if not isinstance(message, dict):
-            return not isinstance(message, list)  # a batch may hold a method that waits
+        if type(message) is not dict:
+            return type(message) is not list  # a batch may hold a method that waits
         name = message.get("method")
         method = self._methods.get(name) if type(name) is str else None
         return method is None or not method.waits
 
-    async def answer(self, incoming: Incoming, ctx: CallContext) -> bytes | None:
+    def answer_at_once(self, incoming: Incoming, ctx: CallContext) -> str | None:
+        """The encoded answer to a message :meth:`answers_at_once` accepted, without a
+        coroutine in the way; None when nothing is to be sent."""
+        if incoming.parse_error is not None:
+            return incoming.parse_error
+        call = self._begin(incoming.message, ctx)
+        response = self._run_now(call, ctx) if isinstance(call, _Call) else call
+        return None if response is None else self._encode_response(response)
+
+    async def answer(self, incoming: Incoming, ctx: CallContext) -> str | None:
         """The encoded answer to a parsed message; None when nothing is to be sent."""
         if incoming.parse_error is not None:
             return incoming.parse_error
         message = incoming.message
-        if isinstance(message, list):
+        if type(message) is list:
             if not message:
                 self.counters["invalid_requests"] += 1
                 return _encode(_error_response(None, RpcError(INVALID_REQUEST, "empty batch")))
@@ -198,11 +218,11 @@ class Dispatcher:
             try:
                 return _encode(answered)
             except (ValueError, TypeError, RecursionError):
-                return b"[" + b",".join(self._encode_response(item) for item in answered) + b"]"
+                return "[" + ",".join(self._encode_response(item) for item in answered) + "]"
         response = await self.handle_message(message, ctx)
         return self._encode_response(response) if response is not None else None
 
-    def _encode_response(self, response: dict[str, Any]) -> bytes:
+    def _encode_response(self, response: dict[str, Any]) -> str:
         """Encoded; a result JSON cannot hold (NaN, an object) is answered -32603 instead."""
         try:
             return _encode(response)
@@ -213,36 +233,60 @@ class Dispatcher:
             return _encode(_error_response(response.get("id"), error))
 
     async def handle_message(self, message: Any, ctx: CallContext) -> dict[str, Any] | None:
-        """Answer one decoded request object; None for a notification."""
-        if not isinstance(message, dict) or message.get("jsonrpc") != "2.0":
+        """Answer one decoded request object (its params are consumed); None for a
+        notification."""
+        call = self._begin(message, ctx)
+        if not isinstance(call, _Call):
+            return call
+        if not call.method.waits:
+            return self._run_now(call, ctx)
+        try:
+            result = await call.method.handler(ctx, **call.kwargs)
+        except Exception as err:
+            return self._failed(call.request_id, call.notification, call.method.name, err)
+        return None if call.notification else _result(call.request_id, result)
+
+    def _run_now(self, call: _Call, ctx: CallContext) -> dict[str, Any] | None:
+        try:
+            result = call.method.handler(ctx, **call.kwargs)
+        except Exception as err:
+            return self._failed(call.request_id, call.notification, call.method.name, err)
+        return None if call.notification else _result(call.request_id, result)
+
+    def _begin(self, message: Any, ctx: CallContext) -> _Call | dict[str, Any] | None:
+        """Envelope, method, session and params checked: the call to run, or its answer
+        already (an error, or None for a notification that failed)."""
+        if type(message) is not dict or message.get("jsonrpc") != "2.0":
             self.counters["invalid_requests"] += 1
-            request_id = message.get("id") if isinstance(message, dict) else None
+            request_id = message.get("id") if type(message) is dict else None
             return _error_response(
                 _valid_id(request_id), RpcError(INVALID_REQUEST, "invalid request")
             )
-        is_notification = "id" not in message
+        notification = "id" not in message
         request_id = message.get("id")
-        if not is_notification and not _is_valid_id(request_id):
+        if not notification and not _is_valid_id(request_id):
             self.counters["invalid_requests"] += 1
             return _error_response(None, RpcError(INVALID_REQUEST, "invalid id"))
         name = message.get("method")
         params = message.get("params", {})
-        if not isinstance(name, str) or not isinstance(params, dict | list):
+        if type(name) is not str or not isinstance(params, dict | list):
             self.counters["invalid_requests"] += 1
             return _error_response(request_id, RpcError(INVALID_REQUEST, "invalid request"))
         self.counters["calls"] += 1
         try:
-            result = await self._call(name, params, ctx)
-        except RpcError as err:
-            return None if is_notification else _error_response(request_id, err)
-        except Exception:
+            method, kwargs = self._prepare(name, params, ctx)
+        except Exception as err:
+            return self._failed(request_id, notification, name, err)
+        return _Call(request_id, notification, method, kwargs)
+
+    def _failed(
+        self, request_id: Any, notification: bool, name: str, err: Exception
+    ) -> dict[str, Any] | None:
+        if not isinstance(err, RpcError):
             self.counters["internal_errors"] += 1
-            _LOGGER.exception("method %s failed", name)
-            internal = RpcError(INTERNAL_ERROR, "internal error")
-            return None if is_notification else _error_response(request_id, internal)
-        if is_notification:
-            return None
-        return {"jsonrpc": "2.0", "id": request_id, "result": result}
+            _LOGGER.error("method %s failed", name, exc_info=err)
+            err = RpcError(INTERNAL_ERROR, "internal error")
+        return None if notification else _error_response(request_id, err)
 
     def _check_params(self, method: Method, kwargs: dict[str, Any]) -> None:
         """Names and simple JSON types, from what was cached when the method was added."""
@@ -264,20 +308,22 @@ class Dispatcher:
             self.counters["invalid_params"] += 1
             raise RpcError(INVALID_PARAMS, f"invalid params: {problem}")
 
-    async def _call(self, name: str, params: dict[str, Any] | list[Any], ctx: CallContext) -> Any:
+    def _prepare(
+        self, name: str, params: dict[str, Any] | list[Any], ctx: CallContext
+    ) -> tuple[Method, dict[str, Any]]:
+        """The method and its by-name params, authorized and checked."""
         method = self._methods.get(name)
         if method is None:
             self.counters["unknown_methods"] += 1
             raise RpcError(METHOD_NOT_FOUND, f"method not found: {name}")
-        if isinstance(params, list):
+        if type(params) is list:
             try:
-                bound = method.signature.bind(*params)
+                kwargs = method.signature.bind(*params).arguments
             except TypeError as err:
                 self.counters["invalid_params"] += 1
                 raise RpcError(INVALID_PARAMS, f"invalid params: {err}") from None
-            kwargs = dict(bound.arguments)
         else:
-            kwargs = dict(params)
+            kwargs = params  # type: ignore[assignment]  # decoded for this call alone
         if method.session_required:
             if self.authorizer is None:
                 raise RpcError(INTERNAL_ERROR, "no authorizer")
@@ -287,8 +333,9 @@ class Dispatcher:
                 if err.code == UNAUTHORIZED:
                     self.counters["unauthorized"] += 1
                 raise
-        self._check_params(method, kwargs)
-        return await method.invoke(ctx, **kwargs)
+        if kwargs or method.required:
+            self._check_params(method, kwargs)
+        return method, kwargs
 
 
 def _json_type_ok(value: Any, expected: type) -> bool:
@@ -312,6 +359,10 @@ def _error_response(request_id: Any, err: RpcError) -> dict[str, Any]:
     return {"jsonrpc": "2.0", "id": request_id, "error": err.as_dict()}
 
 
+def _result(request_id: Any, result: Any) -> dict[str, Any]:
+    return {"jsonrpc": "2.0", "id": request_id, "result": result}
+
+
 def _refuse_constant(name: str) -> Any:
     raise ValueError(f"{name} is not JSON")
 
@@ -320,6 +371,23 @@ def _refuse_constant(name: str) -> Any:
 # build a new one per call. NaN and Infinity are not JSON: refused both ways.
 _DECODER = json.JSONDecoder(parse_constant=_refuse_constant)
 _ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
+_C_ENCODE = (
+    # What JSONEncoder.encode builds anew on every call (the C encoder, with its options),
+    # built once. No circular-reference markers: a cyclic result ends in RecursionError.
+    json.encoder.c_make_encoder(  # type: ignore[attr-defined]
+        None,
+        _ENCODER.default,
+        json.encoder.encode_basestring_ascii,
+        None,
+        ":",
+        ",",
+        False,
+        False,
+        False,
+    )
+    if getattr(json.encoder, "c_make_encoder", None) is not None
+    else None
+)
 
 
 def decode(data: bytes | str) -> Any:
@@ -328,21 +396,34 @@ def decode(data: bytes | str) -> Any:
     A number too large for a float (``1e999``) still decodes, to ``inf``: the envelope checks
     refuse it where it matters (ids, float params) and the encoder never sends one back.
     """
-    return _DECODER.decode(data if isinstance(data, str) else _text(data))
+    return _decode(_DECODER, data if isinstance(data, str) else _text(data))
 
 
-def _encode(message: Any) -> bytes:
-    return _ENCODER.encode(message).encode()
+def _decode(decoder: json.JSONDecoder, text: str) -> Any:
+    """``decoder.decode(text)``, minus two regex matches when there is no whitespace around."""
+    try:
+        value, end = decoder.scan_once(text, 0)  # type: ignore[attr-defined]
+    except StopIteration:
+        end = -1  # leading whitespace, or not JSON: the full decoder says which
+    if end != len(text):  # (or trailing whitespace, or extra data)
+        return decoder.decode(text)
+    return value
+
+
+def _encode(message: Any) -> str:
+    if _C_ENCODE is None:
+        return _ENCODER.encode(message)
+    return "".join(_C_ENCODE(message, 0))
 
 
 def encode_error(request_id: Any, err: RpcError) -> bytes:
     """An error answer (``request_id`` None when the request's could not be read)."""
-    return _encode(_error_response(_valid_id(request_id), err))
+    return _encode(_error_response(_valid_id(request_id), err)).encode()
 
 
-def encode_request(
+def request_text(
     method: str, params: dict[str, Any] | list[Any] | None, request_id: int | None
-) -> bytes:
+) -> str:
     """A request (or a notification when ``request_id`` is None)."""
     message: dict[str, Any] = {"jsonrpc": "2.0", "method": method}
     if params is not None:
@@ -350,6 +431,13 @@ def encode_request(
     if request_id is not None:
         message["id"] = request_id
     return _encode(message)
+
+
+def encode_request(
+    method: str, params: dict[str, Any] | list[Any] | None, request_id: int | None
+) -> bytes:
+    """:func:`request_text`, encoded (for an HTTP body)."""
+    return request_text(method, params, request_id).encode()
 
 
 class BadAnswer(ValueError):
@@ -400,7 +488,7 @@ def decode_answers(data: bytes | str) -> list[Any]:
     """The response objects in a received message (one, or a batch's); raises ``ValueError``
     (or ``RecursionError``) when it is not JSON, or when it holds a number no float can
     represent (``1e999``), which no conforming peer sends."""
-    answer = _ANSWER_DECODER.decode(data if isinstance(data, str) else _text(data))
+    answer = _decode(_ANSWER_DECODER, data if isinstance(data, str) else _text(data))
     return answer if isinstance(answer, list) else [answer]
 
 
