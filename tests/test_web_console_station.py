@@ -292,6 +292,14 @@ async def test_warnings_audio_both_ways_and_a_closed_page_stops_the_robot(
             await expect(page.locator("#talk")).to_have_attribute("aria-pressed", "false")
             await wait_until(lambda: speaker.state.value == "idle", timeout=5)
 
+            # The page's socket drops: it says so, reconnects, and the picture comes back.
+            decoded = await frames_decoded(page, at_least=1)
+            await page.evaluate("window.navcam.dropStationConnection()")
+            await expect(page.locator("#api-state")).to_have_text("station connected")
+            states = await page.evaluate("window.navcam.apiStates")
+            assert states[-2:] == ["reconnecting", "connected"], states
+            await frames_decoded(page, at_least=decoded + 10)
+
             override = page.get_by_role("button", name="manual override")
             await override.click()
             await expect(override).to_have_attribute("aria-pressed", "true", timeout=10_000)

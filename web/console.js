@@ -42,6 +42,9 @@ window.navcam = {
   stats: () => state.videoStats,
   marks: () => Object.fromEntries(performance.getEntriesByType("mark").map((m) => [m.name, m.startTime])),
   audio: () => ({ ...audio.stats }),
+  apiStates: [],
+  /** Drop the station connection (it reconnects by itself): for trying the reconnection. */
+  dropStationConnection: () => api.ws?.close(),
   keepLatencies: (on) => worker?.postMessage({ type: "keep", on }),
   dump: () => new Promise((resolve) => { dumpWaiters.push(resolve); worker?.postMessage({ type: "dump" }); }),
 };
@@ -86,7 +89,7 @@ async function watch(platformId) {
 // ---------------------------------------------------------------- station connection
 
 const api = new StationApi(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/rpc/ws`, {
-  onState: (text) => setPill("#api-state", text === "connected" ? "station connected" : `station ${text}…`, text === "connected" ? "ok" : "bad"),
+  onState: (text) => (window.navcam.apiStates.push(text), setPill("#api-state", text === "connected" ? "station connected" : `station ${text}…`, text === "connected" ? "ok" : "bad")),
   onBinary: (buffer) => {
     const type = new Uint8Array(buffer, 0, 1)[0];
     if (type === 1) worker?.postMessage({ type: "frame", buffer }, [buffer]);
@@ -103,6 +106,7 @@ async function subscribe() {
   if (state.current) {
     await api.call("connect", { platform_id: state.current }, 8000).catch(() => {});
     await watch(state.current);
+    if (audio.listening) await audio.listen(audio.listening).catch(() => {});
   } else if (requestedPlatform) {
     await select(requestedPlatform);
   }
@@ -231,7 +235,7 @@ function renderPlatforms() {
 
 function heading(platformId) {
   const snapshot = state.telemetry.get(platformId)?.report.snapshot;
-  return snapshot?.gps?.course ?? (snapshot?.attitude ? 90 - snapshot.attitude.yaw : 0);
+  return snapshot?.gps?.course ?? (snapshot?.attitude ? 90 - snapshot.attitude.yaw : null);
 }
 
 function updateMap(platformId) {

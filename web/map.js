@@ -49,14 +49,17 @@ export class PlatformMap {
       entry = { marker, track, points: [] };
       this.markers.set(id, entry);
     }
-    entry.marker.setLatLng(point);
-    entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected));
     const last = entry.points[entry.points.length - 1];
     if (!last || Math.hypot(last[0] - point[0], last[1] - point[1]) > 0.05) {
       entry.points.push(point);
       if (entry.points.length > TRACK_POINTS) entry.points.shift();
       entry.track.setLatLngs(entry.points);
     }
+    // Without a reported heading (a platform not connected): the direction of its track.
+    const before = entry.points[entry.points.length - 2];
+    if (heading == null && before) heading = (Math.atan2(point[1] - before[1], point[0] - before[0]) * 180) / Math.PI;
+    entry.marker.setLatLng(point);
+    entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected));
     if (!this.fitted) { this.map.setView(point, 2); this.fitted = true; }
   }
 
