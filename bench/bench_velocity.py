@@ -13,8 +13,6 @@
 from __future__ import annotations
 
 import asyncio
-import importlib
-import importlib.util
 import socket
 import sys
 import time
@@ -28,7 +26,9 @@ from brasidas.codecs.jsonrpc import RpcError
 from brasidas.codecs.pvel import PvelEncoder
 from brasidas.config import PlatformConfig, StationConfig, load_config
 from brasidas.messages import Velocity
-from platformd.app import SUBSYSTEMS, PlatformDaemon
+from platformd.app import PlatformDaemon
+from platformd.sim.ax3500 import Ax3500Simulator, SimOptions
+from platformd.sim.vehicle import VehicleModel
 from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
 
@@ -106,7 +106,7 @@ async def _motor_command_latency(rate_hz: float) -> dict[str, float]:
     daemon.bus.subscribe(topics.MOTOR_COMMAND, on_command)
     sent_at: dict[int, float] = {}
     encoder = PvelEncoder(key=connection.session_key, session_id=connection.session_id)
-    target = ("127.0.0.1", daemon.config.velocity.port)
+    target = ("127.0.0.1", daemon.ctx.velocity_port)
     try:
         count = SAMPLES[rate_hz] + WARMUP
         await asyncio.to_thread(_paced_sender, target, encoder, rate_hz, count, sent_at, _distinct)
@@ -120,13 +120,16 @@ async def _motor_command_latency(rate_hz: float) -> dict[str, float]:
     return result
 
 
-AX3500_SIM = "platformd.sim.ax3500"
 LEVELS = (0.2, 0.4, 0.6, 0.8)
 """Linear commands cycled through, each a different serial value, so every sentence changes it."""
 
 
-async def _platform_with_tap(key: bytes) -> tuple[PlatformDaemon, SerialTap]:
-    """An in-process ``--sim`` platform whose driver talks to the simulator through a tap."""
+async def _platform_with_tap(key: bytes) -> tuple[PlatformDaemon, SerialTap, Ax3500Simulator]:
+    """An in-process platform whose driver talks to a simulated AX3500 through a tap."""
+    simulator = Ax3500Simulator(SimOptions(), vehicle=VehicleModel())
+    simulator.start()
+    tap = SerialTap(simulator.path)
+    tap.start()
     config = load_config(
         PlatformConfig,
         None,
@@ -137,22 +140,15 @@ async def _platform_with_tap(key: bytes) -> tuple[PlatformDaemon, SerialTap]:
             "gps.enabled=false",
             "imu.enabled=false",
             "navcam.enabled=false",
+            "audio.enabled=false",
+            f"motor.port={tap.driver_path}",
+            "motor.bytesize=8",  # a pty refuses 7E1; the bytes are the same
+            "motor.parity=N",
         ],
     )
-    config.sim.enabled = True
     daemon = PlatformDaemon(config, key)
-    tap: SerialTap | None = None
-    # PlatformDaemon.start, unrolled: the tap goes between the simulator's pty and the driver.
-    for name in SUBSYSTEMS:
-        await importlib.import_module(name).async_setup(daemon.ctx)
-        if name == AX3500_SIM:
-            tap = SerialTap(config.motor.port)
-            tap.start()
-            config.motor.port = tap.driver_path
-    if tap is None:
-        await daemon.stop()
-        raise RuntimeError(f"{AX3500_SIM} is not a platform subsystem")
-    return daemon, tap
+    await daemon.start()
+    return daemon, tap, simulator
 
 
 def _velocity_commands(tap: SerialTap) -> list[Command]:
@@ -162,7 +158,7 @@ def _velocity_commands(tap: SerialTap) -> list[Command]:
 
 async def _serial_latency(key: bytes) -> dict[str, Any]:
     """``$PVEL`` sent to the first byte of the resulting command at the pty master."""
-    daemon, tap = await _platform_with_tap(key)
+    daemon, tap, simulator = await _platform_with_tap(key)
     figures: dict[str, Any] = {}
     try:
         deadline = time.monotonic() + 10
@@ -178,7 +174,7 @@ async def _serial_latency(key: bytes) -> dict[str, Any]:
             if not await connection.call("set_manual_override", engaged=True):
                 raise RuntimeError("manual override refused")
             encoder = PvelEncoder(key=connection.session_key, session_id=connection.session_id)
-            target = ("127.0.0.1", daemon.config.velocity.port)
+            target = ("127.0.0.1", daemon.ctx.velocity_port)
             mapping: dict[float, str] = {}
             for rate in (20.0, 500.0):
                 tag = f"{int(rate)}hz"
@@ -208,6 +204,7 @@ async def _serial_latency(key: bytes) -> dict[str, Any]:
     finally:
         await daemon.stop()
         tap.close()
+        simulator.close()
     return figures
 
 
@@ -344,11 +341,8 @@ async def run() -> dict[str, Any]:
         figures[f"pvel_to_motor_command_{tag}_p50_ms"] = bus["p50"]
         figures[f"pvel_to_motor_command_{tag}_p99_ms"] = bus["p99"]
         figures[f"pvel_to_motor_command_{tag}_lost"] = bus["lost"]
-    if importlib.util.find_spec(AX3500_SIM) is not None and AX3500_SIM in SUBSYSTEMS:
-        key = security.load_or_create_key(security.default_key_path())
-        figures.update(await _serial_latency(key))
-    else:
-        figures["pvel_to_serial"] = "not measured: no AX3500 simulator subsystem"
+    key = security.load_or_create_key(security.default_key_path())
+    figures.update(await _serial_latency(key))
     figures.update(await _platform_cpu())
     own = await _platform_cpu(teleop_path_only=True)
     figures["platform_cpu_teleop_path_only_idle_pct"] = own["platform_cpu_idle_pct"]

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import argparse
 import logging
 import os
 import sys
+
+LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
 
 _PRIORITY = {
     logging.CRITICAL: 2,
@@ -22,6 +25,13 @@ class JournalFormatter(logging.Formatter):
         text = super().format(record)
         priority = _PRIORITY.get(record.levelno, 6)
         return "\n".join(f"<{priority}>{line}" for line in text.splitlines())
+
+
+def level_argument(text: str) -> str:
+    """``--log-level``'s argparse type: a level name in any case, refused when unknown."""
+    if text.upper() not in LEVELS:
+        raise argparse.ArgumentTypeError(f"{text!r} is not one of {', '.join(LEVELS)}")
+    return text.upper()
 
 
 def setup_logging(verbosity: int = 0, level: str | None = None) -> None:

@@ -11,27 +11,50 @@ from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.config import PlatformConfig
 from brasidas.sdnotify import Notifier, WatchdogPinger
 from platformd.context import PlatformContext
+from platformd.sim import SimulatedDevices
+from platformd.sim import ax3500 as ax3500_sim
+from platformd.sim import gps as gps_sim
+from platformd.sim import mpu6050 as mpu6050_sim
+from platformd.sim.vehicle import vehicle_for
 
 _LOGGER = logging.getLogger(__name__)
 
 SUBSYSTEMS: tuple[str, ...] = (
-    # Order matters: simulators first (they create the ptys the drivers open), then the
-    # drivers, then what reports on them. Each module has ``async def async_setup(ctx)``.
-    "platformd.sim.gps",
-    "platformd.sim.mpu6050",
-    "platformd.sim.ax3500",  # --sim only: sets motor.port to its pty
+    # Each module has ``async def async_setup(ctx)``. Most meet only on the bus (retained
+    # values) and could come in any order; three orderings remain, each for a reason:
+    # telemetry's own sections are defaults that never replace a driver's, so it comes after
+    # the drivers; signaling serves the RPC table as soon as it is bound, so it comes after
+    # every module that adds methods or capabilities; the beacon advertises signaling's bound
+    # URL (its setup refuses to run before). The simulators are not subsystems: they are
+    # started before all of these (start_simulators), so the drivers open them.
     "platformd.sessions",
     "platformd.mode",
     "platformd.velocity",
     "platformd.arbiter",
-    "platformd.motor",  # obeys the arbiter's MOTOR_COMMAND
+    "platformd.motor",
     "platformd.gps",
     "platformd.imu",
     "platformd.media",
     "platformd.telemetry",
     "platformd.signaling",
-    "platformd.beacon",  # after signaling: the beacon carries its bound URL
+    "platformd.beacon",
 )
+
+
+async def start_simulators(ctx: PlatformContext) -> SimulatedDevices:
+    """In ``--sim``: the simulated vehicle and the devices the enabled drivers will open."""
+    config = ctx.config
+    if not config.sim.enabled:
+        return SimulatedDevices()
+    vehicle = vehicle_for(config)
+    ax3500 = lights = gps = chip = i2c_bus = None
+    if config.motor.enabled:
+        ax3500, lights = await ax3500_sim.start_simulator(ctx, vehicle)
+    if config.gps.enabled:
+        gps = gps_sim.start_simulator(ctx, vehicle)
+    if config.imu.enabled:
+        chip, i2c_bus = mpu6050_sim.emulate(config.imu, vehicle)
+    return SimulatedDevices(vehicle, ax3500, lights, gps, chip, i2c_bus)
 
 
 class PlatformDaemon(Daemon):
@@ -53,6 +76,7 @@ class PlatformDaemon(Daemon):
         self.started_at = time.monotonic()
 
     async def start(self) -> None:
+        self.ctx.sim = await start_simulators(self.ctx)
         for name in SUBSYSTEMS:
             module = importlib.import_module(name)
             await module.async_setup(self.ctx)

@@ -223,6 +223,10 @@ def setup_directory(ctx: PlatformContext) -> discovery.PlatformDirectory:
 async def async_setup(ctx: PlatformContext) -> None:
     if not ctx.config.beacon.enabled:
         return
+    if not ctx.signaling_url:
+        raise RuntimeError(
+            "the beacon advertises signaling's URL: set up platformd.signaling first"
+        )
     if ctx.config.beacon.listen:
         setup_directory(ctx)
     advertiser = BeaconAdvertiser(ctx)

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from brasidas import security
 from brasidas.actor import stop_on_signals
 from brasidas.config import ConfigError, PlatformConfig, dump_toml, load_config
-from brasidas.log import setup_logging
+from brasidas.log import LEVELS, level_argument, setup_logging
 
 _LOGGER = logging.getLogger("platformd")
 
@@ -44,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--insecure", action="store_true", help="run without a fleet key (never in the field)"
     )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
-    parser.add_argument("--log-level", help="DEBUG, INFO, WARNING or ERROR")
+    parser.add_argument("--log-level", type=level_argument, help=", ".join(LEVELS), metavar="LEVEL")
     sub = parser.add_subparsers(dest="command")
     sub.add_parser("run", help="run the daemon (default)")
     sub.add_parser("config", help="print the effective configuration as TOML")
@@ -59,12 +59,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def load_platform_config(args: argparse.Namespace) -> PlatformConfig:
-    config = load_config(PlatformConfig, args.config, args.overrides)
-    if args.sim:
-        config.sim.enabled = True
-    if args.insecure:
-        config.security.insecure = True
-    return config
+    """The config file, ``--set`` overrides, then ``--sim`` and ``--insecure``; validated."""
+    flags = {"sim.enabled=true": args.sim, "security.insecure=true": args.insecure}
+    overrides = [*args.overrides, *(item for item, given in flags.items() if given)]
+    return load_config(PlatformConfig, args.config, overrides)
 
 
 def load_fleet_key(config: PlatformConfig) -> bytes | None:

@@ -11,6 +11,18 @@ from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.config import PlatformConfig
 from platformd.session_table import Session, SessionTable
+from platformd.sim import SimulatedDevices
+
+
+@dataclass(frozen=True)
+class SerialDevice:
+    """A serial line to open: the device and its framing."""
+
+    path: str
+    baudrate: int
+    bytesize: int = 8
+    parity: str = "N"
+    stopbits: int = 1
 
 
 @dataclass
@@ -23,7 +35,11 @@ class PlatformContext:
     fleet_key: bytes | None
     """None only with --insecure."""
     signaling_url: str = ""
-    """Where stations reach signaling; set once the server is bound."""
+    """Where stations reach signaling; set once the server is bound (before the beacon starts)."""
+    velocity_port: int = 0
+    """The UDP port velocity datagrams arrive on; set once bound (the kernel's choice for 0)."""
+    sim: SimulatedDevices = field(default_factory=SimulatedDevices)
+    """The simulated devices (``--sim``), started before every subsystem."""
     sessions: SessionTable = field(default_factory=SessionTable)
     """The open sessions, kept by the session manager (platformd.sessions)."""
     capabilities: dict[str, Callable[[], Any]] = field(default_factory=dict)
@@ -32,8 +48,29 @@ class PlatformContext:
     """Sections of the telemetry snapshot, each computed when a report is built."""
     diagnostics_sources: dict[str, Callable[[], Any]] = field(default_factory=dict)
     """Entries of the ``diagnostics`` section (sent only after 20.0): counters and the like."""
-    sim: dict[str, Any] = field(default_factory=dict)
-    """Simulated devices by name (only in --sim), for subsystems that need to reach them."""
+
+    @property
+    def motor_serial(self) -> SerialDevice:
+        """The motor controller's line: ``motor.*``, or in --sim the simulator's pty (8N1: a pty
+        refuses 7 bits and parity, hardware.md; the bytes are the same ASCII)."""
+        if self.sim.ax3500 is not None:
+            return SerialDevice(self.sim.ax3500.path, self.config.motor.baudrate)
+        motor = self.config.motor
+        return SerialDevice(
+            motor.port, motor.baudrate, motor.bytesize, motor.parity, motor.stopbits
+        )
+
+    @property
+    def positional_lights_output(self) -> str:
+        """``motor.positional_lights_output``, or in --sim the simulator's GPIO file."""
+        if self.sim.positional_lights is not None:
+            return f"gpio:{self.sim.positional_lights}"
+        return self.config.motor.positional_lights_output
+
+    @property
+    def gps_port(self) -> str:
+        """The NMEA receiver's device: ``gps.port``, or in --sim the simulator's pty."""
+        return self.sim.gps.path if self.sim.gps is not None else self.config.gps.port
 
     def session(self, session_id: str | None) -> Session | None:
         """The open session with this token, or None."""

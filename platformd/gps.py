@@ -11,6 +11,7 @@ missing or vanishes is reported and reopened with capped backoff.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 from typing import Any
 
@@ -210,6 +211,7 @@ def capabilities(config: GpsSection) -> dict[str, Any]:
 async def async_setup(ctx: PlatformContext) -> None:
     if not ctx.config.gps.enabled:
         return
-    reader = GpsReader(ctx.bus, ctx.config.gps)
-    ctx.capabilities["gps"] = lambda: capabilities(ctx.config.gps)
+    section = dataclasses.replace(ctx.config.gps, port=ctx.gps_port)  # the simulator's in --sim
+    reader = GpsReader(ctx.bus, section)
+    ctx.capabilities["gps"] = lambda: capabilities(section)
     ctx.supervisor.start(reader)

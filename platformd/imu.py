@@ -483,8 +483,7 @@ def _set_result(future: asyncio.Future[str], reason: str) -> None:
 async def async_setup(ctx: PlatformContext) -> None:
     if not ctx.config.imu.enabled:
         return
-    factory = ctx.sim.get("i2c_bus")  # the emulated chip in --sim
-    reader = ImuReader(ctx.bus, ctx.config.imu, factory)
+    reader = ImuReader(ctx.bus, ctx.config.imu, ctx.sim.i2c_bus)  # the emulated chip in --sim
     ctx.capabilities["imu"] = lambda: {
         "device": "MPU-6050",
         "i2c_bus": ctx.config.imu.i2c_bus,

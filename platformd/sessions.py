@@ -205,7 +205,7 @@ def velocity_endpoint(ctx: PlatformContext) -> dict[str, Any]:
     velocity = ctx.config.velocity
     return {
         "host": velocity.advertise_host or velocity.host,
-        "port": velocity.port,
+        "port": ctx.velocity_port,
         "auth": "none" if ctx.fleet_key is None else "hmac-sha256-64",
     }
 

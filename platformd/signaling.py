@@ -126,5 +126,5 @@ async def async_setup(ctx: PlatformContext) -> None:
     port = await serve_app(
         app, config.host, config.port, supervisor=ctx.supervisor, bus=ctx.bus, name="signaling"
     )
-    config.port = port  # with port 0 the kernel chose one; beacons must carry the real one
+    # With port 0 the kernel chose one; beacons must carry the real one.
     ctx.signaling_url = f"http://{config.advertise_host or config.host}:{port}"

@@ -192,7 +192,7 @@ async def open_receiver(ctx: PlatformContext) -> VelocityReceiver:
         lambda: _VelocityProtocol(receiver.on_datagram), local_addr=(config.host, config.port)
     )
     receiver.transport = transport
-    config.port = int(transport.get_extra_info("sockname")[1])  # port 0: the kernel's choice
+    ctx.velocity_port = int(transport.get_extra_info("sockname")[1])  # 0: the kernel's choice
     return receiver
 
 

@@ -20,7 +20,7 @@ from brasidas import security
 from brasidas.actor import stop_on_signals
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import ConfigError, StationConfig, load_config
-from brasidas.log import setup_logging
+from brasidas.log import LEVELS, level_argument, setup_logging
 from stationd.api_client import CliError, api_call_async
 
 _LOGGER = logging.getLogger("stationd")
@@ -296,7 +296,9 @@ def _common_options(*, top_level: bool) -> argparse.ArgumentParser:
     common.add_argument(
         "-v", "--verbose", action="count", **({"default": 0} if top_level else default)
     )
-    common.add_argument("--log-level", **default)
+    common.add_argument(
+        "--log-level", type=level_argument, help=", ".join(LEVELS), metavar="LEVEL", **default
+    )
     return common
 
 
@@ -383,9 +385,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     setup_logging(args.verbose if args.command == "serve" else args.verbose - 1, args.log_level)
     try:
         overrides = [*args.overrides, *getattr(args, "command_overrides", [])]
-        config = load_config(StationConfig, args.config, overrides)
         if args.insecure:
-            config.security.insecure = True
+            overrides.append("security.insecure=true")
+        config = load_config(StationConfig, args.config, overrides)
         return COMMANDS[args.command](args, config)
     except ConfigError as err:
         print(f"brasidas-station: {err}", file=sys.stderr)

@@ -53,6 +53,8 @@ class StationDaemon(Daemon):
             fleet_key=fleet_key,
         )
         self.app = web.Application(client_max_size=API_MAX_BYTES)
+        self.api_port = 0
+        """The local API's bound port (``station.api_port``, or the kernel's choice for 0)."""
         self.api_url = ""
         self.console_https_port: int | None = None
         """The HTTPS console's bound port (with ``console.tls_cert``)."""
@@ -80,7 +82,7 @@ class StationDaemon(Daemon):
             name="api",
             tls_sites=tls_sites,
         )
-        station.api_port = port
+        self.api_port = port
         self.api_url = f"http://{station.api_host}:{port}"
         _LOGGER.info("station %s up: local API %s", station.id, self.api_url)
         if tls_ports:
@@ -92,17 +94,17 @@ class StationDaemon(Daemon):
 def tls_context(console: ConsoleSection) -> ssl.SSLContext:
     """The HTTPS console's server context; ConfigError names the key that cannot be loaded."""
     if not console.tls_key:
-        raise ConfigError("console.tls_key: required with console.tls_cert")
+        raise ConfigError("console.tls_key", "required with console.tls_cert")
     context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
     try:
         context.load_cert_chain(console.tls_cert, console.tls_key)
     except (OSError, ssl.SSLError) as err:
-        raise ConfigError(f"console.tls_cert: cannot load with console.tls_key: {err}") from None
+        raise ConfigError("console.tls_cert", f"cannot load with console.tls_key: {err}") from None
     if console.tls_client_ca:
         try:
             context.load_verify_locations(console.tls_client_ca)
         except (OSError, ssl.SSLError) as err:
-            raise ConfigError(f"console.tls_client_ca: cannot load: {err}") from None
+            raise ConfigError("console.tls_client_ca", f"cannot load: {err}") from None
         context.verify_mode = ssl.CERT_REQUIRED
     return context
 

@@ -13,6 +13,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from brasidas.codecs import ax3500
+from brasidas.config import MotorSection
+from platformd.context import SerialDevice
 from platformd.sim.ax3500 import Ax3500Device, Ax3500Simulator, SimOptions
 from platformd.sim.vehicle import VehicleModel
 
@@ -195,15 +197,14 @@ async def test_simulate_ax3500_standalone() -> None:
     assert process.returncode == 0
 
 
-async def test_platform_sim_subsystem_sets_the_port(platform_factory, fleet_key: bytes) -> None:  # type: ignore[no-untyped-def]
+async def test_platform_sim_gives_the_driver_its_pty(platform_factory, fleet_key: bytes) -> None:  # type: ignore[no-untyped-def]
     from conftest import quiet_platform_config
 
-    config = quiet_platform_config("motor.enabled=true")
-    config.sim.enabled = True
+    config = quiet_platform_config("motor.enabled=true", "sim.enabled=true")
     daemon = await platform_factory(config, fleet_key)
-    sim = daemon.ctx.sim["ax3500"]
-    assert config.motor.port == sim.path and (config.motor.bytesize, config.motor.parity) == (
-        8,
-        "N",
-    )
+    sim = daemon.ctx.sim.ax3500
+    assert sim is not None
+    # The driver opens the simulator's pty 8N1; the configuration is left as it was given.
+    assert daemon.ctx.motor_serial == SerialDevice(sim.path, 9600, 8, "N", 1)
+    assert daemon.config == config and config.motor.port == MotorSection().port
     await wait_until(lambda: "!B00" in sim.device.received)

@@ -105,7 +105,7 @@ async def test_access_units_reach_a_websocket_viewer_with_capture_times(
         quiet_platform_config("platform.id=feed-rover", "sim.enabled=true", "navcam.enabled=true"),
         fleet_key,
     )
-    api = f"http://127.0.0.1:{station.config.station.api_port}/api/rpc/ws"
+    api = f"http://127.0.0.1:{station.api_port}/api/rpc/ws"
     ids = iter(range(1, 1000))
 
     async with aiohttp.ClientSession() as http, http.ws_connect(api) as ws:

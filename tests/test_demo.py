@@ -41,7 +41,7 @@ def test_example_deployment_config_loads() -> None:
 
     path = Path(__file__).resolve().parent.parent / "deploy" / "platform.toml"
     config = load_config(PlatformConfig, path)
-    assert config.beacon.destinations == ["10.144.255.255"]
+    assert config.beacon.destinations == ("10.144.255.255",)
     assert config.security.key_file == "/etc/brasidas/fleet.key"
 
 

@@ -23,7 +23,8 @@ from brasidas.messages import GpsFix, GpsFixLost, GpsStats, Position
 from platformd.gps import GpsReader
 from tests.conftest import wait_until
 
-NMEA = Path("/work/shared/testdata/nmea")
+NMEA = Path(__file__).resolve().parents[1].parent / "shared" / "testdata" / "nmea"
+"""Receiver logs beside the repository (``../shared/testdata/nmea``)."""
 LOGS = ["ublox-lea-5h", "ublox-8", "haicom-305N"]
 
 
@@ -215,13 +216,14 @@ def epoch(second: int) -> bytes:
     ) + sentence(f"GPGGA,1200{second:02d}.00,3756.49000,N,02339.18000,E,1,08,1.0,42.0,M,34.0,M,,")
 
 
-async def test_vanished_port_is_retried_and_a_new_one_works() -> None:
+async def test_vanished_port_is_retried_and_a_new_one_works(tmp_path: Path) -> None:
     bus = Bus()
     seen = Recorder(bus)
     first, second = Pty(), Pty()
-    config = GpsSection(port=first.path, fix_timeout=30.0)
+    link = tmp_path / "gps"  # as udev's /dev/serial/by-id names follow a replugged adapter
+    link.symlink_to(first.path)
     clock = ManualClock()
-    reader = GpsReader(bus, config, clock=clock)
+    reader = GpsReader(bus, GpsSection(port=str(link), fix_timeout=30.0), clock=clock)
     try:
         async with running(reader):
             await wait_until(lambda: reader.connected)
@@ -231,13 +233,14 @@ async def test_vanished_port_is_retried_and_a_new_one_works() -> None:
             first.close()  # the USB adapter is pulled
             await wait_until(lambda: not reader.connected)
             await wait_until(lambda: len(seen.lost) == 1)
-            assert first.path in seen.lost[0].reason
+            assert str(link) in seen.lost[0].reason
             await advancing(clock, lambda: bool(seen.stats) and not seen.stats[-1].connected)
             assert seen.stats[-1].error
             gone_at = clock.time()
             await advancing(clock, lambda: clock.time() > gone_at + 5)  # reopen attempts fail
             assert not reader.connected
-            config.port = second.path
+            link.unlink()
+            link.symlink_to(second.path)  # plugged in again, as another tty
             await advancing(clock, lambda: reader.connected)
             await second.write(epoch(1))
             await wait_until(lambda: reader.decoder.sentences == 2)  # the decoder starts over

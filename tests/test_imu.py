@@ -472,7 +472,7 @@ async def test_sim_platform_publishes_attitude(
 ) -> None:
     config = quiet_platform_config("sim.enabled=true", "imu.enabled=true")
     daemon = await platform_factory(config, fleet_key)
-    assert "i2c_bus" in daemon.ctx.sim
+    assert daemon.ctx.sim.i2c_bus is not None and daemon.ctx.sim.mpu6050 is not None
     await wait_until(lambda: daemon.bus.last(topics.ATTITUDE) is not None, 10.0)
 
     def imu() -> dict[str, Any]:

@@ -11,7 +11,6 @@ import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Any
 
 import pytest
 import serial
@@ -24,7 +23,7 @@ from brasidas.clock import ManualClock
 from brasidas.codecs import ax3500, pvel
 from brasidas.codecs.commands import BATTERY_MONITOR, MAIN_LIGHTS, POSITIONAL_LIGHTS
 from brasidas.codecs.jsonrpc import Dispatcher
-from brasidas.config import StationConfig, load_config
+from brasidas.config import PlatformConfig, StationConfig, load_config
 from brasidas.messages import ControllerStatus, LightsState, Velocity
 from platformd import motor
 from platformd.app import PlatformDaemon
@@ -32,7 +31,7 @@ from platformd.context import PlatformContext
 from platformd.motor import MotorController
 from platformd.signaling import dispatch_command
 from platformd.sim.ax3500 import Ax3500Simulator, SimOptions
-from platformd.sim.vehicle import shared_vehicle
+from platformd.sim.vehicle import VehicleModel
 from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
 
@@ -316,10 +315,14 @@ async def test_status_polls_reach_telemetry_names(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------- end to end, --sim
 
 
-def sim_config(*overrides: str) -> Any:
-    config = quiet_platform_config("motor.enabled=true", *overrides)
-    config.sim.enabled = True
-    return config
+def sim_config(*overrides: str) -> PlatformConfig:
+    return quiet_platform_config("motor.enabled=true", "sim.enabled=true", *overrides)
+
+
+def simulated(ctx: PlatformContext) -> tuple[Ax3500Simulator, VehicleModel]:
+    """The platform's simulated controller and the vehicle it drives."""
+    assert ctx.sim.ax3500 is not None and ctx.sim.vehicle is not None
+    return ctx.sim.ax3500, ctx.sim.vehicle
 
 
 async def open_connection(daemon: PlatformDaemon, key: bytes) -> PlatformConnection:
@@ -334,10 +337,9 @@ async def test_sim_platform_teleop_override_and_deadman(
     platform_factory: Factory, fleet_key: bytes
 ) -> None:
     daemon = await platform_factory(sim_config("velocity.deadman=0.2"), fleet_key)
-    sim: Ax3500Simulator = daemon.ctx.sim["ax3500"]
     ctx = daemon.ctx
+    sim, vehicle = simulated(ctx)
     await connected(ctx)
-    vehicle = shared_vehicle(ctx)
     # Autonomous Mode: cmd_vel drives the controller.
     daemon.bus.publish(topics.CMD_VEL, Velocity(0.3, 0.0))
     await wait_until(lambda: sim.device.channels == (38, 0))
@@ -350,7 +352,7 @@ async def test_sim_platform_teleop_override_and_deadman(
         await wait_until(lambda: sim.device.channels == (0, 0))
         daemon.bus.publish(topics.CMD_VEL, Velocity(0.9, 0.0))  # ignored now
         encoder = pvel.PvelEncoder(key=conn.session_key, session_id=conn.session_id)
-        target = ("127.0.0.1", daemon.config.velocity.port)
+        target = ("127.0.0.1", daemon.ctx.velocity_port)
         for _ in range(10):
             sock.sendto(encoder.encode(1.0, 0.0), target)
             await asyncio.sleep(0.05)
@@ -397,7 +399,7 @@ async def test_keyboard_drive_moves_the_simulated_controller(
     """The whole chain as an operator uses it: 'brasidas-station drive' in a terminal, the
     station's $PVEL sender, the platform's stream, arbiter and driver, the simulated AX3500."""
     platform = await platform_factory(sim_config(), fleet_key)
-    sim: Ax3500Simulator = platform.ctx.sim["ax3500"]
+    sim, vehicle = simulated(platform.ctx)
     await connected(platform.ctx)
     station = StationDaemon(load_config(StationConfig, None, ["station.api_port=0"]), fleet_key)
     await station.start()
@@ -421,7 +423,7 @@ async def test_keyboard_drive_moves_the_simulated_controller(
         "--url",
         platform.ctx.signaling_url,
         "--set",
-        f"station.api_port={station.config.station.api_port}",
+        f"station.api_port={station.api_port}",
         stdin=slave,
         stdout=slave,
         stderr=slave,
@@ -433,7 +435,7 @@ async def test_keyboard_drive_moves_the_simulated_controller(
         await wait_until(lambda: sim.device.channels == (38, 0))
         os.write(master, b"\x1b[D")  # left arrow: a left turn, !B on this chassis
         await wait_until(lambda: sim.device.channels == (38, 13))
-        await wait_until(lambda: shared_vehicle(platform.ctx).pose().speed_mps > 0.3)
+        await wait_until(lambda: vehicle.pose().speed_mps > 0.3)
         os.write(master, b" ")
         await wait_until(lambda: sim.device.channels == (0, 0))
         os.write(master, b"q")

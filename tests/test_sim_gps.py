@@ -88,7 +88,7 @@ async def test_real_reader_in_sim_platform(
     daemon = await platform_factory(config, fleet_key)
     fixes: list[GpsFix] = []
     daemon.bus.subscribe(topics.GPS_FIX, fixes.append)
-    assert daemon.config.gps.port == daemon.ctx.sim["gps"].path
+    assert daemon.ctx.sim.gps is not None and daemon.ctx.gps_port == daemon.ctx.sim.gps.path
     await wait_until(lambda: len(fixes) >= 5, timeout=10.0)
     for fix in fixes:
         assert metres_between(44.0689, -121.3143, fix.latitude, fix.longitude) < 10.0
@@ -168,7 +168,7 @@ async def test_sim_platform_reads_an_explicit_gps_port_instead(
             "sim.enabled=true", "gps.enabled=true", f"gps.port={os.ttyname(slave)}"
         )
         daemon = await platform_factory(config, fleet_key)
-        assert "gps" not in daemon.ctx.sim
+        assert daemon.ctx.sim.gps is None and daemon.ctx.gps_port == os.ttyname(slave)
         fixes: list[GpsFix] = []
         daemon.bus.subscribe(topics.GPS_FIX, fixes.append)
 

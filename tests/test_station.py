@@ -34,7 +34,7 @@ async def run_cli(station: StationDaemon, *argv: str) -> tuple[int, str, str]:
     import io
 
     out, err = io.StringIO(), io.StringIO()
-    api = ["--set", f"station.api_port={station.config.station.api_port}"]
+    api = ["--set", f"station.api_port={station.api_port}"]
 
     def call() -> int:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):

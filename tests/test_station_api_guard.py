@@ -30,7 +30,7 @@ async def post(url: str, headers: dict[str, str]) -> int:
 
 
 async def test_same_origin_and_the_cli_are_served(station: StationDaemon) -> None:
-    port = station.config.station.api_port
+    port = station.api_port
     url = f"http://127.0.0.1:{port}/api/rpc"
     assert await post(url, {}) == 200  # the CLI sends no Origin
     assert await post(url, {"Origin": f"http://127.0.0.1:{port}"}) == 200  # the console
@@ -38,7 +38,7 @@ async def test_same_origin_and_the_cli_are_served(station: StationDaemon) -> Non
 
 
 async def test_cross_site_post_and_websocket_are_refused(station: StationDaemon) -> None:
-    port = station.config.station.api_port
+    port = station.api_port
     url = f"http://127.0.0.1:{port}/api/rpc"
     assert await post(url, {"Origin": "https://evil.example"}) == 403
     async with aiohttp.ClientSession() as session:
@@ -53,7 +53,7 @@ async def test_cross_site_post_and_websocket_are_refused(station: StationDaemon)
 
 
 async def test_dns_rebinding_host_is_refused(station: StationDaemon) -> None:
-    port = station.config.station.api_port
+    port = station.api_port
     url = f"http://127.0.0.1:{port}/api/rpc"
     # A page at rebound.example resolving to 127.0.0.1: same origin as itself, foreign host.
     headers = {"Host": f"rebound.example:{port}", "Origin": f"http://rebound.example:{port}"}

@@ -81,7 +81,7 @@ async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
 
 async def run_cli(station: StationDaemon, *argv: str) -> tuple[int, str, str]:
     out, err = io.StringIO(), io.StringIO()
-    api = ["--set", f"station.api_port={station.config.station.api_port}"]
+    api = ["--set", f"station.api_port={station.api_port}"]
 
     def call() -> int:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):

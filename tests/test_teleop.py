@@ -271,7 +271,7 @@ async def test_station_streams_only_while_it_holds_the_override(
     assert platform.ctx.telemetry_sources["motion"]()["deadman"] is False
 
     status = await api.call_local("teleop_set", platform_id="brasidas-1", linear=0.5, angular=-0.2)
-    assert status["engaged"] is True and status["target"][1] == platform.config.velocity.port
+    assert status["engaged"] is True and status["target"][1] == platform.ctx.velocity_port
     await wait_until(lambda: last_motor() == Velocity(0.5, -0.2))
 
     # The drive client goes quiet: zeros, still streamed (not the platform's deadman).
@@ -384,7 +384,7 @@ async def test_drive_command_through_a_pty(
         "--url",
         platform.ctx.signaling_url,
         "--set",
-        f"station.api_port={station.config.station.api_port}",
+        f"station.api_port={station.api_port}",
         stdin=slave,
         stdout=slave,
         stderr=slave,

@@ -237,7 +237,7 @@ async def test_stream_end_to_end_with_spoofs_and_session_loss(
     good, spoof = udp_socket("127.0.0.1"), udp_socket("127.0.0.2")
     try:
         info = await conn.call("get_velocity_connection_info")
-        assert info["auth"] == "hmac-sha256-64" and info["port"] == daemon.config.velocity.port
+        assert info["auth"] == "hmac-sha256-64" and info["port"] == daemon.ctx.velocity_port
         assert conn.capabilities["velocity"]["tag_bytes"] == 8
         target = (info["host"], info["port"])
         encoder = pvel.PvelEncoder(key=conn.session_key, session_id=conn.session_id)
@@ -309,7 +309,7 @@ async def test_deadman_over_a_real_stream(platform_factory: Factory, fleet_key: 
     sock = udp_socket()
     try:
         assert await conn.call("set_manual_override", engaged=True) is True
-        target = ("127.0.0.1", daemon.config.velocity.port)
+        target = ("127.0.0.1", daemon.ctx.velocity_port)
         encoder = pvel.PvelEncoder(key=conn.session_key, session_id=conn.session_id)
         tripped = asyncio.Event()
         daemon.bus.subscribe(
@@ -339,7 +339,7 @@ async def test_insecure_platform_accepts_untagged_from_the_holder_host(
     try:
         assert conn.capabilities["velocity"]["auth"] == "none"
         assert await conn.call("set_manual_override", engaged=True) is True
-        target = ("127.0.0.1", daemon.config.velocity.port)
+        target = ("127.0.0.1", daemon.ctx.velocity_port)
         spoof.sendto(pvel.encode(1, -1.0, 0.0), target)
         good.sendto(pvel.encode(2, 0.25, 0.0), target)
         await wait_until(lambda: commands[-1] == Velocity(0.25, 0.0))
@@ -363,7 +363,7 @@ async def test_session_timeout_returns_to_autonomous_while_packets_keep_coming(
     stats = daemon.ctx.telemetry_sources["velocity_link"]
     try:
         assert await conn.call("set_manual_override", engaged=True) is True
-        target = ("127.0.0.1", daemon.config.velocity.port)
+        target = ("127.0.0.1", daemon.ctx.velocity_port)
         encoder = pvel.PvelEncoder(key=conn.session_key, session_id=conn.session_id)
         closed = asyncio.Event()
         daemon.bus.subscribe(topics.SESSION_CLOSED, lambda _event: closed.set())

@@ -64,7 +64,7 @@ async def test_console_lists_connects_and_takes_the_override(
             page = await browser.new_page()
             errors: list[str] = []
             page.on("pageerror", lambda error: errors.append(str(error)))
-            await page.goto(f"http://127.0.0.1:{station.config.station.api_port}/")
+            await page.goto(f"http://127.0.0.1:{station.api_port}/")
             row = page.locator('#platforms tr[data-platform="web-rover"]')
             await expect(row).to_contain_text("web-rover", timeout=10_000)
             await row.locator("button.connect").click()

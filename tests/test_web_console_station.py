@@ -22,7 +22,6 @@ from conftest import free_udp_port, quiet_platform_config, wait_until
 from brasidas import topics
 from brasidas.config import StationConfig, load_config
 from platformd.app import PlatformDaemon
-from platformd.sim.vehicle import shared_vehicle
 from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
@@ -128,7 +127,7 @@ async def test_operator_station_in_the_browser(
 
     rover = await sim_platform(platform_factory, fleet_key, station, "web-rover", 23.6530)
     other = await sim_platform(platform_factory, fleet_key, station, "rover-2", 23.6534)
-    base = f"http://127.0.0.1:{station.config.station.api_port}"
+    base = f"http://127.0.0.1:{station.api_port}"
     async with aiohttp.ClientSession() as http, http.get(base + "/") as response:
         policy = response.headers["Content-Security-Policy"]
         assert "script-src 'self'" in policy and "unsafe-inline" not in policy
@@ -170,7 +169,8 @@ async def test_operator_station_in_the_browser(
             await expect(override).to_have_attribute("aria-pressed", "true", timeout=10_000)
             await expect(page.locator("#driving")).to_have_text("this console is driving web-rover")
             await wait_until(lambda: rover.bus.last(topics.OVERRIDE_STATE).engaged)
-            vehicle = shared_vehicle(rover.ctx)
+            vehicle = rover.ctx.sim.vehicle
+            assert vehicle is not None
 
             # Hold W: the robot moves (its position in telemetry changes); release: it stops.
             start = await telemetry_position(station, "web-rover")
@@ -268,9 +268,7 @@ async def test_warnings_audio_both_ways_and_a_closed_page_stops_the_robot(
         browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         try:
             page = await browser.new_page()
-            await page.goto(
-                f"http://127.0.0.1:{station.config.station.api_port}/?platform=web-rover"
-            )
+            await page.goto(f"http://127.0.0.1:{station.api_port}/?platform=web-rover")
             warning = page.locator("#annunciator button.warning", has_text="web-rover")
             await expect(warning).to_have_class(re.compile("unacknowledged"), timeout=10_000)
             await expect(warning).to_have_attribute("aria-pressed", "false")
@@ -303,7 +301,8 @@ async def test_warnings_audio_both_ways_and_a_closed_page_stops_the_robot(
             override = page.get_by_role("button", name="manual override")
             await override.click()
             await expect(override).to_have_attribute("aria-pressed", "true", timeout=10_000)
-            vehicle = shared_vehicle(rover.ctx)
+            vehicle = rover.ctx.sim.vehicle
+            assert vehicle is not None
             await page.keyboard.down("KeyW")
             await wait_until(lambda: vehicle.command[0] > 0.3, timeout=5)
             await page.close(run_before_unload=False)
@@ -352,7 +351,7 @@ async def test_a_remote_operator_needs_https_and_gets_video_over_it(
             try:
                 context = await browser.new_context(ignore_https_errors=True)
                 page = await context.new_page()
-                await page.goto(f"http://station.test:{config.station.api_port}/")
+                await page.goto(f"http://station.test:{daemon.api_port}/")
                 await expect(page.locator("#video-message")).to_contain_text("not a secure context")
                 await page.goto(
                     f"https://station.test:{daemon.console_https_port}/?platform=web-rover"

@@ -40,7 +40,7 @@ def capability(controller: MotorController) -> dict[str, Any]:
     """The ``motor`` section of the connect answer."""
     return {
         "controller": "Roboteq AX3500",
-        "port": controller.config.port,
+        "port": controller.device.path,
         "lights": controller.lights.fitted(),
         "refresh_hz": round(1.0 / controller.refresh_period, 1),
     }

@@ -49,7 +49,9 @@ class MotorController(Actor):
         self.config = config = ctx.config.motor
         self.clock: Clock = clock or LoopClock()
         """Drives the schedule (refreshes, polls, reconnection); answers are awaited in real time."""
-        self.opener = PortOpener(config)
+        self.device = ctx.motor_serial
+        """The serial line to open: ``motor.*``, or in --sim the simulator's pty."""
+        self.opener = PortOpener(self.device, config.reply_timeout)
         self.mapping = MotionMapping(
             linear_scale=config.linear_scale,
             angular_scale=config.angular_scale,
@@ -65,7 +67,8 @@ class MotorController(Actor):
         self.sent: list[int | None] = [None, None]
         """Channel levels the controller acknowledged; None: unknown, send again."""
         self.battery_monitor = ctx.config.telemetry.battery_monitor
-        self.lights = Lights(ctx.bus, config)
+        outputs = {"main": config.main_lights_output, "positional": ctx.positional_lights_output}
+        self.lights = Lights(ctx.bus, outputs)
         self.status = ControllerStatus(False, battery_monitor=self.battery_monitor)
         self.counters: dict[str, int] = dict.fromkeys(
             (
@@ -132,7 +135,7 @@ class MotorController(Actor):
                     await self._bring_up(link)
                     if failures:
                         self.counters["reconnects"] += 1
-                        _LOGGER.info("motor controller back on %s", self.config.port)
+                        _LOGGER.info("motor controller back on %s", self.device.path)
                     failures = 0
                     backoff.reset()
                     await self._serve(link)
@@ -214,7 +217,7 @@ class MotorController(Actor):
         self._unanswered_in_row = 0
         self._ready = True
         self._reported_error = ""
-        _LOGGER.info("motor controller up on %s", self.config.port)
+        _LOGGER.info("motor controller up on %s", self.device.path)
         self._publish_status(connected=True)
         await self.lights.restore(self._sender(link))
 

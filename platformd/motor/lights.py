@@ -6,7 +6,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,7 +14,6 @@ from brasidas import topics
 from brasidas.bus import Bus
 from brasidas.codecs import ax3500
 from brasidas.codecs.ax3500 import Command
-from brasidas.config import MotorSection
 from brasidas.messages import CommandResult, LightsState
 
 _LOGGER = logging.getLogger(__name__)
@@ -36,19 +35,18 @@ class Lights:
     """Lights state and switching; controller outputs go out through the motor's scheduler
     (:attr:`pending`), GPIO lines through :meth:`gpio_worker`, with or without the controller."""
 
-    def __init__(self, bus: Bus, config: MotorSection) -> None:
+    def __init__(self, bus: Bus, outputs: Mapping[str, str]) -> None:
         self.bus = bus
-        self.config = config
+        self.outputs = {which: outputs.get(which, "").strip() for which in LIGHTS}
+        """Each light's output (``C``, ``gpio:/path``), empty when none is fitted."""
         self.state = {"main": False, "positional": False}
         self.pending: deque[OutputRequest] = deque()
         """Requests for the controller's outputs, served between velocity commands."""
         self._gpio_requests: asyncio.Queue[OutputRequest] = asyncio.Queue()
 
     def output(self, which: str) -> str:
-        """The configured output (``C``, ``gpio:/path``), empty when none is fitted."""
-        if which == "main":
-            return self.config.main_lights_output.strip()
-        return self.config.positional_lights_output.strip()
+        """The output of light ``which`` (``C``, ``gpio:/path``), empty when none is fitted."""
+        return self.outputs[which]
 
     def fitted(self) -> list[str]:
         return [which for which in LIGHTS if self.output(which)]

@@ -18,8 +18,8 @@ import serial_asyncio
 
 from brasidas.codecs import ax3500
 from brasidas.codecs.ax3500 import Command, Exchange, LineParser, Reply
-from brasidas.config import MotorSection
 from brasidas.threads import in_daemon_thread
+from platformd.context import SerialDevice
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -183,16 +183,19 @@ class PortOpener:
     and a port it opens after everyone gave up is closed. Never blocks the event loop.
     """
 
-    def __init__(self, config: MotorSection, timeout: float = OPEN_TIMEOUT) -> None:
-        self.config = config
+    def __init__(
+        self, device: SerialDevice, reply_timeout: float, timeout: float = OPEN_TIMEOUT
+    ) -> None:
+        self.device = device
+        self.reply_timeout = reply_timeout
         self.timeout = timeout
         self._attempt: asyncio.Future[serial.Serial] | None = None
 
     async def open(self) -> SerialLink:
         """A link on the port; raises LinkError when it cannot be opened (or hangs)."""
-        port = self.config.port
+        port = self.device.path
         if self._attempt is None:
-            self._attempt = in_daemon_thread(f"motor-open:{port}", open_port, self.config)
+            self._attempt = in_daemon_thread(f"motor-open:{port}", open_port, self.device)
         attempt = self._attempt
         try:
             async with asyncio.timeout(self.timeout):
@@ -207,7 +210,7 @@ class PortOpener:
             if attempt.done():
                 self._attempt = None
         try:
-            return SerialLink.attach(device, self.config.reply_timeout)
+            return SerialLink.attach(device, self.reply_timeout)
         except _OPEN_ERRORS as err:
             device.close()
             raise LinkError(f"cannot set up {port}: {err}") from None
@@ -219,18 +222,19 @@ class PortOpener:
             attempt.add_done_callback(_close_unused)
 
 
-def open_port(config: MotorSection) -> serial.Serial:
+def open_port(device: SerialDevice) -> serial.Serial:
     """Open and set up the port (blocking); a pty refusing 7E1 is opened 8N1."""
-    framing = (config.bytesize, config.parity, config.stopbits)
+    port = device.path
+    framing = (device.bytesize, device.parity, device.stopbits)
     try:
-        return _open_serial(config.port, config.baudrate, framing)
+        return _open_serial(port, device.baudrate, framing)
     except _OPEN_ERRORS:
         # The kernel's ptys refuse 7 bits and parity (hardware.md); same bytes in 8N1.
-        if not _is_pty(config.port) or framing == (8, "N", 1):
+        if not _is_pty(port) or framing == (8, "N", 1):
             raise
-    device = _open_serial(config.port, config.baudrate, (8, "N", 1))
-    _LOGGER.info("%s is a pty: opened 8N1 instead of %s%s%s", config.port, *framing)
-    return device
+    opened = _open_serial(port, device.baudrate, (8, "N", 1))
+    _LOGGER.info("%s is a pty: opened 8N1 instead of %s%s%s", port, *framing)
+    return opened
 
 
 def _open_serial(port: str, baudrate: int, framing: tuple[int, str, int]) -> serial.Serial:

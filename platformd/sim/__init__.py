@@ -1,0 +1,36 @@
+"""Simulated hardware for ``--sim``: the real drivers talk to these through ptys and an I2C map.
+
+The simulators start before every subsystem (:func:`platformd.app.start_simulators`); the
+context then names what the drivers open (``ctx.motor_serial``, ``ctx.gps_port``,
+``ctx.positional_lights_output``, ``ctx.sim.i2c_bus``), so no configuration is rewritten.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the simulators import the context, which holds this
+    from brasidas.drivers.mpu6050 import BusFactory
+    from platformd.sim.ax3500 import Ax3500Simulator
+    from platformd.sim.gps import GpsSimulator
+    from platformd.sim.mpu6050 import Mpu6050
+    from platformd.sim.vehicle import VehicleModel
+
+
+@dataclass(frozen=True)
+class SimulatedDevices:
+    """The simulated devices of one platform; all None without ``--sim``."""
+
+    vehicle: VehicleModel | None = None
+    """The one vehicle model the simulators share (motor commands move it, sensors read it)."""
+    ax3500: Ax3500Simulator | None = None
+    """The motor controller, on a pty (its 8N1 line is ``ctx.motor_serial``)."""
+    positional_lights: Path | None = None
+    """A GPIO value file standing in for the positional lights (when none is configured)."""
+    gps: GpsSimulator | None = None
+    """The NEO-6M, on a pty; None when ``gps.port`` names another device."""
+    mpu6050: Mpu6050 | None = None
+    i2c_bus: BusFactory | None = None
+    """Opens the emulated I2C bus with the MPU-6050 on it, instead of ``smbus2.SMBus``."""

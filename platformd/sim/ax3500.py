@@ -38,7 +38,7 @@ from brasidas.actor import Actor, wait_forever
 from brasidas.clock import Cancellable, Clock, LoopClock
 from brasidas.codecs import ax3500
 from platformd.context import PlatformContext
-from platformd.sim.vehicle import VehicleModel, shared_vehicle
+from platformd.sim.vehicle import VehicleModel
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -574,27 +574,24 @@ def options_for(ctx: PlatformContext) -> SimOptions:
     return SimOptions(left_turn="b" if ctx.config.motor.invert_angular else "B")
 
 
-async def async_setup(ctx: PlatformContext) -> None:
-    """In ``--sim``: a simulated controller behind the real driver's port."""
-    config = ctx.config
-    if not (config.sim.enabled and config.motor.enabled):
-        return
-    simulator = Ax3500Simulator(options_for(ctx), vehicle=shared_vehicle(ctx))
+async def start_simulator(
+    ctx: PlatformContext, vehicle: VehicleModel
+) -> tuple[Ax3500Simulator, Path | None]:
+    """In ``--sim``: a simulated controller on a pty (open it 8N1: ``ctx.motor_serial``), and
+    a GPIO value file for the positional lights when ``motor.positional_lights_output`` is empty.
+    """
+    simulator = Ax3500Simulator(options_for(ctx), vehicle=vehicle)
     simulator.start()  # now: the pty exists before the driver (or a bench tap) opens it
-    ctx.sim["ax3500"] = simulator
     owner = SimulatorOwner(ctx, simulator)
     ctx.supervisor.start(owner)
-    config.motor.port = simulator.path
-    # A pty refuses 7-bit and parity settings (hardware.md); the bytes are the same ASCII.
-    config.motor.bytesize, config.motor.parity = 8, "N"
-    if not config.motor.positional_lights_output:
-        # The AX3500 has one accessory output (C); in simulation the positional lights hang
-        # off a GPIO value file, as they would off a Pi's GPIO line.
-        directory = owner.scratch = tempfile.mkdtemp(prefix="brasidas-sim-")
-        gpio = Path(directory, "positional_lights")
-        await asyncio.to_thread(gpio.write_text, "0\n")
-        config.motor.positional_lights_output = f"gpio:{gpio}"
-        ctx.sim["positional_lights"] = gpio
+    if ctx.config.motor.positional_lights_output:
+        return simulator, None
+    # The AX3500 has one accessory output (C); in simulation the positional lights hang
+    # off a GPIO value file, as they would off a Pi's GPIO line.
+    directory = owner.scratch = tempfile.mkdtemp(prefix="brasidas-sim-")
+    gpio = Path(directory, "positional_lights")
+    await asyncio.to_thread(gpio.write_text, "0\n")
+    return simulator, gpio
 
 
 # --------------------------------------------------------------------------- standalone

@@ -4,7 +4,7 @@ Like the receiver (hardware.md): a few ``$GPTXT`` banner lines at power-up, then
 (``gps.sim_rate_hz``, 1-10; the NEO-6M defaults to 1 Hz) RMC, VTG, GGA and GSA with ``$GP``
 talker IDs, positions with 5 decimals of minutes, a slowly wandering position error of about
 a metre, HDOP about 1 and 8-10 satellites. The real GPS reader opens the pty unchanged
-(``gps.port`` is set to it in --sim). A pty has no baud rate: at 10 Hz a real NEO-6M needs
+(``ctx.gps_port`` in --sim). A pty has no baud rate: at 10 Hz a real NEO-6M needs
 38400 baud or more for these four sentences, 9600 only carries about 3 epochs a second.
 
 The UART of a receiver never blocks: when nobody reads the pty and its buffer is full, the
@@ -30,7 +30,7 @@ from brasidas.bus import Bus
 from brasidas.codecs.nmea import sentence
 from brasidas.config import GpsSection
 from platformd.context import PlatformContext
-from platformd.sim.vehicle import EARTH_RADIUS_M, Pose, VehicleModel, shared_vehicle
+from platformd.sim.vehicle import EARTH_RADIUS_M, Pose, VehicleModel, vehicle_for
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -189,17 +189,15 @@ def _ddmm(degrees: float, width: int) -> str:
     return f"{whole:0{width}d}{minutes:08.5f}"
 
 
-async def async_setup(ctx: PlatformContext) -> None:
-    if not (ctx.config.sim.enabled and ctx.config.gps.enabled):
-        return
+def start_simulator(ctx: PlatformContext, vehicle: VehicleModel) -> GpsSimulator | None:
+    """In ``--sim``: a simulated receiver on a pty, unless ``gps.port`` names another device."""
     if ctx.config.gps.port != GpsSection().port:
         # ``--set gps.port=...`` names a pty or a real receiver: read that instead.
         _LOGGER.info("gps.port is %s: no simulated receiver", ctx.config.gps.port)
-        return
-    simulator = GpsSimulator(ctx.bus, shared_vehicle(ctx), ctx.config.gps.sim_rate_hz)
-    ctx.config.gps.port = simulator.path
-    ctx.sim["gps"] = simulator
+        return None
+    simulator = GpsSimulator(ctx.bus, vehicle, ctx.config.gps.sim_rate_hz)
     ctx.supervisor.start(simulator)
+    return simulator
 
 
 async def serve(args: argparse.Namespace) -> None:
@@ -207,14 +205,7 @@ async def serve(args: argparse.Namespace) -> None:
     from platformd.cli import load_platform_config
 
     config = load_platform_config(args)
-    sim = config.sim
-    vehicle = VehicleModel(
-        latitude=sim.latitude,
-        longitude=sim.longitude,
-        altitude_m=sim.altitude_m,
-        heading_deg=sim.heading_deg,
-    )
-    simulator = GpsSimulator(Bus(), vehicle, config.gps.sim_rate_hz)
+    simulator = GpsSimulator(Bus(), vehicle_for(config), config.gps.sim_rate_hz)
     try:
         sys.stdout.write(simulator.path + "\n")
         sys.stdout.flush()

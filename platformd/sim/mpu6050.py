@@ -25,7 +25,7 @@ reading INT_STATUS clears it.
 
 :class:`EmulatedI2CBus` answers like ``smbus2.SMBus``: an address with no device raises
 ``OSError(EREMOTEIO)`` as the kernel does on a NACK. In --sim the module puts a bus factory in
-``ctx.sim["i2c_bus"]``; the actor (platformd.imu) uses it instead of ``smbus2.SMBus``.
+``ctx.sim.i2c_bus``; the actor (platformd.imu) uses it instead of ``smbus2.SMBus``.
 
 The register constants below repeat the driver's on purpose: the chip is written from the
 datasheet on its own, so a wrong address or bit in the driver fails against it, as it would
@@ -41,9 +41,13 @@ import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from platformd.context import PlatformContext
-from platformd.sim.vehicle import GRAVITY, VehicleModel, shared_vehicle
+from brasidas.config import ImuSection
+from platformd.sim.vehicle import GRAVITY, VehicleModel
+
+if TYPE_CHECKING:
+    from brasidas.drivers.mpu6050 import BusFactory
 
 WHO_AM_I = 0x75
 PWR_MGMT_1 = 0x6B
@@ -362,13 +366,13 @@ def _int16(value: float) -> int:
     return round(value)
 
 
-async def async_setup(ctx: PlatformContext) -> None:
-    if not (ctx.config.sim.enabled and ctx.config.imu.enabled):
-        return
-    chip = Mpu6050(vehicle_motion(shared_vehicle(ctx)))
-    address = ctx.config.imu.address
-    ctx.sim["mpu6050"] = chip
-    # One chip on the configured address; another bus number has nothing on it.
-    ctx.sim["i2c_bus"] = lambda bus_number: EmulatedI2CBus(
-        {address: chip} if bus_number == ctx.config.imu.i2c_bus else {}
-    )
+def emulate(config: ImuSection, vehicle: VehicleModel) -> tuple[Mpu6050, BusFactory]:
+    """In ``--sim``: a chip moved by ``vehicle`` at ``imu.address``, and the factory that opens
+    the I2C bus it sits on (bus ``imu.i2c_bus``; any other bus number has nothing on it)."""
+    chip = Mpu6050(vehicle_motion(vehicle))
+    devices: dict[int, Mpu6050] = {config.address: chip}
+
+    def open_bus(bus_number: int) -> EmulatedI2CBus:
+        return EmulatedI2CBus(devices if bus_number == config.i2c_bus else {})
+
+    return chip, open_bus

@@ -1,6 +1,6 @@
 """The simulated vehicle: a skid-steer rover driven by the simulated controller's outputs.
 
-One model per simulated platform (:func:`shared_vehicle`): the AX3500 simulator sets its
+One model per simulated platform (:func:`vehicle_for`, kept in ``ctx.sim.vehicle``): the AX3500 simulator sets its
 command from the controller's channel outputs, the GPS and IMU simulators read its pose. The
 model integrates lazily, on read or write, on its own clock, so it costs nothing when idle
 and tests can drive it with a fake clock.
@@ -17,7 +17,10 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from brasidas.config import PlatformConfig
 
 EARTH_RADIUS_M = 6_371_000.0
 GRAVITY = 9.80665
@@ -144,18 +147,13 @@ class VehicleModel:
             self._speed = new_speed
 
 
-def shared_vehicle(ctx: Any) -> VehicleModel:
-    """The platform's one simulated vehicle (created on first use, kept in ``ctx.sim``)."""
-    vehicle = ctx.sim.get("vehicle")
-    if vehicle is None:
-        sim = ctx.config.sim
-        vehicle = VehicleModel(
-            latitude=sim.latitude,
-            longitude=sim.longitude,
-            altitude_m=sim.altitude_m,
-            heading_deg=sim.heading_deg,
-            max_speed_mps=ctx.config.platform.max_speed_kmh / 3.6,
-        )
-        ctx.sim["vehicle"] = vehicle
-    assert isinstance(vehicle, VehicleModel)
-    return vehicle
+def vehicle_for(config: PlatformConfig) -> VehicleModel:
+    """The simulated vehicle where ``sim.*`` puts it, as fast as the platform's top speed."""
+    sim = config.sim
+    return VehicleModel(
+        latitude=sim.latitude,
+        longitude=sim.longitude,
+        altitude_m=sim.altitude_m,
+        heading_deg=sim.heading_deg,
+        max_speed_mps=config.platform.max_speed_kmh / 3.6,
+    )

@@ -1,0 +1,306 @@
+"""The platform daemon's configuration schema: every section, key, default and constraint.
+
+A key's documentation is the string after it (``brasidas-platform config`` prints it); its
+constraints are the checks given to :func:`~brasidas.config.loader.setting`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+from brasidas.config.loader import (
+    Check,
+    Rule,
+    above,
+    at_least,
+    bind_port,
+    each,
+    empty_or,
+    fraction,
+    host_name,
+    ip_address,
+    non_empty,
+    non_negative,
+    one_of,
+    ordered,
+    positive,
+    remote_port,
+    setting,
+    url,
+)
+
+BAUD_RATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
+H264_ENCODERS = ("v4l2h264enc", "omxh264enc", "x264enc", "openh264enc")
+"""The encoders the NavCam pipeline knows, in the order it tries them."""
+TEST_PATTERNS = (
+    *("smpte", "snow", "black", "white", "red", "green", "blue", "checkers-1", "checkers-2"),
+    *("checkers-4", "checkers-8", "circular", "blink", "smpte75", "zone-plate", "gamut"),
+    *("chroma-zone-plate", "solid-color", "ball", "smpte100", "bar", "pinwheel", "spokes"),
+    *("gradient", "colors", "smpte-rp-219"),
+)
+"""GStreamer's videotestsrc patterns."""
+
+lights_output = Check(
+    'empty, one controller output letter (e.g. "C") or "gpio:PATH"',
+    lambda value: (
+        value == ""
+        or (len(value) == 1 and value.isascii() and value.isalpha())
+        or (value.startswith("gpio:") and len(value) > len("gpio:"))
+    ),
+)
+
+
+@dataclass(frozen=True)
+class PlatformSection:
+    id: str = setting("brasidas-1", non_empty)
+    """Platform id: unique on the network, shown in discovery."""
+    model: str = "Brasidas UGV"
+    max_speed_kmh: float = setting(6.0, above(0, most=100))
+    """Top speed at full command (R-2.1), reported to stations."""
+
+
+@dataclass(frozen=True)
+class SecuritySection:
+    key_file: str = ""
+    """Fleet key path. Empty: $XDG_STATE_HOME/brasidas/fleet.key."""
+    insecure: bool = False
+    """Run without a fleet key: no beacon HMAC, no authenticated connect. Never in the field."""
+
+
+@dataclass(frozen=True)
+class SignalingSection:
+    host: str = setting("127.0.0.1", ip_address)
+    """Address the signaling server listens on (0.0.0.0: every interface)."""
+    port: int = setting(8765, bind_port)
+    advertise_host: str = setting("", empty_or(host_name))
+    """Host put in the signaling URL of beacons. Empty: ``host``."""
+    session_timeout: float = setting(5.0, above(0, most=3600))
+    """A session with no heartbeat for this long ends (and releases the manual override)."""
+    heartbeat_interval: float = setting(1.0, above(0, most=600))
+    """How often stations are told to send heartbeats."""
+    max_request_bytes: int = setting(65536, at_least(1024, most=16 * 1024 * 1024))
+    command_timeout: float = setting(3.0, above(0, most=60))
+    """How long a system command may take to be answered by its actor."""
+
+
+@dataclass(frozen=True)
+class BeaconSection:
+    RULES: ClassVar[tuple[Rule, ...]] = (ordered("min_interval", "max_interval"),)
+
+    enabled: bool = True
+    port: int = setting(21000, remote_port)
+    destinations: tuple[str, ...] = setting(("127.255.255.255",), non_empty, each(ip_address))
+    """Where beacons go: broadcast, multicast group (R-0.6.1) or unicast addresses. The default
+    is the loopback broadcast; deployments name the mesh's broadcast address or a group."""
+    min_interval: float = setting(0.6, above(0, most=60))
+    max_interval: float = setting(3.0, above(0, most=3600))
+    move_threshold_m: float = setting(1.0, non_negative)
+    interface_host: str = setting("127.0.0.1", ip_address)
+    """Local address beacons are sent from (picks the interface, multicast ones included)."""
+    multicast_ttl: int = setting(1, at_least(1, most=255))
+    """Hops a beacon to a multicast destination may cross: 1 stays on the segment; a routed
+    mesh (OLSR, BATMAN at layer 3) needs its diameter."""
+    listen: bool = True
+    """Keep the list of the other platforms online from their beacons (R-9): list_platforms."""
+    listen_host: str = setting("0.0.0.0", ip_address)
+    """Where this platform hears the others' beacons (on ``port``; it joins the multicast
+    destinations on the interface of ``interface_host``)."""
+    expiry: float = setting(4.0, above(0, most=3600))
+    """Another platform is dropped from the list this long after its last beacon."""
+
+
+@dataclass(frozen=True)
+class MotorSection:
+    enabled: bool = True
+    port: str = setting("/dev/ttyUSB0", non_empty)
+    """Serial device of the AX3500. In --sim, the simulator's pty is opened instead."""
+    baudrate: int = setting(9600, one_of(*BAUD_RATES))
+    bytesize: int = setting(7, one_of(5, 6, 7, 8))
+    parity: str = setting("E", one_of("N", "E", "O", "M", "S"))
+    stopbits: int = setting(1, one_of(1, 2))
+    linear_scale: float = setting(1.0, fraction)
+    """Fraction of full power (7F) that linear x = 1 commands on channel 1 (a gentler robot)."""
+    angular_scale: float = setting(1.0, fraction)
+    """Fraction of full power that angular z = 1 commands on channel 2."""
+    linear_limit: float = setting(1.0, fraction)
+    """Hard cap on channel 1 after scaling, as a fraction of full power."""
+    angular_limit: float = setting(1.0, fraction)
+    """Hard cap on channel 2 after scaling, as a fraction of full power."""
+    invert_linear: bool = False
+    """Channel 1 forward drives this chassis backwards (wiring)."""
+    invert_angular: bool = False
+    """False: a left turn (positive angular z) is !B; true when !b turns left (wiring)."""
+    refresh_hz: float = setting(10.0, at_least(2, most=50))
+    """Resend the commanded velocity this often even when unchanged (the watchdog needs >= 2)."""
+    poll_hz: float = setting(1.0, at_least(0, most=20))
+    """Status polls (?e battery, ?m heatsinks, ?a amps) per second; 0: never."""
+    reply_timeout: float = setting(0.3, above(0, most=10))
+    """Seconds to wait for a command's echo and answer."""
+    max_unanswered: int = setting(3, at_least(1, most=100))
+    """Consecutive unanswered commands after which the controller counts as gone (reconnect)."""
+    configure_mode: bool = False
+    """When the controller is not in RS-232-with-watchdog, mixed open-loop mode, write those
+    settings to its flash and reset it. False (the default: never rewrite a controller's stored
+    setup unasked): a wrong motor mode refuses to drive, with the reason (the input mode warns)."""
+    reconnect_max: float = setting(5.0, above(0, most=300))
+    """Longest wait between attempts to reopen a missing or silent controller (backoff cap)."""
+    main_lights_output: str = setting("C", lights_output)
+    """Main lights (10.6): a controller output letter, or "gpio:PATH" (a GPIO value file)."""
+    positional_lights_output: str = setting("", lights_output)
+    """Positional lights (10.7), as main_lights_output. Empty: not fitted, 10.7 is refused
+    (in --sim: a GPIO value file of the simulator's)."""
+
+
+@dataclass(frozen=True)
+class VelocitySection:
+    host: str = setting("127.0.0.1", ip_address)
+    """Where the platform listens for $PVEL datagrams."""
+    port: int = setting(21001, bind_port)
+    advertise_host: str = setting("", empty_or(host_name))
+    """Host given to stations by get_velocity_connection_info. Empty: ``host``."""
+    deadman: float = setting(0.3, above(0, most=10))
+    """In teleop, no valid velocity for this long commands zero."""
+    stats_interval: float = setting(1.0, above(0, most=60))
+    """How often the receiver's counters are published for telemetry (when they changed)."""
+
+
+@dataclass(frozen=True)
+class GpsSection:
+    enabled: bool = True
+    port: str = setting("/dev/ttyAMA0", non_empty)
+    """Serial device of the NMEA receiver (8N1). In --sim, the simulator's pty is read instead
+    (unless this names another device)."""
+    baudrate: int = setting(9600, one_of(*BAUD_RATES))
+    fix_timeout: float = setting(3.0, above(0, most=600))
+    """Seconds without a fix (receiver silent or port gone) before the fix is reported lost."""
+    sim_rate_hz: float = setting(1.0, at_least(1, most=10))
+    """Epochs per second of the simulated receiver (1-10; the NEO-6M defaults to 1)."""
+
+
+@dataclass(frozen=True)
+class ImuSection:
+    enabled: bool = True
+    i2c_bus: int = setting(1, at_least(0, most=255))
+    """I2C bus number (/dev/i2c-N); the Raspberry Pi header is bus 1."""
+    address: int = setting(0x68, one_of(0x68, 0x69))
+    """0x68 (104) with AD0 low, 0x69 (105) with AD0 high."""
+    rate_hz: float = setting(100.0, at_least(4, most=1000))
+    """Samples read (and fused) per second (the chip's divider of 1 kHz: 4-1000)."""
+    fifo: bool = True
+    """Let the chip queue samples in its FIFO and drain it ~10 times a second (a tenth of the
+    wake-ups); false reads one 14-byte burst per sample, waking at rate_hz."""
+    accel_range_g: int = setting(2, one_of(2, 4, 8, 16))
+    """Accelerometer full scale: 2, 4, 8 or 16 g (ACCEL_CONFIG AFS_SEL)."""
+    gyro_range_dps: int = setting(250, one_of(250, 500, 1000, 2000))
+    """Gyro full scale: 250, 500, 1000 or 2000 deg/s (GYRO_CONFIG FS_SEL)."""
+    madgwick_beta: float = setting(0.05, above(0, most=1))
+    """Madgwick filter gain: higher trusts the accelerometer more (faster, noisier)."""
+    calibrate_s: float = setting(1.0, at_least(0, most=60))
+    """Seconds of stillness at start used to measure the gyro's zero-rate offset (0: off)."""
+
+
+@dataclass(frozen=True)
+class TelemetrySection:
+    RULES: ClassVar[tuple[Rule, ...]] = (ordered("battery_low_v", "battery_high_v"),)
+
+    rate_hz: float = setting(5.0, above(0, most=50))
+    """Datagrams per second pushed to a station that asked (request_telemetry)."""
+    battery_low_v: float = setting(23.0, positive)
+    """Pack voltage below which the coarse battery level is LOW (24 V lead-acid pack)."""
+    battery_high_v: float = setting(25.0, positive)
+    """Pack voltage at or above which the coarse level is HIGH; MEDIUM in between."""
+    battery_monitor: bool = True
+    """Report the coarse battery level when the controller's status has no 20.4 monitor flag."""
+
+
+@dataclass(frozen=True)
+class NavCamSection:
+    RULES: ClassVar[tuple[Rule, ...]] = (ordered("idle_framerate", "framerate", strict=False),)
+
+    enabled: bool = True
+    device: str = setting("/dev/video0", non_empty)
+    width: int = setting(640, at_least(16, most=4096))
+    height: int = setting(480, at_least(16, most=4096))
+    framerate: int = setting(30, at_least(1, most=30))
+    idle_framerate: int = setting(5, at_least(1, most=30))
+    """Framerate while the manual override is disengaged (seed ch. 10 §3.2)."""
+    bitrate_kbps: int = setting(1500, at_least(50, most=50000))
+    """H.264 bitrate; 1500 keeps 640x480@30 moving content under the seed's 1.6 Mbit/s."""
+    port: int = setting(5600, remote_port)
+    """UDP port on the station that the NavCam RTP stream is sent to."""
+    format: str = setting("raw", one_of("raw", "mjpeg"))
+    """What the camera delivers at width x height @ framerate: "raw" or "mjpeg"."""
+    encoder: str = setting("", one_of("", *H264_ENCODERS))
+    """Force an H.264 encoder (v4l2h264enc, omxh264enc, x264enc, openh264enc). Empty: first found."""
+    sim_pattern: str = setting("ball", one_of(*TEST_PATTERNS))
+    """--sim source: a videotestsrc pattern (ball moves; smpte with sim_motion for bandwidth)."""
+    sim_motion: int = setting(0, at_least(0, most=1000))
+    """--sim source: videotestsrc horizontal-speed (pixels per frame); 0 for a still pattern."""
+
+
+@dataclass(frozen=True)
+class AudioSection:
+    enabled: bool = True
+    """Two-way audio: platform microphone to the station, station microphone to the speaker."""
+    source_device: str = ""
+    """ALSA capture device (e.g. hw:1,0). Empty: the default. In --sim: a test tone."""
+    sink_device: str = ""
+    """ALSA playback device. Empty: the default. In --sim: discarded (fakesink)."""
+    bitrate: int = setting(24000, at_least(6000, most=510000))
+    """Opus bitrate (bit/s) of the platform microphone."""
+    out_port: int = setting(5602, remote_port)
+    """UDP port on the station that the platform microphone is sent to."""
+    in_host: str = setting("127.0.0.1", ip_address)
+    """Where the platform listens for the station's audio (the mesh address in deployments)."""
+    in_port: int = setting(5604, bind_port)
+    """UDP port the platform listens on for the station's audio."""
+
+
+@dataclass(frozen=True)
+class PayloadCameraSection:
+    RULES: ClassVar[tuple[Rule, ...]] = (
+        Rule(
+            "url",
+            "an rtsp URL when enabled",
+            lambda s: not s.enabled or url("rtsp", "rtsps").ok(s.url),
+        ),
+    )
+
+    enabled: bool = False
+    """The payload IP camera (the seed's thermal AXIS), forwarded without re-encoding."""
+    url: str = setting("", empty_or(url("rtsp", "rtsps")))
+    """RTSP URL of the camera, e.g. rtsp://192.168.1.90/axis-media/media.amp."""
+    port: int = setting(5606, remote_port)
+    """UDP port on the station that the camera's RTP stream is forwarded to."""
+    latency_ms: int = setting(50, at_least(0, most=10000))
+    """rtspsrc jitter buffer (the camera's own network hop)."""
+
+
+@dataclass(frozen=True)
+class SimSection:
+    enabled: bool = False
+    """Set by --sim: simulated controller, GPS, IMU and camera behind the real drivers."""
+    latitude: float = setting(37.9415, at_least(-90, most=90))
+    """Where the simulated vehicle starts (degrees, WGS-84)."""
+    longitude: float = setting(23.6530, at_least(-180, most=180))
+    altitude_m: float = setting(42.0, at_least(-500, most=9000))
+    heading_deg: float = setting(0.0, at_least(0, most=360))
+    """Compass heading at start (clockwise from north)."""
+
+
+@dataclass(frozen=True)
+class PlatformConfig:
+    platform: PlatformSection = field(default_factory=PlatformSection)
+    security: SecuritySection = field(default_factory=SecuritySection)
+    signaling: SignalingSection = field(default_factory=SignalingSection)
+    beacon: BeaconSection = field(default_factory=BeaconSection)
+    motor: MotorSection = field(default_factory=MotorSection)
+    velocity: VelocitySection = field(default_factory=VelocitySection)
+    gps: GpsSection = field(default_factory=GpsSection)
+    imu: ImuSection = field(default_factory=ImuSection)
+    telemetry: TelemetrySection = field(default_factory=TelemetrySection)
+    navcam: NavCamSection = field(default_factory=NavCamSection)
+    audio: AudioSection = field(default_factory=AudioSection)
+    payload_camera: PayloadCameraSection = field(default_factory=PayloadCameraSection)
+    sim: SimSection = field(default_factory=SimSection)
