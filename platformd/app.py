@@ -49,9 +49,11 @@ async def start_simulators(ctx: PlatformContext) -> SimulatedDevices:
     vehicle = vehicle_for(config)
     ax3500 = lights = gps = chip = i2c_bus = None
     if config.motor.enabled:
-        ax3500, lights = await ax3500_sim.start_simulator(ctx, vehicle)
+        ax3500, lights = await ax3500_sim.start_simulator(
+            ctx.bus, ctx.supervisor, config.motor, vehicle
+        )
     if config.gps.enabled:
-        gps = gps_sim.start_simulator(ctx, vehicle)
+        gps = gps_sim.start_simulator(ctx.bus, ctx.supervisor, config.gps, vehicle)
     if config.imu.enabled:
         chip, i2c_bus = mpu6050_sim.emulate(config.imu, vehicle)
     return SimulatedDevices(vehicle, ax3500, lights, gps, chip, i2c_bus)

@@ -18,7 +18,7 @@ from brasidas.log import LEVELS, level_argument, setup_logging
 _LOGGER = logging.getLogger("platformd")
 
 SIMULATORS: dict[str, str] = {
-    # name -> "module:function" of ``async def serve_standalone(args)``; prints the pty path first.
+    # name -> "module:function" of ``async def serve(config)``; prints the pty path first.
     "gps": "platformd.sim.gps:serve",
     "ax3500": "platformd.sim.ax3500:serve",
 }
@@ -89,7 +89,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stdout.write(dump_toml(config))
         return 0
     if command == "simulate":
-        return _simulate(args)
+        return _simulate(args, config)
     try:
         fleet_key = load_fleet_key(config)
     except security.FleetKeyError as err:
@@ -120,7 +120,7 @@ async def run_daemon(config: PlatformConfig, fleet_key: bytes | None) -> None:
     _LOGGER.info("platform stopped")
 
 
-def _simulate(args: argparse.Namespace) -> int:
+def _simulate(args: argparse.Namespace, config: PlatformConfig) -> int:
     target = SIMULATORS.get(args.device)
     if target is None:
         known = ", ".join(sorted(SIMULATORS)) or "none"
@@ -134,7 +134,7 @@ def _simulate(args: argparse.Namespace) -> int:
     async def runner() -> None:
         stop = stop_on_signals()
         loop = asyncio.get_running_loop()
-        task = loop.create_task(serve(args), name=f"simulate:{args.device}")
+        task = loop.create_task(serve(config), name=f"simulate:{args.device}")
         waiter = loop.create_task(stop.wait())
         await asyncio.wait({task, waiter}, return_when=asyncio.FIRST_COMPLETED)
         for pending in (task, waiter):

@@ -21,7 +21,6 @@ left, an extra line after a config read.
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import contextlib
 import logging
@@ -34,10 +33,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from brasidas.actor import Actor, wait_forever
+from brasidas.actor import Actor, Supervisor, wait_forever
+from brasidas.bus import Bus
 from brasidas.clock import Cancellable, Clock, LoopClock
 from brasidas.codecs import ax3500
-from platformd.context import PlatformContext
+from brasidas.config import MotorSection, PlatformConfig
 from platformd.sim.vehicle import VehicleModel
 
 _LOGGER = logging.getLogger(__name__)
@@ -554,8 +554,8 @@ class SimulatorOwner(Actor):
     restart = False
     stop_priority = -100
 
-    def __init__(self, ctx: PlatformContext, simulator: Ax3500Simulator) -> None:
-        super().__init__(ctx.bus)
+    def __init__(self, bus: Bus, simulator: Ax3500Simulator) -> None:
+        super().__init__(bus)
         self.simulator = simulator
         self.scratch: str | None = None
         """A temporary directory to remove on stop."""
@@ -569,22 +569,22 @@ class SimulatorOwner(Actor):
                 shutil.rmtree(self.scratch, ignore_errors=True)
 
 
-def options_for(ctx: PlatformContext) -> SimOptions:
+def options_for(motor: MotorSection) -> SimOptions:
     """A simulated controller wired like the configured chassis."""
-    return SimOptions(left_turn="b" if ctx.config.motor.invert_angular else "B")
+    return SimOptions(left_turn="b" if motor.invert_angular else "B")
 
 
 async def start_simulator(
-    ctx: PlatformContext, vehicle: VehicleModel
+    bus: Bus, supervisor: Supervisor, motor: MotorSection, vehicle: VehicleModel
 ) -> tuple[Ax3500Simulator, Path | None]:
     """In ``--sim``: a simulated controller on a pty (open it 8N1: ``ctx.motor_serial``), and
     a GPIO value file for the positional lights when ``motor.positional_lights_output`` is empty.
     """
-    simulator = Ax3500Simulator(options_for(ctx), vehicle=vehicle)
+    simulator = Ax3500Simulator(options_for(motor), vehicle=vehicle)
     simulator.start()  # now: the pty exists before the driver (or a bench tap) opens it
-    owner = SimulatorOwner(ctx, simulator)
-    ctx.supervisor.start(owner)
-    if ctx.config.motor.positional_lights_output:
+    owner = SimulatorOwner(bus, simulator)
+    supervisor.start(owner)
+    if motor.positional_lights_output:
         return simulator, None
     # The AX3500 has one accessory output (C); in simulation the positional lights hang
     # off a GPIO value file, as they would off a Pi's GPIO line.
@@ -597,7 +597,7 @@ async def start_simulator(
 # --------------------------------------------------------------------------- standalone
 
 
-async def serve(args: argparse.Namespace) -> None:
+async def serve(config: PlatformConfig) -> None:
     """``brasidas-platform simulate ax3500``: print the pty path, serve until cancelled."""
     vehicle = VehicleModel()
     simulator = Ax3500Simulator(SimOptions(), vehicle=vehicle)

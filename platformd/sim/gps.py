@@ -13,7 +13,6 @@ epoch is dropped (counted in ``overruns``), as bytes sent to an unplugged cable 
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import contextlib
 import datetime as dt
@@ -25,11 +24,10 @@ import sys
 import tty
 from collections.abc import Callable
 
-from brasidas.actor import Actor
+from brasidas.actor import Actor, Supervisor
 from brasidas.bus import Bus
 from brasidas.codecs.nmea import sentence
-from brasidas.config import GpsSection
-from platformd.context import PlatformContext
+from brasidas.config import GpsSection, PlatformConfig
 from platformd.sim.vehicle import EARTH_RADIUS_M, Pose, VehicleModel, vehicle_for
 
 _LOGGER = logging.getLogger(__name__)
@@ -189,22 +187,21 @@ def _ddmm(degrees: float, width: int) -> str:
     return f"{whole:0{width}d}{minutes:08.5f}"
 
 
-def start_simulator(ctx: PlatformContext, vehicle: VehicleModel) -> GpsSimulator | None:
+def start_simulator(
+    bus: Bus, supervisor: Supervisor, gps: GpsSection, vehicle: VehicleModel
+) -> GpsSimulator | None:
     """In ``--sim``: a simulated receiver on a pty, unless ``gps.port`` names another device."""
-    if ctx.config.gps.port != GpsSection().port:
+    if gps.port != GpsSection().port:
         # ``--set gps.port=...`` names a pty or a real receiver: read that instead.
-        _LOGGER.info("gps.port is %s: no simulated receiver", ctx.config.gps.port)
+        _LOGGER.info("gps.port is %s: no simulated receiver", gps.port)
         return None
-    simulator = GpsSimulator(ctx.bus, vehicle, ctx.config.gps.sim_rate_hz)
-    ctx.supervisor.start(simulator)
+    simulator = GpsSimulator(bus, vehicle, gps.sim_rate_hz)
+    supervisor.start(simulator)
     return simulator
 
 
-async def serve(args: argparse.Namespace) -> None:
+async def serve(config: PlatformConfig) -> None:
     """``brasidas-platform simulate gps``: the pty path on stdout's first line, then serve."""
-    from platformd.cli import load_platform_config
-
-    config = load_platform_config(args)
     simulator = GpsSimulator(Bus(), vehicle_for(config), config.gps.sim_rate_hz)
     try:
         sys.stdout.write(simulator.path + "\n")
