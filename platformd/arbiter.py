@@ -156,4 +156,5 @@ class MotionArbiter(Actor):
 async def async_setup(ctx: PlatformContext) -> None:
     arbiter = MotionArbiter(ctx.bus, deadman=ctx.config.velocity.deadman)
     ctx.telemetry_sources["motion"] = lambda: arbiter.snapshot().as_dict()
+    ctx.diagnostics_sources["arbiter"] = lambda: {"deadman_trips": arbiter.deadman_trips}
     ctx.supervisor.start(arbiter)
