@@ -28,8 +28,8 @@ T = TypeVar("T")
 class Actor:
     """Base class for a supervised actor.
 
-    Subclasses implement :meth:`run`. Subscriptions made with :meth:`subscribe` are removed
-    when the actor stops or restarts.
+    Subclasses implement :meth:`run`. Subscriptions made with :meth:`subscribe`, and whatever
+    was handed to :meth:`on_remove`, are removed when the actor stops or restarts.
     """
 
     name: str = "actor"
@@ -51,7 +51,12 @@ class Actor:
 
     def subscribe(self, topic: Topic[T], callback: Callable[[T], None]) -> None:
         """Subscribe for this actor's lifetime."""
-        self._unsubscribers.append(self.bus.subscribe(topic, callback))
+        self.on_remove(self.bus.subscribe(topic, callback))
+
+    def on_remove(self, remove: Unsubscribe) -> None:
+        """Call ``remove`` when the actor stops or restarts (a command router registration,
+        any other callback-returning hook-up made in ``run``)."""
+        self._unsubscribers.append(remove)
 
     def remove_subscriptions(self) -> None:
         while self._unsubscribers:

@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import asyncio
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
@@ -13,7 +12,7 @@ from brasidas.status import Battery
 
 @dataclass(frozen=True)
 class CommandResult:
-    """An actor's answer to a system command."""
+    """A subsystem's answer to a system command (platformd.commands routes them)."""
 
     accepted: bool
     reason: str = ""
@@ -21,41 +20,6 @@ class CommandResult:
 
     def as_dict(self) -> dict[str, Any]:
         return {"accepted": self.accepted, "reason": self.reason, "result": self.result}
-
-
-@dataclass(frozen=True, eq=False)
-class SystemCommand:
-    """A signal from a station (R-14), published on ``SYSTEM_COMMANDS``.
-
-    The actor that owns ``code`` calls :meth:`claim` synchronously inside its subscriber
-    callback and completes the returned future (at once or later, from its own task).
-    A command nobody claims is answered by the signaling layer.
-    """
-
-    code: CommandCode
-    payload: str
-    session_id: str | None
-    _reply: asyncio.Future[CommandResult] = field(default_factory=asyncio.Future, repr=False)
-    _claimed: list[str] = field(default_factory=list, repr=False)
-
-    def claim(self, owner: str) -> asyncio.Future[CommandResult]:
-        """Take ownership; returns the future to complete with the answer."""
-        if self._claimed:
-            raise RuntimeError(f"{self.code} already claimed by {self._claimed[0]}")
-        self._claimed.append(owner)
-        return self._reply
-
-    def respond(self, owner: str, result: CommandResult) -> None:
-        """Claim and answer at once."""
-        self.claim(owner).set_result(result)
-
-    @property
-    def claimed_by(self) -> str | None:
-        return self._claimed[0] if self._claimed else None
-
-    @property
-    def reply(self) -> asyncio.Future[CommandResult]:
-        return self._reply
 
 
 class Mode(Enum):

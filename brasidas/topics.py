@@ -21,13 +21,11 @@ from brasidas.messages import (
     SessionOpened,
     StationNotification,
     StreamStatus,
-    SystemCommand,
     Velocity,
     VelocityLinkStats,
 )
 
 # Signaling
-SYSTEM_COMMANDS: Topic[SystemCommand] = Topic("system_commands")
 SESSION_OPENED: Topic[SessionOpened] = Topic("session_opened")
 SESSION_CLOSED: Topic[SessionClosed] = Topic("session_closed")
 

@@ -1,4 +1,5 @@
-"""What every platform subsystem gets at setup: config, bus, supervisor, RPC table, capabilities."""
+"""What every platform subsystem gets at setup: config, bus, supervisor, RPC table, command
+router, sessions, capabilities."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from brasidas.actor import Supervisor
 from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.config import PlatformConfig
+from platformd.commands import CommandRouter
 from platformd.session_table import Session, SessionTable
 from platformd.sim import SimulatedDevices
 
@@ -42,6 +44,8 @@ class PlatformContext:
     """The simulated devices (``--sim``), started before every subsystem."""
     sessions: SessionTable = field(default_factory=SessionTable)
     """The open sessions, kept by the session manager (platformd.sessions)."""
+    commands: CommandRouter = field(init=False)
+    """System commands: ``commands.register(owner, {code: handler})`` (platformd.commands)."""
     capabilities: dict[str, Callable[[], Any]] = field(default_factory=dict)
     """Sections of the ``connect`` answer's capabilities, each computed when asked."""
     telemetry_sources: dict[str, Callable[[], Any]] = field(default_factory=dict)
@@ -71,6 +75,9 @@ class PlatformContext:
     def gps_port(self) -> str:
         """The NMEA receiver's device: ``gps.port``, or in --sim the simulator's pty."""
         return self.sim.gps.path if self.sim.gps is not None else self.config.gps.port
+
+    def __post_init__(self) -> None:
+        self.commands = CommandRouter(self.config.signaling.command_timeout)
 
     def session(self, session_id: str | None) -> Session | None:
         """The open session with this token, or None."""

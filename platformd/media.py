@@ -23,7 +23,7 @@ import asyncio
 import ipaddress
 import logging
 import re
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Coroutine
 from typing import Any
 
 from brasidas import topics
@@ -42,14 +42,10 @@ from brasidas.media.navcam import FrameratePolicy, navcam_settings, parse_framer
 from brasidas.media.pipeline import PipelineStream, StreamState
 from brasidas.media.relay import ForwardSettings, RtspForward
 from brasidas.media.video import VideoOut
-from brasidas.messages import (
-    CommandResult,
-    OverrideState,
-    SessionClosed,
-    StreamStatus,
-    SystemCommand,
-)
+from brasidas.messages import CommandResult, OverrideState, SessionClosed, StreamStatus
+from platformd.commands import SystemCommand
 from platformd.context import PlatformContext
+from platformd.session_table import Session
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -114,7 +110,17 @@ class MediaService(Actor):
     # ------------------------------------------------------------------ lifecycle
 
     async def run(self) -> None:
-        self.subscribe(topics.SYSTEM_COMMANDS, self._on_command)
+        self.on_remove(
+            self.ctx.commands.register(
+                self.name,
+                {
+                    START_STREAMS: self._command_start,
+                    STOP_STREAMS: self._command_stop,
+                    PAUSE_STREAMS: self._command_pause,
+                    SET_FRAMERATE: self._command_framerate,
+                },
+            )
+        )
         self.subscribe(topics.OVERRIDE_STATE, self._on_override)
         self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
         async with asyncio.TaskGroup() as group:
@@ -168,45 +174,46 @@ class MediaService(Actor):
 
     # ------------------------------------------------------------------ system commands
 
-    def _on_command(self, cmd: SystemCommand) -> None:
-        handlers: dict[Any, Callable[[SystemCommand], Awaitable[CommandResult]]] = {
-            START_STREAMS: self._command_start,
-            STOP_STREAMS: self._command_stop,
-            PAUSE_STREAMS: self._command_pause,
-        }
-        if cmd.code == SET_FRAMERATE:
-            cmd.respond(self.name, self._command_framerate(cmd.payload))
-            return
-        handler = handlers.get(cmd.code)
-        if handler is None:
-            return
-        reply = cmd.claim(self.name)
-        if not self.streams or self._group is None:
-            reply.set_result(CommandResult(False, "this platform has no media streams running"))
-            return
-        self._spawn(_answer(reply, handler(cmd)), f"media:{cmd.code}")
-
-    async def _command_start(self, cmd: SystemCommand) -> CommandResult:
+    async def _command_start(self, command: SystemCommand) -> CommandResult:
         try:
-            host = self._host_from_payload(cmd.payload, cmd.session_id)
+            host = host_from_payload(command.payload, _peer_host(command.session))
         except PayloadError as err:
             return CommandResult(False, str(err))
-        states = {}
-        for name in self.streams:
-            states[name] = await self.start_stream(name, host, session_id=cmd.session_id)
-        return _summary(states)
 
-    async def _command_stop(self, cmd: SystemCommand) -> CommandResult:
-        states = {name: await self.stop_stream(name) for name in self.streams}
-        return _summary(states)
+        async def start_all() -> CommandResult:
+            states = {}
+            for name in self.streams:
+                states[name] = await self.start_stream(name, host, session_id=command.session_id)
+            return _summary(states)
 
-    async def _command_pause(self, cmd: SystemCommand) -> CommandResult:
-        states = {name: await self.pause_stream(name) for name in self.streams}
-        return _summary(states)
+        return await self._in_group(start_all(), command)
 
-    def _command_framerate(self, payload: str) -> CommandResult:
+    async def _command_stop(self, command: SystemCommand) -> CommandResult:
+        async def stop_all() -> CommandResult:
+            return _summary({name: await self.stop_stream(name) for name in self.streams})
+
+        return await self._in_group(stop_all(), command)
+
+    async def _command_pause(self, command: SystemCommand) -> CommandResult:
+        async def pause_all() -> CommandResult:
+            return _summary({name: await self.pause_stream(name) for name in self.streams})
+
+        return await self._in_group(pause_all(), command)
+
+    async def _in_group(
+        self, work: Coroutine[Any, Any, CommandResult], command: SystemCommand
+    ) -> CommandResult:
+        """Run a command's pipeline changes in this actor's task group: a caller that stops
+        waiting (the router's timeout) leaves them to finish instead of cutting them short."""
+        if not self.streams or self._group is None:
+            work.close()
+            return CommandResult(False, "this platform has no media streams running")
+        task = self._group.create_task(_answer(work), name=f"media:{command.code}")
+        return await asyncio.shield(task)
+
+    async def _command_framerate(self, command: SystemCommand) -> CommandResult:
         try:
-            values = parse_payload(payload)
+            values = parse_payload(command.payload)
         except PayloadError as err:
             return CommandResult(False, str(err))
         if not values:
@@ -218,18 +225,6 @@ class MediaService(Actor):
             except ValueError as err:
                 return CommandResult(False, str(err))
         return CommandResult(True, result=result)
-
-    def _host_from_payload(self, payload: str, session_id: str | None) -> str:
-        return host_from_payload(payload, self._session_host(session_id))
-
-    def _session_host(self, session_id: str | None) -> str:
-        session = self.ctx.session(session_id)
-        if session is None:
-            return ""
-        host = str(session.peer_host)
-        if host.startswith("::ffff:"):
-            host = host.removeprefix("::ffff:")
-        return host
 
     # ------------------------------------------------------------------ per-stream control
 
@@ -284,9 +279,10 @@ class MediaService(Actor):
     async def rpc_start_stream(
         self, call: CallContext, name: str, host: str = "", port: int = 0
     ) -> dict[str, Any]:
-        session_id = call.session.session_id if call.session is not None else None
+        session: Session | None = call.session
+        session_id = session.session_id if session is not None else None
         try:
-            host = check_host(host or self._session_host(session_id))
+            host = check_host(host or _peer_host(session))
         except PayloadError as err:
             raise RpcError(INVALID_PARAMS, f"invalid params: {err}") from None
         if port and not 1 <= port <= 65535:
@@ -354,14 +350,19 @@ def _summary(states: dict[str, StreamState]) -> CommandResult:
     return CommandResult(True, result=result)
 
 
-async def _answer(reply: asyncio.Future[CommandResult], work: Awaitable[CommandResult]) -> None:
+async def _answer(work: Awaitable[CommandResult]) -> CommandResult:
     try:
-        result = await work
+        return await work
     except Exception as err:
         _LOGGER.exception("media command failed")
-        result = CommandResult(False, f"internal error: {err}")
-    if not reply.done():
-        reply.set_result(result)
+        return CommandResult(False, f"internal error: {err}")
+
+
+def _peer_host(session: Session | None) -> str:
+    """The calling station's address (IPv4-mapped IPv6 unwrapped); empty without a session."""
+    if session is None:
+        return ""
+    return str(session.peer_host).removeprefix("::ffff:")
 
 
 async def _awaited(work: Awaitable[Any]) -> None:

@@ -11,8 +11,10 @@ import logging
 from brasidas import topics
 from brasidas.actor import Actor, wait_forever
 from brasidas.codecs.commands import MANUAL_OVERRIDE, PayloadError, parse_switch
-from brasidas.messages import CommandResult, OverrideState, SessionClosed, SystemCommand
+from brasidas.messages import CommandResult, OverrideState, SessionClosed
+from platformd.commands import SystemCommand
 from platformd.context import PlatformContext
+from platformd.session_table import Session
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -26,32 +28,28 @@ class ModeArbiter(Actor):
         self.state = OverrideState(engaged=False)
 
     async def run(self) -> None:
-        self.subscribe(topics.SYSTEM_COMMANDS, self._on_command)
+        self.on_remove(self.ctx.commands.register(self.name, {MANUAL_OVERRIDE: self._command}))
         self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
         self.bus.publish(topics.OVERRIDE_STATE, self.state)
         await wait_forever()
 
-    def _on_command(self, cmd: SystemCommand) -> None:
-        if cmd.code != MANUAL_OVERRIDE:
-            return
+    async def _command(self, command: SystemCommand) -> CommandResult:
         try:
-            engage = parse_switch(cmd.payload)
+            engage = parse_switch(command.payload)
         except PayloadError as err:
-            cmd.respond(self.name, CommandResult(False, str(err)))
-            return
-        cmd.respond(self.name, self.request(engage, cmd.session_id))
+            return CommandResult(False, str(err))
+        return self.request(engage, command.session)
 
-    def request(self, engage: bool, session_id: str | None) -> CommandResult:
-        """Engage or disengage on behalf of ``session_id``; the answer says whether it took."""
+    def request(self, engage: bool, session: Session | None) -> CommandResult:
+        """Engage or disengage on behalf of ``session``; the answer says whether it took."""
         held_by = self.state.session_id
+        session_id = session.session_id if session is not None else None
         if engage:
             if self.state.engaged and held_by != session_id:
                 return CommandResult(False, f"manual override held by {self.state.station_id}")
-            if session_id is None:
+            if session is None:
                 return CommandResult(False, "manual override needs a station session")
-            session = self.ctx.session(session_id)
-            station = session.station_id if session else None
-            self._set(OverrideState(True, session_id, station))
+            self._set(OverrideState(True, session.session_id, session.station_id))
             return CommandResult(True, result={"engaged": True})
         if self.state.engaged and held_by != session_id:
             return CommandResult(False, f"manual override held by {self.state.station_id}")

@@ -20,6 +20,7 @@ from typing import Any
 
 from brasidas import __version__, security, topics
 from brasidas.actor import Actor
+from brasidas.codecs.commands import PAYLOAD_GROUPS
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError, Unauthorized
 from brasidas.messages import SessionClosed, SessionOpened
 from brasidas.security import accept_proof, connect_proof
@@ -194,7 +195,9 @@ def capabilities(ctx: PlatformContext) -> dict[str, Any]:
         "streams": [],
         "velocity": velocity_endpoint(ctx),
         "telemetry": {"rate_hz": ctx.config.telemetry.rate_hz, "push": False},
-        "payload_groups": [],
+        "payload_groups": sorted(
+            {code.group for code in ctx.commands.codes() if code.group in PAYLOAD_GROUPS}
+        ),
     }
     for name, provider in ctx.capabilities.items():
         result[name] = provider()

@@ -1,55 +1,26 @@
 """Signaling, the common protocol (R-10, R-14): JSON-RPC 2.0 over aiohttp at /rpc and /rpc/ws.
 
-``issue_system_command`` publishes the command on ``SYSTEM_COMMANDS``; the actor that owns the
-code claims it and its answer goes back to the caller. Codes no actor claims are rejected with
-the reason (known codes) or answered with an error (unknown codes), never silence.
+``issue_system_command``, ``set_manual_override`` and ``set_lights`` go through the command
+router (``ctx.commands``, platformd.commands): the subsystem that registered the code answers;
+codes nobody handles are rejected with the reason (known codes) or answered with an error
+(unknown codes), never silence.
 """
 
 from __future__ import annotations
 
-import asyncio
 import logging
 from typing import Any
 
 from aiohttp import web
 
 from brasidas import topics
-from brasidas.codecs.commands import (
-    MAIN_LIGHTS,
-    MANUAL_OVERRIDE,
-    POSITIONAL_LIGHTS,
-    STATION_ONLY_GROUPS,
-    CommandCode,
-    describe,
-)
+from brasidas.codecs.commands import MAIN_LIGHTS, MANUAL_OVERRIDE, POSITIONAL_LIGHTS, CommandCode
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, RpcError
-from brasidas.messages import CommandResult, SystemCommand
 from brasidas.rpc import add_rpc_routes, serve_app
 from platformd.context import PlatformContext
 from platformd.sessions import platform_parameters, velocity_endpoint
 
 _LOGGER = logging.getLogger(__name__)
-
-
-async def dispatch_command(
-    ctx: PlatformContext, code: CommandCode, payload: str, session_id: str | None
-) -> CommandResult:
-    """Publish a system command and wait for its owner's answer."""
-    if code.group in STATION_ONLY_GROUPS:
-        return CommandResult(False, f"group {code.group} is station-only")
-    description = describe(code)
-    command = SystemCommand(code, payload, session_id)
-    ctx.bus.publish(topics.SYSTEM_COMMANDS, command)
-    if command.claimed_by is None:
-        if description is None:
-            raise RpcError(INVALID_PARAMS, f"unknown command code {code}")
-        return CommandResult(False, f"{code} ({description}) is not available on this platform")
-    try:
-        return await asyncio.wait_for(
-            asyncio.shield(command.reply), ctx.config.signaling.command_timeout
-        )
-    except TimeoutError:
-        return CommandResult(False, f"{code} not answered by {command.claimed_by} in time")
 
 
 class Signaling:
@@ -63,14 +34,14 @@ class Signaling:
     ) -> dict[str, Any]:
         if not 0 <= group <= 255 or not 0 <= command <= 255:
             raise RpcError(INVALID_PARAMS, "invalid params: group and command must be 0-255")
-        result = await dispatch_command(
-            self.ctx, CommandCode(group, command), payload, call.session.session_id
+        result = await self.ctx.commands.dispatch(
+            CommandCode(group, command), payload, call.session
         )
         return result.as_dict()
 
     async def set_manual_override(self, call: CallContext, engaged: bool) -> bool:
-        result = await dispatch_command(
-            self.ctx, MANUAL_OVERRIDE, "True" if engaged else "False", call.session.session_id
+        result = await self.ctx.commands.dispatch(
+            MANUAL_OVERRIDE, "True" if engaged else "False", call.session
         )
         return result.accepted
 
@@ -79,9 +50,7 @@ class Signaling:
         codes = {"main": MAIN_LIGHTS, "positional": POSITIONAL_LIGHTS, "pos": POSITIONAL_LIGHTS}
         if which not in codes:
             raise RpcError(INVALID_PARAMS, "invalid params: which must be main or positional")
-        result = await dispatch_command(
-            self.ctx, codes[which], "ON" if on else "OFF", call.session.session_id
-        )
+        result = await self.ctx.commands.dispatch(codes[which], "ON" if on else "OFF", call.session)
         return result.as_dict()
 
     def get_platform_parameters(self, call: CallContext) -> dict[str, Any]:

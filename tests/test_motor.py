@@ -29,7 +29,6 @@ from platformd import motor
 from platformd.app import PlatformDaemon
 from platformd.context import PlatformContext
 from platformd.motor import MotorController
-from platformd.signaling import dispatch_command
 from platformd.sim.ax3500 import Ax3500Simulator, SimOptions
 from platformd.sim.vehicle import VehicleModel
 from stationd.client import PlatformConnection
@@ -268,34 +267,34 @@ async def test_lights_and_battery_monitor_commands(tmp_path: Path) -> None:
         lights: list[LightsState] = []
         ctx.bus.subscribe(topics.LIGHTS_STATE, lights.append)
         await connected(ctx)
-        result = await dispatch_command(ctx, MAIN_LIGHTS, "ON", None)
+        result = await ctx.commands.dispatch(MAIN_LIGHTS, "ON", None)
         assert result.accepted and sim.device.outputs["C"] and lights[-1] == LightsState(True)
-        result = await dispatch_command(ctx, POSITIONAL_LIGHTS, "ON", None)
+        result = await ctx.commands.dispatch(POSITIONAL_LIGHTS, "ON", None)
         assert result.accepted and gpio.read_text() == "1\n"
         assert lights[-1] == LightsState(True, True)
-        result = await dispatch_command(ctx, MAIN_LIGHTS, "maybe", None)
+        result = await ctx.commands.dispatch(MAIN_LIGHTS, "maybe", None)
         assert not result.accepted
-        result = await dispatch_command(ctx, MAIN_LIGHTS, "OFF", None)
+        result = await ctx.commands.dispatch(MAIN_LIGHTS, "OFF", None)
         assert result.accepted and not sim.device.outputs["C"]
         # A controller restart switches its outputs off: the driver puts the lights back.
-        await dispatch_command(ctx, MAIN_LIGHTS, "ON", None)
+        await ctx.commands.dispatch(MAIN_LIGHTS, "ON", None)
         sim.device.outputs["C"] = False
         sim.inject(b"\rOK\r")
         await wait_until(lambda: sim.device.outputs["C"])
-        result = await dispatch_command(ctx, BATTERY_MONITOR, "OFF", None)
+        result = await ctx.commands.dispatch(BATTERY_MONITOR, "OFF", None)
         assert result.accepted and not status(ctx).battery_monitor  # type: ignore[union-attr]
         # While the controller is away, its output cannot switch; the GPIO still can.
         sim.unplug()
         await wait_until(lambda: not status(ctx).connected)  # type: ignore[union-attr]
-        assert not (await dispatch_command(ctx, MAIN_LIGHTS, "OFF", None)).accepted
-        assert (await dispatch_command(ctx, POSITIONAL_LIGHTS, "OFF", None)).accepted
+        assert not (await ctx.commands.dispatch(MAIN_LIGHTS, "OFF", None)).accepted
+        assert (await ctx.commands.dispatch(POSITIONAL_LIGHTS, "OFF", None)).accepted
         assert gpio.read_text() == "0\n"
 
 
 async def test_positional_lights_not_fitted(tmp_path: Path) -> None:
     async with driven(tmp_path) as (ctx, _sim):
         await connected(ctx)
-        result = await dispatch_command(ctx, POSITIONAL_LIGHTS, "ON", None)
+        result = await ctx.commands.dispatch(POSITIONAL_LIGHTS, "ON", None)
         assert not result.accepted and "positional_lights_output" in result.reason
 
 

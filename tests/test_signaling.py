@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 from collections.abc import Awaitable, Callable
@@ -12,11 +13,12 @@ import pytest
 from conftest import quiet_platform_config, wait_until
 
 from brasidas import topics
-from brasidas.codecs.commands import MAIN_LIGHTS
+from brasidas.codecs.commands import BATTERY_MONITOR, DESCRIPTIONS, MAIN_LIGHTS, CommandCode
 from brasidas.codecs.jsonrpc import RpcError
-from brasidas.messages import CommandResult, SystemCommand
+from brasidas.messages import CommandResult
 from brasidas.rpc import RpcClient
 from platformd.app import PlatformDaemon
+from platformd.commands import DuplicateCommandError, SystemCommand
 from stationd.client import AuthenticationError, PlatformConnection
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
@@ -152,20 +154,29 @@ async def test_system_commands_reach_their_owner_and_answer(
     daemon = await platform_factory(quiet_platform_config(), fleet_key)
     seen: list[SystemCommand] = []
 
-    def lights_owner(cmd: SystemCommand) -> None:
-        if cmd.code == MAIN_LIGHTS:
-            seen.append(cmd)
-            cmd.respond("test-lights", CommandResult(True, result={"main": cmd.payload}))
+    async def lights(command: SystemCommand) -> CommandResult:
+        seen.append(command)
+        return CommandResult(True, result={"main": command.payload})
 
-    unsubscribe = daemon.bus.subscribe(topics.SYSTEM_COMMANDS, lights_owner)
+    async def turret(command: SystemCommand) -> CommandResult:
+        return CommandResult(True, result={"fired": command.payload})
+
+    unregister = daemon.ctx.commands.register("test-lights", {MAIN_LIGHTS: lights})
+    daemon.ctx.commands.register("turret", {CommandCode(105, 2): turret})
     conn = connection(daemon, fleet_key)
     await conn.open()
     try:
         answer = await conn.call("issue_system_command", group=10, command=6, payload="ON")
         assert answer == {"accepted": True, "reason": "", "result": {"main": "ON"}}
-        assert seen[0].session_id == conn.session_id
-        unsubscribe()
+        assert seen[0].session_id == conn.session_id and seen[0].session.station_id == "st-1"
+        assert conn.capabilities["payload_groups"] == [105]
+        assert (await conn.call("set_lights", which="main", on=False))["result"] == {"main": "OFF"}
+        answer = await conn.call("issue_system_command", group=105, command=2, payload="x")
+        assert answer == {"accepted": True, "reason": "", "result": {"fired": "x"}}
+        unregister()
         answer = await conn.call("issue_system_command", group=10, command=6, payload="ON")
+        assert answer["accepted"] is False and "not available" in answer["reason"]
+        answer = await conn.call("issue_system_command", group=105, command=3, payload="")
         assert answer["accepted"] is False and "not available" in answer["reason"]
         answer = await conn.call("issue_system_command", group=91, command=0, payload="")
         assert answer["accepted"] is False and "station-only" in answer["reason"]
@@ -179,18 +190,96 @@ async def test_system_commands_reach_their_owner_and_answer(
         await conn.close()
 
 
+async def test_every_platform_code_has_one_owner_in_sim(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    daemon = await platform_factory(
+        quiet_platform_config("sim.enabled=true", "motor.enabled=true"),
+        fleet_key,
+    )
+    await wait_until(lambda: all(daemon.ctx.commands.owner(code) for code in DESCRIPTIONS))
+    owners = {str(code): daemon.ctx.commands.owner(code) for code in DESCRIPTIONS}
+    assert owners == {
+        "10.0": "mode",
+        "10.1": "media",
+        "10.2": "media",
+        "10.3": "media",
+        "10.5": "media",
+        "10.6": "motor",
+        "10.7": "motor",
+        "20.0": "telemetry",
+        "20.4": "motor",
+    }
+    with pytest.raises(DuplicateCommandError):
+        daemon.ctx.commands.register("impostor", {MAIN_LIGHTS: daemon_lights(daemon)})
+
+
+def daemon_lights(daemon: PlatformDaemon) -> Any:
+    async def handler(command: SystemCommand) -> CommandResult:
+        return CommandResult(True)
+
+    return handler
+
+
+async def test_authority_is_asked_for_every_way_a_command_comes_in(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    """Where command authority (issue 13) plugs in: issue_system_command, set_manual_override
+    and set_lights all pass the router's one hook, with the calling session."""
+    daemon = await platform_factory(quiet_platform_config(), fleet_key)
+    asked: list[tuple[str, str | None]] = []
+
+    def observers_refused(command: SystemCommand) -> str | None:
+        session = command.session
+        asked.append((str(command.code), session.station_id if session else None))
+        return None if session and session.station_id == "holder" else "held by holder"
+
+    daemon.ctx.commands.authorize = observers_refused
+    daemon.ctx.commands.register("lights", {MAIN_LIGHTS: daemon_lights(daemon)})
+    observer, holder = (
+        connection(daemon, fleet_key, "observer"),
+        connection(daemon, fleet_key, "holder"),
+    )
+    await observer.open()
+    await holder.open()
+    try:
+        answer = await observer.call("issue_system_command", group=10, command=6, payload="ON")
+        assert answer == {"accepted": False, "reason": "held by holder", "result": None}
+        assert await observer.call("set_manual_override", engaged=True) is False
+        assert (await observer.call("set_lights", which="main", on=True))["accepted"] is False
+        assert daemon.bus.last(topics.OVERRIDE_STATE).engaged is False
+        assert await holder.call("set_manual_override", engaged=True) is True
+        assert (await holder.call("set_lights", which="main", on=True))["accepted"] is True
+        assert asked == [
+            ("10.6", "observer"),
+            ("10.0", "observer"),
+            ("10.6", "observer"),
+            ("10.0", "holder"),
+            ("10.6", "holder"),
+        ]
+    finally:
+        await observer.close()
+        await holder.close()
+
+
 async def test_slow_owner_times_out_with_a_reason(
     platform_factory: Factory, fleet_key: bytes
 ) -> None:
     daemon = await platform_factory(
         quiet_platform_config("signaling.command_timeout=0.2"), fleet_key
     )
-    daemon.bus.subscribe(topics.SYSTEM_COMMANDS, lambda cmd: cmd.claim("sleepy"))
+    never = asyncio.Event()
+
+    async def sleepy(command: SystemCommand) -> CommandResult:
+        await never.wait()
+        return CommandResult(True)
+
+    daemon.ctx.commands.register("sleepy", {BATTERY_MONITOR: sleepy})
     conn = connection(daemon, fleet_key)
     await conn.open()
     try:
         answer = await conn.call("issue_system_command", group=20, command=4, payload="True")
-        assert answer["accepted"] is False and "sleepy" in answer["reason"]
+        assert answer["accepted"] is False and "not answered by sleepy in 0.2 s" in answer["reason"]
     finally:
         await conn.close()
 

@@ -24,7 +24,8 @@ from brasidas.codecs.commands import (
     PayloadError,
     parse_switch,
 )
-from brasidas.messages import CommandResult, ControllerStatus, SystemCommand, Velocity
+from brasidas.messages import CommandResult, ControllerStatus, Velocity
+from platformd.commands import SystemCommand
 from platformd.context import PlatformContext
 from platformd.motor.lights import Lights, OutputRequest, Send
 from platformd.motor.link import LinkError, PortOpener, ReplyTimeout, SerialLink
@@ -107,7 +108,16 @@ class MotorController(Actor):
 
     async def run(self) -> None:
         self.subscribe(topics.MOTOR_COMMAND, self._on_motor_command)
-        self.subscribe(topics.SYSTEM_COMMANDS, self._on_system_command)
+        self.on_remove(
+            self.ctx.commands.register(
+                self.name,
+                {
+                    BATTERY_MONITOR: self._command_battery_monitor,
+                    MAIN_LIGHTS: self._command_lights,
+                    POSITIONAL_LIGHTS: self._command_lights,
+                },
+            )
+        )
         self.lights.publish()
         try:
             async with asyncio.TaskGroup() as group:
@@ -424,38 +434,32 @@ class MotorController(Actor):
             self._last_velocity_at = float("-inf")
             self._wake.set()
 
-    def _on_system_command(self, command: SystemCommand) -> None:
-        if command.code == BATTERY_MONITOR:
-            try:
-                on = parse_switch(command.payload)
-            except PayloadError as err:
-                command.respond(self.name, CommandResult(False, str(err)))
-                return
-            self.battery_monitor = on
-            self._publish_status(connected=self.status.connected, error=self.status.error)
-            command.respond(self.name, CommandResult(True, result={"battery_monitor": on}))
-            return
-        if command.code not in (MAIN_LIGHTS, POSITIONAL_LIGHTS):
-            return
+    async def _command_battery_monitor(self, command: SystemCommand) -> CommandResult:
+        try:
+            on = parse_switch(command.payload)
+        except PayloadError as err:
+            return CommandResult(False, str(err))
+        self.battery_monitor = on
+        self._publish_status(connected=self.status.connected, error=self.status.error)
+        return CommandResult(True, result={"battery_monitor": on})
+
+    async def _command_lights(self, command: SystemCommand) -> CommandResult:
         which = "main" if command.code == MAIN_LIGHTS else "positional"
         try:
             on = parse_switch(command.payload)
         except PayloadError as err:
-            command.respond(self.name, CommandResult(False, str(err)))
-            return
+            return CommandResult(False, str(err))
         if not self.lights.output(which):
-            command.respond(
-                self.name,
-                CommandResult(False, f"no {which} lights fitted (motor.{which}_lights_output)"),
-            )
-            return
+            return CommandResult(False, f"no {which} lights fitted (motor.{which}_lights_output)")
+        request = OutputRequest(which, on, asyncio.get_running_loop().create_future())
         if self.lights.on_gpio(which):  # a GPIO line works without the controller
-            self.lights.request_gpio(OutputRequest(which, on, command.claim(self.name)))
+            self.lights.request_gpio(request)
         elif self._ready:
-            self.lights.pending.append(OutputRequest(which, on, command.claim(self.name)))
+            self.lights.pending.append(request)
             self._wake.set()
         else:
-            command.respond(self.name, CommandResult(False, "motor controller not connected"))
+            return CommandResult(False, "motor controller not connected")
+        return await request.reply
 
     def _sender(self, link: SerialLink) -> Send:
         """The line as the lights see it: one command, True when acknowledged."""

@@ -34,9 +34,9 @@ from brasidas.messages import (
     PlatformHealth,
     SessionClosed,
     StreamStatus,
-    SystemCommand,
 )
 from brasidas.status import Battery
+from platformd.commands import SystemCommand
 from platformd.context import PlatformContext
 from platformd.telemetry.stream import StreamSender
 from platformd.telemetry.system import MEMINFO, SYSTEM_INFO_MAX_AGE, THERMAL_ROOT, system_info
@@ -76,7 +76,7 @@ class TelemetryAggregator(Actor):
 
     async def run(self) -> None:
         self.latest.clear()
-        self.subscribe(topics.SYSTEM_COMMANDS, self._on_command)
+        self.on_remove(self.ctx.commands.register(self.name, {DIAGNOSTICS: self._command}))
         self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
         self.subscribe_reports()
         loop = asyncio.get_running_loop()
@@ -128,19 +128,16 @@ class TelemetryAggregator(Actor):
 
     # ------------------------------------------------------------------ commands and sessions
 
-    def _on_command(self, cmd: SystemCommand) -> None:
-        # 20.4 (battery monitor) belongs to the motor controller's driver: the battery
-        # section follows the ``battery_monitor`` flag of its status.
-        if cmd.code != DIAGNOSTICS:
-            return
+    async def _command(self, command: SystemCommand) -> CommandResult:
+        """20.0: the diagnostics section on or off. (20.4, the battery monitor, belongs to
+        the motor controller's driver: the battery section follows its status's flag.)"""
         try:
-            on = parse_switch(cmd.payload)
+            on = parse_switch(command.payload)
         except PayloadError as err:
-            cmd.respond(self.name, CommandResult(False, str(err)))
-            return
+            return CommandResult(False, str(err))
         self.diagnostics = on
         _LOGGER.info("diagnostics report %s", "on" if on else "off")
-        cmd.respond(self.name, CommandResult(True, result={"diagnostics": on}))
+        return CommandResult(True, result={"diagnostics": on})
 
     def _on_session_closed(self, event: SessionClosed) -> None:
         self.sender.stop_stream(event.session_id)
@@ -258,6 +255,7 @@ class TelemetryAggregator(Actor):
             "actor_restarts": dict(self.ctx.supervisor.restarts),
             "bus_delivery_errors": self.bus.delivery_errors,
             "rpc": dict(self.ctx.rpc.counters),
+            "commands": dict(self.ctx.commands.counters),
             "auth_failures": self.ctx.sessions.auth_failures,
             "telemetry": self.counters(),
             "gps": to_plain(self.latest.get("gps_stats")),
