@@ -157,15 +157,21 @@ async def wait_forever() -> None:
     await asyncio.Event().wait()
 
 
-def stop_on_signals() -> asyncio.Event:
-    """An event that SIGTERM and SIGINT (Ctrl-C) set, for a daemon or command to wind down on.
-    Off the main thread (tests run commands in threads) signals cannot be caught; the event is
-    then set only by its holder."""
+def stop_on_signals(on_signal: Callable[[], object] | None = None) -> asyncio.Event:
+    """An event that SIGTERM and SIGINT (Ctrl-C) set, for a daemon or command to wind down on;
+    ``on_signal`` is called at once too (e.g. to tell systemd). Off the main thread (tests run
+    commands in threads) signals cannot be caught; the event is then set only by its holder."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
+
+    def handle() -> None:
+        if on_signal is not None:
+            on_signal()
+        stop.set()
+
     for signum in (signal.SIGTERM, signal.SIGINT):
         with contextlib.suppress(ValueError, RuntimeError):
-            loop.add_signal_handler(signum, stop.set)
+            loop.add_signal_handler(signum, handle)
     return stop
 
 

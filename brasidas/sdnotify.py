@@ -31,6 +31,8 @@ class Notifier:
         if usec.isdigit() and int(usec) > 0 and (not pid or pid == str(os.getpid())):
             self.watchdog_interval = int(usec) / 1e6 / 2  # ping at half the timeout
         self.errors = 0
+        self.stopping_sent = False
+        """STOPPING=1 went out: READY=1 must not follow it."""
 
     @property
     def enabled(self) -> bool:
@@ -50,9 +52,16 @@ class Notifier:
         return True
 
     def ready(self, status: str = "") -> bool:
+        """READY=1, unless the daemon was told to stop meanwhile."""
+        if self.stopping_sent:
+            return False
         return self.notify("READY=1" + (f"\nSTATUS={status}" if status else ""))
 
     def stopping(self) -> bool:
+        """STOPPING=1, once (on SIGTERM, before anything slow; again on the way down: no-op)."""
+        if self.stopping_sent:
+            return False
+        self.stopping_sent = True
         return self.notify("STOPPING=1")
 
     def watchdog(self) -> bool:
@@ -63,14 +72,10 @@ class WatchdogPinger(Actor):
     """Pings systemd's watchdog from the event loop while the daemon runs."""
 
     name = "sd-watchdog"
-    stop_priority = 100  # say STOPPING before anything slow happens
 
     def __init__(self, bus: Bus, notifier: Notifier) -> None:
         super().__init__(bus)
         self.notifier = notifier
-
-    async def async_stop(self) -> None:
-        self.notifier.stopping()
 
     async def run(self) -> None:
         interval = self.notifier.watchdog_interval

@@ -88,3 +88,8 @@ class PlatformDaemon(Daemon):
         if self.notifier.enabled:  # under systemd (Type=notify)
             self.supervisor.start(WatchdogPinger(self.bus, self.notifier))
             self.notifier.ready(f"serving {self.ctx.signaling_url}")
+
+    async def stop(self, timeout: float = 0.9) -> None:
+        """Tell systemd STOPPING=1 (if SIGTERM did not already), then stop every actor."""
+        self.notifier.stopping()
+        await super().stop(timeout)

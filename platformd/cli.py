@@ -14,6 +14,7 @@ from brasidas import security
 from brasidas.actor import stop_on_signals
 from brasidas.config import ConfigError, PlatformConfig, dump_toml, load_config
 from brasidas.log import LEVELS, level_argument, setup_logging
+from brasidas.sdnotify import Notifier
 
 _LOGGER = logging.getLogger("platformd")
 
@@ -106,11 +107,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 async def run_daemon(config: PlatformConfig, fleet_key: bytes | None) -> None:
-    """Run until SIGTERM or SIGINT, then stop within a second (motors commanded to zero first)."""
+    """Run until SIGTERM or SIGINT, then stop within a second (motors commanded to zero first).
+
+    Under systemd, STOPPING=1 goes out from the signal handler itself, before anything else
+    happens (a SIGTERM during start-up included: READY=1 then never follows).
+    """
     from platformd.app import PlatformDaemon
 
-    stop = stop_on_signals()
-    daemon = PlatformDaemon(config, fleet_key)
+    notifier = Notifier()
+    stop = stop_on_signals(notifier.stopping)  # STOPPING=1 as soon as SIGTERM arrives
+    daemon = PlatformDaemon(config, fleet_key, notifier)
     try:
         await daemon.run(stop)
     finally:
