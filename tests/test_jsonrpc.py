@@ -50,12 +50,14 @@ def dispatcher() -> Dispatcher:
 
 
 async def ask(d: Dispatcher, payload: Any) -> Any:
-    """The answer through both doors a transport uses (``answers_at_once``, then ``answer``),
-    checked to be JSON proper (no NaN or Infinity)."""
+    """The answer through the doors a transport uses (``answers_at_once``, then
+    ``answer_at_once`` or ``answer``), checked to be JSON proper (no NaN or Infinity)."""
     raw = payload if isinstance(payload, bytes) else json.dumps(payload).encode()
     incoming = d.parse(raw)
-    d.answers_at_once(incoming)  # must not raise, whatever the message
-    answer = await d.answer(incoming, CallContext())
+    if d.answers_at_once(incoming):  # must not raise, whatever the message
+        answer = d.answer_at_once(incoming, CallContext())
+    else:
+        answer = await d.answer(incoming, CallContext())
     return None if answer is None else json.loads(answer, parse_constant=_not_json)
 
 
