@@ -7,7 +7,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from brasidas.codecs import ax3500
-from brasidas.codecs.ax3500 import Exchange, Kind, LineParser, MotionMapping, Status
+from brasidas.codecs.ax3500 import Exchange, Kind, LineParser, MotionMapping, Reply, Status
+from platformd.sim.ax3500 import Ax3500Device, SimOptions
 
 # --------------------------------------------------------------------------- encoding
 
@@ -199,3 +200,53 @@ def test_exchange_never_answers_before_its_echo(lines: list[str]) -> None:
     exchange = Exchange(ax3500.motor(1, 0x20))
     for line in lines:
         assert exchange.feed_line(line) is None or exchange.echoed
+
+
+# ------------------------------------------------------------------ round trips through the device
+
+
+def _exchange(device: Ax3500Device, command: ax3500.Command, chunk: int, noise: bytes) -> Reply:
+    """Send ``command`` to the simulated controller; its answer, with watchdog ``W``s mixed in
+    and cut into ``chunk``-byte pieces, goes through the host's parser and exchange."""
+    wire = device.feed(command.encode(), 0.0)
+    wire = noise + b"W".join(wire[i : i + chunk] for i in range(0, len(wire), chunk))
+    parser, exchange = LineParser(), Exchange(command)
+    for start in range(0, len(wire), chunk):
+        for line in parser.feed(wire[start : start + chunk]):
+            reply = exchange.feed_line(line)
+            if reply is not None:
+                return reply
+    raise AssertionError(f"no reply to {command.text} in {wire!r}")
+
+
+noise_lines = st.lists(st.sampled_from([b"OK\r", b"+\r", b"7F\r", b"\x00\xff\r", b"W"]), max_size=3)
+
+
+@given(
+    st.integers(1, 2),
+    st.integers(-127, 127),
+    st.integers(1, 8),
+    noise_lines.map(b"".join),
+    st.booleans(),
+)
+def test_a_motor_command_round_trips_through_the_controller(
+    channel: int, level: int, chunk: int, noise: bytes, lowercase: bool
+) -> None:
+    device = Ax3500Device(SimOptions(lowercase_hex=lowercase))
+    device.power_up(0.0)
+    device.mixed = False
+    reply = _exchange(device, ax3500.motor(channel, level), chunk, noise)
+    assert reply.status is Status.ACK
+    assert device.channels[channel - 1] == level
+    # ... and the controller reports the power it applies.
+    reply = _exchange(device, ax3500.query("v"), chunk, b"")
+    assert reply.status is Status.VALUES and reply.values[channel - 1] == abs(level)
+
+
+@given(st.integers(0, 255), st.integers(0, 255), st.integers(1, 8), st.booleans())
+def test_a_config_write_reads_back(parameter: int, value: int, chunk: int, lowercase: bool) -> None:
+    device = Ax3500Device(SimOptions(lowercase_hex=lowercase))
+    device.power_up(0.0)
+    assert _exchange(device, ax3500.config_write(parameter, value), chunk, b"").ok
+    reply = _exchange(device, ax3500.config_read(parameter), chunk, b"")
+    assert reply.status is Status.VALUES and reply.values == (value,)

@@ -13,7 +13,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 import msgpack
 import pytest
 from conftest import free_udp_port, quiet_platform_config, wait_until
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from brasidas import security, topics
@@ -432,3 +432,31 @@ async def test_sim_platform_beacon_carries_battery_controller_gps_and_position(
     assert beacon.status.battery is Battery.MEDIUM  # the simulated 24.6 V pack under load
     assert beacon.position == pytest.approx((config.sim.latitude, config.sim.longitude), abs=1e-4)
     assert not beacon.status.fault
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.sampled_from(["truncate", "extend", "flip"]),
+    st.integers(0, 99),
+    st.integers(1, 255),
+    st.binary(min_size=1, max_size=8),
+)
+def test_a_changed_signed_beacon_is_refused_and_counted(
+    how: str, position: int, flip: int, extra: bytes
+) -> None:
+    good = codec.encode(sample(), KEY)
+    if how == "truncate":
+        bad = good[: position % len(good)]
+    elif how == "extend":
+        bad = good + extra
+    else:
+        changed = bytearray(good)
+        changed[position % len(good)] ^= flip
+        bad = bytes(changed)
+    with pytest.raises(BeaconError):
+        codec.decode(bad, KEY)
+    directory = PlatformDirectory(KEY, 4.0)
+    directory.receive(bad, "127.0.0.1")
+    stats = directory.stats()
+    assert stats["received"] == 1 and stats["accepted"] == 0
+    assert sum(stats["dropped"].values()) == 1

@@ -131,3 +131,20 @@ def test_any_single_corrupted_byte_is_dropped(
     # The XOR checksum catches every single-byte change in the body; only a change of case in
     # the checksum's own hex digits still decodes, to the very same sentence.
     assert isinstance(result, DropReason) or result == pvel.decode(original)
+
+
+@given(
+    count=counts, x=velocities, z=velocities, cut=st.integers(0, 63), extra=st.binary(max_size=8)
+)
+def test_a_cut_or_padded_sentence_never_passes_as_another(
+    count: int, x: float, z: float, cut: int, extra: bytes
+) -> None:
+    original = pvel.encode(count, x, z, key=KEY, session_id="s")
+    expected = pvel.decode(original)
+    for datagram in (original[: cut % len(original)], original.rstrip(b"\r\n") + extra):
+        result = pvel.decode(datagram)
+        # Dropped with a reason, or (only when the change left the sentence intact, e.g. a
+        # different line end) the very same sentence; its tag still verifies only then.
+        assert isinstance(result, DropReason) or result == expected
+        if isinstance(result, PvelSentence):
+            assert pvel.verify_tag(result, KEY, "s")

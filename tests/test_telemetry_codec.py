@@ -219,3 +219,21 @@ def test_tampering_anywhere_is_refused(noise: bytes, where: int) -> None:
             tampered[where + i] ^= byte or 0xFF
     decoder = TelemetryDecoder("rover-1", KEY)
     assert decoder.feed(bytes(tampered)) == []
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.data())
+def test_a_changed_byte_in_an_authenticated_datagram_is_refused_and_counted(
+    data: st.DataObject,
+) -> None:
+    (datagram,) = TelemetryEncoder("rover-1", KEY).encode(SNAPSHOT, 1.0)
+    position = data.draw(st.integers(0, len(datagram) - 1), label="position")
+    flip = data.draw(st.integers(1, 255), label="flip")
+    changed = bytearray(datagram)
+    changed[position] ^= flip
+    decoder = TelemetryDecoder("rover-1", KEY)
+    assert decoder.feed(bytes(changed)) == []
+    assert decoder.accepted == 0 and sum(decoder.rejected.values()) == 1
+    # Cut short anywhere: refused and counted too.
+    cut = data.draw(st.integers(0, len(datagram) - 1), label="cut")
+    assert decoder.feed(datagram[:cut]) == [] and sum(decoder.rejected.values()) == 2
