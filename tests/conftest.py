@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures.thread
+import contextlib
 import logging
 import os
 import socket
@@ -114,6 +115,18 @@ async def wait_until(predicate: Callable[[], bool], timeout: float = 5.0) -> Non
             await asyncio.sleep(0.01)
 
     await asyncio.wait_for(poll(), timeout)
+
+
+def udp_port_bound(port: int) -> bool:
+    """A socket on this host (any process) is bound to UDP ``port`` (``/proc/net/udp[6]``)."""
+    for table in ("/proc/net/udp", "/proc/net/udp6"):
+        with contextlib.suppress(FileNotFoundError), open(table) as lines:
+            next(lines)  # the header
+            for line in lines:
+                local = line.split()[1]  # "0100007F:1F90": address and port in hex
+                if int(local.rpartition(":")[2], 16) == port:
+                    return True
+    return False
 
 
 def free_udp_port() -> int:

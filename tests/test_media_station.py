@@ -10,7 +10,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 
 import pytest
-from conftest import free_udp_port, quiet_platform_config, wait_until
+from conftest import free_udp_port, quiet_platform_config, udp_port_bound, wait_until
 
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import StationConfig, load_config
@@ -154,7 +154,7 @@ async def test_stock_gst_launch_receiver_decodes_the_navcam(
         *argv, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT
     )
     try:
-        await asyncio.sleep(0.3)  # let udpsrc bind before the first keyframe
+        await wait_until(lambda: udp_port_bound(port), timeout=10)  # before the first keyframe
         service = platform.ctx.capabilities["nav_camera"].__self__
         await service.start_stream("navcam", "127.0.0.1")
         await asyncio.wait_for(read_until(process, DECODED_FRAME), 10)
@@ -191,7 +191,7 @@ async def test_sdp_file_plays_in_a_stock_sdp_receiver(
         stderr=asyncio.subprocess.STDOUT,
     )
     try:
-        await asyncio.sleep(0.3)
+        await wait_until(lambda: udp_port_bound(port), timeout=10)  # sdpdemux's udpsrc
         service = platform.ctx.capabilities["nav_camera"].__self__
         await service.start_stream("navcam", "127.0.0.1")
         await asyncio.wait_for(read_until(process, DECODED_FRAME), 10)
