@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import os
 import re
 import shutil
@@ -152,6 +153,35 @@ async def test_operator_station_in_the_browser(
                     timeout=10_000
                 )
             await expect(page.locator("#map .platform-icon")).to_have_count(2, timeout=10_000)
+            # Offline backgrounds the operator loads: a GeoJSON area, an image with its corners.
+            area = tmp_path / "area.geojson"
+            area.write_text(
+                json.dumps(
+                    {
+                        "type": "Feature",
+                        "properties": {"role": "boundary"},
+                        "geometry": {
+                            "type": "Polygon",
+                            "coordinates": [
+                                [
+                                    [23.652, 37.941],
+                                    [23.655, 37.941],
+                                    [23.655, 37.943],
+                                    [23.652, 37.941],
+                                ]
+                            ],
+                        },
+                    }
+                )
+            )
+            await page.locator("#map-geojson").set_input_files(str(area))
+            await expect(page.locator("#map path.area-background")).to_have_count(1)
+            await page.locator("#map-bounds").fill("37.940,23.651,37.943,23.656")
+            await page.locator("#map-image").set_input_files(str(SCREENSHOT))
+            await expect(page.locator("#map img.area-image")).to_have_count(1)
+            await expect(page.locator("#map path.area-background")).to_have_count(0)  # replaced
+            await page.locator("#map-clear").click()
+            await expect(page.locator("#map img.area-image")).to_have_count(0)
 
             # Click the platform on the map: connected, and its NavCam decoded in the Worker.
             await page.locator("#map .platform-icon", has_text="web-rover").click()

@@ -76,7 +76,7 @@ export class PlatformMap {
   setImage(url, south, west, north, east) {
     this.clearBackground();
     const sw = this.local(south, west), ne = this.local(north, east);
-    this.background = L.imageOverlay(url, [sw, ne], { opacity: 0.9 }).addTo(this.map);
+    this.background = L.imageOverlay(url, [sw, ne], { opacity: 0.9, className: "area-image", alt: "area image" }).addTo(this.map);
     this.background.bringToBack();
     this.map.fitBounds([sw, ne]);
   }
@@ -85,7 +85,7 @@ export class PlatformMap {
     this.clearBackground();
     this.background = L.geoJSON(data, {
       coordsToLatLng: (coords) => L.latLng(this.local(coords[1], coords[0])),
-      style: { color: "#7aa2d6", weight: 1, fillOpacity: 0.15 },
+      style: { color: "#7aa2d6", weight: 1, fillOpacity: 0.15, className: "area-background" },
     }).addTo(this.map);
     const bounds = this.background.getBounds();
     if (bounds.isValid()) this.map.fitBounds(bounds);
