@@ -33,7 +33,6 @@ from netns import (
     ControllerThread,
     Daemon,
     Fleet,
-    RpcFailed,
     percentile,
     wait_for,
 )
@@ -43,25 +42,6 @@ FLEET = 20
 CONNECTED = 3
 CPU_WINDOW = 20.0
 VELOCITY_PORT = 21001
-
-
-async def _connect(fleet: Fleet, station: Daemon, platform_id: str) -> None:
-    async def connected() -> bool:
-        try:
-            await fleet.api(station, "connect", platform_id=platform_id)
-        except RpcFailed:
-            return False
-        return True
-
-    await wait_for(connected, 40, step=0.3)
-
-
-async def _engage(fleet: Fleet, station: Daemon, platform_id: str) -> bool:
-    try:
-        answer = await fleet.api(station, "movrd", platform_id=platform_id, engaged=True)
-    except RpcFailed:
-        return False
-    return bool(answer.get("accepted"))
 
 
 async def _link_cuts(net: TestNetwork, scratch: Path) -> dict[str, Any]:
@@ -83,8 +63,8 @@ async def _link_cuts(net: TestNetwork, scratch: Path) -> dict[str, Any]:
         fleet.platform(rover, "cut-rover", *QUIET, f"motor.port={controller.path}", sim=False)
         station = fleet.station(station_host, "cut-station")
         await fleet.wait_listening(station, "127.0.0.1", 8780, timeout=40)
-        await _connect(fleet, station, "cut-rover")
-        await wait_for(lambda: _engage(fleet, station, "cut-rover"), 10, step=0.2)
+        await fleet.connect(station, "cut-rover", 40)
+        await wait_for(lambda: fleet.engage(station, "cut-rover"), 10, step=0.2)
 
         async def keep_driving() -> None:
             while True:
@@ -148,7 +128,7 @@ async def _fleet_load(net: TestNetwork, scratch: Path) -> dict[str, Any]:
             fleet.platform(host, name, *QUIET[:2], "audio.enabled=false", "beacon.max_interval=3.0")
         await fleet.wait_listening(station, "127.0.0.1", 8780, timeout=40)
         for name in names:
-            await _connect(fleet, station, name)
+            await fleet.connect(station, name, 40)
             await fleet.api(station, "get_telemetry", platform_id=name)
 
         async def all_listed() -> bool:
@@ -209,7 +189,7 @@ async def _video_rates(fleet: Fleet, station: Daemon, name: str) -> dict[str, An
 
     await asyncio.sleep(3)
     idle = await rate(5)
-    await wait_for(lambda: _engage(fleet, station, name), 10, step=0.2)
+    await wait_for(lambda: fleet.engage(station, name), 10, step=0.2)
     await asyncio.sleep(3)
     engaged = await rate(5)
     await fleet.api(station, "stop_receive", platform_id=name, stream="navcam")

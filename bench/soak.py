@@ -29,7 +29,7 @@ from brasidas.netem.netns import TestNetwork, unavailable_reason
 from brasidas.netem.relay import DOWN, parse
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from netns import QUIET, Daemon, Fleet, RpcFailed, wait_for
+from netns import QUIET, Daemon, Fleet, RpcFailed
 
 RESULTS = Path(__file__).resolve().parent / "results"
 ROVER = "soak-rover"
@@ -73,8 +73,8 @@ async def soak(minutes: float, sample_s: float, warmup_s: float) -> dict[str, An
             two = fleet.station(net.add_host("st2"), "station-2")
             for station in (one, two):
                 await fleet.wait_listening(station, "127.0.0.1", 8780, timeout=60)
-            await wait_for(lambda: _connected(fleet, one), 60, step=0.5)
-            await wait_for(lambda: _connected(fleet, two), 60, step=0.5)
+            await fleet.connect(one, ROVER, 60)
+            await fleet.connect(two, ROVER, 60)
             await _retry(
                 fleet, one, "command", platform_id=ROVER, group=20, command=0, payload="ON"
             )
@@ -148,14 +148,6 @@ async def soak(minutes: float, sample_s: float, warmup_s: float) -> dict[str, An
         "samples": len(samples),
         "logs": str(scratch),
     }
-
-
-async def _connected(fleet: Fleet, station: Daemon) -> bool:
-    try:
-        await fleet.api(station, "connect", platform_id=ROVER)
-    except RpcFailed:
-        return False
-    return True
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -192,6 +192,26 @@ class Fleet:
             station.host.namespace, "127.0.0.1", API_PORT, "/api/rpc", method, **params
         )
 
+    async def connect(self, station: Daemon, platform_id: str, timeout: float = 30) -> None:
+        """Until ``station`` holds a session with ``platform_id`` (once it is discovered)."""
+
+        async def connected() -> bool:
+            try:
+                await self.api(station, "connect", platform_id=platform_id)
+            except RpcFailed:
+                return False
+            return True
+
+        await wait_for(connected, timeout, step=0.3)
+
+    async def engage(self, station: Daemon, platform_id: str) -> bool:
+        """Ask for the manual override once; whether it was acknowledged."""
+        try:
+            answer = await self.api(station, "movrd", platform_id=platform_id, engaged=True)
+        except RpcFailed:
+            return False
+        return bool(answer.get("accepted"))
+
     def stop(self) -> None:
         for daemon in self.daemons:
             if daemon.process.poll() is None:

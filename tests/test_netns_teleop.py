@@ -106,15 +106,7 @@ async def session(rig: tuple[Fleet, Capture]) -> AsyncIterator[tuple[Fleet, Capt
     assert fleet.net.hosts["rover"].relay is not None
     fleet.net.hosts["rover"].relay.clear()
     await fleet.wait_listening(station, "127.0.0.1", 8780)
-
-    async def connected() -> bool:
-        try:
-            await fleet.api(station, "connect", platform_id=ROVER)
-        except RpcFailed:
-            return False
-        return True
-
-    await wait_for(connected, 30, step=0.3)
+    await fleet.connect(station, ROVER)
     yield rig
     fleet.net.hosts["rover"].relay.clear()
     for _ in range(3):
@@ -187,11 +179,7 @@ async def test_teleop_holds_at_10_percent_loss_and_50_ms_jitter(
 
 
 async def _engage(fleet: Fleet) -> bool:
-    try:
-        answer = await fleet.api(_station(fleet), "movrd", platform_id=ROVER, engaged=True)
-    except RpcFailed:
-        return False
-    return bool(answer.get("accepted"))
+    return await fleet.engage(_station(fleet), ROVER)
 
 
 async def test_link_cut_mid_drive_stops_the_motors(
