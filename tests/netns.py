@@ -311,7 +311,7 @@ class ControllerThread:
     async def _serve(self) -> None:
         self._loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
-        simulator = Ax3500Simulator(SimOptions())
+        simulator = Ax3500Simulator(SimOptions(), record=True)
         device = self.device = simulator.device
 
         def record(speed: float, turn: float) -> None:

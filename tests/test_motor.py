@@ -46,7 +46,9 @@ async def driven(
 ) -> AsyncIterator[tuple[PlatformContext, Ax3500Simulator]]:
     """A simulator behind a stable link and the driver on it, in a bare platform context;
     with ``clock``, both keep time by it (the serial line stays real)."""
-    sim = Ax3500Simulator(options or SimOptions(), link=str(tmp_path / "ax3500"), clock=clock)
+    sim = Ax3500Simulator(
+        options or SimOptions(), link=str(tmp_path / "ax3500"), clock=clock, record=True
+    )
     sim.start()
     config = quiet_platform_config("motor.enabled=true", f"motor.port={sim.path}", *overrides)
     ctx = PlatformContext(
@@ -338,6 +340,7 @@ async def test_sim_platform_teleop_override_and_deadman(
     daemon = await platform_factory(sim_config("velocity.deadman=0.2"), fleet_key)
     ctx = daemon.ctx
     sim, vehicle = simulated(ctx)
+    sim.device.record = True  # a --sim platform keeps no record unless asked
     await connected(ctx)
     # Autonomous Mode: cmd_vel drives the controller.
     daemon.bus.publish(topics.CMD_VEL, Velocity(0.3, 0.0))

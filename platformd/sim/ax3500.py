@@ -93,9 +93,16 @@ class Ax3500Device:
     """The controller, sans-IO: :meth:`feed` and :meth:`tick` return the bytes it sends."""
 
     def __init__(
-        self, options: SimOptions | None = None, *, on_output: OutputCallback | None = None
+        self,
+        options: SimOptions | None = None,
+        *,
+        on_output: OutputCallback | None = None,
+        record: bool = False,
     ) -> None:
         self.options = options or SimOptions()
+        self.record = record
+        """Keep what arrives in :attr:`received` and :attr:`received_bytes` (tests opt in: a
+        ``--sim`` platform running for days keeps nothing)."""
         self.on_output = on_output
         self.parameters = dict(self.options.parameters)
         self.mode = "off"
@@ -107,9 +114,10 @@ class Ax3500Device:
         """Signed channel commands, -127..127."""
         self.outputs: dict[str, bool] = {"C": False}
         self.received: list[str] = []
-        """Every command line received, in order (for tests)."""
+        """With :attr:`record`: every command line received, in order (the last 10,000 to
+        20,000)."""
         self.received_bytes = bytearray()
-        """The raw input, the last 64 KiB of it (for tests)."""
+        """With :attr:`record`: the raw input, the last 32 to 64 KiB of it."""
         self.errors = 0
         """Commands answered ``-``."""
         self.watchdog_trips = 0
@@ -209,9 +217,10 @@ class Ax3500Device:
             return b""
         self._last_rx = now
         self._tripped = False  # any character resets the watchdog
-        self.received_bytes += data
-        if len(self.received_bytes) > 65536:
-            del self.received_bytes[:-32768]
+        if self.record:
+            self.received_bytes += data
+            if len(self.received_bytes) > 65536:
+                del self.received_bytes[:-32768]
         out = bytearray()
         for byte in data:
             out += self._on_byte(byte & 0x7F, now)  # 7 data bits on the wire
@@ -236,9 +245,10 @@ class Ax3500Device:
             overlong = self._overlong
             self._line.clear()
             self._overlong = False
-            self.received.append(line)
-            if len(self.received) > 20000:  # a long --sim run: keep the recent ones
-                del self.received[:10000]
+            if self.record:
+                self.received.append(line)
+                if len(self.received) > 20000:
+                    del self.received[:10000]
             if overlong:
                 self.errors += 1
                 return echo + b"-\r"
@@ -384,8 +394,9 @@ class Ax3500Simulator:
         vehicle: VehicleModel | None = None,
         link: str | None = None,
         clock: Clock | None = None,
+        record: bool = False,
     ) -> None:
-        self.device = Ax3500Device(options, on_output=self._on_output)
+        self.device = Ax3500Device(options, on_output=self._on_output, record=record)
         self.clock: Clock = clock or LoopClock()
         """The device's time (watchdog, reset, R/C lines); the line's pacing is real time."""
         self.vehicle = vehicle
