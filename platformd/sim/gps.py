@@ -73,7 +73,10 @@ class NmeaGenerator:
         knots = speed * KNOTS_PER_MPS
         # u-blox leaves the course empty while (nearly) stationary.
         course = f"{pose.course_deg:.2f}" if speed > 0.1 else ""
-        hhmmss = f"{utc:%H%M%S}.{utc.microsecond // 10000:02d}"
+        # Fields, not strftime ({utc:%H%M%S}): CPython's strftime keeps a little of each
+        # distinct result alive, a steady growth over a long --sim run (issue 10, defect 8).
+        hhmmss = f"{utc.hour:02d}{utc.minute:02d}{utc.second:02d}.{utc.microsecond // 10000:02d}"
+        ddmmyy = f"{utc.day:02d}{utc.month:02d}{utc.year % 100:02d}"
         lat, ns = _ddmm(latitude, 2), "N" if latitude >= 0 else "S"
         lon, ew = _ddmm(longitude, 3), "E" if longitude >= 0 else "W"
         svs = [3, 6, 7, 9, 14, 16, 19, 21, 22, 26, 27, 31][: self.satellites]
@@ -82,7 +85,7 @@ class NmeaGenerator:
         return b"".join(
             (
                 sentence(
-                    f"GPRMC,{hhmmss},A,{lat},{ns},{lon},{ew},{knots:.3f},{course},{utc:%d%m%y},,,A"
+                    f"GPRMC,{hhmmss},A,{lat},{ns},{lon},{ew},{knots:.3f},{course},{ddmmyy},,,A"
                 ),
                 sentence(f"GPVTG,{course},T,,M,{knots:.3f},N,{speed * 3.6:.3f},K,A"),
                 sentence(

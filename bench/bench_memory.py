@@ -1,0 +1,214 @@
+"""Memory: the resident set of a busy ``--sim`` platform over time, idle and streaming the NavCam.
+
+The platform (a child process, :mod:`bench.memory_probe`) has one station daemon connected
+(telemetry streaming to it), the manual override engaged and a 10 Hz teleop setpoint going in;
+once with the NavCam streaming at 30 fps to the station (decoded into a fakesink). After a
+warm-up its RSS is sampled every few seconds and the least-squares slope is extrapolated to an
+hour: a few minutes of measure, not an hour (target < 1 MB an hour).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import json
+import socket
+import sys
+import time
+import tracemalloc
+from collections.abc import AsyncIterator
+from dataclasses import dataclass, field
+from typing import Any
+
+from bench.support import PLATFORM_LOG, free_port, wait_ready
+from brasidas import security
+from brasidas.codecs.jsonrpc import RpcError
+from brasidas.config import StationConfig, load_config
+from stationd.daemon import StationDaemon
+
+WARMUP_S = 60.0
+MEASURE_S = 180.0
+INTERVAL_S = 5.0
+
+
+@dataclass
+class Samples:
+    """What the probe reported: (monotonic s, RSS KiB, Python-traced bytes or 0)."""
+
+    lines: list[tuple[float, int, int]] = field(default_factory=list)
+    process: asyncio.subprocess.Process | None = None
+    dumped: asyncio.Queue[str] = field(default_factory=asyncio.Queue)
+
+    async def snapshot(self, path: str, timeout: float = 60.0) -> str:
+        """Have the platform dump a tracemalloc snapshot (needs ``frames`` > 0)."""
+        assert self.process is not None and self.process.stdin is not None
+        self.process.stdin.write(f"snapshot {path}\n".encode())
+        await self.process.stdin.drain()
+        async with asyncio.timeout(timeout):
+            return await self.dumped.get()
+
+    def since(self, start: float) -> list[tuple[float, int, int]]:
+        return [line for line in self.lines if line[0] >= start]
+
+
+_NOT_THE_PLATFORM = ("<frozen importlib", "tracemalloc.py", "linecache.py", "memory_probe.py")
+
+
+def load_snapshot(path: str) -> tracemalloc.Snapshot:
+    """A dumped snapshot without the allocations of importing, tracing and probing."""
+    return tracemalloc.Snapshot.load(path).filter_traces(
+        [tracemalloc.Filter(False, f"*{name}*") for name in _NOT_THE_PLATFORM]
+    )
+
+
+def steady_growth(snapshots: list[tracemalloc.Snapshot]) -> list[tuple[str, int]]:
+    """Allocation sites (file:line) that held more at every snapshot than at the one before,
+    with what they gained from the first to the last, largest first. Transient allocations
+    (a message in flight, a buffer) come and go; a leak only grows."""
+    sizes = [
+        {str(stat.traceback[0]): stat.size for stat in snapshot.statistics("lineno")}
+        for snapshot in snapshots
+    ]
+    grown = []
+    for site in sizes[-1]:
+        held = [by_site.get(site, 0) for by_site in sizes]
+        if all(later > earlier for earlier, later in itertools.pairwise(held)):
+            grown.append((site, held[-1] - held[0]))
+    return sorted(grown, key=lambda item: -item[1])
+
+
+def slope_per_hour(points: list[tuple[float, float]]) -> float:
+    """Least-squares slope of (seconds, value) points, per hour."""
+    n = len(points)
+    if n < 2:
+        raise ValueError("need two points for a slope")
+    mean_t = sum(t for t, _ in points) / n
+    mean_v = sum(v for _, v in points) / n
+    num = sum((t - mean_t) * (v - mean_v) for t, v in points)
+    den = sum((t - mean_t) ** 2 for t, _ in points)
+    return num / den * 3600.0
+
+
+@contextlib.asynccontextmanager
+async def busy_platform(
+    *,
+    navcam: bool = False,
+    frames: int = 0,
+    interval: float = INTERVAL_S,
+    report: str = "",
+    baseline: float = WARMUP_S,
+    extra: tuple[str, ...] = (),
+) -> AsyncIterator[Samples]:
+    """A ``--sim`` platform made busy by a station; yields its memory samples as they come."""
+    signaling = free_port()
+    args = [
+        sys.executable, "-m", "bench.memory_probe",
+        f"--interval={interval}", f"--frames={frames}", f"--baseline={baseline}",
+    ]  # fmt: skip
+    if report:
+        args.append(f"--report={report}")
+    args += ["--", "--sim"]
+    for item in (
+        f"signaling.port={signaling}",
+        f"beacon.port={free_port(socket.SOCK_DGRAM)}",
+        f"velocity.port={free_port(socket.SOCK_DGRAM)}",
+        *extra,
+    ):
+        args += ["--set", item]
+    PLATFORM_LOG.parent.mkdir(exist_ok=True)
+    with PLATFORM_LOG.open("ab") as log:
+        process = await asyncio.create_subprocess_exec(
+            *args, stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE, stderr=log
+        )
+    samples = Samples(process=process)
+
+    async def read() -> None:
+        assert process.stdout is not None
+        async for raw in process.stdout:
+            line = json.loads(raw)
+            if "snapshot" in line:
+                samples.dumped.put_nowait(line["snapshot"])
+            else:
+                samples.lines.append((line["t"], line["rss_kb"], line.get("traced", 0)))
+
+    key = security.load_or_create_key(security.default_key_path())
+    station = StationDaemon(load_config(StationConfig, None, ["station.api_port=0"]), key)
+    try:
+        async with asyncio.TaskGroup() as group:
+            reader = group.create_task(read())
+            await station.start()
+            try:
+                api = station.ctx.api
+                await _connect(api, f"http://127.0.0.1:{signaling}", signaling)
+                answer = await api.call_local("movrd", platform_id="brasidas-1", engaged=True)
+                if not answer.get("accepted"):
+                    raise RuntimeError(f"manual override refused: {answer}")
+                if navcam:
+                    await api.call_local("receive", platform_id="brasidas-1", stream="navcam")
+                teleop = group.create_task(_teleop(api))
+                try:
+                    yield samples
+                finally:
+                    teleop.cancel()
+            finally:
+                await station.stop()
+                process.terminate()
+                try:
+                    await asyncio.wait_for(process.wait(), 10)
+                except TimeoutError:
+                    process.kill()
+                    await process.wait()
+                reader.cancel()
+    finally:
+        if process.returncode is None:
+            process.kill()
+            await process.wait()
+
+
+async def _connect(api: Any, url: str, port: int) -> None:
+    await wait_ready(port, timeout=60.0)  # tracemalloc slows the start on a loaded machine
+    deadline = time.monotonic() + 20
+    while True:
+        try:
+            await api.call_local("connect", platform_id="brasidas-1", url=url)
+            return
+        except RpcError:
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.1)
+
+
+async def _teleop(api: Any) -> None:
+    """What the keyboard client does: a setpoint every 100 ms, gently changing."""
+    step = 0
+    while True:
+        step += 1
+        linear = 0.3 if step % 50 < 25 else -0.2
+        with contextlib.suppress(RpcError):  # a session lost under load comes back
+            await api.call_local("teleop_set", platform_id="brasidas-1", linear=linear, angular=0.1)
+        await asyncio.sleep(0.1)
+
+
+async def rss_growth(navcam: bool, warmup: float = WARMUP_S, measure: float = MEASURE_S) -> float:
+    """RSS slope after ``warmup`` over ``measure`` seconds, in MB an hour."""
+    async with busy_platform(navcam=navcam) as samples:
+        start = time.monotonic() + warmup  # the probe's clock: CLOCK_MONOTONIC, system-wide
+        await asyncio.sleep(warmup + measure)
+        points = [(t, rss / 1024) for t, rss, _ in samples.since(start)]
+    return slope_per_hour(points)
+
+
+async def run() -> dict[str, Any]:
+    idle = await rss_growth(navcam=False)
+    streaming = await rss_growth(navcam=True)
+    return {
+        "memory_rss_growth_idle_mb_per_h": round(idle, 2),
+        "memory_rss_growth_navcam_30fps_mb_per_h": round(streaming, 2),
+        "memory_method": (
+            f"--sim platform, 1 station, override + 10 Hz teleop, telemetry; RSS every "
+            f"{INTERVAL_S:g} s, least-squares slope over {MEASURE_S:g} s after {WARMUP_S:g} s "
+            "of warm-up, extrapolated to an hour"
+        ),
+        "memory_target_mb_per_h": 1.0,
+    }
