@@ -114,17 +114,19 @@ async function subscribe() {
 const requestedPlatform = new URLSearchParams(location.search).get("platform"); // ?platform=ID
 
 async function measureClock() {
-  // Station clock − page clock, from the best of five round trips (midpoint).
+  // Station clock − page clock, from the fastest of ten round trips (its midpoint). An offset
+  // within that round trip's half is measurement noise (one host: one clock), taken as 0.
   let best = null;
-  for (let i = 0; i < 5; i++) {
+  for (let i = 0; i < 10; i++) {
     const sent = performance.timeOrigin + performance.now();
     const station = await api.call("station_time", {}, 2000);
     const back = performance.timeOrigin + performance.now();
     if (!best || back - sent < best.rtt) best = { rtt: back - sent, offset: station - (sent + back) / 2 };
   }
-  state.clockOffsetMs = best.offset;
-  audio.clockOffsetMs = best.offset;
-  worker?.postMessage({ type: "clock", offsetMs: best.offset });
+  const offset = Math.abs(best.offset) <= best.rtt / 2 ? 0 : best.offset;
+  state.clockOffsetMs = offset;
+  audio.clockOffsetMs = offset;
+  worker?.postMessage({ type: "clock", offsetMs: offset });
 }
 
 api.on("platforms", (platforms) => { state.platforms = platforms; renderPlatforms(); });
