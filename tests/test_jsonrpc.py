@@ -102,6 +102,8 @@ async def test_named_and_positional_params(dispatcher: Dispatcher) -> None:
         (b'{"jsonrpc":"2.0","id":1,"method":"echo","params":[Infinity]}', -32700),
         (b'{"jsonrpc":"2.0","id":1,"method":"scale","params":[1e999]}', -32602),
         (b'{"jsonrpc":"2.0","id":1,"method":"nan"}', -32603),
+        (b'{"jsonrpc":"2.0","id":1' + b"0" * 5000 + b',"method":"nan"}', -32700),  # > int digits
+        (b'{"jsonrpc":"2.0","id":1,"method":"scale","params":[1' + b"0" * 5000 + b"]}", -32700),
     ],
 )
 async def test_standard_errors(dispatcher: Dispatcher, payload: Any, code: int) -> None:
@@ -198,3 +200,9 @@ async def test_arbitrary_json_never_raises(value: Any) -> None:
     d = Dispatcher()
     d.add("echo", _echo, session_required=False)
     await d.handle_bytes(json.dumps(value).encode(), CallContext())
+
+
+async def test_a_large_integer_id_is_echoed_exactly(dispatcher: Dispatcher) -> None:
+    big = 10**300
+    answer = await ask(dispatcher, {"jsonrpc": "2.0", "id": big, "method": "scale", "params": [2]})
+    assert answer == {"jsonrpc": "2.0", "id": big, "result": 4}

@@ -161,3 +161,22 @@ async def test_a_result_json_cannot_hold_is_an_internal_error_not_invalid_json(
         answers = await ask(ws, json.dumps(batch))
         assert [(a["id"], "error" in a) for a in answers] == [(6, True), (7, False)]
         assert (await ask(ws, encode_request("ping", None, 8).decode()))["result"] == "pong"
+
+
+async def test_a_chunked_http_body_is_read_to_its_end(served: tuple[str, SlowService]) -> None:
+    url = served[0].removesuffix("/ws")
+    request = encode_request("ping", None, 3)
+
+    async def chunks(body: bytes, size: int) -> AsyncIterator[bytes]:
+        for start in range(0, len(body), size):  # no Content-Length: chunked, several chunks
+            yield body[start : start + size]
+            await asyncio.sleep(0.01)
+
+    async with aiohttp.ClientSession() as session:
+        async with session.post(url, data=chunks(request, 7)) as response:
+            assert response.status == 200
+            assert strict_json(await response.text()) == {
+                "jsonrpc": "2.0",
+                "id": 3,
+                "result": "pong",
+            }
