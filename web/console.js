@@ -61,6 +61,8 @@ function onWorkerMessage(message) {
     canvas.dataset.framesDecoded = String(message.decoded);
     $("#latency").textContent = message.lastLatencyMs == null ? "—" : `${message.lastLatencyMs.toFixed(1)} ms`;
     $("#latency").dataset.ms = message.lastLatencyMs == null ? "" : message.lastLatencyMs.toFixed(2);
+    $("#latency").title = message.lastLatencyMs == null ? "" :
+      `capture → station ${message.lastNetworkMs.toFixed(1)} ms, station → drawn ${(message.lastLatencyMs - message.lastNetworkMs).toFixed(1)} ms; p50 ${message.p50?.toFixed(1)} ms, p95 ${message.p95?.toFixed(1)} ms`;
     $("#fps").textContent = `${message.fps} fps`;
     if (message.decoded > 0 && state.current) showVideoMessage("");
   } else if (message.type === "unsupported") {

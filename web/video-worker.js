@@ -17,10 +17,10 @@ let canvas = null, context = null, decoder = null;
 let codec = "", waitingForKey = true, lastSeq = -1, feed = -1;
 let clockOffsetMs = 0;
 const inFlight = new Map();
-const stats = { firstDrawMs: 0, late: 0, received: 0, decoded: 0, dropped: 0, errors: 0, replayed: 0, gaps: 0, lastLatencyMs: null };
+const stats = { firstDrawMs: 0, late: 0, lastNetworkMs: null, received: 0, decoded: 0, dropped: 0, errors: 0, replayed: 0, gaps: 0, lastLatencyMs: null };
 const recent = [];      // latencies of the last ~300 live frames
 const drawnTimes = [];  // draw times of the last second
-let keepAll = null;     // every latency, while a benchmark asks for them
+let keepAll = null;     // every [latency, capture → station], while a benchmark asks
 
 function now() { return performance.timeOrigin + performance.now(); }
 
@@ -64,9 +64,10 @@ function draw(frame) {
   if (info && !info.replayed && info.captureMs > 0) {
     const latency = drawn + clockOffsetMs - info.captureMs;
     stats.lastLatencyMs = latency;
+    stats.lastNetworkMs = info.arrivalMs - info.captureMs; // platform → station
     recent.push(latency);
     if (recent.length > 300) recent.shift();
-    if (keepAll) keepAll.push(latency);
+    if (keepAll) keepAll.push([latency, stats.lastNetworkMs]);
   }
 }
 
@@ -97,7 +98,7 @@ function onFrame(buffer) {
     stats.dropped += 1;
     return;
   }
-  inFlight.set(seq, { captureMs, replayed });
+  inFlight.set(seq, { captureMs, arrivalMs, replayed });
   try {
     decoder.decode(new EncodedVideoChunk({ type: key ? "key" : "delta", timestamp: seq, data }));
   } catch (e) {
@@ -139,7 +140,7 @@ self.onmessage = (event) => {
   } else if (message.type === "clock") clockOffsetMs = message.offsetMs;
   else if (message.type === "clear") {
     feed = -1; lastSeq = -1; waitingForKey = true; codec = ""; recent.length = 0; drawnTimes.length = 0;
-    for (const name of Object.keys(stats)) stats[name] = name === "lastLatencyMs" ? null : 0;
+    for (const name of Object.keys(stats)) stats[name] = name.startsWith("last") ? null : 0;
     if (decoder && decoder.state !== "closed") decoder.close();
     decoder = null;
     if (context) { context.fillStyle = "#000"; context.fillRect(0, 0, canvas.width, canvas.height); }
