@@ -31,7 +31,7 @@ from brasidas import topics
 from brasidas.actor import Actor, wait_forever
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
 from brasidas.media.pipeline import PipelineStream, StreamState
-from brasidas.messages import StationNotification
+from brasidas.messages import PlatformLink, StationNotification
 from stationd.context import StationContext
 from stationd.media import free_udp_port, receive_host
 from stationd.teleop import STOP
@@ -130,8 +130,8 @@ class ConsoleHub(Actor):
             session.notes.append(note.as_dict())
             session.dirty.set()
 
-    def _on_disconnected(self, connection: Any) -> None:
-        platform_id = connection.platform_id
+    def _on_disconnected(self, link: PlatformLink) -> None:
+        platform_id = link.platform_id
         self.drivers.pop(platform_id, None)
         for key in [key for key in self.feeds if key[0] == platform_id]:
             feed = self.feeds.pop(key)
