@@ -117,27 +117,34 @@ async def test_video_across_a_lossy_link_recovers_at_the_next_keyframe(fleet: Fl
         [entry] = [r for r in await fleet.api(station, "receivers") if "navcam" in r["name"]]
         return dict(entry)
 
-    await wait_for(lambda: _frames_at_least(receiver, 5), 20)
+    await wait_for(lambda: _frames_at_least(receiver, 5), 60)
     clean = await receiver()
     relay.set_profiles(up=Profile(loss=0.02))  # platform → station: the video's direction
+    started = time.monotonic()
     try:
-        await asyncio.sleep(6)
+        # Some 150 packets (6 s at 5 fps), longer on a loaded machine.
+        await asyncio.sleep(4)
+        await wait_for(lambda: _packets_at_least(receiver, clean["rtp_packets"] + 150), 30)
         lossy = await receiver()
+        link = relay.stats()
     finally:
         relay.clear()
+    seconds = time.monotonic() - started
     await fleet.api(station, "stop_receive", platform_id="rover-1", stream="navcam")
     frames = lossy["frames"] - clean["frames"]
     lost = lossy["rtp_lost"] - clean["rtp_lost"]
     packets = lossy["rtp_packets"] - clean["rtp_packets"]
     print(
-        f"\nNavCam over 2 % loss for 6 s: {packets} RTP packets received, {lost} reported lost "
+        f"\nNavCam over 2 % loss for {seconds:.0f} s: {packets} RTP packets received, {lost} reported lost "
         f"by the station, {frames} frames decoded, longest freeze "
         f"{lossy['longest_freeze_ms']:.0f} ms (keyframe every second; "
-        f"{clean['longest_freeze_ms']:.0f} ms on the clean link)"
+        f"{clean['longest_freeze_ms']:.0f} ms on the clean link); emulator {link}"
     )
     assert lost > 0  # the station sees and reports the loss
     assert frames > 0  # the picture comes back
-    assert lossy["longest_freeze_ms"] < 2500  # next keyframe; two if one is hit too
+    # The next keyframe (1 s), or the one after if that one is hit too; plus what the machine's
+    # load alone causes on the clean link.
+    assert lossy["longest_freeze_ms"] < 2500 + clean["longest_freeze_ms"]
 
 
 async def _listed(fleet: Fleet, station: Any, platform_id: str) -> bool:
@@ -146,3 +153,7 @@ async def _listed(fleet: Fleet, station: Any, platform_id: str) -> bool:
 
 async def _frames_at_least(receiver: Any, count: int) -> bool:
     return int((await receiver())["frames"]) >= count
+
+
+async def _packets_at_least(receiver: Any, count: int) -> bool:
+    return int((await receiver())["rtp_packets"]) >= count
