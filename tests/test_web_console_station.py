@@ -252,6 +252,26 @@ async def test_operator_station_in_the_browser(
             await expect(override).to_have_attribute("aria-pressed", "true", timeout=10_000)
             await page.evaluate("window.__pad.pressed[0] = false")
 
+            # Each stream's controls: pause the NavCam, start it again into the page.
+            navcam = page.locator('#streams tr[data-stream="navcam"]')
+            await navcam.get_by_role("button", name="pause navcam").click()
+            await expect(navcam).to_contain_text("navcam: paused", timeout=10_000)
+            decoded = await frames_decoded(page, at_least=1)
+            await navcam.get_by_role("button", name="start navcam").click()
+            await expect(navcam).to_contain_text("navcam: playing", timeout=10_000)
+            await frames_decoded(page, at_least=decoded + 10)
+            # Framerate (10.5), diagnostics (20.0), battery monitor (20.4): acknowledged.
+            answer = page.locator("#answer")
+            await page.locator("#framerate").fill("10")
+            await page.get_by_role("button", name="set").click()
+            await expect(answer).to_contain_text("NavCam framerate: acknowledged", timeout=10_000)
+            for name in ("diagnostics", "battery monitor"):
+                toggle = page.get_by_role("button", name=name)
+                pressed = await toggle.get_attribute("aria-pressed") == "true"
+                await toggle.click()
+                await expect(answer).to_contain_text(f"{name}: acknowledged", timeout=10_000)
+                await expect(toggle).to_have_attribute("aria-pressed", str(not pressed).lower())
+
             if os.environ.get("BRASIDAS_SCREENSHOT") == "1":
                 SCREENSHOT.parent.mkdir(exist_ok=True)
                 await page.screenshot(path=str(SCREENSHOT))

@@ -320,8 +320,13 @@ for (const [selector, which, field] of [["#lights-main", "main", "main"], ["#lig
   };
 }
 $("#set-framerate").onclick = () => command("NavCam framerate", "command", { group: 10, command: 5, payload: `navcam=${$("#framerate").value}` });
-$("#diagnostics").onclick = () => command("diagnostics", "command", { group: 20, command: 0, payload: "" });
-$("#battery-monitor").onclick = () => command("battery monitor", "command", { group: 20, command: 4, payload: "" });
+for (const [selector, label, code] of [["#diagnostics", "diagnostics", 0], ["#battery-monitor", "battery monitor", 4]]) {
+  $(selector).onclick = async (event) => {
+    const on = event.currentTarget.getAttribute("aria-pressed") !== "true";
+    const result = await command(label, "command", { group: 20, command: code, payload: on ? "ON" : "OFF" });
+    if (result && result.accepted !== false) $(selector).setAttribute("aria-pressed", String(on));
+  };
+}
 $("#disconnect").onclick = async () => {
   const platformId = state.current;
   if (!platformId) return;
@@ -363,6 +368,11 @@ function renderControls() {
   if (lights) {
     $("#lights-main").setAttribute("aria-pressed", String(Boolean(lights.main)));
     $("#lights-pos").setAttribute("aria-pressed", String(Boolean(lights.positional)));
+  }
+  const snapshot = state.telemetry.get(state.current)?.report.snapshot;
+  if (snapshot) {
+    $("#diagnostics").setAttribute("aria-pressed", String(snapshot.diagnostics != null));
+    if (snapshot.battery) $("#battery-monitor").setAttribute("aria-pressed", String(Boolean(snapshot.battery.monitor)));
   }
   renderStreams();
 }
