@@ -413,10 +413,20 @@ class ConsoleHub(Actor):
                     self._unwatched_since.pop(key, None)
                     self.feeds.pop(key, None)
                     await feed.depayloader.stop()
-                    connection = self.ctx.connections.get(feed.platform_id)
-                    if connection is not None:
-                        with contextlib.suppress(RpcError, ConnectionError, TimeoutError):
-                            await connection.call("stop_stream", name=feed.stream)
+                    with contextlib.suppress(RpcError, ConnectionError, TimeoutError):
+                        await self._stop_platform_stream(feed)
+
+    async def _stop_platform_stream(self, feed: Feed) -> None:
+        """Stop the platform's stream unless someone else (``brasidas-station view``) took it:
+        a platform stream has one destination."""
+        connection = self.ctx.connections.get(feed.platform_id)
+        if connection is None:
+            return
+        for stream in await connection.call("list_streams"):
+            if stream.get("name") == feed.stream:
+                if str(stream.get("destination", "")).endswith(f":{feed.port}"):
+                    await connection.call("stop_stream", name=feed.stream)
+                return
 
     async def api_console_stream(
         self, call: CallContext, platform_id: str, name: str, action: str

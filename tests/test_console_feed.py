@@ -9,7 +9,7 @@ from typing import Any
 
 import aiohttp
 import pytest
-from conftest import free_udp_port, quiet_platform_config
+from conftest import free_udp_port, quiet_platform_config, wait_until
 
 from brasidas.config import StationConfig, load_config
 from platformd.app import PlatformDaemon
@@ -99,8 +99,12 @@ async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
 
 
 async def test_access_units_reach_a_websocket_viewer_with_capture_times(
-    station: StationDaemon, platform_factory: Factory, fleet_key: bytes
+    station: StationDaemon,
+    platform_factory: Factory,
+    fleet_key: bytes,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
+    monkeypatch.setattr("stationd.console.FEED_LINGER_S", 0.5)
     platform = await platform_factory(
         quiet_platform_config("platform.id=feed-rover", "sim.enabled=true", "navcam.enabled=true"),
         fleet_key,
@@ -150,3 +154,19 @@ async def test_access_units_reach_a_websocket_viewer_with_capture_times(
         assert {"platforms", "connections"} <= pushed
         feeds = await call("video_feeds")
         assert feeds[0]["viewers"] == 1 and feeds[0]["units"] >= 8
+
+        # Nobody watches: the feed lingers, then stops, and so does the platform's NavCam.
+        navcam = platform.ctx.capabilities["nav_camera"]
+        assert await call("video_unwatch") is True
+        await wait_until(lambda: navcam()["state"] == "idle", timeout=10)
+        assert await call("video_feeds") == []
+
+        # Unless someone else took the stream meanwhile (a platform stream has one
+        # destination): then it is left playing for them.
+        await call("video_watch", platform_id="feed-rover")
+        await call("stream_start", platform_id="feed-rover", stream="navcam", port=free_udp_port())
+        await call("video_unwatch")
+        async with asyncio.timeout(10):
+            while await call("video_feeds"):
+                await asyncio.sleep(0.2)
+        assert navcam()["state"] == "playing"
