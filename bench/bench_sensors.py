@@ -33,6 +33,7 @@ from bench.support import connect_to_platform, cpu_seconds, free_port, percentil
 from brasidas import topics
 from brasidas.bus import Bus
 from brasidas.codecs.telemetry import TelemetryDecoder
+from brasidas.codecs.telemetry_schema import Attitude, Gps, snapshot_from_json
 from brasidas.config import GpsSection
 from brasidas.messages import GpsFix
 from platformd.gps import GpsReader
@@ -177,16 +178,17 @@ async def platform_cpu(*overrides: str) -> dict[str, Any]:
             except TimeoutError:
                 process.kill()
                 await process.wait()
-    gps = report.get("gps") or {}
-    attitude = report.get("attitude") or {}
+    snapshot = snapshot_from_json(report)
+    gps, attitude = snapshot.get(Gps), snapshot.get(Attitude)
+    imu = attitude.imu if attitude is not None else None
     return {
         "cpu_pct": round(statistics.median(windows), 2),
         "cpu_pct_ticks": round(ticks_pct, 2),
         "cpu_pct_windows": [round(value, 1) for value in windows],
         "telemetry_hz": round(received / wall, 2),
-        "gps_fix": gps.get("fix"),
-        "gps_fixes": (gps.get("stats") or {}).get("fixes"),
-        "imu_samples": (attitude.get("imu") or {}).get("samples"),
+        "gps_fix": gps.fix if gps is not None else None,
+        "gps_fixes": gps.stats.fixes if gps is not None and gps.stats is not None else None,
+        "imu_samples": imu.samples if imu is not None else None,
     }
 
 

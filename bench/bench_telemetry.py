@@ -1,25 +1,34 @@
 """Telemetry: datagram size (typical and maximum) and platform CPU with sensors and telemetry on.
 
-A real ``brasidas-platform --sim`` child process streams telemetry to a UDP socket here; the
-sizes are those of the datagrams received (diagnostics off, then on). CPU is the child's
-utime+stime over a 10 s window with GPS at 10 Hz, IMU at 100 Hz and telemetry at 5 Hz, no
-video. Simulators not present yet are reported, and the figure covers what exists.
+A real ``brasidas-platform --sim`` child process (simulated controller, GPS at 10 Hz, IMU at
+100 Hz, telemetry at 5 Hz, no video) streams telemetry to a UDP socket here. Every datagram is
+decoded through the schema (:mod:`brasidas.codecs.telemetry_schema`), so a section the schema
+cannot read is counted, not sized. Sizes are those received, with diagnostics off (typical,
+max) and on (max); CPU is the child's utime+stime over a 10 s window.
 """
 
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import statistics
 import time
 from typing import Any
 
-from bench.support import connect_to_platform, cpu_seconds, start_platform
-from brasidas.codecs.telemetry import TelemetryDecoder, TelemetryEncoder
-from brasidas.config import PlatformConfig
+from bench.support import connect_to_platform, cpu_seconds, free_port, start_platform
+from brasidas.codecs.telemetry import TelemetryDecoder
+from brasidas.codecs.telemetry_schema import SCHEMA_VERSION, SectionError, snapshot_from_wire
 
 WINDOW_S = 10.0
 SIZE_SAMPLE_S = 3.0
+
+
+OVERRIDES = (
+    "telemetry.rate_hz=5",
+    "gps.sim_rate_hz=10",
+    "imu.rate_hz=100",
+    "navcam.enabled=false",
+    "beacon.enabled=false",
+)
 
 
 class _Collector(asyncio.DatagramProtocol):
@@ -28,96 +37,25 @@ class _Collector(asyncio.DatagramProtocol):
         self.sizes: list[int] = []
         self.diagnostic_sizes: list[int] = []
         self.diagnostics = False
+        self.sections: set[str] = set()
+        self.section_errors: set[str] = set()
+        self.unknown_sections = 0
 
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
-        if self.decoder.feed(data):
+        for frame in self.decoder.feed(data):
             (self.diagnostic_sizes if self.diagnostics else self.sizes).append(len(data))
-
-
-def _sensor_overrides() -> tuple[list[str], list[str]]:
-    """``--set`` items for GPS 10 Hz / IMU 100 Hz / telemetry 5 Hz, for the keys that exist."""
-    config = PlatformConfig()
-    items = ["telemetry.rate_hz=5", "navcam.enabled=false", "beacon.enabled=false"]
-    present: list[str] = []
-    gps_keys = {f.name for f in dataclasses.fields(config.gps)}
-    for key in ("sim_rate_hz", "rate_hz", "sim_rate"):
-        if key in gps_keys:
-            items.append(f"gps.{key}=10")
-            present.append(f"gps.{key}")
-            break
-    imu_keys = {f.name for f in dataclasses.fields(config.imu)}
-    if "rate_hz" in imu_keys:
-        items.append("imu.rate_hz=100")
-        present.append("imu.rate_hz")
-    return items, present
-
-
-def _simulators_present() -> dict[str, bool]:
-    import importlib.util
-
-    found = {}
-    for name in ("gps", "imu", "mpu6050", "ax3500"):
-        try:
-            found[name] = importlib.util.find_spec(f"platformd.sim.{name}") is not None
-        except ImportError:
-            found[name] = False
-    return found
-
-
-def _synthetic_full_snapshot() -> dict[str, Any]:
-    """Every section filled as the finished platform will (upper bound before sims land)."""
-    return {
-        "mode": "teleop",
-        "manual_override": True,
-        "override": {"engaged": True, "station": "station-1"},
-        "lights": {"main": True, "positional": True},
-        "battery": {"volts": 24.37, "level": "medium", "monitor": True},
-        "controller": {
-            "connected": True,
-            "temps_c": [41.3, 39.9],
-            "amps": [12.5, 11.0],
-            "internal_volts": 12.35,
-        },
-        "gps": {
-            "fix": True,
-            "latitude": 37.9838096,
-            "longitude": 23.7275388,
-            "altitude": 112.3,
-            "speed_mps": 1.2345678,
-            "course": 271.4567,
-            "quality": 1,
-            "satellites": 9,
-            "hdop": 0.92,
-            "utc": "2026-11-22T14:25:03.250000+00:00",
-            "stats": {"sentences": 123456, "fixes": 12345, "bad_checksum": 12, "unknown": 3,
-                      "truncated": 2, "reconnects": 0},
-        },
-        "attitude": {
-            "roll": 1.2345678,
-            "pitch": -0.3456789,
-            "yaw": 271.1234567,
-            "quaternion": [0.7071068, 0.0012345, -0.0023456, 0.7071068],
-            "imu": {"ok": True, "temperature_c": 36.53, "samples": 1234567, "errors": 0},
-        },
-        "computer": {"cpu_temp_c": 48.3, "load": [0.12, 0.2, 0.25], "mem_free_mb": 612.4,
-                     "mem_total_mb": 3840.0},
-        "velocity_link": {"accepted": 123456, "dropped": {"malformed": 1, "bad_checksum": 2,
-                          "out_of_range": 3, "out_of_order": 4, "not_engaged": 5, "not_holder": 6,
-                          "bad_tag": 7}, "last_count": 123456},
-        "link": {"session_rtt_ms": None, "sessions": 1, "telemetry_streams": 1},
-        "streams": {"navcam": "playing", "thermal": "paused"},
-        "motion": {"mode": "teleop", "deadman": False, "linear": 0.5, "angular": -0.25},
-        "autonomy": None,
-        "diagnostics": None,
-    }  # fmt: skip
+            snapshot, unknown = snapshot_from_wire(frame.sections)
+            self.unknown_sections += len(unknown)
+            for cls, value in snapshot.sections.items():
+                if isinstance(value, SectionError):
+                    self.section_errors.add(f"{cls.NAME}: {value.error}")
+                elif value is not None:
+                    self.sections.add(cls.NAME)
 
 
 async def run() -> dict[str, Any]:
-    overrides, sensor_keys = _sensor_overrides()
-    from bench.support import free_port
-
     signaling_port = free_port()
-    process = await start_platform(f"signaling.port={signaling_port}", *overrides)
+    process = await start_platform(f"signaling.port={signaling_port}", *OVERRIDES)
     figures: dict[str, Any] = {}
     try:
         connection = await connect_to_platform(signaling_port)
@@ -139,7 +77,6 @@ async def run() -> dict[str, Any]:
             collector.diagnostics = True
             await connection.call("issue_system_command", group=20, command=0, payload="True")
             await asyncio.sleep(SIZE_SAMPLE_S)
-            report = await connection.call("get_telemetry_report")
         finally:
             transport.close()
             await connection.close()
@@ -153,14 +90,10 @@ async def run() -> dict[str, Any]:
                 "datagram_bytes_max": max(sizes, default=0),
                 "datagram_bytes_max_with_diagnostics": max(collector.diagnostic_sizes, default=0),
                 "datagrams_rejected": sum(collector.decoder.rejected.values()),
-                "sections_present": ",".join(
-                    sorted(name for name, value in report.items() if value not in (None, {}))
-                ),
-                "sensor_rate_keys_set": ",".join(sensor_keys) or "none (not in config yet)",
-                "simulators_present": ",".join(
-                    name for name, ok in _simulators_present().items() if ok
-                )
-                or "none",
+                "schema_version": SCHEMA_VERSION,
+                "sections_present": ",".join(sorted(collector.sections)),
+                "section_errors": "; ".join(sorted(collector.section_errors)) or "none",
+                "unknown_sections": collector.unknown_sections,
                 "target": "platform CPU < 5 % of one core; each datagram < 1200 bytes",
             }
         )
@@ -172,7 +105,4 @@ async def run() -> dict[str, Any]:
             except TimeoutError:
                 process.kill()
                 await process.wait()
-    full = _synthetic_full_snapshot()
-    encoder = TelemetryEncoder("brasidas-1", bytes(32))
-    figures["datagram_bytes_all_sections_synthetic"] = max(len(d) for d in encoder.encode(full, 0))
     return figures

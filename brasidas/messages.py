@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import Enum
+from time import monotonic
 from typing import Any
 
 from brasidas.codecs.commands import CommandCode
@@ -110,13 +111,6 @@ class VelocityLinkStats:
     last_count: int | None
     """Count of the last accepted sentence."""
 
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "accepted": self.accepted,
-            "dropped": dict(self.dropped),
-            "last_count": self.last_count,
-        }
-
 
 @dataclass(frozen=True)
 class MotionState:
@@ -127,14 +121,6 @@ class MotionState:
     """In teleop: no valid velocity for ``velocity.deadman`` seconds, motors held at zero."""
     command: Velocity
     """The last motor command published."""
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "mode": self.mode.value,
-            "deadman": self.deadman,
-            "linear": self.command.linear,
-            "angular": self.command.angular,
-        }
 
 
 @dataclass(frozen=True)
@@ -151,6 +137,8 @@ class ControllerStatus:
     internal_volts: float | None = None
     error: str = ""
     """Why it is not driving (port missing, controller silent, wrong mode), else empty."""
+    stamp: float = field(default_factory=monotonic, compare=False, repr=False, kw_only=True)
+    """When the polled readings were taken (``time.monotonic()``): telemetry shows their age."""
 
 
 # --------------------------------------------------------------------------- telemetry (issue 4)
@@ -245,21 +233,8 @@ class GpsFix:
     hdop: float | None
     time: str
     """UTC, ISO 8601 ("2017-01-10T00:09:41.000Z"; time of day only until a date is known)."""
-
-    def as_dict(self) -> dict[str, Any]:
-        """Short keys for telemetry (a snapshot must fit one datagram); unknowns left out."""
-        plain = {
-            "lat": self.latitude,
-            "lon": self.longitude,
-            "alt": self.altitude_m,
-            "speed": self.speed_mps,
-            "course": self.course_deg,
-            "quality": self.quality,
-            "sats": self.satellites,
-            "hdop": self.hdop,
-            "time": self.time,
-        }
-        return {key: value for key, value in plain.items() if value is not None}
+    stamp: float = field(default_factory=monotonic, compare=False, repr=False, kw_only=True)
+    """When the reading was taken (``time.monotonic()``): telemetry reports its age from it."""
 
 
 @dataclass(frozen=True)
@@ -284,20 +259,6 @@ class GpsStats:
     incomplete_epochs: int
     error: str = ""
 
-    def as_dict(self) -> dict[str, Any]:
-        """Compact, for telemetry (one datagram): no port or counts by type, zeros left out."""
-        plain: dict[str, Any] = {
-            "connected": self.connected,
-            "sentences": self.sentences,
-            "fixes": self.fixes,
-            "dropped": {reason: count for reason, count in self.dropped.items() if count},
-        }
-        if self.incomplete_epochs:
-            plain["incomplete_epochs"] = self.incomplete_epochs
-        if self.error:
-            plain["error"] = self.error
-        return plain
-
 
 @dataclass(frozen=True)
 class Attitude:
@@ -311,15 +272,8 @@ class Attitude:
     pitch_deg: float
     yaw_deg: float
     """Counter-clockwise about z-up from the start orientation (no magnetometer: it drifts)."""
-
-    def as_dict(self) -> dict[str, Any]:
-        """Telemetry form: degrees to 0.01, quaternion to 1e-4 (one datagram per snapshot)."""
-        return {
-            "roll": round(self.roll_deg, 2),
-            "pitch": round(self.pitch_deg, 2),
-            "yaw": round(self.yaw_deg, 2),
-            "q": [round(self.w, 4), round(self.x, 4), round(self.y, 4), round(self.z, 4)],
-        }
+    stamp: float = field(default_factory=monotonic, compare=False, repr=False, kw_only=True)
+    """When the reading was taken (``time.monotonic()``): telemetry reports its age from it."""
 
 
 @dataclass(frozen=True)
@@ -336,18 +290,3 @@ class ImuStatus:
     """The gyro's zero-rate offset was measured (the first still second after start)."""
     fifo_overflows: int = 0
     """FIFO overflows (samples lost, FIFO reset) since start."""
-
-    def as_dict(self) -> dict[str, Any]:
-        plain: dict[str, Any] = {
-            "ok": self.ok,
-            "temp_c": self.temperature_c,
-            "samples": self.samples,
-            "read_errors": self.read_errors,
-        }
-        if self.error:
-            plain["error"] = self.error
-        if not self.calibrated:
-            plain["calibrated"] = False
-        if self.fifo_overflows:
-            plain["fifo_overflows"] = self.fifo_overflows
-        return plain

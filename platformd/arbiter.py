@@ -20,6 +20,7 @@ from typing import Protocol
 from brasidas import topics
 from brasidas.actor import Actor, wait_forever
 from brasidas.bus import Bus
+from brasidas.codecs.telemetry_schema import Motion
 from brasidas.messages import Mode, MotionState, OverrideState, Velocity
 from platformd.context import PlatformContext
 
@@ -91,6 +92,12 @@ class MotionArbiter(Actor):
     def snapshot(self) -> MotionState:
         return MotionState(self.mode, self.deadman_tripped, self.command)
 
+    def motion_section(self) -> Motion:
+        """The ``motion`` telemetry section."""
+        return Motion(
+            self.mode.value, self.deadman_tripped, self.command.linear, self.command.angular
+        )
+
     # ------------------------------------------------------------------ sources
 
     def _on_override(self, state: OverrideState) -> None:
@@ -155,6 +162,6 @@ class MotionArbiter(Actor):
 
 async def async_setup(ctx: PlatformContext) -> None:
     arbiter = MotionArbiter(ctx.bus, deadman=ctx.config.velocity.deadman)
-    ctx.telemetry_sources["motion"] = lambda: arbiter.snapshot().as_dict()
-    ctx.diagnostics_sources["arbiter"] = lambda: {"deadman_trips": arbiter.deadman_trips}
+    ctx.telemetry.register(Motion, arbiter.motion_section)
+    ctx.telemetry.add_counters("arbiter", lambda: {"deadman_trips": arbiter.deadman_trips})
     ctx.supervisor.start(arbiter)

@@ -27,6 +27,7 @@ from brasidas.actor import Actor
 from brasidas.bus import Topic
 from brasidas.codecs import beacon as beacon_codec
 from brasidas.codecs.jsonrpc import CallContext
+from brasidas.codecs.telemetry_schema import Platforms
 from brasidas.messages import (
     LightsState,
     OverrideState,
@@ -200,6 +201,17 @@ def listen_settings(ctx: PlatformContext) -> discovery.ListenSettings:
     )
 
 
+def flat_counters(stats: dict[str, Any]) -> dict[str, int]:
+    """``{"dropped": {"forged": 1}}`` as ``{"dropped_forged": 1}`` (diagnostics are flat)."""
+    flat: dict[str, int] = {}
+    for name, value in stats.items():
+        if isinstance(value, dict):
+            flat.update({f"{name}_{key}": count for key, count in value.items()})
+        elif isinstance(value, int):
+            flat[name] = value
+    return flat
+
+
 def setup_directory(ctx: PlatformContext) -> discovery.PlatformDirectory:
     """R-9: the other platforms online, served by ``list_platforms`` and in telemetry."""
     directory = discovery.PlatformDirectory(
@@ -213,10 +225,11 @@ def setup_directory(ctx: PlatformContext) -> discovery.PlatformDirectory:
         return directory.entries()
 
     ctx.rpc.add("list_platforms", list_platforms)
-    ctx.telemetry_sources["platforms"] = lambda: [
-        {"id": entry["id"], "age_s": round(entry["age_s"], 1)} for entry in directory.entries()
-    ]
-    ctx.diagnostics_sources["discovery"] = directory.stats
+    ctx.telemetry.register(
+        Platforms,
+        lambda: Platforms({entry["id"]: round(entry["age_s"], 1) for entry in directory.entries()}),
+    )
+    ctx.telemetry.add_counters("discovery", lambda: flat_counters(directory.stats()))
     return directory
 
 

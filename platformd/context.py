@@ -5,12 +5,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 from brasidas.actor import Supervisor
 from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.config import PlatformConfig
+from brasidas.telemetry_sources import TelemetrySources
 from platformd.commands import CommandRouter
 from platformd.session_table import Session, SessionTable
 from platformd.sim import SimulatedDevices
@@ -25,6 +26,20 @@ class SerialDevice:
     bytesize: int = 8
     parity: str = "N"
     stopbits: int = 1
+
+
+class MediaHandle(Protocol):
+    """What other subsystems use of the media service (platformd.media.MediaService)."""
+
+    @property
+    def navcam(self) -> object | None:
+        """The NavCam stream, None on a platform without one."""
+
+    def describe_streams(self) -> list[dict[str, Any]]:
+        """Every stream's name, kind and state (the connect answer's ``streams``)."""
+
+    def nav_camera(self) -> dict[str, Any]:
+        """The NavCam's parameters (``get_nav_camera_parameters``)."""
 
 
 @dataclass
@@ -48,10 +63,10 @@ class PlatformContext:
     """System commands: ``commands.register(owner, {code: handler})`` (platformd.commands)."""
     capabilities: dict[str, Callable[[], Any]] = field(default_factory=dict)
     """Sections of the ``connect`` answer's capabilities, each computed when asked."""
-    telemetry_sources: dict[str, Callable[[], Any]] = field(default_factory=dict)
-    """Sections of the telemetry snapshot, each computed when a report is built."""
-    diagnostics_sources: dict[str, Callable[[], Any]] = field(default_factory=dict)
-    """Entries of the ``diagnostics`` section (sent only after 20.0): counters and the like."""
+    telemetry: TelemetrySources = field(default_factory=TelemetrySources)
+    """Sources of the telemetry snapshot's sections, by schema type, and diagnostics counters."""
+    media: MediaHandle | None = None
+    """The media service (streams, NavCam), set by its setup (platformd.media)."""
 
     @property
     def motor_serial(self) -> SerialDevice:

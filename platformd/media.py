@@ -371,6 +371,7 @@ async def _awaited(work: Awaitable[Any]) -> None:
 
 async def async_setup(ctx: PlatformContext) -> None:
     service = MediaService(ctx)
+    ctx.media = service
     ctx.capabilities["streams"] = service.describe_streams
     if service.navcam is not None:
         ctx.capabilities["nav_camera"] = service.nav_camera

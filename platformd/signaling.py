@@ -13,9 +13,9 @@ from typing import Any
 
 from aiohttp import web
 
-from brasidas import topics
 from brasidas.codecs.commands import MAIN_LIGHTS, MANUAL_OVERRIDE, POSITIONAL_LIGHTS, CommandCode
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, RpcError
+from brasidas.codecs.telemetry_schema import SCHEMA_VERSION, snapshot_to_json
 from brasidas.rpc import add_rpc_routes, serve_app
 from platformd.context import PlatformContext
 from platformd.sessions import platform_parameters, velocity_endpoint
@@ -60,21 +60,18 @@ class Signaling:
         return velocity_endpoint(self.ctx)
 
     def get_nav_camera_parameters(self, call: CallContext) -> dict[str, Any]:
-        provider = self.ctx.capabilities.get("nav_camera")
-        if provider is None:
+        media = self.ctx.media
+        if media is None or media.navcam is None:
             raise RpcError(UNAVAILABLE, "this platform has no NavCam")
-        return dict(provider())
+        return media.nav_camera()
 
     def get_telemetry_report(self, call: CallContext) -> dict[str, Any]:
-        override = self.ctx.bus.last(topics.OVERRIDE_STATE)
-        report: dict[str, Any] = {
+        """The snapshot the stream carries, by the schema's long names."""
+        return {
             "platform_id": self.ctx.config.platform.id,
-            "mode": override.mode.value if override else "autonomous",
-            "manual_override": bool(override and override.engaged),
+            "schema": SCHEMA_VERSION,
+            **snapshot_to_json(self.ctx.telemetry.build()),
         }
-        for name, source in self.ctx.telemetry_sources.items():
-            report[name] = source()
-        return report
 
 
 async def async_setup(ctx: PlatformContext) -> None:

@@ -19,6 +19,7 @@ from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.codecs import pvel
 from brasidas.codecs.pvel import DropReason, PvelSentence
+from brasidas.codecs.telemetry_schema import VelocityLink
 from brasidas.messages import OverrideState, Velocity, VelocityLinkStats
 from platformd.context import PlatformContext
 from platformd.sessions import velocity_endpoint
@@ -94,6 +95,11 @@ class VelocityGate:
             {reason.value: count for reason, count in self.dropped.items()},
             self.last_count,
         )
+
+    def link_section(self) -> VelocityLink:
+        """The counters as the ``velocity_link`` telemetry section."""
+        stats = self.stats()
+        return VelocityLink(stats.accepted, stats.dropped, stats.last_count)
 
 
 def normalize_host(host: str) -> str:
@@ -209,5 +215,5 @@ def capability(ctx: PlatformContext) -> dict[str, Any]:
 async def async_setup(ctx: PlatformContext) -> None:
     receiver = await open_receiver(ctx)
     ctx.capabilities["velocity"] = lambda: capability(ctx)
-    ctx.telemetry_sources["velocity_link"] = lambda: receiver.gate.stats().as_dict()
+    ctx.telemetry.register(VelocityLink, receiver.gate.link_section)
     ctx.supervisor.start(receiver)

@@ -19,6 +19,7 @@ from typing import Any
 from brasidas import security
 from brasidas.actor import stop_on_signals
 from brasidas.codecs.jsonrpc import RpcError
+from brasidas.codecs.telemetry_schema import Override, snapshot_from_json
 from brasidas.config import ConfigError, StationConfig, load_config
 from brasidas.log import LEVELS, level_argument, setup_logging
 from stationd.api_client import CliError, api_call_async
@@ -114,12 +115,12 @@ def cmd_status(args: argparse.Namespace, config: StationConfig) -> int:
         summary["telemetry"] = {"error": err.message}
 
     def human(s: dict[str, Any]) -> str:
-        report = s.get("report", {})
+        override = snapshot_from_json(s.get("report", {})).get(Override)
         rtt = s.get("round_trip_ms")
         return "\n".join(
             [
                 _describe_connection(s),
-                f"mode       {report.get('mode', '?')}",
+                f"mode       {override.mode if override is not None else '?'}",
                 f"round trip {rtt:.2f} ms" if rtt is not None else "round trip -",
                 "",
                 *status_view.render(s["telemetry"], color=sys.stdout.isatty()),

@@ -11,6 +11,7 @@ from aiohttp import web
 
 from brasidas.actor import Daemon
 from brasidas.codecs.jsonrpc import Dispatcher
+from brasidas.codecs.telemetry_schema import schema_document
 from brasidas.config import ConfigError, ConsoleSection, StationConfig
 from brasidas.rpc import add_rpc_routes, serve_app_sites
 from stationd.context import StationContext
@@ -70,6 +71,7 @@ class StationDaemon(Daemon):
             {"127.0.0.1", "localhost", "[::1]", self.config.station.api_host, *console.https_names}
         )
         add_rpc_routes(self.app, self.ctx.api, "/api/rpc", API_MAX_BYTES, local_hosts=local_hosts)
+        self.app.router.add_get("/api/telemetry-schema.json", _telemetry_schema)
         if (WEB_ROOT / "index.html").exists():
             _add_console_routes(self.app)
         station = self.config.station
@@ -127,3 +129,8 @@ async def _security_headers(request: web.Request, response: web.StreamResponse) 
     response.headers.setdefault("Content-Security-Policy", CONTENT_SECURITY_POLICY)
     response.headers.setdefault("X-Content-Type-Options", "nosniff")
     response.headers.setdefault("Referrer-Policy", "no-referrer")
+
+
+async def _telemetry_schema(request: web.Request) -> web.Response:
+    """The telemetry schema the console reads snapshots by (brasidas.codecs.telemetry_schema)."""
+    return web.json_response(schema_document())

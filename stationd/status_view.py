@@ -10,9 +10,28 @@ import asyncio
 import shutil
 import sys
 import time
+from collections.abc import Callable
 from typing import Any, TextIO
 
 from brasidas.codecs.jsonrpc import RpcError
+from brasidas.codecs.telemetry_schema import (
+    SCHEMA_VERSION,
+    Attitude,
+    Battery,
+    Computer,
+    Controller,
+    Diagnostics,
+    Gps,
+    Lights,
+    Motion,
+    Motor,
+    Override,
+    Platforms,
+    Section,
+    Streams,
+    VelocityLink,
+    snapshot_from_json,
+)
 from brasidas.config import StationConfig
 from brasidas.rpc import RpcClient
 from stationd.api_client import CliError
@@ -35,40 +54,67 @@ def render(report: dict[str, Any], *, color: bool = True, now: float | None = No
     if "snapshot" not in report:
         return [f"telemetry  unavailable: {report.get('error', 'no report')}"]
     paint = _painter(color)
-    snap: dict[str, Any] = report.get("snapshot") or {}
     link: dict[str, Any] = report.get("link") or {}
     warnings: list[dict[str, Any]] = report.get("warnings") or []
     clock = time.strftime("%H:%M:%S", time.localtime(now if now is not None else time.time()))
-    mode = str(snap.get("mode", "?")).upper()
-    override = snap.get("override") or {}
-    holder = f" by {override['station']}" if override.get("station") else ""
-    lines = [f"{report.get('platform_id', '?')}   {paint(mode, YELLOW)}{holder}   {clock}"]
+    if report.get("schema") != SCHEMA_VERSION:
+        # Another schema's field names would only show as blanks: say why instead.
+        return [
+            f"{report.get('platform_id', '?')}   {clock}",
+            paint(
+                f"the station daemon reports telemetry schema v{report.get('schema')}; "
+                f"this command reads v{SCHEMA_VERSION} (update the older of the two)",
+                RED,
+            ),
+        ]
+    snap = snapshot_from_json(report.get("snapshot") or {})
+    override = snap.get(Override) or Override()
+    holder = f" by {override.station}" if override.station else ""
+    lines = [
+        f"{report.get('platform_id', '?')}   {paint(override.mode.upper(), YELLOW)}{holder}   {clock}"
+    ]
     if warnings:
         lines.append(
             "WARNINGS   " + "  ".join(paint(f" {w['message'].upper()} ", RED) for w in warnings)
         )
     else:
         lines.append("WARNINGS   " + paint("none", GREEN))
-    lines += [
-        f"lights     {_lights(snap.get('lights'))}",
-        f"battery    {_battery(snap.get('battery'))}",
-        f"controller {_controller(snap.get('controller'))}",
-        f"gps        {_gps(snap.get('gps'))}",
-        f"attitude   {_attitude(snap.get('attitude'))}",
-        f"computer   {_computer(snap.get('computer'))}",
-        f"link       {_link(link)}",
-        f"velocity   {_velocity(snap.get('velocity_link') or (snap.get('link') or {}).get('velocity'))}",
-        f"streams    {_streams(snap.get('streams'))}",
-        f"autonomy   {_text(snap.get('autonomy'))}",
+    rows: list[tuple[str, type[Section], Callable[[Any], str]]] = [
+        ("lights", Lights, _lights),
+        ("battery", Battery, _battery),
+        ("controller", Controller, _controller),
+        ("motor", Motor, _motor),
+        ("gps", Gps, _gps),
+        ("attitude", Attitude, _attitude),
+        ("computer", Computer, _computer),
+        ("velocity", VelocityLink, _velocity),
+        ("motion", Motion, _motion),
+        ("streams", Streams, _streams),
+        ("platforms", Platforms, _platforms),
     ]
-    if snap.get("diagnostics"):
-        diag = snap["diagnostics"]
-        restarts = diag.get("actor_restarts") or {}
+    for title, section, show in rows:
+        error = snap.error(section)
+        value = snap.get(section)
+        if error is not None:
+            text = paint(f"ERROR {error}", RED)
+        elif value is None:
+            text = "-"
+        else:
+            text = show(value)
+            if getattr(value, "stale", False):
+                text += "  " + paint(f"STALE ({_age(getattr(value, 'age_ms', None))})", RED)
+        lines.append(f"{title:<10} {text}")
+    lines.append(f"link       {_link(link)}")
+    diag = snap.get(Diagnostics)
+    if diag is not None:
+        restarts = diag.actor_restarts
+        failed = {k: v for k, v in diag.section_errors.items() if v}
         lines.append(
             "diagnostic restarts "
             + (", ".join(f"{k} {v}" for k, v in restarts.items()) or "none")
-            + f"  bus errors {diag.get('bus_delivery_errors', '-')}"
-            + f"  auth failures {diag.get('auth_failures', '-')}"
+            + f"  bus errors {diag.bus_delivery_errors}"
+            + f"  auth failures {_text(diag.auth_failures)}"
+            + (f"  section errors {_text(failed)}" if failed else "")
         )
     if link.get("error"):
         lines.append(paint(link["error"], RED))
@@ -160,13 +206,6 @@ def _num(value: Any, fmt: str = ".1f", unit: str = "") -> str:
     return "-"
 
 
-def _get(section: dict[str, Any], *names: str) -> Any:
-    for name in names:
-        if section.get(name) is not None:
-            return section[name]
-    return None
-
-
 def _text(value: Any) -> str:
     if value is None:
         return "-"
@@ -176,90 +215,104 @@ def _text(value: Any) -> str:
 
 
 def _pair(values: Any, fmt: str, unit: str) -> str:
-    if isinstance(values, list):
+    if isinstance(values, tuple):
         return "/".join(_num(v, fmt) for v in values) + unit
     return _num(values, fmt, unit)
 
 
-def _lights(lights: Any) -> str:
-    if not isinstance(lights, dict):
-        return "-"
+def _age(age_ms: int | None) -> str:
+    return "-" if age_ms is None else f"{age_ms / 1000:.1f} s old"
+
+
+def _lights(lights: Lights) -> str:
     return (
-        f"main {'ON' if lights.get('main') else 'off'}  "
-        f"positional {'ON' if lights.get('positional') else 'off'}"
+        f"main {'ON' if lights.main else 'off'}  positional {'ON' if lights.positional else 'off'}"
     )
 
 
-def _battery(battery: Any) -> str:
-    if not isinstance(battery, dict):
-        return "-"
-    level = battery.get("level") or ("monitor off" if battery.get("monitor") is False else "-")
-    return f"{_num(battery.get('volts'), '.1f', ' V')}  {level}"
+def _battery(battery: Battery) -> str:
+    level = battery.level or ("monitor off" if not battery.monitor else "-")
+    return f"{_num(battery.volts, '.1f', ' V')}  {level}"
 
 
-def _controller(controller: Any) -> str:
-    if not isinstance(controller, dict):
-        return "-"
-    state = "connected" if controller.get("connected") else "NOT CONNECTED"
+def _controller(controller: Controller) -> str:
+    state = "connected" if controller.connected else "NOT CONNECTED"
+    text = (
+        f"{state}  heatsink {_pair(controller.temps_c, '.0f', ' °C')}"
+        f"  motors {_pair(controller.amps, '.1f', ' A')}"
+    )
+    return text + (f"  {controller.error}" if controller.error else "")
+
+
+def _motor(motor: Motor) -> str:
     return (
-        f"{state}  heatsink {_pair(controller.get('temps_c'), '.0f', ' °C')}"
-        f"  motors {_pair(controller.get('amps'), '.1f', ' A')}"
+        f"desired {_pair(motor.desired, 'd', '')}  acknowledged {_pair(motor.acknowledged, 'd', '')}"
+        + (f"  {motor.error}" if motor.error else "")
     )
 
 
-def _gps(gps: Any) -> str:
-    if not isinstance(gps, dict):
-        return "-"
-    if not gps.get("fix"):
-        return "NO FIX" + (f" ({gps['lost_for_s']:.0f} s)" if gps.get("lost_for_s") else "")
-    lat = _get(gps, "latitude", "lat")
-    lon = _get(gps, "longitude", "lon")
-    parts = [f"{_num(lat, '.6f')}, {_num(lon, '.6f')}"]
-    alt = _get(gps, "altitude", "altitude_m", "alt")
-    if alt is not None:
-        parts.append(f"alt {_num(alt, '.0f', ' m')}")
-    sats = _get(gps, "satellites", "sats", "num_sats")
-    if sats is not None:
-        parts.append(f"{sats} sats")
-    hdop = _get(gps, "hdop")
-    if hdop is not None:
-        parts.append(f"hdop {_num(hdop)}")
-    speed = _get(gps, "speed_mps", "speed_ms", "speed")
-    if speed is not None:
-        parts.append(f"{_num(speed, '.1f', ' m/s')}")
-    course = _get(gps, "course", "course_deg", "track")
-    if course is not None:
-        parts.append(f"course {_num(course, '.0f', '°')}")
+def _gps(gps: Gps) -> str:
+    if not gps.fix:
+        lost = f" ({gps.lost_for_s:.0f} s)" if gps.lost_for_s else ""
+        last = (
+            f"  last {_num(gps.lat, '.6f')}, {_num(gps.lon, '.6f')}" if gps.lat is not None else ""
+        )
+        return "NO FIX" + lost + last
+    parts = [f"{_num(gps.lat, '.6f')}, {_num(gps.lon, '.6f')}"]
+    if gps.alt is not None:
+        parts.append(f"alt {_num(gps.alt, '.0f', ' m')}")
+    if gps.sats is not None:
+        parts.append(f"{gps.sats} sats")
+    if gps.hdop is not None:
+        parts.append(f"hdop {_num(gps.hdop)}")
+    if gps.speed is not None:
+        parts.append(_num(gps.speed, ".1f", " m/s"))
+    if gps.course is not None:
+        parts.append(f"course {_num(gps.course, '.0f', '°')}")
     return "  ".join(parts)
 
 
-def _attitude(attitude: Any) -> str:
-    if not isinstance(attitude, dict):
-        return "-"
-    parts = []
-    for name in ("roll", "pitch", "yaw"):
-        value = _get(attitude, name, f"{name}_deg")
-        parts.append(f"{name} {_num(value, '.1f', '°')}")
-    imu = attitude.get("imu")
-    if isinstance(imu, dict):
-        temp = _get(imu, "temperature_c", "temp_c", "temperature")
-        if temp is not None:
-            parts.append(f"imu {_num(temp, '.1f', ' °C')}")
-        error = _get(imu, "error")
-        if error:
-            parts.append(f"IMU ERROR {error}")
+def _attitude(attitude: Attitude) -> str:
+    parts = [
+        f"{name} {_num(value, '.1f', '°')}"
+        for name, value in (
+            ("roll", attitude.roll),
+            ("pitch", attitude.pitch),
+            ("yaw", attitude.yaw),
+        )
+    ]
+    imu = attitude.imu
+    if imu is not None:
+        if imu.temp_c is not None:
+            parts.append(f"imu {_num(imu.temp_c, '.1f', ' °C')}")
+        if imu.error:
+            parts.append(f"IMU ERROR {imu.error}")
     return "  ".join(parts)
 
 
-def _computer(computer: Any) -> str:
-    if not isinstance(computer, dict):
-        return "-"
-    load = computer.get("load")
-    load_text = " ".join(_num(v, ".2f") for v in load) if isinstance(load, list) else "-"
+def _computer(computer: Computer) -> str:
+    load = " ".join(_num(v, ".2f") for v in computer.load) if computer.load else "-"
     return (
-        f"cpu {_num(computer.get('cpu_temp_c'), '.1f', ' °C')}  load {load_text}"
-        f"  mem free {_num(computer.get('mem_free_mb'), '.0f', ' MB')}"
+        f"cpu {_num(computer.cpu_temp_c, '.1f', ' °C')}  load {load}"
+        f"  mem free {_num(computer.mem_free_mb, '.0f', ' MB')}"
     )
+
+
+def _velocity(velocity: VelocityLink) -> str:
+    dropped = {k: v for k, v in velocity.dropped.items() if v}
+    reasons = f" ({', '.join(f'{k} {v}' for k, v in dropped.items())})" if dropped else ""
+    return f"accepted {velocity.accepted}  dropped {sum(dropped.values())}{reasons}"
+
+
+def _motion(motion: Motion) -> str:
+    deadman = "  DEADMAN" if motion.deadman else ""
+    return f"{motion.mode}  linear {motion.linear:+.2f}  angular {motion.angular:+.2f}{deadman}"
+
+
+def _streams(streams: Streams) -> str:
+    if not streams.states:
+        return "-"
+    return "  ".join(f"{name} {state}" for name, state in streams.states.items())
 
 
 def _link(link: dict[str, Any]) -> str:
@@ -275,19 +328,9 @@ def _link(link: dict[str, Any]) -> str:
     )
 
 
-def _velocity(velocity: Any) -> str:
-    if not isinstance(velocity, dict):
-        return "-"
-    dropped = {k: v for k, v in (velocity.get("dropped") or {}).items() if v}
-    total = sum(v for v in dropped.values() if isinstance(v, int))
-    reasons = f" ({', '.join(f'{k} {v}' for k, v in dropped.items())})" if dropped else ""
-    return f"accepted {velocity.get('accepted', 0)}  dropped {total}{reasons}"
-
-
-def _streams(streams: Any) -> str:
-    if not isinstance(streams, dict) or not streams:
-        return "-"
-    return "  ".join(f"{name} {_text(state)}" for name, state in streams.items())
+def _platforms(platforms: Platforms) -> str:
+    heard = [f"{name} ({age:.0f} s ago)" for name, age in platforms.age_s.items()]
+    return "  ".join(heard) or "none heard"
 
 
 def _clip(line: str, width: int) -> str:

@@ -24,6 +24,7 @@ from brasidas.actor import Actor, wait_forever
 from brasidas.backoff import Backoff
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
 from brasidas.codecs.pvel import PvelEncoder
+from brasidas.codecs.telemetry_schema import Motion, Override, VelocityLink, snapshot_from_json
 from brasidas.config import TeleopSection
 from brasidas.messages import PlatformLink, Velocity
 from stationd.client import PlatformConnection
@@ -249,10 +250,11 @@ class Teleop(Actor):
         sender = self._sender(platform_id)
         status = sender.status()
         report = await sender.connection.call("get_telemetry_report")
+        override = snapshot_from_json(report).get(Override)
         status["platform"] = {
-            "mode": report.get("mode"),
-            "motion": report.get("motion"),
-            "velocity_link": report.get("velocity_link"),
+            "mode": None if override is None else override.mode,
+            "motion": report.get(Motion.NAME),
+            "velocity_link": report.get(VelocityLink.NAME),
         }
         if self.joystick is not None:
             status["joystick"] = {

@@ -2,9 +2,20 @@
 
 from __future__ import annotations
 
-from typing import Any
+import dataclasses
 
 from brasidas.codecs.telemetry import TelemetryEncoder
+from brasidas.codecs.telemetry_schema import (
+    Attitude,
+    Battery,
+    Controller,
+    Gps,
+    Section,
+    SectionValue,
+    Snapshot,
+    Streams,
+    snapshot_to_wire,
+)
 from brasidas.config import TelemetryReceiverSection
 from brasidas.messages import StationNotification
 from stationd.telemetry import (
@@ -12,6 +23,7 @@ from stationd.telemetry import (
     GPS_FIX_LOST,
     LINK_DEGRADED,
     LOW_BATTERY,
+    SENSOR_STALE,
     STREAM_FAILED,
     Annunciator,
     LinkStats,
@@ -19,16 +31,17 @@ from stationd.telemetry import (
 )
 
 CONFIG = TelemetryReceiverSection()
-HEALTHY: dict[str, Any] = {
-    "battery": {"volts": 25.1, "level": "high", "monitor": True},
-    "controller": {"connected": True, "temps_c": [35.0, 38.0], "amps": [1.0, 1.2]},
-    "gps": {"fix": True, "latitude": 37.98, "longitude": 23.72},
-    "streams": {"navcam": "playing"},
+SECTIONS: dict[type[Section], SectionValue] = {
+    Battery: Battery(25.1, "high", True),
+    Controller: Controller(True, (35.0, 38.0), (1.0, 1.2)),
+    Gps: Gps(fix=True, lat=37.98, lon=23.72),
+    Streams: Streams({"navcam": "playing"}),
 }
+HEALTHY = Snapshot(SECTIONS)
 
 
-def with_(section: str, value: Any) -> dict[str, Any]:
-    return {**HEALTHY, section: value}
+def with_(section: type[Section], value: SectionValue) -> Snapshot:
+    return Snapshot({**SECTIONS, section: value})
 
 
 def names(annunciator: Annunciator) -> set[str]:
@@ -38,50 +51,52 @@ def names(annunciator: Annunciator) -> set[str]:
 def test_healthy_snapshot_raises_nothing() -> None:
     annunciator = Annunciator(CONFIG)
     assert annunciator.evaluate(HEALTHY, 0.0, 0.1, now=0.0) == []
-    assert annunciator.evaluate({}, 0.0, None, now=0.0) == []  # nothing known, nothing flagged
+    assert (
+        annunciator.evaluate(Snapshot(), 0.0, None, now=0.0) == []
+    )  # nothing known, nothing flagged
 
 
 def test_low_battery_raises_names_the_voltage_and_clears_with_hysteresis() -> None:
     annunciator = Annunciator(CONFIG)
-    (change,) = annunciator.evaluate(with_("battery", {"volts": 22.6, "level": "low"}), 0, 0, 1.0)
+    (change,) = annunciator.evaluate(with_(Battery, Battery(22.6, "low")), 0, 0, 1.0)
     assert change.active and change.warning.code == LOW_BATTERY
     assert change.warning.message == "low battery (22.6 V)" and change.warning.since == 1.0
     # Recovering a little (under battery_clear_v) keeps the warning up: no flapping.
-    assert annunciator.evaluate(with_("battery", {"volts": 23.2, "level": "medium"}), 0, 0, 2) == []
+    assert annunciator.evaluate(with_(Battery, Battery(23.2, "medium")), 0, 0, 2) == []
     assert names(annunciator) == {"low_battery"}
-    (change,) = annunciator.evaluate(with_("battery", {"volts": 23.5, "level": "medium"}), 0, 0, 3)
+    (change,) = annunciator.evaluate(with_(Battery, Battery(23.5, "medium")), 0, 0, 3)
     assert not change.active and change.warning.name == "low_battery"
     # The platform's own LOW level raises it even without a voltage.
-    (change,) = annunciator.evaluate(with_("battery", {"volts": None, "level": "low"}), 0, 0, 4)
+    (change,) = annunciator.evaluate(with_(Battery, Battery(None, "low")), 0, 0, 4)
     assert change.active and change.warning.message == "low battery"
 
 
 def test_controller_over_temperature_raises_and_clears_below_the_clear_threshold() -> None:
     annunciator = Annunciator(CONFIG)
-    hot = {"connected": True, "temps_c": [41.0, 72.4], "amps": [8.0, 9.0]}
-    (change,) = annunciator.evaluate(with_("controller", hot), 0, 0, 1)
+    hot = Controller(True, (41.0, 72.4), (8.0, 9.0))
+    (change,) = annunciator.evaluate(with_(Controller, hot), 0, 0, 1)
     assert change.active and change.warning.code == CONTROLLER_OVER_TEMPERATURE
     assert change.warning.message == "controller over temperature (72 °C)"
-    warm = {**hot, "temps_c": [41.0, 67.0]}
-    assert annunciator.evaluate(with_("controller", warm), 0, 0, 2) == []
-    cool = {**hot, "temps_c": [41.0, 60.0]}
-    (change,) = annunciator.evaluate(with_("controller", cool), 0, 0, 3)
+    warm = dataclasses.replace(hot, temps_c=(41.0, 67.0))
+    assert annunciator.evaluate(with_(Controller, warm), 0, 0, 2) == []
+    cool = dataclasses.replace(hot, temps_c=(41.0, 60.0))
+    (change,) = annunciator.evaluate(with_(Controller, cool), 0, 0, 3)
     assert not change.active
 
 
 def test_gps_fix_lost_raises_and_clears() -> None:
     annunciator = Annunciator(CONFIG)
-    (change,) = annunciator.evaluate(with_("gps", {"fix": False, "lost_for_s": 3.0}), 0, 0, 1)
+    (change,) = annunciator.evaluate(with_(Gps, Gps(fix=False, lost_for_s=3.0)), 0, 0, 1)
     assert change.active and change.warning.code == GPS_FIX_LOST
     assert change.warning.message == "GPS fix lost (3 s ago)"
     # The figure changes: same warning, no new notification.
-    assert annunciator.evaluate(with_("gps", {"fix": False, "lost_for_s": 9.0}), 0, 0, 2) == []
+    assert annunciator.evaluate(with_(Gps, Gps(fix=False, lost_for_s=9.0)), 0, 0, 2) == []
     assert annunciator.active["gps_fix_lost"].message == "GPS fix lost (9 s ago)"
     assert annunciator.active["gps_fix_lost"].since == 1
     (change,) = annunciator.evaluate(HEALTHY, 0, 0, 3)
     assert not change.active and change.warning.name == "gps_fix_lost"
     # A platform without a GPS (section null) is not "fix lost".
-    assert annunciator.evaluate(with_("gps", None), 0, 0, 4) == []
+    assert annunciator.evaluate(with_(Gps, None), 0, 0, 4) == []
 
 
 def test_link_degraded_by_silence_or_loss() -> None:
@@ -99,14 +114,15 @@ def test_link_degraded_by_silence_or_loss() -> None:
 def test_each_failed_stream_is_named() -> None:
     annunciator = Annunciator(CONFIG)
     streams = {"navcam": "failed", "thermal": "error", "audio": "playing"}
-    changes = annunciator.evaluate(with_("streams", streams), 0, 0, 1)
+    changes = annunciator.evaluate(with_(Streams, Streams(streams)), 0, 0, 1)
     assert {(c.warning.name, c.active) for c in changes} == {
         ("stream_failed:navcam", True),
         ("stream_failed:thermal", True),
     }
     assert all(c.warning.code == STREAM_FAILED for c in changes)
     assert annunciator.active["stream_failed:navcam"].message == "stream navcam failed"
-    (change,) = annunciator.evaluate(with_("streams", {**streams, "navcam": "playing"}), 0, 0, 2)
+    recovered = Streams({**streams, "navcam": "playing"})
+    (change,) = annunciator.evaluate(with_(Streams, recovered), 0, 0, 2)
     assert (change.warning.name, change.active) == ("stream_failed:navcam", False)
 
 
@@ -140,18 +156,19 @@ def test_link_announces_raise_and_clear_with_group_90_notifications() -> None:
     )
     link.stats.start(now[0])
     encoder = TelemetryEncoder("rover-1", key)
-    assert link.feed(encoder.encode(HEALTHY, 1.0)[0])
+    assert link.feed(encoder.encode(snapshot_to_wire(SECTIONS), 1.0)[0])
     assert notes == []
     now[0] += 1.5  # silence
     link.tick()
     assert [(n.name, n.active, str(n.code)) for n in notes] == [("link_degraded", True, "90.13")]
-    assert link.feed(encoder.encode(with_("battery", {"volts": 22.0, "level": "low"}), 2.0)[0])
+    low = {**SECTIONS, Battery: Battery(22.0, "low")}
+    assert link.feed(encoder.encode(snapshot_to_wire(low), 2.0)[0])
     assert [(n.name, n.active) for n in notes[1:]] == [
         ("link_degraded", False),
         ("low_battery", True),
     ]
     # Forged datagrams change nothing and are counted.
-    forged = TelemetryEncoder("rover-1", bytes([1]) * 32).encode(HEALTHY, 3.0)[0]
+    forged = TelemetryEncoder("rover-1", bytes([1]) * 32).encode(snapshot_to_wire(SECTIONS), 3)[0]
     assert not link.feed(forged)
     assert link.decoder.rejected["forged"] == 1
     report = link.report()
@@ -170,3 +187,14 @@ def test_a_restarted_stream_far_ahead_starts_the_loss_figure_over() -> None:
     assert stats.loss_pct == 0.0
     stats.accepted(1_700_000_000_002, now=10.2)
     assert stats.loss_pct == round(100 / 3, 1)
+
+
+def test_a_stale_reading_raises_a_warning_until_a_fresh_one_arrives() -> None:
+    annunciator = Annunciator(CONFIG)
+    stale = Attitude(roll=1.0, pitch=0.0, yaw=0.0, age_ms=2500, stale=True)
+    (change,) = annunciator.evaluate(with_(Attitude, stale), 0, 0, 1)
+    assert change.active and change.warning.code == SENSOR_STALE
+    assert change.warning.message == "attitude stale (2 s old)"
+    fresh = dataclasses.replace(stale, age_ms=40, stale=False)
+    (change,) = annunciator.evaluate(with_(Attitude, fresh), 0, 0, 2)
+    assert not change.active and change.warning.name == "sensor_stale:attitude"

@@ -8,6 +8,7 @@ from collections.abc import Awaitable, Callable
 from conftest import free_udp_port, quiet_platform_config, wait_until
 
 from brasidas import security
+from brasidas.codecs.telemetry_schema import Platforms
 from brasidas.config import StationConfig, load_config
 from platformd.app import PlatformDaemon
 from stationd.discovery import discover
@@ -64,8 +65,8 @@ async def test_platforms_list_each_other_but_not_themselves(platform_factory: Fa
         await asyncio.sleep(0.05)
     assert await ids(one) == ["m-2"] and await ids(two) == ["m-1"]
     # The same list rides in telemetry.
-    section = one.ctx.telemetry_sources["platforms"]()
-    assert [entry["id"] for entry in section] == ["m-2"]
+    section = one.ctx.telemetry.build_one(Platforms)
+    assert isinstance(section, Platforms) and list(section.age_s) == ["m-2"]
     # One stops: the other drops it after the expiry (4 s).
     await two.stop()
-    await wait_until(lambda: one.ctx.telemetry_sources["platforms"]() == [], timeout=8)
+    await wait_until(lambda: one.ctx.telemetry.build_one(Platforms) == Platforms({}), timeout=8)

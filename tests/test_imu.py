@@ -14,6 +14,7 @@ import pytest
 
 from brasidas import topics
 from brasidas.bus import Bus
+from brasidas.codecs.telemetry_schema import Attitude as AttitudeSection
 from brasidas.config import ImuSection, PlatformConfig
 from brasidas.drivers.mpu6050 import Mpu6050Driver, SampleClock, fifo_overflowed
 from brasidas.madgwick import Madgwick, euler_deg, from_euler
@@ -413,7 +414,7 @@ async def test_fifo_overflow_is_detected_counted_and_recovered() -> None:
     assert reader.fifo_overflows == 1 and reader.read_errors == 0
     # What overflowed was dropped, not read: real time's samples plus at most one full FIFO.
     assert reader.samples - before < 100 * elapsed + 100
-    assert seen.statuses[-1].ok and seen.statuses[-1].as_dict()["fifo_overflows"] == 1
+    assert seen.statuses[-1].ok and seen.statuses[-1].fifo_overflows == 1
     assert abs(seen.attitudes[-1].roll_deg) < 1.0 and abs(seen.attitudes[-1].pitch_deg) < 1.0
 
 
@@ -475,15 +476,20 @@ async def test_sim_platform_publishes_attitude(
     assert daemon.ctx.sim.i2c_bus is not None and daemon.ctx.sim.mpu6050 is not None
     await wait_until(lambda: daemon.bus.last(topics.ATTITUDE) is not None, 10.0)
 
-    def imu() -> dict[str, Any]:
-        return (daemon.ctx.telemetry_sources["attitude"]() or {}).get("imu") or {}
+    def attitude() -> AttitudeSection:
+        section = daemon.ctx.telemetry.build_one(AttitudeSection)
+        assert isinstance(section, AttitudeSection)
+        return section
 
-    await wait_until(lambda: imu().get("temp_c") is not None, 5.0)
-    section = daemon.ctx.telemetry_sources["attitude"]()
-    assert abs(section["roll"]) < 2.0 and abs(section["pitch"]) < 2.0
-    assert len(section["q"]) == 4
-    assert section["imu"]["ok"] is True and "error" not in section["imu"]
-    assert 20.0 < section["imu"]["temp_c"] < 40.0
+    await wait_until(lambda: attitude().imu is not None and attitude().imu.temp_c is not None, 5.0)
+    section = attitude()
+    assert section.roll is not None and abs(section.roll) < 2.0
+    assert section.pitch is not None and abs(section.pitch) < 2.0
+    assert section.q is not None and len(section.q) == 4
+    assert section.age_ms is not None and not section.stale
+    imu = section.imu
+    assert imu is not None and imu.ok is True and imu.error == ""
+    assert imu.temp_c is not None and 20.0 < imu.temp_c < 40.0
 
 
 def test_gyro_offset_from_a_still_window_only() -> None:

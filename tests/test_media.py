@@ -83,7 +83,7 @@ async def test_navcam_streams_only_when_asked_and_carries_capture_time(
         assert params["framerate"] == 5  # manual override disengaged (seed §3.2)
         assert params["destination"] == f"127.0.0.1:{receiver.port}"
         report = await conn.call("get_telemetry_report")
-        assert report["streams"]["navcam"] == "playing"
+        assert report["streams"]["states"]["navcam"] == "playing"
 
         assert await conn.call("set_manual_override", engaged=True)
         assert (await conn.call("get_nav_camera_parameters"))["framerate"] == 30
@@ -137,7 +137,7 @@ async def test_per_stream_methods_and_bad_names(
         await conn.call("start_stream", name="navcam", port=receiver.port)
     finally:
         await conn.close()
-    navcam = daemon.ctx.capabilities["nav_camera"]
+    navcam = daemon.ctx.media.nav_camera
     await wait_until(lambda: navcam()["state"] == "idle")
 
 
@@ -150,7 +150,7 @@ async def test_missing_camera_fails_with_reason_and_is_retried(
     )
     states: list[StreamStatus] = []
     daemon.bus.subscribe(topics.STREAM_STATES, states.append)
-    stream = daemon.ctx.capabilities["nav_camera"].__self__.navcam
+    stream = daemon.ctx.media.navcam
     stream.retry_initial = 0.05
     conn = await open_session(daemon, fleet_key)
     try:
@@ -161,7 +161,7 @@ async def test_missing_camera_fails_with_reason_and_is_retried(
         assert "/dev/brasidas-no-camera" in states[-1].reason
         await wait_until(lambda: stream.retries >= 2, timeout=8)
         report = await conn.call("get_telemetry_report")
-        assert report["streams"]["navcam"] == "failed"
+        assert report["streams"]["states"]["navcam"] == "failed"
         assert (await command(conn, 2))["accepted"]
         retries = stream.retries
         await asyncio.sleep(0.3)

@@ -58,7 +58,7 @@ async def test_two_way_audio_is_heard_at_both_ends(
         listening = await conn.call("start_stream", name="audio_in")
         assert listening["state"] == "playing" and listening["port"] == platform_port
         assert await microphone.start() is StreamState.PLAYING
-        platform_speaker = daemon.ctx.capabilities["streams"].__self__.streams["audio_in"]
+        platform_speaker = daemon.ctx.media.streams["audio_in"]
         await wait_until(lambda: platform_speaker.hears_sound, timeout=8)  # station -> platform
         assert platform_speaker.peak > 1000
 
@@ -142,7 +142,7 @@ async def test_payload_camera_is_forwarded_without_reencoding(
         started = await conn.call("start_stream", name="payload_camera")
         assert started["state"] == "playing" and started["source"] == rtsp_camera.url
         await wait_until(lambda: receiver.frames >= 5, timeout=8)
-        forward = daemon.ctx.capabilities["streams"].__self__.streams["payload_camera"]
+        forward = daemon.ctx.media.streams["payload_camera"]
         klasses = element_classes(forward.pipeline)
         assert not [k for k in klasses if "Encoder" in k or "Decoder" in k], klasses
     finally:

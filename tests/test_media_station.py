@@ -96,7 +96,7 @@ async def test_daemon_receiver_reports_latency_and_stops_with_the_platform(
     streams = await station.ctx.api.call_local("streams", platform_id="rover-v")
     assert streams[0]["state"] == "playing" and streams[0]["host"] == "127.0.0.1"
     assert await station.ctx.api.call_local("stop_receive", platform_id="rover-v")
-    nav = platform.ctx.capabilities["nav_camera"]
+    nav = platform.ctx.media.nav_camera
     await wait_until(lambda: nav()["state"] == "idle")
     assert await station.ctx.api.call_local("receivers") == []
 
@@ -122,7 +122,7 @@ async def test_view_command_receives_and_stops_the_stream(
     assert "640x480" in lines[0] and "H264" in lines[0]
     last = json.loads(lines[-1])
     assert last["frames"] > 0 and last["latency_ms"] is not None
-    assert platform.ctx.capabilities["nav_camera"]()["state"] == "idle"  # stopped on exit
+    assert platform.ctx.media.nav_camera()["state"] == "idle"  # stopped on exit
 
     code, out, err = await run_cli(
         station, "view", "rover-v", "nosuchstream", "--url", url, "--sink", "fakesink"
@@ -155,7 +155,7 @@ async def test_stock_gst_launch_receiver_decodes_the_navcam(
     )
     try:
         await wait_until(lambda: udp_port_bound(port), timeout=10)  # before the first keyframe
-        service = platform.ctx.capabilities["nav_camera"].__self__
+        service = platform.ctx.media
         await service.start_stream("navcam", "127.0.0.1")
         await asyncio.wait_for(read_until(process, DECODED_FRAME), 10)
     finally:
@@ -192,7 +192,7 @@ async def test_sdp_file_plays_in_a_stock_sdp_receiver(
     )
     try:
         await wait_until(lambda: udp_port_bound(port), timeout=10)  # sdpdemux's udpsrc
-        service = platform.ctx.capabilities["nav_camera"].__self__
+        service = platform.ctx.media
         await service.start_stream("navcam", "127.0.0.1")
         await asyncio.wait_for(read_until(process, DECODED_FRAME), 10)
     finally:
@@ -223,7 +223,7 @@ async def test_station_hears_the_platform_and_talks_back(
     await asyncio.wait_for(until_loud("audio_out"), 8)
     talking = await api.call_local("talk", platform_id="rover-v", test_tone=True)
     assert talking["state"] == "playing"
-    platform_speaker = platform.ctx.capabilities["streams"].__self__.streams["audio_in"]
+    platform_speaker = platform.ctx.media.streams["audio_in"]
     await wait_until(lambda: platform_speaker.hears_sound, timeout=8)
     assert (await api.call_local("talk", platform_id="rover-v", on=False))["state"] == "idle"
     await wait_until(lambda: platform_speaker.state.value == "idle")
@@ -237,7 +237,7 @@ async def test_audio_command_hears_the_platform_talks_back_and_stops_both(
     platform = await sim_platform(
         platform_factory, fleet_key, "audio.enabled=true", f"audio.in_port={free_udp_port()}"
     )
-    streams = platform.ctx.capabilities["streams"].__self__.streams
+    streams = platform.ctx.media.streams
     cli_run = asyncio.ensure_future(
         run_cli(
             station,
@@ -286,7 +286,7 @@ async def test_stream_command_lists_starts_pauses_and_stops_one_stream(
     assert code == 0, err
     started = json.loads(out)
     assert started["state"] == "playing" and started["destination"] == f"127.0.0.1:{port}"
-    nav = platform.ctx.capabilities["nav_camera"]
+    nav = platform.ctx.media.nav_camera
     code, out, err = await run_cli(station, "stream", "rover-v", "navcam", "pause")
     assert code == 0 and "paused" in out, err
     assert nav()["state"] == "paused"

@@ -23,6 +23,7 @@ from brasidas.clock import ManualClock
 from brasidas.codecs import ax3500, pvel
 from brasidas.codecs.commands import BATTERY_MONITOR, MAIN_LIGHTS, POSITIONAL_LIGHTS
 from brasidas.codecs.jsonrpc import Dispatcher
+from brasidas.codecs.telemetry_schema import Motor
 from brasidas.config import PlatformConfig, StationConfig, load_config
 from brasidas.messages import ControllerStatus, LightsState, Velocity
 from platformd import motor
@@ -152,13 +153,8 @@ async def test_ten_seconds_at_zero_without_one_watchdog_w(tmp_path: Path) -> Non
         assert sim.device.received.count("!A00") >= 20
         # Telemetry carries the state; the counters go with diagnostics (20.0), the port with
         # the capabilities: a 5 Hz datagram has no room for what does not change.
-        assert ctx.telemetry_sources["motor"]() == {
-            "connected": True,
-            "desired": [0, 0],
-            "acknowledged": [0, 0],
-            "error": "",
-        }
-        counters = ctx.diagnostics_sources["motor"]()
+        assert ctx.telemetry.build_one(Motor) == Motor(True, (0, 0), (0, 0), "")
+        counters = ctx.telemetry.counters["motor"]()
         assert counters["watchdog_w"] == 0 and counters["velocity_commands"] >= 20
         assert ctx.capabilities["motor"]()["port"] == driver.config.port
 

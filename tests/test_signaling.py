@@ -302,7 +302,7 @@ async def test_manual_override_is_exclusive_and_released_on_timeout(
         refused = await second.call("issue_system_command", group=10, command=0, payload="False")
         assert refused["accepted"] is False and "held by first" in refused["reason"]
         report = await second.call("get_telemetry_report")
-        assert report["mode"] == "teleop"
+        assert report["override"]["mode"] == "teleop"
         # "first" goes silent (heartbeats every 10 s, timeout 0.5 s): the override is released.
         await wait_until(lambda: states[-1] is False)
         assert first.session_id not in daemon.ctx.sessions.sessions

@@ -10,13 +10,13 @@ import os
 import random
 import sys
 from collections.abc import Awaitable, Callable
-from typing import Any
 
 import pynmea2
 import pytest
 
 from brasidas import topics
 from brasidas.codecs.nmea import EpochAssembler, NmeaDecoder
+from brasidas.codecs.telemetry_schema import Gps, GpsReader
 from brasidas.config import PlatformConfig
 from brasidas.messages import GpsFix
 from platformd.app import PlatformDaemon
@@ -95,18 +95,21 @@ async def test_real_reader_in_sim_platform(
         assert fix.quality == 1 and fix.altitude_m is not None
     position = daemon.bus.last(topics.POSITION)
     assert position is not None and abs(position.latitude - 44.0689) < 1e-4
-    section = daemon.ctx.telemetry_sources["gps"]()
-    assert section["fix"] is True
 
-    def stats() -> dict[str, Any]:
-        return daemon.ctx.telemetry_sources["gps"]().get("stats") or {}
+    def gps() -> Gps:
+        section = daemon.ctx.telemetry.build_one(Gps)
+        assert isinstance(section, Gps)
+        return section
 
-    await wait_until(lambda: stats().get("fixes", 0) >= 5, 5.0)
-    assert stats()["connected"] is True
-    assert stats()["sentences"] >= 20 and stats()["dropped"] == {}
-    assert section["lat"] == fixes[-1].latitude or section["lat"] == pytest.approx(
-        44.0689, abs=1e-4
-    )
+    assert gps().fix is True and gps().age_ms is not None
+
+    def stats() -> GpsReader:
+        return gps().stats or GpsReader()
+
+    await wait_until(lambda: stats().fixes >= 5, 5.0)
+    assert stats().connected is True
+    assert stats().sentences >= 20 and stats().dropped == {}
+    assert gps().lat == pytest.approx(44.0689, abs=1e-4)
 
 
 async def test_simulate_gps_standalone_prints_a_pty_that_yields_nmea() -> None:

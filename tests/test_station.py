@@ -68,7 +68,11 @@ async def test_connect_movrd_lights_and_commands_through_the_daemon(
 
     code, out, _ = await run_cli(station, "status", "rover-3", "--json")
     status = json.loads(out)
-    assert code == 0 and status["report"]["mode"] == "teleop" and status["connected"] is True
+    assert (
+        code == 0
+        and status["report"]["override"]["mode"] == "teleop"
+        and status["connected"] is True
+    )
 
     code, out, _ = await run_cli(station, "disconnect", "rover-3")
     assert code == 0

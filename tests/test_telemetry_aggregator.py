@@ -2,15 +2,26 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
 
+import pytest
 from conftest import quiet_platform_config
 
 from brasidas import topics
 from brasidas.actor import Supervisor
 from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import Dispatcher
+from brasidas.codecs.telemetry_schema import (
+    Battery,
+    Computer,
+    Controller,
+    Diagnostics,
+    Gps,
+    Override,
+    SectionError,
+    Streams,
+    snapshot_to_json,
+)
 from brasidas.messages import (
     ControllerStatus,
     GpsFix,
@@ -19,23 +30,14 @@ from brasidas.messages import (
     PlatformHealth,
     StreamStatus,
 )
-from brasidas.status import Battery
+from brasidas.status import Battery as Level
 from platformd.context import PlatformContext
 from platformd.telemetry import (
     TelemetryAggregator,
     allowed_host,
     cpu_temperature,
     system_info,
-    to_plain,
 )
-
-
-@dataclass(frozen=True)
-class Sample:
-    latitude: float
-    longitude: float
-    satellites: int
-    extra: dict[str, float] = field(default_factory=dict)
 
 
 def controller(
@@ -64,8 +66,8 @@ def make(clock: Clock, *overrides: str) -> tuple[TelemetryAggregator, Bus]:
         rpc=Dispatcher(),
         fleet_key=None,
     )
-    aggregator = TelemetryAggregator(ctx, clock=clock)
-    ctx.telemetry_sources.update(aggregator.sources())
+    aggregator = TelemetryAggregator(ctx, clock=clock, monotonic=clock)
+    aggregator.register()
     return aggregator, bus
 
 
@@ -77,57 +79,77 @@ def test_sections_follow_the_bus() -> None:
     bus.subscribe(topics.PLATFORM_HEALTH, health.append)
 
     empty = aggregator.snapshot()
-    assert empty["battery"] is None and empty["gps"] is None and empty["controller"] is None
-    assert empty["mode"] == "autonomous" and empty["streams"] == {}
+    assert empty[Battery] is None and empty[Gps] is None and empty[Controller] is None
+    assert empty[Override] == Override("autonomous", False, None)
+    assert empty[Streams] == Streams({})
 
     bus.publish(topics.OVERRIDE_STATE, OverrideState(True, "s1", "station-9"))
     bus.publish(
         topics.CONTROLLER_STATUS,
-        ControllerStatus(True, 22.512, True, (41.26, 39.0), (3.04, 2.5), 12.251),
+        ControllerStatus(True, 22.512, True, (41.26, 39.0), (3.04, 2.5), 12.251, stamp=clock.now),
     )
+    clock.now += 0.25
     snap = aggregator.snapshot()
-    assert snap["mode"] == "teleop" and snap["override"] == {
-        "engaged": True,
-        "station": "station-9",
-    }
-    assert snap["battery"] == {"volts": 22.51, "level": "low", "monitor": True}
-    assert snap["controller"] == {
-        "connected": True,
-        "temps_c": [41.3, 39.0],
-        "amps": [3.0, 2.5],
-        "internal_volts": 12.25,
-    }
-    assert health[-1].battery is Battery.LOW and health[-1].controller and not health[-1].fault
+    assert snap[Override] == Override("teleop", True, "station-9")
+    assert snap[Battery] == Battery(22.51, "low", True, age_ms=250, stale=False)
+    assert snap[Controller] == Controller(
+        True, (41.3, 39.0), (3.0, 2.5), 12.25, age_ms=250, stale=False
+    )
+    assert health[-1].battery is Level.LOW and health[-1].controller and not health[-1].fault
 
     bus.publish(topics.GPS_FIX, FIX)
-    assert aggregator.snapshot()["gps"]["fix"] is True
-    assert aggregator.snapshot()["gps"]["lat"] == 37.9838096
+    gps = aggregator.snapshot()[Gps]
+    assert isinstance(gps, Gps) and gps.fix is True and gps.lat == 37.9838096 and gps.sats == 9
     assert health[-1].gps_fix is True
     bus.publish(topics.GPS_FIX_LOST, GpsFixLost("receiver silent"))
     clock.now += 4
-    gps = aggregator.snapshot()["gps"]
-    assert gps["fix"] is False and gps["lost_for_s"] == 4.0 and gps["lat"] == 37.9838096
+    gps = aggregator.snapshot()[Gps]
+    assert isinstance(gps, Gps)
+    assert gps.fix is False and gps.lost_for_s == 4.0 and gps.lat == 37.9838096
     assert health[-1].gps_fix is False
 
     # Streams the media service has but that never changed state are listed as they are.
-    aggregator.ctx.capabilities["streams"] = lambda: [
-        {"name": "navcam", "state": "idle"},
-        {"name": "audio_out", "state": "idle"},
-    ]
-    assert aggregator.snapshot()["streams"] == {"navcam": "idle", "audio_out": "idle"}
+    class Media:
+        def describe_streams(self) -> list[dict[str, str]]:
+            return [{"name": "navcam", "state": "idle"}, {"name": "audio_out", "state": "idle"}]
+
+    aggregator.ctx.media = Media()  # type: ignore[assignment]
+    assert aggregator.snapshot()[Streams] == Streams({"navcam": "idle", "audio_out": "idle"})
     bus.publish(topics.STREAM_STATES, StreamStatus("navcam", "video_out", "playing"))
     assert health[-1].streaming is True
     bus.publish(topics.STREAM_STATES, StreamStatus("navcam", "video_out", "failed", "no camera"))
-    assert aggregator.snapshot()["streams"] == {"navcam": "failed", "audio_out": "idle"}
+    assert aggregator.snapshot()[Streams] == Streams({"navcam": "failed", "audio_out": "idle"})
     assert health[-1].fault and health[-1].faults == ("stream:navcam",)
     bus.publish(topics.CONTROLLER_STATUS, controller(False, None))
     assert health[-1].faults == ("controller", "stream:navcam") and not health[-1].controller
-    assert health[-1].battery is Battery.UNKNOWN
+    assert health[-1].battery is Level.UNKNOWN
     # Only changes are published.
     count = len(health)
     bus.publish(topics.CONTROLLER_STATUS, controller(False, None))
     assert len(health) == count
     assert bus.last(topics.PLATFORM_HEALTH) == health[-1]
+
+
+def test_readings_carry_their_age_and_turn_stale_after_a_few_periods() -> None:
+    clock = Clock()
+    # Polls at 2 Hz: stale after max(1 s, 3 periods) = 1.5 s.
+    aggregator, bus = make(clock, "motor.poll_hz=2")
+    bus.publish(
+        topics.CONTROLLER_STATUS,
+        ControllerStatus(True, 24.0, True, (30.0, 30.0), (1.0, 1.0), stamp=clock.now),
+    )
+    clock.now += 1.4
+    battery = aggregator.battery_section()
+    assert battery is not None and battery.age_ms == 1400 and not battery.stale
+    clock.now += 0.2
+    battery = aggregator.battery_section()
+    assert battery is not None and battery.age_ms == 1600 and battery.stale
+    ctl = aggregator.controller_section()
+    assert ctl is not None and ctl.stale
+    # A status without readings (not polled yet) has no age and is not stale.
+    bus.publish(topics.CONTROLLER_STATUS, ControllerStatus(False, stamp=clock.now - 60))
+    ctl = aggregator.controller_section()
+    assert ctl is not None and ctl.age_ms is None and not ctl.stale
 
 
 def test_battery_levels_follow_the_configured_thresholds() -> None:
@@ -136,16 +158,62 @@ def test_battery_levels_follow_the_configured_thresholds() -> None:
     levels = []
     for volts in (11.0, 11.5, 12.39, 12.4, 13.0):
         bus.publish(topics.CONTROLLER_STATUS, controller(True, volts))
-        levels.append(aggregator.snapshot()["battery"]["level"])
+        battery = aggregator.snapshot()[Battery]
+        assert isinstance(battery, Battery)
+        levels.append(battery.level)
     assert levels == ["low", "medium", "medium", "high", "high"]
 
 
 def test_diagnostics_section_only_when_switched_on() -> None:
     aggregator, _ = make(Clock())
-    assert aggregator.snapshot()["diagnostics"] is None
+    assert aggregator.snapshot()[Diagnostics] is None
     aggregator.diagnostics = True
-    diagnostics = aggregator.snapshot()["diagnostics"]
-    assert diagnostics["telemetry"]["snapshots"] == 2 and diagnostics["actor_restarts"] == {}
+    diagnostics = aggregator.snapshot()[Diagnostics]
+    assert isinstance(diagnostics, Diagnostics)
+    assert diagnostics.telemetry["snapshots"] == 2 and diagnostics.actor_restarts == {}
+
+
+def test_a_failing_section_is_that_sections_error_and_the_rest_goes_on(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    aggregator, bus = make(Clock())
+
+    def broken() -> Computer:
+        raise ZeroDivisionError("division by zero")
+
+    aggregator.ctx.telemetry._sources[Computer] = broken
+    bus.publish(topics.CONTROLLER_STATUS, controller(True, 25.5))
+    for _ in range(3):
+        snap = aggregator.snapshot()
+    assert snap[Computer] == SectionError("ZeroDivisionError: division by zero")
+    assert isinstance(snap[Battery], Battery)
+    assert snapshot_to_json(snap)["computer"] == {"error": "ZeroDivisionError: division by zero"}
+    # Counted every time, logged once (with the traceback).
+    assert aggregator.ctx.telemetry.errors == {"computer": 3}
+    logged = [r for r in caplog.records if "section computer failed" in r.getMessage()]
+    assert len(logged) == 1 and logged[0].exc_info is not None
+    aggregator.diagnostics = True
+    diagnostics = aggregator.snapshot()[Diagnostics]
+    assert isinstance(diagnostics, Diagnostics) and diagnostics.section_errors == {"computer": 4}
+
+
+def test_one_source_per_section() -> None:
+    aggregator, _ = make(Clock())
+    with pytest.raises(ValueError, match="battery"):
+        aggregator.ctx.telemetry.register(Battery, aggregator.battery_section)
+
+
+def test_battery_level_follows_the_monitor_flag() -> None:
+    aggregator, bus = make(Clock())
+    aggregator.subscribe_reports()
+    bus.publish(topics.CONTROLLER_STATUS, controller(True, 22.0, monitor=True))
+    battery = aggregator.battery_section()
+    assert battery is not None and (battery.volts, battery.level) == (22.0, "low")
+    bus.publish(topics.CONTROLLER_STATUS, controller(True, 22.0, monitor=False))
+    battery = aggregator.battery_section()
+    assert battery is not None and (battery.level, battery.monitor) == (None, False)
+    health = bus.last(topics.PLATFORM_HEALTH)
+    assert health is not None and health.battery is Level.UNKNOWN
 
 
 def test_cpu_temperature_prefers_the_cpu_zone(tmp_path: Path) -> None:
@@ -178,19 +246,3 @@ def test_only_loopback_or_the_callers_host_may_receive() -> None:
     assert not allowed_host("10.0.0.6", "10.0.0.5")
     assert not allowed_host("255.255.255.255", "10.0.0.5")
     assert not allowed_host("example.org", "10.0.0.5")
-
-
-def test_to_plain_handles_enums_tuples_and_nested_dataclasses() -> None:
-    plain = to_plain(Sample(1.123456789, 2.0, 3, {"x": 0.5}))
-    assert plain == {"latitude": 1.1234568, "longitude": 2.0, "satellites": 3, "extra": {"x": 0.5}}
-    assert to_plain((Battery.LOW, None)) == [1, None]
-
-
-def test_battery_level_follows_the_monitor_flag() -> None:
-    aggregator, bus = make(Clock())
-    aggregator.subscribe_reports()
-    bus.publish(topics.CONTROLLER_STATUS, controller(True, 22.0, monitor=True))
-    assert aggregator.snapshot()["battery"] == {"volts": 22.0, "level": "low", "monitor": True}
-    bus.publish(topics.CONTROLLER_STATUS, controller(True, 22.0, monitor=False))
-    assert aggregator.snapshot()["battery"] == {"volts": 22.0, "level": None, "monitor": False}
-    assert bus.last(topics.PLATFORM_HEALTH).battery is Battery.UNKNOWN

@@ -99,7 +99,7 @@ def test_section_too_large_alone_is_trimmed_not_dropped() -> None:
     for datagram in datagrams:
         merged.update(decoder.decode(datagram).sections)
     assert merged["small"] == {"ok": 1}
-    assert merged["huge"] == {"trimmed": pytest.approx(5010, abs=20)}
+    assert merged["huge"]["!"].startswith("trimmed: 50")  # the section's error, sized
     assert encoder.trimmed == 1
 
 

@@ -10,7 +10,15 @@ from conftest import quiet_platform_config, wait_until
 
 from brasidas import topics
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, RpcError
-from brasidas.codecs.telemetry import MAX_DATAGRAM, TelemetryDecoder, TelemetryEncoder
+from brasidas.codecs.telemetry import MAX_DATAGRAM, VERSION, TelemetryDecoder, TelemetryEncoder
+from brasidas.codecs.telemetry_schema import (
+    SCHEMA_VERSION,
+    Computer,
+    Lights,
+    Override,
+    Snapshot,
+    snapshot_to_wire,
+)
 from brasidas.config import StationConfig, load_config
 from brasidas.messages import LightsState, PlatformHealth, StationNotification
 from brasidas.status import Battery
@@ -18,6 +26,7 @@ from platformd.app import PlatformDaemon
 from platformd.telemetry import TelemetryAggregator
 from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
+from stationd.status_view import render
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 
@@ -53,10 +62,11 @@ async def test_station_receives_verified_telemetry_and_refuses_forgeries(
     await wait_until(lambda: _received(station, "rover-7") >= 3)
     report = await api.call_local("get_telemetry", platform_id="rover-7")
     snapshot = report["snapshot"]
-    assert snapshot["mode"] == "autonomous" and snapshot["manual_override"] is False
+    assert report["schema"] == SCHEMA_VERSION
+    assert snapshot["override"] == {"mode": "autonomous", "engaged": False, "station": None}
     assert snapshot["lights"] == {"main": True, "positional": False}
     assert snapshot["computer"]["mem_free_mb"] > 0 and len(snapshot["computer"]["load"]) == 3
-    assert snapshot["autonomy"] is None and snapshot["diagnostics"] is None
+    assert snapshot["diagnostics"] is None
     assert report["link"]["loss_pct"] == 0.0 and report["link"]["rejected_total"] == 0
     assert report["link"]["max_datagram"] < MAX_DATAGRAM
     # get_telemetry_report over signaling carries the same sections.
@@ -66,8 +76,8 @@ async def test_station_receives_verified_telemetry_and_refuses_forgeries(
 
     # The platform follows the operator: the next datagrams show the manual override.
     await api.call_local("movrd", platform_id="rover-7", engaged=True)
-    await wait_until(lambda: _snapshot(station, "rover-7").get("manual_override") is True)
-    assert _snapshot(station, "rover-7")["override"]["station"] == "station-1"
+    await wait_until(lambda: _override(station, "rover-7").engaged)
+    assert _override(station, "rover-7") == Override("teleop", True, "station-1")
 
     # Forged, truncated, garbage and replayed datagrams sent to the station's port.
     link = _link(station, "rover-7")
@@ -76,20 +86,21 @@ async def test_station_receives_verified_telemetry_and_refuses_forgeries(
     forger = TelemetryEncoder("rover-7", b"\x00" * 32, first_seq=10**9)
     replay_capture = TelemetryDecoder("rover-7", connection.session_key)
     genuine = TelemetryEncoder("rover-7", connection.session_key, first_seq=1)
-    old = genuine.encode({"mode": "autonomous"}, 0.0)[0]  # authentic but seq 1: a replay
+    autonomous = snapshot_to_wire({Override: Override()})
+    old = genuine.encode(autonomous, 0.0)[0]  # authentic but seq 1: a replay
     assert replay_capture.feed(old)
     before = dict(link.decoder.rejected)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.sendto(forger.encode({"mode": "teleop"}, 0.0)[0], ("127.0.0.1", port))
+        sock.sendto(forger.encode(autonomous, 0.0)[0], ("127.0.0.1", port))
         sock.sendto(b"\x01", ("127.0.0.1", port))
-        sock.sendto(b"\x01\x01" + b"\xc1" * 40, ("127.0.0.1", port))
+        sock.sendto(bytes((VERSION, 1)) + b"\xc1" * 40, ("127.0.0.1", port))
         sock.sendto(old, ("127.0.0.1", port))
     await wait_until(lambda: sum(link.decoder.rejected.values()) - sum(before.values()) >= 4)
     rejected = link.decoder.rejected
     assert rejected["forged"] - before["forged"] == 2  # bad key; garbage under a bad tag
     assert rejected["truncated"] - before["truncated"] == 1
     assert rejected["replayed"] - before["replayed"] == 1
-    assert _snapshot(station, "rover-7")["mode"] == "teleop"  # the real one, not the forger's
+    assert _override(station, "rover-7").mode == "teleop"  # the real one, not the forger's
     # Still streaming after the attack.
     received = _received(station, "rover-7")
     await wait_until(lambda: _received(station, "rover-7") > received + 2)
@@ -140,6 +151,46 @@ async def test_station_notices_silence_asks_again_and_the_warning_clears(
         await station.stop()
 
 
+async def test_a_failing_section_is_reported_and_the_stream_goes_on(
+    station: StationDaemon,
+    platform_factory: Factory,
+    fleet_key: bytes,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Defect 5: one section's source raising used to fail the aggregator's task group; the
+    actor restarted, every stream was dropped and stations saw seconds of silence."""
+    platform = await platform_factory(quiet_platform_config("platform.id=rover-8"), fleet_key)
+    platform.bus.publish(topics.LIGHTS_STATE, LightsState(main=True, positional=False))
+    await station.ctx.connection_manager.ensure("rover-8", platform.ctx.signaling_url)
+    await wait_until(lambda: _received(station, "rover-8") >= 2)
+    agg = aggregator(platform)
+    (session_id,) = agg.sender.streams
+    notes: list[StationNotification] = []
+    station.bus.subscribe(topics.STATION_NOTIFICATIONS, notes.append)
+
+    def unreadable(*args: object) -> None:
+        raise OSError(5, "Input/output error")
+
+    monkeypatch.setattr("platformd.telemetry.aggregator.system_info", unreadable)
+    await wait_until(lambda: _snapshot(station, "rover-8").error(Computer) is not None)
+    received = _received(station, "rover-8")
+    await wait_until(lambda: _received(station, "rover-8") >= received + 10)
+
+    snapshot = _snapshot(station, "rover-8")
+    assert snapshot.error(Computer) == "OSError: [Errno 5] Input/output error"
+    assert snapshot.get(Lights) == Lights(True, False)  # the rest goes on
+    assert agg.sender.streams.keys() == {session_id}  # the same stream: no restart
+    assert platform.supervisor.restarts.get("telemetry", 0) == 0
+    assert not [n for n in notes if n.name == "link_degraded"]
+    assert platform.ctx.telemetry.errors["computer"] >= 10
+    report = await station.ctx.api.call_local("get_telemetry", platform_id="rover-8")
+    assert report["snapshot"]["computer"] == {"error": "OSError: [Errno 5] Input/output error"}
+    assert "computer   ERROR OSError" in "\n".join(render(report, color=False))
+
+    monkeypatch.undo()  # the source recovers: the section comes back
+    await wait_until(lambda: _snapshot(station, "rover-8").get(Computer) is not None)
+
+
 async def test_request_telemetry_refuses_third_hosts_and_bad_params(
     platform_factory: Factory, fleet_key: bytes
 ) -> None:
@@ -181,6 +232,7 @@ async def test_diagnostics_command_adds_the_section_and_health_is_published(
         answer = await connection.call("issue_system_command", group=20, command=0, payload="True")
         assert answer == {"accepted": True, "reason": "", "result": {"diagnostics": True}}
         report = await connection.call("get_telemetry_report")
+        assert report["schema"] == SCHEMA_VERSION
         diagnostics = report["diagnostics"]
         assert diagnostics["rpc"]["calls"] >= 2 and "actor_restarts" in diagnostics
         answer = await connection.call("issue_system_command", group=20, command=0, payload="x")
@@ -206,5 +258,10 @@ def _received(station: StationDaemon, platform_id: str) -> int:
         return 0
 
 
-def _snapshot(station: StationDaemon, platform_id: str) -> dict:  # type: ignore[type-arg]
-    return dict(_link(station, platform_id).snapshot)
+def _snapshot(station: StationDaemon, platform_id: str) -> Snapshot:
+    snapshot: Snapshot = _link(station, platform_id).snapshot
+    return snapshot
+
+
+def _override(station: StationDaemon, platform_id: str) -> Override:
+    return _snapshot(station, platform_id).get(Override) or Override()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import functools
 import os
 import sys
 import tty
@@ -17,6 +18,7 @@ from hypothesis import strategies as st
 from brasidas import topics
 from brasidas.actor import Supervisor
 from brasidas.bus import Bus
+from brasidas.codecs.telemetry_schema import Motion, VelocityLink
 from brasidas.config import JoystickSection, StationConfig, load_config
 from brasidas.messages import Velocity
 from platformd.app import PlatformDaemon
@@ -254,21 +256,21 @@ async def test_station_streams_only_while_it_holds_the_override(
     platform = await platform_factory(quiet_platform_config(), fleet_key)
     station = await station_factory("teleop.drive_timeout=0.2")
     last_motor = motors(platform)
-    link = platform.ctx.telemetry_sources["velocity_link"]
+    link = functools.partial(platform.ctx.telemetry.build_one, VelocityLink)
     api = station.ctx.api
     await api.call_local("connect", platform_id="brasidas-1", url=platform.ctx.signaling_url)
     teleop = teleop_of(station)
     await wait_until(lambda: "brasidas-1" in teleop.senders)
     sender = teleop.senders["brasidas-1"]
     await wait_until(lambda: sender.ticks >= 3)
-    assert sender.sent == 0 and link()["accepted"] == 0  # not engaged: nothing on the wire
+    assert sender.sent == 0 and link().accepted == 0  # not engaged: nothing on the wire
 
     answer = await api.call_local("movrd", platform_id="brasidas-1", engaged=True)
     assert answer["accepted"] is True
     # Zeros are streamed too: the platform keeps accepting, the deadman never trips.
-    await wait_until(lambda: link()["accepted"] >= 10)
+    await wait_until(lambda: link().accepted >= 10)
     assert last_motor() == STOP
-    assert platform.ctx.telemetry_sources["motion"]()["deadman"] is False
+    assert platform.ctx.telemetry.build_one(Motion).deadman is False
 
     status = await api.call_local("teleop_set", platform_id="brasidas-1", linear=0.5, angular=-0.2)
     assert status["engaged"] is True and status["target"][1] == platform.ctx.velocity_port
@@ -276,10 +278,10 @@ async def test_station_streams_only_while_it_holds_the_override(
 
     # The drive client goes quiet: zeros, still streamed (not the platform's deadman).
     await wait_until(lambda: last_motor() == STOP)
-    accepted = link()["accepted"]
-    await wait_until(lambda: link()["accepted"] >= accepted + 5)
-    assert platform.ctx.telemetry_sources["motion"]()["deadman"] is False
-    assert link()["dropped"]["bad_tag"] == 0 and link()["dropped"]["not_holder"] == 0
+    accepted = link().accepted
+    await wait_until(lambda: link().accepted >= accepted + 5)
+    assert platform.ctx.telemetry.build_one(Motion).deadman is False
+    assert link().dropped["bad_tag"] == 0 and link().dropped["not_holder"] == 0
 
     report = await api.call_local("teleop_status", platform_id="brasidas-1")
     assert report["platform"]["mode"] == "teleop" and report["source"] == "drive timeout"
@@ -336,7 +338,7 @@ async def test_joystick_drives_the_platform_this_station_engaged(
     os.write(fds[0], button(BUTTON_LB, False, True) + axis(AXIS_LEFT_Y, -16384))
     assert (await api.call_local("movrd", platform_id="brasidas-1", engaged=True))["accepted"]
     await wait_until(lambda: teleop.last_engaged == "brasidas-1")
-    await wait_until(lambda: platform.ctx.telemetry_sources["velocity_link"]()["accepted"] >= 3)
+    await wait_until(lambda: platform.ctx.telemetry.build_one(VelocityLink).accepted >= 3)
     assert last_motor() == STOP  # stick deflected, enable not held
 
     os.write(fds[0], button(BUTTON_LB, True))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import functools
 import os
 import socket
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -15,6 +16,7 @@ from brasidas import topics
 from brasidas.bus import Bus
 from brasidas.codecs import pvel
 from brasidas.codecs.pvel import DropReason, PvelSentence
+from brasidas.codecs.telemetry_schema import Motion, VelocityLink
 from brasidas.messages import Mode, OverrideState, Velocity
 from platformd.app import PlatformDaemon
 from platformd.arbiter import STOP, MotionArbiter
@@ -244,15 +246,15 @@ async def test_stream_end_to_end_with_spoofs_and_session_loss(
 
         # Before the override: the stream moves nothing.
         good.sendto(encoder.encode(0.5, 0.0), target)
-        stats = daemon.ctx.telemetry_sources["velocity_link"]
-        await wait_until(lambda: stats()["dropped"]["not_engaged"] == 1)
+        stats = functools.partial(daemon.ctx.telemetry.build_one, VelocityLink)
+        await wait_until(lambda: stats().dropped["not_engaged"] == 1)
 
         # Engaging is acknowledged only once the motors follow the stream (and are at zero).
         bus.publish(topics.CMD_VEL, Velocity(0.3, 0.0))
         assert commands[-1] == Velocity(0.3, 0.0)
         assert await conn.call("set_manual_override", engaged=True) is True
-        motion = daemon.ctx.telemetry_sources["motion"]
-        assert motion()["mode"] == "teleop" and commands[-1] == STOP
+        motion = functools.partial(daemon.ctx.telemetry.build_one, Motion)
+        assert motion().mode == "teleop" and commands[-1] == STOP
 
         good.sendto(encoder.encode(0.5, -0.25), target)
         await wait_until(lambda: commands[-1] == Velocity(0.5, -0.25))
@@ -275,13 +277,13 @@ async def test_stream_end_to_end_with_spoofs_and_session_loss(
         good.sendto(b"$PVEL,999999,0.1,0.1*00", target)
         await wait_until(
             lambda: (
-                stats()["dropped"]["out_of_order"] == 1
-                and stats()["dropped"]["not_holder"] == 1
-                and stats()["dropped"]["bad_tag"] == 2
-                and stats()["dropped"]["bad_checksum"] == 1
+                stats().dropped["out_of_order"] == 1
+                and stats().dropped["not_holder"] == 1
+                and stats().dropped["bad_tag"] == 2
+                and stats().dropped["bad_checksum"] == 1
             )
         )
-        assert commands[-1] == Velocity(1.0, 1.0) and stats()["accepted"] == 2
+        assert commands[-1] == Velocity(1.0, 1.0) and stats().accepted == 2
 
         # The counters reach the bus for telemetry.
         receiver = next(a for a in daemon.ctx.supervisor.actors if a.name == "velocity")
@@ -291,10 +293,10 @@ async def test_stream_end_to_end_with_spoofs_and_session_loss(
 
         # The session ends: back to Autonomous Mode with the motors at zero.
         await conn.close()
-        await wait_until(lambda: motion()["mode"] == "autonomous")
+        await wait_until(lambda: motion().mode == "autonomous")
         assert commands[-1] == STOP
         good.sendto(encoder.encode(0.5, 0.5), target)
-        await wait_until(lambda: stats()["dropped"]["not_engaged"] == 2)
+        await wait_until(lambda: stats().dropped["not_engaged"] == 2)
         assert commands[-1] == STOP
     finally:
         good.close()
@@ -343,7 +345,7 @@ async def test_insecure_platform_accepts_untagged_from_the_holder_host(
         spoof.sendto(pvel.encode(1, -1.0, 0.0), target)
         good.sendto(pvel.encode(2, 0.25, 0.0), target)
         await wait_until(lambda: commands[-1] == Velocity(0.25, 0.0))
-        assert daemon.ctx.telemetry_sources["velocity_link"]()["dropped"]["not_holder"] == 1
+        assert daemon.ctx.telemetry.build_one(VelocityLink).dropped["not_holder"] == 1
     finally:
         good.close()
         spoof.close()
@@ -360,7 +362,7 @@ async def test_session_timeout_returns_to_autonomous_while_packets_keep_coming(
     commands = motor_log(daemon.bus)
     conn = await open_connection(daemon, fleet_key)
     sock = udp_socket()
-    stats = daemon.ctx.telemetry_sources["velocity_link"]
+    stats = functools.partial(daemon.ctx.telemetry.build_one, VelocityLink)
     try:
         assert await conn.call("set_manual_override", engaged=True) is True
         target = ("127.0.0.1", daemon.ctx.velocity_port)
@@ -380,8 +382,8 @@ async def test_session_timeout_returns_to_autonomous_while_packets_keep_coming(
             await asyncio.wait_for(closed.wait(), 5)
             assert commands[-1] == STOP
             assert not daemon.bus.last(topics.OVERRIDE_STATE).engaged
-            dropped = stats()["dropped"]["not_engaged"]
-            await wait_until(lambda: stats()["dropped"]["not_engaged"] >= dropped + 3)
+            dropped = stats().dropped["not_engaged"]
+            await wait_until(lambda: stats().dropped["not_engaged"] >= dropped + 3)
             assert commands[-1] == STOP
             streaming.cancel()
     finally:

@@ -4,17 +4,46 @@ from __future__ import annotations
 
 import shutil
 from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any
 
 import pytest
 from conftest import free_udp_port, quiet_platform_config, wait_until
 
 from brasidas import topics
+from brasidas.codecs.telemetry_schema import schema_document
 from brasidas.config import StationConfig, load_config
 from platformd.app import PlatformDaemon
 from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+# Wraps every telemetry report's snapshot (answered or pushed) in proxies that record each field the page reads
+# ("gps.sats"), so the test can check the names against the schema the station serves.
+RECORD_READS = """
+window.__telemetryReads = new Set();
+const record = (value, path, depth) => {
+  if (value === null || typeof value !== "object" || Array.isArray(value) || depth > 3) return value;
+  return new Proxy(value, {
+    get(target, key, receiver) {
+      const item = Reflect.get(target, key, receiver);
+      if (typeof key !== "string") return item;
+      const name = path ? `${path}.${key}` : key;
+      window.__telemetryReads.add(name);
+      return record(item, name, depth + 1);
+    },
+  });
+};
+const parse = JSON.parse;
+JSON.parse = function (text, reviver) {
+  const value = parse.call(this, text, reviver);
+  for (const report of [value?.result, value?.params]) {
+    if (report && typeof report === "object" && "snapshot" in report) {
+      report.snapshot = record(report.snapshot, "", 0);
+    }
+  }
+  return value;
+};
+"""
 CHROMIUM_ARGS = [
     "--no-sandbox",  # tests run as root
     "--disable-gpu",
@@ -62,6 +91,7 @@ async def test_console_lists_connects_and_takes_the_override(
         browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         try:
             page = await browser.new_page()
+            await page.add_init_script(RECORD_READS)
             errors: list[str] = []
             page.on("pageerror", lambda error: errors.append(str(error)))
             await page.goto(f"http://127.0.0.1:{station.api_port}/")
@@ -86,5 +116,45 @@ async def test_console_lists_connects_and_takes_the_override(
             await wait_until(lambda: not platform.bus.last(topics.OVERRIDE_STATE).engaged)
             await expect(page.locator("#driving")).to_have_text("not driving")
             assert errors == []
+
+            # Every telemetry field the page read is one the schema has (a renamed field fails
+            # here, not as a "?" on the operator's screen).
+            base = f"http://127.0.0.1:{station.api_port}"
+            answer = await page.request.get(f"{base}/api/telemetry-schema.json")
+            document = await answer.json()
+            assert document == schema_document()
+            reads = set(await page.evaluate("[...window.__telemetryReads]"))
+            unknown = sorted(name for name in reads if not known(document, name))
+            assert unknown == [], f"console.js reads fields the schema does not have: {unknown}"
+            assert {"gps.sats", "gps.lat", "battery", "computer.mem_free_mb"} <= reads
         finally:
             await browser.close()
+
+
+def known(document: dict[str, Any], path: str) -> bool:
+    """``path`` (section.field.nested...) names a field of the schema, or an entry of a map.
+
+    ``error`` is every section's error (``{"error": why}``, see telemetry_schema)."""
+    section, *names = path.split(".")
+    entry = document["sections"].get(section)
+    if entry is None:
+        return False
+    fields = entry["fields"]
+    for index, name in enumerate(names):
+        if index == 0 and name == "error":
+            return True
+        field = fields.get(name)
+        if field is None:
+            return False
+        if field["type"].startswith("map["):
+            return True  # any key of a map (stream names)
+        fields = field.get("fields", {})
+    return True
+
+
+def test_the_field_check_catches_a_renamed_field() -> None:
+    document = schema_document()
+    assert known(document, "gps.sats") and known(document, "streams.states.navcam")
+    assert known(document, "attitude.imu.temp_c") and known(document, "computer.error")
+    assert not known(document, "gps.satellites") and not known(document, "gps.stats.port")
+    assert not known(document, "autonomy")

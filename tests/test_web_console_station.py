@@ -332,7 +332,7 @@ async def test_warnings_audio_both_ways_and_a_closed_page_stops_the_robot(
             await expect(listen).to_have_attribute(
                 "data-decoded", re.compile(r"^([2-9]\d|\d{3,})$"), timeout=10_000
             )  # 20 packets of 20 ms decoded in the page
-            speaker = rover.ctx.capabilities["streams"].__self__.streams["audio_in"]
+            speaker = rover.ctx.media.streams["audio_in"]
             await page.locator("#talk").hover()
             await page.mouse.down()
             await wait_until(lambda: speaker.hears_sound, timeout=10)

@@ -11,6 +11,22 @@ import { Teleop } from "./teleop.js";
 const $ = (selector, root = document) => root.querySelector(selector);
 const STALE_MS = 2000;
 
+// Telemetry is read by the schema's field names (/api/telemetry-schema.json, generated from
+// brasidas/codecs/telemetry_schema.py); tests/test_web_console.py checks every name read here.
+// A section is null (no such device), its fields, or {error} when its source failed.
+let schema = null;
+fetch("/api/telemetry-schema.json").then((answer) => answer.json()).then((document) => { schema = document; });
+
+/** The section's value, or null when absent or failed (see ``failure``). */
+function section(snapshot, name) {
+  const value = snapshot?.[name];
+  return value && failure(value) === null ? value : null;
+}
+
+function failure(value) {
+  return value && Object.keys(value).length === 1 && typeof value.error === "string" ? value.error : null;
+}
+
 const state = {
   current: null,          // the platform shown, controlled and driven
   platforms: [],          // beacons heard (pushed)
@@ -239,12 +255,12 @@ function renderPlatforms() {
 
 function heading(platformId) {
   const snapshot = state.telemetry.get(platformId)?.report.snapshot;
-  return snapshot?.gps?.course ?? (snapshot?.attitude ? 90 - snapshot.attitude.yaw : null);
+  const attitude = section(snapshot, "attitude");
+  return section(snapshot, "gps")?.course ?? (attitude?.yaw != null ? 90 - attitude.yaw : null);
 }
 
 function updateMap(platformId) {
-  const snapshot = state.telemetry.get(platformId)?.report.snapshot;
-  const gps = snapshot?.gps;
+  const gps = section(state.telemetry.get(platformId)?.report.snapshot, "gps");
   if (gps?.fix && gps.lat != null) {
     map.update(platformId, [gps.lat, gps.lon], heading(platformId), {
       current: platformId === state.current, connected: true,
@@ -355,7 +371,7 @@ function renderControls() {
   const button = $("#override");
   button.setAttribute("aria-pressed", String(drives));
   button.dataset.state = state.override;
-  const holder = state.telemetry.get(state.current)?.report.snapshot?.override;
+  const holder = section(state.telemetry.get(state.current)?.report.snapshot, "override");
   button.textContent = {
     idle: holder?.engaged ? `override: held by ${holder.station ?? "another station"}` : "override: autonomous",
     pending: "override: pending…",
@@ -364,7 +380,7 @@ function renderControls() {
   }[state.override];
   teleop.setActive(drives);
   setPill("#driving", drives ? `this console is driving ${state.current}` : "not driving", drives ? "teleop" : "");
-  const lights = state.telemetry.get(state.current)?.report.snapshot?.lights;
+  const lights = section(state.telemetry.get(state.current)?.report.snapshot, "lights");
   if (lights) {
     $("#lights-main").setAttribute("aria-pressed", String(Boolean(lights.main)));
     $("#lights-pos").setAttribute("aria-pressed", String(Boolean(lights.positional)));
@@ -378,7 +394,7 @@ function renderControls() {
 }
 
 function renderStreams() {
-  const streams = Object.entries(state.telemetry.get(state.current)?.report.snapshot?.streams ?? {});
+  const streams = Object.entries(section(state.telemetry.get(state.current)?.report.snapshot, "streams")?.states ?? {});
   const body = $("#streams tbody");
   const wanted = streams.map(([name, stream]) => `${name}:${stream}`).join(",");
   if (body.dataset.shown === wanted) return;
@@ -405,28 +421,41 @@ function renderStreams() {
 
 // ---------------------------------------------------------------- status and annunciator
 
+const fixed = (value, digits) => (typeof value === "number" ? value.toFixed(digits) : "—");
+
 function telemetryRows(snapshot, link) {
   const rows = [];
-  const add = (name, value) => { if (value !== null && value !== undefined) rows.push([name, value]); };
-  const override = snapshot.override;
-  add("mode", override && `${override.mode ?? (override.engaged ? "teleop" : "autonomous")}${override.engaged ? ` (override: ${override.station ?? "?"})` : ""}`);
-  add("battery", snapshot.battery && `${snapshot.battery.volts ?? "?"} V ${snapshot.battery.level ?? ""}`);
-  const controller = snapshot.controller;
-  add("controller", controller && `${controller.connected ? "connected" : "LOST"}  heatsinks ${(controller.temps_c ?? []).join("/")} °C  motors ${(controller.amps ?? []).join("/")} A`);
-  const gps = snapshot.gps;
-  add("gps", gps && (gps.fix ? `${gps.lat?.toFixed(6)}, ${gps.lon?.toFixed(6)}  ${gps.sats ?? "?"} sats  hdop ${gps.hdop ?? "?"}` : "no fix"));
-  const attitude = snapshot.attitude;
-  add("attitude", attitude && ["roll", "pitch", "yaw"].map((k) => `${k} ${attitude[k]?.toFixed?.(1) ?? "?"}°`).join("  "));
-  const streams = Object.entries(snapshot.streams ?? {});
-  add("streams", streams.length ? streams.map(([name, stream]) => `${name} ${stream}`).join("  ") : null);
-  const computer = snapshot.computer;
-  add("computer", computer && [
-    computer.cpu_temp_c == null ? null : `cpu ${computer.cpu_temp_c} °C`,
-    `load ${(computer.load ?? []).map((v) => v.toFixed(2)).join(" ")}`,
-    `free ${Math.round(computer.mem_free_mb ?? 0)} MB`,
+  const add = (name, show) => {
+    const value = snapshot[name];
+    if (value === null || value === undefined) return;
+    const error = failure(value);
+    if (error !== null) { rows.push([name, `ERROR ${error}`]); return; }
+    const stale = "stale" in schema.sections[name].fields && value.stale;
+    rows.push([name, show(value) + (stale ? `  STALE (${fixed(value.age_ms / 1000, 1)} s old)` : "")]);
+  };
+  add("override", (o) => `${o.mode}${o.engaged ? ` (override: ${o.station ?? "—"})` : ""}`);
+  add("battery", (b) => `${fixed(b.volts, 1)} V ${b.level ?? (b.monitor ? "" : "monitor off")}`);
+  add("controller", (c) => `${c.connected ? "connected" : "LOST"}  heatsinks ${(c.temps_c ?? []).join("/")} °C  motors ${(c.amps ?? []).join("/")} A`);
+  add("gps", (g) => (g.fix
+    ? `${fixed(g.lat, 6)}, ${fixed(g.lon, 6)}  ${g.sats ?? "—"} sats  hdop ${g.hdop ?? "—"}`
+    : `no fix${g.lost_for_s == null ? "" : ` (${fixed(g.lost_for_s, 0)} s)`}`));
+  add("attitude", (a) => `roll ${fixed(a.roll, 1)}°  pitch ${fixed(a.pitch, 1)}°  yaw ${fixed(a.yaw, 1)}°`);
+  add("streams", (s) => Object.entries(s.states).map(([name, stream]) => `${name} ${stream}`).join("  ") || "none");
+  add("computer", (c) => [
+    c.cpu_temp_c == null ? null : `cpu ${c.cpu_temp_c} °C`,
+    `load ${(c.load ?? []).map((v) => v.toFixed(2)).join(" ")}`,
+    `free ${Math.round(c.mem_free_mb ?? 0)} MB`,
   ].filter(Boolean).join("  "));
-  if (link) add("link", `loss ${link.loss_pct ?? "?"}%  rtt ${link.round_trip_ms ?? "?"} ms  silence ${link.silence_s ?? "?"} s`);
+  if (link) rows.push(["link", `loss ${link.loss_pct ?? "—"}%  rtt ${link.round_trip_ms ?? "—"} ms  silence ${link.silence_s ?? "—"} s${link.error ? `  ${link.error}` : ""}`]);
   return rows;
+}
+
+function reportRows(report) {
+  if (!schema) return [["telemetry", "loading the telemetry schema…"]];
+  if (report.schema !== schema.version) {
+    return [["telemetry", `the station reports telemetry schema v${report.schema}; this page reads v${schema.version} (reload the page)`]];
+  }
+  return report.snapshot ? telemetryRows(report.snapshot, report.link) : [];
 }
 
 function renderStatus() {
@@ -436,7 +465,7 @@ function renderStatus() {
   const { report, at } = entry;
   const stale = performance.now() - at > STALE_MS || (report.link?.silence_s ?? 0) > STALE_MS / 1000;
   list.classList.toggle("stale", stale);
-  const rows = report.snapshot ? telemetryRows(report.snapshot, report.link) : [];
+  const rows = reportRows(report);
   if (stale) rows.unshift(["data", `STALE (nothing new for ${((performance.now() - at) / 1000).toFixed(1)} s)`]);
   list.replaceChildren(...rows.flatMap(([name, value]) => {
     const term = document.createElement("dt");

@@ -4,11 +4,12 @@ Wire layout of one datagram (always shorter than :data:`MAX_DATAGRAM` bytes)::
 
     version (1) | flags (1) | msgpack [platform_id, seq, timestamp, sections] | tag (16, if flagged)
 
-``sections`` is a map of snapshot sections (``{"gps": {...}, "battery": {...}}``). A snapshot
+``sections`` is a map of snapshot sections by their wire keys (``{"gps": {...}, "bat": {...}}``,
+see :mod:`brasidas.codecs.telemetry_schema`; this codec only needs them JSON-like). A snapshot
 too large for one datagram is split by section over several datagrams, each with its own
 sequence number, so the receiver simply merges every accepted datagram into its latest
 snapshot: no reassembly, and a lost datagram only delays the sections it carried. A section
-too large for a datagram on its own is replaced by ``{"trimmed": <packed size>}``.
+too large for a datagram on its own is replaced by that section's error (``{"!": "trimmed..."}``).
 
 The tag is HMAC-SHA256 with the session key over everything before it, truncated to 16 bytes
 (:func:`brasidas.security.tag`). The decoder accepts only strictly increasing sequence
@@ -24,8 +25,10 @@ from typing import Any
 import msgpack
 
 from brasidas import security
+from brasidas.codecs.telemetry_schema import ERROR_KEY, SCHEMA_VERSION
 
-VERSION = 1
+VERSION = SCHEMA_VERSION
+"""The first byte: the telemetry schema's version (:mod:`brasidas.codecs.telemetry_schema`)."""
 MAX_DATAGRAM = 1200
 """Every datagram is strictly shorter than this (fits any path MTU on the mesh)."""
 TAG_LENGTH = 16
@@ -102,7 +105,7 @@ class TelemetryEncoder:
             value = sections[name]
             if not self._fits({name: value}):
                 self.trimmed += 1
-                value = {"trimmed": sizes[name]}
+                value = {ERROR_KEY: f"trimmed: {sizes[name]} bytes do not fit a datagram"}
             for group in groups:
                 if self._fits({**group, name: value}):
                     group[name] = value
@@ -137,6 +140,8 @@ class TelemetryDecoder:
         self.last_seq: int | None = None
         self.accepted = 0
         self.rejected: dict[str, int] = dict.fromkeys(REJECT_REASONS, 0)
+        self.foreign_version: int | None = None
+        """The version byte of the last datagram refused for its version (another schema)."""
 
     def feed(self, datagram: bytes) -> list[TelemetryFrame]:
         """The accepted frame (a list of one), or ``[]`` when refused (and counted)."""
@@ -144,6 +149,8 @@ class TelemetryDecoder:
             return [self.decode(datagram)]
         except TelemetryDecodeError as err:
             self.rejected[err.reason] += 1
+            if err.reason == "version":
+                self.foreign_version = datagram[0]
             return []
 
     def decode(self, datagram: bytes) -> TelemetryFrame:

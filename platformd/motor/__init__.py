@@ -29,6 +29,7 @@ from __future__ import annotations
 from typing import Any
 
 from brasidas.clock import Clock
+from brasidas.codecs.telemetry_schema import Motor
 from platformd.context import PlatformContext
 from platformd.motor.controller import MotorController
 from platformd.motor.link import LinkError, ReplyTimeout, SerialLink
@@ -52,6 +53,6 @@ async def async_setup(ctx: PlatformContext, *, clock: Clock | None = None) -> No
         return
     controller = MotorController(ctx, clock=clock)
     ctx.capabilities["motor"] = lambda: capability(controller)
-    ctx.telemetry_sources["motor"] = controller.snapshot
-    ctx.diagnostics_sources["motor"] = lambda: dict(controller.counters)
+    ctx.telemetry.register(Motor, controller.snapshot)
+    ctx.telemetry.add_counters("motor", lambda: controller.counters)
     ctx.supervisor.start(controller)

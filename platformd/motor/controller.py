@@ -8,8 +8,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from collections import deque
-from typing import Any
 
 from brasidas import topics
 from brasidas.actor import Actor
@@ -24,6 +24,7 @@ from brasidas.codecs.commands import (
     PayloadError,
     parse_switch,
 )
+from brasidas.codecs.telemetry_schema import Motor
 from brasidas.messages import CommandResult, ControllerStatus, Velocity
 from platformd.commands import SystemCommand
 from platformd.context import PlatformContext
@@ -94,6 +95,8 @@ class MotorController(Actor):
         self._zero_sent = asyncio.Event()
         self._polls: deque[Command] = deque()
         self._poll_values: dict[str, tuple[int, ...]] = {}
+        self._polled_at = time.monotonic()
+        """When the last poll reply arrived (the age of the status's readings)."""
         self._last_velocity_at = float("-inf")
         self._next_poll = 0.0
         self._unanswered_in_row = 0
@@ -417,6 +420,7 @@ class MotorController(Actor):
             return
         if reply is not None and reply.status is Status.VALUES:
             self._poll_values[command.text[1]] = reply.values
+            self._polled_at = time.monotonic()
         if not self._polls:
             self._publish_status(connected=True)
 
@@ -497,16 +501,12 @@ class MotorController(Actor):
                 ax3500.internal_volts(battery[1]) if battery and len(battery) >= 2 else None
             ),
             error=error,
+            stamp=self._polled_at,
         )
         if not connected:
             self._poll_values.clear()
         self.bus.publish(topics.CONTROLLER_STATUS, self.status)
 
-    def snapshot(self) -> dict[str, Any]:
+    def snapshot(self) -> Motor:
         """Driver state for telemetry (``motor`` section); its counters go with diagnostics."""
-        return {
-            "connected": self._ready,
-            "desired": list(self.desired),
-            "acknowledged": list(self.sent),
-            "error": self.status.error,
-        }
+        return Motor(self._ready, tuple(self.desired), tuple(self.sent), self.status.error)

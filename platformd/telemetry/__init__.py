@@ -9,8 +9,9 @@ computer's figures; :mod:`.methods` holds the signaling methods ``request_teleme
 
 from __future__ import annotations
 
-from platformd.context import PlatformContext
-from platformd.telemetry.aggregator import TelemetryAggregator, battery_level, to_plain
+from typing import TYPE_CHECKING
+
+from platformd.telemetry.aggregator import TelemetryAggregator, battery_level
 from platformd.telemetry.methods import (
     MAX_RATE_HZ,
     TelemetryMethods,
@@ -19,6 +20,9 @@ from platformd.telemetry.methods import (
 )
 from platformd.telemetry.stream import StreamSender, TelemetryStream
 from platformd.telemetry.system import cpu_temperature, system_info
+
+if TYPE_CHECKING:
+    from platformd.context import PlatformContext
 
 __all__ = [
     "MAX_RATE_HZ",
@@ -32,14 +36,12 @@ __all__ = [
     "cpu_temperature",
     "stream_parameters",
     "system_info",
-    "to_plain",
 ]
 
 
 async def async_setup(ctx: PlatformContext) -> None:
     aggregator = TelemetryAggregator(ctx)
-    for name, source in aggregator.sources().items():
-        ctx.telemetry_sources.setdefault(name, source)  # never replace another owner's section
+    aggregator.register()
     methods = TelemetryMethods(ctx, aggregator.sender)
     ctx.rpc.add("request_telemetry", methods.request_telemetry)
     ctx.rpc.add("stop_telemetry", methods.stop_telemetry)

@@ -1,51 +1,74 @@
-"""The aggregator: the latest value of every reporting topic, snapshots, and platform health.
+"""The aggregator: builds the platform's sections, snapshots, and the platform's health.
 
-The aggregator subscribes to every reporting topic and keeps only the last message of each
-(an IMU at 100 Hz costs one assignment per sample); sections are converted to plain values
-only when a snapshot is built. Those sections fill ``ctx.telemetry_sources``, so the
-``get_telemetry_report`` signaling method and the datagram stream carry the same snapshot.
-Command 20.0 switches the diagnostics section on or off. A retained
-:class:`~brasidas.messages.PlatformHealth` summarises the state for the beacon's status word.
+The sections are built from the bus's retained values (``bus.last``) when a snapshot is
+taken, each as its :mod:`~brasidas.codecs.telemetry_schema` dataclass: an IMU at 100 Hz costs
+nothing here. The aggregator registers its sections in ``ctx.telemetry`` beside those of
+other subsystems; the ``get_telemetry_report`` signaling method and the datagram stream carry
+the same snapshot. Every sensor reading carries its age, and is *stale* when older than a
+few periods of its sensor. Command 20.0 switches the diagnostics section on or off. A
+retained :class:`~brasidas.messages.PlatformHealth` summarises the state for the beacon's
+status word.
 """
 
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import logging
 import socket
 import time
 from collections.abc import Callable
-from datetime import date, datetime
-from datetime import time as dtime
-from enum import Enum
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.codecs.commands import DIAGNOSTICS, PayloadError, parse_switch
+from brasidas.codecs.telemetry_schema import (
+    Attitude,
+    Battery,
+    Computer,
+    Controller,
+    Diagnostics,
+    Gps,
+    GpsReader,
+    Imu,
+    Lights,
+    Link,
+    Override,
+    Section,
+    SectionValue,
+    Streams,
+    age_ms,
+    snapshot_to_wire,
+    stale_after,
+)
 from brasidas.messages import (
     CommandResult,
-    ControllerStatus,
     GpsFix,
     GpsFixLost,
-    ImuStatus,
     PlatformHealth,
     SessionClosed,
     StreamStatus,
 )
-from brasidas.status import Battery
+from brasidas.status import Battery as BatteryLevel
 from platformd.commands import SystemCommand
-from platformd.context import PlatformContext
 from platformd.telemetry.stream import StreamSender
 from platformd.telemetry.system import MEMINFO, SYSTEM_INFO_MAX_AGE, THERMAL_ROOT, system_info
 
+if TYPE_CHECKING:
+    from brasidas.config import TelemetrySection
+    from platformd.context import PlatformContext
+
 _LOGGER = logging.getLogger(__name__)
+
+ATTITUDE_MAX_HZ = 10.0
+"""The IMU publishes its attitude at most this often, whatever its sample rate."""
+GPS_DEFAULT_HZ = 1.0
+"""Epochs per second of a real receiver (the NEO-6M's default)."""
 
 
 class TelemetryAggregator(Actor):
-    """Keeps the latest value of every reporting topic; builds snapshots; runs the streams."""
+    """Builds the platform's sections from the bus; takes snapshots; runs the streams."""
 
     name = "telemetry"
 
@@ -54,28 +77,49 @@ class TelemetryAggregator(Actor):
         ctx: PlatformContext,
         *,
         clock: Callable[[], float] = time.time,
+        monotonic: Callable[[], float] = time.monotonic,
         thermal_root: Path = THERMAL_ROOT,
         meminfo: Path = MEMINFO,
     ) -> None:
         super().__init__(ctx.bus)
         self.ctx = ctx
         self._clock = clock
+        self._monotonic = monotonic
         self._thermal_root = thermal_root
         self._meminfo = meminfo
-        self.latest: dict[str, Any] = {}
-        """The last report of each subsystem, by section name (see :meth:`subscribe_reports`)."""
         self.stream_states: dict[str, StreamStatus] = {}
         self.diagnostics = False
         self.health: PlatformHealth | None = None
         self.snapshots = 0
-        self.sender = StreamSender(ctx.config.platform.id, self.snapshot, clock)
-        self._system: tuple[float, dict[str, Any]] | None = None
+        self.sender = StreamSender(
+            ctx.config.platform.id, lambda: snapshot_to_wire(self.snapshot()), clock
+        )
+        self._system: tuple[float, Computer] | None = None
         self._gps_lost_at: float | None = None
+        self._gps_lost = False
+        config = ctx.config
+        self._stale_controller = stale_after(config.motor.poll_hz)
+        gps_hz = config.gps.sim_rate_hz if config.sim.enabled else GPS_DEFAULT_HZ
+        self._stale_gps = stale_after(gps_hz)
+        self._stale_attitude = stale_after(min(config.imu.rate_hz, ATTITUDE_MAX_HZ))
+
+    def register(self) -> None:
+        """Register this aggregator's sections in ``ctx.telemetry``."""
+        sources = self.ctx.telemetry
+        sources.register(Override, self.override_section)
+        sources.register(Lights, self.lights_section)
+        sources.register(Battery, self.battery_section)
+        sources.register(Controller, self.controller_section)
+        sources.register(Gps, self.gps_section)
+        sources.register(Attitude, self.attitude_section)
+        sources.register(Computer, self.computer_section)
+        sources.register(Link, self.link_section)
+        sources.register(Streams, self.streams_section)
+        sources.register(Diagnostics, self.diagnostics_section)
 
     # ------------------------------------------------------------------ lifecycle
 
     async def run(self) -> None:
-        self.latest.clear()
         self.on_remove(self.ctx.commands.register(self.name, {DIAGNOSTICS: self._command}))
         self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
         self.subscribe_reports()
@@ -92,33 +136,20 @@ class TelemetryAggregator(Actor):
             transport.close()
 
     def subscribe_reports(self) -> None:
-        """Keep the last report of every subsystem; retained topics hand theirs over at once.
-        (Autonomy has no topic yet: its section stays null until it does.)"""
-        self.subscribe(topics.LIGHTS_STATE, self._keep("lights"))
-        self.subscribe(topics.CONTROLLER_STATUS, self._keep("controller", health=True))
+        """Follow what the health summary and the unretained topics need; the rest is read
+        from the bus's retained values when a snapshot is built."""
+        self.subscribe(topics.CONTROLLER_STATUS, lambda _: self._update_health())
+        self.subscribe(topics.IMU_STATUS, lambda _: self._update_health())
         self.subscribe(topics.GPS_FIX, self._on_fix)
         self.subscribe(topics.GPS_FIX_LOST, self._on_fix_lost)
-        self.subscribe(topics.GPS_STATS, self._keep("gps_stats"))
-        self.subscribe(topics.ATTITUDE, self._keep("attitude"))  # ~10 Hz: store only
-        self.subscribe(topics.IMU_STATUS, self._keep("imu", health=True))
-        self.subscribe(topics.VELOCITY_LINK_STATS, self._keep("velocity_link"))
         self.subscribe(topics.STREAM_STATES, self._on_stream_state)
 
-    def _keep(self, key: str, *, health: bool = False) -> Callable[[Any], None]:
-        def keep(message: Any) -> None:
-            self.latest[key] = message
-            if health:
-                self._update_health()
-
-        return keep
-
     def _on_fix(self, fix: GpsFix) -> None:
-        self.latest["gps_fix"] = fix
         self._gps_lost_at = None
         self._update_health()
 
     def _on_fix_lost(self, lost: GpsFixLost) -> None:
-        self.latest["gps_lost"] = lost
+        self._gps_lost = True
         self._gps_lost_at = self._clock()
         self._update_health()
 
@@ -144,128 +175,170 @@ class TelemetryAggregator(Actor):
 
     # ------------------------------------------------------------------ snapshot
 
-    def snapshot(self) -> dict[str, Any]:
-        """The full snapshot: mode and override, then every telemetry source."""
+    def snapshot(self) -> dict[type[Section], SectionValue]:
+        """Every registered section, built now (a failing one is that section's error)."""
         self.snapshots += 1
+        return self.ctx.telemetry.build()
+
+    def override_section(self) -> Override:
         override = self.bus.last(topics.OVERRIDE_STATE)
-        report: dict[str, Any] = {
-            "mode": override.mode.value if override else "autonomous",
-            "manual_override": bool(override and override.engaged),
-        }
-        for name, source in self.ctx.telemetry_sources.items():
-            report[name] = source()
-        return report
+        if override is None:
+            return Override()
+        return Override(override.mode.value, override.engaged, override.station_id)
 
-    def sources(self) -> dict[str, Callable[[], Any]]:
-        """The sections this aggregator contributes to ``ctx.telemetry_sources``."""
-        return {
-            "override": self.override_section,
-            "lights": lambda: to_plain(self.latest.get("lights")),
-            "battery": self.battery_section,
-            "controller": self.controller_section,
-            "gps": self.gps_section,
-            "attitude": self.attitude_section,
-            "computer": self.computer_section,
-            "link": self.link_section,
-            "streams": self.streams_section,
-            "autonomy": lambda: to_plain(self.latest.get("autonomy")),
-            "diagnostics": self.diagnostics_section,
-        }
+    def lights_section(self) -> Lights | None:
+        lights = self.bus.last(topics.LIGHTS_STATE)
+        return None if lights is None else Lights(lights.main, lights.positional)
 
-    def override_section(self) -> dict[str, Any]:
-        override = self.bus.last(topics.OVERRIDE_STATE)
-        return {
-            "engaged": bool(override and override.engaged),
-            "station": override.station_id if override else None,
-        }
-
-    def battery_section(self) -> dict[str, Any] | None:
-        status: ControllerStatus | None = self.latest.get("controller")
+    def battery_section(self) -> Battery | None:
+        status = self.bus.last(topics.CONTROLLER_STATUS)
         if status is None:
             return None
         volts, monitor = status.battery_volts, status.battery_monitor
         level = None
         if volts is not None and monitor:
             level = battery_level(volts, self.ctx.config.telemetry).name.lower()
-        return {"volts": _round(volts, 2), "level": level, "monitor": monitor}
+        age, stale = self._age(status.stamp, self._stale_controller, volts is not None)
+        return Battery(_round(volts, 2), level, monitor, age, stale)
 
-    def controller_section(self) -> dict[str, Any] | None:
-        status: ControllerStatus | None = self.latest.get("controller")
+    def controller_section(self) -> Controller | None:
+        status = self.bus.last(topics.CONTROLLER_STATUS)
         if status is None:
             return None
-        return {
-            "connected": status.connected,
-            "temps_c": _round(to_plain(status.heatsink_c), 1),
-            "amps": _round(to_plain(status.motor_amps), 1),
-            "internal_volts": _round(status.internal_volts, 2),
-        }
+        polled = status.heatsink_c is not None or status.motor_amps is not None
+        age, stale = self._age(status.stamp, self._stale_controller, polled)
+        return Controller(
+            status.connected,
+            _pair(status.heatsink_c, 1),
+            _pair(status.motor_amps, 1),
+            _round(status.internal_volts, 2),
+            status.error,
+            age,
+            stale,
+        )
 
-    def gps_section(self) -> dict[str, Any] | None:
-        fix = self.latest.get("gps_fix")
-        stats = self.latest.get("gps_stats")
-        if fix is None and stats is None and "gps_lost" not in self.latest:
+    def gps_section(self) -> Gps | None:
+        fix = self.bus.last(topics.GPS_FIX)
+        stats = self.bus.last(topics.GPS_STATS)
+        if fix is None and stats is None and not self._gps_lost:
             return None
-        section: dict[str, Any] = dict(to_plain(fix) or {}) if fix is not None else {}
-        section["fix"] = fix is not None and self._gps_lost_at is None
-        if self._gps_lost_at is not None:
-            section["lost_for_s"] = round(self._clock() - self._gps_lost_at, 1)
+        reader = None
         if stats is not None:
-            section["stats"] = to_plain(stats)
-        return section
+            reader = GpsReader(
+                stats.connected,
+                stats.sentences,
+                stats.fixes,
+                {reason: count for reason, count in stats.dropped.items() if count},
+                stats.incomplete_epochs,
+                stats.error,
+            )
+        lost_for = None
+        if self._gps_lost_at is not None:
+            lost_for = round(self._clock() - self._gps_lost_at, 1)
+        if fix is None:
+            return Gps(fix=False, lost_for_s=lost_for, stats=reader)
+        age, stale = self._age(fix.stamp, self._stale_gps, True)
+        return Gps(
+            fix=self._gps_lost_at is None,
+            lat=round(fix.latitude, 7),
+            lon=round(fix.longitude, 7),
+            alt=_round(fix.altitude_m, 1),
+            speed=_round(fix.speed_mps, 2),
+            course=_round(fix.course_deg, 1),
+            quality=fix.quality,
+            sats=fix.satellites,
+            hdop=_round(fix.hdop, 2),
+            time=fix.time,
+            lost_for_s=lost_for,
+            stats=reader,
+            age_ms=age,
+            stale=stale,
+        )
 
-    def attitude_section(self) -> dict[str, Any] | None:
-        attitude = self.latest.get("attitude")
-        imu = self.latest.get("imu")
-        if attitude is None and imu is None:
+    def attitude_section(self) -> Attitude | None:
+        attitude = self.bus.last(topics.ATTITUDE)
+        status = self.bus.last(topics.IMU_STATUS)
+        if attitude is None and status is None:
             return None
-        section: dict[str, Any] = dict(to_plain(attitude) or {}) if attitude is not None else {}
-        if imu is not None:
-            section["imu"] = to_plain(imu)
-        return section
+        imu = None
+        if status is not None:
+            imu = Imu(
+                status.ok,
+                status.error,
+                _round(status.temperature_c, 1),
+                status.samples,
+                status.read_errors,
+                status.calibrated,
+                status.fifo_overflows,
+            )
+        if attitude is None:
+            return Attitude(imu=imu)
+        age, stale = self._age(attitude.stamp, self._stale_attitude, True)
+        return Attitude(
+            round(attitude.roll_deg, 2),
+            round(attitude.pitch_deg, 2),
+            round(attitude.yaw_deg, 2),
+            tuple(round(v, 4) for v in (attitude.w, attitude.x, attitude.y, attitude.z)),
+            imu,
+            age,
+            stale,
+        )
 
-    def computer_section(self) -> dict[str, Any]:
+    def computer_section(self) -> Computer:
         now = time.monotonic()
         if self._system is None or now - self._system[0] > SYSTEM_INFO_MAX_AGE:
-            self._system = (now, system_info(self._thermal_root, self._meminfo))
+            info = system_info(self._thermal_root, self._meminfo)
+            load = info["load"]
+            computer = Computer(
+                info["cpu_temp_c"],
+                None if load is None else tuple(load),
+                info["mem_free_mb"],
+                info["mem_total_mb"],
+            )
+            self._system = (now, computer)
         return self._system[1]
 
-    def link_section(self) -> dict[str, Any]:
-        section: dict[str, Any] = {
-            "session_rtt_ms": None,  # measured by the station (heartbeats), not here
-            "sessions": self.ctx.session_count,
-            "telemetry_streams": len(self.sender.streams),
-        }
-        if "velocity_link" not in self.ctx.telemetry_sources:
-            # The velocity receiver reports its own section when it is there.
-            section["velocity"] = to_plain(self.latest.get("velocity_link"))
-        return section
+    def link_section(self) -> Link:
+        return Link(self.ctx.session_count, len(self.sender.streams))
 
-    def streams_section(self) -> dict[str, Any]:
-        states = {name: status.state for name, status in self.stream_states.items()}
-        # Streams that never changed state (idle since start) are still worth listing.
-        describe = self.ctx.capabilities.get("streams")
-        for stream in describe() if describe is not None else ():
-            states.setdefault(str(stream["name"]), stream["state"])
-        return states
+    def streams_section(self) -> Streams:
+        return Streams(self._stream_states())
 
-    def diagnostics_section(self) -> dict[str, Any] | None:
+    def diagnostics_section(self) -> Diagnostics | None:
         if not self.diagnostics:
             return None
-        return {
-            "actor_restarts": dict(self.ctx.supervisor.restarts),
-            "bus_delivery_errors": self.bus.delivery_errors,
-            "rpc": dict(self.ctx.rpc.counters),
-            "commands": dict(self.ctx.commands.counters),
-            "auth_failures": self.ctx.sessions.auth_failures,
-            "telemetry": self.counters(),
-            "gps": to_plain(self.latest.get("gps_stats")),
-            "imu": to_plain(self.latest.get("imu")),
-            **{name: source() for name, source in self.ctx.diagnostics_sources.items()},
-        }
+        sources = self.ctx.telemetry
+        return Diagnostics(
+            actor_restarts=dict(self.ctx.supervisor.restarts),
+            bus_delivery_errors=self.bus.delivery_errors,
+            rpc=dict(self.ctx.rpc.counters),
+            commands=dict(self.ctx.commands.counters),
+            auth_failures=self.ctx.sessions.auth_failures,
+            telemetry=self.counters(),
+            section_errors=dict(sources.errors),
+            subsystems={name: dict(counters()) for name, counters in sources.counters.items()},
+        )
 
     def counters(self) -> dict[str, int]:
         """Snapshots built, datagrams sent, send errors, sections trimmed."""
         return {"snapshots": self.snapshots, **self.sender.counters}
+
+    def _age(
+        self, stamp: float, stale_s: float | None, has_reading: bool
+    ) -> tuple[int | None, bool]:
+        """The reading's age in ms and whether it is stale (None, False without a reading)."""
+        if not has_reading:
+            return None, False
+        age = age_ms(self._monotonic(), stamp)
+        return age, stale_s is not None and age > stale_s * 1000
+
+    def _stream_states(self) -> dict[str, str]:
+        states = {name: status.state for name, status in self.stream_states.items()}
+        # Streams that never changed state (idle since start) are still worth listing.
+        media = self.ctx.media
+        for stream in media.describe_streams() if media is not None else ():
+            states.setdefault(str(stream["name"]), str(stream["state"]))
+        return states
 
     # ------------------------------------------------------------------ health
 
@@ -276,28 +349,34 @@ class TelemetryAggregator(Actor):
             await asyncio.sleep(1.0)
 
     def compute_health(self) -> PlatformHealth:
-        battery = self.battery_section()
-        level = Battery[battery["level"].upper()] if battery and battery["level"] else None
-        controller = self.controller_section()
+        status = self.bus.last(topics.CONTROLLER_STATUS)
+        level = BatteryLevel.UNKNOWN
+        if status is not None and status.battery_volts is not None and status.battery_monitor:
+            level = battery_level(status.battery_volts, self.ctx.config.telemetry)
+        connected = status is not None and status.connected
         faults: list[str] = []
-        if self.ctx.config.motor.enabled and controller is not None and not controller["connected"]:
+        if self.ctx.config.motor.enabled and status is not None and not connected:
             faults.append("controller")
-        imu: ImuStatus | None = self.latest.get("imu")
+        imu = self.bus.last(topics.IMU_STATUS)
         if imu is not None and (imu.error or not imu.ok):
             faults.append("imu")
-        states = self.streams_section()
+        states = self._stream_states()
         faults.extend(f"stream:{name}" for name, state in states.items() if state == "failed")
         return PlatformHealth(
-            battery=level or Battery.UNKNOWN,
-            gps_fix="gps_fix" in self.latest and self._gps_lost_at is None,
+            battery=level,
+            gps_fix=self.bus.last(topics.GPS_FIX) is not None and self._gps_lost_at is None,
             streaming=any(state in ("playing", "streaming") for state in states.values()),
-            controller=bool(controller and controller["connected"]),
+            controller=connected,
             fault=bool(faults),
             faults=tuple(faults),
         )
 
     def _update_health(self) -> None:
-        health = self.compute_health()
+        try:
+            health = self.compute_health()
+        except Exception:  # never let a bad report stop the snapshots (counted in the log)
+            _LOGGER.exception("platform health not computed")
+            return
         if health != self.health:
             self.health = health
             self.bus.publish(topics.PLATFORM_HEALTH, health)
@@ -306,44 +385,18 @@ class TelemetryAggregator(Actor):
 # --------------------------------------------------------------------------- helpers
 
 
-def battery_level(volts: float, config: Any) -> Battery:
+def battery_level(volts: float, config: TelemetrySection) -> BatteryLevel:
     """Coarse level from the pack voltage and ``telemetry.battery_*_v`` thresholds."""
     if volts < config.battery_low_v:
-        return Battery.LOW
+        return BatteryLevel.LOW
     if volts < config.battery_high_v:
-        return Battery.MEDIUM
-    return Battery.HIGH
+        return BatteryLevel.MEDIUM
+    return BatteryLevel.HIGH
 
 
-def to_plain(value: Any, digits: int = 7) -> Any:
-    """A bus message as JSON-like values: dataclasses to dicts, enums to values, floats rounded."""
-    if value is None or isinstance(value, bool | int | str):
-        return value
-    if isinstance(value, float):
-        return round(value, digits)
-    if isinstance(value, Enum):
-        return to_plain(value.value, digits)
-    if isinstance(value, datetime | date | dtime):
-        return value.isoformat()
-    as_dict = getattr(value, "as_dict", None)
-    if callable(as_dict):
-        return to_plain(as_dict(), digits)
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {
-            f.name: to_plain(getattr(value, f.name), digits)
-            for f in dataclasses.fields(value)
-            if not f.name.startswith("_")
-        }
-    if isinstance(value, dict):
-        return {str(k): to_plain(v, digits) for k, v in value.items()}
-    if isinstance(value, list | tuple | set | frozenset):
-        return [to_plain(item, digits) for item in value]
-    return str(value)
+def _round(value: float | None, digits: int) -> float | None:
+    return None if value is None else round(value, digits)
 
 
-def _round(value: Any, digits: int) -> Any:
-    if isinstance(value, float):
-        return round(value, digits)
-    if isinstance(value, list):
-        return [_round(item, digits) for item in value]
-    return value
+def _pair(values: tuple[float, ...] | None, digits: int) -> tuple[float, ...] | None:
+    return None if values is None else tuple(round(v, digits) for v in values)

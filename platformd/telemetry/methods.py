@@ -7,9 +7,9 @@ from typing import TYPE_CHECKING, Any
 
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
 from brasidas.codecs.telemetry import MAX_DATAGRAM, TAG_LENGTH, VERSION
-from platformd.context import PlatformContext
 
 if TYPE_CHECKING:
+    from platformd.context import PlatformContext
     from platformd.telemetry.stream import StreamSender
 
 MAX_RATE_HZ = 50.0

@@ -1,8 +1,8 @@
 """The annunciator (the seed's Status Display, ch. 11 §4.2): named warnings from snapshots. Pure.
 
 Feed it a snapshot and the link figures with the time; it answers which warnings were raised
-and cleared (low battery, controller over-temperature, GPS fix lost, link degraded, failed
-streams), each with its group 90 code.
+and cleared (low battery, controller over-temperature, GPS fix lost, a stale sensor reading,
+link degraded, failed streams), each with its group 90 code.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from brasidas.codecs.commands import CommandCode
+from brasidas.codecs.telemetry_schema import Attitude, Battery, Controller, Gps, Snapshot, Streams
 from brasidas.config import TelemetryReceiverSection
 
 NOTIFICATION_GROUP = 90
@@ -20,6 +21,7 @@ CONTROLLER_OVER_TEMPERATURE = CommandCode(NOTIFICATION_GROUP, 11)
 GPS_FIX_LOST = CommandCode(NOTIFICATION_GROUP, 12)
 LINK_DEGRADED = CommandCode(NOTIFICATION_GROUP, 13)
 STREAM_FAILED = CommandCode(NOTIFICATION_GROUP, 14)
+SENSOR_STALE = CommandCode(NOTIFICATION_GROUP, 15)
 FAILED_STREAM_STATES = frozenset({"failed", "error"})
 
 
@@ -57,22 +59,32 @@ class Annunciator:
         self.active: dict[str, Alert] = {}
 
     def evaluate(
-        self, snapshot: dict[str, Any], loss_pct: float, silence: float | None, now: float
+        self, snapshot: Snapshot, loss_pct: float, silence: float | None, now: float
     ) -> list[Change]:
         """Update the warnings from the latest values; returns what changed."""
         wanted: dict[str, tuple[CommandCode, str]] = {}
         keep: set[str] = set()
-        self._battery(snapshot.get("battery"), wanted, keep)
-        self._temperature(snapshot.get("controller"), wanted, keep)
-        gps = snapshot.get("gps")
-        if isinstance(gps, dict) and gps.get("fix") is False:
-            lost = gps.get("lost_for_s")
+        self._battery(snapshot.get(Battery), wanted, keep)
+        self._temperature(snapshot.get(Controller), wanted, keep)
+        gps = snapshot.get(Gps)
+        if gps is not None and not gps.fix:
+            lost = gps.lost_for_s
             wanted["gps_fix_lost"] = (
                 GPS_FIX_LOST,
                 f"GPS fix lost ({lost:.0f} s ago)"
-                if isinstance(lost, int | float)
+                if lost is not None
                 else "no GPS fix yet",  # the receiver has not had one since it started
             )
+        for name, reading in (
+            ("battery", snapshot.get(Battery)),
+            ("gps", gps),
+            ("attitude", snapshot.get(Attitude)),
+        ):
+            if reading is not None and reading.stale and reading.age_ms is not None:
+                wanted[f"sensor_stale:{name}"] = (
+                    SENSOR_STALE,
+                    f"{name} stale ({reading.age_ms / 1000:.0f} s old)",
+                )
         link: list[str] = []
         if silence is not None and silence >= self.config.silence_s:
             link.append(f"telemetry silent for {silence:.1f} s")
@@ -80,11 +92,10 @@ class Annunciator:
             link.append(f"{loss_pct:.0f}% of telemetry lost")
         if link:
             wanted["link_degraded"] = (LINK_DEGRADED, "link degraded: " + ", ".join(link))
-        streams = snapshot.get("streams")
-        if isinstance(streams, dict):
-            for name, state in streams.items():
-                if isinstance(state, str) and state.lower() in FAILED_STREAM_STATES:
-                    wanted[f"stream_failed:{name}"] = (STREAM_FAILED, f"stream {name} failed")
+        streams = snapshot.get(Streams)
+        for name, state in streams.states.items() if streams is not None else ():
+            if state.lower() in FAILED_STREAM_STATES:
+                wanted[f"stream_failed:{name}"] = (STREAM_FAILED, f"stream {name} failed")
         changes: list[Change] = []
         for name in list(self.active):
             if name not in wanted and name not in keep:
@@ -99,28 +110,23 @@ class Annunciator:
                 self.active[name] = Alert(name, code, message, current.since)
         return changes
 
-    def _battery(self, battery: Any, wanted: dict[str, Any], keep: set[str]) -> None:
-        if not isinstance(battery, dict):
+    def _battery(self, battery: Battery | None, wanted: dict[str, Any], keep: set[str]) -> None:
+        if battery is None:
             return
-        volts = battery.get("volts")
-        volts = volts if isinstance(volts, int | float) and not isinstance(volts, bool) else None
-        low_level = battery.get("level") == "low"
+        volts = battery.volts
         config = self.config
-        if low_level or (volts is not None and volts < config.battery_low_v):
+        if battery.level == "low" or (volts is not None and volts < config.battery_low_v):
             figure = f" ({volts:.1f} V)" if volts is not None else ""
             wanted["low_battery"] = (LOW_BATTERY, f"low battery{figure}")
         elif "low_battery" in self.active and volts is not None and volts < config.battery_clear_v:
             keep.add("low_battery")  # hysteresis: not yet recovered
 
-    def _temperature(self, controller: Any, wanted: dict[str, Any], keep: set[str]) -> None:
-        if not isinstance(controller, dict):
+    def _temperature(
+        self, controller: Controller | None, wanted: dict[str, Any], keep: set[str]
+    ) -> None:
+        if controller is None or not controller.temps_c:
             return
-        temps = controller.get("temps_c")
-        values = temps if isinstance(temps, list) else [temps]
-        readings = [t for t in values if isinstance(t, int | float) and not isinstance(t, bool)]
-        if not readings:
-            return
-        hottest = max(readings)
+        hottest = max(controller.temps_c)
         if hottest >= self.config.controller_max_c:
             wanted["controller_over_temperature"] = (
                 CONTROLLER_OVER_TEMPERATURE,

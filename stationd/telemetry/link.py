@@ -13,12 +13,28 @@ from collections.abc import Callable
 from typing import Any
 
 from brasidas.codecs.telemetry import TelemetryDecoder
+from brasidas.codecs.telemetry_schema import (
+    SCHEMA_VERSION,
+    Section,
+    SectionValue,
+    Snapshot,
+    snapshot_from_wire,
+    snapshot_to_json,
+)
 from brasidas.config import TelemetryReceiverSection
 from brasidas.messages import StationNotification
 from stationd.telemetry.annunciator import Annunciator, Change
 from stationd.telemetry.stats import LinkStats
 
 _LOGGER = logging.getLogger(__name__)
+
+
+def version_mismatch(theirs: object) -> str:
+    """The operator's message when a platform speaks another telemetry schema."""
+    return (
+        f"the platform sends telemetry schema v{theirs}; this station reads v{SCHEMA_VERSION}"
+        " (update the older of the two)"
+    )
 
 
 class TelemetryLink(asyncio.DatagramProtocol):
@@ -39,7 +55,10 @@ class TelemetryLink(asyncio.DatagramProtocol):
         self.config = config
         self.stats = LinkStats(config.loss_window)
         self.annunciator = Annunciator(config)
-        self.snapshot: dict[str, Any] = {}
+        self.sections: dict[type[Section], SectionValue] = {}
+        """The latest value of every section received (datagrams carry subsets)."""
+        self.unknown_sections = 0
+        """Section keys this station's schema does not know (counted, ignored)."""
         self.platform_time: float | None = None
         self.bytes_received = 0
         self.max_datagram = 0
@@ -71,7 +90,9 @@ class TelemetryLink(asyncio.DatagramProtocol):
         if not frames:
             return False
         frame = frames[0]
-        self.snapshot.update(frame.sections)
+        snapshot, unknown = snapshot_from_wire(frame.sections)
+        self.sections.update(snapshot.sections)
+        self.unknown_sections += len(unknown)
         self.platform_time = frame.timestamp
         self.bytes_received += frame.size
         self.max_datagram = max(self.max_datagram, frame.size)
@@ -116,6 +137,18 @@ class TelemetryLink(asyncio.DatagramProtocol):
                 )
             )
 
+    @property
+    def snapshot(self) -> Snapshot:
+        return Snapshot(self.sections)
+
+    @property
+    def schema_error(self) -> str:
+        """Why this station cannot read the platform's telemetry (another schema), if so."""
+        theirs = self.decoder.foreign_version
+        if theirs is None or self.decoder.accepted:
+            return ""
+        return version_mismatch(theirs)
+
     def link(self, now: float | None = None) -> dict[str, Any]:
         now = self._clock() if now is None else now
         silence = self.stats.silence(now)
@@ -129,7 +162,8 @@ class TelemetryLink(asyncio.DatagramProtocol):
             "bytes_received": self.bytes_received,
             "max_datagram": self.max_datagram,
             "round_trip_ms": None if self.round_trip_ms is None else round(self.round_trip_ms, 2),
-            "error": self.error,
+            "unknown_sections": self.unknown_sections,
+            "error": self.error or self.schema_error,
         }
 
     def report(self, now: float | None = None) -> dict[str, Any]:
@@ -137,7 +171,8 @@ class TelemetryLink(asyncio.DatagramProtocol):
         self.tick(now)
         return {
             "platform_id": self.platform_id,
-            "snapshot": self.snapshot,
+            "schema": SCHEMA_VERSION,
+            "snapshot": snapshot_to_json(self.sections),
             "platform_time": self.platform_time,
             "link": self.link(now),
             "warnings": [w.as_dict() for w in self.annunciator.active.values()],

@@ -23,10 +23,11 @@ from typing import Any
 from brasidas import topics
 from brasidas.actor import Actor, wait_forever
 from brasidas.codecs.jsonrpc import UNAVAILABLE, CallContext, RpcError
+from brasidas.codecs.telemetry_schema import SCHEMA_VERSION
 from brasidas.messages import PlatformLink, StationNotification
 from stationd.client import PlatformConnection
 from stationd.context import StationContext
-from stationd.telemetry.link import TelemetryLink
+from stationd.telemetry.link import TelemetryLink, version_mismatch
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -151,8 +152,9 @@ class TelemetryReceiver(Actor):
     ) -> float:
         """Ask the platform to stream to us; returns when it was asked (monotonic)."""
         try:
-            await connection.call("request_telemetry", **params)
-            link.error = ""
+            answer = await connection.call("request_telemetry", **params)
+            version = answer.get("version") if isinstance(answer, dict) else None
+            link.error = "" if version == SCHEMA_VERSION else version_mismatch(version)
         except (RpcError, ConnectionError) as err:
             link.error = f"request_telemetry refused: {getattr(err, 'message', err)}"
             _LOGGER.warning("%s: %s", connection.platform_id, link.error)
