@@ -46,6 +46,8 @@ TELEMETRY_CHECK_S = 0.1
 """How often a new telemetry snapshot is looked for (the platform sends 5 per second)."""
 FEED_LINGER_S = 10.0
 """A feed nobody watches is stopped after this long (switching back is instant meanwhile)."""
+NOTES_QUEUED_MAX = 200
+"""Notifications waiting for one page at most (its socket stalled)."""
 SEND_TIMEOUT_S = 5.0
 """A push that cannot be written for this long closes the socket (the page reconnects)."""
 
@@ -74,7 +76,8 @@ class ConsoleSession:
     dirty: asyncio.Event = field(default_factory=asyncio.Event)
     notes: list[dict[str, Any]] = field(default_factory=list)
     telemetry_seen: dict[str, Any] = field(default_factory=dict)
-    drive_stop: asyncio.TimerHandle | None = None
+    drive_stops: dict[str, asyncio.TimerHandle] = field(default_factory=dict)
+    """By platform id: when this page's last drive input lapses."""
     closed: bool = False
 
 
@@ -127,7 +130,8 @@ class ConsoleHub(Actor):
 
     def _on_notification(self, note: StationNotification) -> None:
         for session in self.sessions.values():
-            session.notes.append(note.as_dict())
+            if len(session.notes) < NOTES_QUEUED_MAX:  # a stalled page gets no more
+                session.notes.append(note.as_dict())
             session.dirty.set()
 
     def _on_disconnected(self, link: PlatformLink) -> None:
@@ -198,9 +202,9 @@ class ConsoleHub(Actor):
         for kind in list(session.watches):
             self._unwatch(session, kind)
         self._stop_talk(session)
-        for platform_id, number in list(self.drivers.items()):
-            if number == session.number:
-                self._stop_driving(session, platform_id)
+        driven = {p for p, number in self.drivers.items() if number == session.number}
+        for platform_id in driven | set(session.drive_stops):
+            self._stop_driving(session, platform_id)
         for task in list(session.tasks):
             task.cancel("console closed")
 
@@ -471,18 +475,22 @@ class ConsoleHub(Actor):
         answer: dict[str, Any] = await self.ctx.api.call_local(
             "teleop_set", platform_id=platform_id, linear=linear, angular=angular
         )
-        if session.drive_stop is not None:
-            session.drive_stop.cancel()
-        session.drive_stop = asyncio.get_running_loop().call_later(
+        if session.closed:  # the page went away meanwhile
+            self._stop_driving(session, platform_id)
+            return answer
+        stop = session.drive_stops.pop(platform_id, None)
+        if stop is not None:
+            stop.cancel()
+        session.drive_stops[platform_id] = asyncio.get_running_loop().call_later(
             self.ctx.config.console.drive_timeout, self._stop_driving, session, platform_id
         )
         return answer
 
     def _stop_driving(self, session: ConsoleSession, platform_id: str) -> None:
         """Zero the drive input at once (the sender streams zeros from its next tick)."""
-        if session.drive_stop is not None:
-            session.drive_stop.cancel()
-            session.drive_stop = None
+        stop = session.drive_stops.pop(platform_id, None)
+        if stop is not None:
+            stop.cancel()
         if self.ctx.teleop is not None:
             self.ctx.teleop.set_drive(platform_id, STOP)
 
