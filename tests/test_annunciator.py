@@ -6,6 +6,7 @@ import dataclasses
 
 from brasidas.codecs.telemetry import TelemetryEncoder
 from brasidas.codecs.telemetry_schema import (
+    SCHEMA_VERSION,
     Attitude,
     Battery,
     Controller,
@@ -198,3 +199,20 @@ def test_a_stale_reading_raises_a_warning_until_a_fresh_one_arrives() -> None:
     fresh = dataclasses.replace(stale, age_ms=40, stale=False)
     (change,) = annunciator.evaluate(with_(Attitude, fresh), 0, 0, 2)
     assert not change.active and change.warning.name == "sensor_stale:attitude"
+
+
+def test_a_platform_on_another_schema_is_named_not_shown_as_blanks() -> None:
+    key = bytes(32)
+    link = TelemetryLink("rover-1", key, CONFIG, lambda note: None, clock=lambda: 5.0)
+    datagram = bytearray(TelemetryEncoder("rover-1", None).encode({"mode": "teleop"}, 1.0)[0])
+    datagram[0] = SCHEMA_VERSION - 1  # an older platform's first byte
+    assert not link.feed(bytes(datagram))
+    error = link.report()["link"]["error"]
+    assert error == (
+        f"the platform sends telemetry schema v{SCHEMA_VERSION - 1}; "
+        f"this station reads v{SCHEMA_VERSION} (update the older of the two)"
+    )
+    assert link.decoder.rejected["version"] == 1
+    # Once datagrams of our schema arrive (the platform was updated), the message goes.
+    assert link.feed(TelemetryEncoder("rover-1", key).encode(snapshot_to_wire(SECTIONS), 2.0)[0])
+    assert link.report()["link"]["error"] == ""

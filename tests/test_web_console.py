@@ -115,6 +115,12 @@ async def test_console_lists_connects_and_takes_the_override(
             await override.click()
             await wait_until(lambda: not platform.bus.last(topics.OVERRIDE_STATE).engaged)
             await expect(page.locator("#driving")).to_have_text("not driving")
+            # The receiver falls silent: the last fix stays on screen, marked stale with its age.
+            assert platform.ctx.sim.gps is not None
+            platform.ctx.sim.gps.close()
+            gps_row = page.locator("dl#status dt:text-is('gps') + dd")
+            await expect(gps_row).to_contain_text("STALE (", timeout=15_000)
+            await expect(gps_row).to_contain_text("s old)")
             assert errors == []
 
             # Every telemetry field the page read is one the schema has (a renamed field fails
