@@ -127,7 +127,7 @@ async def test_operator_station_in_the_browser(
     from playwright.async_api import async_playwright, expect
 
     rover = await sim_platform(platform_factory, fleet_key, station, "web-rover", 23.6530)
-    other = await sim_platform(platform_factory, fleet_key, station, "rover-2", 23.6534)
+    other = await sim_platform(platform_factory, fleet_key, station, "rover-2", 23.6545)
     base = f"http://127.0.0.1:{station.api_port}"
     async with aiohttp.ClientSession() as http, http.get(base + "/") as response:
         policy = response.headers["Content-Security-Policy"]

@@ -387,8 +387,9 @@ function renderControls() {
   }
   const snapshot = state.telemetry.get(state.current)?.report.snapshot;
   if (snapshot) {
-    $("#diagnostics").setAttribute("aria-pressed", String(snapshot.diagnostics != null));
-    if (snapshot.battery) $("#battery-monitor").setAttribute("aria-pressed", String(Boolean(snapshot.battery.monitor)));
+    $("#diagnostics").setAttribute("aria-pressed", String(section(snapshot, "diagnostics") != null));
+    const battery = section(snapshot, "battery");
+    if (battery) $("#battery-monitor").setAttribute("aria-pressed", String(Boolean(battery.monitor)));
   }
   renderStreams();
 }

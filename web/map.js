@@ -24,7 +24,7 @@ export class PlatformMap {
     }
     this.map = L.map(element, { crs: L.CRS.Simple, minZoom: -6, maxZoom: 6, zoomSnap: 0.5, attributionControl: false });
     this.map.setView([0, 0], 1);
-    new (metricGrid())().addTo(this.map);
+    new (metricGrid())({ minZoom: -6, maxZoom: 6 }).addTo(this.map);
     this.fitted = false;
   }
 
