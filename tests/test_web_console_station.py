@@ -343,9 +343,12 @@ async def test_warnings_audio_both_ways_and_a_closed_page_stops_the_robot(
             # The page's socket drops: it says so, reconnects, and the picture comes back.
             decoded = await frames_decoded(page, at_least=1)
             await page.evaluate("window.navcam.dropStationConnection()")
+            states: list[str] = []
+            async with asyncio.timeout(10):  # the close is seen, then the new socket opens
+                while states[-2:] != ["reconnecting", "connected"]:
+                    await asyncio.sleep(0.05)
+                    states = await page.evaluate("window.navcam.apiStates")
             await expect(page.locator("#api-state")).to_have_text("station connected")
-            states = await page.evaluate("window.navcam.apiStates")
-            assert states[-2:] == ["reconnecting", "connected"], states
             await frames_decoded(page, at_least=decoded + 10)
 
             override = page.get_by_role("button", name="manual override")
