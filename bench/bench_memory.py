@@ -21,7 +21,7 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from typing import Any
 
-from bench.support import PLATFORM_LOG, free_port, wait_ready
+from bench.support import PLATFORM_LOG, free_port, station_connect, stop_process, wait_ready
 from brasidas import security
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import StationConfig, load_config
@@ -126,7 +126,10 @@ async def busy_platform(
     async def read() -> None:
         assert process.stdout is not None
         async for raw in process.stdout:
-            line = json.loads(raw)
+            try:
+                line = json.loads(raw)
+            except ValueError:
+                continue  # not the probe's (a library printing)
             if "snapshot" in line:
                 samples.dumped.put_nowait(line["snapshot"])
             else:
@@ -140,7 +143,8 @@ async def busy_platform(
             await station.start()
             try:
                 api = station.ctx.api
-                await _connect(api, f"http://127.0.0.1:{signaling}", signaling)
+                await wait_ready(signaling, timeout=60.0)  # tracemalloc slows the start
+                await station_connect(api, f"http://127.0.0.1:{signaling}")
                 answer = await api.call_local("movrd", platform_id="brasidas-1", engaged=True)
                 if not answer.get("accepted"):
                     raise RuntimeError(f"manual override refused: {answer}")
@@ -153,30 +157,10 @@ async def busy_platform(
                     teleop.cancel()
             finally:
                 await station.stop()
-                process.terminate()
-                try:
-                    await asyncio.wait_for(process.wait(), 10)
-                except TimeoutError:
-                    process.kill()
-                    await process.wait()
+                await stop_process(process)
                 reader.cancel()
     finally:
-        if process.returncode is None:
-            process.kill()
-            await process.wait()
-
-
-async def _connect(api: Any, url: str, port: int) -> None:
-    await wait_ready(port, timeout=60.0)  # tracemalloc slows the start on a loaded machine
-    deadline = time.monotonic() + 20
-    while True:
-        try:
-            await api.call_local("connect", platform_id="brasidas-1", url=url)
-            return
-        except RpcError:
-            if time.monotonic() > deadline:
-                raise
-            await asyncio.sleep(0.1)
+        await stop_process(process, 0.0)
 
 
 async def _teleop(api: Any) -> None:

@@ -20,6 +20,15 @@ import time
 import tracemalloc
 from pathlib import Path
 
+_OUT = threading.Lock()
+
+
+def _say(line: dict[str, object]) -> None:
+    """One JSON line on stdout (two threads write: one line at a time)."""
+    with _OUT:
+        sys.stdout.write(json.dumps(line) + "\n")
+        sys.stdout.flush()
+
 
 def rss_kb() -> int:
     for line in Path("/proc/self/status").read_text().splitlines():
@@ -33,10 +42,10 @@ def _report(args: argparse.Namespace) -> None:
     started = time.monotonic()
     while True:
         time.sleep(args.interval)
-        line: dict[str, float] = {"t": round(time.monotonic(), 3), "rss_kb": rss_kb()}
+        line: dict[str, object] = {"t": round(time.monotonic(), 3), "rss_kb": rss_kb()}
         if args.frames:
             line["traced"] = tracemalloc.get_traced_memory()[0]
-        print(json.dumps(line), flush=True)
+        _say(line)
         if not (args.frames and args.report):
             continue
         if time.monotonic() - started < args.baseline:
@@ -61,7 +70,7 @@ def _commands() -> None:
         if command == "snapshot" and path and tracemalloc.is_tracing():
             gc.collect()  # what is only waiting for the cycle collector is not growth
             tracemalloc.take_snapshot().dump(path)
-            print(json.dumps({"snapshot": path}), flush=True)
+            _say({"snapshot": path})
 
 
 def main() -> int:

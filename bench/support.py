@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 from brasidas import security
+from brasidas.codecs.jsonrpc import Dispatcher, RpcError
 from stationd.client import PlatformConnection
 
 PLATFORM_LOG = Path(__file__).resolve().parent / "results" / "platform.log"
@@ -94,3 +95,28 @@ async def connect_to_platform(port: int, platform_id: str = "brasidas-1") -> Pla
     )
     await connection.open()
     return connection
+
+
+async def stop_process(process: asyncio.subprocess.Process, timeout: float = 10.0) -> None:
+    """SIGTERM, then SIGKILL if it is still there after ``timeout``."""
+    if process.returncode is not None:
+        return
+    process.terminate()
+    try:
+        await asyncio.wait_for(process.wait(), timeout)
+    except TimeoutError:
+        process.kill()
+        await process.wait()
+
+
+async def station_connect(api: Dispatcher, url: str, timeout: float = 20.0) -> None:
+    """Have a station daemon (its local ``api``) connect to the platform ``brasidas-1``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            await api.call_local("connect", platform_id="brasidas-1", url=url)
+            return
+        except RpcError:
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.1)
