@@ -59,8 +59,8 @@ async def soak(minutes: float, sample_s: float, warmup_s: float) -> dict[str, An
             relay = rover.relay
             assert relay is not None
             loss = Profile(loss=0.02)
-            # The longest silence between $PVEL frames, as they reached the emulator (kernel
-            # time: the station's stream) and as it delivered them (after its 2 % loss).
+            # The longest silence between $PVEL frames, as they reached the emulator (the
+            # station's stream) and as it delivered them (after its 2 % loss).
             gaps = {"sent": _Gaps(), "delivered": _Gaps()}
 
             def arrived(direction: str, frame: bytes, now: float) -> None:
@@ -125,7 +125,7 @@ async def soak(minutes: float, sample_s: float, warmup_s: float) -> dict[str, An
                         "deadman_trips": counters["deadman_trips"] - baseline["deadman_trips"],
                         "longest_pvel_gap_sent_ms": gaps["sent"].longest_ms(),
                         "longest_pvel_gap_delivered_ms": gaps["delivered"].longest_ms(),
-                        "emulator_max_lag_ms": relay.stats()["max_lag_ms"],
+                        "emulator_socket_drops": relay.stats()["socket_drops"],
                         "navcam_frames": video[0]["frames"] if video else None,
                         "navcam_rtp_lost": video[0].get("rtp_lost") if video else None,
                         "telemetry_loss_pct": report.get("link", {}).get("loss_pct"),
@@ -161,7 +161,7 @@ async def soak(minutes: float, sample_s: float, warmup_s: float) -> dict[str, An
         "deadman_trips": trips,
         "longest_pvel_gap_sent_ms": last["longest_pvel_gap_sent_ms"],
         "longest_pvel_gap_delivered_ms": last["longest_pvel_gap_delivered_ms"],
-        "emulator_max_lag_ms": last["emulator_max_lag_ms"],
+        "emulator_socket_drops": last["emulator_socket_drops"],
         "deadman_cause": cause,
         "navcam_frames": last["navcam_frames"],
         "navcam_rtp_lost": last["navcam_rtp_lost"],

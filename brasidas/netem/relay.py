@@ -30,8 +30,10 @@ from brasidas.netem.core import CLEAN, Impairment, Profile
 ETH_P_ALL = 0x0003
 SOL_PACKET = 263
 PACKET_VNET_HDR = 15
-SO_TIMESTAMPNS = 35
-"""Linux: the kernel's receive time of each frame, as ancillary data."""
+SO_RCVBUFFORCE = 33
+PACKET_STATISTICS = 6
+RECEIVE_BUFFER = 8 * 1024 * 1024
+"""Frames queue here while the relay's thread waits for a CPU; a full buffer drops them."""
 VNET_HEADER = 10
 """struct virtio_net_hdr in front of every frame read or written with PACKET_VNET_HDR."""
 MAX_FRAME = 65536 + VNET_HEADER
@@ -62,10 +64,10 @@ class FrameRelay:
         self.links = {DOWN: Impairment(seed=seed * 2), UP: Impairment(seed=seed * 2 + 1)}
         self.taps: list[Tap] = []
         self.arrival_taps: list[Tap] = []
-        """Called with each frame as it reached the interface (kernel time, on this clock)."""
+        """Called with each frame as the relay reads it, before the impairments."""
         self.send_errors = 0
-        self.max_lag = 0.0
-        """Longest a frame waited in the socket for this thread (the emulator's own delay)."""
+        self.socket_drops = 0
+        """Frames the kernel dropped because the relay did not read them in time (counted)."""
         self._lock = threading.Lock()
         self._host = _packet_socket(host_side)
         try:
@@ -118,7 +120,18 @@ class FrameRelay:
                     **asdict(link.counters),
                 }
                 for direction, link in self.links.items()
-            } | {"send_errors": self.send_errors, "max_lag_ms": round(self.max_lag * 1000, 1)}
+            } | {
+                "send_errors": self.send_errors,
+                "socket_drops": self._socket_drops(),
+            }
+
+    def _socket_drops(self) -> int:
+        """Add what the kernel dropped since the last call (reading resets its counters)."""
+        for sock in (self._host, self._bridge):
+            with contextlib.suppress(OSError):
+                _, drops = struct.unpack("II", sock.getsockopt(SOL_PACKET, PACKET_STATISTICS, 8))
+                self.socket_drops += drops
+        return self.socket_drops
 
     def close(self) -> None:
         """Stop the thread and close the sockets (idempotent)."""
@@ -159,9 +172,7 @@ class FrameRelay:
                 # Drain what is queued: under load several frames arrive per wake-up.
                 while True:
                     try:
-                        frame, ancillary, _, address = ready.recvmsg(
-                            MAX_FRAME, _TIMESTAMP_SPACE, socket.MSG_DONTWAIT
-                        )
+                        frame, address = ready.recvfrom(MAX_FRAME, socket.MSG_DONTWAIT)
                     except (BlockingIOError, InterruptedError):
                         break
                     except OSError:
@@ -169,13 +180,10 @@ class FrameRelay:
                     if address[2] == socket.PACKET_OUTGOING:
                         continue  # our own transmission, seen by the tap
                     direction = source[id(ready)]
-                    lag = _lag(ancillary)
-                    self.max_lag = max(self.max_lag, lag)
                     for tap in self.arrival_taps:
-                        tap(direction, frame[VNET_HEADER:], now - lag)
+                        tap(direction, frame[VNET_HEADER:], now)
                     with self._lock:
-                        # Delays count from the frame's arrival, not from when this thread ran.
-                        self.links[direction].feed(frame, now - lag)
+                        self.links[direction].feed(frame, now)
             for direction, link in self.links.items():
                 with self._lock:
                     frames = link.due(now)
@@ -189,22 +197,13 @@ class FrameRelay:
                         tap(direction, frame[VNET_HEADER:], now)
 
 
-_TIMESTAMP_SPACE = socket.CMSG_SPACE(16)
-
-
-def _lag(ancillary: list[tuple[int, int, bytes]]) -> float:
-    """How long ago the kernel received the frame (its SO_TIMESTAMPNS), in seconds."""
-    for level, kind, data in ancillary:
-        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(data) >= 16:
-            seconds, nanoseconds = struct.unpack("@qq", data[:16])
-            return max(0.0, time.time() - (float(seconds) + float(nanoseconds) / 1e9))
-    return 0.0
-
-
 def _packet_socket(interface: str) -> socket.socket:
     sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETH_P_ALL))
     try:
-        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        try:  # root may exceed net.core.rmem_max
+            sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, RECEIVE_BUFFER)
+        except PermissionError:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
         sock.setsockopt(SOL_PACKET, PACKET_VNET_HDR, 1)
         sock.bind((interface, 0))
     except OSError:
