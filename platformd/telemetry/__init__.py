@@ -1,6 +1,8 @@
 """Telemetry: the latest-value snapshot of the platform, and the push stream to stations.
 
-:mod:`.aggregator` keeps the latest report of every subsystem, builds snapshots and publishes
+:mod:`.aggregator` builds the platform's sections (schema:
+:mod:`brasidas.codecs.telemetry_schema`) from the bus's retained values, takes snapshots of
+every registered section (``ctx.telemetry``, :mod:`brasidas.telemetry_sources`) and publishes
 the platform's health; :mod:`.stream` pushes authenticated datagrams
 (:mod:`brasidas.codecs.telemetry`) to each station session; :mod:`.system` reads the
 computer's figures; :mod:`.methods` holds the signaling methods ``request_telemetry`` and
