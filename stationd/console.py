@@ -76,6 +76,8 @@ class ConsoleSession:
     dirty: asyncio.Event = field(default_factory=asyncio.Event)
     notes: list[dict[str, Any]] = field(default_factory=list)
     telemetry_seen: dict[str, Any] = field(default_factory=dict)
+    focus: str = ""
+    """The platform the page shows (its NavCam): its telemetry is pushed as it arrives."""
     drive_stops: dict[str, asyncio.TimerHandle] = field(default_factory=dict)
     """By platform id: when this page's last drive input lapses."""
     closed: bool = False
@@ -191,6 +193,14 @@ class ConsoleHub(Actor):
             "drive_timeout_s": self.ctx.config.console.drive_timeout,
         }
 
+    def api_console_focus(self, call: CallContext, platform_id: str) -> bool:
+        """The platform this page shows: its telemetry is pushed as it arrives, the others'
+        once a second. (``video_watch`` sets it too.)"""
+        session = self._session(call)
+        session.focus = platform_id
+        session.dirty.set()
+        return True
+
     def api_station_time(self, call: CallContext) -> float:
         """The station's wall clock (Unix ms): the page estimates its clock offset with it."""
         return time.time_ns() / 1e6
@@ -234,6 +244,8 @@ class ConsoleHub(Actor):
                 for note in notes:
                     await self._send(session, "notification", note)
                 for platform_id in list(self.ctx.connections):
+                    if not full and platform_id != session.focus:
+                        continue  # the platforms it does not show: once a second (the map)
                     with contextlib.suppress(RpcError):
                         report = await api.call_local("get_telemetry", platform_id=platform_id)
                         stamp = report.get("platform_time")
@@ -268,6 +280,7 @@ class ConsoleHub(Actor):
     ) -> dict[str, Any]:
         """Send ``platform_id``'s NavCam to this page (its current GOP first); one at a time."""
         session = self._session(call)
+        session.focus = platform_id
         await self._watch(session, "video", platform_id, stream)
         return self._video_state(session)
 
@@ -499,6 +512,7 @@ async def async_setup(ctx: StationContext) -> None:
     hub = ConsoleHub(ctx)
     for name in (
         "console_subscribe",
+        "console_focus",
         "station_time",
         "video_watch",
         "video_unwatch",

@@ -123,6 +123,7 @@ async function subscribe() {
   measureClock().catch((error) => console.warn("clock offset not measured", error));
   if (state.current) {
     await api.call("connect", { platform_id: state.current }, 8000).catch(() => {});
+    await api.call("console_focus", { platform_id: state.current }).catch(() => {});
     await watch(state.current);
     if (audio.listening) await audio.listen(audio.listening).catch(() => {});
   } else if (requestedPlatform) {
@@ -282,6 +283,7 @@ async function select(platformId) {
   renderControls();
   try {
     await api.call("connect", { platform_id: platformId }, 8000);
+    await api.call("console_focus", { platform_id: platformId });
   } catch (error) {
     answer(`connect to ${platformId} failed: ${error.message}`);
     return;
