@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from enum import Enum
 from time import monotonic
@@ -290,3 +291,82 @@ class ImuStatus:
     """The gyro's zero-rate offset was measured (the first still second after start)."""
     fifo_overflows: int = 0
     """FIFO overflows (samples lost, FIFO reset) since start."""
+
+
+# --------------------------------------------------------------------------- autonomy (issue 12)
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """Where the robot is, from localization (today GPS + IMU + commanded motion; SLAM later)."""
+
+    time: float
+    """Monotonic clock of the platform (seconds) the pose is for."""
+    latitude: float
+    longitude: float
+    x_m: float
+    """East of ``origin`` (metres, the localization's local frame)."""
+    y_m: float
+    """North of ``origin``."""
+    origin: tuple[float, float]
+    """(latitude, longitude) of the local frame's origin."""
+    yaw_rad: float
+    """Counter-clockwise from east."""
+    speed_mps: float
+    sigma_xy_m: float
+    """Position uncertainty (one standard deviation, the larger axis)."""
+    sigma_heading_deg: float
+    heading_known: bool
+    """False until the robot has moved enough for a course over ground (no magnetometer)."""
+    fix_age_s: float | None
+    """Seconds since the last GPS fix at ``time``; None: never had one."""
+    source: str = "gps+imu"
+
+    @property
+    def heading_deg(self) -> float:
+        """Compass heading, clockwise from north, [0, 360)."""
+        return (90.0 - math.degrees(self.yaw_rad)) % 360.0
+
+    def as_dict(self) -> dict[str, Any]:
+        """Telemetry form (compact, rounded)."""
+        return {
+            "lat": round(self.latitude, 7),
+            "lon": round(self.longitude, 7),
+            "heading": round(self.heading_deg, 1) if self.heading_known else None,
+            "speed": round(self.speed_mps, 2),
+            "sigma_m": round(self.sigma_xy_m, 2),
+            "fix_age": None if self.fix_age_s is None else round(self.fix_age_s, 1),
+            "source": self.source,
+        }
+
+
+@dataclass(frozen=True)
+class PatrolReport:
+    """The patrol's state (platformd.autonomy): published when it changes."""
+
+    state: str
+    """"idle", "patrolling", "suspended", "holding" or "stopped"."""
+    enabled: bool
+    """The patrol automation is switched on (command 10.8)."""
+    waypoint: int | None
+    """Index in the route of the current target."""
+    distance_m: float | None
+    """Along the planned path to that waypoint."""
+    lap: int
+    reason: str
+    """Why it is not patrolling (holding, stopped, idle), or what it is doing."""
+    waypoints: int
+    path: tuple[tuple[float, float], ...] = ()
+    """The planned path as (latitude, longitude) points; empty when none."""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "state": self.state,
+            "enabled": self.enabled,
+            "waypoint": self.waypoint,
+            "distance_m": self.distance_m,
+            "lap": self.lap,
+            "reason": self.reason,
+            "waypoints": self.waypoints,
+            "path": [[round(lat, 7), round(lon, 7)] for lat, lon in self.path],
+        }

@@ -13,9 +13,11 @@ from brasidas.messages import (
     LightsState,
     MotionState,
     OverrideState,
+    PatrolReport,
     PlatformHealth,
     PlatformLink,
     PlatformSighting,
+    PoseEstimate,
     Position,
     SessionClosed,
     SessionOpened,
@@ -81,3 +83,9 @@ ATTITUDE: Topic[Attitude] = Topic("attitude", retain=True)
 """IMU orientation (Madgwick), at most about 10 Hz (platformd.imu)."""
 IMU_STATUS: Topic[ImuStatus] = Topic("imu_status", retain=True)
 """IMU health, temperature and counters, about once a second."""
+
+# --------------------------------------------------------------------------- autonomy (issue 12)
+POSE: Topic[PoseEstimate] = Topic("pose", retain=True)
+"""Where the robot is (platformd.autonomy.localization today; a SLAM actor would publish here)."""
+PATROL_STATUS: Topic[PatrolReport] = Topic("patrol_status", retain=True)
+"""The patrol's state, target, lap and planned path, on every change (platformd.autonomy)."""

@@ -34,6 +34,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "platformd.motor",
     "platformd.gps",
     "platformd.imu",
+    "platformd.autonomy",  # localization (POSE) and the patrol (CMD_VEL)
     "platformd.media",
     "platformd.telemetry",
     "platformd.signaling",

@@ -144,7 +144,7 @@ def test_closed_route_loops_and_open_route_reverses() -> None:
     for _ in range(7):
         cursor = cursor.advance(closed)
         seen.append((cursor.index, cursor.lap))
-    assert seen == [(1, 0), (2, 0), (0, 1), (1, 1), (2, 1), (0, 2), (1, 2)]
+    assert seen == [(1, 0), (2, 0), (0, 0), (1, 1), (2, 1), (0, 1), (1, 2)]
     open_route = parse_waypoints(["1,1", "1,2", "2,2"])
     assert not open_route.closed
     cursor, indices = Cursor(), []
@@ -302,7 +302,8 @@ def test_patrol_states_map_reload_override_and_stale_fix() -> None:
     assert p.status().state is PatrolState.PATROLLING
     p.set_map(area)  # a reload wipes the waypoints and stops
     assert run.tick().command.linear == 0
-    assert p.status().waypoints == 0 and p.status().state is PatrolState.IDLE
+    assert p.status().waypoints == 0 and p.status().state is PatrolState.STOPPED
+    assert p.status().reason == "map loaded: waypoints cleared"
 
 
 def test_closed_route_driven_twice_passes_every_waypoint_and_avoids_the_keepout() -> None:

@@ -74,7 +74,13 @@ class PurePursuit:
             cross, remaining = 0.0, math.dist((x, y), goal)
         else:
             cross, remaining = self._progress((x, y))
-        if math.dist((x, y), goal) <= self.p.tolerance_m:
+        to_goal = math.dist((x, y), goal)
+        bearing = wrap(math.atan2(goal[1] - y, goal[0] - x) - yaw)
+        # Within the tolerance, or within twice it with the goal abeam or behind: turning on
+        # the spot for the last few decimetres would be a dance, not a patrol.
+        if to_goal <= self.p.tolerance_m or (
+            to_goal <= 2.0 * self.p.tolerance_m and abs(bearing) > TURN_IN_PLACE
+        ):
             return Steering(0.0, 0.0, True, cross, remaining)
         target = self._lookahead((x, y))
         dx, dy = target[0] - x, target[1] - y

@@ -129,6 +129,8 @@ class Patrol:
         self._needs_plan = True
         if not route.waypoints:
             self._path = None
+        if not self._running:
+            self.reason = "not started" if route.waypoints else "no waypoints"
 
     def start(self) -> None:
         self._running = True
@@ -161,10 +163,10 @@ class Patrol:
             return self._settle(PatrolState.STOPPED, "patrol switched off")
         if self.area is None:
             return self._settle(PatrolState.IDLE, "no map")
-        if not self.route.waypoints:
-            return self._settle(PatrolState.IDLE, "no waypoints")
         if not self._running:
             return self._settle(PatrolState.STOPPED, self.reason or "stopped")
+        if not self.route.waypoints:
+            return self._settle(PatrolState.IDLE, "no waypoints")
         if self._override:
             return self._settle(PatrolState.SUSPENDED, "manual override engaged")
         hold = self._hazard(estimate, fix_age)

@@ -75,22 +75,24 @@ class Cursor:
     index: int = 0
     forward: bool = True
     lap: int = 0
+    """Completed laps: returns to the first waypoint."""
+    departed: bool = False
+    """The first waypoint has been left once (arriving there again completes a lap)."""
 
     def advance(self, route: Route) -> Cursor:
         """The next target after arriving at (or skipping) this one."""
         stops = route.stops
         if stops <= 1:
             return self
+        lap = self.lap + (1 if self.index == 0 and self.departed else 0)
         if route.closed:
-            index = (self.index + 1) % stops
-            return Cursor(index, True, self.lap + (1 if index == 0 else 0))
-        step = 1 if self.forward else -1
-        index = self.index + step
+            return Cursor((self.index + 1) % stops, True, lap, True)
+        forward = self.forward
+        index = self.index + (1 if forward else -1)
         if not 0 <= index < stops:  # an end: turn back
-            forward = not self.forward
+            forward = not forward
             index = self.index + (1 if forward else -1)
-            return Cursor(index, forward, self.lap)
-        return Cursor(index, self.forward, self.lap + (1 if index == 0 else 0))
+        return Cursor(index, forward, lap, True)
 
 
 def parse_waypoints(
@@ -146,24 +148,30 @@ class RouteStore:
         return parse_waypoints(data["waypoints"])
 
     def save(self, route: Route) -> None:
-        """Write the route: a temporary file beside it, fsync, rename over, fsync the folder."""
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        payload = json.dumps({"waypoints": route.as_list()}, indent=1, allow_nan=False)
-        fd, temporary = tempfile.mkstemp(prefix=f".{self.path.name}.", dir=self.path.parent)
-        try:
-            with os.fdopen(fd, "w", encoding="utf-8") as file:
-                file.write(payload + "\n")
-                file.flush()
-                os.fsync(file.fileno())
-            os.replace(temporary, self.path)
-        except BaseException:
-            Path(temporary).unlink(missing_ok=True)
-            raise
-        folder = os.open(self.path.parent, os.O_RDONLY)
-        try:
-            os.fsync(folder)
-        finally:
-            os.close(folder)
+        write_atomically(
+            self.path, json.dumps({"waypoints": route.as_list()}, indent=1, allow_nan=False)
+        )
+
+
+def write_atomically(path: Path, text: str) -> None:
+    """Write a file so a crash leaves the old or the new one: a temporary file beside it,
+    fsync, rename over, fsync the folder."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as file:
+            file.write(text + "\n")
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+    folder = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(folder)
+    finally:
+        os.close(folder)
 
 
 # --------------------------------------------------------------------------- helpers

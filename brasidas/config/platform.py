@@ -290,6 +290,44 @@ class SimSection:
 
 
 @dataclass(frozen=True)
+class AutonomySection:
+    enabled: bool = True
+    """The patrol automation is on at start (command 10.8 switches it live)."""
+    autostart: bool = True
+    """Patrol the stored route at start (Scenario #2); the --sim demo route never starts itself."""
+    route_file: str = ""
+    """Where the waypoints are kept across restarts. Empty: $XDG_STATE_HOME/brasidas/route.json."""
+    cruise_speed_kmh: float = setting(6.0, above(0, most=100))
+    """Patrol speed on straight legs (capped by platform.max_speed_kmh)."""
+    max_turn_rate_dps: float = setting(60.0, above(0, most=720))
+    """Turn-rate limit while patrolling (degrees per second)."""
+    full_turn_rate_dps: float = setting(86.0, above(0, most=720))
+    """The platform's turn rate at angular = 1 (degrees per second)."""
+    lookahead_m: float = setting(2.0, above(0, most=100))
+    """Pure pursuit's look-ahead distance."""
+    arrival_tolerance_m: float = setting(0.5, above(0, most=100))
+    """A waypoint within this distance is reached."""
+    decel_mps2: float = setting(0.5, above(0, most=20))
+    """How hard the robot slows down toward a waypoint."""
+    clearance_m: float = setting(1.0, at_least(0, most=100))
+    """Planned paths keep at least this far from keep-out zones and the boundary."""
+    corridor_m: float = setting(3.0, above(0, most=1000))
+    """Further than this from the planned path: replan from where the robot is."""
+    fix_stale_s: float = setting(2.0, above(0, most=60))
+    """Hold when the last GPS fix is older than this."""
+    rate_hz: float = setting(10.0, at_least(2, most=50))
+    """cmd_vel and pose rate (the controller's watchdog needs >= 2)."""
+    gps_sigma_m: float = setting(1.0, above(0, most=100))
+    """Localization: a fix's position error at HDOP 1."""
+
+
+@dataclass(frozen=True)
+class MapSection:
+    file: str = ""
+    """The area map (GeoJSON, R-12). Empty: $XDG_STATE_HOME/brasidas/map.geojson."""
+
+
+@dataclass(frozen=True)
 class PlatformConfig:
     platform: PlatformSection = field(default_factory=PlatformSection)
     security: SecuritySection = field(default_factory=SecuritySection)
@@ -304,3 +342,5 @@ class PlatformConfig:
     audio: AudioSection = field(default_factory=AudioSection)
     payload_camera: PayloadCameraSection = field(default_factory=PayloadCameraSection)
     sim: SimSection = field(default_factory=SimSection)
+    autonomy: AutonomySection = field(default_factory=AutonomySection)
+    map: MapSection = field(default_factory=MapSection)

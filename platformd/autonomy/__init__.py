@@ -1,0 +1,69 @@
+"""Autonomy on the platform: localization (``POSE``) and the patrol (``CMD_VEL``), issue 12."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from brasidas import topics
+from brasidas.autonomy.follower import FollowerParameters
+from brasidas.autonomy.localization import FilterParameters
+from brasidas.autonomy.patrol import PatrolParameters
+from brasidas.security import state_dir
+from platformd.autonomy.localization import Localization
+from platformd.autonomy.methods import PatrolMethods
+from platformd.autonomy.patrol import PatrolActor, Storage
+from platformd.context import PlatformContext
+from platformd.sim.demo_area import demo_map, demo_route
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    config = ctx.config.autonomy
+    full_speed = ctx.config.platform.max_speed_kmh / 3.6
+    full_turn = math.radians(config.full_turn_rate_dps)
+    localization = Localization(
+        ctx.bus,
+        FilterParameters(
+            max_speed=full_speed, max_yaw_rate=full_turn, gps_sigma_m=config.gps_sigma_m
+        ),
+        rate_hz=config.rate_hz,
+    )
+    parameters = PatrolParameters(
+        follower=FollowerParameters(
+            cruise_speed=min(config.cruise_speed_kmh / 3.6, full_speed),
+            max_turn_rate=math.radians(config.max_turn_rate_dps),
+            full_speed=full_speed,
+            full_turn_rate=full_turn,
+            lookahead_m=config.lookahead_m,
+            tolerance_m=config.arrival_tolerance_m,
+            decel=config.decel_mps2,
+        ),
+        clearance_m=config.clearance_m,
+        fix_stale_s=config.fix_stale_s,
+        corridor_m=config.corridor_m,
+    )
+    storage = Storage(
+        map_file=Path(ctx.config.map.file) if ctx.config.map.file else state_dir() / "map.geojson",
+        route_file=Path(config.route_file) if config.route_file else state_dir() / "route.json",
+    )
+    sim = ctx.config.sim
+    patrol = PatrolActor(
+        ctx.bus,
+        parameters,
+        storage,
+        rate_hz=config.rate_hz,
+        enabled=config.enabled,
+        autostart=config.autostart,
+        demo=(demo_map(sim.latitude, sim.longitude), demo_route()) if sim.enabled else None,
+    )
+    patrol.load()
+    PatrolMethods(patrol).register(ctx.rpc)
+    ctx.telemetry_sources["autonomy"] = lambda: patrol.report.as_dict()
+    ctx.telemetry_sources["pose"] = lambda: _pose(localization)
+    ctx.supervisor.start(localization)
+    ctx.supervisor.start(patrol)
+
+
+def _pose(localization: Localization) -> dict[str, object] | None:
+    pose = localization.bus.last(topics.POSE)
+    return pose.as_dict() if pose is not None else None

@@ -1,0 +1,93 @@
+"""Signaling methods of the patrol: ``load_map``, ``update_map``, ``get_map``,
+``set_waypoints``, ``get_patrol``, ``patrol_start``, ``patrol_stop``.
+
+A refused map or route is answered -32602 with the reason; the old one stays.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from brasidas.autonomy.areamap import MapError
+from brasidas.autonomy.route import RouteError
+from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, Dispatcher, RpcError
+from platformd.autonomy.patrol import PatrolActor
+
+
+class PatrolMethods:
+    def __init__(self, actor: PatrolActor) -> None:
+        self.actor = actor
+
+    def register(self, rpc: Dispatcher) -> None:
+        for name in (
+            "load_map",
+            "update_map",
+            "get_map",
+            "set_waypoints",
+            "get_patrol",
+            "patrol_start",
+            "patrol_stop",
+        ):
+            rpc.add(name, getattr(self, name))
+
+    def load_map(self, call: CallContext, map: Any) -> dict[str, Any]:
+        """Replace the area map (GeoJSON object or text): wipes the waypoints and stops."""
+        if not isinstance(map, dict | str):
+            raise RpcError(INVALID_PARAMS, "map refused: expected a GeoJSON object or text")
+        try:
+            area = self.actor.load_map(map)
+        except MapError as exc:
+            raise RpcError(INVALID_PARAMS, f"map refused: {exc}") from None
+        return {"map": area.summary(), "patrol": self.actor.report.as_dict()}
+
+    def update_map(self, call: CallContext, add: Any = None, remove: Any = None) -> dict[str, Any]:
+        """Add keep-out zones (GeoJSON features) and remove others (by id)."""
+        add = [] if add is None else add
+        remove = [] if remove is None else remove
+        if not isinstance(add, list) or not all(isinstance(f, dict) for f in add):
+            raise RpcError(INVALID_PARAMS, "update refused: 'add' is a list of GeoJSON features")
+        if not isinstance(remove, list) or not all(isinstance(r, str) for r in remove):
+            raise RpcError(INVALID_PARAMS, "update refused: 'remove' is a list of keep-out ids")
+        try:
+            area = self.actor.update_map(add, remove)
+        except MapError as exc:
+            raise RpcError(INVALID_PARAMS, f"update refused: {exc}") from None
+        return {"map": area.summary(), "patrol": self.actor.report.as_dict()}
+
+    def get_map(self, call: CallContext) -> dict[str, Any]:
+        """The map as GeoJSON (null when none) and the route, for the console."""
+        area = self.actor.core.area
+        return {
+            "map": area.geojson() if area is not None else None,
+            "route": self.actor.core.route.as_list(),
+            "closed": self.actor.core.route.closed,
+        }
+
+    def set_waypoints(self, call: CallContext, waypoints: Any) -> dict[str, Any]:
+        """Replace the waypoints on the fly: "LAT,LON", point names, [lat, lon] or {lat, lon}."""
+        if not isinstance(waypoints, list):
+            raise RpcError(INVALID_PARAMS, "waypoints refused: expected a list")
+        try:
+            route = self.actor.set_waypoints(waypoints)
+        except RouteError as exc:
+            raise RpcError(INVALID_PARAMS, f"waypoints refused: {exc}") from None
+        return {
+            "waypoints": route.as_list(),
+            "closed": route.closed,
+            "patrol": self.actor.report.as_dict(),
+        }
+
+    def get_patrol(self, call: CallContext) -> dict[str, Any]:
+        """The patrol's state, target, distance, lap, reason and planned path."""
+        return self.actor.report.as_dict()
+
+    def patrol_start(self, call: CallContext) -> dict[str, Any]:
+        try:
+            self.actor.start_patrol()
+        except RouteError as exc:
+            raise RpcError(INVALID_PARAMS, f"cannot start: {exc}") from None
+        return self.actor.report.as_dict()
+
+    def patrol_stop(self, call: CallContext) -> dict[str, Any]:
+        self.actor.stop_patrol()
+        return self.actor.report.as_dict()

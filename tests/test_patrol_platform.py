@@ -1,0 +1,266 @@
+"""The patrol on a --sim platform: the real drivers against the simulated AX3500, GPS and IMU.
+
+The simulated robot here is an 18 km/h one (``platform.max_speed_kmh``, patrolling at full
+speed) and its GPS sends 10 epochs a second, so laps take seconds; the drivers, the pose
+filter and the patrol run unchanged. The GPS simulator's position error wanders by about a
+metre, so the robot's true position is checked against looser bounds than its own pose.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import math
+from collections.abc import AsyncIterator, Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from brasidas import topics
+from brasidas.codecs.jsonrpc import RpcError
+from brasidas.config import PlatformConfig
+from brasidas.messages import PatrolReport, PoseEstimate, Velocity
+from platformd.app import PlatformDaemon
+from platformd.mode import ModeArbiter
+from platformd.sim.demo_area import demo_map, offset
+from platformd.sim.vehicle import VehicleModel
+from tests.conftest import quiet_platform_config, wait_until
+
+LAT, LON = 37.9415, 23.6530
+
+
+def config(tmp_path: Path, *overrides: str) -> PlatformConfig:
+    return quiet_platform_config(
+        "sim.enabled=true",
+        "motor.enabled=true",
+        "gps.enabled=true",
+        "imu.enabled=true",
+        "gps.sim_rate_hz=10",
+        "platform.max_speed_kmh=18",
+        "autonomy.cruise_speed_kmh=18",
+        "autonomy.lookahead_m=3",
+        "autonomy.fix_stale_s=0.6",
+        "autonomy.decel_mps2=3",
+        "autonomy.max_turn_rate_dps=86",
+        "autonomy.clearance_m=2",
+        f"map.file={tmp_path / 'map.geojson'}",
+        f"autonomy.route_file={tmp_path / 'route.json'}",
+        *overrides,
+    )
+
+
+def at(east: float, north: float) -> str:
+    return "{:.8f},{:.8f}".format(*offset(LAT, LON, east, north))
+
+
+class Robot:
+    """A running --sim platform, what it published, and the simulated vehicle's truth."""
+
+    def __init__(self, daemon: PlatformDaemon) -> None:
+        self.daemon = daemon
+        self.ctx = daemon.ctx
+        self.vehicle: VehicleModel = daemon.ctx.sim["vehicle"]
+        self.reports: list[PatrolReport] = []
+        self.poses: list[tuple[PoseEstimate, tuple[float, float]]] = []
+        self.cmd_vel: list[Velocity] = []
+        self.watchers: list[Callable[[PoseEstimate, tuple[float, float]], None]] = []
+        bus = self.ctx.bus
+        self._unsubscribe = [
+            bus.subscribe(topics.PATROL_STATUS, self.reports.append),
+            bus.subscribe(topics.POSE, self._on_pose),
+            bus.subscribe(topics.CMD_VEL, self.cmd_vel.append),
+        ]
+
+    def _on_pose(self, pose: PoseEstimate) -> None:
+        truth = self.vehicle.pose()
+        here = self.local(truth.latitude, truth.longitude)
+        self.poses.append((pose, here))
+        for watcher in self.watchers:
+            watcher(pose, here)
+
+    def local(self, latitude: float, longitude: float) -> tuple[float, float]:
+        """Metres east and north of the sim's start."""
+        north = (latitude - LAT) * 110_574.0
+        east = (longitude - LON) * 111_320.0 * math.cos(math.radians(LAT))
+        return east, north
+
+    @property
+    def status(self) -> PatrolReport:
+        report = self.ctx.bus.last(topics.PATROL_STATUS)
+        assert report is not None
+        return report
+
+    async def call(self, method: str, **params: Any) -> Any:
+        return await self.ctx.rpc.call_local(method, **params)
+
+    def close(self) -> None:
+        for unsubscribe in self._unsubscribe:
+            unsubscribe()
+
+
+@pytest.fixture
+async def robot_factory(tmp_path: Path) -> AsyncIterator[Callable[..., Any]]:
+    started: list[tuple[PlatformDaemon, Robot]] = []
+
+    async def start(*overrides: str) -> Robot:
+        daemon = PlatformDaemon(config(tmp_path, *overrides), None)
+        await daemon.start()
+        robot = Robot(daemon)
+        started.append((daemon, robot))
+        await wait_until(lambda: daemon.ctx.bus.last(topics.POSE) is not None, 10)
+        return robot
+
+    yield start
+    for daemon, robot in started:
+        robot.close()
+        await daemon.stop()
+
+
+async def wait_for_state(robot: Robot, state: str, timeout: float = 10.0) -> None:
+    await wait_until(lambda: robot.status.state == state, timeout)
+
+
+async def test_closed_route_twice_around_a_keepout_never_entered(robot_factory: Any) -> None:
+    robot: Robot = await robot_factory()
+    box = [
+        offset(LAT, LON, east, north)
+        for east, north in ((2.5, -0.5), (3.5, -0.5), (3.5, 0.5), (2.5, 0.5), (2.5, -0.5))
+    ]
+    rock = {
+        "type": "Feature",
+        "id": "rock",
+        "properties": {"role": "keepout"},
+        "geometry": {"type": "Polygon", "coordinates": [[[lon, lat] for lat, lon in box]]},
+    }
+    await robot.call("update_map", add=[rock])
+    corners = [(0, 0), (6, 0), (6, 4), (0, 4)]
+    answer = await robot.call("set_waypoints", waypoints=[at(*c) for c in [*corners, corners[0]]])
+    assert answer["closed"]
+    entered: list[tuple[str, float, float]] = []
+
+    def in_rock(pose: PoseEstimate, truth: tuple[float, float]) -> None:
+        for what, (east, north) in (
+            ("truth", truth),
+            ("pose", robot.local(pose.latitude, pose.longitude)),
+        ):
+            if 2.5 <= east <= 3.5 and -0.5 <= north <= 0.5:
+                entered.append((what, east, north))
+
+    robot.watchers.append(in_rock)
+    await robot.call("patrol_start")
+    await wait_until(lambda: robot.status.lap >= 2, 90)
+    assert not entered, entered
+    # Each corner passed on each lap: by the robot's own pose within 1.5 m (arrival tolerance
+    # 0.5 m), and truly within 3 m (the GPS error on top).
+    for index, corner in enumerate(corners):
+        believed = [math.dist(corner, robot.local(p.latitude, p.longitude)) for p, _ in robot.poses]
+        passes = sum(1 for a, b in itertools.pairwise(believed) if a < 1.5 <= b)
+        assert passes >= 2, (index, passes)
+        assert min(math.dist(corner, truth) for _, truth in robot.poses) < 3.0
+    targets = [r.waypoint for r in robot.reports if r.state == "patrolling"]
+    order = [t for i, t in enumerate(targets) if i == 0 or t != targets[i - 1]]
+    assert order[:8] == [0, 1, 2, 3, 0, 1, 2, 3]
+
+
+async def test_open_route_is_driven_back_in_reverse(robot_factory: Any) -> None:
+    robot: Robot = await robot_factory()
+    answer = await robot.call("set_waypoints", waypoints=[at(0, 0), at(5, 0), at(10, 0)])
+    assert not answer["closed"]
+    await robot.call("patrol_start")
+
+    def order() -> list[int | None]:
+        targets = [r.waypoint for r in robot.reports if r.state == "patrolling"]
+        return [t for i, t in enumerate(targets) if i == 0 or t != targets[i - 1]]
+
+    await wait_until(lambda: order()[:4] == [0, 1, 2, 1], 60)
+    assert robot.status.lap == 0
+
+
+async def test_override_gps_loss_and_map_reload(robot_factory: Any) -> None:
+    robot: Robot = await robot_factory()
+    await robot.call("set_waypoints", waypoints=[at(0, 0), at(25, 0), at(25, 20), at(0, 0)])
+    await robot.call("patrol_start")
+    bus = robot.ctx.bus
+    await wait_until(lambda: robot.status.waypoint == 1 and robot.vehicle.pose().speed_mps > 2, 30)
+
+    # The operator takes over mid-leg: path following stops at once, their velocities drive.
+    mode = next(a for a in robot.daemon.supervisor.actors if isinstance(a, ModeArbiter))
+    assert mode.request(True, "operator").accepted
+    assert robot.status.state == "suspended"  # inside the override's delivery, not 100 ms later
+    published = len(robot.cmd_vel)
+    bus.publish(topics.TELEOP_VELOCITY, Velocity(0.0, 0.6))
+    motion = bus.last(topics.MOTION_STATE)
+    assert motion is not None and motion.command == Velocity(0.0, 0.6)
+    for _ in range(5):  # the operator turns the robot for half a second
+        await asyncio.sleep(0.1)
+        bus.publish(topics.TELEOP_VELOCITY, Velocity(0.0, 0.6))
+    assert len(robot.cmd_vel) == published
+    assert mode.request(False, "operator").accepted
+    assert robot.status.state == "patrolling" and robot.status.waypoint == 1
+    await wait_until(lambda: len(robot.cmd_vel) > published + 5, 5)
+    path = robot.status.path  # replanned from where the operator left it
+    here = robot.ctx.bus.last(topics.POSE)
+    assert here is not None and path
+    assert math.dist(robot.local(*path[0]), robot.local(here.latitude, here.longitude)) < 3.0
+
+    # The GPS goes silent: hold (motors to zero) and say why; it comes back: go on.
+    gps = robot.ctx.sim["gps"]
+    epoch = gps.generator.epoch
+    gps.generator.epoch = lambda pose, utc: b""
+    await wait_for_state(robot, "holding", 5)
+    assert "GPS fix" in robot.status.reason
+    assert robot.cmd_vel[-1] == Velocity(0.0, 0.0)
+    await wait_until(lambda: abs(robot.vehicle.pose().speed_mps) < 0.05, 5)
+    gps.generator.epoch = epoch
+    await wait_for_state(robot, "patrolling", 5)
+
+    # A map reload wipes the waypoints and stops the robot.
+    await robot.call("load_map", map=demo_map(LAT, LON))
+    assert robot.status.state == "stopped" and robot.status.waypoints == 0
+    assert robot.status.reason == "map loaded: waypoints cleared"
+    assert robot.cmd_vel[-1] == Velocity(0.0, 0.0)
+    await wait_until(lambda: abs(robot.vehicle.pose().speed_mps) < 0.05, 5)
+    with pytest.raises(RpcError, match="cannot start: no waypoints"):
+        await robot.call("patrol_start")
+
+
+async def test_invalid_maps_and_waypoints_are_refused_and_a_restart_keeps_the_route(
+    robot_factory: Any,
+) -> None:
+    robot: Robot = await robot_factory()
+    before = await robot.call("get_map")
+    elsewhere = demo_map(LAT + 0.01, LON)  # a valid map whose boundary is 1 km away
+    refusals = {
+        "not JSON": "{broken",
+        "self-intersection": _bowtie(),
+        "the robot .* is outside the map's boundary": elsewhere,
+    }
+    for reason, bad in refusals.items():
+        with pytest.raises(RpcError, match=f"map refused: .*{reason}"):
+            await robot.call("load_map", map=bad)
+    assert await robot.call("get_map") == before  # the old map stays
+    with pytest.raises(RpcError, match="waypoints refused: waypoint 1 .* outside the map"):
+        await robot.call("set_waypoints", waypoints=["sw", at(0, 200)])
+    with pytest.raises(RpcError, match="waypoints refused: waypoint 0 .* keep-out zone 'shed'"):
+        await robot.call("set_waypoints", waypoints=[at(20, 15)])
+    with pytest.raises(RpcError, match="'lake' is neither LAT,LON nor a named point"):
+        await robot.call("set_waypoints", waypoints=["sw", "lake"])
+    with pytest.raises(RpcError, match="update refused: no keep-out zone 'barn'"):
+        await robot.call("update_map", remove=["barn"])
+
+    # Stored on the platform: a new daemon on the same files has the route and patrols it.
+    await robot.call("load_map", map=demo_map(LAT, LON))
+    route = await robot.call("set_waypoints", waypoints=["sw", "se", "ne", "sw"])
+    await robot.daemon.stop()
+    again: Robot = await robot_factory()
+    stored = await again.call("get_map")
+    assert stored["route"] == route["waypoints"] and stored["closed"]
+    assert again.status.waypoints == 4 and again.status.state in ("patrolling", "holding")
+
+
+def _bowtie() -> dict[str, Any]:
+    data = demo_map(LAT, LON)
+    ring = data["features"][1]["geometry"]["coordinates"][0]
+    ring[1], ring[2] = ring[2], ring[1]
+    return data
