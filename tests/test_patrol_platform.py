@@ -23,6 +23,7 @@ from brasidas.config import PlatformConfig
 from brasidas.messages import PatrolReport, PoseEstimate, Velocity
 from platformd.app import PlatformDaemon
 from platformd.mode import ModeArbiter
+from platformd.session_table import Session
 from platformd.sim.demo_area import demo_map, offset
 from platformd.sim.vehicle import VehicleModel
 from tests.conftest import quiet_platform_config, wait_until
@@ -60,7 +61,9 @@ class Robot:
     def __init__(self, daemon: PlatformDaemon) -> None:
         self.daemon = daemon
         self.ctx = daemon.ctx
-        self.vehicle: VehicleModel = daemon.ctx.sim["vehicle"]
+        vehicle = daemon.ctx.sim.vehicle
+        assert vehicle is not None
+        self.vehicle: VehicleModel = vehicle
         self.reports: list[PatrolReport] = []
         self.poses: list[tuple[PoseEstimate, tuple[float, float]]] = []
         self.cmd_vel: list[Velocity] = []
@@ -186,7 +189,8 @@ async def test_override_gps_loss_and_map_reload(robot_factory: Any) -> None:
 
     # The operator takes over mid-leg: path following stops at once, their velocities drive.
     mode = next(a for a in robot.daemon.supervisor.actors if isinstance(a, ModeArbiter))
-    assert mode.request(True, "operator").accepted
+    operator = Session("operator", "station-1", "127.0.0.1", None, 0.0, 0.0)
+    assert mode.request(True, operator).accepted
     assert robot.status.state == "suspended"  # inside the override's delivery, not 100 ms later
     published = len(robot.cmd_vel)
     bus.publish(topics.TELEOP_VELOCITY, Velocity(0.0, 0.6))
@@ -196,7 +200,7 @@ async def test_override_gps_loss_and_map_reload(robot_factory: Any) -> None:
         await asyncio.sleep(0.1)
         bus.publish(topics.TELEOP_VELOCITY, Velocity(0.0, 0.6))
     assert len(robot.cmd_vel) == published
-    assert mode.request(False, "operator").accepted
+    assert mode.request(False, operator).accepted
     assert robot.status.state == "patrolling" and robot.status.waypoint == 1
     await wait_until(lambda: len(robot.cmd_vel) > published + 5, 5)
     path = robot.status.path  # replanned from where the operator left it
@@ -205,7 +209,8 @@ async def test_override_gps_loss_and_map_reload(robot_factory: Any) -> None:
     assert math.dist(robot.local(*path[0]), robot.local(here.latitude, here.longitude)) < 3.0
 
     # The GPS goes silent: hold (motors to zero) and say why; it comes back: go on.
-    gps = robot.ctx.sim["gps"]
+    gps = robot.ctx.sim.gps
+    assert gps is not None
     epoch = gps.generator.epoch
     gps.generator.epoch = lambda pose, utc: b""
     await wait_for_state(robot, "holding", 5)
