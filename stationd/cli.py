@@ -194,6 +194,69 @@ def cmd_stream(args: argparse.Namespace, config: StationConfig) -> int:
     return 1 if answer.get("state") == "failed" else 0
 
 
+def _describe_patrol(patrol: dict[str, Any]) -> str:
+    waypoint = patrol.get("waypoint")
+    distance = patrol.get("distance_m")
+    lines = [
+        f"state      {patrol.get('state')}"
+        + ("" if patrol.get("enabled", True) else " (switched off)"),
+        f"waypoint   {'-' if waypoint is None else waypoint} of {patrol.get('waypoints', 0)}",
+        f"distance_m {'-' if distance is None else distance}",
+        f"lap        {patrol.get('lap', 0)}",
+        f"reason     {patrol.get('reason') or '-'}",
+    ]
+    return "\n".join(lines)
+
+
+def cmd_map(args: argparse.Namespace, config: StationConfig) -> int:
+    try:
+        text = Path(args.file).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise CliError(f"cannot read {args.file}: {err}") from None
+    answer = api_call(config, "map_load", platform_id=args.id, map=text)
+
+    def human(value: dict[str, Any]) -> str:
+        area = value["map"]
+        return (
+            f"map {area['name']!r} loaded: {area['area_m2']:.0f} m², "
+            f"{len(area['keepouts'])} keep-out zones, {len(area['points'])} named points; "
+            "waypoints cleared, patrol stopped"
+        )
+
+    _print(args, answer, human)
+    return 0
+
+
+def cmd_route(args: argparse.Namespace, config: StationConfig) -> int:
+    from brasidas.autonomy.route import RouteError, route_items
+
+    items: list[Any] = list(args.waypoints)
+    if len(items) == 1 and Path(items[0]).is_file():
+        try:
+            items = route_items(Path(items[0]).read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, RouteError) as err:
+            raise CliError(f"{args.waypoints[0]}: {err}") from None
+    answer = api_call(config, "route_set", platform_id=args.id, waypoints=items)
+
+    def human(value: dict[str, Any]) -> str:
+        kind = "closed, loops" if value["closed"] else "open, driven back in reverse"
+        return f"{len(value['waypoints'])} waypoints set ({kind})\n" + _describe_patrol(
+            value["patrol"]
+        )
+
+    _print(args, answer, human)
+    return 0
+
+
+PATROL_ACTIONS = {None: "patrol_get", "start": "patrol_start", "stop": "patrol_stop"}
+
+
+def cmd_patrol(args: argparse.Namespace, config: StationConfig) -> int:
+    answer = api_call(config, PATROL_ACTIONS[args.action], platform_id=args.id)
+    _print(args, answer, _describe_patrol)
+    return 0
+
+
 def cmd_audio(args: argparse.Namespace, config: StationConfig) -> int:
     from stationd.intercom import run_audio
 
@@ -269,6 +332,9 @@ COMMANDS: dict[str, Callable[[argparse.Namespace, StationConfig], int]] = {
     "view": cmd_view,
     "audio": cmd_audio,
     "stream": cmd_stream,
+    "map": cmd_map,
+    "route": cmd_route,
+    "patrol": cmd_patrol,
 }
 
 
@@ -375,6 +441,19 @@ def build_parser() -> argparse.ArgumentParser:
         "--sink", choices=["auto", "fakesink"], default="auto", help="fakesink: do not play"
     )
     p.add_argument("--seconds", type=float, default=0, help="stop after this long")
+    p = sub.add_parser(
+        "map", parents=[common], help="load an area map (GeoJSON): clears the waypoints, stops"
+    )
+    p.add_argument("id")
+    p.add_argument("file", metavar="FILE.geojson")
+    p = sub.add_parser(
+        "route", parents=[common], help="set the waypoints: a route file or LAT,LON / point names"
+    )
+    p.add_argument("id")
+    p.add_argument("waypoints", nargs="+", metavar="FILE | LAT,LON")
+    p = sub.add_parser("patrol", parents=[common], help="the patrol's state; start or stop it")
+    p.add_argument("id")
+    p.add_argument("action", nargs="?", choices=["start", "stop"])
     p = sub.add_parser("keygen", parents=[common], help="write a new fleet key")
     p.add_argument("--path", help="where (default: the configured key file)")
     p.add_argument("--force", action="store_true", help="replace an existing key")

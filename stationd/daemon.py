@@ -25,6 +25,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "stationd.telemetry",
     "stationd.teleop",
     "stationd.media",
+    "stationd.patrol",
     "stationd.console",
 )
 

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import quiet_platform_config, wait_until
 
 from brasidas import topics
 from brasidas.codecs.jsonrpc import RpcError
@@ -26,7 +27,6 @@ from platformd.mode import ModeArbiter
 from platformd.session_table import Session
 from platformd.sim.demo_area import demo_map, offset
 from platformd.sim.vehicle import VehicleModel
-from tests.conftest import quiet_platform_config, wait_until
 
 LAT, LON = 37.9415, 23.6530
 

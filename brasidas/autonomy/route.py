@@ -110,19 +110,23 @@ def parse_waypoints(
 
 
 def parse_route_file(text: str, points: Mapping[str, tuple[float, float]] | None = None) -> Route:
-    """A route file: GeoJSON (a LineString, or Point features in order), a JSON list of
-    waypoints, or text with one waypoint ("LAT,LON" or a point name) per line."""
+    """A route file (see :func:`route_items`) as a route."""
+    return parse_waypoints(route_items(text), points)
+
+
+def route_items(text: str) -> list[Any]:
+    """The waypoints of a route file, unchecked: GeoJSON (a LineString, or Point features in
+    order), a JSON list of waypoints, or text with one waypoint ("LAT,LON" or a point name)
+    per line (``#`` starts a comment)."""
     stripped = text.strip()
     if stripped.startswith(("{", "[")):
         try:
             data = json.loads(stripped)
         except ValueError as exc:
             raise RouteError(f"not JSON: {exc}") from None
-        if isinstance(data, list):
-            return parse_waypoints(data, points)
-        return parse_waypoints(_geojson_waypoints(data), points)
+        return data if isinstance(data, list) else _geojson_waypoints(data)
     lines = [line.split("#", 1)[0].strip() for line in stripped.splitlines()]
-    return parse_waypoints([line for line in lines if line], points)
+    return [line for line in lines if line]
 
 
 class RouteStore:

@@ -1,0 +1,74 @@
+"""``brasidas-station map / route / patrol`` through the station daemon to a --sim platform."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+
+from conftest import quiet_platform_config, wait_until
+from test_station import run_cli, station
+
+from brasidas import topics
+from platformd.app import PlatformDaemon
+from platformd.sim.demo_area import demo_map
+from stationd.daemon import StationDaemon
+
+__all__ = ["station"]  # the fixture, shared with the station's tests
+
+Factory = Callable[..., Awaitable[PlatformDaemon]]
+LAT, LON = 37.9415, 23.6530
+
+
+async def test_map_route_and_patrol_commands(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+) -> None:
+    platform = await platform_factory(
+        quiet_platform_config(
+            "platform.id=rover-5",
+            "sim.enabled=true",
+            "gps.enabled=true",
+            "gps.sim_rate_hz=5",
+            f"map.file={tmp_path / 'map.geojson'}",
+            f"autonomy.route_file={tmp_path / 'route.json'}",
+        ),
+        fleet_key,
+    )
+    await wait_until(lambda: platform.bus.last(topics.POSE) is not None, 10)
+    code, _, _ = await run_cli(station, "connect", "rover-5", "--url", platform.ctx.signaling_url)
+    assert code == 0
+
+    good = tmp_path / "field.geojson"
+    good.write_text(json.dumps(demo_map(LAT, LON)))
+    code, out, _ = await run_cli(station, "map", "rover-5", str(good))
+    assert code == 0 and "map 'demo field' loaded" in out and "1 keep-out zones" in out
+
+    bad = demo_map(LAT, LON)
+    ring = bad["features"][1]["geometry"]["coordinates"][0]
+    ring[1], ring[2] = ring[2], ring[1]
+    (tmp_path / "bad.geojson").write_text(json.dumps(bad))
+    code, out, err = await run_cli(station, "map", "rover-5", str(tmp_path / "bad.geojson"))
+    assert code == 1 and "map refused" in err and "self-intersection" in err
+    far = tmp_path / "far.geojson"
+    far.write_text(json.dumps(demo_map(LAT + 0.01, LON)))
+    code, _, err = await run_cli(station, "map", "rover-5", str(far))
+    assert code == 1 and "outside the map's boundary" in err
+
+    code, out, _ = await run_cli(station, "route", "rover-5", "sw", "se", "ne", "sw")
+    assert code == 0 and "4 waypoints set (closed, loops)" in out
+    route_file = tmp_path / "route.txt"
+    route_file.write_text(f"# out and back\n{LAT},{LON}\nne\n")
+    code, out, _ = await run_cli(station, "route", "rover-5", str(route_file), "--json")
+    answer = json.loads(out)
+    assert code == 0 and answer["closed"] is False and answer["waypoints"][1]["name"] == "ne"
+    code, _, err = await run_cli(station, "route", "rover-5", "sw", "91,0")
+    assert code == 1 and "waypoint 1: 91.0, 0.0 is not a latitude" in err
+
+    code, out, _ = await run_cli(station, "patrol", "rover-5", "--json")
+    state = json.loads(out)
+    assert code == 0 and {"state", "waypoint", "distance_m", "lap", "reason"} <= set(state)
+    assert state["state"] == "stopped" and state["waypoints"] == 2
+    code, out, _ = await run_cli(station, "patrol", "rover-5", "start")
+    assert code == 0 and out.split()[1] in ("patrolling", "holding")
+    code, out, _ = await run_cli(station, "patrol", "rover-5", "stop")
+    assert code == 0 and "state      stopped" in out and "stopped by the operator" in out
