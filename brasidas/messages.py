@@ -327,18 +327,6 @@ class PoseEstimate:
         """Compass heading, clockwise from north, [0, 360)."""
         return (90.0 - math.degrees(self.yaw_rad)) % 360.0
 
-    def as_dict(self) -> dict[str, Any]:
-        """Telemetry form (compact, rounded)."""
-        return {
-            "lat": round(self.latitude, 7),
-            "lon": round(self.longitude, 7),
-            "heading": round(self.heading_deg, 1) if self.heading_known else None,
-            "speed": round(self.speed_mps, 2),
-            "sigma_m": round(self.sigma_xy_m, 2),
-            "fix_age": None if self.fix_age_s is None else round(self.fix_age_s, 1),
-            "source": self.source,
-        }
-
 
 @dataclass(frozen=True)
 class PatrolReport:
@@ -370,3 +358,14 @@ class PatrolReport:
             "waypoints": self.waypoints,
             "path": [[round(lat, 7), round(lon, 7)] for lat, lon in self.path],
         }
+
+
+@dataclass(frozen=True)
+class Automations:
+    """Which onboard automations are switched on (R-3), by name: patrol, auto_framerate,
+    stream_retries, battery_monitor, diagnostics (each owner reports its own)."""
+
+    switches: tuple[tuple[str, bool], ...] = ()
+
+    def as_dict(self) -> dict[str, bool]:
+        return dict(self.switches)

@@ -9,7 +9,7 @@ bit 6      streaming (at least one media stream sending)
 bit 7      a station session is open
 bit 8      motor controller connected
 bit 9      fault (an actor reports a failure: controller lost, stream failed, IMU missing)
-bit 10     autonomy active (a patrol is running; later issue)
+bit 10     autonomy active: the patrol is running (patrolling, or holding for safety)
 bits 11-31 reserved, zero
 """
 

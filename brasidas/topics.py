@@ -5,6 +5,7 @@ from __future__ import annotations
 from brasidas.bus import Topic
 from brasidas.messages import (
     Attitude,
+    Automations,
     ControllerStatus,
     GpsFix,
     GpsFixLost,
@@ -89,3 +90,5 @@ POSE: Topic[PoseEstimate] = Topic("pose", retain=True)
 """Where the robot is (platformd.autonomy.localization today; a SLAM actor would publish here)."""
 PATROL_STATUS: Topic[PatrolReport] = Topic("patrol_status", retain=True)
 """The patrol's state, target, lap and planned path, on every change (platformd.autonomy)."""
+AUTOMATIONS: Topic[Automations] = Topic("automations", retain=True)
+"""Onboard automations switched on or off (R-3): see :func:`platformd.automation.report_switch`."""

@@ -31,6 +31,7 @@ from brasidas.codecs.telemetry_schema import Platforms
 from brasidas.messages import (
     LightsState,
     OverrideState,
+    PatrolReport,
     PlatformHealth,
     Position,
 )
@@ -74,6 +75,7 @@ class BeaconAdvertiser(Actor):
         lights: LightsState | None = bus.last(topics.LIGHTS_STATE)
         health: PlatformHealth | None = bus.last(topics.PLATFORM_HEALTH)
         position: Position | None = bus.last(topics.POSITION)
+        patrol: PatrolReport | None = bus.last(topics.PATROL_STATUS)
         status = StatusWord(
             movrd=bool(override and override.engaged),
             main_lights=bool(lights and lights.main),
@@ -84,6 +86,7 @@ class BeaconAdvertiser(Actor):
             session=self.ctx.session_count > 0,
             controller=bool(health and health.controller),
             fault=bool(health and health.fault),
+            autonomy=bool(patrol and patrol.state in ("patrolling", "holding")),
         )
         return beacon_codec.Beacon(
             platform_id=self.ctx.config.platform.id,
@@ -112,6 +115,7 @@ class BeaconAdvertiser(Actor):
             topics.LIGHTS_STATE,
             topics.PLATFORM_HEALTH,
             topics.POSITION,
+            topics.PATROL_STATUS,
             topics.SESSION_OPENED,
             topics.SESSION_CLOSED,
         )

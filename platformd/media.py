@@ -29,12 +29,15 @@ from typing import Any
 from brasidas import topics
 from brasidas.actor import Actor, wait_forever
 from brasidas.codecs.commands import (
+    AUTO_FRAMERATE,
     PAUSE_STREAMS,
     SET_FRAMERATE,
     START_STREAMS,
     STOP_STREAMS,
+    STREAM_RETRIES,
     PayloadError,
     parse_payload,
+    parse_switch,
 )
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
 from brasidas.media.audio import AudioIn, AudioOut, AudioSettings
@@ -43,6 +46,7 @@ from brasidas.media.pipeline import PipelineStream, StreamState
 from brasidas.media.relay import ForwardSettings, RtspForward
 from brasidas.media.video import VideoOut
 from brasidas.messages import CommandResult, OverrideState, SessionClosed, StreamStatus
+from platformd.automation import report_switch
 from platformd.commands import SystemCommand
 from platformd.context import PlatformContext
 from platformd.session_table import Session
@@ -71,6 +75,8 @@ class MediaService(Actor):
             engaged_fps=navcam.framerate, idle_fps=navcam.idle_framerate, limit=navcam.framerate
         )
         self._group: asyncio.TaskGroup | None = None
+        self.retry = True
+        """Failed streams are rebuilt with backoff (10.10)."""
         if navcam.enabled:
             self.navcam = VideoOut(
                 "navcam",
@@ -118,11 +124,15 @@ class MediaService(Actor):
                     STOP_STREAMS: self._command_stop,
                     PAUSE_STREAMS: self._command_pause,
                     SET_FRAMERATE: self._command_framerate,
+                    AUTO_FRAMERATE: self._command_auto_framerate,
+                    STREAM_RETRIES: self._command_retries,
                 },
             )
         )
         self.subscribe(topics.OVERRIDE_STATE, self._on_override)
         self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
+        report_switch(self.bus, "auto_framerate", self.framerate.auto)
+        report_switch(self.bus, "stream_retries", self.retry)
         async with asyncio.TaskGroup() as group:
             self._group = group
             for stream in self.streams.values():
@@ -225,6 +235,30 @@ class MediaService(Actor):
             except ValueError as err:
                 return CommandResult(False, str(err))
         return CommandResult(True, result=result)
+
+    async def _command_auto_framerate(self, command: SystemCommand) -> CommandResult:
+        """10.9: the NavCam's automatic 5/30 fps switch on or off (off keeps the current rate)."""
+        try:
+            on = parse_switch(command.payload)
+        except PayloadError as err:
+            return CommandResult(False, str(err))
+        fps = self.framerate.set_auto(on)
+        if self.navcam is not None and fps != self.navcam.settings.framerate:
+            self.navcam.set_framerate(fps)
+        report_switch(self.bus, "auto_framerate", on)
+        return CommandResult(True, result={"auto_framerate": on, "navcam_fps": fps})
+
+    async def _command_retries(self, command: SystemCommand) -> CommandResult:
+        """10.10: rebuilding failed streams on or off."""
+        try:
+            on = parse_switch(command.payload)
+        except PayloadError as err:
+            return CommandResult(False, str(err))
+        self.retry = on
+        for stream in self.streams.values():
+            stream.set_retry(on)
+        report_switch(self.bus, "stream_retries", on)
+        return CommandResult(True, result={"stream_retries": on})
 
     # ------------------------------------------------------------------ per-stream control
 

@@ -8,6 +8,7 @@ from brasidas.codecs.telemetry import TelemetryEncoder
 from brasidas.codecs.telemetry_schema import (
     SCHEMA_VERSION,
     Attitude,
+    Autonomy,
     Battery,
     Controller,
     Gps,
@@ -24,6 +25,7 @@ from stationd.telemetry import (
     GPS_FIX_LOST,
     LINK_DEGRADED,
     LOW_BATTERY,
+    PATROL_HOLDING,
     SENSOR_STALE,
     STREAM_FAILED,
     Annunciator,
@@ -216,3 +218,14 @@ def test_a_platform_on_another_schema_is_named_not_shown_as_blanks() -> None:
     # Once datagrams of our schema arrive (the platform was updated), the message goes.
     assert link.feed(TelemetryEncoder("rover-1", key).encode(snapshot_to_wire(SECTIONS), 2.0)[0])
     assert link.report()["link"]["error"] == ""
+
+
+def test_a_holding_patrol_raises_with_its_reason_and_clears() -> None:
+    annunciator = Annunciator(CONFIG)
+    holding = Autonomy(state="holding", reason="GPS fix lost or stale (2.4 s old)")
+    (change,) = annunciator.evaluate(with_(Autonomy, holding), 0.0, 0.1, now=1.0)
+    assert change.active and change.warning.code == PATROL_HOLDING
+    assert change.warning.message == "patrol holding: GPS fix lost or stale (2.4 s old)"
+    patrolling = Autonomy(state="patrolling")
+    (change,) = annunciator.evaluate(with_(Autonomy, patrolling), 0.0, 0.1, now=2.0)
+    assert not change.active and names(annunciator) == set()

@@ -23,6 +23,7 @@ from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import PlatformConfig
 from brasidas.messages import PatrolReport, PoseEstimate, Velocity
 from platformd.app import PlatformDaemon
+from platformd.beacon import BeaconAdvertiser
 from platformd.mode import ModeArbiter
 from platformd.session_table import Session
 from platformd.sim.demo_area import demo_map, offset
@@ -187,6 +188,8 @@ async def test_override_gps_loss_and_map_reload(robot_factory: Any) -> None:
     bus = robot.ctx.bus
     await wait_until(lambda: robot.status.waypoint == 1 and robot.vehicle.pose().speed_mps > 2, 30)
 
+    assert BeaconAdvertiser(robot.ctx).current().status.autonomy  # the status word's bit 10
+
     # The operator takes over mid-leg: path following stops at once, their velocities drive.
     mode = next(a for a in robot.daemon.supervisor.actors if isinstance(a, ModeArbiter))
     operator = Session("operator", "station-1", "127.0.0.1", None, 0.0, 0.0)
@@ -226,6 +229,7 @@ async def test_override_gps_loss_and_map_reload(robot_factory: Any) -> None:
     assert robot.status.reason == "map loaded: waypoints cleared"
     assert robot.cmd_vel[-1] == Velocity(0.0, 0.0)
     await wait_until(lambda: abs(robot.vehicle.pose().speed_mps) < 0.05, 5)
+    assert not BeaconAdvertiser(robot.ctx).current().status.autonomy
     with pytest.raises(RpcError, match="cannot start: no waypoints"):
         await robot.call("patrol_start")
 

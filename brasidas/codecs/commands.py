@@ -22,6 +22,9 @@ PAUSE_STREAMS = CommandCode(10, 3)
 SET_FRAMERATE = CommandCode(10, 5)
 MAIN_LIGHTS = CommandCode(10, 6)
 POSITIONAL_LIGHTS = CommandCode(10, 7)
+PATROL = CommandCode(10, 8)
+AUTO_FRAMERATE = CommandCode(10, 9)
+STREAM_RETRIES = CommandCode(10, 10)
 DIAGNOSTICS = CommandCode(20, 0)
 BATTERY_MONITOR = CommandCode(20, 4)
 
@@ -33,6 +36,9 @@ DESCRIPTIONS: dict[CommandCode, str] = {
     SET_FRAMERATE: "set a video stream's framerate",
     MAIN_LIGHTS: "main lights",
     POSITIONAL_LIGHTS: "positional lights",
+    PATROL: "patrol automation on or off",
+    AUTO_FRAMERATE: "automatic NavCam framerate switch (5/30 fps) on or off",
+    STREAM_RETRIES: "retrying failed streams on or off",
     DIAGNOSTICS: "diagnostics report",
     BATTERY_MONITOR: "battery monitor",
 }

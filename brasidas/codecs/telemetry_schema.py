@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 """Version of the schema (and the datagram layout); the first byte of every datagram."""
 ERROR_KEY = "!"
 """A section's wire map holding only this key is that section's error."""
@@ -279,6 +279,54 @@ class Diagnostics(Section):
     subsystems: dict[str, dict[str, int]] = field(default_factory=dict, metadata=wire("ss"))
 
 
+@dataclass(frozen=True)
+class Pose(Section):
+    """Where the robot is: localization from GPS, the IMU and the commanded motion (issue 12)."""
+
+    NAME = "pose"
+    WIRE = "pos"
+    lat: float | None = field(default=None, metadata=wire("la", unit="°"))
+    lon: float | None = field(default=None, metadata=wire("lo", unit="°"))
+    heading: float | None = field(
+        default=None, metadata=wire("h", unit="°", doc="compass; null until known")
+    )
+    speed: float = field(default=0.0, metadata=wire("sp", unit="m/s"))
+    sigma_m: float | None = field(
+        default=None, metadata=wire("sg", unit="m", doc="position uncertainty (1 sigma)")
+    )
+    fix_age_s: float | None = field(default=None, metadata=wire("fa", unit="s"))
+    source: str = field(default="", metadata=wire("src", doc="e.g. gps+imu"))
+
+
+@dataclass(frozen=True)
+class Autonomy(Section):
+    """The patrol (issue 12): its state, target, lap, why, and the planned path."""
+
+    NAME = "autonomy"
+    WIRE = "aut"
+    state: str = field(
+        default="idle", metadata=wire("s", doc="idle, patrolling, suspended, holding or stopped")
+    )
+    enabled: bool = field(default=True, metadata=wire("on", doc="patrol automation (10.8) on"))
+    waypoint: int | None = field(default=None, metadata=wire("w", doc="index of the target"))
+    waypoints: int = field(default=0, metadata=wire("n"))
+    distance_m: float | None = field(default=None, metadata=wire("d", unit="m"))
+    lap: int = field(default=0, metadata=wire("l"))
+    reason: str = field(default="", metadata=wire("r"))
+    path: tuple[tuple[float, ...], ...] = field(
+        default=(), metadata=wire("p", unit="°", doc="planned path, [lat, lon] points")
+    )
+
+
+@dataclass(frozen=True)
+class Automation(Section):
+    """Onboard automations switched on or off (R-3: 10.8-10.10, 20.0, 20.4), by name."""
+
+    NAME = "automation"
+    WIRE = "aon"
+    switches: dict[str, bool] = field(default_factory=dict, metadata=wire("s"))
+
+
 SECTIONS: tuple[type[Section], ...] = (
     Override,
     Lights,
@@ -293,6 +341,9 @@ SECTIONS: tuple[type[Section], ...] = (
     Motion,
     Streams,
     Platforms,
+    Pose,
+    Autonomy,
+    Automation,
     Diagnostics,
 )
 """Every top-level section, in snapshot order."""

@@ -51,6 +51,18 @@ class FrameratePolicy:
             "idle": max(1, min(idle_fps, limit)),
         }
         self.engaged = False
+        self.held: int | None = None
+        """With the automatic switch off (10.9): the framerate kept whatever the mode."""
+
+    @property
+    def auto(self) -> bool:
+        """The framerate follows the manual override (the automatic 5/30 fps switch)."""
+        return self.held is None
+
+    def set_auto(self, on: bool) -> int:
+        """Switch the automatic framerate on (back to the mode's) or off (keep the current)."""
+        self.held = None if on else self.current
+        return self.current
 
     @property
     def mode(self) -> str:
@@ -58,7 +70,7 @@ class FrameratePolicy:
 
     @property
     def current(self) -> int:
-        return self.rates[self.mode]
+        return self.held if self.held is not None else self.rates[self.mode]
 
     def set_override(self, engaged: bool) -> int:
         """The manual override changed; returns the framerate to use now."""
@@ -68,5 +80,8 @@ class FrameratePolicy:
     def set_current(self, raw: Any) -> int:
         """10.5: the framerate of the current mode (ValueError if invalid); returns it."""
         fps = parse_framerate(raw, self.limit)
-        self.rates[self.mode] = fps
+        if self.held is not None:
+            self.held = fps
+        else:
+            self.rates[self.mode] = fps
         return fps

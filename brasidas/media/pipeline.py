@@ -69,6 +69,8 @@ class PipelineStream:
         self.abandoned = 0
         """Pipelines given up on because a state change never returned (a GStreamer deadlock)."""
         self.next_retry_in: float | None = None
+        self.retry = True
+        """Rebuild the pipeline after a failure (command 10.10 switches it for every stream)."""
         self.pipeline: Any = None
         self._wanted = StreamState.IDLE
         self._generation = 0
@@ -159,6 +161,12 @@ class PipelineStream:
         because the answer can change across every await in :meth:`supervise`.)"""
         return self._wanted is StreamState.IDLE
 
+    def set_retry(self, on: bool) -> None:
+        """Retry failures or not (10.10); switched back on, a failed stream is retried."""
+        self.retry = on
+        if on and self.state is StreamState.FAILED:
+            self._failed.set()
+
     async def supervise(self) -> None:
         """Run by the owner for the stream's lifetime: retry failures with capped backoff."""
         backoff = Backoff(self.retry_initial, max(self.retry_initial, self.retry_max))
@@ -177,7 +185,7 @@ class PipelineStream:
                     delay = backoff.next()
                 self._playing_since = None
                 await self._teardown()
-            if self._stopped_on_purpose():
+            if self._stopped_on_purpose() or not self.retry:
                 continue
             self.next_retry_in = delay
             self._kick.clear()

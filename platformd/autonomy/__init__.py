@@ -9,12 +9,15 @@ from brasidas import topics
 from brasidas.autonomy.follower import FollowerParameters
 from brasidas.autonomy.localization import FilterParameters
 from brasidas.autonomy.patrol import PatrolParameters
+from brasidas.codecs.telemetry_schema import Automation, Autonomy, Pose
 from brasidas.security import state_dir
 from platformd.autonomy.localization import Localization
 from platformd.autonomy.methods import PatrolMethods
 from platformd.autonomy.patrol import PatrolActor, Storage
 from platformd.context import PlatformContext
 from platformd.sim.demo_area import demo_map, demo_route
+
+TELEMETRY_PATH_POINTS = 30
 
 
 async def async_setup(ctx: PlatformContext) -> None:
@@ -55,15 +58,49 @@ async def async_setup(ctx: PlatformContext) -> None:
         enabled=config.enabled,
         autostart=config.autostart,
         demo=(demo_map(sim.latitude, sim.longitude), demo_route()) if sim.enabled else None,
+        commands=ctx.commands,
     )
     patrol.load()
     PatrolMethods(patrol).register(ctx.rpc)
-    ctx.telemetry_sources["autonomy"] = lambda: patrol.report.as_dict()
-    ctx.telemetry_sources["pose"] = lambda: _pose(localization)
+    ctx.telemetry.register(Autonomy, lambda: _autonomy(patrol))
+    ctx.telemetry.register(Pose, lambda: _pose(ctx))
+    ctx.telemetry.register(Automation, lambda: _automation(ctx))
     ctx.supervisor.start(localization)
     ctx.supervisor.start(patrol)
 
 
-def _pose(localization: Localization) -> dict[str, object] | None:
-    pose = localization.bus.last(topics.POSE)
-    return pose.as_dict() if pose is not None else None
+def _autonomy(patrol: PatrolActor) -> Autonomy:
+    report = patrol.report
+    return Autonomy(
+        state=report.state,
+        enabled=report.enabled,
+        waypoint=report.waypoint,
+        waypoints=report.waypoints,
+        distance_m=report.distance_m,
+        lap=report.lap,
+        reason=report.reason,
+        # A section must fit one datagram: the path's first points (get_patrol has them all).
+        path=tuple(
+            (round(lat, 7), round(lon, 7)) for lat, lon in report.path[:TELEMETRY_PATH_POINTS]
+        ),
+    )
+
+
+def _pose(ctx: PlatformContext) -> Pose | None:
+    pose = ctx.bus.last(topics.POSE)
+    if pose is None:
+        return None
+    return Pose(
+        lat=round(pose.latitude, 7),
+        lon=round(pose.longitude, 7),
+        heading=round(pose.heading_deg, 1) if pose.heading_known else None,
+        speed=round(pose.speed_mps, 2),
+        sigma_m=round(pose.sigma_xy_m, 2),
+        fix_age_s=None if pose.fix_age_s is None else round(pose.fix_age_s, 1),
+        source=pose.source,
+    )
+
+
+def _automation(ctx: PlatformContext) -> Automation:
+    switches = ctx.bus.last(topics.AUTOMATIONS)
+    return Automation(switches=switches.as_dict() if switches is not None else {})

@@ -35,7 +35,10 @@ from brasidas.autonomy.route import (
     write_atomically,
 )
 from brasidas.bus import Bus
-from brasidas.messages import OverrideState, PatrolReport, PoseEstimate, Velocity
+from brasidas.codecs.commands import PATROL, PayloadError, parse_switch
+from brasidas.messages import CommandResult, OverrideState, PatrolReport, PoseEstimate, Velocity
+from platformd.automation import report_switch
+from platformd.commands import CommandRouter, SystemCommand
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -59,9 +62,11 @@ class PatrolActor(Actor):
         enabled: bool = True,
         autostart: bool = True,
         demo: tuple[Mapping[str, Any], list[str]] | None = None,
+        commands: CommandRouter | None = None,
         clock: Callable[[], float] | None = None,
     ) -> None:
         super().__init__(bus)
+        self.commands = commands
         self.core = Patrol(parameters)
         self.core.enabled = enabled
         self.storage = storage
@@ -82,6 +87,8 @@ class PatrolActor(Actor):
             self._clock = asyncio.get_running_loop().time
         if not self.loaded:
             self.load()
+        if self.commands is not None:
+            self.on_remove(self.commands.register(self.name, {PATROL: self._command_switch}))
         self.subscribe(topics.POSE, self._on_pose)
         self.subscribe(topics.OVERRIDE_STATE, self._on_override)
         try:
@@ -100,6 +107,7 @@ class PatrolActor(Actor):
         self.core.set_map(area)
         if area is not None:
             self.core.set_route(route)
+        report_switch(self.bus, "patrol", self.core.enabled)
         if route.waypoints and stored and self.autostart and self.core.enabled:
             self.core.start()
             _LOGGER.info(
@@ -256,7 +264,17 @@ class PatrolActor(Actor):
 
     def set_enabled(self, enabled: bool) -> None:
         self.core.set_enabled(enabled)
+        report_switch(self.bus, "patrol", enabled)
         self.tick()
+
+    async def _command_switch(self, command: SystemCommand) -> CommandResult:
+        """10.8: the patrol automation on or off (off stops it and refuses start)."""
+        try:
+            on = parse_switch(command.payload)
+        except PayloadError as err:
+            return CommandResult(False, str(err))
+        self.set_enabled(on)
+        return CommandResult(True, result={"patrol": on, "state": self.core.state.value})
 
 
 def _differs(last: PatrolReport, report: PatrolReport) -> bool:

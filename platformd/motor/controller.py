@@ -26,6 +26,7 @@ from brasidas.codecs.commands import (
 )
 from brasidas.codecs.telemetry_schema import Motor
 from brasidas.messages import CommandResult, ControllerStatus, Velocity
+from platformd.automation import report_switch
 from platformd.commands import SystemCommand
 from platformd.context import PlatformContext
 from platformd.motor.lights import Lights, OutputRequest, Send
@@ -122,6 +123,7 @@ class MotorController(Actor):
             )
         )
         self.lights.publish()
+        report_switch(self.bus, "battery_monitor", self.battery_monitor)
         try:
             async with asyncio.TaskGroup() as group:
                 group.create_task(self.lights.gpio_worker(), name="motor:gpio")
@@ -444,6 +446,7 @@ class MotorController(Actor):
         except PayloadError as err:
             return CommandResult(False, str(err))
         self.battery_monitor = on
+        report_switch(self.bus, "battery_monitor", on)
         self._publish_status(connected=self.status.connected, error=self.status.error)
         return CommandResult(True, result={"battery_monitor": on})
 

@@ -51,6 +51,7 @@ from brasidas.messages import (
     StreamStatus,
 )
 from brasidas.status import Battery as BatteryLevel
+from platformd.automation import report_switch
 from platformd.commands import SystemCommand
 from platformd.telemetry.stream import StreamSender
 from platformd.telemetry.system import MEMINFO, SYSTEM_INFO_MAX_AGE, THERMAL_ROOT, system_info
@@ -121,6 +122,7 @@ class TelemetryAggregator(Actor):
 
     async def run(self) -> None:
         self.on_remove(self.ctx.commands.register(self.name, {DIAGNOSTICS: self._command}))
+        report_switch(self.bus, "diagnostics", self.diagnostics)
         self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
         self.subscribe_reports()
         loop = asyncio.get_running_loop()
@@ -167,6 +169,7 @@ class TelemetryAggregator(Actor):
         except PayloadError as err:
             return CommandResult(False, str(err))
         self.diagnostics = on
+        report_switch(self.bus, "diagnostics", on)
         _LOGGER.info("diagnostics report %s", "on" if on else "off")
         return CommandResult(True, result={"diagnostics": on})
 

@@ -11,7 +11,15 @@ from dataclasses import dataclass
 from typing import Any
 
 from brasidas.codecs.commands import CommandCode
-from brasidas.codecs.telemetry_schema import Attitude, Battery, Controller, Gps, Snapshot, Streams
+from brasidas.codecs.telemetry_schema import (
+    Attitude,
+    Autonomy,
+    Battery,
+    Controller,
+    Gps,
+    Snapshot,
+    Streams,
+)
 from brasidas.config import TelemetryReceiverSection
 
 NOTIFICATION_GROUP = 90
@@ -22,6 +30,7 @@ GPS_FIX_LOST = CommandCode(NOTIFICATION_GROUP, 12)
 LINK_DEGRADED = CommandCode(NOTIFICATION_GROUP, 13)
 STREAM_FAILED = CommandCode(NOTIFICATION_GROUP, 14)
 SENSOR_STALE = CommandCode(NOTIFICATION_GROUP, 15)
+PATROL_HOLDING = CommandCode(NOTIFICATION_GROUP, 16)
 FAILED_STREAM_STATES = frozenset({"failed", "error"})
 
 
@@ -96,6 +105,12 @@ class Annunciator:
         for name, state in streams.states.items() if streams is not None else ():
             if state.lower() in FAILED_STREAM_STATES:
                 wanted[f"stream_failed:{name}"] = (STREAM_FAILED, f"stream {name} failed")
+        autonomy = snapshot.get(Autonomy)
+        if autonomy is not None and autonomy.state == "holding":
+            wanted["patrol_holding"] = (
+                PATROL_HOLDING,
+                f"patrol holding: {autonomy.reason or 'no reason given'}",
+            )
         changes: list[Change] = []
         for name in list(self.active):
             if name not in wanted and name not in keep:
