@@ -207,6 +207,9 @@ async def test_every_platform_code_has_one_owner_in_sim(
         "10.5": "media",
         "10.6": "motor",
         "10.7": "motor",
+        "10.8": "patrol",
+        "10.9": "media",
+        "10.10": "media",
         "20.0": "telemetry",
         "20.4": "motor",
     }
