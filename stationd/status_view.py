@@ -17,6 +17,8 @@ from brasidas.codecs.jsonrpc import RpcError
 from brasidas.codecs.telemetry_schema import (
     SCHEMA_VERSION,
     Attitude,
+    Automation,
+    Autonomy,
     Battery,
     Computer,
     Controller,
@@ -27,6 +29,7 @@ from brasidas.codecs.telemetry_schema import (
     Motor,
     Override,
     Platforms,
+    Pose,
     Section,
     Streams,
     VelocityLink,
@@ -89,6 +92,9 @@ def render(report: dict[str, Any], *, color: bool = True, now: float | None = No
         ("computer", Computer, _computer),
         ("velocity", VelocityLink, _velocity),
         ("motion", Motion, _motion),
+        ("pose", Pose, _pose),
+        ("autonomy", Autonomy, _autonomy),
+        ("automation", Automation, _automation),
         ("streams", Streams, _streams),
         ("platforms", Platforms, _platforms),
     ]
@@ -307,6 +313,36 @@ def _velocity(velocity: VelocityLink) -> str:
 def _motion(motion: Motion) -> str:
     deadman = "  DEADMAN" if motion.deadman else ""
     return f"{motion.mode}  linear {motion.linear:+.2f}  angular {motion.angular:+.2f}{deadman}"
+
+
+def _pose(pose: Pose) -> str:
+    where = (
+        f"{pose.lat:.6f},{pose.lon:.6f}" if pose.lat is not None and pose.lon is not None else "?"
+    )
+    heading = f"{pose.heading:.0f}°" if pose.heading is not None else "heading unknown"
+    sigma = f" ±{pose.sigma_m:.1f} m" if pose.sigma_m is not None else ""
+    return f"{where}{sigma}  {heading}  {pose.speed:.1f} m/s  ({pose.source})"
+
+
+def _autonomy(patrol: Autonomy) -> str:
+    """Holding stands out: it is what the operator must act on."""
+    if patrol.waypoint is None:
+        text = patrol.state
+    else:
+        distance = f" {patrol.distance_m:.0f} m" if patrol.distance_m is not None else ""
+        text = f"{patrol.state}  waypoint {patrol.waypoint}/{patrol.waypoints}{distance}  lap {patrol.lap}"
+    if patrol.reason:
+        text += f"  ({patrol.reason})"
+    if patrol.state == "holding":
+        text = "HOLDING" + text.removeprefix("holding")
+    return text if patrol.enabled else text + "  [switched off]"
+
+
+def _automation(automation: Automation) -> str:
+    return (
+        "  ".join(f"{name} {'on' if on else 'OFF'}" for name, on in automation.switches.items())
+        or "-"
+    )
 
 
 def _streams(streams: Streams) -> str:

@@ -16,6 +16,7 @@ from brasidas.codecs.commands import (
     CommandCode,
 )
 from brasidas.codecs.jsonrpc import RpcError
+from brasidas.codecs.telemetry_schema import Automation
 from brasidas.messages import CommandResult, OverrideState
 from platformd.app import PlatformDaemon
 from platformd.media import MediaService
@@ -41,9 +42,9 @@ async def test_each_automation_switches_off_and_on_with_its_state_in_telemetry(
             return await ctx.commands.dispatch(code, payload, None)
 
         def switches() -> dict[str, bool]:
-            section = ctx.telemetry_sources["automation"]()
-            assert isinstance(section, dict)
-            return section
+            section = ctx.telemetry.build_one(Automation)
+            assert isinstance(section, Automation)
+            return section.switches
 
         expected = {
             "patrol": True,

@@ -72,3 +72,15 @@ async def test_map_route_and_patrol_commands(
     assert code == 0 and out.split()[1] in ("patrolling", "holding")
     code, out, _ = await run_cli(station, "patrol", "rover-5", "stop")
     assert code == 0 and "state      stopped" in out and "stopped by the operator" in out
+    # ...and `status` shows the patrol, the pose and the automations (telemetry).
+    async def shown() -> str:
+        _, out, _ = await run_cli(station, "status", "rover-5")
+        return out
+
+    text = ""
+    for _ in range(50):
+        text = await shown()
+        if "stopped by the operator" in text:
+            break
+    assert "autonomy   stopped  waypoint 0/2" in text and "(stopped by the operator)" in text
+    assert "pose       37.94" in text and "patrol on" in text

@@ -15,6 +15,8 @@ from brasidas.codecs.telemetry_schema import (
     SCHEMA_VERSION,
     SECTIONS,
     Attitude,
+    Automation,
+    Autonomy,
     Battery,
     Computer,
     Controller,
@@ -28,6 +30,7 @@ from brasidas.codecs.telemetry_schema import (
     Motor,
     Override,
     Platforms,
+    Pose,
     Section,
     SectionError,
     SectionValue,
@@ -63,6 +66,12 @@ FULL: dict[type[Section], SectionValue] = {
     Motion: Motion("teleop", False, 0.5, -0.25),
     Streams: Streams({"navcam": "playing", "audio_out": "idle"}),
     Platforms: Platforms({"brasidas-2": 1.2}),
+    Pose: Pose(37.9838096, 23.7275388, 271.5, 1.61, 0.84, 0.1, "gps+imu"),
+    Autonomy: Autonomy(
+        "holding", True, 2, 5, 17.3, 1, "GPS fix lost or stale (2.4 s old)",
+        ((37.9838096, 23.7275388), (37.98391, 23.72771)),
+    ),
+    Automation: Automation({"patrol": True, "auto_framerate": False, "diagnostics": True}),
     Diagnostics: None,
 }  # fmt: skip
 
