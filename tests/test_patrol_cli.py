@@ -72,6 +72,7 @@ async def test_map_route_and_patrol_commands(
     assert code == 0 and out.split()[1] in ("patrolling", "holding")
     code, out, _ = await run_cli(station, "patrol", "rover-5", "stop")
     assert code == 0 and "state      stopped" in out and "stopped by the operator" in out
+
     # ...and `status` shows the patrol, the pose and the automations (telemetry).
     async def shown() -> str:
         _, out, _ = await run_cli(station, "status", "rover-5")
