@@ -163,4 +163,4 @@ def test_the_field_check_catches_a_renamed_field() -> None:
     assert known(document, "gps.sats") and known(document, "streams.states.navcam")
     assert known(document, "attitude.imu.temp_c") and known(document, "computer.error")
     assert not known(document, "gps.satellites") and not known(document, "gps.stats.port")
-    assert not known(document, "autonomy")
+    assert known(document, "autonomy.reason") and not known(document, "autonomy.target")
