@@ -298,14 +298,17 @@ def _describe_discovered(entry: dict[str, Any]) -> str:
 
 
 def cmd_serve(args: argparse.Namespace, config: StationConfig) -> int:
-    from stationd.daemon import StationDaemon
+    from stationd.daemon import ConsoleMissing, StationDaemon
 
     fleet_key = station_fleet_key(config)
 
     async def run() -> None:
         await StationDaemon(config, fleet_key).run(stop_on_signals())
 
-    asyncio.run(run())
+    try:
+        asyncio.run(run())
+    except ConsoleMissing as err:
+        raise CliError(f"{err} (reinstall the package)") from None
     return 0
 
 

@@ -29,7 +29,8 @@ SUBSYSTEMS: tuple[str, ...] = (
     "stationd.console",
 )
 
-WEB_ROOT = Path(__file__).resolve().parent.parent / "web"
+WEB_ROOT = Path(__file__).parent / "web"
+"""The browser console, installed with the package (in a source tree, a link to ``web/``)."""
 LEAFLET_ROOT = Path("/usr/share/javascript/leaflet")
 """Debian's libjs-leaflet (``make deps``), served at /static/leaflet, never copied."""
 CONTENT_SECURITY_POLICY = (
@@ -39,6 +40,10 @@ CONTENT_SECURITY_POLICY = (
 )
 """The console's pages: scripts from the station only (no inline script, no eval)."""
 API_MAX_BYTES = 65536
+
+
+class ConsoleMissing(Exception):
+    """The browser console's files are not installed."""
 
 
 class StationDaemon(Daemon):
@@ -62,6 +67,10 @@ class StationDaemon(Daemon):
         """The HTTPS console's bound port (with ``console.tls_cert``)."""
 
     async def start(self) -> None:
+        if not (
+            WEB_ROOT / "index.html"
+        ).is_file():  # a broken install, found before anything starts
+            raise ConsoleMissing(f"no browser console: {WEB_ROOT / 'index.html'} is missing")
         console = self.config.console
         tls_sites = []
         if console.tls_cert:  # a bad certificate stops the daemon before anything starts
@@ -73,8 +82,7 @@ class StationDaemon(Daemon):
         )
         add_rpc_routes(self.app, self.ctx.api, "/api/rpc", API_MAX_BYTES, local_hosts=local_hosts)
         self.app.router.add_get("/api/telemetry-schema.json", _telemetry_schema)
-        if (WEB_ROOT / "index.html").exists():
-            _add_console_routes(self.app)
+        _add_console_routes(self.app)
         station = self.config.station
         port, *tls_ports = await serve_app_sites(
             self.app,
