@@ -248,6 +248,8 @@ async def test_operator_station_in_the_browser(
             await wait_until(lambda: not rover.bus.last(topics.OVERRIDE_STATE).engaged)
             await page.evaluate("window.__pad.pressed[0] = false")
             await expect(override).to_have_attribute("aria-pressed", "false", timeout=10_000)
+            # Answered (no longer pending: a press meanwhile would be ignored), then engage.
+            await expect(override).to_have_text("override: autonomous", timeout=10_000)
             await page.evaluate("window.__pad.pressed[0] = true")
             await expect(override).to_have_attribute("aria-pressed", "true", timeout=10_000)
             await page.evaluate("window.__pad.pressed[0] = false")
