@@ -79,6 +79,10 @@ def test_every_constrained_key_declares_a_rule_a_default_meets() -> None:
         ("[security]\ninsecure = 1\n", "security.insecure: must be true or false"),
         ("[imu]\nrate_hz = 0\n", "imu.rate_hz: must be between 4 and 1000, not 0.0"),
         ("[imu]\nrate_hz = nan\n", "imu.rate_hz: must be a finite number"),
+        (
+            "[beacon]\nmin_interval = 5\n",
+            "beacon.max_interval: must be > beacon.min_interval (5.0)",
+        ),
         ("platform = 3\n", "platform: must be a table"),
         ("[platform\n", "invalid TOML"),
     ],

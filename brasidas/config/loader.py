@@ -62,6 +62,8 @@ class Rule:
     section's keys, e.g. ``"> {section}.low ({low})"``."""
     ok: Callable[[Any], bool]
     """Called with the section."""
+    others: tuple[str, ...] = ()
+    """The other keys it reads: the error names the file of whichever of them was set there."""
 
 
 def setting(default: T, *checks: Check) -> T:
@@ -163,8 +165,8 @@ def ordered(low: str, high: str, *, strict: bool = True) -> Rule:
     """Key ``low`` is less than (or, not ``strict``, at most) key ``high``."""
     text = f"{{section}}.{low} ({{{low}}})"
     if strict:
-        return Rule(high, f"> {text}", lambda s: getattr(s, low) < getattr(s, high))
-    return Rule(high, f">= {text}", lambda s: getattr(s, low) <= getattr(s, high))
+        return Rule(high, f"> {text}", lambda s: getattr(s, low) < getattr(s, high), (low,))
+    return Rule(high, f">= {text}", lambda s: getattr(s, low) <= getattr(s, high), (low,))
 
 
 # --------------------------------------------------------------------------- loading
@@ -255,7 +257,7 @@ def _validate_section(name: str, section: Any, sources: Mapping[str, str]) -> No
             raise ConfigError(
                 f"{name}.{rule.key}",
                 f"must be {_describe(rule, name, section)}, not {_toml_value(value)}",
-                sources.get(rule.key, ""),
+                next((sources[k] for k in (rule.key, *rule.others) if sources.get(k)), ""),
             )
 
 

@@ -264,6 +264,7 @@ class PayloadCameraSection:
             "url",
             "an rtsp URL when enabled",
             lambda s: not s.enabled or url("rtsp", "rtsps").ok(s.url),
+            ("enabled",),
         ),
     )
 

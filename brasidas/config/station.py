@@ -62,6 +62,7 @@ class JoystickSection:
             "angular_axis",
             "another axis than linear_axis",
             lambda s: s.angular_axis != s.linear_axis,
+            ("linear_axis",),
         ),
     )
 
@@ -95,6 +96,7 @@ class TelemetryReceiverSection:
             "controller_clear_c",
             "<= {section}.controller_max_c ({controller_max_c})",
             lambda s: s.controller_clear_c <= s.controller_max_c,
+            ("controller_max_c",),
         ),
     )
 
@@ -133,6 +135,7 @@ class ConsoleSection:
             "tls_key",
             "set exactly when {section}.tls_cert is",
             lambda s: bool(s.tls_cert) == bool(s.tls_key),
+            ("tls_cert",),
         ),
     )
 
