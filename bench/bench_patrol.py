@@ -20,9 +20,10 @@ from shapely.affinity import rotate
 
 from brasidas.autonomy.areamap import parse_map
 from brasidas.autonomy.follower import FollowerParameters
-from brasidas.autonomy.patrol import Patrol, PatrolParameters, PatrolState
+from brasidas.autonomy.patrol import Patrol, PatrolParameters
 from brasidas.autonomy.planner import Planner, Unreachable, cross_track
 from brasidas.autonomy.route import parse_waypoints
+from brasidas.messages import PatrolState
 from platformd.sim.demo_area import demo_map, demo_route
 from platformd.sim.kinematic import KinematicRun
 
@@ -111,13 +112,13 @@ def following(seed: int = 3, laps: int = 2) -> dict[str, Any]:
         estimate = tick.estimate
         if (
             status.state is PatrolState.PATROLLING
-            and status.path
+            and patrol.planned_path
             and estimate
             and estimate.heading_known
         ):
             if abs(tick.command.linear) > 0.5:  # under way (not turning on the spot at a corner)
-                errors.append(cross_track(status.path, tick.truth_xy))
-                tracking.append(cross_track(status.path, (estimate.x, estimate.y)))
+                errors.append(cross_track(patrol.planned_path, tick.truth_xy))
+                tracking.append(cross_track(patrol.planned_path, (estimate.x, estimate.y)))
                 pose_errors.append(math.dist(tick.truth_xy, (estimate.x, estimate.y)))
     return {
         "follow_6kmh_cross_track_mean_m": round(statistics.fmean(errors), 3),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import Enum, StrEnum
 from time import monotonic
 from typing import Any
 
@@ -328,28 +328,39 @@ class PoseEstimate:
         return (90.0 - math.degrees(self.yaw_rad)) % 360.0
 
 
-@dataclass(frozen=True)
-class PatrolReport:
-    """The patrol's state (platformd.autonomy): published when it changes."""
+class PatrolState(StrEnum):
+    IDLE = "idle"
+    """Nothing to do: no map or no waypoints."""
+    PATROLLING = "patrolling"
+    SUSPENDED = "suspended"
+    """The operator holds the manual override; resumes when released."""
+    HOLDING = "holding"
+    """Stopped for safety (``reason``); resumes when the cause clears."""
+    STOPPED = "stopped"
+    """Stopped by the operator, a map reload or a route with nothing reachable."""
 
-    state: str
-    """"idle", "patrolling", "suspended", "holding" or "stopped"."""
+
+@dataclass(frozen=True)
+class PatrolStatus:
+    """The patrol's state (``PATROL_STATUS``): what ``get_patrol``, telemetry and the CLI show."""
+
+    state: PatrolState
     enabled: bool
     """The patrol automation is switched on (command 10.8)."""
     waypoint: int | None
     """Index in the route of the current target."""
     distance_m: float | None
-    """Along the planned path to that waypoint."""
+    """Along the planned path to the target."""
     lap: int
     reason: str
     """Why it is not patrolling (holding, stopped, idle), or what it is doing."""
     waypoints: int
-    path: tuple[tuple[float, float], ...] = ()
+    path: tuple[tuple[float, float], ...] = field(default=())
     """The planned path as (latitude, longitude) points; empty when none."""
 
     def as_dict(self) -> dict[str, Any]:
         return {
-            "state": self.state,
+            "state": self.state.value,
             "enabled": self.enabled,
             "waypoint": self.waypoint,
             "distance_m": self.distance_m,

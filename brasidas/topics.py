@@ -14,7 +14,7 @@ from brasidas.messages import (
     LightsState,
     MotionState,
     OverrideState,
-    PatrolReport,
+    PatrolStatus,
     PlatformHealth,
     PlatformLink,
     PlatformSighting,
@@ -88,7 +88,7 @@ IMU_STATUS: Topic[ImuStatus] = Topic("imu_status", retain=True)
 # --------------------------------------------------------------------------- autonomy (issue 12)
 POSE: Topic[PoseEstimate] = Topic("pose", retain=True)
 """Where the robot is (platformd.autonomy.localization today; a SLAM actor would publish here)."""
-PATROL_STATUS: Topic[PatrolReport] = Topic("patrol_status", retain=True)
+PATROL_STATUS: Topic[PatrolStatus] = Topic("patrol_status", retain=True)
 """The patrol's state, target, lap and planned path, on every change (platformd.autonomy)."""
 AUTOMATIONS: Topic[Automations] = Topic("automations", retain=True)
 """Onboard automations switched on or off (R-3): see :func:`platformd.automation.report_switch`."""

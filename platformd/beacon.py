@@ -31,7 +31,7 @@ from brasidas.codecs.telemetry_schema import Platforms
 from brasidas.messages import (
     LightsState,
     OverrideState,
-    PatrolReport,
+    PatrolStatus,
     PlatformHealth,
     Position,
 )
@@ -75,7 +75,7 @@ class BeaconAdvertiser(Actor):
         lights: LightsState | None = bus.last(topics.LIGHTS_STATE)
         health: PlatformHealth | None = bus.last(topics.PLATFORM_HEALTH)
         position: Position | None = bus.last(topics.POSITION)
-        patrol: PatrolReport | None = bus.last(topics.PATROL_STATUS)
+        patrol: PatrolStatus | None = bus.last(topics.PATROL_STATUS)
         status = StatusWord(
             movrd=bool(override and override.engaged),
             main_lights=bool(lights and lights.main),

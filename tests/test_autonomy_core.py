@@ -16,7 +16,7 @@ from brasidas.autonomy.areamap import MapError, parse_map
 from brasidas.autonomy.follower import FollowerParameters, PurePursuit
 from brasidas.autonomy.geo import LocalFrame
 from brasidas.autonomy.localization import FilterParameters, PoseFilter
-from brasidas.autonomy.patrol import Patrol, PatrolParameters, PatrolState
+from brasidas.autonomy.patrol import Patrol, PatrolParameters
 from brasidas.autonomy.planner import Planner, Unreachable
 from brasidas.autonomy.route import (
     Cursor,
@@ -27,6 +27,7 @@ from brasidas.autonomy.route import (
     parse_route_file,
     parse_waypoints,
 )
+from brasidas.messages import PatrolState
 from platformd.sim.demo_area import LOOP, demo_map, demo_route, offset
 from platformd.sim.kinematic import KinematicRun
 

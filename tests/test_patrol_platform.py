@@ -21,7 +21,7 @@ from conftest import quiet_platform_config, wait_until
 from brasidas import topics
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import PlatformConfig
-from brasidas.messages import PatrolReport, PoseEstimate, Velocity
+from brasidas.messages import PatrolStatus, PoseEstimate, Velocity
 from platformd.app import PlatformDaemon
 from platformd.beacon import BeaconAdvertiser
 from platformd.mode import ModeArbiter
@@ -65,7 +65,7 @@ class Robot:
         vehicle = daemon.ctx.sim.vehicle
         assert vehicle is not None
         self.vehicle: VehicleModel = vehicle
-        self.reports: list[PatrolReport] = []
+        self.reports: list[PatrolStatus] = []
         self.poses: list[tuple[PoseEstimate, tuple[float, float]]] = []
         self.cmd_vel: list[Velocity] = []
         self.watchers: list[Callable[[PoseEstimate, tuple[float, float]], None]] = []
@@ -90,7 +90,7 @@ class Robot:
         return east, north
 
     @property
-    def status(self) -> PatrolReport:
+    def status(self) -> PatrolStatus:
         report = self.ctx.bus.last(topics.PATROL_STATUS)
         assert report is not None
         return report

@@ -9,8 +9,7 @@ drive safely: no fix or a stale one, the pose outside the boundary or inside a k
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from enum import StrEnum
+from dataclasses import dataclass
 
 from shapely import Point
 
@@ -19,20 +18,9 @@ from brasidas.autonomy.follower import FollowerParameters, PurePursuit
 from brasidas.autonomy.localization import Estimate
 from brasidas.autonomy.planner import Path, Planner, Unreachable
 from brasidas.autonomy.route import Cursor, Route
+from brasidas.messages import PatrolState, PatrolStatus
 
 XY = tuple[float, float]
-
-
-class PatrolState(StrEnum):
-    IDLE = "idle"
-    """Nothing to do: no map or no waypoints."""
-    PATROLLING = "patrolling"
-    SUSPENDED = "suspended"
-    """The operator holds the manual override; resumes when released."""
-    HOLDING = "holding"
-    """Stopped for safety (``reason``); resumes when the cause clears."""
-    STOPPED = "stopped"
-    """Stopped by the operator, a map reload or a route with nothing reachable."""
 
 
 @dataclass(frozen=True)
@@ -56,23 +44,6 @@ class PatrolEvent:
     kind: str
     waypoint: int
     message: str
-
-
-@dataclass(frozen=True)
-class PatrolStatus:
-    """What ``get_patrol``, telemetry and the CLI show."""
-
-    state: PatrolState
-    waypoint: int | None
-    """Index in the route of the current target."""
-    distance_m: float | None
-    """Along the planned path to the target."""
-    lap: int
-    reason: str
-    enabled: bool
-    waypoints: int
-    path: tuple[XY, ...] = field(default=())
-    """The planned path in the map's local frame (metres)."""
 
 
 @dataclass(frozen=True)
@@ -199,17 +170,27 @@ class Patrol:
         self._running = False
         return self._settle(PatrolState.STOPPED, "no waypoint can be reached")
 
+    @property
+    def active(self) -> bool:
+        return self.state in (PatrolState.PATROLLING, PatrolState.SUSPENDED, PatrolState.HOLDING)
+
+    @property
+    def planned_path(self) -> tuple[XY, ...]:
+        """The path being followed, in the map's local frame (metres); empty when none."""
+        return self._path.points if self._path is not None and self.active else ()
+
     def status(self) -> PatrolStatus:
-        active = self.state in (PatrolState.PATROLLING, PatrolState.SUSPENDED, PatrolState.HOLDING)
+        distance = self._distance if self.active else None
+        frame = self.area.frame if self.area is not None else None
         return PatrolStatus(
             state=self.state,
+            enabled=self.enabled,
             waypoint=self.cursor.index if self.route.waypoints else None,
-            distance_m=round(self._distance, 1) if active and self._distance is not None else None,
+            distance_m=round(distance, 1) if distance is not None else None,
             lap=self.cursor.lap,
             reason=self.reason,
-            enabled=self.enabled,
             waypoints=len(self.route.waypoints),
-            path=self._path.points if self._path is not None and active else (),
+            path=tuple(frame.to_geo(x, y) for x, y in self.planned_path) if frame else (),
         )
 
     # ------------------------------------------------------------------ helpers

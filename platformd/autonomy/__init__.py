@@ -72,7 +72,7 @@ async def async_setup(ctx: PlatformContext) -> None:
 def _autonomy(patrol: PatrolActor) -> Autonomy:
     report = patrol.report
     return Autonomy(
-        state=report.state,
+        state=report.state.value,
         enabled=report.enabled,
         waypoint=report.waypoint,
         waypoints=report.waypoints,

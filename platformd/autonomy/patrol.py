@@ -25,7 +25,7 @@ from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.autonomy.areamap import AreaMap, MapError, parse_map
 from brasidas.autonomy.localization import Estimate
-from brasidas.autonomy.patrol import STOP, Patrol, PatrolParameters, PatrolState
+from brasidas.autonomy.patrol import STOP, Patrol, PatrolParameters
 from brasidas.autonomy.route import (
     Route,
     RouteError,
@@ -36,7 +36,14 @@ from brasidas.autonomy.route import (
 )
 from brasidas.bus import Bus
 from brasidas.codecs.commands import PATROL, PayloadError, parse_switch
-from brasidas.messages import CommandResult, OverrideState, PatrolReport, PoseEstimate, Velocity
+from brasidas.messages import (
+    CommandResult,
+    OverrideState,
+    PatrolState,
+    PatrolStatus,
+    PoseEstimate,
+    Velocity,
+)
 from platformd.automation import report_switch
 from platformd.commands import CommandRouter, SystemCommand
 
@@ -77,7 +84,7 @@ class PatrolActor(Actor):
         self._clock = clock
         self._pose: PoseEstimate | None = None
         self._driving = False
-        self._reported: PatrolReport | None = None
+        self._reported: PatrolStatus | None = None
         self.loaded = False
 
     # ------------------------------------------------------------------ lifecycle
@@ -179,20 +186,8 @@ class PatrolActor(Actor):
         self.core.set_override(state.engaged)
         self.tick()  # suspended (or resumed) now, not at the next period
 
-    def _report(self) -> PatrolReport:
-        status = self.core.status()
-        area = self.core.area
-        path = tuple(area.frame.to_geo(x, y) for x, y in status.path) if area else ()
-        report = PatrolReport(
-            state=status.state.value,
-            enabled=status.enabled,
-            waypoint=status.waypoint,
-            distance_m=status.distance_m,
-            lap=status.lap,
-            reason=status.reason,
-            waypoints=status.waypoints,
-            path=path,
-        )
+    def _report(self) -> PatrolStatus:
+        report = self.core.status()
         # distance_m changes every tick: publish on state changes and at most ~1 Hz otherwise.
         last = self._reported
         if last is None or _differs(last, report):
@@ -201,7 +196,7 @@ class PatrolActor(Actor):
         return report
 
     @property
-    def report(self) -> PatrolReport:
+    def report(self) -> PatrolStatus:
         return self._report()
 
     # ------------------------------------------------------------------ operator requests
@@ -277,7 +272,7 @@ class PatrolActor(Actor):
         return CommandResult(True, result={"patrol": on, "state": self.core.state.value})
 
 
-def _differs(last: PatrolReport, report: PatrolReport) -> bool:
+def _differs(last: PatrolStatus, report: PatrolStatus) -> bool:
     if (last.state, last.waypoint, last.lap, last.reason, last.enabled, last.waypoints) != (
         report.state,
         report.waypoint,
