@@ -136,6 +136,8 @@ def _print_next_steps(args: argparse.Namespace) -> None:
         (f"view {pid} --sdp navcam.sdp", "an SDP file for ffplay or VLC"),
         (f"audio {pid} --talk", "hear the platform's microphone, talk back"),
         (f"movrd {pid} on|off", "manual override (teleop / autonomous)"),
+        (f"patrol {pid} start", "patrol the demo loop around the shed (patrol: its state)"),
+        (f"route {pid} sw ne sw", "new waypoints on the fly (named points or LAT,LON)"),
         (f"lights {pid} main on", "main lights (10.6)"),
         (f"cmd {pid} 10 5 navcam=10", "any system command of table 10.1"),
     ]
