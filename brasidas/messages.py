@@ -43,6 +43,17 @@ class OverrideState:
 
 
 @dataclass(frozen=True)
+class ControlState:
+    """Which session holds control of the platform (command authority), and how it changed."""
+
+    session_id: str | None = None
+    station_id: str | None = None
+    previous_station_id: str | None = None
+    """The station that held control before, when it was taken from it or lost."""
+    reason: str = ""
+
+
+@dataclass(frozen=True)
 class SessionOpened:
     session_id: str
     station_id: str

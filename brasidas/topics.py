@@ -7,6 +7,7 @@ from brasidas.messages import (
     Attitude,
     Automations,
     ControllerStatus,
+    ControlState,
     GpsFix,
     GpsFixLost,
     GpsStats,
@@ -34,6 +35,8 @@ SESSION_CLOSED: Topic[SessionClosed] = Topic("session_closed")
 
 # Mode and motion
 OVERRIDE_STATE: Topic[OverrideState] = Topic("override_state", retain=True)
+CONTROL_STATE: Topic[ControlState] = Topic("control_state", retain=True)
+"""Who holds control (platformd.authority): published on claim, takeover and release."""
 CMD_VEL: Topic[Velocity] = Topic("cmd_vel")
 """Autonomy's velocity commands; obeyed only in Autonomous Mode."""
 MOTOR_COMMAND: Topic[Velocity] = Topic("motor_command")

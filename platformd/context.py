@@ -12,6 +12,7 @@ from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.config import PlatformConfig
 from brasidas.telemetry_sources import TelemetrySources
+from platformd.authority import Authority
 from platformd.commands import CommandRouter
 from platformd.session_table import Session, SessionTable
 from platformd.sim import SimulatedDevices
@@ -60,6 +61,8 @@ class PlatformContext:
     sessions: SessionTable = field(default_factory=SessionTable)
     """The open sessions, kept by the session manager (platformd.sessions)."""
     commands: CommandRouter = field(init=False)
+    authority: Authority = field(init=False)
+    """Who holds control (platformd.authority); the router asks it before every command."""
     """System commands: ``commands.register(owner, {code: handler})`` (platformd.commands)."""
     capabilities: dict[str, Callable[[], Any]] = field(default_factory=dict)
     """Sections of the ``connect`` answer's capabilities, each computed when asked."""
@@ -92,7 +95,10 @@ class PlatformContext:
         return self.sim.gps.path if self.sim.gps is not None else self.config.gps.port
 
     def __post_init__(self) -> None:
-        self.commands = CommandRouter(self.config.signaling.command_timeout)
+        self.authority = Authority(self.bus, self.sessions)
+        self.commands = CommandRouter(
+            self.config.signaling.command_timeout, self.authority.authorize
+        )
 
     def session(self, session_id: str | None) -> Session | None:
         """The open session with this token, or None."""

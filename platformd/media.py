@@ -46,6 +46,7 @@ from brasidas.media.pipeline import PipelineStream, StreamState
 from brasidas.media.relay import ForwardSettings, RtspForward
 from brasidas.media.video import VideoOut
 from brasidas.messages import CommandResult, OverrideState, SessionClosed, StreamStatus
+from platformd.authority import CONTROL_REFUSED
 from platformd.automation import report_switch
 from platformd.commands import SystemCommand
 from platformd.context import PlatformContext
@@ -69,6 +70,8 @@ class MediaService(Actor):
         self.streams: dict[str, PipelineStream] = {}
         self.owners: dict[str, str | None] = {}
         """Session that started each stream (None: started locally)."""
+        self.viewers: dict[str, dict[str | None, tuple[str, int]]] = {}
+        """Each video stream's destinations, by the session that asked (None: locally)."""
         self.navcam: VideoOut | None = None
         navcam = ctx.config.navcam
         self.framerate = FrameratePolicy(
@@ -169,10 +172,14 @@ class MediaService(Actor):
             self.navcam.set_framerate(fps)
 
     def _on_session_closed(self, event: SessionClosed) -> None:
-        owned = [name for name, owner in self.owners.items() if owner == event.session_id]
-        for name in owned:
-            del self.owners[name]
-            self._spawn(self.streams[name].stop(), f"media:stop:{name}")
+        wanted = [name for name, owner in self.owners.items() if owner == event.session_id]
+        wanted += [
+            name
+            for name, viewers in self.viewers.items()
+            if event.session_id in viewers and name not in wanted
+        ]
+        for name in wanted:
+            self._spawn(self.stop_stream(name, session_id=event.session_id), f"media:stop:{name}")
 
     def _spawn(self, work: Awaitable[Any], name: str) -> None:
         if self._group is None:
@@ -193,14 +200,25 @@ class MediaService(Actor):
         async def start_all() -> CommandResult:
             states = {}
             for name in self.streams:
-                states[name] = await self.start_stream(name, host, session_id=command.session_id)
+                try:
+                    states[name] = await self.start_stream(
+                        name, host, session_id=command.session_id
+                    )
+                except StreamRefused:
+                    states[name] = self.streams[name].state  # another station's: left alone
             return _summary(states)
 
         return await self._in_group(start_all(), command)
 
     async def _command_stop(self, command: SystemCommand) -> CommandResult:
         async def stop_all() -> CommandResult:
-            return _summary({name: await self.stop_stream(name) for name in self.streams})
+            states = {}
+            for name in self.streams:
+                try:
+                    states[name] = await self.stop_stream(name, session_id=command.session_id)
+                except StreamRefused:
+                    states[name] = self.streams[name].state  # another station's: left alone
+            return _summary(states)
 
         return await self._in_group(stop_all(), command)
 
@@ -272,11 +290,30 @@ class MediaService(Actor):
     async def start_stream(
         self, name: str, host: str = "", port: int = 0, *, session_id: str | None = None
     ) -> StreamState:
-        """Start (or resume) a stream, sending to ``host:port`` when given."""
+        """Start (or resume) a stream for ``session_id``, sending to ``host:port`` when given.
+
+        A video stream is sent to every session that started it, each at its own destination;
+        another stream goes to one destination, which only the session that started it (or
+        the platform) may move. StreamRefused otherwise.
+        """
         stream = self.get(name)
-        if isinstance(stream, VideoOut | AudioOut | RtspForward):
+        if isinstance(stream, VideoOut):
+            viewers = self.viewers.setdefault(name, {})
+            video = stream.settings
+            viewers[session_id] = (host or video.host, port or video.port)
+            stream.set_destinations(list(viewers.values()))
+            return await stream.start()
+        if isinstance(stream, AudioOut | RtspForward):
             settings = stream.settings
             moved = (host and host != settings.host) or (port and port != settings.port)
+            owner = self.owners.get(name)
+            if (
+                moved
+                and stream.wanted is not StreamState.IDLE
+                and owner is not None
+                and owner != session_id
+            ):
+                raise StreamRefused(f"stream {name} is sent to {self._station(owner)}")
             if host:
                 settings.host = host
             if port:
@@ -289,9 +326,30 @@ class MediaService(Actor):
     async def pause_stream(self, name: str) -> StreamState:
         return await self.get(name).pause()
 
-    async def stop_stream(self, name: str) -> StreamState:
+    async def stop_stream(self, name: str, *, session_id: str | None = None) -> StreamState:
+        """Stop ``session_id``'s copy of a stream; the stream stops when nobody else wants it.
+
+        A session stops only what it started (StreamRefused otherwise); the platform, anything.
+        """
+        stream = self.get(name)
+        viewers = self.viewers.get(name, {})
+        if session_id is not None:
+            if isinstance(stream, VideoOut):
+                viewers.pop(session_id, None)
+                if viewers:
+                    stream.set_destinations(list(viewers.values()))
+                    return stream.state
+            else:
+                owner = self.owners.get(name)
+                if owner is not None and owner != session_id:
+                    raise StreamRefused(f"stream {name} was started by {self._station(owner)}")
+        viewers.clear()
         self.owners.pop(name, None)
-        return await self.get(name).stop()
+        return await stream.stop()
+
+    def _station(self, session_id: str) -> str:
+        session = self.ctx.session(session_id)
+        return f"station {session.station_id}" if session is not None else "another station"
 
     def set_framerate(self, name: str, raw: Any) -> int:
         """10.5: the framerate of a video stream in the current mode; ValueError if invalid."""
@@ -321,7 +379,10 @@ class MediaService(Actor):
             raise RpcError(INVALID_PARAMS, f"invalid params: {err}") from None
         if port and not 1 <= port <= 65535:
             raise RpcError(INVALID_PARAMS, "invalid params: port must be 1-65535")
-        await self.start_stream(self._rpc_name(name), host, port, session_id=session_id)
+        try:
+            await self.start_stream(self._rpc_name(name), host, port, session_id=session_id)
+        except StreamRefused as err:
+            raise RpcError(CONTROL_REFUSED, str(err)) from None
         return self.streams[name].describe()
 
     async def rpc_pause_stream(self, call: CallContext, name: str) -> dict[str, Any]:
@@ -329,7 +390,13 @@ class MediaService(Actor):
         return self.streams[name].describe()
 
     async def rpc_stop_stream(self, call: CallContext, name: str) -> dict[str, Any]:
-        await self.stop_stream(self._rpc_name(name))
+        session: Session | None = call.session
+        try:
+            await self.stop_stream(
+                self._rpc_name(name), session_id=session.session_id if session else None
+            )
+        except StreamRefused as err:
+            raise RpcError(CONTROL_REFUSED, str(err)) from None
         return self.streams[name].describe()
 
     async def rpc_list_streams(self, call: CallContext) -> list[dict[str, Any]]:
@@ -350,6 +417,10 @@ class MediaService(Actor):
         info["destination"] = self.navcam.destination() if info["state"] != "idle" else None
         info["framerates"] = dict(self.framerate.rates)
         return info
+
+
+class StreamRefused(Exception):
+    """A session asked to move or stop a stream another station started."""
 
 
 def host_from_payload(payload: str, default: str = "") -> str:
@@ -409,6 +480,8 @@ async def async_setup(ctx: PlatformContext) -> None:
     ctx.capabilities["streams"] = service.describe_streams
     if service.navcam is not None:
         ctx.capabilities["nav_camera"] = service.nav_camera
-    for name in ("start_stream", "pause_stream", "stop_stream", "list_streams"):
+    for name in ("start_stream", "stop_stream", "list_streams"):
         ctx.rpc.add(name, getattr(service, f"rpc_{name}"))
+    # Pausing affects every viewer: a control method (platformd.authority).
+    ctx.rpc.add("pause_stream", ctx.authority.guard("pause_stream", service.rpc_pause_stream))
     ctx.supervisor.start(service)

@@ -11,7 +11,7 @@ import logging
 from brasidas import topics
 from brasidas.actor import Actor, wait_forever
 from brasidas.codecs.commands import MANUAL_OVERRIDE, PayloadError, parse_switch
-from brasidas.messages import CommandResult, OverrideState, SessionClosed
+from brasidas.messages import CommandResult, ControlState, OverrideState, SessionClosed
 from platformd.commands import SystemCommand
 from platformd.context import PlatformContext
 from platformd.session_table import Session
@@ -30,6 +30,7 @@ class ModeArbiter(Actor):
     async def run(self) -> None:
         self.on_remove(self.ctx.commands.register(self.name, {MANUAL_OVERRIDE: self._command}))
         self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
+        self.subscribe(topics.CONTROL_STATE, self._on_control)
         self.bus.publish(topics.OVERRIDE_STATE, self.state)
         await wait_forever()
 
@@ -60,6 +61,14 @@ class ModeArbiter(Actor):
         if self.state.engaged and self.state.session_id == event.session_id:
             _LOGGER.warning(
                 "manual override released: session of %s ended (%s)", event.station_id, event.reason
+            )
+            self._set(OverrideState(False))
+
+    def _on_control(self, control: ControlState) -> None:
+        # Control taken by another station: its override goes first, before the taker's request.
+        if self.state.engaged and self.state.session_id != control.session_id:
+            _LOGGER.warning(
+                "manual override of %s released: %s", self.state.station_id, control.reason
             )
             self._set(OverrideState(False))
 

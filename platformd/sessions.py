@@ -24,6 +24,7 @@ from brasidas.codecs.commands import PAYLOAD_GROUPS
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError, Unauthorized
 from brasidas.messages import SessionClosed, SessionOpened
 from brasidas.security import accept_proof, connect_proof
+from platformd.authority import AuthorityWatch
 from platformd.context import PlatformContext
 from platformd.session_table import Session
 
@@ -171,6 +172,7 @@ class SessionManager(Actor):
             and override is not None
             and override.session_id == call.session.session_id,
             "override_engaged": engaged,
+            **self.ctx.authority.describe(call.session),
         }
 
 
@@ -221,3 +223,4 @@ async def async_setup(ctx: PlatformContext) -> None:
     ctx.rpc.add("disconnect", manager.rpc_disconnect)
     ctx.rpc.add("heartbeat", manager.rpc_heartbeat)
     ctx.supervisor.start(manager)
+    ctx.supervisor.start(AuthorityWatch(ctx.bus, ctx.authority))

@@ -132,7 +132,9 @@ def cmd_status(args: argparse.Namespace, config: StationConfig) -> int:
 
 
 def cmd_movrd(args: argparse.Namespace, config: StationConfig) -> int:
-    answer = api_call(config, "movrd", platform_id=args.id, engaged=args.state == "on")
+    answer = api_call(
+        config, "movrd", platform_id=args.id, engaged=args.state == "on", force=args.force
+    )
     _print(args, answer, _ack)
     return _check_ack(answer)
 
@@ -398,6 +400,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("movrd", parents=[common], help="engage or release the manual override")
     p.add_argument("id")
     p.add_argument("state", choices=["on", "off"])
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="take control from the station holding it (it is told at once)",
+    )
     p = sub.add_parser("cmd", parents=[common], help="issue a system command (table 10.1)")
     p.add_argument("id")
     p.add_argument("group", type=int)

@@ -7,6 +7,7 @@ import contextlib
 import logging
 import secrets
 import time
+from collections.abc import Callable
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -45,6 +46,12 @@ class PlatformConnection:
         self.parameters: dict[str, Any] = {}
         self.capabilities: dict[str, Any] = {}
         self.manual_override = False
+        self.control = False
+        """This station holds control of the platform (its last heartbeat answer said so)."""
+        self.controller: str | None = None
+        """The station holding control, by the last heartbeat answer."""
+        self.on_control_lost: Callable[[str | None], None] | None = None
+        """Called with the new holder's station id when control was taken from this station."""
         self.round_trip_ms: float | None = None
         self.closed = asyncio.Event()
         self.close_reason = ""
@@ -128,6 +135,15 @@ class PlatformConnection:
             misses = 0
             self.round_trip_ms = (time.perf_counter() - started) * 1000
             self.manual_override = bool(answer.get("manual_override"))
+            self._update_control(answer)
+
+    def _update_control(self, answer: dict[str, Any]) -> None:
+        had = self.control
+        self.control = bool(answer.get("control"))
+        holder = answer.get("controller")
+        self.controller = str(holder) if holder is not None else None
+        if had and not self.control and self.on_control_lost is not None:
+            self.on_control_lost(self.controller)
 
     async def _watch(self) -> None:
         await self._client.closed.wait()
@@ -161,6 +177,8 @@ class PlatformConnection:
             "connected": not self.closed.is_set(),
             "close_reason": self.close_reason,
             "manual_override": self.manual_override,
+            "control": self.control,
+            "controller": self.controller,
             "round_trip_ms": self.round_trip_ms,
             "parameters": self.parameters,
             "capabilities": self.capabilities,

@@ -8,16 +8,25 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
+import time
 from typing import Any
 
 from brasidas import topics
 from brasidas.actor import Actor, wait_forever
-from brasidas.codecs.commands import MAIN_LIGHTS, MANUAL_OVERRIDE, POSITIONAL_LIGHTS
+from brasidas.codecs.commands import (
+    MAIN_LIGHTS,
+    MANUAL_OVERRIDE,
+    OBSERVER_CODES,
+    POSITIONAL_LIGHTS,
+    CommandCode,
+)
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, RpcError
-from brasidas.messages import PlatformLink
+from brasidas.messages import PlatformLink, StationNotification
 from stationd.client import AuthenticationError, PlatformConnection
 from stationd.context import StationContext
+from stationd.telemetry.annunciator import CONTROL_TAKEN
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -73,6 +82,7 @@ class ConnectionManager(Actor):
                 raise RpcError(
                     UNAVAILABLE, f"{platform_id}: cannot connect to {url}: {err}"
                 ) from None
+            connection.on_control_lost = functools.partial(self._on_control_lost, platform_id)
             self.ctx.connections[platform_id] = connection
             if self._watchers is not None:
                 self._watchers.create_task(self._watch(connection), name=f"watch:{platform_id}")
@@ -101,6 +111,20 @@ class ConnectionManager(Actor):
         self.bus.publish(
             topics.PLATFORM_DISCONNECTED,
             PlatformLink(connection.platform_id, connection.session_id, connection.close_reason),
+        )
+
+    def _on_control_lost(self, platform_id: str, holder: str | None) -> None:
+        message = (
+            f"control of {platform_id} taken by station {holder}"
+            if holder
+            else f"control of {platform_id} lost"
+        )
+        _LOGGER.warning("%s", message)
+        self.bus.publish(
+            topics.STATION_NOTIFICATIONS,
+            StationNotification(
+                CONTROL_TAKEN, platform_id, "control_taken", True, message, time.time()
+            ),
         )
 
     def connected(self, platform_id: str) -> PlatformConnection:
@@ -140,11 +164,17 @@ class ConnectionManager(Actor):
         answer: dict[str, Any] = await connection.call(
             "issue_system_command", group=group, command=command, payload=payload
         )
+        if answer.get("accepted") and CommandCode(group, command) not in OBSERVER_CODES:
+            connection.control = True  # a control command went through: this station holds it
         return answer
 
-    async def api_movrd(self, call: CallContext, platform_id: str, engaged: bool) -> dict[str, Any]:
+    async def api_movrd(
+        self, call: CallContext, platform_id: str, engaged: bool, force: bool = False
+    ) -> dict[str, Any]:
+        """Engage or release the override; ``force`` takes control from another station."""
+        payload = f"state={engaged},force=yes" if force and engaged else str(engaged)
         answer = await self.api_command(
-            call, platform_id, MANUAL_OVERRIDE.group, MANUAL_OVERRIDE.command, str(engaged)
+            call, platform_id, MANUAL_OVERRIDE.group, MANUAL_OVERRIDE.command, payload
         )
         if answer.get("accepted"):
             self.connected(platform_id).manual_override = engaged

@@ -303,7 +303,8 @@ async def test_manual_override_is_exclusive_and_released_on_timeout(
         assert await first.call("set_manual_override", engaged=True) is True
         assert await second.call("set_manual_override", engaged=True) is False
         refused = await second.call("issue_system_command", group=10, command=0, payload="False")
-        assert refused["accepted"] is False and "held by first" in refused["reason"]
+        assert refused["accepted"] is False
+        assert "control held by station first" in refused["reason"]
         report = await second.call("get_telemetry_report")
         assert report["override"]["mode"] == "teleop"
         # "first" goes silent (heartbeats every 10 s, timeout 0.5 s): the override is released.

@@ -43,6 +43,10 @@ DESCRIPTIONS: dict[CommandCode, str] = {
     BATTERY_MONITOR: "battery monitor",
 }
 
+OBSERVER_CODES = frozenset({START_STREAMS, STOP_STREAMS})
+"""What a station that does not hold control may send: start and stop its own copy of the
+streams (each session its own destination). Everything else is a control command (issue 13)."""
+
 STATION_ONLY_GROUPS = frozenset({90, 91})
 """Group 90 (station notifications) and 91 never go to a platform."""
 

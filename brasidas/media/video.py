@@ -84,7 +84,13 @@ class VideoSettings:
     """Force an encoder from :data:`ENCODERS`; empty: the first available."""
     host: str = "127.0.0.1"
     port: int = 5600
+    extra: tuple[tuple[str, int], ...] = ()
+    """Further destinations (observers' stations), each sent the same packets."""
     mtu: int = 1200
+
+    def clients(self) -> str:
+        """Every destination as ``multiudpsink``'s ``clients``: ``host:port,host:port``."""
+        return ",".join(f"{host}:{port}" for host, port in ((self.host, self.port), *self.extra))
 
     def effective_bitrate_kbps(self) -> int:
         """Bitrate for the current framerate: 5 fps monitoring needs a sixth of 30 fps."""
@@ -103,9 +109,19 @@ class VideoOut(PipelineStream):
         self.encoder_name = ""
         self._encoder: Any = None
         self._rate_filter: Any = None
+        self._sink: Any = None
 
     def destination(self) -> str:
         return f"{self.settings.host}:{self.settings.port}"
+
+    def set_destinations(self, destinations: list[tuple[str, int]]) -> None:
+        """Send to each of ``destinations`` (at least one); applied live. Event loop."""
+        if not destinations:
+            raise ValueError("a video stream needs a destination")
+        s = self.settings
+        (s.host, s.port), s.extra = destinations[0], tuple(destinations[1:])
+        if self._sink is not None:
+            self._sink.set_property("clients", s.clients())
 
     def describe(self) -> dict[str, Any]:
         s = self.settings
@@ -120,6 +136,7 @@ class VideoOut(PipelineStream):
             "rtp_caps": RTP_VIDEO_CAPS,
             "host": s.host,
             "port": s.port,
+            "destinations": s.clients().split(","),
         }
 
     def set_framerate(self, fps: int) -> None:
@@ -162,7 +179,7 @@ class VideoOut(PipelineStream):
         extension = make("rtphdrextntp64", every_packet=True)
         extension.set_id(NTP64_EXT_ID)
         pay.emit("add-extension", extension)
-        sink = make("udpsink", "sink", host=s.host, port=s.port, sync=False, async_=False)
+        sink = make("multiudpsink", "sink", clients=s.clients(), sync=False, async_=False)
         chain = [
             *source_chain,
             stamp,
@@ -181,11 +198,13 @@ class VideoOut(PipelineStream):
         self.encoder_name = encoder_name
         self._encoder = encoder
         self._rate_filter = rate_filter
+        self._sink = sink
         return pipeline
 
     def on_torn_down(self) -> None:
         self._encoder = None
         self._rate_filter = None
+        self._sink = None
 
     def _source_elements(self) -> list[Any]:
         s = self.settings

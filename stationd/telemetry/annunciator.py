@@ -31,6 +31,10 @@ LINK_DEGRADED = CommandCode(NOTIFICATION_GROUP, 13)
 STREAM_FAILED = CommandCode(NOTIFICATION_GROUP, 14)
 SENSOR_STALE = CommandCode(NOTIFICATION_GROUP, 15)
 PATROL_HOLDING = CommandCode(NOTIFICATION_GROUP, 16)
+CONTROL_TAKEN = CommandCode(NOTIFICATION_GROUP, 17)
+"""Another station took control of the platform (``movrd --force``, issue 13)."""
+LINK_LOST = CommandCode(NOTIFICATION_GROUP, 18)
+"""The platform's failsafe ladder stepped (hold, release): it lost this station's link."""
 FAILED_STREAM_STATES = frozenset({"failed", "error"})
 
 

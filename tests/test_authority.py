@@ -1,0 +1,146 @@
+"""Command authority (issue 13): two stations on one --sim platform, over real sockets.
+
+One holds control; the other observes (its own copy of the video, telemetry) and is refused
+everything else with the holder's station id, until it takes control with ``force``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any
+
+import pytest
+from conftest import free_udp_port, quiet_platform_config, wait_until
+
+from brasidas import topics
+from brasidas.codecs.jsonrpc import RpcError
+from brasidas.media.video import VideoIn
+from brasidas.messages import OverrideState
+from platformd.app import PlatformDaemon
+from platformd.authority import CONTROL_REFUSED
+from stationd.client import PlatformConnection
+
+Factory = Callable[..., Awaitable[PlatformDaemon]]
+
+
+@pytest.fixture
+async def receivers() -> AsyncIterator[tuple[VideoIn, VideoIn]]:
+    first = VideoIn("rx-a", port=free_udp_port(), host="127.0.0.1")
+    second = VideoIn("rx-b", port=free_udp_port(), host="127.0.0.1")
+    await first.start()
+    await second.start()
+    try:
+        yield first, second
+    finally:
+        await first.stop()
+        await second.stop()
+
+
+async def station(daemon: PlatformDaemon, key: bytes, name: str) -> PlatformConnection:
+    conn = PlatformConnection(
+        daemon.config.platform.id, daemon.ctx.signaling_url, station_id=name, fleet_key=key
+    )
+    await conn.open()
+    return conn
+
+
+async def command(
+    conn: PlatformConnection, group: int, code: int, payload: str = ""
+) -> dict[str, Any]:
+    answer: dict[str, Any] = await conn.call(
+        "issue_system_command", group=group, command=code, payload=payload
+    )
+    return answer
+
+
+async def frames_arrive(stream: VideoIn, count: int = 5) -> None:
+    before = stream.frames
+    await wait_until(lambda: stream.frames >= before + count, timeout=15.0)
+
+
+async def test_observer_is_refused_control_and_keeps_its_own_video(
+    platform_factory: Factory, fleet_key: bytes, receivers: tuple[VideoIn, VideoIn]
+) -> None:
+    rx_a, rx_b = receivers
+    daemon = await platform_factory(
+        quiet_platform_config(
+            "sim.enabled=true",
+            "navcam.enabled=true",
+            "motor.enabled=true",
+            "signaling.heartbeat_interval=0.2",
+        ),
+        fleet_key,
+    )
+    overrides: list[OverrideState] = []
+    daemon.bus.subscribe(topics.OVERRIDE_STATE, overrides.append)
+    a = await station(daemon, fleet_key, "alpha")
+    b = await station(daemon, fleet_key, "bravo")
+    lost: list[str | None] = []
+    a.on_control_lost = lost.append
+    try:
+        # Both see video at once, each at its own destination.
+        await a.call("start_stream", name="navcam", port=rx_a.port)
+        await b.call("start_stream", name="navcam", port=rx_b.port)
+        await asyncio.gather(frames_arrive(rx_a), frames_arrive(rx_b))
+
+        assert (await command(a, 10, 0, "True"))["accepted"]
+        for group, code, payload in ((10, 0, "True"), (10, 6, "ON"), (10, 5, "navcam=10")):
+            refused = await command(b, group, code, payload)
+            assert refused["accepted"] is False
+            assert "control held by station alpha" in refused["reason"]
+        with pytest.raises(RpcError) as info:
+            await b.call("pause_stream", name="navcam")
+        assert info.value.code == CONTROL_REFUSED and "alpha" in info.value.message
+        assert await b.call("set_lights", which="main", on=True) == {
+            "accepted": False,
+            "reason": "main lights refused: control held by station alpha",
+            "result": None,
+        }
+        # The observer's stop ends its own copy only: the controller's video goes on.
+        assert (await b.call("stop_stream", name="navcam"))["state"] == "playing"
+        await frames_arrive(rx_a)
+        # ...and stopping everything (10.2) from the observer cannot stop it either.
+        await command(b, 10, 2)
+        await frames_arrive(rx_a)
+        assert daemon.ctx.authority.station_id == "alpha"
+        assert daemon.ctx.commands.counters["refused"] == 4
+
+        # Takeover: the override moves to bravo, alpha is told at its next heartbeat.
+        heartbeat = await a.call("heartbeat")
+        assert heartbeat["control"] is True and heartbeat["controller"] == "alpha"
+        await wait_until(lambda: a.control)  # its heartbeats say it holds control
+        taken = await command(b, 10, 0, "state=True,force=yes")
+        assert taken["accepted"], taken
+        assert overrides[-2:] == [
+            OverrideState(False),
+            OverrideState(True, b.session_id, "bravo"),
+        ]
+        await wait_until(lambda: lost == ["bravo"])
+        assert a.control is False and a.controller == "bravo"
+        refused = await command(a, 10, 6, "ON")
+        assert "control held by station bravo" in refused["reason"]
+        assert daemon.ctx.authority.counters["takeovers"] == 1
+    finally:
+        await a.close()
+        await b.close()
+
+
+async def test_control_is_freed_when_its_session_ends(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    daemon = await platform_factory(quiet_platform_config(), fleet_key)
+    a = await station(daemon, fleet_key, "alpha")
+    b = await station(daemon, fleet_key, "bravo")
+    try:
+        assert (await command(a, 10, 0, "True"))["accepted"]
+        assert not (await command(b, 10, 0, "True"))["accepted"]
+        # A forced release is not a thing: force only takes control to engage.
+        assert not (await command(b, 10, 0, "state=False,force=yes"))["accepted"]
+        await a.close()
+        await wait_until(lambda: daemon.ctx.authority.controller is None)
+        assert (await command(b, 10, 0, "True"))["accepted"]
+        assert daemon.ctx.authority.station_id == "bravo"
+    finally:
+        await a.close()
+        await b.close()
