@@ -28,8 +28,8 @@ from brasidas.codecs.commands import (
     OBSERVER_CODES,
     CommandCode,
     PayloadError,
-    parse_payload,
     describe,
+    parse_payload,
     parse_switch,
 )
 from brasidas.codecs.jsonrpc import CallContext, RpcError
