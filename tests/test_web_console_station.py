@@ -107,6 +107,15 @@ async def telemetry_position(station: StationDaemon, platform_id: str) -> tuple[
     return (gps["lat"], gps["lon"])
 
 
+async def wait_moved(station: StationDaemon, platform_id: str, start: tuple[float, float]) -> None:
+    """Wait until the platform's telemetry position differs from ``start``."""
+    for _ in range(100):
+        if await telemetry_position(station, platform_id) != start:
+            return
+        await asyncio.sleep(0.1)
+    raise AssertionError(f"{platform_id}'s telemetry position did not change in 10 s")
+
+
 async def frames_decoded(page: Any, at_least: int, timeout: float = 15.0) -> int:
     """Wait until the page's Worker has decoded ``at_least`` frames (counted in the Worker;
     polled from here: the page's CSP forbids the eval that wait_for_function needs)."""
@@ -206,15 +215,7 @@ async def test_operator_station_in_the_browser(
             start = await telemetry_position(station, "web-rover")
             await page.keyboard.down("KeyW")
             await wait_until(lambda: vehicle.command[0] > 0.3, timeout=5)
-
-            async def moved() -> bool:
-                return await telemetry_position(station, "web-rover") != start
-
-            for _ in range(100):
-                if await moved():
-                    break
-                await page.wait_for_timeout(100)
-            assert await moved(), "telemetry position did not change while W was held"
+            await wait_moved(station, "web-rover", start)
             await page.keyboard.up("KeyW")
             await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
 
@@ -274,11 +275,6 @@ async def test_operator_station_in_the_browser(
                 await expect(answer).to_contain_text(f"{name}: acknowledged", timeout=10_000)
                 await expect(toggle).to_have_attribute("aria-pressed", str(not pressed).lower())
 
-            if os.environ.get("BRASIDAS_SCREENSHOT") == "1":
-                SCREENSHOT.parent.mkdir(exist_ok=True)
-                await page.screenshot(path=str(SCREENSHOT))
-            await page.screenshot(path=str(tmp_path / "console.png"))
-
             # Switch to the other platform without disconnecting the first.
             await page.locator('#platforms tr[data-platform="rover-2"] button.connect').click()
             await expect(page.get_by_label("NavCam rover-2")).to_be_visible(timeout=10_000)
@@ -288,6 +284,62 @@ async def test_operator_station_in_the_browser(
             assert other.bus.last(topics.OVERRIDE_STATE) is None or not (
                 other.bus.last(topics.OVERRIDE_STATE).engaged
             )
+
+            # Its patrol: the area map and route from the platform (the --sim demo field: a
+            # boundary, a shed to keep out of, a loop of five points) drawn on the map.
+            await expect(page.locator("#map path.area-boundary")).to_have_count(1, timeout=10_000)
+            await expect(page.locator("#map path.area-keepout")).to_have_count(1)
+            await expect(page.locator("#map path.route-line")).to_have_count(1)
+            shown = await station.ctx.api.call_local("map_get", platform_id="rover-2")
+            assert len(shown["route"]) == 5
+            # Start it from the panel: patrolling along a planned path, and it moves.
+            patrol_state = page.locator("#patrol-state")
+            patrol_answer = page.locator("#patrol-answer")
+            start = await telemetry_position(station, "rover-2")
+            await page.get_by_role("button", name="start patrol").click()
+            await expect(patrol_state).to_have_attribute("data-state", "patrolling", timeout=10_000)
+            await expect(patrol_state).to_contain_text("→ waypoint")
+            await expect(page.locator("#map path.planned-path")).to_have_count(1, timeout=10_000)
+            await wait_moved(station, "rover-2", start)
+            # Edit the route on the map: delete its closing waypoint (the fifth, over the first),
+            # then the first; send it; the platform has it.
+            await page.get_by_role("button", name="edit route").click()
+            await page.locator('#map [title="waypoint 5"]').click(button="right")
+            await expect(page.locator('#map [title="waypoint 5"]')).to_have_count(0)
+            await page.locator('#map [title="waypoint 1"]').click(button="right")
+            await expect(page.locator('#map [title="waypoint 4"]')).to_have_count(0)
+            await page.get_by_role("button", name="send route").click()
+            await expect(patrol_answer).to_contain_text("route sent: 3 waypoints", timeout=10_000)
+            sent = await station.ctx.api.call_local("patrol_get", platform_id="rover-2")
+            assert sent["waypoints"] == 3
+            routed = (await station.ctx.api.call_local("map_get", platform_id="rover-2"))["route"]
+            kept = shown["route"][1:4]
+            assert [(w["lat"], w["lon"]) for w in routed] == pytest.approx(
+                [(w["lat"], w["lon"]) for w in kept]
+            )
+            await expect(page.get_by_role("button", name="send route")).to_be_hidden()
+            await expect(patrol_state).to_contain_text("→ waypoint 1/3", timeout=10_000)
+            await expect(page.locator("#map path.planned-path")).to_have_count(1, timeout=10_000)
+            if os.environ.get("BRASIDAS_SCREENSHOT") == "1":
+                SCREENSHOT.parent.mkdir(exist_ok=True)
+                await page.screenshot(path=str(SCREENSHOT))
+            await page.screenshot(path=str(tmp_path / "console.png"))
+            # A waypoint outside the boundary (the map's far corner): refused with the reason,
+            # the platform's route unchanged, the edit still open; cancel it.
+            await page.get_by_role("button", name="edit route").click()
+            box = await page.locator("#map").bounding_box()
+            assert box is not None
+            await page.mouse.click(box["x"] + box["width"] - 6, box["y"] + box["height"] - 6)
+            await expect(page.locator('#map [title="waypoint 4"]')).to_have_count(1)
+            await page.get_by_role("button", name="send route").click()
+            await expect(patrol_answer).to_contain_text("send route refused:", timeout=10_000)
+            await expect(patrol_answer).to_contain_text("outside")
+            sent = await station.ctx.api.call_local("patrol_get", platform_id="rover-2")
+            assert sent["waypoints"] == 3
+            await page.get_by_role("button", name="cancel route edit").click()
+            await expect(page.locator('#map [title="waypoint 1"]')).to_have_count(0)
+            await page.get_by_role("button", name="stop patrol").click()
+            await expect(patrol_state).to_have_attribute("data-state", "stopped", timeout=10_000)
 
             # Back to the first and disconnect: it returns to Autonomous Mode.
             await page.locator('#platforms tr[data-platform="web-rover"] button.connect').click()

@@ -124,6 +124,7 @@ async function subscribe() {
   if (state.current) {
     await api.call("connect", { platform_id: state.current }, 8000).catch(() => {});
     await api.call("console_focus", { platform_id: state.current }).catch(() => {});
+    loadArea(state.current);
     await watch(state.current);
     if (audio.listening) await audio.listen(audio.listening).catch(() => {});
   } else if (requestedPlatform) {
@@ -154,6 +155,7 @@ api.on("connections", (connections) => {
   if (state.current && !state.connections.has(state.current) && state.override !== "pending") state.override = "idle";
   renderPlatforms();
   renderControls();
+  renderPatrol();
 });
 api.on("telemetry", (report) => {
   state.telemetry.set(report.platform_id, { report, at: performance.now() });
@@ -165,7 +167,7 @@ api.on("telemetry", (report) => {
   }
   for (const warning of report.warnings ?? []) noteWarning({ ...warning, platform_id: report.platform_id, active: true });
   renderAnnunciator();
-  if (report.platform_id === state.current) { renderStatus(); renderControls(); }
+  if (report.platform_id === state.current) { renderStatus(); renderControls(); renderPatrol(); }
   updateMap(report.platform_id);
 });
 api.on("notification", (note) => { noteWarning(note); addNotification(note); });
@@ -261,9 +263,13 @@ function heading(platformId) {
 }
 
 function updateMap(platformId) {
-  const gps = section(state.telemetry.get(platformId)?.report.snapshot, "gps");
-  if (gps?.fix && gps.lat != null) {
-    map.update(platformId, [gps.lat, gps.lon], heading(platformId), {
+  // Where the platform's localization puts it (what its patrol steers by), else its GPS fix.
+  const snapshot = state.telemetry.get(platformId)?.report.snapshot;
+  const pose = section(snapshot, "pose");
+  const gps = section(snapshot, "gps");
+  const position = pose?.lat != null ? [pose.lat, pose.lon] : gps?.fix && gps.lat != null ? [gps.lat, gps.lon] : null;
+  if (position) {
+    map.update(platformId, position, heading(platformId), {
       current: platformId === state.current, connected: true,
     });
   }
@@ -275,8 +281,10 @@ async function select(platformId) {
   teleop.halt("switched platform");
   await talk(false);
   if (audio.listening) { $("#listen").setAttribute("aria-pressed", "false"); await audio.stopListening(); }
+  const previous = state.current;
   state.current = platformId;
   state.override = "idle";
+  if (previous) clearArea(previous);
   setPill("#current", platformId, "ok");
   renderPlatforms();
   renderStatus();
@@ -288,7 +296,9 @@ async function select(platformId) {
     answer(`connect to ${platformId} failed: ${error.message}`);
     return;
   }
-  if (state.current === platformId) await watch(platformId);
+  if (state.current !== platformId) return;
+  loadArea(platformId);
+  await watch(platformId);
 }
 
 // ---------------------------------------------------------------- controls
@@ -351,6 +361,7 @@ $("#disconnect").onclick = async () => {
   teleop.halt("disconnect");
   await command("disconnect", "disconnect", {});
   worker?.postMessage({ type: "clear" });
+  clearArea(platformId);
   state.current = null;
   state.override = "idle";
   setPill("#current", "no platform", "");
@@ -358,6 +369,7 @@ $("#disconnect").onclick = async () => {
   renderPlatforms();
   renderControls();
   renderStatus();
+  renderPatrol();
 };
 
 function engagedHere() {
@@ -528,3 +540,121 @@ $("#map-geojson").onchange = async (event) => {
   try { map.setGeoJson(JSON.parse(await file.text())); } catch (error) { answer(`GeoJSON: ${error.message}`); }
 };
 $("#map-clear").onclick = () => map.clearBackground();
+
+// ---------------------------------------------------------------- patrol
+
+// The shown platform's area map (boundary, keep-outs, named points) and waypoint route, from
+// the platform (map_get through the station); its planned path and patrol state from telemetry.
+// The route is edited on the map and sent as a whole (route_set); a refusal shows the
+// platform's reason (a point outside the boundary, another station holding control).
+
+const patrol = { routes: new Map(), editing: null, loading: null };
+
+async function loadArea(platformId) {
+  const asked = (patrol.loading = Symbol(platformId));
+  let area;
+  try {
+    area = await api.call("map_get", { platform_id: platformId }, 8000);
+  } catch (error) {
+    patrolAnswer(`map of ${platformId}: ${error.message}`, true);
+    return;
+  }
+  if (patrol.loading !== asked || state.current !== platformId) return;
+  if (area.map) map.setGeoJson(area.map, { fit: !patrol.routes.has(platformId) }); // zoomed once
+  else map.clearBackground();
+  const points = (area.route ?? []).map((waypoint) => [waypoint.lat, waypoint.lon]);
+  patrol.routes.set(platformId, { points, names: (area.route ?? []).map((waypoint) => waypoint.name ?? "") });
+  map.setRoute(platformId, points);
+  renderPatrol();
+}
+
+function clearArea(platformId) {
+  stopEditing();
+  patrol.routes.delete(platformId);
+  map.setRoute(platformId, []);
+  map.setPlannedPath(platformId, []);
+  map.clearBackground();
+}
+
+function patrolAnswer(text, refused = false) {
+  const line = $("#patrol-answer");
+  line.textContent = text;
+  line.classList.toggle("refused", refused);
+}
+
+function renderPatrol() {
+  const panel = $("#patrol");
+  const autonomy = state.current ? section(state.telemetry.get(state.current)?.report.snapshot, "autonomy") : null;
+  panel.hidden = !state.current || !state.connections.has(state.current);
+  if (!autonomy) { $("#patrol-state").textContent = "patrol: no report"; return; }
+  const route = patrol.routes.get(state.current);
+  const target = autonomy.waypoint == null ? null
+    : `waypoint ${autonomy.waypoint + 1}/${autonomy.waypoints}${route?.names[autonomy.waypoint] ? ` (${route.names[autonomy.waypoint]})` : ""}`;
+  const parts = [
+    autonomy.enabled === false ? `${autonomy.state} (switched off)` : autonomy.state,
+    target && `→ ${target}`,
+    autonomy.distance_m == null ? null : `${autonomy.distance_m.toFixed(1)} m`,
+    `lap ${autonomy.lap}`,
+    autonomy.reason && `— ${autonomy.reason}`,
+  ];
+  const line = $("#patrol-state");
+  line.textContent = `patrol: ${parts.filter(Boolean).join("  ")}`;
+  line.dataset.state = autonomy.state;
+  map.setPlannedPath(state.current, autonomy.path ?? []);
+  // The route changed elsewhere (the CLI, another station): fetch it again.
+  if (route && route.count !== autonomy.waypoints) {
+    const known = route.count;
+    route.count = autonomy.waypoints;
+    if (known !== undefined && !patrol.editing) loadArea(state.current);
+  }
+}
+
+async function patrolCall(label, method, params = {}) {
+  const platformId = state.current;
+  if (!platformId) return null;
+  try {
+    const result = await api.call(method, { platform_id: platformId, ...params }, 8000);
+    patrolAnswer(`${label}: done`);
+    return result;
+  } catch (error) {
+    patrolAnswer(`${label} refused: ${error.message}`, true);
+    return null;
+  }
+}
+
+$("#patrol-start").onclick = () => patrolCall("start patrol", "patrol_start");
+$("#patrol-stop").onclick = () => patrolCall("stop patrol", "patrol_stop");
+
+function stopEditing() {
+  if (!patrol.editing) return;
+  patrol.editing.stop();
+  patrol.editing = null;
+  $("#route-edit").setAttribute("aria-pressed", "false");
+  $("#route-send").hidden = true;
+  $("#route-cancel").hidden = true;
+}
+
+$("#route-edit").onclick = () => {
+  if (!state.current || patrol.editing) return;
+  const points = patrol.routes.get(state.current)?.points ?? [];
+  const editing = { points, stop: null };
+  editing.stop = map.editWaypoints(points, (changed) => { editing.points = changed; });
+  patrol.editing = editing;
+  $("#route-edit").setAttribute("aria-pressed", "true");
+  $("#route-send").hidden = false;
+  $("#route-cancel").hidden = false;
+  patrolAnswer("editing the route: click the map to add a waypoint, drag one to move it, right-click one to delete it");
+};
+
+$("#route-send").onclick = async () => {
+  const editing = patrol.editing;
+  const platformId = state.current;
+  if (!editing || !platformId) return;
+  const result = await patrolCall("send route", "route_set", { waypoints: editing.points });
+  if (!result || patrol.editing !== editing) return; // refused: keep editing
+  stopEditing();
+  patrolAnswer(`route sent: ${result.waypoints.length} waypoints${result.closed ? ", closed" : ""}`);
+  await loadArea(platformId);
+};
+
+$("#route-cancel").onclick = () => { stopEditing(); patrolAnswer("route edit cancelled"); };

@@ -81,21 +81,34 @@ export class PlatformMap {
     this.map.fitBounds([sw, ne]);
   }
 
-  setGeoJson(data) {
+  /** A GeoJSON background; a platform's area map draws its boundary, keep-outs (role
+   * "keepout", red) and named points. ``fit`` (default) zooms to it. */
+  setGeoJson(data, { fit = true } = {}) {
     this.clearBackground();
     this.background = L.geoJSON(data, {
       coordsToLatLng: (coords) => L.latLng(this.local(coords[1], coords[0])),
-      style: { color: "#7aa2d6", weight: 1, fillOpacity: 0.15, className: "area-background" },
+      style: (feature) => {
+        const role = feature?.properties?.role ?? "";
+        const keepout = role === "keepout";
+        return { color: keepout ? "#d66a6a" : "#7aa2d6", weight: keepout ? 2 : 1, fillOpacity: keepout ? 0.3 : 0.15, className: `area-background${role ? ` area-${role}` : ""}` };
+      },
+      pointToLayer: (feature, latlng) => {
+        const marker = L.circleMarker(latlng, { radius: 3, color: "#aaa", weight: 1, className: "area-point" });
+        const name = feature?.properties?.name;
+        if (name) marker.bindTooltip(String(name), { permanent: true, direction: "right", className: "area-point-name" });
+        return marker;
+      },
     }).addTo(this.map);
+    this.background.bringToBack();
     const bounds = this.background.getBounds();
-    if (bounds.isValid()) this.map.fitBounds(bounds);
+    if (fit && bounds.isValid()) { this.map.fitBounds(bounds); this.fitted = true; }
   }
 
   /** Draw ``platformId``'s waypoint route ([lat, lon] points; closed when last = first). */
-  setRoute(platformId, points) { this.setLine(`route:${platformId}`, points, { color: "#d6d67a", weight: 2, dashArray: "6 4" }); }
+  setRoute(platformId, points) { this.setLine(`route:${platformId}`, points, { color: "#d6d67a", weight: 2, dashArray: "6 4", className: "route-line" }); }
 
   /** Draw the path ``platformId``'s planner chose. */
-  setPlannedPath(platformId, points) { this.setLine(`path:${platformId}`, points, { color: "#5fd0a0", weight: 3 }); }
+  setPlannedPath(platformId, points) { this.setLine(`path:${platformId}`, points, { color: "#5fd0a0", weight: 3, className: "planned-path" }); }
 
   setLine(key, points, style) {
     if (!this.available) return;
@@ -119,7 +132,7 @@ export class PlatformMap {
     };
     const draw = () => {
       layer.clearLayers();
-      L.polyline(current.map(([lat, lon]) => frame.local(lat, lon)), { color: "#d6d67a", weight: 2 }).addTo(layer);
+      L.polyline(current.map(([lat, lon]) => frame.local(lat, lon)), { color: "#f0f080", weight: 2, className: "route-edit" }).addTo(layer);
       current.forEach(([lat, lon], index) => {
         const marker = L.marker(frame.local(lat, lon), { draggable: true, title: `waypoint ${index + 1}`, alt: `waypoint ${index + 1}` });
         marker.on("dragend", () => { current[index] = toGeo(marker.getLatLng()); changed(); });
