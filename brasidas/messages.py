@@ -53,6 +53,23 @@ class ControlState:
     reason: str = ""
 
 
+class FailsafeStep(Enum):
+    """The failsafe ladder's step (platformd.failsafe)."""
+
+    NORMAL = "normal"
+    HOLD = "hold"
+    """The override holder went silent: motors zero, payload safe, velocities dropped."""
+    RELEASED = "released"
+    """Silent past ``failsafe.release_after`` with action release: the override went."""
+
+
+@dataclass(frozen=True)
+class FailsafeState:
+    step: FailsafeStep = FailsafeStep.NORMAL
+    station_id: str | None = None
+    reason: str = ""
+
+
 @dataclass(frozen=True)
 class SessionOpened:
     session_id: str

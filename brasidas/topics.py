@@ -8,6 +8,7 @@ from brasidas.messages import (
     Automations,
     ControllerStatus,
     ControlState,
+    FailsafeState,
     GpsFix,
     GpsFixLost,
     GpsStats,
@@ -37,6 +38,8 @@ SESSION_CLOSED: Topic[SessionClosed] = Topic("session_closed")
 OVERRIDE_STATE: Topic[OverrideState] = Topic("override_state", retain=True)
 CONTROL_STATE: Topic[ControlState] = Topic("control_state", retain=True)
 """Who holds control (platformd.authority): published on claim, takeover and release."""
+FAILSAFE_STATE: Topic[FailsafeState] = Topic("failsafe_state", retain=True)
+"""The failsafe ladder's step (platformd.failsafe): hold and release while teleoperated."""
 CMD_VEL: Topic[Velocity] = Topic("cmd_vel")
 """Autonomy's velocity commands; obeyed only in Autonomous Mode."""
 MOTOR_COMMAND: Topic[Velocity] = Topic("motor_command")

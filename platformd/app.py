@@ -31,6 +31,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "platformd.mode",
     "platformd.velocity",
     "platformd.arbiter",
+    "platformd.failsafe",
     "platformd.motor",
     "platformd.gps",
     "platformd.imu",

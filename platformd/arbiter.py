@@ -21,7 +21,14 @@ from brasidas import topics
 from brasidas.actor import Actor, wait_forever
 from brasidas.bus import Bus
 from brasidas.codecs.telemetry_schema import Motion
-from brasidas.messages import Mode, MotionState, OverrideState, Velocity
+from brasidas.messages import (
+    FailsafeState,
+    FailsafeStep,
+    Mode,
+    MotionState,
+    OverrideState,
+    Velocity,
+)
 from platformd.context import PlatformContext
 
 _LOGGER = logging.getLogger(__name__)
@@ -62,6 +69,8 @@ class MotionArbiter(Actor):
         self.mode = Mode.AUTONOMOUS
         self.deadman_tripped = False
         self.deadman_trips = 0
+        self.held = False
+        """The failsafe ladder holds: motors at zero, the stream ignored until re-engaged."""
         self.command = STOP
         self._last_valid = 0.0
         self._timer: TimerHandle | None = None
@@ -83,6 +92,7 @@ class MotionArbiter(Actor):
         self.subscribe(topics.CMD_VEL, self._on_cmd_vel)
         self.subscribe(topics.TELEOP_VELOCITY, self._on_teleop_velocity)
         self.subscribe(topics.OVERRIDE_STATE, self._on_override)
+        self.subscribe(topics.FAILSAFE_STATE, self._on_failsafe)
         self._publish(self.command)
 
     async def async_stop(self) -> None:
@@ -114,8 +124,18 @@ class MotionArbiter(Actor):
         if self.mode is Mode.AUTONOMOUS:
             self._publish(velocity)
 
+    def _on_failsafe(self, state: FailsafeState) -> None:
+        held = state.step is FailsafeStep.HOLD
+        if held == self.held:
+            return
+        self.held = held
+        if held:
+            self._cancel_timer()
+            self.deadman_tripped = True
+            self._publish(STOP)
+
     def _on_teleop_velocity(self, velocity: Velocity) -> None:
-        if self.mode is not Mode.TELEOP:
+        if self.mode is not Mode.TELEOP or self.held:
             return
         assert self._clock is not None
         self._last_valid = self._clock()

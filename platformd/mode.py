@@ -11,7 +11,14 @@ import logging
 from brasidas import topics
 from brasidas.actor import Actor, wait_forever
 from brasidas.codecs.commands import MANUAL_OVERRIDE, PayloadError, parse_switch
-from brasidas.messages import CommandResult, ControlState, OverrideState, SessionClosed
+from brasidas.messages import (
+    CommandResult,
+    ControlState,
+    FailsafeState,
+    FailsafeStep,
+    OverrideState,
+    SessionClosed,
+)
 from platformd.commands import SystemCommand
 from platformd.context import PlatformContext
 from platformd.session_table import Session
@@ -31,6 +38,7 @@ class ModeArbiter(Actor):
         self.on_remove(self.ctx.commands.register(self.name, {MANUAL_OVERRIDE: self._command}))
         self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
         self.subscribe(topics.CONTROL_STATE, self._on_control)
+        self.subscribe(topics.FAILSAFE_STATE, self._on_failsafe)
         self.bus.publish(topics.OVERRIDE_STATE, self.state)
         await wait_forever()
 
@@ -50,7 +58,12 @@ class ModeArbiter(Actor):
                 return CommandResult(False, f"manual override held by {self.state.station_id}")
             if session is None:
                 return CommandResult(False, "manual override needs a station session")
-            self._set(OverrideState(True, session.session_id, session.station_id))
+            engaged = OverrideState(True, session.session_id, session.station_id)
+            failsafe = self.bus.last(topics.FAILSAFE_STATE)
+            if engaged == self.state and failsafe and failsafe.step is not FailsafeStep.NORMAL:
+                # Re-engaging after a failsafe hold: the operator's deliberate act ends it.
+                self.bus.publish(topics.OVERRIDE_STATE, engaged)
+            self._set(engaged)
             return CommandResult(True, result={"engaged": True})
         if self.state.engaged and held_by != session_id:
             return CommandResult(False, f"manual override held by {self.state.station_id}")
@@ -70,6 +83,11 @@ class ModeArbiter(Actor):
             _LOGGER.warning(
                 "manual override of %s released: %s", self.state.station_id, control.reason
             )
+            self._set(OverrideState(False))
+
+    def _on_failsafe(self, failsafe: FailsafeState) -> None:
+        if failsafe.step is FailsafeStep.RELEASED and self.state.engaged:
+            _LOGGER.warning("manual override released by the failsafe: %s", failsafe.reason)
             self._set(OverrideState(False))
 
     def _set(self, state: OverrideState) -> None:

@@ -20,7 +20,13 @@ from brasidas.actor import Actor
 from brasidas.codecs import pvel
 from brasidas.codecs.pvel import DropReason, PvelSentence
 from brasidas.codecs.telemetry_schema import VelocityLink
-from brasidas.messages import OverrideState, Velocity, VelocityLinkStats
+from brasidas.messages import (
+    FailsafeState,
+    FailsafeStep,
+    OverrideState,
+    Velocity,
+    VelocityLinkStats,
+)
 from platformd.context import PlatformContext
 from platformd.sessions import velocity_endpoint
 
@@ -48,6 +54,8 @@ class VelocityGate:
     def __init__(self, *, require_tag: bool) -> None:
         self.require_tag = require_tag
         self.holder: Holder | None = None
+        self.held = False
+        """The failsafe ladder holds: every datagram is dropped (``held``)."""
         self.last_count: int | None = None
         self.accepted = 0
         self.dropped: dict[DropReason, int] = dict.fromkeys(DropReason, 0)
@@ -87,6 +95,10 @@ class VelocityGate:
             return DropReason.BAD_TAG
         if self.last_count is not None and sentence.count <= self.last_count:
             return DropReason.OUT_OF_ORDER
+        if self.held:
+            # Spent, not obeyed: after the operator re-engages, this count is already old.
+            self.last_count = sentence.count
+            return DropReason.HELD
         return sentence
 
     def stats(self) -> VelocityLinkStats:
@@ -154,6 +166,7 @@ class VelocityReceiver(Actor):
 
     async def run(self) -> None:
         self.subscribe(topics.OVERRIDE_STATE, self._on_override)
+        self.subscribe(topics.FAILSAFE_STATE, self._on_failsafe)
         self.subscribe(topics.SESSION_CLOSED, lambda _event: self._refresh_holder())
         try:
             while True:
@@ -172,6 +185,9 @@ class VelocityReceiver(Actor):
     def _on_override(self, state: OverrideState) -> None:
         self._refresh_holder(state)
         self.publish_stats()
+
+    def _on_failsafe(self, state: FailsafeState) -> None:
+        self.gate.held = state.step is FailsafeStep.HOLD
 
     def _refresh_holder(self, state: OverrideState | None = None) -> None:
         state = state or self.bus.last(topics.OVERRIDE_STATE)

@@ -11,6 +11,7 @@ from brasidas.codecs.telemetry_schema import (
     Autonomy,
     Battery,
     Controller,
+    Failsafe,
     Gps,
     Section,
     SectionValue,
@@ -24,6 +25,7 @@ from stationd.telemetry import (
     CONTROLLER_OVER_TEMPERATURE,
     GPS_FIX_LOST,
     LINK_DEGRADED,
+    LINK_LOST,
     LOW_BATTERY,
     PATROL_HOLDING,
     SENSOR_STALE,
@@ -229,3 +231,14 @@ def test_a_holding_patrol_raises_with_its_reason_and_clears() -> None:
     patrolling = Autonomy(state="patrolling")
     (change,) = annunciator.evaluate(with_(Autonomy, patrolling), 0.0, 0.1, now=2.0)
     assert not change.active and names(annunciator) == set()
+
+
+def test_failsafe_hold_raises_link_lost_until_the_operator_re_engages() -> None:
+    annunciator = Annunciator(CONFIG)
+    held = Failsafe("hold", "no heartbeat from st-1 for 1.5 s: holding", "st-1")
+    (change,) = annunciator.evaluate(with_(Failsafe, held), 0, 0, 1.0)
+    assert change.active and change.warning.code == LINK_LOST
+    assert change.warning.message.startswith("LINK LOST: platform hold")
+    assert annunciator.evaluate(with_(Failsafe, Failsafe("normal", "", "st-1")), 0, 0, 2) == [
+        dataclasses.replace(change, active=False)
+    ]

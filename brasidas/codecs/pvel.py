@@ -51,6 +51,9 @@ class DropReason(Enum):
     """From a host other than the override holder's."""
     BAD_TAG = "bad_tag"
     """Tag missing or not made with the holder's session key."""
+    HELD = "held"
+    """The failsafe ladder holds (the link was lost): nothing moves until the operator
+    re-engages, and nothing sent before that may move the robot afterwards."""
 
 
 @dataclass(frozen=True)

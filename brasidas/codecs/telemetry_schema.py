@@ -246,6 +246,18 @@ class Motion(Section):
 
 
 @dataclass(frozen=True)
+class Failsafe(Section):
+    """The failsafe ladder (normal, hold, released), why, and who holds control."""
+
+    NAME = "failsafe"
+    WIRE = "fs"
+    step: str = field(default="normal", metadata=wire("s"))
+    reason: str = field(default="", metadata=wire("r"))
+    controller: str | None = field(default=None, metadata=wire("c"))
+    """The station holding control (command authority), None when nobody does."""
+
+
+@dataclass(frozen=True)
 class Streams(Section):
     """Media streams by name, with their state (idle, playing, failed...)."""
 
@@ -339,6 +351,7 @@ SECTIONS: tuple[type[Section], ...] = (
     Link,
     VelocityLink,
     Motion,
+    Failsafe,
     Streams,
     Platforms,
     Pose,

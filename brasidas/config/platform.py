@@ -166,6 +166,23 @@ class VelocitySection:
 
 
 @dataclass(frozen=True)
+class FailsafeSection:
+    """The failsafe ladder while teleoperated (issue 13): zero after ``velocity.deadman``,
+    hold after ``hold_after``, release (or keep holding) after ``release_after``."""
+
+    RULES: ClassVar[tuple[Rule, ...]] = (ordered("hold_after", "release_after"),)
+
+    hold_after: float = setting(1.5, above(0, most=60))
+    """No call (heartbeat) from the override holder for this long: hold (motors zero,
+    payload safe, velocities dropped until the operator re-engages)."""
+    release_after: float = setting(10.0, above(0, most=3600))
+    """Silent this long: ``action``. (A session silent for ``signaling.session_timeout`` ends
+    first and releases the override, R-17: set that above this to let the ladder decide.)"""
+    action: str = setting("release", one_of("release", "hold"))
+    """At ``release_after``: release the override (autonomy resumes) or keep holding."""
+
+
+@dataclass(frozen=True)
 class GpsSection:
     enabled: bool = True
     port: str = setting("/dev/ttyAMA0", non_empty)
@@ -336,6 +353,7 @@ class PlatformConfig:
     beacon: BeaconSection = field(default_factory=BeaconSection)
     motor: MotorSection = field(default_factory=MotorSection)
     velocity: VelocitySection = field(default_factory=VelocitySection)
+    failsafe: FailsafeSection = field(default_factory=FailsafeSection)
     gps: GpsSection = field(default_factory=GpsSection)
     imu: ImuSection = field(default_factory=ImuSection)
     telemetry: TelemetrySection = field(default_factory=TelemetrySection)

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 from stationd.context import StationContext
 from stationd.telemetry.annunciator import (
+    CONTROL_TAKEN,
     CONTROLLER_OVER_TEMPERATURE,
     GPS_FIX_LOST,
     LINK_DEGRADED,
+    LINK_LOST,
     LOW_BATTERY,
     NOTIFICATION_GROUP,
     PATROL_HOLDING,
@@ -27,8 +29,10 @@ from stationd.telemetry.stats import LinkStats
 
 __all__ = [
     "CONTROLLER_OVER_TEMPERATURE",
+    "CONTROL_TAKEN",
     "GPS_FIX_LOST",
     "LINK_DEGRADED",
+    "LINK_LOST",
     "LOW_BATTERY",
     "NOTIFICATION_GROUP",
     "PATROL_HOLDING",

@@ -16,6 +16,7 @@ from brasidas.codecs.telemetry_schema import (
     Autonomy,
     Battery,
     Controller,
+    Failsafe,
     Gps,
     Snapshot,
     Streams,
@@ -105,6 +106,13 @@ class Annunciator:
             link.append(f"{loss_pct:.0f}% of telemetry lost")
         if link:
             wanted["link_degraded"] = (LINK_DEGRADED, "link degraded: " + ", ".join(link))
+        failsafe = snapshot.get(Failsafe)
+        if failsafe is not None and failsafe.step != "normal":
+            # The platform held (or released) because it lost the holder's link (issue 13).
+            wanted["link_lost"] = (
+                LINK_LOST,
+                f"LINK LOST: platform {failsafe.step}: {failsafe.reason}",
+            )
         streams = snapshot.get(Streams)
         for name, state in streams.states.items() if streams is not None else ():
             if state.lower() in FAILED_STREAM_STATES:

@@ -1,0 +1,144 @@
+"""The failsafe ladder (issue 13) on real sockets: the station's heartbeats and velocity
+stream are cut (the station sends none: its automatic heartbeats are set to once a minute)."""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Awaitable, Callable
+
+from conftest import quiet_platform_config, wait_until
+
+from brasidas import topics
+from brasidas.codecs import pvel
+from brasidas.codecs.telemetry_schema import VelocityLink
+from brasidas.messages import FailsafeState, FailsafeStep, Mode, OverrideState, Velocity
+from platformd.app import PlatformDaemon
+from platformd.failsafe import FailsafeLadder
+from stationd.client import PlatformConnection
+
+Factory = Callable[..., Awaitable[PlatformDaemon]]
+STOP = Velocity(0.0, 0.0)
+
+
+def ladder_config(*overrides: str) -> list[str]:
+    return [
+        "velocity.deadman=0.1",
+        "signaling.heartbeat_interval=60",  # the test sends each heartbeat itself
+        "signaling.session_timeout=60",
+        *overrides,
+    ]
+
+
+async def engaged_station(daemon: PlatformDaemon, key: bytes) -> PlatformConnection:
+    conn = PlatformConnection(
+        daemon.config.platform.id, daemon.ctx.signaling_url, station_id="st-1", fleet_key=key
+    )
+    await conn.open()
+    assert await conn.call("set_manual_override", engaged=True) is True
+    return conn
+
+
+async def test_stop_then_hold_then_release_and_no_old_command_after_the_link_returns(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    daemon = await platform_factory(
+        quiet_platform_config(
+            *ladder_config("failsafe.hold_after=0.4", "failsafe.release_after=1.2")
+        ),
+        fleet_key,
+    )
+    events: list[tuple[float, str]] = []
+    commands: list[Velocity] = []
+    daemon.bus.subscribe(topics.MOTOR_COMMAND, commands.append)
+    daemon.bus.subscribe(
+        topics.MOTOR_COMMAND,
+        lambda v: events.append((time.monotonic(), "zero")) if v == STOP else None,
+    )
+    daemon.bus.subscribe(
+        topics.FAILSAFE_STATE, lambda s: events.append((time.monotonic(), s.step.value))
+    )
+    conn = await engaged_station(daemon, fleet_key)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    target = ("127.0.0.1", daemon.ctx.velocity_port)
+    encoder = pvel.PvelEncoder(key=conn.session_key, session_id=conn.session_id)
+    try:
+        sock.sendto(encoder.encode(0.6, 0.0), target)
+        await wait_until(lambda: commands[-1] == Velocity(0.6, 0.0))
+        cut = time.monotonic()
+        events.clear()
+        # The link is cut: no velocity (deadman), no heartbeat (hold).
+        await wait_until(lambda: any(step == "hold" for _, step in events))
+        zero_at = next(at for at, step in events if step == "zero")
+        hold_at = next(at for at, step in events if step == "hold")
+        last_call = daemon.ctx.sessions.sessions[conn.session_id].last_seen
+        assert cut < zero_at < hold_at and hold_at - last_call >= 0.4
+        assert commands[-1] == STOP
+        # The link comes back with a burst of velocities sent during the loss: none moves it.
+        await conn.call("heartbeat")
+        burst = [encoder.encode(0.6, 0.0) for _ in range(10)]
+        for datagram in burst:
+            sock.sendto(datagram, target)
+        await wait_until(lambda: _dropped(daemon, "held") == len(burst))
+        assert commands[-1] == STOP
+        # The operator re-engages deliberately; the burst stays spent.
+        assert await conn.call("set_manual_override", engaged=True) is True
+        assert daemon.bus.last(topics.FAILSAFE_STATE) == FailsafeState(
+            FailsafeStep.NORMAL, "st-1", "re-engaged by the operator"
+        )
+        sock.sendto(burst[-1], target)
+        await wait_until(lambda: _dropped(daemon, "out_of_order") >= 1)
+        assert commands[-1] == STOP
+        sock.sendto(encoder.encode(0.3, 0.0), target)
+        await wait_until(lambda: commands[-1] == Velocity(0.3, 0.0))
+
+        # Cut again, for good this time: hold, then release (action = release): autonomy.
+        events.clear()
+        await wait_until(lambda: any(step == "released" for _, step in events), timeout=10)
+        released_at = next(at for at, step in events if step == "released")
+        assert released_at - daemon.ctx.sessions.sessions[conn.session_id].last_seen >= 1.2
+        assert daemon.bus.last(topics.OVERRIDE_STATE) == OverrideState(False)
+        motion = daemon.bus.last(topics.MOTION_STATE)
+        assert motion is not None and motion.mode is Mode.AUTONOMOUS
+        report = await conn.call("get_telemetry_report")
+        assert report["failsafe"]["step"] == "released"
+        assert "no heartbeat from st-1" in report["failsafe"]["reason"]
+    finally:
+        sock.close()
+        await conn.close()
+
+
+def _dropped(daemon: PlatformDaemon, reason: str) -> int:
+    """The velocity receiver's drop counter, as telemetry reads it (now, not once a second)."""
+    link = daemon.ctx.telemetry.build_one(VelocityLink)
+    return link.dropped.get(reason, 0) if isinstance(link, VelocityLink) else 0
+
+
+async def test_action_hold_keeps_holding_past_release_after(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    # The daemon's own ladder is set far off; this one runs on an injected clock.
+    daemon = await platform_factory(
+        quiet_platform_config(
+            *ladder_config(
+                "failsafe.hold_after=50", "failsafe.release_after=100", "failsafe.action=hold"
+            )
+        ),
+        fleet_key,
+    )
+    conn = await engaged_station(daemon, fleet_key)
+    try:
+        ladder = FailsafeLadder(daemon.ctx, clock=lambda: 0.0)
+        seen = daemon.ctx.sessions.sessions[conn.session_id].last_seen
+        ladder.tick(seen + 49.9)
+        assert ladder.state.step is FailsafeStep.NORMAL
+        ladder.tick(seen + 50.0)
+        assert ladder.state.step is FailsafeStep.HOLD
+        motion = daemon.bus.last(topics.MOTION_STATE)
+        assert motion is not None and motion.command == STOP and motion.mode is Mode.TELEOP
+        ladder.tick(seen + 1000.0)
+        assert ladder.state.step is FailsafeStep.HOLD
+        override = daemon.bus.last(topics.OVERRIDE_STATE)
+        assert override is not None and override.engaged  # still held, not released
+    finally:
+        await conn.close()
