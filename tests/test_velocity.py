@@ -65,6 +65,7 @@ def test_holder_host_tag_and_order() -> None:
         "not_engaged": 0,
         "not_holder": 1,
         "bad_tag": 3,
+        "held": 0,
     }
 
 
