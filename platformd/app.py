@@ -15,6 +15,7 @@ from platformd.sim import SimulatedDevices
 from platformd.sim import ax3500 as ax3500_sim
 from platformd.sim import gps as gps_sim
 from platformd.sim import mpu6050 as mpu6050_sim
+from platformd.sim import turret as turret_sim
 from platformd.sim.vehicle import vehicle_for
 
 _LOGGER = logging.getLogger(__name__)
@@ -37,6 +38,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "platformd.imu",
     "platformd.autonomy",  # localization (POSE) and the patrol (CMD_VEL)
     "platformd.media",
+    "platformd.payloads",
     "platformd.telemetry",
     "platformd.signaling",
     "platformd.beacon",
@@ -58,7 +60,10 @@ async def start_simulators(ctx: PlatformContext) -> SimulatedDevices:
         gps = gps_sim.start_simulator(ctx.bus, ctx.supervisor, config.gps, vehicle)
     if config.imu.enabled:
         chip, i2c_bus = mpu6050_sim.emulate(config.imu, vehicle)
-    return SimulatedDevices(vehicle, ax3500, lights, gps, chip, i2c_bus)
+    turret = None
+    if "turret" in config.payload.enabled:
+        turret = turret_sim.start_simulator(ctx.bus, ctx.supervisor, config.payload)
+    return SimulatedDevices(vehicle, ax3500, lights, gps, chip, i2c_bus, turret)
 
 
 class PlatformDaemon(Daemon):

@@ -33,7 +33,7 @@ from brasidas.codecs.commands import (
     parse_switch,
 )
 from brasidas.codecs.jsonrpc import CallContext, RpcError
-from brasidas.messages import ControlState, SessionClosed
+from brasidas.messages import ControlState, FailsafeStep, SessionClosed
 from platformd.commands import SystemCommand
 from platformd.session_table import Session, SessionTable
 
@@ -46,11 +46,19 @@ CONTROL_REFUSED = -32003
 class Authority:
     """Who holds control; the one place that says whether a session may command."""
 
-    def __init__(self, bus: Bus, sessions: SessionTable) -> None:
+    def __init__(
+        self,
+        bus: Bus,
+        sessions: SessionTable,
+        is_engagement: Callable[[CommandCode], bool] = lambda code: False,
+    ) -> None:
         self.bus = bus
         self.sessions = sessions
+        self.is_engagement = is_engagement
         self.controller: Session | None = None
-        self.counters: dict[str, int] = dict.fromkeys(("claims", "takeovers", "refused"), 0)
+        self.counters: dict[str, int] = dict.fromkeys(
+            ("claims", "takeovers", "refused", "engagement_refused"), 0
+        )
 
     @property
     def station_id(self) -> str | None:
@@ -83,7 +91,25 @@ class Authority:
         if command.code in OBSERVER_CODES:
             return None
         what = describe(command.code) or str(command.code)
-        return self.refusal(command.session, what, force=_forced(command.code, command.payload))
+        refusal = self.refusal(command.session, what, force=_forced(command.code, command.payload))
+        if refusal is None and self.is_engagement(command.code):
+            refusal = self.engagement_refusal(command.session, what)
+            if refusal is not None:
+                self.counters["engagement_refused"] += 1
+        return refusal
+
+    def engagement_refusal(self, session: Session | None, what: str) -> str | None:
+        """R-0.5: engagement only under manual override, from its holder, with no failsafe
+        step in progress. The reason, or None."""
+        override = self.bus.last(topics.OVERRIDE_STATE)
+        if override is None or not override.engaged:
+            return f"{what} refused: engagement only under manual override (Autonomous Mode)"
+        if session is None or override.session_id != session.session_id:
+            return f"{what} refused: only the override holder ({override.station_id}) engages"
+        failsafe = self.bus.last(topics.FAILSAFE_STATE)
+        if failsafe is not None and failsafe.step is not FailsafeStep.NORMAL:
+            return f"{what} refused: failsafe {failsafe.step.value} (re-engage the override)"
+        return None
 
     def guard(
         self, what: str, handler: Callable[..., Awaitable[Any]]

@@ -22,6 +22,7 @@ SIMULATORS: dict[str, str] = {
     # name -> "module:function" of ``async def serve(config)``; prints the pty path first.
     "gps": "platformd.sim.gps:serve",
     "ax3500": "platformd.sim.ax3500:serve",
+    "turret": "platformd.sim.turret:serve",
 }
 
 

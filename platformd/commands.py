@@ -54,6 +54,17 @@ def allow_all(command: SystemCommand) -> str | None:
     return None
 
 
+@dataclass(frozen=True)
+class CommandSpec:
+    """What a payload's command is, for ``connect``'s capabilities and for command authority."""
+
+    name: str
+    format: str
+    """Its payload string, e.g. ``az=<deg>,el=<deg>``."""
+    engagement: bool = False
+    """Engages a target (R-0.5): only from the override holder under manual override."""
+
+
 class DuplicateCommandError(ValueError):
     """A code registered while another owner holds it."""
 
@@ -72,11 +83,18 @@ class CommandRouter:
         """Seconds an owner has to answer (``signaling.command_timeout``)."""
         self.authorize = authorize
         self._owners: dict[CommandCode, _Registration] = {}
+        self.specs: dict[CommandCode, CommandSpec] = {}
+        """Descriptions of registered payload commands (``register(..., specs=)``)."""
         self.counters: dict[str, int] = dict.fromkeys(
             ("dispatched", "unknown", "unavailable", "refused", "timeouts", "failures"), 0
         )
 
-    def register(self, owner: str, handlers: dict[CommandCode, CommandHandler]) -> Unsubscribe:
+    def register(
+        self,
+        owner: str,
+        handlers: dict[CommandCode, CommandHandler],
+        specs: dict[CommandCode, CommandSpec] | None = None,
+    ) -> Unsubscribe:
         """Route ``handlers``' codes to ``owner``; returns the callable that unregisters them.
 
         Raises DuplicateCommandError (nothing registered) if another owner holds one of the
@@ -90,13 +108,20 @@ class CommandRouter:
                 raise DuplicateCommandError(f"{code} is already handled by {held.owner}")
         mine = {code: _Registration(owner, handler) for code, handler in handlers.items()}
         self._owners.update(mine)
+        self.specs.update(specs or {})
 
         def unregister() -> None:
             for code, registration in mine.items():
                 if self._owners.get(code) is registration:
                     del self._owners[code]
+                    self.specs.pop(code, None)
 
         return unregister
+
+    def is_engagement(self, code: CommandCode) -> bool:
+        """True for a command registered as an engagement (the trigger)."""
+        spec = self.specs.get(code)
+        return spec is not None and spec.engagement
 
     def owner(self, code: CommandCode) -> str | None:
         """Who handles ``code``, or None."""

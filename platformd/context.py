@@ -95,10 +95,9 @@ class PlatformContext:
         return self.sim.gps.path if self.sim.gps is not None else self.config.gps.port
 
     def __post_init__(self) -> None:
-        self.authority = Authority(self.bus, self.sessions)
-        self.commands = CommandRouter(
-            self.config.signaling.command_timeout, self.authority.authorize
-        )
+        self.commands = CommandRouter(self.config.signaling.command_timeout)
+        self.authority = Authority(self.bus, self.sessions, self.commands.is_engagement)
+        self.commands.authorize = self.authority.authorize
 
     def session(self, session_id: str | None) -> Session | None:
         """The open session with this token, or None."""

@@ -200,6 +200,16 @@ def capabilities(ctx: PlatformContext) -> dict[str, Any]:
         "payload_groups": sorted(
             {code.group for code in ctx.commands.codes() if code.group in PAYLOAD_GROUPS}
         ),
+        "payload_commands": [
+            {
+                "code": str(code),
+                "name": spec.name,
+                "format": spec.format,
+                "engagement": spec.engagement,
+            }
+            for code in ctx.commands.codes()
+            if (spec := ctx.commands.specs.get(code)) is not None
+        ],
     }
     for name, provider in ctx.capabilities.items():
         result[name] = provider()

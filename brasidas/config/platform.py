@@ -183,6 +183,22 @@ class FailsafeSection:
 
 
 @dataclass(frozen=True)
+class PayloadSection:
+    """Payloads (issue 13): each a set of actors on command groups 100-110."""
+
+    enabled: tuple[str, ...] = setting((), each(one_of("turret")))
+    """The payloads this platform carries, by name; none by default."""
+    turret_port: str = setting("/dev/ttyUSB1", non_empty)
+    """The turret microcontroller's serial line (in --sim, the simulator's pty instead)."""
+    turret_baudrate: int = setting(115200, one_of(*BAUD_RATES))
+    turret_ack_timeout: float = setting(0.1, above(0, most=5))
+    """How long the driver waits for an acknowledgement before it resends (3 tries)."""
+    turret_watchdog_s: float = setting(0.5, above(0, most=10))
+    """The microcontroller releases the trigger when no valid command came for this long; the
+    driver pings at a third of it."""
+
+
+@dataclass(frozen=True)
 class GpsSection:
     enabled: bool = True
     port: str = setting("/dev/ttyAMA0", non_empty)
@@ -354,6 +370,7 @@ class PlatformConfig:
     motor: MotorSection = field(default_factory=MotorSection)
     velocity: VelocitySection = field(default_factory=VelocitySection)
     failsafe: FailsafeSection = field(default_factory=FailsafeSection)
+    payload: PayloadSection = field(default_factory=PayloadSection)
     gps: GpsSection = field(default_factory=GpsSection)
     imu: ImuSection = field(default_factory=ImuSection)
     telemetry: TelemetrySection = field(default_factory=TelemetrySection)

@@ -16,6 +16,7 @@ if TYPE_CHECKING:  # the simulators import the context, which holds this
     from platformd.sim.ax3500 import Ax3500Simulator
     from platformd.sim.gps import GpsSimulator
     from platformd.sim.mpu6050 import Mpu6050
+    from platformd.sim.turret import TurretSimulator
     from platformd.sim.vehicle import VehicleModel
 
 
@@ -34,3 +35,5 @@ class SimulatedDevices:
     mpu6050: Mpu6050 | None = None
     i2c_bus: BusFactory | None = None
     """Opens the emulated I2C bus with the MPU-6050 on it, instead of ``smbus2.SMBus``."""
+    turret: TurretSimulator | None = None
+    """The turret's microcontroller, on a pty (``payload.enabled`` names the turret)."""

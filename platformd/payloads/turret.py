@@ -1,0 +1,204 @@
+"""The turret payload: driver of the microcontroller's line protocol (brasidas.codecs.turret)
+and the actor that puts it on command group 100.
+
+100.0 ``aim`` (``az=<deg>,el=<deg>``), 100.1 ``fire`` (engagement: the command authority lets it
+through only from the override holder under manual override, no failsafe step in progress),
+100.2 ``safe``. On override release, session loss (which releases the override) or any failsafe
+step the turret is made safe at once: trigger released, servos hold.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from typing import Any
+
+import serial_asyncio
+
+from brasidas import topics
+from brasidas.actor import Actor
+from brasidas.codecs import turret
+from brasidas.codecs.commands import CommandCode, PayloadError, parse_payload
+from brasidas.codecs.turret import Line, LineDecoder
+from brasidas.messages import CommandResult, FailsafeState, FailsafeStep, OverrideState
+from platformd.commands import CommandSpec, SystemCommand
+from platformd.context import PlatformContext
+
+_LOGGER = logging.getLogger(__name__)
+
+GROUP = 100
+AIM = CommandCode(GROUP, 0)
+FIRE = CommandCode(GROUP, 1)
+SAFE = CommandCode(GROUP, 2)
+SPECS = {
+    AIM: CommandSpec("aim", "az=<deg -180..180>,el=<deg -10..60>"),
+    FIRE: CommandSpec("fire", "", engagement=True),
+    SAFE: CommandSpec("safe", ""),
+}
+TRIES = 3
+
+
+class TurretError(Exception):
+    """The microcontroller refused a command or did not acknowledge it after every try."""
+
+
+class TurretDriver(asyncio.Protocol):
+    """One open line to the microcontroller: one command in flight, acknowledged or resent."""
+
+    def __init__(self, ack_timeout: float) -> None:
+        self.ack_timeout = ack_timeout
+        self.decoder = LineDecoder()
+        self.counters: dict[str, int] = dict.fromkeys(
+            ("sent", "acked", "resent", "unacked", "refused", "watchdog"), 0
+        )
+        self.state: tuple[float, float, bool] | None = None
+        """Azimuth, elevation and trigger by the last acknowledgement."""
+        self._transport: asyncio.WriteTransport | None = None
+        self._seq = 0
+        self._waiting: tuple[int, asyncio.Future[Line]] | None = None
+        self._lock = asyncio.Lock()
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.WriteTransport)
+        self._transport = transport
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._transport = None
+        if self._waiting is not None and not self._waiting[1].done():
+            self._waiting[1].set_exception(TurretError("serial line closed"))
+
+    def data_received(self, data: bytes) -> None:
+        for item in self.decoder.feed(data):
+            if not isinstance(item, Line):
+                continue  # counted by the decoder; the command is resent
+            if item.kind == "W":
+                self.counters["watchdog"] += 1
+                _LOGGER.warning("turret watchdog released the trigger")
+            elif item.kind == "A" and self._waiting is not None and item.fields:
+                seq, future = self._waiting
+                if item.fields[0] == str(seq) and not future.done():
+                    future.set_result(item)
+
+    async def send(self, name: str, *args: float) -> Line:
+        """Send one command; its acknowledgement, or TurretError."""
+        async with self._lock:
+            self._seq = (self._seq + 1) % 256
+            line = turret.command(self._seq, name, *args)
+            for attempt in range(TRIES):
+                if self._transport is None:
+                    raise TurretError("serial line closed")
+                future: asyncio.Future[Line] = asyncio.get_running_loop().create_future()
+                self._waiting = (self._seq, future)
+                self._transport.write(line)
+                self.counters["sent" if attempt == 0 else "resent"] += 1
+                try:
+                    answer = await asyncio.wait_for(future, self.ack_timeout)
+                except TimeoutError:
+                    continue
+                finally:
+                    self._waiting = None
+                if answer.fields[1:2] != ("OK",):
+                    self.counters["refused"] += 1
+                    raise TurretError(",".join(answer.fields[2:]) or "refused")
+                self.counters["acked"] += 1
+                with contextlib.suppress(IndexError, ValueError):
+                    az, el, trigger = answer.fields[2:5]
+                    self.state = (float(az), float(el), trigger == "1")
+                return answer
+            self.counters["unacked"] += 1
+            raise TurretError(f"{name}: no acknowledgement after {TRIES} tries")
+
+    def close(self) -> None:
+        if self._transport is not None:
+            self._transport.close()
+
+
+class TurretPayload(Actor):
+    """Opens the line, keeps the microcontroller's watchdog fed, answers group 100."""
+
+    name = "turret"
+
+    def __init__(self, ctx: PlatformContext, port: str) -> None:
+        super().__init__(ctx.bus)
+        self.ctx = ctx
+        self.port = port
+        self.config = ctx.config.payload
+        self.driver: TurretDriver | None = None
+        self.safings = 0
+        self._group: asyncio.TaskGroup | None = None
+        self._engaged = False
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        _, driver = await serial_asyncio.create_serial_connection(
+            loop,
+            lambda: TurretDriver(self.config.turret_ack_timeout),
+            self.port,
+            baudrate=self.config.turret_baudrate,
+        )
+        self.driver = driver
+        try:
+            async with asyncio.TaskGroup() as group:
+                self._group = group
+                self.on_remove(self.ctx.commands.register(self.name, self._handlers(), SPECS))
+                self.subscribe(topics.OVERRIDE_STATE, self._on_override)
+                self.subscribe(topics.FAILSAFE_STATE, self._on_failsafe)
+                while True:
+                    await asyncio.sleep(self.config.turret_watchdog_s / 3)
+                    with contextlib.suppress(TurretError):
+                        await driver.send("PING")
+        finally:
+            self._group = None
+            self.driver = None
+            driver.close()
+
+    def _handlers(self) -> dict[CommandCode, Any]:
+        return {AIM: self._aim, FIRE: self._fire, SAFE: self._safe}
+
+    async def _aim(self, command: SystemCommand) -> CommandResult:
+        try:
+            values = parse_payload(command.payload)
+            azimuth, elevation = float(values["az"]), float(values["el"])
+        except (PayloadError, KeyError, ValueError):
+            return CommandResult(False, f"expected {SPECS[AIM].format}")
+        return await self._send("AIM", azimuth, elevation)
+
+    async def _fire(self, command: SystemCommand) -> CommandResult:
+        return await self._send("FIRE")
+
+    async def _safe(self, command: SystemCommand) -> CommandResult:
+        return await self._send("SAFE")
+
+    async def _send(self, name: str, *args: float) -> CommandResult:
+        if self.driver is None:
+            return CommandResult(False, "turret line not open")
+        try:
+            await self.driver.send(name, *args)
+        except TurretError as err:
+            return CommandResult(False, f"turret: {err}")
+        assert self.driver.state is not None
+        azimuth, elevation, trigger = self.driver.state
+        return CommandResult(True, result={"az": azimuth, "el": elevation, "trigger": trigger})
+
+    def make_safe(self, reason: str) -> None:
+        """Trigger released, servos hold: at once, whatever else is in flight. Event loop."""
+        self.safings += 1
+        _LOGGER.warning("turret made safe: %s", reason)
+        if self._group is not None:
+            self._group.create_task(self._send("SAFE"), name="turret:safe")
+
+    def _on_override(self, state: OverrideState) -> None:
+        engaged, self._engaged = self._engaged, state.engaged
+        if engaged and not state.engaged:
+            self.make_safe("manual override released")
+
+    def _on_failsafe(self, state: FailsafeState) -> None:
+        if state.step is not FailsafeStep.NORMAL:
+            self.make_safe(f"failsafe {state.step.value}")
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    simulator = ctx.sim.turret
+    port = simulator.path if simulator is not None else ctx.config.payload.turret_port
+    ctx.supervisor.start(TurretPayload(ctx, port))

@@ -1,0 +1,151 @@
+"""The turret payload (issue 13): its line protocol against the simulated microcontroller on a
+real pty, and engagement only under manual override (R-0.5) on a --sim platform."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any
+
+import pytest
+import serial_asyncio
+from conftest import quiet_platform_config, wait_until
+
+from brasidas.codecs import turret
+from brasidas.codecs.turret import Drop, Line, LineDecoder
+from platformd.app import PlatformDaemon
+from platformd.failsafe import FailsafeLadder
+from platformd.payloads.turret import FIRE, TurretDriver, TurretError
+from platformd.sim.turret import TurretDevice, TurretSimulator
+from stationd.client import PlatformConnection
+
+Factory = Callable[..., Awaitable[PlatformDaemon]]
+
+
+def test_lines_round_trip_and_bad_checksums_are_dropped_and_counted() -> None:
+    decoder = LineDecoder()
+    good = turret.command(7, "AIM", 12.5, -3.0)
+    assert good == b"$C,7,AIM,12.5,-3.0*" + good[-3:]
+    bad = good[:-3] + (b"00" if good[-3:-1] != b"00" else b"11") + b"\n"
+    assert decoder.feed(good + bad + b"noise\n") == [
+        Line("C", ("7", "AIM", "12.5", "-3.0")),
+        Drop.BAD_CHECKSUM,
+        Drop.MALFORMED,
+    ]
+    assert decoder.dropped[Drop.BAD_CHECKSUM] == 1
+    device = TurretDevice()
+    assert device.feed(bad, now=0.0) == b"" and device.log == []  # never acted on
+
+
+@pytest.fixture
+async def line() -> AsyncIterator[tuple[TurretSimulator, TurretDriver]]:
+    simulator = TurretSimulator(TurretDevice(watchdog_s=0.3))
+    simulator.start()
+    loop = asyncio.get_running_loop()
+    transport, driver = await serial_asyncio.create_serial_connection(
+        loop, lambda: TurretDriver(ack_timeout=0.1), simulator.path, baudrate=115200
+    )
+    try:
+        yield simulator, driver
+    finally:
+        transport.close()
+        simulator.close()
+
+
+async def test_lost_and_corrupted_acknowledgements_are_resent_and_acted_on_once(
+    line: tuple[TurretSimulator, TurretDriver],
+) -> None:
+    simulator, driver = line
+    simulator.device.ignore_next = 1  # the command is lost on the way
+    await driver.send("AIM", 10.0, 5.0)
+    simulator.corrupt_next = 1  # the acknowledgement arrives with a bad checksum
+    await driver.send("FIRE")
+    assert simulator.device.log == ["AIM,10.0,5.0", "FIRE"]  # each acted on once
+    assert driver.counters["resent"] == 2 and driver.decoder.dropped[Drop.BAD_CHECKSUM] == 1
+    assert driver.state == (10.0, 5.0, True)
+    with pytest.raises(TurretError, match="out of range"):
+        await driver.send("AIM", 500.0, 0.0)
+    simulator.device.ignore_next = 5
+    with pytest.raises(TurretError, match="no acknowledgement after 3 tries"):
+        await driver.send("SAFE")
+
+
+async def test_the_microcontroller_watchdog_releases_the_trigger_when_the_driver_is_silent(
+    line: tuple[TurretSimulator, TurretDriver],
+) -> None:
+    simulator, driver = line
+    await driver.send("FIRE")
+    assert simulator.device.trigger
+    # The driver goes silent (no pings): the microcontroller lets go by itself, and says so.
+    await wait_until(lambda: driver.counters["watchdog"] == 1)
+    assert simulator.device.trigger is False and simulator.device.log[-1] == "WATCHDOG"
+
+
+async def station(daemon: PlatformDaemon, key: bytes, name: str) -> PlatformConnection:
+    conn = PlatformConnection(
+        daemon.config.platform.id, daemon.ctx.signaling_url, station_id=name, fleet_key=key
+    )
+    await conn.open()
+    return conn
+
+
+async def command(conn: PlatformConnection, code: int, payload: str = "") -> dict[str, Any]:
+    answer: dict[str, Any] = await conn.call(
+        "issue_system_command", group=100, command=code, payload=payload
+    )
+    return answer
+
+
+async def test_engagement_only_from_the_override_holder_under_override(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    daemon = await platform_factory(
+        quiet_platform_config(
+            "sim.enabled=true",
+            'payload.enabled=["turret"]',
+            "failsafe.hold_after=50",
+            "failsafe.release_after=100",
+        ),
+        fleet_key,
+    )
+    simulator = daemon.ctx.sim.turret
+    assert simulator is not None
+    device = simulator.device
+    a = await station(daemon, fleet_key, "alpha")
+    b = await station(daemon, fleet_key, "bravo")
+    try:
+        assert a.capabilities["payload_groups"] == [100]
+        fire = next(c for c in a.capabilities["payload_commands"] if c["name"] == "fire")
+        assert fire == {"code": "100.1", "name": "fire", "format": "", "engagement": True}
+        await wait_until(lambda: daemon.ctx.commands.owner(FIRE) == "turret")
+
+        # Autonomous Mode: aiming is allowed to the controller, the trigger is not.
+        assert (await command(a, 0, "az=20,el=5"))["accepted"]
+        refused = await command(a, 1)
+        assert not refused["accepted"] and "only under manual override" in refused["reason"]
+        # Under alpha's override: bravo (an observer) can neither aim nor fire.
+        assert (await a.call("set_manual_override", engaged=True)) is True
+        for code in (0, 1):
+            answer = await command(b, code, "az=1,el=1")
+            assert "control held by station alpha" in answer["reason"]
+        accepted = await command(a, 1)
+        assert accepted["accepted"] and accepted["result"]["trigger"] is True
+        assert device.trigger
+        # Releasing the override makes the turret safe at once.
+        assert (await a.call("set_manual_override", engaged=False)) is True
+        await wait_until(lambda: not device.trigger)
+        # A failsafe step: safe at once, and the trigger refused until the operator re-engages.
+        assert (await a.call("set_manual_override", engaged=True)) is True
+        assert (await command(a, 1))["accepted"]
+        ladder = FailsafeLadder(daemon.ctx)
+        ladder.tick(daemon.ctx.sessions.sessions[a.session_id].last_seen + 60)
+        await wait_until(lambda: not device.trigger)
+        refused = await command(a, 1)
+        assert "failsafe hold" in refused["reason"]
+        assert daemon.ctx.authority.counters["engagement_refused"] == 2
+        # The microcontroller never saw a refused command: two FIREs, both accepted ones.
+        assert [entry for entry in device.log if entry == "FIRE"] == ["FIRE", "FIRE"]
+        assert device.log[0] == "AIM,20.0,5.0"
+    finally:
+        await a.close()
+        await b.close()
