@@ -58,10 +58,13 @@ class TurretDriver(asyncio.Protocol):
         self._seq = 0
         self._waiting: tuple[int, asyncio.Future[Line]] | None = None
         self._lock = asyncio.Lock()
+        self._opened = asyncio.Event()
+        """Set once the transport is there (pyserial-asyncio makes it a loop turn later)."""
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.WriteTransport)
         self._transport = transport
+        self._opened.set()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._transport = None
@@ -83,6 +86,8 @@ class TurretDriver(asyncio.Protocol):
     async def send(self, name: str, *args: float) -> Line:
         """Send one command; its acknowledgement, or TurretError."""
         async with self._lock:
+            if not self._opened.is_set():
+                await asyncio.wait_for(self._opened.wait(), self.ack_timeout * TRIES)
             self._seq = (self._seq + 1) % 256
             line = turret.command(self._seq, name, *args)
             for attempt in range(TRIES):
