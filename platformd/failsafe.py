@@ -1,7 +1,7 @@
 """The failsafe ladder (issue 13, item 4): what a teleoperated robot does when its link goes.
 
-While the manual override is engaged, the holder's session is watched (any call refreshes it;
-stations send a heartbeat every ``signaling.heartbeat_interval``):
+While the manual override is engaged, the holder's link is watched: any call (stations send a
+heartbeat every ``signaling.heartbeat_interval``) or authentic velocity datagram refreshes it:
 
 1. no valid velocity for ``velocity.deadman`` (300 ms): motors at zero — the motion arbiter's
    deadman, resumed by the next valid packet;
@@ -63,7 +63,7 @@ class FailsafeLadder(Actor):
         session = self.ctx.session(override.session_id)
         if session is None:
             return  # its session ended: the mode arbiter releases the override (R-17)
-        silent = now - session.last_seen
+        silent = now - max(session.last_seen, session.last_velocity)
         step = self.state.step
         if step is FailsafeStep.NORMAL and silent >= self.config.hold_after:
             self._step(

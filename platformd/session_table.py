@@ -14,6 +14,10 @@ class Session:
     session_key: bytes | None
     opened_at: float
     last_seen: float
+    """The last call (heartbeat): a session silent for ``signaling.session_timeout`` ends."""
+    last_velocity: float = 0.0
+    """The last authentic velocity datagram of this session (same clock): the failsafe ladder
+    takes it, like a call, as a sign that the link works."""
 
 
 @dataclass

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import ipaddress
 import logging
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -125,6 +126,10 @@ def normalize_host(host: str) -> str:
     return str(address)
 
 
+_AUTHENTIC = frozenset({DropReason.HELD, DropReason.OUT_OF_ORDER})
+"""Dropped, but from the holder with its tag: the link works."""
+
+
 class _VelocityProtocol(asyncio.DatagramProtocol):
     def __init__(self, on_datagram: Callable[[bytes, str], None]) -> None:
         self._on_datagram = on_datagram
@@ -154,7 +159,10 @@ class VelocityReceiver(Actor):
     def on_datagram(self, data: bytes, host: str) -> None:
         """Socket callback: admit, then publish. Runs on the loop."""
         result = self.gate.admit(data, host)
+        if isinstance(result, DropReason) and result in _AUTHENTIC:
+            self._heard_from_holder()
         if isinstance(result, PvelSentence):
+            self._heard_from_holder()
             self.bus.publish(topics.TELEOP_VELOCITY, Velocity(result.x, result.z))
         elif result is DropReason.NOT_HOLDER or result is DropReason.BAD_TAG:
             # Worth a log line, but a flood of spoofed packets must not flood the log.
@@ -163,6 +171,14 @@ class VelocityReceiver(Actor):
                 _LOGGER.warning(
                     "velocity from %s dropped (%s), %d so far", host, result.value, count
                 )
+
+    def _heard_from_holder(self) -> None:
+        # The holder's own packets prove its link as a heartbeat does (for the failsafe ladder,
+        # not for the session's timeout): at 20 Hz, a short cut is not taken for a lost link.
+        holder = self.gate.holder
+        session = self.ctx.session(holder.session_id) if holder is not None else None
+        if session is not None:
+            session.last_velocity = time.monotonic()
 
     async def run(self) -> None:
         self.subscribe(topics.OVERRIDE_STATE, self._on_override)
