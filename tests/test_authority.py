@@ -144,3 +144,38 @@ async def test_control_is_freed_when_its_session_ends(
     finally:
         await a.close()
         await b.close()
+
+
+async def test_only_the_controller_changes_the_patrol(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    """The map, the route and the patrol are control: an observer reads them, changes none."""
+    daemon = await platform_factory(
+        quiet_platform_config("sim.enabled=true", "motor.enabled=true", "gps.enabled=true"),
+        fleet_key,
+    )
+    a = await station(daemon, fleet_key, "alpha")
+    b = await station(daemon, fleet_key, "bravo")
+    try:
+        area = await a.call("get_map")
+        route = [[w["lat"], w["lon"]] for w in area["route"]]
+        assert (await a.call("set_waypoints", waypoints=route[:3]))["waypoints"]  # claims control
+        assert daemon.ctx.authority.station_id == "alpha"
+        for method, params in (
+            ("set_waypoints", {"waypoints": route}),
+            ("patrol_start", {}),
+            ("patrol_stop", {}),
+            ("load_map", {"map": area["map"]}),
+            ("update_map", {"remove": ["shed"]}),
+        ):
+            with pytest.raises(RpcError) as info:
+                await b.call(method, **params)
+            assert info.value.code == CONTROL_REFUSED, method
+            assert f"{method} refused: control held by station alpha" in info.value.message
+        assert len((await b.call("get_map"))["route"]) == 3  # unchanged, and readable
+        assert (await b.call("get_patrol"))["waypoints"] == 3
+        assert (await a.call("patrol_start"))["state"] != "idle"
+        assert (await a.call("patrol_stop"))["state"] == "stopped"
+    finally:
+        await a.close()
+        await b.close()

@@ -23,6 +23,7 @@ from conftest import free_udp_port, quiet_platform_config, wait_until
 from brasidas import topics
 from brasidas.config import StationConfig, load_config
 from platformd.app import PlatformDaemon
+from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
@@ -332,12 +333,33 @@ async def test_operator_station_in_the_browser(
             await page.mouse.click(box["x"] + box["width"] - 6, box["y"] + box["height"] - 6)
             await expect(page.locator('#map [title="waypoint 4"]')).to_have_count(1)
             await page.get_by_role("button", name="send route").click()
-            await expect(patrol_answer).to_contain_text("send route refused:", timeout=10_000)
+            await expect(patrol_answer).to_contain_text(
+                "send route: waypoints refused:", timeout=10_000
+            )
             await expect(patrol_answer).to_contain_text("outside")
             sent = await station.ctx.api.call_local("patrol_get", platform_id="rover-2")
             assert sent["waypoints"] == 3
             await page.get_by_role("button", name="cancel route edit").click()
             await expect(page.locator('#map [title="waypoint 1"]')).to_have_count(0)
+            # Another station takes control (--force): this console's stop is refused, by whom
+            # said; once that station is gone, the stop goes through.
+            intruder = PlatformConnection(
+                "rover-2", other.ctx.signaling_url, station_id="intruder", fleet_key=fleet_key
+            )
+            await intruder.open()
+            try:
+                taken = await intruder.call(
+                    "issue_system_command", group=10, command=0, payload="state=True,force=yes"
+                )
+                assert taken["accepted"], taken
+                await page.get_by_role("button", name="stop patrol").click()
+                await expect(patrol_answer).to_contain_text(
+                    "stop patrol: patrol_stop refused: control held by station intruder",
+                    timeout=10_000,
+                )
+            finally:
+                await intruder.close()
+            await wait_until(lambda: other.ctx.authority.controller is None)
             await page.get_by_role("button", name="stop patrol").click()
             await expect(patrol_state).to_have_attribute("data-state", "stopped", timeout=10_000)
 

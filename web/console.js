@@ -617,7 +617,7 @@ async function patrolCall(label, method, params = {}) {
     patrolAnswer(`${label}: done`);
     return result;
   } catch (error) {
-    patrolAnswer(`${label} refused: ${error.message}`, true);
+    patrolAnswer(`${label}: ${error.message}`, true); // the platform's reason
     return null;
   }
 }

@@ -61,7 +61,7 @@ async def async_setup(ctx: PlatformContext) -> None:
         commands=ctx.commands,
     )
     patrol.load()
-    PatrolMethods(patrol).register(ctx.rpc)
+    PatrolMethods(patrol).register(ctx.rpc, ctx.authority)
     ctx.telemetry.register(Autonomy, lambda: _autonomy(patrol))
     ctx.telemetry.register(Pose, lambda: _pose(ctx))
     ctx.telemetry.register(Automation, lambda: _automation(ctx))

@@ -1,7 +1,9 @@
 """Signaling methods of the patrol: ``load_map``, ``update_map``, ``get_map``,
 ``set_waypoints``, ``get_patrol``, ``patrol_start``, ``patrol_stop``.
 
-A refused map or route is answered -32602 with the reason; the old one stays.
+A refused map or route is answered -32602 with the reason; the old one stays. Those that
+change the patrol are control methods (issue 13): refused to an observer (CONTROL_REFUSED, the
+holder's station id), the first caller while nobody holds control claims it.
 """
 
 from __future__ import annotations
@@ -11,26 +13,24 @@ from typing import Any
 from brasidas.autonomy.areamap import MapError
 from brasidas.autonomy.route import RouteError
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, Dispatcher, RpcError
+from platformd.authority import Authority
 from platformd.autonomy.patrol import PatrolActor
+
+CONTROL = ("load_map", "update_map", "set_waypoints", "patrol_start", "patrol_stop")
+"""The methods that change the map, the route or the patrol: the controlling station's."""
 
 
 class PatrolMethods:
     def __init__(self, actor: PatrolActor) -> None:
         self.actor = actor
 
-    def register(self, rpc: Dispatcher) -> None:
-        for name in (
-            "load_map",
-            "update_map",
-            "get_map",
-            "set_waypoints",
-            "get_patrol",
-            "patrol_start",
-            "patrol_stop",
-        ):
+    def register(self, rpc: Dispatcher, authority: Authority) -> None:
+        for name in CONTROL:
+            rpc.add(name, authority.guard(name, getattr(self, name)))
+        for name in ("get_map", "get_patrol"):
             rpc.add(name, getattr(self, name))
 
-    def load_map(self, call: CallContext, map: Any) -> dict[str, Any]:
+    async def load_map(self, call: CallContext, map: Any) -> dict[str, Any]:
         """Replace the area map (GeoJSON object or text): wipes the waypoints and stops."""
         if not isinstance(map, dict | str):
             raise RpcError(INVALID_PARAMS, "map refused: expected a GeoJSON object or text")
@@ -40,7 +40,9 @@ class PatrolMethods:
             raise RpcError(INVALID_PARAMS, f"map refused: {exc}") from None
         return {"map": area.summary(), "patrol": self.actor.report.as_dict()}
 
-    def update_map(self, call: CallContext, add: Any = None, remove: Any = None) -> dict[str, Any]:
+    async def update_map(
+        self, call: CallContext, add: Any = None, remove: Any = None
+    ) -> dict[str, Any]:
         """Add keep-out zones (GeoJSON features) and remove others (by id)."""
         add = [] if add is None else add
         remove = [] if remove is None else remove
@@ -63,7 +65,7 @@ class PatrolMethods:
             "closed": self.actor.core.route.closed,
         }
 
-    def set_waypoints(self, call: CallContext, waypoints: Any) -> dict[str, Any]:
+    async def set_waypoints(self, call: CallContext, waypoints: Any) -> dict[str, Any]:
         """Replace the waypoints on the fly: "LAT,LON", point names, [lat, lon] or {lat, lon}."""
         if not isinstance(waypoints, list):
             raise RpcError(INVALID_PARAMS, "waypoints refused: expected a list")
@@ -81,13 +83,13 @@ class PatrolMethods:
         """The patrol's state, target, distance, lap, reason and planned path."""
         return self.actor.report.as_dict()
 
-    def patrol_start(self, call: CallContext) -> dict[str, Any]:
+    async def patrol_start(self, call: CallContext) -> dict[str, Any]:
         try:
             self.actor.start_patrol()
         except RouteError as exc:
             raise RpcError(INVALID_PARAMS, f"cannot start: {exc}") from None
         return self.actor.report.as_dict()
 
-    def patrol_stop(self, call: CallContext) -> dict[str, Any]:
+    async def patrol_stop(self, call: CallContext) -> dict[str, Any]:
         self.actor.stop_patrol()
         return self.actor.report.as_dict()
