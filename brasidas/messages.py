@@ -71,6 +71,18 @@ class FailsafeState:
 
 
 @dataclass(frozen=True)
+class SpeedCap:
+    """The teleop speed limit for the measured latency (platformd.speedcap)."""
+
+    fraction: float = 1.0
+    """Of the platform's maximum speed: teleop velocities are clamped to ±this."""
+    cap_kmh: float = 0.0
+    video_ms: float | None = None
+    command_ms: float | None = None
+    reason: str = ""
+
+
+@dataclass(frozen=True)
 class SessionOpened:
     session_id: str
     station_id: str

@@ -24,6 +24,7 @@ from brasidas.messages import (
     Position,
     SessionClosed,
     SessionOpened,
+    SpeedCap,
     StationNotification,
     StreamStatus,
     Velocity,
@@ -40,6 +41,8 @@ CONTROL_STATE: Topic[ControlState] = Topic("control_state", retain=True)
 """Who holds control (platformd.authority): published on claim, takeover and release."""
 FAILSAFE_STATE: Topic[FailsafeState] = Topic("failsafe_state", retain=True)
 """The failsafe ladder's step (platformd.failsafe): hold and release while teleoperated."""
+SPEED_CAP: Topic[SpeedCap] = Topic("speed_cap", retain=True)
+"""The teleop speed limit for the measured latency (platformd.speedcap)."""
 CMD_VEL: Topic[Velocity] = Topic("cmd_vel")
 """Autonomy's velocity commands; obeyed only in Autonomous Mode."""
 MOTOR_COMMAND: Topic[Velocity] = Topic("motor_command")

@@ -33,6 +33,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "platformd.velocity",
     "platformd.arbiter",
     "platformd.failsafe",
+    "platformd.speedcap",
     "platformd.motor",
     "platformd.gps",
     "platformd.imu",

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 from collections.abc import Callable
 from typing import Protocol
 
@@ -27,6 +28,7 @@ from brasidas.messages import (
     Mode,
     MotionState,
     OverrideState,
+    SpeedCap,
     Velocity,
 )
 from platformd.context import PlatformContext
@@ -70,6 +72,8 @@ class MotionArbiter(Actor):
         self.deadman_tripped = False
         self.deadman_trips = 0
         self.held = False
+        self.cap = 1.0
+        """The speed cap (platformd.speedcap): teleop linear speed clamped to ±this."""
         """The failsafe ladder holds: motors at zero, the stream ignored until re-engaged."""
         self.command = STOP
         self._last_valid = 0.0
@@ -93,6 +97,7 @@ class MotionArbiter(Actor):
         self.subscribe(topics.TELEOP_VELOCITY, self._on_teleop_velocity)
         self.subscribe(topics.OVERRIDE_STATE, self._on_override)
         self.subscribe(topics.FAILSAFE_STATE, self._on_failsafe)
+        self.subscribe(topics.SPEED_CAP, self._on_speed_cap)
         self._publish(self.command)
 
     async def async_stop(self) -> None:
@@ -134,9 +139,20 @@ class MotionArbiter(Actor):
             self.deadman_tripped = True
             self._publish(STOP)
 
+    def _on_speed_cap(self, cap: SpeedCap) -> None:
+        self.cap = cap.fraction
+        if self.mode is Mode.TELEOP and abs(self.command.linear) > self.cap:
+            self._publish(self._capped(self.command))
+
+    def _capped(self, velocity: Velocity) -> Velocity:
+        if abs(velocity.linear) <= self.cap:
+            return velocity
+        return Velocity(math.copysign(self.cap, velocity.linear), velocity.angular)
+
     def _on_teleop_velocity(self, velocity: Velocity) -> None:
         if self.mode is not Mode.TELEOP or self.held:
             return
+        velocity = self._capped(velocity)
         assert self._clock is not None
         self._last_valid = self._clock()
         self.deadman_tripped = False

@@ -53,6 +53,9 @@ class PlatformConnection:
         self.on_control_lost: Callable[[str | None], None] | None = None
         """Called with the new holder's station id when control was taken from this station."""
         self.round_trip_ms: float | None = None
+        self.video_latency: Callable[[], float | None] | None = None
+        """The NavCam's measured glass-to-glass latency (ms) now, set by stationd.media: while
+        this station holds the override, each heartbeat reports it (the platform's speed cap)."""
         self.closed = asyncio.Event()
         self.close_reason = ""
         self._client = RpcClient(self.signaling_url + "/rpc/ws", timeout=timeout)
@@ -136,6 +139,14 @@ class PlatformConnection:
             self.round_trip_ms = (time.perf_counter() - started) * 1000
             self.manual_override = bool(answer.get("manual_override"))
             self._update_control(answer)
+            await self._report_latency()
+
+    async def _report_latency(self) -> None:
+        video = self.video_latency() if self.video_latency is not None else None
+        if not self.manual_override or video is None or self.round_trip_ms is None:
+            return
+        with contextlib.suppress(RpcError):  # a platform without a speed cap
+            await self.call("report_latency", video_ms=video, command_ms=self.round_trip_ms / 2)
 
     def _update_control(self, answer: dict[str, Any]) -> None:
         had = self.control

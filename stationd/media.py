@@ -214,6 +214,8 @@ class StationMedia(Actor):
             self.receivers.pop(key, None)
             await receiver.stop()
             raise
+        if isinstance(receiver, VideoIn) and stream == "navcam":
+            connection.video_latency = receiver.recent_latency_ms
         return {"platform_id": platform_id, **receiver.describe()}
 
     async def api_talk(

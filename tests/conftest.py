@@ -160,6 +160,9 @@ def quiet_platform_config(*overrides: str) -> PlatformConfig:
         "imu.enabled=false",
         "navcam.enabled=false",
         "audio.enabled=false",
+        # No latency assumed without a report: the speed cap stays out of the way of tests that
+        # are not about it (tests/test_speedcap.py sets the default worst case back).
+        "safety.worst_latency_ms=0",
     ]
     return load_config(PlatformConfig, None, [*defaults, *overrides])
 

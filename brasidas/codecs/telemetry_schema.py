@@ -258,6 +258,18 @@ class Failsafe(Section):
 
 
 @dataclass(frozen=True)
+class SpeedLimit(Section):
+    """The teleop speed cap for the measured latency, its inputs and its reason."""
+
+    NAME = "speed_cap"
+    WIRE = "cap"
+    cap_kmh: float = field(default=0.0, metadata=wire("k"))
+    video_ms: float | None = field(default=None, metadata=wire("v"))
+    command_ms: float | None = field(default=None, metadata=wire("c"))
+    reason: str = field(default="", metadata=wire("r"))
+
+
+@dataclass(frozen=True)
 class Streams(Section):
     """Media streams by name, with their state (idle, playing, failed...)."""
 
@@ -352,6 +364,7 @@ SECTIONS: tuple[type[Section], ...] = (
     VelocityLink,
     Motion,
     Failsafe,
+    SpeedLimit,
     Streams,
     Platforms,
     Pose,

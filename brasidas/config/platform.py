@@ -183,6 +183,23 @@ class FailsafeSection:
 
 
 @dataclass(frozen=True)
+class SafetySection:
+    """The teleop speed cap that follows the measured latency (issue 13, R-11.5)."""
+
+    stop_distance_m: float = setting(1.0, above(0, most=100))
+    """The robot must stop within this after the operator sees a reason to."""
+    reaction_s: float = setting(0.25, non_negative)
+    """The operator's reaction time (the seed's 250 ms)."""
+    braking_mps2: float = setting(4.2, above(0, most=50))
+    """Deceleration when stopping. 4.2 m/s² is what makes the seed's budget exact: 6 km/h
+    stops within 1 m after 250 ms reaction and 150 ms video latency."""
+    worst_latency_ms: float = setting(400.0, at_least(0, most=60000))
+    """Video plus command latency assumed without a report from the override holder."""
+    report_max_age_s: float = setting(5.0, above(0, most=600))
+    """A latency report older than this no longer counts (the worst is assumed)."""
+
+
+@dataclass(frozen=True)
 class PayloadSection:
     """Payloads (issue 13): each a set of actors on command groups 100-110."""
 
@@ -371,6 +388,7 @@ class PlatformConfig:
     velocity: VelocitySection = field(default_factory=VelocitySection)
     failsafe: FailsafeSection = field(default_factory=FailsafeSection)
     payload: PayloadSection = field(default_factory=PayloadSection)
+    safety: SafetySection = field(default_factory=SafetySection)
     gps: GpsSection = field(default_factory=GpsSection)
     imu: ImuSection = field(default_factory=ImuSection)
     telemetry: TelemetrySection = field(default_factory=TelemetrySection)

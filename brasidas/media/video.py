@@ -34,7 +34,7 @@ from brasidas.media.gst import (
     set_prop,
     stamp_capture_time,
 )
-from brasidas.media.pipeline import PipelineStream
+from brasidas.media.pipeline import PipelineStream, StreamState
 
 ENCODERS: tuple[str, ...] = ("v4l2h264enc", "omxh264enc", "x264enc", "openh264enc")
 """Hardware first (current Raspberry Pi, old Raspbian), then software; first found wins."""
@@ -363,6 +363,12 @@ class VideoIn(PipelineStream):
         if self.last_frame_at is not None:
             self.longest_freeze_ms = max(self.longest_freeze_ms, (now - self.last_frame_at) * 1000)
         self.last_frame_at = now
+
+    def recent_latency_ms(self) -> float | None:
+        """The median glass-to-glass latency of the last 30 frames while playing, else None."""
+        if self.state is not StreamState.PLAYING or not self.latencies:
+            return None
+        return float(statistics.median(list(self.latencies)[-30:]))
 
     def latency_stats(self) -> dict[str, Any]:
         values = sorted(self.latencies)
