@@ -55,6 +55,8 @@ class Authority:
         self.bus = bus
         self.sessions = sessions
         self.is_engagement = is_engagement
+        self.command_name: Callable[[CommandCode], str | None] = lambda code: None
+        """A registered payload command's name (set with the router)."""
         self.controller: Session | None = None
         self.counters: dict[str, int] = dict.fromkeys(
             ("claims", "takeovers", "refused", "engagement_refused"), 0
@@ -90,7 +92,8 @@ class Authority:
         """The command router's hook: observers may only start and stop their own streams."""
         if command.code in OBSERVER_CODES:
             return None
-        what = describe(command.code) or str(command.code)
+        code = command.code
+        what = self.command_name(code) or describe(code) or str(code)
         refusal = self.refusal(command.session, what, force=_forced(command.code, command.payload))
         if refusal is None and self.is_engagement(command.code):
             refusal = self.engagement_refusal(command.session, what)

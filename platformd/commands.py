@@ -118,6 +118,14 @@ class CommandRouter:
 
         return unregister
 
+    def spec_name(self, code: CommandCode) -> str | None:
+        """``turret fire (100.1)``-like name of a registered payload command, or None."""
+        spec = self.specs.get(code)
+        registration = self._owners.get(code)
+        if spec is None or registration is None:
+            return None
+        return f"{registration.owner} {spec.name} ({code})"
+
     def is_engagement(self, code: CommandCode) -> bool:
         """True for a command registered as an engagement (the trigger)."""
         spec = self.specs.get(code)

@@ -98,6 +98,7 @@ class PlatformContext:
         self.commands = CommandRouter(self.config.signaling.command_timeout)
         self.authority = Authority(self.bus, self.sessions, self.commands.is_engagement)
         self.commands.authorize = self.authority.authorize
+        self.authority.command_name = self.commands.spec_name
 
     def session(self, session_id: str | None) -> Session | None:
         """The open session with this token, or None."""

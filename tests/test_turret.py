@@ -122,7 +122,9 @@ async def test_engagement_only_from_the_override_holder_under_override(
         # Autonomous Mode: aiming is allowed to the controller, the trigger is not.
         assert (await command(a, 0, "az=20,el=5"))["accepted"]
         refused = await command(a, 1)
-        assert not refused["accepted"] and "only under manual override" in refused["reason"]
+        assert not refused["accepted"] and refused["reason"] == (
+            "turret fire (100.1) refused: engagement only under manual override (Autonomous Mode)"
+        )
         # Under alpha's override: bravo (an observer) can neither aim nor fire.
         assert (await a.call("set_manual_override", engaged=True)) is True
         for code in (0, 1):
@@ -143,6 +145,9 @@ async def test_engagement_only_from_the_override_holder_under_override(
         refused = await command(a, 1)
         assert "failsafe hold" in refused["reason"]
         assert daemon.ctx.authority.counters["engagement_refused"] == 2
+        report = (await a.call("get_telemetry_report"))["turret"]
+        assert report["connected"] and report["trigger"] is False
+        assert report["counters"]["safe"] >= 2 and report["azimuth"] == 20.0
         # The microcontroller never saw a refused command: two FIREs, both accepted ones.
         assert [entry for entry in device.log if entry == "FIRE"] == ["FIRE", "FIRE"]
         assert device.log[0] == "AIM,20.0,5.0"

@@ -270,6 +270,20 @@ class SpeedLimit(Section):
 
 
 @dataclass(frozen=True)
+class Turret(Section):
+    """The turret payload: servos and trigger by the last acknowledgement, line counters."""
+
+    NAME = "turret"
+    WIRE = "tur"
+    connected: bool = field(default=False, metadata=wire("k"))
+    azimuth: float | None = field(default=None, metadata=wire("a"))
+    elevation: float | None = field(default=None, metadata=wire("e"))
+    trigger: bool = field(default=False, metadata=wire("t"))
+    counters: dict[str, int] = field(default_factory=dict, metadata=wire("n"))
+    """Sent, acked, resent, unacked, refused, watchdog releases, made safe."""
+
+
+@dataclass(frozen=True)
 class Streams(Section):
     """Media streams by name, with their state (idle, playing, failed...)."""
 
@@ -365,6 +379,7 @@ SECTIONS: tuple[type[Section], ...] = (
     Motion,
     Failsafe,
     SpeedLimit,
+    Turret,
     Streams,
     Platforms,
     Pose,

@@ -20,6 +20,7 @@ from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.codecs import turret
 from brasidas.codecs.commands import CommandCode, PayloadError, parse_payload
+from brasidas.codecs.telemetry_schema import Turret
 from brasidas.codecs.turret import Line, LineDecoder
 from brasidas.messages import CommandResult, FailsafeState, FailsafeStep, OverrideState
 from platformd.commands import CommandSpec, SystemCommand
@@ -193,6 +194,14 @@ class TurretPayload(Actor):
         if self._group is not None:
             self._group.create_task(self._send("SAFE"), name="turret:safe")
 
+    def section(self) -> Turret:
+        """The ``turret`` telemetry section."""
+        driver = self.driver
+        if driver is None:
+            return Turret(False, counters={"safe": self.safings})
+        azimuth, elevation, trigger = driver.state or (None, None, False)
+        return Turret(True, azimuth, elevation, trigger, {**driver.counters, "safe": self.safings})
+
     def _on_override(self, state: OverrideState) -> None:
         engaged, self._engaged = self._engaged, state.engaged
         if engaged and not state.engaged:
@@ -206,4 +215,6 @@ class TurretPayload(Actor):
 async def async_setup(ctx: PlatformContext) -> None:
     simulator = ctx.sim.turret
     port = simulator.path if simulator is not None else ctx.config.payload.turret_port
-    ctx.supervisor.start(TurretPayload(ctx, port))
+    payload = TurretPayload(ctx, port)
+    ctx.telemetry.register(Turret, payload.section)
+    ctx.supervisor.start(payload)
