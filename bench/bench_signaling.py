@@ -1,5 +1,5 @@
 """Signaling round trip (WebSocket JSON-RPC vs a Pyro5 proxy and a bare aiohttp echo),
-shutdown time, idle RSS."""
+shutdown time, idle RSS (--sim with its demo map, and without a map: no Shapely/NumPy)."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from bench.support import (
     percentiles,
     rss_mb,
     start_platform,
+    stop_process,
     wait_ready,
 )
 from stationd.client import PlatformConnection
@@ -120,10 +121,24 @@ async def _measure(connection: PlatformConnection) -> dict[str, list[float]]:
             await server.wait()
 
 
+async def _idle_rss_without_map() -> float:
+    """A --sim platform without a map (no demo map either): no Shapely, no NumPy."""
+    port = free_port()
+    process = await start_platform(
+        f"signaling.port={port}", "sim.demo_map=false", "map.file=/nonexistent/map.geojson"
+    )
+    try:
+        await wait_ready(port)
+        await asyncio.sleep(1.0)
+        return rss_mb(process.pid)
+    finally:
+        await stop_process(process)
+
+
 async def run() -> dict[str, Any]:
+    figures: dict[str, Any] = {"platform_rss_idle_no_map_mb": await _idle_rss_without_map()}
     port = free_port()
     process = await start_platform(f"signaling.port={port}")
-    figures: dict[str, Any] = {}
     try:
         await wait_ready(port)
         await asyncio.sleep(1.0)  # let start-up settle before measuring idle memory

@@ -12,6 +12,8 @@ from conftest import free_tcp_port, free_udp_port
 
 from brasidas import security
 from brasidas.rpc import RpcClient
+from platformd.sim.demo_area import demo_map
+from stationd.client import PlatformConnection
 
 
 async def _wait_for_signaling(port: int, process: asyncio.subprocess.Process) -> None:
@@ -56,6 +58,58 @@ async def test_sim_platform_creates_key_serves_and_stops_cleanly_on_sigterm() ->
         log = (await process.stderr.read()).decode()
         assert "platform stopped" in log
         assert "Traceback" not in log
+    finally:
+        if process.returncode is None:
+            process.kill()
+            await process.wait()
+
+
+HEAVY = ("numpy", "shapely", "libgeos", "openblas")
+"""What an area map needs (~17 MB of RSS): mapped only once there is a map."""
+
+
+async def test_a_platform_without_a_map_loads_no_shapely_until_one_is_loaded(
+    tmp_path: Path,
+) -> None:
+    port = free_tcp_port()
+    process = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "platformd",
+        "--sim",
+        "--set",
+        "sim.demo_map=false",
+        "--set",
+        f"map.file={tmp_path / 'none' / 'map.geojson'}",
+        "--set",
+        f"signaling.port={port}",
+        "--set",
+        f"beacon.port={free_udp_port()}",
+        "--set",
+        f"velocity.port={free_udp_port()}",
+        stderr=asyncio.subprocess.DEVNULL,
+    )
+    maps = Path(f"/proc/{process.pid}/maps")
+    try:
+        await _wait_for_signaling(port, process)
+        connection = PlatformConnection(
+            "brasidas-1",
+            f"http://127.0.0.1:{port}",
+            station_id="test",
+            fleet_key=security.load_key(security.default_key_path()),
+        )
+        await connection.open()
+        try:
+            assert (await connection.call("get_map"))["map"] is None
+            text = (await asyncio.to_thread(maps.read_text)).lower()
+            assert [name for name in HEAVY if name in text] == []
+            answer = await connection.call("load_map", map=demo_map(37.9415, 23.6530))
+            assert answer["map"]["name"] == "demo field"
+            assert (await connection.call("get_map"))["map"]["name"] == "demo field"
+            text = (await asyncio.to_thread(maps.read_text)).lower()
+            assert "shapely" in text and "numpy" in text  # the test sees them when they are there
+        finally:
+            await connection.close()
     finally:
         if process.returncode is None:
             process.kill()

@@ -7,16 +7,14 @@ IMU). A fix corrects the position; while moving, its course and speed correct ya
 The IMU has no magnetometer, so the heading is unknown until the robot has driven a little:
 the first course over ground sets it (:attr:`Estimate.heading_known`).
 
-Sans-IO: every input carries its time (seconds, any monotonic clock).
+Sans-IO: every input carries its time (seconds, any monotonic clock). The matrices are 4x4 at
+most, in plain Python: the platform localizes without a map, and NumPy would cost it ~15 MB.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-
-import numpy as np
-import numpy.typing as npt
 
 from brasidas.autonomy.geo import wrap
 
@@ -26,6 +24,8 @@ MIN_COURSE_SPEED = 0.4
 """GPS course is used only above this speed (m/s): slower, it is noise."""
 MAX_STEP_S = 0.5
 """A longer gap is integrated in steps of this length."""
+
+Matrix = list[list[float]]
 
 
 @dataclass(frozen=True)
@@ -75,8 +75,8 @@ class PoseFilter:
     def __init__(self, parameters: FilterParameters) -> None:
         self.p = parameters
         self._t: float | None = None
-        self._state: npt.NDArray[np.float64] = np.zeros(4)
-        self._cov: npt.NDArray[np.float64] = np.diag([1e6, 1e6, UNKNOWN_YAW_SIGMA**2, 1.0])
+        self._state = [0.0, 0.0, 0.0, 0.0]
+        self._cov = _diag([1e6, 1e6, UNKNOWN_YAW_SIGMA**2, 1.0])
         self._initialized = False
         self._command = (0.0, 0.0)
         self._gyro_rate: float | None = None
@@ -120,16 +120,15 @@ class PoseFilter:
         if not self._initialized:
             self._t = t
             self._state[0:2] = (x, y)
-            self._cov[0:2, :] = 0.0
-            self._cov[:, 0:2] = 0.0
-            self._cov[0, 0] = self._cov[1, 1] = sigma**2
+            _clear(self._cov, 0)
+            _clear(self._cov, 1)
+            self._cov[0][0] = self._cov[1][1] = sigma**2
             self._initialized = True
         else:
             self._predict(t)
-            h = np.zeros((2, 4))
-            h[0, 0] = h[1, 1] = 1.0
-            innovation = np.array([x, y]) - self._state[0:2]
-            self._update(h, innovation, np.eye(2) * sigma**2)
+            h = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]]
+            innovation = [x - self._state[0], y - self._state[1]]
+            self._update(h, innovation, _diag([sigma**2, sigma**2]))
         if speed is not None and speed >= MIN_COURSE_SPEED and course_yaw is not None:
             reversing = self._state[3] < -0.1
             measured = wrap(course_yaw + math.pi) if reversing else course_yaw
@@ -138,28 +137,27 @@ class PoseFilter:
                 # First heading: take it as it is (a linearized update from "unknown"
                 # would drag the position along with it).
                 self._state[2] = measured
-                self._cov[2, :] = 0.0
-                self._cov[:, 2] = 0.0
-                self._cov[2, 2] = sigma_yaw**2
+                _clear(self._cov, 2)
+                self._cov[2][2] = sigma_yaw**2
                 self._heading_set = True
             else:
-                h = np.zeros((1, 4))
-                h[0, 2] = 1.0
-                innovation = np.array([wrap(measured - self._state[2])])
-                self._update(h, innovation, np.array([[sigma_yaw**2]]))
+                h = [[0.0, 0.0, 1.0, 0.0]]
+                innovation = [wrap(measured - self._state[2])]
+                self._update(h, innovation, [[sigma_yaw**2]])
         if speed is not None:
-            h = np.zeros((1, 4))
-            h[0, 3] = 1.0
+            h = [[0.0, 0.0, 0.0, 1.0]]
             signed = -speed if self._state[3] < -0.1 else speed
-            self._update(h, np.array([signed - self._state[3]]), np.array([[0.1**2]]))
+            self._update(h, [signed - self._state[3]], [[0.1**2]])
 
     def estimate(self, t: float) -> Estimate:
         """The pose at ``t`` (dead-reckoned from the last input)."""
         self._predict(t)
-        x, y, yaw, speed = (float(v) for v in self._state)
-        position = self._cov[0:2, 0:2]
-        sigma_xy = math.sqrt(max(0.0, float(np.linalg.eigvalsh(position)[-1])))
-        sigma_yaw = math.sqrt(max(0.0, float(self._cov[2, 2])))
+        x, y, yaw, speed = self._state
+        # The position covariance's larger eigenvalue (2x2 symmetric, its lower triangle).
+        a, b, d = self._cov[0][0], self._cov[1][0], self._cov[1][1]
+        largest = (a + d) / 2.0 + math.hypot((a - d) / 2.0, b)
+        sigma_xy = math.sqrt(max(0.0, largest))
+        sigma_yaw = math.sqrt(max(0.0, self._cov[2][2]))
         return Estimate(t, x, y, wrap(yaw), speed, sigma_xy, min(sigma_yaw, UNKNOWN_YAW_SIGMA))
 
     def _predict(self, t: float) -> None:
@@ -185,19 +183,17 @@ class PoseFilter:
         mean_v = (v + new_v) / 2.0
         mid_yaw = yaw + rate * dt / 2.0
         cos_y, sin_y = math.cos(mid_yaw), math.sin(mid_yaw)
-        self._state = np.array(
-            [x + mean_v * cos_y * dt, y + mean_v * sin_y * dt, yaw + rate * dt, new_v]
-        )
-        f = np.eye(4)
+        self._state = [x + mean_v * cos_y * dt, y + mean_v * sin_y * dt, yaw + rate * dt, new_v]
+        f = _eye(4)
         dmean_dv = (1.0 + keep) / 2.0
         if self._heading_set:  # an unknown yaw must not leak into the position's covariance
-            f[0, 2] = -mean_v * sin_y * dt
-            f[1, 2] = mean_v * cos_y * dt
-        f[0, 3] = cos_y * dt * dmean_dv
-        f[1, 3] = sin_y * dt * dmean_dv
-        f[3, 3] = keep
+            f[0][2] = -mean_v * sin_y * dt
+            f[1][2] = mean_v * cos_y * dt
+        f[0][3] = cos_y * dt * dmean_dv
+        f[1][3] = sin_y * dt * dmean_dv
+        f[3][3] = keep
         yaw_noise = self.p.yaw_noise_gyro if gyro else self.p.yaw_noise_commanded
-        q = np.diag(
+        q = _diag(
             [
                 self.p.position_noise * dt,
                 self.p.position_noise * dt,
@@ -205,21 +201,59 @@ class PoseFilter:
                 self.p.speed_noise * dt,
             ]
         )
-        self._cov = f @ self._cov @ f.T + q
-        if self._cov[2, 2] > UNKNOWN_YAW_SIGMA**2:
-            self._cov[2, 2] = UNKNOWN_YAW_SIGMA**2
+        self._cov = _add(_mul(_mul(f, self._cov), _t(f)), q)
+        if self._cov[2][2] > UNKNOWN_YAW_SIGMA**2:
+            self._cov[2][2] = UNKNOWN_YAW_SIGMA**2
 
-    def _update(
-        self,
-        h: npt.NDArray[np.float64],
-        innovation: npt.NDArray[np.float64],
-        noise: npt.NDArray[np.float64],
-    ) -> None:
-        s = h @ self._cov @ h.T + noise
-        gain = self._cov @ h.T @ np.linalg.inv(s)
-        self._state = self._state + gain @ innovation
-        self._state[2] = wrap(float(self._state[2]))
-        identity = np.eye(4)
+    def _update(self, h: Matrix, innovation: list[float], noise: Matrix) -> None:
+        """A linear measurement of one or two state variables (``h`` is 1x4 or 2x4)."""
+        s = _add(_mul(_mul(h, self._cov), _t(h)), noise)
+        gain = _mul(_mul(self._cov, _t(h)), _inverse(s))
+        self._state = [
+            v + sum(g * e for g, e in zip(row, innovation, strict=True))
+            for v, row in zip(self._state, gain, strict=True)
+        ]
+        self._state[2] = wrap(self._state[2])
         # Joseph form: stays symmetric and positive under rounding.
-        a = identity - gain @ h
-        self._cov = a @ self._cov @ a.T + gain @ noise @ gain.T
+        a = _add(_eye(4), _mul(gain, h), -1.0)
+        self._cov = _add(_mul(_mul(a, self._cov), _t(a)), _mul(_mul(gain, noise), _t(gain)))
+
+
+def _eye(n: int) -> Matrix:
+    return _diag([1.0] * n)
+
+
+def _diag(values: list[float]) -> Matrix:
+    return [[v if i == j else 0.0 for j in range(len(values))] for i, v in enumerate(values)]
+
+
+def _t(a: Matrix) -> Matrix:
+    return [list(column) for column in zip(*a, strict=True)]
+
+
+def _mul(a: Matrix, b: Matrix) -> Matrix:
+    columns = list(zip(*b, strict=True))
+    return [[sum(x * y for x, y in zip(row, col, strict=True)) for col in columns] for row in a]
+
+
+def _add(a: Matrix, b: Matrix, scale: float = 1.0) -> Matrix:
+    """a + scale * b."""
+    return [
+        [x + scale * y for x, y in zip(ra, rb, strict=True)] for ra, rb in zip(a, b, strict=True)
+    ]
+
+
+def _inverse(s: Matrix) -> Matrix:
+    """The inverse of a 1x1 or 2x2 matrix (an innovation covariance: positive definite)."""
+    if len(s) == 1:
+        return [[1.0 / s[0][0]]]
+    (a, b), (c, d) = s
+    det = a * d - b * c
+    return [[d / det, -b / det], [-c / det, a / det]]
+
+
+def _clear(cov: Matrix, i: int) -> None:
+    """Zero row and column ``i``."""
+    cov[i] = [0.0] * len(cov)
+    for row in cov:
+        row[i] = 0.0

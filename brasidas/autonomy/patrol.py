@@ -5,20 +5,24 @@ other input (a new map or route, start/stop, the manual override) is a method ca
 plans with :class:`~brasidas.autonomy.planner.Planner`, follows with
 :class:`~brasidas.autonomy.follower.PurePursuit` and holds still, saying why, when it cannot
 drive safely: no fix or a stale one, the pose outside the boundary or inside a keep-out.
+
+Shapely (and NumPy under it) is imported only once there is a map: a platform without one
+does not pay ~17 MB for them.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from shapely import Point
-
-from brasidas.autonomy.areamap import AreaMap
 from brasidas.autonomy.follower import FollowerParameters, PurePursuit
 from brasidas.autonomy.localization import Estimate
-from brasidas.autonomy.planner import Path, Planner, Unreachable
 from brasidas.autonomy.route import Cursor, Route
 from brasidas.messages import PatrolState, PatrolStatus
+
+if TYPE_CHECKING:
+    from brasidas.autonomy.areamap import AreaMap
+    from brasidas.autonomy.planner import Path, Planner
 
 XY = tuple[float, float]
 
@@ -196,6 +200,8 @@ class Patrol:
     # ------------------------------------------------------------------ helpers
 
     def _build(self, area: AreaMap) -> Planner:
+        from brasidas.autonomy.planner import Planner
+
         return Planner(area.boundary, area.keepouts.values(), self.p.clearance_m)
 
     def _settle(self, state: PatrolState, reason: str) -> Command:
@@ -217,6 +223,8 @@ class Patrol:
 
     def _align(self, here: XY) -> Command:
         """Drive straight ahead for a course over ground (the heading is unknown at start)."""
+        from shapely import Point
+
         assert self.area is not None
         # The heading is unknown, so "ahead" is unknown: need room all round.
         room = Point(here).buffer(self.p.align_room_m, quad_segs=4)
@@ -233,6 +241,8 @@ class Patrol:
 
     def _plan(self, here: XY) -> bool:
         """Plan to the current target; an unreachable one is skipped (False)."""
+        from brasidas.autonomy.planner import Unreachable
+
         assert self.area is not None and self._planner is not None
         index = self.cursor.index
         waypoint = self.route.waypoints[index]

@@ -14,9 +14,10 @@ import tempfile
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from brasidas.autonomy.areamap import AreaMap, MapError
+if TYPE_CHECKING:
+    from brasidas.autonomy.areamap import AreaMap
 
 MAX_WAYPOINTS = 1000
 SAME_POINT_DEG = 1e-7
@@ -275,6 +276,8 @@ def check_route(route: Route, area: AreaMap | None) -> None:
     """Raise RouteError when a waypoint is outside the map's boundary or in a keep-out zone."""
     if area is None:
         return
+    from brasidas.autonomy.areamap import MapError  # loaded with the map already
+
     for index, waypoint in enumerate(route.waypoints):
         try:
             area.check_position(waypoint.latitude, waypoint.longitude, waypoint.label(index))

@@ -338,6 +338,8 @@ class SimSection:
     altitude_m: float = setting(42.0, at_least(-500, most=9000))
     heading_deg: float = setting(0.0, at_least(0, most=360))
     """Compass heading at start (clockwise from north)."""
+    demo_map: bool = True
+    """Load the demo map and route when none is stored (false: a teleop-only rover, no map)."""
 
 
 @dataclass(frozen=True)

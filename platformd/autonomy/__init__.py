@@ -57,7 +57,9 @@ async def async_setup(ctx: PlatformContext) -> None:
         rate_hz=config.rate_hz,
         enabled=config.enabled,
         autostart=config.autostart,
-        demo=(demo_map(sim.latitude, sim.longitude), demo_route()) if sim.enabled else None,
+        demo=(demo_map(sim.latitude, sim.longitude), demo_route())
+        if sim.enabled and sim.demo_map
+        else None,
         commands=ctx.commands,
     )
     patrol.load()

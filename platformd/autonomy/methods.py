@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from typing import Any
 
-from brasidas.autonomy.areamap import MapError
 from brasidas.autonomy.route import RouteError
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, Dispatcher, RpcError
 from platformd.authority import Authority
@@ -34,6 +33,8 @@ class PatrolMethods:
         """Replace the area map (GeoJSON object or text): wipes the waypoints and stops."""
         if not isinstance(map, dict | str):
             raise RpcError(INVALID_PARAMS, "map refused: expected a GeoJSON object or text")
+        from brasidas.autonomy.areamap import MapError  # with Shapely: maps need it anyway
+
         try:
             area = self.actor.load_map(map)
         except MapError as exc:
@@ -50,6 +51,8 @@ class PatrolMethods:
             raise RpcError(INVALID_PARAMS, "update refused: 'add' is a list of GeoJSON features")
         if not isinstance(remove, list) or not all(isinstance(r, str) for r in remove):
             raise RpcError(INVALID_PARAMS, "update refused: 'remove' is a list of keep-out ids")
+        from brasidas.autonomy.areamap import MapError
+
         try:
             area = self.actor.update_map(add, remove)
         except MapError as exc:

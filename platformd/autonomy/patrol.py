@@ -7,7 +7,8 @@ arbiter stops obeying ``CMD_VEL`` in the same delivery); releasing it replans fr
 operator left the robot. Nothing here needs a station (R-0.4).
 
 The map and the route are files on the platform (``map.file``, ``autonomy.route_file``),
-replaced atomically; they survive a restart.
+replaced atomically; they survive a restart. Shapely and NumPy (~17 MB) are imported when a
+map is, never on a platform without one.
 """
 
 from __future__ import annotations
@@ -19,11 +20,10 @@ import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from brasidas import topics
 from brasidas.actor import Actor
-from brasidas.autonomy.areamap import AreaMap, MapError, parse_map
 from brasidas.autonomy.localization import Estimate
 from brasidas.autonomy.patrol import STOP, Patrol, PatrolParameters
 from brasidas.autonomy.route import (
@@ -46,6 +46,9 @@ from brasidas.messages import (
 )
 from platformd.automation import report_switch
 from platformd.commands import CommandRouter, SystemCommand
+
+if TYPE_CHECKING:
+    from brasidas.autonomy.areamap import AreaMap
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -125,11 +128,19 @@ class PatrolActor(Actor):
     def _stored(self) -> tuple[AreaMap | None, Route, bool]:
         area: AreaMap | None = None
         try:
-            area = parse_map(self.storage.map_file.read_bytes())
+            stored = self.storage.map_file.read_bytes()
         except FileNotFoundError:
-            pass
-        except (OSError, MapError) as exc:
+            stored = None
+        except OSError as exc:
+            stored = None
             _LOGGER.error("patrol: map %s refused: %s", self.storage.map_file, exc)
+        if stored is not None:
+            from brasidas.autonomy.areamap import MapError
+
+            try:
+                area = parse_map(stored)
+            except MapError as exc:
+                _LOGGER.error("patrol: map %s refused: %s", self.storage.map_file, exc)
         try:
             route = self.routes.load()
             check_route(route, area)
@@ -221,6 +232,8 @@ class PatrolActor(Actor):
     def update_map(self, add: list[Mapping[str, Any]], remove: list[str]) -> AreaMap:
         """Add or remove keep-out zones; the route stays, the path is replanned."""
         if self.core.area is None:
+            from brasidas.autonomy.areamap import MapError
+
             raise MapError("no map loaded")
         area = self.core.area.with_keepouts(add=add, remove=remove)
         position = self.robot_position()
@@ -270,6 +283,13 @@ class PatrolActor(Actor):
             return CommandResult(False, str(err))
         self.set_enabled(on)
         return CommandResult(True, result={"patrol": on, "state": self.core.state.value})
+
+
+def parse_map(source: str | bytes | Mapping[str, Any]) -> AreaMap:
+    """:func:`brasidas.autonomy.areamap.parse_map`, imported (with Shapely) on first use."""
+    from brasidas.autonomy.areamap import parse_map
+
+    return parse_map(source)
 
 
 def _differs(last: PatrolStatus, report: PatrolStatus) -> bool:
