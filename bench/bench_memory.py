@@ -15,6 +15,7 @@ import asyncio
 import contextlib
 import itertools
 import json
+import os
 import socket
 import sys
 import time
@@ -39,6 +40,7 @@ class Samples:
     """What the probe reported: (monotonic s, RSS KiB, Python-traced bytes or 0)."""
 
     lines: list[tuple[float, int, int]] = field(default_factory=list)
+    raw: list[dict[str, Any]] = field(default_factory=list)
     process: asyncio.subprocess.Process | None = None
     dumped: asyncio.Queue[str] = field(default_factory=asyncio.Queue)
 
@@ -101,6 +103,8 @@ async def busy_platform(
     report: str = "",
     baseline: float = WARMUP_S,
     extra: tuple[str, ...] = (),
+    trim: bool = False,
+    env: dict[str, str] | None = None,
 ) -> AsyncIterator[Samples]:
     """A ``--sim`` platform made busy by a station; yields its memory samples as they come."""
     signaling = free_port()
@@ -110,6 +114,8 @@ async def busy_platform(
     ]  # fmt: skip
     if report:
         args.append(f"--report={report}")
+    if trim:
+        args.append("--trim")
     args += ["--", "--sim"]
     for item in (
         f"signaling.port={signaling}",
@@ -121,7 +127,11 @@ async def busy_platform(
     PLATFORM_LOG.parent.mkdir(exist_ok=True)
     with PLATFORM_LOG.open("ab") as log:
         process = await asyncio.create_subprocess_exec(
-            *args, stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE, stderr=log
+            *args,
+            stdin=asyncio.subprocess.PIPE,
+            stdout=asyncio.subprocess.PIPE,
+            stderr=log,
+            env=None if env is None else {**os.environ, **env},
         )
     samples = Samples(process=process)
 
@@ -135,6 +145,7 @@ async def busy_platform(
             if "snapshot" in line:
                 samples.dumped.put_nowait(line["snapshot"])
             else:
+                samples.raw.append(line)
                 samples.lines.append((line["t"], line["rss_kb"], line.get("traced", 0)))
 
     key = security.load_or_create_key(security.default_key_path())
@@ -176,25 +187,38 @@ async def _teleop(api: Any) -> None:
         await asyncio.sleep(0.1)
 
 
-async def rss_growth(navcam: bool, warmup: float = WARMUP_S, measure: float = MEASURE_S) -> float:
-    """RSS slope after ``warmup`` over ``measure`` seconds, in MB an hour."""
+async def rss_growth(
+    navcam: bool, warmup: float = WARMUP_S, measure: float = MEASURE_S
+) -> dict[str, float]:
+    """After ``warmup``, over ``measure`` seconds: the RSS slope (MB an hour) and the total
+    growth (MB), and where it is: the slope of what glibc malloc holds in use (all arenas) and of
+    the blocks pymalloc has allocated (Python's small objects, in 1 MiB mmap'd arenas that
+    neither malloc's figures nor ``malloc_trim`` touch)."""
     async with busy_platform(navcam=navcam) as samples:
         start = time.monotonic() + warmup  # the probe's clock: CLOCK_MONOTONIC, system-wide
         await asyncio.sleep(warmup + measure)
-        points = [(t, rss / 1024) for t, rss, _ in samples.since(start)]
-    return slope_per_hour(points)
+        lines = [line for line in samples.raw if line["t"] >= start]
+    return {
+        "rss_mb_per_h": slope_per_hour([(line["t"], line["rss_kb"] / 1024) for line in lines]),
+        "rss_total_mb": (lines[-1]["rss_kb"] - lines[0]["rss_kb"]) / 1024,
+        "malloc_in_use_mb_per_h": slope_per_hour(
+            [(line["t"], line["m_inuse_kb"] / 1024) for line in lines]
+        ),
+        "python_blocks_per_h": slope_per_hour([(line["t"], line["py_blocks"]) for line in lines]),
+    }
 
 
 async def run() -> dict[str, Any]:
-    idle = await rss_growth(navcam=False)
-    streaming = await rss_growth(navcam=True)
+    figures: dict[str, Any] = {}
+    for name, navcam in (("idle", False), ("navcam_30fps", True)):
+        for key, value in (await rss_growth(navcam=navcam)).items():
+            figures[f"memory_{name}_{key}"] = round(value, 2)
     return {
-        "memory_rss_growth_idle_mb_per_h": round(idle, 2),
-        "memory_rss_growth_navcam_30fps_mb_per_h": round(streaming, 2),
+        **figures,
         "memory_method": (
             f"--sim platform, 1 station, override + 10 Hz teleop, telemetry; RSS every "
             f"{INTERVAL_S:g} s, least-squares slope over {MEASURE_S:g} s after {WARMUP_S:g} s "
-            "of warm-up, extrapolated to an hour"
+            "of warm-up, extrapolated to an hour, and the growth over those seconds"
         ),
         "memory_target_mb_per_h": 1.0,
     }

@@ -1,8 +1,12 @@
 """``python -m bench.memory_probe [--frames N] [--report FILE] -- PLATFORM ARGS``: a platform
 daemon (as ``python -m platformd``) with a thread reporting its memory.
 
-Every ``--interval`` seconds one JSON line on stdout: ``t`` (monotonic s), ``rss_kb`` and, with
-``--frames`` > 0 (tracemalloc on, that many frames a trace), ``traced`` (bytes Python holds).
+Every ``--interval`` seconds one JSON line on stdout: ``t`` (monotonic s), ``rss_kb``, where the
+memory is (:func:`native`: glibc malloc's in-use and free bytes over all its arenas, the private
+dirty KiB of each kind of anonymous mapping, pymalloc's allocated blocks, gc-tracked objects)
+and, with ``--frames`` > 0 (tracemalloc on, that many frames a trace), ``traced`` (bytes Python
+holds). ``--trim`` calls glibc's ``malloc_trim(0)`` before each line (to tell fragmentation
+from growth: it returns malloc's free pages to the system).
 With ``--report``, that file is rewritten at each line with the allocation sites that grew the
 most since the first line after ``--baseline`` seconds (tracemalloc snapshots compared).
 A line ``snapshot PATH`` on stdin dumps a tracemalloc snapshot there, then prints
@@ -12,6 +16,7 @@ A line ``snapshot PATH`` on stdin dumps a tracemalloc snapshot there, then print
 from __future__ import annotations
 
 import argparse
+import ctypes
 import gc
 import json
 import sys
@@ -37,12 +42,84 @@ def rss_kb() -> int:
     return 0
 
 
+class _MallInfo2(ctypes.Structure):
+    _fields_ = [
+        (name, ctypes.c_size_t)
+        for name in (
+            "arena", "ordblks", "smblks", "hblks", "hblkhd",
+            "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost",
+        )
+    ]  # fmt: skip
+
+
+_LIBC = ctypes.CDLL("libc.so.6")
+_LIBC.mallinfo2.restype = _MallInfo2
+_LIBC.malloc_trim.argtypes = [ctypes.c_size_t]
+
+
+def native() -> dict[str, object]:
+    """glibc malloc's view (all arenas) and the kernel's: in use vs free inside malloc's heaps,
+    private dirty / anonymous memory, and how many heap mappings (arenas) there are."""
+    info = _LIBC.mallinfo2()
+    out: dict[str, object] = {
+        "m_inuse_kb": info.uordblks // 1024,
+        "m_free_kb": info.fordblks // 1024,
+        "m_mmap_kb": info.hblkhd // 1024,
+        "m_heap_kb": info.arena // 1024,
+    }
+    for line in Path("/proc/self/smaps_rollup").read_text().splitlines():
+        key, _, value = line.partition(":")
+        if key in ("Private_Dirty", "Anonymous"):
+            out[key.lower() + "_kb"] = int(value.split()[0])
+    out.update(_anonymous_by_kind())
+    out["py_blocks"] = sys.getallocatedblocks()
+    out["py_objects"] = len(gc.get_objects())
+    return out
+
+
+def _anonymous_by_kind() -> dict[str, object]:
+    """Private dirty KiB of the anonymous mappings by kind: malloc's main heap, its other arenas
+    (64 MiB-aligned heaps), pymalloc's 1 MiB arenas, thread stacks (8 MiB), the rest."""
+    kinds = dict.fromkeys(("heap", "arena", "pyarena", "stack", "other"), 0)
+    count = dict.fromkeys(kinds, 0)
+    kind = ""
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        head = line.split()
+        if "-" in head[0] and len(head) >= 5 and ":" not in head[0]:
+            start, end = (int(x, 16) for x in head[0].split("-"))
+            size = end - start
+            name = head[5] if len(head) > 5 else ""
+            if name == "[heap]":
+                kind = "heap"
+            elif name or head[1] != "rw-p":
+                kind = ""
+            elif start % (64 << 20) == 0:
+                kind = "arena"
+            elif size == 1 << 20:  # adjacent ones merge into one mapping: counted as "other"
+                kind = "pyarena"
+            elif size in (8 << 20, (8 << 20) - 4096):  # a guard page below a thread's stack
+                kind = "stack"
+            else:
+                kind = "other"
+            if kind:
+                count[kind] += 1
+        elif kind and head[0] == "Private_Dirty:":
+            kinds[kind] += int(head[1])
+    return {
+        **{f"a_{kind}_kb": size for kind, size in kinds.items()},
+        **{f"n_{kind}": number for kind, number in count.items()},
+    }
+
+
 def _report(args: argparse.Namespace) -> None:
     baseline: tracemalloc.Snapshot | None = None
     started = time.monotonic()
     while True:
         time.sleep(args.interval)
+        if args.trim:
+            _LIBC.malloc_trim(0)
         line: dict[str, object] = {"t": round(time.monotonic(), 3), "rss_kb": rss_kb()}
+        line.update(native())
         if args.frames:
             line["traced"] = tracemalloc.get_traced_memory()[0]
         _say(line)
@@ -78,6 +155,7 @@ def main() -> int:
     parser.add_argument("--interval", type=float, default=5.0)
     parser.add_argument("--frames", type=int, default=0, help="tracemalloc frames (0: off)")
     parser.add_argument("--report", default="", help="where to write the growth report")
+    parser.add_argument("--trim", action="store_true", help="malloc_trim(0) before each line")
     parser.add_argument("--baseline", type=float, default=60.0, help="seconds of warm-up")
     args, platform_args = parser.parse_known_args()
     if platform_args[:1] == ["--"]:
