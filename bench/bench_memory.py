@@ -104,6 +104,7 @@ async def busy_platform(
     baseline: float = WARMUP_S,
     extra: tuple[str, ...] = (),
     trim: bool = False,
+    collect: bool = False,
     env: dict[str, str] | None = None,
 ) -> AsyncIterator[Samples]:
     """A ``--sim`` platform made busy by a station; yields its memory samples as they come."""
@@ -116,6 +117,8 @@ async def busy_platform(
         args.append(f"--report={report}")
     if trim:
         args.append("--trim")
+    if collect:
+        args.append("--collect")
     args += ["--", "--sim"]
     for item in (
         f"signaling.port={signaling}",

@@ -16,6 +16,7 @@ A line ``snapshot PATH`` on stdin dumps a tracemalloc snapshot there, then print
 from __future__ import annotations
 
 import argparse
+import collections
 import ctypes
 import gc
 import json
@@ -116,9 +117,18 @@ def _report(args: argparse.Namespace) -> None:
     started = time.monotonic()
     while True:
         time.sleep(args.interval)
+        collected: dict[str, object] = {}
+        if args.collect:
+            gc.set_debug(gc.DEBUG_SAVEALL)
+            collected["collected"] = gc.collect()
+            gc.set_debug(0)
+            kinds = collections.Counter(type(thing).__qualname__ for thing in gc.garbage)
+            collected["garbage"] = kinds.most_common(8)
+            gc.garbage.clear()
         if args.trim:
             _LIBC.malloc_trim(0)
         line: dict[str, object] = {"t": round(time.monotonic(), 3), "rss_kb": rss_kb()}
+        line.update(collected)
         line.update(native())
         if args.frames:
             line["traced"] = tracemalloc.get_traced_memory()[0]
@@ -155,6 +165,7 @@ def main() -> int:
     parser.add_argument("--interval", type=float, default=5.0)
     parser.add_argument("--frames", type=int, default=0, help="tracemalloc frames (0: off)")
     parser.add_argument("--report", default="", help="where to write the growth report")
+    parser.add_argument("--collect", action="store_true", help="gc.collect() before each line")
     parser.add_argument("--trim", action="store_true", help="malloc_trim(0) before each line")
     parser.add_argument("--baseline", type=float, default=60.0, help="seconds of warm-up")
     args, platform_args = parser.parse_known_args()
