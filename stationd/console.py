@@ -462,12 +462,13 @@ class ConsoleHub(Actor):
     # ------------------------------------------------------------------ override and drive
 
     async def api_console_override(
-        self, call: CallContext, platform_id: str, engaged: bool
+        self, call: CallContext, platform_id: str, engaged: bool, force: bool = False
     ) -> dict[str, Any]:
-        """Engage or release the manual override; the page that engaged it is the one driving."""
+        """Engage or release the manual override; the page that engaged it is the one driving.
+        ``force`` takes control from another station (``movrd --force``)."""
         session = self._session(call)
         answer: dict[str, Any] = await self.ctx.api.call_local(
-            "movrd", platform_id=platform_id, engaged=engaged
+            "movrd", platform_id=platform_id, engaged=engaged, force=force
         )
         if answer.get("accepted"):
             if engaged:

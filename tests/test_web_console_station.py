@@ -341,8 +341,9 @@ async def test_operator_station_in_the_browser(
             assert sent["waypoints"] == 3
             await page.get_by_role("button", name="cancel route edit").click()
             await expect(page.locator('#map [title="waypoint 1"]')).to_have_count(0)
-            # Another station takes control (--force): this console's stop is refused, by whom
-            # said; once that station is gone, the stop goes through.
+            # Another station takes control (--force): this console says so at once (the 90.17
+            # notification), by whom, and its stop is refused, by whom said.
+            authority = page.get_by_label("command authority")
             intruder = PlatformConnection(
                 "rover-2", other.ctx.signaling_url, station_id="intruder", fleet_key=fleet_key
             )
@@ -352,14 +353,41 @@ async def test_operator_station_in_the_browser(
                     "issue_system_command", group=10, command=0, payload="state=True,force=yes"
                 )
                 assert taken["accepted"], taken
+                await expect(authority).to_have_attribute("data-state", "taken", timeout=10_000)
+                await expect(authority).to_contain_text("CONTROL TAKEN by station intruder")
                 await page.get_by_role("button", name="stop patrol").click()
                 await expect(patrol_answer).to_contain_text(
                     "stop patrol: patrol_stop refused: control held by station intruder",
                     timeout=10_000,
                 )
+                # The intruder's link goes silent (its heartbeats stop): after failsafe.hold_after
+                # (1.5 s) the platform holds, and the page shows LINK LOST.
+                assert intruder._heartbeat is not None
+                intruder._heartbeat.cancel()
+                banner = page.get_by_role("alert", name="failsafe")
+                await expect(banner).to_contain_text("LINK LOST — platform on HOLD", timeout=10_000)
+                # Take control back, confirmed in the page: this console drives, the hold ends
+                # and the intruder is told it observes.
+                await page.get_by_role("button", name="take control").click()
+                confirm = page.get_by_role("group", name="confirm takeover")
+                await expect(confirm).to_contain_text("take control from station intruder?")
+                assert other.ctx.authority.station_id == "intruder"  # nothing sent unconfirmed
+                await confirm.get_by_role("button", name="confirm take control").click()
+                await expect(page.locator("#driving")).to_have_text(
+                    "this console is driving rover-2", timeout=10_000
+                )
+                await expect(authority).to_have_attribute("data-state", "driving")
+                await expect(banner).to_be_hidden(timeout=10_000)
+                assert other.ctx.authority.station_id == station.config.station.id
+                answer_to_intruder = await intruder.call("heartbeat")
+                assert answer_to_intruder["control"] is False
+                assert answer_to_intruder["controller"] == station.config.station.id
+                # The speed cap for the latency this station reports, near the override.
+                cap = page.get_by_label("speed cap")
+                await expect(cap).to_have_text(re.compile(r"^cap \d+\.\d km/h \(video "))
+                assert float(await cap.get_attribute("data-kmh") or "nan") > 0
             finally:
                 await intruder.close()
-            await wait_until(lambda: other.ctx.authority.controller is None)
             await page.get_by_role("button", name="stop patrol").click()
             await expect(patrol_state).to_have_attribute("data-state", "stopped", timeout=10_000)
 

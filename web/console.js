@@ -34,6 +34,8 @@ const state = {
   telemetry: new Map(),   // platform id → { report, at }
   warnings: new Map(),    // "platform/name" → { note, acknowledged }
   session: null,
+  stationId: null,        // this station's id (console_subscribe)
+  taken: new Map(),       // platform id → the 90.17 note: control taken from this station
   clockOffsetMs: 0,       // station clock − page clock
   override: "idle",       // idle | pending | engaged | error
   videoStats: null,
@@ -120,6 +122,7 @@ async function subscribe() {
   performance.mark("station-open");
   const hello = await api.call("console_subscribe");
   state.session = hello.session;
+  state.stationId = hello.station_id;
   measureClock().catch((error) => console.warn("clock offset not measured", error));
   if (state.current) {
     await api.call("connect", { platform_id: state.current }, 8000).catch(() => {});
@@ -170,7 +173,14 @@ api.on("telemetry", (report) => {
   if (report.platform_id === state.current) { renderStatus(); renderControls(); renderPatrol(); }
   updateMap(report.platform_id);
 });
-api.on("notification", (note) => { noteWarning(note); addNotification(note); });
+api.on("notification", (note) => {
+  noteWarning(note);
+  addNotification(note);
+  if (note.name === "control_taken" && note.active) {
+    state.taken.set(note.platform_id, { note, at: performance.now() }); // said at once, until this station holds it again
+    if (note.platform_id === state.current) { teleop.halt("control taken"); renderControls(); }
+  }
+});
 api.on("video", () => {});
 
 function setPill(selector, text, kind) {
@@ -374,13 +384,114 @@ $("#disconnect").onclick = async () => {
 
 function engagedHere() {
   const connection = state.connections.get(state.current);
-  return Boolean(connection && connection.this_console_drives && connection.manual_override);
+  const holder = controlHolder();
+  return Boolean(connection && connection.this_console_drives && connection.manual_override
+    && (holder === undefined || holder === state.stationId));
+}
+
+/** The station holding control of the shown platform: its telemetry (fresher than the
+ * heartbeat's answer), else the connection's; null when nobody does, undefined unknown. */
+function controlHolder() {
+  const failsafe = section(state.telemetry.get(state.current)?.report.snapshot, "failsafe");
+  if (failsafe) return failsafe.controller ?? null;
+  const connection = state.connections.get(state.current);
+  return connection ? connection.controller ?? null : undefined;
+}
+
+function renderAuthority(drives) {
+  const holder = controlHolder();
+  const box = $("#authority");
+  const taken = state.taken.get(state.current);
+  // The telemetry can still name this station for a moment after the 90.17 note came.
+  if (taken && (drives || (holder === state.stationId && performance.now() - taken.at > 3000))) state.taken.delete(state.current);
+  const other = holder != null && holder !== state.stationId;
+  const [kind, text] = drives ? ["driving", "this console is driving"]
+    : holder === state.stationId ? ["station", "this station holds control (not driven from this console)"]
+    : other && state.taken.has(state.current) ? ["taken", `CONTROL TAKEN by station ${holder}: observing`]
+    : other ? ["observing", `observing — control held by station ${holder}`]
+    : ["free", "control free: engage the override to drive"];
+  box.dataset.state = kind;
+  box.dataset.holder = holder ?? "";
+  $("#control-state").textContent = text;
+  $("#takeover").hidden = !other || !$("#takeover-confirm").hidden;
+  $("#takeover-holder").textContent = `station ${holder}`;
+  if (!other) $("#takeover-confirm").hidden = true;
+}
+
+$("#takeover").onclick = () => {
+  $("#takeover").hidden = true;
+  $("#takeover-confirm").hidden = false;
+  $("#takeover-yes").focus();
+};
+$("#takeover-no").onclick = () => { $("#takeover-confirm").hidden = true; renderControls(); };
+$("#takeover-yes").onclick = async () => {
+  $("#takeover-confirm").hidden = true;
+  if (!state.current || state.override === "pending") return;
+  state.override = "pending";
+  renderControls();
+  // movrd --force: the platform moves control to this station and engages its override.
+  const result = await command("take control", "console_override", { engaged: true, force: true }, 6000);
+  if (result && result.accepted) { state.override = "engaged"; state.taken.delete(state.current); }
+  else { state.override = "error"; state.overrideError = result ? result.reason : $("#answer").textContent; }
+  renderControls();
+};
+
+function renderFailsafe(entry, connection) {
+  // The platform's failsafe ladder (hold, released) and this page's own view of the link.
+  const banner = $("#failsafe");
+  const failsafe = section(entry?.report.snapshot, "failsafe");
+  const stale = entry && (performance.now() - entry.at > STALE_MS || (entry.report.link?.silence_s ?? 0) > STALE_MS / 1000);
+  let step = "normal";
+  let text = "";
+  if (connection && connection.connected === false) {
+    [step, text] = ["lost", `LINK LOST: ${connection.close_reason || "connection to the platform closed"}`];
+  } else if (failsafe && failsafe.step !== "normal") {
+    // This station's link is back (fresh telemetry, connected) while the platform still holds
+    // for it: driving resumes only when the operator re-engages, deliberately.
+    const back = !stale && connection && connection.connected !== false && failsafe.controller === state.stationId;
+    step = back && failsafe.step === "hold" ? "rejoin" : failsafe.step;
+    text = failsafe.step === "hold"
+      ? `LINK LOST — platform on HOLD (${failsafe.reason})${back ? ". Link back: re-engage the override to drive" : ""}`
+      : `LINK LOST — override released, autonomy resumed (${failsafe.reason})`;
+  } else if (stale && state.override === "engaged") {
+    [step, text] = ["lost", "LINK LOST: no telemetry from the platform"];
+  }
+  banner.dataset.step = step;
+  banner.textContent = text;
+  banner.hidden = !text;
+}
+
+function renderSpeedCap(snapshot) {
+  const cap = section(snapshot, "speed_cap");
+  const readout = $("#speed-cap");
+  if (!cap) { readout.textContent = "cap —"; readout.dataset.kmh = ""; readout.title = ""; return; }
+  const ms = (value) => (value == null ? "—" : `${value.toFixed(0)} ms`);
+  readout.textContent = `cap ${fixed(cap.cap_kmh, 1)} km/h (video ${ms(cap.video_ms)}, command ${ms(cap.command_ms)})`;
+  readout.dataset.kmh = String(cap.cap_kmh);
+  readout.title = cap.reason;
+}
+
+function renderTurret(snapshot) {
+  const turret = section(snapshot, "turret");
+  const readout = $("#turret");
+  readout.hidden = !turret;
+  if (!turret) return;
+  readout.dataset.trigger = turret.trigger ? "armed" : "safe";
+  readout.textContent = [
+    "turret:",
+    turret.connected ? null : "NOT CONNECTED",
+    turret.trigger ? "trigger ARMED" : "trigger safe",
+    `azimuth ${fixed(turret.azimuth, 1)}°`,
+    `elevation ${fixed(turret.elevation, 1)}°`,
+  ].filter(Boolean).join("  ");
 }
 
 function renderControls() {
   const connection = state.current ? state.connections.get(state.current) : null;
   $("#controls").hidden = !connection;
-  const drives = Boolean(connection && connection.this_console_drives && connection.manual_override);
+  const drives = engagedHere();
+  renderFailsafe(state.current ? state.telemetry.get(state.current) : null, connection);
+  renderAuthority(drives);
   if (state.override !== "pending" && state.override !== "error") state.override = drives ? "engaged" : "idle";
   const button = $("#override");
   button.setAttribute("aria-pressed", String(drives));
@@ -400,6 +511,8 @@ function renderControls() {
     $("#lights-pos").setAttribute("aria-pressed", String(Boolean(lights.positional)));
   }
   const snapshot = state.telemetry.get(state.current)?.report.snapshot;
+  renderSpeedCap(snapshot);
+  renderTurret(snapshot);
   if (snapshot) {
     $("#diagnostics").setAttribute("aria-pressed", String(section(snapshot, "diagnostics") != null));
     const battery = section(snapshot, "battery");
@@ -476,6 +589,7 @@ function reportRows(report) {
 function renderStatus() {
   const list = $("#status");
   const entry = state.current ? state.telemetry.get(state.current) : null;
+  renderFailsafe(entry, state.current ? state.connections.get(state.current) : null);
   if (!entry) { list.replaceChildren(); return; }
   const { report, at } = entry;
   const stale = performance.now() - at > STALE_MS || (report.link?.silence_s ?? 0) > STALE_MS / 1000;

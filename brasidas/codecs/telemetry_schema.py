@@ -24,8 +24,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
-SCHEMA_VERSION = 3
-"""Version of the schema (and the datagram layout); the first byte of every datagram."""
+SCHEMA_VERSION = 4
+"""Version of the schema (and the datagram layout); the first byte of every datagram.
+4: the failsafe, speed_cap and turret sections, the velocity link's ``held`` drops."""
 ERROR_KEY = "!"
 """A section's wire map holding only this key is that section's error."""
 STALE_PERIODS = 3.0
