@@ -5,6 +5,7 @@ motor port a simulated AX3500 on a pty served by this test, whose command log is
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import json
 import os
@@ -12,6 +13,7 @@ import statistics
 import time
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from netns import (
@@ -41,6 +43,10 @@ network = network_fixture("tele")
 VELOCITY_PORT = 21001
 BEACON_PORT = 21000
 ROVER = "rover-1"
+HOLD_AFTER = 1.5  # failsafe.hold_after's default
+RELEASE_AFTER = 3.0
+"""The ladder's release comes sooner than its 10 s default, and the session outlives it
+(``signaling.session_timeout`` 8 s), so the test sees the ladder's own step, not the session's end."""
 
 
 class Capture:
@@ -86,7 +92,15 @@ def rig(
     capture = Capture()
     assert rover_host.relay is not None
     rover_host.relay.taps.append(capture.tap)
-    fleet.platform(rover_host, ROVER, *QUIET, f"motor.port={controller.path}", sim=False)
+    fleet.platform(
+        rover_host,
+        ROVER,
+        *QUIET,
+        f"motor.port={controller.path}",
+        f"failsafe.release_after={RELEASE_AFTER}",
+        "signaling.session_timeout=8.0",
+        sim=False,
+    )
     # An operator's request is answered, or reported failed, within a second.
     fleet.station(station_host, "station-1", "station.connect_timeout=1.0")
     yield fleet, capture
@@ -306,6 +320,101 @@ async def test_a_third_host_replaying_the_exchange_moves_nothing_and_lists_nothi
     assert beacon_dropped == replayed["beacon"]
     assert telemetry_dropped == replayed["telemetry"]
     assert set(statuses) == {401}
+
+
+# Last in the module: a cut past the session's heartbeats leaves the station's old telemetry
+# stream flowing until the platform ends that session, which the replay test would capture.
+async def test_link_cut_past_the_failsafe_holds_then_releases_until_the_operator_re_engages(
+    session: tuple[Fleet, Capture], controller: ControllerThread
+) -> None:
+    fleet, capture = session
+    station = _station(fleet)
+    relay = fleet.net.hosts["rover"].relay
+    assert relay is not None
+    await wait_for(lambda: _engage(fleet), 10, step=0.2)
+
+    async def keep_driving() -> None:
+        # The operator keeps the stick forward throughout; while the station has lost the
+        # platform (its heartbeat failed) it refuses, and streams again once reconnected.
+        while True:
+            with contextlib.suppress(RpcFailed):
+                await fleet.api(station, "teleop_set", platform_id=ROVER, linear=0.5, angular=0.0)
+            await asyncio.sleep(0.1)
+
+    def moving() -> bool:
+        return bool(controller.outputs) and controller.outputs[-1][1] > 0
+
+    async def section(name: str) -> dict[str, Any]:
+        # Telemetry flows (UDP) whether or not the station's session survived the cut.
+        report = await fleet.api(station, "get_telemetry", platform_id=ROVER)
+        return dict(report["snapshot"].get(name) or {})
+
+    async def failsafe() -> dict[str, Any]:
+        return await section("failsafe")
+
+    async def step_is(step: str) -> bool:
+        try:
+            return (await failsafe()).get("step") == step
+        except RpcFailed:
+            return False
+
+    figures: dict[str, list[float]] = {"zero": [], "hold": []}
+    held: list[int] = []
+
+    async def cut_for(seconds: float, step: str) -> None:
+        await wait_for(moving, 10)
+        before = await section("velocity_link")
+        relay.cut()
+        cut_at = time.monotonic()
+        await wait_for(lambda: not moving(), 2, step=0.005)
+        zero_at = next(t for t, speed, _ in reversed(controller.outputs) if speed == 0)
+        last_packet = max(t for t, _ in capture.select(DOWN, "udp", VELOCITY_PORT) if t <= cut_at)
+        figures["zero"].append(zero_at - last_packet)
+        # Nothing on the platform is observable while the link is down: wait out the ladder.
+        await asyncio.sleep(max(0.0, cut_at + seconds - time.monotonic()))
+        outputs = len(controller.outputs)
+        relay.restore()
+        # The platform reports the step once the link is back; the station raises LINK LOST.
+        await wait_for(lambda: step_is(step), 10, step=0.1)
+        reason = str((await failsafe()).get("reason", ""))
+        figures["hold"].append(_silence(reason))
+        # The station still streams 0.5 forward: nothing moves until the operator re-engages.
+        await asyncio.sleep(1.5)
+        after = await section("velocity_link")
+        moved = [o for o in controller.outputs[outputs:] if o[1] != 0 or o[2] != 0]
+        assert moved == [], f"moved after restore at step {step}: {moved}"
+        if step == "hold":
+            held.append(after["dropped"].get("held", 0) - before["dropped"].get("held", 0))
+            assert held[-1] > 0  # the velocities after restore were dropped and counted
+        notes = await fleet.api(station, "telemetry_notifications", limit=50)
+        assert any("LINK LOST" in n["message"] and step in n["message"] for n in notes), notes
+        # The operator re-engages (movrd on, as the CLI does): the robot moves again.
+        await wait_for(lambda: _engage(fleet), 10, step=0.2)
+        await wait_for(moving, 10)
+        await wait_for(lambda: step_is("normal"), 5, step=0.1)  # telemetry at 5 Hz catches up
+
+    async with asyncio.TaskGroup() as group:
+        driver = group.create_task(keep_driving(), name="drive")
+        await cut_for(HOLD_AFTER + 1.0, "hold")  # past hold_after, short of release_after
+        await cut_for(RELEASE_AFTER + 1.0, "released")  # past release_after (action release)
+        driver.cancel()
+    print(
+        f"\nlink cut past the failsafe: cut → motors at zero "
+        f"{', '.join(f'{z * 1000:.0f}' for z in figures['zero'])} ms from the last $PVEL; "
+        f"cut → hold {figures['hold'][0]:.2f} s (hold_after {HOLD_AFTER} s), "
+        f"cut → released {figures['hold'][1]:.2f} s (release_after {RELEASE_AFTER} s), "
+        f"the platform's own figures; after restore {held} velocities dropped as held, "
+        f"no motor command until re-engaged"
+    )
+
+
+def _silence(reason: str) -> float:
+    """The silence a failsafe step names ('no heartbeat from X for 1.5 s: holding')."""
+    words = reason.split(" for ", 1)[-1].split()
+    try:
+        return float(words[0])
+    except (IndexError, ValueError):
+        return float("nan")
 
 
 def _rpc_calls(segments: list[Datagram]) -> list[bytes]:
