@@ -79,7 +79,7 @@ async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
 
 
 async def sim_platform(
-    factory: Factory, key: bytes, station: StationDaemon, name: str, longitude: float
+    factory: Factory, key: bytes, station: StationDaemon, name: str, longitude: float, *extra: str
 ) -> PlatformDaemon:
     config = quiet_platform_config(
         f"platform.id={name}",
@@ -97,6 +97,7 @@ async def sim_platform(
         "navcam.sim_pattern=smpte",
         "navcam.sim_motion=4",
         "audio.enabled=true",  # a test tone as the microphone
+        *extra,
     )
     return await factory(config, key)
 
@@ -137,7 +138,9 @@ async def test_operator_station_in_the_browser(
     from playwright.async_api import async_playwright, expect
 
     rover = await sim_platform(platform_factory, fleet_key, station, "web-rover", 23.6530)
-    other = await sim_platform(platform_factory, fleet_key, station, "rover-2", 23.6545)
+    other = await sim_platform(
+        platform_factory, fleet_key, station, "rover-2", 23.6545, 'payload.enabled=["turret"]'
+    )
     base = f"http://127.0.0.1:{station.api_port}"
     async with aiohttp.ClientSession() as http, http.get(base + "/") as response:
         policy = response.headers["Content-Security-Policy"]
@@ -386,6 +389,11 @@ async def test_operator_station_in_the_browser(
                 cap = page.get_by_label("speed cap")
                 await expect(cap).to_have_text(re.compile(r"^cap \d+\.\d km/h \(video "))
                 assert float(await cap.get_attribute("data-kmh") or "nan") > 0
+                # Its turret (the simulated microcontroller): safe, where it points.
+                turret = page.get_by_label("turret", exact=True)
+                await expect(turret).to_contain_text("trigger safe", timeout=10_000)
+                await expect(turret).to_contain_text("azimuth")
+                await expect(turret).to_have_attribute("data-trigger", "safe")
             finally:
                 await intruder.close()
             await page.get_by_role("button", name="stop patrol").click()
