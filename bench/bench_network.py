@@ -3,6 +3,8 @@ costs the station, what the mesh carries.
 
 - link cut mid-drive → motors at zero, from the last ``$PVEL`` the link delivered to the zero
   command reaching the (simulated, pty) AX3500: p50/p99 over 20 cuts;
+- link cut past ``failsafe.hold_after`` → hold: the platform's silence at the step (its
+  telemetry's failsafe reason, read after the restore), over 5 cuts;
 - station CPU with 20 platforms online (beacons every 3 s, from one process) and 3 connected
   (``--sim`` platforms, heartbeats and 5 Hz telemetry), over 20 s;
 - what the mesh carries: beacon bytes/s per platform, telemetry bytes/s per connected pair,
@@ -14,6 +16,7 @@ Run alone: ``.venv/bin/python -m bench network``.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import socket
 import statistics
 import sys
@@ -33,11 +36,14 @@ from netns import (
     ControllerThread,
     Daemon,
     Fleet,
+    RpcFailed,
     percentile,
     wait_for,
 )
 
 CUTS = 20
+HOLD_CUTS = 5
+HOLD_AFTER = 1.5  # failsafe.hold_after's default
 FLEET = 20
 CONNECTED = 3
 CPU_WINDOW = 20.0
@@ -68,15 +74,18 @@ async def _link_cuts(net: TestNetwork, scratch: Path) -> dict[str, Any]:
 
         async def keep_driving() -> None:
             while True:
-                await fleet.api(
-                    station, "teleop_set", platform_id="cut-rover", linear=0.5, angular=0.0
-                )
+                # Refused while a long cut has cost the station its session (until movrd).
+                with contextlib.suppress(RpcFailed):
+                    await fleet.api(
+                        station, "teleop_set", platform_id="cut-rover", linear=0.5, angular=0.0
+                    )
                 await asyncio.sleep(0.1)
 
         def moving() -> bool:
             return bool(controller.outputs) and controller.outputs[-1][1] > 0
 
         latencies: list[float] = []
+        holds: list[float] = []
         async with asyncio.TaskGroup() as group:
             driver = group.create_task(keep_driving())
             for _ in range(CUTS):
@@ -89,8 +98,21 @@ async def _link_cuts(net: TestNetwork, scratch: Path) -> dict[str, Any]:
                 last = max(t for t in delivered if t <= cut_at)
                 latencies.append((zero_at - last) * 1000)
                 rover.relay.restore()
+            # Longer cuts, past failsafe.hold_after: the platform holds; its own figure for the
+            # silence at the step is in telemetry's failsafe reason, read once the link is back.
+            for _ in range(HOLD_CUTS):
+                await wait_for(moving, 15)
+                rover.relay.cut()
+                await asyncio.sleep(HOLD_AFTER + 0.8)
+                rover.relay.restore()
+                reason = await wait_for(lambda: _held(fleet, station, "cut-rover"), 10, step=0.1)
+                holds.append(float(reason.split(" for ", 1)[1].split()[0]) * 1000)
+                await wait_for(lambda: fleet.engage(station, "cut-rover"), 10, step=0.2)
             driver.cancel()
         return {
+            "cut_to_hold_p50_ms": round(statistics.median(holds), 1),
+            "cut_to_hold_max_ms": round(max(holds), 1),
+            "hold_cuts": len(holds),
             "cut_to_zero_p50_ms": round(statistics.median(latencies), 1),
             "cut_to_zero_p99_ms": round(percentile(latencies, 0.99), 1),
             "cut_to_zero_max_ms": round(max(latencies), 1),
@@ -99,6 +121,13 @@ async def _link_cuts(net: TestNetwork, scratch: Path) -> dict[str, Any]:
     finally:
         fleet.stop()
         controller.close()
+
+
+async def _held(fleet: Fleet, station: Daemon, platform_id: str) -> str | None:
+    """The failsafe's reason while the platform holds, by its telemetry at the station."""
+    report = await fleet.api(station, "get_telemetry", platform_id=platform_id)
+    failsafe = report["snapshot"].get("failsafe") or {}
+    return str(failsafe["reason"]) if failsafe.get("step") == "hold" else None
 
 
 async def _fleet_load(net: TestNetwork, scratch: Path) -> dict[str, Any]:

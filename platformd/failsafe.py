@@ -69,7 +69,7 @@ class FailsafeLadder(Actor):
             self._step(
                 FailsafeStep.HOLD,
                 session.station_id,
-                f"no heartbeat from {session.station_id} for {silent:.1f} s: holding",
+                f"no heartbeat from {session.station_id} for {silent:.2f} s: holding",
             )
         elif (
             step is FailsafeStep.HOLD
@@ -79,7 +79,7 @@ class FailsafeLadder(Actor):
             self._step(
                 FailsafeStep.RELEASED,
                 session.station_id,
-                f"no heartbeat from {session.station_id} for {silent:.1f} s: override released",
+                f"no heartbeat from {session.station_id} for {silent:.2f} s: override released",
             )
 
     def _on_override(self, state: OverrideState) -> None:

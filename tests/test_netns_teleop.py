@@ -409,7 +409,7 @@ async def test_link_cut_past_the_failsafe_holds_then_releases_until_the_operator
 
 
 def _silence(reason: str) -> float:
-    """The silence a failsafe step names ('no heartbeat from X for 1.5 s: holding')."""
+    """The silence a failsafe step names ('no heartbeat from X for 1.52 s: holding')."""
     words = reason.split(" for ", 1)[-1].split()
     try:
         return float(words[0])
