@@ -340,7 +340,8 @@ async function command(label, method, params, timeoutMs = 5000) {
 
 $("#override").onclick = async () => {
   if (!state.current || state.override === "pending") return;
-  const engage = !engagedHere();
+  // During the platform's hold, pressing the switch re-engages (the deliberate act it waits for).
+  const engage = !engagedHere() || holding();
   state.override = "pending";
   renderControls();
   const result = await command("manual override", "console_override", { engaged: engage }, 6000);
@@ -381,6 +382,12 @@ $("#disconnect").onclick = async () => {
   renderStatus();
   renderPatrol();
 };
+
+/** The shown platform holds (failsafe) for this station: driving needs a re-engage. */
+function holding() {
+  const failsafe = section(state.telemetry.get(state.current)?.report.snapshot, "failsafe");
+  return Boolean(failsafe && failsafe.step === "hold" && failsafe.controller === state.stationId);
+}
 
 function engagedHere() {
   const connection = state.connections.get(state.current);
@@ -500,7 +507,7 @@ function renderControls() {
   button.textContent = {
     idle: holder?.engaged ? `override: held by ${holder.station ?? "another station"}` : "override: autonomous",
     pending: "override: pending…",
-    engaged: "override: ENGAGED",
+    engaged: holding() ? "override: HOLD — press to re-engage" : "override: ENGAGED",
     error: `override: error (${state.overrideError ?? "no answer"})`,
   }[state.override];
   teleop.setActive(drives);
