@@ -17,8 +17,9 @@ from pathlib import Path
 
 import pytest
 
-from brasidas.config import PlatformConfig, load_config
+from brasidas.config import PlatformConfig, StationConfig, load_config
 from platformd.app import PlatformDaemon
+from stationd.daemon import StationDaemon
 
 pytest_plugins = ["pytester"]
 
@@ -180,4 +181,25 @@ async def platform_factory() -> AsyncIterator[Callable[..., Awaitable[PlatformDa
 
     yield start
     for daemon in started:
+        await daemon.stop()
+
+
+@contextlib.asynccontextmanager
+async def running_station(key: bytes, *overrides: str) -> AsyncIterator[StationDaemon]:
+    """A station daemon on loopback with an ephemeral API port; stopped on exit."""
+    config = load_config(
+        StationConfig,
+        None,
+        [
+            "station.api_port=0",
+            f"discovery.port={free_udp_port()}",
+            "discovery.bind_host=127.0.0.1",
+            *overrides,
+        ],
+    )
+    daemon = StationDaemon(config, key)
+    await daemon.start()
+    try:
+        yield daemon
+    finally:
         await daemon.stop()

@@ -9,9 +9,8 @@ from typing import Any
 
 import aiohttp
 import pytest
-from conftest import free_udp_port, quiet_platform_config, wait_until
+from conftest import free_udp_port, quiet_platform_config, running_station, wait_until
 
-from brasidas.config import StationConfig, load_config
 from platformd.app import PlatformDaemon
 from stationd.daemon import StationDaemon
 from stationd.video_feed import AccessUnit, FanOut, Viewer, decode_header
@@ -83,19 +82,8 @@ def test_a_viewer_that_falls_behind_skips_to_the_next_keyframe() -> None:
 
 @pytest.fixture
 async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
-    config = load_config(
-        StationConfig,
-        None,
-        [
-            "station.api_port=0",
-            f"discovery.port={free_udp_port()}",
-            "discovery.bind_host=127.0.0.1",
-        ],
-    )
-    daemon = StationDaemon(config, fleet_key)
-    await daemon.start()
-    yield daemon
-    await daemon.stop()
+    async with running_station(fleet_key) as daemon:
+        yield daemon
 
 
 async def test_access_units_reach_a_websocket_viewer_with_capture_times(

@@ -7,11 +7,10 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
 import pytest
-from conftest import free_udp_port, quiet_platform_config, wait_until
+from conftest import quiet_platform_config, running_station, wait_until
 
 from brasidas import topics
 from brasidas.codecs.telemetry_schema import schema_document
-from brasidas.config import StationConfig, load_config
 from platformd.app import PlatformDaemon
 from stationd.daemon import StationDaemon
 
@@ -56,19 +55,8 @@ CHROMIUM_ARGS = [
 
 @pytest.fixture
 async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
-    config = load_config(
-        StationConfig,
-        None,
-        [
-            "station.api_port=0",
-            f"discovery.port={free_udp_port()}",
-            "discovery.bind_host=127.0.0.1",
-        ],
-    )
-    daemon = StationDaemon(config, fleet_key)
-    await daemon.start()
-    yield daemon
-    await daemon.stop()
+    async with running_station(fleet_key) as daemon:
+        yield daemon
 
 
 async def test_console_lists_connects_and_takes_the_override(

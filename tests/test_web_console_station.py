@@ -7,7 +7,6 @@ One browser and one page for the whole scenario (each launch costs seconds here)
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import os
 import re
@@ -18,7 +17,7 @@ from typing import Any
 
 import aiohttp
 import pytest
-from conftest import free_udp_port, quiet_platform_config, wait_until
+from conftest import free_udp_port, quiet_platform_config, running_station, wait_until
 
 from brasidas import topics
 from brasidas.config import StationConfig, load_config
@@ -49,26 +48,6 @@ FAKE_GAMEPAD = """
 """
 SCREENSHOT = Path(__file__).resolve().parent.parent / "docs" / "console.png"
 """Kept current in the README: written when BRASIDAS_SCREENSHOT=1."""
-
-
-@contextlib.asynccontextmanager
-async def running_station(key: bytes, *overrides: str) -> AsyncIterator[StationDaemon]:
-    config = load_config(
-        StationConfig,
-        None,
-        [
-            "station.api_port=0",
-            f"discovery.port={free_udp_port()}",
-            "discovery.bind_host=127.0.0.1",
-            *overrides,
-        ],
-    )
-    daemon = StationDaemon(config, key)
-    await daemon.start()
-    try:
-        yield daemon
-    finally:
-        await daemon.stop()
 
 
 @pytest.fixture
