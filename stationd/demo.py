@@ -146,8 +146,8 @@ def _print_next_steps(args: argparse.Namespace) -> None:
     print(
         "\nThe demo is running. In another terminal (from this directory), try:\n\n"
         f"{lines}\n\n"
-        f"Browser console: http://127.0.0.1:{args.api_port}/  (platforms, override, lights,"
-        " telemetry and warnings)\n"
+        f"Browser console: http://127.0.0.1:{args.api_port}/  (the whole station: map, NavCam,"
+        " driving with keys or a game controller, audio, patrol, telemetry and warnings)\n"
         f"Station API: http://127.0.0.1:{args.api_port}/api/rpc   "
         f"Platform signaling: http://127.0.0.1:{args.signaling_port}/rpc\n"
         "Press Ctrl-C to stop both daemons.",

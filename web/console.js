@@ -622,18 +622,34 @@ function noteWarning(note) {
   renderAnnunciator();
 }
 
+// One button per warning, kept while the warning lasts: telemetry re-renders five times a
+// second, and a button replaced between the operator's mousedown and mouseup gets no click.
+const warningButtons = new Map(); // "platform/name" → its button
+
 function renderAnnunciator() {
   const box = $("#annunciator");
-  box.replaceChildren(...[...state.warnings.entries()].map(([key, { note, acknowledged }]) => {
-    const button = document.createElement("button");
-    button.type = "button";
+  for (const [key, button] of warningButtons) {
+    if (!state.warnings.has(key)) { button.remove(); warningButtons.delete(key); }
+  }
+  for (const [key, { note, acknowledged }] of state.warnings) {
+    let button = warningButtons.get(key);
+    if (!button) {
+      button = document.createElement("button");
+      button.type = "button";
+      button.onclick = () => {
+        const warning = state.warnings.get(key);
+        if (warning) warning.acknowledged = true;
+        renderAnnunciator();
+      };
+      warningButtons.set(key, button);
+      box.append(button);
+    }
+    const text = `⚠ ${note.platform_id}: ${note.message || note.name}`;
+    if (button.textContent !== text) button.textContent = text;
     button.className = `warning${acknowledged ? "" : " unacknowledged"}`;
-    button.textContent = `⚠ ${note.platform_id}: ${note.message || note.name}`;
     button.setAttribute("aria-pressed", String(acknowledged));
     button.setAttribute("aria-label", `warning ${note.platform_id} ${note.message || note.name}: ${acknowledged ? "acknowledged" : "acknowledge"}`);
-    button.onclick = () => { state.warnings.get(key).acknowledged = true; renderAnnunciator(); };
-    return button;
-  }));
+  }
 }
 
 function addNotification(note) {
