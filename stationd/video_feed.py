@@ -27,6 +27,7 @@ offset   type  meaning
 
 from __future__ import annotations
 
+import abc
 import asyncio
 import collections
 import itertools
@@ -233,7 +234,7 @@ class FanOut:
 # --------------------------------------------------------------------------- GStreamer
 
 
-class RtpDepayloader(PipelineStream):
+class RtpDepayloader(PipelineStream, abc.ABC):
     """RTP/UDP → one encoded unit per buffer (``on_unit`` is called on the event loop)."""
 
     kind = "feed"
@@ -251,9 +252,9 @@ class RtpDepayloader(PipelineStream):
     def destination(self) -> str:
         return f"{self.host}:{self.port}"
 
+    @abc.abstractmethod
     def depayload(self) -> list[Any]:
         """The elements between ``udpsrc`` and the appsink."""
-        raise NotImplementedError
 
     def build(self) -> Any:
         Gst = gst()
