@@ -118,7 +118,17 @@ async def test_operator_station_in_the_browser(
 
     rover = await sim_platform(platform_factory, fleet_key, station, "web-rover", 23.6530)
     other = await sim_platform(
-        platform_factory, fleet_key, station, "rover-2", 23.6545, 'payload.enabled=["turret"]'
+        platform_factory,
+        fleet_key,
+        station,
+        "rover-2",
+        23.6545,
+        'payload.enabled=["turret"]',
+        # The silent intruder below holds control (the failsafe's hold) until this console
+        # takes it: its session must not end first (after the default 5 s, which is only 3.5 s
+        # past the hold: too short a window for the page's steps on a loaded machine).
+        "signaling.session_timeout=60",
+        "failsafe.release_after=60",
     )
     base = f"http://127.0.0.1:{station.api_port}"
     async with aiohttp.ClientSession() as http, http.get(base + "/") as response:
