@@ -12,6 +12,7 @@ import os
 import re
 import shutil
 from collections.abc import AsyncIterator, Awaitable, Callable
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -109,6 +110,106 @@ async def frames_decoded(page: Any, at_least: int, timeout: float = 15.0) -> int
             return count
         await asyncio.sleep(0.1)
     raise AssertionError(f"only {count} frames decoded in {timeout} s")
+
+
+async def planned_path(station: StationDaemon, platform_id: str) -> list[tuple[float, float]]:
+    report = await station.ctx.api.call_local("get_telemetry", platform_id=platform_id)
+    return [(lat, lon) for lat, lon in report["snapshot"]["autonomy"]["path"]]
+
+
+async def draw_polygon(page: Any, corners: list[tuple[float, float]]) -> None:
+    """Click each [lat, lon] corner on the map, as the operator draws a keep-out."""
+    box = await page.locator("#map").bounding_box()
+    assert box is not None
+    for index, (lat, lon) in enumerate(corners, start=1):
+        at = await page.evaluate(f"window.navcam.mapPixel({lat}, {lon})")
+        await page.mouse.click(box["x"] + at["x"], box["y"] + at["y"])
+        await expect_count(page.locator(f'#map [title="corner {index}"]'), 1)
+
+
+async def expect_count(locator: Any, count: int, timeout: float = 10_000) -> None:
+    from playwright.async_api import expect
+
+    await expect(locator).to_have_count(count, timeout=timeout)
+
+
+async def keep_out_zones_drawn_and_removed(
+    page: Any, station: StationDaemon, platform_id: str
+) -> None:
+    """The operator draws a keep-out on the patrol's planned path and sends it: the platform's
+    map has it and the path goes around it; it is removed again; a self-intersecting one is
+    refused with the platform's reason and the map stays as it was."""
+    from playwright.async_api import expect
+    from shapely.geometry import LineString, Point, Polygon
+
+    patrol_answer = page.locator("#patrol-answer")
+    keepouts = page.get_by_role("list", name="keep-out zones of the platform")
+    await expect(keepouts.locator("li")).to_have_count(1)  # the demo field's shed
+    await expect(keepouts).to_contain_text("keep-out shed")
+    # A 4 m square on the longest leg ahead of the robot, 10 m or more from it.
+    path = await planned_path(station, platform_id)
+    assert len(path) >= 2, path
+    robot = Point(path[0])
+    metre = 1 / 111_320  # in degrees of latitude (of longitude: 0.8 m here; the square is 4 x 3 m)
+    legs = sorted(pairwise(path), key=lambda leg: -Point(leg[0]).distance(Point(leg[1])))
+    centre = next(
+        point
+        for a, b in legs
+        for point in (LineString([a, b]).interpolate(f, normalized=True) for f in (0.6, 0.4))
+        if point.distance(robot) > 10 * metre
+    )
+    lat, lon = centre.x, centre.y
+    square = [
+        (lat - 2 * metre, lon - 2 * metre),
+        (lat - 2 * metre, lon + 2 * metre),
+        (lat + 2 * metre, lon + 2 * metre),
+        (lat + 2 * metre, lon - 2 * metre),
+    ]
+    draw = page.get_by_role("button", name="draw keep-out")
+    await draw.click()
+    await expect(draw).to_have_attribute("aria-pressed", "true")
+    await page.get_by_label("name", exact=True).fill("crater")
+    send = page.get_by_role("button", name="send keep-out")
+    await expect(send).to_be_disabled()  # no polygon yet
+    await draw_polygon(page, square)
+    await expect(page.locator("#map path.keepout-draft")).to_have_count(1)
+    await expect(page.locator("#map path.area-keepout")).to_have_count(1)  # a draft, not sent
+    await send.click()
+    await expect(patrol_answer).to_contain_text("keep-out sent", timeout=10_000)
+    area = await station.ctx.api.call_local("map_get", platform_id=platform_id)
+    assert {f.get("id") for f in area["map"]["features"]} >= {"shed", "crater"}
+    await expect(page.locator("#map path.area-keepout")).to_have_count(2, timeout=10_000)
+    await expect(page.locator("#map path.keepout-draft")).to_have_count(0)
+    await expect(keepouts.locator('li[data-keepout="crater"]')).to_have_count(1)
+    # The platform replans around it (its planned path in telemetry, not the page's guess).
+    zone = Polygon(square)
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + 10
+    while LineString(path := await planned_path(station, platform_id)).intersects(zone):
+        assert loop.time() < deadline, f"the planned path still crosses the keep-out: {path}"
+        await asyncio.sleep(0.1)
+
+    # Removed from the list: the platform's map no longer has it.
+    await page.get_by_role("button", name="remove keep-out crater").click()
+    await expect(patrol_answer).to_contain_text("keep-out crater removed", timeout=10_000)
+    await expect(keepouts.locator('li[data-keepout="crater"]')).to_have_count(0, timeout=10_000)
+    await expect(page.locator("#map path.area-keepout")).to_have_count(1)
+    area = await station.ctx.api.call_local("map_get", platform_id=platform_id)
+    assert "crater" not in {f.get("id") for f in area["map"]["features"]}
+
+    # A bow tie (its edges cross): refused with the platform's reason; the map is unchanged
+    # and the draft stays open to correct, until cancelled.
+    await draw.click()
+    await draw_polygon(page, [square[0], square[2], square[1], square[3]])
+    await send.click()
+    await expect(patrol_answer).to_contain_text("send keep-out: update refused:", timeout=10_000)
+    await expect(patrol_answer).to_contain_text("self-intersection")
+    await expect(page.locator("#map path.keepout-draft")).to_have_count(1)
+    await expect(page.locator("#map path.area-keepout")).to_have_count(1)
+    area = await station.ctx.api.call_local("map_get", platform_id=platform_id)
+    assert [f.get("id") for f in area["map"]["features"] if "id" in f] == ["shed"]
+    await page.get_by_role("button", name="cancel keep-out").click()
+    await expect(page.locator("#map path.keepout-draft")).to_have_count(0)
 
 
 async def test_operator_station_in_the_browser(
@@ -333,6 +434,7 @@ async def test_operator_station_in_the_browser(
             assert sent["waypoints"] == 3
             await page.get_by_role("button", name="cancel route edit").click()
             await expect(page.locator('#map [title="waypoint 1"]')).to_have_count(0)
+            await keep_out_zones_drawn_and_removed(page, station, "rover-2")
             # Another station takes control (--force): this console says so at once (the 90.17
             # notification), by whom, and its stop is refused, by whom said.
             authority = page.get_by_label("command authority")

@@ -65,6 +65,8 @@ window.navcam = {
   dropStationConnection: () => api.ws?.close(),
   keepLatencies: (on) => worker?.postMessage({ type: "keep", on }),
   dump: () => new Promise((resolve) => { dumpWaiters.push(resolve); worker?.postMessage({ type: "dump" }); }),
+  /** Where [lat, lon] is on the map, in pixels from its top-left corner: for clicking it. */
+  mapPixel: (lat, lon) => map.pixel(lat, lon),
 };
 const dumpWaiters = [];
 
@@ -685,7 +687,7 @@ $("#map-clear").onclick = () => map.clearBackground();
 // The route is edited on the map and sent as a whole (route_set); a refusal shows the
 // platform's reason (a point outside the boundary, another station holding control).
 
-const patrol = { routes: new Map(), editing: null, loading: null };
+const patrol = { routes: new Map(), keepouts: new Map(), editing: null, drawing: null, loading: null };
 
 async function loadArea(platformId) {
   const asked = (patrol.loading = Symbol(platformId));
@@ -699,6 +701,9 @@ async function loadArea(platformId) {
   if (patrol.loading !== asked || state.current !== platformId) return;
   if (area.map) map.setGeoJson(area.map, { fit: !patrol.routes.has(platformId) }); // zoomed once
   else map.clearBackground();
+  const features = area.map?.features ?? [];
+  patrol.keepouts.set(platformId, features.filter((f) => f?.properties?.role === "keepout").map((f) => String(f.id)));
+  renderKeepouts();
   const points = (area.route ?? []).map((waypoint) => [waypoint.lat, waypoint.lon]);
   patrol.routes.set(platformId, { points, names: (area.route ?? []).map((waypoint) => waypoint.name ?? "") });
   map.setRoute(platformId, points);
@@ -707,7 +712,10 @@ async function loadArea(platformId) {
 
 function clearArea(platformId) {
   stopEditing();
+  stopDrawing();
   patrol.routes.delete(platformId);
+  patrol.keepouts.delete(platformId);
+  renderKeepouts();
   map.setRoute(platformId, []);
   map.setPlannedPath(platformId, []);
   map.clearBackground();
@@ -734,6 +742,7 @@ function renderPatrol() {
     `lap ${autonomy.lap}`,
     autonomy.reason && `— ${autonomy.reason}`,
   ];
+  renderKeepouts();
   const line = $("#patrol-state");
   line.textContent = `patrol: ${parts.filter(Boolean).join("  ")}`;
   line.dataset.state = autonomy.state;
@@ -773,9 +782,10 @@ function stopEditing() {
 
 $("#route-edit").onclick = () => {
   if (!state.current || patrol.editing) return;
+  stopDrawing();
   const points = patrol.routes.get(state.current)?.points ?? [];
   const editing = { points, stop: null };
-  editing.stop = map.editWaypoints(points, (changed) => { editing.points = changed; });
+  editing.stop = map.editWaypoints(points, (changed) => { editing.points = changed; }).stop;
   patrol.editing = editing;
   $("#route-edit").setAttribute("aria-pressed", "true");
   $("#route-send").hidden = false;
@@ -795,3 +805,99 @@ $("#route-send").onclick = async () => {
 };
 
 $("#route-cancel").onclick = () => { stopEditing(); patrolAnswer("route edit cancelled"); };
+
+// ---------------------------------------------------------------- keep-out zones
+
+// Keep-outs are added (a polygon drawn on the map) and removed (by id) without reloading the
+// map (update_map, R-5.3.3.4), by the station holding control; an observer sees them read-only.
+// The drawn polygon is a draft: the map shows a zone only once the platform has it (its answer,
+// then map_get); a refusal (self-intersecting, the robot inside, ...) shows the platform's reason
+// and leaves the draft open to correct.
+
+/** This station may change the shown platform's map: it holds control, or nobody does. */
+function mayChangeMap() {
+  const holder = controlHolder();
+  return Boolean(state.current && state.connections.has(state.current)) && (holder == null || holder === state.stationId);
+}
+
+const keepoutButtons = new Map(); // id → its list item (kept: see warningButtons)
+
+function renderKeepouts() {
+  const ids = patrol.keepouts.get(state.current) ?? [];
+  const list = $("#keepouts");
+  const allowed = mayChangeMap();
+  const why = allowed ? "" : `control held by station ${controlHolder()}: read-only`;
+  for (const [id, item] of keepoutButtons) if (!ids.includes(id)) { item.remove(); keepoutButtons.delete(id); }
+  for (const id of ids) {
+    let item = keepoutButtons.get(id);
+    if (!item) {
+      item = document.createElement("li");
+      item.dataset.keepout = id;
+      const button = document.createElement("button");
+      button.type = "button";
+      button.textContent = "remove";
+      button.setAttribute("aria-label", `remove keep-out ${id}`);
+      button.onclick = () => removeKeepout(id);
+      item.append(`keep-out ${id}`, button);
+      keepoutButtons.set(id, item);
+      list.append(item);
+    }
+    const button = item.querySelector("button");
+    button.disabled = !allowed;
+    button.title = why;
+  }
+  const draw = $("#keepout-draw");
+  draw.disabled = !allowed && !patrol.drawing;
+  draw.title = why;
+  $("#keepout-send").disabled = !allowed || !patrol.drawing || patrol.drawing.points.length < 3;
+}
+
+function stopDrawing() {
+  if (!patrol.drawing) return;
+  patrol.drawing.handle.stop();
+  patrol.drawing = null;
+  $("#keepout-draw").setAttribute("aria-pressed", "false");
+  $("#keepout-drafting").hidden = true;
+  renderKeepouts();
+}
+
+$("#keepout-draw").onclick = () => {
+  if (patrol.drawing) { stopDrawing(); patrolAnswer("keep-out cancelled"); return; }
+  if (!state.current || !mayChangeMap()) return;
+  stopEditing();
+  const drawing = { points: [], handle: null };
+  drawing.handle = map.drawPolygon((points) => { drawing.points = points; renderKeepouts(); });
+  patrol.drawing = drawing;
+  $("#keepout-name").value = "";
+  $("#keepout-draw").setAttribute("aria-pressed", "true");
+  $("#keepout-drafting").hidden = false;
+  renderKeepouts();
+  patrolAnswer("drawing a keep-out: click the map for each corner (or pan with the arrows and add one at the centre), drag one to move it, right-click one to delete it; then send");
+};
+
+$("#keepout-corner").onclick = () => patrol.drawing?.handle.addAtCentre();
+$("#keepout-cancel").onclick = () => { stopDrawing(); patrolAnswer("keep-out cancelled"); };
+
+$("#keepout-send").onclick = async () => {
+  const drawing = patrol.drawing;
+  const platformId = state.current;
+  if (!drawing || !platformId || drawing.points.length < 3) return;
+  const ring = [...drawing.points, drawing.points[0]].map(([lat, lon]) => [lon, lat]); // GeoJSON: closed, lon first
+  const feature = { type: "Feature", properties: { role: "keepout" }, geometry: { type: "Polygon", coordinates: [ring] } };
+  const name = $("#keepout-name").value.trim();
+  if (name) feature.id = name;
+  const result = await patrolCall("send keep-out", "map_update", { add: [feature] });
+  if (!result || patrol.drawing !== drawing) return; // refused: the draft stays, the map as it was
+  stopDrawing();
+  patrolAnswer(`keep-out sent: the platform's keep-outs are ${result.map.keepouts.join(", ")}`);
+  if (state.current === platformId) await loadArea(platformId);
+};
+
+async function removeKeepout(id) {
+  const platformId = state.current;
+  if (!platformId || !mayChangeMap()) return;
+  const result = await patrolCall(`remove keep-out ${id}`, "map_update", { remove: [id] });
+  if (!result) return;
+  patrolAnswer(`keep-out ${id} removed: the platform's keep-outs are ${result.map.keepouts.join(", ") || "none"}`);
+  if (state.current === platformId) await loadArea(platformId);
+}

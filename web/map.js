@@ -3,9 +3,9 @@
 // operator-loaded area image with its corner coordinates, or a GeoJSON background.
 //
 // For autonomous patrol: setRoute / setPlannedPath draw a platform's waypoint route and the
-// path its planner chose; editWaypoints(points, onChange) lets the operator edit a route
-// (click the map to append, drag a waypoint to move it, right-click one to delete it). Points
-// are [lat, lon] throughout.
+// path its planner chose; editWaypoints(points, onChange) lets the operator edit a route and
+// drawPolygon(onChange) draw a keep-out zone (click the map to append a point, drag one to move
+// it, right-click one to delete it). Points are [lat, lon] throughout.
 
 const L = window.L;
 const EARTH_M_PER_DEG = 111_320;
@@ -92,6 +92,9 @@ export class PlatformMap {
         const keepout = role === "keepout";
         return { color: keepout ? "#d66a6a" : "#7aa2d6", weight: keepout ? 2 : 1, fillOpacity: keepout ? 0.3 : 0.15, className: `area-background${role ? ` area-${role}` : ""}` };
       },
+      onEachFeature: (feature, layer) => {
+        if (feature?.properties?.role === "keepout" && feature.id != null) layer.bindTooltip(`keep-out ${feature.id}`);
+      },
       pointToLayer: (feature, latlng) => {
         const marker = L.circleMarker(latlng, { radius: 3, color: "#aaa", weight: 1, className: "area-point" });
         const name = feature?.properties?.name;
@@ -118,33 +121,57 @@ export class PlatformMap {
     this.lines.set(key, L.polyline(points.map(([lat, lon]) => this.local(lat, lon)), style).addTo(this.map));
   }
 
-  /** Let the operator edit ``points``; ``onChange(points)`` after every edit. Returns a stop
-   * function. */
+  /** Let the operator edit a route's ``points``; ``onChange(points)`` after every edit.
+   * Returns the edit's handle (see editPoints). */
   editWaypoints(points, onChange) {
-    if (!this.available) return () => {};
+    return this.editPoints(points, onChange, { label: "waypoint", shape: (latlngs) => L.polyline(latlngs, { color: "#f0f080", weight: 2, className: "route-edit" }) });
+  }
+
+  /** Let the operator draw a keep-out polygon's corners (a draft: the area map itself is
+   * redrawn only from the platform's answer). */
+  drawPolygon(onChange) {
+    return this.editPoints([], onChange, { label: "corner", shape: (latlngs) => L.polygon(latlngs, { color: "#ff9a5a", weight: 2, dashArray: "4 3", fillOpacity: 0.2, className: "keepout-draft" }) });
+  }
+
+  /** Edit ``points`` ([lat, lon]) on the map: click the map to append one, drag one to move it,
+   * right-click one to delete it; ``onChange(points)`` after every edit. Returns { stop(),
+   * addAtCentre() } — the keyboard's way: arrows pan the focused map, then add at its centre. */
+  editPoints(points, onChange, { label, shape }) {
+    if (!this.available) return { stop: () => {}, addAtCentre: () => {} };
     const frame = this;
-    let current = points.map((p) => [...p]);
+    const current = points.map((p) => [...p]);
     const layer = L.layerGroup().addTo(this.map);
-    const toGeo = (latlng) => {
-      const [lat0, lon0] = frame.origin;
-      const lat = lat0 + latlng.lat / EARTH_M_PER_DEG;
-      return [lat, lon0 + latlng.lng / (EARTH_M_PER_DEG * Math.cos((lat0 * Math.PI) / 180))];
-    };
     const draw = () => {
       layer.clearLayers();
-      L.polyline(current.map(([lat, lon]) => frame.local(lat, lon)), { color: "#f0f080", weight: 2, className: "route-edit" }).addTo(layer);
+      shape(current.map(([lat, lon]) => frame.local(lat, lon))).addTo(layer);
       current.forEach(([lat, lon], index) => {
-        const marker = L.marker(frame.local(lat, lon), { draggable: true, title: `waypoint ${index + 1}`, alt: `waypoint ${index + 1}` });
-        marker.on("dragend", () => { current[index] = toGeo(marker.getLatLng()); changed(); });
+        const marker = L.marker(frame.local(lat, lon), { draggable: true, title: `${label} ${index + 1}`, alt: `${label} ${index + 1}` });
+        marker.on("dragend", () => { current[index] = frame.geo(marker.getLatLng()); changed(); });
         marker.on("contextmenu", () => { current.splice(index, 1); changed(); });
         marker.addTo(layer);
       });
     };
     const changed = () => { draw(); onChange(current.map((p) => [...p])); };
-    const append = (event) => { if (frame.origin) { current.push(toGeo(event.latlng)); changed(); } };
+    const add = (latlng) => { if (frame.origin) { current.push(frame.geo(latlng)); changed(); } };
+    const append = (event) => add(event.latlng);
     this.map.on("click", append);
     draw();
-    return () => { this.map.off("click", append); layer.remove(); };
+    return {
+      stop: () => { this.map.off("click", append); layer.remove(); },
+      addAtCentre: () => add(this.map.getCenter()),
+    };
+  }
+
+  /** [lat, lon] of a map position (local metres). */
+  geo(latlng) {
+    const [lat0, lon0] = this.origin;
+    return [lat0 + latlng.lat / EARTH_M_PER_DEG, lon0 + latlng.lng / (EARTH_M_PER_DEG * Math.cos((lat0 * Math.PI) / 180))];
+  }
+
+  /** Where [lat, lon] is drawn, in pixels from the map's top-left corner (for tests). */
+  pixel(lat, lon) {
+    const point = this.map.latLngToContainerPoint(this.local(lat, lon));
+    return { x: point.x, y: point.y };
   }
 
   clearBackground() {
