@@ -449,6 +449,13 @@ async def test_operator_station_in_the_browser(
                 assert taken["accepted"], taken
                 await expect(authority).to_have_attribute("data-state", "taken", timeout=10_000)
                 await expect(authority).to_contain_text("CONTROL TAKEN by station intruder")
+                # An observer's map is read-only: no drawing, no removing.
+                draw_keepout = page.get_by_role("button", name="draw keep-out")
+                await expect(draw_keepout).to_be_disabled()
+                await expect(draw_keepout).to_have_attribute("title", re.compile("intruder"))
+                await expect(
+                    page.get_by_role("button", name="remove keep-out shed")
+                ).to_be_disabled()
                 await page.get_by_role("button", name="stop patrol").click()
                 await expect(patrol_answer).to_contain_text(
                     "stop patrol: patrol_stop refused: control held by station intruder",
@@ -471,6 +478,7 @@ async def test_operator_station_in_the_browser(
                     "this console is driving rover-2", timeout=10_000
                 )
                 await expect(authority).to_have_attribute("data-state", "driving")
+                await expect(draw_keepout).to_be_enabled()
                 await expect(banner).to_be_hidden(timeout=10_000)
                 assert other.ctx.authority.station_id == station.config.station.id
                 answer_to_intruder = await intruder.call("heartbeat")
