@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 
+from brasidas.codecs.telemetry_schema import VelocityLink
 from brasidas.config import PlatformConfig, StationConfig, load_config
 from platformd.app import PlatformDaemon
 from stationd.daemon import StationDaemon
@@ -182,6 +183,13 @@ async def platform_factory() -> AsyncIterator[Callable[..., Awaitable[PlatformDa
     yield start
     for daemon in started:
         await daemon.stop()
+
+
+def velocities_dropped(daemon: PlatformDaemon, reason: str) -> int:
+    """The platform's velocity receiver's drop counter for ``reason``, as telemetry reads it
+    (now, not at the next telemetry push)."""
+    link = daemon.ctx.telemetry.build_one(VelocityLink)
+    return link.dropped.get(reason, 0) if isinstance(link, VelocityLink) else 0
 
 
 @contextlib.asynccontextmanager

@@ -7,11 +7,10 @@ import socket
 import time
 from collections.abc import Awaitable, Callable
 
-from conftest import quiet_platform_config, wait_until
+from conftest import quiet_platform_config, velocities_dropped, wait_until
 
 from brasidas import topics
 from brasidas.codecs import pvel
-from brasidas.codecs.telemetry_schema import VelocityLink
 from brasidas.messages import FailsafeState, FailsafeStep, Mode, OverrideState, Velocity
 from platformd.app import PlatformDaemon
 from platformd.failsafe import FailsafeLadder
@@ -79,7 +78,7 @@ async def test_stop_then_hold_then_release_and_no_old_command_after_the_link_ret
         burst = [encoder.encode(0.6, 0.0) for _ in range(10)]
         for datagram in burst:
             sock.sendto(datagram, target)
-        await wait_until(lambda: _dropped(daemon, "held") == len(burst))
+        await wait_until(lambda: velocities_dropped(daemon, "held") == len(burst))
         assert commands[-1] == STOP
         # The operator re-engages deliberately; the burst stays spent.
         assert await conn.call("set_manual_override", engaged=True) is True
@@ -87,7 +86,7 @@ async def test_stop_then_hold_then_release_and_no_old_command_after_the_link_ret
             FailsafeStep.NORMAL, "st-1", "re-engaged by the operator"
         )
         sock.sendto(burst[-1], target)
-        await wait_until(lambda: _dropped(daemon, "out_of_order") >= 1)
+        await wait_until(lambda: velocities_dropped(daemon, "out_of_order") >= 1)
         assert commands[-1] == STOP
         sock.sendto(encoder.encode(0.3, 0.0), target)
         await wait_until(lambda: commands[-1] == Velocity(0.3, 0.0))
@@ -106,12 +105,6 @@ async def test_stop_then_hold_then_release_and_no_old_command_after_the_link_ret
     finally:
         sock.close()
         await conn.close()
-
-
-def _dropped(daemon: PlatformDaemon, reason: str) -> int:
-    """The velocity receiver's drop counter, as telemetry reads it (now, not once a second)."""
-    link = daemon.ctx.telemetry.build_one(VelocityLink)
-    return link.dropped.get(reason, 0) if isinstance(link, VelocityLink) else 0
 
 
 async def test_action_hold_keeps_holding_past_release_after(

@@ -18,10 +18,17 @@ from typing import Any
 
 import aiohttp
 import pytest
-from conftest import free_udp_port, quiet_platform_config, running_station, wait_until
+from conftest import (
+    free_udp_port,
+    quiet_platform_config,
+    running_station,
+    velocities_dropped,
+    wait_until,
+)
 
 from brasidas import topics
 from brasidas.config import StationConfig, load_config
+from brasidas.messages import FailsafeStep
 from platformd.app import PlatformDaemon
 from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
@@ -80,6 +87,51 @@ async def sim_platform(
         *extra,
     )
     return await factory(config, key)
+
+
+class LinkCut:
+    """The station's link to one platform goes silent both ways, as a radio out of range would
+    (loopback has no cable to pull): its signaling calls, heartbeats included, wait for the link
+    to come back (a stalled connection); its velocity sender sends nothing; the platform's
+    telemetry datagrams are dropped at the station's socket."""
+
+    def __init__(self, station: StationDaemon, platform_id: str) -> None:
+        self.station = station
+        self.platform_id = platform_id
+        self.up = asyncio.Event()
+        self.up.set()
+        self.patched: list[tuple[object, str]] = []
+
+    def _actor(self, name: str) -> Any:
+        (actor,) = [a for a in self.station.supervisor.actors if a.name == name]
+        return actor
+
+    def cut(self) -> None:
+        connection = self.station.ctx.connections[self.platform_id]
+        call = connection.call
+
+        async def stalled(method: str, **params: Any) -> Any:
+            await self.up.wait()
+            return await call(method, **params)
+
+        self.up.clear()
+        self._patch(connection, "call", stalled)
+        self._patch(self._actor("teleop").senders[self.platform_id], "tick", lambda: None)
+        self._patch(
+            self._actor("telemetry").links[self.platform_id],
+            "datagram_received",
+            lambda data, addr: None,
+        )
+
+    def _patch(self, target: object, name: str, replacement: object) -> None:
+        setattr(target, name, replacement)  # on the instance: the class's method is untouched
+        self.patched.append((target, name))
+
+    def restore(self) -> None:
+        for target, name in self.patched:
+            delattr(target, name)
+        self.patched.clear()
+        self.up.set()
 
 
 async def telemetry_position(station: StationDaemon, platform_id: str) -> tuple[float, float]:
@@ -510,13 +562,16 @@ async def test_operator_station_in_the_browser(
             await browser.close()
 
 
-async def test_warnings_audio_both_ways_and_a_closed_page_stops_the_robot(
+async def test_warnings_audio_link_loss_and_a_closed_page_stops_the_robot(
     platform_factory: Factory, fleet_key: bytes
 ) -> None:
     """A group 90 warning (low battery: the simulated pack's 24.7 V is under a 30 V limit)
     flashes until the operator acknowledges it. The platform's microphone is decoded in the
-    page, and push-to-talk reaches the platform's speaker. Then the station's safety net: the
-    page's socket closes while a key is held, with no JavaScript left to send a stop."""
+    page, and push-to-talk reaches the platform's speaker. The link to the platform is cut
+    while driving: LINK LOST, the platform holds; restored: the page asks for a re-engage and
+    the robot does not move until the operator re-engages from the page. Then the station's
+    safety net: the page's socket closes while a key is held, with no JavaScript left to send
+    a stop."""
     from playwright.async_api import async_playwright, expect
 
     async with (
@@ -525,7 +580,17 @@ async def test_warnings_audio_both_ways_and_a_closed_page_stops_the_robot(
         ) as station,
         async_playwright() as playwright,
     ):
-        rover = await sim_platform(platform_factory, fleet_key, station, "web-rover", 23.6530)
+        rover = await sim_platform(
+            platform_factory,
+            fleet_key,
+            station,
+            "web-rover",
+            23.6530,
+            "failsafe.hold_after=0.6",
+            # Holding until the operator re-engages (no release, the session outlives the cut).
+            "failsafe.release_after=60",
+            "signaling.session_timeout=60",
+        )
         browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         try:
             page = await browser.new_page()
@@ -567,6 +632,40 @@ async def test_warnings_audio_both_ways_and_a_closed_page_stops_the_robot(
             await expect(override).to_have_attribute("aria-pressed", "true", timeout=10_000)
             vehicle = rover.ctx.sim.vehicle
             assert vehicle is not None
+            await page.keyboard.down("KeyW")
+            await wait_until(lambda: vehicle.command[0] > 0.3, timeout=5)
+
+            # The link is cut while driving: the motors stop (the platform's deadman), the page
+            # says LINK LOST (no telemetry), the platform holds (no heartbeat).
+            cut = LinkCut(station, "web-rover")
+            cut.cut()
+            try:
+                banner = page.get_by_role("alert", name="failsafe")
+                await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=5)
+                await expect(banner).to_contain_text("LINK LOST", timeout=15_000)
+                await wait_until(
+                    lambda: rover.bus.last(topics.FAILSAFE_STATE).step is FailsafeStep.HOLD,
+                    timeout=10,
+                )
+                await page.keyboard.up("KeyW")
+            finally:
+                cut.restore()
+            # The link is back: the page shows the hold and asks for a deliberate re-engage.
+            await expect(banner).to_have_attribute("data-step", "rejoin", timeout=15_000)
+            await expect(banner).to_contain_text("LINK LOST — platform on HOLD")
+            await expect(banner).to_contain_text("re-engage the override to drive")
+            await expect(override).to_have_text("override: HOLD — press to re-engage")
+            # W held again: its velocities reach the platform and are dropped (held).
+            held = velocities_dropped(rover, "held")
+            await page.keyboard.down("KeyW")
+            await wait_until(lambda: velocities_dropped(rover, "held") >= held + 10, timeout=10)
+            assert vehicle.command == (0.0, 0.0), "moved before the operator re-engaged"
+            await page.keyboard.up("KeyW")
+            # The operator re-engages from the page: the hold ends, and W drives again.
+            await override.click()
+            await expect(override).to_have_text("override: ENGAGED", timeout=10_000)
+            await expect(banner).to_be_hidden(timeout=10_000)
+            assert rover.bus.last(topics.FAILSAFE_STATE).step is FailsafeStep.NORMAL
             await page.keyboard.down("KeyW")
             await wait_until(lambda: vehicle.command[0] > 0.3, timeout=5)
             await page.close(run_before_unload=False)
