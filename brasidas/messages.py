@@ -101,6 +101,8 @@ class SessionClosed:
 class LightsState:
     main: bool = False
     positional: bool = False
+    errors: dict[str, str] = field(default_factory=dict)
+    """Why a light cannot be switched (its GPIO chip missing, its line busy), by light."""
 
 
 @dataclass(frozen=True)

@@ -52,11 +52,15 @@ async def start_simulators(ctx: PlatformContext) -> SimulatedDevices:
     if not config.sim.enabled:
         return SimulatedDevices()
     vehicle = vehicle_for(config)
-    ax3500 = lights = gps = chip = i2c_bus = None
+    ax3500 = gpio = gps = chip = i2c_bus = None
     if config.motor.enabled:
-        ax3500, lights = await ax3500_sim.start_simulator(
-            ctx.bus, ctx.supervisor, config.motor, vehicle
-        )
+        ax3500 = ax3500_sim.start_simulator(ctx.bus, ctx.supervisor, config.motor, vehicle)
+        if not config.motor.positional_lights_output:
+            # The AX3500 has one accessory output (C); the positional lights hang off a GPIO
+            # line, as on the Pi: a simulated chip stands in for libgpiod's.
+            from platformd.sim.gpio import SimulatedGpio
+
+            gpio = SimulatedGpio()
     if config.gps.enabled:
         gps = gps_sim.start_simulator(ctx.bus, ctx.supervisor, config.gps, vehicle)
     if config.imu.enabled:
@@ -64,7 +68,7 @@ async def start_simulators(ctx: PlatformContext) -> SimulatedDevices:
     turret = None
     if "turret" in config.payload.enabled:
         turret = turret_sim.start_simulator(ctx.bus, ctx.supervisor, config.payload)
-    return SimulatedDevices(vehicle, ax3500, lights, gps, chip, i2c_bus, turret)
+    return SimulatedDevices(vehicle, ax3500, gpio, gps, chip, i2c_bus, turret)
 
 
 class PlatformDaemon(Daemon):

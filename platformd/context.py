@@ -84,10 +84,14 @@ class PlatformContext:
 
     @property
     def positional_lights_output(self) -> str:
-        """``motor.positional_lights_output``, or in --sim the simulator's GPIO file."""
-        if self.sim.positional_lights is not None:
-            return f"gpio:{self.sim.positional_lights}"
-        return self.config.motor.positional_lights_output
+        """``motor.positional_lights_output``; when empty in --sim, a line of the simulated
+        GPIO chip (``ctx.sim.gpio``)."""
+        configured = self.config.motor.positional_lights_output
+        if not configured and self.sim.gpio is not None:
+            from platformd.sim.gpio import SIM_LIGHTS_OUTPUT
+
+            return SIM_LIGHTS_OUTPUT
+        return configured
 
     @property
     def gps_port(self) -> str:

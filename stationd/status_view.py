@@ -231,9 +231,11 @@ def _age(age_ms: int | None) -> str:
 
 
 def _lights(lights: Lights) -> str:
-    return (
+    text = (
         f"main {'ON' if lights.main else 'off'}  positional {'ON' if lights.positional else 'off'}"
     )
+    errors = "; ".join(f"{which}: {error}" for which, error in sorted(lights.errors.items()))
+    return f"{text}  ({errors})" if errors else text
 
 
 def _battery(battery: Battery) -> str:

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 import serial
 from conftest import quiet_platform_config, wait_until
+from gpiod.line import Value
 
 from brasidas import topics
 from brasidas.actor import Supervisor
@@ -30,7 +31,9 @@ from platformd import motor
 from platformd.app import PlatformDaemon
 from platformd.context import PlatformContext
 from platformd.motor import MotorController
+from platformd.sim import SimulatedDevices
 from platformd.sim.ax3500 import Ax3500Simulator, SimOptions
+from platformd.sim.gpio import SimulatedGpio
 from platformd.sim.vehicle import VehicleModel
 from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
@@ -44,16 +47,23 @@ async def driven(
     *overrides: str,
     options: SimOptions | None = None,
     clock: ManualClock | None = None,
+    gpio: SimulatedGpio | None = None,
 ) -> AsyncIterator[tuple[PlatformContext, Ax3500Simulator]]:
     """A simulator behind a stable link and the driver on it, in a bare platform context;
-    with ``clock``, both keep time by it (the serial line stays real)."""
+    with ``clock``, both keep time by it (the serial line stays real); ``gpio`` stands in
+    for libgpiod's chips."""
     sim = Ax3500Simulator(
         options or SimOptions(), link=str(tmp_path / "ax3500"), clock=clock, record=True
     )
     sim.start()
     config = quiet_platform_config("motor.enabled=true", f"motor.port={sim.path}", *overrides)
     ctx = PlatformContext(
-        config=config, bus=Bus(), supervisor=Supervisor(), rpc=Dispatcher(), fleet_key=None
+        config=config,
+        bus=Bus(),
+        supervisor=Supervisor(),
+        rpc=Dispatcher(),
+        fleet_key=None,
+        sim=SimulatedDevices(gpio=gpio),
     )
     await motor.async_setup(ctx, clock=clock)
     try:
@@ -259,16 +269,16 @@ async def test_shutdown_commands_zero_first(tmp_path: Path) -> None:
 
 
 async def test_lights_and_battery_monitor_commands(tmp_path: Path) -> None:
-    gpio = tmp_path / "gpio17"
-    gpio.write_text("0\n")
-    async with driven(tmp_path, f"motor.positional_lights_output=gpio:{gpio}") as (ctx, sim):
+    gpio = SimulatedGpio()
+    output = "motor.positional_lights_output=gpio:/dev/gpiochip0:17"
+    async with driven(tmp_path, output, gpio=gpio) as (ctx, sim):
         lights: list[LightsState] = []
         ctx.bus.subscribe(topics.LIGHTS_STATE, lights.append)
         await connected(ctx)
         result = await ctx.commands.dispatch(MAIN_LIGHTS, "ON", None)
         assert result.accepted and sim.device.outputs["C"] and lights[-1] == LightsState(True)
         result = await ctx.commands.dispatch(POSITIONAL_LIGHTS, "ON", None)
-        assert result.accepted and gpio.read_text() == "1\n"
+        assert result.accepted and gpio.value("/dev/gpiochip0", 17) is Value.ACTIVE
         assert lights[-1] == LightsState(True, True)
         result = await ctx.commands.dispatch(MAIN_LIGHTS, "maybe", None)
         assert not result.accepted
@@ -286,7 +296,7 @@ async def test_lights_and_battery_monitor_commands(tmp_path: Path) -> None:
         await wait_until(lambda: not status(ctx).connected)  # type: ignore[union-attr]
         assert not (await ctx.commands.dispatch(MAIN_LIGHTS, "OFF", None)).accepted
         assert (await ctx.commands.dispatch(POSITIONAL_LIGHTS, "OFF", None)).accepted
-        assert gpio.read_text() == "0\n"
+        assert gpio.value("/dev/gpiochip0", 17) is Value.INACTIVE
 
 
 async def test_positional_lights_not_fitted(tmp_path: Path) -> None:

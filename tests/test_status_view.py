@@ -142,7 +142,11 @@ async def test_status_prints_connection_and_telemetry(
     assert "lights     main off  positional ON" in out and "WARNINGS   none" in out
     code, out, _ = await run_cli(station, "status", "rover-4", "--json")
     status = json.loads(out)
-    assert status["telemetry"]["snapshot"]["lights"] == {"main": False, "positional": True}
+    assert status["telemetry"]["snapshot"]["lights"] == {
+        "main": False,
+        "positional": True,
+        "errors": {},
+    }
     assert status["telemetry"]["schema"] == SCHEMA_VERSION
     assert status["telemetry"]["link"]["received"] >= 1
 

@@ -64,7 +64,7 @@ async def test_station_receives_verified_telemetry_and_refuses_forgeries(
     snapshot = report["snapshot"]
     assert report["schema"] == SCHEMA_VERSION
     assert snapshot["override"] == {"mode": "autonomous", "engaged": False, "station": None}
-    assert snapshot["lights"] == {"main": True, "positional": False}
+    assert snapshot["lights"] == {"main": True, "positional": False, "errors": {}}
     assert snapshot["computer"]["mem_free_mb"] > 0 and len(snapshot["computer"]["load"]) == 3
     assert snapshot["diagnostics"] is None
     assert report["link"]["loss_pct"] == 0.0 and report["link"]["rejected_total"] == 0

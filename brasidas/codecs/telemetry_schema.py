@@ -24,9 +24,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 """Version of the schema (and the datagram layout); the first byte of every datagram.
-4: the failsafe, speed_cap and turret sections, the velocity link's ``held`` drops."""
+4: the failsafe, speed_cap and turret sections, the velocity link's ``held`` drops.
+5: the lights' ``errors`` (GPIO lines), the turret's ``streams``."""
 ERROR_KEY = "!"
 """A section's wire map holding only this key is that section's error."""
 STALE_PERIODS = 3.0
@@ -93,6 +94,10 @@ class Lights(Section):
     WIRE = "li"
     main: bool = field(default=False, metadata=wire("m"))
     positional: bool = field(default=False, metadata=wire("p"))
+    errors: dict[str, str] = field(
+        default_factory=dict,
+        metadata=wire("e", doc="why a light cannot be switched (GPIO chip missing, line busy)"),
+    )
 
 
 @dataclass(frozen=True)

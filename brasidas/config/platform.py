@@ -41,12 +41,52 @@ TEST_PATTERNS = (
 )
 """GStreamer's videotestsrc patterns."""
 
+GPIO_PREFIX = "gpio:"
+
+
+@dataclass(frozen=True)
+class GpioLine:
+    """An output on a GPIO line, ``gpio:CHIP:LINE`` in the config (libgpiod's character
+    device, never sysfs): ``CHIP`` ``/dev/gpiochip0`` or ``gpiochip0``, ``LINE`` an offset
+    (``17``) or a line name (``GPIO17``)."""
+
+    chip: str
+    """The character device's path, e.g. ``/dev/gpiochip0``."""
+    line: int | str
+    """Its offset on the chip, or its name."""
+
+    @classmethod
+    def parse(cls, output: str) -> GpioLine:
+        """ValueError unless ``output`` is ``gpio:CHIP:LINE``."""
+        chip, sep, line = output.removeprefix(GPIO_PREFIX).rpartition(":")
+        line = line.strip()
+        if not output.startswith(GPIO_PREFIX) or not sep or not chip or not line:
+            raise ValueError(f"not gpio:CHIP:LINE: {output!r}")
+        if "/" not in chip:
+            chip = f"/dev/{chip}"
+        if not chip.startswith("/dev/"):
+            raise ValueError(f"{chip} is not a GPIO character device (/dev/gpiochipN)")
+        return cls(chip, int(line) if line.isdecimal() else line)
+
+    def __str__(self) -> str:
+        return f"{self.chip}:{self.line}"
+
+
+def _gpio_line(value: str) -> bool:
+    try:
+        GpioLine.parse(value)
+    except ValueError:
+        return False
+    return True
+
+
 lights_output = Check(
-    'empty, one controller output letter (e.g. "C") or "gpio:PATH"',
+    'empty, one controller output letter (e.g. "C") or a GPIO line "gpio:CHIP:LINE" '
+    '(e.g. "gpio:/dev/gpiochip0:17"; libgpiod, sysfs paths are not accepted)',
     lambda value: (
         value == ""
         or (len(value) == 1 and value.isascii() and value.isalpha())
-        or (value.startswith("gpio:") and len(value) > len("gpio:"))
+        or _gpio_line(value)
     ),
 )
 
@@ -146,10 +186,11 @@ class MotorSection:
     reconnect_max: float = setting(5.0, above(0, most=300))
     """Longest wait between attempts to reopen a missing or silent controller (backoff cap)."""
     main_lights_output: str = setting("C", lights_output)
-    """Main lights (10.6): a controller output letter, or "gpio:PATH" (a GPIO value file)."""
+    """Main lights (10.6): a controller output letter, or "gpio:CHIP:LINE", a line driven
+    through libgpiod (e.g. "gpio:/dev/gpiochip0:17": offset 17, or "gpio:gpiochip0:GPIO17")."""
     positional_lights_output: str = setting("", lights_output)
     """Positional lights (10.7), as main_lights_output. Empty: not fitted, 10.7 is refused
-    (in --sim: a GPIO value file of the simulator's)."""
+    (in --sim: line 17 of a simulated /dev/gpiochip0)."""
 
 
 @dataclass(frozen=True)

@@ -71,7 +71,8 @@ class MotorController(Actor):
         """Channel levels the controller acknowledged; None: unknown, send again."""
         self.battery_monitor = ctx.config.telemetry.battery_monitor
         outputs = {"main": config.main_lights_output, "positional": ctx.positional_lights_output}
-        self.lights = Lights(ctx.bus, outputs)
+        gpio = ctx.sim.gpio
+        self.lights = Lights(ctx.bus, outputs, gpio.request_lines if gpio is not None else None)
         self.status = ControllerStatus(False, battery_monitor=self.battery_monitor)
         self.counters: dict[str, int] = dict.fromkeys(
             (

@@ -8,12 +8,12 @@ context then names what the drivers open (``ctx.motor_serial``, ``ctx.gps_port``
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the simulators import the context, which holds this
     from brasidas.drivers.mpu6050 import BusFactory
     from platformd.sim.ax3500 import Ax3500Simulator
+    from platformd.sim.gpio import SimulatedGpio
     from platformd.sim.gps import GpsSimulator
     from platformd.sim.mpu6050 import Mpu6050
     from platformd.sim.turret import TurretSimulator
@@ -28,8 +28,9 @@ class SimulatedDevices:
     """The one vehicle model the simulators share (motor commands move it, sensors read it)."""
     ax3500: Ax3500Simulator | None = None
     """The motor controller, on a pty (its 8N1 line is ``ctx.motor_serial``)."""
-    positional_lights: Path | None = None
-    """A GPIO value file standing in for the positional lights (when none is configured)."""
+    gpio: SimulatedGpio | None = None
+    """GPIO chips standing in for the machine's (libgpiod's request API), when the positional
+    lights are not configured: they then hang on :data:`platformd.sim.gpio.SIM_LIGHTS_OUTPUT`."""
     gps: GpsSimulator | None = None
     """The NEO-6M, on a pty; None when ``gps.port`` names another device."""
     mpu6050: Mpu6050 | None = None

@@ -25,13 +25,10 @@ import asyncio
 import contextlib
 import logging
 import os
-import shutil
-import tempfile
 import tty
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 
 from brasidas.actor import Actor, Supervisor, wait_forever
 from brasidas.bus import Bus
@@ -568,16 +565,12 @@ class SimulatorOwner(Actor):
     def __init__(self, bus: Bus, simulator: Ax3500Simulator) -> None:
         super().__init__(bus)
         self.simulator = simulator
-        self.scratch: str | None = None
-        """A temporary directory to remove on stop."""
 
     async def run(self) -> None:
         try:
             await wait_forever()
         finally:
             self.simulator.close()
-            if self.scratch is not None:
-                shutil.rmtree(self.scratch, ignore_errors=True)
 
 
 def options_for(motor: MotorSection) -> SimOptions:
@@ -585,24 +578,14 @@ def options_for(motor: MotorSection) -> SimOptions:
     return SimOptions(left_turn="b" if motor.invert_angular else "B")
 
 
-async def start_simulator(
+def start_simulator(
     bus: Bus, supervisor: Supervisor, motor: MotorSection, vehicle: VehicleModel
-) -> tuple[Ax3500Simulator, Path | None]:
-    """In ``--sim``: a simulated controller on a pty (open it 8N1: ``ctx.motor_serial``), and
-    a GPIO value file for the positional lights when ``motor.positional_lights_output`` is empty.
-    """
+) -> Ax3500Simulator:
+    """In ``--sim``: a simulated controller on a pty (open it 8N1: ``ctx.motor_serial``)."""
     simulator = Ax3500Simulator(options_for(motor), vehicle=vehicle)
     simulator.start()  # now: the pty exists before the driver (or a bench tap) opens it
-    owner = SimulatorOwner(bus, simulator)
-    supervisor.start(owner)
-    if motor.positional_lights_output:
-        return simulator, None
-    # The AX3500 has one accessory output (C); in simulation the positional lights hang
-    # off a GPIO value file, as they would off a Pi's GPIO line.
-    directory = owner.scratch = tempfile.mkdtemp(prefix="brasidas-sim-")
-    gpio = Path(directory, "positional_lights")
-    await asyncio.to_thread(gpio.write_text, "0\n")
-    return simulator, gpio
+    supervisor.start(SimulatorOwner(bus, simulator))
+    return simulator
 
 
 # --------------------------------------------------------------------------- standalone

@@ -191,7 +191,7 @@ class TelemetryAggregator(Actor):
 
     def lights_section(self) -> Lights | None:
         lights = self.bus.last(topics.LIGHTS_STATE)
-        return None if lights is None else Lights(lights.main, lights.positional)
+        return None if lights is None else Lights(lights.main, lights.positional, lights.errors)
 
     def battery_section(self) -> Battery | None:
         status = self.bus.last(topics.CONTROLLER_STATUS)
