@@ -14,7 +14,12 @@ and 10.3 pauses them all, and the signaling methods ``start_stream(name, host, p
 
 Every state change is published on ``STREAM_STATES`` (telemetry marks a failed stream as a
 fault); a failed stream is rebuilt with backoff by its supervisor task, the others go on.
-Streams started by a session stop when that session ends.
+
+Each session that starts a stream gets its own copy: the NavCam, the microphone and the payload
+camera are sent to every destination asked for (``multiudpsink``), and the platform listens
+for the station's voice while any session wants it. A session's stop (or its end) ends its
+copy only; a stream stops when nobody wants it any more. Pausing and the framerate act on
+every copy: control methods, for the station holding control (platformd.authority).
 """
 
 from __future__ import annotations
@@ -41,12 +46,12 @@ from brasidas.codecs.commands import (
 )
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
 from brasidas.media.audio import AudioIn, AudioOut, AudioSettings
+from brasidas.media.fanout import FanOutStream
 from brasidas.media.navcam import FrameratePolicy, navcam_settings, parse_framerate
 from brasidas.media.pipeline import PipelineStream, StreamState
 from brasidas.media.relay import ForwardSettings, RtspForward
 from brasidas.media.video import VideoOut
 from brasidas.messages import CommandResult, OverrideState, SessionClosed, StreamStatus
-from platformd.authority import CONTROL_REFUSED
 from platformd.automation import report_switch
 from platformd.commands import SystemCommand
 from platformd.context import PlatformContext
@@ -68,10 +73,9 @@ class MediaService(Actor):
         super().__init__(ctx.bus)
         self.ctx = ctx
         self.streams: dict[str, PipelineStream] = {}
-        self.owners: dict[str, str | None] = {}
-        """Session that started each stream (None: started locally)."""
         self.viewers: dict[str, dict[str | None, tuple[str, int]]] = {}
-        """Each video stream's destinations, by the session that asked (None: locally)."""
+        """Each stream's destinations, by the session that asked (None: the platform itself);
+        for ``audio_in``, the platform's own listening address."""
         self.navcam: VideoOut | None = None
         navcam = ctx.config.navcam
         self.framerate = FrameratePolicy(
@@ -172,12 +176,7 @@ class MediaService(Actor):
             self.navcam.set_framerate(fps)
 
     def _on_session_closed(self, event: SessionClosed) -> None:
-        wanted = [name for name, owner in self.owners.items() if owner == event.session_id]
-        wanted += [
-            name
-            for name, viewers in self.viewers.items()
-            if event.session_id in viewers and name not in wanted
-        ]
+        wanted = [name for name, viewers in self.viewers.items() if event.session_id in viewers]
         for name in wanted:
             self._spawn(self.stop_stream(name, session_id=event.session_id), f"media:stop:{name}")
 
@@ -200,12 +199,7 @@ class MediaService(Actor):
         async def start_all() -> CommandResult:
             states = {}
             for name in self.streams:
-                try:
-                    states[name] = await self.start_stream(
-                        name, host, session_id=command.session_id
-                    )
-                except StreamRefused:
-                    states[name] = self.streams[name].state  # another station's: left alone
+                states[name] = await self.start_stream(name, host, session_id=command.session_id)
             return _summary(states)
 
         return await self._in_group(start_all(), command)
@@ -214,10 +208,7 @@ class MediaService(Actor):
         async def stop_all() -> CommandResult:
             states = {}
             for name in self.streams:
-                try:
-                    states[name] = await self.stop_stream(name, session_id=command.session_id)
-                except StreamRefused:
-                    states[name] = self.streams[name].state  # another station's: left alone
+                states[name] = await self.stop_stream(name, session_id=command.session_id)
             return _summary(states)
 
         return await self._in_group(stop_all(), command)
@@ -290,37 +281,19 @@ class MediaService(Actor):
     async def start_stream(
         self, name: str, host: str = "", port: int = 0, *, session_id: str | None = None
     ) -> StreamState:
-        """Start (or resume) a stream for ``session_id``, sending to ``host:port`` when given.
-
-        A video stream is sent to every session that started it, each at its own destination;
-        another stream goes to one destination, which only the session that started it (or
-        the platform) may move. StreamRefused otherwise.
+        """Start (or resume) ``session_id``'s copy of a stream, sent to ``host:port`` (the
+        stream's configured address for what is not given). A stream sent out goes to every
+        session that started it, each at its own destination; ``audio_in`` listens while any
+        session wants it. One session's start never moves another's copy.
         """
         stream = self.get(name)
-        if isinstance(stream, VideoOut):
-            viewers = self.viewers.setdefault(name, {})
-            video = stream.settings
-            viewers[session_id] = (host or video.host, port or video.port)
-            stream.set_destinations(list(viewers.values()))
-            return await stream.start()
-        if isinstance(stream, AudioOut | RtspForward):
+        viewers = self.viewers.setdefault(name, {})
+        if isinstance(stream, FanOutStream):
             settings = stream.settings
-            moved = (host and host != settings.host) or (port and port != settings.port)
-            owner = self.owners.get(name)
-            if (
-                moved
-                and stream.wanted is not StreamState.IDLE
-                and owner is not None
-                and owner != session_id
-            ):
-                raise StreamRefused(f"stream {name} is sent to {self._station(owner)}")
-            if host:
-                settings.host = host
-            if port:
-                settings.port = port
-            if moved and stream.pipeline is not None:
-                await stream.stop()  # the destination is fixed in the pipeline: rebuild
-        self.owners[name] = session_id
+            viewers[session_id] = (host or settings.host, port or settings.port)
+            stream.set_destinations(list(viewers.values()))
+        else:
+            viewers[session_id] = ("", 0)  # the platform's own address: nothing to choose
         return await stream.start()
 
     async def pause_stream(self, name: str) -> StreamState:
@@ -328,28 +301,17 @@ class MediaService(Actor):
 
     async def stop_stream(self, name: str, *, session_id: str | None = None) -> StreamState:
         """Stop ``session_id``'s copy of a stream; the stream stops when nobody else wants it.
-
-        A session stops only what it started (StreamRefused otherwise); the platform, anything.
-        """
+        The platform itself (``session_id`` None) stops it for everyone."""
         stream = self.get(name)
-        viewers = self.viewers.get(name, {})
+        viewers = self.viewers.setdefault(name, {})
         if session_id is not None:
-            if isinstance(stream, VideoOut):
-                viewers.pop(session_id, None)
-                if viewers:
+            viewers.pop(session_id, None)
+            if viewers:
+                if isinstance(stream, FanOutStream):
                     stream.set_destinations(list(viewers.values()))
-                    return stream.state
-            else:
-                owner = self.owners.get(name)
-                if owner is not None and owner != session_id:
-                    raise StreamRefused(f"stream {name} was started by {self._station(owner)}")
+                return stream.state
         viewers.clear()
-        self.owners.pop(name, None)
         return await stream.stop()
-
-    def _station(self, session_id: str) -> str:
-        session = self.ctx.session(session_id)
-        return f"station {session.station_id}" if session is not None else "another station"
 
     def set_framerate(self, name: str, raw: Any) -> int:
         """10.5: the framerate of a video stream in the current mode; ValueError if invalid."""
@@ -379,10 +341,7 @@ class MediaService(Actor):
             raise RpcError(INVALID_PARAMS, f"invalid params: {err}") from None
         if port and not 1 <= port <= 65535:
             raise RpcError(INVALID_PARAMS, "invalid params: port must be 1-65535")
-        try:
-            await self.start_stream(self._rpc_name(name), host, port, session_id=session_id)
-        except StreamRefused as err:
-            raise RpcError(CONTROL_REFUSED, str(err)) from None
+        await self.start_stream(self._rpc_name(name), host, port, session_id=session_id)
         return self.streams[name].describe()
 
     async def rpc_pause_stream(self, call: CallContext, name: str) -> dict[str, Any]:
@@ -391,12 +350,9 @@ class MediaService(Actor):
 
     async def rpc_stop_stream(self, call: CallContext, name: str) -> dict[str, Any]:
         session: Session | None = call.session
-        try:
-            await self.stop_stream(
-                self._rpc_name(name), session_id=session.session_id if session else None
-            )
-        except StreamRefused as err:
-            raise RpcError(CONTROL_REFUSED, str(err)) from None
+        await self.stop_stream(
+            self._rpc_name(name), session_id=session.session_id if session else None
+        )
         return self.streams[name].describe()
 
     async def rpc_list_streams(self, call: CallContext) -> list[dict[str, Any]]:
@@ -417,10 +373,6 @@ class MediaService(Actor):
         info["destination"] = self.navcam.destination() if info["state"] != "idle" else None
         info["framerates"] = dict(self.framerate.rates)
         return info
-
-
-class StreamRefused(Exception):
-    """A session asked to move or stop a stream another station started."""
 
 
 def host_from_payload(payload: str, default: str = "") -> str:

@@ -12,11 +12,13 @@ from typing import Any
 import pytest
 from conftest import free_tcp_port, free_udp_port, quiet_platform_config, wait_until
 
+from brasidas.codecs.jsonrpc import RpcError
 from brasidas.media.audio import AudioIn, AudioOut, AudioSettings
 from brasidas.media.gst import gst
 from brasidas.media.pipeline import StreamState
 from brasidas.media.video import VideoIn
 from platformd.app import PlatformDaemon
+from platformd.authority import CONTROL_REFUSED
 from stationd.client import PlatformConnection
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
@@ -234,3 +236,117 @@ async def test_200_starts_and_stops_leave_memory_flat() -> None:
     assert figures["playing"] == 200
     growth = figures["after"] - figures["before"]
     assert growth < 6.0, f"RSS grew {growth:.1f} MB over 200 start/stop cycles"
+
+
+# --------------------------------------------------------------------------- two stations
+
+
+async def station(daemon: PlatformDaemon, key: bytes, name: str) -> PlatformConnection:
+    conn = PlatformConnection(
+        daemon.config.platform.id, daemon.ctx.signaling_url, station_id=name, fleet_key=key
+    )
+    await conn.open()
+    return conn
+
+
+async def more_audio(stream: AudioIn, count: int = 10) -> None:
+    before = stream.buffers
+    await wait_until(lambda: stream.buffers >= before + count, timeout=10)
+
+
+async def more_frames(stream: VideoIn, count: int = 5) -> None:
+    before = stream.frames
+    await wait_until(lambda: stream.frames >= before + count, timeout=10)
+
+
+async def test_two_stations_each_get_the_microphone_and_the_payload_camera(
+    platform_factory: Factory, fleet_key: bytes, rtsp_camera: RtspServer
+) -> None:
+    daemon = await platform_factory(
+        quiet_platform_config(
+            "sim.enabled=true",
+            "audio.enabled=true",
+            f"audio.in_port={free_udp_port()}",
+            "payload_camera.enabled=true",
+            f"payload_camera.url={rtsp_camera.url}",
+        ),
+        fleet_key,
+    )
+    ears = [AudioIn(f"ear-{i}", port=free_udp_port(), sink="fakesink") for i in range(2)]
+    eyes = [VideoIn(f"eye-{i}", host="127.0.0.1", port=free_udp_port()) for i in range(2)]
+    for receiver in (*ears, *eyes):
+        await receiver.start()
+    alpha = await station(daemon, fleet_key, "alpha")
+    bravo = await station(daemon, fleet_key, "bravo")
+    try:
+        # alpha holds control; bravo observes. Each asks for both streams at its own port.
+        assert (await alpha.call("issue_system_command", group=10, command=0, payload="True"))[
+            "accepted"
+        ]
+        for conn, ear, eye in ((alpha, ears[0], eyes[0]), (bravo, ears[1], eyes[1])):
+            await conn.call("start_stream", name="audio_out", port=ear.port)
+            started = await conn.call("start_stream", name="payload_camera", port=eye.port)
+            assert started["state"] == "playing"
+        assert sorted(started["destinations"]) == sorted(f"127.0.0.1:{e.port}" for e in eyes)
+        # Both receive at once: the second start did not take them from the first.
+        await asyncio.gather(*(more_audio(ear) for ear in ears), *(more_frames(e) for e in eyes))
+        assert all(ear.hears_sound for ear in ears)
+
+        # The observer may not pause what the controller receives...
+        for name in ("audio_out", "payload_camera"):
+            with pytest.raises(RpcError) as info:
+                await bravo.call("pause_stream", name=name)
+            assert info.value.code == CONTROL_REFUSED and "alpha" in info.value.message
+        # ...and its stop ends its own copy only.
+        for name in ("audio_out", "payload_camera"):
+            assert (await bravo.call("stop_stream", name=name))["state"] == "playing"
+        await asyncio.gather(more_audio(ears[0]), more_frames(eyes[0]))  # alpha's go on
+        heard, seen = ears[1].buffers, eyes[1].frames
+        await asyncio.gather(more_audio(ears[0], 25), more_frames(eyes[0], 8))
+        assert ears[1].buffers - heard <= 3 and eyes[1].frames - seen <= 1  # in flight only
+
+        # The controller's session ending leaves the observer's copies running.
+        await bravo.call("start_stream", name="audio_out", port=ears[1].port)
+        await bravo.call("start_stream", name="payload_camera", port=eyes[1].port)
+        await alpha.close()
+        await wait_until(lambda: daemon.ctx.session_count == 1)
+        await asyncio.gather(more_audio(ears[1]), more_frames(eyes[1]))
+        media = daemon.ctx.media
+        assert media is not None
+        for name, receiver in (("audio_out", ears[1]), ("payload_camera", eyes[1])):
+            stream = media.streams[name]  # type: ignore[attr-defined]
+            assert stream.describe()["destinations"] == [f"127.0.0.1:{receiver.port}"]
+        # The last copy stopped, the stream stops.
+        assert (await bravo.call("stop_stream", name="audio_out"))["state"] == "idle"
+    finally:
+        await alpha.close()
+        await bravo.close()
+        for receiver in (*ears, *eyes):
+            await receiver.stop()
+
+
+async def test_the_platform_listens_while_any_station_talks(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    platform_port = free_udp_port()
+    daemon = await platform_factory(
+        quiet_platform_config(
+            "sim.enabled=true", "audio.enabled=true", f"audio.in_port={platform_port}"
+        ),
+        fleet_key,
+    )
+    alpha = await station(daemon, fleet_key, "alpha")
+    bravo = await station(daemon, fleet_key, "bravo")
+    microphone = AudioOut("station-mic", AudioSettings(test_source=True, port=platform_port))
+    try:
+        for conn in (alpha, bravo):
+            assert (await conn.call("start_stream", name="audio_in"))["state"] == "playing"
+        assert (await alpha.call("stop_stream", name="audio_in"))["state"] == "playing"
+        await microphone.start()
+        platform_speaker = daemon.ctx.media.streams["audio_in"]  # type: ignore[union-attr]
+        await wait_until(lambda: platform_speaker.hears_sound, timeout=8)
+        assert (await bravo.call("stop_stream", name="audio_in"))["state"] == "idle"
+    finally:
+        await microphone.stop()
+        await alpha.close()
+        await bravo.close()

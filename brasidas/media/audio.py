@@ -1,7 +1,8 @@
 """Opus over RTP: a microphone out (the seed's PiGstAudioOut) and a speaker in (PiGstAudioIn).
 
 Out: ALSA capture (or ``audiotestsrc`` in sim and tests) → 48 kHz mono → ``opusenc`` (20 ms
-frames, low-delay) → ``rtpopuspay`` → ``udpsink sync=false``. In: ``udpsrc`` with explicit caps
+frames, low-delay) → ``rtpopuspay`` → ``multiudpsink sync=false``, one destination per station
+(:mod:`brasidas.media.fanout`). In: ``udpsrc`` with explicit caps
 → a small jitter buffer → ``rtpopusdepay`` → ``opusdec`` → S16 → ALSA playback (or
 ``fakesink``), with the peak level of what was received, so a test can tell sound from silence.
 """
@@ -13,6 +14,7 @@ from array import array
 from dataclasses import dataclass
 from typing import Any
 
+from brasidas.media.fanout import Destinations, FanOutStream
 from brasidas.media.gst import caps, gst, link_all, make
 from brasidas.media.pipeline import PipelineStream
 
@@ -26,37 +28,26 @@ SILENCE_PEAK = 64
 
 
 @dataclass
-class AudioSettings:
+class AudioSettings(Destinations):
     device: str = ""
     """ALSA device (``hw:1,0``); empty: the system default."""
     test_source: bool = False
     """A 440 Hz test tone instead of the microphone (sim, tests)."""
     bitrate: int = 24000
-    host: str = "127.0.0.1"
     port: int = 5602
 
 
-class AudioOut(PipelineStream):
-    """Microphone → Opus → RTP/UDP."""
+class AudioOut(FanOutStream[AudioSettings]):
+    """Microphone → Opus → RTP/UDP to each station asking."""
 
     kind = "audio_out"
 
-    def __init__(self, name: str, settings: AudioSettings, **kwargs: Any) -> None:
-        super().__init__(name, **kwargs)
-        self.settings = settings
-
-    def destination(self) -> str:
-        return f"{self.settings.host}:{self.settings.port}"
-
     def describe(self) -> dict[str, Any]:
-        s = self.settings
         return {
             **super().describe(),
             "codec": "OPUS",
-            "bitrate": s.bitrate,
+            "bitrate": self.settings.bitrate,
             "rtp_caps": RTP_AUDIO_CAPS,
-            "host": s.host,
-            "port": s.port,
         }
 
     def build(self) -> Any:
@@ -80,7 +71,7 @@ class AudioOut(PipelineStream):
                 audio_type="restricted-lowdelay",
             ),
             make("rtpopuspay", pt=AUDIO_PAYLOAD_TYPE),
-            make("udpsink", "sink", host=s.host, port=s.port, sync=False, async_=False),
+            self.make_sink(),
         ]
         for element in chain:
             pipeline.add(element)

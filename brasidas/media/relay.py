@@ -2,7 +2,8 @@
 
 The seed's PiGstUDPThru. ``rtspsrc`` pulls the camera's RTP; the H.264 access units are
 re-packetised (``rtph264depay ! rtph264pay config-interval=-1 mtu=1200``), never decoded, so
-the station gets in-band SPS/PPS and packets that fit the mesh MTU, as from the NavCam.
+the station gets in-band SPS/PPS and packets that fit the mesh MTU, as from the NavCam; like
+it, each station asking gets its own copy (``multiudpsink``, :mod:`brasidas.media.fanout`).
 """
 
 from __future__ import annotations
@@ -10,8 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from brasidas.media.fanout import Destinations, FanOutStream
 from brasidas.media.gst import gst, link_all, make
-from brasidas.media.pipeline import PipelineStream
 from brasidas.media.video import PAYLOAD_TYPE
 
 RTP_FORWARD_CAPS = (
@@ -20,35 +21,24 @@ RTP_FORWARD_CAPS = (
 
 
 @dataclass
-class ForwardSettings:
+class ForwardSettings(Destinations):
     url: str = ""
     latency_ms: int = 50
-    host: str = "127.0.0.1"
     port: int = 5606
     mtu: int = 1200
 
 
-class RtspForward(PipelineStream):
-    """RTSP (H.264) → RTP/UDP to one host, no decoding."""
+class RtspForward(FanOutStream[ForwardSettings]):
+    """RTSP (H.264) → RTP/UDP to each station asking, no decoding."""
 
     kind = "payload_camera"
 
-    def __init__(self, name: str, settings: ForwardSettings, **kwargs: Any) -> None:
-        super().__init__(name, **kwargs)
-        self.settings = settings
-
-    def destination(self) -> str:
-        return f"{self.settings.host}:{self.settings.port}"
-
     def describe(self) -> dict[str, Any]:
-        s = self.settings
         return {
             **super().describe(),
             "codec": "H264",
-            "source": s.url,
+            "source": self.settings.url,
             "rtp_caps": RTP_FORWARD_CAPS,
-            "host": s.host,
-            "port": s.port,
         }
 
     def explain(self, error: str) -> str:
@@ -67,7 +57,7 @@ class RtspForward(PipelineStream):
         chain = [
             depay,
             make("rtph264pay", config_interval=-1, mtu=s.mtu, pt=PAYLOAD_TYPE),
-            make("udpsink", "sink", host=s.host, port=s.port, sync=False, async_=False),
+            self.make_sink(),
         ]
         pipeline.add(source)
         for element in chain:

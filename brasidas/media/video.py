@@ -20,6 +20,7 @@ import weakref
 from dataclasses import dataclass
 from typing import Any
 
+from brasidas.media.fanout import Destinations, FanOutStream
 from brasidas.media.gst import (
     NTP64_EXT_ID,
     NTP64_URI,
@@ -62,7 +63,7 @@ def choose_encoder(forced: str = "") -> str:
 
 
 @dataclass
-class VideoSettings:
+class VideoSettings(Destinations):
     """What a :class:`VideoOut` sends; change fields, then ``set_framerate``/``restart``."""
 
     width: int = 640
@@ -82,15 +83,7 @@ class VideoSettings:
     """``videotestsrc horizontal-speed``: moves patterns such as smpte (bandwidth tests)."""
     encoder: str = ""
     """Force an encoder from :data:`ENCODERS`; empty: the first available."""
-    host: str = "127.0.0.1"
-    port: int = 5600
-    extra: tuple[tuple[str, int], ...] = ()
-    """Further destinations (observers' stations), each sent the same packets."""
     mtu: int = 1200
-
-    def clients(self) -> str:
-        """Every destination as ``multiudpsink``'s ``clients``: ``host:port,host:port``."""
-        return ",".join(f"{host}:{port}" for host, port in ((self.host, self.port), *self.extra))
 
     def effective_bitrate_kbps(self) -> int:
         """Bitrate for the current framerate: 5 fps monitoring needs a sixth of 30 fps."""
@@ -98,30 +91,16 @@ class VideoSettings:
         return max(MIN_BITRATE_KBPS, min(self.bitrate_kbps, round(share)))
 
 
-class VideoOut(PipelineStream):
-    """Camera → H.264 → RTP/UDP to one host (the seed's PiGstVideoOut)."""
+class VideoOut(FanOutStream[VideoSettings]):
+    """Camera → H.264 → RTP/UDP to each station asking (the seed's PiGstVideoOut)."""
 
     kind = "video_out"
 
     def __init__(self, name: str, settings: VideoSettings, **kwargs: Any) -> None:
-        super().__init__(name, **kwargs)
-        self.settings = settings
+        super().__init__(name, settings, **kwargs)
         self.encoder_name = ""
         self._encoder: Any = None
         self._rate_filter: Any = None
-        self._sink: Any = None
-
-    def destination(self) -> str:
-        return f"{self.settings.host}:{self.settings.port}"
-
-    def set_destinations(self, destinations: list[tuple[str, int]]) -> None:
-        """Send to each of ``destinations`` (at least one); applied live. Event loop."""
-        if not destinations:
-            raise ValueError("a video stream needs a destination")
-        s = self.settings
-        (s.host, s.port), s.extra = destinations[0], tuple(destinations[1:])
-        if self._sink is not None:
-            self._sink.set_property("clients", s.clients())
 
     def describe(self) -> dict[str, Any]:
         s = self.settings
@@ -134,9 +113,6 @@ class VideoOut(PipelineStream):
             "encoder": self.encoder_name or None,
             "bitrate_kbps": s.effective_bitrate_kbps(),
             "rtp_caps": RTP_VIDEO_CAPS,
-            "host": s.host,
-            "port": s.port,
-            "destinations": s.clients().split(","),
         }
 
     def set_framerate(self, fps: int) -> None:
@@ -179,7 +155,7 @@ class VideoOut(PipelineStream):
         extension = make("rtphdrextntp64", every_packet=True)
         extension.set_id(NTP64_EXT_ID)
         pay.emit("add-extension", extension)
-        sink = make("multiudpsink", "sink", clients=s.clients(), sync=False, async_=False)
+        sink = self.make_sink()
         chain = [
             *source_chain,
             stamp,
@@ -198,13 +174,12 @@ class VideoOut(PipelineStream):
         self.encoder_name = encoder_name
         self._encoder = encoder
         self._rate_filter = rate_filter
-        self._sink = sink
         return pipeline
 
     def on_torn_down(self) -> None:
+        super().on_torn_down()
         self._encoder = None
         self._rate_filter = None
-        self._sink = None
 
     def _source_elements(self) -> list[Any]:
         s = self.settings

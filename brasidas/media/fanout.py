@@ -1,0 +1,72 @@
+"""Streams sent to several UDP destinations at once, each station its own (``multiudpsink``).
+
+The NavCam, the microphone and the payload camera end in one ``multiudpsink`` whose
+``clients`` are every destination asked for: adding or removing one changes the property
+live, so a second station's start never takes the stream from the first and one station's
+stop never stops another's copy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Generic, TypeVar
+
+from brasidas.media.gst import make
+from brasidas.media.pipeline import PipelineStream
+
+
+@dataclass
+class Destinations:
+    """Where a fan-out stream goes: ``host:port`` first, then ``extra``. Settings inherit it."""
+
+    host: str = "127.0.0.1"
+    port: int = 5600
+    extra: tuple[tuple[str, int], ...] = ()
+    """Further destinations (other stations), each sent the same packets."""
+
+    def clients(self) -> str:
+        """Every destination as ``multiudpsink``'s ``clients``: ``host:port,host:port``."""
+        return ",".join(f"{host}:{port}" for host, port in ((self.host, self.port), *self.extra))
+
+
+D = TypeVar("D", bound=Destinations)
+
+
+class FanOutStream(PipelineStream, Generic[D]):
+    """A stream whose pipeline ends in :meth:`make_sink`; destinations change live."""
+
+    def __init__(self, name: str, settings: D, **kwargs: Any) -> None:
+        super().__init__(name, **kwargs)
+        self.settings = settings
+        self._sink: Any = None
+
+    def destination(self) -> str:
+        return f"{self.settings.host}:{self.settings.port}"
+
+    def set_destinations(self, destinations: list[tuple[str, int]]) -> None:
+        """Send to each of ``destinations`` (at least one); applied live. Event loop."""
+        if not destinations:
+            raise ValueError(f"stream {self.name} needs a destination")
+        s = self.settings
+        (s.host, s.port), s.extra = destinations[0], tuple(destinations[1:])
+        if self._sink is not None:
+            self._sink.set_property("clients", s.clients())
+
+    def describe(self) -> dict[str, Any]:
+        s = self.settings
+        return {
+            **super().describe(),
+            "host": s.host,
+            "port": s.port,
+            "destinations": s.clients().split(","),
+        }
+
+    def make_sink(self) -> Any:
+        """The pipeline's last element, sending to every destination (kept for live changes)."""
+        self._sink = make(
+            "multiudpsink", "sink", clients=self.settings.clients(), sync=False, async_=False
+        )
+        return self._sink
+
+    def on_torn_down(self) -> None:
+        self._sink = None
