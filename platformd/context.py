@@ -29,6 +29,17 @@ class SerialDevice:
     stopbits: int = 1
 
 
+@dataclass(frozen=True)
+class PayloadInfo:
+    """A payload the platform carries, as it registered itself (platformd.payloads)."""
+
+    name: str
+    groups: tuple[int, ...]
+    """Its command groups (100-110); each command's spec is the router's."""
+    streams: tuple[str, ...] = ()
+    """The media streams that are its own, e.g. the turret's thermal camera."""
+
+
 class MediaHandle(Protocol):
     """What other subsystems use of the media service (platformd.media.MediaService)."""
 
@@ -70,6 +81,8 @@ class PlatformContext:
     """Sources of the telemetry snapshot's sections, by schema type, and diagnostics counters."""
     media: MediaHandle | None = None
     """The media service (streams, NavCam), set by its setup (platformd.media)."""
+    payloads: dict[str, PayloadInfo] = field(default_factory=dict)
+    """The payloads carried, by name (platformd.payloads): none without ``payload.enabled``."""
 
     @property
     def motor_serial(self) -> SerialDevice:

@@ -83,7 +83,16 @@ def _describe_connection(summary: dict[str, Any]) -> str:
             )
             or "none"
         ),
-        f"payload    {caps.get('payload_groups') or 'none'}",
+        "payload    "
+        + (
+            ", ".join(
+                f"{p.get('name')} (groups {', '.join(map(str, p.get('groups', [])))}"
+                + (f"; streams {', '.join(p['streams'])}" if p.get("streams") else "")
+                + ")"
+                for p in caps.get("payloads", [])
+            )
+            or "none"
+        ),
         f"override   {'ENGAGED' if summary.get('manual_override') else 'disengaged'}",
     ]
     return "\n".join(lines)

@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 import serial_asyncio
-from conftest import quiet_platform_config, wait_until
+from conftest import free_tcp_port, quiet_platform_config, wait_until
 
 from brasidas.codecs import turret
 from brasidas.codecs.turret import Drop, Line, LineDecoder
@@ -154,3 +154,58 @@ async def test_engagement_only_from_the_override_holder_under_override(
     finally:
         await a.close()
         await b.close()
+
+
+async def test_the_turret_registers_the_thermal_camera_as_its_stream(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    camera = f"rtsp://127.0.0.1:{free_tcp_port()}/thermal"  # offline: the stream fails, listed
+    turret_with_camera = await platform_factory(
+        quiet_platform_config(
+            "sim.enabled=true",
+            'payload.enabled=["turret"]',
+            "payload_camera.enabled=true",
+            f"payload_camera.url={camera}",
+        ),
+        fleet_key,
+    )
+    camera_only = await platform_factory(
+        quiet_platform_config(
+            "platform.id=camera-only",
+            "payload_camera.enabled=true",
+            f"payload_camera.url={camera}",
+        ),
+        fleet_key,
+    )
+    turret_only = await platform_factory(
+        quiet_platform_config(
+            "platform.id=turret-only", "sim.enabled=true", 'payload.enabled=["turret"]'
+        ),
+        fleet_key,
+    )
+    a = await station(turret_with_camera, fleet_key, "alpha")
+    b = await station(camera_only, fleet_key, "alpha")
+    c = await station(turret_only, fleet_key, "alpha")
+    try:
+        turret_entry = {"name": "turret", "groups": [100], "streams": ["payload_camera"]}
+        assert a.capabilities["payloads"] == [turret_entry]
+        assert "payload_camera" in [s["name"] for s in a.capabilities["streams"]]
+        # A platform without the payload lists none, its camera staying a plain stream;
+        # one whose turret has no camera lists the turret without a stream.
+        assert b.capabilities["payloads"] == [] and b.capabilities["payload_groups"] == []
+        assert "payload_camera" in [s["name"] for s in b.capabilities["streams"]]
+        assert c.capabilities["payloads"] == [{**turret_entry, "streams": []}]
+        # Telemetry: the turret's section carries its stream's state, live.
+        report = await a.call("get_telemetry_report")
+        assert report["turret"]["streams"] == {"payload_camera": "idle"}
+        await a.call("start_stream", name="payload_camera")
+        forward = turret_with_camera.ctx.media.streams["payload_camera"]  # type: ignore[union-attr]
+        await wait_until(lambda: forward.state.value in ("playing", "failed"), timeout=10)
+        state = forward.state.value
+        report = await a.call("get_telemetry_report")
+        assert report["turret"]["streams"] == {"payload_camera": state}
+        assert (await c.call("get_telemetry_report"))["turret"]["streams"] == {}
+        assert "turret" not in await b.call("get_telemetry_report")
+    finally:
+        for conn in (a, b, c):
+            await conn.close()

@@ -287,6 +287,9 @@ class Turret(Section):
     trigger: bool = field(default=False, metadata=wire("t"))
     counters: dict[str, int] = field(default_factory=dict, metadata=wire("n"))
     """Sent, acked, resent, unacked, refused, watchdog releases, made safe."""
+    streams: dict[str, str] = field(
+        default_factory=dict, metadata=wire("s", doc="its own streams (the thermal camera): state")
+    )
 
 
 @dataclass(frozen=True)

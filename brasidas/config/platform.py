@@ -254,6 +254,9 @@ class PayloadSection:
     turret_watchdog_s: float = setting(0.5, above(0, most=10))
     """The microcontroller releases the trigger when no valid command came for this long; the
     driver pings at a third of it."""
+    turret_stream: str = setting("payload_camera", one_of("", "payload_camera"))
+    """The turret's sight, registered as its stream (connect's capabilities, telemetry): the
+    thermal IP camera of [payload_camera], when that is enabled. Empty: the turret has none."""
 
 
 @dataclass(frozen=True)

@@ -1,13 +1,26 @@
 """Payloads (issue 13): each enabled in ``payload.enabled`` registers its command groups
-(100-110) with the command router, with their specs (name, payload format, engagement)."""
+(100-110) with the command router, with their specs (name, payload format, engagement), and
+itself (:class:`~platformd.context.PayloadInfo`: its groups and its streams) on
+``ctx.payloads``, which ``connect``'s capabilities list as ``payloads``."""
 
 from __future__ import annotations
+
+from typing import Any
 
 from platformd.context import PlatformContext
 
 
 async def async_setup(ctx: PlatformContext) -> None:
+    ctx.capabilities["payloads"] = lambda: describe(ctx)
     if "turret" in ctx.config.payload.enabled:
         from platformd.payloads import turret
 
         await turret.async_setup(ctx)
+
+
+def describe(ctx: PlatformContext) -> list[dict[str, Any]]:
+    """Each payload carried: its name, command groups and streams (connect's ``payloads``)."""
+    return [
+        {"name": info.name, "groups": list(info.groups), "streams": list(info.streams)}
+        for info in ctx.payloads.values()
+    ]

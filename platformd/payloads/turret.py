@@ -4,7 +4,9 @@ and the actor that puts it on command group 100.
 100.0 ``aim`` (``az=<deg>,el=<deg>``), 100.1 ``fire`` (engagement: the command authority lets it
 through only from the override holder under manual override, no failsafe step in progress),
 100.2 ``safe``. On override release, session loss (which releases the override) or any failsafe
-step the turret is made safe at once: trigger released, servos hold.
+step the turret is made safe at once: trigger released, servos hold. Its sight, the thermal IP
+camera (``payload.turret_stream``: the ``payload_camera`` RTSP stream), is registered as its
+stream when the platform has it.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from brasidas.codecs.telemetry_schema import Turret
 from brasidas.codecs.turret import Line, LineDecoder
 from brasidas.messages import CommandResult, FailsafeState, FailsafeStep, OverrideState
 from platformd.commands import CommandSpec, SystemCommand
-from platformd.context import PlatformContext
+from platformd.context import PayloadInfo, PlatformContext
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -125,10 +127,12 @@ class TurretPayload(Actor):
 
     name = "turret"
 
-    def __init__(self, ctx: PlatformContext, port: str) -> None:
+    def __init__(self, ctx: PlatformContext, port: str, streams: tuple[str, ...] = ()) -> None:
         super().__init__(ctx.bus)
         self.ctx = ctx
         self.port = port
+        self.streams = streams
+        """Its own media streams (the thermal camera), by name."""
         self.config = ctx.config.payload
         self.driver: TurretDriver | None = None
         self.safings = 0
@@ -197,10 +201,21 @@ class TurretPayload(Actor):
     def section(self) -> Turret:
         """The ``turret`` telemetry section."""
         driver = self.driver
+        streams = self._stream_states()
         if driver is None:
-            return Turret(False, counters={"safe": self.safings})
+            return Turret(False, counters={"safe": self.safings}, streams=streams)
         azimuth, elevation, trigger = driver.state or (None, None, False)
-        return Turret(True, azimuth, elevation, trigger, {**driver.counters, "safe": self.safings})
+        counters = {**driver.counters, "safe": self.safings}
+        return Turret(True, azimuth, elevation, trigger, counters, streams)
+
+    def _stream_states(self) -> dict[str, str]:
+        if not self.streams or self.ctx.media is None:
+            return {}
+        return {
+            stream["name"]: stream["state"]
+            for stream in self.ctx.media.describe_streams()
+            if stream["name"] in self.streams
+        }
 
     def _on_override(self, state: OverrideState) -> None:
         engaged, self._engaged = self._engaged, state.engaged
@@ -214,7 +229,17 @@ class TurretPayload(Actor):
 
 async def async_setup(ctx: PlatformContext) -> None:
     simulator = ctx.sim.turret
-    port = simulator.path if simulator is not None else ctx.config.payload.turret_port
-    payload = TurretPayload(ctx, port)
+    config = ctx.config.payload
+    port = simulator.path if simulator is not None else config.turret_port
+    have = {stream["name"] for stream in ctx.media.describe_streams()} if ctx.media else set()
+    streams = (config.turret_stream,) if config.turret_stream in have else ()
+    if config.turret_stream and not streams:
+        _LOGGER.info(
+            "turret: no %s stream on this platform ([%s] not enabled): it lists none",
+            config.turret_stream,
+            config.turret_stream,
+        )
+    ctx.payloads["turret"] = PayloadInfo("turret", (GROUP,), streams)
+    payload = TurretPayload(ctx, port, streams)
     ctx.telemetry.register(Turret, payload.section)
     ctx.supervisor.start(payload)
