@@ -24,9 +24,11 @@ from stationd.client import PlatformConnection
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 
 
-async def open_session(daemon: PlatformDaemon, key: bytes) -> PlatformConnection:
+async def open_session(
+    daemon: PlatformDaemon, key: bytes, name: str = "st-1"
+) -> PlatformConnection:
     conn = PlatformConnection(
-        daemon.config.platform.id, daemon.ctx.signaling_url, station_id="st-1", fleet_key=key
+        daemon.config.platform.id, daemon.ctx.signaling_url, station_id=name, fleet_key=key
     )
     await conn.open()
     return conn
@@ -241,14 +243,6 @@ async def test_200_starts_and_stops_leave_memory_flat() -> None:
 # --------------------------------------------------------------------------- two stations
 
 
-async def station(daemon: PlatformDaemon, key: bytes, name: str) -> PlatformConnection:
-    conn = PlatformConnection(
-        daemon.config.platform.id, daemon.ctx.signaling_url, station_id=name, fleet_key=key
-    )
-    await conn.open()
-    return conn
-
-
 async def more_audio(stream: AudioIn, count: int = 10) -> None:
     before = stream.buffers
     await wait_until(lambda: stream.buffers >= before + count, timeout=10)
@@ -276,8 +270,8 @@ async def test_two_stations_each_get_the_microphone_and_the_payload_camera(
     eyes = [VideoIn(f"eye-{i}", host="127.0.0.1", port=free_udp_port()) for i in range(2)]
     for receiver in (*ears, *eyes):
         await receiver.start()
-    alpha = await station(daemon, fleet_key, "alpha")
-    bravo = await station(daemon, fleet_key, "bravo")
+    alpha = await open_session(daemon, fleet_key, "alpha")
+    bravo = await open_session(daemon, fleet_key, "bravo")
     try:
         # alpha holds control; bravo observes. Each asks for both streams at its own port.
         assert (await alpha.call("issue_system_command", group=10, command=0, payload="True"))[
@@ -335,8 +329,8 @@ async def test_the_platform_listens_while_any_station_talks(
         ),
         fleet_key,
     )
-    alpha = await station(daemon, fleet_key, "alpha")
-    bravo = await station(daemon, fleet_key, "bravo")
+    alpha = await open_session(daemon, fleet_key, "alpha")
+    bravo = await open_session(daemon, fleet_key, "bravo")
     microphone = AudioOut("station-mic", AudioSettings(test_source=True, port=platform_port))
     try:
         for conn in (alpha, bravo):
