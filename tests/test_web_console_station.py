@@ -12,7 +12,6 @@ import os
 import re
 import shutil
 from collections.abc import AsyncIterator, Awaitable, Callable
-from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +26,7 @@ from conftest import (
 )
 
 from brasidas import topics
+from brasidas.autonomy.geo import LocalFrame
 from brasidas.config import StationConfig, load_config
 from brasidas.messages import FailsafeStep
 from platformd.app import PlatformDaemon
@@ -169,6 +169,10 @@ async def planned_path(station: StationDaemon, platform_id: str) -> list[tuple[f
     return [(lat, lon) for lat, lon in report["snapshot"]["autonomy"]["path"]]
 
 
+def local_path(frame: LocalFrame, path: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    return [frame.to_local(lat, lon) for lat, lon in path]
+
+
 async def draw_polygon(page: Any, corners: list[tuple[float, float]]) -> None:
     """Click each [lat, lon] corner on the map, as the operator draws a keep-out."""
     box = await page.locator("#map").bounding_box()
@@ -192,31 +196,25 @@ async def keep_out_zones_drawn_and_removed(
     map has it and the path goes around it; it is removed again; a self-intersecting one is
     refused with the platform's reason and the map stays as it was."""
     from playwright.async_api import expect
-    from shapely.geometry import LineString, Point, Polygon
+    from shapely.geometry import LineString, Polygon, box
 
     patrol_answer = page.locator("#patrol-answer")
     keepouts = page.get_by_role("list", name="keep-out zones of the platform")
     await expect(keepouts.locator("li")).to_have_count(1)  # the demo field's shed
     await expect(keepouts).to_contain_text("keep-out shed")
-    # A 4 m square on the longest leg ahead of the robot, 10 m or more from it.
-    path = await planned_path(station, platform_id)
-    assert len(path) >= 2, path
-    robot = Point(path[0])
-    metre = 1 / 111_320  # in degrees of latitude (of longitude: 0.8 m here; the square is 4 x 3 m)
-    legs = sorted(pairwise(path), key=lambda leg: -Point(leg[0]).distance(Point(leg[1])))
-    centre = next(
-        point
-        for a, b in legs
-        for point in (LineString([a, b]).interpolate(f, normalized=True) for f in (0.6, 0.4))
-        if point.distance(robot) > 10 * metre
-    )
-    lat, lon = centre.x, centre.y
-    square = [
-        (lat - 2 * metre, lon - 2 * metre),
-        (lat - 2 * metre, lon + 2 * metre),
-        (lat + 2 * metre, lon + 2 * metre),
-        (lat + 2 * metre, lon - 2 * metre),
-    ]
+    # A 4 m square on the planned path 6 m before its end (the target waypoint), once the
+    # path is 20 m long or more: well ahead of the robot, which keeps patrolling meanwhile.
+    frame = LocalFrame(*(await planned_path(station, platform_id))[0])
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + 30
+    while (
+        path := LineString(local_path(frame, await planned_path(station, platform_id)))
+    ).length < 20:
+        assert loop.time() < deadline, f"no planned path of 20 m in 30 s: {path}"
+        await asyncio.sleep(0.2)
+    centre = path.interpolate(path.length - 6)
+    zone = box(centre.x - 2, centre.y - 2, centre.x + 2, centre.y + 2)
+    square = [frame.to_geo(x, y) for x, y in list(zone.exterior.coords)[:4]]
     draw = page.get_by_role("button", name="draw keep-out")
     await draw.click()
     await expect(draw).to_have_attribute("aria-pressed", "true")
@@ -228,16 +226,17 @@ async def keep_out_zones_drawn_and_removed(
     await expect(page.locator("#map path.area-keepout")).to_have_count(1)  # a draft, not sent
     await send.click()
     await expect(patrol_answer).to_contain_text("keep-out sent", timeout=10_000)
+    await expect(send).to_be_hidden()
     area = await station.ctx.api.call_local("map_get", platform_id=platform_id)
     assert {f.get("id") for f in area["map"]["features"]} >= {"shed", "crater"}
     await expect(page.locator("#map path.area-keepout")).to_have_count(2, timeout=10_000)
     await expect(page.locator("#map path.keepout-draft")).to_have_count(0)
     await expect(keepouts.locator('li[data-keepout="crater"]')).to_have_count(1)
     # The platform replans around it (its planned path in telemetry, not the page's guess).
-    zone = Polygon(square)
-    loop = asyncio.get_running_loop()
     deadline = loop.time() + 10
-    while LineString(path := await planned_path(station, platform_id)).intersects(zone):
+    while (
+        path := LineString(local_path(frame, await planned_path(station, platform_id)))
+    ).intersects(zone):
         assert loop.time() < deadline, f"the planned path still crosses the keep-out: {path}"
         await asyncio.sleep(0.1)
 
@@ -248,11 +247,32 @@ async def keep_out_zones_drawn_and_removed(
     await expect(page.locator("#map path.area-keepout")).to_have_count(1)
     area = await station.ctx.api.call_local("map_get", platform_id=platform_id)
     assert "crater" not in {f.get("id") for f in area["map"]["features"]}
+    # Changed elsewhere (as the CLI does, through the station's API): the page redraws when
+    # telemetry's map revision moves.
+    rock = {
+        "type": "Feature",
+        "id": "rock",
+        "properties": {"role": "keepout"},
+        "geometry": {"type": "Polygon", "coordinates": [[[lon, lat] for lat, lon in square]]},
+    }
+    rock["geometry"]["coordinates"][0].append(rock["geometry"]["coordinates"][0][0])
+    await station.ctx.api.call_local("map_update", platform_id=platform_id, add=[rock])
+    await expect(keepouts.locator('li[data-keepout="rock"]')).to_have_count(1, timeout=10_000)
+    await expect(page.locator("#map path.area-keepout")).to_have_count(2)
+    await station.ctx.api.call_local("map_update", platform_id=platform_id, remove=["rock"])
+    await expect(keepouts.locator('li[data-keepout="rock"]')).to_have_count(0, timeout=10_000)
+    await expect(page.locator("#map path.area-keepout")).to_have_count(1)
 
-    # A bow tie (its edges cross): refused with the platform's reason; the map is unchanged
-    # and the draft stays open to correct, until cancelled.
+    # A bow tie (its edges cross), drawn over the shed (where the robot never is): refused
+    # with the platform's reason; the map is unchanged and the draft stays open to correct,
+    # until cancelled.
+    (shed,) = [f for f in area["map"]["features"] if f.get("id") == "shed"]
+    x, y = Polygon(
+        [frame.to_local(lat, lon) for lon, lat in shed["geometry"]["coordinates"][0]]
+    ).centroid.coords[0]
+    tie = [frame.to_geo(x + dx, y + dy) for dx, dy in ((-2, -2), (2, 2), (2, -2), (-2, 2))]
     await draw.click()
-    await draw_polygon(page, [square[0], square[2], square[1], square[3]])
+    await draw_polygon(page, tie)
     await send.click()
     await expect(patrol_answer).to_contain_text("send keep-out: update refused:", timeout=10_000)
     await expect(patrol_answer).to_contain_text("self-intersection")

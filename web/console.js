@@ -705,7 +705,7 @@ async function loadArea(platformId) {
   patrol.keepouts.set(platformId, features.filter((f) => f?.properties?.role === "keepout").map((f) => String(f.id)));
   renderKeepouts();
   const points = (area.route ?? []).map((waypoint) => [waypoint.lat, waypoint.lon]);
-  patrol.routes.set(platformId, { points, names: (area.route ?? []).map((waypoint) => waypoint.name ?? "") });
+  patrol.routes.set(platformId, { points, names: (area.route ?? []).map((waypoint) => waypoint.name ?? ""), mapRev: area.map_rev });
   map.setRoute(platformId, points);
   renderPatrol();
 }
@@ -747,11 +747,15 @@ function renderPatrol() {
   line.textContent = `patrol: ${parts.filter(Boolean).join("  ")}`;
   line.dataset.state = autonomy.state;
   map.setPlannedPath(state.current, autonomy.path ?? []);
-  // The route changed elsewhere (the CLI, another station): fetch it again.
-  if (route && route.count !== autonomy.waypoints) {
-    const known = route.count;
+  // The route or the map changed elsewhere (the CLI, another station): fetch them again.
+  if (route) {
+    const routeMoved = route.count !== undefined && route.count !== autonomy.waypoints;
+    const mapMoved = route.mapRev != null && route.mapRev !== autonomy.map_rev;
     route.count = autonomy.waypoints;
-    if (known !== undefined && !patrol.editing) loadArea(state.current);
+    if ((routeMoved || mapMoved) && !patrol.editing) {
+      route.mapRev = autonomy.map_rev; // asked once
+      loadArea(state.current);
+    }
   }
 }
 
@@ -890,7 +894,7 @@ $("#keepout-send").onclick = async () => {
   if (!result || patrol.drawing !== drawing) return; // refused: the draft stays, the map as it was
   stopDrawing();
   patrolAnswer(`keep-out sent: the platform's keep-outs are ${result.map.keepouts.join(", ")}`);
-  if (state.current === platformId) await loadArea(platformId);
+  if (state.current === platformId) await loadArea(platformId); // at once, not at the next push
 };
 
 async function removeKeepout(id) {

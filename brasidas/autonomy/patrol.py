@@ -63,6 +63,8 @@ class Patrol:
     def __init__(self, parameters: PatrolParameters) -> None:
         self.p = parameters
         self.area: AreaMap | None = None
+        self.map_revision = 0
+        """Counts the map's changes (a console redraws the map when it moves)."""
         self.route = Route()
         self.cursor = Cursor()
         self.state = PatrolState.IDLE
@@ -84,6 +86,7 @@ class Patrol:
     def set_map(self, area: AreaMap | None) -> None:
         """A new map: the waypoints are wiped and the patrol stops (R-5.3.3.5)."""
         self.area = area
+        self.map_revision += 1
         self._planner = None if area is None else self._build(area)
         self.route = Route()
         self.cursor = Cursor()
@@ -94,6 +97,7 @@ class Patrol:
     def update_map(self, area: AreaMap) -> None:
         """Keep-out zones changed: same route, a new plan."""
         self.area = area
+        self.map_revision += 1
         self._planner = self._build(area)
         self._needs_plan = True
 

@@ -24,10 +24,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 """Version of the schema (and the datagram layout); the first byte of every datagram.
 4: the failsafe, speed_cap and turret sections, the velocity link's ``held`` drops.
-5: the lights' ``errors`` (GPIO lines), the turret's ``streams``."""
+5: the lights' ``errors`` (GPIO lines), the turret's ``streams``.
+6: the autonomy section's ``map_rev``."""
 ERROR_KEY = "!"
 """A section's wire map holding only this key is that section's error."""
 STALE_PERIODS = 3.0
@@ -362,6 +363,10 @@ class Autonomy(Section):
     reason: str = field(default="", metadata=wire("r"))
     path: tuple[tuple[float, ...], ...] = field(
         default=(), metadata=wire("p", unit="°", doc="planned path, [lat, lon] points")
+    )
+    map_rev: int = field(
+        default=0,
+        metadata=wire("m", doc="changes with the area map (loaded, keep-outs added or removed)"),
     )
 
 

@@ -85,6 +85,7 @@ def _autonomy(patrol: PatrolActor) -> Autonomy:
         path=tuple(
             (round(lat, 7), round(lon, 7)) for lat, lon in report.path[:TELEMETRY_PATH_POINTS]
         ),
+        map_rev=patrol.core.map_revision,
     )
 
 

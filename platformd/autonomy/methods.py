@@ -60,10 +60,12 @@ class PatrolMethods:
         return {"map": area.summary(), "patrol": self.actor.report.as_dict()}
 
     def get_map(self, call: CallContext) -> dict[str, Any]:
-        """The map as GeoJSON (null when none) and the route, for the console."""
+        """The map as GeoJSON (null when none), its revision (telemetry's ``map_rev``) and the
+        route, for the console."""
         area = self.actor.core.area
         return {
             "map": area.geojson() if area is not None else None,
+            "map_rev": self.actor.core.map_revision,
             "route": self.actor.core.route.as_list(),
             "closed": self.actor.core.route.closed,
         }
