@@ -876,11 +876,14 @@ $("#keepout-draw").onclick = () => {
   $("#keepout-draw").setAttribute("aria-pressed", "true");
   $("#keepout-drafting").hidden = false;
   renderKeepouts();
-  patrolAnswer("drawing a keep-out: click the map for each corner (or pan with the arrows and add one at the centre), drag one to move it, right-click one to delete it; then send");
+  patrolAnswer("drawing a keep-out: click the map for each corner (or pan the map with the arrows and add one at the centre), drag one to move it, right-click one to delete it; then send (Escape cancels)");
 };
 
 $("#keepout-corner").onclick = () => patrol.drawing?.handle.addAtCentre();
 $("#keepout-cancel").onclick = () => { stopDrawing(); patrolAnswer("keep-out cancelled"); };
+window.addEventListener("keydown", (event) => {
+  if (event.key === "Escape" && patrol.drawing) { stopDrawing(); patrolAnswer("keep-out cancelled"); }
+});
 
 $("#keepout-send").onclick = async () => {
   const drawing = patrol.drawing;
