@@ -153,6 +153,20 @@ class VelocityLinkStats:
     """By :class:`brasidas.codecs.pvel.DropReason` value; every reason present, zeros included."""
     last_count: int | None
     """Count of the last accepted sentence."""
+    age_ms: float | None = None
+    """The last accepted sentence's age on arrival (ms), when it carried its send time."""
+    age_max_ms: float | None = None
+    """The oldest accepted sentence of the last second (ms): the speed cap's input."""
+
+
+@dataclass(frozen=True)
+class CommandAge:
+    """The measured age of the override holder's velocity commands on arrival (ms): the
+    oldest of the last second (the speed cap's command latency), and the latest."""
+
+    max_ms: float
+    last_ms: float
+    samples: int
 
 
 @dataclass(frozen=True)

@@ -6,6 +6,7 @@ from brasidas.bus import Topic
 from brasidas.messages import (
     Attitude,
     Automations,
+    CommandAge,
     ControllerStatus,
     ControlState,
     FailsafeState,
@@ -67,6 +68,9 @@ TELEOP_VELOCITY: Topic[Velocity] = Topic("teleop_velocity")
 """Valid $PVEL velocities from the session holding the manual override (platformd.velocity)."""
 VELOCITY_LINK_STATS: Topic[VelocityLinkStats] = Topic("velocity_link_stats", retain=True)
 """The velocity receiver's accepted/dropped counters, published when they change (≤ 1 Hz)."""
+COMMAND_AGE: Topic[CommandAge | None] = Topic("command_age", retain=True)
+"""The holder's velocity packets' measured age (platformd.velocity): the speed cap's command
+latency. None when no packet with a send time arrived in the last second."""
 MOTION_STATE: Topic[MotionState] = Topic("motion_state", retain=True)
 """The motion arbiter's mode, deadman and last motor command (platformd.arbiter)."""
 CONTROLLER_STATUS: Topic[ControllerStatus] = Topic("controller_status", retain=True)

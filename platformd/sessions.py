@@ -167,6 +167,9 @@ class SessionManager(Actor):
         engaged = bool(override and override.engaged)
         return {
             "time": time.time(),
+            # The platform's monotonic clock (s), which velocity packets are aged by: stations
+            # estimate their offset to it from the round trip (NTP-style) and stamp $PVEL in it.
+            "clock": self._clock(),
             # Held by the caller: a station streams velocity only for an override it holds.
             "manual_override": engaged
             and override is not None

@@ -5,9 +5,12 @@ human reaction. Made live: the cap is the speed ``v`` with
 
     (reaction + video latency + command latency) * v + v² / (2 * braking) = stop distance
 
-(``safety.*``). The override holder's station reports its measured glass-to-glass latency and
-its command latency (half its heartbeat round trip) with ``report_latency``; without a report,
-or with one older than ``safety.report_max_age_s``, the cap assumes
+(``safety.*``). The override holder's station reports its measured glass-to-glass latency with
+``report_latency``. The command latency is the platform's own measurement: the age on arrival
+of the oldest velocity packet of the last second (``COMMAND_AGE``: each ``$PVEL`` carries its
+send time in the platform's clock as the station estimates it from its heartbeats); a
+station whose packets carry no send time reports half its heartbeat round trip instead.
+Without a video report, or with one older than ``safety.report_max_age_s``, the cap assumes
 ``safety.worst_latency_ms``. The cap is published on ``SPEED_CAP``; the motion arbiter clamps
 every teleop velocity to it; telemetry's ``speed_cap`` section carries it with its inputs.
 """
@@ -44,14 +47,18 @@ def compute_cap(
     max_speed_kmh: float,
     video_ms: float | None,
     command_ms: float | None,
+    *,
+    measured: bool = False,
 ) -> SpeedCap:
-    """The cap for these latencies (None: not reported, the worst configured is assumed)."""
+    """The cap for these latencies (None: not reported, the worst configured is assumed).
+    ``measured``: the command latency is the packets' measured age, not a report."""
     if video_ms is None or command_ms is None:
         latency_ms = safety.worst_latency_ms
         reason = f"no latency report: assuming {latency_ms:.0f} ms"
     else:
         latency_ms = video_ms + command_ms
-        reason = f"video {video_ms:.0f} ms + command {command_ms:.0f} ms"
+        source = "command age" if measured else "command"
+        reason = f"video {video_ms:.0f} ms + {source} {command_ms:.0f} ms"
     speed = stopping_speed(
         safety.stop_distance_m, safety.reaction_s, latency_ms / 1000, safety.braking_mps2
     )
@@ -70,7 +77,8 @@ def compute_cap(
 
 
 class SpeedCapper(Actor):
-    """Keeps the holder's latest latency report and publishes the cap when it changes."""
+    """Keeps the holder's latest latency report and the measured command age; publishes the
+    cap when it changes."""
 
     name = "speed_cap"
 
@@ -85,6 +93,7 @@ class SpeedCapper(Actor):
 
     async def run(self) -> None:
         self.subscribe(topics.OVERRIDE_STATE, lambda _state: self.refresh())
+        self.subscribe(topics.COMMAND_AGE, lambda _age: self.refresh())
         self.bus.publish(topics.SPEED_CAP, self.cap)
         while True:
             await asyncio.sleep(1.0)
@@ -106,12 +115,22 @@ class SpeedCapper(Actor):
         if report is not None and self._clock() - report[2] > self.safety.report_max_age_s:
             report = self._report = None
         video, command = (report[0], report[1]) if report is not None else (None, None)
-        return compute_cap(self.safety, self.ctx.config.platform.max_speed_kmh, video, command)
+        age = self.bus.last(topics.COMMAND_AGE)
+        if age is not None:
+            command = age.max_ms
+        return compute_cap(
+            self.safety,
+            self.ctx.config.platform.max_speed_kmh,
+            video,
+            command,
+            measured=age is not None,
+        )
 
     def rpc_report_latency(
         self, call: CallContext, video_ms: float, command_ms: float = 0.0
     ) -> dict[str, Any]:
-        """The holder's measured latencies (ms); another session's report is not taken."""
+        """The holder's measured latencies (ms); another session's report is not taken.
+        ``command_ms`` counts only while its velocity packets carry no send time."""
         for name, value in (("video_ms", video_ms), ("command_ms", command_ms)):
             if not 0 <= value <= 60_000 or math.isnan(value):
                 raise RpcError(INVALID_PARAMS, f"invalid params: {name} must be 0-60000")

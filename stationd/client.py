@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import logging
+import math
 import secrets
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -23,6 +26,39 @@ class AuthenticationError(Exception):
     """The platform refused us, or could not prove it holds the fleet key."""
 
 
+@dataclass(frozen=True)
+class ClockSample:
+    """One heartbeat's clock exchange: the platform's clock minus ours (s), and the round trip
+    it was measured over (s); the offset is within half the round trip of the truth."""
+
+    offset: float
+    round_trip: float
+
+
+class ClockOffset:
+    """The platform's monotonic clock relative to ours, from the heartbeats (NTP-style, sans-IO).
+
+    Each heartbeat gives ``sent`` and ``received`` (our clock) and the platform's clock when it
+    answered; assuming the answer was made halfway, the offset is ``platform - (sent +
+    received) / 2``, off by at most half the round trip. Like NTP's clock filter, the sample
+    with the shortest round trip of the last :attr:`keep` is used: a heartbeat delayed one way
+    skews its sample, a quick one cannot.
+    """
+
+    def __init__(self, keep: int = 8) -> None:
+        self.samples: collections.deque[ClockSample] = collections.deque(maxlen=keep)
+
+    def add(self, sent: float, platform: float, received: float) -> ClockSample:
+        sample = ClockSample(platform - (sent + received) / 2, received - sent)
+        self.samples.append(sample)
+        return sample
+
+    @property
+    def best(self) -> ClockSample | None:
+        """The sample of the shortest round trip, None before the first heartbeat."""
+        return min(self.samples, key=lambda sample: sample.round_trip, default=None)
+
+
 class PlatformConnection:
     """One session with one platform. Single use: ``open()`` once, ``close()`` any number of times."""
 
@@ -34,6 +70,7 @@ class PlatformConnection:
         station_id: str,
         fleet_key: bytes | None,
         timeout: float = 3.0,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.platform_id = platform_id
         self.signaling_url = signaling_url.rstrip("/")
@@ -53,6 +90,9 @@ class PlatformConnection:
         self.on_control_lost: Callable[[str | None], None] | None = None
         """Called with the new holder's station id when control was taken from this station."""
         self.round_trip_ms: float | None = None
+        self.clock_offset = ClockOffset()
+        """The platform's clock relative to ``clock`` (this station's monotonic clock)."""
+        self._clock = clock
         self.video_latency: Callable[[], float | None] | None = None
         """The NavCam's measured glass-to-glass latency (ms) now, set by stationd.media: while
         this station holds the override, each heartbeat reports it (the platform's speed cap)."""
@@ -118,11 +158,20 @@ class PlatformConnection:
         params["session"] = self.session_id
         return await self._client.call(method, params)
 
+    def platform_time_ms(self) -> int | None:
+        """Now in the platform's monotonic clock (ms) by the offset estimate, None before the
+        first heartbeat answered: what ``$PVEL`` carries as its send time."""
+        best = self.clock_offset.best
+        return None if best is None else round((self._clock() + best.offset) * 1000)
+
     async def _heartbeats(self, interval: float) -> None:
         misses = 0
+        delay = 0.0  # the first at once: the clock offset is known before the first packet
         while True:
-            await asyncio.sleep(interval)
+            await asyncio.sleep(delay)
+            delay = interval
             started = time.perf_counter()
+            sent = self._clock()
             try:
                 answer = await self.call("heartbeat")
             except RpcError as err:
@@ -137,6 +186,13 @@ class PlatformConnection:
                 return
             misses = 0
             self.round_trip_ms = (time.perf_counter() - started) * 1000
+            platform_clock = answer.get("clock")
+            if (
+                isinstance(platform_clock, int | float)
+                and not isinstance(platform_clock, bool)
+                and math.isfinite(platform_clock)
+            ):
+                self.clock_offset.add(sent, float(platform_clock), self._clock())
             self.manual_override = bool(answer.get("manual_override"))
             self._update_control(answer)
             await self._report_latency()
@@ -180,6 +236,12 @@ class PlatformConnection:
         self._heartbeat = self._watcher = None
         await self._client.close()
 
+    def _clock_summary(self) -> dict[str, float] | None:
+        best = self.clock_offset.best
+        if best is None:
+            return None
+        return {"offset_s": best.offset, "error_ms": round(best.round_trip * 500, 3)}
+
     def summary(self) -> dict[str, Any]:
         return {
             "platform_id": self.platform_id,
@@ -191,6 +253,7 @@ class PlatformConnection:
             "control": self.control,
             "controller": self.controller,
             "round_trip_ms": self.round_trip_ms,
+            "clock_offset": self._clock_summary(),
             "parameters": self.parameters,
             "capabilities": self.capabilities,
         }

@@ -309,7 +309,12 @@ def _computer(computer: Computer) -> str:
 def _velocity(velocity: VelocityLink) -> str:
     dropped = {k: v for k, v in velocity.dropped.items() if v}
     reasons = f" ({', '.join(f'{k} {v}' for k, v in dropped.items())})" if dropped else ""
-    return f"accepted {velocity.accepted}  dropped {sum(dropped.values())}{reasons}"
+    age = (
+        f"  age {velocity.age_ms:.0f} ms (max {velocity.age_max_ms:.0f})"
+        if velocity.age_ms is not None and velocity.age_max_ms is not None
+        else ""
+    )
+    return f"accepted {velocity.accepted}  dropped {sum(dropped.values())}{reasons}{age}"
 
 
 def _motion(motion: Motion) -> str:

@@ -116,7 +116,11 @@ class VelocitySender:
             self.source = "idle"
             return
         velocity, self.source = self.setpoint()
-        self._transport.sendto(self.encoder.encode(velocity.linear, velocity.angular))
+        # Stamped with the send time in the platform's clock (once the first heartbeat has
+        # told the offset): the platform ages each packet, caps the speed by the age and
+        # drops a stale one.
+        sent_ms = self.connection.platform_time_ms()
+        self._transport.sendto(self.encoder.encode(velocity.linear, velocity.angular, sent_ms))
         self.last = velocity
         self.sent += 1
 

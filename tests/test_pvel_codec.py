@@ -78,7 +78,8 @@ def test_drop_reasons() -> None:
     assert pvel.decode(nmea("PVEL,3,1e0,0.5")) is DropReason.MALFORMED
     assert pvel.decode(nmea("GPGGA,3,0.5,0.5")) is DropReason.MALFORMED
     assert pvel.decode(nmea("PVEL,3,0.5,0.5,XYZ")) is DropReason.MALFORMED
-    assert pvel.decode(nmea("PVEL,3,0.5,0.5,0011")) is DropReason.MALFORMED  # short tag
+    assert pvel.decode(nmea("PVEL,3,0.5,0.5,00AB")) is DropReason.MALFORMED  # short tag
+    assert pvel.decode(nmea("PVEL,3,0.5,0.5,123456789")) is DropReason.MALFORMED  # 9 digits
     assert pvel.decode(b"$" + "PVEL,3,é,0".encode() + b"*00") in (
         DropReason.MALFORMED,
         DropReason.BAD_CHECKSUM,
@@ -96,15 +97,63 @@ def test_encoder_counts_up_and_tags_for_its_session() -> None:
     assert all(isinstance(s, PvelSentence) and pvel.verify_tag(s, KEY, "abc") for s in sentences)
 
 
-@given(count=counts, x=velocities, z=velocities, tagged=st.booleans())
-def test_round_trip(count: int, x: float, z: float, tagged: bool) -> None:
-    datagram = pvel.encode(count, x, z, key=KEY if tagged else None, session_id="s")
+def test_exact_bytes_of_a_stamped_sentence_and_its_age() -> None:
+    # The send time sits between the values and the tag, modulo 10^8 ms.
+    assert pvel.encode(1, 0.5, -0.25, sent_ms=12_345_678) == nmea(
+        "PVEL,1,0.50000,-0.25000,12345678"
+    )
+    datagram = pvel.encode(1, 0.5, -0.25, sent_ms=3 * pvel.SENT_MODULUS + 42)
+    assert datagram == nmea("PVEL,1,0.50000,-0.25000,42")
+    sentence = pvel.decode(datagram)
+    assert isinstance(sentence, PvelSentence) and sentence.sent_ms == 42
+    assert pvel.age_ms(sentence, 3 * pvel.SENT_MODULUS + 42 + 150.5) == 150.5
+    # Across the wrap: sent just before it, received just after.
+    late = pvel.decode(pvel.encode(2, 0, 0, sent_ms=pvel.SENT_MODULUS - 10))
+    assert isinstance(late, PvelSentence) and pvel.age_ms(late, 5 * pvel.SENT_MODULUS + 20) == 30
+    # An older sender's sentence has no send time, hence no known age.
+    old = pvel.decode(pvel.encode(3, 0.1, 0.1))
+    assert isinstance(old, PvelSentence) and old.sent_ms is None
+    assert pvel.age_ms(old, 1000.0) is None
+
+
+def test_tag_covers_the_send_time() -> None:
+    datagram = pvel.encode(5, 0.1, 0.2, key=KEY, session_id="s", sent_ms=1000)
+    body = datagram[1 : datagram.index(b"*")]
+    sentence = pvel.decode(datagram)
+    assert isinstance(sentence, PvelSentence) and pvel.verify_tag(sentence, KEY, "s")
+    # An old packet made to look fresh, or its time stripped: neither verifies.
+    for forged in (body.replace(b",1000,", b",9000,"), body.replace(b",1000,", b",")):
+        result = pvel.decode(b"$" + forged + f"*{pvel.checksum(forged):02X}".encode())
+        assert isinstance(result, PvelSentence)
+        assert not pvel.verify_tag(result, KEY, "s")
+
+
+@given(
+    count=counts,
+    x=velocities,
+    z=velocities,
+    tagged=st.booleans(),
+    sent=st.none() | st.integers(min_value=0, max_value=2**53),
+)
+def test_round_trip(count: int, x: float, z: float, tagged: bool, sent: int | None) -> None:
+    datagram = pvel.encode(count, x, z, key=KEY if tagged else None, session_id="s", sent_ms=sent)
     assert len(datagram) <= 64  # the seed's bound on a velocity packet's payload
     sentence = pvel.decode(datagram)
     assert isinstance(sentence, PvelSentence)
     assert sentence.count == count
     assert abs(sentence.x - x) <= 5e-6 and abs(sentence.z - z) <= 5e-6
+    assert sentence.sent_ms == (None if sent is None else sent % pvel.SENT_MODULUS)
     assert pvel.verify_tag(sentence, KEY, "s") is tagged
+
+
+@given(
+    now=st.integers(min_value=0, max_value=2**53),
+    age=st.integers(min_value=-pvel.SENT_MODULUS // 2, max_value=pvel.SENT_MODULUS // 2 - 1),
+)
+def test_age_is_exact_for_any_clock_and_any_age_within_half_the_wrap(now: int, age: int) -> None:
+    sentence = pvel.decode(pvel.encode(1, 0, 0, sent_ms=now - age + pvel.SENT_MODULUS))
+    assert isinstance(sentence, PvelSentence)
+    assert pvel.age_ms(sentence, now + pvel.SENT_MODULUS) == age
 
 
 @given(data=st.binary(max_size=160))
@@ -120,11 +169,12 @@ def test_arbitrary_bytes_never_raise(data: bytes) -> None:
     z=velocities,
     position=st.integers(0, 200),
     flip=st.integers(1, 127),
+    sent=st.none() | st.integers(min_value=0, max_value=2**40),
 )
 def test_any_single_corrupted_byte_is_dropped(
-    count: int, x: float, z: float, position: int, flip: int
+    count: int, x: float, z: float, position: int, flip: int, sent: int | None
 ) -> None:
-    original = pvel.encode(count, x, z, key=KEY, session_id="s")
+    original = pvel.encode(count, x, z, key=KEY, session_id="s", sent_ms=sent)
     datagram = bytearray(original)
     datagram[position % len(datagram)] ^= flip
     result = pvel.decode(bytes(datagram))

@@ -65,8 +65,37 @@ def test_holder_host_tag_and_order() -> None:
         "not_engaged": 0,
         "not_holder": 1,
         "bad_tag": 3,
+        "stale": 0,
         "held": 0,
     }
+
+
+def test_packets_are_aged_and_stale_ones_dropped_counted_and_spent() -> None:
+    gate = VelocityGate(require_tag=True, max_age_ms=500)
+    gate.set_holder(Holder("s1", "127.0.0.1", KEY))
+    now = 1000.0  # seconds of the platform's clock; packets carry ms of it
+
+    def stamped(count: int, age_ms: float) -> bytes:
+        return pvel.encode(
+            count, 0.1, 0.2, key=KEY, session_id="s1", sent_ms=int(now * 1000 - age_ms)
+        )
+
+    assert isinstance(gate.admit(stamped(1, 120), "127.0.0.1", now), PvelSentence)
+    assert gate.last_age_ms == 120
+    assert gate.admit(stamped(2, 501), "127.0.0.1", now) is DropReason.STALE
+    assert gate.admit(stamped(3, -501), "127.0.0.1", now) is DropReason.STALE  # from the future
+    # A stale packet is spent: it cannot be obeyed later, nor can an older count.
+    assert gate.admit(stamped(3, 10), "127.0.0.1", now) is DropReason.OUT_OF_ORDER
+    assert isinstance(gate.admit(stamped(4, -3), "127.0.0.1", now), PvelSentence)
+    assert gate.last_age_ms == 0  # clock estimate slightly ahead: as fresh as measurable
+    # An older sender's untimed packet is accepted with no age.
+    untimed = pvel.encode(5, 0.1, 0.2, key=KEY, session_id="s1")
+    assert isinstance(gate.admit(untimed, "127.0.0.1", now), PvelSentence)
+    age = gate.command_age(now + 0.5)
+    assert age is not None and age.max_ms == 120 and age.last_ms == 0 and age.samples == 2
+    assert gate.command_age(now + 1.01) is None  # the window is a second
+    stats = gate.stats(now)
+    assert stats.dropped["stale"] == 2 and stats.accepted == 3
 
 
 def test_a_session_key_is_required_whenever_the_platform_has_a_fleet_key() -> None:

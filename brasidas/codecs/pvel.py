@@ -2,15 +2,21 @@
 
 One UDP datagram carries one NMEA-0183 style sentence::
 
-    $PVEL,<count>,<x>,<z>[,<tag>]*<checksum>
+    $PVEL,<count>,<x>,<z>[,<sent>][,<tag>]*<checksum>
 
 ``count`` is an unsigned integer that increases with every sentence a sender emits, so the
 receiver can drop late and duplicated datagrams. ``x`` (linear) and ``z`` (angular) are signed
 decimals with 5 digits after the point, each in [-1, 1]. ``checksum`` is the XOR of every
-character between ``$`` and ``*``, as two uppercase hex digits. With access control on, ``tag``
-is a truncated HMAC-SHA256 (8 bytes, 16 hex digits) over the session id, the count and both
-values as sent, keyed by the session key, so only the session that holds the manual override
-can move the robot and a packet replayed from another session does not verify.
+character between ``$`` and ``*``, as two uppercase hex digits. ``sent`` (optional, 1-8
+decimal digits) is when the sentence was sent, in integer milliseconds of the *receiver's*
+monotonic clock as the sender estimates it (stations estimate the offset from their
+heartbeats, NTP-style), modulo 10⁸ (27.8 hours: the sentence stays within the seed's 64 bytes;
+:func:`age_ms` undoes the wrap): the platform knows each packet's age on arrival, without
+synchronized clocks. A sentence without it (an older sender) has no known age. With access control on,
+``tag`` is a truncated HMAC-SHA256 (8 bytes, 16 hex digits) over the session id, the count,
+both values and the send time (when present) as sent, keyed by the session key, so only the
+session that holds the manual override can move the robot, a packet replayed from another
+session does not verify, and nobody on the path can make an old packet look fresh.
 """
 
 from __future__ import annotations
@@ -26,6 +32,9 @@ TAG_BYTES = 8
 MAX_COUNT = 2**32 - 1
 """Counts wrap nowhere: at 500 Hz this lasts three months of continuous driving."""
 _HEX = frozenset(b"0123456789ABCDEFabcdef")
+SENT_MODULUS = 10**8
+"""``sent`` is the send time in ms modulo this: at most 8 digits, never 16 (a tag is told
+apart by its length)."""
 MAX_DATAGRAM = 128
 """The longest valid sentence is about 70 bytes; anything much longer is not ours."""
 
@@ -33,6 +42,7 @@ _BODY = re.compile(
     r"PVEL,(?P<count>\d{1,10}),"
     r"(?P<x>[+-]?\d{1,6}(?:\.\d{1,8})?),"
     r"(?P<z>[+-]?\d{1,6}(?:\.\d{1,8})?)"
+    r"(?:,(?P<sent>\d{1,8}))?"
     r"(?:,(?P<tag>[0-9A-Fa-f]{16}))?"  # TAG_BYTES in hex
 )
 
@@ -51,6 +61,9 @@ class DropReason(Enum):
     """From a host other than the override holder's."""
     BAD_TAG = "bad_tag"
     """Tag missing or not made with the holder's session key."""
+    STALE = "stale"
+    """Older than ``velocity.max_age_ms`` on arrival (or from further in the future than that:
+    the sender's clock estimate is wrong): a burst after a lag spike moves nothing."""
     HELD = "held"
     """The failsafe ladder holds (the link was lost): nothing moves until the operator
     re-engages, and nothing sent before that may move the robot afterwards."""
@@ -66,6 +79,9 @@ class PvelSentence:
     x_text: str
     z_text: str
     tag: bytes | None = None
+    sent_ms: int | None = None
+    """When it was sent, in the receiver's monotonic ms (mod :data:`SENT_MODULUS`) as the
+    sender estimated it, if given."""
 
 
 def checksum(body: bytes) -> int:
@@ -84,9 +100,20 @@ def format_value(value: float) -> str:
     return "0.00000" if text == "-0.00000" else text
 
 
-def compute_tag(key: bytes, session_id: str, count: int, x_text: str, z_text: str) -> bytes:
-    """The sentence's authentication tag, bound to the session and to the exact values sent."""
-    return security.tag(key, b"brasidas-pvel", session_id, str(count), x_text, z_text)[:TAG_BYTES]
+def compute_tag(
+    key: bytes,
+    session_id: str,
+    count: int,
+    x_text: str,
+    z_text: str,
+    sent_ms: int | None = None,
+) -> bytes:
+    """The sentence's authentication tag, bound to the session, the exact values sent and the
+    send time (a sentence without one is tagged as before it existed)."""
+    parts = [session_id, str(count), x_text, z_text]
+    if sent_ms is not None:
+        parts.append(str(sent_ms))
+    return security.tag(key, b"brasidas-pvel", *parts)[:TAG_BYTES]
 
 
 def encode(
@@ -96,14 +123,21 @@ def encode(
     *,
     key: bytes | None = None,
     session_id: str = "",
+    sent_ms: int | None = None,
 ) -> bytes:
-    """One ``$PVEL`` datagram; tagged when ``key`` is given. Values are clamped to [-1, 1]."""
+    """One ``$PVEL`` datagram; tagged when ``key`` is given, stamped when ``sent_ms`` (the
+    receiver's monotonic clock in ms, any size: it is sent modulo :data:`SENT_MODULUS`) is.
+    Values are clamped to [-1, 1]."""
     if not 0 <= count <= MAX_COUNT:
         raise ValueError(f"count {count} outside 0..{MAX_COUNT}")
+    if sent_ms is not None:
+        sent_ms %= SENT_MODULUS
     x_text, z_text = format_value(x), format_value(z)
     body = f"{TALKER},{count},{x_text},{z_text}"
+    if sent_ms is not None:
+        body += f",{sent_ms}"
     if key is not None:
-        body += "," + compute_tag(key, session_id, count, x_text, z_text).hex().upper()
+        body += "," + compute_tag(key, session_id, count, x_text, z_text, sent_ms).hex().upper()
     raw = body.encode("ascii")
     return b"$" + raw + b"*" + f"{checksum(raw):02X}".encode("ascii")
 
@@ -136,26 +170,42 @@ def decode(datagram: bytes) -> PvelSentence | DropReason:
     if count > MAX_COUNT or not (-1.0 <= x <= 1.0 and -1.0 <= z <= 1.0):
         return DropReason.OUT_OF_RANGE
     tag = bytes.fromhex(match["tag"]) if match["tag"] else None
-    return PvelSentence(count, x, z, match["x"], match["z"], tag)
+    sent = int(match["sent"]) if match["sent"] else None
+    return PvelSentence(count, x, z, match["x"], match["z"], tag, sent)
+
+
+def age_ms(sentence: PvelSentence, now_ms: float) -> float | None:
+    """The sentence's age (ms) at ``now_ms`` of the receiver's monotonic clock, None when it
+    carries no send time. Negative when the sender's clock estimate runs ahead of ours; the
+    wrap of ``sent`` is undone (ages within ±13.9 hours are unambiguous)."""
+    if sentence.sent_ms is None:
+        return None
+    half = SENT_MODULUS // 2
+    return (now_ms - sentence.sent_ms + half) % SENT_MODULUS - half
 
 
 def verify_tag(sentence: PvelSentence, key: bytes, session_id: str) -> bool:
     """Whether ``sentence`` carries a tag made with ``key`` for ``session_id``."""
     if sentence.tag is None:
         return False
-    expected = compute_tag(key, session_id, sentence.count, sentence.x_text, sentence.z_text)
+    expected = compute_tag(
+        key, session_id, sentence.count, sentence.x_text, sentence.z_text, sentence.sent_ms
+    )
     return security.verify(expected, sentence.tag)
 
 
 class PvelEncoder:
-    """A sender's sentence factory: auto-incrementing count, tagged for its session."""
+    """A sender's sentence factory: auto-incrementing count, tagged for its session, stamped
+    with the send time when the caller knows the receiver's clock."""
 
     def __init__(self, *, key: bytes | None = None, session_id: str = "", start: int = 1) -> None:
         self.key = key
         self.session_id = session_id
         self.next_count = start
 
-    def encode(self, x: float, z: float) -> bytes:
-        datagram = encode(self.next_count, x, z, key=self.key, session_id=self.session_id)
+    def encode(self, x: float, z: float, sent_ms: int | None = None) -> bytes:
+        datagram = encode(
+            self.next_count, x, z, key=self.key, session_id=self.session_id, sent_ms=sent_ms
+        )
         self.next_count += 1
         return datagram

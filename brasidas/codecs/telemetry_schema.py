@@ -238,6 +238,10 @@ class VelocityLink(Section):
     accepted: int = field(default=0, metadata=wire("a"))
     dropped: dict[str, int] = field(default_factory=dict, metadata=wire("d"))
     last_count: int | None = field(default=None, metadata=wire("n"))
+    age_ms: float | None = field(default=None, metadata=wire("g"))
+    """The last accepted packet's age on arrival (its send time, ``$PVEL``'s ``sent``)."""
+    age_max_ms: float | None = field(default=None, metadata=wire("x"))
+    """The oldest accepted packet of the last second: the speed cap's command latency."""
 
 
 @dataclass(frozen=True)

@@ -204,6 +204,9 @@ class VelocitySection:
     """In teleop, no valid velocity for this long commands zero."""
     stats_interval: float = setting(1.0, above(0, most=60))
     """How often the receiver's counters are published for telemetry (when they changed)."""
+    max_age_ms: float = setting(500.0, above(0, most=10000))
+    """A velocity packet older than this on arrival (by its send time) is dropped and counted
+    (``stale``): a burst of stale commands after a lag spike never moves the robot."""
 
 
 @dataclass(frozen=True)
