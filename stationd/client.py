@@ -170,10 +170,8 @@ class PlatformConnection:
         while True:
             await asyncio.sleep(delay)
             delay = interval
-            started = time.perf_counter()
-            sent = self._clock()
             try:
-                answer = await self.call("heartbeat")
+                await self.heartbeat()
             except RpcError as err:
                 misses += 1
                 _LOGGER.warning("heartbeat to %s failed: %s", self.platform_id, err.message)
@@ -185,17 +183,25 @@ class PlatformConnection:
             except ConnectionError:
                 return
             misses = 0
-            self.round_trip_ms = (time.perf_counter() - started) * 1000
-            platform_clock = answer.get("clock")
-            if (
-                isinstance(platform_clock, int | float)
-                and not isinstance(platform_clock, bool)
-                and math.isfinite(platform_clock)
-            ):
-                self.clock_offset.add(sent, float(platform_clock), self._clock())
-            self.manual_override = bool(answer.get("manual_override"))
-            self._update_control(answer)
             await self._report_latency()
+
+    async def heartbeat(self) -> None:
+        """One heartbeat: keeps the session, measures the round trip and the clock offset, and
+        learns the override and control state (``on_control_lost`` when control was taken).
+        Raises RpcError or ConnectionError as :meth:`call`."""
+        started = time.perf_counter()
+        sent = self._clock()
+        answer = await self.call("heartbeat")
+        self.round_trip_ms = (time.perf_counter() - started) * 1000
+        platform_clock = answer.get("clock")
+        if (
+            isinstance(platform_clock, int | float)
+            and not isinstance(platform_clock, bool)
+            and math.isfinite(platform_clock)
+        ):
+            self.clock_offset.add(sent, float(platform_clock), self._clock())
+        self.manual_override = bool(answer.get("manual_override"))
+        self._update_control(answer)
 
     async def _report_latency(self) -> None:
         video = self.video_latency() if self.video_latency is not None else None

@@ -44,6 +44,7 @@ from brasidas.codecs.telemetry_schema import (
 )
 from brasidas.messages import (
     CommandResult,
+    ControlState,
     GpsFix,
     GpsFixLost,
     PlatformHealth,
@@ -124,6 +125,7 @@ class TelemetryAggregator(Actor):
         self.on_remove(self.ctx.commands.register(self.name, {DIAGNOSTICS: self._command}))
         report_switch(self.bus, "diagnostics", self.diagnostics)
         self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
+        self.subscribe(topics.CONTROL_STATE, self._on_control)
         self.subscribe_reports()
         loop = asyncio.get_running_loop()
         transport, _ = await loop.create_datagram_endpoint(
@@ -172,6 +174,13 @@ class TelemetryAggregator(Actor):
         report_switch(self.bus, "diagnostics", on)
         _LOGGER.info("diagnostics report %s", "on" if on else "off")
         return CommandResult(True, result={"diagnostics": on})
+
+    def _on_control(self, control: ControlState) -> None:
+        # Control changed hands (a takeover, its holder's session ended): every station hears
+        # it now, not at its next snapshot or heartbeat — the previous holder must stop driving.
+        # Once the bus has delivered the change to everyone (the override released first).
+        if control.previous_station_id is not None:
+            asyncio.get_running_loop().call_soon(self.sender.push)
 
     def _on_session_closed(self, event: SessionClosed) -> None:
         self.sender.stop_stream(event.session_id)

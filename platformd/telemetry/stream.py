@@ -109,6 +109,13 @@ class StreamSender:
                 delay = 0.0
             await asyncio.sleep(delay)
 
+    def push(self) -> None:
+        """One snapshot to every stream now, between their periodic ones (an event)."""
+        if self._transport is None:
+            return
+        for stream in list(self.streams.values()):
+            self.send_snapshot(stream)
+
     def send_snapshot(self, stream: TelemetryStream) -> int:
         """Encode and send one snapshot to ``stream``; returns the number of datagrams."""
         assert self._transport is not None

@@ -15,6 +15,7 @@ from typing import Any
 from brasidas.codecs.telemetry import TelemetryDecoder
 from brasidas.codecs.telemetry_schema import (
     SCHEMA_VERSION,
+    Failsafe,
     Section,
     SectionValue,
     Snapshot,
@@ -49,6 +50,7 @@ class TelemetryLink(asyncio.DatagramProtocol):
         *,
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
+        on_controller: Callable[[str | None], None] = lambda _controller: None,
     ) -> None:
         self.platform_id = platform_id
         self.decoder = TelemetryDecoder(platform_id, session_key)
@@ -66,6 +68,9 @@ class TelemetryLink(asyncio.DatagramProtocol):
         """Why there is no stream (the platform refused request_telemetry), if so."""
         self.round_trip_ms: float | None = None
         self._publish = publish
+        self.on_controller = on_controller
+        """Called with the station holding control whenever a datagram says who does (the
+        platform pushes one at once when control changes hands)."""
         self._clock = clock
         self._wall_clock = wall_clock
         self.transport: asyncio.DatagramTransport | None = None
@@ -98,6 +103,9 @@ class TelemetryLink(asyncio.DatagramProtocol):
         self.max_datagram = max(self.max_datagram, frame.size)
         self.stats.accepted(frame.seq, now)
         self.tick(now)
+        failsafe = snapshot.get(Failsafe)
+        if failsafe is not None:
+            self.on_controller(failsafe.controller)
         return True
 
     def tick(self, now: float | None = None) -> list[Change]:

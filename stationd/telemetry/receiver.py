@@ -17,7 +17,7 @@ import contextlib
 import ipaddress
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from brasidas import topics
@@ -43,6 +43,8 @@ class _Worker:
     connection: PlatformConnection
     link: TelemetryLink
     task: asyncio.Task[None] | None = None
+    recheck: asyncio.Event = field(default_factory=asyncio.Event)
+    """Telemetry says another station holds the control this one believed it held."""
 
 
 class TelemetryReceiver(Actor):
@@ -97,8 +99,14 @@ class TelemetryReceiver(Actor):
         )
         link.stats.start(time.monotonic())
         worker = _Worker(connection, link)
+        link.on_controller = lambda controller: self._on_controller(worker, controller)
         self._workers[platform_id] = worker
         worker.task = self._group.create_task(self._serve(worker), name=f"telemetry:{platform_id}")
+
+    def _on_controller(self, worker: _Worker, controller: str | None) -> None:
+        connection = worker.connection
+        if connection.control and controller not in (None, connection.station_id):
+            worker.recheck.set()
 
     def _on_disconnected(self, link: PlatformLink) -> None:
         worker = self._workers.get(link.platform_id)
@@ -142,8 +150,17 @@ class TelemetryReceiver(Actor):
                 if time.monotonic() - requested > again_after:
                     # The platform lost our stream (its telemetry actor restarted): ask again.
                     requested = await self._request(connection, link, params)
+            if worker.recheck.is_set():
+                # Control taken (the platform pushed telemetry at once): a heartbeat confirms
+                # it — a datagram can be older than this station's own takeover — and tells
+                # the operator (90.17) now, not at the next heartbeat.
+                worker.recheck.clear()
+                with contextlib.suppress(RpcError, ConnectionError):
+                    await connection.heartbeat()
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(connection.closed.wait(), TICK)
+                # Woken early by a recheck; a closed connection ends the worker through
+                # PLATFORM_DISCONNECTED (or at the next tick).
+                await asyncio.wait_for(worker.recheck.wait(), TICK)
         if self._workers.get(connection.platform_id) is worker:
             self._stop(connection.platform_id)
 
