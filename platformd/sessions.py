@@ -4,8 +4,9 @@
 HMAC(nonce, station nonce) and gets back a session token plus the platform's own proof, so both
 ends authenticate each other and derive the same session key without sending it. Every session
 method then carries ``session``: the token. A session ends on ``disconnect``, when its WebSocket
-closes, or after ``signaling.session_timeout`` without a call; ``SESSION_CLOSED`` then tells the
-mode arbiter to release the manual override.
+closes, or after ``signaling.session_timeout`` without a call — except the override holder's
+while the failsafe ladder holds for it (its release step decides); ``SESSION_CLOSED`` then
+tells the mode arbiter to release the manual override.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from brasidas import __version__, security, topics
 from brasidas.actor import Actor
 from brasidas.codecs.commands import PAYLOAD_GROUPS
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError, Unauthorized
-from brasidas.messages import SessionClosed, SessionOpened
+from brasidas.messages import FailsafeStep, SessionClosed, SessionOpened
 from brasidas.security import accept_proof, connect_proof
 from platformd.authority import AuthorityWatch
 from platformd.context import PlatformContext
@@ -62,10 +63,23 @@ class SessionManager(Actor):
     def expire(self) -> None:
         now = self._clock()
         timeout = self.ctx.config.signaling.session_timeout
+        ladder_holds = self._ladder_holds()
         for session in list(self.sessions.values()):
             if now - session.last_seen > timeout:
+                if session.session_id == ladder_holds:
+                    continue  # the failsafe ladder decides (its release step), not the timeout
                 _LOGGER.warning("session of %s timed out", session.station_id)
                 self.close(session.session_id, "timeout")
+
+    def _ladder_holds(self) -> str | None:
+        """The override holder's session while the failsafe ladder holds for it: its expiry
+        would pre-empt the ladder's release step (and ``failsafe.action = hold``), so the
+        ladder owns it until it releases the override or the operator re-engages."""
+        override = self.bus.last(topics.OVERRIDE_STATE)
+        failsafe = self.bus.last(topics.FAILSAFE_STATE)
+        if override is None or not override.engaged or failsafe is None:
+            return None
+        return override.session_id if failsafe.step is FailsafeStep.HOLD else None
 
     def close(self, session_id: str, reason: str) -> None:
         session = self.sessions.pop(session_id, None)

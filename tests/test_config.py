@@ -287,3 +287,13 @@ def test_a_bad_log_level_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
         platform_cli.main(["--log-level", "LOUD", "config"])
     assert exit_.value.code == 2
     assert "'LOUD' is not one of DEBUG, INFO" in capsys.readouterr().err
+
+
+def test_a_session_timeout_that_would_pre_empt_the_failsafe_ladder_is_refused() -> None:
+    with pytest.raises(ConfigError) as err:
+        load_config(PlatformConfig, None, ["signaling.session_timeout=1.5"])
+    assert str(err.value).startswith(
+        "signaling.session_timeout: must be > failsafe.hold_after (1.5): a silent override "
+        "holder's session would end before the failsafe ladder holds, not 1.5"
+    )
+    load_config(PlatformConfig, None, ["signaling.session_timeout=1.5", "failsafe.hold_after=1"])

@@ -135,3 +135,73 @@ async def test_action_hold_keeps_holding_past_release_after(
         assert override is not None and override.engaged  # still held, not released
     finally:
         await conn.close()
+
+
+async def test_the_holders_session_outlives_the_ladder_which_releases_then_it_ends(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    # The defaults' proportions (session_timeout 5 s, hold 1.5 s, release 10 s), scaled down:
+    # the session's timeout comes between hold and release, and must not pre-empt the release.
+    daemon = await platform_factory(
+        quiet_platform_config(
+            "velocity.deadman=0.1",
+            "signaling.heartbeat_interval=60",
+            "signaling.session_timeout=0.6",
+            "failsafe.hold_after=0.3",
+            "failsafe.release_after=1.2",
+        ),
+        fleet_key,
+    )
+    events: list[str] = []
+    daemon.bus.subscribe(topics.FAILSAFE_STATE, lambda s: events.append(s.step.value))
+    daemon.bus.subscribe(topics.SESSION_CLOSED, lambda e: events.append(f"closed: {e.reason}"))
+    conn = await engaged_station(daemon, fleet_key)
+    try:
+        await wait_until(lambda: any(e.startswith("closed") for e in events), timeout=10)
+        # The ladder's release step, then (silent past its timeout, no longer holding) the end.
+        assert events[-3:] == ["hold", "released", "closed: timeout"]
+        assert daemon.bus.last(topics.OVERRIDE_STATE) == OverrideState(False)
+    finally:
+        await conn.close()
+
+
+async def test_with_action_hold_the_silent_holder_keeps_its_session_and_re_engages(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    daemon = await platform_factory(
+        quiet_platform_config(
+            "velocity.deadman=0.1",
+            "signaling.heartbeat_interval=60",
+            "signaling.session_timeout=0.6",
+            "failsafe.hold_after=0.3",
+            "failsafe.release_after=0.8",
+            "failsafe.action=hold",
+        ),
+        fleet_key,
+    )
+    commands: list[Velocity] = []
+    daemon.bus.subscribe(topics.MOTOR_COMMAND, commands.append)
+    conn = await engaged_station(daemon, fleet_key)
+    opened = daemon.ctx.sessions.sessions[conn.session_id]
+    try:
+        await wait_until(
+            lambda: (
+                (s := daemon.bus.last(topics.FAILSAFE_STATE)) is not None
+                and s.step is FailsafeStep.HOLD
+            )
+        )
+        # Well past session_timeout and release_after: still holding, the session still open.
+        await wait_until(lambda: time.monotonic() - opened.last_seen > 1.5)
+        assert conn.session_id in daemon.ctx.sessions.sessions
+        override = daemon.bus.last(topics.OVERRIDE_STATE)
+        assert override is not None and override.engaged and override.station_id == "st-1"
+        assert daemon.bus.last(topics.FAILSAFE_STATE).step is FailsafeStep.HOLD  # type: ignore[union-attr]
+        # The link returns: the same session, and the operator re-engages deliberately.
+        await conn.call("heartbeat")
+        assert await conn.call("set_manual_override", engaged=True) is True
+        encoder = pvel.PvelEncoder(key=conn.session_key, session_id=conn.session_id)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            sock.sendto(encoder.encode(0.4, 0.0), ("127.0.0.1", daemon.ctx.velocity_port))
+            await wait_until(lambda: bool(commands) and commands[-1] == Velocity(0.4, 0.0))
+    finally:
+        await conn.close()

@@ -291,7 +291,12 @@ async def test_manual_override_is_exclusive_and_released_on_timeout(
     platform_factory: Factory, fleet_key: bytes
 ) -> None:
     daemon = await platform_factory(
-        quiet_platform_config("signaling.session_timeout=0.5", "signaling.heartbeat_interval=10"),
+        quiet_platform_config(
+            "signaling.session_timeout=0.5",
+            "signaling.heartbeat_interval=10",
+            "failsafe.hold_after=0.2",
+            "failsafe.release_after=0.3",
+        ),
         fleet_key,
     )
     states: list[bool] = []
@@ -307,9 +312,10 @@ async def test_manual_override_is_exclusive_and_released_on_timeout(
         assert "control held by station first" in refused["reason"]
         report = await second.call("get_telemetry_report")
         assert report["override"]["mode"] == "teleop"
-        # "first" goes silent (heartbeats every 10 s, timeout 0.5 s): the override is released.
-        await wait_until(lambda: states[-1] is False)
-        assert first.session_id not in daemon.ctx.sessions.sessions
+        # "first" goes silent (heartbeats every 10 s): the failsafe ladder holds and releases
+        # the override (0.3 s), then its session times out (0.5 s).
+        await wait_until(lambda: first.session_id not in daemon.ctx.sessions.sessions)
+        assert states[-1] is False
     finally:
         await first.close()
         await second.close()

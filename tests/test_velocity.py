@@ -386,7 +386,9 @@ async def test_session_timeout_returns_to_autonomous_while_packets_keep_coming(
     platform_factory: Factory, fleet_key: bytes
 ) -> None:
     config = quiet_platform_config(
-        "signaling.session_timeout=0.3", "signaling.heartbeat_interval=30"
+        "signaling.session_timeout=0.3",
+        "signaling.heartbeat_interval=30",
+        "failsafe.hold_after=0.2",
     )
     daemon = await platform_factory(config, fleet_key)
     commands = motor_log(daemon.bus)

@@ -161,6 +161,20 @@ def url(*schemes: str) -> Check:
     return Check(f"a {'/'.join(schemes)} URL", ok)
 
 
+def ordered_across(low: str, high: str, why: str) -> Rule:
+    """Key ``low`` (``section.key``) is less than key ``high`` of another section; ``why``
+    says what goes wrong otherwise. A rule of the config class's own ``RULES``."""
+    low_section, _, low_key = low.partition(".")
+    high_section, _, high_key = high.partition(".")
+
+    def ok(config: Any) -> bool:
+        low_value: float = getattr(getattr(config, low_section), low_key)
+        high_value: float = getattr(getattr(config, high_section), high_key)
+        return low_value < high_value
+
+    return Rule(high, f"> {low} ({{{low}}}): {why}", ok, (low,))
+
+
 def ordered(low: str, high: str, *, strict: bool = True) -> Rule:
     """Key ``low`` is less than (or, not ``strict``, at most) key ``high``."""
     text = f"{{section}}.{low} ({{{low}}})"
@@ -238,7 +252,29 @@ def _build(cls: type[C], values: dict[str, dict[str, tuple[Any, str]]], base: C 
         section = dataclasses.replace(current, **changes)
         _validate_section(item.name, section, {key: source for key, (_, source) in given.items()})
         sections[item.name] = section
-    return cls(**sections)
+    config = cls(**sections)
+    _validate_across(config, values)
+    return config
+
+
+def _validate_across(config: Any, values: dict[str, dict[str, tuple[Any, str]]]) -> None:
+    """The config's own ``RULES``: constraints between keys of different sections, named
+    ``section.key`` (and formatted with the sections, e.g. ``"{failsafe.hold_after}"``)."""
+    for rule in getattr(config, "RULES", ()):
+        if rule.ok(config):
+            continue
+        section, _, key = rule.key.partition(".")
+        sources = []
+        for dotted in (rule.key, *rule.others):
+            name, _, field_name = dotted.partition(".")
+            sources.append(values.get(name, {}).get(field_name, (None, ""))[1])
+        sections = {item.name: getattr(config, item.name) for item in dataclasses.fields(config)}
+        raise ConfigError(
+            rule.key,
+            f"must be {rule.rule.format(**sections)}, "
+            f"not {_toml_value(getattr(getattr(config, section), key))}",
+            next((source for source in sources if source), ""),
+        )
 
 
 def _validate_section(name: str, section: Any, sources: Mapping[str, str]) -> None:

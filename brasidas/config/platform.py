@@ -24,6 +24,7 @@ from brasidas.config.loader import (
     non_negative,
     one_of,
     ordered,
+    ordered_across,
     positive,
     remote_port,
     setting,
@@ -116,7 +117,10 @@ class SignalingSection:
     advertise_host: str = setting("", empty_or(host_name))
     """Host put in the signaling URL of beacons. Empty: ``host``."""
     session_timeout: float = setting(5.0, above(0, most=3600))
-    """A session with no heartbeat for this long ends (and releases the manual override)."""
+    """A session with no heartbeat for this long ends (and releases the manual override) —
+    except the override holder's while the failsafe ladder holds for it: the ladder's release
+    step (``failsafe.release_after``, ``failsafe.action``) decides, and its session ends after
+    the release. Must exceed ``failsafe.hold_after``."""
     heartbeat_interval: float = setting(1.0, above(0, most=600))
     """How often stations are told to send heartbeats."""
     max_request_bytes: int = setting(65536, at_least(1024, most=16 * 1024 * 1024))
@@ -220,8 +224,9 @@ class FailsafeSection:
     """No call (heartbeat) from the override holder for this long: hold (motors zero,
     payload safe, velocities dropped until the operator re-engages)."""
     release_after: float = setting(10.0, above(0, most=3600))
-    """Silent this long: ``action``. (A session silent for ``signaling.session_timeout`` ends
-    first and releases the override, R-17: set that above this to let the ladder decide.)"""
+    """Silent this long: ``action``. The holder's session does not time out
+    (``signaling.session_timeout``) while the ladder holds: this step, not the session's
+    expiry, releases the override."""
     action: str = setting("release", one_of("release", "hold"))
     """At ``release_after``: release the override (autonomy resumes) or keep holding."""
 
@@ -429,6 +434,14 @@ class MapSection:
 
 @dataclass(frozen=True)
 class PlatformConfig:
+    RULES: ClassVar[tuple[Rule, ...]] = (
+        ordered_across(
+            "failsafe.hold_after",
+            "signaling.session_timeout",
+            "a silent override holder's session would end before the failsafe ladder holds",
+        ),
+    )
+
     platform: PlatformSection = field(default_factory=PlatformSection)
     security: SecuritySection = field(default_factory=SecuritySection)
     signaling: SignalingSection = field(default_factory=SignalingSection)
