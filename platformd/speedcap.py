@@ -145,7 +145,8 @@ class SpeedCapper(Actor):
 
     def section(self) -> SpeedLimit:
         cap = self.cap
-        return SpeedLimit(round(cap.cap_kmh, 2), cap.video_ms, cap.command_ms, cap.reason)
+        command = None if cap.command_ms is None else round(cap.command_ms, 1)
+        return SpeedLimit(round(cap.cap_kmh, 2), cap.video_ms, command, cap.reason)
 
 
 async def async_setup(ctx: PlatformContext) -> None:

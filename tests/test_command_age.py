@@ -94,17 +94,19 @@ async def test_a_delayed_packet_is_aged_by_the_platform_across_offset_clocks(
         sock.sendto(encoder.encode(0.1, 0.0, conn.platform_time_ms()), target)
         await wait_until(lambda: command_age(daemon) is not None)
         age = command_age(daemon)
-        assert age is not None and age.last_ms < 50  # loopback: at once
+        assert age is not None and age.last_ms < 200  # loopback: at once (but a loaded machine)
         # A packet held back 250 ms on its way (a congested link) arrives 250 ms old.
         held = encoder.encode(0.1, 0.0, conn.platform_time_ms())
         await asyncio.sleep(0.25)
         sock.sendto(held, target)
         await wait_until(lambda: (a := command_age(daemon)) is not None and a.last_ms >= 200)
         age = command_age(daemon)
-        assert age is not None and 250 <= age.last_ms < 350 and age.max_ms == age.last_ms
+        # (Not 5000 s: the clocks' offset is accounted for; transit on a loaded loopback adds
+        # milliseconds, seldom more.)
+        assert age is not None and 250 <= age.last_ms < 1000 and age.max_ms == age.last_ms
         report = await conn.call("get_telemetry_report")
         assert report["velocity_link"]["age_ms"] == pytest.approx(age.last_ms, abs=0.1)
-        assert report["speed_cap"]["command_ms"] == pytest.approx(age.max_ms)
+        assert report["speed_cap"]["command_ms"] == pytest.approx(age.max_ms, abs=0.1)
 
 
 async def test_the_cap_follows_the_command_age_and_the_motors_never_exceed_it(
@@ -129,9 +131,10 @@ async def test_the_cap_follows_the_command_age_and_the_motors_never_exceed_it(
         sock.sendto(encoder.encode(1.0, 0.0, sent(0)), target)
         await wait_until(lambda: bool(commands) and commands[-1].linear > 0)
         fresh = daemon.bus.last(topics.SPEED_CAP)
-        assert fresh is not None and fresh.command_ms is not None and fresh.command_ms < 50
+        assert fresh is not None and fresh.command_ms is not None and fresh.command_ms < 200
         assert "command age" in fresh.reason
         # Packets 300 ms old (a lag): the cap drops at once, before the packet moves anything.
+        before = len(commands)
         sock.sendto(encoder.encode(1.0, 0.0, sent(300)), target)
         await wait_until(
             lambda: (
@@ -145,8 +148,8 @@ async def test_the_cap_follows_the_command_age_and_the_motors_never_exceed_it(
         expected = compute_cap(safety, max_kmh, 50.0, lagging.command_ms)
         assert lagging.cap_kmh == pytest.approx(expected.cap_kmh)
         assert lagging.cap_kmh < fresh.cap_kmh
-        await wait_until(lambda: commands[-1].linear > 0)
-        assert commands[-1].linear == pytest.approx(lagging.fraction)
+        moved = [c for c in commands[before:] if c.linear > 0]  # (then the deadman's zeros)
+        assert moved and moved[0].linear == pytest.approx(lagging.fraction)
 
         # Fresh packets again: once the old one leaves the window (1 s) the cap rises back.
         async def stream() -> None:
@@ -160,8 +163,9 @@ async def test_the_cap_follows_the_command_age_and_the_motors_never_exceed_it(
                 lambda: (
                     (c := daemon.bus.last(topics.SPEED_CAP)) is not None
                     and c.command_ms is not None
-                    and c.command_ms < 50
-                )
+                    and c.command_ms < 200
+                ),
+                timeout=15,
             )
         finally:
             streaming.cancel()
