@@ -5,7 +5,8 @@ pause and framerate, payload and autonomy commands — every system command exce
 observer may send (:data:`OBSERVER_CODES`: starting and stopping its own copy of the streams).
 The first session to send a control command while nobody holds control claims it; it keeps it
 until its session ends or another station takes it with ``force`` (MOVRD ``state=on,force=1``,
-``brasidas-station movrd ID on --force``). A takeover releases the previous holder's override
+``brasidas-station movrd ID on --force``); the same station (id and host) on a new session — it
+lost its old one with the link — takes it back without force. A takeover releases the previous holder's override
 before the new holder's request runs, and tells it (``CONTROL_STATE``; its next heartbeat
 answer says who holds control).
 
@@ -59,7 +60,7 @@ class Authority:
         """A registered payload command's name (set with the router)."""
         self.controller: Session | None = None
         self.counters: dict[str, int] = dict.fromkeys(
-            ("claims", "takeovers", "refused", "engagement_refused"), 0
+            ("claims", "takeovers", "reclaims", "refused", "engagement_refused"), 0
         )
 
     @property
@@ -84,6 +85,12 @@ class Authority:
         if force:
             self.counters["takeovers"] += 1
             self._set(session, f"taken by {session.station_id}")
+            return None
+        if _same_station(self.controller, session):
+            # The station came back on a new session (its old one was lost with the link):
+            # it takes its own control back without force; its old override is released.
+            self.counters["reclaims"] += 1
+            self._set(session, f"reclaimed by {session.station_id} on a new session")
             return None
         self.counters["refused"] += 1
         return f"{what} refused: control held by station {self.controller.station_id}"
@@ -151,6 +158,11 @@ class Authority:
                 reason,
             ),
         )
+
+
+def _same_station(holder: Session, session: Session) -> bool:
+    """``session`` is a later session of the station holding control, from the same host."""
+    return holder.station_id == session.station_id and holder.peer_host == session.peer_host
 
 
 def _forced(code: CommandCode, payload: str) -> bool:

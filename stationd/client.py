@@ -22,6 +22,10 @@ from brasidas.security import accept_proof, connect_proof
 _LOGGER = logging.getLogger(__name__)
 
 
+CLOSED_BY_STATION = "closed by station"
+"""The close reason of a session this station ended itself (not a loss)."""
+
+
 class AuthenticationError(Exception):
     """The platform refused us, or could not prove it holds the fleet key."""
 
@@ -232,7 +236,7 @@ class PlatformConnection:
         if not self.closed.is_set() and self.session_id:
             with contextlib.suppress(Exception):
                 await self._client.call("disconnect", {"session": self.session_id}, timeout=0.5)
-        self._mark_closed(self.close_reason or "closed by station")
+        self._mark_closed(self.close_reason or CLOSED_BY_STATION)
         current = asyncio.current_task()
         for task in (self._heartbeat, self._watcher):
             if task is not None and task is not current:

@@ -1,7 +1,10 @@
 """The station's connection manager: one session per platform, kept alive, closed cleanly.
 
 Local API methods (for the CLI and the browser console) act on a platform by id and connect
-to it first when needed, resolving its signaling URL from discovery.
+to it first when needed, resolving its signaling URL from discovery. A session lost without
+the operator's word (heartbeats failing through a long link cut, the platform restarted) is
+re-established by itself as soon as the platform answers again — as an observer: the manual
+override is never re-engaged by the station, the operator does that deliberately.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from typing import Any
 
 from brasidas import topics
 from brasidas.actor import Actor, wait_forever
+from brasidas.backoff import Backoff
 from brasidas.codecs.commands import (
     MAIN_LIGHTS,
     MANUAL_OVERRIDE,
@@ -24,13 +28,19 @@ from brasidas.codecs.commands import (
 )
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, RpcError
 from brasidas.messages import PlatformLink, StationNotification
-from stationd.client import AuthenticationError, PlatformConnection
+from stationd.client import CLOSED_BY_STATION, AuthenticationError, PlatformConnection
 from stationd.context import StationContext
 from stationd.telemetry.annunciator import CONTROL_TAKEN
 
 _LOGGER = logging.getLogger(__name__)
 
 NOT_CONNECTED = -32010
+CLOSED_BY_OPERATOR = "closed by operator"
+"""With :data:`~stationd.client.CLOSED_BY_STATION`, the close reasons after which the session
+is not re-established (any other is a loss)."""
+RECONNECT_INITIAL = 0.5
+RECONNECT_MAX = 5.0
+"""Seconds between attempts to re-establish a lost session (capped exponential backoff)."""
 
 
 class ConnectionManager(Actor):
@@ -41,6 +51,8 @@ class ConnectionManager(Actor):
         self.ctx = ctx
         self._watchers: asyncio.TaskGroup | None = None
         self._connecting: dict[str, asyncio.Lock] = {}
+        self._reconnecting: dict[str, str] = {}
+        """Platforms whose lost session is being re-established, with their signaling URL."""
 
     async def run(self) -> None:
         async with asyncio.TaskGroup() as watchers:
@@ -101,17 +113,42 @@ class ConnectionManager(Actor):
 
     async def _watch(self, connection: PlatformConnection) -> None:
         await connection.closed.wait()
-        if self.ctx.connections.get(connection.platform_id) is connection:
-            del self.ctx.connections[connection.platform_id]
-        _LOGGER.warning(
-            "connection to %s ended: %s", connection.platform_id, connection.close_reason
-        )
+        platform_id = connection.platform_id
+        if self.ctx.connections.get(platform_id) is connection:
+            del self.ctx.connections[platform_id]
+        _LOGGER.warning("connection to %s ended: %s", platform_id, connection.close_reason)
         with contextlib.suppress(Exception):
             await connection.close()
         self.bus.publish(
             topics.PLATFORM_DISCONNECTED,
-            PlatformLink(connection.platform_id, connection.session_id, connection.close_reason),
+            PlatformLink(platform_id, connection.session_id, connection.close_reason),
         )
+        if connection.close_reason not in (CLOSED_BY_OPERATOR, CLOSED_BY_STATION):
+            await self._reconnect(platform_id, connection.signaling_url)
+
+    async def _reconnect(self, platform_id: str, url: str) -> None:
+        """Connect again until the platform answers (or the operator connects or disconnects
+        it meanwhile). The new session holds nothing: not the override, not control."""
+        backoff = Backoff(RECONNECT_INITIAL, RECONNECT_MAX)
+        self._reconnecting[platform_id] = url
+        try:
+            while self._reconnecting.get(platform_id) == url:
+                await asyncio.sleep(backoff.next())
+                if self._reconnecting.get(platform_id) != url:
+                    return
+                try:
+                    await self.ensure(platform_id, url)
+                except RpcError as err:
+                    if backoff.attempts == 1:
+                        _LOGGER.info("reconnecting to %s: %s", platform_id, err.message)
+                    continue
+                _LOGGER.info(
+                    "reconnected to %s (as an observer until the operator engages)", platform_id
+                )
+                return
+        finally:
+            if self._reconnecting.get(platform_id) == url:
+                del self._reconnecting[platform_id]
 
     def _on_control_lost(self, platform_id: str, holder: str | None) -> None:
         message = (
@@ -141,10 +178,11 @@ class ConnectionManager(Actor):
         return (await self.ensure(platform_id, url)).summary()
 
     async def api_disconnect(self, call: CallContext, platform_id: str) -> bool:
+        reconnecting = self._reconnecting.pop(platform_id, None) is not None
         connection = self.ctx.connections.get(platform_id)
         if connection is None:
-            return False
-        connection.close_reason = "closed by operator"
+            return reconnecting
+        connection.close_reason = CLOSED_BY_OPERATOR
         await connection.close()
         return True
 
