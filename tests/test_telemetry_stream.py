@@ -265,3 +265,74 @@ def _snapshot(station: StationDaemon, platform_id: str) -> Snapshot:
 
 def _override(station: StationDaemon, platform_id: str) -> Override:
     return _snapshot(station, platform_id).get(Override) or Override()
+
+
+async def test_a_silent_sessions_stream_pauses_and_resumes_with_its_next_call(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    # Heartbeats every 0.1 s: a session silent for 3 of them (but never less than hold_after,
+    # 0.3 s) has lost its link; its session itself lasts (session_timeout 60 s).
+    daemon = await platform_factory(
+        quiet_platform_config(
+            "signaling.heartbeat_interval=0.1",
+            "signaling.session_timeout=60",
+            "failsafe.hold_after=0.3",
+        ),
+        fleet_key,
+    )
+    connection = PlatformConnection(
+        daemon.config.platform.id, daemon.ctx.signaling_url, station_id="st", fleet_key=fleet_key
+    )
+    await connection.open()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        sock.setblocking(False)
+
+        def drain() -> int:
+            count = 0
+            while True:
+                try:
+                    sock.recv(MAX_DATAGRAM)
+                except BlockingIOError:
+                    return count
+                count += 1
+
+        try:
+            await connection.call("request_telemetry", port=sock.getsockname()[1], rate_hz=20)
+            received = 0
+
+            def heard() -> bool:
+                nonlocal received
+                received += drain()
+                return received >= 3
+
+            await wait_until(heard)
+            # The station's heartbeats stop (its link is cut): the stream pauses.
+            assert connection._heartbeat is not None
+            connection._heartbeat.cancel()
+            session = daemon.ctx.sessions.sessions[connection.session_id]
+            await wait_until(lambda: not _live(daemon, session.session_id))
+            drain()
+            paused = _paused(daemon)
+            await wait_until(lambda: _paused(daemon) >= paused + 5)
+            assert drain() == 0 and connection.session_id in daemon.ctx.sessions.sessions
+            # A call (the link is back): the same stream resumes by itself.
+            await connection.call("heartbeat")
+            received = 0
+            await wait_until(heard)
+        finally:
+            await connection.close()
+
+
+def _live(daemon: PlatformDaemon, session_id: str) -> bool:
+    return bool(_aggregator(daemon).session_live(session_id))
+
+
+def _paused(daemon: PlatformDaemon) -> int:
+    return _aggregator(daemon).sender.counters["paused_snapshots"]
+
+
+def _aggregator(daemon: PlatformDaemon) -> TelemetryAggregator:
+    found = [a for a in daemon.ctx.supervisor.actors if isinstance(a, TelemetryAggregator)]
+    assert len(found) == 1
+    return found[0]

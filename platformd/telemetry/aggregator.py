@@ -65,6 +65,8 @@ _LOGGER = logging.getLogger(__name__)
 
 ATTITUDE_MAX_HZ = 10.0
 """The IMU publishes its attitude at most this often, whatever its sample rate."""
+LIVE_HEARTBEATS = 3
+"""A session that missed this many heartbeats gets no telemetry until it calls again."""
 GPS_DEFAULT_HZ = 1.0
 """Epochs per second of a real receiver (the NEO-6M's default)."""
 
@@ -94,7 +96,10 @@ class TelemetryAggregator(Actor):
         self.health: PlatformHealth | None = None
         self.snapshots = 0
         self.sender = StreamSender(
-            ctx.config.platform.id, lambda: snapshot_to_wire(self.snapshot()), clock
+            ctx.config.platform.id,
+            lambda: snapshot_to_wire(self.snapshot()),
+            clock,
+            self.session_live,
         )
         self._system: tuple[float, Computer] | None = None
         self._gps_lost_at: float | None = None
@@ -174,6 +179,19 @@ class TelemetryAggregator(Actor):
         report_switch(self.bus, "diagnostics", on)
         _LOGGER.info("diagnostics report %s", "on" if on else "off")
         return CommandResult(True, result={"diagnostics": on})
+
+    def session_live(self, session_id: str) -> bool:
+        """Whether ``session_id`` was heard from (a call, or its velocity datagrams) within
+        three heartbeat intervals, and never less than ``failsafe.hold_after`` — the failsafe
+        ladder's notion of a lost link. A silent session's telemetry pauses."""
+        session = self.ctx.session(session_id)
+        if session is None:
+            return False
+        config = self.ctx.config
+        silent_after = max(
+            LIVE_HEARTBEATS * config.signaling.heartbeat_interval, config.failsafe.hold_after
+        )
+        return self._monotonic() - max(session.last_seen, session.last_velocity) < silent_after
 
     def _on_control(self, control: ControlState) -> None:
         # Control changed hands (a takeover, its holder's session ended): every station hears

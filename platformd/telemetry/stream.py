@@ -1,4 +1,5 @@
-"""The push streams: one authenticated datagram stream per station session."""
+"""The push streams: one authenticated datagram stream per station session, paused while the
+session is silent (its link lost) and resumed with its next call."""
 
 from __future__ import annotations
 
@@ -39,15 +40,19 @@ class StreamSender:
         platform_id: str,
         snapshot: Callable[[], dict[str, Any]],
         clock: Callable[[], float],
+        live: Callable[[str], bool] = lambda _session_id: True,
     ) -> None:
         self.platform_id = platform_id
         self._snapshot = snapshot
         self._clock = clock
+        self._live = live
+        """Whether a session still hears us (its heartbeats): a silent one's stream pauses."""
         self.streams: dict[str, TelemetryStream] = {}
         self.counters: dict[str, int] = {
             "datagrams_sent": 0,
             "send_errors": 0,
             "trimmed_sections": 0,
+            "paused_snapshots": 0,
         }
         self._group: asyncio.TaskGroup | None = None
         self._transport: asyncio.DatagramTransport | None = None
@@ -101,7 +106,7 @@ class StreamSender:
         period = 1.0 / stream.rate_hz
         due = loop.time()
         while True:
-            self.send_snapshot(stream)
+            self._send_if_live(stream)
             due += period
             delay = due - loop.time()
             if delay < 0:  # fell behind (a stalled loop): skip, never burst
@@ -114,7 +119,15 @@ class StreamSender:
         if self._transport is None:
             return
         for stream in list(self.streams.values()):
+            self._send_if_live(stream)
+
+    def _send_if_live(self, stream: TelemetryStream) -> None:
+        # A session that lost its link hears nothing: no datagrams into the void until its
+        # heartbeats return (the stream then resumes by itself) or it ends.
+        if self._live(stream.session_id):
             self.send_snapshot(stream)
+        else:
+            self.counters["paused_snapshots"] += 1
 
     def send_snapshot(self, stream: TelemetryStream) -> int:
         """Encode and send one snapshot to ``stream``; returns the number of datagrams."""
