@@ -104,6 +104,7 @@ async def test_engagement_only_from_the_override_holder_under_override(
             "sim.enabled=true",
             'payload.enabled=["turret"]',
             "failsafe.hold_after=50",
+            "signaling.session_timeout=60",  # above hold_after (the config refuses less)
             "failsafe.release_after=100",
         ),
         fleet_key,
