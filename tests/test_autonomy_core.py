@@ -308,8 +308,10 @@ def test_patrol_states_map_reload_override_and_stale_fix() -> None:
 
 
 def test_closed_route_driven_twice_passes_every_waypoint_and_avoids_the_keepout() -> None:
-    """By its own pose the robot passes within 1 m of each waypoint, each lap; its true
-    position is off by the GPS error (the simulator's wanders 0.8 m per axis)."""
+    """By its own pose the robot passes within 1 m of each waypoint, each lap, and its true
+    position within 2 m of each as the receiver sees it (the truth plus the receiver's error).
+    The truth itself is further off by the receiver's error: a NEO-6M's 2.5 m CEP, wandering
+    over minutes, is an offset no estimator on a GPS-only robot can observe (bench_patrol)."""
     area = parse_map(demo())
     p = patrol()
     p.set_map(area)
@@ -320,6 +322,7 @@ def test_closed_route_driven_twice_passes_every_waypoint_and_avoids_the_keepout(
     targets = [area.local(w.latitude, w.longitude) for w in route.waypoints[:-1]]
     believed = [[math.inf, math.inf] for _ in targets]
     true = [[math.inf, math.inf] for _ in targets]
+    received = [[math.inf, math.inf] for _ in targets]
     while p.cursor.lap < 2 and run.now < 400:
         tick = run.tick()
         assert area.keepout_at(*tick.truth_xy) is None
@@ -330,11 +333,17 @@ def test_closed_route_driven_twice_passes_every_waypoint_and_avoids_the_keepout(
             here = (tick.estimate.x, tick.estimate.y)
             believed[index][lap] = min(believed[index][lap], math.dist(target, here))
             true[index][lap] = min(true[index][lap], math.dist(target, tick.truth_xy))
+            received[index][lap] = min(received[index][lap], math.dist(target, tick.receiver_xy))
     assert p.cursor.lap == 2
+
     # The start is waypoint 0: lap 0 passes 1..3 and ends at 0, lap 1 passes all.
-    passes = [*believed[1], *believed[2], *believed[3], believed[0][1]]
-    assert max(passes) < 1.0, believed
-    assert max([*true[1], *true[2], *true[3], true[0][1]]) < 3.0, true
+    def passes(closest: list[list[float]]) -> list[float]:
+        return [*closest[1], *closest[2], *closest[3], closest[0][1]]
+
+    assert max(passes(believed)) < 1.0, believed
+    assert max(passes(received)) < 2.0, received
+    error = math.hypot(*run.gps.error)  # nearly constant over these 3 minutes
+    assert max(passes(true)) < 2.0 + error + 0.5, (true, error)
 
 
 def test_unreachable_waypoint_is_skipped_with_a_notification() -> None:

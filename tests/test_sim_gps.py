@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import datetime as dt
+import itertools
 import math
 import os
 import random
@@ -66,11 +67,13 @@ def test_every_sentence_parses_with_a_valid_checksum() -> None:
         errors.append(metres_between(pose.latitude, pose.longitude, fix.latitude, fix.longitude))
         assert 8 <= (fix.satellites or 0) <= 10
         assert fix.hdop is not None and 0.7 <= fix.hdop <= 1.4
-    assert max(errors) < 5.0  # about a metre of wander, never a jump
-    assert sum(errors) / len(errors) > 0.05  # but there is noise
+    # The NEO-6M's error: metres (2.5 m CEP), wandering slowly, never a jump between epochs.
+    assert 0.3 < sum(errors) / len(errors) < 8.0 and max(errors) < 9.0
+    assert max(abs(a - b) for a, b in itertools.pairwise(errors)) < 0.2
     moving = fixes[-1]
     assert moving is not None and moving.speed_mps is not None
-    assert moving.speed_mps == pytest.approx(abs(poses[-1].speed_mps), abs=0.01)
+    # Doppler speed: 0.1 m/s (the data sheet's velocity accuracy), whatever the position error.
+    assert moving.speed_mps == pytest.approx(abs(poses[-1].speed_mps), abs=0.2)
     assert moving.time.startswith("2026-11-24T00:00:49.90")
 
 

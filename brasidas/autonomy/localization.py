@@ -4,6 +4,14 @@ State: x, y (metres east and north in a local frame), yaw (counter-clockwise fro
 forward speed. Between fixes the pose is dead-reckoned: the speed follows the commanded speed
 with the vehicle's lag, the yaw turns at the IMU's rate (or the commanded rate without an
 IMU). A fix corrects the position; while moving, its course and speed correct yaw and speed.
+
+Two figures describe a fix. Its absolute error (``gps_sigma_m``, about 2 m per axis for a
+NEO-6M) wanders over minutes: consecutive fixes share it, so averaging them does not remove it,
+and nothing on a GPS-only robot can observe it. The filter therefore weights fixes by their
+fix-to-fix noise (``gps_jitter_m``: the receiver's own navigation filter smooths its output)
+and tracks where the receiver puts the robot, and :attr:`Estimate.sigma_xy` adds the absolute
+error back: it is the uncertainty against the ground and the map, the figure a clearance from
+keep-out zones must cover.
 The IMU has no magnetometer, so the heading is unknown until the robot has driven a little:
 the first course over ground sets it (:attr:`Estimate.heading_known`).
 
@@ -40,7 +48,8 @@ class Estimate:
     speed: float
     """Forward, m/s (negative reversing)."""
     sigma_xy: float
-    """One standard deviation of the position (metres, the larger axis)."""
+    """One standard deviation of the position against the ground (metres, the larger axis):
+    the filter's own uncertainty plus the receiver's absolute error."""
     sigma_yaw: float
     """One standard deviation of the yaw (radians)."""
 
@@ -57,8 +66,10 @@ class FilterParameters:
     """rad/s at angular = 1."""
     lag_s: float = 0.25
     """Time constant of the speed's response to a command."""
-    gps_sigma_m: float = 1.0
-    """Position error of a fix at HDOP 1."""
+    gps_sigma_m: float = 2.1
+    """Absolute position error of a fix at HDOP 1, one axis, 1 sigma (NEO-6M: 2.5 m CEP)."""
+    gps_jitter_m: float = 0.5
+    """Fix-to-fix position noise at HDOP 1: what the filter weights a fix by."""
     position_noise: float = 0.05
     """Process noise: m²/s of position drift (wheel slip, the model's errors)."""
     yaw_noise_gyro: float = 0.0005
@@ -83,6 +94,7 @@ class PoseFilter:
         self._gyro_time = -math.inf
         self._imu_yaw: tuple[float, float] | None = None
         self._heading_set = False
+        self._absolute_var = 0.0
 
     @property
     def initialized(self) -> bool:
@@ -116,7 +128,9 @@ class PoseFilter:
         course_yaw: float | None = None,
     ) -> None:
         """A fix at (x, y) in the local frame; course over ground as an ENU yaw, if known."""
-        sigma = self.p.gps_sigma_m * max(1.0, hdop or 1.0)
+        dilution = max(1.0, hdop or 1.0)
+        sigma = self.p.gps_jitter_m * dilution
+        self._absolute_var = (self.p.gps_sigma_m * dilution) ** 2
         if not self._initialized:
             self._t = t
             self._state[0:2] = (x, y)
@@ -156,7 +170,7 @@ class PoseFilter:
         # The position covariance's larger eigenvalue (2x2 symmetric, its lower triangle).
         a, b, d = self._cov[0][0], self._cov[1][0], self._cov[1][1]
         largest = (a + d) / 2.0 + math.hypot((a - d) / 2.0, b)
-        sigma_xy = math.sqrt(max(0.0, largest))
+        sigma_xy = math.sqrt(max(0.0, largest) + self._absolute_var)
         sigma_yaw = math.sqrt(max(0.0, self._cov[2][2]))
         return Estimate(t, x, y, wrap(yaw), speed, sigma_xy, min(sigma_yaw, UNKNOWN_YAW_SIGMA))
 

@@ -30,7 +30,7 @@ XY = tuple[float, float]
 @dataclass(frozen=True)
 class PatrolParameters:
     follower: FollowerParameters
-    clearance_m: float = 1.0
+    clearance_m: float = 4.5
     fix_stale_s: float = 2.0
     """A pose whose last fix is older than this is not trusted: hold."""
     corridor_m: float = 3.0

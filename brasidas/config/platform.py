@@ -414,16 +414,24 @@ class AutonomySection:
     """A waypoint within this distance is reached."""
     decel_mps2: float = setting(0.5, above(0, most=20))
     """How hard the robot slows down toward a waypoint."""
-    clearance_m: float = setting(1.0, at_least(0, most=100))
-    """Planned paths keep at least this far from keep-out zones and the boundary."""
+    clearance_m: float = setting(4.5, at_least(0, most=100))
+    """Planned paths keep at least this far from keep-out zones and the boundary. It must cover
+    the localization's error across the path, or the true robot enters what its pose avoids:
+    with a NEO-6M (``gps_sigma_m`` 2.1 m per axis, wandering over minutes, which no filter
+    removes) 2 sigma is 4.2 m, plus ~0.3 m of the follower's tracking error: the robot stays
+    out about 98 % of the time. A better receiver (SBAS, RTK) earns a smaller one."""
     corridor_m: float = setting(3.0, above(0, most=1000))
     """Further than this from the planned path: replan from where the robot is."""
     fix_stale_s: float = setting(2.0, above(0, most=60))
     """Hold when the last GPS fix is older than this."""
     rate_hz: float = setting(10.0, at_least(2, most=50))
     """cmd_vel and pose rate (the controller's watchdog needs >= 2)."""
-    gps_sigma_m: float = setting(1.0, above(0, most=100))
-    """Localization: a fix's position error at HDOP 1."""
+    gps_sigma_m: float = setting(2.1, above(0, most=100))
+    """Localization: a fix's absolute position error at HDOP 1, one axis, 1 sigma (the NEO-6M's
+    2.5 m CEP). It wanders over minutes, so no filter removes it: it sizes the pose's
+    uncertainty (and ``clearance_m``), not the weight of a fix."""
+    gps_jitter_m: float = setting(0.5, above(0, most=100))
+    """Localization: fix-to-fix position noise at HDOP 1, what a fix is weighted by."""
 
 
 @dataclass(frozen=True)

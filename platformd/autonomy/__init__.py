@@ -27,7 +27,10 @@ async def async_setup(ctx: PlatformContext) -> None:
     localization = Localization(
         ctx.bus,
         FilterParameters(
-            max_speed=full_speed, max_yaw_rate=full_turn, gps_sigma_m=config.gps_sigma_m
+            max_speed=full_speed,
+            max_yaw_rate=full_turn,
+            gps_sigma_m=config.gps_sigma_m,
+            gps_jitter_m=config.gps_jitter_m,
         ),
         rate_hz=config.rate_hz,
     )

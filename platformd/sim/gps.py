@@ -2,10 +2,21 @@
 
 Like the receiver (hardware.md): a few ``$GPTXT`` banner lines at power-up, then once per epoch
 (``gps.sim_rate_hz``, 1-10; the NEO-6M defaults to 1 Hz) RMC, VTG, GGA and GSA with ``$GP``
-talker IDs, positions with 5 decimals of minutes, a slowly wandering position error of about
-a metre, HDOP about 1 and 8-10 satellites. The real GPS reader opens the pty unchanged
-(``ctx.gps_port`` in --sim). A pty has no baud rate: at 10 Hz a real NEO-6M needs
-38400 baud or more for these four sentences, 9600 only carries about 3 epochs a second.
+talker IDs, positions with 5 decimals of minutes, HDOP about 1 and 8-10 satellites. The real
+GPS reader opens the pty unchanged (``ctx.gps_port`` in --sim). A pty has no baud rate: at
+10 Hz a real NEO-6M needs 38400 baud or more for these four sentences, 9600 only carries about
+3 epochs a second; and the NEO-6M's data sheet gives 5 Hz as its highest navigation rate, so
+10 Hz here is a stress setting (twice the sentences the real receiver can send).
+
+The position error is the receiver's, as a NEO-6M makes it: 2.5 m CEP (the data sheet's figure,
+GPS without SBAS, open sky), i.e. 2.1 m standard deviation on each horizontal axis, and slow:
+a receiver's navigation filter smooths its output, so the error wanders over minutes with no
+epoch-to-epoch jitter to speak of (in ``testdata/nmea/ublox-8.log`` a standing u-blox receiver's
+fix moves 0.12 m a second, in steps that are positively correlated). A Gauss-Markov process
+with a 5 minute time constant gives that: over one lap of a patrol it is nearly a constant
+offset that no filter on the robot can see, because the receiver is the only absolute reference.
+Speed and course over ground come from the Doppler shift, not from positions: accurate to
+about 0.1 m/s whatever the position error (the data sheet's velocity accuracy).
 
 The UART of a receiver never blocks: when nobody reads the pty and its buffer is full, the
 epoch is dropped (counted in ``overruns``), as bytes sent to an unplugged cable are lost.
@@ -41,10 +52,12 @@ BANNER = (
 )
 GEOID_SEPARATION_M = 34.0
 KNOTS_PER_MPS = 3600.0 / 1852.0
-NOISE_SIGMA_M = 0.8
-"""Steady-state standard deviation of the horizontal error (a good sky view)."""
-NOISE_CORRELATION_S = 20.0
-"""Time constant of the error's wander: GPS error is slow, not white."""
+NOISE_SIGMA_M = 2.1
+"""Steady-state standard deviation of the error on each horizontal axis: 2.5 m CEP (NEO-6M)."""
+NOISE_CORRELATION_S = 300.0
+"""Time constant of the error's wander: GPS error is slow (minutes), not white."""
+VELOCITY_SIGMA_MPS = 0.05
+"""Doppler velocity noise on each horizontal axis (data sheet: 0.1 m/s, 50 %)."""
 
 
 class NmeaGenerator:
@@ -59,6 +72,11 @@ class NmeaGenerator:
         self.satellites = self.rng.randint(8, 10)
         self.hdop = round(self.rng.uniform(0.9, 1.1), 2)
 
+    @property
+    def error(self) -> tuple[float, float]:
+        """The position error of the last epoch: metres east and north of the truth."""
+        return (self._east_m, self._north_m)
+
     def banner(self) -> bytes:
         return b"".join(sentence(line) for line in BANNER)
 
@@ -69,10 +87,15 @@ class NmeaGenerator:
         latitude = pose.latitude + math.degrees(self._north_m / EARTH_RADIUS_M)
         longitude = pose.longitude + math.degrees(self._east_m / (EARTH_RADIUS_M * math.cos(lat0)))
         altitude = pose.altitude_m + self._alt_m
-        speed = abs(pose.speed_mps)
+        # Velocity over ground from the Doppler shift: its own small noise, per axis.
+        heading = math.radians(pose.heading_deg)
+        v_east = pose.speed_mps * math.sin(heading) + self.rng.gauss(0.0, VELOCITY_SIGMA_MPS)
+        v_north = pose.speed_mps * math.cos(heading) + self.rng.gauss(0.0, VELOCITY_SIGMA_MPS)
+        speed = math.hypot(v_east, v_north)
         knots = speed * KNOTS_PER_MPS
         # u-blox leaves the course empty while (nearly) stationary.
-        course = f"{pose.course_deg:.2f}" if speed > 0.1 else ""
+        course_deg = math.degrees(math.atan2(v_east, v_north)) % 360.0
+        course = f"{course_deg:.2f}" if speed > 0.1 else ""
         # Fields, not strftime ({utc:%H%M%S}): CPython's strftime keeps a little of each
         # distinct result alive, a steady growth over a long --sim run (issue 10, defect 8).
         hhmmss = f"{utc.hour:02d}{utc.minute:02d}{utc.second:02d}.{utc.microsecond // 10000:02d}"

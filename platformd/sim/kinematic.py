@@ -30,6 +30,9 @@ class Tick:
     truth: Pose
     truth_xy: tuple[float, float]
     """The true position in the map's frame."""
+    receiver_xy: tuple[float, float]
+    """Where the simulated receiver puts it (the truth plus the receiver's own error): the
+    best any estimator on the robot can do, with the receiver as its only absolute reference."""
     estimate: Estimate | None
     command: Command
 
@@ -92,9 +95,9 @@ class KinematicRun:
         command = self.patrol.step(estimate, fix_age)
         self.vehicle.set_command(command.linear, command.angular)
         self.filter.command(self.now, command.linear, command.angular)
-        return Tick(
-            self.now, truth, self.area.local(truth.latitude, truth.longitude), estimate, command
-        )
+        x, y = self.area.local(truth.latitude, truth.longitude)
+        east, north = self.gps.error
+        return Tick(self.now, truth, (x, y), (x + east, y + north), estimate, command)
 
     def _fix(self, fix: GpsFix | None) -> None:
         if fix is None:
