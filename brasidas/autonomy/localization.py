@@ -140,9 +140,8 @@ class PoseFilter:
             self._initialized = True
         else:
             self._predict(t)
-            h = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]]
-            innovation = [x - self._state[0], y - self._state[1]]
-            self._update(h, innovation, _diag([sigma**2, sigma**2]))
+            self._update(0, x - self._state[0], sigma**2)
+            self._update(1, y - self._state[1], sigma**2)
         if speed is not None and speed >= MIN_COURSE_SPEED and course_yaw is not None:
             reversing = self._state[3] < -0.1
             measured = wrap(course_yaw + math.pi) if reversing else course_yaw
@@ -155,13 +154,10 @@ class PoseFilter:
                 self._cov[2][2] = sigma_yaw**2
                 self._heading_set = True
             else:
-                h = [[0.0, 0.0, 1.0, 0.0]]
-                innovation = [wrap(measured - self._state[2])]
-                self._update(h, innovation, [[sigma_yaw**2]])
+                self._update(2, wrap(measured - self._state[2]), sigma_yaw**2)
         if speed is not None:
-            h = [[0.0, 0.0, 0.0, 1.0]]
             signed = -speed if self._state[3] < -0.1 else speed
-            self._update(h, [signed - self._state[3]], [[0.1**2]])
+            self._update(3, signed - self._state[3], 0.1**2)
 
     def estimate(self, t: float) -> Estimate:
         """The pose at ``t`` (dead-reckoned from the last input)."""
@@ -198,72 +194,52 @@ class PoseFilter:
         mid_yaw = yaw + rate * dt / 2.0
         cos_y, sin_y = math.cos(mid_yaw), math.sin(mid_yaw)
         self._state = [x + mean_v * cos_y * dt, y + mean_v * sin_y * dt, yaw + rate * dt, new_v]
-        f = _eye(4)
+        # P' = F P F' + Q, with F the identity but for the yaw's and the speed's effect on the
+        # position and the speed's lag: written out (this runs at the IMU's rate).
         dmean_dv = (1.0 + keep) / 2.0
-        if self._heading_set:  # an unknown yaw must not leak into the position's covariance
-            f[0][2] = -mean_v * sin_y * dt
-            f[1][2] = mean_v * cos_y * dt
-        f[0][3] = cos_y * dt * dmean_dv
-        f[1][3] = sin_y * dt * dmean_dv
-        f[3][3] = keep
+        a = -mean_v * sin_y * dt if self._heading_set else 0.0  # d x / d yaw
+        b = mean_v * cos_y * dt if self._heading_set else 0.0  # d y / d yaw
+        c = cos_y * dt * dmean_dv  # d x / d v
+        d = sin_y * dt * dmean_dv  # d y / d v
+        p0, p1, p2, p3 = self._cov
+        rows = [
+            [p0[m] + a * p2[m] + c * p3[m] for m in range(4)],
+            [p1[m] + b * p2[m] + d * p3[m] for m in range(4)],
+            list(p2),
+            [keep * p3[m] for m in range(4)],
+        ]
         yaw_noise = self.p.yaw_noise_gyro if gyro else self.p.yaw_noise_commanded
-        q = _diag(
-            [
-                self.p.position_noise * dt,
-                self.p.position_noise * dt,
-                yaw_noise * dt,
-                self.p.speed_noise * dt,
-            ]
+        q = (
+            self.p.position_noise * dt,
+            self.p.position_noise * dt,
+            yaw_noise * dt,
+            self.p.speed_noise * dt,
         )
-        self._cov = _add(_mul(_mul(f, self._cov), _t(f)), q)
+        cov = [
+            [r[0] + a * r[2] + c * r[3], r[1] + b * r[2] + d * r[3], r[2], keep * r[3]]
+            for r in rows
+        ]
+        for i in range(4):
+            cov[i][i] += q[i]
+        self._cov = cov
         if self._cov[2][2] > UNKNOWN_YAW_SIGMA**2:
             self._cov[2][2] = UNKNOWN_YAW_SIGMA**2
 
-    def _update(self, h: Matrix, innovation: list[float], noise: Matrix) -> None:
-        """A linear measurement of one or two state variables (``h`` is 1x4 or 2x4)."""
-        s = _add(_mul(_mul(h, self._cov), _t(h)), noise)
-        gain = _mul(_mul(self._cov, _t(h)), _inverse(s))
-        self._state = [
-            v + sum(g * e for g, e in zip(row, innovation, strict=True))
-            for v, row in zip(self._state, gain, strict=True)
-        ]
+    def _update(self, i: int, innovation: float, variance: float) -> None:
+        """A measurement of state variable ``i`` with noise ``variance`` (independent
+        measurements, one after the other, make the joint update)."""
+        cov = self._cov
+        column = [row[i] for row in cov]
+        s = column[i] + variance
+        gain = [c / s for c in column]
+        self._state = [v + g * innovation for v, g in zip(self._state, gain, strict=True)]
         self._state[2] = wrap(self._state[2])
-        # Joseph form: stays symmetric and positive under rounding.
-        a = _add(_eye(4), _mul(gain, h), -1.0)
-        self._cov = _add(_mul(_mul(a, self._cov), _t(a)), _mul(_mul(gain, noise), _t(gain)))
-
-
-def _eye(n: int) -> Matrix:
-    return _diag([1.0] * n)
+        # P - K H P: symmetric as written (the outer product of P's column with itself).
+        self._cov = [[cov[r][m] - gain[r] * column[m] for m in range(4)] for r in range(4)]
 
 
 def _diag(values: list[float]) -> Matrix:
     return [[v if i == j else 0.0 for j in range(len(values))] for i, v in enumerate(values)]
-
-
-def _t(a: Matrix) -> Matrix:
-    return [list(column) for column in zip(*a, strict=True)]
-
-
-def _mul(a: Matrix, b: Matrix) -> Matrix:
-    columns = list(zip(*b, strict=True))
-    return [[sum(x * y for x, y in zip(row, col, strict=True)) for col in columns] for row in a]
-
-
-def _add(a: Matrix, b: Matrix, scale: float = 1.0) -> Matrix:
-    """a + scale * b."""
-    return [
-        [x + scale * y for x, y in zip(ra, rb, strict=True)] for ra, rb in zip(a, b, strict=True)
-    ]
-
-
-def _inverse(s: Matrix) -> Matrix:
-    """The inverse of a 1x1 or 2x2 matrix (an innovation covariance: positive definite)."""
-    if len(s) == 1:
-        return [[1.0 / s[0][0]]]
-    (a, b), (c, d) = s
-    det = a * d - b * c
-    return [[d / det, -b / det], [-c / det, a / det]]
 
 
 def _clear(cov: Matrix, i: int) -> None:
