@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator, Awaitable, Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -210,3 +211,46 @@ async def test_the_turret_registers_the_thermal_camera_as_its_stream(
     finally:
         for conn in (a, b, c):
             await conn.close()
+
+
+async def test_a_missing_or_vanished_line_is_reported_and_reopened(
+    platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+) -> None:
+    link = tmp_path / "ttyTURRET"  # a stable name for the pty, as /dev/serial/by-id/... is
+    daemon = await platform_factory(
+        quiet_platform_config('payload.enabled=["turret"]', f"payload.turret_port={link}"),
+        fleet_key,
+    )
+    conn = await station(daemon, fleet_key, "alpha")
+
+    async def turret_report() -> dict[str, Any]:
+        report: dict[str, Any] = (await conn.call("get_telemetry_report"))["turret"]
+        return report
+
+    simulators: list[TurretSimulator] = []
+    try:
+        # No device: no crash, the reason in telemetry and in a command's refusal.
+        payload = next(a for a in daemon.ctx.supervisor.actors if a.name == "turret")
+        await wait_until(lambda: "No such file" in getattr(payload, "error", ""))
+        report = await turret_report()
+        assert not report["connected"] and report["error"].startswith(f"cannot open {link}")
+        refused = await command(conn, 0, "az=10,el=0")
+        assert not refused["accepted"] and refused["reason"].startswith("turret line not open")
+        # The microcontroller is plugged in: the line opens on the next retry.
+        for round_ in range(2):
+            simulators.append(TurretSimulator())
+            simulators[-1].start()
+            link.unlink(missing_ok=True)
+            link.symlink_to(simulators[-1].path)
+            await wait_until(lambda: getattr(payload, "driver", None) is not None, timeout=10)
+            assert (await command(conn, 0, f"az={10 + round_},el=0"))["accepted"]
+            assert (await turret_report())["error"] == ""
+            # ...and unplugged: reported, then reopened when it is back.
+            simulators[-1].close()
+            await wait_until(lambda: "serial line closed" in getattr(payload, "error", ""))
+        assert (await turret_report())["counters"]["acked"] >= 2  # kept across the lines
+        assert daemon.ctx.supervisor.restarts.get("turret", 0) == 0  # never crashed
+    finally:
+        await conn.close()
+        for simulator in simulators:
+            simulator.close()

@@ -24,11 +24,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 """Version of the schema (and the datagram layout); the first byte of every datagram.
 4: the failsafe, speed_cap and turret sections, the velocity link's ``held`` drops.
 5: the lights' ``errors`` (GPIO lines), the turret's ``streams``.
-6: the autonomy section's ``map_rev``."""
+6: the autonomy section's ``map_rev``.
+7: the turret's ``error`` (its line cannot be opened, or went away)."""
 ERROR_KEY = "!"
 """A section's wire map holding only this key is that section's error."""
 STALE_PERIODS = 3.0
@@ -295,6 +296,7 @@ class Turret(Section):
     streams: dict[str, str] = field(
         default_factory=dict, metadata=wire("s", doc="its own streams (the thermal camera): state")
     )
+    error: str = field(default="", metadata=wire("r", doc="why its line is not open"))
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,8 @@ through only from the override holder under manual override, no failsafe step in
 100.2 ``safe``. On override release, session loss (which releases the override) or any failsafe
 step the turret is made safe at once: trigger released, servos hold. Its sight, the thermal IP
 camera (``payload.turret_stream``: the ``payload_camera`` RTSP stream), is registered as its
-stream when the platform has it.
+stream when the platform has it. A line that cannot be opened or goes away (the USB adapter
+unplugged) is reported (telemetry ``turret.error``) and reopened with capped backoff.
 """
 
 from __future__ import annotations
@@ -16,10 +17,12 @@ import contextlib
 import logging
 from typing import Any
 
+import serial
 import serial_asyncio
 
 from brasidas import topics
 from brasidas.actor import Actor
+from brasidas.backoff import Backoff
 from brasidas.codecs import turret
 from brasidas.codecs.commands import CommandCode, PayloadError, parse_payload
 from brasidas.codecs.telemetry_schema import Turret
@@ -40,6 +43,8 @@ SPECS = {
     SAFE: CommandSpec("safe", ""),
 }
 TRIES = 3
+RECONNECT_INITIAL = 0.2
+RECONNECT_MAX = 5.0
 
 
 class TurretError(Exception):
@@ -49,12 +54,11 @@ class TurretError(Exception):
 class TurretDriver(asyncio.Protocol):
     """One open line to the microcontroller: one command in flight, acknowledged or resent."""
 
-    def __init__(self, ack_timeout: float) -> None:
+    def __init__(self, ack_timeout: float, counters: dict[str, int] | None = None) -> None:
         self.ack_timeout = ack_timeout
         self.decoder = LineDecoder()
-        self.counters: dict[str, int] = dict.fromkeys(
-            ("sent", "acked", "resent", "unacked", "refused", "watchdog"), 0
-        )
+        self.counters: dict[str, int] = counters if counters is not None else new_counters()
+        """The line's counters (a payload's outlive each line it opens)."""
         self.state: tuple[float, float, bool] | None = None
         """Azimuth, elevation and trigger by the last acknowledgement."""
         self._transport: asyncio.WriteTransport | None = None
@@ -63,6 +67,8 @@ class TurretDriver(asyncio.Protocol):
         self._lock = asyncio.Lock()
         self._opened = asyncio.Event()
         """Set once the transport is there (pyserial-asyncio makes it a loop turn later)."""
+        self.lost = asyncio.Event()
+        """Set when the line closed (the device vanished, or :meth:`close`)."""
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.WriteTransport)
@@ -71,6 +77,7 @@ class TurretDriver(asyncio.Protocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._transport = None
+        self.lost.set()
         if self._waiting is not None and not self._waiting[1].done():
             self._waiting[1].set_exception(TurretError("serial line closed"))
 
@@ -122,6 +129,10 @@ class TurretDriver(asyncio.Protocol):
             self._transport.close()
 
 
+def new_counters() -> dict[str, int]:
+    return dict.fromkeys(("sent", "acked", "resent", "unacked", "refused", "watchdog"), 0)
+
+
 class TurretPayload(Actor):
     """Opens the line, keeps the microcontroller's watchdog fed, answers group 100."""
 
@@ -135,19 +146,16 @@ class TurretPayload(Actor):
         """Its own media streams (the thermal camera), by name."""
         self.config = ctx.config.payload
         self.driver: TurretDriver | None = None
+        self.error = ""
+        """Why the line is not open (cannot be opened, went away); empty while it is."""
+        self.counters = new_counters()
         self.safings = 0
         self._group: asyncio.TaskGroup | None = None
         self._engaged = False
 
     async def run(self) -> None:
-        loop = asyncio.get_running_loop()
-        _, driver = await serial_asyncio.create_serial_connection(
-            loop,
-            lambda: TurretDriver(self.config.turret_ack_timeout),
-            self.port,
-            baudrate=self.config.turret_baudrate,
-        )
-        self.driver = driver
+        """Open the line and keep the watchdog fed; reopen with capped backoff when it fails."""
+        backoff = Backoff(RECONNECT_INITIAL, RECONNECT_MAX)
         try:
             async with asyncio.TaskGroup() as group:
                 self._group = group
@@ -155,13 +163,40 @@ class TurretPayload(Actor):
                 self.subscribe(topics.OVERRIDE_STATE, self._on_override)
                 self.subscribe(topics.FAILSAFE_STATE, self._on_failsafe)
                 while True:
-                    await asyncio.sleep(self.config.turret_watchdog_s / 3)
-                    with contextlib.suppress(TurretError):
-                        await driver.send("PING")
+                    try:
+                        await self._serve_line(backoff)
+                    except (serial.SerialException, OSError) as err:
+                        self._down(f"cannot open {self.port}: {err}")
+                    await asyncio.sleep(backoff.next())
         finally:
             self._group = None
+
+    async def _serve_line(self, backoff: Backoff) -> None:
+        """One open line: ping at a third of the microcontroller's watchdog until it closes."""
+        _, driver = await serial_asyncio.create_serial_connection(
+            asyncio.get_running_loop(),
+            lambda: TurretDriver(self.config.turret_ack_timeout, self.counters),
+            self.port,
+            baudrate=self.config.turret_baudrate,
+        )
+        self.driver = driver
+        if self.error:
+            _LOGGER.info("turret line %s open again", self.port)
+        self.error = ""
+        backoff.reset()
+        try:
+            while not await _closed_within(driver, self.config.turret_watchdog_s / 3):
+                with contextlib.suppress(TurretError):
+                    await driver.send("PING")
+        finally:
             self.driver = None
             driver.close()
+        self._down(f"{self.port}: serial line closed")
+
+    def _down(self, error: str) -> None:
+        if error != self.error:
+            _LOGGER.warning("turret line down: %s; retrying", error)
+        self.error = error
 
     def _handlers(self) -> dict[CommandCode, Any]:
         return {AIM: self._aim, FIRE: self._fire, SAFE: self._safe}
@@ -182,7 +217,7 @@ class TurretPayload(Actor):
 
     async def _send(self, name: str, *args: float) -> CommandResult:
         if self.driver is None:
-            return CommandResult(False, "turret line not open")
+            return CommandResult(False, f"turret line not open: {self.error or self.port}")
         try:
             await self.driver.send(name, *args)
         except TurretError as err:
@@ -202,10 +237,10 @@ class TurretPayload(Actor):
         """The ``turret`` telemetry section."""
         driver = self.driver
         streams = self._stream_states()
+        counters = {**self.counters, "safe": self.safings}
         if driver is None:
-            return Turret(False, counters={"safe": self.safings}, streams=streams)
+            return Turret(False, counters=counters, streams=streams, error=self.error)
         azimuth, elevation, trigger = driver.state or (None, None, False)
-        counters = {**driver.counters, "safe": self.safings}
         return Turret(True, azimuth, elevation, trigger, counters, streams)
 
     def _stream_states(self) -> dict[str, str]:
@@ -225,6 +260,16 @@ class TurretPayload(Actor):
     def _on_failsafe(self, state: FailsafeState) -> None:
         if state.step is not FailsafeStep.NORMAL:
             self.make_safe(f"failsafe {state.step.value}")
+
+
+async def _closed_within(driver: TurretDriver, seconds: float) -> bool:
+    """True as soon as the line closes, False after ``seconds`` with it still open."""
+    try:
+        async with asyncio.timeout(seconds):
+            await driver.lost.wait()
+    except TimeoutError:
+        return False
+    return True
 
 
 async def async_setup(ctx: PlatformContext) -> None:
