@@ -32,6 +32,7 @@ from brasidas.codecs.telemetry_schema import (
     Pose,
     Section,
     Streams,
+    Turret,
     VelocityLink,
     snapshot_from_json,
 )
@@ -110,6 +111,9 @@ def render(report: dict[str, Any], *, color: bool = True, now: float | None = No
             if getattr(value, "stale", False):
                 text += "  " + paint(f"STALE ({_age(getattr(value, 'age_ms', None))})", RED)
         lines.append(f"{title:<10} {text}")
+    turret = snap.get(Turret)
+    if turret is not None:  # only on a platform that carries one
+        lines.append(f"turret     {_turret(turret)}")
     lines.append(f"link       {_link(link)}")
     diag = snap.get(Diagnostics)
     if diag is not None:
@@ -350,6 +354,18 @@ def _automation(automation: Automation) -> str:
         "  ".join(f"{name} {'on' if on else 'OFF'}" for name, on in automation.switches.items())
         or "-"
     )
+
+
+def _turret(turret: Turret) -> str:
+    if not turret.connected:
+        text = f"line down: {turret.error}" if turret.error else "line down"
+    else:
+        text = (
+            f"trigger {'ARMED' if turret.trigger else 'safe'}  "
+            f"az {_num(turret.azimuth, '.1f', '°')}  el {_num(turret.elevation, '.1f', '°')}"
+        )
+    streams = "  ".join(f"{name} {state}" for name, state in turret.streams.items())
+    return f"{text}  sight {streams}" if streams else text
 
 
 def _streams(streams: Streams) -> str:

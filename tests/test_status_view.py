@@ -30,6 +30,7 @@ from brasidas.codecs.telemetry_schema import (
     SectionError,
     SectionValue,
     Streams,
+    Turret,
     VelocityLink,
     snapshot_to_json,
 )
@@ -46,7 +47,8 @@ Factory = Callable[..., Awaitable[PlatformDaemon]]
 
 SECTIONS: dict[type[Section], SectionValue] = {
     Override: Override("teleop", True, "station-1"),
-    Lights: Lights(True, False),
+    Lights: Lights(True, False, {"positional": "cannot request GPIO line /dev/gpiochip0:17"}),
+    Turret: Turret(True, 20.0, 5.0, True, streams={"payload_camera": "playing"}),
     Battery: Battery(22.6, "low", True, age_ms=420),
     Controller: Controller(True, (35.0, 38.0), (1.0, 1.5), age_ms=420),
     Gps: Gps(fix=True, lat=37.9838096, lon=23.7275388, sats=9, hdop=0.9, age_ms=80),
@@ -80,6 +82,8 @@ def test_render_shows_every_section_and_names_the_warnings() -> None:
     assert "loss 2.0%" in text and "rejected 1 (forged 1)" in text
     assert "accepted 120  dropped 2 (stale 2)" in text
     assert "streams    navcam failed" in text
+    assert "lights     main ON  positional off  (positional: cannot request GPIO line" in text
+    assert "turret     trigger ARMED  az 20.0°  el 5.0°  sight payload_camera playing" in text
     # A stale reading says so; a failed section shows its error, the others go on.
     assert "attitude   roll 1.5°  pitch -0.2°  yaw 271.0°  STALE (2.6 s old)" in text
     assert "computer   ERROR OSError: [Errno 5] Input/output error" in text
