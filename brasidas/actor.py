@@ -21,6 +21,8 @@ from brasidas.backoff import Backoff
 from brasidas.bus import Bus, Topic, Unsubscribe
 
 _LOGGER = logging.getLogger(__name__)
+CANCEL_GRACE = 5.0
+"""Seconds :meth:`Supervisor.stop` waits, past its timeout, for cancelled tasks to unwind."""
 
 T = TypeVar("T")
 
@@ -120,7 +122,8 @@ class Supervisor:
             return
 
     async def stop(self, timeout: float = 0.8) -> None:
-        """Stop every actor: stop hooks in reverse order, then cancel, within ``timeout``."""
+        """Stop every actor: stop hooks in reverse order, then cancel, within ``timeout``; a
+        cancelled task still unwinding then gets :data:`CANCEL_GRACE` more."""
         if self._stopping and not self._tasks:
             return
         self._stopping = True
@@ -141,6 +144,16 @@ class Supervisor:
             _done, pending = await asyncio.wait(
                 tasks, timeout=max(0.05, deadline - time.monotonic())
             )
+            if pending:
+                # Cancelled, but unwinding (a loaded machine gives a task's last turns late):
+                # stopped means stopped, so they get a grace; one that swallows its
+                # cancellation is left behind, said.
+                _LOGGER.warning(
+                    "tasks %s still unwinding after stop's %.1f s",
+                    ", ".join(task.get_name() for task in pending),
+                    timeout,
+                )
+                _done, pending = await asyncio.wait(pending, timeout=CANCEL_GRACE)
             for task in pending:
                 _LOGGER.warning("task %s still running after stop", task.get_name())
         for task in tasks:

@@ -107,3 +107,36 @@ async def test_stop_runs_hooks_by_priority_then_start_order_reversed() -> None:
     await asyncio.sleep(0)
     await supervisor.stop()
     assert log == ["motors", "b", "a"]
+
+
+class SlowToUnwind(Actor):
+    """Its cancellation takes a while to unwind (a closing driver on a loaded machine)."""
+
+    name = "slow"
+
+    def __init__(self, bus: Bus) -> None:
+        super().__init__(bus)
+        self.unwound = False
+
+    async def run(self) -> None:
+        try:
+            await asyncio.Event().wait()
+        finally:
+            await asyncio.sleep(0.3)  # past stop's timeout below; a cancel here is its grace
+            self.unwound = True
+
+
+async def test_stop_waits_for_a_cancelled_task_unwinding_past_its_timeout(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # (Before: stop returned at its timeout with the task still running, and the test's leak
+    # check found it: 'test left tasks running: actor:turret' under load.)
+    supervisor = Supervisor()
+    actor = SlowToUnwind(Bus())
+    supervisor.start(actor)
+    await asyncio.sleep(0)
+    with caplog.at_level(logging.WARNING):
+        await supervisor.stop(timeout=0.1)
+    assert actor.unwound
+    assert "slow still unwinding after stop" in caplog.text
+    assert "still running after stop" not in caplog.text
