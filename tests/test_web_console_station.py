@@ -507,8 +507,9 @@ async def test_operator_station_in_the_browser(
             await page.get_by_role("button", name="cancel route edit").click()
             await expect(page.locator('#map [title="waypoint 1"]')).to_have_count(0)
             await keep_out_zones_drawn_and_removed(page, station, "rover-2")
-            # Another station takes control (--force): this console says so at once (the 90.17
-            # notification), by whom, and its stop is refused, by whom said.
+            # Another station takes control (--force): this console says so (the 90.17
+            # notification, at once or with the next heartbeat's answer), by whom, and its stop
+            # is refused, by whom said.
             authority = page.get_by_label("command authority")
             intruder = PlatformConnection(
                 "rover-2", other.ctx.signaling_url, station_id="intruder", fleet_key=fleet_key
@@ -519,7 +520,7 @@ async def test_operator_station_in_the_browser(
                     "issue_system_command", group=10, command=0, payload="state=True,force=yes"
                 )
                 assert taken["accepted"], taken
-                await expect(authority).to_have_attribute("data-state", "taken", timeout=10_000)
+                await expect(authority).to_have_attribute("data-state", "taken", timeout=20_000)
                 await expect(authority).to_contain_text("CONTROL TAKEN by station intruder")
                 # An observer's map is read-only: no drawing, no removing.
                 draw_keepout = page.get_by_role("button", name="draw keep-out")
