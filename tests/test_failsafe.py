@@ -29,6 +29,18 @@ def ladder_config(*overrides: str) -> list[str]:
     ]
 
 
+def scaled_defaults(*overrides: str) -> list[str]:
+    """The defaults' session timeout between hold and release (5 s, 1.5 s), scaled down; the
+    test sends each heartbeat itself."""
+    return [
+        "velocity.deadman=0.1",
+        "signaling.heartbeat_interval=60",
+        "signaling.session_timeout=0.6",
+        "failsafe.hold_after=0.3",
+        *overrides,
+    ]
+
+
 async def engaged_station(daemon: PlatformDaemon, key: bytes) -> PlatformConnection:
     conn = PlatformConnection(
         daemon.config.platform.id, daemon.ctx.signaling_url, station_id="st-1", fleet_key=key
@@ -143,14 +155,7 @@ async def test_the_holders_session_outlives_the_ladder_which_releases_then_it_en
     # The defaults' proportions (session_timeout 5 s, hold 1.5 s, release 10 s), scaled down:
     # the session's timeout comes between hold and release, and must not pre-empt the release.
     daemon = await platform_factory(
-        quiet_platform_config(
-            "velocity.deadman=0.1",
-            "signaling.heartbeat_interval=60",
-            "signaling.session_timeout=0.6",
-            "failsafe.hold_after=0.3",
-            "failsafe.release_after=1.2",
-        ),
-        fleet_key,
+        quiet_platform_config(*scaled_defaults("failsafe.release_after=1.2")), fleet_key
     )
     events: list[str] = []
     daemon.bus.subscribe(topics.FAILSAFE_STATE, lambda s: events.append(s.step.value))
@@ -170,12 +175,7 @@ async def test_with_action_hold_the_silent_holder_keeps_its_session_and_re_engag
 ) -> None:
     daemon = await platform_factory(
         quiet_platform_config(
-            "velocity.deadman=0.1",
-            "signaling.heartbeat_interval=60",
-            "signaling.session_timeout=0.6",
-            "failsafe.hold_after=0.3",
-            "failsafe.release_after=0.8",
-            "failsafe.action=hold",
+            *scaled_defaults("failsafe.release_after=0.8", "failsafe.action=hold")
         ),
         fleet_key,
     )
