@@ -5,8 +5,8 @@ HMAC(nonce, station nonce) and gets back a session token plus the platform's own
 ends authenticate each other and derive the same session key without sending it. Every session
 method then carries ``session``: the token. A session ends on ``disconnect``, when its WebSocket
 closes, or after ``signaling.session_timeout`` without a call — except the override holder's
-while the failsafe ladder holds for it (its release step decides); ``SESSION_CLOSED`` then
-tells the mode arbiter to release the manual override.
+while the failsafe ladder holds for it (its release step decides; the session then times out);
+``SESSION_CLOSED`` tells the mode arbiter to release the manual override.
 """
 
 from __future__ import annotations
@@ -70,6 +70,15 @@ class SessionManager(Actor):
                     continue  # the failsafe ladder decides (its release step), not the timeout
                 _LOGGER.warning("session of %s timed out", session.station_id)
                 self.close(session.session_id, "timeout")
+
+    def connection_lost(self, session_id: str) -> None:
+        """The session's WebSocket closed: the station is gone, the session ends — unless the
+        failsafe ladder holds for it (the link was cut; the close arrives when it returns):
+        then the ladder's release step decides, and the session times out after it."""
+        if session_id == self._ladder_holds():
+            _LOGGER.warning("connection of the override holder lost while the failsafe holds")
+            return
+        self.close(session_id, "connection lost")
 
     def _ladder_holds(self) -> str | None:
         """The override holder's session while the failsafe ladder holds for it: its expiry
@@ -158,9 +167,7 @@ class SessionManager(Actor):
         self.sessions[token] = session
         if "ws" in call.extra:
             # A session opened over a WebSocket ends with it: the station is gone.
-            call.extra.setdefault("on_close", []).append(
-                lambda: self.close(token, "connection lost")
-            )
+            call.extra.setdefault("on_close", []).append(lambda: self.connection_lost(token))
         _LOGGER.info("session opened by %s from %s", station_id, call.peer_host)
         self.bus.publish(topics.SESSION_OPENED, SessionOpened(token, station_id, call.peer_host))
         return {

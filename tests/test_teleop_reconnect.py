@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Awaitable, Callable
 
+import pytest
 from conftest import free_tcp_port, quiet_platform_config, running_station, wait_until
 
 from brasidas import topics
@@ -72,7 +73,7 @@ _idle = _Idle()
 
 
 async def test_a_station_back_on_a_new_session_takes_its_control_back_another_cannot(
-    platform_factory: Factory, fleet_key: bytes
+    platform_factory: Factory, fleet_key: bytes, caplog: pytest.LogCaptureFixture
 ) -> None:
     daemon = await platform_factory(
         quiet_platform_config(
@@ -102,6 +103,13 @@ async def test_a_station_back_on_a_new_session_takes_its_control_back_another_ca
                 (s := daemon.bus.last(topics.FAILSAFE_STATE)) is not None and s.step.value == "hold"
             )
         )
+        overrides: list[bool] = []
+        daemon.bus.subscribe(topics.OVERRIDE_STATE, lambda state: overrides.append(state.engaged))
+        # Its WebSocket's close arrives when the link returns: the ladder still decides (with
+        # action = hold the robot keeps holding; the session is not ended by it).
+        await lost._client.close()
+        await wait_until(lambda: "override holder lost while the failsafe holds" in caplog.text)
+        assert lost.session_id in daemon.ctx.sessions.sessions
         await back.open()
         await other.open()
         refused = await other.call("set_manual_override", engaged=True)
@@ -112,6 +120,9 @@ async def test_a_station_back_on_a_new_session_takes_its_control_back_another_ca
         assert override is not None and override.engaged
         assert override.session_id == back.session_id
         assert daemon.ctx.authority.counters["reclaims"] == 1
+        # The override went from the old session to the new one; never to Autonomous Mode
+        # meanwhile but for the instant of the handover inside the reclaim itself.
+        assert overrides[-2:] == [False, True] and overrides.count(False) == 1
         failsafe = daemon.bus.last(topics.FAILSAFE_STATE)
         assert failsafe is not None and failsafe.step.value == "normal"
     finally:
