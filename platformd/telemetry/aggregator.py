@@ -308,7 +308,12 @@ class TelemetryAggregator(Actor):
             round(attitude.roll_deg, 2),
             round(attitude.pitch_deg, 2),
             round(attitude.yaw_deg, 2),
-            tuple(round(v, 4) for v in (attitude.w, attitude.x, attitude.y, attitude.z)),
+            (
+                round(attitude.w, 4),
+                round(attitude.x, 4),
+                round(attitude.y, 4),
+                round(attitude.z, 4),
+            ),
             imu,
             age,
             stale,
@@ -429,4 +434,5 @@ def _round(value: float | None, digits: int) -> float | None:
 
 
 def _pair(values: tuple[float, ...] | None, digits: int) -> tuple[float, ...] | None:
-    return None if values is None else tuple(round(v, digits) for v in values)
+    # from a list, not a generator: the tuple is made at its size (see telemetry_schema._fields)
+    return None if values is None else tuple([round(v, digits) for v in values])
