@@ -3,7 +3,10 @@ daemon (as ``python -m platformd``) with a thread reporting its memory.
 
 Every ``--interval`` seconds one JSON line on stdout: ``t`` (monotonic s), ``rss_kb``, where the
 memory is (:func:`native`: glibc malloc's in-use and free bytes over all its arenas, the private
-dirty KiB of each kind of anonymous mapping, pymalloc's allocated blocks, gc-tracked objects)
+dirty KiB of each kind of anonymous mapping, pymalloc's allocated blocks, the collections each
+generation of the garbage collector has run; not ``gc.get_objects()``: the list it makes holds a
+tuple another thread is building from a generator, whose shrinking then fails with SystemError,
+which crashed the telemetry actor once)
 and, with ``--frames`` > 0 (tracemalloc on, that many frames a trace), ``traced`` (bytes Python
 holds). ``--trim`` calls glibc's ``malloc_trim(0)`` before each line (to tell fragmentation
 from growth: it returns malloc's free pages to the system).
@@ -20,7 +23,10 @@ import collections
 import ctypes
 import gc
 import json
+import os
+import re
 import sys
+import tempfile
 import threading
 import time
 import tracemalloc
@@ -74,7 +80,8 @@ def native() -> dict[str, object]:
             out[key.lower() + "_kb"] = int(value.split()[0])
     out.update(_anonymous_by_kind())
     out["py_blocks"] = sys.getallocatedblocks()
-    out["py_objects"] = len(gc.get_objects())
+    out["gc_runs"] = [generation["collections"] for generation in gc.get_stats()]
+    out["gc_frozen"] = gc.get_freeze_count()
     return out
 
 
@@ -112,11 +119,60 @@ def _anonymous_by_kind() -> dict[str, object]:
     }
 
 
+_FREE_LIST = re.compile(r"(\d+) free (?:(\d+)-sized )?(Py\w+?)s? \* \d+ bytes each = +([\d,]+)")
+_SIZE_CLASS = re.compile(r" *(\d+) +(\d+) +(\d+) +(\d+) +(\d+)$")
+
+
+def mallocstats() -> dict[str, object]:
+    """What ``sys._debugmallocstats()`` writes to the C stderr, parsed: blocks in use per size
+    class, the bytes on each kind of free list, pymalloc's arenas and allocated bytes."""
+    with tempfile.TemporaryFile("w+") as out:
+        saved = os.dup(2)
+        try:
+            sys.stderr.flush()
+            os.dup2(out.fileno(), 2)
+            sys._debugmallocstats()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        out.seek(0)
+        text = out.read()
+    classes = [0] * 32
+    free: collections.Counter[str] = collections.Counter()
+    tuples = [0] * 20
+    stats: dict[str, object] = {}
+    for line in text.splitlines():
+        if match := _SIZE_CLASS.match(line):
+            index, _size, _pools, used, _avail = (int(x) for x in match.groups())
+            if index < len(classes):
+                classes[index] = used
+        elif match := _FREE_LIST.search(line):
+            count, size, kind, total = match.groups()
+            free[kind.removeprefix("Py").removesuffix("Object").lower()] += int(
+                total.replace(",", "")
+            )
+            if size and 0 < int(size) <= len(tuples):
+                tuples[int(size) - 1] = int(count)
+        elif line.startswith("# arenas allocated current"):
+            stats["py_arenas"] = int(line.split("=")[1].replace(",", ""))
+        elif line.startswith("# bytes in allocated blocks"):
+            stats["py_alloc_b"] = int(line.split("=")[1].replace(",", ""))
+    stats["cls_blocks"] = classes
+    stats["fl_tuples"] = tuples  # how many tuples of 1..20 items each free list holds
+    stats.update({f"fl_{kind}_b": size for kind, size in sorted(free.items())})
+    stats["fl_b"] = sum(free.values())
+    return stats
+
+
 def _report(args: argparse.Namespace) -> None:
     baseline: tracemalloc.Snapshot | None = None
     started = time.monotonic()
     while True:
         time.sleep(args.interval)
+        if args.frames and not tracemalloc.is_tracing():
+            if time.monotonic() - started >= args.trace_from:
+                tracemalloc.start(args.frames)
+            continue
         collected: dict[str, object] = {}
         if args.collect:
             gc.set_debug(gc.DEBUG_SAVEALL)
@@ -130,6 +186,8 @@ def _report(args: argparse.Namespace) -> None:
         line: dict[str, object] = {"t": round(time.monotonic(), 3), "rss_kb": rss_kb()}
         line.update(collected)
         line.update(native())
+        if args.mallocstats:
+            line.update(mallocstats())
         if args.frames:
             line["traced"] = tracemalloc.get_traced_memory()[0]
         _say(line)
@@ -167,11 +225,21 @@ def main() -> int:
     parser.add_argument("--report", default="", help="where to write the growth report")
     parser.add_argument("--collect", action="store_true", help="gc.collect() before each line")
     parser.add_argument("--trim", action="store_true", help="malloc_trim(0) before each line")
+    parser.add_argument(
+        "--mallocstats", action="store_true", help="pymalloc size classes and free lists"
+    )
+    parser.add_argument(
+        "--trace-from",
+        type=float,
+        default=0.0,
+        help="start tracemalloc this many seconds in (a fast start; only what is allocated "
+        "after is traced)",
+    )
     parser.add_argument("--baseline", type=float, default=60.0, help="seconds of warm-up")
     args, platform_args = parser.parse_known_args()
     if platform_args[:1] == ["--"]:
         platform_args = platform_args[1:]
-    if args.frames:
+    if args.frames and not args.trace_from:
         tracemalloc.start(args.frames)
     sys.argv = ["brasidas-platform", *platform_args]
     threading.Thread(target=_report, args=(args,), name="memory-probe", daemon=True).start()
