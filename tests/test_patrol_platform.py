@@ -1,8 +1,10 @@
 """The patrol on a --sim platform: the real drivers against the simulated AX3500, GPS and IMU.
 
 The simulated robot here is an 18 km/h one (``platform.max_speed_kmh``, patrolling at full
-speed) and its GPS sends 10 epochs a second, so laps take seconds; the drivers, the pose
-filter and the patrol run unchanged. The GPS simulator's position error is a NEO-6M's (2.5 m
+speed, braking at 6 m/s²) and its GPS sends 10 epochs a second, so laps take seconds; the
+drivers, the pose filter and the patrol run unchanged. They run in wall time: the platform's
+actors, the IMU's thread and the ptys share the event loop's real clock, so no simulated clock
+can run them faster; the same patrol on a simulated clock is ``test_autonomy_core``. The GPS simulator's position error is a NEO-6M's (2.5 m
 CEP, wandering over minutes): an offset no estimator on the robot can see, so the robot's true
 position is checked as the receiver sees it (the truth plus the simulator's current error),
 which is everything the platform itself answers for.
@@ -44,7 +46,7 @@ def config(tmp_path: Path, *overrides: str) -> PlatformConfig:
         "platform.max_speed_kmh=18",
         "autonomy.cruise_speed_kmh=18",
         "autonomy.lookahead_m=3",
-        "autonomy.decel_mps2=3",
+        "autonomy.decel_mps2=6",
         "autonomy.max_turn_rate_dps=86",
         "autonomy.clearance_m=2",
         f"map.file={tmp_path / 'map.geojson'}",
