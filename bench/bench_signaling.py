@@ -4,6 +4,7 @@ shutdown time, idle RSS (--sim with its demo map, and without a map: no Shapely/
 from __future__ import annotations
 
 import asyncio
+import json
 import signal
 import sys
 import time
@@ -19,9 +20,10 @@ from bench.support import (
     stop_process,
     wait_ready,
 )
+from brasidas.codecs.jsonrpc import request_text
 from stationd.client import PlatformConnection
 
-CALLS = 2000
+CALLS = 5000
 
 PYRO_SERVER = """
 import sys, Pyro5.api
@@ -36,18 +38,19 @@ daemon.requestLoop()
 """
 
 
-ROUNDS = 10
+ROUNDS = 25
 """The three are measured in alternating rounds of CALLS / ROUNDS calls, so a change in the
 machine's load or clock speed during the bench touches all three alike."""
 
 ECHO_SERVER = """
 import asyncio, sys
 from aiohttp import web
+ANSWER = sys.argv[2]
 async def ws(request):
     socket = web.WebSocketResponse()
     await socket.prepare(request)
     async for message in socket:
-        await socket.send_str(message.data)
+        await socket.send_str(ANSWER)
     return socket
 async def main():
     app = web.Application()
@@ -59,6 +62,11 @@ async def main():
     await asyncio.Event().wait()
 asyncio.run(main())
 """
+"""The floor: a bare aiohttp WebSocket server that answers every message with a fixed text
+(the heartbeat's answer, byte for byte the size the platform sends), to a client that sends
+the heartbeat's very request text: same sizes both ways, same loopback TCP, same library on
+both ends (aiohttp's WebSocketResponse and ClientSession.ws_connect), no JSON on either end."""
+
 
 Call = Callable[[], Awaitable[object]]
 
@@ -70,27 +78,32 @@ async def _timed(call: Call, count: int, samples: list[float]) -> None:
         samples.append((time.perf_counter() - started) * 1000)
 
 
-async def _server(script: str) -> tuple[asyncio.subprocess.Process, int]:
+async def _server(script: str, *args: str) -> tuple[asyncio.subprocess.Process, int]:
     port = free_port()
     process = await asyncio.create_subprocess_exec(
-        sys.executable, "-c", script, str(port), stdout=asyncio.subprocess.PIPE
+        sys.executable, "-c", script, str(port), *args, stdout=asyncio.subprocess.PIPE
     )
     assert process.stdout is not None
     await asyncio.wait_for(process.stdout.readline(), 10)
     return process, port
 
 
-async def _measure(connection: PlatformConnection) -> dict[str, list[float]]:
-    """Heartbeats over our WebSocket, a Pyro5 proxy's trivial call, a bare aiohttp echo."""
+async def _measure(connection: PlatformConnection) -> tuple[dict[str, list[float]], str, str]:
+    """Heartbeats over our WebSocket, a Pyro5 proxy's trivial call, the bare aiohttp floor;
+    and the request and answer texts the floor exchanges (the heartbeat's own)."""
     import aiohttp
     import Pyro5.api
 
     async def ours() -> object:
         return await connection.call("heartbeat")
 
+    # The texts our heartbeat puts on the wire (ids of the width the measured calls use).
+    request = request_text("heartbeat", {"session": connection.session_id}, CALLS)
+    answer = json.dumps(
+        {"jsonrpc": "2.0", "id": CALLS, "result": await ours()}, separators=(",", ":")
+    )
     pyro_server, pyro_port = await _server(PYRO_SERVER)
-    echo_server, echo_port = await _server(ECHO_SERVER)
-    request = '{"jsonrpc":"2.0","id":1,"method":"heartbeat","params":{"session":"0123"}}'
+    echo_server, echo_port = await _server(ECHO_SERVER, answer)
     try:
         async with (
             aiohttp.ClientSession() as session,
@@ -114,7 +127,7 @@ async def _measure(connection: PlatformConnection) -> dict[str, list[float]]:
                 for _ in range(ROUNDS):
                     for name, call in calls.items():
                         await _timed(call, CALLS // ROUNDS, samples[name])
-                return samples
+                return samples, request, answer
     finally:
         for server in (pyro_server, echo_server):
             server.kill()
@@ -145,7 +158,7 @@ async def run() -> dict[str, Any]:
         figures["platform_rss_idle_mb"] = rss_mb(process.pid)
         connection = await connect_to_platform(port)
         try:
-            samples = await _measure(connection)
+            samples, request, answer = await _measure(connection)
         finally:
             await connection.close()
         sent = time.perf_counter()
@@ -167,7 +180,11 @@ async def run() -> dict[str, Any]:
         "p50_ratio_vs_pyro5": round(mine["p50"] / theirs["p50"], 2),
         "aiohttp_ws_echo_floor_p50_ms": floor["p50"],
         "aiohttp_ws_echo_floor_p99_ms": floor["p99"],
-        "p50_ratio_vs_echo": round(mine["p50"] / floor["p50"], 2),
+        "p50_ratio_vs_echo": round(mine["p50"] / floor["p50"], 3),
+        "floor": "bare aiohttp WebSocket server answering a fixed text; client sends with"
+        " ws.send_str and reads with ws.receive in one task (aiohttp both ends, loopback TCP)",
+        "request_bytes": len(request),
+        "answer_bytes": len(answer),
         "rounds": ROUNDS,
         "target": "p50 <= 1.10x the bare aiohttp echo of the same run and <= 0.7x Pyro5, p99 < 1 ms",
         **figures,

@@ -38,6 +38,13 @@ _LOGGER = logging.getLogger(__name__)
 
 MAX_IN_FLIGHT_PER_SOCKET = 32
 
+READER_RESUME_DELAY = 0.005
+"""After a fast-path call the reader task receives again this much later (s), unless the
+caller's next call reads first: back-to-back calls cost no loop turn for handing over. Idle
+messages (a push, the connection's end) wait in aiohttp's buffer meanwhile, never lost."""
+
+_CONNECTION_ENDED = (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSING, aiohttp.WSMsgType.CLOSED)
+
 
 def add_rpc_routes(
     app: web.Application,
@@ -249,7 +256,18 @@ def _peer_host(request: web.Request) -> str:
 
 
 class RpcClient:
-    """A JSON-RPC client over one WebSocket. ``close()`` is idempotent and fails pending calls."""
+    """A JSON-RPC client over one WebSocket. ``close()`` is idempotent and fails pending calls.
+
+    One task at a time receives from the socket (aiohttp allows no more), and every received
+    answer goes to its call whoever reads it. A caller that finds nobody reading reads its own
+    answer (the fast path, as a bare ``send``/``receive`` would: no other task on the way, no
+    extra loop turn) and hands answers to others' calls on the way. Otherwise, and whenever
+    no call reads, the reader task does: it answers the calls of callers that wait, notices
+    the connection's end while idle, and drops unsolicited messages. After each message it
+    delivers, the reader lets the woken callers run first, so a caller's next call (the usual
+    back-to-back pattern) takes the fast path; a call made while the reader is parked in
+    ``receive`` (after an idle spell) is answered through it, one loop turn later.
+    """
 
     def __init__(self, url: str, *, timeout: float = 3.0) -> None:
         self.url = url
@@ -261,6 +279,16 @@ class RpcClient:
         """Calls waiting for their answer: future, deadline (loop time), method, time limit."""
         self._expiry: asyncio.TimerHandle | None = None
         """One timer for every pending call, at the earliest deadline (none per call)."""
+        self._receiving: asyncio.Task[Any] | None = None
+        """The task inside ``ws.receive()``: the reader task, or a caller on the fast path."""
+        self._awaited: asyncio.Future[Any] | None = None
+        """The answer the fast-path caller in ``_receiving`` reads for."""
+        self._timed_out = False
+        """The expiry timer cancelled the fast-path caller's ``receive`` (its call timed out)."""
+        self._reader_parked: asyncio.Future[None] | None = None
+        """The reader task waits on this while a caller reads."""
+        self._resume: asyncio.TimerHandle | None = None
+        """When the reader receives again after a fast-path call (unless a caller does)."""
         self._ids = itertools.count(1)
         self.closed = asyncio.Event()
         self.bad_answers = 0
@@ -304,9 +332,49 @@ class RpcClient:
             self._expiry = loop.call_at(deadline, self._expire)
         try:
             await ws.send_str(request_text(method, params, request_id))
+            if self._receiving is None:
+                return await self._read_own(ws, future)
             return await future
         finally:
             del self._pending[request_id]
+
+    async def _read_own(
+        self, ws: aiohttp.ClientWebSocketResponse, future: asyncio.Future[Any]
+    ) -> Any:
+        """The fast path: receive until ``future`` has its answer (or fails), then hand
+        receiving back to the reader task (unless the next call takes it first)."""
+        task = asyncio.current_task()
+        assert task is not None
+        self._receiving, self._awaited = task, future
+        try:
+            while not future.done():
+                try:
+                    message = await ws.receive()
+                except asyncio.CancelledError:
+                    if self._timed_out and future.done() and task.uncancel() == 0:
+                        break  # only the expiry timer's doing: the call timed out
+                    raise
+                if not self._received(message):
+                    self._ended()
+        finally:
+            self._receiving = self._awaited = None
+            self._timed_out = False
+            if len(self._pending) > 1:
+                self._resume_reader()  # others' answers are due: the reader receives them
+            elif self._resume is None:
+                self._resume = asyncio.get_running_loop().call_later(
+                    READER_RESUME_DELAY, self._resume_reader
+                )
+        return future.result()
+
+    def _resume_reader(self) -> None:
+        """The reader receives again, unless a caller does."""
+        if self._resume is not None:
+            self._resume.cancel()
+            self._resume = None
+        parked = self._reader_parked
+        if self._receiving is None and parked is not None and not parked.done():
+            parked.set_result(None)
 
     def _expire(self) -> None:
         """Fail the calls past their deadline; set the timer for the next one."""
@@ -322,18 +390,51 @@ class RpcClient:
                 future.set_exception(RpcError(TIMEOUT, message))
             elif following is None or deadline < following:
                 following = deadline
+        awaited, reading = self._awaited, self._receiving
+        if awaited is not None and awaited.done() and reading is not None and not self._timed_out:
+            self._timed_out = True  # the fast-path caller waits in receive(): wake it
+            reading.cancel("rpc call timed out")
         if following is not None:
             self._expiry = loop.call_at(following, self._expire)
 
     async def _read(self) -> None:
-        assert self._ws is not None
+        """The reader task: receives whenever no caller does, until the connection ends."""
+        ws = self._ws
+        assert ws is not None
+        task = asyncio.current_task()
+        loop = asyncio.get_running_loop()
         try:
-            async for message in self._ws:
-                if message.type in (aiohttp.WSMsgType.TEXT, aiohttp.WSMsgType.BINARY):
-                    self.feed(message.data)
+            while True:
+                if self._receiving is not None:
+                    self._reader_parked = parked = loop.create_future()
+                    try:
+                        await parked
+                    finally:
+                        self._reader_parked = None
+                    continue
+                self._receiving = task
+                try:
+                    message = await ws.receive()
+                finally:
+                    self._receiving = None
+                if not self._received(message):
+                    return
+                # The callers just answered run first: a next call may read for itself.
+                await asyncio.sleep(0)
         finally:
-            self._fail_pending(ConnectionError(f"connection to {self.url} closed"))
-            self.closed.set()
+            self._ended()
+
+    def _received(self, message: aiohttp.WSMessage) -> bool:
+        """Handle one received message; False when it says the connection has ended."""
+        kind = message.type
+        if kind is aiohttp.WSMsgType.TEXT or kind is aiohttp.WSMsgType.BINARY:
+            self.feed(message.data)
+            return True
+        return kind not in _CONNECTION_ENDED
+
+    def _ended(self) -> None:
+        self._fail_pending(ConnectionError(f"connection to {self.url} closed"))
+        self.closed.set()
 
     def feed(self, data: bytes | str) -> None:
         """Resolve the calls a received message answers. What is not a valid answer to one
@@ -366,9 +467,11 @@ class RpcClient:
             future.set_exception(RpcError(INTERNAL_ERROR, f"malformed answer: {reason}"))
 
     def _fail_pending(self, exc: Exception) -> None:
-        if self._expiry is not None:
-            self._expiry.cancel()
-            self._expiry = None
+        """Fail every pending call (the connection is ending): no timer is left behind."""
+        for timer in (self._expiry, self._resume):
+            if timer is not None:
+                timer.cancel()
+        self._expiry = self._resume = None
         for future, *_ in self._pending.values():
             if not future.done():
                 future.set_exception(exc)

@@ -10,6 +10,7 @@ from typing import Any
 
 import pytest
 from aiohttp import web
+from conftest import wait_until
 
 from brasidas.actor import Supervisor
 from brasidas.bus import Bus
@@ -152,3 +153,119 @@ async def test_a_call_without_answer_times_out_and_the_next_one_is_answered(
         slow.cancel()
         with pytest.raises(asyncio.CancelledError):
             await slow
+
+
+async def test_a_fast_path_call_without_answer_times_out_and_the_socket_goes_on(
+    server: ScriptedServer,
+) -> None:
+    """Back to back, the second call reads its own answer (nobody else is receiving): its
+    timeout must still end it, and receiving must go on for the next call."""
+    server.script = lambda i: [] if i == 2 else [ok(i)]
+    async with RpcClient(server.url + "/ws", timeout=30) as client:
+        assert await client.call("first") == "fine"
+        with pytest.raises(RpcError) as failed:
+            await client.call("silent", timeout=0.2)
+        assert failed.value.code == TIMEOUT
+        assert await client.call("third") == "fine"
+        assert not client.closed.is_set()
+
+
+async def test_a_cancelled_fast_path_call_is_cancelled_and_the_next_call_is_answered(
+    server: ScriptedServer,
+) -> None:
+    server.script = lambda i: [] if i == 2 else [ok(i)]
+    async with RpcClient(server.url + "/ws", timeout=30) as client:
+        assert await client.call("first") == "fine"
+        with pytest.raises(TimeoutError):  # the caller's own limit: a cancellation inside
+            async with asyncio.timeout(0.2):
+                await client.call("silent")
+        assert await client.call("third") == "fine"
+        late = asyncio.ensure_future(client.call("fourth"))
+        assert await late == "fine"
+
+
+async def test_concurrent_calls_from_many_tasks_get_their_own_answers() -> None:
+    """Answers come back out of order, after random delays: whichever task is receiving,
+    every call gets its own answer."""
+    import random
+
+    async def websocket(request: web.Request) -> web.StreamResponse:
+        ws = web.WebSocketResponse()
+        await ws.prepare(request)
+
+        async def answer(message: dict[str, Any]) -> None:
+            await asyncio.sleep(random.uniform(0, 0.01))
+            await ws.send_str(ok(message["id"], message["params"]))
+
+        async with asyncio.TaskGroup() as group:
+            async for message in ws:
+                group.create_task(answer(json.loads(message.data)))
+        return ws
+
+    app = web.Application()
+    app.router.add_get("/ws", websocket)
+    supervisor = Supervisor()
+    port = await serve_app(app, "127.0.0.1", 0, supervisor=supervisor, bus=Bus(), name="random")
+    try:
+        async with RpcClient(f"http://127.0.0.1:{port}/ws", timeout=10) as client:
+
+            async def caller(name: int) -> list[Any]:
+                return [await client.call("echo", [name, n]) for n in range(20)]
+
+            results = await asyncio.gather(*(caller(name) for name in range(8)))
+            assert results == [[[name, n] for n in range(20)] for name in range(8)]
+            assert client.bad_answers == 0
+    finally:
+        await supervisor.stop(2.0)
+
+
+async def test_the_end_of_the_connection_is_noticed_while_idle_and_mid_call(
+    server: ScriptedServer,
+) -> None:
+    """The server goes away: a call reading its own answer fails with ConnectionError, and an
+    idle client notices too (``closed``), with nobody calling."""
+    closing: list[web.WebSocketResponse] = []
+
+    async def websocket(request: web.Request) -> web.StreamResponse:
+        ws = web.WebSocketResponse()
+        await ws.prepare(request)
+        closing.append(ws)
+        async for message in ws:
+            request_id = json.loads(message.data)["id"]
+            if request_id == 2:
+                await ws.close()  # mid-call, instead of an answer
+            else:
+                await ws.send_str(ok(request_id))
+        return ws
+
+    app = web.Application()
+    app.router.add_get("/ws", websocket)
+    supervisor = Supervisor()
+    port = await serve_app(app, "127.0.0.1", 0, supervisor=supervisor, bus=Bus(), name="closing")
+    try:
+        async with RpcClient(f"http://127.0.0.1:{port}/ws", timeout=10) as client:
+            assert await client.call("first") == "fine"
+            with pytest.raises(ConnectionError):
+                await client.call("second")  # the fast path: it was reading
+            await asyncio.wait_for(client.closed.wait(), 5)
+        async with RpcClient(f"http://127.0.0.1:{port}/ws", timeout=10) as client:
+            assert await client.call("first") == "fine"
+            await closing[-1].close()  # nobody calls now: the reader must notice
+            await asyncio.wait_for(client.closed.wait(), 5)
+            with pytest.raises(ConnectionError):
+                await client.call("after")
+    finally:
+        await supervisor.stop(2.0)
+
+
+async def test_an_unsolicited_message_while_idle_is_counted_and_dropped(
+    server: ScriptedServer,
+) -> None:
+    server.script = lambda i: [ok(i), ok(i + 1000)] if i == 1 else [ok(i)]
+    async with RpcClient(server.url + "/ws", timeout=10) as client:
+        assert await client.call("first") == "fine"  # then an answer to nobody, while idle
+        assert await client.call("second") == "fine"
+        server.script = lambda i: [ok(i), "not json"]
+        assert await client.call("third") == "fine"
+        await wait_until(lambda: client.bad_answers == 1)
+        assert not client.closed.is_set()
