@@ -258,6 +258,19 @@ def test_filter_finds_the_heading_by_driving_and_dead_reckons_between_fixes() ->
     assert ahead.sigma_xy > estimate.sigma_xy
 
 
+def test_pose_uncertainty_keeps_the_receivers_absolute_error() -> None:
+    """A hundred fixes of a standing robot do not average a GPS error that wanders over
+    minutes away: the pose's uncertainty stays the receiver's (2.1 m at HDOP 1, times HDOP)."""
+    f = PoseFilter(FilterParameters(max_speed=SPEED, max_yaw_rate=1.5))
+    for step in range(100):
+        f.gps(step * 0.1, 0.3, -0.2, 1.0, 0.0)
+    estimate = f.estimate(10.0)
+    assert 2.1 <= estimate.sigma_xy < 2.2
+    assert math.dist((estimate.x, estimate.y), (0.3, -0.2)) < 0.05  # it tracks the fixes
+    f.gps(10.1, 0.3, -0.2, 2.0, 0.0)  # satellites lost: HDOP 2
+    assert f.estimate(10.1).sigma_xy >= 4.2
+
+
 # --------------------------------------------------------------------------- follower
 
 

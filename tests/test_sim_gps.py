@@ -14,8 +14,10 @@ from collections.abc import Awaitable, Callable
 
 import pynmea2
 import pytest
+import serial_asyncio
 
 from brasidas import topics
+from brasidas.codecs import ax3500
 from brasidas.codecs.nmea import EpochAssembler, NmeaDecoder
 from brasidas.codecs.telemetry_schema import Gps, GpsReader
 from brasidas.config import PlatformConfig
@@ -194,3 +196,59 @@ async def test_sim_platform_reads_an_explicit_gps_port_instead(
     finally:
         os.close(master)
         os.close(slave)
+
+
+async def test_simulate_vehicle_standalone_moves_what_the_gps_reports() -> None:
+    """``simulate vehicle``: the AX3500 and the NEO-6M on two ptys, one vehicle: commanding the
+    controller forward makes the receiver report the speed and a position that moves."""
+    process = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "platformd", "--set", "gps.sim_rate_hz=10", "simulate", "vehicle",
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+    )  # fmt: skip
+    try:
+        assert process.stdout is not None
+        motor = (await asyncio.wait_for(process.stdout.readline(), 15)).decode().strip()
+        gps = (await asyncio.wait_for(process.stdout.readline(), 15)).decode().strip()
+        assert motor.startswith("/dev/pts/") and gps.startswith("/dev/pts/") and motor != gps
+        _, controller = await serial_asyncio.open_serial_connection(url=motor, baudrate=9600)
+        receiver, receiver_writer = await serial_asyncio.open_serial_connection(
+            url=gps, baudrate=9600
+        )
+        decoder, assembler = NmeaDecoder(), EpochAssembler()
+        fixes: list[GpsFix] = []
+
+        async def read_fixes() -> None:
+            while True:
+                data = await receiver.read(4096)
+                for message in decoder.feed(data):
+                    fixes.extend(f for f in assembler.feed(message, 0.0) if f is not None)
+
+        async def drive() -> None:
+            while True:  # full speed ahead, more often than the controller's 1 s watchdog
+                controller.write(ax3500.motor(1, 127).encode())
+                await asyncio.sleep(0.2)
+
+        async with asyncio.TaskGroup() as group:
+            tasks = [group.create_task(read_fixes()), group.create_task(drive())]
+            try:
+                await wait_until(lambda: len(fixes) >= 2, 10)
+                first = fixes[-1]
+                await wait_until(
+                    lambda: (
+                        (fixes[-1].speed_mps or 0.0) > 1.0
+                        and metres_between(
+                            first.latitude, first.longitude, fixes[-1].latitude, fixes[-1].longitude
+                        )
+                        > 1.0
+                    ),
+                    15,
+                )
+            finally:
+                for task in tasks:
+                    task.cancel()
+        controller.close()
+        receiver_writer.close()
+    finally:
+        process.terminate()
+        await asyncio.wait_for(process.wait(), 10)
+    assert process.returncode == 0
