@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
 import pytest
-from conftest import quiet_platform_config, running_station, wait_until
+from conftest import free_tcp_port, quiet_platform_config, running_station, wait_until
 
 from brasidas import topics
 from brasidas.codecs.telemetry_schema import schema_document
@@ -16,6 +17,7 @@ from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+MISSING_CHIP = "/dev/gpiochip-brasidas-console-missing"
 # Wraps every telemetry report's snapshot (answered or pushed) in proxies that record each field the page reads
 # ("gps.sats"), so the test can check the names against the schema the station serves.
 RECORD_READS = """
@@ -73,6 +75,11 @@ async def test_console_lists_connects_and_takes_the_override(
         "beacon.max_interval=1.0",
         "sim.enabled=true",  # a simulated GPS receiver behind the real reader
         "gps.enabled=true",
+        "motor.enabled=true",
+        f"motor.positional_lights_output=gpio:{MISSING_CHIP}:17",  # libgpiod's own refusal
+        'payload.enabled=["turret"]',  # its simulated microcontroller on a pty
+        "payload_camera.enabled=true",  # the turret's sight; offline, never started here
+        f"payload_camera.url=rtsp://127.0.0.1:{free_tcp_port()}/thermal",
     )
     platform = await platform_factory(config, fleet_key)
     async with async_playwright() as playwright:
@@ -100,6 +107,28 @@ async def test_console_lists_connects_and_takes_the_override(
             await expect(telemetry).to_contain_text("free", timeout=10_000)
             await expect(telemetry).to_contain_text("sats  hdop", timeout=10_000)
             await expect(telemetry).to_contain_text("37.94", timeout=10_000)
+            # A light whose GPIO chip does not exist says it cannot be switched, and why.
+            lights_error = page.get_by_role("status", name="lights error")
+            await expect(lights_error).to_have_text(
+                "lights cannot be switched: positional: cannot request GPIO line "
+                f"{MISSING_CHIP}:17: no such GPIO chip (No such file or directory)",
+                timeout=10_000,
+            )
+            await expect(page.locator("#lights-pos")).to_have_attribute("data-error", "true")
+            await expect(page.locator("#lights-main")).to_have_attribute("data-error", "")
+            # The turret: where it points and its sight's stream state; then its microcontroller
+            # is unplugged: LINE DOWN and the platform's reason.
+            turret = page.get_by_label("turret", exact=True)
+            await expect(turret).to_contain_text("trigger safe", timeout=10_000)
+            await expect(turret).to_contain_text("sight payload_camera idle")
+            assert platform.ctx.sim.turret is not None
+            platform.ctx.sim.turret.close()
+            await expect(turret).to_have_attribute("data-line", "down", timeout=10_000)
+            await expect(turret).to_contain_text(
+                re.compile(r"turret:  LINE DOWN: (\S+: serial line closed|cannot open \S+)")
+            )
+            await expect(turret).to_contain_text("sight payload_camera idle")
+            await expect(turret).not_to_contain_text("trigger")
             await override.click()
             await wait_until(lambda: not platform.bus.last(topics.OVERRIDE_STATE).engaged)
             await expect(page.locator("#driving")).to_have_text("not driving")
@@ -121,6 +150,7 @@ async def test_console_lists_connects_and_takes_the_override(
             unknown = sorted(name for name in reads if not known(document, name))
             assert unknown == [], f"console.js reads fields the schema does not have: {unknown}"
             assert {"gps.sats", "gps.lat", "battery", "computer.mem_free_mb"} <= reads
+            assert {"lights.errors", "turret.streams", "turret.error"} <= reads
         finally:
             await browser.close()
 

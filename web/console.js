@@ -486,13 +486,32 @@ function renderTurret(snapshot) {
   readout.hidden = !turret;
   if (!turret) return;
   readout.dataset.trigger = turret.trigger ? "armed" : "safe";
+  readout.dataset.line = turret.connected ? "up" : "down";
+  // As brasidas-station status words it: why the serial line is down, else where it points;
+  // then its sight (the thermal camera registered as its stream) and that stream's state.
+  const streams = Object.entries(turret.streams).map(([name, stream]) => `${name} ${stream}`);
   readout.textContent = [
     "turret:",
-    turret.connected ? null : "NOT CONNECTED",
-    turret.trigger ? "trigger ARMED" : "trigger safe",
-    `azimuth ${fixed(turret.azimuth, 1)}°`,
-    `elevation ${fixed(turret.elevation, 1)}°`,
+    ...(turret.connected
+      ? [turret.trigger ? "trigger ARMED" : "trigger safe", `azimuth ${fixed(turret.azimuth, 1)}°`, `elevation ${fixed(turret.elevation, 1)}°`]
+      : [turret.error ? `LINE DOWN: ${turret.error}` : "LINE DOWN"]),
+    streams.length ? `sight ${streams.join("  ")}` : null,
   ].filter(Boolean).join("  ");
+}
+
+function renderLights(lights) {
+  // A light that cannot be switched (its GPIO chip missing, its line busy) says so and why, next
+  // to its button; pressing it asks again (the platform retries the line at each switch).
+  const errors = lights ? Object.entries(lights.errors) : [];
+  for (const [selector, which] of [["#lights-main", "main"], ["#lights-pos", "positional"]]) {
+    const error = lights ? lights.errors[which] : undefined;
+    $(selector).dataset.error = error ? "true" : "";
+  }
+  const readout = $("#lights-error");
+  readout.textContent = errors.length
+    ? `lights cannot be switched: ${errors.sort().map(([which, error]) => `${which}: ${error}`).join("; ")}`
+    : "";
+  readout.hidden = !errors.length;
 }
 
 function renderControls() {
@@ -519,6 +538,7 @@ function renderControls() {
     $("#lights-main").setAttribute("aria-pressed", String(Boolean(lights.main)));
     $("#lights-pos").setAttribute("aria-pressed", String(Boolean(lights.positional)));
   }
+  renderLights(lights);
   const snapshot = state.telemetry.get(state.current)?.report.snapshot;
   renderSpeedCap(snapshot);
   renderTurret(snapshot);
