@@ -16,6 +16,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 from brasidas.codecs.telemetry_schema import VelocityLink
 from brasidas.config import PlatformConfig, StationConfig, load_config
@@ -23,6 +24,11 @@ from platformd.app import PlatformDaemon
 from stationd.daemon import StationDaemon
 
 pytest_plugins = ["pytester"]
+
+# Property tests check what a codec does, not how fast: on a loaded 2-core machine (CI, or the
+# browser tests running alongside) an example can exceed Hypothesis's 200 ms default deadline.
+settings.register_profile("brasidas", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("brasidas")
 
 
 @pytest.fixture(autouse=True)
