@@ -26,7 +26,8 @@ from brasidas.clock import Clock, LoopClock, sleep, timeout_at
 from brasidas.codecs.nmea import EpochAssembler, NmeaDecoder
 from brasidas.config import GpsSection
 from brasidas.messages import GpsFix, GpsFixLost, GpsStats, Position
-from platformd.context import PlatformContext
+from platformd.context import PlatformContext, SerialDevice
+from platformd.serial_port import OPEN_ERRORS, PortError, PortOpener
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -44,6 +45,8 @@ class GpsReader(Actor):
     def __init__(self, bus: Bus, config: GpsSection, *, clock: Clock | None = None) -> None:
         super().__init__(bus)
         self.config = config
+        self.opener = PortOpener(SerialDevice(config.port, config.baudrate))
+        """Opens the port off the loop (8N1, exclusive: a second reader would steal bytes)."""
         self.clock: Clock = clock or LoopClock()
         """Drives fix timeouts, the epoch assembler's deadline, stats and retries."""
         self.decoder = NmeaDecoder()
@@ -58,9 +61,12 @@ class GpsReader(Actor):
         self._stats_at = -STATS_INTERVAL
 
     async def run(self) -> None:
-        async with asyncio.TaskGroup() as group:
-            group.create_task(self._stats_loop(), name="gps:stats")
-            await self._connect_loop()
+        try:
+            async with asyncio.TaskGroup() as group:
+                group.create_task(self._stats_loop(), name="gps:stats")
+                await self._connect_loop()
+        finally:
+            self.opener.close()
 
     # ------------------------------------------------------------------ serial line
 
@@ -70,17 +76,18 @@ class GpsReader(Actor):
         while True:
             port = self.config.port
             try:
-                reader, writer = await serial_asyncio.open_serial_connection(
-                    url=port,
-                    baudrate=self.config.baudrate,
-                    bytesize=serial.EIGHTBITS,
-                    parity=serial.PARITY_NONE,
-                    stopbits=serial.STOPBITS_ONE,
-                    exclusive=True,  # flock: a second reader would steal half the bytes
-                )
-            except (OSError, ValueError) as err:  # SerialException is an OSError
+                device = await self.opener.open()
+            except PortError as err:
                 failures += 1
-                self._port_down(f"cannot open {port}: {err}", log=failures == 1)
+                self._port_down(str(err), log=failures == 1)
+                await sleep(self.clock, backoff.next())
+                continue
+            try:
+                reader, writer = _streams(device)
+            except OPEN_ERRORS as err:
+                device.close()
+                failures += 1
+                self._port_down(f"cannot set up {port}: {err}", log=failures == 1)
                 await sleep(self.clock, backoff.next())
                 continue
             _LOGGER.info("GPS reading %s at %d baud", port, self.config.baudrate)
@@ -88,9 +95,7 @@ class GpsReader(Actor):
             self.error = ""
             self.decoder.reset()
             # What the line buffered before we opened it is stale (seconds-old epochs).
-            serial_port = writer.transport.get_extra_info("serial")
-            if serial_port is not None:
-                serial_port.reset_input_buffer()
+            device.reset_input_buffer()
             self._publish_stats()
             try:
                 await self._read(reader)
@@ -215,3 +220,12 @@ async def async_setup(ctx: PlatformContext) -> None:
     reader = GpsReader(ctx.bus, section)
     ctx.capabilities["gps"] = lambda: capabilities(section)
     ctx.supervisor.start(reader)
+
+
+def _streams(device: serial.Serial) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+    """A reader and writer over a port already open (from :class:`PortOpener`)."""
+    loop = asyncio.get_running_loop()
+    reader = asyncio.StreamReader(loop=loop)
+    protocol = asyncio.StreamReaderProtocol(reader, loop=loop)
+    transport = serial_asyncio.SerialTransport(loop, protocol, device)
+    return reader, asyncio.StreamWriter(transport, protocol, reader, loop)

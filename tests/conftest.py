@@ -125,6 +125,35 @@ async def wait_until(predicate: Callable[[], bool], timeout: float = 5.0) -> Non
     await asyncio.wait_for(poll(), timeout)
 
 
+def hang_serial_opens(monkeypatch: pytest.MonkeyPatch) -> tuple[threading.Event, list[float]]:
+    """Every serial open blocks (as in a USB adapter's hung driver) until the returned event
+    is set (at most 3 s: code that blocks the loop on it must fail, not hang); the list
+    records when each open began."""
+    import serial
+
+    release = threading.Event()
+    calls: list[float] = []
+    real_open = serial.Serial.open
+
+    def hung_open(self: serial.Serial) -> None:
+        calls.append(time.monotonic())
+        release.wait(3.0)
+        real_open(self)
+
+    monkeypatch.setattr(serial.Serial, "open", hung_open)
+    return release, calls
+
+
+async def record_loop_gaps(gaps: list[float]) -> None:
+    """Until cancelled: the time between turns of a 10 ms sleep (a stalled loop shows)."""
+    last = time.monotonic()
+    while True:
+        await asyncio.sleep(0.01)
+        now = time.monotonic()
+        gaps.append(now - last)
+        last = now
+
+
 def udp_port_bound(port: int) -> bool:
     """A socket on this host (any process) is bound to UDP ``port`` (``/proc/net/udp[6]``)."""
     for table in ("/proc/net/udp", "/proc/net/udp6"):

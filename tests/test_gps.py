@@ -21,7 +21,7 @@ from brasidas.codecs.nmea import EpochAssembler, NmeaDecoder, sentence
 from brasidas.config import GpsSection
 from brasidas.messages import GpsFix, GpsFixLost, GpsStats, Position
 from platformd.gps import GpsReader
-from tests.conftest import wait_until
+from tests.conftest import hang_serial_opens, record_loop_gaps, wait_until
 
 NMEA = Path(__file__).resolve().parents[1].parent / "shared" / "testdata" / "nmea"
 """Receiver logs beside the repository (``../shared/testdata/nmea``)."""
@@ -335,3 +335,29 @@ def test_fix_is_published_once_rmc_and_gga_arrive_not_at_the_end_of_the_cycle() 
     # Only the first fix, and the first after the fix came back, wait for the learned end of
     # the cycle (GLL); every other goes out on GGA, right after RMC.
     assert triggers.count("GGA") >= len(triggers) - 3
+
+
+async def test_a_hung_port_open_is_reported_and_never_stalls_the_loop(
+    pty: Pty, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A USB adapter whose driver does not answer: the open blocks in the kernel. The loop
+    keeps running, the hang is reported, and the port is read once the open returns."""
+    release, calls = hang_serial_opens(monkeypatch)
+    gaps: list[float] = []
+
+    bus = Bus()
+    seen = Recorder(bus)
+    reader = GpsReader(bus, GpsSection(port=pty.path))
+    reader.opener.timeout = 0.2  # reported as hung after 0.2 s instead of 5
+    async with running(reader), asyncio.TaskGroup() as group:
+        ticking = group.create_task(record_loop_gaps(gaps))
+        await wait_until(lambda: "hangs" in reader.error)
+        await wait_until(lambda: len(gaps) > 50)  # more attempts time out meanwhile
+        assert len(calls) == 1  # a hung attempt is awaited again, not doubled
+        assert not reader.connected
+        release.set()
+        await wait_until(lambda: reader.connected)
+        await pty.write(epoch(0) + epoch(1))
+        await wait_until(lambda: len(seen.fixes) >= 1)
+        ticking.cancel()
+    assert max(gaps) < 1.0, max(gaps)

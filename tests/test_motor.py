@@ -6,15 +6,12 @@ import asyncio
 import os
 import socket
 import sys
-import threading
-import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
 
 import pytest
-import serial
-from conftest import quiet_platform_config, wait_until
+from conftest import hang_serial_opens, quiet_platform_config, record_loop_gaps, wait_until
 from gpiod.line import Value
 
 from brasidas import topics
@@ -463,29 +460,12 @@ async def test_a_hung_port_open_is_reported_and_never_stalls_the_loop(
 ) -> None:
     """A USB adapter whose driver does not answer: the open blocks in the kernel. The other
     actors keep running, the hang is reported, and the port is used once the open returns."""
-    release = threading.Event()
-    calls: list[float] = []
-    real_open = serial.Serial.open
-
-    def hung_open(self: serial.Serial) -> None:
-        calls.append(time.monotonic())
-        release.wait(3.0)  # bounded: code that blocks the loop here must fail, not hang
-        real_open(self)
-
-    monkeypatch.setattr(serial.Serial, "open", hung_open)
+    release, calls = hang_serial_opens(monkeypatch)
     gaps: list[float] = []
-
-    async def ticker() -> None:
-        last = time.monotonic()
-        while True:
-            await asyncio.sleep(0.01)
-            now = time.monotonic()
-            gaps.append(now - last)
-            last = now
 
     async with driven(tmp_path) as (ctx, sim), asyncio.TaskGroup() as group:
         driver_of(ctx).opener.timeout = 0.2
-        ticking = group.create_task(ticker())
+        ticking = group.create_task(record_loop_gaps(gaps))
         await wait_until(lambda: "hangs" in getattr(status(ctx), "error", ""))
         await asyncio.sleep(0.3)  # more attempts time out meanwhile
         assert len(calls) == 1  # a hung attempt is awaited again, not doubled

@@ -30,7 +30,8 @@ from platformd.automation import report_switch
 from platformd.commands import SystemCommand
 from platformd.context import PlatformContext
 from platformd.motor.lights import Lights, OutputRequest, Send
-from platformd.motor.link import LinkError, PortOpener, ReplyTimeout, SerialLink
+from platformd.motor.link import LinkError, ReplyTimeout, SerialLink
+from platformd.serial_port import PortError, PortOpener
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -54,7 +55,7 @@ class MotorController(Actor):
         """Drives the schedule (refreshes, polls, reconnection); answers are awaited in real time."""
         self.device = ctx.motor_serial
         """The serial line to open: ``motor.*``, or in --sim the simulator's pty."""
-        self.opener = PortOpener(self.device, config.reply_timeout)
+        self.opener = PortOpener(self.device)
         self.mapping = MotionMapping(
             linear_scale=config.linear_scale,
             angular_scale=config.angular_scale,
@@ -139,8 +140,8 @@ class MotorController(Actor):
         try:
             while True:
                 try:
-                    link = await self.opener.open()
-                except LinkError as err:
+                    link = SerialLink.attach(await self.opener.open(), self.config.reply_timeout)
+                except (PortError, LinkError) as err:
                     failures += 1
                     self._report_down(str(err), first=failures == 1)
                     await sleep(self.clock, backoff.next())

@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import os
-import termios
 from collections.abc import Callable
 from enum import Enum
 
@@ -18,15 +16,9 @@ import serial_asyncio
 
 from brasidas.codecs import ax3500
 from brasidas.codecs.ax3500 import Command, Exchange, LineParser, Reply
-from brasidas.threads import in_daemon_thread
-from platformd.context import SerialDevice
+from platformd.serial_port import OPEN_ERRORS
 
 _LOGGER = logging.getLogger(__name__)
-
-OPEN_TIMEOUT = 5.0
-"""Longest wait for the port to open before the attempt is reported as hung."""
-_OPEN_ERRORS = (serial.SerialException, OSError, ValueError, termios.error)
-"""What opening a port raises: missing device, busy, refused settings (a pty and 7E1)."""
 
 
 class LinkError(Exception):
@@ -64,8 +56,12 @@ class SerialLink(asyncio.Protocol):
     def attach(cls, device: serial.Serial, reply_timeout: float) -> SerialLink:
         """A link over an open port (from :class:`PortOpener`). Must run on the event loop."""
         link = cls(reply_timeout)
-        # Usable at once: the transport's connection_made comes a loop turn later.
-        link._transport = _EagerSerialTransport(asyncio.get_running_loop(), link, device)
+        try:
+            # Usable at once: the transport's connection_made comes a loop turn later.
+            link._transport = _EagerSerialTransport(asyncio.get_running_loop(), link, device)
+        except OPEN_ERRORS as err:
+            device.close()
+            raise LinkError(f"cannot set up {device.port}: {err}") from None
         return link
 
     # ------------------------------------------------------------------ protocol callbacks
@@ -173,101 +169,3 @@ class _EagerSerialTransport(serial_asyncio.SerialTransport):  # type: ignore[mis
             if not data:
                 return
         super().write(data)
-
-
-class PortOpener:
-    """Opens the configured port in a daemon thread of its own, one attempt at a time.
-
-    An open can hang in a USB adapter's driver: each call waits at most ``timeout`` and then
-    reports it (LinkError); a hung attempt is not doubled but awaited again by the next call,
-    and a port it opens after everyone gave up is closed. Never blocks the event loop.
-    """
-
-    def __init__(
-        self, device: SerialDevice, reply_timeout: float, timeout: float = OPEN_TIMEOUT
-    ) -> None:
-        self.device = device
-        self.reply_timeout = reply_timeout
-        self.timeout = timeout
-        self._attempt: asyncio.Future[serial.Serial] | None = None
-
-    async def open(self) -> SerialLink:
-        """A link on the port; raises LinkError when it cannot be opened (or hangs)."""
-        port = self.device.path
-        if self._attempt is None:
-            self._attempt = in_daemon_thread(f"motor-open:{port}", open_port, self.device)
-        attempt = self._attempt
-        try:
-            async with asyncio.timeout(self.timeout):
-                device = await asyncio.shield(attempt)
-        except TimeoutError:
-            raise LinkError(
-                f"opening {port} hangs (nothing after {self.timeout:g} s); still waiting"
-            ) from None
-        except _OPEN_ERRORS as err:
-            raise LinkError(f"cannot open {port}: {err}") from None
-        finally:
-            if attempt.done():
-                self._attempt = None
-        try:
-            return SerialLink.attach(device, self.reply_timeout)
-        except _OPEN_ERRORS as err:
-            device.close()
-            raise LinkError(f"cannot set up {port}: {err}") from None
-
-    def close(self) -> None:
-        """Give up a pending attempt: what it opens later is closed. Idempotent."""
-        attempt, self._attempt = self._attempt, None
-        if attempt is not None:
-            attempt.add_done_callback(_close_unused)
-
-
-def open_port(device: SerialDevice) -> serial.Serial:
-    """Open and set up the port (blocking); a pty refusing 7E1 is opened 8N1."""
-    port = device.path
-    framing = (device.bytesize, device.parity, device.stopbits)
-    try:
-        return _open_serial(port, device.baudrate, framing)
-    except _OPEN_ERRORS:
-        # The kernel's ptys refuse 7 bits and parity (hardware.md); same bytes in 8N1.
-        if not _is_pty(port) or framing == (8, "N", 1):
-            raise
-    opened = _open_serial(port, device.baudrate, (8, "N", 1))
-    _LOGGER.info("%s is a pty: opened 8N1 instead of %s%s%s", port, *framing)
-    return opened
-
-
-def _open_serial(port: str, baudrate: int, framing: tuple[int, str, int]) -> serial.Serial:
-    bytesize, parity, stopbits = framing
-    device = serial.serial_for_url(
-        port,
-        baudrate=baudrate,
-        bytesize=bytesize,
-        parity=parity,
-        stopbits=stopbits,
-        timeout=0,
-        write_timeout=0,
-        # flock: a second daemon (or any program asking for exclusivity) cannot drive the
-        # same controller at the same time.
-        exclusive=True,
-        do_not_open=True,
-    )
-    try:
-        device.open()
-        # The transport sets the timeouts again, applying every setting once more: on a pty
-        # that second tcsetattr is the one refusing 7E1. Here it happens in this thread.
-        device.timeout = 0
-    except BaseException:
-        # Settings refused after the open (a pty and 7E1) leave the port open and locked.
-        device.close()
-        raise
-    return device
-
-
-def _close_unused(attempt: asyncio.Future[serial.Serial]) -> None:
-    if not attempt.cancelled() and attempt.exception() is None:
-        attempt.result().close()
-
-
-def _is_pty(port: str) -> bool:
-    return os.path.realpath(port).startswith("/dev/pts/")

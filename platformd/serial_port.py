@@ -1,0 +1,118 @@
+"""Opening a serial port off the event loop: the one way every driver opens its line.
+
+An open can hang in a USB adapter's driver (the call blocks in the kernel): it runs in a
+daemon thread of its own, and the caller waits at most a few seconds for it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import termios
+
+import serial
+
+from brasidas.threads import in_daemon_thread
+from platformd.context import SerialDevice
+
+_LOGGER = logging.getLogger(__name__)
+
+OPEN_TIMEOUT = 5.0
+"""Longest wait for the port to open before the attempt is reported as hung."""
+OPEN_ERRORS = (serial.SerialException, OSError, ValueError, termios.error)
+"""What opening a port raises: missing device, busy, refused settings (a pty and 7E1)."""
+
+
+class PortError(Exception):
+    """The port cannot be opened, or its open hangs (the message says which)."""
+
+
+class PortOpener:
+    """Opens one port in a daemon thread of its own, one attempt at a time.
+
+    Each call waits at most ``timeout`` and then reports the hang (PortError); a hung attempt
+    is not doubled but awaited again by the next call, and a port it opens after everyone
+    gave up is closed. Never blocks the event loop.
+    """
+
+    def __init__(self, device: SerialDevice, timeout: float = OPEN_TIMEOUT) -> None:
+        self.device = device
+        self.timeout = timeout
+        self._attempt: asyncio.Future[serial.Serial] | None = None
+
+    async def open(self) -> serial.Serial:
+        """The open port (non-blocking reads: ``timeout=0``); raises PortError."""
+        port = self.device.path
+        if self._attempt is None:
+            self._attempt = in_daemon_thread(f"open:{port}", open_port, self.device)
+        attempt = self._attempt
+        try:
+            async with asyncio.timeout(self.timeout):
+                return await asyncio.shield(attempt)
+        except TimeoutError:
+            raise PortError(
+                f"opening {port} hangs (nothing after {self.timeout:g} s); still waiting"
+            ) from None
+        except OPEN_ERRORS as err:
+            raise PortError(f"cannot open {port}: {err}") from None
+        finally:
+            if attempt.done():
+                self._attempt = None
+
+    def close(self) -> None:
+        """Give up a pending attempt: what it opens later is closed. Idempotent."""
+        attempt, self._attempt = self._attempt, None
+        if attempt is not None:
+            attempt.add_done_callback(_close_unused)
+
+
+def open_port(device: SerialDevice) -> serial.Serial:
+    """Open and set up the port (blocking); a pty refusing 7E1 is opened 8N1."""
+    port = device.path
+    framing = (device.bytesize, device.parity, device.stopbits)
+    try:
+        return _open_serial(port, device.baudrate, framing)
+    except OPEN_ERRORS:
+        # The kernel's ptys refuse 7 bits and parity (hardware.md); same bytes in 8N1.
+        if not _is_pty(port) or framing == (8, "N", 1):
+            raise
+    opened = _open_serial(port, device.baudrate, (8, "N", 1))
+    _LOGGER.info("%s is a pty: opened 8N1 instead of %s%s%s", port, *framing)
+    return opened
+
+
+def _open_serial(port: str, baudrate: int, framing: tuple[int, str, int]) -> serial.Serial:
+    bytesize, parity, stopbits = framing
+    device = serial.serial_for_url(
+        port,
+        baudrate=baudrate,
+        bytesize=bytesize,
+        parity=parity,
+        stopbits=stopbits,
+        timeout=0,
+        write_timeout=0,
+        # flock: a second daemon (or any program asking for exclusivity) cannot drive the
+        # same controller at the same time.
+        exclusive=True,
+        do_not_open=True,
+    )
+    try:
+        device.open()
+        # The transport sets the timeouts again, applying every setting once more: on a pty
+        # that second tcsetattr is the one refusing 7E1. Here it happens in this thread.
+        device.timeout = 0
+    except BaseException:
+        # Settings refused after the open (a pty and 7E1) leave the port open and locked.
+        device.close()
+        raise
+    return device
+
+
+def _close_unused(attempt: asyncio.Future[serial.Serial]) -> None:
+    if not attempt.cancelled() and attempt.exception() is None:
+        attempt.result().close()
+
+
+def _is_pty(port: str) -> bool:
+    return os.path.realpath(port).startswith("/dev/pts/")
