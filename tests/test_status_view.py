@@ -199,6 +199,9 @@ async def test_status_says_stale_when_the_gps_falls_silent(
             "gps.fix_timeout=60",
         )
         platform = await platform_factory(config, fleet_key)
+        # The port opens in a thread of its own: what is written before it is open is stale,
+        # and dropped.
+        await wait_until(lambda: getattr(platform.bus.last(topics.GPS_STATS), "connected", False))
         generator = NmeaGenerator(random.Random(6))
         pose = Pose(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 37.9415, 23.653, 42.0)
         start = datetime.datetime(2026, 11, 23, 12, 0, 0, tzinfo=datetime.UTC)
