@@ -2,8 +2,8 @@
 
 The cross-track figure comes from a kinematic simulation run faster than real time: the
 simulated vehicle's model (``platformd.sim.vehicle``, first-order lag, 6 km/h), the simulated
-GPS's error model (``platformd.sim.gps``: a NEO-6M's 2.5 m CEP, wandering over minutes)
-through its NMEA and the real decoder at 10 Hz, the IMU's yaw at 10 Hz, the real pose filter,
+GPS's error model (``platformd.sim.gps``: a NEO-6M's 2.5 m CEP, wandering over minutes; and
+an RTK-corrected receiver's 0.02 m, with the platform configured for it) through its NMEA and the real decoder at 10 Hz, the IMU's yaw at 10 Hz, the real pose filter,
 planner and pure pursuit at 10 Hz. The error is measured from the vehicle's true position to
 the planned path, and from where the receiver puts the vehicle (the part the platform controls).
 """
@@ -24,8 +24,11 @@ from brasidas.autonomy.follower import FollowerParameters
 from brasidas.autonomy.patrol import Patrol, PatrolParameters
 from brasidas.autonomy.planner import Planner, Unreachable, cross_track
 from brasidas.autonomy.route import parse_waypoints
+from brasidas.config import PlatformConfig, load_config
+from brasidas.config.platform import AutonomySection
 from brasidas.messages import PatrolState
 from platformd.sim.demo_area import demo_map, demo_route
+from platformd.sim.gps import NEO_6M, RTK, ReceiverErrors
 from platformd.sim.kinematic import KinematicRun
 
 SPEED_KMH = 6.0
@@ -82,42 +85,65 @@ def planning(seed: int = 7, plans: int = 300) -> dict[str, Any]:
     }
 
 
+RECEIVERS: dict[str, tuple[ReceiverErrors, tuple[str, ...]]] = {
+    # The rover's receiver, the platform's defaults.
+    "neo6m": (NEO_6M, ()),
+    # An RTK-corrected receiver (u-blox ZED-F9P class, 0.01 m + 1 ppm CEP: platformd.sim.gps.RTK)
+    # and the keys that tell the platform so: the fix's absolute error and its fix-to-fix noise,
+    # 0.02 m per axis, and a clearance of the follower's tracking (0.9 m max at 6 km/h) instead
+    # of 2 sigma of a NEO-6M's error.
+    "rtk": (
+        RTK,
+        ("autonomy.gps_sigma_m=0.02", "autonomy.gps_jitter_m=0.02", "autonomy.clearance_m=1.0"),
+    ),
+}
+
+
 def following(seeds: range = range(1, 11), laps: int = 2) -> dict[str, Any]:
     """Two laps of a closed 4-waypoint route around a keep-out at 6 km/h, once per seed (each
-    seed a different receiver error: it wanders over minutes, so one run sees one offset)."""
-    runs = [_follow(seed, laps) for seed in seeds]
-    truth = [e for run in runs for e in run["truth"]]
-    receiver = [e for run in runs for e in run["receiver"]]
-    tracking = [e for run in runs for e in run["tracking"]]
-    pose_truth = [e for run in runs for e in run["pose_truth"]]
-    pose_receiver = [e for run in runs for e in run["pose_receiver"]]
-    sigma = [e for run in runs for e in run["sigma"]]
-    per_run = sorted(statistics.fmean(run["truth"]) for run in runs)
-    return {
-        "follow_6kmh_cross_track_mean_m": round(statistics.fmean(truth), 3),
-        "follow_6kmh_cross_track_max_m": round(max(truth), 3),
-        "follow_6kmh_cross_track_run_means_m": [round(m, 2) for m in per_run],
-        "follow_6kmh_cross_track_of_receiver_reading_mean_m": round(statistics.fmean(receiver), 3),
-        "follow_6kmh_cross_track_of_receiver_reading_max_m": round(max(receiver), 3),
-        "follow_6kmh_tracking_mean_m": round(statistics.fmean(tracking), 3),
-        "follow_6kmh_pose_error_mean_m": round(statistics.fmean(pose_truth), 3),
-        "follow_6kmh_pose_error_from_receiver_reading_mean_m": round(
-            statistics.fmean(pose_receiver), 3
-        ),
-        "follow_6kmh_pose_sigma_mean_m": round(statistics.fmean(sigma), 3),
-        "follow_6kmh_runs": len(runs),
-        "follow_6kmh_sim_seconds": round(sum(run["seconds"] for run in runs), 1),
-        "follow_note": (
-            "kinematic simulation (vehicle model; NEO-6M error model: 2.5 m CEP wandering over "
-            "minutes), not the full platform. cross_track: from the true position to the planned "
-            "path; of_receiver_reading: from where the receiver puts the robot (the truth plus "
-            "the receiver's error: what the platform itself controls); tracking: from the "
-            "estimate"
-        ),
-    }
+    seed a different receiver error: a NEO-6M's wanders over minutes, so one run sees one
+    offset), with each receiver of :data:`RECEIVERS` and the platform configured for it."""
+    figures: dict[str, Any] = {}
+    for name, (receiver, overrides) in RECEIVERS.items():
+        autonomy = load_config(PlatformConfig, None, overrides).autonomy
+        runs = [_follow(seed, laps, receiver, autonomy) for seed in seeds]
+        series = {key: [e for run in runs for e in run[key]] for key in FIGURES}
+        per_run = sorted(statistics.fmean(run["truth"]) for run in runs)
+        prefix = f"follow_6kmh_{name}"
+        figures.update(
+            {
+                f"{prefix}_truth_mean_m": round(statistics.fmean(series["truth"]), 3),
+                f"{prefix}_truth_max_m": round(max(series["truth"]), 3),
+                f"{prefix}_truth_run_means_m": [round(m, 3) for m in per_run],
+                f"{prefix}_receiver_mean_m": round(statistics.fmean(series["receiver"]), 3),
+                f"{prefix}_receiver_max_m": round(max(series["receiver"]), 3),
+                f"{prefix}_tracking_mean_m": round(statistics.fmean(series["tracking"]), 3),
+                f"{prefix}_pose_error_mean_m": round(statistics.fmean(series["pose_truth"]), 3),
+                f"{prefix}_pose_error_from_receiver_mean_m": round(
+                    statistics.fmean(series["pose_receiver"]), 3
+                ),
+                f"{prefix}_pose_sigma_mean_m": round(statistics.fmean(series["sigma"]), 3),
+                f"{prefix}_runs": len(runs),
+                f"{prefix}_sim_seconds": round(sum(run["seconds"] for run in runs), 1),
+            }
+        )
+    figures["follow_note"] = (
+        "kinematic simulation (vehicle model; receiver error models: neo6m 2.5 m CEP wandering "
+        "over minutes, the platform's defaults; rtk 0.02 m per axis, autonomy.gps_sigma_m and "
+        "gps_jitter_m 0.02, clearance_m 1.0), not the full platform. truth: cross-track error "
+        "of the true position to the planned path; receiver: of where the receiver puts the "
+        "robot (the truth plus the receiver's error: what the platform itself controls); "
+        "tracking: of the estimate"
+    )
+    return figures
 
 
-def _follow(seed: int, laps: int) -> dict[str, Any]:
+FIGURES = ("truth", "receiver", "tracking", "pose_truth", "pose_receiver", "sigma")
+
+
+def _follow(
+    seed: int, laps: int, receiver: ReceiverErrors, autonomy: AutonomySection
+) -> dict[str, Any]:
     lat0, lon0 = START
     area = parse_map(demo_map(lat0, lon0))
     route = parse_waypoints(demo_route(), area.points)
@@ -132,15 +158,23 @@ def _follow(seed: int, laps: int) -> dict[str, Any]:
                 lookahead_m=2.0,
                 tolerance_m=0.5,
             ),
+            clearance_m=autonomy.clearance_m,
         )
     )
     patrol.set_map(area)
     patrol.set_route(route)
     patrol.start()
-    run = KinematicRun(patrol, area, start=START, seed=seed, max_yaw_rate=FULL_TURN_RATE)
-    figures: dict[str, Any] = {
-        key: [] for key in ("truth", "receiver", "tracking", "pose_truth", "pose_receiver", "sigma")
-    }
+    run = KinematicRun(
+        patrol,
+        area,
+        start=START,
+        seed=seed,
+        max_yaw_rate=FULL_TURN_RATE,
+        receiver=receiver,
+        gps_sigma_m=autonomy.gps_sigma_m,
+        gps_jitter_m=autonomy.gps_jitter_m,
+    )
+    figures: dict[str, Any] = {key: [] for key in FIGURES}
     while patrol.cursor.lap < laps and run.now < 600:
         tick = run.tick()
         status = patrol.status()
@@ -182,7 +216,6 @@ async def platform_cpu(seconds: float = 20.0) -> dict[str, Any]:
 
     from bench.support import cpu_seconds
     from brasidas import topics
-    from brasidas.config import PlatformConfig, load_config
     from brasidas.messages import MotionState
     from platformd import app
     from platformd.context import PlatformContext

@@ -9,6 +9,7 @@ import itertools
 import math
 import os
 import random
+import re
 import sys
 from collections.abc import Awaitable, Callable
 
@@ -23,7 +24,7 @@ from brasidas.codecs.telemetry_schema import Gps, GpsReader
 from brasidas.config import PlatformConfig
 from brasidas.messages import GpsFix
 from platformd.app import PlatformDaemon
-from platformd.sim.gps import NmeaGenerator
+from platformd.sim.gps import RTK, NmeaGenerator
 from platformd.sim.vehicle import VehicleModel
 from tests.conftest import quiet_platform_config, wait_until
 
@@ -77,6 +78,25 @@ def test_every_sentence_parses_with_a_valid_checksum() -> None:
     # Doppler speed: 0.1 m/s (the data sheet's velocity accuracy), whatever the position error.
     assert moving.speed_mps == pytest.approx(abs(poses[-1].speed_mps), abs=0.2)
     assert moving.time.startswith("2026-11-24T00:00:49.90")
+
+
+def test_rtk_profile_decodes_to_centimetres_of_the_truth() -> None:
+    """The RTK profile's fixes, through the real decoder, are a few centimetres from the pose:
+    its 7 decimals of minutes carry them (5 would round to 1.9 cm)."""
+    pose = VehicleModel(latitude=37.9415, longitude=23.6530, clock=lambda: 0.0).pose()
+    generator = NmeaGenerator(random.Random(2), RTK)
+    start = dt.datetime(2026, 11, 23, 12, tzinfo=dt.UTC)
+    stream = b"".join(generator.epoch(pose, start + dt.timedelta(seconds=s)) for s in range(60))
+    assert re.match(rb"\$GPRMC,[^,]*,A,\d{4}\.\d{7},N,\d{5}\.\d{7},E,", stream)
+    decoder, assembler = NmeaDecoder(), EpochAssembler()
+    fixes = [fix for parsed in decoder.feed(stream) for fix in assembler.feed(parsed, 0.0)]
+    errors = [
+        metres_between(pose.latitude, pose.longitude, fix.latitude, fix.longitude)
+        for fix in fixes
+        if fix is not None
+    ]
+    assert len(errors) >= 59 and decoder.dropped["malformed"] == 0
+    assert max(errors) < 0.15 and sum(errors) / len(errors) < 0.06
 
 
 async def test_real_reader_in_sim_platform(

@@ -18,6 +18,10 @@ offset that no filter on the robot can see, because the receiver is the only abs
 Speed and course over ground come from the Doppler shift, not from positions: accurate to
 about 0.1 m/s whatever the position error (the data sheet's velocity accuracy).
 
+That error model is a :class:`ReceiverErrors` profile: ``NEO_6M`` (the default, the rover's
+receiver) or ``RTK``, a corrected receiver of the u-blox ZED-F9P class, for what the platform
+achieves when the receiver allows it (``bench_patrol``); the sentences stay the NEO-6M's.
+
 The UART of a receiver never blocks: when nobody reads the pty and its buffer is full, the
 epoch is dropped (counted in ``overruns``), as bytes sent to an unplugged cable are lost.
 """
@@ -34,6 +38,7 @@ import random
 import sys
 import tty
 from collections.abc import Callable
+from dataclasses import dataclass
 
 from brasidas.actor import Actor, Supervisor
 from brasidas.bus import Bus
@@ -60,14 +65,37 @@ VELOCITY_SIGMA_MPS = 0.05
 """Doppler velocity noise on each horizontal axis (data sheet: 0.1 m/s, 50 %)."""
 
 
+@dataclass(frozen=True)
+class ReceiverErrors:
+    """A receiver's position error: a Gauss-Markov process on each horizontal axis."""
+
+    sigma_m: float
+    """Steady-state standard deviation on each horizontal axis (altitude: 1.5 times it)."""
+    correlation_s: float
+    """Time constant of its wander."""
+    minute_decimals: int = 5
+    """Decimals of the minutes in the NMEA positions (5: 1.9 cm of latitude)."""
+
+
+NEO_6M = ReceiverErrors(NOISE_SIGMA_M, NOISE_CORRELATION_S)
+"""The u-blox NEO-6M: 2.5 m CEP, GPS without SBAS, open sky (its data sheet)."""
+RTK = ReceiverErrors(0.02, 60.0, minute_decimals=7)
+"""An RTK-corrected receiver, u-blox ZED-F9P class: its data sheet gives RTK horizontal
+accuracy 0.01 m + 1 ppm CEP (open sky, fixed ambiguities, a base within ~10 km: 0.02 m CEP,
+taken here as 0.02 m per axis, a little worse), at up to 20 Hz; its error is multipath,
+slow over tens of seconds; high-precision NMEA (CFG-NMEA-HIGHPREC) prints 7 decimals of
+minutes (0.2 mm), 5 would round to 1.9 cm."""
+
+
 class NmeaGenerator:
     """Sans-IO: a pose and a UTC time in, one epoch of NEO-6M sentences out."""
 
-    def __init__(self, rng: random.Random | None = None) -> None:
+    def __init__(self, rng: random.Random | None = None, errors: ReceiverErrors = NEO_6M) -> None:
         self.rng = rng or random.Random()
-        self._north_m = self.rng.gauss(0.0, NOISE_SIGMA_M)
-        self._east_m = self.rng.gauss(0.0, NOISE_SIGMA_M)
-        self._alt_m = self.rng.gauss(0.0, 1.5 * NOISE_SIGMA_M)
+        self.errors = errors
+        self._north_m = self.rng.gauss(0.0, errors.sigma_m)
+        self._east_m = self.rng.gauss(0.0, errors.sigma_m)
+        self._alt_m = self.rng.gauss(0.0, 1.5 * errors.sigma_m)
         self._last: float | None = None
         self.satellites = self.rng.randint(8, 10)
         self.hdop = round(self.rng.uniform(0.9, 1.1), 2)
@@ -100,8 +128,9 @@ class NmeaGenerator:
         # distinct result alive, a steady growth over a long --sim run (issue 10, defect 8).
         hhmmss = f"{utc.hour:02d}{utc.minute:02d}{utc.second:02d}.{utc.microsecond // 10000:02d}"
         ddmmyy = f"{utc.day:02d}{utc.month:02d}{utc.year % 100:02d}"
-        lat, ns = _ddmm(latitude, 2), "N" if latitude >= 0 else "S"
-        lon, ew = _ddmm(longitude, 3), "E" if longitude >= 0 else "W"
+        decimals = self.errors.minute_decimals
+        lat, ns = _ddmm(latitude, 2, decimals), "N" if latitude >= 0 else "S"
+        lon, ew = _ddmm(longitude, 3, decimals), "E" if longitude >= 0 else "W"
         svs = [3, 6, 7, 9, 14, 16, 19, 21, 22, 26, 27, 31][: self.satellites]
         sv_fields = ",".join([f"{sv:02d}" for sv in svs] + [""] * (12 - len(svs)))
         pdop, vdop = round(self.hdop * 1.6, 2), round(self.hdop * 1.3, 2)
@@ -122,8 +151,8 @@ class NmeaGenerator:
     def _wander(self, now: float) -> None:
         dt_s = 1.0 if self._last is None else max(0.0, now - self._last)
         self._last = now
-        keep = math.exp(-dt_s / NOISE_CORRELATION_S)
-        kick = NOISE_SIGMA_M * math.sqrt(1.0 - keep * keep)
+        keep = math.exp(-dt_s / self.errors.correlation_s)
+        kick = self.errors.sigma_m * math.sqrt(1.0 - keep * keep)
         self._north_m = self._north_m * keep + self.rng.gauss(0.0, kick)
         self._east_m = self._east_m * keep + self.rng.gauss(0.0, kick)
         self._alt_m = self._alt_m * keep + self.rng.gauss(0.0, 1.5 * kick)
@@ -203,14 +232,14 @@ class GpsSimulator(Actor):
                 os.close(fd)
 
 
-def _ddmm(degrees: float, width: int) -> str:
+def _ddmm(degrees: float, width: int, decimals: int) -> str:
     """``ddmm.mmmmm`` (``dddmm.mmmmm`` for longitude) as the NEO-6M prints it."""
     degrees = abs(degrees)
     whole = int(degrees)
-    minutes = round((degrees - whole) * 60.0, 5)
+    minutes = round((degrees - whole) * 60.0, decimals)
     if minutes >= 60.0:
         whole, minutes = whole + 1, 0.0
-    return f"{whole:0{width}d}{minutes:08.5f}"
+    return f"{whole:0{width}d}{minutes:0{decimals + 3}.{decimals}f}"
 
 
 def start_simulator(

@@ -18,7 +18,7 @@ from brasidas.autonomy.localization import Estimate, FilterParameters, PoseFilte
 from brasidas.autonomy.patrol import Command, Patrol
 from brasidas.codecs.nmea import EpochAssembler, NmeaDecoder
 from brasidas.messages import GpsFix
-from platformd.sim.gps import NmeaGenerator
+from platformd.sim.gps import NEO_6M, NmeaGenerator, ReceiverErrors
 from platformd.sim.vehicle import Pose, VehicleModel
 
 UTC0 = dt.datetime(2026, 1, 1, 12, 0, tzinfo=dt.UTC)
@@ -52,7 +52,12 @@ class KinematicRun:
         max_yaw_rate: float = 1.5,
         seed: int = 1,
         period: float = 0.1,
+        receiver: ReceiverErrors = NEO_6M,
+        gps_sigma_m: float = FilterParameters.gps_sigma_m,
+        gps_jitter_m: float = FilterParameters.gps_jitter_m,
     ) -> None:
+        """``receiver``: the simulated receiver's error; ``gps_sigma_m``, ``gps_jitter_m``:
+        what the pose filter is told of it (``autonomy.gps_sigma_m``, ``gps_jitter_m``)."""
         self.now = 0.0
         self.period = period
         latitude, longitude = (
@@ -69,9 +74,14 @@ class KinematicRun:
         self.patrol = patrol
         self.area = area
         self.filter = PoseFilter(
-            FilterParameters(max_speed=max_speed_mps, max_yaw_rate=max_yaw_rate)
+            FilterParameters(
+                max_speed=max_speed_mps,
+                max_yaw_rate=max_yaw_rate,
+                gps_sigma_m=gps_sigma_m,
+                gps_jitter_m=gps_jitter_m,
+            )
         )
-        self.gps = NmeaGenerator(random.Random(seed))
+        self.gps = NmeaGenerator(random.Random(seed), receiver)
         self.gps_on = True
         self._decoder = NmeaDecoder()
         self._epochs = EpochAssembler()
