@@ -39,6 +39,9 @@ from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import StationConfig, load_config
 from stationd.daemon import StationDaemon
 
+RESULTS = PLATFORM_LOG.parent
+"""Where each run's samples go (``memory_idle.jsonl``, ``memory_navcam.jsonl``: every line the
+probe printed, warm-up included)."""
 WARMUP_S = float(os.environ.get("BENCH_MEMORY_WARMUP_S", "120"))
 MEASURE_S = float(os.environ.get("BENCH_MEMORY_SECONDS", "240"))
 INTERVAL_S = 5.0
@@ -212,17 +215,27 @@ async def rss_growth(
     growth (MB), and where it is: the slopes of what glibc malloc holds in use (all arenas) and
     of the bytes pymalloc has handed out (Python's small objects, in 1 MiB mmap'd arenas that
     neither malloc's figures nor ``malloc_trim`` touch), and how much CPython's free lists (part
-    of pymalloc's bytes) held at the end and gained over the window."""
+    of pymalloc's bytes) held at the end and gained over the window; of the file pages (code run
+    for the first time); and what malloc holds free (a burst's high-water mark: under load the
+    NavCam's buffers pile up once, are freed, and the pages stay: +2 MB seen once, read as
+    34 MB/h over 4 minutes, with malloc's bytes in use and Python's flat)."""
     async with busy_platform(navcam=navcam, mallocstats=True) as samples:
         start = time.monotonic() + warmup  # the probe's clock: CLOCK_MONOTONIC, system-wide
         await asyncio.sleep(warmup + measure)
         lines = [line for line in samples.raw if line["t"] >= start]
+    RESULTS.mkdir(exist_ok=True)
+    with (RESULTS / f"memory_{'navcam' if navcam else 'idle'}.jsonl").open("w") as out:
+        out.writelines(json.dumps(line) + "\n" for line in samples.raw)
     return {
         "rss_mb_per_h": slope_per_hour([(line["t"], line["rss_kb"] / 1024) for line in lines]),
         "rss_total_mb": (lines[-1]["rss_kb"] - lines[0]["rss_kb"]) / 1024,
+        "rss_file_mb_per_h": slope_per_hour(
+            [(line["t"], line["rss_file_kb"] / 1024) for line in lines]
+        ),
         "malloc_in_use_mb_per_h": slope_per_hour(
             [(line["t"], line["m_inuse_kb"] / 1024) for line in lines]
         ),
+        "malloc_free_grown_mb": (lines[-1]["m_free_kb"] - lines[0]["m_free_kb"]) / 1024,
         "python_mb_per_h": slope_per_hour(
             [(line["t"], line["py_alloc_b"] / 2**20) for line in lines]
         ),

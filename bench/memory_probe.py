@@ -1,7 +1,8 @@
 """``python -m bench.memory_probe [--frames N] [--report FILE] -- PLATFORM ARGS``: a platform
 daemon (as ``python -m platformd``) with a thread reporting its memory.
 
-Every ``--interval`` seconds one JSON line on stdout: ``t`` (monotonic s), ``rss_kb``, where the
+Every ``--interval`` seconds one JSON line on stdout: ``t`` (monotonic s), ``rss_kb`` (of which
+``rss_anon_kb`` anonymous, ``rss_file_kb`` file pages: libraries' code as it is first run), where the
 memory is (:func:`native`: glibc malloc's in-use and free bytes over all its arenas, the private
 dirty KiB of each kind of anonymous mapping, pymalloc's allocated blocks, the collections each
 generation of the garbage collector has run; not ``gc.get_objects()``: the list it makes holds a
@@ -42,11 +43,14 @@ def _say(line: dict[str, object]) -> None:
         sys.stdout.flush()
 
 
-def rss_kb() -> int:
+def _status() -> dict[str, int]:
+    """The KiB figures of ``/proc/self/status`` (VmRSS = RssAnon + RssFile + RssShmem)."""
+    out = {}
     for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1])
-    return 0
+        key, _, value = line.partition(":")
+        if value.strip().endswith("kB"):
+            out[key] = int(value.split()[0])
+    return out
 
 
 class _MallInfo2(ctypes.Structure):
@@ -183,7 +187,13 @@ def _report(args: argparse.Namespace) -> None:
             gc.garbage.clear()
         if args.trim:
             _LIBC.malloc_trim(0)
-        line: dict[str, object] = {"t": round(time.monotonic(), 3), "rss_kb": rss_kb()}
+        status = _status()
+        line: dict[str, object] = {
+            "t": round(time.monotonic(), 3),
+            "rss_kb": status.get("VmRSS", 0),
+            "rss_anon_kb": status.get("RssAnon", 0),
+            "rss_file_kb": status.get("RssFile", 0),
+        }
         line.update(collected)
         line.update(native())
         if args.mallocstats:
