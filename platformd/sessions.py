@@ -187,7 +187,6 @@ class SessionManager(Actor):
         override = self.bus.last(topics.OVERRIDE_STATE)
         engaged = bool(override and override.engaged)
         return {
-            "time": time.time(),
             # The platform's monotonic clock (s), which velocity packets are aged by: stations
             # estimate their offset to it from the round trip (NTP-style) and stamp $PVEL in it.
             "clock": self._clock(),
