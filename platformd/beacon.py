@@ -248,7 +248,10 @@ async def async_setup(ctx: PlatformContext) -> None:
         setup_directory(ctx)
     advertiser = BeaconAdvertiser(ctx)
     ctx.supervisor.start(advertiser)
-    ctx.capabilities["beacon"] = lambda: {
-        "port": ctx.config.beacon.port,
-        "max_interval": ctx.config.beacon.max_interval,
-    }
+    ctx.capabilities.register(
+        "beacon",
+        lambda: {
+            "port": ctx.config.beacon.port,
+            "max_interval": ctx.config.beacon.max_interval,
+        },
+    )

@@ -29,6 +29,32 @@ class SerialDevice:
     stopbits: int = 1
 
 
+class CapabilitySections:
+    """The sections of ``connect``'s capabilities that subsystems add (``gps``, ``motor``,
+    ``streams``, ...), each computed when a station connects. Write-only for subsystems: one
+    owner per section (a second registration of a name is refused, as the command router
+    refuses a second owner of a code), and nothing finds a service through it."""
+
+    def __init__(self) -> None:
+        self._providers: dict[str, Callable[[], Any]] = {}
+
+    def register(self, name: str, provider: Callable[[], Any]) -> Callable[[], None]:
+        """Add section ``name``; returns the function that removes it."""
+        if name in self._providers:
+            raise ValueError(f"capability section {name!r} is already registered")
+        self._providers[name] = provider
+
+        def remove() -> None:
+            if self._providers.get(name) is provider:
+                del self._providers[name]
+
+        return remove
+
+    def describe(self) -> dict[str, Any]:
+        """Every section, computed now (JSON values)."""
+        return {name: provider() for name, provider in self._providers.items()}
+
+
 @dataclass(frozen=True)
 class PayloadInfo:
     """A payload the platform carries, as it registered itself (platformd.payloads)."""
@@ -72,11 +98,11 @@ class PlatformContext:
     sessions: SessionTable = field(default_factory=SessionTable)
     """The open sessions, kept by the session manager (platformd.sessions)."""
     commands: CommandRouter = field(init=False)
+    """System commands: ``commands.register(owner, {code: handler})`` (platformd.commands)."""
     authority: Authority = field(init=False)
     """Who holds control (platformd.authority); the router asks it before every command."""
-    """System commands: ``commands.register(owner, {code: handler})`` (platformd.commands)."""
-    capabilities: dict[str, Callable[[], Any]] = field(default_factory=dict)
-    """Sections of the ``connect`` answer's capabilities, each computed when asked."""
+    capabilities: CapabilitySections = field(default_factory=CapabilitySections)
+    """Sections of the ``connect`` answer's capabilities: ``capabilities.register(name, f)``."""
     telemetry: TelemetrySources = field(default_factory=TelemetrySources)
     """Sources of the telemetry snapshot's sections, by schema type, and diagnostics counters."""
     media: MediaHandle | None = None

@@ -218,7 +218,7 @@ async def async_setup(ctx: PlatformContext) -> None:
         return
     section = dataclasses.replace(ctx.config.gps, port=ctx.gps_port)  # the simulator's in --sim
     reader = GpsReader(ctx.bus, section)
-    ctx.capabilities["gps"] = lambda: capabilities(section)
+    ctx.capabilities.register("gps", lambda: capabilities(section))
     ctx.supervisor.start(reader)
 
 

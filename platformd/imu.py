@@ -484,11 +484,14 @@ async def async_setup(ctx: PlatformContext) -> None:
     if not ctx.config.imu.enabled:
         return
     reader = ImuReader(ctx.bus, ctx.config.imu, ctx.sim.i2c_bus)  # the emulated chip in --sim
-    ctx.capabilities["imu"] = lambda: {
-        "device": "MPU-6050",
-        "i2c_bus": ctx.config.imu.i2c_bus,
-        "address": ctx.config.imu.address,
-        "rate_hz": ctx.config.imu.rate_hz,
-        "fifo": ctx.config.imu.fifo,
-    }
+    ctx.capabilities.register(
+        "imu",
+        lambda: {
+            "device": "MPU-6050",
+            "i2c_bus": ctx.config.imu.i2c_bus,
+            "address": ctx.config.imu.address,
+            "rate_hz": ctx.config.imu.rate_hz,
+            "fifo": ctx.config.imu.fifo,
+        },
+    )
     ctx.supervisor.start(reader)

@@ -429,9 +429,9 @@ async def _awaited(work: Awaitable[Any]) -> None:
 async def async_setup(ctx: PlatformContext) -> None:
     service = MediaService(ctx)
     ctx.media = service
-    ctx.capabilities["streams"] = service.describe_streams
+    ctx.capabilities.register("streams", service.describe_streams)
     if service.navcam is not None:
-        ctx.capabilities["nav_camera"] = service.nav_camera
+        ctx.capabilities.register("nav_camera", service.nav_camera)
     for name in ("start_stream", "stop_stream", "list_streams"):
         ctx.rpc.add(name, getattr(service, f"rpc_{name}"))
     # Pausing affects every viewer: a control method (platformd.authority).

@@ -234,8 +234,7 @@ def capabilities(ctx: PlatformContext) -> dict[str, Any]:
             if (spec := ctx.commands.specs.get(code)) is not None
         ],
     }
-    for name, provider in ctx.capabilities.items():
-        result[name] = provider()
+    result.update(ctx.capabilities.describe())
     return result
 
 

@@ -323,6 +323,6 @@ def capability(ctx: PlatformContext) -> dict[str, Any]:
 
 async def async_setup(ctx: PlatformContext) -> None:
     receiver = await open_receiver(ctx)
-    ctx.capabilities["velocity"] = lambda: capability(ctx)
+    ctx.capabilities.register("velocity", lambda: capability(ctx))
     ctx.telemetry.register(VelocityLink, receiver.link_section)
     ctx.supervisor.start(receiver)

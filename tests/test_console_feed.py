@@ -144,7 +144,9 @@ async def test_access_units_reach_a_websocket_viewer_with_capture_times(
         assert feeds[0]["viewers"] == 1 and feeds[0]["units"] >= 8
 
         # Nobody watches: the feed lingers, then stops, and so does the platform's NavCam.
-        navcam = platform.ctx.capabilities["nav_camera"]
+        media = platform.ctx.media
+        assert media is not None
+        navcam = media.nav_camera
         assert await call("video_unwatch") is True
         await wait_until(lambda: navcam()["state"] == "idle", timeout=10)
         assert await call("video_feeds") == []

@@ -163,7 +163,7 @@ async def test_ten_seconds_at_zero_without_one_watchdog_w(tmp_path: Path) -> Non
         assert ctx.telemetry.build_one(Motor) == Motor(True, (0, 0), (0, 0), "")
         counters = ctx.telemetry.counters["motor"]()
         assert counters["watchdog_w"] == 0 and counters["velocity_commands"] >= 20
-        assert ctx.capabilities["motor"]()["port"] == driver.config.port
+        assert ctx.capabilities.describe()["motor"]["port"] == driver.config.port
 
 
 async def test_latest_wins_no_backlog(tmp_path: Path) -> None:

@@ -60,6 +60,26 @@ async def test_connect_returns_parameters_and_capabilities(
     assert daemon.ctx.sessions.sessions == {}
 
 
+async def test_a_capability_section_has_one_owner(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    """A second subsystem cannot take over a section of connect's capabilities; its owner
+    removes it, and a station connecting then sees what is registered at that moment."""
+    daemon = await platform_factory(quiet_platform_config(), fleet_key)
+    with pytest.raises(ValueError, match="'telemetry' is already registered"):
+        daemon.ctx.capabilities.register("telemetry", lambda: {"rate_hz": 0})
+    remove = daemon.ctx.capabilities.register("winch", lambda: {"max_pull_n": 900})
+    conn = connection(daemon, fleet_key)
+    await conn.open()
+    try:
+        assert conn.capabilities["winch"] == {"max_pull_n": 900}
+        assert conn.capabilities["telemetry"]["push"] is True
+    finally:
+        await conn.close()
+    remove()
+    assert "winch" not in daemon.ctx.capabilities.describe()
+
+
 async def test_wrong_fleet_key_is_refused_and_counted(
     platform_factory: Factory, fleet_key: bytes
 ) -> None:

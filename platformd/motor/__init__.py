@@ -52,7 +52,7 @@ async def async_setup(ctx: PlatformContext, *, clock: Clock | None = None) -> No
     if not ctx.config.motor.enabled:
         return
     controller = MotorController(ctx, clock=clock)
-    ctx.capabilities["motor"] = lambda: capability(controller)
+    ctx.capabilities.register("motor", lambda: capability(controller))
     ctx.telemetry.register(Motor, controller.snapshot)
     ctx.telemetry.add_counters("motor", lambda: controller.counters)
     ctx.supervisor.start(controller)

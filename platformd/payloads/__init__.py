@@ -11,7 +11,7 @@ from platformd.context import PlatformContext
 
 
 async def async_setup(ctx: PlatformContext) -> None:
-    ctx.capabilities["payloads"] = lambda: describe(ctx)
+    ctx.capabilities.register("payloads", lambda: describe(ctx))
     if "turret" in ctx.config.payload.enabled:
         from platformd.payloads import turret
 

@@ -47,9 +47,12 @@ async def async_setup(ctx: PlatformContext) -> None:
     methods = TelemetryMethods(ctx, aggregator.sender)
     ctx.rpc.add("request_telemetry", methods.request_telemetry)
     ctx.rpc.add("stop_telemetry", methods.stop_telemetry)
-    ctx.capabilities["telemetry"] = lambda: {
-        "rate_hz": ctx.config.telemetry.rate_hz,
-        "push": True,
-        **stream_parameters(ctx.fleet_key is not None),
-    }
+    ctx.capabilities.register(
+        "telemetry",
+        lambda: {
+            "rate_hz": ctx.config.telemetry.rate_hz,
+            "push": True,
+            **stream_parameters(ctx.fleet_key is not None),
+        },
+    )
     ctx.supervisor.start(aggregator)
