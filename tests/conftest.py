@@ -29,6 +29,16 @@ pytest_plugins = ["pytester"]
 # browser tests running alongside) an example can exceed Hypothesis's 200 ms default deadline.
 settings.register_profile("brasidas", deadline=None, suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile("brasidas")
+settings.load_profile("brasidas")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # A browser test's page assertions wait for what the page will show: Playwright's 5 s
+    # default ran out once (load average ~18) while the page was merely slow, not wrong.
+    with contextlib.suppress(ImportError):
+        from playwright.async_api import expect
+
+        expect.set_options(timeout=15_000)
 
 
 @pytest.fixture(autouse=True)

@@ -380,14 +380,14 @@ async def test_operator_station_in_the_browser(
             # Hold W: the robot moves (its position in telemetry changes); release: it stops.
             start = await telemetry_position(station, "web-rover")
             await page.keyboard.down("KeyW")
-            await wait_until(lambda: vehicle.command[0] > 0.3, timeout=5)
+            await wait_until(lambda: vehicle.command[0] > 0.3, timeout=15)
             await wait_moved(station, "web-rover", start)
             await page.keyboard.up("KeyW")
             await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
 
             # Drive again, then the page loses focus: it stops without a key release.
             await page.keyboard.down("KeyW")
-            await wait_until(lambda: vehicle.command[0] > 0.3, timeout=5)
+            await wait_until(lambda: vehicle.command[0] > 0.3, timeout=15)
             await page.evaluate("window.dispatchEvent(new Event('blur'))")
             await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
             await page.keyboard.up("KeyW")
@@ -397,11 +397,11 @@ async def test_operator_station_in_the_browser(
             await page.wait_for_timeout(300)
             assert vehicle.command == (0.0, 0.0), "moved without the enable button"
             await page.evaluate("window.__pad.pressed[4] = true")
-            await wait_until(lambda: vehicle.command[0] > 0.9, timeout=5)
+            await wait_until(lambda: vehicle.command[0] > 0.9, timeout=15)
             await page.evaluate("window.__pad.pressed[4] = false")
             await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
             await page.evaluate("window.__pad.pressed[4] = true")
-            await wait_until(lambda: vehicle.command[0] > 0.9, timeout=5)
+            await wait_until(lambda: vehicle.command[0] > 0.9, timeout=15)
             await page.evaluate(  # unplugged while driving
                 "window.__pad.connected = false;"
                 "window.dispatchEvent(new Event('gamepaddisconnected'))"
@@ -635,7 +635,7 @@ async def test_warnings_audio_link_loss_and_a_closed_page_stops_the_robot(
             await wait_until(lambda: speaker.hears_sound, timeout=10)
             await page.mouse.up()
             await expect(page.locator("#talk")).to_have_attribute("aria-pressed", "false")
-            await wait_until(lambda: speaker.state.value == "idle", timeout=5)
+            await wait_until(lambda: speaker.state.value == "idle", timeout=15)
 
             # The page's socket drops: it says so, reconnects, and the picture comes back.
             decoded = await frames_decoded(page, at_least=1)
@@ -654,7 +654,7 @@ async def test_warnings_audio_link_loss_and_a_closed_page_stops_the_robot(
             vehicle = rover.ctx.sim.vehicle
             assert vehicle is not None
             await page.keyboard.down("KeyW")
-            await wait_until(lambda: vehicle.command[0] > 0.3, timeout=5)
+            await wait_until(lambda: vehicle.command[0] > 0.3, timeout=15)
 
             # The link is cut while driving: the motors stop (the platform's deadman), the page
             # says LINK LOST (no telemetry), the platform holds (no heartbeat).
@@ -662,7 +662,7 @@ async def test_warnings_audio_link_loss_and_a_closed_page_stops_the_robot(
             cut.cut()
             try:
                 banner = page.get_by_role("alert", name="failsafe")
-                await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=5)
+                await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=15)
                 await expect(banner).to_contain_text("LINK LOST", timeout=15_000)
                 await wait_until(
                     lambda: rover.bus.last(topics.FAILSAFE_STATE).step is FailsafeStep.HOLD,
@@ -688,7 +688,7 @@ async def test_warnings_audio_link_loss_and_a_closed_page_stops_the_robot(
             await expect(banner).to_be_hidden(timeout=10_000)
             assert rover.bus.last(topics.FAILSAFE_STATE).step is FailsafeStep.NORMAL
             await page.keyboard.down("KeyW")
-            await wait_until(lambda: vehicle.command[0] > 0.3, timeout=5)
+            await wait_until(lambda: vehicle.command[0] > 0.3, timeout=15)
             await page.close(run_before_unload=False)
             await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
         finally:
