@@ -212,8 +212,11 @@ class DriveSession:
                 self._fail(err)
                 return
             self.render()
+            # asyncio.timeout: 3.11's wait_for swallows a cancellation that comes as the
+            # event is set, and this loop would go on.
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self.changed.wait(), SEND_INTERVAL)
+                async with asyncio.timeout(SEND_INTERVAL):
+                    await self.changed.wait()
 
     async def _poll_status(self) -> None:
         while not self.quit.is_set():

@@ -53,6 +53,41 @@ async def line() -> AsyncIterator[tuple[TurretSimulator, TurretDriver]]:
         simulator.close()
 
 
+class _AckingTransport(asyncio.WriteTransport):
+    """A line whose microcontroller acknowledges each command in the very loop turn that
+    the driver's task is cancelled: the race ``asyncio.wait_for`` (3.11) loses."""
+
+    def __init__(self, driver: TurretDriver, task: Callable[[], asyncio.Task[Any]]) -> None:
+        super().__init__()
+        self.driver, self.task = driver, task
+
+    def write(self, data: Any) -> None:
+        seq = int(bytes(data).split(b",")[1])
+
+        def ack_and_cancel() -> None:
+            self.driver.data_received(turret.encode("A", seq, "OK", 0.0, 0.0, 0))
+            self.task().cancel()
+
+        asyncio.get_running_loop().call_soon(ack_and_cancel)
+
+
+async def test_a_cancellation_that_comes_with_the_acknowledgement_stops_the_driver() -> None:
+    """The payload actor must stop when cancelled, even when the microcontroller's answer
+    arrives in the same loop turn (wait_for returned the answer and swallowed the
+    cancellation: the actor pinged on past the daemon's stop, seen as a leaked task)."""
+    driver = TurretDriver(ack_timeout=1.0)
+    sending: asyncio.Task[Any] | None = None
+
+    def current() -> asyncio.Task[Any]:
+        assert sending is not None
+        return sending
+
+    driver.connection_made(_AckingTransport(driver, current))
+    sending = asyncio.get_running_loop().create_task(driver.send("PING"))
+    with pytest.raises(asyncio.CancelledError):
+        await sending
+
+
 async def test_lost_and_corrupted_acknowledgements_are_resent_and_acted_on_once(
     line: tuple[TurretSimulator, TurretDriver],
 ) -> None:

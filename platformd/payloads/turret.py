@@ -96,8 +96,11 @@ class TurretDriver(asyncio.Protocol):
     async def send(self, name: str, *args: float) -> Line:
         """Send one command; its acknowledgement, or TurretError."""
         async with self._lock:
+            # asyncio.timeout, not wait_for: in 3.11 wait_for returns an answer that arrives
+            # with a cancellation and swallows the cancellation (the actor then never stops).
             if not self._opened.is_set():
-                await asyncio.wait_for(self._opened.wait(), self.ack_timeout * TRIES)
+                async with asyncio.timeout(self.ack_timeout * TRIES):
+                    await self._opened.wait()
             self._seq = (self._seq + 1) % 256
             line = turret.command(self._seq, name, *args)
             for attempt in range(TRIES):
@@ -108,7 +111,8 @@ class TurretDriver(asyncio.Protocol):
                 self._transport.write(line)
                 self.counters["sent" if attempt == 0 else "resent"] += 1
                 try:
-                    answer = await asyncio.wait_for(future, self.ack_timeout)
+                    async with asyncio.timeout(self.ack_timeout):
+                        answer = await future
                 except TimeoutError:
                     continue
                 finally:

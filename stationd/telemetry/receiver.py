@@ -159,8 +159,10 @@ class TelemetryReceiver(Actor):
                     await connection.heartbeat()
             with contextlib.suppress(TimeoutError):
                 # Woken early by a recheck; a closed connection ends the worker through
-                # PLATFORM_DISCONNECTED (or at the next tick).
-                await asyncio.wait_for(worker.recheck.wait(), TICK)
+                # PLATFORM_DISCONNECTED (or at the next tick). asyncio.timeout: 3.11's
+                # wait_for swallows a cancellation that comes as the event is set.
+                async with asyncio.timeout(TICK):
+                    await worker.recheck.wait()
         if self._workers.get(connection.platform_id) is worker:
             self._stop(connection.platform_id)
 
