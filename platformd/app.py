@@ -62,7 +62,8 @@ async def start_simulators(ctx: PlatformContext) -> SimulatedDevices:
 
             gpio = SimulatedGpio()
     if config.gps.enabled:
-        gps = gps_sim.start_simulator(ctx.bus, ctx.supervisor, config.gps, vehicle)
+        receiver = gps_sim.RECEIVERS[config.sim.gps_receiver]
+        gps = gps_sim.start_simulator(ctx.bus, ctx.supervisor, config.gps, vehicle, receiver)
     if config.imu.enabled:
         chip, i2c_bus = mpu6050_sim.emulate(config.imu, vehicle)
     turret = None

@@ -114,6 +114,10 @@ def test_bad_files_name_file_and_key(tmp_path: Path, text: str, message: str) ->
         ("beacon.min_interval=5", "beacon.max_interval: must be > beacon.min_interval (5.0)"),
         ("motor.parity=X", 'motor.parity: must be one of "N", "E", "O", "M", "S", not "X"'),
         ("motor.bytesize=9", "motor.bytesize: must be one of 5, 6, 7, 8, not 9"),
+        (
+            "sim.gps_receiver=zedf9p",
+            'sim.gps_receiver: must be one of "neo6m", "rtk", not "zedf9p"',
+        ),
         ("motor.baudrate=9601", "motor.baudrate: must be one of 1200,"),
         ("motor.refresh_hz=1", "motor.refresh_hz: must be between 2 and 50, not 1.0"),
         ("motor.linear_scale=1.5", "motor.linear_scale: must be > 0 and <= 1, not 1.5"),

@@ -4,10 +4,11 @@ The simulated robot here is an 18 km/h one (``platform.max_speed_kmh``, patrolli
 speed, braking at 6 m/s²) and its GPS sends 10 epochs a second, so laps take seconds; the
 drivers, the pose filter and the patrol run unchanged. They run in wall time: the platform's
 actors, the IMU's thread and the ptys share the event loop's real clock, so no simulated clock
-can run them faster; the same patrol on a simulated clock is ``test_autonomy_core``. The GPS simulator's position error is a NEO-6M's (2.5 m
-CEP, wandering over minutes): an offset no estimator on the robot can see, so the robot's true
-position is checked as the receiver sees it (the truth plus the simulator's current error),
-which is everything the platform itself answers for.
+can run them faster; the same patrol on a simulated clock is ``test_autonomy_core``. The
+closed-route test's robot has an RTK-corrected receiver (``sim.gps_receiver = "rtk"``, 0.02 m per
+axis, with the matching autonomy keys), so its true position is checked against the waypoints and
+the keep-out; the other robots keep the default NEO-6M (2.5 m CEP, wandering over minutes: an
+offset no estimator on the robot can see, so no true position could pass within 2 m).
 """
 
 from __future__ import annotations
@@ -55,6 +56,10 @@ def config(tmp_path: Path, *overrides: str) -> PlatformConfig:
     )
 
 
+RTK = ("sim.gps_receiver=rtk", "autonomy.gps_sigma_m=0.02", "autonomy.gps_jitter_m=0.02")
+"""An RTK-corrected simulated receiver and the keys that tell the platform so (README)."""
+
+
 def at(east: float, north: float) -> str:
     return "{:.8f},{:.8f}".format(*offset(LAT, LON, east, north))
 
@@ -70,7 +75,7 @@ class Robot:
         self.vehicle: VehicleModel = vehicle
         self.reports: list[PatrolStatus] = []
         self.poses: list[tuple[PoseEstimate, tuple[float, float]]] = []
-        """Each pose and where the receiver put the true vehicle at the time."""
+        """Each pose and the true vehicle's position (metres east, north) at the time."""
         self.cmd_vel: list[Velocity] = []
         self.watchers: list[Callable[[PoseEstimate, tuple[float, float]], None]] = []
         bus = self.ctx.bus
@@ -83,9 +88,7 @@ class Robot:
     def _on_pose(self, pose: PoseEstimate) -> None:
         truth = self.vehicle.pose()
         east, north = self.local(truth.latitude, truth.longitude)
-        gps = self.ctx.sim.gps
-        error = gps.generator.error if gps is not None else (0.0, 0.0)
-        here = (east + error[0], north + error[1])
+        here = (east, north)
         self.poses.append((pose, here))
         for watcher in self.watchers:
             watcher(pose, here)
@@ -157,7 +160,7 @@ async def wait_for_state(robot: Robot, state: str, timeout: float = 10.0) -> Non
 
 
 async def test_closed_route_twice_around_a_keepout_never_entered(robot_factory: Any) -> None:
-    robot: Robot = await robot_factory()
+    robot: Robot = await robot_factory(*RTK)
     # The route and the rock are drawn around where the robot says it is, as an operator
     # would draw them: the receiver's error (metres) must not put the start beside the rock,
     # where it would have no room to find its heading.
@@ -181,7 +184,7 @@ async def test_closed_route_twice_around_a_keepout_never_entered(robot_factory: 
 
     def in_rock(pose: PoseEstimate, truth: tuple[float, float]) -> None:
         for what, (e, n) in (
-            ("truth as received", truth),
+            ("truth", truth),
             ("pose", robot.local(pose.latitude, pose.longitude)),
         ):
             if west <= e <= east and south <= n <= north:
@@ -192,7 +195,7 @@ async def test_closed_route_twice_around_a_keepout_never_entered(robot_factory: 
     await robot.drive_laps(2)
     assert not entered, entered
     # Each corner passed on each lap: by the robot's own pose within 1.5 m (arrival tolerance
-    # 0.5 m), and by the truth as received within 2 m.
+    # 0.5 m), and by the true position within 2 m.
     for index, corner in enumerate(corners):
         believed = [math.dist(corner, robot.local(p.latitude, p.longitude)) for p, _ in robot.poses]
         passes = sum(1 for a, b in itertools.pairwise(believed) if a < 1.5 <= b)

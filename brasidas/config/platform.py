@@ -392,6 +392,10 @@ class SimSection:
     """Compass heading at start (clockwise from north)."""
     demo_map: bool = True
     """Load the demo map and route when none is stored (false: a teleop-only rover, no map)."""
+    gps_receiver: str = setting("neo6m", one_of("neo6m", "rtk"))
+    """The simulated GPS receiver's error: "neo6m" (the rover's u-blox NEO-6M, 2.5 m CEP
+    wandering over minutes) or "rtk" (an RTK-corrected u-blox ZED-F9P class, 0.02 m per axis;
+    pair it with autonomy.gps_sigma_m = 0.02, autonomy.gps_jitter_m = 0.02)."""
 
 
 @dataclass(frozen=True)

@@ -85,6 +85,8 @@ accuracy 0.01 m + 1 ppm CEP (open sky, fixed ambiguities, a base within ~10 km: 
 taken here as 0.02 m per axis, a little worse), at up to 20 Hz; its error is multipath,
 slow over tens of seconds; high-precision NMEA (CFG-NMEA-HIGHPREC) prints 7 decimals of
 minutes (0.2 mm), 5 would round to 1.9 cm."""
+RECEIVERS = {"neo6m": NEO_6M, "rtk": RTK}
+"""The profiles by their ``sim.gps_receiver`` name."""
 
 
 class NmeaGenerator:
@@ -243,21 +245,31 @@ def _ddmm(degrees: float, width: int, decimals: int) -> str:
 
 
 def start_simulator(
-    bus: Bus, supervisor: Supervisor, gps: GpsSection, vehicle: VehicleModel
+    bus: Bus,
+    supervisor: Supervisor,
+    gps: GpsSection,
+    vehicle: VehicleModel,
+    receiver: ReceiverErrors = NEO_6M,
 ) -> GpsSimulator | None:
-    """In ``--sim``: a simulated receiver on a pty, unless ``gps.port`` names another device."""
+    """In ``--sim``: a simulated receiver with ``receiver``'s error on a pty, unless
+    ``gps.port`` names another device."""
     if gps.port != GpsSection().port:
         # ``--set gps.port=...`` names a pty or a real receiver: read that instead.
         _LOGGER.info("gps.port is %s: no simulated receiver", gps.port)
         return None
-    simulator = GpsSimulator(bus, vehicle, gps.sim_rate_hz)
+    simulator = GpsSimulator(
+        bus, vehicle, gps.sim_rate_hz, generator=NmeaGenerator(errors=receiver)
+    )
     supervisor.start(simulator)
     return simulator
 
 
 async def serve(config: PlatformConfig) -> None:
     """``brasidas-platform simulate gps``: the pty path on stdout's first line, then serve."""
-    simulator = GpsSimulator(Bus(), vehicle_for(config), config.gps.sim_rate_hz)
+    generator = NmeaGenerator(errors=RECEIVERS[config.sim.gps_receiver])
+    simulator = GpsSimulator(
+        Bus(), vehicle_for(config), config.gps.sim_rate_hz, generator=generator
+    )
     try:
         sys.stdout.write(simulator.path + "\n")
         sys.stdout.flush()
