@@ -26,6 +26,10 @@ export class PlatformMap {
     this.map.setView([0, 0], 1);
     new (metricGrid())({ minZoom: -6, maxZoom: 6 }).addTo(this.map);
     this.fitted = false;
+    // Leaflet keeps the container's size from when it looked last: when the layout changes it
+    // (the stylesheet applying after the map was made, a resized window) fitting uses a stale
+    // size and a marker can sit outside the visible map, where it cannot be clicked.
+    new ResizeObserver(() => this.map.invalidateSize()).observe(element);
   }
 
   /** Local metres [north, east] (Leaflet's [y, x] in CRS.Simple) of a WGS-84 position. */
