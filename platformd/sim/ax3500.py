@@ -30,11 +30,12 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from brasidas.actor import Actor, Supervisor, wait_forever
+from brasidas.actor import Supervisor
 from brasidas.bus import Bus
 from brasidas.clock import Cancellable, Clock, LoopClock
 from brasidas.codecs import ax3500
 from brasidas.config import MotorSection, PlatformConfig
+from platformd.sim import SimulatorOwner
 from platformd.sim.vehicle import VehicleModel
 
 _LOGGER = logging.getLogger(__name__)
@@ -555,24 +556,6 @@ class Ax3500Simulator:
 # --------------------------------------------------------------------------- in the platform
 
 
-class SimulatorOwner(Actor):
-    """Closes the simulator when the daemon stops (after the driver's last zero)."""
-
-    name = "sim:ax3500"
-    restart = False
-    stop_priority = -100
-
-    def __init__(self, bus: Bus, simulator: Ax3500Simulator) -> None:
-        super().__init__(bus)
-        self.simulator = simulator
-
-    async def run(self) -> None:
-        try:
-            await wait_forever()
-        finally:
-            self.simulator.close()
-
-
 def options_for(motor: MotorSection) -> SimOptions:
     """A simulated controller wired like the configured chassis."""
     return SimOptions(left_turn="b" if motor.invert_angular else "B")
@@ -584,7 +567,7 @@ def start_simulator(
     """In ``--sim``: a simulated controller on a pty (open it 8N1: ``ctx.motor_serial``)."""
     simulator = Ax3500Simulator(options_for(motor), vehicle=vehicle)
     simulator.start()  # now: the pty exists before the driver (or a bench tap) opens it
-    supervisor.start(SimulatorOwner(bus, simulator))
+    supervisor.start(SimulatorOwner(bus, "sim:ax3500", simulator))
     return simulator
 
 

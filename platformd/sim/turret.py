@@ -12,12 +12,13 @@ import os
 import sys
 import tty
 
-from brasidas.actor import Actor, Supervisor, wait_forever
+from brasidas.actor import Supervisor
 from brasidas.bus import Bus
 from brasidas.codecs import turret
 from brasidas.codecs.turret import AZIMUTH_RANGE, ELEVATION_RANGE, Line, LineDecoder
 from brasidas.config import PlatformConfig
 from brasidas.config.platform import PayloadSection
+from platformd.sim import SimulatorOwner
 
 
 class TurretDevice:
@@ -178,25 +179,9 @@ async def serve(config: PlatformConfig) -> None:
         simulator.close()
 
 
-class _SimulatorOwner(Actor):
-    """Closes the simulator when the platform stops."""
-
-    name = "sim:turret"
-
-    def __init__(self, bus: Bus, simulator: TurretSimulator) -> None:
-        super().__init__(bus)
-        self.simulator = simulator
-
-    async def run(self) -> None:
-        try:
-            await wait_forever()
-        finally:
-            self.simulator.close()
-
-
 def start_simulator(bus: Bus, supervisor: Supervisor, payload: PayloadSection) -> TurretSimulator:
     """In ``--sim``: the turret's microcontroller on a pty (``ctx.sim.turret.path``)."""
     simulator = TurretSimulator(TurretDevice(payload.turret_watchdog_s))
     simulator.start()
-    supervisor.start(_SimulatorOwner(bus, simulator))
+    supervisor.start(SimulatorOwner(bus, "sim:turret", simulator))
     return simulator
