@@ -8,10 +8,7 @@ context then names what the drivers open (``ctx.motor_serial``, ``ctx.gps_port``
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
-
-from brasidas.actor import Actor, wait_forever
-from brasidas.bus import Bus
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the simulators import the context, which holds this
     from brasidas.drivers.mpu6050 import BusFactory
@@ -41,26 +38,3 @@ class SimulatedDevices:
     """Opens the emulated I2C bus with the MPU-6050 on it, instead of ``smbus2.SMBus``."""
     turret: TurretSimulator | None = None
     """The turret's microcontroller, on a pty (``payload.enabled`` names the turret)."""
-
-
-class Closeable(Protocol):
-    def close(self) -> None: ...
-
-
-class SimulatorOwner(Actor):
-    """Closes a simulated device (its pty) when the daemon stops, after its driver's last
-    words (the motor's zero): it stops last."""
-
-    restart = False
-    stop_priority = -100
-
-    def __init__(self, bus: Bus, name: str, simulator: Closeable) -> None:
-        super().__init__(bus)
-        self.name = name
-        self.simulator = simulator
-
-    async def run(self) -> None:
-        try:
-            await wait_forever()
-        finally:
-            self.simulator.close()

@@ -35,7 +35,7 @@ from brasidas.bus import Bus
 from brasidas.clock import Cancellable, Clock, LoopClock
 from brasidas.codecs import ax3500
 from brasidas.config import MotorSection, PlatformConfig
-from platformd.sim import SimulatorOwner
+from platformd.sim.owner import SimulatorOwner
 from platformd.sim.vehicle import VehicleModel
 
 _LOGGER = logging.getLogger(__name__)

@@ -18,7 +18,7 @@ from brasidas.codecs import turret
 from brasidas.codecs.turret import AZIMUTH_RANGE, ELEVATION_RANGE, Line, LineDecoder
 from brasidas.config import PlatformConfig
 from brasidas.config.platform import PayloadSection
-from platformd.sim import SimulatorOwner
+from platformd.sim.owner import SimulatorOwner
 
 
 class TurretDevice:
