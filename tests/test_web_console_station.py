@@ -18,7 +18,6 @@ from typing import Any
 import aiohttp
 import pytest
 from conftest import (
-    free_udp_port,
     quiet_platform_config,
     running_station,
     velocities_dropped,
@@ -27,7 +26,6 @@ from conftest import (
 
 from brasidas import topics
 from brasidas.autonomy.geo import LocalFrame
-from brasidas.config import StationConfig, load_config
 from brasidas.messages import FailsafeStep
 from platformd.app import PlatformDaemon
 from stationd.client import PlatformConnection
@@ -712,23 +710,14 @@ async def test_a_remote_operator_needs_https_and_gets_video_over_it(
         "-out", str(cert), stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL,
     )  # fmt: skip
     assert await openssl.wait() == 0
-    config = load_config(
-        StationConfig,
-        None,
-        [
-            "station.api_port=0",
-            f"discovery.port={free_udp_port()}",
-            "discovery.bind_host=127.0.0.1",
-            f"console.tls_cert={cert}",
-            f"console.tls_key={key}",
-            "console.https_host=127.0.0.1",
-            "console.https_port=0",
-            'console.https_names=["station.test"]',
-        ],
-    )
-    daemon = StationDaemon(config, fleet_key)
-    await daemon.start()
-    try:
+    async with running_station(
+        fleet_key,
+        f"console.tls_cert={cert}",
+        f"console.tls_key={key}",
+        "console.https_host=127.0.0.1",
+        "console.https_port=0",
+        'console.https_names=["station.test"]',
+    ) as daemon:
         await sim_platform(platform_factory, fleet_key, daemon, "web-rover", 23.6530)
         async with async_playwright() as playwright:
             browser = await playwright.chromium.launch(
@@ -747,5 +736,3 @@ async def test_a_remote_operator_needs_https_and_gets_video_over_it(
                 await frames_decoded(page, at_least=5)
             finally:
                 await browser.close()
-    finally:
-        await daemon.stop()
