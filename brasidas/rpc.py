@@ -22,10 +22,11 @@ from brasidas.codecs.jsonrpc import (
     BadAnswer,
     CallContext,
     Dispatcher,
+    EncodedParams,
     Incoming,
     RpcError,
     decode,
-    decode_answers,
+    decode_answer_message,
     encode_error,
     read_answer,
     request_text,
@@ -311,7 +312,7 @@ class RpcClient:
     async def call(
         self,
         method: str,
-        params: dict[str, Any] | list[Any] | None = None,
+        params: dict[str, Any] | list[Any] | EncodedParams | None = None,
         *,
         timeout: float | None = None,
     ) -> Any:
@@ -440,11 +441,23 @@ class RpcClient:
         """Resolve the calls a received message answers. What is not a valid answer to one
         of ours is counted in ``bad_answers`` and dropped (a call it names fails at once)."""
         try:
-            items = decode_answers(data)
+            message = decode_answer_message(data)
         except (ValueError, RecursionError) as err:
             self._bad_answer(f"unparseable ({err})")
             return
-        for item in items:
+        if (
+            type(message) is dict
+            and type(request_id := message.get("id")) is int
+            and "result" in message
+            and "error" not in message
+        ):
+            # The usual message, one result to a call of ours: read_answer's checks, inline
+            # (this runs once per heartbeat, and a call less shows in its round trip).
+            pending = self._pending.get(request_id)
+            if pending is not None and not (future := pending[0]).done():
+                future.set_result(message["result"])
+            return
+        for item in message if type(message) is list else (message,):
             try:
                 answer = read_answer(item)
             except BadAnswer as err:

@@ -15,7 +15,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from brasidas import security
-from brasidas.codecs.jsonrpc import RpcError
+from brasidas.codecs.jsonrpc import EncodedParams, RpcError
 from brasidas.rpc import RpcClient
 from brasidas.security import accept_proof, connect_proof
 
@@ -83,6 +83,8 @@ class PlatformConnection:
         self.fleet_key = fleet_key
         self.timeout = timeout
         self.session_id = ""
+        self._session_params = EncodedParams.of({"session": ""})
+        """The params of a call that takes no others, encoded once per session."""
         self.session_key: bytes | None = None
         self.parameters: dict[str, Any] = {}
         self.capabilities: dict[str, Any] = {}
@@ -151,6 +153,7 @@ class PlatformConnection:
                 raise AuthenticationError("platform failed to prove it holds the fleet key")
             self.session_key = security.session_key(self.fleet_key, token, nonce, station_nonce)
         self.session_id = token
+        self._session_params = EncodedParams.of({"session": token})
         self.parameters = dict(answer.get("parameters", {}))
         self.capabilities = dict(answer.get("capabilities", {}))
         self._connect_answer = answer
@@ -159,6 +162,8 @@ class PlatformConnection:
         """A session method call; raises RpcError on an error answer or no answer in time."""
         if self.closed.is_set():
             raise ConnectionError(f"connection to {self.platform_id} closed ({self.close_reason})")
+        if not params:
+            return await self._client.call(method, self._session_params)
         params["session"] = self.session_id
         return await self._client.call(method, params)
 

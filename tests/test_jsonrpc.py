@@ -9,7 +9,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from brasidas.codecs.jsonrpc import CallContext, Dispatcher, RpcError, Unauthorized
+from brasidas.codecs.jsonrpc import (
+    CallContext,
+    Dispatcher,
+    EncodedParams,
+    RpcError,
+    Unauthorized,
+    decode_answers,
+    request_text,
+)
 
 
 async def _echo(call: CallContext, value: int, label: str = "x") -> dict[str, Any]:
@@ -206,3 +214,58 @@ async def test_a_large_integer_id_is_echoed_exactly(dispatcher: Dispatcher) -> N
     big = 10**300
     answer = await ask(dispatcher, {"jsonrpc": "2.0", "id": big, "method": "scale", "params": [2]})
     assert answer == {"jsonrpc": "2.0", "id": big, "result": 4}
+
+
+# The client's side: answers are read with orjson, which must read them as the standard library
+# does (exactly, for what answers to our requests hold), and requests with params encoded once.
+
+_answer_values = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(min_value=-(2**63), max_value=2**63 - 1)
+    | st.floats(allow_nan=False, allow_infinity=False)
+    | st.text(),
+    lambda children: (
+        st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=8), children, max_size=4)
+    ),
+    max_leaves=12,
+)
+
+
+@given(_answer_values, st.booleans())
+def test_answers_decode_as_the_standard_library_reads_them(value: Any, ascii_only: bool) -> None:
+    text = json.dumps({"jsonrpc": "2.0", "id": 7, "result": value}, ensure_ascii=ascii_only)
+    for data in (text, text.encode()):
+        assert decode_answers(data) == [json.loads(text)]
+
+
+@pytest.mark.parametrize(
+    ("data", "expected"),
+    [
+        # JSON orjson refuses: read by the standard library instead, as before.
+        ('{"id":1,"result":"\\ud800"}', {"id": 1, "result": "\ud800"}),
+        ('{"id":1,"result":1}'.encode("utf-16"), {"id": 1, "result": 1}),
+    ],
+)
+def test_answers_orjson_refuses_are_read_by_the_standard_library(
+    data: str | bytes, expected: Any
+) -> None:
+    assert decode_answers(data) == [expected]
+
+
+@pytest.mark.parametrize(
+    "data", ['{"id":1,"result":NaN}', '{"id":1,"result":1e999}', "Infinity", "not json", ""]
+)
+def test_answers_that_are_not_json_are_refused(data: str) -> None:
+    with pytest.raises(ValueError):
+        decode_answers(data)
+
+
+def test_params_encoded_once_make_the_same_request() -> None:
+    params = {"session": "tok\u00e9n", "n": [1, 2.5, None]}
+    assert request_text("go", EncodedParams.of(params), 4) == request_text("go", params, 4)
+    assert json.loads(request_text("go", EncodedParams.of(params), None)) == {
+        "jsonrpc": "2.0",
+        "method": "go",
+        "params": params,
+    }
