@@ -87,6 +87,29 @@ async def sim_platform(
     return await factory(config, key)
 
 
+async def platforms_in_view(page: Any, timeout: float = 10.0) -> None:
+    """Every platform's marker lies inside the visible map (where it can be seen and clicked),
+    within ``timeout`` seconds."""
+    icons = page.locator("#map .platform-icon")
+
+    async def outside() -> list[str]:
+        area = await page.locator("#map").bounding_box()
+        names = []
+        for index in range(await icons.count()):
+            box = await icons.nth(index).bounding_box()
+            if box is None or not (
+                area["x"] <= box["x"] <= area["x"] + area["width"] - box["width"]
+                and area["y"] <= box["y"] <= area["y"] + area["height"] - box["height"]
+            ):
+                names.append(await icons.nth(index).text_content())
+        return names
+
+    deadline = asyncio.get_running_loop().time() + timeout
+    while missing := await outside():
+        assert asyncio.get_running_loop().time() < deadline, f"outside the map: {missing}"
+        await asyncio.sleep(0.1)
+
+
 class LinkCut:
     """The station's link to one platform goes silent both ways, as a radio out of range would
     (loopback has no cable to pull): its signaling calls, heartbeats included, wait for the link
@@ -326,6 +349,9 @@ async def test_operator_station_in_the_browser(
                     timeout=10_000
                 )
             await expect(page.locator("#map .platform-icon")).to_have_count(2, timeout=10_000)
+            # Both in sight: the view follows the platforms until the operator takes it (the
+            # first alone used to be centred, leaving rover-2's neighbour 130 m away off the map).
+            await platforms_in_view(page)
             # Offline backgrounds the operator loads: a GeoJSON area, an image with its corners.
             area = tmp_path / "area.geojson"
             area.write_text(
@@ -357,10 +383,8 @@ async def test_operator_station_in_the_browser(
             await expect(page.locator("#map img.area-image")).to_have_count(0)
 
             # Click the platform on the map: connected, and its NavCam decoded in the Worker.
-            # Dispatched to the marker, not clicked at its screen position: after the
-            # backgrounds above the marker was at times outside the visible map (where a click
-            # lands on the NavCam canvas) - not diagnosed, see the issue 11/13 notes.
-            await page.locator("#map .platform-icon", has_text="web-rover").dispatch_event("click")
+            await platforms_in_view(page)
+            await page.locator("#map .platform-icon", has_text="web-rover").click()
             video = page.get_by_label("NavCam web-rover")
             await expect(video).to_be_visible(timeout=10_000)
             await frames_decoded(page, at_least=15)

@@ -25,7 +25,16 @@ export class PlatformMap {
     this.map = L.map(element, { crs: L.CRS.Simple, minZoom: -6, maxZoom: 6, zoomSnap: 0.5, attributionControl: false });
     this.map.setView([0, 0], 1);
     new (metricGrid())({ minZoom: -6, maxZoom: 6 }).addTo(this.map);
-    this.fitted = false;
+    // Until the operator takes the view (drags, scrolls, zooms) or a background is fitted, the
+    // view follows the platforms: all of them in sight. Centring the first one alone left a
+    // second rover 130 m away off the map, where it could be neither seen nor clicked.
+    this.following = true;
+    this.framed = false; // the view has been set on a platform at least once
+    const taken = () => { this.following = false; };
+    this.map.on("dragstart dblclick", taken);
+    element.addEventListener("wheel", taken, { passive: true });
+    element.addEventListener("keydown", (event) => { if (/^(Arrow|[-+=_])/.test(event.key)) taken(); });
+    this.map.zoomControl?.getContainer()?.addEventListener("click", taken);
     // Leaflet keeps the container's size from when it looked last: when the layout changes it
     // (the stylesheet applying after the map was made, a resized window) fitting uses a stale
     // size and a marker can sit outside the visible map, where it cannot be clicked.
@@ -64,7 +73,19 @@ export class PlatformMap {
     if (heading == null && before) heading = (Math.atan2(point[1] - before[1], point[0] - before[0]) * 180) / Math.PI;
     entry.marker.setLatLng(point);
     entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected));
-    if (!this.fitted) { this.map.setView(point, 2); this.fitted = true; }
+    if (this.following) this.followPlatforms();
+  }
+
+  /** Every platform in sight, the view changed only when one is not (or close to the edge). */
+  followPlatforms() {
+    const points = [...this.markers.values()].map((entry) => entry.marker.getLatLng());
+    if (!points.length) return;
+    const bounds = L.latLngBounds(points);
+    if (this.framed && this.map.getBounds().pad(-0.1).contains(bounds)) return;
+    if (points.length > 1) this.map.fitBounds(bounds, { padding: [40, 40], maxZoom: 2, animate: false });
+    else if (this.framed) this.map.panTo(points[0], { animate: false });
+    else this.map.setView(points[0], 2, { animate: false });
+    this.framed = true;
   }
 
   remove(id) {
@@ -83,6 +104,7 @@ export class PlatformMap {
     this.background = L.imageOverlay(url, [sw, ne], { opacity: 0.9, className: "area-image", alt: "area image" }).addTo(this.map);
     this.background.bringToBack();
     this.map.fitBounds([sw, ne]);
+    this.following = false;
   }
 
   /** A GeoJSON background; a platform's area map draws its boundary, keep-outs (role
@@ -108,7 +130,7 @@ export class PlatformMap {
     }).addTo(this.map);
     this.background.bringToBack();
     const bounds = this.background.getBounds();
-    if (fit && bounds.isValid()) { this.map.fitBounds(bounds); this.fitted = true; }
+    if (fit && bounds.isValid()) { this.map.fitBounds(bounds); this.following = false; }
   }
 
   /** Draw ``platformId``'s waypoint route ([lat, lon] points; closed when last = first). */
