@@ -164,6 +164,7 @@ export class PlatformMap {
    * addAtCentre() } — the keyboard's way: arrows pan the focused map, then add at its centre. */
   editPoints(points, onChange, { label, shape }) {
     if (!this.available) return { stop: () => {}, addAtCentre: () => {} };
+    this.following = false; // the operator works on this view: it must not move under the clicks
     const frame = this;
     const current = points.map((p) => [...p]);
     const layer = L.layerGroup().addTo(this.map);
