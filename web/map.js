@@ -82,7 +82,8 @@ export class PlatformMap {
     if (!points.length) return;
     const bounds = L.latLngBounds(points);
     if (this.framed && this.map.getBounds().pad(-0.1).contains(bounds)) return;
-    if (points.length > 1) this.map.fitBounds(bounds, { padding: [40, 40], maxZoom: 2, animate: false });
+    // More room on the right: each marker's name is written there.
+    if (points.length > 1) this.map.fitBounds(bounds, { paddingTopLeft: [40, 40], paddingBottomRight: [110, 40], maxZoom: 2, animate: false });
     else if (this.framed) this.map.panTo(points[0], { animate: false });
     else this.map.setView(points[0], 2, { animate: false });
     this.framed = true;
