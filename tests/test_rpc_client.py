@@ -4,8 +4,9 @@ against real servers that answer badly: a bad answer is dropped and counted, nev
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
 import pytest
@@ -19,6 +20,7 @@ from brasidas.config import StationConfig, load_config
 from brasidas.rpc import RpcClient, serve_app
 from stationd.api_client import api_call_async
 
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 Script = Callable[[int], list[str]]
 """Given a request's id, the raw messages the server sends back."""
 
@@ -43,17 +45,27 @@ class ScriptedServer:
         return web.Response(text=self.script(request_id)[0], content_type="application/json")
 
 
+@contextlib.asynccontextmanager
+async def serving(websocket: Handler, post: Handler | None = None) -> AsyncIterator[str]:
+    """A real server on loopback with ``websocket`` at ``/ws`` (and ``post`` at ``/api/rpc``):
+    its base URL, for the block's lifetime."""
+    app = web.Application()
+    app.router.add_get("/ws", websocket)
+    if post is not None:
+        app.router.add_post("/api/rpc", post)
+    supervisor = Supervisor()
+    port = await serve_app(app, "127.0.0.1", 0, supervisor=supervisor, bus=Bus(), name="test")
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        await supervisor.stop(2.0)
+
+
 @pytest.fixture
 async def server() -> AsyncIterator[ScriptedServer]:
     scripted = ScriptedServer()
-    app = web.Application()
-    app.router.add_get("/ws", scripted.websocket)
-    app.router.add_post("/api/rpc", scripted.post)
-    supervisor = Supervisor()
-    port = await serve_app(app, "127.0.0.1", 0, supervisor=supervisor, bus=Bus(), name="scripted")
-    scripted.url = f"http://127.0.0.1:{port}"
-    yield scripted
-    await supervisor.stop(2.0)
+    async with serving(scripted.websocket, scripted.post) as scripted.url:
+        yield scripted
 
 
 def ok(request_id: int, result: Any = "fine") -> str:
@@ -202,21 +214,14 @@ async def test_concurrent_calls_from_many_tasks_get_their_own_answers() -> None:
                 group.create_task(answer(json.loads(message.data)))
         return ws
 
-    app = web.Application()
-    app.router.add_get("/ws", websocket)
-    supervisor = Supervisor()
-    port = await serve_app(app, "127.0.0.1", 0, supervisor=supervisor, bus=Bus(), name="random")
-    try:
-        async with RpcClient(f"http://127.0.0.1:{port}/ws", timeout=10) as client:
+    async with serving(websocket) as url, RpcClient(url + "/ws", timeout=10) as client:
 
-            async def caller(name: int) -> list[Any]:
-                return [await client.call("echo", [name, n]) for n in range(20)]
+        async def caller(name: int) -> list[Any]:
+            return [await client.call("echo", [name, n]) for n in range(20)]
 
-            results = await asyncio.gather(*(caller(name) for name in range(8)))
-            assert results == [[[name, n] for n in range(20)] for name in range(8)]
-            assert client.bad_answers == 0
-    finally:
-        await supervisor.stop(2.0)
+        results = await asyncio.gather(*(caller(name) for name in range(8)))
+        assert results == [[[name, n] for n in range(20)] for name in range(8)]
+        assert client.bad_answers == 0
 
 
 async def test_the_end_of_the_connection_is_noticed_while_idle_and_mid_call(
@@ -238,24 +243,18 @@ async def test_the_end_of_the_connection_is_noticed_while_idle_and_mid_call(
                 await ws.send_str(ok(request_id))
         return ws
 
-    app = web.Application()
-    app.router.add_get("/ws", websocket)
-    supervisor = Supervisor()
-    port = await serve_app(app, "127.0.0.1", 0, supervisor=supervisor, bus=Bus(), name="closing")
-    try:
-        async with RpcClient(f"http://127.0.0.1:{port}/ws", timeout=10) as client:
+    async with serving(websocket) as url:
+        async with RpcClient(url + "/ws", timeout=10) as client:
             assert await client.call("first") == "fine"
             with pytest.raises(ConnectionError):
                 await client.call("second")  # the fast path: it was reading
             await asyncio.wait_for(client.closed.wait(), 5)
-        async with RpcClient(f"http://127.0.0.1:{port}/ws", timeout=10) as client:
+        async with RpcClient(url + "/ws", timeout=10) as client:
             assert await client.call("first") == "fine"
             await closing[-1].close()  # nobody calls now: the reader must notice
             await asyncio.wait_for(client.closed.wait(), 5)
             with pytest.raises(ConnectionError):
                 await client.call("after")
-    finally:
-        await supervisor.stop(2.0)
 
 
 async def test_an_unsolicited_message_while_idle_is_counted_and_dropped(
