@@ -39,7 +39,9 @@ class MapFilesApi:
         connection = await self.ctx.connection(platform_id)
         robot = await self._robot(platform_id)
         options = (boundary, keepouts, boundary_bbox)
-        found = await _refusing(filename, _read_map, text, filename, options, robot)
+        found = await _refusing(
+            f"map refused: {filename}", _read_map, text, filename, options, robot
+        )
         answer = await connection.call("load_map", map=found.geojson)
         return dict(answer) | {"format": found.format, "notes": found.notes}
 
@@ -57,7 +59,9 @@ class MapFilesApi:
         robot = await self._robot(platform_id)
         area = await connection.call("get_map")
         boundary = _boundary(area.get("map") if isinstance(area, Mapping) else None)
-        found = await _refusing(filename, _read_route, text, filename, fence, boundary, robot)
+        found = await _refusing(
+            f"waypoints refused: {filename}", _read_route, text, filename, fence, boundary, robot
+        )
         if found.keepouts:
             await connection.call("update_map", add=found.keepouts, remove=[])
         answer = await connection.call("set_waypoints", waypoints=found.waypoints)
@@ -77,7 +81,7 @@ class MapFilesApi:
         area = await connection.call("get_map")
         route = area.get("route", []) if isinstance(area, Mapping) else []
         text = await _refusing(
-            f"export as {format}", _write_route, format, route, robot, area.get("map")
+            f"export refused ({format})", _write_route, format, route, robot, area.get("map")
         )
         return {"text": text, "format": format, "waypoints": len(route)}
 
@@ -102,7 +106,7 @@ async def _refusing(what: str, function: Callable[..., T], *args: Any) -> T:
     try:
         return await asyncio.to_thread(function, *args)
     except FileRefused as exc:
-        raise RpcError(INVALID_PARAMS, f"{what or 'the file'}: {exc}") from None
+        raise RpcError(INVALID_PARAMS, f"{what}: {exc}") from None
 
 
 # In a worker thread: Shapely is loaded with the first file (not by a station without one).
