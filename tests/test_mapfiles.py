@@ -388,3 +388,13 @@ def test_routes_written_back_read_the_same() -> None:
         write_route("plan", [], ROBOT)
     with pytest.raises(FileRefused, match="export format 'gpx'"):
         write_route("gpx", route, ROBOT)
+
+
+def test_more_waypoints_than_a_route_holds_are_refused_early() -> None:
+    with pytest.raises(FileRefused, match="line 1001: more than 1000 waypoints"):
+        read_route("37.9414,23.6526\n" * 5000)
+    with pytest.raises(FileRefused, match="1001 waypoints, more than 1000"):
+        read_route(json.dumps([[37.9414, 23.6526]] * 1001))
+    rows = [HOME, *(row(i, 3, 16, lat=37.9414, lon=23.6526) for i in range(1, 1100))]
+    with pytest.raises(FileRefused, match="more than 1000 items"):
+        read_route(wpl(*rows))

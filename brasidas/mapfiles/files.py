@@ -20,6 +20,7 @@ from typing import Any
 from shapely import Point, Polygon
 
 from brasidas.autonomy.geo import LocalFrame
+from brasidas.autonomy.route import MAX_WAYPOINTS
 from brasidas.mapfiles import qgc
 from brasidas.mapfiles.errors import MAX_FILE_BYTES, FileRefused
 from brasidas.mapfiles.geojson import geojson_shapes, is_geojson, loads
@@ -290,6 +291,8 @@ def _json_list(data: list[Any]) -> RouteImport:
     """``[lat, lon(, alt)]`` lists, ``{lat, lon}`` objects, "LAT,LON" or point names."""
     waypoints: list[Any] = []
     altitudes = False
+    if len(data) > MAX_WAYPOINTS:
+        raise FileRefused(f"{len(data)} waypoints, more than {MAX_WAYPOINTS}")
     for index, item in enumerate(data):
         where = f"waypoint {index}"
         if isinstance(item, list):
@@ -340,6 +343,8 @@ def _text_route(body: str) -> RouteImport:
         if not text:
             continue
         where = f"line {number}"
+        if len(waypoints) >= MAX_WAYPOINTS:
+            raise FileRefused(f"{where}: more than {MAX_WAYPOINTS} waypoints")
         fields = [f for f in re.split(r"[\s,\[\]]+", text) if f]
         values = _floats(fields)
         if values is not None:

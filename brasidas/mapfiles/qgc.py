@@ -13,6 +13,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from brasidas.autonomy.route import MAX_WAYPOINTS
 from brasidas.mapfiles.errors import FileRefused
 from brasidas.mapfiles.mission import (
     MavCmd,
@@ -59,6 +60,8 @@ def wpl_items(text: str) -> list[MissionItem]:
             p1, p2, p3, p4, lat, lon, alt = (float(v) for v in fields[4:11])
         except ValueError:
             raise FileRefused(f"{where}: not a row of numbers") from None
+        if index > MAX_WAYPOINTS:
+            raise FileRefused(f"{where}: more than {MAX_WAYPOINTS} items")
         if index != len(items):
             raise FileRefused(f"{where}: sequence {index}, expected {len(items)}")
         items.append(
