@@ -41,8 +41,9 @@ CONTENT_SECURITY_POLICY = (
     "frame-ancestors 'none'; form-action 'none'"
 )
 """The console's pages: scripts from the station only (no inline script, no eval)."""
-API_MAX_BYTES = MAX_FILE_BYTES + 65536
-"""A map or route file's text (map_import, route_import) and the call around it."""
+API_MAX_BYTES = 2 * MAX_FILE_BYTES + 65536
+"""A map or route file's text (map_import, route_import) as a JSON string (its tabs, newlines
+and quotes escaped: up to twice as long) and the call around it."""
 
 
 class ConsoleMissing(Exception):

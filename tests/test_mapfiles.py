@@ -23,7 +23,8 @@ from brasidas.mapfiles.files import (
     read_route,
     write_route,
 )
-from brasidas.mapfiles.mission import CIRCLE_VERTICES, command_name
+from brasidas.mapfiles.mission import command_name
+from brasidas.mapfiles.shapes import CIRCLE_VERTICES
 
 DATA = Path(__file__).parent / "data" / "mapfiles"
 FIELD = [
@@ -398,3 +399,17 @@ def test_more_waypoints_than_a_route_holds_are_refused_early() -> None:
     rows = [HOME, *(row(i, 3, 16, lat=37.9414, lon=23.6526) for i in range(1, 1100))]
     with pytest.raises(FileRefused, match="more than 1000 items"):
         read_route(wpl(*rows))
+
+
+def test_mission_items_are_the_one_mapping_both_ways() -> None:
+    """What a MAVLink mission upload or download would use: route -> items -> route."""
+    from brasidas.mapfiles.mission import MavCmd, MavFrame, mission_items, route_from_items
+
+    route = [(37.9414, 23.6526), (37.9414, 23.6534), (37.9419, 23.6534), (37.9414, 23.6526)]
+    items = mission_items(route, ROBOT)
+    assert items[0].frame == MavFrame.GLOBAL and items[1].frame == MavFrame.GLOBAL_RELATIVE_ALT
+    assert {item.command for item in items} == {MavCmd.NAV_WAYPOINT}
+    again = route_from_items(items, home_first=True, jump_target=lambda item: None)
+    assert again.home == ROBOT and again.waypoints == route and again.closed
+    kml = read_route((DATA / "field.kml").read_text(), "field.kml")
+    assert kml.format == "KML" and len(kml.waypoints) == 3

@@ -183,3 +183,23 @@ async def test_map_formats_through_the_cli(
     )
     code, _, err = await load(str(tmp_path / "laughs.kml"))
     assert code == 1 and "entities are refused" in err
+
+
+async def test_big_files_up_to_the_limit_pass_the_station_and_bigger_are_refused(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+) -> None:
+    await connected(station, platform_factory, fleet_key, tmp_path)
+    code, _, err = await run_cli(station, "map", "rover-7", str(DATA / "field.plan"))
+    assert code == 0, err
+    plan = (DATA / "field.plan").read_text()
+    big = tmp_path / "big.plan"  # 3 MiB of line breaks: 6 MiB as the JSON string the API carries
+    big.write_text(plan.replace('"version": 1,', '"version": 1,' + "\n" * (3 * 1024 * 1024), 1))
+    code, out, err = await run_cli(station, "route", "rover-7", str(big))
+    assert code == 0 and "5 waypoints set from QGC plan (closed" in out, err
+    huge = tmp_path / "huge.plan"
+    huge.write_text(plan + " " * (4 * 1024 * 1024))
+    code, _, err = await run_cli(station, "route", "rover-7", str(huge))
+    assert code == 1 and "huge.plan: larger than 4 MiB" in err
+    (tmp_path / "latin1.txt").write_bytes("37.9414,23.6526 # caf\xe9\n".encode("latin-1"))
+    code, _, err = await run_cli(station, "route", "rover-7", str(tmp_path / "latin1.txt"))
+    assert code == 1 and "not UTF-8 text" in err

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 
 from brasidas.mapfiles.errors import FileRefused
-from brasidas.mapfiles.shapes import Shape, circle, polygon_shape
+from brasidas.mapfiles.shapes import CIRCLE_VERTICES, Shape, circle, polygon_shape
 
 
 class MavCmd(IntEnum):
@@ -78,8 +78,6 @@ OTHER_NAMES = {
     2000: "IMAGE_START_CAPTURE",
     2500: "VIDEO_START_CAPTURE",
 }
-CIRCLE_VERTICES = 32
-"""A fence circle becomes a polygon with this many vertices (its edges inside the circle)."""
 
 
 def command_name(command: int) -> str:
@@ -235,6 +233,7 @@ def fence_shapes(items: Sequence[MissionItem], first_index: int = 0) -> list[Sha
                     item.params[0],
                     role="inclusion" if inclusion else "keepout",
                     ident=f"fence-circle-{len(shapes) + 1}",
+                    vertices=CIRCLE_VERTICES,
                 )
             )
         elif item.command == MavCmd.NAV_FENCE_RETURN_POINT:
@@ -269,16 +268,32 @@ def fence_shapes(items: Sequence[MissionItem], first_index: int = 0) -> list[Sha
     return shapes
 
 
-def waypoint_item(where: str, latitude: float, longitude: float) -> MissionItem:
-    """A NAV_WAYPOINT item in the relative-altitude frame, altitude 0 (what we write)."""
-    return MissionItem(
-        where,
-        int(MavCmd.NAV_WAYPOINT),
-        int(MavFrame.GLOBAL_RELATIVE_ALT),
-        (0.0, 0.0, 0.0, math.nan),
-        latitude,
-        longitude,
-    )
+def mission_items(
+    route: Sequence[tuple[float, float]], home: tuple[float, float] | None
+) -> list[MissionItem]:
+    """A route as mission items: home first when given (ArduPilot's sequence 0, in the global
+    frame), then NAV_WAYPOINTs at relative altitude 0 (a closed route ends on its first)."""
+    items = []
+    if home is not None:
+        items.append(
+            MissionItem("home", int(MavCmd.NAV_WAYPOINT), int(MavFrame.GLOBAL), _NO_PARAMS, *home)
+        )
+    for latitude, longitude in route:
+        items.append(
+            MissionItem(
+                f"item {len(items)}",
+                int(MavCmd.NAV_WAYPOINT),
+                int(MavFrame.GLOBAL_RELATIVE_ALT),
+                _NO_PARAMS,
+                latitude,
+                longitude,
+                jump_id=len(items) + (0 if home is not None else 1),
+            )
+        )
+    return items
+
+
+_NO_PARAMS = (0.0, 0.0, 0.0, 0.0)
 
 
 def _count(item: MissionItem) -> int:

@@ -16,13 +16,11 @@ from typing import Any
 from brasidas.autonomy.route import MAX_WAYPOINTS
 from brasidas.mapfiles.errors import FileRefused
 from brasidas.mapfiles.mission import (
-    MavCmd,
-    MavFrame,
     MissionItem,
     MissionRoute,
     fence_shapes,
+    mission_items,
     route_from_items,
-    waypoint_item,
 )
 from brasidas.mapfiles.shapes import Shape, check_position, circle, polygon_shape
 
@@ -92,20 +90,16 @@ def wpl_shapes(text: str) -> list[Shape]:
 def wpl_text(route: Sequence[tuple[float, float]], home: tuple[float, float]) -> str:
     """A route as ``QGC WPL 110``: row 0 home, then NAV_WAYPOINT rows (relative altitude 0)."""
     rows = [WPL_HEADER]
-    for index, (lat, lon) in enumerate([home, *route]):
-        frame = MavFrame.GLOBAL if index == 0 else MavFrame.GLOBAL_RELATIVE_ALT
+    for index, item in enumerate(mission_items(route, home)):
         fields = [
             str(index),
             "1" if index == 0 else "0",
-            str(int(frame)),
-            str(int(MavCmd.NAV_WAYPOINT)),
-            "0",
-            "0",
-            "0",
-            "0",
-            f"{lat:.8f}",
-            f"{lon:.8f}",
-            "0",
+            str(item.frame),
+            str(item.command),
+            *(f"{p:g}" for p in item.params),
+            f"{item.latitude:.8f}",
+            f"{item.longitude:.8f}",
+            f"{item.altitude:g}",
             "1",
         ]
         rows.append("\t".join(fields))
@@ -202,22 +196,20 @@ def plan_text(
     fence: Mapping[str, Any] | None = None,
 ) -> str:
     """A route (and the map's boundary and keep-outs as its geofence) as a QGC ``.plan``."""
-    items = []
-    for number, (lat, lon) in enumerate(route, start=1):
-        item = waypoint_item(f"item {number}", lat, lon)
-        items.append(
-            {
-                "type": "SimpleItem",
-                "autoContinue": True,
-                "command": item.command,
-                "doJumpId": number,
-                "frame": item.frame,
-                "params": [0, 0, 0, None, lat, lon, 0],
-                "AMSLAltAboveTerrain": None,
-                "Altitude": 0,
-                "AltitudeMode": 1,
-            }
-        )
+    items = [
+        {
+            "type": "SimpleItem",
+            "autoContinue": True,
+            "command": item.command,
+            "doJumpId": item.jump_id,
+            "frame": item.frame,
+            "params": [*item.params[:3], None, item.latitude, item.longitude, item.altitude],
+            "AMSLAltAboveTerrain": None,
+            "Altitude": item.altitude,
+            "AltitudeMode": 1,
+        }
+        for item in mission_items(route, None)
+    ]
     plan = {
         "fileType": "Plan",
         "version": 1,

@@ -26,6 +26,8 @@ Ring = Sequence[tuple[float, float]]
 ROLES = ("boundary", "inclusion", "keepout", "point", "other", "")
 """boundary/inclusion: the boundary (inclusions intersected); keepout; point: named place;
 other: used only when selected; "": a polygon nobody said what it is (a selector must)."""
+CIRCLE_VERTICES = 32
+"""A circle becomes a polygon of this many corners on it (the polygon lies inside the circle)."""
 LISTED_MAX = 12
 """Candidates named in a refusal at most."""
 
@@ -144,7 +146,7 @@ def circle(
     *,
     role: str,
     ident: str,
-    vertices: int = 32,
+    vertices: int = CIRCLE_VERTICES,
 ) -> Shape:
     """A circle as a polygon of ``vertices`` corners on it (the polygon lies inside the circle)."""
     check_position(longitude, latitude, label)
