@@ -413,3 +413,12 @@ def test_mission_items_are_the_one_mapping_both_ways() -> None:
     assert again.home == ROBOT and again.waypoints == route and again.closed
     kml = read_route((DATA / "field.kml").read_text(), "field.kml")
     assert kml.format == "KML" and len(kml.waypoints) == 3
+
+
+def test_a_route_is_not_taken_for_an_old_fence_file_and_home_alone_is_no_mission() -> None:
+    with pytest.raises(FileRefused, match="line 5: an ArduPilot fence file ends on its first"):
+        read_map(
+            "37.9415 23.653\n37.9414 23.6526\n37.9414 23.6534\n37.9419 23.6534\n37.9419 23.6526\n"
+        )
+    with pytest.raises(FileRefused, match="no waypoints in the mission"):
+        read_route(wpl(HOME))

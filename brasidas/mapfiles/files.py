@@ -118,7 +118,8 @@ def read_route(text: str, filename: str = "", *, fence: bool = False) -> RouteIm
     body = _body(text)
     if qgc.is_wpl(body):
         items = qgc.wpl_items(body)
-        if all(item.command >= int(MavCmd.NAV_FENCE_RETURN_POINT) for item in items[1:]):
+        fences = [item for item in items[1:] if item.command >= MavCmd.NAV_FENCE_RETURN_POINT]
+        if fences and len(fences) == len(items) - 1:
             raise FileRefused("a fence or rally file, not a mission: load it with 'map'")
         mission = qgc.wpl_route(body)
         return _mission_import(mission, "QGC WPL 110")

@@ -359,13 +359,19 @@ def old_fence_shapes(text: str) -> list[Shape]:
         check_position(lon, lat, where)
         pairs.append((lat, lon, where))
     if pairs:
-        if len(pairs) < 4:
+        if len(pairs) < 5:
             raise FileRefused(
-                f"a fence file needs a return point and 3 corners or more ({len(pairs)} lines)"
+                "a fence file is a return point and 3 corners or more, the first repeated "
+                f"last ({len(pairs)} lines)"
+            )
+        corners = pairs[1:]
+        if corners[0][:2] != corners[-1][:2]:
+            raise FileRefused(
+                f"{corners[-1][2]}: an ArduPilot fence file ends on its first corner "
+                f"({corners[0][2]}); this one does not (a route? load it with 'route')"
             )
         lat, lon, where = pairs[0]
         shapes.insert(0, Shape.point(f"{where} (fence return point)", 0, "fence-return", lat, lon))
-        corners = pairs[1:]
         shapes.insert(
             0,
             polygon_shape(
