@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import random
 from pathlib import Path
 from typing import Any
 
@@ -422,3 +423,53 @@ def test_a_route_is_not_taken_for_an_old_fence_file_and_home_alone_is_no_mission
         )
     with pytest.raises(FileRefused, match="no waypoints in the mission"):
         read_route(wpl(HOME))
+
+
+def _mutations(rng: random.Random, value: Any) -> Any:
+    """The value with one node replaced by something of another type or out of range."""
+    replacements: list[Any] = [None, "x", [], {}, 1e308, -1, 0, True, [1, 2, 3, 4], 91.0, 5001]
+    if isinstance(value, dict) and value:
+        key = rng.choice(list(value))
+        return value | {
+            key: _mutations(rng, value[key]) if rng.random() < 0.7 else rng.choice(replacements)
+        }
+    if isinstance(value, list) and value:
+        index = rng.randrange(len(value))
+        copy = list(value)
+        copy[index] = (
+            _mutations(rng, value[index]) if rng.random() < 0.7 else rng.choice(replacements)
+        )
+        return copy
+    return rng.choice(replacements)
+
+
+def test_mangled_files_are_refused_never_crash() -> None:
+    """Sample files with characters changed and JSON nodes swapped for wrong types: every
+    outcome is a canonical map or route, or FileRefused; nothing else escapes."""
+    rng = random.Random(21)
+    texts = [path.read_text() for path in sorted(DATA.iterdir())]
+    documents = [json.loads((DATA / name).read_text()) for name in ("field.plan", "plain.geojson")]
+    documents.append([[37.9414, 23.6526, 3], {"lat": 37.9419, "lon": 23.6534}, {"name": "ne"}])
+    alphabet = '0123456789.,-+eE \t\n[]{}":NaN<>/=ab'
+    for _ in range(1500):
+        if rng.random() < 0.5:
+            chars = list(rng.choice(texts))
+            for _ in range(rng.randint(1, 5)):
+                at = rng.randrange(len(chars))
+                chars[at : at + rng.randint(0, 8)] = rng.choice(alphabet)
+            text = "".join(chars)
+        else:
+            text = json.dumps(_mutations(rng, rng.choice(documents)))
+        try:
+            json.dumps(
+                read_map(text, "x", MapOptions(boundary_bbox=rng.random() < 0.3)).geojson,
+                allow_nan=False,
+            )
+        except FileRefused:
+            pass
+        try:
+            found = read_route(text, "x", fence=rng.random() < 0.5)
+            json.dumps([found.waypoints, found.keepouts], allow_nan=False)
+            check_route_order(found, None, ROBOT)
+        except FileRefused:
+            pass

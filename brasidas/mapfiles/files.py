@@ -70,7 +70,9 @@ class RouteImport:
     home: tuple[float, float] | None = None
 
     def positions(self) -> list[tuple[float, float]]:
-        return [(w["lat"], w["lon"]) for w in self.waypoints if isinstance(w, Mapping)]
+        return [
+            (w["lat"], w["lon"]) for w in self.waypoints if isinstance(w, Mapping) and "lat" in w
+        ]
 
 
 def read_map(text: str, filename: str = "", options: MapOptions | None = None) -> MapImport:
@@ -312,8 +314,10 @@ def _json_list(data: list[Any]) -> RouteImport:
                 waypoints.append(
                     checked | ({"name": name} if isinstance(name, str) and name else {})
                 )
+            elif isinstance(item.get("name"), str) and item["name"]:
+                waypoints.append({"name": item["name"]})  # a named point of the platform's map
             else:
-                waypoints.append(dict(item))  # a named point: the platform knows its map
+                raise FileRefused(f'{where}: an object is {{"lat", "lon"}} or {{"name"}}')
         elif isinstance(item, str):
             waypoints.append(item)
         else:
