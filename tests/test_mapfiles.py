@@ -473,3 +473,37 @@ def test_mangled_files_are_refused_never_crash() -> None:
             check_route_order(found, None, ROBOT)
         except FileRefused:
             pass
+
+
+def test_a_map_as_fence_items_reads_back_as_the_same_map() -> None:
+    """The fence a MAVLink ground station would download, through the same mapping back."""
+    from brasidas.mapfiles.mission import MavCmd, fence_items, fence_shapes
+    from brasidas.mapfiles.shapes import assemble_map
+
+    area = read_map((DATA / "field.kml").read_text(), "field.kml", MapOptions("field", "barn"))
+    items = fence_items(area.geojson)
+    assert [item.command for item in items].count(MavCmd.NAV_FENCE_POLYGON_VERTEX_INCLUSION) == 4
+    assert items[0].params[0] == 4 and items[-1].command == MavCmd.NAV_RALLY_POINT
+    again = assemble_map(fence_shapes(items), MapOptions(), "fence items")
+    before, after = parse_map(area.geojson), parse_map(again.geojson)
+    assert after.boundary.equals_exact(before.boundary, 1e-6)
+    assert [zone.area for zone in after.keepouts.values()] == pytest.approx(
+        [zone.area for zone in before.keepouts.values()]
+    )
+
+
+def test_a_projected_geojson_and_an_ambiguous_map_are_refused() -> None:
+    projected = {
+        "type": "FeatureCollection",
+        "crs": {"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::3857"}},
+        "features": [feature(polygon(FIELD))],
+    }
+    with pytest.raises(
+        FileRefused, match="coordinates in 'urn:ogc:def:crs:EPSG::3857': only WGS-84"
+    ):
+        read_map(json.dumps(projected))
+    projected["crs"] = {"type": "name", "properties": {"name": "urn:ogc:def:crs:OGC:1.3:CRS84"}}
+    assert read_map(json.dumps(projected)).format == "GeoJSON"
+    diagonal = read_map(json.dumps(polygon(square(44.99, 44.99, 0.02))))
+    with pytest.raises(FileRefused, match="order ambiguous: the robot .* either way"):
+        check_map_order(diagonal, (45.0, 45.001))

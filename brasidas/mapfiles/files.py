@@ -182,6 +182,11 @@ def check_map_order(found: MapImport, robot: tuple[float, float] | None) -> None
             "latitude and longitude look swapped: the robot "
             f"({robot[0]:.6f}, {robot[1]:.6f}) is inside the boundary only with them swapped"
         )
+    if swapped and given:
+        raise FileRefused(
+            "latitude/longitude order ambiguous: the robot "
+            f"({robot[0]:.6f}, {robot[1]:.6f}) is inside the boundary either way"
+        )
 
 
 def check_route_order(

@@ -44,6 +44,7 @@ def geojson_shapes(data: Mapping[str, Any]) -> tuple[list[Shape], list[str], str
     kind = data.get("type")
     notes: list[str] = []
     shapes: list[Shape] = []
+    _check_crs(data.get("crs"))
     if kind == "FeatureCollection":
         features = data.get("features")
         if not isinstance(features, list):
@@ -64,6 +65,22 @@ def geojson_shapes(data: Mapping[str, Any]) -> tuple[list[Shape], list[str], str
         return shapes, notes, ""
     _geometry(data, 0, f"the {kind}", {}, shapes, notes)
     return shapes, notes, ""
+
+
+WGS84_NAMES = ("CRS84", "EPSG::4326", "EPSG:4326", "WGS84")
+
+
+def _check_crs(crs: Any) -> None:
+    """The 2008 GeoJSON's ``crs`` member: only WGS-84 longitude, latitude is read."""
+    if crs is None:
+        return
+    properties = crs.get("properties") if isinstance(crs, Mapping) else None
+    name = properties.get("name") if isinstance(properties, Mapping) else None
+    if not isinstance(name, str) or not name.upper().endswith(WGS84_NAMES):
+        raise FileRefused(
+            f"coordinates in {name or crs!r}: only WGS-84 longitude, latitude (CRS84) is read; "
+            "export the file as EPSG:4326"
+        )
 
 
 def _feature(feature: Any, index: int, where: str, shapes: list[Shape], notes: list[str]) -> None:

@@ -10,9 +10,10 @@ circles (param1 = radius); rally points are named places.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
+from typing import Any
 
 from brasidas.mapfiles.errors import FileRefused
 from brasidas.mapfiles.shapes import CIRCLE_VERTICES, Shape, circle, polygon_shape
@@ -294,6 +295,51 @@ def mission_items(
 
 
 _NO_PARAMS = (0.0, 0.0, 0.0, 0.0)
+
+
+def fence_items(area: Mapping[str, Any]) -> list[MissionItem]:
+    """A canonical map as fence and rally items (what a ground station downloads): the
+    boundary as an inclusion polygon, each keep-out's polygons as exclusion polygons (holes
+    cannot be said), the named points as rally points."""
+    items: list[MissionItem] = []
+
+    def polygon(ring: Sequence[Sequence[float]], command: MavCmd, where: str) -> None:
+        corners = ring[:-1]  # GeoJSON repeats the first corner; a fence does not
+        for lon, lat, *_ in corners:
+            items.append(
+                MissionItem(
+                    f"{where} vertex {len(items)}",
+                    int(command),
+                    int(MavFrame.GLOBAL),
+                    (float(len(corners)), 0.0, 0.0, 0.0),
+                    float(lat),
+                    float(lon),
+                )
+            )
+
+    for feature in area.get("features", []):
+        role = feature.get("properties", {}).get("role", "")
+        geometry = feature.get("geometry", {})
+        kind, coordinates = geometry.get("type"), geometry.get("coordinates")
+        if role == "boundary":
+            polygon(coordinates[0], MavCmd.NAV_FENCE_POLYGON_VERTEX_INCLUSION, "boundary")
+        elif role == "keepout":
+            parts = [coordinates] if kind == "Polygon" else coordinates
+            for rings in parts:
+                polygon(rings[0], MavCmd.NAV_FENCE_POLYGON_VERTEX_EXCLUSION, str(feature.get("id")))
+        elif kind == "Point":
+            lon, lat = coordinates[:2]
+            items.append(
+                MissionItem(
+                    str(feature.get("properties", {}).get("name", "")),
+                    int(MavCmd.NAV_RALLY_POINT),
+                    int(MavFrame.GLOBAL),
+                    _NO_PARAMS,
+                    float(lat),
+                    float(lon),
+                )
+            )
+    return items
 
 
 def _count(item: MissionItem) -> int:
