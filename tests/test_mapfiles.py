@@ -507,3 +507,59 @@ def test_a_projected_geojson_and_an_ambiguous_map_are_refused() -> None:
     diagonal = read_map(json.dumps(polygon(square(44.99, 44.99, 0.02))))
     with pytest.raises(FileRefused, match="order ambiguous: the robot .* either way"):
         check_map_order(diagonal, (45.0, 45.001))
+
+
+def test_osm_multipolygon_buildings_are_joined_from_their_ways() -> None:
+    """A building with a courtyard (outer and inner ways) and one whose outline is two open
+    ways; a relation with a way outside the export is named in a note, not guessed."""
+    corners = {
+        1: (37.9411, 23.6526),
+        2: (37.9411, 23.6530),
+        3: (37.9414, 23.6530),
+        4: (37.9414, 23.6526),
+        5: (37.94122, 23.65272),
+        6: (37.94122, 23.65288),
+        7: (37.94128, 23.65288),
+        8: (37.94128, 23.65272),
+        11: (37.9417, 23.6532),
+        12: (37.9417, 23.6534),
+        13: (37.9419, 23.6534),
+        14: (37.9419, 23.6532),
+    }
+    nodes = "".join(
+        f'<node id="{n}" lat="{lat}" lon="{lon}"/>' for n, (lat, lon) in corners.items()
+    )
+
+    def way(ident: int, refs: list[int]) -> str:
+        return f'<way id="{ident}">' + "".join(f'<nd ref="{r}"/>' for r in refs) + "</way>"
+
+    def relation(ident: int, members: list[tuple[int, str]], **tags: str) -> str:
+        return (
+            f'<relation id="{ident}">'
+            + "".join(f'<member type="way" ref="{r}" role="{role}"/>' for r, role in members)
+            + "".join(f'<tag k="{k}" v="{v}"/>' for k, v in tags.items())
+            + '<tag k="type" v="multipolygon"/></relation>'
+        )
+
+    osm = (
+        '<osm version="0.6"><bounds minlat="37.941" minlon="23.6524" maxlat="37.942" '
+        f'maxlon="23.6536"/>{nodes}'
+        + way(20, [1, 2, 3, 4, 1])
+        + way(21, [5, 6, 7, 8, 5])
+        + way(22, [11, 12, 13])
+        + way(23, [11, 14, 13])  # drawn the other way round: joined reversed
+        + relation(30, [(20, "outer"), (21, "inner")], building="school", name="school")
+        + relation(31, [(22, "outer"), (23, "outer")], building="yes")
+        + relation(32, [(99, "outer")], building="yes")
+        + "</osm>"
+    )
+    found = read_map(osm, "village.osm", MapOptions(boundary_bbox=True))
+    area = parse_map(found.geojson)
+    assert sorted(area.keepouts) == ["relation/30", "relation/31"]
+    school = area.keepouts["relation/30"]
+    assert len(school.interiors) == 1  # the courtyard is not a keep-out
+    assert area.keepout_at(*area.local(37.94125, 23.6528)) is None
+    assert area.keepout_at(*area.local(37.9412, 23.6527)) == "relation/30"
+    assert any(
+        "relation 32 (building) not used: way 99 is not in the file" in n for n in found.notes
+    )

@@ -10,7 +10,11 @@ from __future__ import annotations
 
 import xml.etree.ElementTree as ET
 from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
+
+from shapely import Polygon
+from shapely.errors import GEOSException
 
 from brasidas.mapfiles.errors import FileRefused
 from brasidas.mapfiles.shapes import Shape, check_position, multipolygon_shape, polygon_shape
@@ -131,7 +135,7 @@ def osm_xml_shapes(
     nodes: dict[str, tuple[float, float]] = {}
     ways: list[tuple[str, list[str], dict[str, str]]] = []
     bounds = None
-    relations = 0
+    relations: list[Relation] = []
     for element in root:
         kind = local(element.tag)
         if kind == "bounds":
@@ -154,7 +158,13 @@ def osm_xml_shapes(
             tags = {t.get("k", ""): t.get("v", "") for t in element if local(t.tag) == "tag"}
             ways.append((element.get("id", ""), refs, tags))
         elif kind == "relation":
-            relations += 1
+            members = [
+                Member(m.get("type", ""), m.get("ref", ""), m.get("role", ""), None)
+                for m in element
+                if local(m.tag) == "member"
+            ]
+            tags = {t.get("k", ""): t.get("v", "") for t in element if local(t.tag) == "tag"}
+            relations.append(Relation(element.get("id", ""), members, tags))
     geometries = []
     for way_id, refs, tags in ways:
         missing = [r for r in refs if r not in nodes]
@@ -162,10 +172,7 @@ def osm_xml_shapes(
             raise FileRefused(f"way {way_id}: node {missing[0]} is not in the file")
         geometries.append((way_id, [(nodes[r][1], nodes[r][0]) for r in refs], tags, refs))
     shapes, notes = _osm_ways(geometries)
-    if relations:
-        notes.append(
-            f"{relations} relations not used (multipolygon buildings: draw them as keep-outs)"
-        )
+    _osm_relations(relations, {g[0]: g[1] for g in geometries}, shapes, notes)
     south_west_north_east = None
     if bounds is not None:
         south, west, north, east = bounds
@@ -183,7 +190,7 @@ def overpass_shapes(
     """Overpass API JSON (``out geom`` or nodes and ways)."""
     nodes: dict[str, tuple[float, float]] = {}
     raw_ways = []
-    relations = 0
+    relations: list[Relation] = []
     for element in data["elements"]:
         if not isinstance(element, Mapping):
             raise FileRefused("an Overpass element is not an object")
@@ -195,7 +202,7 @@ def overpass_shapes(
         elif kind == "way":
             raw_ways.append(element)
         elif kind == "relation":
-            relations += 1
+            relations.append(_overpass_relation(element))
     geometries = []
     for way in raw_ways:
         way_id = str(way.get("id"))
@@ -218,10 +225,7 @@ def overpass_shapes(
             (way_id, positions, {str(k): str(v) for k, v in tags.items()}, closed_refs)
         )
     shapes, notes = _osm_ways(geometries)
-    if relations:
-        notes.append(
-            f"{relations} relations not used (multipolygon buildings: draw them as keep-outs)"
-        )
+    _osm_relations(relations, {g[0]: g[1] for g in geometries}, shapes, notes)
     bounds = None
     raw_bounds = data.get("bounds")
     if isinstance(raw_bounds, Mapping):
@@ -235,6 +239,136 @@ def overpass_shapes(
         except (KeyError, TypeError, ValueError):
             raise FileRefused("'bounds' has minlat, minlon, maxlat, maxlon") from None
     return shapes, bounds, notes
+
+
+@dataclass(frozen=True)
+class Member:
+    kind: str
+    ref: str
+    role: str
+    positions: list[tuple[float, float]] | None
+    """Its geometry when the file has it (Overpass ``out geom``), else found by ``ref``."""
+
+
+@dataclass(frozen=True)
+class Relation:
+    ident: str
+    members: list[Member]
+    tags: Mapping[str, str]
+
+
+def _overpass_relation(element: Mapping[str, Any]) -> Relation:
+    ident = str(element.get("id"))
+    raw_tags = element.get("tags")
+    tags = {str(k): str(v) for k, v in raw_tags.items()} if isinstance(raw_tags, Mapping) else {}
+    members = []
+    raw_members = element.get("members")
+    for member in raw_members if isinstance(raw_members, list) else []:
+        if not isinstance(member, Mapping):
+            raise FileRefused(f"relation {ident}: a member is not an object")
+        geometry = member.get("geometry")
+        positions = None
+        if isinstance(geometry, list):
+            try:
+                positions = [(float(p["lon"]), float(p["lat"])) for p in geometry]
+            except (TypeError, KeyError, ValueError):
+                raise FileRefused(f"relation {ident}: member geometry is {{lat, lon}}s") from None
+        members.append(
+            Member(
+                str(member.get("type", "")),
+                str(member.get("ref", "")),
+                str(member.get("role", "")),
+                positions,
+            )
+        )
+    return Relation(ident, members, tags)
+
+
+def _osm_relations(
+    relations: Sequence[Relation],
+    ways: Mapping[str, list[tuple[float, float]]],
+    shapes: list[Shape],
+    notes: list[str],
+) -> None:
+    """Multipolygon relations (large buildings, courtyards): their outer and inner ways joined
+    into rings; one whose ways are not all in the file, or do not close, is named in a note."""
+    others = 0
+    for relation in relations:
+        if relation.tags.get("type") != "multipolygon":
+            others += 1
+            continue
+        name = relation.tags.get("name", "")
+        building = "building" in relation.tags
+        label = (
+            f"relation {relation.ident}"
+            + (f" ({name!r})" if name else "")
+            + (" (building)" if building else "")
+        )
+        outer: list[list[tuple[float, float]]] = []
+        inner: list[list[tuple[float, float]]] = []
+        missing = []
+        for member in relation.members:
+            if member.kind != "way":
+                continue
+            positions = member.positions or ways.get(member.ref)
+            if not positions:
+                missing.append(member.ref)
+                continue
+            (inner if member.role == "inner" else outer).append(positions)
+        outer_rings = _join_rings(outer)
+        inner_rings = _join_rings(inner)
+        if missing or outer_rings is None or inner_rings is None or not outer_rings:
+            why = f"way {missing[0]} is not in the file" if missing else "its ways do not close"
+            notes.append(f"{label} not used: {why} (draw it as a keep-out)")
+            continue
+        try:
+            polygons = [
+                [ring, *(hole for hole in inner_rings if Polygon(ring).covers(Polygon(hole)))]
+                for ring in outer_rings
+            ]
+        except GEOSException as exc:
+            raise FileRefused(f"{label}: its rings are not polygons ({exc})") from None
+        shape = polygon_shape if len(polygons) == 1 else multipolygon_shape
+        arguments: Any = polygons[0] if len(polygons) == 1 else polygons
+        shapes.append(
+            shape(
+                label,
+                len(shapes),
+                arguments,
+                role="keepout" if building else "other",
+                ident=f"relation/{relation.ident}",
+                name=name,
+                properties=dict(relation.tags),
+            )
+        )
+    if others:
+        notes.append(f"{others} relations other than multipolygons not used")
+
+
+def _join_rings(
+    segments: list[list[tuple[float, float]]],
+) -> list[list[tuple[float, float]]] | None:
+    """Ways joined end to end (either direction) into closed rings; None when one stays open."""
+    pending = [list(segment) for segment in segments if len(segment) >= 2]
+    rings = []
+    while pending:
+        ring = pending.pop(0)
+        while ring[0] != ring[-1]:
+            for index, segment in enumerate(pending):
+                if segment[0] == ring[-1]:
+                    ring += segment[1:]
+                elif segment[-1] == ring[-1]:
+                    ring += segment[-2::-1]
+                else:
+                    continue
+                del pending[index]
+                break
+            else:
+                return None
+        if len(ring) < 4:
+            return None
+        rings.append(ring)
+    return rings
 
 
 def _osm_ways(
