@@ -62,13 +62,19 @@ class MapFilesApi:
         found = await _refusing(
             f"waypoints refused: {filename}", _read_route, text, filename, fence, boundary, robot
         )
-        if found.keepouts:
+        added = [str(f["id"]) for f in found.keepouts]
+        if added:
             await connection.call("update_map", add=found.keepouts, remove=[])
-        answer = await connection.call("set_waypoints", waypoints=found.waypoints)
+        try:
+            answer = await connection.call("set_waypoints", waypoints=found.waypoints)
+        except RpcError:
+            if added:  # all or nothing: the fence's keep-outs go with the refused route
+                await connection.call("update_map", add=[], remove=added)
+            raise
         return dict(answer) | {
             "format": found.format,
             "notes": found.notes,
-            "keepouts_added": [f["id"] for f in found.keepouts],
+            "keepouts_added": added,
         }
 
     async def api_route_export(

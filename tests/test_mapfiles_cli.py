@@ -203,3 +203,32 @@ async def test_big_files_up_to_the_limit_pass_the_station_and_bigger_are_refused
     (tmp_path / "latin1.txt").write_bytes("37.9414,23.6526 # caf\xe9\n".encode("latin-1"))
     code, _, err = await run_cli(station, "route", "rover-7", str(tmp_path / "latin1.txt"))
     assert code == 1 and "not UTF-8 text" in err
+
+
+async def test_a_fence_route_refused_leaves_no_keepouts_behind(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+) -> None:
+    await connected(station, platform_factory, fleet_key, tmp_path)
+    code, _, err = await run_cli(
+        station,
+        "map",
+        "rover-7",
+        str(DATA / "field.kml"),
+        "--boundary",
+        "field",
+        "--keepouts",
+        "none",
+    )
+    assert code == 0, err
+    plan = json.loads((DATA / "field.plan").read_text())
+    del plan["geoFence"]["polygons"][0]  # no inclusion fence; a waypoint in its circle
+    plan["mission"]["items"][0]["params"][4:6] = [37.9412, 23.6530]
+    (tmp_path / "into.plan").write_text(json.dumps(plan))
+    code, _, err = await run_cli(
+        station, "route", "rover-7", str(tmp_path / "into.plan"), "--fence"
+    )
+    assert code == 1 and "keep-out zone 'fence-circle-1'" in err, err
+    area = await station.ctx.api.call_local("map_get", platform_id="rover-7")
+    assert [
+        f.get("id") for f in area["map"]["features"] if f["properties"].get("role") == "keepout"
+    ] == []
