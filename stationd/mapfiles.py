@@ -85,7 +85,8 @@ class MapFilesApi:
         connection = await self.ctx.connection(platform_id)
         robot = await self._robot(platform_id)
         area = await connection.call("get_map")
-        route = area.get("route", []) if isinstance(area, Mapping) else []
+        area = area if isinstance(area, Mapping) else {}
+        route = area.get("route", [])
         text = await _refusing(
             f"export refused ({format})", _write_route, format, route, robot, area.get("map")
         )
