@@ -40,7 +40,7 @@ def is_wpl(text: str) -> bool:
 
 def wpl_items(text: str) -> list[MissionItem]:
     """The rows of a ``QGC WPL 110`` file: INDEX CURRENT FRAME COMMAND P1-P4 LAT LON ALT
-    AUTOCONTINUE, tab-separated (spaces are read too)."""
+    AUTOCONTINUE, tab-separated (spaces are read too; ``#`` lines are comments)."""
     lines = text.lstrip("\ufeff").splitlines()
     header = lines[0].strip() if lines else ""
     if header != WPL_HEADER:
@@ -48,7 +48,7 @@ def wpl_items(text: str) -> list[MissionItem]:
     items: list[MissionItem] = []
     for number, line in enumerate(lines[1:], start=2):
         fields = line.split()
-        if not fields:
+        if not fields or fields[0].startswith("#"):  # pymavlink writes comments
             continue
         where = f"line {number}"
         if len(fields) != 12:
