@@ -36,11 +36,22 @@ const importRoute = element("button", { type: "button", "aria-label": "import ro
 const exportPlan = element("button", { type: "button", "aria-label": "export route as plan" }, "export .plan");
 const exportWaypoints = element("button", { type: "button", "aria-label": "export route as waypoints" }, "export .waypoints");
 const answer = element("p", { id: "mapfile-answer", class: "muted", role: "status", "aria-live": "polite" });
-const bboxLabel = element("label", {}, "bbox ");
-bboxLabel.append(bbox);
-const fenceLabel = element("label", {}, "fence ");
-fenceLabel.append(fence);
-tools.append(input, boundary, keepouts, bboxLabel, importMap, fenceLabel, importRoute, exportPlan, exportWaypoints, answer);
+function labelled(text, control) {
+  const label = element("label", {}, `${text} `);
+  label.append(control);
+  return label;
+}
+function row(...children) {
+  const line = element("div", { class: "mapfile-row" });
+  for (const child of children) line.append(child, " "); // spaced as the page's own controls
+  return line;
+}
+tools.append(
+  row(labelled("map or route file", input)),
+  row("map:", boundary, keepouts, labelled("bounding box", bbox), importMap),
+  row("route:", labelled("with the plan's fence", fence), importRoute, exportPlan, exportWaypoints),
+  answer,
+);
 (document.querySelector("#patrol") ?? document.body).append(tools);
 
 function say(text, refused = false) {
