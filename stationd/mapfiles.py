@@ -7,10 +7,12 @@ canonical map or waypoints. ``route_export`` writes the platform's route back as
 from __future__ import annotations
 
 import asyncio
+import json
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
+from brasidas.config import SignalingSection
 from brasidas.mapfiles import FileRefused
 from stationd.context import StationContext
 
@@ -18,6 +20,8 @@ if TYPE_CHECKING:
     from brasidas.mapfiles.files import MapImport, RouteImport
 
 METHODS = ("map_import", "route_import", "route_export")
+ENVELOPE_BYTES = 1024
+"""The JSON-RPC request around a map (method, id, session), generously."""
 T = TypeVar("T")
 
 
@@ -39,8 +43,9 @@ class MapFilesApi:
         connection = await self.ctx.connection(platform_id)
         robot = await self._robot(platform_id)
         options = (boundary, keepouts, boundary_bbox)
+        limit = _request_limit(connection.parameters)
         found = await _refusing(
-            f"map refused: {filename}", _read_map, text, filename, options, robot
+            f"map refused: {filename}", _read_map, text, filename, options, robot, limit
         )
         answer = await connection.call("load_map", map=found.geojson)
         return dict(answer) | {"format": found.format, "notes": found.notes}
@@ -124,12 +129,30 @@ def _read_map(
     filename: str,
     options: tuple[str, str, bool],
     robot: tuple[float, float] | None,
+    limit: int,
 ) -> MapImport:
     from brasidas.mapfiles.files import MapOptions, check_map_order, read_map
 
     found = read_map(text, filename, MapOptions(*options))
     check_map_order(found, robot)
+    size = len(json.dumps(found.geojson, separators=(",", ":"), allow_nan=False))
+    if size + ENVELOPE_BYTES > limit:
+        raise FileRefused(
+            f"the map read is {size / 1024:.0f} KiB, more than the platform takes in one "
+            f"request ({limit / 1024:.0f} KiB, its signaling.max_request_bytes): choose fewer "
+            "keep-outs (--keepouts) or a smaller area"
+        )
     return found
+
+
+def _request_limit(parameters: Mapping[str, Any]) -> int:
+    """What the platform takes in one signaling request: as it announces it
+    (``limits.max_request_bytes``), else the platform's default."""
+    limits = parameters.get("limits")
+    announced = limits.get("max_request_bytes") if isinstance(limits, Mapping) else None
+    if isinstance(announced, int) and announced > 0:
+        return announced
+    return SignalingSection().max_request_bytes
 
 
 def _read_route(

@@ -232,3 +232,36 @@ async def test_a_fence_route_refused_leaves_no_keepouts_behind(
     assert [
         f.get("id") for f in area["map"]["features"] if f["properties"].get("role") == "keepout"
     ] == []
+
+
+def village(buildings: int) -> str:
+    """An Overpass export of small buildings on a grid in the sample field."""
+    elements: list[dict[str, object]] = []
+    for k in range(buildings):
+        lon, lat = 23.6525 + (k % 20) * 5e-5, 37.9411 + (k // 20) * 4e-5
+        ring = [(lon, lat), (lon + 2e-5, lat), (lon + 2e-5, lat + 2e-5), (lon, lat + 2e-5)]
+        base = 10 * k
+        elements += [
+            {"type": "node", "id": base + i, "lat": y, "lon": x} for i, (x, y) in enumerate(ring)
+        ]
+        nodes = [base, base + 1, base + 2, base + 3, base]
+        elements.append({"type": "way", "id": k, "nodes": nodes, "tags": {"building": "house"}})
+    bounds = {"minlat": 37.941, "minlon": 23.6524, "maxlat": 37.942, "maxlon": 23.6536}
+    return json.dumps({"elements": elements, "bounds": bounds})
+
+
+async def test_a_map_bigger_than_the_platform_takes_is_refused_at_the_station(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+) -> None:
+    """Sent as it is, the platform would drop the connection on the oversized request."""
+    await connected(station, platform_factory, fleet_key, tmp_path)
+    (tmp_path / "village.json").write_text(village(400))
+    code, _, err = await run_cli(
+        station, "map", "rover-7", str(tmp_path / "village.json"), "--boundary-bbox"
+    )
+    assert code == 1 and "more than the platform takes in one request (64 KiB" in err, err
+    (tmp_path / "hamlet.json").write_text(village(100))
+    code, out, err = await run_cli(
+        station, "map", "rover-7", str(tmp_path / "hamlet.json"), "--boundary-bbox"
+    )
+    assert code == 0 and "100 keep-out zones" in out, err

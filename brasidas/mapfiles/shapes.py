@@ -399,9 +399,12 @@ def _polygon(rings: Sequence[Ring], label: str) -> Polygon:
 
 
 def plain_json(value: Any) -> Any:
-    """Shapely's mapping() has tuples; JSON wants lists."""
+    """Shapely's mapping() as JSON: lists for tuples, degrees to 1e-8 (a millimetre: no
+    23.652500000000003 in what is sent)."""
     if isinstance(value, tuple | list):
         return [plain_json(v) for v in value]
     if isinstance(value, dict):
         return {k: plain_json(v) for k, v in value.items()}
+    if isinstance(value, float):
+        return round(value, 8)
     return value
