@@ -64,8 +64,16 @@ class MapFilesApi:
         robot = await self._robot(platform_id)
         area = await connection.call("get_map")
         boundary = _boundary(area.get("map") if isinstance(area, Mapping) else None)
+        limit = _request_limit(connection.parameters)
         found = await _refusing(
-            f"waypoints refused: {filename}", _read_route, text, filename, fence, boundary, robot
+            f"waypoints refused: {filename}",
+            _read_route,
+            text,
+            filename,
+            fence,
+            boundary,
+            robot,
+            limit,
         )
         added = [str(f["id"]) for f in found.keepouts]
         if added:
@@ -135,14 +143,18 @@ def _read_map(
 
     found = read_map(text, filename, MapOptions(*options))
     check_map_order(found, robot)
-    size = len(json.dumps(found.geojson, separators=(",", ":"), allow_nan=False))
+    _check_size(found.geojson, limit, "the map", "choose fewer keep-outs (--keepouts)")
+    return found
+
+
+def _check_size(payload: Any, limit: int, what: str, advice: str) -> None:
+    """Refuse what the platform would not take in one request (it drops the connection)."""
+    size = len(json.dumps(payload, separators=(",", ":"), allow_nan=False))
     if size + ENVELOPE_BYTES > limit:
         raise FileRefused(
-            f"the map read is {size / 1024:.0f} KiB, more than the platform takes in one "
-            f"request ({limit / 1024:.0f} KiB, its signaling.max_request_bytes): choose fewer "
-            "keep-outs (--keepouts) or a smaller area"
+            f"{what} read is {size / 1024:.0f} KiB, more than the platform takes in one "
+            f"request ({limit / 1024:.0f} KiB, its signaling.max_request_bytes): {advice}"
         )
-    return found
 
 
 def _request_limit(parameters: Mapping[str, Any]) -> int:
@@ -161,11 +173,14 @@ def _read_route(
     fence: bool,
     boundary: list[tuple[float, float]] | None,
     robot: tuple[float, float] | None,
+    limit: int,
 ) -> RouteImport:
     from brasidas.mapfiles.files import check_route_order, read_route
 
     found = read_route(text, filename, fence=fence)
     check_route_order(found, boundary, robot)
+    _check_size(found.waypoints, limit, "the route", "fewer waypoints")
+    _check_size(found.keepouts, limit, "the plan's fence", "fewer fence polygons and circles")
     return found
 
 
