@@ -230,6 +230,8 @@ def _read_file(name: str) -> str:
         raise CliError(f"cannot read {name}: {err}") from None
     if len(data) > MAX_FILE_BYTES:
         raise CliError(f"{name}: larger than {MAX_FILE_BYTES // (1024 * 1024)} MiB")
+    if data.startswith(b"PK\x03\x04"):
+        raise CliError(f"{name}: a zip archive (a KMZ?): unzip it and give the .kml inside")
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as err:

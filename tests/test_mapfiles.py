@@ -563,3 +563,14 @@ def test_osm_multipolygon_buildings_are_joined_from_their_ways() -> None:
     assert any(
         "relation 32 (building) not used: way 99 is not in the file" in n for n in found.notes
     )
+
+
+def test_a_kmz_is_named_as_a_zip_archive() -> None:
+    import io
+    import zipfile
+
+    archive = io.BytesIO()
+    with zipfile.ZipFile(archive, "w") as kmz:
+        kmz.writestr("doc.kml", (DATA / "field.kml").read_text())
+    with pytest.raises(FileRefused, match="a zip archive \\(a KMZ\\?\\)"):
+        read_map(archive.getvalue().decode("latin-1"), "field.kmz")

@@ -203,6 +203,9 @@ async def test_big_files_up_to_the_limit_pass_the_station_and_bigger_are_refused
     (tmp_path / "latin1.txt").write_bytes("37.9414,23.6526 # caf\xe9\n".encode("latin-1"))
     code, _, err = await run_cli(station, "route", "rover-7", str(tmp_path / "latin1.txt"))
     assert code == 1 and "not UTF-8 text" in err
+    (tmp_path / "field.kmz").write_bytes(b"PK\x03\x04" + bytes(range(256)))
+    code, _, err = await run_cli(station, "map", "rover-7", str(tmp_path / "field.kmz"))
+    assert code == 1 and "field.kmz: a zip archive (a KMZ?)" in err
 
 
 async def test_a_fence_route_refused_leaves_no_keepouts_behind(

@@ -228,6 +228,8 @@ def check_route_order(
 def _body(text: str) -> str:
     if len(text) > MAX_FILE_BYTES:
         raise FileRefused(f"the file is larger than {MAX_FILE_BYTES // (1024 * 1024)} MiB")
+    if text.startswith("PK\x03\x04"):
+        raise FileRefused("a zip archive (a KMZ?): unzip it and give the .kml inside")
     return text.lstrip("\ufeff").strip()
 
 
