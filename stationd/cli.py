@@ -219,43 +219,112 @@ def _describe_patrol(patrol: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def cmd_map(args: argparse.Namespace, config: StationConfig) -> int:
+def _read_file(name: str) -> str:
+    """A map or route file's text (UTF-8, bounded), for the station to read."""
+    from brasidas.mapfiles import MAX_FILE_BYTES
+
     try:
-        text = Path(args.file).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as err:
-        raise CliError(f"cannot read {args.file}: {err}") from None
-    answer = api_call(config, "map_load", platform_id=args.id, map=text)
+        with Path(name).open("rb") as file:
+            data = file.read(MAX_FILE_BYTES + 1)
+    except OSError as err:
+        raise CliError(f"cannot read {name}: {err}") from None
+    if len(data) > MAX_FILE_BYTES:
+        raise CliError(f"{name}: larger than {MAX_FILE_BYTES // (1024 * 1024)} MiB")
+    if data.startswith(b"PK\x03\x04"):
+        raise CliError(f"{name}: a zip archive (a KMZ?): unzip it and give the .kml inside")
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        raise CliError(f"{name}: not UTF-8 text ({err})") from None
+
+
+def _notes(value: dict[str, Any]) -> str:
+    """What the station assumed or left aside reading a file, one line each."""
+    return "".join(f"\n  note: {note}" for note in value.get("notes", []))
+
+
+def cmd_map(args: argparse.Namespace, config: StationConfig) -> int:
+    text = _read_file(args.file)
+    answer = api_call(
+        config,
+        "map_import",
+        platform_id=args.id,
+        text=text,
+        filename=Path(args.file).name,
+        boundary=args.boundary or "",
+        keepouts=args.keepouts or "",
+        boundary_bbox=args.boundary_bbox,
+    )
 
     def human(value: dict[str, Any]) -> str:
         area = value["map"]
         return (
-            f"map {area['name']!r} loaded: {area['area_m2']:.0f} m², "
+            f"map {area['name']!r} loaded ({value.get('format', '?')}): "
+            f"{area['area_m2']:.0f} m², "
             f"{len(area['keepouts'])} keep-out zones, {len(area['points'])} named points; "
-            "waypoints cleared, patrol stopped"
+            "waypoints cleared, patrol stopped" + _notes(value)
         )
 
     _print(args, answer, human)
     return 0
 
 
-def cmd_route(args: argparse.Namespace, config: StationConfig) -> int:
-    from brasidas.autonomy.route import RouteError, route_items
+EXPORT_SUFFIXES = {".plan": "plan", ".waypoints": "waypoints", ".txt": "waypoints"}
 
+
+def cmd_route(args: argparse.Namespace, config: StationConfig) -> int:
+    if args.export:
+        return _export_route(args, config)
     items: list[Any] = list(args.waypoints)
+    if not items:
+        raise CliError("give a route file, waypoints (LAT,LON or point names) or --export FILE")
     if len(items) == 1 and Path(items[0]).is_file():
-        try:
-            items = route_items(Path(items[0]).read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, RouteError) as err:
-            raise CliError(f"{args.waypoints[0]}: {err}") from None
-    answer = api_call(config, "route_set", platform_id=args.id, waypoints=items)
+        answer = api_call(
+            config,
+            "route_import",
+            platform_id=args.id,
+            text=_read_file(items[0]),
+            filename=Path(items[0]).name,
+            fence=args.fence,
+        )
+    elif args.fence:
+        raise CliError("--fence reads a QGC .plan file's geofence: give one file")
+    else:
+        answer = api_call(config, "route_set", platform_id=args.id, waypoints=items)
 
     def human(value: dict[str, Any]) -> str:
         kind = "closed, loops" if value["closed"] else "open, driven back in reverse"
-        return f"{len(value['waypoints'])} waypoints set ({kind})\n" + _describe_patrol(
-            value["patrol"]
+        fmt = f" from {value['format']}" if value.get("format") else ""
+        added = value.get("keepouts_added") or []
+        return (
+            f"{len(value['waypoints'])} waypoints set{fmt} ({kind})"
+            + (f"; keep-outs added: {', '.join(added)}" if added else "")
+            + _notes(value)
+            + "\n"
+            + _describe_patrol(value["patrol"])
         )
 
     _print(args, answer, human)
+    return 0
+
+
+def _export_route(args: argparse.Namespace, config: StationConfig) -> int:
+    if args.waypoints or args.fence:
+        raise CliError("--export writes the platform's route: give no waypoints or --fence")
+    target = Path(args.export)
+    fmt = EXPORT_SUFFIXES.get(target.suffix.lower())
+    if fmt is None:
+        raise CliError(f"{target}: export to FILE.plan or FILE.waypoints")
+    answer = api_call(config, "route_export", platform_id=args.id, format=fmt)
+    try:
+        target.write_text(answer["text"], encoding="utf-8")
+    except OSError as err:
+        raise CliError(f"cannot write {target}: {err}") from None
+    _print(
+        args,
+        {"file": str(target), "format": fmt, "waypoints": answer["waypoints"]},
+        lambda v: f"{v['waypoints']} waypoints written to {v['file']} ({v['format']})",
+    )
     return 0
 
 
@@ -461,15 +530,41 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--seconds", type=float, default=0, help="stop after this long")
     p = sub.add_parser(
-        "map", parents=[common], help="load an area map (GeoJSON): clears the waypoints, stops"
+        "map",
+        parents=[common],
+        help="load an area map (GeoJSON, KML, OSM, QGC plan/fence, ArduPilot fence): "
+        "clears the waypoints, stops",
     )
     p.add_argument("id")
-    p.add_argument("file", metavar="FILE.geojson")
+    p.add_argument("file", metavar="FILE")
+    p.add_argument(
+        "--boundary",
+        metavar="SELECTOR",
+        help="the boundary's features: numbers, ids, names or KEY=VALUE, comma-separated "
+        "(several: their intersection)",
+    )
+    p.add_argument(
+        "--keepouts", metavar="SELECTOR", help="the keep-outs: as --boundary, or rest, or none"
+    )
+    p.add_argument(
+        "--boundary-bbox",
+        action="store_true",
+        help="the boundary is the bounding box of the file (an OSM export's bounds)",
+    )
     p = sub.add_parser(
-        "route", parents=[common], help="set the waypoints: a route file or LAT,LON / point names"
+        "route",
+        parents=[common],
+        help="set the waypoints: a route file (text, JSON, GeoJSON, KML, QGC .plan, "
+        ".waypoints) or LAT,LON / point names; --export FILE writes the route",
     )
     p.add_argument("id")
-    p.add_argument("waypoints", nargs="+", metavar="FILE | LAT,LON")
+    p.add_argument("waypoints", nargs="*", metavar="FILE | LAT,LON")
+    p.add_argument(
+        "--fence", action="store_true", help="a .plan's exclusion fences become keep-outs"
+    )
+    p.add_argument(
+        "--export", metavar="FILE", help="write the platform's route to FILE.plan or .waypoints"
+    )
     p = sub.add_parser("patrol", parents=[common], help="the patrol's state; start or stop it")
     p.add_argument("id")
     p.add_argument("action", nargs="?", choices=["start", "stop"])

@@ -13,6 +13,7 @@ from brasidas.actor import Daemon
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.codecs.telemetry_schema import schema_document
 from brasidas.config import ConfigError, ConsoleSection, StationConfig
+from brasidas.mapfiles import MAX_FILE_BYTES
 from brasidas.rpc import add_rpc_routes, serve_app_sites
 from stationd.context import StationContext
 
@@ -26,6 +27,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "stationd.teleop",
     "stationd.media",
     "stationd.patrol",
+    "stationd.mapfiles",
     "stationd.console",
 )
 
@@ -39,7 +41,9 @@ CONTENT_SECURITY_POLICY = (
     "frame-ancestors 'none'; form-action 'none'"
 )
 """The console's pages: scripts from the station only (no inline script, no eval)."""
-API_MAX_BYTES = 65536
+API_MAX_BYTES = 2 * MAX_FILE_BYTES + 65536
+"""A map or route file's text (map_import, route_import) as a JSON string (its tabs, newlines
+and quotes escaped: up to twice as long) and the call around it."""
 
 
 class ConsoleMissing(Exception):

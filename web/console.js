@@ -730,6 +730,8 @@ async function loadArea(platformId) {
   renderPatrol();
 }
 
+window.addEventListener("brasidas:area-changed", (event) => { if (event.detail === state.current) loadArea(state.current); }); // web/mapfiles.js imported a file
+
 function clearArea(platformId) {
   stopEditing();
   stopDrawing();

@@ -130,6 +130,11 @@ def route_items(text: str) -> list[Any]:
     return [line for line in lines if line]
 
 
+def geojson_route_items(data: Any) -> list[Any]:
+    """The waypoints of decoded GeoJSON (a LineString, or Point features in order), unchecked."""
+    return _geojson_waypoints(data)
+
+
 class RouteStore:
     """The route's file on the platform: JSON, replaced atomically so a crash keeps one."""
 
