@@ -70,6 +70,8 @@ class Slot:
     """When the connection last had no request in progress (its start, or a request's end)."""
     read_while_idle: bool = False
     """Bytes came since ``idle_since``: a request's headers have begun."""
+    headers_since: float = 0.0
+    """When the first of those bytes came."""
     requests: int = 0
     """Requests in progress (a WebSocket is one for its whole life)."""
     stalled_since: float | None = None
@@ -158,7 +160,9 @@ class AdmissionPolicy:
 
     def received(self, slot: Slot, now: float) -> None:
         slot.last_read = now
-        slot.read_while_idle = True
+        if not slot.read_while_idle:
+            slot.read_while_idle = True
+            slot.headers_since = now
 
     def request_started(self, slot: Slot) -> None:
         slot.requests += 1
@@ -192,7 +196,7 @@ class AdmissionPolicy:
         slot.unsent = unsent
         if slot.requests == 0:
             if slot.read_while_idle:
-                if now - slot.idle_since > limits.header_timeout:
+                if now - slot.headers_since > limits.header_timeout:
                     return "header_timeouts"
             elif now - slot.idle_since > limits.idle_timeout:
                 return "idle_timeouts"
@@ -390,3 +394,28 @@ class AdmittingListener:
         if last is None or now - last >= LOG_INTERVAL:
             self._logged[kind] = now
             _LOGGER.warning("%s (counters: %s)", message, self.policy.counters)
+
+
+@dataclass
+class ServerAdmission:
+    """An app's admission: its limits and the listeners that hold its connections."""
+
+    limits: AdmissionLimits
+    listeners: list[AdmittingListener] = field(default_factory=list)
+
+    def slot_of(
+        self, transport: asyncio.BaseTransport | None
+    ) -> tuple[AdmittingListener, Slot] | None:
+        for listener in self.listeners:
+            slot = listener.slot_of(transport)
+            if slot is not None:
+                return listener, slot
+        return None
+
+    def counters(self) -> dict[str, int]:
+        """Every listener's admission counters, added up."""
+        total: dict[str, int] = {}
+        for listener in self.listeners:
+            for name, value in listener.policy.counters.items():
+                total[name] = total.get(name, 0) + value
+        return total

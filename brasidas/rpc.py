@@ -8,14 +8,19 @@ import itertools
 import logging
 import socket
 from collections.abc import Awaitable, Callable, Sequence
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import aiohttp
 from aiohttp import web
 
 from brasidas.actor import Actor, Supervisor, wait_forever
-from brasidas.admission import AdmissionLimits, AdmissionPolicy, AdmittingListener, Slot
+from brasidas.admission import (
+    AdmissionLimits,
+    AdmissionPolicy,
+    AdmittingListener,
+    ServerAdmission,
+    Slot,
+)
 from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import (
     INTERNAL_ERROR,
@@ -114,7 +119,12 @@ def add_rpc_routes(
         except TimeoutError:
             if found is not None:
                 found[0].policy.counters["body_timeouts"] += 1
-            return web.Response(status=408, text="body not sent in time", headers=_CLOSE)
+            # Answered, then closed at once: aiohttp would otherwise linger for the rest.
+            response = web.Response(status=408, text="body not sent in time", headers=_CLOSE)
+            await response.prepare(request)
+            await response.write_eof()
+            request.protocol.force_close()
+            return response
         if len(body) > limit:
             return _too_large()
         answer = await dispatcher.handle_bytes(body, ctx)
@@ -207,31 +217,6 @@ def _admitted(ctx: CallContext, listener: AdmittingListener, slot: Slot) -> None
     if not slot.has_session:
         ctx.stranger = True
         ctx.on_session = lambda: listener.policy.session_opened(slot)
-
-
-@dataclass
-class ServerAdmission:
-    """An app's admission: its limits and the listeners that hold its connections."""
-
-    limits: AdmissionLimits
-    listeners: list[AdmittingListener] = field(default_factory=list)
-
-    def slot_of(
-        self, transport: asyncio.BaseTransport | None
-    ) -> tuple[AdmittingListener, Slot] | None:
-        for listener in self.listeners:
-            slot = listener.slot_of(transport)
-            if slot is not None:
-                return listener, slot
-        return None
-
-    def counters(self) -> dict[str, int]:
-        """Every listener's admission counters, added up."""
-        total: dict[str, int] = {}
-        for listener in self.listeners:
-            for name, value in listener.policy.counters.items():
-                total[name] = total.get(name, 0) + value
-        return total
 
 
 ADMISSION = web.AppKey("admission", ServerAdmission)

@@ -18,7 +18,7 @@ from brasidas.codecs.commands import MAIN_LIGHTS, MANUAL_OVERRIDE, POSITIONAL_LI
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, RpcError
 from brasidas.codecs.telemetry_schema import SCHEMA_VERSION, snapshot_to_json
 from brasidas.config import SignalingSection
-from brasidas.rpc import add_rpc_routes, serve_app
+from brasidas.rpc import ADMISSION, add_rpc_routes, serve_app
 from platformd.context import PlatformContext
 from platformd.sessions import platform_parameters, velocity_endpoint
 
@@ -117,5 +117,6 @@ async def async_setup(ctx: PlatformContext) -> None:
         name="signaling",
         limits=admission_limits(config),
     )
+    ctx.signaling_admission = app[ADMISSION]
     # With port 0 the kernel chose one; beacons must carry the real one.
     ctx.signaling_url = f"http://{config.advertise_host or config.host}:{port}"

@@ -10,11 +10,11 @@ from pathlib import Path
 from aiohttp import web
 
 from brasidas.actor import Daemon
-from brasidas.admission import AdmissionLimits
+from brasidas.admission import AdmissionLimits, ServerAdmission
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.codecs.telemetry_schema import schema_document
 from brasidas.config import ConfigError, ConsoleSection, StationConfig, StationSection
-from brasidas.rpc import add_rpc_routes, serve_app_sites
+from brasidas.rpc import ADMISSION, add_rpc_routes, serve_app_sites
 from stationd.context import StationContext
 
 _LOGGER = logging.getLogger(__name__)
@@ -65,6 +65,8 @@ class StationDaemon(Daemon):
         """The local API's bound port (``station.api_port``, or the kernel's choice for 0)."""
         self.api_url = ""
         self.console_https_port: int | None = None
+        self.api_admission: ServerAdmission | None = None
+        """The local API's connections and their admission counters, once bound."""
         """The HTTPS console's bound port (with ``console.tls_cert``)."""
 
     async def start(self) -> None:
@@ -96,6 +98,7 @@ class StationDaemon(Daemon):
             limits=api_admission_limits(station),
         )
         self.api_port = port
+        self.api_admission = self.app[ADMISSION]
         self.api_url = f"http://{station.api_host}:{port}"
         _LOGGER.info("station %s up: local API %s", station.id, self.api_url)
         if tls_ports:
