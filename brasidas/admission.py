@@ -50,6 +50,8 @@ class AdmissionLimits:
     write_timeout: float = 10.0
     max_unsent_bytes: int = 1 << 20
     reserved_fds: int = 128
+    stranger_bytes_per_s: int = 16384
+    """What all of one address's strangers may send, on average (a burst of twice as much)."""
     trusted: bool = False
 
 
@@ -90,6 +92,8 @@ class AdmissionPolicy:
     slots: set[Slot] = field(default_factory=set)
     strangers: dict[str, list[Slot]] = field(default_factory=dict)
     """Connections without a session, by source address, oldest first."""
+    budgets: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """Per address whose strangers sent something: bytes it may still send, and when."""
     counters: dict[str, int] = field(
         default_factory=lambda: dict.fromkeys(
             (
@@ -102,6 +106,7 @@ class AdmissionPolicy:
                 "idle_timeouts",
                 "slow_readers",
                 "out_of_descriptors",
+                "throttled",
             ),
             0,
         )
@@ -164,6 +169,30 @@ class AdmissionPolicy:
             slot.read_while_idle = True
             slot.headers_since = now
 
+    def charge(self, slot: Slot, size: int, now: float) -> float:
+        """Count ``size`` bytes received on ``slot``: seconds to stop reading it for (0: go
+        on). A stranger's address has a byte budget (a token bucket); a station has none."""
+        if slot.has_session:
+            return 0.0
+        rate = self.limits.stranger_bytes_per_s
+        burst = 2.0 * rate
+        left, since = self.budgets.get(slot.host, (burst, now))
+        left = min(burst, left + (now - since) * rate) - size
+        self.budgets[slot.host] = (left, now)
+        if len(self.budgets) > 2 * self.limits.max_strangers:
+            self._forget_full_budgets(now)
+        if left >= 0:
+            return 0.0
+        self.counters["throttled"] += 1
+        return -left / rate
+
+    def _forget_full_budgets(self, now: float) -> None:
+        """Addresses whose budget has refilled cost nothing to forget (the table stays small)."""
+        rate = self.limits.stranger_bytes_per_s
+        for host, (left, since) in list(self.budgets.items()):
+            if left + (now - since) * rate >= 2.0 * rate:
+                del self.budgets[host]
+
     def request_started(self, slot: Slot) -> None:
         slot.requests += 1
 
@@ -213,22 +242,59 @@ class AdmissionPolicy:
 
 
 class AdmittedProtocol(asyncio.Protocol):
-    """The server's protocol for one admitted connection, seen by the listener on the way."""
+    """The server's protocol for one admitted connection, seen by the listener on the way.
 
-    __slots__ = ("_inner", "_listener", "slot")
+    A stranger over its address's byte budget is not read for a while: what already came is
+    held back (one read's worth) and handed on when the budget allows, so a flood costs the
+    kernel's buffers, not the event loop.
+    """
+
+    __slots__ = ("_held", "_inner", "_listener", "_resume", "_transport", "slot")
 
     def __init__(self, listener: AdmittingListener, slot: Slot, inner: asyncio.Protocol) -> None:
         self._listener = listener
         self.slot = slot
         self._inner = inner
+        self._transport: asyncio.Transport | None = None
+        self._held: list[bytes] = []
+        self._resume: asyncio.TimerHandle | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self._transport = transport
         self._listener.opened(self.slot, transport)
         self._inner.connection_made(transport)
 
     def data_received(self, data: bytes) -> None:
-        self._listener.policy.received(self.slot, self._listener.loop.time())
-        self._inner.data_received(data)
+        listener = self._listener
+        now = listener.loop.time()
+        listener.policy.received(self.slot, now)
+        if self._resume is not None:  # throttled, and read all the same (aiohttp resumed)
+            self._held.append(data)
+            self._pause()
+            return
+        delay = listener.policy.charge(self.slot, len(data), now)
+        if delay <= 0:
+            self._inner.data_received(data)
+            return
+        self._held.append(data)
+        self._pause()
+        self._resume = listener.loop.call_later(delay, self._release)
+
+    def _pause(self) -> None:
+        if self._transport is not None and self._transport.is_reading():
+            self._transport.pause_reading()
+
+    def _release(self) -> None:
+        """The budget allows again: hand on what was held, read on."""
+        self._resume = None
+        held, self._held = self._held, []
+        transport = self._transport
+        if transport is None or transport.is_closing():
+            return
+        transport.resume_reading()
+        for data in held:
+            self._inner.data_received(data)
 
     def eof_received(self) -> bool | None:
         return self._inner.eof_received()
@@ -240,6 +306,10 @@ class AdmittedProtocol(asyncio.Protocol):
         self._inner.resume_writing()
 
     def connection_lost(self, exc: Exception | None) -> None:
+        if self._resume is not None:
+            self._resume.cancel()
+            self._resume = None
+        self._held.clear()
         self._listener.closed(self.slot)
         self._inner.connection_lost(exc)
 

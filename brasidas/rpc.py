@@ -367,7 +367,9 @@ async def _read_at_most(stream: aiohttp.StreamReader, limit: int) -> bytes:
     return bytes(body)
 
 
-LISTEN_BACKLOG = 128
+LISTEN_BACKLOG = 1024
+"""Room in the kernel for a burst of connections (a station's among a stranger's), each
+accepted and, past the caps, closed at once."""
 
 _CLOSE = {"Connection": "close"}
 _TOO_LARGE = encode_error(None, RpcError(REQUEST_TOO_LARGE, "request too large")).decode()

@@ -88,6 +88,7 @@ def admission_limits(config: SignalingSection) -> AdmissionLimits:
         write_timeout=config.write_timeout,
         max_unsent_bytes=config.max_unsent_bytes,
         reserved_fds=config.reserved_fds,
+        stranger_bytes_per_s=config.stranger_bytes_per_s,
     )
 
 

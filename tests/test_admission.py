@@ -129,3 +129,18 @@ async def test_out_of_descriptors_backs_off_and_logs_once(
         listener.close()
         for peer in peers:
             peer.close()
+
+
+def test_a_strangers_address_has_a_byte_budget() -> None:
+    policy = AdmissionPolicy(AdmissionLimits(stranger_bytes_per_s=1000), descriptors=1024)
+    first, _ = policy.admit("10.0.0.9", 0.0)
+    second, _ = policy.admit("10.0.0.9", 0.0)
+    other, _ = policy.admit("10.0.0.8", 0.0)
+    assert first and second and other
+    assert policy.charge(first, 1500, 0.0) == 0.0  # a burst of twice the rate
+    assert policy.charge(second, 1000, 0.0) == pytest.approx(0.5)  # the address's, shared
+    assert policy.charge(other, 1000, 0.0) == 0.0
+    assert policy.charge(first, 500, 2.0) == 0.0  # refilled meanwhile
+    policy.session_opened(first)
+    assert policy.charge(first, 10**6, 2.0) == 0.0  # a station's connection: no budget
+    assert policy.counters["throttled"] == 1

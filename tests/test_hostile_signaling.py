@@ -233,12 +233,16 @@ async def closed_while_flooding(sock: socket.socket, frame: bytes, timeout: floa
 async def test_a_websocket_that_never_reads_is_closed(
     platform_factory: Factory, fleet_key: bytes
 ) -> None:
-    """Defect 3: WebSockets that never read grew the platform by 2.7 MB each, for good."""
-    daemon = await platform_factory(quiet_platform_config(), fleet_key)  # 10 s
+    """Defect 3: WebSockets that never read grew the platform by 2.7 MB each, for good. A
+    station's (a stranger's is not even read past its byte budget)."""
+    daemon = await platform_factory(quiet_platform_config(), None)  # connect needs no proof
     sock = await websocket_handshake(signaling_address(daemon), "/rpc/ws")
     try:
+        await asyncio.get_running_loop().sock_sendall(
+            sock, ws_frame(encode_request("connect", ["reader"], 0).decode())
+        )
         challenge = encode_request("challenge", None, 1).decode()
-        assert await closed_while_flooding(sock, ws_frame(challenge), 40)
+        assert await closed_while_flooding(sock, ws_frame(challenge), 40)  # 10 s
     finally:
         sock.close()
     assert counters(daemon)["slow_readers"] >= 1

@@ -155,6 +155,10 @@ class SignalingSection:
     reserved_fds: int = setting(128, at_least(16, most=65536))
     """File descriptors kept from connections for the daemon's own files, pipelines and
     serial lines."""
+    stranger_bytes_per_s: int = setting(16384, at_least(1024, most=1 << 30))
+    """What one address's connections without a session may send, on average (bytes/s, a
+    burst of twice as much): past it they are not read for a while. A station's handshake
+    needs under 2 KiB."""
     max_batch: int = setting(100, at_least(1, most=10000))
     """Requests in a batch, at most: a longer one is answered with one error."""
     max_answer_bytes: int = setting(1 << 20, at_least(65536, most=1 << 26))
