@@ -73,6 +73,11 @@ async def test_idle_connections_leave_the_station_a_way_in(tmp_path: Path) -> No
         await asyncio.wait_for(connection.open(), 20)  # "cannot connect" before the fix
         try:
             assert (await connection.call("heartbeat"))["manual_override"] is False
+            # A pipeline needs descriptors of its own (GStreamer's poll): before the fix,
+            # starting one out of them killed the daemon (a trap in libglib).
+            started = await connection.call("start_stream", name="audio_out")
+            assert started["name"] == "audio_out", started
+            await connection.call("stop_stream", name="audio_out")
         finally:
             await connection.close()
         assert process.returncode is None

@@ -15,7 +15,9 @@ import json
 import os
 import socket
 import struct
+import sys
 from collections.abc import AsyncIterator, Awaitable, Callable
+from pathlib import Path
 
 import aiohttp
 import pytest
@@ -28,6 +30,9 @@ from stationd.connections import ConnectionManager
 from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
+
+REPOSITORY = Path(__file__).resolve().parent.parent
+"""Where ``python -m bench.hostile_peer`` runs from."""
 
 FLOOD = b"[" + b",".join([b"{}"] * 21_000) + b"]"
 """The issue's batch: 21,000 empty objects in 64 KiB."""
@@ -296,3 +301,22 @@ async def test_a_local_websocket_that_never_reads_is_closed(station: StationDaem
     assert station.api_admission.counters()["slow_readers"] >= 1, str(
         station.api_admission.counters()
     )
+
+
+async def test_a_strangers_flood_at_full_rate_is_read_at_its_budget(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    """Defect 3 at full rate: 4 connections posting the 64 KiB batch as fast as answered
+    (bench/hostile_peer.py, its own process) got 247 MB of answers in 10 s and stalled the
+    platform's loop; now one address's strangers are read at ``stranger_bytes_per_s``."""
+    daemon = await platform_factory(quiet_platform_config(), fleet_key)
+    host, port = signaling_address(daemon)
+    attacker = await asyncio.create_subprocess_exec(
+        *(sys.executable, "-m", "bench.hostile_peer", "flood", host, str(port), "3", "4"),
+        stdout=asyncio.subprocess.PIPE,
+        cwd=REPOSITORY,
+    )
+    out, _ = await asyncio.wait_for(attacker.communicate(), 60)
+    figures = json.loads(out.decode().splitlines()[-1])
+    assert figures["answered_bytes"] < 16_384, figures
+    assert counters(daemon)["throttled"] >= 1
