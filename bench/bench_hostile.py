@@ -177,14 +177,19 @@ async def _idle(
     idle = _attack(attacker, "idle", robot.address, SIGNALING_PORT, IDLE_CONNECTIONS, 15)
     await asyncio.sleep(5.0)  # the attacker has opened them all
     started = time.perf_counter()
-    connection = await _open_probe(station_host, url, fleet, "latecomer")
-    connect_s = time.perf_counter() - started
-    await connection.close()
+    connect_s: float | str
+    try:
+        connection = await asyncio.wait_for(_open_probe(station_host, url, fleet, "latecomer"), 10)
+    except (OSError, TimeoutError) as err:
+        connect_s = f"failed: {type(err).__name__} {err}"
+    else:
+        connect_s = round(time.perf_counter() - started, 3)
+        await connection.close()
     descriptors = len(await asyncio.to_thread(os.listdir, f"/proc/{pid}/fd"))
     attack = await _result(idle, 60)
     return {
         "idle_connections": IDLE_CONNECTIONS,
-        "idle_station_connect_s": round(connect_s, 3),
+        "idle_station_connect_s": connect_s,
         "idle_platform_fds": descriptors,
         "idle_closed_by_platform": attack.get("closed_by_platform"),
     }
