@@ -18,6 +18,7 @@ from brasidas.admission import (
     AdmissionPolicy,
     AdmittingListener,
 )
+from brasidas.config import ConfigError, PlatformConfig, StationConfig, load_config
 from platformd.app import PlatformDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
@@ -144,3 +145,14 @@ def test_a_strangers_address_has_a_byte_budget() -> None:
     policy.session_opened(first)
     assert policy.charge(first, 10**6, 2.0) == 0.0  # a station's connection: no budget
     assert policy.counters["throttled"] == 1
+
+
+def test_the_caps_are_validated_at_the_door() -> None:
+    with pytest.raises(ConfigError, match=r"signaling\.max_strangers: must be >= "):
+        load_config(PlatformConfig, None, ["signaling.max_strangers_per_host=100"])
+    with pytest.raises(ConfigError, match=r"signaling\.max_connections: must be >= "):
+        load_config(PlatformConfig, None, ["signaling.max_strangers=1000"])
+    with pytest.raises(ConfigError, match=r"signaling\.header_timeout"):
+        load_config(PlatformConfig, None, ["signaling.header_timeout=0"])
+    with pytest.raises(ConfigError, match=r"station\.api_max_batch"):
+        load_config(StationConfig, None, ["station.api_max_batch=0"])
