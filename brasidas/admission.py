@@ -9,7 +9,8 @@ past a bound or stops draining (a reader that does not read is closed, never buf
 :class:`AdmissionPolicy` decides (sans-IO, ``now`` passed in); :class:`AdmittingListener`
 accepts on a listening socket through it, without spinning when the process is out of file
 descriptors (it backs off and logs once per interval), and hands each admitted connection to
-the server's protocol (aiohttp's) behind :class:`AdmittedProtocol`.
+the server's protocol (aiohttp's) behind :class:`AdmittedProtocol`, over TLS when given a
+context.
 """
 
 from __future__ import annotations
@@ -21,6 +22,10 @@ import resource
 import socket
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from ssl import SSLContext  # only the station's HTTPS console: the platform keeps ssl out
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -324,8 +329,12 @@ class AdmittingListener:
         protocol_factory: Callable[[], asyncio.Protocol],
         policy: AdmissionPolicy,
         name: str,
+        *,
+        ssl: SSLContext | None = None,
     ) -> None:
         self.sock = sock
+        self.ssl = ssl
+        """Connections are TLS, their handshake within the policy's ``header_timeout``."""
         self.policy = policy
         self.name = name
         self.loop = asyncio.get_running_loop()
@@ -431,7 +440,15 @@ class AdmittingListener:
         self, conn: socket.socket, protocol: Callable[[], asyncio.Protocol], slot: Slot
     ) -> None:
         try:
-            await self.loop.connect_accepted_socket(protocol, conn)
+            if self.ssl is None:
+                await self.loop.connect_accepted_socket(protocol, conn)
+            else:
+                await self.loop.connect_accepted_socket(
+                    protocol,
+                    conn,
+                    ssl=self.ssl,
+                    ssl_handshake_timeout=self.policy.limits.header_timeout,
+                )
         except BaseException as err:
             conn.close()
             self.policy.release(slot)

@@ -301,8 +301,8 @@ async def serve_app_sites(
     limits: AdmissionLimits = TRUSTED,
 ) -> list[int]:
     """:func:`serve_app`, and also on each of ``tls_sites`` over TLS (one runner): the bound
-    ports, plain first. The plain port admits connections by ``limits``
-    (:mod:`brasidas.admission`); the TLS ones by aiohttp's own timeouts."""
+    ports, plain first. Every port admits connections by ``limits``
+    (:mod:`brasidas.admission`; a TLS handshake within ``header_timeout``)."""
     admission = ServerAdmission(limits)
     app[ADMISSION] = admission
     app.middlewares.append(_track_requests)
@@ -314,30 +314,29 @@ async def serve_app_sites(
         keepalive_timeout=limits.idle_timeout,
     )
     await runner.setup()
-    sites = [
-        web.TCPSite(runner, tls_host, tls_port, reuse_address=True, ssl_context=context)
-        for tls_host, tls_port, context in tls_sites
-    ]
+    factory: Callable[[], asyncio.Protocol] = runner.server  # type: ignore[assignment]
+    listeners: list[AdmittingListener] = []
     try:
-        listener = AdmittingListener(
-            _listening_socket(host, port),
-            runner.server,  # type: ignore[arg-type]
-            AdmissionPolicy(limits),
-            name,
-        )
-        try:
-            for site in sites:
-                await site.start()
-        except OSError:
-            listener.sock.close()
-            raise
+        for site_host, site_port, context in [(host, port, None), *tls_sites]:
+            listeners.append(
+                AdmittingListener(
+                    _listening_socket(site_host, site_port),
+                    factory,
+                    AdmissionPolicy(limits),
+                    name if context is None else f"{name} (TLS)",
+                    ssl=context,
+                )
+            )
     except OSError:
+        for listener in listeners:
+            listener.sock.close()
         await runner.cleanup()
         raise
-    listener.start()
-    admission.listeners.append(listener)
-    supervisor.start(WebServer(bus, runner, name, [listener]))
-    return [int(listener.sock.getsockname()[1])] + [int(address[1]) for address in runner.addresses]
+    for listener in listeners:
+        listener.start()
+    admission.listeners += listeners
+    supervisor.start(WebServer(bus, runner, name, listeners))
+    return [int(listener.sock.getsockname()[1]) for listener in listeners]
 
 
 def _listening_socket(host: str, port: int) -> socket.socket:
