@@ -6,13 +6,21 @@ import asyncio
 import contextlib
 import itertools
 import logging
-from collections.abc import Sequence
+import socket
+from collections.abc import Awaitable, Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import aiohttp
 from aiohttp import web
 
 from brasidas.actor import Actor, Supervisor, wait_forever
+from brasidas.admission import (
+    AdmissionLimits,
+    AdmissionPolicy,
+    AdmittingListener,
+    ServerAdmission,
+    Slot,
+)
 from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import (
     INTERNAL_ERROR,
@@ -44,6 +52,13 @@ READER_RESUME_DELAY = 0.005
 caller's next call reads first: back-to-back calls cost no loop turn for handing over. Idle
 messages (a push, the connection's end) wait in aiohttp's buffer meanwhile, never lost."""
 
+TRUSTED = AdmissionLimits(trusted=True)
+"""The default admission: caps and timeouts on every connection, none counted a stranger's."""
+
+STRANGER_MAX_BYTES = 4096
+"""Requests on a connection without a session are at most this long (``challenge`` and
+``connect`` need well under 1 KiB): a stranger's flood is never parsed."""
+
 _CONNECTION_ENDED = (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSING, aiohttp.WSMsgType.CLOSED)
 
 
@@ -54,6 +69,7 @@ def add_rpc_routes(
     max_bytes: int,
     *,
     local_hosts: frozenset[str] | None = None,
+    stranger_max_bytes: int = STRANGER_MAX_BYTES,
 ) -> None:
     """Serve ``dispatcher`` at ``path`` (POST) and ``path/ws`` (WebSocket).
 
@@ -79,19 +95,38 @@ def add_rpc_routes(
     async def post(request: web.Request) -> web.Response:
         if (refusal := refused(request)) is not None:
             return refusal
-        if request.content_length is not None and request.content_length > max_bytes:
+        ctx = CallContext(peer_host=_peer_host(request), transport="http")
+        admission = request.app.get(ADMISSION)
+        found = admission.slot_of(request.transport) if admission is not None else None
+        limit = max_bytes
+        if found is not None:
+            _admitted(ctx, *found)
+            if ctx.stranger:
+                limit = min(limit, stranger_max_bytes)
+        if request.content_length is not None and request.content_length > limit:
             return _too_large()
         try:
-            body = (
-                await request.content.readexactly(request.content_length)
-                if request.content_length
-                else await _read_at_most(request.content, max_bytes + 1)
-            )
+            async with asyncio.timeout(
+                admission.limits.body_timeout if admission is not None else None
+            ):
+                body = (
+                    await request.content.readexactly(request.content_length)
+                    if request.content_length
+                    else await _read_at_most(request.content, limit + 1)
+                )
         except asyncio.IncompleteReadError:
             return web.Response(status=400, text="incomplete body")
-        if len(body) > max_bytes:
+        except TimeoutError:
+            if found is not None:
+                found[0].policy.counters["body_timeouts"] += 1
+            # Answered, then closed at once: aiohttp would otherwise linger for the rest.
+            response = web.Response(status=408, text="body not sent in time", headers=_CLOSE)
+            await response.prepare(request)
+            await response.write_eof()
+            request.protocol.force_close()
+            return response
+        if len(body) > limit:
             return _too_large()
-        ctx = CallContext(peer_host=_peer_host(request), transport="http")
         answer = await dispatcher.handle_bytes(body, ctx)
         if answer is None:
             return web.Response(status=204)
@@ -105,6 +140,10 @@ def add_rpc_routes(
         await ws.prepare(request)
         ctx = CallContext(peer_host=_peer_host(request), transport="ws")
         ctx.extra["ws"] = ws
+        admission = request.app.get(ADMISSION)
+        found = admission.slot_of(request.transport) if admission is not None else None
+        if found is not None:
+            _admitted(ctx, *found)
 
         def broken() -> str:
             # A bug must cost one answer, never the station's connection.
@@ -139,6 +178,9 @@ def add_rpc_routes(
                     # A method made this socket carry media too (the console's push-to-talk).
                     ctx.extra["on_binary"](message.data)
                 elif kind is aiohttp.WSMsgType.TEXT or kind is aiohttp.WSMsgType.BINARY:
+                    if ctx.stranger and len(message.data) > stranger_max_bytes:
+                        await send(_TOO_LARGE)  # not even parsed
+                        continue
                     incoming = dispatcher.parse(message.data)
                     if dispatcher.answers_at_once(incoming):
                         try:
@@ -170,30 +212,80 @@ def add_rpc_routes(
     app.router.add_get(path + "/ws", websocket)
 
 
+def _admitted(ctx: CallContext, listener: AdmittingListener, slot: Slot) -> None:
+    """``ctx`` is a call on ``slot``'s connection: a stranger's until a call has a session."""
+    if not slot.has_session:
+        ctx.stranger = True
+        ctx.on_session = lambda: listener.policy.session_opened(slot)
+
+
+ADMISSION = web.AppKey("admission", ServerAdmission)
+
+
+@web.middleware
+async def _track_requests(
+    request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
+) -> web.StreamResponse:
+    """Tell the admission when a connection's request (a WebSocket's whole life) is under
+    way: its header and idle timeouts apply between requests."""
+    found = request.app[ADMISSION].slot_of(request.transport)
+    if found is None:
+        return await handler(request)
+    listener, slot = found
+    listener.policy.request_started(slot)
+    try:
+        return await handler(request)
+    finally:
+        listener.policy.request_ended(slot, listener.loop.time())
+
+
 class WebServer(Actor):
-    """Owns a bound aiohttp runner: cleaned up (connections closed) when the daemon stops."""
+    """Owns a bound aiohttp runner and its admitting listeners: checks their connections'
+    timeouts while it runs; stops accepting and cleans up (connections closed) when the
+    daemon stops."""
 
     restart = False
 
-    def __init__(self, bus: Bus, runner: web.AppRunner, name: str) -> None:
+    def __init__(
+        self,
+        bus: Bus,
+        runner: web.AppRunner,
+        name: str,
+        listeners: Sequence[AdmittingListener] = (),
+    ) -> None:
         super().__init__(bus)
         self.runner = runner
         self.name = name
+        self.listeners = list(listeners)
 
     async def run(self) -> None:
         try:
-            await wait_forever()
+            async with asyncio.TaskGroup() as sweepers:
+                for listener in self.listeners:
+                    sweepers.create_task(listener.sweep(), name=f"admission:{self.name}")
+                await wait_forever()
         finally:
+            for listener in self.listeners:
+                listener.close()
             with contextlib.suppress(Exception):
                 await asyncio.shield(self.runner.cleanup())
 
 
 async def serve_app(
-    app: web.Application, host: str, port: int, *, supervisor: Supervisor, bus: Bus, name: str
+    app: web.Application,
+    host: str,
+    port: int,
+    *,
+    supervisor: Supervisor,
+    bus: Bus,
+    name: str,
+    limits: AdmissionLimits = TRUSTED,
 ) -> int:
     """Bind ``app`` on ``host:port`` (0: the kernel chooses), hand it to a supervised
     :class:`WebServer`, and return the bound port. A port in use raises ``OSError``."""
-    ports = await serve_app_sites(app, host, port, supervisor=supervisor, bus=bus, name=name)
+    ports = await serve_app_sites(
+        app, host, port, supervisor=supervisor, bus=bus, name=name, limits=limits
+    )
     return ports[0]
 
 
@@ -206,24 +298,61 @@ async def serve_app_sites(
     bus: Bus,
     name: str,
     tls_sites: Sequence[tuple[str, int, ssl.SSLContext]] = (),
+    limits: AdmissionLimits = TRUSTED,
 ) -> list[int]:
     """:func:`serve_app`, and also on each of ``tls_sites`` over TLS (one runner): the bound
-    ports, plain first."""
-    runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=0.2)
+    ports, plain first. Every port admits connections by ``limits``
+    (:mod:`brasidas.admission`; a TLS handshake within ``header_timeout``)."""
+    admission = ServerAdmission(limits)
+    app[ADMISSION] = admission
+    app.middlewares.append(_track_requests)
+    runner = web.AppRunner(
+        app,
+        access_log=None,
+        handle_signals=False,
+        shutdown_timeout=0.2,
+        keepalive_timeout=limits.idle_timeout,
+    )
     await runner.setup()
-    sites = [web.TCPSite(runner, host, port, reuse_address=True)]
-    sites += [
-        web.TCPSite(runner, tls_host, tls_port, reuse_address=True, ssl_context=context)
-        for tls_host, tls_port, context in tls_sites
-    ]
+    factory: Callable[[], asyncio.Protocol] = runner.server  # type: ignore[assignment]
+    listeners: list[AdmittingListener] = []
     try:
-        for site in sites:
-            await site.start()
+        for site_host, site_port, context in [(host, port, None), *tls_sites]:
+            listeners.append(
+                AdmittingListener(
+                    _listening_socket(site_host, site_port),
+                    factory,
+                    AdmissionPolicy(limits),
+                    name if context is None else f"{name} (TLS)",
+                    ssl=context,
+                )
+            )
     except OSError:
+        for listener in listeners:
+            listener.sock.close()
         await runner.cleanup()
         raise
-    supervisor.start(WebServer(bus, runner, name))
-    return [int(address[1]) for address in runner.addresses]
+    for listener in listeners:
+        listener.start()
+    admission.listeners += listeners
+    supervisor.start(WebServer(bus, runner, name, listeners))
+    return [int(listener.sock.getsockname()[1]) for listener in listeners]
+
+
+def _listening_socket(host: str, port: int) -> socket.socket:
+    """A bound, listening TCP socket (as aiohttp's TCPSite makes one); ``OSError`` when the
+    port is in use."""
+    info = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    family, kind, proto, _, address = info[0]
+    sock = socket.socket(family, kind, proto)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+        sock.listen(LISTEN_BACKLOG)
+    except OSError:
+        sock.close()
+        raise
+    return sock
 
 
 async def _read_at_most(stream: aiohttp.StreamReader, limit: int) -> bytes:
@@ -235,6 +364,14 @@ async def _read_at_most(stream: aiohttp.StreamReader, limit: int) -> bytes:
             break
         body += chunk
     return bytes(body)
+
+
+LISTEN_BACKLOG = 1024
+"""Room in the kernel for a burst of connections (a station's among a stranger's), each
+accepted and, past the caps, closed at once."""
+
+_CLOSE = {"Connection": "close"}
+_TOO_LARGE = encode_error(None, RpcError(REQUEST_TOO_LARGE, "request too large")).decode()
 
 
 def _too_large() -> web.Response:

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from brasidas.actor import Supervisor
+from brasidas.admission import ServerAdmission
 from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.config import PlatformConfig
@@ -93,6 +94,8 @@ class PlatformContext:
     """Where stations reach signaling; set once the server is bound (before the beacon starts)."""
     velocity_port: int = 0
     """The UDP port velocity datagrams arrive on; set once bound (the kernel's choice for 0)."""
+    signaling_admission: ServerAdmission | None = None
+    """Signaling's connections and their admission counters; set once the server is bound."""
     sim: SimulatedDevices = field(default_factory=SimulatedDevices)
     """The simulated devices (``--sim``), started before every subsystem."""
     sessions: SessionTable = field(default_factory=SessionTable)

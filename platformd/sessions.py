@@ -165,6 +165,7 @@ class SessionManager(Actor):
         now = self._clock()
         session = Session(token, station_id, call.peer_host, session_key, now, now)
         self.sessions[token] = session
+        call.session_opened()  # the connection is a station's now, no longer a stranger's
         if "ws" in call.extra:
             # A session opened over a WebSocket ends with it: the station is gone.
             call.extra.setdefault("on_close", []).append(lambda: self.connection_lost(token))

@@ -13,10 +13,12 @@ from typing import Any
 
 from aiohttp import web
 
+from brasidas.admission import AdmissionLimits
 from brasidas.codecs.commands import MAIN_LIGHTS, MANUAL_OVERRIDE, POSITIONAL_LIGHTS, CommandCode
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, RpcError
 from brasidas.codecs.telemetry_schema import SCHEMA_VERSION, snapshot_to_json
-from brasidas.rpc import add_rpc_routes, serve_app
+from brasidas.config import SignalingSection
+from brasidas.rpc import ADMISSION, add_rpc_routes, serve_app
 from platformd.context import PlatformContext
 from platformd.sessions import platform_parameters, velocity_endpoint
 
@@ -74,6 +76,22 @@ class Signaling:
         }
 
 
+def admission_limits(config: SignalingSection) -> AdmissionLimits:
+    """Who signaling holds connections for, and how long (``signaling.*``)."""
+    return AdmissionLimits(
+        max_connections=config.max_connections,
+        max_strangers=config.max_strangers,
+        max_strangers_per_host=config.max_strangers_per_host,
+        header_timeout=config.header_timeout,
+        body_timeout=config.body_timeout,
+        idle_timeout=config.idle_timeout,
+        write_timeout=config.write_timeout,
+        max_unsent_bytes=config.max_unsent_bytes,
+        reserved_fds=config.reserved_fds,
+        stranger_bytes_per_s=config.stranger_bytes_per_s,
+    )
+
+
 async def async_setup(ctx: PlatformContext) -> None:
     signaling = Signaling(ctx)
     for name in (
@@ -87,10 +105,19 @@ async def async_setup(ctx: PlatformContext) -> None:
     ):
         ctx.rpc.add(name, getattr(signaling, name))
     config = ctx.config.signaling
+    ctx.rpc.max_batch = config.max_batch
+    ctx.rpc.max_answer_bytes = config.max_answer_bytes
     app = web.Application(client_max_size=config.max_request_bytes)
     add_rpc_routes(app, ctx.rpc, "/rpc", config.max_request_bytes)
     port = await serve_app(
-        app, config.host, config.port, supervisor=ctx.supervisor, bus=ctx.bus, name="signaling"
+        app,
+        config.host,
+        config.port,
+        supervisor=ctx.supervisor,
+        bus=ctx.bus,
+        name="signaling",
+        limits=admission_limits(config),
     )
+    ctx.signaling_admission = app[ADMISSION]
     # With port 0 the kernel chose one; beacons must carry the real one.
     ctx.signaling_url = f"http://{config.advertise_host or config.host}:{port}"

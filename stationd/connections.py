@@ -38,6 +38,9 @@ NOT_CONNECTED = -32010
 CLOSED_BY_OPERATOR = "closed by operator"
 """With :data:`~stationd.client.CLOSED_BY_STATION`, the close reasons after which the session
 is not re-established (any other is a loss)."""
+MAX_PLATFORM_ID = 64
+"""Characters in a platform id the local API is asked about, at most (a beacon holds one in
+100 bytes with the rest): a longer one is refused before anything is looked up or kept."""
 RECONNECT_INITIAL = 0.5
 RECONNECT_MAX = 5.0
 """Seconds between attempts to re-establish a lost session (capped exponential backoff)."""
@@ -50,7 +53,8 @@ class ConnectionManager(Actor):
         super().__init__(ctx.bus)
         self.ctx = ctx
         self._watchers: asyncio.TaskGroup | None = None
-        self._connecting: dict[str, asyncio.Lock] = {}
+        self._connecting: dict[str, tuple[asyncio.Lock, int]] = {}
+        """Per platform being connected: its lock and how many callers want it."""
         self._reconnecting: dict[str, str] = {}
         """Platforms whose lost session is being re-established, with their signaling URL."""
 
@@ -73,36 +77,52 @@ class ConnectionManager(Actor):
 
     async def ensure(self, platform_id: str, url: str = "") -> PlatformConnection:
         """The open connection to ``platform_id``, connecting first if needed."""
-        lock = self._connecting.setdefault(platform_id, asyncio.Lock())
-        async with lock:
-            existing = self.ctx.connections.get(platform_id)
-            if existing is not None and not existing.closed.is_set():
-                return existing
-            url = url or await self._resolve(platform_id)
-            connection = PlatformConnection(
-                platform_id,
-                url,
-                station_id=self.ctx.config.station.id,
-                fleet_key=self.ctx.fleet_key,
-                timeout=self.ctx.config.station.connect_timeout,
-            )
-            try:
-                await connection.open()
-            except AuthenticationError as err:
-                raise RpcError(UNAVAILABLE, f"{platform_id}: {err}") from None
-            except (OSError, TimeoutError, RpcError) as err:
-                raise RpcError(
-                    UNAVAILABLE, f"{platform_id}: cannot connect to {url}: {err}"
-                ) from None
-            connection.on_control_lost = functools.partial(self._on_control_lost, platform_id)
-            self.ctx.connections[platform_id] = connection
-            if self._watchers is not None:
-                self._watchers.create_task(self._watch(connection), name=f"watch:{platform_id}")
-            _LOGGER.info("connected to %s at %s", platform_id, url)
-            self.bus.publish(
-                topics.PLATFORM_CONNECTED, PlatformLink(platform_id, connection.session_id)
-            )
-            return connection
+        check_platform_id(platform_id)
+        existing = self.ctx.connections.get(platform_id)
+        if existing is not None and not existing.closed.is_set():
+            return existing
+        # One attempt at a time per platform; the lock lives while someone wants it, so ids
+        # asked about (known or not) leave nothing behind.
+        lock, wanted = self._connecting.get(platform_id, (asyncio.Lock(), 0))
+        self._connecting[platform_id] = (lock, wanted + 1)
+        try:
+            async with lock:
+                return await self._connect(platform_id, url)
+        finally:
+            lock, wanted = self._connecting[platform_id]
+            if wanted == 1:
+                del self._connecting[platform_id]
+            else:
+                self._connecting[platform_id] = (lock, wanted - 1)
+
+    async def _connect(self, platform_id: str, url: str) -> PlatformConnection:
+        """:meth:`ensure`'s work, under the platform's lock."""
+        existing = self.ctx.connections.get(platform_id)
+        if existing is not None and not existing.closed.is_set():
+            return existing
+        url = url or await self._resolve(platform_id)
+        connection = PlatformConnection(
+            platform_id,
+            url,
+            station_id=self.ctx.config.station.id,
+            fleet_key=self.ctx.fleet_key,
+            timeout=self.ctx.config.station.connect_timeout,
+        )
+        try:
+            await connection.open()
+        except AuthenticationError as err:
+            raise RpcError(UNAVAILABLE, f"{platform_id}: {err}") from None
+        except (OSError, TimeoutError, RpcError) as err:
+            raise RpcError(UNAVAILABLE, f"{platform_id}: cannot connect to {url}: {err}") from None
+        connection.on_control_lost = functools.partial(self._on_control_lost, platform_id)
+        self.ctx.connections[platform_id] = connection
+        if self._watchers is not None:
+            self._watchers.create_task(self._watch(connection), name=f"watch:{platform_id}")
+        _LOGGER.info("connected to %s at %s", platform_id, url)
+        self.bus.publish(
+            topics.PLATFORM_CONNECTED, PlatformLink(platform_id, connection.session_id)
+        )
+        return connection
 
     async def _resolve(self, platform_id: str) -> str:
         if self.ctx.api.has("list_platforms"):
@@ -165,6 +185,7 @@ class ConnectionManager(Actor):
         )
 
     def connected(self, platform_id: str) -> PlatformConnection:
+        check_platform_id(platform_id)
         connection = self.ctx.connections.get(platform_id)
         if connection is None or connection.closed.is_set():
             raise RpcError(NOT_CONNECTED, f"not connected to {platform_id}")
@@ -227,6 +248,14 @@ class ConnectionManager(Actor):
             raise RpcError(INVALID_PARAMS, "invalid params: which must be main or pos")
         return await self.api_command(
             call, platform_id, code.group, code.command, "ON" if on else "OFF"
+        )
+
+
+def check_platform_id(platform_id: str) -> None:
+    """-32602 for an id no platform can have (longer than :data:`MAX_PLATFORM_ID`)."""
+    if len(platform_id) > MAX_PLATFORM_ID:
+        raise RpcError(
+            INVALID_PARAMS, f"invalid params: platform_id longer than {MAX_PLATFORM_ID} characters"
         )
 
 

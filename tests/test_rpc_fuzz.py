@@ -139,9 +139,14 @@ def render(request: Any, token: str) -> bytes:
     return text.replace("-Infinity", "-1e999").replace("Infinity", "1e999").encode()
 
 
-def expected_answers(raw: bytes) -> tuple[Any, int | None]:
+OPEN_METHODS = ("challenge", "connect")
+"""What a connection without a session may batch."""
+
+
+def expected_answers(raw: bytes, *, stranger: bool = False) -> tuple[Any, int | None]:
     """What the server reads in ``raw`` and how many answers it owes: None for no message,
-    else the items (1 for a single one)."""
+    else the items (1 for a single one). A ``stranger``'s batch of anything but calls that
+    need no session is answered with one error."""
     try:
         request = json.loads(raw, parse_constant=_not_json)
     except ValueError:
@@ -151,6 +156,10 @@ def expected_answers(raw: bytes) -> tuple[Any, int | None]:
     if isinstance(request, list):
         if not request:
             return request, 1
+        if stranger and not all(
+            isinstance(item, dict) and item.get("method") in OPEN_METHODS for item in request
+        ):
+            return {"refused batch": request}, 1
         return request, sum(1 for item in request if _answered(item)) or None
     return request, 1 if _answered(request) else None
 
@@ -250,7 +259,7 @@ async def test_any_request_over_http_is_answered(platform: PlatformDaemon, reque
         session.post(platform.ctx.signaling_url + "/rpc", data=raw) as response,
     ):
         body = await response.read()
-    request, count = expected_answers(raw)
+    request, count = expected_answers(raw, stranger=True)
     if count is None:
         assert response.status == 204 and not body, (request, body)
         return

@@ -157,10 +157,12 @@ async def test_hostile_websocket_messages_get_errors_and_the_socket_keeps_servin
         aiohttp.ClientSession() as session,
         session.ws_connect(daemon.ctx.signaling_url + "/rpc/ws") as ws,
     ):
-        for hostile in ("[" * 60_000, "{garbage", '{"jsonrpc":"2.0","id":1}', "[]"):
+        for hostile in ("[" * 4_000, "{garbage", '{"jsonrpc":"2.0","id":1}', "[]"):
             await ws.send_str(hostile)
             answer = json.loads((await ws.receive(timeout=5)).data)
             assert answer["error"]["code"] in (-32700, -32600), hostile[:20]
+        await ws.send_str("[" * 60_000)  # a stranger's: over 4 KiB, never parsed
+        assert json.loads((await ws.receive(timeout=5)).data)["error"]["code"] == -32004
         await ws.send_bytes(b"\xff\xfe")
         assert json.loads((await ws.receive(timeout=5)).data)["error"]["code"] == -32700
         await ws.send_str('{"jsonrpc":"2.0","id":9,"method":"challenge"}')

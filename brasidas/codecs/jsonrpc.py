@@ -62,6 +62,17 @@ class CallContext:
     session: Any = None
     """Set by the authorizer for methods that need a session."""
     extra: dict[str, Any] = field(default_factory=dict)
+    stranger: bool = False
+    """The connection has no session yet: a batch may hold only methods that need none."""
+    on_session: Callable[[], None] | None = None
+    """Called (by :meth:`session_opened`) when the stranger's connection gets a session."""
+
+    def session_opened(self) -> None:
+        """A call on this connection has a session (authorized, or ``connect`` opened one)."""
+        if self.stranger:
+            self.stranger = False
+            if self.on_session is not None:
+                self.on_session()
 
 
 Handler = Callable[..., Any]
@@ -132,12 +143,26 @@ class _Call:
     kwargs: dict[str, Any]
 
 
+MAX_BATCH = 100
+"""Requests in a batch, at most: a longer one is answered with one error (no fan-out)."""
+MAX_ANSWER_BYTES = 1 << 20
+"""An answer longer than this is replaced by an error (-32603)."""
+
+
 class Dispatcher:
     """Method table and the JSON-RPC envelope logic."""
 
-    def __init__(self, authorizer: Authorizer | None = None) -> None:
+    def __init__(
+        self,
+        authorizer: Authorizer | None = None,
+        *,
+        max_batch: int = MAX_BATCH,
+        max_answer_bytes: int = MAX_ANSWER_BYTES,
+    ) -> None:
         self._methods: dict[str, Method] = {}
         self.authorizer = authorizer
+        self.max_batch = max_batch
+        self.max_answer_bytes = max_answer_bytes
         self.counters: dict[str, int] = {
             "calls": 0,
             "parse_errors": 0,
@@ -146,6 +171,8 @@ class Dispatcher:
             "invalid_params": 0,
             "unauthorized": 0,
             "internal_errors": 0,
+            "refused_batches": 0,
+            "answers_too_large": 0,
         }
 
     def add(
@@ -214,16 +241,41 @@ class Dispatcher:
             if not message:
                 self.counters["invalid_requests"] += 1
                 return _encode(_error_response(None, RpcError(INVALID_REQUEST, "empty batch")))
+            if (refusal := self._refused_batch(message, ctx)) is not None:
+                self.counters["refused_batches"] += 1
+                return _encode(_error_response(None, RpcError(INVALID_REQUEST, refusal)))
             responses = [await self.handle_message(item, ctx) for item in message]
             answered = [item for item in responses if item is not None]
             if not answered:
                 return None
             try:
-                return _encode(answered)
+                text = _encode(answered)
             except (ValueError, TypeError, RecursionError):
-                return "[" + ",".join(self._encode_response(item) for item in answered) + "]"
+                text = "[" + ",".join(self._encode_response(item) for item in answered) + "]"
+            return self._bounded(None, text)
         response = await self.handle_message(message, ctx)
         return self._encode_response(response) if response is not None else None
+
+    def _refused_batch(self, batch: list[Any], ctx: CallContext) -> str | None:
+        """Why ``batch`` is answered with one error, or None: longer than ``max_batch``, or
+        from a stranger and holding anything but calls of methods that need no session."""
+        if len(batch) > self.max_batch:
+            return f"batch of {len(batch)} requests refused (at most {self.max_batch})"
+        if ctx.stranger:
+            for item in batch:
+                name = item.get("method") if type(item) is dict else None
+                method = self._methods.get(name) if type(name) is str else None
+                if method is None or method.session_required:
+                    return "before a session, a batch may hold only calls that need none"
+        return None
+
+    def _bounded(self, request_id: Any, text: str) -> str:
+        """``text``, or an error in its place when it is longer than ``max_answer_bytes``."""
+        if len(text) <= self.max_answer_bytes:
+            return text
+        self.counters["answers_too_large"] += 1
+        error = RpcError(INTERNAL_ERROR, f"answer too large ({len(text)} bytes)")
+        return _encode(_error_response(request_id, error))
 
     def _encode_response(self, response: dict[str, Any]) -> str:
         """Encoded; a result JSON cannot hold (NaN, an object) is answered -32603 instead."""
@@ -231,7 +283,8 @@ class Dispatcher:
             if "result" in response:
                 # The envelope by hand: only the result goes through the encoder (the fixed
                 # keys would cost as much again, per answer).
-                return f'{{"jsonrpc":"2.0","id":{_encode_id(response["id"])},"result":{_encode(response["result"])}}}'
+                text = f'{{"jsonrpc":"2.0","id":{_encode_id(response["id"])},"result":{_encode(response["result"])}}}'
+                return self._bounded(response["id"], text)
             return _encode(response)
         except (ValueError, TypeError, RecursionError) as err:
             self.counters["internal_errors"] += 1
@@ -308,7 +361,11 @@ class Dispatcher:
                 if name not in kwargs or _json_type_ok(value, expected):
                     continue
                 problem = f"'{name}' must be " + (
-                    "a finite number" if expected is float else expected.__name__
+                    "a finite number"
+                    if expected is float
+                    else "Unicode text (no lone surrogate)"
+                    if isinstance(value, str)
+                    else expected.__name__
                 )
                 break
         if problem:
@@ -340,6 +397,7 @@ class Dispatcher:
                 if err.code == UNAUTHORIZED:
                     self.counters["unauthorized"] += 1
                 raise
+            ctx.session_opened()
         if kwargs or method.required:
             self._check_params(method, kwargs)
         return method, kwargs
@@ -350,7 +408,18 @@ def _json_type_ok(value: Any, expected: type) -> bool:
         return expected is bool
     if expected is float:
         return isinstance(value, int) or (isinstance(value, float) and math.isfinite(value))
+    if expected is str:
+        return isinstance(value, str) and (value.isascii() or _is_unicode(value))
     return isinstance(value, expected)
+
+
+def _is_unicode(text: str) -> bool:
+    """No lone surrogate (``"\\ud800"`` decodes to one): the text can be encoded."""
+    try:
+        text.encode()
+    except UnicodeEncodeError:
+        return False
+    return True
 
 
 def _is_valid_id(value: Any) -> bool:
