@@ -149,6 +149,17 @@ def _is_multicast(value: str) -> bool:
 
 
 ip_address = Check("an IP address", _is_ip)
+
+
+def _is_network(value: str) -> bool:
+    try:
+        ipaddress.ip_network(value, strict=False)
+    except ValueError:
+        return False
+    return True
+
+
+ip_network = Check("an IP address or network (address/prefix)", _is_network)
 multicast_address = Check("a multicast IP address", _is_multicast)
 host_name = Check("an IP address or a host name", _is_host)
 

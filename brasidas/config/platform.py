@@ -20,6 +20,7 @@ from brasidas.config.loader import (
     fraction,
     host_name,
     ip_address,
+    ip_network,
     non_empty,
     non_negative,
     one_of,
@@ -107,6 +108,10 @@ class SecuritySection:
     """Fleet key path. Empty: $XDG_STATE_HOME/brasidas/fleet.key."""
     insecure: bool = False
     """Run without a fleet key: no beacon HMAC, no authenticated connect. Never in the field."""
+    stream_destinations: tuple[str, ...] = setting((), each(ip_network))
+    """Where a station may have a stream sent besides its own address and loopback: addresses
+    or networks (``198.51.100.7``, ``198.51.100.0/24``, a multicast group). Empty: none — a
+    session cannot turn the platform's streams on a third host."""
 
 
 @dataclass(frozen=True)
