@@ -22,11 +22,9 @@ from brasidas.config.loader import (
     ip_address,
     ip_network,
     non_empty,
-    non_negative,
     one_of,
     ordered,
     ordered_across,
-    positive,
     remote_port,
     setting,
     url,
@@ -82,6 +80,12 @@ def _gpio_line(value: str) -> bool:
     return True
 
 
+platform_id = Check(
+    "1-32 bytes of printable text",
+    lambda value: 0 < len(value.encode()) <= 32 and value.isprintable(),
+)
+"""A beacon (at most 100 bytes) carries the id and the signaling URL."""
+
 lights_output = Check(
     'empty, one controller output letter (e.g. "C") or a GPIO line "gpio:CHIP:LINE" '
     '(e.g. "gpio:/dev/gpiochip0:17"; libgpiod, sysfs paths are not accepted)',
@@ -95,8 +99,9 @@ lights_output = Check(
 
 @dataclass(frozen=True)
 class PlatformSection:
-    id: str = setting("brasidas-1", non_empty)
-    """Platform id: unique on the network, shown in discovery."""
+    id: str = setting("brasidas-1", platform_id)
+    """Platform id: unique on the network, shown in discovery. At most 32 bytes (UTF-8), so
+    that a beacon carrying it stays within its 100 bytes."""
     model: str = "Brasidas UGV"
     max_speed_kmh: float = setting(6.0, above(0, most=100))
     """Top speed at full command (R-2.1), reported to stations."""
@@ -144,7 +149,7 @@ class BeaconSection:
     is the loopback broadcast; deployments name the mesh's broadcast address or a group."""
     min_interval: float = setting(0.6, above(0, most=60))
     max_interval: float = setting(3.0, above(0, most=3600))
-    move_threshold_m: float = setting(1.0, non_negative)
+    move_threshold_m: float = setting(1.0, at_least(0, most=10000))
     interface_host: str = setting("127.0.0.1", ip_address)
     """Local address beacons are sent from (picks the interface, multicast ones included)."""
     multicast_ttl: int = setting(1, at_least(1, most=255))
@@ -242,8 +247,9 @@ class SafetySection:
 
     stop_distance_m: float = setting(1.0, above(0, most=100))
     """The robot must stop within this after the operator sees a reason to."""
-    reaction_s: float = setting(0.25, non_negative)
-    """The operator's reaction time (the seed's 250 ms)."""
+    reaction_s: float = setting(0.25, at_least(0, most=10))
+    """The operator's reaction time (the seed's 250 ms); 10 s at most (a larger one is a typo,
+    and the cap would round to zero or overflow)."""
     braking_mps2: float = setting(4.2, above(0, most=50))
     """Deceleration when stopping. 4.2 m/s² is what makes the seed's budget exact: 6 km/h
     stops within 1 m after 250 ms reaction and 150 ms video latency."""
@@ -313,9 +319,9 @@ class TelemetrySection:
 
     rate_hz: float = setting(5.0, above(0, most=50))
     """Datagrams per second pushed to a station that asked (request_telemetry)."""
-    battery_low_v: float = setting(23.0, positive)
+    battery_low_v: float = setting(23.0, above(0, most=100))
     """Pack voltage below which the coarse battery level is LOW (24 V lead-acid pack)."""
-    battery_high_v: float = setting(25.0, positive)
+    battery_high_v: float = setting(25.0, above(0, most=100))
     """Pack voltage at or above which the coarse level is HIGH; MEDIUM in between."""
     battery_monitor: bool = True
     """Report the coarse battery level when the controller's status has no 20.4 monitor flag."""
