@@ -8,6 +8,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
+import subprocess
+import sys
 import time
 from collections.abc import AsyncIterator, Callable
 
@@ -22,6 +24,7 @@ from hostile import (
 )
 from netns import RpcFailed, network_fixture, requires_netns, wait_for
 
+from brasidas.netem.netns import TestNetwork
 from brasidas.netem.relay import UP, Datagram
 
 pytestmark = requires_netns
@@ -197,3 +200,55 @@ async def test_an_observer_cannot_point_a_stream_at_others(
     assert after > 0  # the shared sink never failed
     assert "caller's own address" in str(refused.value.error.get("message"))
     assert command["accepted"] is False and "caller's own address" in command["reason"]
+
+
+SINK_PROBE = """
+import asyncio, socket, sys
+from brasidas.media.video import VideoOut, VideoSettings
+
+async def main(address: str) -> None:
+    receiver = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    receiver.bind((address, 0))
+    receiver.settimeout(0.2)
+    port = receiver.getsockname()[1]
+    settings = VideoSettings(host=address, port=port, width=160, height=120, framerate=10,
+                             camera_framerate=10, test_source=True)
+    stream = VideoOut("navcam", settings)
+    await stream.start()
+    # Another session's copy to a multicast group this host has no route to, added live.
+    stream.set_destinations([(address, port), ("224.0.0.1", port)])
+    received = 0
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + 3
+    while loop.time() < deadline:
+        try:
+            await asyncio.to_thread(receiver.recv, 65536)
+            received += 1
+        except TimeoutError:
+            pass
+    print(stream.state.value, received, stream.reason, flush=True)
+    await stream.stop()
+
+asyncio.run(main(sys.argv[1]))
+"""
+
+
+async def test_a_destination_without_a_route_never_fails_the_shared_sink(
+    network: TestNetwork,
+) -> None:
+    """Item 5: a copy to a multicast group the host has no route for (one that config allowed,
+    or whose route went away) fails its own packets only: the sink every station's copy shares
+    keeps sending to the others."""
+    host = network.add_host("sink")
+    process = host.spawn(
+        [sys.executable, "-c", SINK_PROBE, host.address],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    out, err = await asyncio.to_thread(process.communicate, timeout=120)
+    state, received, *reason = out.decode().split(maxsplit=2) or ["", "0"]
+    print(
+        f"\nNavCam with a copy to 224.0.0.1 (no route): {state}, {received} datagrams to the other copy in 3 s {reason}"
+    )
+    assert state == "playing", err.decode()[-2000:]
+    assert int(received) > 0
