@@ -25,6 +25,7 @@ from brasidas.config.platform import SafetySection
 from platformd import cli as platform_cli
 from platformd.beacon import check_beacon_fits
 from platformd.speedcap import compute_cap
+from stationd import cli as station_cli
 
 # --------------------------------------------------------------------------- key files
 
@@ -257,3 +258,14 @@ def test_the_largest_beacon_is_checked_at_start_with_the_real_url() -> None:
     check_beacon_fits("r" * 32, "http://255.255.255.255:65535", os.urandom(32))
     with pytest.raises(ConfigError, match="platform.id: with signaling URL"):
         check_beacon_fits("r" * 32, f"http://{'h' * 60}.example:8765", os.urandom(32))
+
+
+def test_the_station_refuses_a_key_file_others_can_read_too(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = key_file(tmp_path, 0o644)
+    code = station_cli.main(["list", "--set", f"security.key_file={path}", "--wait", "0.1"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "permissions 0644 for the fleet key are too open" in err
+    assert f"(chmod 600 {path})" in err
