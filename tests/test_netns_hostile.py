@@ -86,6 +86,8 @@ async def test_a_replay_during_a_cut_never_holds_off_the_failsafe(connected: Hos
 
         await wait_for(lambda: len(holder_velocity()) >= 20, 10)
         captured = holder_velocity()[-40:]
+        link_before = await rig.section(rig.observer, "velocity_link")
+        sent_before = rig.attacker.sent
         relay.cut()
         cut_at = time.monotonic()
 
@@ -103,6 +105,8 @@ async def test_a_replay_during_a_cut_never_holds_off_the_failsafe(connected: Hos
             await asyncio.sleep(0.1)
         relay.restore()
         replayer.cancel()
+        replayed = rig.attacker.sent - sent_before
+        link_during = await rig.section(rig.observer, "velocity_link")
         # The link is back and the station streams 0.5 forward again: nothing moves.
         restored_at = time.monotonic()
         while time.monotonic() - restored_at < 2.0:
@@ -110,14 +114,23 @@ async def test_a_replay_during_a_cut_never_holds_off_the_failsafe(connected: Hos
             await asyncio.sleep(0.1)
         driver.cancel()
     hold = next((at for at, step in steps if step == "hold"), None)
+    dropped = {
+        reason: link_during["dropped"].get(reason, 0) - count
+        for reason, count in link_before["dropped"].items()
+        if link_during["dropped"].get(reason, 0) != count
+    }
     print(
-        f"\nreplayed {rig.attacker.sent} $PVEL from {holder.address} during a {CUT} s cut: "
+        f"\nreplayed {replayed} $PVEL from {holder.address} during a {CUT} s cut: "
         f"failsafe steps seen {sorted({s for _, s in steps})}, hold seen at "
         f"{'never' if hold is None else f'{hold:.2f} s'} (hold_after {HOLD_AFTER} s); "
-        f"motors after restore {desired_after[-1] if desired_after else None}"
+        f"motors after restore {desired_after[-1] if desired_after else None}; "
+        f"counted as dropped during the cut: {dropped}"
     )
     assert hold is not None, steps
     assert hold < CUT
+    # Every replayed packet was dropped and counted, by its reason (telemetry lags by at most
+    # velocity.stats_interval, 1 s: most of them at least).
+    assert sum(dropped.get(r, 0) for r in ("out_of_order", "stale", "held")) >= replayed // 2
     assert all(level == 0 for levels in desired_after for level in levels), desired_after
 
 
