@@ -334,7 +334,7 @@ class MediaService(Actor):
             return None
         peer = _peer_host(session)
         allowed = self.ctx.config.security.stream_destinations
-        if not (allowed_host(host, peer) or _listed(host, allowed)):
+        if not (allowed_host(host, peer) or in_destinations(host, allowed)):
             return (
                 f"streams go to the caller's own address ({peer}) or loopback, not {host} "
                 "(security.stream_destinations names others)"
@@ -461,7 +461,7 @@ def unroutable(host: str) -> str | None:
     return None
 
 
-def _listed(host: str, allowed: tuple[str, ...]) -> bool:
+def in_destinations(host: str, allowed: tuple[str, ...]) -> bool:
     """``host`` is an address within one of ``allowed`` (addresses or networks)."""
     try:
         address = ipaddress.ip_address(host)

@@ -14,7 +14,7 @@ from conftest import quiet_platform_config, wait_until
 from brasidas.config import PlatformConfig, load_config
 from brasidas.config.loader import ConfigError
 from platformd.app import PlatformDaemon
-from platformd.media import _listed
+from platformd.media import in_destinations
 from platformd.session_table import Session
 from stationd.client import PlatformConnection
 
@@ -91,8 +91,10 @@ def test_configured_destinations_are_addresses_or_networks() -> None:
         PlatformConfig, None, ['security.stream_destinations=["198.51.100.7", "239.1.0.0/16"]']
     )
     allowed = config.security.stream_destinations
-    assert _listed("198.51.100.7", allowed) and _listed("239.1.2.3", allowed)
-    assert not _listed("198.51.100.8", allowed) and not _listed("rover.local", allowed)
+    assert in_destinations("198.51.100.7", allowed) and in_destinations("239.1.2.3", allowed)
+    assert not in_destinations("198.51.100.8", allowed) and not in_destinations(
+        "rover.local", allowed
+    )
     with pytest.raises(ConfigError, match="security.stream_destinations"):
         load_config(PlatformConfig, None, ['security.stream_destinations=["not an address"]'])
 
