@@ -228,6 +228,11 @@ def test_the_speed_cap_stops_within_the_distance_for_any_accepted_safety_config(
         config = load_config(PlatformConfig, None, overrides)
     except ConfigError:
         return
+    assert_cap_stops_within_the_distance(config)
+
+
+def assert_cap_stops_within_the_distance(config: PlatformConfig) -> None:
+    """The cap without a latency report is a finite speed the robot stops from in time."""
     safety: SafetySection = config.safety
     cap = compute_cap(safety, config.platform.max_speed_kmh, None, None)
     assert math.isfinite(cap.cap_kmh) and 0 <= cap.cap_kmh <= config.platform.max_speed_kmh
@@ -269,3 +274,59 @@ def test_the_station_refuses_a_key_file_others_can_read_too(
     assert code == 2
     assert "permissions 0644 for the fleet key are too open" in err
     assert f"(chmod 600 {path})" in err
+
+
+PLATFORM_KEYS = [
+    (section.name, item.name)
+    for section in dataclasses.fields(PlatformConfig)
+    for item in dataclasses.fields(typing.get_type_hints(PlatformConfig)[section.name])
+]
+TOML_VALUES = st.one_of(
+    st.floats(),
+    st.integers(min_value=-(2**63), max_value=2**63 - 1),
+    st.booleans(),
+    st.text(max_size=50),
+    st.lists(st.text(max_size=10), max_size=3),
+)
+
+
+def toml_value(value: object) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return (
+            "nan"
+            if math.isnan(value)
+            else ("inf" if value > 0 else "-inf")
+            if math.isinf(value)
+            else repr(value)
+        )
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, list):
+        return "[" + ", ".join(toml_value(item) for item in value) + "]"
+    return str(value)
+
+
+@settings(max_examples=300, deadline=None)
+@given(entries=st.lists(st.tuples(st.sampled_from(PLATFORM_KEYS), TOML_VALUES), max_size=4))
+def test_any_value_for_any_key_is_a_valid_config_or_one_config_error(
+    tmp_path_factory: pytest.TempPathFactory, entries: list[tuple[tuple[str, str], object]]
+) -> None:
+    """Every key's type and range are checked at the door: whatever a config file sets, the
+    result is a config whose speed cap is finite, or one ConfigError naming the file."""
+    tables: dict[str, dict[str, object]] = {}
+    for (section, key), value in entries:
+        tables.setdefault(section, {})[key] = value
+    text = "".join(
+        f"[{section}]\n" + "".join(f"{key} = {toml_value(v)}\n" for key, v in keys.items())
+        for section, keys in tables.items()
+    )
+    path = tmp_path_factory.mktemp("cfg") / "platform.toml"
+    path.write_text(text)
+    try:
+        config = load_config(PlatformConfig, path)
+    except ConfigError as err:
+        assert str(err).startswith(f"{path}: ")
+        return
+    assert_cap_stops_within_the_distance(config)

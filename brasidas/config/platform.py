@@ -250,7 +250,7 @@ class SafetySection:
     reaction_s: float = setting(0.25, at_least(0, most=10))
     """The operator's reaction time (the seed's 250 ms); 10 s at most (a larger one is a typo,
     and the cap would round to zero or overflow)."""
-    braking_mps2: float = setting(4.2, above(0, most=50))
+    braking_mps2: float = setting(4.2, at_least(0.1, most=50))
     """Deceleration when stopping. 4.2 m/s² is what makes the seed's budget exact: 6 km/h
     stops within 1 m after 250 ms reaction and 150 ms video latency."""
     worst_latency_ms: float = setting(400.0, at_least(0, most=60000))
