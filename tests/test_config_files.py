@@ -330,3 +330,21 @@ def test_any_value_for_any_key_is_a_valid_config_or_one_config_error(
         assert str(err).startswith(f"{path}: ")
         return
     assert_cap_stops_within_the_distance(config)
+
+
+@pytest.mark.parametrize(
+    "key",
+    [
+        "signaling.heartbeat_interval",
+        "beacon.min_interval",
+        "velocity.deadman",
+        "velocity.stats_interval",
+        "failsafe.hold_after",
+        "telemetry.rate_hz",
+    ],
+)
+def test_a_period_or_rate_cannot_vanish(key: str) -> None:
+    """A loop's period of 1e-300 s (stations told to send heartbeats that often, beacons at
+    that rate) is a flood, not a setting."""
+    with pytest.raises(ConfigError, match=key):
+        load_config(PlatformConfig, None, [f"{key}=1e-300"])

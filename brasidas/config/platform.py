@@ -131,7 +131,7 @@ class SignalingSection:
     except the override holder's while the failsafe ladder holds for it: the ladder's release
     step (``failsafe.release_after``, ``failsafe.action``) decides, and its session ends after
     the release. Must exceed ``failsafe.hold_after``."""
-    heartbeat_interval: float = setting(1.0, above(0, most=600))
+    heartbeat_interval: float = setting(1.0, at_least(0.05, most=600))
     """How often stations are told to send heartbeats."""
     max_request_bytes: int = setting(65536, at_least(1024, most=16 * 1024 * 1024))
     command_timeout: float = setting(3.0, above(0, most=60))
@@ -147,8 +147,8 @@ class BeaconSection:
     destinations: tuple[str, ...] = setting(("127.255.255.255",), non_empty, each(ip_address))
     """Where beacons go: broadcast, multicast group (R-0.6.1) or unicast addresses. The default
     is the loopback broadcast; deployments name the mesh's broadcast address or a group."""
-    min_interval: float = setting(0.6, above(0, most=60))
-    max_interval: float = setting(3.0, above(0, most=3600))
+    min_interval: float = setting(0.6, at_least(0.05, most=60))
+    max_interval: float = setting(3.0, at_least(0.05, most=3600))
     move_threshold_m: float = setting(1.0, at_least(0, most=10000))
     interface_host: str = setting("127.0.0.1", ip_address)
     """Local address beacons are sent from (picks the interface, multicast ones included)."""
@@ -214,9 +214,9 @@ class VelocitySection:
     port: int = setting(21001, bind_port)
     advertise_host: str = setting("", empty_or(host_name))
     """Host given to stations by get_velocity_connection_info. Empty: ``host``."""
-    deadman: float = setting(0.3, above(0, most=10))
+    deadman: float = setting(0.3, at_least(0.02, most=10))
     """In teleop, no valid velocity for this long commands zero."""
-    stats_interval: float = setting(1.0, above(0, most=60))
+    stats_interval: float = setting(1.0, at_least(0.1, most=60))
     """How often the receiver's counters are published for telemetry (when they changed)."""
     max_age_ms: float = setting(500.0, above(0, most=10000))
     """A velocity packet older than this on arrival (by its send time) is dropped and counted
@@ -230,7 +230,7 @@ class FailsafeSection:
 
     RULES: ClassVar[tuple[Rule, ...]] = (ordered("hold_after", "release_after"),)
 
-    hold_after: float = setting(1.5, above(0, most=60))
+    hold_after: float = setting(1.5, at_least(0.05, most=60))
     """No call (heartbeat) from the override holder for this long: hold (motors zero,
     payload safe, velocities dropped until the operator re-engages)."""
     release_after: float = setting(10.0, above(0, most=3600))
@@ -317,7 +317,7 @@ class ImuSection:
 class TelemetrySection:
     RULES: ClassVar[tuple[Rule, ...]] = (ordered("battery_low_v", "battery_high_v"),)
 
-    rate_hz: float = setting(5.0, above(0, most=50))
+    rate_hz: float = setting(5.0, at_least(0.1, most=50))
     """Datagrams per second pushed to a station that asked (request_telemetry)."""
     battery_low_v: float = setting(23.0, above(0, most=100))
     """Pack voltage below which the coarse battery level is LOW (24 V lead-acid pack)."""
