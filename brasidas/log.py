@@ -1,4 +1,7 @@
-"""Logging to stderr: journald-friendly priority prefixes under systemd, timestamps on a terminal."""
+"""Logging to stderr: journald-friendly priority prefixes under systemd, timestamps on a terminal.
+
+Every message is one line: control characters in it, which a peer may put in any text it sends
+(a station id, a host name), are escaped, so a log line cannot be forged."""
 
 from __future__ import annotations
 
@@ -6,6 +9,7 @@ import argparse
 import logging
 import os
 import sys
+import unicodedata
 
 LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
 
@@ -18,7 +22,31 @@ _PRIORITY = {
 }
 
 
-class JournalFormatter(logging.Formatter):
+def escape_control(text: str) -> str:
+    """``text`` with every control, format and line/paragraph separator character written as
+    its Python escape (``\\n``, ``\\x1b``, ``\\u2028``): text a peer chose (a station id, a
+    stream name) can neither start a forged log line nor drive a terminal. Tabs stay."""
+    if text.isprintable():
+        return text
+    return "".join(
+        char if char == "\t" or unicodedata.category(char) not in _UNPRINTABLE else repr(char)[1:-1]
+        for char in text
+    )
+
+
+_UNPRINTABLE = frozenset({"Cc", "Cf", "Zl", "Zp", "Cs"})
+
+
+class EscapingFormatter(logging.Formatter):
+    """Each message on one line: control characters in it are escaped (:func:`escape_control`);
+    a traceback appended after it keeps its lines."""
+
+    def formatMessage(self, record: logging.LogRecord) -> str:
+        record.message = escape_control(record.message)
+        return super().formatMessage(record)
+
+
+class JournalFormatter(EscapingFormatter):
     """``<N>name: message``: journald reads the syslog priority from the ``<N>`` prefix."""
 
     def format(self, record: logging.LogRecord) -> str:
@@ -42,7 +70,7 @@ def setup_logging(verbosity: int = 0, level: str | None = None) -> None:
         handler.setFormatter(JournalFormatter("%(name)s: %(message)s"))
     else:
         handler.setFormatter(
-            logging.Formatter("%(asctime)s %(levelname)-7s %(name)s: %(message)s", "%H:%M:%S")
+            EscapingFormatter("%(asctime)s %(levelname)-7s %(name)s: %(message)s", "%H:%M:%S")
         )
     root = logging.getLogger()
     root.handlers[:] = [handler]

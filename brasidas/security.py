@@ -1,7 +1,8 @@
 """Fleet key and the HMACs built on it (R-0.9).
 
-The fleet key is 32 random bytes stored as hex in a file only its owner can read. Nothing
-derived from it travels in the clear except truncated HMAC tags.
+The fleet key is 32 random bytes stored as hex in a file only its owner can read (a key file
+others can read is refused, as ssh refuses one: :func:`read_private_file`, for every key file).
+Nothing derived from it travels in the clear except truncated HMAC tags.
 """
 
 from __future__ import annotations
@@ -10,11 +11,50 @@ import hashlib
 import hmac
 import os
 import secrets
+import stat
 from pathlib import Path
 
+from brasidas.files import FileReadError, read_regular_file
 
-class FleetKeyError(Exception):
+MAX_KEY_FILE_BYTES = 4096
+"""A key file is a few dozen bytes of hex; anything past this is not one."""
+
+
+class PrivateFileError(FileReadError):
+    """A private file (a key) is missing, unreadable, not a regular file, too large or
+    accessible by others; the message names the file, the reason and the fix."""
+
+
+class FleetKeyError(PrivateFileError):
     """The fleet key is missing or unreadable."""
+
+
+def read_private_file(path: Path, what: str, max_bytes: int = MAX_KEY_FILE_BYTES) -> bytes:
+    """The contents of ``path``, a secret (``what``: "fleet key", "MAVLink signing key"), under
+    the rules ssh applies to a private key: a regular file (a FIFO or a device never hangs or
+    floods the start) of at most ``max_bytes``, owned by this user (or root), and neither
+    readable nor writable by group or others — else :class:`PrivateFileError` naming the
+    ``chmod`` that fixes it. Blocking: call it at start or from a thread."""
+
+    def private(info: os.stat_result) -> None:
+        if info.st_uid not in (os.geteuid(), 0):
+            raise PrivateFileError(
+                f"{path}: the {what} belongs to uid {info.st_uid}, not to this user "
+                f"(uid {os.geteuid()}): chown it"
+            )
+        mode = stat.S_IMODE(info.st_mode)
+        if mode & 0o077:
+            raise PrivateFileError(
+                f"{path}: permissions {mode:04o} for the {what} are too open: it must be "
+                f"accessible by its owner only (chmod 600 {path})"
+            )
+
+    try:
+        return read_regular_file(path, what, max_bytes, private)
+    except PrivateFileError:
+        raise
+    except FileReadError as err:
+        raise PrivateFileError(str(err)) from None
 
 
 def state_dir() -> Path:
@@ -43,18 +83,19 @@ def generate_key(path: Path, *, overwrite: bool = False) -> bytes:
 
 
 def load_key(path: Path) -> bytes:
-    """Read the fleet key at ``path``; raises :class:`FleetKeyError` with a clear message."""
-    try:
-        text = path.read_text().strip()
-    except FileNotFoundError:
+    """Read the fleet key at ``path`` (:func:`read_private_file`'s rules); raises
+    :class:`FleetKeyError` with a clear message."""
+    if not path.exists() and not path.is_symlink():
         raise FleetKeyError(
             f"{path}: fleet key not found (create one with 'brasidas-station keygen')"
-        ) from None
-    except OSError as err:
-        raise FleetKeyError(f"{path}: cannot read fleet key: {err.strerror}") from None
+        )
     try:
-        key = bytes.fromhex(text)
-    except ValueError:
+        data = read_private_file(path, "fleet key")
+    except PrivateFileError as err:
+        raise FleetKeyError(str(err)) from None
+    try:
+        key = bytes.fromhex(data.decode("ascii").strip())
+    except ValueError:  # UnicodeDecodeError included
         raise FleetKeyError(f"{path}: fleet key is not hex") from None
     if len(key) < 16:
         raise FleetKeyError(f"{path}: fleet key too short ({len(key)} bytes, need 16 or more)")

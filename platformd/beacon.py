@@ -28,6 +28,7 @@ from brasidas.bus import Topic
 from brasidas.codecs import beacon as beacon_codec
 from brasidas.codecs.jsonrpc import CallContext
 from brasidas.codecs.telemetry_schema import Platforms
+from brasidas.config import ConfigError
 from brasidas.messages import (
     LightsState,
     OverrideState,
@@ -237,6 +238,23 @@ def setup_directory(ctx: PlatformContext) -> discovery.PlatformDirectory:
     return directory
 
 
+def check_beacon_fits(platform_id: str, signaling_url: str, key: bytes | None) -> None:
+    """Refuse to start (ConfigError) when the largest beacon this platform can send, with its id
+    and signaling URL, would not fit: it would start, then fail every beacon."""
+    largest = beacon_codec.Beacon(
+        platform_id,
+        signaling_url,
+        StatusWord.decode(0xFFFFFFFF),
+        0xFFFFFFFF,
+        0xFFFFFFFF,
+        (-89.9999999, -179.9999999),
+    )
+    try:
+        beacon_codec.encode(largest, key if key is not None else bytes(32))
+    except ValueError as err:
+        raise ConfigError("platform.id", f"with signaling URL {signaling_url}: {err}") from None
+
+
 async def async_setup(ctx: PlatformContext) -> None:
     if not ctx.config.beacon.enabled:
         return
@@ -244,6 +262,7 @@ async def async_setup(ctx: PlatformContext) -> None:
         raise RuntimeError(
             "the beacon advertises signaling's URL: set up platformd.signaling first"
         )
+    check_beacon_fits(ctx.config.platform.id, ctx.signaling_url, ctx.fleet_key)
     if ctx.config.beacon.listen:
         setup_directory(ctx)
     advertiser = BeaconAdvertiser(ctx)

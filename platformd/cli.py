@@ -102,6 +102,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         _LOGGER.warning("running INSECURE: no fleet key, anyone on the network can connect")
     try:
         asyncio.run(run_daemon(config, fleet_key))
+    except ConfigError as err:  # found at start: the id and URL as the beacon carries them
+        print(f"brasidas-platform: {err}", file=sys.stderr)
+        return 2
     except OSError as err:
         print(f"brasidas-platform: {err}", file=sys.stderr)
         return 1

@@ -19,7 +19,14 @@ Each session that starts a stream gets its own copy: the NavCam, the microphone 
 camera are sent to every destination asked for (``multiudpsink``), and the platform listens
 for the station's voice while any session wants it. A session's stop (or its end) ends its
 copy only; a stream stops when nobody wants it any more. Pausing and the framerate act on
-every copy: control methods, for the station holding control (platformd.authority).
+every copy: control methods, for the station holding control (platformd.authority). A stream
+paused stays paused until the station holding control resumes it: another's start adds its
+copy, paused with the rest.
+
+A station has a stream sent to its own address or to the platform's loopback, or to one of
+``security.stream_destinations``: never to a third host (an amplifier) nor to another station
+(doubling its traffic). A destination without a route is refused at the request, before it can
+fail the sink that every station's copy shares.
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ import asyncio
 import ipaddress
 import logging
 import re
+import socket
 from collections.abc import Awaitable, Coroutine
 from typing import Any
 
@@ -56,6 +64,7 @@ from platformd.automation import report_switch
 from platformd.commands import SystemCommand
 from platformd.context import PlatformContext
 from platformd.session_table import Session
+from platformd.telemetry.methods import allowed_host
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -82,6 +91,8 @@ class MediaService(Actor):
             engaged_fps=navcam.framerate, idle_fps=navcam.idle_framerate, limit=navcam.framerate
         )
         self._group: asyncio.TaskGroup | None = None
+        self.paused: set[str] = set()
+        """Streams paused by control: only the station holding control resumes them."""
         self.retry = True
         """Failed streams are rebuilt with backoff (10.10)."""
         if navcam.enabled:
@@ -195,6 +206,9 @@ class MediaService(Actor):
             host = host_from_payload(command.payload, _peer_host(command.session))
         except PayloadError as err:
             return CommandResult(False, str(err))
+        refusal = self.destination_refusal(host, command.session)
+        if refusal is not None:
+            return CommandResult(False, refusal)
 
         async def start_all() -> CommandResult:
             states = {}
@@ -294,10 +308,38 @@ class MediaService(Actor):
             stream.set_destinations(list(viewers.values()))
         else:
             viewers[session_id] = ("", 0)  # the platform's own address: nothing to choose
+        if name in self.paused and not self._controls(session_id):
+            return stream.state  # its copy joins the paused stream: resuming is control
+        self.paused.discard(name)
         return await stream.start()
 
     async def pause_stream(self, name: str) -> StreamState:
-        return await self.get(name).pause()
+        """Pause every copy (control: the caller holds it); resumed by control only."""
+        stream = self.get(name)
+        state = await stream.pause()
+        if state is StreamState.PAUSED:
+            self.paused.add(name)
+        return state
+
+    def _controls(self, session_id: str | None) -> bool:
+        """``session_id`` may resume a paused stream: the platform itself, the session holding
+        control, or anyone while nobody does."""
+        controller = self.ctx.authority.controller
+        return session_id is None or controller is None or controller.session_id == session_id
+
+    def destination_refusal(self, host: str, session: Session | None) -> str | None:
+        """Why ``session`` may not have streams sent to ``host`` (a literal address or a host
+        name), or None. The platform itself (``session`` None) sends anywhere."""
+        if session is None:
+            return None
+        peer = _peer_host(session)
+        allowed = self.ctx.config.security.stream_destinations
+        if not (allowed_host(host, peer) or in_destinations(host, allowed)):
+            return (
+                f"streams go to the caller's own address ({peer}) or loopback, not {host} "
+                "(security.stream_destinations names others)"
+            )
+        return unroutable(host)
 
     async def stop_stream(self, name: str, *, session_id: str | None = None) -> StreamState:
         """Stop ``session_id``'s copy of a stream; the stream stops when nobody else wants it.
@@ -311,6 +353,7 @@ class MediaService(Actor):
                     stream.set_destinations(list(viewers.values()))
                 return stream.state
         viewers.clear()
+        self.paused.discard(name)
         return await stream.stop()
 
     def set_framerate(self, name: str, raw: Any) -> int:
@@ -339,6 +382,9 @@ class MediaService(Actor):
             host = check_host(host or _peer_host(session))
         except PayloadError as err:
             raise RpcError(INVALID_PARAMS, f"invalid params: {err}") from None
+        refusal = self.destination_refusal(host, session)
+        if refusal is not None:
+            raise RpcError(INVALID_PARAMS, f"invalid params: {refusal}")
         if port and not 1 <= port <= 65535:
             raise RpcError(INVALID_PARAMS, "invalid params: port must be 1-65535")
         await self.start_stream(self._rpc_name(name), host, port, session_id=session_id)
@@ -397,6 +443,31 @@ def check_host(host: str) -> str:
     if not _HOSTNAME.match(host):
         raise PayloadError(f"'{host}' is not an IP address or host name")
     return host
+
+
+def unroutable(host: str) -> str | None:
+    """Why datagrams to ``host`` (a literal address) cannot leave, or None: the kernel's route
+    lookup, as the sink's first send would make it (a host name is left to the sink)."""
+    try:
+        address = ipaddress.ip_address(host)
+    except ValueError:
+        return None
+    family = socket.AF_INET6 if address.version == 6 else socket.AF_INET
+    with socket.socket(family, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.connect((host, 9))  # no datagram is sent: connect only routes
+        except OSError as err:
+            return f"no route to {host}: {err.strerror or err}"
+    return None
+
+
+def in_destinations(host: str, allowed: tuple[str, ...]) -> bool:
+    """``host`` is an address within one of ``allowed`` (addresses or networks)."""
+    try:
+        address = ipaddress.ip_address(host)
+    except ValueError:
+        return False
+    return any(address in ipaddress.ip_network(item, strict=False) for item in allowed)
 
 
 def _summary(states: dict[str, StreamState]) -> CommandResult:

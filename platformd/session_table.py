@@ -16,8 +16,9 @@ class Session:
     last_seen: float
     """The last call (heartbeat): a session silent for ``signaling.session_timeout`` ends."""
     last_velocity: float = 0.0
-    """The last authentic velocity datagram of this session (same clock): the failsafe ladder
-    takes it, like a call, as a sign that the link works."""
+    """The last velocity datagram of this session accepted with its session's tag (same clock):
+    the failsafe ladder takes it, like a call, as a sign that the link works; a dropped one
+    (replayed, stale, held) never refreshes it."""
 
 
 @dataclass

@@ -140,8 +140,12 @@ class SessionManager(Actor):
         proof: str = "",
     ) -> dict[str, Any]:
         """Open a session; returns it with the platform's parameters and capabilities."""
-        if not station_id or len(station_id) > 64:
-            raise RpcError(INVALID_PARAMS, "invalid params: station_id must be 1-64 characters")
+        if not station_id or len(station_id) > 64 or not station_id.isprintable():
+            raise RpcError(
+                INVALID_PARAMS,
+                "invalid params: station_id must be 1-64 printable characters (no control "
+                "characters)",
+            )
         key = self.ctx.fleet_key
         platform_id = self.ctx.config.platform.id
         token = secrets.token_hex(16)

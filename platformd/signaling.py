@@ -19,6 +19,7 @@ from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, Rp
 from brasidas.codecs.telemetry_schema import SCHEMA_VERSION, snapshot_to_json
 from brasidas.config import SignalingSection
 from brasidas.rpc import ADMISSION, add_rpc_routes, serve_app
+from platformd.authority import CONTROL_REFUSED
 from platformd.context import PlatformContext
 from platformd.sessions import platform_parameters, velocity_endpoint
 
@@ -42,10 +43,14 @@ class Signaling:
         return result.as_dict()
 
     async def set_manual_override(self, call: CallContext, engaged: bool) -> bool:
+        """True once done; a refusal is an error (CONTROL_REFUSED) naming who holds control,
+        never a bare false."""
         result = await self.ctx.commands.dispatch(
             MANUAL_OVERRIDE, "True" if engaged else "False", call.session
         )
-        return result.accepted
+        if not result.accepted:
+            raise RpcError(CONTROL_REFUSED, result.reason or "manual override refused")
+        return True
 
     async def set_lights(self, call: CallContext, which: str, on: bool) -> dict[str, Any]:
         """Main (10.6) or positional (10.7) lights; the seed's set_lights/set_pos_lights."""

@@ -4,8 +4,10 @@ A datagram moves the robot only when it parses, is in range, comes from the host
 session holding the manual override, carries that session's tag (unless running insecure),
 is newer than the last accepted one, and — when it carries its send time — is not older than
 ``velocity.max_age_ms`` on arrival (a burst of stale commands after a lag spike moves
-nothing). Everything else is dropped and counted by reason; the counters go on
-``VELOCITY_LINK_STATS`` and into telemetry. Accepted velocities go on ``TELEOP_VELOCITY``; the
+nothing). Everything else is dropped and counted by reason, and refreshes nothing: only an
+accepted, session-tagged packet is the holder's sign of life for the failsafe ladder, and only
+accepted ones are aged for the speed cap. The counters go on ``VELOCITY_LINK_STATS`` and into
+telemetry. Accepted velocities go on ``TELEOP_VELOCITY``; the
 motion arbiter decides whether they reach the motors. The measured age of the holder's packets
 goes on ``COMMAND_AGE``: the speed cap's command latency.
 """
@@ -112,6 +114,14 @@ class VelocityGate:
             self._ages.append((now, age))
         return result
 
+    def proves_life(self, result: PvelSentence | DropReason) -> bool:
+        """``result`` (of :meth:`admit`) is a sign of the holder's life: accepted, and tagged
+        with its session key. No drop counts (a replayed, stale, duplicate or held packet
+        carries a genuine tag too), nor an untagged packet of an insecure platform (its source
+        address is all that vouches for it)."""
+        holder = self.holder
+        return isinstance(result, PvelSentence) and holder is not None and holder.key is not None
+
     def command_age(self, now: float) -> CommandAge | None:
         """The oldest and the latest age of the sentences accepted in the last
         :data:`AGE_WINDOW` before ``now``; None without any that carried its send time."""
@@ -166,10 +176,6 @@ def normalize_host(host: str) -> str:
     return str(address)
 
 
-_AUTHENTIC = frozenset({DropReason.HELD, DropReason.OUT_OF_ORDER, DropReason.STALE})
-"""Dropped, but from the holder with its tag: the link works (if late)."""
-
-
 class _VelocityProtocol(asyncio.DatagramProtocol):
     def __init__(self, on_datagram: Callable[[bytes, str], None]) -> None:
         self._on_datagram = on_datagram
@@ -208,10 +214,9 @@ class VelocityReceiver(Actor):
         """Socket callback: admit, then publish. Runs on the loop."""
         now = self._clock()
         result = self.gate.admit(data, host, now)
-        if isinstance(result, DropReason) and result in _AUTHENTIC:
-            self._heard_from_holder()
         if isinstance(result, PvelSentence):
-            self._heard_from_holder()
+            if self.gate.proves_life(result):
+                self._heard_from_holder()
             age = self.gate.last_age_ms
             if age is not None and (self._age is None or age > self._age.max_ms):
                 self.publish_age(now)  # an older packet than any of the window: at once
@@ -225,8 +230,9 @@ class VelocityReceiver(Actor):
                 )
 
     def _heard_from_holder(self) -> None:
-        # The holder's own packets prove its link as a heartbeat does (for the failsafe ladder,
-        # not for the session's timeout): at 20 Hz, a short cut is not taken for a lost link.
+        # The holder's accepted packets prove its link as a heartbeat does (for the failsafe
+        # ladder, not for the session's timeout): at 20 Hz, a short cut is not taken for a lost
+        # link. A dropped one proves nothing: a third host replays captured ones, tag and all.
         holder = self.gate.holder
         session = self.ctx.session(holder.session_id) if holder is not None else None
         if session is not None:

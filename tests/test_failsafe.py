@@ -205,3 +205,60 @@ async def test_with_action_hold_the_silent_holder_keeps_its_session_and_re_engag
             await wait_until(lambda: bool(commands) and commands[-1] == Velocity(0.4, 0.0))
     finally:
         await conn.close()
+
+
+async def test_replayed_velocity_never_holds_off_the_ladder(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    """Issue 19, item 1: while the holder is silent, its captured packets replayed from its
+    own address (duplicates, stale, held) are dropped and counted, and none counts as life:
+    the ladder holds on time and stays held."""
+    daemon = await platform_factory(
+        quiet_platform_config(*ladder_config("failsafe.hold_after=0.4")), fleet_key
+    )
+    steps: list[tuple[float, str]] = []
+    commands: list[Velocity] = []
+    daemon.bus.subscribe(topics.MOTOR_COMMAND, commands.append)
+    daemon.bus.subscribe(
+        topics.FAILSAFE_STATE, lambda s: steps.append((time.monotonic(), s.step.value))
+    )
+    conn = await engaged_station(daemon, fleet_key)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    target = ("127.0.0.1", daemon.ctx.velocity_port)
+    encoder = pvel.PvelEncoder(key=conn.session_key, session_id=conn.session_id)
+    captured = [encoder.encode(0.5, 0.0) for _ in range(5)]
+    try:
+        for datagram in captured:
+            sock.sendto(datagram, target)
+        await wait_until(lambda: Velocity(0.5, 0.0) in commands)
+        session = daemon.ctx.sessions.sessions[conn.session_id]
+        last_life = max(session.last_seen, session.last_velocity)
+        replayed = 0
+
+        def held() -> bool:
+            nonlocal replayed
+            for datagram in captured:  # the attacker's loop: every 10 ms, as fast as polled
+                sock.sendto(datagram, target)
+                replayed += 1
+            return any(step == "hold" for _, step in steps)
+
+        await wait_until(held, timeout=5)
+        hold_at = next(at for at, step in steps if step == "hold")
+        assert hold_at - last_life >= 0.4
+        assert max(session.last_seen, session.last_velocity) == last_life
+        # The replays go on after the hold: counted as held, and nothing moves.
+        for datagram in captured:
+            sock.sendto(datagram, target)
+            replayed += 1
+        await wait_until(
+            lambda: (
+                velocities_dropped(daemon, "out_of_order") + velocities_dropped(daemon, "held")
+                == replayed
+            )
+        )
+        assert commands[-1] == STOP
+        failsafe = daemon.bus.last(topics.FAILSAFE_STATE)
+        assert failsafe is not None and failsafe.step is FailsafeStep.HOLD
+    finally:
+        sock.close()
+        await conn.close()

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hostile import Capture
 from netns import (
     QUIET,
     SIGNALING_PORT,
@@ -34,7 +35,7 @@ from netns import (
 from brasidas.codecs import beacon as beacon_codec
 from brasidas.netem.core import Profile
 from brasidas.netem.netns import BROADCAST, TestNetwork
-from brasidas.netem.relay import DOWN, UP, Datagram, parse
+from brasidas.netem.relay import DOWN, UP, Datagram
 from brasidas.status import StatusWord
 
 pytestmark = requires_netns
@@ -47,30 +48,6 @@ HOLD_AFTER = 1.5  # failsafe.hold_after's default
 RELEASE_AFTER = 3.0
 """The ladder's release comes sooner than its 10 s default, and the session outlives it
 (``signaling.session_timeout`` 8 s), so the test sees the ladder's own step, not the session's end."""
-
-
-class Capture:
-    """What the link emulator delivered, parsed: (direction, time, datagram)."""
-
-    def __init__(self) -> None:
-        self.seen: list[tuple[str, float, Datagram]] = []
-
-    def tap(self, direction: str, frame: bytes, now: float) -> None:
-        datagram = parse(frame)
-        if datagram is not None:
-            self.seen.append((direction, now, datagram))
-
-    def select(
-        self, direction: str, protocol: str, port: int, *, source: bool = False
-    ) -> list[tuple[float, Datagram]]:
-        return [
-            (now, d)
-            for seen_direction, now, d in list(self.seen)
-            if seen_direction == direction
-            and d.protocol == protocol
-            and (d.source[1] if source else d.destination[1]) == port
-            and d.payload
-        ]
 
 
 @pytest.fixture(scope="module")

@@ -18,6 +18,7 @@ from brasidas.codecs.jsonrpc import RpcError
 from brasidas.messages import CommandResult
 from brasidas.rpc import RpcClient
 from platformd.app import PlatformDaemon
+from platformd.authority import CONTROL_REFUSED
 from platformd.commands import DuplicateCommandError, SystemCommand
 from stationd.client import AuthenticationError, PlatformConnection
 
@@ -270,7 +271,9 @@ async def test_authority_is_asked_for_every_way_a_command_comes_in(
     try:
         answer = await observer.call("issue_system_command", group=10, command=6, payload="ON")
         assert answer == {"accepted": False, "reason": "held by holder", "result": None}
-        assert await observer.call("set_manual_override", engaged=True) is False
+        with pytest.raises(RpcError) as refusal:
+            await observer.call("set_manual_override", engaged=True)
+        assert refusal.value.code == CONTROL_REFUSED and "held by holder" in str(refusal.value)
         assert (await observer.call("set_lights", which="main", on=True))["accepted"] is False
         assert daemon.bus.last(topics.OVERRIDE_STATE).engaged is False
         assert await holder.call("set_manual_override", engaged=True) is True
@@ -328,7 +331,11 @@ async def test_manual_override_is_exclusive_and_released_on_timeout(
     await second.open()
     try:
         assert await first.call("set_manual_override", engaged=True) is True
-        assert await second.call("set_manual_override", engaged=True) is False
+        # Refused with the holder's name (issue 19, item 9), not a bare false.
+        with pytest.raises(RpcError) as refusal:
+            await second.call("set_manual_override", engaged=True)
+        assert refusal.value.code == CONTROL_REFUSED
+        assert "control held by station first" in str(refusal.value)
         refused = await second.call("issue_system_command", group=10, command=0, payload="False")
         assert refused["accepted"] is False
         assert "control held by station first" in refused["reason"]

@@ -12,6 +12,7 @@ import pytest
 from conftest import free_tcp_port, quiet_platform_config, running_station, wait_until
 
 from brasidas import topics
+from brasidas.codecs.jsonrpc import RpcError
 from brasidas.messages import Velocity
 from platformd.app import PlatformDaemon
 from stationd.client import PlatformConnection
@@ -112,8 +113,9 @@ async def test_a_station_back_on_a_new_session_takes_its_control_back_another_ca
         assert lost.session_id in daemon.ctx.sessions.sessions
         await back.open()
         await other.open()
-        refused = await other.call("set_manual_override", engaged=True)
-        assert refused is False and daemon.ctx.authority.station_id == "alpha"
+        with pytest.raises(RpcError, match="control held by station alpha"):
+            await other.call("set_manual_override", engaged=True)
+        assert daemon.ctx.authority.station_id == "alpha"
         # alpha on its new session re-engages, no --force needed: its old override goes.
         assert await back.call("set_manual_override", engaged=True) is True
         override = daemon.bus.last(topics.OVERRIDE_STATE)

@@ -17,6 +17,7 @@ import inspect
 import ipaddress
 import itertools
 import math
+import os
 import tomllib
 import typing
 from collections.abc import Callable, Iterable, Mapping
@@ -25,10 +26,14 @@ from pathlib import Path
 from typing import Any, TypeVar
 from urllib.parse import urlsplit
 
+from brasidas.files import FileReadError, read_regular_file
+
 C = TypeVar("C")
 T = TypeVar("T")
 
 _CHECKS = "brasidas.checks"
+MAX_CONFIG_BYTES = 1024 * 1024
+"""A config file is a few kilobytes; a larger one is refused, not read."""
 
 
 class ConfigError(Exception):
@@ -149,6 +154,17 @@ def _is_multicast(value: str) -> bool:
 
 
 ip_address = Check("an IP address", _is_ip)
+
+
+def _is_network(value: str) -> bool:
+    try:
+        ipaddress.ip_network(value, strict=False)
+    except ValueError:
+        return False
+    return True
+
+
+ip_network = Check("an IP address or network (address/prefix)", _is_network)
 multicast_address = Check("a multicast IP address", _is_multicast)
 host_name = Check("an IP address or a host name", _is_host)
 
@@ -194,13 +210,21 @@ def load_config(cls: type[C], path: str | Path | None = None, overrides: Iterabl
     values: dict[str, dict[str, tuple[Any, str]]] = {}
     if path is not None:
         source = str(path)
+        if not os.path.lexists(path):
+            raise ConfigError("", "file not found", source)
         try:
-            with open(path, "rb") as file:
-                data = tomllib.load(file)
-        except FileNotFoundError:
-            raise ConfigError("", "file not found", source) from None
-        except OSError as err:
-            raise ConfigError("", f"cannot read: {err.strerror}", source) from None
+            raw = read_regular_file(path, "config", MAX_CONFIG_BYTES)
+        except FileReadError as err:
+            raise ConfigError("", str(err).removeprefix(f"{source}: "), source) from None
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError as err:
+            line = raw[: err.start].count(b"\n") + 1
+            raise ConfigError(
+                "", f"not UTF-8 text (byte 0x{raw[err.start]:02x} on line {line})", source
+            ) from None
+        try:
+            data = tomllib.loads(text)
         except tomllib.TOMLDecodeError as err:
             raise ConfigError("", f"invalid TOML: {err}", source) from None
         _collect(cls, data, source, values)

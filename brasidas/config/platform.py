@@ -20,12 +20,11 @@ from brasidas.config.loader import (
     fraction,
     host_name,
     ip_address,
+    ip_network,
     non_empty,
-    non_negative,
     one_of,
     ordered,
     ordered_across,
-    positive,
     remote_port,
     setting,
     url,
@@ -81,6 +80,12 @@ def _gpio_line(value: str) -> bool:
     return True
 
 
+platform_id = Check(
+    "1-32 bytes of printable text",
+    lambda value: 0 < len(value.encode()) <= 32 and value.isprintable(),
+)
+"""A beacon (at most 100 bytes) carries the id and the signaling URL."""
+
 lights_output = Check(
     'empty, one controller output letter (e.g. "C") or a GPIO line "gpio:CHIP:LINE" '
     '(e.g. "gpio:/dev/gpiochip0:17"; libgpiod, sysfs paths are not accepted)',
@@ -94,8 +99,9 @@ lights_output = Check(
 
 @dataclass(frozen=True)
 class PlatformSection:
-    id: str = setting("brasidas-1", non_empty)
-    """Platform id: unique on the network, shown in discovery."""
+    id: str = setting("brasidas-1", platform_id)
+    """Platform id: unique on the network, shown in discovery. At most 32 bytes (UTF-8), so
+    that a beacon carrying it stays within its 100 bytes."""
     model: str = "Brasidas UGV"
     max_speed_kmh: float = setting(6.0, above(0, most=100))
     """Top speed at full command (R-2.1), reported to stations."""
@@ -107,6 +113,10 @@ class SecuritySection:
     """Fleet key path. Empty: $XDG_STATE_HOME/brasidas/fleet.key."""
     insecure: bool = False
     """Run without a fleet key: no beacon HMAC, no authenticated connect. Never in the field."""
+    stream_destinations: tuple[str, ...] = setting((), each(ip_network))
+    """Where a station may have a stream sent besides its own address and loopback: addresses
+    or networks (``198.51.100.7``, ``198.51.100.0/24``, a multicast group). Empty: none — a
+    session cannot turn the platform's streams on a third host."""
 
 
 @dataclass(frozen=True)
@@ -126,7 +136,7 @@ class SignalingSection:
     except the override holder's while the failsafe ladder holds for it: the ladder's release
     step (``failsafe.release_after``, ``failsafe.action``) decides, and its session ends after
     the release. Must exceed ``failsafe.hold_after``."""
-    heartbeat_interval: float = setting(1.0, above(0, most=600))
+    heartbeat_interval: float = setting(1.0, at_least(0.05, most=600))
     """How often stations are told to send heartbeats."""
     max_request_bytes: int = setting(65536, at_least(1024, most=16 * 1024 * 1024))
     command_timeout: float = setting(3.0, above(0, most=60))
@@ -174,9 +184,9 @@ class BeaconSection:
     destinations: tuple[str, ...] = setting(("127.255.255.255",), non_empty, each(ip_address))
     """Where beacons go: broadcast, multicast group (R-0.6.1) or unicast addresses. The default
     is the loopback broadcast; deployments name the mesh's broadcast address or a group."""
-    min_interval: float = setting(0.6, above(0, most=60))
-    max_interval: float = setting(3.0, above(0, most=3600))
-    move_threshold_m: float = setting(1.0, non_negative)
+    min_interval: float = setting(0.6, at_least(0.05, most=60))
+    max_interval: float = setting(3.0, at_least(0.05, most=3600))
+    move_threshold_m: float = setting(1.0, at_least(0, most=10000))
     interface_host: str = setting("127.0.0.1", ip_address)
     """Local address beacons are sent from (picks the interface, multicast ones included)."""
     multicast_ttl: int = setting(1, at_least(1, most=255))
@@ -241,9 +251,9 @@ class VelocitySection:
     port: int = setting(21001, bind_port)
     advertise_host: str = setting("", empty_or(host_name))
     """Host given to stations by get_velocity_connection_info. Empty: ``host``."""
-    deadman: float = setting(0.3, above(0, most=10))
+    deadman: float = setting(0.3, at_least(0.02, most=10))
     """In teleop, no valid velocity for this long commands zero."""
-    stats_interval: float = setting(1.0, above(0, most=60))
+    stats_interval: float = setting(1.0, at_least(0.1, most=60))
     """How often the receiver's counters are published for telemetry (when they changed)."""
     max_age_ms: float = setting(500.0, above(0, most=10000))
     """A velocity packet older than this on arrival (by its send time) is dropped and counted
@@ -257,7 +267,7 @@ class FailsafeSection:
 
     RULES: ClassVar[tuple[Rule, ...]] = (ordered("hold_after", "release_after"),)
 
-    hold_after: float = setting(1.5, above(0, most=60))
+    hold_after: float = setting(1.5, at_least(0.05, most=60))
     """No call (heartbeat) from the override holder for this long: hold (motors zero,
     payload safe, velocities dropped until the operator re-engages)."""
     release_after: float = setting(10.0, above(0, most=3600))
@@ -274,9 +284,10 @@ class SafetySection:
 
     stop_distance_m: float = setting(1.0, above(0, most=100))
     """The robot must stop within this after the operator sees a reason to."""
-    reaction_s: float = setting(0.25, non_negative)
-    """The operator's reaction time (the seed's 250 ms)."""
-    braking_mps2: float = setting(4.2, above(0, most=50))
+    reaction_s: float = setting(0.25, at_least(0, most=10))
+    """The operator's reaction time (the seed's 250 ms); 10 s at most (a larger one is a typo,
+    and the cap would round to zero or overflow)."""
+    braking_mps2: float = setting(4.2, at_least(0.1, most=50))
     """Deceleration when stopping. 4.2 m/s² is what makes the seed's budget exact: 6 km/h
     stops within 1 m after 250 ms reaction and 150 ms video latency."""
     worst_latency_ms: float = setting(400.0, at_least(0, most=60000))
@@ -343,11 +354,11 @@ class ImuSection:
 class TelemetrySection:
     RULES: ClassVar[tuple[Rule, ...]] = (ordered("battery_low_v", "battery_high_v"),)
 
-    rate_hz: float = setting(5.0, above(0, most=50))
+    rate_hz: float = setting(5.0, at_least(0.1, most=50))
     """Datagrams per second pushed to a station that asked (request_telemetry)."""
-    battery_low_v: float = setting(23.0, positive)
+    battery_low_v: float = setting(23.0, above(0, most=100))
     """Pack voltage below which the coarse battery level is LOW (24 V lead-acid pack)."""
-    battery_high_v: float = setting(25.0, positive)
+    battery_high_v: float = setting(25.0, above(0, most=100))
     """Pack voltage at or above which the coarse level is HIGH; MEDIUM in between."""
     battery_monitor: bool = True
     """Report the coarse battery level when the controller's status has no 20.4 monitor flag."""

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 from brasidas.config.loader import (
+    Check,
     Rule,
     above,
     at_least,
@@ -16,17 +17,20 @@ from brasidas.config.loader import (
     host_name,
     ip_address,
     multicast_address,
-    non_empty,
     ordered,
-    positive,
     setting,
 )
 from brasidas.config.platform import SecuritySection
 
+station_id = Check(
+    "1-64 printable characters", lambda value: 0 < len(value) <= 64 and value.isprintable()
+)
+"""What a platform's ``connect`` accepts."""
+
 
 @dataclass(frozen=True)
 class StationSection:
-    id: str = setting("station-1", non_empty)
+    id: str = setting("station-1", station_id)
     api_host: str = setting("127.0.0.1", ip_address)
     """The station daemon's local API (CLI and browser console). Loopback only by default."""
     api_port: int = setting(8780, bind_port)
@@ -124,9 +128,9 @@ class TelemetryReceiverSection:
     """Where telemetry is received. Empty: 127.0.0.1 for a platform on loopback, else 0.0.0.0."""
     rate_hz: float = setting(0.0, at_least(0, most=50))
     """Datagrams per second asked of platforms. 0: the platform's configured rate."""
-    battery_low_v: float = setting(23.0, positive)
+    battery_low_v: float = setting(23.0, above(0, most=100))
     """Low battery warning below this pack voltage (also raised when the platform says LOW)."""
-    battery_clear_v: float = setting(23.4, positive)
+    battery_clear_v: float = setting(23.4, above(0, most=100))
     """The low battery warning clears at or above this voltage."""
     controller_max_c: float = setting(70.0, at_least(-40, most=150))
     """Controller over-temperature warning at or above this heatsink temperature."""

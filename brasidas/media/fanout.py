@@ -3,7 +3,8 @@
 The NavCam, the microphone and the payload camera end in one ``multiudpsink`` whose
 ``clients`` are every destination asked for: adding or removing one changes the property
 live, so a second station's start never takes the stream from the first and one station's
-stop never stops another's copy.
+stop never stops another's copy, and a destination that fails (no route) fails its own packets
+only, never the sink.
 """
 
 from __future__ import annotations
@@ -63,8 +64,15 @@ class FanOutStream(PipelineStream, Generic[D]):
 
     def make_sink(self) -> Any:
         """The pipeline's last element, sending to every destination (kept for live changes)."""
+        # auto-multicast off: a sender needs no group membership, and joining one the host has
+        # no route for fails the whole sink, every station's copy with it.
         self._sink = make(
-            "multiudpsink", "sink", clients=self.settings.clients(), sync=False, async_=False
+            "multiudpsink",
+            "sink",
+            clients=self.settings.clients(),
+            sync=False,
+            async_=False,
+            auto_multicast=False,
         )
         return self._sink
 
