@@ -11,10 +11,12 @@ a corner are not lost to rounding.
 
 from __future__ import annotations
 
+import copy
 import heapq
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -23,6 +25,10 @@ from shapely import LinearRing, MultiPolygon, Point, Polygon, unary_union
 from shapely.geometry.base import BaseGeometry
 from shapely.geometry.polygon import orient
 
+CHUNK = 500_000
+"""Node pairs checked at once (bounds the build's memory: ~100 bytes a pair)."""
+SAMPLE_ROUNDS = 4
+"""Rounds of points tested along a segment before the whole segment is (1, 2, 4, 8 points)."""
 CHECK_MARGIN = 0.98
 """Visibility is checked against obstacles inflated by this fraction of the clearance."""
 MITRE_LIMIT = 2.0
@@ -45,25 +51,115 @@ class Path:
 
 
 class Planner:
-    """The visibility graph of one map at one clearance; :meth:`plan` is cheap, building is not."""
+    """The visibility graph of one map at one clearance; :meth:`plan` is cheap, building is not
+    (seconds for thousands of buildings: build in a worker thread). :meth:`changed` gives the
+    graph with keep-outs added or removed, reusing what they do not touch."""
 
-    def __init__(self, boundary: Polygon, keepouts: Iterable[Polygon], clearance: float) -> None:
+    def __init__(
+        self,
+        boundary: Polygon | MultiPolygon,
+        keepouts: Mapping[str, BaseGeometry] | Iterable[BaseGeometry],
+        clearance: float,
+    ) -> None:
         if clearance < 0:
             raise ValueError("clearance must be >= 0")
-        zones = list(keepouts)
+        zones = (
+            dict(keepouts)
+            if isinstance(keepouts, Mapping)
+            else dict((str(index), zone) for index, zone in enumerate(keepouts))
+        )
         self.clearance = clearance
-        self._escape = _prepared(boundary.difference(unary_union(zones)) if zones else boundary)
-        self._free = _prepared(_free_space(boundary, zones, clearance * CHECK_MARGIN))
-        self._blocked_by = [(_inflate(zone, clearance * CHECK_MARGIN), zone) for zone in zones]
-        nodes, before, after = _corners(_free_space(boundary, zones, clearance))
-        self.nodes: npt.NDArray[np.float64] = nodes
-        self._before = before
-        self._after = after
-        self._edges = self._visibility()
+        self._boundary = boundary
+        self._zones = zones
+        self._inflated = {key: _inflate(zone, clearance) for key, zone in zones.items()}
+        self._checked = {
+            key: _inflate(zone, clearance * CHECK_MARGIN) for key, zone in zones.items()
+        }
+        self._shrunk = _inflate(boundary, -clearance) if clearance > 0 else boundary
+        self._shrunk_checked = (
+            _inflate(boundary, -clearance * CHECK_MARGIN) if clearance > 0 else boundary
+        )
+        self._space = _minus(self._shrunk, list(self._inflated.values()))
+        self._escape = _prepared(_minus(boundary, list(zones.values())))
+        self._free = _prepared(_minus(self._shrunk_checked, list(self._checked.values())))
+        self.nodes, self._before, self._after = _corners(self._space)
+        self._edge_u, self._edge_v = self._visible_pairs(_pair_blocks(self.nodes))
+        self._edges = self._adjacency()
 
     @property
     def edge_count(self) -> int:
-        return sum(len(edges) for edges in self._edges) // 2
+        return len(self._edge_u)
+
+    def changed(self, add: Mapping[str, BaseGeometry], remove: Iterable[str] = ()) -> Planner:
+        """A planner for the same map with keep-outs added (by id) and removed (by id): the
+        free space is cut or reopened where they are, and only the graph's edges that can
+        have changed are checked again. This planner is left as it was."""
+        new = copy.copy(self)
+        new._zones, new._inflated, new._checked = (
+            dict(self._zones), dict(self._inflated), dict(self._checked)
+        )  # fmt: skip
+        reopened: list[BaseGeometry] = []
+        space, free, escape = self._space, self._free, self._escape
+        for key in remove:
+            zone = new._zones.pop(key)
+            inflated, checked = new._inflated.pop(key), new._checked.pop(key)
+            space = _reopen(space, self._shrunk, inflated, new._inflated)
+            free = _reopen(free, self._shrunk_checked, checked, new._checked)
+            escape = _reopen(escape, self._boundary, zone, new._zones)
+            reopened.append(checked)
+        for key, zone in add.items():
+            new._zones[key] = zone
+            new._inflated[key] = inflated = _inflate(zone, self.clearance)
+            new._checked[key] = _inflate(zone, self.clearance * CHECK_MARGIN)
+            space = space.difference(inflated)
+            free = free.difference(new._checked[key])
+            escape = escape.difference(zone)
+        new._space, new._free, new._escape = space, _prepared(free), _prepared(escape)
+        new.nodes, new._before, new._after = _corners(space)
+        # Nodes that are still there (same corner, same neighbours) keep their index's edges.
+        old = {
+            key: index
+            for index, key in enumerate(_node_keys(self.nodes, self._before, self._after))
+        }
+        moved = np.array(
+            [old.get(key, -1) for key in _node_keys(new.nodes, new._before, new._after)],
+            dtype=np.int64,
+        )
+        renumber = np.full(len(self.nodes) + 1, -1, dtype=np.int64)
+        kept = np.flatnonzero(moved >= 0)
+        renumber[moved[kept]] = kept
+        u, v = renumber[self._edge_u], renumber[self._edge_v]
+        alive = (u >= 0) & (v >= 0)
+        u, v = u[alive], v[alive]
+        if add:
+            cut = [new._checked[key] for key in add]
+            crossed = _crossing(new.nodes[u], new.nodes[v], cut)
+            if crossed.any():
+                still = shapely.covers(
+                    new._free, shapely.linestrings(_segments(new.nodes, u[crossed], v[crossed]))
+                )
+                crossed[np.flatnonzero(crossed)[still]] = False
+            u, v = u[~crossed], v[~crossed]
+        fresh = np.flatnonzero(moved < 0)
+        pairs_u: list[npt.NDArray[np.int64]] = [u]
+        pairs_v: list[npt.NDArray[np.int64]] = [v]
+        if len(fresh):  # new corners: against every node
+            rows, columns = np.meshgrid(fresh, np.arange(len(new.nodes)), indexing="ij")
+            a, b = rows.ravel(), columns.ravel()
+            keep = (a != b) & ~(np.isin(b, fresh) & (b < a))
+            found = new._visible_pairs([(a[keep], b[keep])])
+            pairs_u.append(found[0])
+            pairs_v.append(found[1])
+        if reopened and len(kept):  # old corners that may see each other through a gap
+            found = new._visible_pairs(_pair_blocks(new.nodes, kept, reopened))
+            pairs_u.append(found[0])
+            pairs_v.append(found[1])
+        u, v = np.concatenate(pairs_u), np.concatenate(pairs_v)
+        u, v = np.minimum(u, v), np.maximum(u, v)
+        unique = np.unique(u * (len(new.nodes) + 1) + v)
+        new._edge_u, new._edge_v = unique // (len(new.nodes) + 1), unique % (len(new.nodes) + 1)
+        new._edges = new._adjacency()
+        return new
 
     def plan(self, start: XY, goal: XY) -> Path:
         """The shortest path from ``start`` to ``goal``, or raise :class:`Unreachable`.
@@ -119,42 +215,47 @@ class Planner:
             return
         if not self._escape.covers(point):
             raise Unreachable("it is outside the boundary or in a keep-out zone")
-        for inflated, zone in self._blocked_by:
+        for key, inflated in self._checked.items():
             if inflated.covers(point):
                 raise Unreachable(
-                    f"it is {zone.exterior.distance(point):.1f} m from a keep-out zone "
-                    f"(clearance {self.clearance:g} m)"
+                    f"it is {self._zones[key].boundary.distance(point):.1f} m from a keep-out "
+                    f"zone (clearance {self.clearance:g} m)"
                 )
         raise Unreachable(f"it is closer than {self.clearance:g} m to the boundary")
 
     def _seen_from(self, point: XY, space: BaseGeometry) -> set[int]:
         if not len(self.nodes):
             return set()
-        segments = np.empty((len(self.nodes), 2, 2))
-        segments[:, 0, :] = point
-        segments[:, 1, :] = self.nodes
-        visible = shapely.covers(space, shapely.linestrings(segments))
+        starts = np.broadcast_to(np.asarray(point, dtype=np.float64), self.nodes.shape)
+        visible = _covered(space, starts, self.nodes)
         return set(np.flatnonzero(visible).tolist())
 
-    def _visibility(self) -> list[list[tuple[int, float]]]:
-        n = len(self.nodes)
-        edges: list[list[tuple[int, float]]] = [[] for _ in range(n)]
-        if n < 2:
-            return edges
-        i, j = np.triu_indices(n, k=1)
-        a, b = self.nodes[i], self.nodes[j]
-        d = b - a
-        keep = _tangent(d, self._before[i] - a, self._after[i] - a) & _tangent(
-            d, self._before[j] - b, self._after[j] - b
-        )
-        i, j = i[keep], j[keep]
-        segments = np.stack([self.nodes[i], self.nodes[j]], axis=1)
-        visible = shapely.covers(self._free, shapely.linestrings(segments))
-        i, j = i[visible], j[visible]
-        lengths = np.hypot(*(self.nodes[j] - self.nodes[i]).T)
-        for u, v, length in zip(i.tolist(), j.tolist(), lengths.tolist(), strict=True):
-            edges[u].append((v, length))
-            edges[v].append((u, length))
+    def _visible_pairs(
+        self, blocks: Iterable[tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]]
+    ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+        """The node pairs that are edges: both ends tangent, the segment in the free space."""
+        found_u, found_v = [], []
+        for i, j in blocks:
+            a, b = self.nodes[i], self.nodes[j]
+            d = b - a
+            keep = _tangent(d, self._before[i] - a, self._after[i] - a) & _tangent(
+                d, self._before[j] - b, self._after[j] - b
+            )
+            i, j = i[keep], j[keep]
+            visible = _covered(self._free, self.nodes[i], self.nodes[j])
+            found_u.append(i[visible])
+            found_v.append(j[visible])
+        if not found_u:
+            return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+        return np.concatenate(found_u), np.concatenate(found_v)
+
+    def _adjacency(self) -> list[list[tuple[int, float]]]:
+        edges: list[list[tuple[int, float]]] = [[] for _ in range(len(self.nodes))]
+        u, v = self._edge_u, self._edge_v
+        lengths = np.hypot(*(self.nodes[v] - self.nodes[u]).T) if len(u) else np.empty(0)
+        for a, b, length in zip(u.tolist(), v.tolist(), lengths.tolist(), strict=True):
+            edges[a].append((b, length))
+            edges[b].append((a, length))
         return edges
 
 
@@ -178,11 +279,117 @@ def _prepared(geometry: BaseGeometry) -> BaseGeometry:
     return geometry
 
 
-def _free_space(boundary: Polygon, zones: list[Polygon], margin: float) -> BaseGeometry:
-    space: BaseGeometry = _inflate(boundary, -margin) if margin > 0 else boundary
-    if zones:
-        space = space.difference(unary_union([_inflate(zone, margin) for zone in zones]))
-    return space
+def _minus(space: BaseGeometry, zones: list[BaseGeometry]) -> BaseGeometry:
+    return space.difference(unary_union(zones)) if zones else space
+
+
+def _reopen(
+    space: BaseGeometry, whole: BaseGeometry, region: BaseGeometry, others: Mapping[str, Any]
+) -> BaseGeometry:
+    """``space`` with ``region`` given back, except where ``whole`` ends or other zones are."""
+    back = whole.intersection(region)
+    near = [zone for zone in others.values() if zone.intersects(region)]
+    return space.union(_minus(back, near))
+
+
+def _pair_blocks(
+    nodes: npt.NDArray[np.float64],
+    among: npt.NDArray[np.int64] | None = None,
+    through: list[BaseGeometry] | None = None,
+) -> Iterator[tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]]:
+    """Every pair i < j of the nodes (of ``among``), in blocks of rows of about
+    :data:`CHUNK` pairs (memory stays bounded on a large map); with ``through``, only the
+    pairs whose segment crosses one of those geometries' bounding boxes."""
+    rows = np.arange(len(nodes), dtype=np.int64) if among is None else np.sort(among)
+    count = len(rows)
+    step = max(1, CHUNK // max(count, 1))
+    for first in range(0, count, step):
+        block = rows[first : first + step]
+        i, j = np.meshgrid(block, rows, indexing="ij")
+        keep = i < j
+        i, j = i[keep], j[keep]
+        if through is not None:
+            meets = np.zeros(len(i), dtype=bool)
+            for geometry in through:
+                meets |= _meets_box(nodes[i], nodes[j], geometry.bounds)
+            i, j = i[meets], j[meets]
+        if len(i):
+            yield i, j
+
+
+def _meets_box(
+    a: npt.NDArray[np.float64], b: npt.NDArray[np.float64], box: tuple[float, float, float, float]
+) -> npt.NDArray[np.bool_]:
+    """Which segments a-b meet an axis-aligned box (the slab test)."""
+    low = np.zeros(len(a))
+    high = np.ones(len(a))
+    for axis, (lo, hi) in enumerate(((box[0], box[2]), (box[1], box[3]))):
+        start, delta = a[:, axis], b[:, axis] - a[:, axis]
+        flat = delta == 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (lo - start) / delta
+            t2 = (hi - start) / delta
+        inside = (start >= lo) & (start <= hi)
+        enter = np.where(flat, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2))
+        leave = np.where(flat, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2))
+        low = np.maximum(low, enter)
+        high = np.minimum(high, leave)
+    result: npt.NDArray[np.bool_] = low <= high
+    return result
+
+
+def _segments(
+    nodes: npt.NDArray[np.float64], u: npt.NDArray[np.int64], v: npt.NDArray[np.int64]
+) -> npt.NDArray[np.float64]:
+    return np.stack([nodes[u], nodes[v]], axis=1)
+
+
+def _covered(
+    space: BaseGeometry, a: npt.NDArray[np.float64], b: npt.NDArray[np.float64]
+) -> npt.NDArray[np.bool_]:
+    """Which segments a-b lie in ``space`` (prepared). Points along each are tested first,
+    halving the step each round: a point outside the space blocks the segment for a
+    fraction of what testing the whole segment costs (most long segments in a town are
+    blocked by something), and only the segments left are tested whole."""
+    alive = np.ones(len(a), dtype=bool)
+    if not len(a):
+        return alive
+    d = b - a
+    for level in range(1, SAMPLE_ROUNDS + 1):
+        for fraction in np.arange(1, 2**level, 2) / 2**level:
+            index = np.flatnonzero(alive)
+            if not len(index):
+                return alive
+            p = a[index] + d[index] * fraction
+            alive[index[~shapely.contains_xy(space, p[:, 0], p[:, 1])]] = False
+    index = np.flatnonzero(alive)
+    if len(index):
+        lines = shapely.linestrings(np.stack([a[index], b[index]], axis=1))
+        alive[index[~shapely.covers(space, lines)]] = False
+    return alive
+
+
+def _crossing(
+    a: npt.NDArray[np.float64], b: npt.NDArray[np.float64], zones: list[BaseGeometry]
+) -> npt.NDArray[np.bool_]:
+    """Which segments a-b touch one of ``zones``."""
+    result = np.zeros(len(a), dtype=bool)
+    if not len(a):
+        return result
+    lines = shapely.linestrings(np.stack([a, b], axis=1))
+    for zone in zones:
+        result |= shapely.intersects(zone, lines)
+    return result
+
+
+def _node_keys(
+    nodes: npt.NDArray[np.float64],
+    before: npt.NDArray[np.float64],
+    after: npt.NDArray[np.float64],
+) -> list[bytes]:
+    """A node's identity across rebuilds: its corner and both neighbours, exactly."""
+    rows = np.ascontiguousarray(np.hstack([nodes, before, after]))
+    return [row.tobytes() for row in rows]
 
 
 def _corners(

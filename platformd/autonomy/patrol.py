@@ -17,6 +17,8 @@ import asyncio
 import json
 import logging
 import math
+import secrets
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +34,7 @@ from brasidas.autonomy.route import (
     RouteStore,
     check_route,
     parse_waypoints,
+    remove_stale_temporaries,
     write_atomically,
 )
 from brasidas.bus import Bus
@@ -49,6 +52,10 @@ from platformd.commands import CommandRouter, SystemCommand
 
 if TYPE_CHECKING:
     from brasidas.autonomy.areamap import AreaMap
+    from brasidas.autonomy.planner import Planner
+
+INCREMENTAL_MOST = 20
+"""Keep-outs changed at once up to which the last planner is changed rather than rebuilt."""
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -89,6 +96,15 @@ class PatrolActor(Actor):
         self._driving = False
         self._reported: PatrolStatus | None = None
         self.loaded = False
+        self.map_error = ""
+        """Why the stored map was refused at start ("" when it was not): in telemetry."""
+        self.last_build_s: float | None = None
+        """How long the last planner took to build (worker thread), seconds."""
+        self._changing = asyncio.Lock()
+        """One map change at a time: each starts from the map the one before left."""
+        self._map_changed = asyncio.Event()
+        self._planned: tuple[AreaMap, Planner] | None = None
+        """The last planner built and its map: changed, not rebuilt, by keep-out updates."""
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -96,25 +112,29 @@ class PatrolActor(Actor):
         if self._clock is None:
             self._clock = asyncio.get_running_loop().time
         if not self.loaded:
-            self.load()
+            await self.load()
         if self.commands is not None:
             self.on_remove(self.commands.register(self.name, {PATROL: self._command_switch}))
         self.subscribe(topics.POSE, self._on_pose)
         self.subscribe(topics.OVERRIDE_STATE, self._on_override)
         try:
-            while True:
-                self.tick()
-                await asyncio.sleep(self.period)
+            async with asyncio.TaskGroup() as group:
+                group.create_task(self._build_planners(), name="patrol:planner")
+                while True:
+                    self.tick()
+                    await asyncio.sleep(self.period)
         finally:
             if self._driving:
                 self.bus.publish(topics.CMD_VEL, Velocity(0.0, 0.0))
                 self._driving = False
 
-    def load(self) -> None:
-        """The stored map and route (the --sim demo when none is stored); start if configured."""
+    async def load(self) -> None:
+        """The stored map and route (the --sim demo when none is stored); start if configured.
+        Files and geometry in a worker thread."""
         self.loaded = True
-        area, route, stored = self._stored()
-        self.core.set_map(area)
+        area, route, stored = await asyncio.to_thread(self._stored)
+        self.core.set_map(area, build=False)
+        self._replan()
         if area is not None:
             self.core.set_route(route)
         report_switch(self.bus, "patrol", self.core.enabled)
@@ -126,6 +146,10 @@ class PatrolActor(Actor):
         self._report()
 
     def _stored(self) -> tuple[AreaMap | None, Route, bool]:
+        """(Worker thread.) The stored map and its route; stale temporary files removed."""
+        for path in (self.storage.map_file, self.routes.path):
+            for removed in remove_stale_temporaries(path):
+                _LOGGER.info("patrol: removed %s (left by a crash during a write)", removed)
         area: AreaMap | None = None
         try:
             stored = self.storage.map_file.read_bytes()
@@ -133,17 +157,26 @@ class PatrolActor(Actor):
             stored = None
         except OSError as exc:
             stored = None
-            _LOGGER.error("patrol: map %s refused: %s", self.storage.map_file, exc)
+            self._refused(f"cannot read {self.storage.map_file}: {exc}")
         if stored is not None:
             from brasidas.autonomy.areamap import MapError
 
             try:
                 area = parse_map(stored)
+                area.keepout_index()
             except MapError as exc:
-                _LOGGER.error("patrol: map %s refused: %s", self.storage.map_file, exc)
+                self._refused(f"{self.storage.map_file} refused: {exc}")
         try:
-            route = self.routes.load()
-            check_route(route, area)
+            route = Route()
+            map_id = self.routes.map_id()
+            if area is not None and map_id is not None and map_id != area.load_id:
+                # The map was replaced and the crash came before its empty route was stored.
+                _LOGGER.warning(
+                    "patrol: route %s was set on another map: dropped", self.routes.path
+                )
+            else:
+                route = self.routes.load()
+                check_route(route, area)
         except RouteError as exc:
             _LOGGER.error("patrol: route %s refused: %s", self.routes.path, exc)
             route = Route()
@@ -152,7 +185,55 @@ class PatrolActor(Actor):
             _LOGGER.info("patrol: no stored map, the --sim demo map %r", area.name)
             if not route.waypoints:
                 return area, parse_waypoints(self.demo[1], area.points), False
+        if area is not None:
+            for note in area.notes:
+                _LOGGER.warning("patrol: map %r: %s", area.name, note)
         return area, route, bool(route.waypoints)
+
+    def _refused(self, reason: str) -> None:
+        """(Worker thread.) The stored map cannot be used: said in the log and, as
+        :attr:`map_error`, in telemetry (the station raises it as a warning)."""
+        _LOGGER.error("patrol: map %s", reason)
+        self.map_error = f"map.file {reason}"
+
+    async def _build_planners(self) -> None:
+        """Build the planner of each new map in a worker thread, as maps change; one at a time,
+        always for the latest map (a keep-out added or removed changes the last planner)."""
+        while True:
+            await self._map_changed.wait()
+            self._map_changed.clear()
+            area = self.core.area
+            if area is None or self.core.planner is not None:
+                continue
+            base = self._planned
+            started = time.perf_counter()
+            planner = await asyncio.to_thread(self._planner_for, area, base)
+            self.last_build_s = time.perf_counter() - started
+            self._planned = (area, planner)
+            if self.core.set_planner(area, planner):
+                _LOGGER.info(
+                    "patrol: planner for map %r ready in %.2f s (%d nodes, %d edges)",
+                    area.name, self.last_build_s, len(planner.nodes), planner.edge_count,
+                )  # fmt: skip
+                self.tick()
+
+    def _planner_for(self, area: AreaMap, base: tuple[AreaMap, Planner] | None) -> Planner:
+        """(Worker thread.) The planner of ``area``: ``base``'s changed by the keep-outs added
+        and removed since, when it is the same boundary and a few changes; else a new one."""
+        from brasidas.autonomy.planner import Planner
+
+        clearance = self.core.p.clearance_m
+        if base is not None and base[0].boundary is area.boundary:
+            before, planner = base
+            removed = [k for k, z in before.keepouts.items() if area.keepouts.get(k) is not z]
+            added = {k: z for k, z in area.keepouts.items() if before.keepouts.get(k) is not z}
+            if len(removed) + len(added) <= INCREMENTAL_MOST:
+                return planner.changed(added, removed)
+        return Planner(area.boundary, area.keepouts, clearance)
+
+    def _replan(self) -> None:
+        """The map changed: its planner is built off the event loop (the patrol holds)."""
+        self._map_changed.set()
 
     # ------------------------------------------------------------------ stepping
 
@@ -216,44 +297,97 @@ class PatrolActor(Actor):
         pose = self._pose
         return (pose.latitude, pose.longitude) if pose is not None else None
 
-    def load_map(self, source: str | bytes | Mapping[str, Any]) -> AreaMap:
-        """Replace the map (validated first): wipes the waypoints and stops (R-5.3.3.5)."""
-        area = parse_map(source)
-        position = self.robot_position()
-        if position is not None:
-            area.check_position(*position)
-        write_atomically(self.storage.map_file, json.dumps(area.geojson(), allow_nan=False))
-        self.routes.save(Route())
-        self.core.set_map(area)
+    async def load_map(self, source: str | bytes | Mapping[str, Any]) -> AreaMap:
+        """Replace the map (validated first): wipes the waypoints and stops (R-5.3.3.5).
+        Parsing, checks and files in a worker thread; the planner is built after."""
+        async with self._changing:
+            position = self.robot_position()
+            area = await asyncio.to_thread(self._new_map, source, position)
+            self.core.set_map(area, build=False)
+            self.map_error = ""
+            self._replan()
         _LOGGER.warning("patrol: map %r loaded; waypoints cleared, patrol stopped", area.name)
         self.tick()
         return area
 
-    def update_map(self, add: list[Mapping[str, Any]], remove: list[str]) -> AreaMap:
-        """Add or remove keep-out zones; the route stays, the path is replanned."""
-        if self.core.area is None:
-            from brasidas.autonomy.areamap import MapError
+    def _new_map(
+        self, source: str | bytes | Mapping[str, Any], position: tuple[float, float] | None
+    ) -> AreaMap:
+        """(Worker thread.) Parse, check and store a new map with its empty route."""
+        from dataclasses import replace
 
-            raise MapError("no map loaded")
-        area = self.core.area.with_keepouts(add=add, remove=remove)
-        position = self.robot_position()
+        area = parse_map(source)
         if position is not None:
             area.check_position(*position)
+        area = replace(area, load_id=secrets.token_hex(8), notes=(*area.notes, *self._room(area)))
+        area.keepout_index()
+        # The map's rename is the one step: the old route names the old map's load_id, so a
+        # crash before the new empty route is stored cannot pair it with the new map.
         write_atomically(self.storage.map_file, json.dumps(area.geojson(), allow_nan=False))
-        self.core.update_map(area)
+        self.routes.save(Route(), area.load_id)
+        return area
+
+    def _room(self, area: AreaMap) -> list[str]:
+        """(Worker thread.) A note when the clearance leaves no room inside the boundary."""
+        from brasidas.autonomy.areamap import room_to_drive
+
+        clearance = self.core.p.clearance_m
+        if not area.boundary.buffer(-clearance).is_empty:
+            return []
+        most = room_to_drive(area)
+        note = (
+            f"autonomy.clearance_m {clearance:g} m leaves no room to drive in this map "
+            f"(no point is that far from its edges); a clearance under {most:.1f} m would"
+        )
+        _LOGGER.warning("patrol: map %r: %s", area.name, note)
+        return [note]
+
+    async def update_map(self, add: list[Mapping[str, Any]], remove: list[str]) -> AreaMap:
+        """Add or remove keep-out zones; the route stays; the patrol holds until the path is
+        replanned. Geometry and the file in a worker thread."""
+        async with self._changing:
+            if self.core.area is None:
+                from brasidas.autonomy.areamap import MapError
+
+                raise MapError("no map loaded")
+            base, position = self.core.area, self.robot_position()
+            area = await asyncio.to_thread(self._changed_map, base, add, remove, position)
+            self.core.update_map(area, build=False)
+            self._replan()
         self.tick()
         return area
 
-    def set_waypoints(self, items: list[Any]) -> Route:
-        """Replace the waypoints on the fly (R-5.3.3.3); stored before they are used."""
-        area = self.core.area
-        if area is None:
-            raise RouteError("no map loaded: load one first")
+    def _changed_map(
+        self,
+        base: AreaMap,
+        add: list[Mapping[str, Any]],
+        remove: list[str],
+        position: tuple[float, float] | None,
+    ) -> AreaMap:
+        """(Worker thread.) The map with keep-outs changed, checked and stored."""
+        area = base.with_keepouts(add=add, remove=remove)
+        if position is not None:
+            area.check_position(*position)
+        write_atomically(self.storage.map_file, json.dumps(area.geojson(), allow_nan=False))
+        return area
+
+    async def set_waypoints(self, items: list[Any]) -> Route:
+        """Replace the waypoints on the fly (R-5.3.3.3); stored before they are used (checks
+        and the file in a worker thread)."""
+        async with self._changing:
+            area = self.core.area
+            if area is None:
+                raise RouteError("no map loaded: load one first")
+            route = await asyncio.to_thread(self._new_route, area, items)
+            self.core.set_route(route)
+        self.tick()
+        return route
+
+    def _new_route(self, area: AreaMap, items: list[Any]) -> Route:
+        """(Worker thread.) Parse, check and store waypoints on ``area``."""
         route = parse_waypoints(items, area.points)
         check_route(route, area)
-        self.routes.save(route)
-        self.core.set_route(route)
-        self.tick()
+        self.routes.save(route, area.load_id)
         return route
 
     def start_patrol(self) -> None:
