@@ -31,6 +31,7 @@ from brasidas.codecs.jsonrpc import (
     read_answer,
     request_text,
 )
+from brasidas.limits import ANSWER_MAX_BYTES, MAP_REQUEST_MAX_BYTES
 
 if TYPE_CHECKING:
     import ssl  # only the station's HTTPS console: the platform keeps ssl out (~4 MB)
@@ -80,7 +81,7 @@ def add_rpc_routes(
         if (refusal := refused(request)) is not None:
             return refusal
         if request.content_length is not None and request.content_length > max_bytes:
-            return _too_large()
+            return _too_large(f"{request.content_length} bytes", max_bytes)
         try:
             body = (
                 await request.content.readexactly(request.content_length)
@@ -90,7 +91,7 @@ def add_rpc_routes(
         except asyncio.IncompleteReadError:
             return web.Response(status=400, text="incomplete body")
         if len(body) > max_bytes:
-            return _too_large()
+            return _too_large(f"more than {max_bytes} bytes", max_bytes)
         ctx = CallContext(peer_host=_peer_host(request), transport="http")
         answer = await dispatcher.handle_bytes(body, ctx)
         if answer is None:
@@ -237,8 +238,10 @@ async def _read_at_most(stream: aiohttp.StreamReader, limit: int) -> bytes:
     return bytes(body)
 
 
-def _too_large() -> web.Response:
-    body = encode_error(None, RpcError(REQUEST_TOO_LARGE, "request too large"))
+def _too_large(size: str, limit: int) -> web.Response:
+    """413, saying the request's size and the limit (a map or route too big for one call)."""
+    message = f"request too large: {size}, the limit is {limit} bytes"
+    body = encode_error(None, RpcError(REQUEST_TOO_LARGE, message))
     return web.Response(status=413, body=body, content_type="application/json")
 
 
@@ -299,7 +302,10 @@ class RpcClient:
         self._session = aiohttp.ClientSession()
         try:
             self._ws = await self._session.ws_connect(
-                self.url, timeout=aiohttp.ClientWSTimeout(ws_close=1.0), autoping=True
+                self.url,
+                timeout=aiohttp.ClientWSTimeout(ws_close=1.0),
+                autoping=True,
+                max_msg_size=ANSWER_MAX_BYTES,  # get_map's answer carries the whole map
             )
         except BaseException:
             await self._session.close()
@@ -332,7 +338,15 @@ class RpcClient:
                 expiry.cancel()
             self._expiry = loop.call_at(deadline, self._expire)
         try:
-            await ws.send_str(request_text(method, params, request_id))
+            text = request_text(method, params, request_id)
+            if len(text) > MAP_REQUEST_MAX_BYTES:
+                # The platform's socket would close on it (and end the session): refuse here.
+                raise RpcError(
+                    REQUEST_TOO_LARGE,
+                    f"request too large: {len(text)} bytes, the limit is "
+                    f"{MAP_REQUEST_MAX_BYTES} bytes",
+                )
+            await ws.send_str(text)
             if self._receiving is None:
                 return await self._read_own(ws, future)
             return await future

@@ -13,6 +13,7 @@ from brasidas.actor import Daemon
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.codecs.telemetry_schema import schema_document
 from brasidas.config import ConfigError, ConsoleSection, StationConfig
+from brasidas.limits import MAP_REQUEST_MAX_BYTES
 from brasidas.rpc import add_rpc_routes, serve_app_sites
 from stationd.context import StationContext
 
@@ -39,7 +40,8 @@ CONTENT_SECURITY_POLICY = (
     "frame-ancestors 'none'; form-action 'none'"
 )
 """The console's pages: scripts from the station only (no inline script, no eval)."""
-API_MAX_BYTES = 65536
+API_MAX_BYTES = MAP_REQUEST_MAX_BYTES
+"""A map or a route must pass: the one limit of every hop (brasidas.limits)."""
 
 
 class ConsoleMissing(Exception):

@@ -14,6 +14,7 @@ from __future__ import annotations
 import copy
 import heapq
 import math
+import threading
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -25,7 +26,7 @@ from shapely import LinearRing, MultiPolygon, Point, Polygon, unary_union
 from shapely.geometry.base import BaseGeometry
 from shapely.geometry.polygon import orient
 
-CHUNK = 500_000
+CHUNK = 200_000
 """Node pairs checked at once (bounds the build's memory: ~100 bytes a pair)."""
 SAMPLE_ROUNDS = 4
 """Rounds of points tested along a segment before the whole segment is (1, 2, 4, 8 points)."""
@@ -34,6 +35,10 @@ CHECK_MARGIN = 0.98
 MITRE_LIMIT = 2.0
 
 XY = tuple[float, float]
+
+
+class BuildCancelled(Exception):
+    """The planner's build was stopped (its ``cancelled`` event was set)."""
 
 
 class Unreachable(Exception):
@@ -60,7 +65,10 @@ class Planner:
         boundary: Polygon | MultiPolygon,
         keepouts: Mapping[str, BaseGeometry] | Iterable[BaseGeometry],
         clearance: float,
+        cancelled: threading.Event | None = None,
     ) -> None:
+        """Build the graph; setting ``cancelled`` (from another thread) stops the build with
+        :class:`BuildCancelled` within one block of node pairs."""
         if clearance < 0:
             raise ValueError("clearance must be >= 0")
         zones = (
@@ -69,6 +77,7 @@ class Planner:
             else dict((str(index), zone) for index, zone in enumerate(keepouts))
         )
         self.clearance = clearance
+        self._cancelled = cancelled
         self._boundary = boundary
         self._zones = zones
         self._inflated = {key: _inflate(zone, clearance) for key, zone in zones.items()}
@@ -85,16 +94,23 @@ class Planner:
         self.nodes, self._before, self._after = _corners(self._space)
         self._edge_u, self._edge_v = self._visible_pairs(_pair_blocks(self.nodes))
         self._edges = self._adjacency()
+        self._cancelled = None
 
     @property
     def edge_count(self) -> int:
         return len(self._edge_u)
 
-    def changed(self, add: Mapping[str, BaseGeometry], remove: Iterable[str] = ()) -> Planner:
+    def changed(
+        self,
+        add: Mapping[str, BaseGeometry],
+        remove: Iterable[str] = (),
+        cancelled: threading.Event | None = None,
+    ) -> Planner:
         """A planner for the same map with keep-outs added (by id) and removed (by id): the
         free space is cut or reopened where they are, and only the graph's edges that can
         have changed are checked again. This planner is left as it was."""
         new = copy.copy(self)
+        new._cancelled = cancelled
         new._zones, new._inflated, new._checked = (
             dict(self._zones), dict(self._inflated), dict(self._checked)
         )  # fmt: skip
@@ -159,6 +175,7 @@ class Planner:
         unique = np.unique(u * (len(new.nodes) + 1) + v)
         new._edge_u, new._edge_v = unique // (len(new.nodes) + 1), unique % (len(new.nodes) + 1)
         new._edges = new._adjacency()
+        new._cancelled = None
         return new
 
     def plan(self, start: XY, goal: XY) -> Path:
@@ -236,6 +253,8 @@ class Planner:
         """The node pairs that are edges: both ends tangent, the segment in the free space."""
         found_u, found_v = [], []
         for i, j in blocks:
+            if self._cancelled is not None and self._cancelled.is_set():
+                raise BuildCancelled("the planner's build was stopped")
             a, b = self.nodes[i], self.nodes[j]
             d = b - a
             keep = _tangent(d, self._before[i] - a, self._after[i] - a) & _tangent(

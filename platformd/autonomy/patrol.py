@@ -18,6 +18,7 @@ import json
 import logging
 import math
 import secrets
+import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -54,6 +55,9 @@ if TYPE_CHECKING:
     from brasidas.autonomy.areamap import AreaMap
     from brasidas.autonomy.planner import Planner
 
+ROOM_FRACTION = 0.25
+"""A map whose boundary, shrunk by the clearance, keeps less than this of its area is said
+to leave no room (at load, in the answer's notes)."""
 INCREMENTAL_MOST = 20
 """Keep-outs changed at once up to which the last planner is changed rather than rebuilt."""
 
@@ -207,7 +211,12 @@ class PatrolActor(Actor):
                 continue
             base = self._planned
             started = time.perf_counter()
-            planner = await asyncio.to_thread(self._planner_for, area, base)
+            cancelled = threading.Event()
+            try:
+                planner = await asyncio.to_thread(self._planner_for, area, base, cancelled)
+            except asyncio.CancelledError:
+                cancelled.set()  # the thread stops within a block of node pairs
+                raise
             self.last_build_s = time.perf_counter() - started
             self._planned = (area, planner)
             if self.core.set_planner(area, planner):
@@ -217,7 +226,12 @@ class PatrolActor(Actor):
                 )  # fmt: skip
                 self.tick()
 
-    def _planner_for(self, area: AreaMap, base: tuple[AreaMap, Planner] | None) -> Planner:
+    def _planner_for(
+        self,
+        area: AreaMap,
+        base: tuple[AreaMap, Planner] | None,
+        cancelled: threading.Event,
+    ) -> Planner:
         """(Worker thread.) The planner of ``area``: ``base``'s changed by the keep-outs added
         and removed since, when it is the same boundary and a few changes; else a new one."""
         from brasidas.autonomy.planner import Planner
@@ -228,8 +242,8 @@ class PatrolActor(Actor):
             removed = [k for k, z in before.keepouts.items() if area.keepouts.get(k) is not z]
             added = {k: z for k, z in area.keepouts.items() if before.keepouts.get(k) is not z}
             if len(removed) + len(added) <= INCREMENTAL_MOST:
-                return planner.changed(added, removed)
-        return Planner(area.boundary, area.keepouts, clearance)
+                return planner.changed(added, removed, cancelled)
+        return Planner(area.boundary, area.keepouts, clearance, cancelled)
 
     def _replan(self) -> None:
         """The map changed: its planner is built off the event loop (the patrol holds)."""
@@ -328,16 +342,19 @@ class PatrolActor(Actor):
         return area
 
     def _room(self, area: AreaMap) -> list[str]:
-        """(Worker thread.) A note when the clearance leaves no room inside the boundary."""
+        """(Worker thread.) A note when the clearance leaves (almost) no room in the boundary:
+        every waypoint must be that far from its edges."""
         from brasidas.autonomy.areamap import room_to_drive
 
         clearance = self.core.p.clearance_m
-        if not area.boundary.buffer(-clearance).is_empty:
+        left = area.boundary.buffer(-clearance).area
+        if left >= ROOM_FRACTION * area.boundary.area:
             return []
         most = room_to_drive(area)
         note = (
-            f"autonomy.clearance_m {clearance:g} m leaves no room to drive in this map "
-            f"(no point is that far from its edges); a clearance under {most:.1f} m would"
+            f"autonomy.clearance_m {clearance:g} m leaves {left:.0f} m² of this map's "
+            f"{area.boundary.area:.0f} m² to drive in (waypoints must be that far from the "
+            f"edges and keep-outs); a clearance of {most / 2:.1f} m or less would leave room"
         )
         _LOGGER.warning("patrol: map %r: %s", area.name, note)
         return [note]
