@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 from conftest import quiet_platform_config, wait_until
-from shapely import LineString, Point
+from shapely import LineString
 
 from brasidas import topics
 from brasidas.autonomy import planner as planner_module
@@ -30,7 +30,7 @@ from brasidas.config import TelemetryReceiverSection
 from platformd import cli as platform_cli
 from platformd.autonomy.patrol import PatrolActor
 from platformd.sim.demo_area import demo_map, demo_route, offset
-from platformd.sim.town import town_map
+from platformd.sim.town import clear_around, town_map
 from stationd.telemetry import Annunciator
 
 LAT, LON = 37.9415, 23.6530
@@ -342,17 +342,11 @@ def test_the_patrol_holds_until_the_new_plan_is_ready() -> None:
 
 
 def drivable_town(latitude: float, longitude: float, buildings: int) -> dict[str, Any]:
-    """A town around a position, without the buildings too near it (the robot is in a street)."""
-    town = town_map(latitude, longitude, buildings=buildings, seed=2)
-    for zone in town["features"][1:]:
-        zone["properties"].pop("name", None)  # names are another test's
-    area = parse_map(town)
-    keep = [town["features"][0]]
-    here = area.local(latitude, longitude)
-    for index, zone in enumerate(area.keepouts.values()):
-        if zone.distance(Point(here)) > 10.0:
-            keep.append(town["features"][index + 1])
-    return town | {"features": keep}
+    """A town around a position, without the buildings too near it (the robot is in a street);
+    without names (another test's)."""
+    return clear_around(
+        town_map(latitude, longitude, buildings=buildings, seed=2), latitude, longitude
+    )
 
 
 # --------------------------------------------------------------------------- 19.6: atomic

@@ -83,6 +83,13 @@ class AreaMap:
         """The point is within the boundary (its edge included)."""
         return bool(self.boundary.covers(Point(x, y)))
 
+    @property
+    def vertices(self) -> int:
+        """Of every polygon together (what :data:`MAX_VERTICES` bounds)."""
+        return int(shapely.get_num_coordinates(self.boundary)) + int(
+            shapely.get_num_coordinates(list(self.keepouts.values())).sum()
+        )
+
     def keepout_at(self, x: float, y: float) -> str | None:
         """The id of a keep-out zone containing the point, or None."""
         tree, ids = self.keepout_index()
@@ -167,7 +174,7 @@ class AreaMap:
             "area_m2": round(self.boundary.area, 1),
             "keepouts": sorted(self.keepouts),
             "points": sorted(self.points),
-            "vertices": _vertices(self.boundary) + sum(map(_vertices, self.keepouts.values())),
+            "vertices": self.vertices,
             "notes": list(self.notes),
         }
 

@@ -30,6 +30,12 @@ CHUNK = 200_000
 """Node pairs checked at once (bounds the build's memory: ~100 bytes a pair)."""
 SAMPLE_ROUNDS = 4
 """Rounds of points tested along a segment before the whole segment is (1, 2, 4, 8 points)."""
+RASTER_SAMPLES = 63
+"""Points tested along a segment in the free space's raster, evenly spaced."""
+RASTER_BLOCK = 8192
+"""Segments sampled at once in the raster (bounds the arrays: ~8 MB)."""
+RASTER_CELLS = 4_000_000
+"""The raster's cells at most (4 MB); 1 m cells up to 2 km x 2 km, larger beyond."""
 CHECK_MARGIN = 0.98
 """Visibility is checked against obstacles inflated by this fraction of the clearance."""
 MITRE_LIMIT = 2.0
@@ -91,10 +97,17 @@ class Planner:
         self._space = _minus(self._shrunk, list(self._inflated.values()))
         self._escape = _prepared(_minus(boundary, list(zones.values())))
         self._free = _prepared(_minus(self._shrunk_checked, list(self._checked.values())))
+        self._stop_if_cancelled()
+        self._raster = Raster(self._free, cancelled=cancelled)
         self.nodes, self._before, self._after = _corners(self._space)
         self._edge_u, self._edge_v = self._visible_pairs(_pair_blocks(self.nodes))
         self._edges = self._adjacency()
+        self._points: list[XY] = [(x, y) for x, y in self.nodes.tolist()]
         self._cancelled = None
+
+    def _stop_if_cancelled(self) -> None:
+        if self._cancelled is not None and self._cancelled.is_set():
+            raise BuildCancelled("the planner's build was stopped")
 
     @property
     def edge_count(self) -> int:
@@ -131,6 +144,8 @@ class Planner:
             free = free.difference(new._checked[key])
             escape = escape.difference(zone)
         new._space, new._free, new._escape = space, _prepared(free), _prepared(escape)
+        changed_where = [new._checked[key] for key in add] + reopened
+        new._raster = self._raster.redrawn(new._free, changed_where, cancelled)
         new.nodes, new._before, new._after = _corners(space)
         # Nodes that are still there (same corner, same neighbours) keep their index's edges.
         old = {
@@ -175,6 +190,7 @@ class Planner:
         unique = np.unique(u * (len(new.nodes) + 1) + v)
         new._edge_u, new._edge_v = unique // (len(new.nodes) + 1), unique % (len(new.nodes) + 1)
         new._edges = new._adjacency()
+        new._points = [(x, y) for x, y in new.nodes.tolist()]
         new._cancelled = None
         return new
 
@@ -197,7 +213,7 @@ class Planner:
         to_goal = self._seen_from(goal, self._free)
         # A* over nodes 0..n-1, start n, goal n+1; the heuristic is the straight line.
         goal_index = n + 1
-        points = [*map(tuple, self.nodes.tolist()), start, goal]
+        points = [*self._points, start, goal]
         best = {n: 0.0}
         parent: dict[int, int] = {}
         queue = [(math.dist(start, goal), n)]
@@ -243,9 +259,15 @@ class Planner:
     def _seen_from(self, point: XY, space: BaseGeometry) -> set[int]:
         if not len(self.nodes):
             return set()
-        starts = np.broadcast_to(np.asarray(point, dtype=np.float64), self.nodes.shape)
-        visible = _covered(space, starts, self.nodes)
-        return set(np.flatnonzero(visible).tolist())
+        # Only nodes the segment grazes can be a shortest path's first (or last) bend.
+        d = self.nodes - np.asarray(point, dtype=np.float64)
+        candidates = np.flatnonzero(
+            _tangent(d, self._before - self.nodes, self._after - self.nodes)
+        )
+        starts = np.broadcast_to(np.asarray(point, dtype=np.float64), (len(candidates), 2))
+        raster = self._raster if space is self._free else None
+        visible = _covered(space, starts, self.nodes[candidates], raster)
+        return set(candidates[visible].tolist())
 
     def _visible_pairs(
         self, blocks: Iterable[tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]]
@@ -261,7 +283,7 @@ class Planner:
                 d, self._before[j] - b, self._after[j] - b
             )
             i, j = i[keep], j[keep]
-            visible = _covered(self._free, self.nodes[i], self.nodes[j])
+            visible = _covered(self._free, self.nodes[i], self.nodes[j], self._raster)
             found_u.append(i[visible])
             found_v.append(j[visible])
         if not found_u:
@@ -276,6 +298,75 @@ class Planner:
             edges[a].append((b, length))
             edges[b].append((a, length))
         return edges
+
+
+class Raster:
+    """Where a point may be in a space, on a grid: a cell is False when all of it is outside
+    the space (its centre is further than half its diagonal from it), so a point in a False
+    cell is certainly outside; True says nothing. Built in the planner's thread; looked up
+    with NumPy, so testing many points along many segments costs next to nothing."""
+
+    def __init__(
+        self,
+        space: BaseGeometry,
+        cells: int = RASTER_CELLS,
+        cancelled: threading.Event | None = None,
+    ) -> None:
+        self._cancelled = cancelled
+        minx, miny, maxx, maxy = space.bounds if not space.is_empty else (0.0, 0.0, 1.0, 1.0)
+        self.cell = max(1.0, math.sqrt((maxx - minx) * (maxy - miny) / cells))
+        self.x0, self.y0 = minx - self.cell, miny - self.cell
+        self.nx = int((maxx - self.x0) / self.cell) + 2
+        self.ny = int((maxy - self.y0) / self.cell) + 2
+        self.grid = np.zeros((self.ny, self.nx), dtype=bool)
+        self._draw(space, 0, self.nx, 0, self.ny)
+        self._cancelled = None
+
+    def redrawn(
+        self,
+        space: BaseGeometry,
+        where: list[BaseGeometry],
+        cancelled: threading.Event | None = None,
+    ) -> Raster:
+        """A copy with the cells under ``where`` (changed zones) drawn again from ``space``."""
+        new = copy.copy(self)
+        new._cancelled = cancelled
+        new.grid = self.grid.copy()
+        for geometry in where:
+            minx, miny, maxx, maxy = geometry.bounds
+            col0, row0 = new._index(minx - new.cell, miny - new.cell)
+            col1, row1 = new._index(maxx + new.cell, maxy + new.cell)
+            new._draw(
+                space, max(col0, 0), min(col1 + 1, new.nx), max(row0, 0), min(row1 + 1, new.ny)
+            )
+        new._cancelled = None
+        return new
+
+    def maybe_inside(
+        self, xs: npt.NDArray[np.float64], ys: npt.NDArray[np.float64]
+    ) -> npt.NDArray[np.bool_]:
+        """False for the points certainly outside the space (any shape of arrays)."""
+        cols = np.clip(((xs - self.x0) / self.cell).astype(np.int64), 0, self.nx - 1)
+        rows = np.clip(((ys - self.y0) / self.cell).astype(np.int64), 0, self.ny - 1)
+        result: npt.NDArray[np.bool_] = self.grid[rows, cols]
+        return result
+
+    def _index(self, x: float, y: float) -> tuple[int, int]:
+        return int((x - self.x0) // self.cell), int((y - self.y0) // self.cell)
+
+    def _draw(self, space: BaseGeometry, col0: int, col1: int, row0: int, row1: int) -> None:
+        if col1 <= col0 or row1 <= row0:
+            return
+        grown = _prepared(space.buffer(self.cell * 0.7072, quad_segs=2))
+        xs = self.x0 + (np.arange(col0, col1) + 0.5) * self.cell
+        step = max(1, 200_000 // max(len(xs), 1))
+        for first in range(row0, row1, step):
+            last = min(first + step, row1)
+            if self._cancelled is not None and self._cancelled.is_set():
+                raise BuildCancelled("the planner's build was stopped")
+            ys = self.y0 + (np.arange(first, last) + 0.5) * self.cell
+            gx, gy = np.meshgrid(xs, ys)
+            self.grid[first:last, col0:col1] = shapely.contains_xy(grown, gx, gy)
 
 
 def cross_track(path: Sequence[XY], point: XY) -> float:
@@ -364,23 +455,35 @@ def _segments(
 
 
 def _covered(
-    space: BaseGeometry, a: npt.NDArray[np.float64], b: npt.NDArray[np.float64]
+    space: BaseGeometry,
+    a: npt.NDArray[np.float64],
+    b: npt.NDArray[np.float64],
+    raster: Raster | None = None,
 ) -> npt.NDArray[np.bool_]:
     """Which segments a-b lie in ``space`` (prepared). Points along each are tested first,
     halving the step each round: a point outside the space blocks the segment for a
     fraction of what testing the whole segment costs (most long segments in a town are
-    blocked by something), and only the segments left are tested whole."""
+    blocked by something), and only the segments left are tested whole. With the space's
+    ``raster`` the points are looked up in it (nanoseconds each), many more of them."""
     alive = np.ones(len(a), dtype=bool)
     if not len(a):
         return alive
     d = b - a
-    for level in range(1, SAMPLE_ROUNDS + 1):
-        for fraction in np.arange(1, 2**level, 2) / 2**level:
-            index = np.flatnonzero(alive)
-            if not len(index):
-                return alive
-            p = a[index] + d[index] * fraction
-            alive[index[~shapely.contains_xy(space, p[:, 0], p[:, 1])]] = False
+    if raster is not None:
+        fractions = np.arange(1, RASTER_SAMPLES + 1) / (RASTER_SAMPLES + 1)
+        for first in range(0, len(a), RASTER_BLOCK):
+            part = slice(first, first + RASTER_BLOCK)
+            xs = a[part, 0, None] + d[part, 0, None] * fractions
+            ys = a[part, 1, None] + d[part, 1, None] * fractions
+            alive[part] = raster.maybe_inside(xs, ys).all(axis=1)
+    else:
+        for level in range(1, SAMPLE_ROUNDS + 1):
+            for fraction in np.arange(1, 2**level, 2) / 2**level:
+                index = np.flatnonzero(alive)
+                if not len(index):
+                    return alive
+                p = a[index] + d[index] * fraction
+                alive[index[~shapely.contains_xy(space, p[:, 0], p[:, 1])]] = False
     index = np.flatnonzero(alive)
     if len(index):
         lines = shapely.linestrings(np.stack([a[index], b[index]], axis=1))

@@ -383,6 +383,7 @@ class PatrolActor(Actor):
     ) -> AreaMap:
         """(Worker thread.) The map with keep-outs changed, checked and stored."""
         area = base.with_keepouts(add=add, remove=remove)
+        area.keepout_index()  # here, not at the patrol's next step on the event loop
         if position is not None:
             area.check_position(*position)
         write_atomically(self.storage.map_file, json.dumps(area.geojson(), allow_nan=False))

@@ -123,3 +123,25 @@ def _boundary(rng: random.Random, radius: float) -> list[tuple[float, float]]:
         r = radius * rng.uniform(1.0, 1.1)
         ring.append((r * math.cos(angle), r * math.sin(angle)))
     return [*ring, ring[0]]
+
+
+def clear_around(
+    town: dict[str, Any], latitude: float, longitude: float, metres: float = 10.0
+) -> dict[str, Any]:
+    """The map without the keep-outs nearer than ``metres`` to a position (a robot's start
+    in a street), and without names (ids from the export's order)."""
+    from shapely import Point
+
+    from brasidas.autonomy.areamap import parse_map
+
+    stripped = [town["features"][0]]
+    for feature in town["features"][1:]:
+        properties = {k: v for k, v in feature["properties"].items() if k != "name"}
+        stripped.append(feature | {"properties": properties})
+    area = parse_map(town | {"features": stripped})
+    here = Point(area.local(latitude, longitude))
+    kept = [stripped[0]]
+    for feature, zone in zip(stripped[1:], area.keepouts.values(), strict=True):
+        if zone.distance(here) > metres:
+            kept.append(feature)
+    return town | {"features": kept}
