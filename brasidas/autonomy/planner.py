@@ -26,14 +26,15 @@ from shapely import LinearRing, MultiPolygon, Point, Polygon, unary_union
 from shapely.geometry.base import BaseGeometry
 from shapely.geometry.polygon import orient
 
-CHUNK = 200_000
+CHUNK = 50_000
 """Node pairs checked at once (bounds the build's memory: ~100 bytes a pair)."""
 SAMPLE_ROUNDS = 4
 """Rounds of points tested along a segment before the whole segment is (1, 2, 4, 8 points)."""
 RASTER_SAMPLES = 63
 """Points tested along a segment in the free space's raster, evenly spaced."""
-RASTER_BLOCK = 8192
-"""Segments sampled at once in the raster (bounds the arrays: ~8 MB)."""
+RASTER_BLOCK = 2048
+"""Segments sampled at once in the raster: small arrays, so each NumPy call holds the GIL
+briefly (the event loop waits for it between calls, not for a whole block)."""
 RASTER_CELLS = 4_000_000
 """The raster's cells at most (4 MB); 1 m cells up to 2 km x 2 km, larger beyond."""
 CHECK_MARGIN = 0.98
