@@ -377,3 +377,32 @@ async def test_a_crash_between_the_map_and_its_route_never_pairs_them(
     assert stored["map"]["features"][1]["geometry"] == moved["features"][1]["geometry"]
     assert stored["route"] == []  # the new map, never with the old route
     assert sorted(os.listdir(tmp_path)) == ["map.geojson", "route.json"]
+
+
+def test_a_map_under_the_vertex_cap_fits_one_request() -> None:
+    from brasidas.autonomy.areamap import MAX_VERTICES
+    from brasidas.codecs.jsonrpc import encode_request
+    from brasidas.limits import MAP_REQUEST_MAX_BYTES
+    from stationd.daemon import API_MAX_BYTES
+
+    town = town_map(LAT, LON, buildings=3400, seed=4)  # ~18,700 vertices, as OSM exports them
+    area = parse_map(town)
+    assert MAX_VERTICES - 2000 < area.vertices <= MAX_VERTICES
+    request = encode_request("map_load", {"platform_id": "rover-1", "map": json.dumps(town)}, 1)
+    assert len(request) < MAP_REQUEST_MAX_BYTES == API_MAX_BYTES
+    from brasidas.config import PlatformConfig, load_config
+
+    assert load_config(PlatformConfig, None, []).signaling.max_request_bytes == API_MAX_BYTES
+
+
+async def test_a_new_map_stops_the_build_of_the_one_it_replaces(
+    platform_factory: Callable[..., Any], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    daemon = await platform_factory(quiet_platform_config(*files(tmp_path)), None)
+    patrol = next(a for a in daemon.supervisor.actors if isinstance(a, PatrolActor))
+    caplog.set_level("INFO", logger="platformd.autonomy.patrol")
+    await daemon.ctx.rpc.call_local("load_map", map=town_map(LAT, LON, buildings=1000, seed=6))
+    await daemon.ctx.rpc.call_local("load_map", map=demo_map(LAT, LON))
+    await wait_until(lambda: patrol.core.planner is not None, 60)
+    assert patrol.core.area is not None and patrol.core.area.name == "demo field"
+    await wait_until(lambda: "dropped: a new map came" in caplog.text, 30)

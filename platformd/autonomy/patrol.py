@@ -108,6 +108,8 @@ class PatrolActor(Actor):
         self._changing = asyncio.Lock()
         """One map change at a time: each starts from the map the one before left."""
         self._map_changed = asyncio.Event()
+        self._building: tuple[AreaMap, threading.Event] | None = None
+        """The map whose planner is being built and the event that stops that build."""
         self._planned: tuple[AreaMap, Planner] | None = None
         """The last planner built and its map: changed, not rebuilt, by keep-out updates."""
 
@@ -210,14 +212,22 @@ class PatrolActor(Actor):
             area = self.core.area
             if area is None or self.core.planner is not None:
                 continue
+            from brasidas.autonomy.planner import BuildCancelled  # loaded with the map already
+
             base = self._planned
             started = time.perf_counter()
             cancelled = threading.Event()
+            self._building = (area, cancelled)
             try:
                 planner = await asyncio.to_thread(self._planner_for, area, base, cancelled)
             except asyncio.CancelledError:
                 cancelled.set()  # the thread stops within a block of node pairs
                 raise
+            except BuildCancelled:
+                _LOGGER.info("patrol: planner for map %r dropped: a new map came", area.name)
+                continue
+            finally:
+                self._building = None
             self.last_build_s = time.perf_counter() - started
             self._planned = (area, planner)
             if self.core.set_planner(area, planner):
@@ -247,7 +257,12 @@ class PatrolActor(Actor):
         return Planner(area.boundary, area.keepouts, clearance, cancelled)
 
     def _replan(self) -> None:
-        """The map changed: its planner is built off the event loop (the patrol holds)."""
+        """The map changed: its planner is built off the event loop (the patrol holds). A
+        build for another boundary (a map since replaced) is stopped: its graph is of no use."""
+        building = self._building
+        area = self.core.area
+        if building is not None and (area is None or building[0].boundary is not area.boundary):
+            building[1].set()
         self._map_changed.set()
 
     # ------------------------------------------------------------------ stepping
