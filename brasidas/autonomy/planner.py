@@ -15,6 +15,7 @@ import copy
 import heapq
 import math
 import threading
+import time
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -276,6 +277,7 @@ class Planner:
         """The node pairs that are edges: both ends tangent, the segment in the free space."""
         found_u, found_v = [], []
         for i, j in blocks:
+            _yield_gil()
             if self._cancelled is not None and self._cancelled.is_set():
                 raise BuildCancelled("the planner's build was stopped")
             a, b = self.nodes[i], self.nodes[j]
@@ -295,7 +297,11 @@ class Planner:
         edges: list[list[tuple[int, float]]] = [[] for _ in range(len(self.nodes))]
         u, v = self._edge_u, self._edge_v
         lengths = np.hypot(*(self.nodes[v] - self.nodes[u]).T) if len(u) else np.empty(0)
-        for a, b, length in zip(u.tolist(), v.tolist(), lengths.tolist(), strict=True):
+        for count, (a, b, length) in enumerate(
+            zip(u.tolist(), v.tolist(), lengths.tolist(), strict=True)
+        ):
+            if count % 2000 == 0:
+                _yield_gil()
             edges[a].append((b, length))
             edges[b].append((a, length))
         return edges
@@ -362,6 +368,7 @@ class Raster:
         xs = self.x0 + (np.arange(col0, col1) + 0.5) * self.cell
         step = max(1, 200_000 // max(len(xs), 1))
         for first in range(row0, row1, step):
+            _yield_gil()
             last = min(first + step, row1)
             if self._cancelled is not None and self._cancelled.is_set():
                 raise BuildCancelled("the planner's build was stopped")
@@ -390,6 +397,13 @@ def _prepared(geometry: BaseGeometry) -> BaseGeometry:
     return geometry
 
 
+def _yield_gil() -> None:
+    """Let a thread waiting for the GIL (the event loop's) have it now, not at the end of the
+    interpreter's 5 ms switch interval: a build in a worker thread calls this between its
+    blocks of NumPy work, so the loop waits for one block at most."""
+    time.sleep(0)
+
+
 def _minus(space: BaseGeometry, zones: list[BaseGeometry]) -> BaseGeometry:
     return space.difference(unary_union(zones)) if zones else space
 
@@ -415,6 +429,7 @@ def _pair_blocks(
     count = len(rows)
     step = max(1, CHUNK // max(count, 1))
     for first in range(0, count, step):
+        _yield_gil()
         block = rows[first : first + step]
         i, j = np.meshgrid(block, rows, indexing="ij")
         keep = i < j
@@ -473,6 +488,7 @@ def _covered(
     if raster is not None:
         fractions = np.arange(1, RASTER_SAMPLES + 1) / (RASTER_SAMPLES + 1)
         for first in range(0, len(a), RASTER_BLOCK):
+            _yield_gil()
             part = slice(first, first + RASTER_BLOCK)
             xs = a[part, 0, None] + d[part, 0, None] * fractions
             ys = a[part, 1, None] + d[part, 1, None] * fractions
