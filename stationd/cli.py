@@ -232,7 +232,7 @@ def cmd_map(args: argparse.Namespace, config: StationConfig) -> int:
             f"map {area['name']!r} loaded: {area['area_m2']:.0f} m², "
             f"{len(area['keepouts'])} keep-out zones, {len(area['points'])} named points; "
             "waypoints cleared, patrol stopped"
-        )
+        ) + "".join(f"\nnote: {note}" for note in area.get("notes", []))  # ids made unique, ...
 
     _print(args, answer, human)
     return 0
