@@ -139,7 +139,8 @@ class PatrolActor(Actor):
         """The stored map and route (the --sim demo when none is stored); start if configured.
         Files and geometry in a worker thread."""
         self.loaded = True
-        area, route, stored = await asyncio.to_thread(self._stored)
+        area, route, stored, refused = await asyncio.to_thread(self._stored)
+        self.map_error = refused
         self.core.set_map(area, build=False)
         self._replan()
         if area is not None:
@@ -152,8 +153,10 @@ class PatrolActor(Actor):
             )
         self._report()
 
-    def _stored(self) -> tuple[AreaMap | None, Route, bool]:
-        """(Worker thread.) The stored map and its route; stale temporary files removed."""
+    def _stored(self) -> tuple[AreaMap | None, Route, bool, str]:
+        """(Worker thread.) The stored map, its route, whether the route was stored, and why
+        the stored map was refused ("" when it was not); stale temporary files removed."""
+        refused = ""
         for path in (self.storage.map_file, self.routes.path):
             for removed in remove_stale_temporaries(path):
                 _LOGGER.info("patrol: removed %s (left by a crash during a write)", removed)
@@ -164,7 +167,7 @@ class PatrolActor(Actor):
             stored = None
         except OSError as exc:
             stored = None
-            self._refused(f"cannot read {self.storage.map_file}: {exc}")
+            refused = f"cannot read {self.storage.map_file}: {exc}"
         if stored is not None:
             from brasidas.autonomy.areamap import MapError
 
@@ -172,7 +175,10 @@ class PatrolActor(Actor):
                 area = parse_map(stored)
                 area.keepout_index()
             except MapError as exc:
-                self._refused(f"{self.storage.map_file} refused: {exc}")
+                refused = f"{self.storage.map_file} refused: {exc}"
+        if refused:
+            # Not only in the log: telemetry's autonomy.map_error, a warning at the station.
+            _LOGGER.error("patrol: map.file %s", refused)
         try:
             route = Route()
             map_id = self.routes.map_id()
@@ -191,17 +197,11 @@ class PatrolActor(Actor):
             area = parse_map(self.demo[0])
             _LOGGER.info("patrol: no stored map, the --sim demo map %r", area.name)
             if not route.waypoints:
-                return area, parse_waypoints(self.demo[1], area.points), False
+                return area, parse_waypoints(self.demo[1], area.points), False, refused
         if area is not None:
             for note in area.notes:
                 _LOGGER.warning("patrol: map %r: %s", area.name, note)
-        return area, route, bool(route.waypoints)
-
-    def _refused(self, reason: str) -> None:
-        """(Worker thread.) The stored map cannot be used: said in the log and, as
-        :attr:`map_error`, in telemetry (the station raises it as a warning)."""
-        _LOGGER.error("patrol: map %s", reason)
-        self.map_error = f"map.file {reason}"
+        return area, route, bool(route.waypoints), f"map.file {refused}" if refused else ""
 
     async def _build_planners(self) -> None:
         """Build the planner of each new map in a worker thread, as maps change; one at a time,
