@@ -38,9 +38,240 @@ START = (37.9415, 23.6530)
 
 async def run() -> dict[str, Any]:
     figures = planning()
+    figures.update(await town())
+    figures.update(largest())
     figures.update(following())
     figures.update(await platform_cpu())
     return figures
+
+
+async def town(buildings: int = 1000, edits: int = 10, plans: int = 200) -> dict[str, Any]:
+    """A town of ``buildings`` (``platformd.sim.town``: OSM-like footprints, streets, names)
+    on a --sim platform: load, planner build, one keep-out added and removed while it
+    patrols (answer, event-loop stall, the planner's change in its thread), plans, RSS."""
+    import asyncio
+    import json
+    import tempfile
+    from pathlib import Path
+
+    from bench.support import percentiles
+    from brasidas import topics
+    from brasidas.autonomy.areamap import MAX_VERTICES
+    from brasidas.limits import MAP_REQUEST_MAX_BYTES
+    from platformd.app import PlatformDaemon
+    from platformd.autonomy.patrol import PatrolActor
+    from platformd.sim.town import clear_around, town_map
+
+    data = clear_around(town_map(*START, buildings=buildings, seed=1), *START, 12.0)
+    text = json.dumps(data)
+    loads = []
+    for _ in range(3):
+        started = time.perf_counter()
+        area = parse_map(text)
+        loads.append(time.perf_counter() - started)
+    clearance = PatrolParameters.clearance_m
+    started = time.perf_counter()
+    planner = Planner(area.boundary, area.keepouts, clearance)
+    build = time.perf_counter() - started
+    rng = random.Random(3)
+    free = [
+        p for p in ((rng.uniform(-400, 400), rng.uniform(-400, 400)) for _ in range(4000))
+        if area.inside(*p) and _clear(area, p, clearance + 1.0)
+    ]  # fmt: skip
+    times = []
+    for a, b in zip(free[:plans], free[plans : 2 * plans], strict=False):
+        started = time.perf_counter()
+        try:
+            planner.plan(a, b)
+        except Unreachable:
+            continue
+        times.append((time.perf_counter() - started) * 1000)
+    plan = percentiles(times)
+
+    folder = Path(tempfile.mkdtemp(prefix="bench-town-"))
+    config = load_config(
+        PlatformConfig,
+        None,
+        [
+            "signaling.port=0", "velocity.port=0", "beacon.enabled=false",
+            "navcam.enabled=false", "audio.enabled=false", "sim.enabled=true",
+            "motor.enabled=true", "gps.enabled=true", "imu.enabled=true", "gps.sim_rate_hz=10",
+            f"map.file={folder / 'map.geojson'}", f"autonomy.route_file={folder / 'route.json'}",
+        ],
+    )  # fmt: skip
+    daemon = PlatformDaemon(config, None)
+    await daemon.start()
+    stalls: list[float] = []
+    probe_task: asyncio.Task[None] | None = None
+    try:
+        bus = daemon.ctx.bus
+        await _until(lambda: bus.last(topics.POSE) is not None)
+        patrol = next(a for a in daemon.supervisor.actors if isinstance(a, PatrolActor))
+        rpc = daemon.ctx.rpc
+        rss_before = _rss_mb()
+        started = time.perf_counter()
+        await rpc.call_local("load_map", map=text)
+        load_answer = time.perf_counter() - started
+        await _until(lambda: patrol.core.planner is not None)
+        load_ready = time.perf_counter() - started
+        rss_with_map = _rss_mb()
+        route = [area.frame.to_geo(*p) for p in _loop_points(area, planner, free)]
+        await rpc.call_local(
+            "set_waypoints", waypoints=[f"{lat:.7f},{lon:.7f}" for lat, lon in route]
+        )
+        await rpc.call_local("patrol_start")
+
+        async def probe() -> None:
+            loop = asyncio.get_running_loop()
+            while True:
+                due = loop.time() + 0.005
+                await asyncio.sleep(0.005)
+                stalls.append((loop.time() - due) * 1000)
+
+        probe_task = asyncio.get_running_loop().create_task(probe())
+        await asyncio.sleep(3.0)
+        answers, rebuilds, blocks = [], [], []
+        for index in range(edits):
+            x, y = free[-1 - index]
+            shed = {
+                "type": "Feature",
+                "id": f"bench-shed-{index}",
+                "properties": {"role": "keepout"},
+                "geometry": {
+                    "type": "Polygon",
+                    "coordinates": [
+                        [
+                            list(reversed(area.frame.to_geo(x + dx, y + dy)))
+                            for dx, dy in ((0, 0), (4, 0), (4, 4), (0, 4), (0, 0))
+                        ]
+                    ],
+                },
+            }
+            for change in ({"add": [shed]}, {"remove": [shed["id"]]}):
+                mark = len(stalls)
+                started = time.perf_counter()
+                try:
+                    await rpc.call_local("update_map", **change)
+                except Exception:  # the robot may be standing where the shed would go
+                    continue
+                answers.append((time.perf_counter() - started) * 1000)
+                await _until(lambda: patrol.core.planner is not None)
+                rebuilds.append((patrol.last_build_s or 0.0) * 1000)
+                blocks.append(max(stalls[mark:], default=0.0))
+        await asyncio.sleep(1.0)
+        state = patrol.core.state.value
+    finally:
+        if probe_task is not None:
+            probe_task.cancel()
+            await asyncio.gather(probe_task, return_exceptions=True)
+        await daemon.stop()
+    stall = percentiles(stalls or [0.0])
+    return {
+        "town_buildings": len(area.keepouts),
+        "town_vertices": area.summary()["vertices"],
+        "town_geojson_kb": round(len(text) / 1024, 1),
+        "town_parse_ms_median": round(statistics.median(loads) * 1000, 1),
+        "town_planner_build_ms": round(build * 1000, 1),
+        "town_planner_nodes": len(planner.nodes),
+        "town_planner_edges": planner.edge_count,
+        "town_plan_p50_ms": plan["p50"],
+        "town_plan_p99_ms": plan["p99"],
+        "town_load_map_answer_ms": round(load_answer * 1000, 1),
+        "town_load_map_to_plan_ready_ms": round(load_ready * 1000, 1),
+        "town_rss_before_map_mb": rss_before,
+        "town_rss_with_map_mb": rss_with_map,
+        "town_update_map_answer_p50_ms": percentiles(answers or [0.0])["p50"],
+        "town_update_map_answer_p99_ms": percentiles(answers or [0.0])["p99"],
+        "town_update_map_loop_block_p99_ms": percentiles(blocks or [0.0])["p99"],
+        "town_update_map_rebuild_p50_ms": percentiles(rebuilds or [0.0])["p50"],
+        "town_update_map_rebuild_p99_ms": percentiles(rebuilds or [0.0])["p99"],
+        "town_update_map_count": len(answers),
+        "town_loop_stall_p50_ms": stall["p50"],
+        "town_loop_stall_p99_ms": stall["p99"],
+        "town_loop_stall_max_ms": round(max(stalls or [0.0]), 1),
+        "town_patrol_state_after": state,
+        "town_limits": (
+            f"{MAX_VERTICES} vertices (planner build time and memory), "
+            f"{MAP_REQUEST_MAX_BYTES} bytes per request (brasidas.limits)"
+        ),
+        "town_note": (
+            "stall: lateness of a 5 ms sleep on the platform's event loop while it patrols "
+            "the town and a keep-out is added and removed; loop_block: the longest stall "
+            "during each update_map until its planner is ready; rebuild: the planner's "
+            "change in its worker thread"
+        ),
+    }
+
+
+async def _until(predicate: Any, timeout: float = 300.0) -> None:
+    import asyncio
+
+    for _ in range(int(timeout / 0.01)):
+        if predicate():
+            return
+        await asyncio.sleep(0.01)
+    raise TimeoutError("the platform did not get there")
+
+
+def largest(buildings: int = 3400) -> dict[str, Any]:
+    """The largest map the platform takes: a town just under the vertex cap; its size on the
+    wire against the request limit, its parse and its planner's build (what bounds it)."""
+    import json
+    import resource
+
+    from brasidas.autonomy.areamap import MAX_VERTICES
+    from brasidas.limits import MAP_REQUEST_MAX_BYTES
+    from platformd.sim.town import town_map
+
+    text = json.dumps(town_map(*START, buildings=buildings, seed=4))
+    started = time.perf_counter()
+    area = parse_map(text)
+    parse = time.perf_counter() - started
+    started = time.perf_counter()
+    planner = Planner(area.boundary, area.keepouts, PatrolParameters.clearance_m)
+    build = time.perf_counter() - started
+    return {
+        "largest_map_buildings": len(area.keepouts),
+        "largest_map_vertices": f"{area.vertices} of {MAX_VERTICES}",
+        "largest_map_kb": f"{len(text) / 1024:.0f} of {MAP_REQUEST_MAX_BYTES / 1024:.0f}",
+        "largest_map_parse_ms": round(parse * 1000, 1),
+        "largest_map_planner_build_s": round(build, 1),
+        "largest_map_planner_nodes": len(planner.nodes),
+        "largest_map_planner_edges": planner.edge_count,
+        "largest_map_bench_max_rss_mb": round(
+            resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1
+        ),
+    }
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/status", encoding="ascii") as status:
+        for line in status:
+            if line.startswith("VmRSS:"):
+                return round(int(line.split()[1]) / 1024, 1)
+    return 0.0
+
+
+def _clear(area: Any, point: tuple[float, float], distance: float) -> bool:
+    return not area.meets_keepout(Point(point).buffer(distance, quad_segs=2))
+
+
+def _loop_points(
+    area: Any, planner: Planner, free: list[tuple[float, float]]
+) -> list[tuple[float, float]]:
+    """Four free points 40-120 m from the start that the planner reaches: a closed loop."""
+    start = area.local(*START)
+    chosen = [start]
+    for point in free:
+        if 40 < math.dist(point, start) < 120:
+            try:
+                planner.plan(chosen[-1], point)
+            except Unreachable:
+                continue
+            chosen.append(point)
+            if len(chosen) == 4:
+                break
+    return [*chosen, start]
 
 
 def planning(seed: int = 7, plans: int = 300) -> dict[str, Any]:

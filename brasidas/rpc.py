@@ -39,6 +39,7 @@ from brasidas.codecs.jsonrpc import (
     read_answer,
     request_text,
 )
+from brasidas.limits import ANSWER_MAX_BYTES, MAP_REQUEST_MAX_BYTES
 
 if TYPE_CHECKING:
     import ssl  # only the station's HTTPS console: the platform keeps ssl out (~4 MB)
@@ -104,7 +105,7 @@ def add_rpc_routes(
             if ctx.stranger:
                 limit = min(limit, stranger_max_bytes)
         if request.content_length is not None and request.content_length > limit:
-            return _too_large()
+            return _too_large(f"{request.content_length} bytes", limit)
         try:
             async with asyncio.timeout(
                 admission.limits.body_timeout if admission is not None else None
@@ -126,7 +127,7 @@ def add_rpc_routes(
             request.protocol.force_close()
             return response
         if len(body) > limit:
-            return _too_large()
+            return _too_large(f"more than {limit} bytes", limit)
         answer = await dispatcher.handle_bytes(body, ctx)
         if answer is None:
             return web.Response(status=204)
@@ -374,8 +375,10 @@ _CLOSE = {"Connection": "close"}
 _TOO_LARGE = encode_error(None, RpcError(REQUEST_TOO_LARGE, "request too large")).decode()
 
 
-def _too_large() -> web.Response:
-    body = encode_error(None, RpcError(REQUEST_TOO_LARGE, "request too large"))
+def _too_large(size: str, limit: int) -> web.Response:
+    """413, saying the request's size and the limit (a map or route too big for one call)."""
+    message = f"request too large: {size}, the limit is {limit} bytes"
+    body = encode_error(None, RpcError(REQUEST_TOO_LARGE, message))
     return web.Response(status=413, body=body, content_type="application/json")
 
 
@@ -436,7 +439,10 @@ class RpcClient:
         self._session = aiohttp.ClientSession()
         try:
             self._ws = await self._session.ws_connect(
-                self.url, timeout=aiohttp.ClientWSTimeout(ws_close=1.0), autoping=True
+                self.url,
+                timeout=aiohttp.ClientWSTimeout(ws_close=1.0),
+                autoping=True,
+                max_msg_size=ANSWER_MAX_BYTES,  # get_map's answer carries the whole map
             )
         except BaseException:
             await self._session.close()
@@ -469,7 +475,15 @@ class RpcClient:
                 expiry.cancel()
             self._expiry = loop.call_at(deadline, self._expire)
         try:
-            await ws.send_str(request_text(method, params, request_id))
+            text = request_text(method, params, request_id)
+            if len(text) > MAP_REQUEST_MAX_BYTES:
+                # The platform's socket would close on it (and end the session): refuse here.
+                raise RpcError(
+                    REQUEST_TOO_LARGE,
+                    f"request too large: {len(text)} bytes, the limit is "
+                    f"{MAP_REQUEST_MAX_BYTES} bytes",
+                )
+            await ws.send_str(text)
             if self._receiving is None:
                 return await self._read_own(ws, future)
             return await future

@@ -31,27 +31,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="brasidas-platform", description="Brasidas platform daemon (runs on the robot)."
     )
-    parser.add_argument("--config", metavar="FILE", help="TOML configuration file")
-    parser.add_argument(
-        "--sim", action="store_true", help="simulated hardware behind the real drivers"
-    )
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="SECTION.KEY=VALUE",
-        help="override a configuration key (repeatable)",
-    )
-    parser.add_argument(
-        "--insecure", action="store_true", help="run without a fleet key (never in the field)"
-    )
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
-    parser.add_argument("--log-level", type=level_argument, help=", ".join(LEVELS), metavar="LEVEL")
+    _add_options(parser, defaults=True)
+    # The same options after the command too (`config --sim` as the README writes it); there
+    # they default to nothing, so they override only what they give.
+    after = argparse.ArgumentParser(add_help=False)
+    _add_options(after, defaults=False)
     sub = parser.add_subparsers(dest="command")
-    sub.add_parser("run", help="run the daemon (default)")
-    sub.add_parser("config", help="print the effective configuration as TOML")
-    simulate = sub.add_parser("simulate", help="run a simulated device on a pty, standalone")
+    sub.add_parser("run", parents=[after], help="run the daemon (default)")
+    sub.add_parser("config", parents=[after], help="print the effective configuration as TOML")
+    simulate = sub.add_parser(
+        "simulate", parents=[after], help="run a simulated device on a pty, standalone"
+    )
     simulate.add_argument(
         "device",
         help="device to simulate: " + ", ".join(sorted(SIMULATORS))
@@ -59,6 +49,43 @@ def build_parser() -> argparse.ArgumentParser:
         else "device to simulate",
     )
     return parser
+
+
+def _add_options(parser: argparse.ArgumentParser, *, defaults: bool) -> None:
+    def default(value: object) -> object:
+        return value if defaults else argparse.SUPPRESS
+
+    parser.add_argument(
+        "--config", metavar="FILE", help="TOML configuration file", default=default(None)
+    )
+    parser.add_argument(
+        "--sim",
+        action="store_true",
+        help="simulated hardware behind the real drivers",
+        default=default(False),
+    )
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=default([]),
+        metavar="SECTION.KEY=VALUE",
+        help="override a configuration key (repeatable)",
+    )
+    parser.add_argument(
+        "--insecure",
+        action="store_true",
+        help="run without a fleet key (never in the field)",
+        default=default(False),
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=default(0), help="more logging")
+    parser.add_argument(
+        "--log-level",
+        type=level_argument,
+        help=", ".join(LEVELS),
+        metavar="LEVEL",
+        default=default(None),
+    )
 
 
 def load_platform_config(args: argparse.Namespace) -> PlatformConfig:

@@ -17,6 +17,7 @@ from brasidas.codecs.jsonrpc import (
     read_answer,
 )
 from brasidas.config import StationConfig
+from brasidas.limits import STATION_API_MAX_BYTES
 
 
 class CliError(Exception):
@@ -27,11 +28,17 @@ async def api_call_async(config: StationConfig, method: str, **params: Any) -> A
     """Call the running station daemon's local API; raises CliError or RpcError."""
     station = config.station
     url = f"http://{station.api_host}:{station.api_port}/api/rpc"
+    request = encode_request(method, params, 1)
+    if len(request) > STATION_API_MAX_BYTES:
+        raise CliError(
+            f"{method}: the request is {len(request)} bytes, over the limit of "
+            f"{STATION_API_MAX_BYTES} bytes for one call (a map or a route; README: Limits)"
+        )
     timeout = aiohttp.ClientTimeout(total=station.connect_timeout * 2 + 2)
     try:
         async with (
             aiohttp.ClientSession(timeout=timeout) as session,
-            session.post(url, data=encode_request(method, params, 1)) as response,
+            session.post(url, data=request) as response,
         ):
             body = await response.read()
     except aiohttp.ClientConnectionError:
@@ -40,6 +47,8 @@ async def api_call_async(config: StationConfig, method: str, **params: Any) -> A
         ) from None
     except TimeoutError:
         raise CliError(f"no answer from the station daemon within {timeout.total:.0f} s") from None
+    if response.status == 413:
+        raise CliError(f"{method}: the station daemon refused the request: {_reason(body)}")
     try:
         items = decode_answers(body)
         if len(items) != 1:
@@ -50,3 +59,12 @@ async def api_call_async(config: StationConfig, method: str, **params: Any) -> A
             INTERNAL_ERROR,
             f"the station daemon answered {response.status} with no valid JSON-RPC answer ({err})",
         ) from None
+
+
+def _reason(body: bytes) -> str:
+    """The message of an error answer without an id (a refusal before the request was read)."""
+    try:
+        error = decode_answers(body)[0].get("error", {})
+        return str(error.get("message", body[:200].decode(errors="replace")))
+    except (ValueError, RecursionError, IndexError, AttributeError):
+        return body[:200].decode(errors="replace")

@@ -262,7 +262,9 @@ def cmd_map(args: argparse.Namespace, config: StationConfig) -> int:
             f"map {area['name']!r} loaded ({value.get('format', '?')}): "
             f"{area['area_m2']:.0f} m², "
             f"{len(area['keepouts'])} keep-out zones, {len(area['points'])} named points; "
-            "waypoints cleared, patrol stopped" + _notes(value)
+            "waypoints cleared, patrol stopped"
+            + _notes(value)
+            + "".join(f"\n  note: {note}" for note in area.get("notes", []))  # ids made unique
         )
 
     _print(args, answer, human)

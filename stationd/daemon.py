@@ -14,7 +14,7 @@ from brasidas.admission import AdmissionLimits, ServerAdmission
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.codecs.telemetry_schema import schema_document
 from brasidas.config import ConfigError, ConsoleSection, StationConfig, StationSection
-from brasidas.mapfiles import MAX_FILE_BYTES
+from brasidas.limits import STATION_API_MAX_BYTES
 from brasidas.rpc import ADMISSION, add_rpc_routes, serve_app_sites
 from stationd.context import StationContext
 
@@ -42,9 +42,8 @@ CONTENT_SECURITY_POLICY = (
     "frame-ancestors 'none'; form-action 'none'"
 )
 """The console's pages: scripts from the station only (no inline script, no eval)."""
-API_MAX_BYTES = 2 * MAX_FILE_BYTES + 65536
-"""A map or route file's text (map_import, route_import) as a JSON string (its tabs, newlines
-and quotes escaped: up to twice as long) and the call around it."""
+API_MAX_BYTES = STATION_API_MAX_BYTES
+"""A map or route file's text as a JSON string and the call around it (brasidas.limits)."""
 
 
 class ConsoleMissing(Exception):

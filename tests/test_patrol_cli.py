@@ -85,3 +85,59 @@ async def test_map_route_and_patrol_commands(
             break
     assert "autonomy   stopped  waypoint 0/2" in text and "(stopped by the operator)" in text
     assert "pose       37.94" in text and "patrol on" in text
+
+
+async def test_a_town_of_a_thousand_buildings_loads_and_a_too_big_map_says_its_size(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+) -> None:
+    from test_maps_real import drivable_town
+
+    from brasidas.limits import MAP_REQUEST_MAX_BYTES
+
+    platform = await platform_factory(
+        quiet_platform_config(
+            "platform.id=rover-6",
+            "sim.enabled=true",
+            "gps.enabled=true",
+            "gps.sim_rate_hz=5",
+            f"map.file={tmp_path / 'map.geojson'}",
+            f"autonomy.route_file={tmp_path / 'route.json'}",
+        ),
+        fleet_key,
+    )
+    await wait_until(lambda: platform.bus.last(topics.POSE) is not None, 10)
+    pose = platform.bus.last(topics.POSE)
+    assert pose is not None
+    code, _, _ = await run_cli(station, "connect", "rover-6", "--url", platform.ctx.signaling_url)
+    assert code == 0
+    town = drivable_town(pose.latitude, pose.longitude, buildings=1000)
+    text = json.dumps(town)
+    assert len(text) > 250_000  # the issue's maps: 266 KB and up failed with a 413
+    (tmp_path / "town.geojson").write_text(text)
+    code, out, err = await run_cli(station, "map", "rover-6", str(tmp_path / "town.geojson"))
+    assert code == 0, err
+    assert f"{len(town['features']) - 1} keep-out zones" in out
+
+    # Over the limit: refused before it is sent, with its size and the limit.
+    town["name"] = "x" * MAP_REQUEST_MAX_BYTES
+    (tmp_path / "huge.geojson").write_text(json.dumps(town))
+    code, _, err = await run_cli(station, "map", "rover-6", str(tmp_path / "huge.geojson"))
+    assert code == 1
+    assert f"over the limit of {MAP_REQUEST_MAX_BYTES} bytes" in err and "the request is" in err
+    # The station's own refusal (another client) says so too, as JSON-RPC.
+    import aiohttp
+
+    body = (
+        b'{"jsonrpc":"2.0","id":1,"method":"map_load","params":"'
+        + b"a" * (MAP_REQUEST_MAX_BYTES + 10)
+        + b'"}'
+    )
+    async with (
+        aiohttp.ClientSession() as session,
+        session.post(f"{station.api_url}/api/rpc", data=body) as response,
+    ):
+        answer = await response.json()
+    assert response.status == 413
+    assert answer["error"]["message"] == (
+        f"request too large: {len(body)} bytes, the limit is {MAP_REQUEST_MAX_BYTES} bytes"
+    )

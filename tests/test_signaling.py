@@ -127,9 +127,12 @@ async def test_http_post_errors(platform_factory: Factory, fleet_key: bytes) -> 
     status, body = await post(daemon, b"{garbage")
     assert status == 200 and body["error"]["code"] == -32700
     status, body = await post(
-        daemon, b'{"jsonrpc":"2.0","id":1,"method":"x","params":"' + b"a" * 70000 + b'"}'
+        daemon,
+        b'{"jsonrpc":"2.0","id":1,"method":"x","params":"'
+        + b"a" * (daemon.config.signaling.max_request_bytes + 1)
+        + b'"}',
     )
-    assert status == 413
+    assert status == 413 and "the limit is" in body["error"]["message"]
     status, body = await post(daemon, b'{"jsonrpc":"2.0","method":"challenge"}')
     assert status == 204
     # Still serving after all that.

@@ -1,36 +1,51 @@
-"""The area map (R-12): a boundary, keep-out zones and named points, from GeoJSON.
+"""The area map (R-12): where the robot may drive, keep-out zones and named points, from GeoJSON.
 
-A map is one GeoJSON ``FeatureCollection`` in WGS-84 (``[longitude, latitude]``):
+A map is one GeoJSON ``FeatureCollection`` in WGS-84 (``[longitude, latitude]``), the
+platform's canonical form (the station's readers turn other formats into it):
 
-- exactly one ``Polygon`` feature with ``"role": "boundary"`` in its properties: where the
-  robot may drive (holes in it are places it may not);
+- one or more ``Polygon``/``MultiPolygon`` features with ``"role": "boundary"``: where the robot
+  may drive. A MultiPolygon's parts are joined (the RFC 7946 form of an area split at the 180°
+  meridian is one area again); several boundary features are intersected (ArduPilot's several
+  inclusion fences: the robot must be inside all of them). Holes are places it may not go;
 - any number of ``Polygon``/``MultiPolygon`` features with ``"role": "keepout"``: buildings,
-  obstacles, no-go zones; named by the feature's ``id`` or its ``name`` property;
+  obstacles, no-go zones, each part kept as it is; named by the feature's ``id``, else its
+  ``name`` property (repeated names are made unique, and the map's ``notes`` say so);
 - any number of ``Point`` features with a ``name`` property: named places routes can use.
 
 :func:`parse_map` refuses anything else with a :class:`MapError` whose message says what is
-wrong and where. Geometry is in a :class:`~brasidas.autonomy.geo.LocalFrame` centred on the
-boundary (metres), with Shapely.
+wrong and where. Geometry is in a :class:`~brasidas.autonomy.geo.LocalFrame` at the centre of
+the boundary (metres), with Shapely: the frame is exact through Earth-centred coordinates, so
+it is continuous across the 180° meridian and up to the poles; :data:`MAX_EXTENT_M` bounds
+how far it reaches.
 """
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
-from shapely import Point, Polygon, unary_union
+import orjson
+import shapely
+from shapely import MultiPolygon, Point, Polygon, STRtree, unary_union
 from shapely.geometry.base import BaseGeometry
 from shapely.validation import explain_validity
 
-from brasidas.autonomy.geo import LocalFrame
+from brasidas.autonomy.geo import LocalFrame, centre_of
 
 MAX_EXTENT_M = 20_000.0
-"""A map wider than this is refused: the tangent plane would bend away from the ground."""
+"""A map wider than this is refused. Within it the tangent plane's distances are exact to
+5 mm (the plane leaves the ground by 7.8 m at 10 km from its origin: heights are not used)."""
 MAX_VERTICES = 20_000
-"""All polygons together; bounds the planner's work."""
+"""All polygons together: bounds the planner's build (its graph grows with the square of the
+keep-outs' corners) and the platform's memory."""
+GRID_M = 1e-6
+"""Parts of one area are joined on a micrometre grid (the two halves of an area split at the
+180° meridian meet within rounding, not exactly)."""
+
+Area = Polygon | MultiPolygon
+"""A boundary or a keep-out in the local frame."""
 
 
 class MapError(ValueError):
@@ -42,14 +57,24 @@ class AreaMap:
     """A validated map. Geometry in the local frame (metres); ``geojson()`` gives it back."""
 
     frame: LocalFrame
-    boundary: Polygon
-    keepouts: Mapping[str, Polygon]
+    boundary: Area
+    """Where the robot may drive: the intersection of the boundary features."""
+    keepouts: Mapping[str, Area]
     points: Mapping[str, tuple[float, float]]
     """Named points: (latitude, longitude)."""
     name: str = ""
+    notes: tuple[str, ...] = ()
+    """What the operator should know about the map as loaded (ids made unique, ...)."""
+    load_id: str = ""
+    """Names one loading of the map (kept by keep-out updates): a stored route belongs to
+    the map it was set on, so a crash between writing a new map and its empty route cannot
+    pair the new map with the old route. A GeoJSON foreign member, ``"load_id"``."""
     _features: Mapping[str, dict[str, Any]] = field(default_factory=dict, repr=False)
     """The keep-outs' GeoJSON features by id, as given (for export)."""
-    _boundary_feature: dict[str, Any] = field(default_factory=dict, repr=False)
+    _boundary_features: tuple[dict[str, Any], ...] = field(default=(), repr=False)
+    _index: tuple[STRtree, tuple[str, ...]] | None = field(
+        default=None, init=False, repr=False, compare=False
+    )
 
     def local(self, latitude: float, longitude: float) -> tuple[float, float]:
         return self.frame.to_local(latitude, longitude)
@@ -58,21 +83,41 @@ class AreaMap:
         """The point is within the boundary (its edge included)."""
         return bool(self.boundary.covers(Point(x, y)))
 
+    @property
+    def vertices(self) -> int:
+        """Of every polygon together (what :data:`MAX_VERTICES` bounds)."""
+        return int(shapely.get_num_coordinates(self.boundary)) + int(
+            shapely.get_num_coordinates(list(self.keepouts.values())).sum()
+        )
+
     def keepout_at(self, x: float, y: float) -> str | None:
         """The id of a keep-out zone containing the point, or None."""
-        point = Point(x, y)
-        for zone_id, zone in self.keepouts.items():
-            if zone.covers(point):
-                return zone_id
-        return None
+        tree, ids = self.keepout_index()
+        hits = tree.query(Point(x, y), predicate="intersects")
+        return ids[int(min(hits))] if len(hits) else None
+
+    def meets_keepout(self, geometry: BaseGeometry) -> bool:
+        """Some keep-out zone touches ``geometry``."""
+        tree, _ = self.keepout_index()
+        return bool(len(tree.query(geometry, predicate="intersects")))
+
+    def keepout_index(self) -> tuple[STRtree, tuple[str, ...]]:
+        """The keep-outs' spatial index and their ids in its order (built on first use: call
+        it in the thread that loads the map)."""
+        if self._index is None:
+            ids = tuple(self.keepouts)
+            object.__setattr__(self, "_index", (STRtree([self.keepouts[i] for i in ids]), ids))
+        assert self._index is not None
+        return self._index
 
     def check_position(self, latitude: float, longitude: float, what: str = "the robot") -> None:
         """Raise :class:`MapError` when a position is outside the boundary or in a keep-out."""
         x, y = self.local(latitude, longitude)
         if not self.inside(x, y):
+            # To the drivable area: a point in a hole is near its edge, not the outer ring's.
             raise MapError(
                 f"{what} ({latitude:.6f}, {longitude:.6f}) is outside the map's boundary "
-                f"({self.boundary.exterior.distance(Point(x, y)):.1f} m from it)"
+                f"({self.boundary.distance(Point(x, y)):.1f} m from it)"
             )
         zone = self.keepout_at(x, y)
         if zone is not None:
@@ -81,43 +126,56 @@ class AreaMap:
     def with_keepouts(
         self, add: Iterable[Mapping[str, Any]] = (), remove: Iterable[str] = ()
     ) -> AreaMap:
-        """A copy with keep-out features added (GeoJSON features) and others removed (by id)."""
+        """A copy with keep-out features added (GeoJSON features) and others removed (by id);
+        only the changed zones are parsed."""
         features = dict(self._features)
+        keepouts = dict(self.keepouts)
         for zone_id in remove:
             if zone_id not in features:
                 raise MapError(
-                    f"no keep-out zone {zone_id!r} (have: {', '.join(features) or 'none'})"
+                    f"no keep-out zone {zone_id!r} (have: {', '.join(_some(features)) or 'none'})"
                 )
             del features[zone_id]
+            del keepouts[zone_id]
+        notes: list[str] = []
+        renamed: list[str] = []
         for index, feature in enumerate(add):
-            zone_id, _ = _keepout(feature, f"added feature {index}", self.frame, len(features))
-            if zone_id in features:
+            zone_id, zone, derived = _keepout(feature, f"added feature {index}", self.frame)
+            if zone_id in keepouts and not derived:
                 raise MapError(f"keep-out zone {zone_id!r} exists already (remove it first)")
+            zone_id = _unique(zone_id, keepouts, renamed)
+            keepouts[zone_id] = zone
             features[zone_id] = dict(feature) | {"id": zone_id}
-        return parse_map(
-            {
-                "type": "FeatureCollection",
-                "name": self.name,
-                "features": [self._boundary_feature, *features.values(), *self._point_features()],
-            }
-        )
+        if renamed:
+            notes.append(_renamed_note(renamed))
+        vertices = _vertices(self.boundary) + sum(map(_vertices, keepouts.values()))
+        if vertices > MAX_VERTICES:
+            raise MapError(f"too many vertices ({vertices} > {MAX_VERTICES})")
+        return replace(self, keepouts=keepouts, _features=features, notes=tuple(notes))
 
     def geojson(self) -> dict[str, Any]:
         """The map as a GeoJSON FeatureCollection (what was loaded, keep-outs with their ids)."""
         return {
             "type": "FeatureCollection",
             "name": self.name,
-            "features": [self._boundary_feature, *self._features.values(), *self._point_features()],
+            **({"load_id": self.load_id} if self.load_id else {}),
+            "features": [
+                *self._boundary_features,
+                *self._features.values(),
+                *self._point_features(),
+            ],
         }
 
     def summary(self) -> dict[str, Any]:
         """Counts and size, for status and answers."""
         return {
             "name": self.name,
-            "origin": [self.frame.latitude, self.frame.longitude],
+            "origin": [round(self.frame.latitude, 7), round(self.frame.longitude, 7)],
             "area_m2": round(self.boundary.area, 1),
             "keepouts": sorted(self.keepouts),
             "points": sorted(self.points),
+            "vertices": self.vertices,
+            "notes": list(self.notes),
         }
 
     def _point_features(self) -> list[dict[str, Any]]:
@@ -132,10 +190,13 @@ class AreaMap:
 
 
 def parse_map(source: str | bytes | Mapping[str, Any]) -> AreaMap:
-    """Validate a GeoJSON map (text or decoded) into an :class:`AreaMap`, or raise MapError."""
+    """Validate a GeoJSON map (text or decoded) into an :class:`AreaMap`, or raise MapError.
+
+    Seconds for a map of thousands of buildings: call it from a worker thread."""
     if isinstance(source, str | bytes):
         try:
-            data = json.loads(source)
+            # orjson: a few milliseconds for a town, with the GIL held (the loop waits for it).
+            data = orjson.loads(source)
         except (ValueError, RecursionError) as exc:
             raise MapError(f"not JSON: {exc}") from None
     else:
@@ -154,35 +215,27 @@ def parse_map(source: str | bytes | Mapping[str, Any]) -> AreaMap:
             boundaries.append(dict(feature))
         else:
             others.append((index, dict(feature)))
-    if len(boundaries) != 1:
+    if not boundaries:
         raise MapError(
-            f"a map needs exactly one Polygon feature with role 'boundary' (found {len(boundaries)})"
+            "a map needs a boundary: a Polygon or MultiPolygon feature with role 'boundary'"
         )
-    boundary_feature = boundaries[0]
-    geometry = boundary_feature.get("geometry")
-    if not isinstance(geometry, Mapping) or geometry.get("type") != "Polygon":
-        raise MapError("the boundary must be a Polygon")
-    rings = _rings(geometry.get("coordinates"), "the boundary")
-    lon0, lat0 = _centre(rings[0])
-    frame = LocalFrame(lat0, lon0)
-    boundary = _polygon(rings, frame, "the boundary")
-    minx, miny, maxx, maxy = boundary.bounds
-    if max(maxx - minx, maxy - miny) > MAX_EXTENT_M:
-        raise MapError(f"the boundary is wider than {MAX_EXTENT_M / 1000:.0f} km")
-    keepouts: dict[str, Polygon] = {}
+    frame, boundary = _boundary(boundaries)
+    keepouts: dict[str, Area] = {}
     kept: dict[str, dict[str, Any]] = {}
     points: dict[str, tuple[float, float]] = {}
-    vertices = len(boundary.exterior.coords)
+    renamed: list[str] = []
+    vertices = _vertices(boundary)
     for index, feature in others:
         role = _role(feature)
         where = f"feature {index}"
         if role == "keepout":
-            zone_id, zone = _keepout(feature, where, frame, len(keepouts))
-            if zone_id in keepouts:
+            zone_id, zone, derived = _keepout(feature, where, frame)
+            if zone_id in keepouts and not derived:
                 raise MapError(f"{where}: keep-out id {zone_id!r} used twice")
+            zone_id = _unique(zone_id, keepouts, renamed)
             keepouts[zone_id] = zone
             kept[zone_id] = feature | {"id": zone_id}
-            vertices += len(zone.exterior.coords)
+            vertices += _vertices(zone)
         elif role in ("point", ""):
             name, (lat, lon) = _named_point(feature, where)
             if name in points:
@@ -190,23 +243,39 @@ def parse_map(source: str | bytes | Mapping[str, Any]) -> AreaMap:
             points[name] = (lat, lon)
         else:
             raise MapError(f"{where}: unknown role {role!r} (boundary, keepout or point)")
-    if vertices > MAX_VERTICES:
-        raise MapError(f"too many vertices ({vertices} > {MAX_VERTICES})")
+        if vertices > MAX_VERTICES:
+            raise MapError(f"too many vertices (more than {MAX_VERTICES})")
     name = data.get("name", "")
+    load_id = data.get("load_id", "")
     return AreaMap(
+        load_id=load_id if isinstance(load_id, str) else "",
         frame=frame,
         boundary=boundary,
         keepouts=keepouts,
         points=points,
         name=name if isinstance(name, str) else "",
+        notes=(_renamed_note(renamed),) if renamed else (),
         _features=kept,
-        _boundary_feature=boundary_feature,
+        _boundary_features=tuple(boundaries),
     )
 
 
 def obstacles(area: AreaMap) -> BaseGeometry:
     """Every keep-out zone as one geometry (empty when there are none)."""
     return unary_union(list(area.keepouts.values()))
+
+
+def room_to_drive(area: AreaMap) -> float:
+    """The largest clearance this map leaves room for (metres): the radius of the largest
+    circle inside the boundary and outside every keep-out."""
+    free = area.boundary.difference(obstacles(area)) if area.keepouts else area.boundary
+    parts = list(free.geoms) if isinstance(free, MultiPolygon) else [free]
+    best = 0.0
+    for part in parts:
+        if isinstance(part, Polygon) and not part.is_empty:
+            circle = shapely.maximum_inscribed_circle(part, tolerance=0.05)
+            best = max(best, float(circle.length))
+    return best
 
 
 # --------------------------------------------------------------------------- helpers
@@ -220,30 +289,124 @@ def _role(feature: Mapping[str, Any]) -> str:
     return role if isinstance(role, str) else "?"
 
 
-def _keepout(
-    feature: Mapping[str, Any], where: str, frame: LocalFrame, count: int
-) -> tuple[str, Polygon]:
+def _keepout(feature: Mapping[str, Any], where: str, frame: LocalFrame) -> tuple[str, Area, bool]:
+    """The zone's id, its geometry, and whether the id came from its name (or nothing)."""
     properties = feature.get("properties")
     properties = properties if isinstance(properties, Mapping) else {}
-    raw_id = feature.get("id", properties.get("name"))
-    zone_id = (
-        str(raw_id) if isinstance(raw_id, str | int) and raw_id != "" else f"keepout-{count + 1}"
-    )
-    where = f"{where} (keep-out {zone_id!r})"
+    raw_id = feature.get("id")
+    derived = not (isinstance(raw_id, str | int) and not isinstance(raw_id, bool) and raw_id != "")
+    if derived:
+        raw_id = properties.get("name")
+    zone_id = str(raw_id).strip() if isinstance(raw_id, str | int) else ""
+    where = f"{where} (keep-out {zone_id or 'without a name'!r})"
     geometry = feature.get("geometry")
     if not isinstance(geometry, Mapping):
         raise MapError(f"{where}: no geometry")
+    return zone_id, _area(geometry, frame, where, "a keep-out"), derived
+
+
+def _unique(zone_id: str, taken: Mapping[str, Any], renamed: list[str]) -> str:
+    """``zone_id``, else ``zone_id (2)``, ``(3)``... (noted in ``renamed``); ``keepout-N``
+    for a zone with neither an id nor a name."""
+    if not zone_id:
+        number = len(taken) + 1
+        while f"keepout-{number}" in taken:
+            number += 1
+        return f"keepout-{number}"
+    if zone_id not in taken:
+        return zone_id
+    number = 2
+    while f"{zone_id} ({number})" in taken:
+        number += 1
+    renamed.append(zone_id)
+    return f"{zone_id} ({number})"
+
+
+def _renamed_note(renamed: list[str]) -> str:
+    names = sorted(set(renamed))
+    shown = ", ".join(repr(n) for n in names[:5]) + (" ..." if len(names) > 5 else "")
+    return (
+        f"{len(renamed)} keep-outs without an id repeat a name ({shown}): "
+        f"their ids are made unique ('{names[0]} (2)', ...)"
+    )
+
+
+def _some(names: Iterable[str], most: int = 20) -> list[str]:
+    listed = list(names)
+    return listed[:most] + ([f"... {len(listed) - most} more"] if len(listed) > most else [])
+
+
+def _vertices(geometry: BaseGeometry) -> int:
+    return int(shapely.get_num_coordinates(geometry))
+
+
+def _boundary(features: list[dict[str, Any]]) -> tuple[LocalFrame, Area]:
+    """The frame at the centre of the boundary features and their intersection in it."""
+    geometries = []
+    for index, feature in enumerate(features):
+        geometry = feature.get("geometry")
+        where = "the boundary" if len(features) == 1 else f"boundary {index}"
+        if not isinstance(geometry, Mapping) or geometry.get("type") not in (
+            "Polygon",
+            "MultiPolygon",
+        ):
+            raise MapError(f"{where} must be a Polygon or MultiPolygon")
+        geometries.append((geometry, where))
+    outer = [
+        position
+        for geometry, where in geometries
+        for rings in _polygons(geometry, where)
+        for position in rings[0][:-1]
+    ]
+    try:
+        first = LocalFrame(*centre_of(outer))
+    except ValueError as exc:
+        raise MapError(f"the boundary {exc}") from None
+    areas = [_area(geometry, first, where, "the boundary") for geometry, where in geometries]
+    minx, miny, maxx, maxy = areas[0].bounds
+    if max(maxx - minx, maxy - miny) > MAX_EXTENT_M:
+        raise MapError(
+            f"the boundary is {max(maxx - minx, maxy - miny) / 1000:.1f} km across: "
+            f"the largest map is {MAX_EXTENT_M / 1000:.0f} km across"
+        )
+    # The origin at the middle of the boundary's extent, as the plane is most exact there.
+    frame = LocalFrame(*first.to_geo((minx + maxx) / 2, (miny + maxy) / 2))
+    boundary = _area(geometries[0][0], frame, geometries[0][1], "the boundary")
+    for geometry, where in geometries[1:]:
+        joined = shapely.intersection(
+            boundary, _area(geometry, frame, where, "the boundary"), grid_size=GRID_M
+        )
+        boundary = _polygonal(joined)
+    if boundary.is_empty or boundary.area <= 0.01:
+        raise MapError("the boundary features have no area in common")
+    return frame, boundary
+
+
+def _polygons(geometry: Mapping[str, Any], where: str) -> list[list[list[tuple[float, float]]]]:
+    """Each polygon of a Polygon or MultiPolygon as its rings of (lon, lat)."""
     if geometry.get("type") == "Polygon":
-        return zone_id, _polygon(_rings(geometry.get("coordinates"), where), frame, where)
-    if geometry.get("type") == "MultiPolygon":
-        parts = geometry.get("coordinates")
-        if not isinstance(parts, list) or not parts:
-            raise MapError(f"{where}: a MultiPolygon needs polygons")
-        polygons = [_polygon(_rings(part, where), frame, where) for part in parts]
-        merged = unary_union(polygons).convex_hull if len(polygons) > 1 else polygons[0]
-        assert isinstance(merged, Polygon)
-        return zone_id, merged
-    raise MapError(f"{where}: a keep-out must be a Polygon or MultiPolygon")
+        return [_rings(geometry.get("coordinates"), where)]
+    parts = geometry.get("coordinates")
+    if not isinstance(parts, list) or not parts:
+        raise MapError(f"{where}: a MultiPolygon needs polygons")
+    return [_rings(part, f"{where}, polygon {index}") for index, part in enumerate(parts)]
+
+
+def _area(geometry: Mapping[str, Any], frame: LocalFrame, where: str, what: str) -> Area:
+    """A Polygon or MultiPolygon in the frame, its parts joined where they touch."""
+    if geometry.get("type") not in ("Polygon", "MultiPolygon"):
+        raise MapError(f"{where}: {what} must be a Polygon or MultiPolygon")
+    polygons = [_polygon(rings, frame, where) for rings in _polygons(geometry, where)]
+    if len(polygons) == 1:
+        return polygons[0]
+    return _polygonal(shapely.union_all(polygons, grid_size=GRID_M))
+
+
+def _polygonal(geometry: BaseGeometry) -> Area:
+    if isinstance(geometry, Polygon | MultiPolygon):
+        return geometry
+    parts = [g for g in getattr(geometry, "geoms", ()) if isinstance(g, Polygon)]
+    return MultiPolygon(parts)
 
 
 def _named_point(feature: Mapping[str, Any], where: str) -> tuple[str, tuple[float, float]]:
@@ -283,12 +446,6 @@ def _position(position: Any, where: str) -> tuple[float, float]:
     if not (math.isfinite(lon) and math.isfinite(lat)) or abs(lat) > 90 or abs(lon) > 180:
         raise MapError(f"{where}: [{lon}, {lat}] is not a longitude, latitude")
     return lon, lat
-
-
-def _centre(ring: list[tuple[float, float]]) -> tuple[float, float]:
-    lons = [lon for lon, _ in ring[:-1]]
-    lats = [lat for _, lat in ring[:-1]]
-    return (min(lons) + max(lons)) / 2.0, (min(lats) + max(lats)) / 2.0
 
 
 def _polygon(rings: list[list[tuple[float, float]]], frame: LocalFrame, where: str) -> Polygon:

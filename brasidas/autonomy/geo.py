@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 WGS84_A = 6_378_137.0
@@ -43,6 +44,25 @@ class LocalFrame:
     def _trig(self) -> tuple[float, float, float, float]:
         lat, lon = math.radians(self.latitude), math.radians(self.longitude)
         return math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
+
+
+def centre_of(positions: Iterable[tuple[float, float]]) -> tuple[float, float]:
+    """(latitude, longitude) of the middle of (longitude, latitude) positions, through
+    Earth-centred coordinates: right across the 180° meridian and near the poles, where
+    averaging degrees is not. Raises ValueError when they have no middle (spread round the
+    globe)."""
+    sx = sy = sz = 0.0
+    count = 0
+    for lon, lat in positions:
+        la, lo = math.radians(lat), math.radians(lon)
+        sx += math.cos(la) * math.cos(lo)
+        sy += math.cos(la) * math.sin(lo)
+        sz += math.sin(la)
+        count += 1
+    norm = math.sqrt(sx * sx + sy * sy + sz * sz)
+    if count == 0 or norm < 1e-6 * count:
+        raise ValueError("has no middle: it is spread round the globe")
+    return math.degrees(math.asin(sz / norm)), math.degrees(math.atan2(sy, sx))
 
 
 def heading_to_yaw(heading_deg: float) -> float:

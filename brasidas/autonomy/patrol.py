@@ -83,23 +83,38 @@ class Patrol:
 
     # ------------------------------------------------------------------ inputs
 
-    def set_map(self, area: AreaMap | None) -> None:
-        """A new map: the waypoints are wiped and the patrol stops (R-5.3.3.5)."""
+    def set_map(self, area: AreaMap | None, *, build: bool = True) -> None:
+        """A new map: the waypoints are wiped and the patrol stops (R-5.3.3.5). Without
+        ``build`` the planner comes later (:meth:`set_planner`, built off the event loop)."""
         self.area = area
         self.map_revision += 1
-        self._planner = None if area is None else self._build(area)
+        self._planner = self._build(area) if area is not None and build else None
         self.route = Route()
         self.cursor = Cursor()
         self._running = False
         self._path = None
         self._settle(PatrolState.STOPPED, "map loaded: waypoints cleared")
 
-    def update_map(self, area: AreaMap) -> None:
-        """Keep-out zones changed: same route, a new plan."""
+    def update_map(self, area: AreaMap, *, build: bool = True) -> None:
+        """Keep-out zones changed: same route, a new plan. Without ``build`` the patrol holds
+        until :meth:`set_planner` brings the planner for this map."""
         self.area = area
         self.map_revision += 1
-        self._planner = self._build(area)
+        self._planner = self._build(area) if build else None
         self._needs_plan = True
+
+    def set_planner(self, area: AreaMap, planner: Planner) -> bool:
+        """The planner built for ``area``; ignored (False) when the map has changed since."""
+        if area is not self.area:
+            return False
+        self._planner = planner
+        self._needs_plan = True
+        return True
+
+    @property
+    def planner(self) -> Planner | None:
+        """The planner of the current map (None while it is being built)."""
+        return self._planner
 
     def set_route(self, route: Route) -> None:
         """New waypoints, on the fly: the patrol goes on toward the new first waypoint."""
@@ -148,6 +163,11 @@ class Patrol:
             return self._settle(PatrolState.IDLE, "no waypoints")
         if self._override:
             return self._settle(PatrolState.SUSPENDED, "manual override engaged")
+        if self._planner is None:
+            self._needs_plan = True
+            return self._settle(
+                PatrolState.HOLDING, "the map changed: waiting for the new plan (being built)"
+            )
         hold = self._hazard(estimate, fix_age)
         if hold:
             self._needs_plan = True
@@ -206,7 +226,7 @@ class Patrol:
     def _build(self, area: AreaMap) -> Planner:
         from brasidas.autonomy.planner import Planner
 
-        return Planner(area.boundary, area.keepouts.values(), self.p.clearance_m)
+        return Planner(area.boundary, area.keepouts, self.p.clearance_m)
 
     def _settle(self, state: PatrolState, reason: str) -> Command:
         self.state, self.reason = state, reason
@@ -232,9 +252,7 @@ class Patrol:
         assert self.area is not None
         # The heading is unknown, so "ahead" is unknown: need room all round.
         room = Point(here).buffer(self.p.align_room_m, quad_segs=4)
-        blocked = not self.area.boundary.contains(room) or any(
-            zone.intersects(room) for zone in self.area.keepouts.values()
-        )
+        blocked = not self.area.boundary.contains(room) or self.area.meets_keepout(room)
         if blocked:
             return self._settle(
                 PatrolState.HOLDING,

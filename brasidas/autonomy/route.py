@@ -157,10 +157,22 @@ class RouteStore:
             raise RouteError(f"{self.path}: no 'waypoints' list")
         return parse_waypoints(data["waypoints"])
 
-    def save(self, route: Route) -> None:
-        write_atomically(
-            self.path, json.dumps({"waypoints": route.as_list()}, indent=1, allow_nan=False)
-        )
+    def map_id(self) -> str | None:
+        """The ``load_id`` of the map the stored route was set on ("" when the file does not
+        say; None when there is no file or it cannot be read)."""
+        try:
+            data = json.loads(self.path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+        found = data.get("map", "") if isinstance(data, Mapping) else ""
+        return found if isinstance(found, str) else ""
+
+    def save(self, route: Route, map_id: str = "") -> None:
+        """Store the route, with the ``load_id`` of the map it belongs to."""
+        plain: dict[str, Any] = {"waypoints": route.as_list()}
+        if map_id:
+            plain["map"] = map_id
+        write_atomically(self.path, json.dumps(plain, indent=1, allow_nan=False))
 
 
 def write_atomically(path: Path, text: str) -> None:
@@ -182,6 +194,18 @@ def write_atomically(path: Path, text: str) -> None:
         os.fsync(folder)
     finally:
         os.close(folder)
+
+
+def remove_stale_temporaries(path: Path) -> list[Path]:
+    """Remove the temporary files :func:`write_atomically` left beside ``path`` when a crash
+    came before their rename (``.NAME.XXXXXXXX``); the ones removed."""
+    removed = []
+    for candidate in path.parent.glob(f".{path.name}.*"):
+        suffix = candidate.name[len(path.name) + 2 :]
+        if len(suffix) == 8 and candidate.is_file():  # mkstemp's 8 random characters
+            candidate.unlink(missing_ok=True)
+            removed.append(candidate)
+    return removed
 
 
 # --------------------------------------------------------------------------- helpers

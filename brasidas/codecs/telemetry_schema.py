@@ -374,6 +374,9 @@ class Autonomy(Section):
         default=0,
         metadata=wire("m", doc="changes with the area map (loaded, keep-outs added or removed)"),
     )
+    map_error: str = field(
+        default="", metadata=wire("me", doc="why the stored map (map.file) was refused at start")
+    )
 
 
 @dataclass(frozen=True)

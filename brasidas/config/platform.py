@@ -29,6 +29,7 @@ from brasidas.config.loader import (
     setting,
     url,
 )
+from brasidas.limits import MAP_REQUEST_MAX_BYTES
 
 BAUD_RATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
 H264_ENCODERS = ("v4l2h264enc", "omxh264enc", "x264enc", "openh264enc")
@@ -138,7 +139,9 @@ class SignalingSection:
     the release. Must exceed ``failsafe.hold_after``."""
     heartbeat_interval: float = setting(1.0, at_least(0.05, most=600))
     """How often stations are told to send heartbeats."""
-    max_request_bytes: int = setting(65536, at_least(1024, most=16 * 1024 * 1024))
+    max_request_bytes: int = setting(MAP_REQUEST_MAX_BYTES, at_least(1024, most=16 * 1024 * 1024))
+    """The largest JSON-RPC request (HTTP body or WebSocket message): a map or a route must
+    fit (``brasidas.limits.MAP_REQUEST_MAX_BYTES``, what stations send at most)."""
     command_timeout: float = setting(3.0, above(0, most=60))
     """How long a system command may take to be answered by its actor."""
     # Admission (issue 19): a host without the fleet key gets bounded work. A connection

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-MAX_FILE_BYTES = 4 * 1024 * 1024
+from brasidas.limits import FILE_MAX_BYTES
+
+MAX_FILE_BYTES = FILE_MAX_BYTES
 """A bigger file is refused before it is read (a map has 20 000 vertices at most)."""
 
 

@@ -65,7 +65,7 @@ async def async_setup(ctx: PlatformContext) -> None:
         else None,
         commands=ctx.commands,
     )
-    patrol.load()
+    await patrol.load()
     PatrolMethods(patrol).register(ctx.rpc, ctx.authority)
     ctx.telemetry.register(Autonomy, lambda: _autonomy(patrol))
     ctx.telemetry.register(Pose, lambda: _pose(ctx))
@@ -89,6 +89,7 @@ def _autonomy(patrol: PatrolActor) -> Autonomy:
             (round(lat, 7), round(lon, 7)) for lat, lon in report.path[:TELEMETRY_PATH_POINTS]
         ),
         map_rev=patrol.core.map_revision,
+        map_error=patrol.map_error,
     )
 
 

@@ -36,7 +36,7 @@ class PatrolMethods:
         from brasidas.autonomy.areamap import MapError  # with Shapely: maps need it anyway
 
         try:
-            area = self.actor.load_map(map)
+            area = await self.actor.load_map(map)
         except MapError as exc:
             raise RpcError(INVALID_PARAMS, f"map refused: {exc}") from None
         return {"map": area.summary(), "patrol": self.actor.report.as_dict()}
@@ -54,7 +54,7 @@ class PatrolMethods:
         from brasidas.autonomy.areamap import MapError
 
         try:
-            area = self.actor.update_map(add, remove)
+            area = await self.actor.update_map(add, remove)
         except MapError as exc:
             raise RpcError(INVALID_PARAMS, f"update refused: {exc}") from None
         return {"map": area.summary(), "patrol": self.actor.report.as_dict()}
@@ -75,7 +75,7 @@ class PatrolMethods:
         if not isinstance(waypoints, list):
             raise RpcError(INVALID_PARAMS, "waypoints refused: expected a list")
         try:
-            route = self.actor.set_waypoints(waypoints)
+            route = await self.actor.set_waypoints(waypoints)
         except RouteError as exc:
             raise RpcError(INVALID_PARAMS, f"waypoints refused: {exc}") from None
         return {

@@ -14,13 +14,17 @@ map is, never on a platform without one.
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import math
+import secrets
+import threading
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+import orjson
 
 from brasidas import topics
 from brasidas.actor import Actor
@@ -32,6 +36,7 @@ from brasidas.autonomy.route import (
     RouteStore,
     check_route,
     parse_waypoints,
+    remove_stale_temporaries,
     write_atomically,
 )
 from brasidas.bus import Bus
@@ -49,6 +54,13 @@ from platformd.commands import CommandRouter, SystemCommand
 
 if TYPE_CHECKING:
     from brasidas.autonomy.areamap import AreaMap
+    from brasidas.autonomy.planner import Planner
+
+ROOM_FRACTION = 0.25
+"""A map whose boundary, shrunk by the clearance, keeps less than this of its area is said
+to leave no room (at load, in the answer's notes)."""
+INCREMENTAL_MOST = 20
+"""Keep-outs changed at once up to which the last planner is changed rather than rebuilt."""
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -89,6 +101,17 @@ class PatrolActor(Actor):
         self._driving = False
         self._reported: PatrolStatus | None = None
         self.loaded = False
+        self.map_error = ""
+        """Why the stored map was refused at start ("" when it was not): in telemetry."""
+        self.last_build_s: float | None = None
+        """How long the last planner took to build (worker thread), seconds."""
+        self._changing = asyncio.Lock()
+        """One map change at a time: each starts from the map the one before left."""
+        self._map_changed = asyncio.Event()
+        self._building: tuple[AreaMap, threading.Event] | None = None
+        """The map whose planner is being built and the event that stops that build."""
+        self._planned: tuple[AreaMap, Planner] | None = None
+        """The last planner built and its map: changed, not rebuilt, by keep-out updates."""
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -96,25 +119,30 @@ class PatrolActor(Actor):
         if self._clock is None:
             self._clock = asyncio.get_running_loop().time
         if not self.loaded:
-            self.load()
+            await self.load()
         if self.commands is not None:
             self.on_remove(self.commands.register(self.name, {PATROL: self._command_switch}))
         self.subscribe(topics.POSE, self._on_pose)
         self.subscribe(topics.OVERRIDE_STATE, self._on_override)
         try:
-            while True:
-                self.tick()
-                await asyncio.sleep(self.period)
+            async with asyncio.TaskGroup() as group:
+                group.create_task(self._build_planners(), name="patrol:planner")
+                while True:
+                    self.tick()
+                    await asyncio.sleep(self.period)
         finally:
             if self._driving:
                 self.bus.publish(topics.CMD_VEL, Velocity(0.0, 0.0))
                 self._driving = False
 
-    def load(self) -> None:
-        """The stored map and route (the --sim demo when none is stored); start if configured."""
+    async def load(self) -> None:
+        """The stored map and route (the --sim demo when none is stored); start if configured.
+        Files and geometry in a worker thread."""
         self.loaded = True
-        area, route, stored = self._stored()
-        self.core.set_map(area)
+        area, route, stored, refused = await asyncio.to_thread(self._stored)
+        self.map_error = refused
+        self.core.set_map(area, build=False)
+        self._replan()
         if area is not None:
             self.core.set_route(route)
         report_switch(self.bus, "patrol", self.core.enabled)
@@ -125,7 +153,13 @@ class PatrolActor(Actor):
             )
         self._report()
 
-    def _stored(self) -> tuple[AreaMap | None, Route, bool]:
+    def _stored(self) -> tuple[AreaMap | None, Route, bool, str]:
+        """(Worker thread.) The stored map, its route, whether the route was stored, and why
+        the stored map was refused ("" when it was not); stale temporary files removed."""
+        refused = ""
+        for path in (self.storage.map_file, self.routes.path):
+            for removed in remove_stale_temporaries(path):
+                _LOGGER.info("patrol: removed %s (left by a crash during a write)", removed)
         area: AreaMap | None = None
         try:
             stored = self.storage.map_file.read_bytes()
@@ -133,17 +167,29 @@ class PatrolActor(Actor):
             stored = None
         except OSError as exc:
             stored = None
-            _LOGGER.error("patrol: map %s refused: %s", self.storage.map_file, exc)
+            refused = f"cannot read {self.storage.map_file}: {exc}"
         if stored is not None:
             from brasidas.autonomy.areamap import MapError
 
             try:
                 area = parse_map(stored)
+                area.keepout_index()
             except MapError as exc:
-                _LOGGER.error("patrol: map %s refused: %s", self.storage.map_file, exc)
+                refused = f"{self.storage.map_file} refused: {exc}"
+        if refused:
+            # Not only in the log: telemetry's autonomy.map_error, a warning at the station.
+            _LOGGER.error("patrol: map.file %s", refused)
         try:
-            route = self.routes.load()
-            check_route(route, area)
+            route = Route()
+            map_id = self.routes.map_id()
+            if area is not None and map_id is not None and map_id != area.load_id:
+                # The map was replaced and the crash came before its empty route was stored.
+                _LOGGER.warning(
+                    "patrol: route %s was set on another map: dropped", self.routes.path
+                )
+            else:
+                route = self.routes.load()
+                check_route(route, area)
         except RouteError as exc:
             _LOGGER.error("patrol: route %s refused: %s", self.routes.path, exc)
             route = Route()
@@ -151,8 +197,73 @@ class PatrolActor(Actor):
             area = parse_map(self.demo[0])
             _LOGGER.info("patrol: no stored map, the --sim demo map %r", area.name)
             if not route.waypoints:
-                return area, parse_waypoints(self.demo[1], area.points), False
-        return area, route, bool(route.waypoints)
+                return area, parse_waypoints(self.demo[1], area.points), False, refused
+        if area is not None:
+            for note in area.notes:
+                _LOGGER.warning("patrol: map %r: %s", area.name, note)
+        return area, route, bool(route.waypoints), f"map.file {refused}" if refused else ""
+
+    async def _build_planners(self) -> None:
+        """Build the planner of each new map in a worker thread, as maps change; one at a time,
+        always for the latest map (a keep-out added or removed changes the last planner)."""
+        while True:
+            await self._map_changed.wait()
+            self._map_changed.clear()
+            area = self.core.area
+            if area is None or self.core.planner is not None:
+                continue
+            from brasidas.autonomy.planner import BuildCancelled  # loaded with the map already
+
+            base = self._planned
+            started = time.perf_counter()
+            cancelled = threading.Event()
+            self._building = (area, cancelled)
+            try:
+                planner = await asyncio.to_thread(self._planner_for, area, base, cancelled)
+            except asyncio.CancelledError:
+                cancelled.set()  # the thread stops within a block of node pairs
+                raise
+            except BuildCancelled:
+                _LOGGER.info("patrol: planner for map %r dropped: a new map came", area.name)
+                continue
+            finally:
+                self._building = None
+            self.last_build_s = time.perf_counter() - started
+            self._planned = (area, planner)
+            if self.core.set_planner(area, planner):
+                _LOGGER.info(
+                    "patrol: planner for map %r ready in %.2f s (%d nodes, %d edges)",
+                    area.name, self.last_build_s, len(planner.nodes), planner.edge_count,
+                )  # fmt: skip
+                self.tick()
+
+    def _planner_for(
+        self,
+        area: AreaMap,
+        base: tuple[AreaMap, Planner] | None,
+        cancelled: threading.Event,
+    ) -> Planner:
+        """(Worker thread.) The planner of ``area``: ``base``'s changed by the keep-outs added
+        and removed since, when it is the same boundary and a few changes; else a new one."""
+        from brasidas.autonomy.planner import Planner
+
+        clearance = self.core.p.clearance_m
+        if base is not None and base[0].boundary is area.boundary:
+            before, planner = base
+            removed = [k for k, z in before.keepouts.items() if area.keepouts.get(k) is not z]
+            added = {k: z for k, z in area.keepouts.items() if before.keepouts.get(k) is not z}
+            if len(removed) + len(added) <= INCREMENTAL_MOST:
+                return planner.changed(added, removed, cancelled)
+        return Planner(area.boundary, area.keepouts, clearance, cancelled)
+
+    def _replan(self) -> None:
+        """The map changed: its planner is built off the event loop (the patrol holds). A
+        build for another boundary (a map since replaced) is stopped: its graph is of no use."""
+        building = self._building
+        area = self.core.area
+        if building is not None and (area is None or building[0].boundary is not area.boundary):
+            building[1].set()
+        self._map_changed.set()
 
     # ------------------------------------------------------------------ stepping
 
@@ -216,44 +327,101 @@ class PatrolActor(Actor):
         pose = self._pose
         return (pose.latitude, pose.longitude) if pose is not None else None
 
-    def load_map(self, source: str | bytes | Mapping[str, Any]) -> AreaMap:
-        """Replace the map (validated first): wipes the waypoints and stops (R-5.3.3.5)."""
-        area = parse_map(source)
-        position = self.robot_position()
-        if position is not None:
-            area.check_position(*position)
-        write_atomically(self.storage.map_file, json.dumps(area.geojson(), allow_nan=False))
-        self.routes.save(Route())
-        self.core.set_map(area)
+    async def load_map(self, source: str | bytes | Mapping[str, Any]) -> AreaMap:
+        """Replace the map (validated first): wipes the waypoints and stops (R-5.3.3.5).
+        Parsing, checks and files in a worker thread; the planner is built after."""
+        async with self._changing:
+            position = self.robot_position()
+            area = await asyncio.to_thread(self._new_map, source, position)
+            self.core.set_map(area, build=False)
+            self.map_error = ""
+            self._replan()
         _LOGGER.warning("patrol: map %r loaded; waypoints cleared, patrol stopped", area.name)
         self.tick()
         return area
 
-    def update_map(self, add: list[Mapping[str, Any]], remove: list[str]) -> AreaMap:
-        """Add or remove keep-out zones; the route stays, the path is replanned."""
-        if self.core.area is None:
-            from brasidas.autonomy.areamap import MapError
+    def _new_map(
+        self, source: str | bytes | Mapping[str, Any], position: tuple[float, float] | None
+    ) -> AreaMap:
+        """(Worker thread.) Parse, check and store a new map with its empty route."""
+        from dataclasses import replace
 
-            raise MapError("no map loaded")
-        area = self.core.area.with_keepouts(add=add, remove=remove)
-        position = self.robot_position()
+        area = parse_map(source)
         if position is not None:
             area.check_position(*position)
-        write_atomically(self.storage.map_file, json.dumps(area.geojson(), allow_nan=False))
-        self.core.update_map(area)
+        area = replace(area, load_id=secrets.token_hex(8), notes=(*area.notes, *self._room(area)))
+        area.keepout_index()
+        # The map's rename is the one step: the old route names the old map's load_id, so a
+        # crash before the new empty route is stored cannot pair it with the new map.
+        write_atomically(self.storage.map_file, _map_text(area))
+        self.routes.save(Route(), area.load_id)
+        return area
+
+    def _room(self, area: AreaMap) -> list[str]:
+        """(Worker thread.) A note when the clearance leaves (almost) no room in the boundary:
+        every waypoint must be that far from its edges."""
+        from brasidas.autonomy.areamap import room_to_drive
+
+        clearance = self.core.p.clearance_m
+        left = area.boundary.buffer(-clearance).area
+        if left >= ROOM_FRACTION * area.boundary.area:
+            return []
+        most = room_to_drive(area)
+        note = (
+            f"autonomy.clearance_m {clearance:g} m leaves {left:.0f} m² of this map's "
+            f"{area.boundary.area:.0f} m² to drive in (waypoints must be that far from the "
+            f"edges and keep-outs); a clearance of {most / 2:.1f} m or less would leave room"
+        )
+        _LOGGER.warning("patrol: map %r: %s", area.name, note)
+        return [note]
+
+    async def update_map(self, add: list[Mapping[str, Any]], remove: list[str]) -> AreaMap:
+        """Add or remove keep-out zones; the route stays; the patrol holds until the path is
+        replanned. Geometry and the file in a worker thread."""
+        async with self._changing:
+            if self.core.area is None:
+                from brasidas.autonomy.areamap import MapError
+
+                raise MapError("no map loaded")
+            base, position = self.core.area, self.robot_position()
+            area = await asyncio.to_thread(self._changed_map, base, add, remove, position)
+            self.core.update_map(area, build=False)
+            self._replan()
         self.tick()
         return area
 
-    def set_waypoints(self, items: list[Any]) -> Route:
-        """Replace the waypoints on the fly (R-5.3.3.3); stored before they are used."""
-        area = self.core.area
-        if area is None:
-            raise RouteError("no map loaded: load one first")
+    def _changed_map(
+        self,
+        base: AreaMap,
+        add: list[Mapping[str, Any]],
+        remove: list[str],
+        position: tuple[float, float] | None,
+    ) -> AreaMap:
+        """(Worker thread.) The map with keep-outs changed, checked and stored."""
+        area = base.with_keepouts(add=add, remove=remove)
+        area.keepout_index()  # here, not at the patrol's next step on the event loop
+        if position is not None:
+            area.check_position(*position)
+        write_atomically(self.storage.map_file, _map_text(area))
+        return area
+
+    async def set_waypoints(self, items: list[Any]) -> Route:
+        """Replace the waypoints on the fly (R-5.3.3.3); stored before they are used (checks
+        and the file in a worker thread)."""
+        async with self._changing:
+            area = self.core.area
+            if area is None:
+                raise RouteError("no map loaded: load one first")
+            route = await asyncio.to_thread(self._new_route, area, items)
+            self.core.set_route(route)
+        self.tick()
+        return route
+
+    def _new_route(self, area: AreaMap, items: list[Any]) -> Route:
+        """(Worker thread.) Parse, check and store waypoints on ``area``."""
         route = parse_waypoints(items, area.points)
         check_route(route, area)
-        self.routes.save(route)
-        self.core.set_route(route)
-        self.tick()
+        self.routes.save(route, area.load_id)
         return route
 
     def start_patrol(self) -> None:
@@ -290,6 +458,12 @@ def parse_map(source: str | bytes | Mapping[str, Any]) -> AreaMap:
     from brasidas.autonomy.areamap import parse_map
 
     return parse_map(source)
+
+
+def _map_text(area: AreaMap) -> str:
+    """The map file's text. orjson: a town's map in a few milliseconds, for the GIL is held
+    while encoding and the event loop waits for it."""
+    return orjson.dumps(area.geojson()).decode()
 
 
 def _differs(last: PatrolStatus, report: PatrolStatus) -> bool:

@@ -36,6 +36,8 @@ CONTROL_TAKEN = CommandCode(NOTIFICATION_GROUP, 17)
 """Another station took control of the platform (``movrd --force``, issue 13)."""
 LINK_LOST = CommandCode(NOTIFICATION_GROUP, 18)
 """The platform's failsafe ladder stepped (hold, release): it lost this station's link."""
+MAP_REFUSED = CommandCode(NOTIFICATION_GROUP, 21)
+"""The platform refused its stored map at start (issue 21): it has no map, and says why."""
 FAILED_STREAM_STATES = frozenset({"failed", "error"})
 
 
@@ -123,6 +125,8 @@ class Annunciator:
                 PATROL_HOLDING,
                 f"patrol holding: {autonomy.reason or 'no reason given'}",
             )
+        if autonomy is not None and autonomy.map_error:
+            wanted["map_refused"] = (MAP_REFUSED, f"no map: {autonomy.map_error}")
         changes: list[Change] = []
         for name in list(self.active):
             if name not in wanted and name not in keep:
