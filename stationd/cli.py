@@ -229,7 +229,11 @@ def _read_file(name: str) -> str:
     except OSError as err:
         raise CliError(f"cannot read {name}: {err}") from None
     if len(data) > MAX_FILE_BYTES:
-        raise CliError(f"{name}: larger than {MAX_FILE_BYTES // (1024 * 1024)} MiB")
+        size = Path(name).stat().st_size if Path(name).is_file() else len(data)
+        raise CliError(
+            f"{name}: {size} bytes, over the limit of {MAX_FILE_BYTES} bytes for a map or "
+            "route file (README: Limits)"
+        )
     if data.startswith(b"PK\x03\x04"):
         raise CliError(f"{name}: a zip archive (a KMZ?): unzip it and give the .kml inside")
     try:

@@ -192,6 +192,8 @@ def test_kml_osm_and_overpass() -> None:
         "area_m2": pytest.approx(11708, rel=0.01),
         "keepouts": ["barn"],
         "points": ["gate"],
+        "vertices": 10,
+        "notes": [],
     }
     multi = kml.replace("<Polygon>", "<MultiGeometry><Polygon>", 1).replace(
         "</Polygon>", "</Polygon></MultiGeometry>", 1

@@ -23,10 +23,15 @@ DATA = Path(__file__).parent / "data" / "mapfiles"
 
 
 async def connected(
-    station: StationDaemon, platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+    station: StationDaemon,
+    platform_factory: Factory,
+    fleet_key: bytes,
+    tmp_path: Path,
+    *settings: str,
 ) -> PlatformDaemon:
     platform = await platform_factory(
         quiet_platform_config(
+            *settings,
             "platform.id=rover-7",
             "sim.enabled=true",
             "gps.enabled=true",
@@ -199,7 +204,7 @@ async def test_big_files_up_to_the_limit_pass_the_station_and_bigger_are_refused
     huge = tmp_path / "huge.plan"
     huge.write_text(plan + " " * (4 * 1024 * 1024))
     code, _, err = await run_cli(station, "route", "rover-7", str(huge))
-    assert code == 1 and "huge.plan: larger than 4 MiB" in err
+    assert code == 1 and "huge.plan: " in err and "over the limit of 4194304 bytes" in err
     (tmp_path / "latin1.txt").write_bytes("37.9414,23.6526 # caf\xe9\n".encode("latin-1"))
     code, _, err = await run_cli(station, "route", "rover-7", str(tmp_path / "latin1.txt"))
     assert code == 1 and "not UTF-8 text" in err
@@ -256,8 +261,11 @@ def village(buildings: int) -> str:
 async def test_a_map_bigger_than_the_platform_takes_is_refused_at_the_station(
     station: StationDaemon, platform_factory: Factory, fleet_key: bytes, tmp_path: Path
 ) -> None:
-    """Sent as it is, the platform would drop the connection on the oversized request."""
-    await connected(station, platform_factory, fleet_key, tmp_path)
+    """Sent as it is, the platform would drop the connection on the oversized request: the
+    station reads the limit the platform announces."""
+    await connected(
+        station, platform_factory, fleet_key, tmp_path, "signaling.max_request_bytes=65536"
+    )
     (tmp_path / "village.json").write_text(village(400))
     code, _, err = await run_cli(
         station, "map", "rover-7", str(tmp_path / "village.json"), "--boundary-bbox"

@@ -394,10 +394,10 @@ def test_a_map_under_the_vertex_cap_fits_one_request() -> None:
     vertices = sum(int(shapely.get_num_coordinates(z)) for z in area.keepouts.values())
     assert MAX_VERTICES - 2000 < vertices < MAX_VERTICES
     request = encode_request("map_load", {"platform_id": "rover-1", "map": json.dumps(town)}, 1)
-    assert len(request) < MAP_REQUEST_MAX_BYTES == API_MAX_BYTES
+    assert len(request) < MAP_REQUEST_MAX_BYTES < API_MAX_BYTES
     from brasidas.config import PlatformConfig, load_config
 
-    assert load_config(PlatformConfig, None, []).signaling.max_request_bytes == API_MAX_BYTES
+    assert load_config(PlatformConfig, None, []).signaling.max_request_bytes == MAP_REQUEST_MAX_BYTES
 
 
 async def test_a_new_map_stops_the_build_of_the_one_it_replaces(

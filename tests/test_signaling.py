@@ -16,7 +16,7 @@ from brasidas import topics
 from brasidas.codecs.commands import BATTERY_MONITOR, DESCRIPTIONS, MAIN_LIGHTS, CommandCode
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.messages import CommandResult
-from brasidas.rpc import RpcClient
+from brasidas.rpc import STRANGER_MAX_BYTES, RpcClient
 from platformd.app import PlatformDaemon
 from platformd.authority import CONTROL_REFUSED
 from platformd.commands import DuplicateCommandError, SystemCommand
@@ -129,10 +129,10 @@ async def test_http_post_errors(platform_factory: Factory, fleet_key: bytes) -> 
     status, body = await post(
         daemon,
         b'{"jsonrpc":"2.0","id":1,"method":"x","params":"'
-        + b"a" * (daemon.config.signaling.max_request_bytes + 1)
+        + b"a" * STRANGER_MAX_BYTES
         + b'"}',
-    )
-    assert status == 413 and "the limit is" in body["error"]["message"]
+    )  # before a session, a stranger's limit; with one, signaling.max_request_bytes
+    assert status == 413 and f"the limit is {STRANGER_MAX_BYTES} bytes" in body["error"]["message"]
     status, body = await post(daemon, b'{"jsonrpc":"2.0","method":"challenge"}')
     assert status == 204
     # Still serving after all that.

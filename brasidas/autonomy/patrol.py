@@ -93,7 +93,10 @@ class Patrol:
         self.cursor = Cursor()
         self._running = False
         self._path = None
-        self._settle(PatrolState.STOPPED, "map loaded: waypoints cleared")
+        if area is None:  # said at once, not only from the next step
+            self._settle(PatrolState.IDLE, "no map")
+        else:
+            self._settle(PatrolState.STOPPED, "map loaded: waypoints cleared")
 
     def update_map(self, area: AreaMap, *, build: bool = True) -> None:
         """Keep-out zones changed: same route, a new plan. Without ``build`` the patrol holds

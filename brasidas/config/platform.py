@@ -29,7 +29,7 @@ from brasidas.config.loader import (
     setting,
     url,
 )
-from brasidas.limits import MAP_REQUEST_MAX_BYTES
+from brasidas.limits import ANSWER_MAX_BYTES, MAP_REQUEST_MAX_BYTES
 
 BAUD_RATES = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
 H264_ENCODERS = ("v4l2h264enc", "omxh264enc", "x264enc", "openh264enc")
@@ -174,8 +174,9 @@ class SignalingSection:
     needs under 2 KiB."""
     max_batch: int = setting(100, at_least(1, most=10000))
     """Requests in a batch, at most: a longer one is answered with one error."""
-    max_answer_bytes: int = setting(1 << 20, at_least(65536, most=1 << 26))
-    """An answer longer than this is replaced by an error."""
+    max_answer_bytes: int = setting(ANSWER_MAX_BYTES, at_least(65536, most=1 << 26))
+    """An answer longer than this is replaced by an error (``get_map`` sends a map of up to
+    ``max_request_bytes`` back: ``brasidas.limits.ANSWER_MAX_BYTES``)."""
 
 
 @dataclass(frozen=True)
