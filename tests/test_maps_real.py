@@ -397,7 +397,9 @@ def test_a_map_under_the_vertex_cap_fits_one_request() -> None:
     assert len(request) < MAP_REQUEST_MAX_BYTES < API_MAX_BYTES
     from brasidas.config import PlatformConfig, load_config
 
-    assert load_config(PlatformConfig, None, []).signaling.max_request_bytes == MAP_REQUEST_MAX_BYTES
+    assert (
+        load_config(PlatformConfig, None, []).signaling.max_request_bytes == MAP_REQUEST_MAX_BYTES
+    )
 
 
 async def test_a_new_map_stops_the_build_of_the_one_it_replaces(

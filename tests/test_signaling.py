@@ -128,9 +128,7 @@ async def test_http_post_errors(platform_factory: Factory, fleet_key: bytes) -> 
     assert status == 200 and body["error"]["code"] == -32700
     status, body = await post(
         daemon,
-        b'{"jsonrpc":"2.0","id":1,"method":"x","params":"'
-        + b"a" * STRANGER_MAX_BYTES
-        + b'"}',
+        b'{"jsonrpc":"2.0","id":1,"method":"x","params":"' + b"a" * STRANGER_MAX_BYTES + b'"}',
     )  # before a session, a stranger's limit; with one, signaling.max_request_bytes
     assert status == 413 and f"the limit is {STRANGER_MAX_BYTES} bytes" in body["error"]["message"]
     status, body = await post(daemon, b'{"jsonrpc":"2.0","method":"challenge"}')
