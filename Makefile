@@ -4,16 +4,22 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP_APT := $(VENV)/.apt-stamp
 STAMP_PIP := $(VENV)/.pip-stamp
+# The console's JavaScript packages (package-lock.json): uPlot, served by the station, and ESLint.
+STAMP_NPM := node_modules/.npm-stamp
 
 APT_PACKAGES := python3 python3-venv python3-dev gcc pkg-config \
 	libgirepository1.0-dev libcairo2-dev gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0 \
 	gir1.2-gst-rtsp-server-1.0 gstreamer1.0-tools gstreamer1.0-plugins-base \
 	gstreamer1.0-plugins-good gstreamer1.0-plugins-bad gstreamer1.0-plugins-ugly \
-	gstreamer1.0-libav gstreamer1.0-x iproute2 chromium libjs-leaflet
+	gstreamer1.0-libav gstreamer1.0-x iproute2 chromium libjs-leaflet nodejs npm
 
 .PHONY: demo test bench lint deps apt venv clean net-demo soak
 
-deps: $(STAMP_APT) $(STAMP_PIP)
+deps: $(STAMP_APT) $(STAMP_PIP) $(STAMP_NPM)
+
+$(STAMP_NPM): package.json package-lock.json $(STAMP_APT)
+	npm ci --no-audit --no-fund --loglevel=error
+	@touch $@
 
 # Debian packages: installed only when one is missing.
 $(STAMP_APT):
@@ -51,6 +57,7 @@ lint: deps
 	$(VENV)/bin/ruff check brasidas platformd stationd tests bench
 	$(VENV)/bin/ruff format --check brasidas platformd stationd tests bench
 	$(VENV)/bin/mypy
+	node_modules/.bin/eslint web
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -16,10 +16,12 @@ stops the robot here, whatever its JavaScript did; a closed socket stops it at o
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import itertools
 import json
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -50,6 +52,13 @@ NOTES_QUEUED_MAX = 200
 """Notifications waiting for one page at most (its socket stalled)."""
 SEND_TIMEOUT_S = 5.0
 """A push that cannot be written for this long closes the socket (the page reconnects)."""
+NOTES_KEPT = 100
+"""Notifications the station keeps for pages that open later (a reload shows them)."""
+PAGE_LATENCY_MAX_AGE_S = 1.5
+"""A page's glass-to-glass report is used this long (it reports once a second, of the last
+second): a page that stops reporting stops counting, and the platform's assumption returns."""
+VIDEO_SILENT_S = 1.0
+"""A watched feed with no access unit for this long gets a reason (paused, stopped, elsewhere)."""
 
 
 @dataclass(eq=False)
@@ -60,6 +69,9 @@ class Watch:
     viewer: Viewer
     remove: Callable[[], None]
     task: asyncio.Task[None]
+    units_seen: int = -1
+    """The feed's access-unit count when last looked at, and when it last moved."""
+    units_moved_at: float = 0.0
 
 
 @dataclass(eq=False)
@@ -102,6 +114,11 @@ class ConsoleHub(Actor):
         self._feed_lock = asyncio.Lock()
         self.dropped_binary = 0
         """Binary messages from pages that were not push-to-talk audio while talking."""
+        self.notes_kept: collections.deque[dict[str, Any]] = collections.deque(maxlen=NOTES_KEPT)
+        self.page_latency: dict[str, tuple[float, float]] = {}
+        """Platform id → the latest glass-to-glass p95 (ms) a page measured, and when."""
+        self._destinations: dict[tuple[str, str], tuple[float, list[str]]] = {}
+        """(platform, stream) → when the platform's destinations were last asked, and them."""
         self._group: asyncio.TaskGroup | None = None
 
     async def run(self) -> None:
@@ -131,6 +148,7 @@ class ConsoleHub(Actor):
             session.dirty.set()
 
     def _on_notification(self, note: StationNotification) -> None:
+        self.notes_kept.append(note.as_dict())
         for session in self.sessions.values():
             if len(session.notes) < NOTES_QUEUED_MAX:  # a stalled page gets no more
                 session.notes.append(note.as_dict())
@@ -177,6 +195,7 @@ class ConsoleHub(Actor):
             existing.dirty.set()
             return self._hello(existing)
         session = ConsoleSession(next(self._numbers), ws)
+        session.notes.extend({**note, "replayed": True} for note in self.notes_kept)
         call.extra["console"] = session
         call.extra.setdefault("on_close", []).append(lambda: self._close(session))
         call.extra["on_binary"] = lambda data: self._on_binary(session, data)
@@ -254,7 +273,9 @@ class ConsoleHub(Actor):
                             report["received_ms"] = time.time_ns() / 1e6
                             await self._send(session, "telemetry", report)
                 if "video" in session.watches and full:
-                    await self._send(session, "video", self._video_state(session))
+                    state = self._video_state(session)
+                    state["reason"] = await self._video_reason(session)
+                    await self._send(session, "video", state)
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(TELEMETRY_CHECK_S):
                         await session.dirty.wait()
@@ -341,6 +362,80 @@ class ConsoleHub(Actor):
             **watch.feed.describe(),
             "viewer": watch.viewer.stats(),
         }
+
+    async def _video_reason(self, session: ConsoleSession) -> str:
+        """Why the watched feed brings nothing, when it does not ("" while units arrive): the
+        platform paused or stopped the stream, it failed, or it is sent elsewhere."""
+        watch = session.watches.get("video")
+        if watch is None:
+            return ""
+        now = time.monotonic()
+        units = watch.feed.fanout.units
+        if units != watch.units_seen:
+            watch.units_seen, watch.units_moved_at = units, now
+        if now - watch.units_moved_at < VIDEO_SILENT_S:
+            return ""
+        feed = watch.feed
+        with contextlib.suppress(RpcError):
+            report = await self.ctx.api.call_local("get_telemetry", platform_id=feed.platform_id)
+            states = ((report.get("snapshot") or {}).get("streams") or {}).get("states") or {}
+            state = str(states.get(feed.stream, ""))
+            if state == "paused":
+                return f"{feed.stream} paused on the platform"
+            if state in ("idle", "stopped"):
+                return f"{feed.stream} stopped on the platform"
+            if state in ("failed", "error"):
+                return f"{feed.stream} failed on the platform"
+        if feed.depayloader.state is StreamState.FAILED:
+            return f"the station's receiver failed: {feed.depayloader.reason}"
+        destinations = await self._platform_destinations(feed)
+        if destinations is not None and not any(d.endswith(f":{feed.port}") for d in destinations):
+            elsewhere = ", ".join(destinations) or "nowhere"
+            return f"{feed.stream} taken by another consumer (sent to {elsewhere})"
+        return f"no {feed.stream} packets arrive from the platform"
+
+    async def _platform_destinations(self, feed: Feed) -> list[str] | None:
+        """Where the platform sends ``feed``'s stream (asked at most every 2 s), or None."""
+        key = (feed.platform_id, feed.stream)
+        asked = self._destinations.get(key)
+        now = time.monotonic()
+        if asked is not None and now - asked[0] < 2.0:
+            return asked[1]
+        connection = self.ctx.connections.get(feed.platform_id)
+        if connection is None:
+            return None
+        try:
+            streams = await connection.call("list_streams")
+        except (RpcError, ConnectionError, TimeoutError):
+            return None
+        for stream in streams:
+            if stream.get("name") == feed.stream:
+                found = [str(d) for d in stream.get("destinations") or []]
+                if not found and stream.get("destination"):
+                    found = [str(stream["destination"])]
+                self._destinations[key] = (now, found)
+                return found
+        return None
+
+    # ------------------------------------------------------------------ latency for the speed cap
+
+    def api_console_latency(self, call: CallContext, platform_id: str, p95_ms: float) -> bool:
+        """The page's glass-to-glass p95 of the last second for ``platform_id``'s NavCam: this
+        station's heartbeats report it while it holds the override (the platform's speed cap),
+        as ``brasidas-station view`` does with its own."""
+        self._session(call)
+        if (
+            isinstance(p95_ms, bool)
+            or not isinstance(p95_ms, int | float)
+            or not math.isfinite(p95_ms)
+            or not 0 <= p95_ms <= 60_000
+        ):
+            raise RpcError(INVALID_PARAMS, "invalid params: p95_ms must be 0-60000")
+        self.page_latency[platform_id] = (float(p95_ms), time.monotonic())
+        connection = self.ctx.connections.get(platform_id)
+        if connection is not None and not isinstance(connection.video_latency, PageLatency):
+            connection.video_latency = PageLatency(self, platform_id, connection.video_latency)
+        return True
 
     async def _feed(self, platform_id: str, stream: str, *, audio: bool) -> Feed:
         async with self._feed_lock:
@@ -441,8 +536,10 @@ class ConsoleHub(Actor):
             return
         for stream in await connection.call("list_streams"):
             if stream.get("name") == feed.stream:
-                if str(stream.get("destination", "")).endswith(f":{feed.port}"):
-                    await connection.call("stop_stream", name=feed.stream)
+                sent_to = [str(d) for d in stream.get("destinations") or []]
+                sent_to.append(str(stream.get("destination", "")))
+                if any(d.endswith(f":{feed.port}") for d in sent_to):
+                    await connection.call("stop_stream", name=feed.stream, port=feed.port)
                 return
 
     async def api_console_stream(
@@ -509,6 +606,24 @@ class ConsoleHub(Actor):
             self.ctx.teleop.set_drive(platform_id, STOP)
 
 
+class PageLatency:
+    """A connection's video latency: the pages' fresh report, else what it had (``view``'s
+    receiver)."""
+
+    def __init__(
+        self, hub: ConsoleHub, platform_id: str, fallback: Callable[[], float | None] | None
+    ) -> None:
+        self.hub = hub
+        self.platform_id = platform_id
+        self.fallback = fallback
+
+    def __call__(self) -> float | None:
+        report = self.hub.page_latency.get(self.platform_id)
+        if report is not None and time.monotonic() - report[1] <= PAGE_LATENCY_MAX_AGE_S:
+            return report[0]
+        return self.fallback() if self.fallback is not None else None
+
+
 async def async_setup(ctx: StationContext) -> None:
     hub = ConsoleHub(ctx)
     for name in (
@@ -523,6 +638,7 @@ async def async_setup(ctx: StationContext) -> None:
         "console_stream",
         "console_override",
         "console_drive",
+        "console_latency",
     ):
         ctx.api.add(name, getattr(hub, f"api_{name}"), session_required=False)
     ctx.supervisor.start(hub)

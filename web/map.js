@@ -25,6 +25,8 @@ export class PlatformMap {
     this.map = L.map(element, { crs: L.CRS.Simple, minZoom: -6, maxZoom: 6, zoomSnap: 0.5, attributionControl: false });
     this.map.setView([0, 0], 1);
     new (metricGrid())({ minZoom: -6, maxZoom: 6 }).addTo(this.map);
+    L.control.scale({ imperial: false, position: "bottomleft" }).addTo(this.map); // CRS.Simple: metres
+    this.area = null; // the platform's area map: under, and apart from, the operator's background
     // Until the operator takes the view (drags, scrolls, zooms) or a background is fitted, the
     // view follows the platforms: all of them in sight. Centring the first one alone left a
     // second rover 130 m away off the map, where it could be neither seen nor clicked.
@@ -108,16 +110,36 @@ export class PlatformMap {
     this.following = false;
   }
 
-  /** A GeoJSON background; a platform's area map draws its boundary, keep-outs (role
-   * "keepout", red) and named points. ``fit`` (default) zooms to it. */
+  /** An operator's GeoJSON background (offline: drawn as loaded). ``fit`` zooms to it. */
   setGeoJson(data, { fit = true } = {}) {
     this.clearBackground();
-    this.background = L.geoJSON(data, {
+    this.background = this.geoJsonLayer(data, () => "area-background").addTo(this.map);
+    this.background.bringToBack();
+    const bounds = this.background.getBounds();
+    if (fit && bounds.isValid()) { this.map.fitBounds(bounds); this.following = false; }
+  }
+
+  /** The platform's area map: its boundary, keep-outs (role "keepout", red) and named points,
+   * kept apart from the operator's background (loading or clearing one leaves the other). */
+  setArea(data, { fit = true } = {}) {
+    this.clearArea();
+    this.area = this.geoJsonLayer(data, (role) => `area-map${role ? ` area-${role}` : ""}`).addTo(this.map);
+    const bounds = this.area.getBounds();
+    if (fit && bounds.isValid()) { this.map.fitBounds(bounds); this.following = false; }
+  }
+
+  clearArea() {
+    if (this.area) { this.area.remove(); this.area = null; }
+  }
+
+  geoJsonLayer(data, className) {
+    const placed = []; // label boxes already placed (pixels): names must not overlap
+    return L.geoJSON(data, {
       coordsToLatLng: (coords) => L.latLng(this.local(coords[1], coords[0])),
       style: (feature) => {
         const role = feature?.properties?.role ?? "";
         const keepout = role === "keepout";
-        return { color: keepout ? "#d66a6a" : "#7aa2d6", weight: keepout ? 2 : 1, fillOpacity: keepout ? 0.3 : 0.15, className: `area-background${role ? ` area-${role}` : ""}` };
+        return { color: keepout ? "#d66a6a" : "#7aa2d6", weight: keepout ? 2 : 1, fillOpacity: keepout ? 0.3 : 0.15, className: className(role) };
       },
       onEachFeature: (feature, layer) => {
         if (feature?.properties?.role === "keepout" && feature.id != null) layer.bindTooltip(`keep-out ${feature.id}`);
@@ -125,13 +147,19 @@ export class PlatformMap {
       pointToLayer: (feature, latlng) => {
         const marker = L.circleMarker(latlng, { radius: 3, color: "#aaa", weight: 1, className: "area-point" });
         const name = feature?.properties?.name;
-        if (name) marker.bindTooltip(String(name), { permanent: true, direction: "right", className: "area-point-name" });
+        if (name) {
+          // Right of the point, or left when that would cover a name already placed.
+          const at = this.map.latLngToContainerPoint(latlng);
+          const width = 7 * String(name).length + 8;
+          const right = { x: at.x + 6, y: at.y - 7, w: width, h: 14 };
+          const overlaps = (box) => placed.some((o) => box.x < o.x + o.w && o.x < box.x + box.w && box.y < o.y + o.h && o.y < box.y + box.h);
+          const direction = overlaps(right) ? "left" : "right";
+          placed.push(direction === "right" ? right : { ...right, x: at.x - 6 - width });
+          marker.bindTooltip(String(name), { permanent: true, direction, className: "area-point-name" });
+        }
         return marker;
       },
-    }).addTo(this.map);
-    this.background.bringToBack();
-    const bounds = this.background.getBounds();
-    if (fit && bounds.isValid()) { this.map.fitBounds(bounds); this.following = false; }
+    });
   }
 
   /** Draw ``platformId``'s waypoint route ([lat, lon] points; closed when last = first). */
@@ -151,7 +179,7 @@ export class PlatformMap {
   /** Let the operator edit a route's ``points``; ``onChange(points)`` after every edit.
    * Returns the edit's handle (see editPoints). */
   editWaypoints(points, onChange) {
-    return this.editPoints(points, onChange, { label: "waypoint", shape: (latlngs) => L.polyline(latlngs, { color: "#f0f080", weight: 2, className: "route-edit" }) });
+    return this.editPoints(points, onChange, { label: "waypoint", closeLoop: true, shape: (latlngs) => L.polyline(latlngs, { color: "#f0f080", weight: 2, className: "route-edit" }) });
   }
 
   /** Let the operator draw a keep-out polygon's corners (a draft: the area map itself is
@@ -163,7 +191,7 @@ export class PlatformMap {
   /** Edit ``points`` ([lat, lon]) on the map: click the map to append one, drag one to move it,
    * right-click one to delete it; ``onChange(points)`` after every edit. Returns { stop(),
    * addAtCentre() } — the keyboard's way: arrows pan the focused map, then add at its centre. */
-  editPoints(points, onChange, { label, shape }) {
+  editPoints(points, onChange, { label, shape, closeLoop = false }) {
     if (!this.available) return { stop: () => {}, addAtCentre: () => {} };
     this.following = false; // the operator works on this view: it must not move under the clicks
     const frame = this;
@@ -180,7 +208,14 @@ export class PlatformMap {
       });
     };
     const changed = () => { draw(); onChange(current.map((p) => [...p])); };
-    const add = (latlng) => { if (frame.origin) { current.push(frame.geo(latlng)); changed(); } };
+    // A closed route (last = first) stays closed: a new point goes before the closing one.
+    const closed = () => current.length >= 3 && samePlace(current[0], current[current.length - 1]);
+    const add = (latlng) => {
+      if (!frame.origin) return;
+      if (closeLoop && closed()) current.splice(current.length - 1, 0, frame.geo(latlng));
+      else current.push(frame.geo(latlng));
+      changed();
+    };
     const append = (event) => add(event.latlng);
     this.map.on("click", append);
     draw();
@@ -206,6 +241,8 @@ export class PlatformMap {
     if (this.background) { this.background.remove(); this.background = null; }
   }
 }
+
+function samePlace(a, b) { return Math.abs(a[0] - b[0]) < 1e-7 && Math.abs(a[1] - b[1]) < 1e-7; }
 
 function platformIcon(id, heading, current, connected) {
   const element = document.createElement("div");
