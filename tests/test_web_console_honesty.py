@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import re
 import socket
 from collections.abc import AsyncIterator
@@ -28,6 +29,24 @@ from brasidas import topics
 from platformd.app import PlatformDaemon
 from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
+
+DOCS = Path(__file__).resolve().parent.parent / "docs"
+"""Screenshots at both screen sizes, kept current in docs/ when BRASIDAS_SCREENSHOT=1."""
+
+
+async def screenshots(page: Any, name: str) -> None:
+    """The page at 1366x768 and 1920x1080: it fits without scrolling (checked always), and
+    with BRASIDAS_SCREENSHOT=1 its pictures go to docs/."""
+    for width, height in ((1366, 768), (1920, 1080)):
+        await page.set_viewport_size({"width": width, "height": height})
+        await page.wait_for_timeout(300)
+        size = await page.evaluate(
+            "[document.documentElement.scrollWidth, document.documentElement.scrollHeight]"
+        )
+        assert size[0] <= width and size[1] <= height, f"scrolls at {width}x{height}: {size}"
+        if os.environ.get("BRASIDAS_SCREENSHOT") == "1":
+            await page.screenshot(path=str(DOCS / f"{name}-{width}x{height}.png"))
+    await page.set_viewport_size({"width": 1366, "height": 768})
 
 
 @pytest.fixture
@@ -151,6 +170,12 @@ async def test_the_pages_latency_reaches_the_speed_cap(
         return None if cap is None else cap.video_ms
 
     await wait_until(lambda: cap_video_ms() is not None, timeout=10)
+    await page.keyboard.down("KeyW")  # the command sent, on the stick
+    await screenshots(page, "console")
+    await page.get_by_role("button", name="swap map and video").click()
+    await screenshots(page, "console-map")
+    await page.get_by_role("button", name="swap map and video").click()
+    await page.keyboard.up("KeyW")
     cap = platform.bus.last(topics.SPEED_CAP)
     assert cap is not None and cap.video_ms is not None and 0 < cap.video_ms < 400
     readout = page.get_by_label("speed cap", exact=True)
@@ -233,9 +258,16 @@ async def test_stale_telemetry_counts_from_the_last_report(
         await expect(warning).to_contain_text(
             re.compile(r"telemetry silent for ([3-9]|\d\d)\.\d s"), timeout=10_000
         )
+        # The station keeps the notifications: a reload shows them, 24-hour time first.
+        await page.reload()
+        notes = page.locator("#notifications li", has_text="telemetry silent")
+        await expect(notes.first).to_be_visible(timeout=10_000)
+        await expect(notes.first).to_have_text(re.compile(r"^\d\d:\d\d:\d\d web-rover"))
     finally:
         del link.datagram_received
     await expect(status).not_to_contain_text("STALE", timeout=15_000)
+    cleared = page.locator("#notifications li.cleared", has_text="link degraded")
+    await expect(cleared.first).to_contain_text("cleared", timeout=10_000)
 
 
 async def test_a_route_edit_keeps_the_loop_and_counts_from_one(

@@ -35,7 +35,7 @@ function batteryEstimate(volts) {
 function renderCompass(heading) {
   $("#compass-needle").setAttribute("transform", `rotate(${heading ?? 0} 50 50)`);
   $("#compass-needle").style.opacity = heading == null ? "0.2" : "1";
-  $("#heading").textContent = heading == null ? "heading —" : `heading ${heading.toFixed(0).padStart(3, "0")}°`;
+  $("#heading").textContent = heading == null ? "—" : `${String(Math.round(heading) % 360).padStart(3, "0")}°`;
 }
 
 function renderStick() {
@@ -60,7 +60,7 @@ function renderPanel() {
   $("#ground-speed").textContent = ground == null ? "—" : `${(ground * KMH).toFixed(1)} km/h`;
   $("#commanded-speed").textContent = motion ? `${fixed(motion.linear, 2)} / ${fixed(motion.angular, 2)}` : "—";
   renderCompass(compassHeading(snapshot));
-  $("#attitude").textContent = attitude ? `roll ${fixed(attitude.roll, 1)}°  pitch ${fixed(attitude.pitch, 1)}°` : "roll —  pitch —";
+  $("#attitude").textContent = `roll ${fixed(attitude?.roll, 1)}°  pitch ${fixed(attitude?.pitch, 1)}°`;
   const { percent, minutes } = batteryEstimate(battery?.volts);
   $("#battery").textContent = battery
     ? `${fixed(battery.volts, 1)} V  ≈${percent == null ? "—" : percent.toFixed(0)} %  ${minutes == null ? "time left —" : `≈${minutes.toFixed(0)} min left`}${battery.level ? `  (${battery.level})` : ""}`
@@ -73,6 +73,7 @@ function renderPanel() {
   else {
     const ms = (value) => (value == null ? "—" : `${value.toFixed(0)} ms`);
     readout.textContent = `cap ${fixed(cap.cap_kmh, 1)} km/h (video ${ms(cap.video_ms)}, command ${ms(cap.command_ms)})`;
+    readout.dataset.assumed = String(cap.video_ms == null);
     readout.dataset.kmh = String(cap.cap_kmh);
     $("#speed-cap-reason").textContent = cap.reason;
   }

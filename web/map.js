@@ -25,7 +25,7 @@ export class PlatformMap {
     this.map = L.map(element, { crs: L.CRS.Simple, minZoom: -6, maxZoom: 6, zoomSnap: 0.5, attributionControl: false });
     this.map.setView([0, 0], 1);
     new (metricGrid())({ minZoom: -6, maxZoom: 6 }).addTo(this.map);
-    L.control.scale({ imperial: false, position: "bottomleft" }).addTo(this.map); // CRS.Simple: metres
+    L.control.scale({ imperial: false, position: "bottomright" }).addTo(this.map); // CRS.Simple: metres
     this.area = null; // the platform's area map: under, and apart from, the operator's background
     // Until the operator takes the view (drags, scrolls, zooms) or a background is fitted, the
     // view follows the platforms: all of them in sight. Centring the first one alone left a

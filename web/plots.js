@@ -31,7 +31,8 @@ function makeChart(quantity) {
     width, height: 70, legend: { show: false }, cursor: { show: false },
     title: quantity.label,
     scales: { x: { time: true } },
-    axes: [{ stroke: "#889", grid: { stroke: "#223" }, size: 20, font: "10px sans-serif" },
+    axes: [{ stroke: "#889", grid: { stroke: "#223" }, size: 20, font: "10px sans-serif",
+      values: (u, ticks) => ticks.map((t) => `${Math.round(t - Date.now() / 1000)} s`) },
       { stroke: "#889", grid: { stroke: "#223" }, size: 36, font: "10px sans-serif" }],
     series: [{}, ...quantity.series.map((label, i) => ({ label, stroke: COLOURS[i], width: 1.5, spanGaps: false }))],
   }, [times, ...quantity.series.map(() => [])], box);
