@@ -5,6 +5,11 @@ import { state } from "./store.js";
 
 export const $ = (selector, root = document) => root.querySelector(selector);
 
+/** Set an element's text only when it changed (a write forces layout work). */
+export function put(element, text) {
+  if (element.textContent !== text) element.textContent = text;
+}
+
 export const fixed = (value, digits) => (typeof value === "number" ? value.toFixed(digits) : "—");
 
 /** A section's error text when its source failed, else null. */
@@ -26,8 +31,8 @@ export function snapshotOf(platformId = state.current) {
 
 export function setPill(selector, text, kind) {
   const pill = $(selector);
-  pill.textContent = text;
-  pill.className = `pill ${kind}`;
+  put(pill, text);
+  if (pill.className !== `pill ${kind}`) pill.className = `pill ${kind}`;
 }
 
 /** Compass heading (degrees clockwise from north, 0–360) of a platform: its localization, its

@@ -6,7 +6,7 @@
 
 import { PlatformAudio } from "./audio.js";
 import { say } from "./answer.js";
-import { $, controlHolder, engagedHere, fixed, holding, observerReason, section, setPill, snapshotOf } from "./common.js";
+import { $, controlHolder, engagedHere, fixed, holding, observerReason, put, section, setPill, snapshotOf } from "./common.js";
 import { api, command, disconnect, onBinary } from "./station.js";
 import { notify, state, subscribe } from "./store.js";
 import { Teleop } from "./teleop.js";
@@ -89,9 +89,9 @@ function renderAuthority(drives) {
     : ["free", "control free: engage the override to drive"];
   box.dataset.state = kind;
   box.dataset.holder = holder ?? "";
-  $("#control-state").textContent = text;
+  put($("#control-state"), text);
   $("#takeover").hidden = !other || !$("#takeover-confirm").hidden;
-  $("#takeover-holder").textContent = `station ${holder}`;
+  put($("#takeover-holder"), `station ${holder}`);
   if (!other) $("#takeover-confirm").hidden = true;
 }
 
@@ -119,7 +119,7 @@ function renderFailsafe() {
     [step, text] = ["lost", "LINK LOST: no telemetry from the platform"];
   }
   banner.dataset.step = step;
-  banner.textContent = text;
+  put(banner, text);
   banner.hidden = !text;
 }
 
@@ -133,13 +133,13 @@ function renderTurret(snapshot) {
   // As brasidas-station status words it: why the serial line is down, else where it points;
   // then its sight (the thermal camera registered as its stream) and that stream's state.
   const streams = Object.entries(turret.streams).map(([name, stream]) => `${name} ${stream}`);
-  readout.textContent = [
+  put(readout, [
     "turret:",
     ...(turret.connected
       ? [turret.trigger ? "trigger ARMED" : "trigger safe", `azimuth ${fixed(turret.azimuth, 1)}°`, `elevation ${fixed(turret.elevation, 1)}°`]
       : [turret.error ? `LINE DOWN: ${turret.error}` : "LINE DOWN"]),
     streams.length ? `sight ${streams.join("  ")}` : null,
-  ].filter(Boolean).join("  ");
+  ].filter(Boolean).join("  "));
 }
 
 function renderLights(lights) {
@@ -151,9 +151,9 @@ function renderLights(lights) {
     $(selector).dataset.error = error ? "true" : "";
   }
   const readout = $("#lights-error");
-  readout.textContent = errors.length
+  put(readout, errors.length
     ? `lights cannot be switched: ${errors.sort().map(([which, error]) => `${which}: ${error}`).join("; ")}`
-    : "";
+    : "");
   readout.hidden = !errors.length;
 }
 
@@ -197,19 +197,19 @@ function render() {
   button.dataset.state = state.override;
   const snapshot = snapshotOf();
   const holder = section(snapshot, "override");
-  button.textContent = {
+  put(button, {
     idle: holder?.engaged ? `override: held by ${holder.station ?? "another station"}` : "override: autonomous",
     pending: "override: pending…",
     engaged: holding() ? "override: HOLD — press to re-engage" : "override: ENGAGED",
     error: `override: error (${state.overrideError ?? "no answer"})`,
-  }[state.override];
+  }[state.override]);
   teleop.setActive(drives);
   setPill("#driving", drives ? `this console is driving ${state.current}` : "not driving", drives ? "teleop" : "");
   const why = observerReason();
   for (const selector of OBSERVER_DISABLED) {
     const control = $(selector);
-    control.disabled = Boolean(why);
-    control.title = why;
+    if (control.disabled !== Boolean(why)) control.disabled = Boolean(why);
+    if (control.title !== why) control.title = why;
   }
   const lights = section(snapshot, "lights");
   if (lights) {

@@ -4,7 +4,7 @@
 // age), the speed cap with its reason in plain sight, the command being sent (a small stick),
 // a driving hint. Telemetry older than 2 s is STALE, counted from its last report.
 
-import { $, compassHeading, engagedHere, failure, fixed, section, snapshotOf, telemetryAgeMs } from "./common.js";
+import { $, compassHeading, engagedHere, failure, fixed, put, section, snapshotOf, telemetryAgeMs } from "./common.js";
 import { teleop } from "./controls.js";
 import { state, subscribe } from "./store.js";
 import { videoAgeMs } from "./video.js";
@@ -35,7 +35,7 @@ function batteryEstimate(volts) {
 function renderCompass(heading) {
   $("#compass-needle").setAttribute("transform", `rotate(${heading ?? 0} 50 50)`);
   $("#compass-needle").style.opacity = heading == null ? "0.2" : "1";
-  $("#heading").textContent = heading == null ? "—" : `${String(Math.round(heading) % 360).padStart(3, "0")}°`;
+  put($("#heading"), heading == null ? "—" : `${String(Math.round(heading) % 360).padStart(3, "0")}°`);
 }
 
 function renderStick() {
@@ -57,29 +57,29 @@ function renderPanel() {
   const battery = section(snapshot, "battery");
   const cap = section(snapshot, "speed_cap");
   const ground = pose?.speed ?? gps?.speed ?? null;
-  $("#ground-speed").textContent = ground == null ? "—" : `${(ground * KMH).toFixed(1)} km/h`;
-  $("#commanded-speed").textContent = motion ? `${fixed(motion.linear, 2)} / ${fixed(motion.angular, 2)}` : "—";
+  put($("#ground-speed"), ground == null ? "—" : `${(ground * KMH).toFixed(1)} km/h`);
+  put($("#commanded-speed"), motion ? `${fixed(motion.linear, 2)} / ${fixed(motion.angular, 2)}` : "—");
   renderCompass(compassHeading(snapshot));
-  $("#attitude").textContent = `roll ${fixed(attitude?.roll, 1)}°  pitch ${fixed(attitude?.pitch, 1)}°`;
+  put($("#attitude"), `roll ${fixed(attitude?.roll, 1)}°  pitch ${fixed(attitude?.pitch, 1)}°`);
   const { percent, minutes } = batteryEstimate(battery?.volts);
-  $("#battery").textContent = battery
+  put($("#battery"), battery
     ? `${fixed(battery.volts, 1)} V  ≈${percent == null ? "—" : percent.toFixed(0)} %  ${minutes == null ? "time left —" : `≈${minutes.toFixed(0)} min left`}${battery.level ? `  (${battery.level})` : ""}`
-    : "—";
+    : "—");
   const link = state.telemetry.get(state.current)?.report.link;
   const videoAge = videoAgeMs();
-  $("#link-quality").textContent = `loss ${link?.loss_pct ?? "—"} %  rtt ${link?.round_trip_ms ?? "—"} ms  video ${videoAge == null ? "—" : `${(videoAge / 1000).toFixed(1)} s old`}`;
+  put($("#link-quality"), `loss ${link?.loss_pct ?? "—"} %  rtt ${link?.round_trip_ms ?? "—"} ms  video ${videoAge == null ? "—" : `${(videoAge / 1000).toFixed(1)} s old`}`);
   const readout = $("#speed-cap");
-  if (!cap) { readout.textContent = "cap —"; readout.dataset.kmh = ""; $("#speed-cap-reason").textContent = ""; }
+  if (!cap) { put(readout, "cap —"); readout.dataset.kmh = ""; put($("#speed-cap-reason"), ""); }
   else {
     const ms = (value) => (value == null ? "—" : `${value.toFixed(0)} ms`);
-    readout.textContent = `cap ${fixed(cap.cap_kmh, 1)} km/h (video ${ms(cap.video_ms)}, command ${ms(cap.command_ms)})`;
+    put(readout, `cap ${fixed(cap.cap_kmh, 1)} km/h (video ${ms(cap.video_ms)}, command ${ms(cap.command_ms)})`);
     readout.dataset.assumed = String(cap.video_ms == null);
     readout.dataset.kmh = String(cap.cap_kmh);
-    $("#speed-cap-reason").textContent = cap.reason;
+    put($("#speed-cap-reason"), cap.reason);
   }
-  $("#drive-hint").textContent = engagedHere()
+  put($("#drive-hint"), engagedHere()
     ? "Driving: hold W/A/S/D or the arrows, space stops; game controller: hold LB and use the left stick."
-    : "Not driving: engage the override to drive (a drive key says why nothing moves).";
+    : "Not driving: engage the override to drive (a drive key says why nothing moves).");
 }
 
 function telemetryRows(snapshot, link) {
@@ -119,12 +119,15 @@ function reportRows(report) {
 function renderStatus() {
   const list = $("#status");
   const entry = state.current ? state.telemetry.get(state.current) : null;
-  if (!entry) { list.replaceChildren(); return; }
+  if (!entry) { list.replaceChildren(); list.dataset.shown = ""; return; }
   const age = telemetryAgeMs(entry);
   const stale = age > STALE_MS;
   list.classList.toggle("stale", stale);
   const rows = reportRows(entry.report);
   if (stale) rows.unshift(["data", `STALE (nothing new for ${(age / 1000).toFixed(1)} s)`]);
+  const shown = rows.map((row) => row.join("\t")).join("\n");
+  if (list.dataset.shown === shown) return;
+  list.dataset.shown = shown;
   list.replaceChildren(...rows.flatMap(([name, value]) => {
     const term = document.createElement("dt");
     term.textContent = name;

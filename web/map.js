@@ -74,7 +74,10 @@ export class PlatformMap {
     const before = entry.points[entry.points.length - 2];
     if (heading == null && before) heading = (Math.atan2(point[1] - before[1], point[0] - before[0]) * 180) / Math.PI;
     entry.marker.setLatLng(point);
-    entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected));
+    // A new icon only when it looks different: rebuilding it five times a second is the
+    // page's costliest work otherwise.
+    const look = `${Math.round(heading ?? 0)}|${current}|${connected}`;
+    if (entry.look !== look) { entry.look = look; entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected)); }
     if (this.following) this.followPlatforms();
   }
 
@@ -171,6 +174,10 @@ export class PlatformMap {
   setLine(key, points, style) {
     if (!this.available) return;
     this.lines ??= new Map();
+    this.drawn ??= new Map(); // key → the points drawn (redrawn only when they change)
+    const wanted = JSON.stringify(points ?? []);
+    if (this.drawn.get(key) === wanted) return;
+    this.drawn.set(key, wanted);
     this.lines.get(key)?.remove();
     if (!points || !points.length) { this.lines.delete(key); return; }
     this.lines.set(key, L.polyline(points.map(([lat, lon]) => this.local(lat, lon)), style).addTo(this.map));

@@ -4,7 +4,7 @@
 // keep-out zones (map_update), and the operator's offline backgrounds. An observer's patrol
 // and map tools are disabled, saying who holds control. Waypoints count from 1, with names.
 
-import { $, compassHeading, controlHolder, observerReason, section, snapshotOf } from "./common.js";
+import { $, compassHeading, controlHolder, observerReason, put, section, snapshotOf } from "./common.js";
 import { PlatformMap } from "./map.js";
 import { api, select } from "./station.js";
 import { state, subscribe } from "./store.js";
@@ -98,7 +98,7 @@ function renderPatrol() {
   panel.hidden = !state.current || !state.connections.has(state.current);
   renderTools();
   const autonomy = section(snapshotOf(), "autonomy");
-  if (!autonomy) { $("#patrol-state").textContent = "patrol: no report"; return; }
+  if (!autonomy) { put($("#patrol-state"), "patrol: no report"); return; }
   const route = patrol.routes.get(state.current);
   const name = autonomy.waypoint == null ? "" : route?.names[autonomy.waypoint];
   const target = autonomy.waypoint == null ? null
@@ -111,7 +111,7 @@ function renderPatrol() {
     autonomy.reason && `— ${autonomy.reason}`,
   ];
   const line = $("#patrol-state");
-  line.textContent = `patrol: ${parts.filter(Boolean).join("  ")}`;
+  put(line, `patrol: ${parts.filter(Boolean).join("  ")}`);
   line.dataset.state = autonomy.state;
   map.setPlannedPath(state.current, autonomy.path ?? []);
   // The route or the map changed elsewhere (the CLI, another station): fetch them again.

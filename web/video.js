@@ -6,7 +6,7 @@
 // second goes to the station once a second: the holder's heartbeats carry it to the
 // platform's speed cap.
 
-import { $ } from "./common.js";
+import { $, put } from "./common.js";
 import { api, onBinary } from "./station.js";
 import { notify, state, subscribe } from "./store.js";
 
@@ -42,11 +42,11 @@ function onWorkerMessage(data) {
     state.video = data;
     canvas.dataset.framesDecoded = String(data.decoded);
     const latency = $("#latency");
-    latency.textContent = data.lastLatencyMs == null ? "—" : `${data.lastLatencyMs.toFixed(1)} ms`;
+    put(latency, data.lastLatencyMs == null ? "—" : `${data.lastLatencyMs.toFixed(1)} ms`);
     latency.dataset.ms = data.lastLatencyMs == null ? "" : data.lastLatencyMs.toFixed(2);
     latency.title = data.lastLatencyMs == null ? "no frame in the last second" :
       `capture → station ${data.lastNetworkMs?.toFixed(1)} ms; p95 of the last second ${data.p95Second?.toFixed(1)} ms`;
-    $("#fps").textContent = `${data.fps} fps`;
+    put($("#fps"), `${data.fps} fps`);
     if (data.decoded > 0 && state.current) showMessage("");
     notify("video");
   } else if (data.type === "unsupported") {
@@ -60,16 +60,16 @@ function onWorkerMessage(data) {
 
 function checkStale() {
   const age = videoAgeMs();
-  $("#video-age").textContent = age == null ? "—" : `${(age / 1000).toFixed(1)} s`;
+  put($("#video-age"), age == null ? "—" : `${(age / 1000).toFixed(1)} s`);
   const interval = state.video?.frameIntervalMs;
   const limit = Math.max(STALE_MIN_MS, STALE_INTERVALS * (interval ?? 0));
   const now = age != null && watching != null && age > limit;
   if (now && !stale) staleMarks.push([performance.now() - age, performance.now()]);
   if (now !== stale) { stale = now; box.dataset.stale = String(now); staleMark.hidden = !now; }
   if (now) {
-    $("#video-stale-age").textContent = `NO VIDEO ${(age / 1000).toFixed(1)} s`;
+    put($("#video-stale-age"), `NO VIDEO ${(age / 1000).toFixed(1)} s`);
     const reason = state.videoState?.watching === watching ? state.videoState.reason : "";
-    $("#video-stale-reason").textContent = reason ? `${reason}.` : "waiting for the station's word…";
+    put($("#video-stale-reason"), reason ? `${reason}.` : "waiting for the station's word…");
   }
 }
 
