@@ -11,6 +11,7 @@ import json
 import os
 import re
 import socket
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -26,9 +27,11 @@ from test_web_console_station import (
 )
 
 from brasidas import topics
+from brasidas.messages import StationNotification
 from platformd.app import PlatformDaemon
 from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
+from stationd.telemetry.annunciator import LINK_LOST
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 """Screenshots at both screen sizes, kept current in docs/ when BRASIDAS_SCREENSHOT=1."""
@@ -50,8 +53,15 @@ async def screenshots(page: Any, name: str) -> None:
 
 
 @pytest.fixture
-async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
-    async with running_station(fleet_key) as daemon:
+def station_settings() -> tuple[str, ...]:
+    return ()
+
+
+@pytest.fixture
+async def station(
+    fleet_key: bytes, station_settings: tuple[str, ...]
+) -> AsyncIterator[StationDaemon]:
+    async with running_station(fleet_key, *station_settings) as daemon:
         yield daemon
 
 
@@ -235,6 +245,7 @@ async def test_a_loaded_background_keeps_the_area_map(
     await expect(keepout).to_have_count(1)
 
 
+@pytest.mark.parametrize("station_settings", [("telemetry.loss_warn_pct=100",)])
 async def test_stale_telemetry_counts_from_the_last_report(
     station: StationDaemon, platform_factory: Factory, fleet_key: bytes, browser: Any
 ) -> None:
@@ -268,6 +279,17 @@ async def test_stale_telemetry_counts_from_the_last_report(
     await expect(status).not_to_contain_text("STALE", timeout=15_000)
     cleared = page.locator("#notifications li.cleared", has_text="link degraded")
     await expect(cleared.first).to_contain_text("cleared", timeout=10_000)
+    # A burst of one note is one line, counted; a severe one is coloured as such.
+    for _ in range(8):
+        station.bus.publish(
+            topics.STATION_NOTIFICATIONS,
+            StationNotification(
+                LINK_LOST, "web-rover", "link_lost", True, "LINK LOST: platform hold", time.time()
+            ),
+        )
+    burst = page.locator("#notifications li.critical", has_text="LINK LOST: platform hold")
+    await expect(burst).to_have_count(1, timeout=10_000)
+    await expect(burst).to_contain_text("\u00d78")  # times eight
 
 
 async def test_a_route_edit_keeps_the_loop_and_counts_from_one(
