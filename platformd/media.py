@@ -303,8 +303,9 @@ class MediaService(Actor):
         if isinstance(stream, FanOutStream):
             settings = stream.settings
             key = f"{session_id}{COPY_MARK}{port}" if copy and port else session_id
-            if copy and port and len([k for k in viewers if _owner(k) == session_id]) > 4:
-                raise ValueError(f"stream '{name}': at most 4 copies per station")
+            copies = [k for k in viewers if k != session_id and _owner(k) == session_id]
+            if key not in viewers and key != session_id and len(copies) >= COPIES_MAX:
+                raise ValueError(f"stream '{name}': at most {COPIES_MAX} copies per station")
             viewers[key] = (host or settings.host, port or settings.port)
             stream.set_destinations(list(viewers.values()))
         else:
@@ -400,6 +401,8 @@ class MediaService(Actor):
         return info
 
 
+COPIES_MAX = 4
+"""Extra copies of one stream a station may have (``view`` and ffplay beside the console)."""
 COPY_MARK = "#"
 """Joins a session id and a port: the key of a session's extra copy of a stream."""
 

@@ -6,6 +6,7 @@ controls are disabled before the click. Headless Chromium against a --sim platfo
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import re
@@ -26,6 +27,7 @@ from test_web_console_station import (
 )
 
 from brasidas import topics
+from brasidas.codecs.jsonrpc import RpcError
 from brasidas.messages import StationNotification
 from platformd.app import PlatformDaemon
 from stationd.client import PlatformConnection
@@ -378,3 +380,64 @@ async def test_an_observer_sees_its_controls_disabled(
     for name in ("manual override", "start patrol", "edit route", "main lights"):
         await expect(idle.get_by_role("button", name=name)).to_be_hidden()
     await idle.close()
+
+
+async def test_page_latency_reports_and_stream_copies_are_checked(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes
+) -> None:
+    """Bad input gets a clear error: a page's latency that is not a number in range, a sixth
+    copy of one stream for one station. A copy's stop leaves the others."""
+    import aiohttp
+
+    platform = await rover(platform_factory, fleet_key, station)
+    for _ in range(150):  # until its beacon is heard
+        heard = await station.ctx.api.call_local("list_platforms")
+        if any(entry["id"] == "web-rover" for entry in heard):
+            break
+        await asyncio.sleep(0.1)
+    await station.ctx.api.call_local("connect", platform_id="web-rover")
+    url = f"http://127.0.0.1:{station.api_port}/api/rpc/ws"
+    async with aiohttp.ClientSession() as http, http.ws_connect(url) as ws:
+        answers: dict[int, Any] = {}
+
+        async def call(number: int, method: str, params: str) -> Any:
+            """``params`` as JSON text: 1e999 is how a page could send infinity."""
+            await ws.send_str(
+                f'{{"jsonrpc":"2.0","id":{number},"method":"{method}","params":{params}}}'
+            )
+            while number not in answers:
+                message = await ws.receive_json(timeout=10)
+                if "id" in message:
+                    answers[message["id"]] = message
+            return answers[number]
+
+        assert "result" in await call(1, "console_subscribe", "{}")
+        for number, bad in enumerate(("[]", '"12"', "1e999", "-1", "1e9", "true", "null"), 10):
+            params = f'{{"platform_id":"web-rover","p95_ms":{bad}}}'
+            answer = await call(number, "console_latency", params)
+            assert "error" in answer, (bad, answer)
+        good = '{"platform_id":"web-rover","p95_ms":9.5}'
+        assert (await call(30, "console_latency", good))["result"] is True
+        connection = station.ctx.connections["web-rover"]
+        assert connection.video_latency is not None and connection.video_latency() == 9.5
+
+    catchers = [UdpCatcher() for _ in range(5)]
+    try:
+        for catcher in catchers[:4]:
+            await station.ctx.api.call_local(
+                "stream_start", platform_id="web-rover", stream="navcam", port=catcher.port
+            )
+        with pytest.raises(RpcError, match="at most 4 copies"):
+            await station.ctx.api.call_local(
+                "stream_start", platform_id="web-rover", stream="navcam", port=catchers[4].port
+            )
+        await station.ctx.api.call_local(
+            "stream_stop", platform_id="web-rover", stream="navcam", port=catchers[0].port
+        )
+        media = platform.ctx.media
+        assert media is not None
+        ports = sorted(port for _host, port in media.viewers["navcam"].values())
+        assert ports == sorted(c.port for c in catchers[1:4])
+    finally:
+        for catcher in catchers:
+            catcher.close()
