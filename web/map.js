@@ -76,9 +76,32 @@ export class PlatformMap {
     entry.marker.setLatLng(point);
     // A new icon only when it looks different: rebuilding it five times a second is the
     // page's costliest work otherwise.
-    const look = `${Math.round(heading ?? 0)}|${current}|${connected}`;
-    if (entry.look !== look) { entry.look = look; entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected)); }
+    const left = this.labelCrowded(id, point);
+    const look = `${Math.round(heading ?? 0)}|${current}|${connected}|${left}`;
+    if (entry.look !== look) { entry.look = look; entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected, left)); }
     if (this.following) this.followPlatforms();
+  }
+
+  /** A platform's name written on its right would cover another's name or a named point of
+   * the area map: it goes on the left then. */
+  labelCrowded(id, point) {
+    const at = this.map.latLngToContainerPoint(point);
+    const box = { x: at.x + 14, y: at.y - 8, w: 7 * id.length + 6, h: 16 };
+    const covers = (x, y, w, h) => box.x < x + w && x < box.x + box.w && box.y < y + h && y < box.y + box.h;
+    for (const [other, entry] of this.markers) {
+      if (other === id) continue;
+      const there = this.map.latLngToContainerPoint(entry.marker.getLatLng());
+      const side = entry.look?.endsWith("|true") ? there.x - 14 - (7 * other.length + 6) : there.x + 14;
+      if (covers(side, there.y - 8, 7 * other.length + 6, 16)) return true;
+    }
+    let crowded = false;
+    this.area?.eachLayer((layer) => {
+      const name = layer.getTooltip?.()?.getContent();
+      if (crowded || !name || !layer.getLatLng) return;
+      const there = this.map.latLngToContainerPoint(layer.getLatLng());
+      if (covers(there.x - 4, there.y - 8, 7 * String(name).length + 14, 16)) crowded = true;
+    });
+    return crowded;
   }
 
   /** Every platform in sight, the view changed only when one is not (or close to the edge). */
@@ -251,9 +274,9 @@ export class PlatformMap {
 
 function samePlace(a, b) { return Math.abs(a[0] - b[0]) < 1e-7 && Math.abs(a[1] - b[1]) < 1e-7; }
 
-function platformIcon(id, heading, current, connected) {
+function platformIcon(id, heading, current, connected, labelLeft = false) {
   const element = document.createElement("div");
-  element.className = `platform-icon${current ? " current" : ""}${connected ? " connected" : ""}`;
+  element.className = `platform-icon${current ? " current" : ""}${connected ? " connected" : ""}${labelLeft ? " label-left" : ""}`;
   const arrow = document.createElement("div");
   arrow.className = "arrow";
   arrow.style.transform = `rotate(${Number(heading) || 0}deg)`;
