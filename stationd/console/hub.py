@@ -56,7 +56,7 @@ class ConsoleHub(ConsoleMedia, ConsoleDrive, Actor):
         self.notes_kept: collections.deque[dict[str, Any]] = collections.deque(maxlen=NOTES_KEPT)
         self.page_latency: dict[str, tuple[float, float]] = {}
         """Platform id → the latest glass-to-glass p95 (ms) a page measured, and when."""
-        self._destinations: dict[tuple[str, str], tuple[float, list[str]]] = {}
+        self._destinations: dict[tuple[str, str], tuple[float, list[str] | None]] = {}
         """(platform, stream) → when the platform's destinations were last asked, and them."""
         self._group: asyncio.TaskGroup | None = None
 

@@ -25,6 +25,8 @@ FEED_LINGER_S = 10.0
 PAGE_LATENCY_MAX_AGE_S = 1.5
 """A page's glass-to-glass report is used this long (it reports once a second, of the last
 second): a page that stops reporting stops counting, and the platform's assumption returns."""
+DESTINATIONS_ASKED_EVERY_S = 2.0
+DESTINATIONS_WAIT_S = 0.5
 VIDEO_SILENT_S = 1.0
 """A watched feed with no access unit for this long gets a reason (paused, stopped, elsewhere)."""
 
@@ -38,7 +40,7 @@ class ConsoleMedia(ConsoleParts):
     _feed_numbers: itertools.count[int]
     _unwatched_since: dict[tuple[str, str], float]
     _feed_lock: asyncio.Lock
-    _destinations: dict[tuple[str, str], tuple[float, list[str]]]
+    _destinations: dict[tuple[str, str], tuple[float, list[str] | None]]
 
     # ------------------------------------------------------------------ video and audio
 
@@ -141,17 +143,20 @@ class ConsoleMedia(ConsoleParts):
         return f"no {feed.stream} packets arrive from the platform"
 
     async def _platform_destinations(self, feed: Feed) -> list[str] | None:
-        """Where the platform sends ``feed``'s stream (asked at most every 2 s), or None."""
+        """Where the platform sends ``feed``'s stream, or None (unknown). Asked at most every
+        2 s and waited for 0.5 s at most: a silent platform never holds up a page's pushes."""
         key = (feed.platform_id, feed.stream)
         asked = self._destinations.get(key)
         now = time.monotonic()
-        if asked is not None and now - asked[0] < 2.0:
+        if asked is not None and now - asked[0] < DESTINATIONS_ASKED_EVERY_S:
             return asked[1]
+        self._destinations[key] = (now, None)
         connection = self.ctx.connections.get(feed.platform_id)
         if connection is None:
             return None
         try:
-            streams = await connection.call("list_streams")
+            async with asyncio.timeout(DESTINATIONS_WAIT_S):
+                streams = await connection.call("list_streams")
         except (RpcError, ConnectionError, TimeoutError):
             return None
         for stream in streams:
