@@ -182,6 +182,10 @@ async def test_the_pages_latency_reaches_the_speed_cap(
         return None if cap is None else cap.video_ms
 
     await wait_until(lambda: cap_video_ms() is not None, timeout=10)
+    # Rolling plots (uPlot, served from node_modules): battery and glass-to-glass by default.
+    await expect(page.locator("#plots .uplot")).to_have_count(2, timeout=10_000)
+    await page.get_by_role("checkbox", name="motor A").check()
+    await expect(page.locator("#plots .uplot")).to_have_count(3, timeout=5_000)
     await page.keyboard.down("KeyW")  # the command sent, on the stick
     await screenshots(page, "console")
     swap = page.get_by_role("button", name="swap map and video")
