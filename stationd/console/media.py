@@ -280,8 +280,8 @@ class ConsoleMedia(ConsoleParts):
                         await self._stop_platform_stream(feed)
 
     async def _stop_platform_stream(self, feed: Feed) -> None:
-        """Stop the platform's stream unless someone else (``brasidas-station view``) took it:
-        a platform stream has one destination."""
+        """Stop the console's copy of the platform's stream (the one sent to the feed's port);
+        the copies of other consumers (``brasidas-station view``) go on."""
         connection = self.ctx.connections.get(feed.platform_id)
         if connection is None:
             return
