@@ -50,8 +50,13 @@ soak: deps
 test: deps
 	$(PY) -m pytest -q -p no:cacheprovider
 
+# `make bench console`: only the benchmarks named after `bench` (no-op goals of their own).
+BENCH_NAMES := $(if $(filter bench,$(MAKECMDGOALS)),$(filter-out bench,$(MAKECMDGOALS)))
 bench: deps
-	$(PY) -m bench
+	$(PY) -m bench $(BENCH_NAMES)
+ifneq ($(BENCH_NAMES),)
+$(BENCH_NAMES): ; @:
+endif
 
 lint: deps
 	$(VENV)/bin/ruff check brasidas platformd stationd tests bench
