@@ -25,8 +25,8 @@ const staleMarks = [];     // [page ms the last frame was drawn, page ms STALE w
 const dumpWaiters = [];
 
 function showMessage(text) {
-  message.textContent = text;
-  message.hidden = !text;
+  put(message, text);
+  if (message.hidden !== !text) message.hidden = !text;
 }
 
 function wallNow() { return performance.timeOrigin + performance.now(); }
@@ -66,6 +66,11 @@ function checkStale() {
   const now = age != null && watching != null && age > limit;
   if (now && !stale) staleMarks.push([performance.now() - age, performance.now()]);
   if (now !== stale) { stale = now; box.dataset.stale = String(now); staleMark.hidden = !now; }
+  if (age == null && watching != null) {
+    // No first frame yet: the station's word on why, once it has one.
+    const reason = state.videoState?.watching === watching ? state.videoState.reason : "";
+    if (reason) showMessage(`No video from ${watching} yet: ${reason}.`);
+  }
   if (now) {
     put($("#video-stale-age"), `NO VIDEO ${(age / 1000).toFixed(1)} s`);
     const reason = state.videoState?.watching === watching ? state.videoState.reason : "";
