@@ -65,6 +65,11 @@ function sample() {
 }
 
 export function startPlots() {
+  // Its stylesheet loaded from here, not the page's head: it must not hold up the first frame.
+  const style = document.createElement("link");
+  style.rel = "stylesheet";
+  style.href = "/static/uplot/uPlot.min.css";
+  document.head.append(style);
   const choices = $("#plot-choices");
   for (const quantity of QUANTITIES) {
     const label = document.createElement("label");

@@ -30,14 +30,16 @@ async function hello() {
   state.session = answer.session;
   state.stationId = answer.station_id;
   notify("session");
-  measureClock().catch((error) => console.warn("clock offset not measured", error));
+  // The picture first: the clock offset (ten round trips) is measured once it is asked for.
+  const clock = () => measureClock().catch((error) => console.warn("clock offset not measured", error));
   if (state.current) {
     await api.call("connect", { platform_id: state.current }, 8000).catch(() => {});
-    await api.call("console_focus", { platform_id: state.current }).catch(() => {});
     notify("shown", state.current);
+    await api.call("console_focus", { platform_id: state.current }).catch(() => {});
   } else if (requestedPlatform) {
     await select(requestedPlatform);
   }
+  clock();
 }
 
 async function measureClock() {
@@ -77,12 +79,13 @@ export async function select(platformId) {
   notify("current", previous);
   try {
     await api.call("connect", { platform_id: platformId }, 8000);
-    await api.call("console_focus", { platform_id: platformId });
   } catch (error) {
     say(`Connecting to ${platformId} failed: ${error.message}.`, { refused: true });
     return;
   }
-  if (state.current === platformId) notify("shown", platformId);
+  if (state.current !== platformId) return;
+  notify("shown", platformId); // the NavCam asked for at once (video_watch focuses it too)
+  await api.call("console_focus", { platform_id: platformId }).catch(() => {});
 }
 
 /** Disconnect the shown platform (it returns to autonomous mode); nothing is shown after. */
