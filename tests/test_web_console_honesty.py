@@ -456,3 +456,38 @@ async def test_page_latency_reports_and_stream_copies_are_checked(
     finally:
         for catcher in catchers:
             catcher.close()
+
+
+async def test_a_feed_sent_elsewhere_says_so_and_comes_back(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes, browser: Any
+) -> None:
+    """The platform stops sending the console's copy while another consumer's goes on (as an
+    older platform did when `view` took the stream): STALE, "taken by another consumer" with
+    where it goes, and *ask for the video again* brings it back."""
+    from playwright.async_api import expect
+
+    platform = await rover(platform_factory, fleet_key, station)
+    page = await console(browser, station, "web-rover")
+    await frames_decoded(page, at_least=10)
+    view = UdpCatcher()
+    try:
+        await station.ctx.api.call_local(
+            "stream_start", platform_id="web-rover", stream="navcam", port=view.port
+        )
+        (hub,) = [a for a in station.supervisor.actors if a.name == "console"]
+        feed_port = hub.feeds[("web-rover", "navcam")].port
+        media = platform.ctx.media
+        assert media is not None
+        (owner,) = [k for k, (_h, port) in media.viewers["navcam"].items() if port == feed_port]
+        await media.stop_stream("navcam", session_id=owner, port=feed_port)
+        stale = page.get_by_role("alert", name="video stale")
+        await expect(stale).to_be_visible(timeout=5_000)
+        await expect(stale).to_contain_text("taken by another consumer", timeout=10_000)
+        await expect(stale).to_contain_text(f":{view.port}")
+        decoded = await frames_decoded(page, at_least=1)
+        await page.get_by_role("button", name="resume video").click()
+        await frames_decoded(page, at_least=decoded + 10)
+        await expect(stale).to_be_hidden(timeout=5_000)
+        assert view.drain() > 0  # the other consumer's copy went on throughout
+    finally:
+        view.close()
