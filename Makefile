@@ -4,6 +4,8 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP_APT := $(VENV)/.apt-stamp
 STAMP_PIP := $(VENV)/.pip-stamp
+# The console's JavaScript packages (package-lock.json): uPlot, served by the station, and ESLint.
+STAMP_NPM := node_modules/.npm-stamp
 
 APT_PACKAGES := python3 python3-venv python3-dev gcc pkg-config \
 	libgirepository1.0-dev libcairo2-dev gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0 \
@@ -13,7 +15,14 @@ APT_PACKAGES := python3 python3-venv python3-dev gcc pkg-config \
 
 .PHONY: demo test bench lint deps apt venv clean net-demo soak
 
-deps: $(STAMP_APT) $(STAMP_PIP)
+deps: $(STAMP_APT) $(STAMP_PIP) $(STAMP_NPM)
+
+# Node from Debian only when there is no npm at all (a machine with another Node keeps it).
+$(STAMP_NPM): package.json package-lock.json $(STAMP_APT)
+	@command -v npm >/dev/null || { echo "installing Debian packages: nodejs npm"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends nodejs npm; }
+	npm ci --no-audit --no-fund --loglevel=error
+	@touch $@
 
 # Debian packages: installed only when one is missing.
 $(STAMP_APT):
@@ -44,13 +53,19 @@ soak: deps
 test: deps
 	$(PY) -m pytest -q -p no:cacheprovider
 
+# `make bench console`: only the benchmarks named after `bench` (no-op goals of their own).
+BENCH_NAMES := $(if $(filter bench,$(MAKECMDGOALS)),$(filter-out bench,$(MAKECMDGOALS)))
 bench: deps
-	$(PY) -m bench
+	$(PY) -m bench $(BENCH_NAMES)
+ifneq ($(BENCH_NAMES),)
+$(BENCH_NAMES): ; @:
+endif
 
 lint: deps
 	$(VENV)/bin/ruff check brasidas platformd stationd tests bench
 	$(VENV)/bin/ruff format --check brasidas platformd stationd tests bench
 	$(VENV)/bin/mypy
+	node_modules/.bin/eslint web
 
 clean:
 	rm -rf $(VENV) build *.egg-info

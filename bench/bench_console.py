@@ -1,5 +1,7 @@
-"""The browser console (issue 11): NavCam glass-to-glass in headless Chromium, the station
-daemon's CPU while pages watch, and page open → first frame.
+"""The browser console (issues 11, 20): NavCam glass-to-glass in headless Chromium, the station
+daemon's CPU while pages watch (instruments and every plot on), the page's own main-thread time,
+page open → first frame, and last frame → STALE shown (the stream paused on the platform, the
+mark timed in the page).
 
 A ``--sim`` platform (640x480 at 30 fps, x264, moving SMPTE bars) and a station daemon run as
 processes; Debian's Chromium (headless, software decoding) opens the console with
@@ -65,6 +67,57 @@ async def _cpu_window(pid: int, seconds: float) -> float:
     return round((cpu_seconds(pid) - before) / (time.monotonic() - started) * 100, 1)
 
 
+async def _rpc(http: aiohttp.ClientSession, base: str, method: str, **params: Any) -> Any:
+    async with http.post(
+        base + "/api/rpc", json={"jsonrpc": "2.0", "id": 1, "method": method, "params": params}
+    ) as response:
+        return (await response.json()).get("result")
+
+
+async def _main_thread_ms_per_s(page: Any, seconds: float) -> dict[str, float]:
+    """The page's main-thread time per second over ``seconds`` (Chrome's TaskDuration), and its
+    script, layout and style parts: wall time of its tasks, so a loaded machine inflates it."""
+    cdp = await page.context.new_cdp_session(page)
+    await cdp.send("Performance.enable")
+    names = ("TaskDuration", "ScriptDuration", "LayoutDuration", "RecalcStyleDuration")
+
+    async def sample() -> dict[str, float]:
+        metrics = (await cdp.send("Performance.getMetrics"))["metrics"]
+        return {m["name"]: float(m["value"]) for m in metrics if m["name"] in names}
+
+    before, started = await sample(), time.monotonic()
+    await asyncio.sleep(seconds)
+    after, elapsed = await sample(), time.monotonic() - started
+    return {name: round((after[name] - before[name]) / elapsed * 1000, 1) for name in names}
+
+
+async def _stale_delays(
+    page: Any, http: aiohttp.ClientSession, base: str, rounds: int
+) -> list[float]:
+    """Pause the NavCam on the platform ``rounds`` times: last frame drawn → STALE shown (ms)."""
+    delays: list[float] = []
+    for _ in range(rounds):
+        marks = len(await page.evaluate("window.navcam.staleMarks()"))
+        await _rpc(http, base, "stream_pause", platform_id=PLATFORM_ID, stream="navcam")
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            found = await page.evaluate("window.navcam.staleMarks()")
+            if len(found) > marks:
+                drawn, shown = found[-1]
+                delays.append(float(shown) - float(drawn))
+                break
+            await asyncio.sleep(0.05)
+        await page.click("#video-resume")
+        decoded = (await page.evaluate("window.navcam.stats()") or {}).get("decoded", 0)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            await asyncio.sleep(0.1)
+            stats = await page.evaluate("window.navcam.stats()") or {}
+            if stats.get("decoded", 0) > decoded + 15:
+                break
+    return delays
+
+
 async def run() -> dict[str, Any]:
     from playwright.async_api import async_playwright
 
@@ -105,9 +158,14 @@ async def run() -> dict[str, Any]:
             )
             try:
                 first, cold_ms = await _open_page(browser, url)  # starts the feed
+                for box in await first.query_selector_all("#plot-choices input"):
+                    if not await box.is_checked():
+                        await box.check()  # every plot drawn while measured
                 await asyncio.sleep(2.0)
                 await first.evaluate("window.navcam.keepLatencies(true)")
-                one_cpu = await _cpu_window(station.pid, WINDOW_S)
+                one_cpu_task = asyncio.ensure_future(_cpu_window(station.pid, WINDOW_S))
+                main_thread = await _main_thread_ms_per_s(first, WINDOW_S - 0.5)
+                one_cpu = await one_cpu_task
                 dump = await first.evaluate("window.navcam.dump()")
                 latencies = [float(total) for total, _ in dump["latencies"]]
                 network = [float(part) for _, part in dump["latencies"]]
@@ -118,6 +176,8 @@ async def run() -> dict[str, Any]:
                     figure = (await first.evaluate("window.navcam.audio()"))["latencyMs"]
                     if figure is not None:
                         audio_ms.append(float(figure))
+                async with aiohttp.ClientSession() as http:
+                    stale_ms = await _stale_delays(first, http, base, 12)
                 second, warm_ms = await _open_page(browser, url)  # the platform streams
                 marks = await second.evaluate("window.navcam.marks()")
                 third, _ = await _open_page(browser, url)
@@ -141,8 +201,18 @@ async def run() -> dict[str, Any]:
         "glass_to_glass_frames": len(latencies),
         "capture_to_station_p50_ms": _quantile(network, 0.5),
         "capture_to_station_p95_ms": _quantile(network, 0.95),
-        "glass_to_glass_target_p95_ms": 25,
+        "glass_to_glass_target_p95_ms": 12,
         "audio_arrival_to_output_p50_ms": _quantile(audio_ms, 0.5) if audio_ms else None,
+        "last_frame_to_stale_p50_ms": _quantile(stale_ms, 0.5) if stale_ms else None,
+        "last_frame_to_stale_p95_ms": _quantile(stale_ms, 0.95) if stale_ms else None,
+        "last_frame_to_stale_rounds": len(stale_ms),
+        "last_frame_to_stale_target_p95_ms": 500,
+        "page_main_thread_ms_per_s_instruments_and_plots": main_thread["TaskDuration"],
+        "page_main_thread_parts_ms_per_s": {
+            "script": main_thread["ScriptDuration"],
+            "layout": main_thread["LayoutDuration"],
+            "style": main_thread["RecalcStyleDuration"],
+        },
         "station_cpu_pct_one_core_no_page": idle_cpu,
         "station_cpu_pct_one_core_1_page": one_cpu,
         "station_cpu_pct_one_core_3_pages": three_cpu,

@@ -187,7 +187,11 @@ class MediaService(Actor):
             self.navcam.set_framerate(fps)
 
     def _on_session_closed(self, event: SessionClosed) -> None:
-        wanted = [name for name, viewers in self.viewers.items() if event.session_id in viewers]
+        wanted = [
+            name
+            for name, viewers in self.viewers.items()
+            if any(_owner(key) == event.session_id for key in viewers)
+        ]
         for name in wanted:
             self._spawn(self.stop_stream(name, session_id=event.session_id), f"media:stop:{name}")
 
@@ -293,18 +297,30 @@ class MediaService(Actor):
         return stream
 
     async def start_stream(
-        self, name: str, host: str = "", port: int = 0, *, session_id: str | None = None
+        self,
+        name: str,
+        host: str = "",
+        port: int = 0,
+        *,
+        session_id: str | None = None,
+        copy: bool = False,
     ) -> StreamState:
         """Start (or resume) ``session_id``'s copy of a stream, sent to ``host:port`` (the
         stream's configured address for what is not given). A stream sent out goes to every
         session that started it, each at its own destination; ``audio_in`` listens while any
-        session wants it. One session's start never moves another's copy.
+        session wants it. One session's start never moves another's copy. ``copy``: one more
+        destination for the session (a second consumer at its station, ``view`` beside the
+        console), its own until stopped by its port.
         """
         stream = self.get(name)
         viewers = self.viewers.setdefault(name, {})
         if isinstance(stream, FanOutStream):
             settings = stream.settings
-            viewers[session_id] = (host or settings.host, port or settings.port)
+            key = f"{session_id}{COPY_MARK}{port}" if copy and port else session_id
+            copies = [k for k in viewers if k != session_id and _owner(k) == session_id]
+            if key not in viewers and key != session_id and len(copies) >= COPIES_MAX:
+                raise ValueError(f"stream '{name}': at most {COPIES_MAX} copies per station")
+            viewers[key] = (host or settings.host, port or settings.port)
             stream.set_destinations(list(viewers.values()))
         else:
             viewers[session_id] = ("", 0)  # the platform's own address: nothing to choose
@@ -341,13 +357,18 @@ class MediaService(Actor):
             )
         return unroutable(host)
 
-    async def stop_stream(self, name: str, *, session_id: str | None = None) -> StreamState:
-        """Stop ``session_id``'s copy of a stream; the stream stops when nobody else wants it.
-        The platform itself (``session_id`` None) stops it for everyone."""
+    async def stop_stream(
+        self, name: str, *, session_id: str | None = None, port: int = 0
+    ) -> StreamState:
+        """Stop ``session_id``'s copies of a stream (only the one sent to ``port`` when given);
+        the stream stops when nobody else wants it. The platform itself (``session_id`` None)
+        stops it for everyone."""
         stream = self.get(name)
         viewers = self.viewers.setdefault(name, {})
         if session_id is not None:
-            viewers.pop(session_id, None)
+            for key, (_host, sent_to) in list(viewers.items()):
+                if _owner(key) == session_id and (not port or sent_to == port):
+                    viewers.pop(key)
             if viewers:
                 if isinstance(stream, FanOutStream):
                     stream.set_destinations(list(viewers.values()))
@@ -374,7 +395,7 @@ class MediaService(Actor):
     # ------------------------------------------------------------------ signaling methods
 
     async def rpc_start_stream(
-        self, call: CallContext, name: str, host: str = "", port: int = 0
+        self, call: CallContext, name: str, host: str = "", port: int = 0, copy: bool = False
     ) -> dict[str, Any]:
         session: Session | None = call.session
         session_id = session.session_id if session is not None else None
@@ -387,17 +408,22 @@ class MediaService(Actor):
             raise RpcError(INVALID_PARAMS, f"invalid params: {refusal}")
         if port and not 1 <= port <= 65535:
             raise RpcError(INVALID_PARAMS, "invalid params: port must be 1-65535")
-        await self.start_stream(self._rpc_name(name), host, port, session_id=session_id)
+        try:
+            await self.start_stream(
+                self._rpc_name(name), host, port, session_id=session_id, copy=bool(copy)
+            )
+        except ValueError as err:
+            raise RpcError(INVALID_PARAMS, f"invalid params: {err}") from None
         return self.streams[name].describe()
 
     async def rpc_pause_stream(self, call: CallContext, name: str) -> dict[str, Any]:
         await self.pause_stream(self._rpc_name(name))
         return self.streams[name].describe()
 
-    async def rpc_stop_stream(self, call: CallContext, name: str) -> dict[str, Any]:
+    async def rpc_stop_stream(self, call: CallContext, name: str, port: int = 0) -> dict[str, Any]:
         session: Session | None = call.session
         await self.stop_stream(
-            self._rpc_name(name), session_id=session.session_id if session else None
+            self._rpc_name(name), session_id=session.session_id if session else None, port=port
         )
         return self.streams[name].describe()
 
@@ -419,6 +445,17 @@ class MediaService(Actor):
         info["destination"] = self.navcam.destination() if info["state"] != "idle" else None
         info["framerates"] = dict(self.framerate.rates)
         return info
+
+
+COPIES_MAX = 4
+"""Extra copies of one stream a station may have (``view`` and ffplay beside the console)."""
+COPY_MARK = "#"
+"""Joins a session id and a port: the key of a session's extra copy of a stream."""
+
+
+def _owner(key: str | None) -> str | None:
+    """The session a viewer key belongs to (its extra copies carry ``#port``)."""
+    return key.split(COPY_MARK, 1)[0] if key is not None else None
 
 
 def host_from_payload(payload: str, default: str = "") -> str:

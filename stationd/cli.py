@@ -211,7 +211,8 @@ def _describe_patrol(patrol: dict[str, Any]) -> str:
     lines = [
         f"state      {patrol.get('state')}"
         + ("" if patrol.get("enabled", True) else " (switched off)"),
-        f"waypoint   {'-' if waypoint is None else waypoint} of {patrol.get('waypoints', 0)}",
+        # Counted from 1, as the console and the platform's refusals count them.
+        f"waypoint   {'-' if waypoint is None else waypoint + 1} of {patrol.get('waypoints', 0)}",
         f"distance_m {'-' if distance is None else distance}",
         f"lap        {patrol.get('lap', 0)}",
         f"reason     {patrol.get('reason') or '-'}",

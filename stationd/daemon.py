@@ -34,6 +34,8 @@ SUBSYSTEMS: tuple[str, ...] = (
 
 WEB_ROOT = Path(__file__).parent / "web"
 """The browser console, installed with the package (in a source tree, a link to ``web/``)."""
+UPLOT_ROOT = Path(__file__).resolve().parent.parent / "node_modules" / "uplot" / "dist"
+"""uPlot from npm (``make deps``: package-lock.json), served at /static/uplot, never copied."""
 LEAFLET_ROOT = Path("/usr/share/javascript/leaflet")
 """Debian's libjs-leaflet (``make deps``), served at /static/leaflet, never copied."""
 CONTENT_SECURITY_POLICY = (
@@ -151,6 +153,10 @@ def _add_console_routes(app: web.Application) -> None:
         app.router.add_static("/static/leaflet", LEAFLET_ROOT)
     else:
         _LOGGER.warning("no map in the console: %s missing (make deps)", LEAFLET_ROOT)
+    if UPLOT_ROOT.is_dir():
+        app.router.add_static("/static/uplot", UPLOT_ROOT)
+    else:
+        _LOGGER.warning("no plots in the console: %s missing (make deps)", UPLOT_ROOT)
     app.router.add_static("/static", WEB_ROOT)
     app.on_response_prepare.append(_security_headers)
 

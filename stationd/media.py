@@ -146,7 +146,8 @@ class StationMedia(Actor):
         if host:
             params["host"] = host
         if port:
-            params["port"] = port
+            # A consumer of its own (``view``, ffplay): one more copy, beside the console's.
+            params.update(port=port, copy=True)
         answer: dict[str, Any] = await connection.call("start_stream", **params)
         return answer
 
@@ -158,10 +159,14 @@ class StationMedia(Actor):
         return answer
 
     async def api_stream_stop(
-        self, call: CallContext, platform_id: str, stream: str = "navcam"
+        self, call: CallContext, platform_id: str, stream: str = "navcam", port: int = 0
     ) -> dict[str, Any]:
+        """Stop this station's copies of ``stream`` (only the one sent to ``port`` if given)."""
         connection = await self.ctx.connection(platform_id)
-        answer: dict[str, Any] = await connection.call("stop_stream", name=stream)
+        params: dict[str, Any] = {"name": stream}
+        if port:
+            params["port"] = port
+        answer: dict[str, Any] = await connection.call("stop_stream", **params)
         return answer
 
     async def api_streams(self, call: CallContext, platform_id: str) -> list[dict[str, Any]]:

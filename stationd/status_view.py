@@ -341,7 +341,7 @@ def _autonomy(patrol: Autonomy) -> str:
         text = patrol.state
     else:
         distance = f" {patrol.distance_m:.0f} m" if patrol.distance_m is not None else ""
-        text = f"{patrol.state}  waypoint {patrol.waypoint}/{patrol.waypoints}{distance}  lap {patrol.lap}"
+        text = f"{patrol.state}  waypoint {patrol.waypoint + 1}/{patrol.waypoints}{distance}  lap {patrol.lap}"  # from 1
     if patrol.reason:
         text += f"  ({patrol.reason})"
     if patrol.state == "holding":

@@ -112,7 +112,13 @@ async def _view(args: argparse.Namespace, config: StationConfig) -> int:
     finally:
         await receiver.stop()
         with contextlib.suppress(RpcError, CliError):
-            await api_call_async(config, "stream_stop", platform_id=args.id, stream=args.stream)
+            await api_call_async(
+                config,
+                "stream_stop",
+                platform_id=args.id,
+                stream=args.stream,
+                port=receiver.port,  # its own copy: the console's picture goes on
+            )
 
 
 def _report(args: argparse.Namespace, stats: dict[str, Any]) -> None:

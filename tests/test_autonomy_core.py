@@ -171,8 +171,8 @@ def test_waypoints_from_names_text_and_geojson() -> None:
 @pytest.mark.parametrize(
     ("items", "reason"),
     [
-        (["91,0"], "waypoint 0: 91.0, 0.0 is not a latitude"),
-        (["1,1", "pond"], "waypoint 1: 'pond' is neither LAT,LON nor a named point"),
+        (["91,0"], "waypoint 1: 91.0, 0.0 is not a latitude"),
+        (["1,1", "pond"], "waypoint 2: 'pond' is neither LAT,LON nor a named point"),
         ([{"lat": "x", "lon": 1}], "must be numbers"),
         ([42], "expected"),
     ],
@@ -185,10 +185,10 @@ def test_bad_waypoints_refused(items: list[Any], reason: str) -> None:
 def test_waypoint_outside_the_map_or_in_a_keepout_refused() -> None:
     area = parse_map(demo())
     outside = "{},{}".format(*offset(LAT, LON, 0, 100))
-    with pytest.raises(RouteError, match=r"waypoint 1 \(37.94.*\) is outside the map.s boundary"):
+    with pytest.raises(RouteError, match=r"waypoint 2 \(37.94.*\) is outside the map.s boundary"):
         check_route(parse_waypoints(["sw", outside], area.points), area)
     shed = "{},{}".format(*offset(LAT, LON, 20, 15))
-    with pytest.raises(RouteError, match="waypoint 0 .* keep-out zone 'shed'"):
+    with pytest.raises(RouteError, match="waypoint 1 .* keep-out zone 'shed'"):
         check_route(parse_waypoints([shed]), area)
 
 
@@ -397,3 +397,28 @@ def test_unreachable_waypoint_is_skipped_with_a_notification() -> None:
     kinds = [(e.kind, e.waypoint) for e in p.events]
     assert ("arrived", 0) in kinds and ("skipped", 1) in kinds
     assert "clearance" in next(e.message for e in p.events if e.kind == "skipped")
+
+
+def test_a_new_route_goes_on_toward_the_target_not_back_to_the_first() -> None:
+    """Issue 20: a route edited while patrolling keeps the waypoint being driven to, or the
+    next one the old route had that the new one keeps; a loop stays closed."""
+    p = patrol()
+    area = parse_map(demo())
+    p.set_map(area)
+    route = parse_waypoints(demo_route(), area.points)
+    p.set_route(route)
+    p.cursor = Cursor(2, True, 1, True)  # heading for the third point on lap 1
+    target = route.waypoints[2]
+    extra = {"lat": (route.waypoints[0].latitude + route.waypoints[1].latitude) / 2,
+             "lon": (route.waypoints[0].longitude + route.waypoints[1].longitude) / 2}  # fmt: skip
+    edited = parse_waypoints(
+        [route.waypoints[0].as_dict(), extra, *[w.as_dict() for w in route.waypoints[1:]]]
+    )
+    assert edited.closed
+    p.set_route(edited)
+    assert edited.waypoints[p.cursor.index].same_place(target)
+    assert p.cursor.lap == 1
+    # The target deleted: on to the next one the old route had.
+    without = parse_waypoints([w.as_dict() for i, w in enumerate(edited.waypoints) if i != 3])
+    p.set_route(without)
+    assert without.waypoints[p.cursor.index].same_place(route.waypoints[3])

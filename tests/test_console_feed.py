@@ -92,7 +92,7 @@ async def test_access_units_reach_a_websocket_viewer_with_capture_times(
     fleet_key: bytes,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    monkeypatch.setattr("stationd.console.FEED_LINGER_S", 0.5)
+    monkeypatch.setattr("stationd.console.media.FEED_LINGER_S", 0.5)
     platform = await platform_factory(
         quiet_platform_config("platform.id=feed-rover", "sim.enabled=true", "navcam.enabled=true"),
         fleet_key,

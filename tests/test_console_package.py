@@ -18,7 +18,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 BUILD_IGNORE = shutil.ignore_patterns(
-    ".*", "build", "*.egg-info", "__pycache__", "tests", "bench", "dist"
+    ".*", "build", "*.egg-info", "__pycache__", "tests", "bench", "dist", "node_modules"
 )
 
 

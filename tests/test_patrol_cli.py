@@ -62,7 +62,7 @@ async def test_map_route_and_patrol_commands(
     answer = json.loads(out)
     assert code == 0 and answer["closed"] is False and answer["waypoints"][1]["name"] == "ne"
     code, _, err = await run_cli(station, "route", "rover-5", "sw", "91,0")
-    assert code == 1 and "waypoint 1: 91.0, 0.0 is not a latitude" in err
+    assert code == 1 and "waypoint 2: 91.0, 0.0 is not a latitude" in err
 
     code, out, _ = await run_cli(station, "patrol", "rover-5", "--json")
     state = json.loads(out)
@@ -83,7 +83,7 @@ async def test_map_route_and_patrol_commands(
         text = await shown()
         if "stopped by the operator" in text:
             break
-    assert "autonomy   stopped  waypoint 0/2" in text and "(stopped by the operator)" in text
+    assert "autonomy   stopped  waypoint 1/2" in text and "(stopped by the operator)" in text
     assert "pose       37.94" in text and "patrol on" in text
 
 

@@ -290,9 +290,9 @@ async def test_invalid_maps_and_waypoints_are_refused_and_a_restart_keeps_the_ro
         with pytest.raises(RpcError, match=f"map refused: .*{reason}"):
             await robot.call("load_map", map=bad)
     assert await robot.call("get_map") == before  # the old map stays
-    with pytest.raises(RpcError, match="waypoints refused: waypoint 1 .* outside the map"):
+    with pytest.raises(RpcError, match="waypoints refused: waypoint 2 .* outside the map"):
         await robot.call("set_waypoints", waypoints=["sw", at(0, 200)])
-    with pytest.raises(RpcError, match="waypoints refused: waypoint 0 .* keep-out zone 'shed'"):
+    with pytest.raises(RpcError, match="waypoints refused: waypoint 1 .* keep-out zone 'shed'"):
         await robot.call("set_waypoints", waypoints=[at(20, 15)])
     with pytest.raises(RpcError, match="'lake' is neither LAT,LON nor a named point"):
         await robot.call("set_waypoints", waypoints=["sw", "lake"])

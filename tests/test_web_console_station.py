@@ -554,11 +554,10 @@ async def test_operator_station_in_the_browser(
                 await expect(
                     page.get_by_role("button", name="remove keep-out shed")
                 ).to_be_disabled()
-                await page.get_by_role("button", name="stop patrol").click()
-                await expect(patrol_answer).to_contain_text(
-                    "stop patrol: patrol_stop refused: control held by station intruder",
-                    timeout=10_000,
-                )
+                # Its patrol controls are disabled before any click (issue 20), saying why.
+                stop_patrol = page.get_by_role("button", name="stop patrol")
+                await expect(stop_patrol).to_be_disabled()
+                await expect(stop_patrol).to_have_attribute("title", re.compile("intruder"))
                 # The intruder's link goes silent (its heartbeats stop): after failsafe.hold_after
                 # (1.5 s) the platform holds, and the page shows LINK LOST.
                 assert intruder._heartbeat is not None

@@ -25,6 +25,8 @@ export class PlatformMap {
     this.map = L.map(element, { crs: L.CRS.Simple, minZoom: -6, maxZoom: 6, zoomSnap: 0.5, attributionControl: false });
     this.map.setView([0, 0], 1);
     new (metricGrid())({ minZoom: -6, maxZoom: 6 }).addTo(this.map);
+    L.control.scale({ imperial: false, position: "bottomright" }).addTo(this.map); // CRS.Simple: metres
+    this.area = null; // the platform's area map: under, and apart from, the operator's background
     // Until the operator takes the view (drags, scrolls, zooms) or a background is fitted, the
     // view follows the platforms: all of them in sight. Centring the first one alone left a
     // second rover 130 m away off the map, where it could be neither seen nor clicked.
@@ -72,8 +74,34 @@ export class PlatformMap {
     const before = entry.points[entry.points.length - 2];
     if (heading == null && before) heading = (Math.atan2(point[1] - before[1], point[0] - before[0]) * 180) / Math.PI;
     entry.marker.setLatLng(point);
-    entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected));
+    // A new icon only when it looks different: rebuilding it five times a second is the
+    // page's costliest work otherwise.
+    const left = this.labelCrowded(id, point);
+    const look = `${Math.round(heading ?? 0)}|${current}|${connected}|${left}`;
+    if (entry.look !== look) { entry.look = look; entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected, left)); }
     if (this.following) this.followPlatforms();
+  }
+
+  /** A platform's name written on its right would cover another's name or a named point of
+   * the area map: it goes on the left then. */
+  labelCrowded(id, point) {
+    const at = this.map.latLngToContainerPoint(point);
+    const box = { x: at.x + 14, y: at.y - 8, w: 7 * id.length + 6, h: 16 };
+    const covers = (x, y, w, h) => box.x < x + w && x < box.x + box.w && box.y < y + h && y < box.y + box.h;
+    for (const [other, entry] of this.markers) {
+      if (other === id) continue;
+      const there = this.map.latLngToContainerPoint(entry.marker.getLatLng());
+      const side = entry.look?.endsWith("|true") ? there.x - 14 - (7 * other.length + 6) : there.x + 14;
+      if (covers(side, there.y - 8, 7 * other.length + 6, 16)) return true;
+    }
+    let crowded = false;
+    this.area?.eachLayer((layer) => {
+      const name = layer.getTooltip?.()?.getContent();
+      if (crowded || !name || !layer.getLatLng) return;
+      const there = this.map.latLngToContainerPoint(layer.getLatLng());
+      if (covers(there.x - 4, there.y - 8, 7 * String(name).length + 14, 16)) crowded = true;
+    });
+    return crowded;
   }
 
   /** Every platform in sight, the view changed only when one is not (or close to the edge). */
@@ -108,16 +136,36 @@ export class PlatformMap {
     this.following = false;
   }
 
-  /** A GeoJSON background; a platform's area map draws its boundary, keep-outs (role
-   * "keepout", red) and named points. ``fit`` (default) zooms to it. */
+  /** An operator's GeoJSON background (offline: drawn as loaded). ``fit`` zooms to it. */
   setGeoJson(data, { fit = true } = {}) {
     this.clearBackground();
-    this.background = L.geoJSON(data, {
+    this.background = this.geoJsonLayer(data, () => "area-background").addTo(this.map);
+    this.background.bringToBack();
+    const bounds = this.background.getBounds();
+    if (fit && bounds.isValid()) { this.map.fitBounds(bounds); this.following = false; }
+  }
+
+  /** The platform's area map: its boundary, keep-outs (role "keepout", red) and named points,
+   * kept apart from the operator's background (loading or clearing one leaves the other). */
+  setArea(data, { fit = true } = {}) {
+    this.clearArea();
+    this.area = this.geoJsonLayer(data, (role) => `area-map${role ? ` area-${role}` : ""}`).addTo(this.map);
+    const bounds = this.area.getBounds();
+    if (fit && bounds.isValid()) { this.map.fitBounds(bounds); this.following = false; }
+  }
+
+  clearArea() {
+    if (this.area) { this.area.remove(); this.area = null; }
+  }
+
+  geoJsonLayer(data, className) {
+    const placed = []; // label boxes already placed (pixels): names must not overlap
+    return L.geoJSON(data, {
       coordsToLatLng: (coords) => L.latLng(this.local(coords[1], coords[0])),
       style: (feature) => {
         const role = feature?.properties?.role ?? "";
         const keepout = role === "keepout";
-        return { color: keepout ? "#d66a6a" : "#7aa2d6", weight: keepout ? 2 : 1, fillOpacity: keepout ? 0.3 : 0.15, className: `area-background${role ? ` area-${role}` : ""}` };
+        return { color: keepout ? "#d66a6a" : "#7aa2d6", weight: keepout ? 2 : 1, fillOpacity: keepout ? 0.3 : 0.15, className: className(role) };
       },
       onEachFeature: (feature, layer) => {
         if (feature?.properties?.role === "keepout" && feature.id != null) layer.bindTooltip(`keep-out ${feature.id}`);
@@ -125,13 +173,19 @@ export class PlatformMap {
       pointToLayer: (feature, latlng) => {
         const marker = L.circleMarker(latlng, { radius: 3, color: "#aaa", weight: 1, className: "area-point" });
         const name = feature?.properties?.name;
-        if (name) marker.bindTooltip(String(name), { permanent: true, direction: "right", className: "area-point-name" });
+        if (name) {
+          // Right of the point, or left when that would cover a name already placed.
+          const at = this.map.latLngToContainerPoint(latlng);
+          const width = 7 * String(name).length + 8;
+          const right = { x: at.x + 6, y: at.y - 7, w: width, h: 14 };
+          const overlaps = (box) => placed.some((o) => box.x < o.x + o.w && o.x < box.x + box.w && box.y < o.y + o.h && o.y < box.y + box.h);
+          const direction = overlaps(right) ? "left" : "right";
+          placed.push(direction === "right" ? right : { ...right, x: at.x - 6 - width });
+          marker.bindTooltip(String(name), { permanent: true, direction, className: "area-point-name" });
+        }
         return marker;
       },
-    }).addTo(this.map);
-    this.background.bringToBack();
-    const bounds = this.background.getBounds();
-    if (fit && bounds.isValid()) { this.map.fitBounds(bounds); this.following = false; }
+    });
   }
 
   /** Draw ``platformId``'s waypoint route ([lat, lon] points; closed when last = first). */
@@ -143,6 +197,10 @@ export class PlatformMap {
   setLine(key, points, style) {
     if (!this.available) return;
     this.lines ??= new Map();
+    this.drawn ??= new Map(); // key → the points drawn (redrawn only when they change)
+    const wanted = JSON.stringify(points ?? []);
+    if (this.drawn.get(key) === wanted) return;
+    this.drawn.set(key, wanted);
     this.lines.get(key)?.remove();
     if (!points || !points.length) { this.lines.delete(key); return; }
     this.lines.set(key, L.polyline(points.map(([lat, lon]) => this.local(lat, lon)), style).addTo(this.map));
@@ -151,7 +209,7 @@ export class PlatformMap {
   /** Let the operator edit a route's ``points``; ``onChange(points)`` after every edit.
    * Returns the edit's handle (see editPoints). */
   editWaypoints(points, onChange) {
-    return this.editPoints(points, onChange, { label: "waypoint", shape: (latlngs) => L.polyline(latlngs, { color: "#f0f080", weight: 2, className: "route-edit" }) });
+    return this.editPoints(points, onChange, { label: "waypoint", closeLoop: true, shape: (latlngs) => L.polyline(latlngs, { color: "#f0f080", weight: 2, className: "route-edit" }) });
   }
 
   /** Let the operator draw a keep-out polygon's corners (a draft: the area map itself is
@@ -163,7 +221,7 @@ export class PlatformMap {
   /** Edit ``points`` ([lat, lon]) on the map: click the map to append one, drag one to move it,
    * right-click one to delete it; ``onChange(points)`` after every edit. Returns { stop(),
    * addAtCentre() } — the keyboard's way: arrows pan the focused map, then add at its centre. */
-  editPoints(points, onChange, { label, shape }) {
+  editPoints(points, onChange, { label, shape, closeLoop = false }) {
     if (!this.available) return { stop: () => {}, addAtCentre: () => {} };
     this.following = false; // the operator works on this view: it must not move under the clicks
     const frame = this;
@@ -180,7 +238,14 @@ export class PlatformMap {
       });
     };
     const changed = () => { draw(); onChange(current.map((p) => [...p])); };
-    const add = (latlng) => { if (frame.origin) { current.push(frame.geo(latlng)); changed(); } };
+    // A closed route (last = first) stays closed: a new point goes before the closing one.
+    const closed = () => current.length >= 3 && samePlace(current[0], current[current.length - 1]);
+    const add = (latlng) => {
+      if (!frame.origin) return;
+      if (closeLoop && closed()) current.splice(current.length - 1, 0, frame.geo(latlng));
+      else current.push(frame.geo(latlng));
+      changed();
+    };
     const append = (event) => add(event.latlng);
     this.map.on("click", append);
     draw();
@@ -207,9 +272,11 @@ export class PlatformMap {
   }
 }
 
-function platformIcon(id, heading, current, connected) {
+function samePlace(a, b) { return Math.abs(a[0] - b[0]) < 1e-7 && Math.abs(a[1] - b[1]) < 1e-7; }
+
+function platformIcon(id, heading, current, connected, labelLeft = false) {
   const element = document.createElement("div");
-  element.className = `platform-icon${current ? " current" : ""}${connected ? " connected" : ""}`;
+  element.className = `platform-icon${current ? " current" : ""}${connected ? " connected" : ""}${labelLeft ? " label-left" : ""}`;
   const arrow = document.createElement("div");
   arrow.className = "arrow";
   arrow.style.transform = `rotate(${Number(heading) || 0}deg)`;

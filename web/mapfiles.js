@@ -2,27 +2,20 @@
 // QGC .plan, .waypoints, ArduPilot fence, route text) and imports it as the map or the route,
 // or exports the platform's route as .plan or .waypoints. The file's text goes to the station
 // (map_import, route_import, route_export): it is read there by the same Python code as the
-// CLI's, so the page holds no copy of any parser. The console reloads the area on
-// "brasidas:area-changed".
+// CLI's, so the page holds no copy of any parser. After an import the patrol view reloads
+// the area ("area-changed" on the store).
 
-import { StationApi } from "./api.js";
+import { notify, state } from "./store.js";
+import { api } from "./station.js";
 
 const MAX_FILE_BYTES = 4 * 1024 * 1024; // brasidas.mapfiles.MAX_FILE_BYTES: refused before upload
 const ACCEPT = ".plan,.waypoints,.txt,.kml,.osm,.geojson,.json,.fen,.fence";
-
-const api = new StationApi(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/rpc/ws`);
 
 function element(tag, attributes = {}, text = "") {
   const node = document.createElement(tag);
   for (const [name, value] of Object.entries(attributes)) node.setAttribute(name, value);
   if (text) node.textContent = text;
   return node;
-}
-
-/** The platform the console shows (its pill), or null. */
-function currentPlatform() {
-  const pill = document.querySelector("#current");
-  return pill && pill.classList.contains("ok") ? pill.textContent.trim() : null;
 }
 
 const tools = element("div", { class: "mapfile-tools", role: "group", "aria-label": "map and route files" });
@@ -52,7 +45,6 @@ tools.append(
   row("route:", labelled("with the plan's fence", fence), importRoute, exportPlan, exportWaypoints),
   answer,
 );
-(document.querySelector("#patrol") ?? document.body).append(tools);
 
 function say(text, refused = false) {
   answer.textContent = text;
@@ -71,18 +63,18 @@ async function fileText() {
 }
 
 async function run(what, work) {
-  const platformId = currentPlatform();
+  const platformId = state.current;
   if (!platformId) { say(`${what}: no platform shown`, true); return; }
   try {
     say(`${what}…`);
     say(await work(platformId));
-    window.dispatchEvent(new CustomEvent("brasidas:area-changed", { detail: platformId }));
+    notify("area-changed", platformId);
   } catch (error) {
     say(`${what}: ${error.message}`, true);
   }
 }
 
-importMap.onclick = () => run("import map", async (platformId) => {
+const importMapFile = () => run("import map", async (platformId) => {
   const { name, text } = await fileText();
   const result = await api.call("map_import", {
     platform_id: platformId, filename: name, text,
@@ -92,7 +84,7 @@ importMap.onclick = () => run("import map", async (platformId) => {
   return `map ${name} loaded (${result.format}): ${area.keepouts.length} keep-outs, ${area.points.length} named points${notes(result)}`;
 });
 
-importRoute.onclick = () => run("import route", async (platformId) => {
+const importRouteFile = () => run("import route", async (platformId) => {
   const { name, text } = await fileText();
   const result = await api.call("route_import", { platform_id: platformId, filename: name, text, fence: fence.checked }, 20000);
   return `route ${name} set (${result.format}): ${result.waypoints.length} waypoints${result.closed ? ", closed" : ""}${notes(result)}`;
@@ -109,5 +101,11 @@ async function exportRoute(format) {
     return `${result.waypoints} waypoints exported as ${platformId}.${format}`;
   });
 }
-exportPlan.onclick = () => exportRoute("plan");
-exportWaypoints.onclick = () => exportRoute("waypoints");
+/** The file tools, under the patrol panel. */
+export function startMapFiles() {
+  (document.querySelector("#patrol") ?? document.body).append(tools);
+  importMap.onclick = () => importMapFile();
+  importRoute.onclick = () => importRouteFile();
+  exportPlan.onclick = () => exportRoute("plan");
+  exportWaypoints.onclick = () => exportRoute("waypoints");
+}

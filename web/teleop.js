@@ -14,8 +14,9 @@ const KEYS = {
 };
 
 export class Teleop {
-  constructor({ send, onOverrideButton, onLightsButton }) {
+  constructor({ send, onOverrideButton, onLightsButton, onIgnored }) {
     this.send = send; // (linear, angular) => Promise
+    this.onIgnored = onIgnored ?? (() => {}); // a drive key while this console does not drive
     this.onOverrideButton = onOverrideButton;
     this.onLightsButton = onLightsButton;
     this.held = new Set();
@@ -23,6 +24,7 @@ export class Teleop {
     this.buttons = [];
     this.sentZero = true;
     this.lastSource = "idle";
+    this.commanded = [0, 0]; // what is being sent now: [linear, angular], each -1..1
     window.addEventListener("keydown", (event) => this.key(event, true));
     window.addEventListener("keyup", (event) => this.key(event, false));
     window.addEventListener("blur", () => this.halt("focus lost"));
@@ -41,6 +43,7 @@ export class Teleop {
     }
     if (!(event.code in KEYS)) return;
     event.preventDefault();
+    if (down && !this.active && !event.repeat) this.onIgnored();
     if (down) this.held.add(event.code); else this.held.delete(event.code);
   }
 
@@ -82,9 +85,10 @@ export class Teleop {
   }
 
   tick() {
-    if (!this.active) { this.gamepad(); return; }
+    if (!this.active) { this.commanded = [0, 0]; this.gamepad(); return; }
     if (document.hidden) this.held.clear();
     const [linear, angular] = this.velocity();
+    this.commanded = [linear, angular];
     const zero = linear === 0 && angular === 0;
     if (zero && this.sentZero) return; // idle: the station already streams zeros
     this.sentZero = zero;

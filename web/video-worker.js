@@ -20,6 +20,8 @@ const inFlight = new Map();
 const stats = { firstDrawMs: 0, late: 0, lastNetworkMs: null, received: 0, decoded: 0, dropped: 0, errors: 0, replayed: 0, gaps: 0, lastLatencyMs: null };
 const recent = [];      // latencies of the last ~300 live frames
 const drawnTimes = [];  // draw times of the last second
+const lastSecond = [];  // [drawn, latency] of the live frames of the last second
+let lastDrawnMs = null; // wall-clock time the last frame was drawn
 let keepAll = null;     // every [latency, capture → station], while a benchmark asks
 
 function now() { return performance.timeOrigin + performance.now(); }
@@ -60,12 +62,13 @@ function draw(frame) {
   if (!stats.firstDrawMs) stats.firstDrawMs = drawn;
   stats.decoded += 1;
   drawnTimes.push(drawn);
-  while (drawnTimes.length && drawn - drawnTimes[0] > 1000) drawnTimes.shift();
+  lastDrawnMs = drawn;
   if (info && !info.replayed && info.captureMs > 0) {
     const latency = drawn + clockOffsetMs - info.captureMs;
     stats.lastLatencyMs = latency;
     stats.lastNetworkMs = info.arrivalMs - info.captureMs; // platform → station
     recent.push(latency);
+    lastSecond.push([drawn, latency]);
     if (recent.length > 300) recent.shift();
     if (keepAll) keepAll.push([latency, stats.lastNetworkMs]);
   }
@@ -117,12 +120,23 @@ function percentile(values, p) {
 function post(message) { self.postMessage(message); }
 
 function report() {
+  // Of the last second only, never held: a stream that stops reads 0 fps and no latency.
+  const at = now();
+  while (drawnTimes.length && at - drawnTimes[0] > 1000) drawnTimes.shift();
+  while (lastSecond.length && at - lastSecond[0][0] > 1000) lastSecond.shift();
+  const second = lastSecond.map(([, latency]) => latency);
+  const intervals = drawnTimes.slice(1).map((t, i) => t - drawnTimes[i]);
   post({
     type: "stats",
     ...stats,
+    lastLatencyMs: second.length ? second[second.length - 1] : null,
+    lastNetworkMs: second.length ? stats.lastNetworkMs : null,
+    lastDrawnMs,
+    frameIntervalMs: percentile(intervals, 0.5),
     fps: drawnTimes.length,
     p50: percentile(recent, 0.5),
     p95: percentile(recent, 0.95),
+    p95Second: percentile(second, 0.95),
     codec,
     width: canvas ? canvas.width : 0,
     height: canvas ? canvas.height : 0,
@@ -136,10 +150,10 @@ self.onmessage = (event) => {
     canvas = message.canvas;
     context = canvas.getContext("2d", { alpha: false });
     if (typeof VideoDecoder === "undefined") { post({ type: "unsupported" }); return; }
-    setInterval(report, 250);
+    setInterval(report, 100);
   } else if (message.type === "clock") clockOffsetMs = message.offsetMs;
   else if (message.type === "clear") {
-    feed = -1; lastSeq = -1; waitingForKey = true; codec = ""; recent.length = 0; drawnTimes.length = 0;
+    feed = -1; lastSeq = -1; waitingForKey = true; codec = ""; recent.length = 0; drawnTimes.length = 0; lastSecond.length = 0; lastDrawnMs = null;
     for (const name of Object.keys(stats)) stats[name] = name.startsWith("last") ? null : 0;
     if (decoder && decoder.state !== "closed") decoder.close();
     decoder = null;

@@ -120,9 +120,21 @@ class Patrol:
         return self._planner
 
     def set_route(self, route: Route) -> None:
-        """New waypoints, on the fly: the patrol goes on toward the new first waypoint."""
+        """New waypoints, on the fly: the patrol goes on toward the waypoint it was heading for
+        when the new route keeps it, else the next kept one of the old route (a loop goes on,
+        it does not restart from the first waypoint)."""
+        lap = self.cursor.lap
+        old = self.route.waypoints[: self.route.stops]
+        start = self.cursor.index if self.cursor.index < len(old) else 0
         self.route = route
         self.cursor = Cursor()
+        stops = route.waypoints[: route.stops]
+        for step in range(len(old)):
+            wanted = old[(start + step) % len(old)]
+            kept = [i for i, waypoint in enumerate(stops) if waypoint.same_place(wanted)]
+            if kept:
+                self.cursor = Cursor(kept[0], True, lap, kept[0] != 0)
+                break
         self._needs_plan = True
         if not route.waypoints:
             self._path = None

@@ -48,7 +48,8 @@ class Waypoint:
         return plain
 
     def label(self, index: int) -> str:
-        return f"waypoint {index}" + (f" ({self.name})" if self.name else "")
+        """How operators number it: from 1, as the console and the CLI show it."""
+        return f"waypoint {index + 1}" + (f" ({self.name})" if self.name else "")
 
 
 @dataclass(frozen=True)
@@ -106,7 +107,7 @@ def parse_waypoints(
     for index, item in enumerate(items):
         if index >= MAX_WAYPOINTS:
             raise RouteError(f"more than {MAX_WAYPOINTS} waypoints")
-        waypoints.append(_waypoint(item, points, f"waypoint {index}"))
+        waypoints.append(_waypoint(item, points, f"waypoint {index + 1}"))
     return Route(tuple(waypoints))
 
 

@@ -1,0 +1,93 @@
+// Small helpers every view uses: element lookup, telemetry sections, number formatting, and
+// who holds control of the shown platform.
+
+import { state } from "./store.js";
+
+export const $ = (selector, root = document) => root.querySelector(selector);
+
+/** Set an element's text only when it changed (a write forces layout work). */
+export function put(element, text) {
+  if (element.textContent !== text) element.textContent = text;
+}
+
+export const fixed = (value, digits) => (typeof value === "number" ? value.toFixed(digits) : "—");
+
+/** A section's error text when its source failed, else null. */
+export function failure(value) {
+  return value && Object.keys(value).length === 1 && typeof value.error === "string" ? value.error : null;
+}
+
+/** The section's value, or null when absent or failed. Telemetry is read by the schema's
+ * field names (/api/telemetry-schema.json); tests/test_web_console.py checks each name read. */
+export function section(snapshot, name) {
+  const value = snapshot?.[name];
+  return value && failure(value) === null ? value : null;
+}
+
+/** The shown platform's latest snapshot, or null. */
+export function snapshotOf(platformId = state.current) {
+  return platformId ? state.telemetry.get(platformId)?.report.snapshot ?? null : null;
+}
+
+export function setPill(selector, text, kind) {
+  const pill = $(selector);
+  put(pill, text);
+  if (pill.className !== `pill ${kind}`) pill.className = `pill ${kind}`;
+}
+
+/** Compass heading (degrees clockwise from north, 0–360) of a platform: its localization, its
+ * GPS course, else its IMU's yaw (counter-clockwise from east). One convention everywhere. */
+export function compassHeading(snapshot) {
+  const pose = section(snapshot, "pose");
+  const gps = section(snapshot, "gps");
+  const attitude = section(snapshot, "attitude");
+  const degrees = pose?.heading ?? gps?.course ?? (attitude?.yaw != null ? 90 - attitude.yaw : null);
+  return degrees == null ? null : ((degrees % 360) + 360) % 360;
+}
+
+/** 24-hour clock time of a Unix time in seconds, as the video clock shows it. */
+export function clockTime(seconds) {
+  return new Date(seconds * 1000).toLocaleTimeString("en-GB", { hour12: false });
+}
+
+/** The station holding control of the shown platform: its telemetry (fresher than the
+ * heartbeat's answer), else the connection's; null when nobody does, undefined unknown. */
+export function controlHolder() {
+  const failsafe = section(snapshotOf(), "failsafe");
+  if (failsafe) return failsafe.controller ?? null;
+  const connection = state.connections.get(state.current);
+  return connection ? connection.controller ?? null : undefined;
+}
+
+/** Another station holds control: this console observes (its controls are disabled). */
+export function observing() {
+  const holder = controlHolder();
+  return holder != null && holder !== state.stationId;
+}
+
+/** Why a control is disabled for an observer ("" when it is not). */
+export function observerReason() {
+  return observing() ? `control held by station ${controlHolder()}: take control to use this` : "";
+}
+
+/** This console engaged the shown platform's override and this station holds control. */
+export function engagedHere() {
+  const connection = state.connections.get(state.current);
+  const holder = controlHolder();
+  return Boolean(connection && connection.this_console_drives && connection.manual_override
+    && (holder === undefined || holder === state.stationId));
+}
+
+/** The shown platform holds (failsafe) for this station: driving needs a re-engage. */
+export function holding() {
+  const failsafe = section(snapshotOf(), "failsafe");
+  return Boolean(failsafe && failsafe.step === "hold" && failsafe.controller === state.stationId);
+}
+
+/** Telemetry is stale: nothing new from the platform for ``limitMs``. Counted from its last
+ * report: the station's silence when the page got it plus the time since (a report pushed
+ * again unchanged is no news). */
+export function telemetryAgeMs(entry) {
+  if (!entry) return null;
+  return (entry.report.link?.silence_s ?? 0) * 1000 + (performance.now() - entry.at);
+}

@@ -1,0 +1,97 @@
+// Warnings and notifications. The annunciator flashes each active warning until acknowledged
+// (its wording follows the platform: "telemetry silent for 3.4 s" grows); the notification
+// list, kept by the station so a reload shows it, colours by severity, collapses bursts of the
+// same note ("×8"), gives 24-hour times and says when a warning cleared.
+
+import { $, clockTime } from "./common.js";
+import { state, subscribe } from "./store.js";
+
+const warnings = new Map(); // "platform/name" → { note, acknowledged }
+// One button per warning, kept while the warning lasts: telemetry re-renders five times a
+// second, and a button replaced between the operator's mousedown and mouseup gets no click.
+const warningButtons = new Map();
+const SEVERE = /^(link_lost|control_taken|battery_critical|stream_failed|temperature)/;
+const MAX_ITEMS = 30;
+
+function noteWarning(note) {
+  const key = `${note.platform_id}/${note.name}`;
+  if (!note.active) { warnings.delete(key); return; }
+  const known = warnings.get(key);
+  if (known) known.note = { ...known.note, message: note.message || known.note.message };
+  else warnings.set(key, { note, acknowledged: false });
+}
+
+function renderAnnunciator() {
+  const box = $("#annunciator");
+  for (const [key, button] of warningButtons) {
+    if (!warnings.has(key)) { button.remove(); warningButtons.delete(key); }
+  }
+  for (const [key, { note, acknowledged }] of warnings) {
+    let button = warningButtons.get(key);
+    if (!button) {
+      button = document.createElement("button");
+      button.type = "button";
+      button.onclick = () => {
+        const warning = warnings.get(key);
+        if (warning) warning.acknowledged = true;
+        renderAnnunciator();
+      };
+      warningButtons.set(key, button);
+      box.append(button);
+    }
+    const text = `⚠ ${note.platform_id}: ${note.message || note.name}`;
+    if (button.textContent !== text) button.textContent = text;
+    button.className = `warning${acknowledged ? "" : " unacknowledged"}`;
+    button.setAttribute("aria-pressed", String(acknowledged));
+    button.setAttribute("aria-label", `warning ${note.platform_id} ${note.message || note.name}: ${acknowledged ? "acknowledged" : "acknowledge"}`);
+  }
+}
+
+function severity(note) {
+  if (!note.active) return "cleared";
+  return SEVERE.test(note.name) ? "critical" : "warning";
+}
+
+function addNotification(note) {
+  const list = $("#notifications");
+  const kind = severity(note);
+  const text = `${note.platform_id} ${note.active ? "⚠" : "✓ cleared:"} ${note.message || note.name}`;
+  const first = list.firstElementChild;
+  if (first && first.dataset.text === text) { // a burst: one line, counted
+    const count = Number(first.dataset.count) + 1;
+    first.dataset.count = String(count);
+    first.querySelector(".count").textContent = ` ×${count}`;
+    first.querySelector("time").textContent = clockTime(note.time);
+    return;
+  }
+  const item = document.createElement("li");
+  item.className = `note ${kind}`;
+  item.dataset.text = text;
+  item.dataset.count = "1";
+  const time = document.createElement("time");
+  time.textContent = clockTime(note.time);
+  const count = document.createElement("span");
+  count.className = "count";
+  item.append(time, ` ${text}`, count);
+  list.prepend(item);
+  while (list.children.length > MAX_ITEMS) list.lastElementChild.remove();
+}
+
+export function startNotifications() {
+  subscribe("telemetry", (platformId) => {
+    // The report lists the warnings active now, with today's wording: one missing there has
+    // cleared (a clearing notification can be missed while the socket reconnects).
+    const report = state.telemetry.get(platformId)?.report;
+    const active = new Set((report?.warnings ?? []).map((warning) => warning.name));
+    for (const [key, { note }] of warnings) {
+      if (note.platform_id === platformId && !active.has(note.name)) warnings.delete(key);
+    }
+    for (const warning of report?.warnings ?? []) noteWarning({ ...warning, platform_id: platformId, active: true });
+    renderAnnunciator();
+  });
+  subscribe("notification", (note) => {
+    if (!note.replayed) noteWarning(note);
+    addNotification(note);
+    renderAnnunciator();
+  });
+}
