@@ -244,6 +244,20 @@ class PatrolActor(Actor):
         self.tick()
         return area
 
+    def reshape_map(self, source: Mapping[str, Any]) -> AreaMap:
+        """Replace the map's boundary and keep-outs (a ground station's fence) keeping the
+        route, which must still be valid on the new map: the checks of ``update_map`` plus the
+        route's own."""
+        area = parse_map(source)
+        position = self.robot_position()
+        if position is not None:
+            area.check_position(*position)
+        check_route(self.core.route, area)
+        write_atomically(self.storage.map_file, json.dumps(area.geojson(), allow_nan=False))
+        self.core.update_map(area)
+        self.tick()
+        return area
+
     def set_waypoints(self, items: list[Any]) -> Route:
         """Replace the waypoints on the fly (R-5.3.3.3); stored before they are used."""
         area = self.core.area

@@ -1,0 +1,28 @@
+"""The MAVLink 2 endpoint (issue 22): the platform as a ground rover for QGroundControl,
+Mission Planner, MAVProxy and MAVSDK. ``[mavlink] enabled`` turns it on.
+
+``vehicle`` is the sans-IO protocol (pymavlink for the wire format), ``missions`` the mission
+and fence mapping, ``modes`` the identity and modes, ``signing`` the key and the signature
+check, ``service`` the UDP transport and the platform's decisions.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from platformd.context import PlatformContext
+from platformd.mavlink.service import MavlinkService
+from platformd.mavlink.signing import load_signing_key
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    """Needs ``ctx.patrol`` (platformd.autonomy) and ``ctx.media`` (platformd.media)."""
+    config = ctx.config.mavlink
+    if not config.enabled:
+        return
+    key = load_signing_key(Path(config.signing_key_file)) if config.signing_key_file else None
+    service = MavlinkService(ctx, key)
+    await service.open()
+    ctx.mavlink_port = service.port
+    ctx.telemetry.add_counters("mavlink", lambda: {**service.vehicle.counters, **service.counters})
+    ctx.supervisor.start(service)
