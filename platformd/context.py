@@ -95,7 +95,7 @@ class PatrolHandle(Protocol):
 
     @property
     def core(self) -> Patrol:
-        """The patrol's state: map, route, cursor (read only)."""
+        """The patrol's state: map (and its revision), route, cursor (read only)."""
 
     def set_waypoints(self, items: list[Any]) -> Route:
         """Replace the route (``set_waypoints``'s checks); raises RouteError."""

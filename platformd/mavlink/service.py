@@ -80,6 +80,8 @@ _LOGGER = logging.getLogger(__name__)
 TICK = 0.05
 """Seconds between the vehicle's ticks: telemetry due times and mission item re-requests."""
 FENCE_KEEPOUT_PREFIX = "fence-"
+FENCE_CHECK_INTERVAL = 1.0
+"""Seconds between checks of the pose against the map (SYS_STATUS's geofence health)."""
 
 
 class MavlinkService(Actor):
@@ -127,6 +129,9 @@ class MavlinkService(Actor):
         self._override = OverrideState(False)
         self._patrol_state: PatrolState | None = None
         self._faults: tuple[str, ...] = ()
+        self._fence_checked = -FENCE_CHECK_INTERVAL
+        self._uploaded_fence: tuple[int, list[MissionItem]] | None = None
+        """The last accepted fence's items and the map revision it made."""
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -359,6 +364,7 @@ class MavlinkService(Actor):
             else:
                 fence = fence_from_items(items)
                 area = patrol.reshape_map(self._fence_map(fence))
+                self._uploaded_fence = (patrol.core.map_revision, items) if items else None
                 text = f"fence: {len(area.keepouts)} keep-outs"
         except MissionRefused as exc:
             vehicle.answer_upload(request, exc.result, f"{what} refused: {exc}")
@@ -436,6 +442,9 @@ class MavlinkService(Actor):
                 (home[0], home[1]) if home is not None else None,
             )
         if mission_type == FENCE:
+            uploaded = self._uploaded_fence
+            if uploaded is not None and uploaded[0] == patrol.core.map_revision:
+                return uploaded[1]
             area = patrol.core.area
             return items_from_fence(_fence_of(area.geojson())) if area is not None else []
         return []
@@ -453,7 +462,23 @@ class MavlinkService(Actor):
         self.vehicle.statustext(Severity.WARNING, f"GPS fix lost: {lost.reason}")
 
     def _on_pose(self, pose: PoseEstimate) -> None:
-        self.vehicle.state.pose = pose
+        state = self.vehicle.state
+        state.pose = pose
+        if pose.time - self._fence_checked >= FENCE_CHECK_INTERVAL:
+            self._fence_checked = pose.time
+            state.inside_fence = self._inside_fence(pose)
+
+    def _inside_fence(self, pose: PoseEstimate) -> bool | None:
+        area = self.ctx.patrol.core.area if self.ctx.patrol is not None else None
+        if area is None:
+            return None
+        from brasidas.autonomy.areamap import MapError  # loaded with the map already
+
+        try:
+            area.check_position(pose.latitude, pose.longitude)
+        except MapError:
+            return False
+        return True
 
     def _on_attitude(self, attitude: Attitude) -> None:
         self.vehicle.state.attitude = attitude

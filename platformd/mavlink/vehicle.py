@@ -33,7 +33,7 @@ UPLOAD_RETRY_S = 0.25
 UPLOAD_RETRIES = 8
 """Requests of one item before the upload is abandoned."""
 STATUSTEXT_CHUNK = 50
-FTP_NAK = 128
+FTP_NAK = 129
 FTP_ERROR_UNKNOWN_COMMAND = 7
 """MAVFTP's "unknown command": the client falls back (MAVProxy to PARAM_REQUEST_LIST)."""
 NO_HOLDER = 0
@@ -121,6 +121,8 @@ class VehicleState:
     """The patrol's target (route index), None when idle."""
     waypoints: int = 0
     home: tuple[float, float, float] | None = None
+    inside_fence: bool | None = None
+    """The robot inside the map's boundary and out of its keep-outs; None without a map."""
     params: list[tuple[str, float, int]] = field(default_factory=list)
     """(name ≤ 16 characters, value, MAV_PARAM_TYPE)."""
 
@@ -467,6 +469,8 @@ class MavlinkVehicle:
                 mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL,
             ):
                 sensors.add(bit, True, state.imu_ok)
+        if state.inside_fence is not None:
+            sensors.add(mavlink.MAV_SYS_STATUS_GEOFENCE, True, state.inside_fence)
         controller = state.controller
         if controller is not None:
             sensors.add(mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS, True, controller.connected)
