@@ -12,12 +12,13 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import quiet_platform_config, wait_until
+from conftest import free_udp_port, quiet_platform_config, udp_port_bound, wait_until
 from mavlink_gcs import Gcs, fence_item, waypoint
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from brasidas import topics
 from brasidas.codecs.commands import MANUAL_OVERRIDE
+from brasidas.media.video import PAYLOAD_TYPE
 from brasidas.messages import PatrolState, Velocity
 from platformd.app import PlatformDaemon
 from platformd.mavlink.missions import (
@@ -354,3 +355,60 @@ def test_the_signing_passphrase_file_must_be_owner_only(tmp_path: Path) -> None:
     key_file.write_text("")
     with pytest.raises(SigningKeyError, match="one non-empty line"):
         load_signing_key(key_file)
+
+
+async def test_the_navcam_announced_to_a_ground_station_decodes_with_gstreamer(
+    platform_factory: Factory, tmp_path: Path, gcs: Gcs
+) -> None:
+    video_port = free_udp_port()
+    await connected(
+        platform_factory, tmp_path, gcs, "navcam.enabled=true", f"navcam.port={video_port}"
+    )
+    await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 100)
+    since = gcs.mark()
+    ack = await gcs.command(
+        mavlink.MAV_CMD_REQUEST_MESSAGE,
+        mavlink.MAVLINK_MSG_ID_CAMERA_INFORMATION,
+        component=100,
+    )
+    assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+    info = await gcs.expect("CAMERA_INFORMATION", since=since)
+    assert info.flags & mavlink.CAMERA_CAP_FLAGS_HAS_VIDEO_STREAM
+    # QGroundControl's stock receiver: RTP/H.264 on the announced UDP port.
+    receiver = await asyncio.create_subprocess_exec(
+        "gst-launch-1.0",
+        "-q",
+        "udpsrc",
+        f"port={video_port}",
+        "address=127.0.0.1",
+        f"caps=application/x-rtp,media=video,encoding-name=H264,clock-rate=90000,payload={PAYLOAD_TYPE}",
+        "!",
+        "rtph264depay",
+        "!",
+        "h264parse",
+        "!",
+        "avdec_h264",
+        "!",
+        "fakesink",
+        "num-buffers=5",
+        stdout=asyncio.subprocess.DEVNULL,
+        stderr=asyncio.subprocess.PIPE,
+    )
+    try:
+        await wait_until(lambda: udp_port_bound(video_port))
+        since = gcs.mark()
+        ack = await gcs.command(
+            mavlink.MAV_CMD_REQUEST_MESSAGE,
+            mavlink.MAVLINK_MSG_ID_VIDEO_STREAM_INFORMATION,
+            component=100,
+        )
+        assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+        stream = await gcs.expect("VIDEO_STREAM_INFORMATION", since=since)
+        assert stream.type == mavlink.VIDEO_STREAM_TYPE_RTPUDP
+        assert stream.uri == f"udp://0.0.0.0:{video_port}"
+        assert stream.get_srcComponent() == 100
+        assert await asyncio.wait_for(receiver.wait(), 60) == 0  # five decoded frames
+    finally:
+        if receiver.returncode is None:
+            receiver.kill()
+            await receiver.wait()

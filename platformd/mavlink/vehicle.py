@@ -13,6 +13,7 @@ service (platformd.mavlink.service) do that.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -25,6 +26,8 @@ from platformd.mavlink import modes
 from platformd.mavlink.missions import FENCE, MAX_ITEMS, MISSION, RALLY, MissionItem, command_name
 from platformd.mavlink.modes import FlightMode
 from platformd.mavlink.signing import SignatureCheck, Verdict, timestamp_at
+
+_LOGGER = logging.getLogger(__name__)
 
 Peer = tuple[str, int]
 
@@ -197,6 +200,7 @@ class MavlinkVehicle:
                 "not_for_us",
                 "refused_unsigned",
                 "links_forgotten",
+                "handler_errors",
             ),
             0,
         )
@@ -230,7 +234,11 @@ class MavlinkVehicle:
                 continue
             self.counters["received"] += 1
             link.last_heard = now
-            requests.extend(self._handle(link, message, signed, now))
+            try:
+                requests.extend(self._handle(link, message, signed, now))
+            except Exception:  # one odd message never stops the endpoint
+                self.counters["handler_errors"] += 1
+                _LOGGER.exception("MAVLink: %s from %s not handled", message.get_type(), peer)
         if not link.configured and link.last_heard == -math.inf:
             del self.links[peer]  # nothing valid from a stranger: no state kept for it
         return requests
@@ -664,8 +672,6 @@ class MavlinkVehicle:
             if reply is None:
                 ack(mavlink.MAV_RESULT_TEMPORARILY_REJECTED, "no home yet: waiting for a GPS fix")
                 return []
-        elif message_id == mavlink.MAVLINK_MSG_ID_PROTOCOL_VERSION:
-            reply = mavlink.MAVLink_protocol_version_message(200, 100, 200, [0] * 8, [0] * 8)
         elif message_id in (
             mavlink.MAVLINK_MSG_ID_CAMERA_INFORMATION,
             mavlink.MAVLINK_MSG_ID_VIDEO_STREAM_INFORMATION,
