@@ -226,7 +226,9 @@ class MavlinkVehicle:
             messages = []
         requests: list[Request] = []
         for message in messages:
-            if message.get_type() == "BAD_DATA":
+            if message.get_type() == "BAD_DATA" or isinstance(message, mavlink.MAVLink_unknown):
+                # pymavlink hands an unknown message id back before checking its CRC:
+                # for random bytes that is noise, not a message.
                 self.counters["bad_frames"] += 1
                 continue
             signed = self._verdict(link, message)
