@@ -15,6 +15,7 @@ from brasidas.actor import stop_on_signals
 from brasidas.config import ConfigError, PlatformConfig, dump_toml, load_config
 from brasidas.log import LEVELS, level_argument, setup_logging
 from brasidas.sdnotify import Notifier
+from platformd.mavlink.signing import SigningKeyError
 
 _LOGGER = logging.getLogger("platformd")
 
@@ -102,7 +103,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _LOGGER.warning("running INSECURE: no fleet key, anyone on the network can connect")
     try:
         asyncio.run(run_daemon(config, fleet_key))
-    except OSError as err:
+    except (OSError, SigningKeyError) as err:
         print(f"brasidas-platform: {err}", file=sys.stderr)
         return 1
     return 0

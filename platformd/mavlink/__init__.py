@@ -11,7 +11,6 @@ from __future__ import annotations
 from pathlib import Path
 
 from platformd.context import PlatformContext
-from platformd.mavlink.service import MavlinkService
 from platformd.mavlink.signing import load_signing_key
 
 
@@ -20,6 +19,9 @@ async def async_setup(ctx: PlatformContext) -> None:
     config = ctx.config.mavlink
     if not config.enabled:
         return
+    # pymavlink's dialect (a few MB) is imported only on a platform that speaks MAVLink.
+    from platformd.mavlink.service import MavlinkService
+
     key = load_signing_key(Path(config.signing_key_file)) if config.signing_key_file else None
     service = MavlinkService(ctx, key)
     await service.open()
