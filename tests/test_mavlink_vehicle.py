@@ -24,6 +24,7 @@ from platformd.mavlink.missions import (
     route_from_items,
 )
 from platformd.mavlink.vehicle import (
+    MAX_LINKS,
     UPLOAD_RETRIES,
     UPLOAD_RETRY_S,
     ManualInput,
@@ -103,6 +104,27 @@ def test_an_upload_asks_again_for_a_lost_item_then_gives_up() -> None:
     assert any("abandoned" in m.text for m in messages if m.get_type() == "STATUSTEXT")
 
 
+def test_an_upload_window_asks_ahead_and_takes_items_in_any_order() -> None:
+    vehicle = MavlinkVehicle(1, allow_unsigned_control=True, upload_window=4)
+    station = Station()
+    vehicle.feed(station.frame(mavlink.MAVLink_mission_count_message(1, 1, 6, 0)), GCS, 0.0)
+    assert [m.seq for m in station.read(vehicle)] == [0, 1, 2, 3]
+    # Item 0 is lost; 2 arrives before 1: each arrival asks for the next missing one.
+    vehicle.feed(station.frame(item(2, 1.0, 2.2)), GCS, 0.05)
+    vehicle.feed(station.frame(item(1, 1.0, 2.1)), GCS, 0.06)
+    assert [m.seq for m in station.read(vehicle)] == [4, 5]
+    vehicle.feed(station.frame(item(3, 1.0, 2.3)), GCS, 0.07)
+    vehicle.feed(station.frame(item(5, 1.0, 2.5)), GCS, 0.08)
+    vehicle.feed(station.frame(item(4, 1.0, 2.4)), GCS, 0.09)
+    assert not station.read(vehicle)
+    vehicle.tick(0.0 + UPLOAD_RETRY_S * 1.01)
+    requests = [m for m in station.read(vehicle) if m.get_type() == "MISSION_REQUEST_INT"]
+    assert [m.seq for m in requests] == [0]
+    [upload] = vehicle.feed(station.frame(item(0, 1.0, 2.0)), GCS, 0.3)
+    assert isinstance(upload, UploadItems)
+    assert [i.seq for i in upload.items] == [0, 1, 2, 3, 4, 5]
+
+
 def test_garbage_and_strangers_cost_nothing() -> None:
     vehicle = MavlinkVehicle(1)
     for size in (0, 1, 7, 300, 2000):
@@ -115,6 +137,12 @@ def test_garbage_and_strangers_cost_nothing() -> None:
     assert vehicle.feed(frame, GCS, 0.0) == []
     assert vehicle.counters["not_for_us"] == 1
     assert not vehicle.take()
+    # A flood from made-up addresses: a bounded table of links, the rest dropped and counted.
+    heartbeat = station.frame(mavlink.MAVLink_heartbeat_message(6, 8, 0, 0, 0, 3))
+    for port in range(1000, 1100):
+        vehicle.feed(heartbeat, ("192.0.2.10", port), 0.0)
+    assert len(vehicle.links) == MAX_LINKS
+    assert vehicle.counters["links_refused"] == 100 - MAX_LINKS + 1  # GCS's link is one
 
 
 def test_control_from_an_unsigned_link_is_refused_and_the_joystick_ignored() -> None:

@@ -108,6 +108,7 @@ class MavlinkService(Actor):
             key=key,
             allow_unsigned_control=config.allow_unsigned_control,
             link_timeout=config.link_timeout,
+            upload_window=config.upload_window,
             rates=(config.heartbeat_hz, config.position_hz, config.status_hz),
             camera=camera,
             wall_clock=time.time,

@@ -40,6 +40,9 @@ FTP_NAK = 129
 FTP_ERROR_UNKNOWN_COMMAND = 7
 """MAVFTP's "unknown command": the client falls back (MAVProxy to PARAM_REQUEST_LIST)."""
 NO_HOLDER = 0
+MAX_LINKS = 32
+"""Ground station addresses kept at once: a flood from made-up source addresses costs a
+bounded table (the configured targets are always kept)."""
 
 
 class Severity:
@@ -134,11 +137,15 @@ class VehicleState:
 class _Upload:
     mission_type: int
     count: int
-    items: list[MissionItem] = field(default_factory=list)
-    asked_at: float = 0.0
-    retries: int = 0
+    items: dict[int, MissionItem] = field(default_factory=dict)
+    asked: dict[int, float] = field(default_factory=dict)
+    """Items requested and not arrived: when each was last asked for."""
+    retries: dict[int, int] = field(default_factory=dict)
     waiting: bool = False
     """All items in: the platform's verdict is awaited."""
+
+    def missing(self) -> list[int]:
+        return [seq for seq in range(self.count) if seq not in self.items]
 
 
 @dataclass
@@ -172,6 +179,7 @@ class MavlinkVehicle:
         key: bytes | None = None,
         allow_unsigned_control: bool = False,
         link_timeout: float = 10.0,
+        upload_window: int = 1,
         rates: tuple[float, float, float] = (1.0, 5.0, 1.0),
         camera: CameraInfo | None = None,
         wall_clock: Callable[[], float] | None = None,
@@ -181,6 +189,8 @@ class MavlinkVehicle:
         self.key = key
         self.allow_unsigned_control = allow_unsigned_control
         self.link_timeout = link_timeout
+        self.upload_window = upload_window
+        """Mission items requested ahead during an upload (1: strictly one at a time)."""
         self.heartbeat_hz, self.position_hz, self.status_hz = rates
         self.camera = camera
         self._wall = wall_clock
@@ -201,6 +211,7 @@ class MavlinkVehicle:
                 "refused_unsigned",
                 "links_forgotten",
                 "handler_errors",
+                "links_refused",
             ),
             0,
         )
@@ -216,7 +227,12 @@ class MavlinkVehicle:
         """One datagram from ``peer``: answers go to the outbox; returns what needs deciding."""
         if self._boot is None:
             self._boot = now
-        link = self.links.get(peer) or self._link(peer, configured=False)
+        link = self.links.get(peer)
+        if link is None:
+            if len(self.links) >= MAX_LINKS:
+                self.counters["links_refused"] += 1
+                return []
+            link = self._link(peer, configured=False)
         try:
             messages = link.decoder.parse_buffer(data) or []
         except Exception:  # pymavlink raises for a frame it cannot even delimit
@@ -872,7 +888,7 @@ class MavlinkVehicle:
         if count == 0:
             link.upload.waiting = True
             return [UploadItems(peer, system, component, signed, mission_type, ())]
-        self._request_item(link, now)
+        self._request_items(link, now)
         return []
 
     def _on_mission_item(self, link: Link, message: Any, origin: Any, now: float) -> list[Request]:
@@ -884,34 +900,33 @@ class MavlinkVehicle:
                 # Our ACK was lost and the station repeats its last item: repeat the ACK.
                 self._mission_ack(link, system, component, link.last_ack[1], mission_type)
             return []
-        if message.seq != len(upload.items):
-            return []  # a duplicate or one ahead: the request for the right one is repeated
+        if not 0 <= message.seq < upload.count or message.seq in upload.items:
+            return []  # a duplicate (answering a repeated request) or out of range
         if message.get_type() == "MISSION_ITEM":
             x, y = round(message.x * 1e7), round(message.y * 1e7)
         else:
             x, y = message.x, message.y
-        upload.items.append(
-            MissionItem(
-                message.seq,
-                message.frame,
-                message.command,
-                message.param1,
-                message.param2,
-                message.param3,
-                message.param4,
-                x,
-                y,
-                message.z,
-                message.autocontinue,
-                message.current,
-            )
+        upload.asked.pop(message.seq, None)
+        upload.items[message.seq] = MissionItem(
+            message.seq,
+            message.frame,
+            message.command,
+            message.param1,
+            message.param2,
+            message.param3,
+            message.param4,
+            x,
+            y,
+            message.z,
+            message.autocontinue,
+            message.current,
         )
         if len(upload.items) < upload.count:
-            upload.retries = 0
-            self._request_item(link, now)
+            self._request_items(link, now)
             return []
         upload.waiting = True
-        return [UploadItems(peer, system, component, signed, mission_type, tuple(upload.items))]
+        items = tuple(upload.items[seq] for seq in range(upload.count))
+        return [UploadItems(peer, system, component, signed, mission_type, items)]
 
     def _on_mission_clear_all(
         self, link: Link, message: Any, origin: Any, now: float
@@ -934,23 +949,34 @@ class MavlinkVehicle:
     def _on_mission_ack(self, link: Link, message: Any, origin: Any, now: float) -> list[Request]:
         return []  # the end of a download: nothing kept per download
 
-    def _request_item(self, link: Link, now: float) -> None:
+    def _request_items(self, link: Link, now: float) -> None:
+        """Ask for missing items, up to ``upload_window`` outstanding at once; again for any
+        asked :data:`UPLOAD_RETRY_S` ago (its request or its answer was lost)."""
         upload = link.upload
         assert upload is not None
         system, component = link.upload_owner
-        upload.asked_at = now
-        self._send(
-            link,
-            mavlink.MAVLink_mission_request_int_message(
-                system, component, len(upload.items), upload.mission_type
-            ),
-        )
+        for seq in upload.missing():
+            asked = upload.asked.get(seq)
+            if asked is not None and now - asked < UPLOAD_RETRY_S:
+                continue
+            if asked is None and len(upload.asked) >= self.upload_window:
+                break
+            if asked is not None:
+                upload.retries[seq] = upload.retries.get(seq, 0) + 1
+            upload.asked[seq] = now
+            self._send(
+                link,
+                mavlink.MAVLink_mission_request_int_message(
+                    system, component, seq, upload.mission_type
+                ),
+            )
 
     def _retry_upload(self, link: Link, now: float) -> None:
         upload = link.upload
-        if upload is None or upload.waiting or now - upload.asked_at < UPLOAD_RETRY_S:
+        if upload is None or upload.waiting:
             return
-        if upload.retries >= UPLOAD_RETRIES:
+        lost = [seq for seq, retries in upload.retries.items() if retries >= UPLOAD_RETRIES]
+        if lost and now - upload.asked[lost[0]] >= UPLOAD_RETRY_S:
             system, component = link.upload_owner
             link.upload = None
             self._mission_ack(
@@ -961,11 +987,10 @@ class MavlinkVehicle:
                 upload.mission_type,
             )
             self._statustext_to(
-                link, Severity.WARNING, f"upload abandoned: item {len(upload.items)} never came"
+                link, Severity.WARNING, f"upload abandoned: item {lost[0]} never came"
             )
             return
-        upload.retries += 1
-        self._request_item(link, now)
+        self._request_items(link, now)
 
     def _mission_ack(
         self, link: Link, system: int, component: int, result: int, mission_type: int
