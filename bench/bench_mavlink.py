@@ -19,6 +19,7 @@ Run alone: ``.venv/bin/python -m bench mavlink``.
 from __future__ import annotations
 
 import asyncio
+import collections
 import os
 import socket
 import sys
@@ -28,7 +29,8 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from bench.bench_velocity import LEVELS, _match, _platform_with_tap, _velocity_commands
+from bench.bench_velocity import LEVELS, _platform_with_tap, _velocity_commands
+from bench.serial_tap import Command
 from bench.support import (
     _platform_log,
     cpu_seconds,
@@ -341,6 +343,10 @@ async def _manual_control_to_serial() -> dict[str, Any]:
             "mavlink.enabled=true",
             f'mavlink.targets=["127.0.0.1:{sock.getsockname()[1]}"]',
             "mavlink.allow_unsigned_control=true",
+            # MANUAL_CONTROL carries no send time: the speed cap assumes the worst latency
+            # and clamps the higher levels to one value; without it each level is its own
+            # serial command, so each message is matched to its byte.
+            "safety.worst_latency_ms=0",
         )
         try:
             gcs = BlockingGcs(sock)
@@ -384,7 +390,37 @@ def _drive(gcs: BlockingGcs, tap: Any) -> list[float]:
             gcs.heartbeat()
     time.sleep(0.2)
     written = _velocity_commands(tap)[already:]
-    return _match(sent_at, values, written, {}, learn=True)
+    return _match_by_value(sent_at, values, written)
+
+
+def _match_by_value(
+    sent_at: dict[int, float], values: dict[int, float], written: list[Command]
+) -> list[float]:
+    """Each message's latency to the first command carrying its level's text after it (and
+    before the same level comes round again). The level's text is the one most often first
+    after it: a message the driver coalesced under load (latest wins) shifts nothing."""
+    votes: dict[float, collections.Counter[str]] = collections.defaultdict(collections.Counter)
+    order = sorted(sent_at)
+    cursor = 0
+    for number in order:
+        while cursor < len(written) and written[cursor].first_byte_at < sent_at[number]:
+            cursor += 1
+        if cursor < len(written):
+            votes[values[number]][written[cursor].text] += 1
+    text = {level: counter.most_common(1)[0][0] for level, counter in votes.items()}
+    samples: list[float] = []
+    cursor = 0
+    for index, number in enumerate(order):
+        while cursor < len(written) and written[cursor].first_byte_at < sent_at[number]:
+            cursor += 1
+        horizon = order[index + len(LEVELS)] if index + len(LEVELS) < len(order) else None
+        for command in written[cursor:]:
+            if horizon is not None and command.first_byte_at >= sent_at[horizon]:
+                break
+            if command.text == text.get(values[number]):
+                samples.append((command.first_byte_at - sent_at[number]) * 1000)
+                break
+    return samples
 
 
 async def run() -> dict[str, Any]:

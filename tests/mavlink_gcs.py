@@ -10,11 +10,41 @@ import asyncio
 import hashlib
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from brasidas.config import PlatformConfig
 from platformd.mavlink.signing import timestamp_at
+from platformd.sim.demo_area import offset
+
+LAT, LON = 37.9415, 23.6530
+"""Where the simulated rover starts: the demo field's south-west corner of the loop."""
+
+
+def sim_rover_config(tmp_path: Path, target_port: int, *overrides: str) -> PlatformConfig:
+    """A --sim rover (motors, GPS, the demo map) whose MAVLink endpoint sends to
+    ``127.0.0.1:target_port``; its map and route files in ``tmp_path``."""
+    from conftest import quiet_platform_config
+
+    return quiet_platform_config(
+        "sim.enabled=true",
+        "motor.enabled=true",
+        "gps.enabled=true",
+        f"sim.latitude={LAT}",
+        f"sim.longitude={LON}",
+        f"map.file={tmp_path / 'map.geojson'}",
+        f"autonomy.route_file={tmp_path / 'route.json'}",
+        "mavlink.enabled=true",
+        f'mavlink.targets=["127.0.0.1:{target_port}"]',
+        *overrides,
+    )
+
+
+def at(east: float, north: float) -> tuple[float, float]:
+    """Metres east and north of the start, as (lat, lon)."""
+    return offset(LAT, LON, east, north)
 
 
 class Gcs(asyncio.DatagramProtocol):

@@ -12,8 +12,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import free_udp_port, quiet_platform_config, udp_port_bound, wait_until
-from mavlink_gcs import Gcs, fence_item, waypoint
+from conftest import free_udp_port, udp_port_bound, wait_until
+from mavlink_gcs import LAT, LON, Gcs, at, fence_item, sim_rover_config, waypoint
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from brasidas import topics
@@ -28,26 +28,13 @@ from platformd.mavlink.missions import (
 )
 from platformd.mavlink.signing import SigningKeyError, load_signing_key
 from platformd.session_table import Session
-from platformd.sim.demo_area import offset
 
-LAT, LON = 37.9415, 23.6530
 PASSPHRASE = "correct horse battery staple"
 
 
 def config_for(tmp_path: Path, gcs: Gcs, *overrides: str) -> Any:
-    return quiet_platform_config(
-        "sim.enabled=true",
-        "motor.enabled=true",
-        "gps.enabled=true",
-        "gps.sim_rate_hz=10",
-        f"sim.latitude={LAT}",
-        f"sim.longitude={LON}",
-        f"map.file={tmp_path / 'map.geojson'}",
-        f"autonomy.route_file={tmp_path / 'route.json'}",
-        "mavlink.enabled=true",
-        f'mavlink.targets=["127.0.0.1:{gcs.port}"]',
-        "mavlink.position_hz=10",
-        *overrides,
+    return sim_rover_config(
+        tmp_path, gcs.port, "gps.sim_rate_hz=10", "mavlink.position_hz=10", *overrides
     )
 
 
@@ -72,10 +59,6 @@ async def connected(
         )
     )
     return daemon
-
-
-def at(east: float, north: float) -> tuple[float, float]:
-    return offset(LAT, LON, east, north)
 
 
 async def test_a_ground_station_sees_a_rover_with_telemetry(

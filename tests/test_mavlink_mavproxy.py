@@ -11,14 +11,13 @@ import sys
 from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 
-from conftest import free_udp_port, quiet_platform_config
+from conftest import free_udp_port
+from mavlink_gcs import LAT, LON, at, sim_rover_config
 
 from brasidas import topics
 from brasidas.messages import PatrolState
 from platformd.app import PlatformDaemon
-from platformd.sim.demo_area import offset
 
-LAT, LON = 37.9415, 23.6530
 MAVPROXY = Path(sys.executable).parent / "mavproxy.py"
 """Installed with the test extra (pyproject.toml)."""
 
@@ -89,10 +88,6 @@ async def mavproxy(port: int, cwd: Path) -> AsyncIterator[MavProxy]:
         await reader
 
 
-def at(east: float, north: float) -> tuple[float, float]:
-    return offset(LAT, LON, east, north)
-
-
 def write_waypoints(path: Path, rows: list[tuple[int, int, int, float, float, float]]) -> None:
     """A ``QGC WPL 110`` file: (current, frame, command, param1, lat, lon) per row."""
     lines = ["QGC WPL 110"]
@@ -107,19 +102,7 @@ async def test_mavproxy_loads_a_mission_and_a_fence_and_starts_the_patrol(
 ) -> None:
     port = free_udp_port()
     daemon = await platform_factory(
-        quiet_platform_config(
-            "sim.enabled=true",
-            "motor.enabled=true",
-            "gps.enabled=true",
-            f"sim.latitude={LAT}",
-            f"sim.longitude={LON}",
-            f"map.file={tmp_path / 'map.geojson'}",
-            f"autonomy.route_file={tmp_path / 'route.json'}",
-            "mavlink.enabled=true",
-            f'mavlink.targets=["127.0.0.1:{port}"]',
-            "mavlink.allow_unsigned_control=true",
-        ),
-        None,
+        sim_rover_config(tmp_path, port, "mavlink.allow_unsigned_control=true"), None
     )
     patrol = daemon.ctx.patrol
     assert patrol is not None

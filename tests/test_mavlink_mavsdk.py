@@ -10,7 +10,9 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
-from conftest import free_udp_port, quiet_platform_config, wait_until
+from conftest import free_udp_port, wait_until
+from mavlink_gcs import LAT, LON, sim_rover_config
+from mavlink_gcs import at as position
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
 from mavsdk.asyncio.plugins.mission_raw import MissionRawAsync
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
@@ -18,13 +20,10 @@ from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 from brasidas import topics
 from brasidas.messages import PatrolState
 from platformd.app import PlatformDaemon
-from platformd.sim.demo_area import offset
-
-LAT, LON = 37.9415, 23.6530
 
 
 def at(east: float, north: float) -> list[float]:
-    return list(offset(LAT, LON, east, north))
+    return list(position(east, north))
 
 
 def qgc_plan() -> dict[str, Any]:
@@ -89,19 +88,7 @@ async def test_mavsdk_uploads_a_qgc_plan_downloads_it_and_starts_the_mission(
 ) -> None:
     port = free_udp_port()
     daemon = await platform_factory(
-        quiet_platform_config(
-            "sim.enabled=true",
-            "motor.enabled=true",
-            "gps.enabled=true",
-            f"sim.latitude={LAT}",
-            f"sim.longitude={LON}",
-            f"map.file={tmp_path / 'map.geojson'}",
-            f"autonomy.route_file={tmp_path / 'route.json'}",
-            "mavlink.enabled=true",
-            f'mavlink.targets=["127.0.0.1:{port}"]',
-            "mavlink.allow_unsigned_control=true",
-        ),
-        None,
+        sim_rover_config(tmp_path, port, "mavlink.allow_unsigned_control=true"), None
     )
     patrol = daemon.ctx.patrol
     assert patrol is not None

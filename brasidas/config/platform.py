@@ -467,9 +467,9 @@ class MavlinkSection:
     station that talks to the endpoint is answered and sent telemetry while it is heard."""
     link_timeout: float = setting(10.0, above(0, most=3600))
     """A station not in ``targets`` is forgotten this long after its last message."""
-    upload_window: int = setting(8, at_least(1, most=32))
+    upload_window: int = setting(16, at_least(1, most=32))
     """Mission items requested ahead during an upload: a lossy 100 ms link moves a 100-item
-    mission in ~2 s instead of ~12 s. 1 is the one-at-a-time protocol of ArduPilot and PX4,
+    mission in ~2 s instead of ~15 s. 1 is the one-at-a-time protocol of ArduPilot and PX4,
     for a ground station that answers only the request it expects (MAVProxy, MAVSDK and
     pymavlink answer every request; QGroundControl is not tested here)."""
     heartbeat_hz: float = setting(1.0, above(0, most=10))
