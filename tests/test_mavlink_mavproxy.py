@@ -88,6 +88,11 @@ async def mavproxy(port: int, cwd: Path) -> AsyncIterator[MavProxy]:
         await reader
 
 
+def patrolling(daemon: PlatformDaemon) -> bool:
+    status = daemon.bus.last(topics.PATROL_STATUS)
+    return status is not None and status.state is PatrolState.PATROLLING
+
+
 def write_waypoints(path: Path, rows: list[tuple[int, int, int, float, float, float]]) -> None:
     """A ``QGC WPL 110`` file: (current, frame, command, param1, lat, lon) per row."""
     lines = ["QGC WPL 110"]
@@ -140,5 +145,26 @@ async def test_mavproxy_loads_a_mission_and_a_fence_and_starts_the_patrol(
 
         since = client.send("mode AUTO")
         await client.expect("Mode AUTO", since)
-        status = daemon.bus.last(topics.PATROL_STATUS)
-        assert status is not None and status.state is PatrolState.PATROLLING
+        assert patrolling(daemon)
+
+
+async def test_mavproxy_controls_only_once_it_signs(
+    platform_factory: Callable[..., Awaitable[PlatformDaemon]], tmp_path: Path
+) -> None:
+    port = free_udp_port()
+    key_file = tmp_path / "mavlink.pass"
+    key_file.write_text("brasidas-demo-passphrase\n")
+    key_file.chmod(0o600)
+    daemon = await platform_factory(
+        sim_rover_config(tmp_path, port, f"mavlink.signing_key_file={key_file}"), None
+    )
+    async with mavproxy(port, tmp_path) as client:
+        await client.expect("Mode HOLD")
+        since = client.send("mode AUTO")
+        await client.expect("refused: unsigned link", since)
+        assert not patrolling(daemon)
+
+        since = client.send("signing key brasidas-demo-passphrase")
+        client.send("mode AUTO")
+        await client.expect("Mode AUTO", since)
+        assert patrolling(daemon)
