@@ -19,7 +19,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from brasidas import topics
 from brasidas.codecs.commands import MANUAL_OVERRIDE
 from brasidas.media.video import PAYLOAD_TYPE
-from brasidas.messages import PatrolState, Velocity
+from brasidas.messages import FailsafeStep, PatrolState, Velocity
 from platformd.app import PlatformDaemon
 from platformd.mavlink.missions import (
     FENCE_EXCLUSION_CIRCLE,
@@ -395,3 +395,26 @@ async def test_the_navcam_announced_to_a_ground_station_decodes_with_gstreamer(
         if receiver.returncode is None:
             receiver.kill()
             await receiver.wait()
+
+
+async def test_a_silent_ground_station_in_manual_trips_the_failsafe_ladder(
+    platform_factory: Factory, tmp_path: Path, gcs: Gcs
+) -> None:
+    daemon = await connected(platform_factory, tmp_path, gcs, "mavlink.allow_unsigned_control=true")
+    ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 0)
+    assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+    since = gcs.mark()
+    # The station goes quiet (no heartbeat, no joystick): the ladder holds, and the group 90
+    # warning reaches the ground station as a CRITICAL STATUSTEXT.
+    text = await gcs.expect_text(lambda t: t.startswith("90.18 LINK LOST"), since, timeout=20)
+    assert "hold" in text
+    failsafe = daemon.bus.last(topics.FAILSAFE_STATE)
+    assert failsafe is not None and failsafe.step is FailsafeStep.HOLD
+    severities = {
+        m.severity
+        for m in gcs.received[since:]
+        if m.get_type() == "STATUSTEXT" and "LINK" in m.text
+    }
+    assert severities == {mavlink.MAV_SEVERITY_CRITICAL}
+    heartbeat = await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1)
+    assert heartbeat.system_status == mavlink.MAV_STATE_CRITICAL

@@ -30,7 +30,8 @@ from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.autonomy.route import RouteError
 from brasidas.codecs.commands import MANUAL_OVERRIDE
-from brasidas.config import PlatformConfig
+from brasidas.codecs.telemetry_schema import Snapshot
+from brasidas.config import PlatformConfig, TelemetryReceiverSection
 from brasidas.messages import (
     Attitude,
     ControllerStatus,
@@ -44,7 +45,6 @@ from brasidas.messages import (
     OverrideState,
     PatrolState,
     PatrolStatus,
-    PlatformHealth,
     PoseEstimate,
     SessionClosed,
     Velocity,
@@ -74,12 +74,26 @@ from platformd.mavlink.vehicle import (
     UploadItems,
 )
 from platformd.session_table import Session
+from stationd.telemetry import annunciator
+from stationd.telemetry.annunciator import Annunciator
 
 _LOGGER = logging.getLogger(__name__)
 
 TICK = 0.05
 """Seconds between the vehicle's ticks: telemetry due times and mission item re-requests."""
 FENCE_KEEPOUT_PREFIX = "fence-"
+WARNINGS_INTERVAL = 1.0
+"""Seconds between evaluations of the group 90 warnings."""
+BATTERY_HYSTERESIS_V = 0.4
+"""The low battery warning clears this far above ``telemetry.battery_low_v``."""
+_SEVERITIES = {
+    annunciator.LINK_LOST: Severity.CRITICAL,
+    annunciator.LOW_BATTERY: Severity.CRITICAL,
+    annunciator.CONTROLLER_OVER_TEMPERATURE: Severity.ERROR,
+    annunciator.STREAM_FAILED: Severity.ERROR,
+    annunciator.PATROL_HOLDING: Severity.NOTICE,
+}
+"""MAV_SEVERITY of each group 90 warning; the others are WARNING."""
 FENCE_CHECK_INTERVAL = 1.0
 """Seconds between checks of the pose against the map (SYS_STATUS's geofence health)."""
 
@@ -129,7 +143,15 @@ class MavlinkService(Actor):
         self._video_sessions: set[str] = set()
         self._override = OverrideState(False)
         self._patrol_state: PatrolState | None = None
-        self._faults: tuple[str, ...] = ()
+        telemetry = ctx.config.telemetry
+        # The station's group 90 warnings, from the platform's own telemetry (the link's two,
+        # degraded and control taken, are a station's view: CONTROL_STATE has its own text).
+        self.annunciator = Annunciator(
+            TelemetryReceiverSection(
+                battery_low_v=telemetry.battery_low_v,
+                battery_clear_v=telemetry.battery_low_v + BATTERY_HYSTERESIS_V,
+            )
+        )
         self._fence_checked = -FENCE_CHECK_INTERVAL
         self._uploaded_fence: tuple[int, list[MissionItem]] | None = None
         """The last accepted fence's items and the map revision it made."""
@@ -167,12 +189,12 @@ class MavlinkService(Actor):
         self.subscribe(topics.FAILSAFE_STATE, self._on_failsafe)
         self.subscribe(topics.CONTROL_STATE, self._on_control)
         self.subscribe(topics.MOTION_STATE, self._on_motion)
-        self.subscribe(topics.PLATFORM_HEALTH, self._on_health)
         self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
         try:
             async with asyncio.TaskGroup() as group:
                 group.create_task(self._tick_forever(), name="mavlink-tick")
                 group.create_task(self._decide_forever(), name="mavlink-requests")
+                group.create_task(self._annunciate_forever(), name="mavlink-warnings")
         finally:
             self.close()
 
@@ -193,6 +215,24 @@ class MavlinkService(Actor):
             self.vehicle.tick(loop.time())
             self._flush()
             await asyncio.sleep(TICK)
+
+    async def _annunciate_forever(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            await asyncio.sleep(WARNINGS_INTERVAL)
+            self.annunciate(loop.time())
+
+    def annunciate(self, now: float) -> None:
+        """STATUSTEXT for each group 90 warning raised or cleared since the last call."""
+        snapshot = Snapshot(self.ctx.telemetry.build())
+        for change in self.annunciator.evaluate(snapshot, 0.0, None, now):
+            warning = change.warning
+            if change.active:
+                severity = _SEVERITIES.get(warning.code, Severity.WARNING)
+                self.vehicle.statustext(severity, f"{warning.code} {warning.message}")
+            else:
+                self.vehicle.statustext(Severity.INFO, f"{warning.code} cleared: {warning.message}")
+        self._flush()
 
     async def _decide_forever(self) -> None:
         while True:
@@ -460,7 +500,6 @@ class MavlinkService(Actor):
 
     def _on_fix_lost(self, lost: GpsFixLost) -> None:
         self.vehicle.state.fix = None
-        self.vehicle.statustext(Severity.WARNING, f"GPS fix lost: {lost.reason}")
 
     def _on_pose(self, pose: PoseEstimate) -> None:
         state = self.vehicle.state
@@ -501,10 +540,7 @@ class MavlinkService(Actor):
         state = self.vehicle.state
         state.waypoint = status.waypoint
         state.waypoints = status.waypoints
-        if status.state is not self._patrol_state:
-            self._patrol_state = status.state
-            if status.state is PatrolState.HOLDING and status.reason:
-                self.vehicle.statustext(Severity.WARNING, f"patrol holding: {status.reason}")
+        self._patrol_state = status.state
         self._update_mode()
 
     def _update_mode(self) -> None:
@@ -517,24 +553,12 @@ class MavlinkService(Actor):
         self.vehicle.state.mode = mode
 
     def _on_failsafe(self, failsafe: FailsafeState) -> None:
-        held = failsafe.step is not FailsafeStep.NORMAL
-        if held != self.vehicle.state.failsafe:
-            self.vehicle.state.failsafe = held
-            if held:
-                self.vehicle.statustext(
-                    Severity.CRITICAL, f"failsafe {failsafe.step.value}: {failsafe.reason}"
-                )
+        self.vehicle.state.failsafe = failsafe.step is not FailsafeStep.NORMAL
 
     def _on_control(self, control: ControlState) -> None:
         if control.reason:
             holder = control.station_id or "nobody"
             self.vehicle.statustext(Severity.NOTICE, f"control: {holder} ({control.reason})")
-
-    def _on_health(self, health: PlatformHealth) -> None:
-        new = [fault for fault in health.faults if fault not in self._faults]
-        self._faults = health.faults
-        for fault in new:
-            self.vehicle.statustext(Severity.WARNING, f"fault: {fault}")
 
 
 class _Protocol(asyncio.DatagramProtocol):
