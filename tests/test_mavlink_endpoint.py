@@ -418,3 +418,30 @@ async def test_a_silent_ground_station_in_manual_trips_the_failsafe_ladder(
     assert severities == {mavlink.MAV_SEVERITY_CRITICAL}
     heartbeat = await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1)
     assert heartbeat.system_status == mavlink.MAV_STATE_CRITICAL
+
+
+async def test_unsigned_heartbeats_do_not_keep_a_signed_controller_alive(
+    platform_factory: Factory, tmp_path: Path, gcs: Gcs
+) -> None:
+    key_file = tmp_path / "mavlink.pass"
+    key_file.write_text(PASSPHRASE)
+    key_file.chmod(0o600)
+    daemon = await connected(
+        platform_factory, tmp_path, gcs, f"mavlink.signing_key_file={key_file}"
+    )
+    gcs.sign(PASSPHRASE)
+    ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 0)
+    assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+    # Someone spoofing the station's address without the key: its heartbeats are heard
+    # (watching is open) but hold off neither the ladder nor the session's end.
+    gcs.mav.signing.sign_outgoing = False
+    heartbeat = mavlink.MAVLink_heartbeat_message(
+        mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3
+    )
+
+    def held() -> bool:
+        gcs.send(heartbeat)
+        failsafe = daemon.bus.last(topics.FAILSAFE_STATE)
+        return failsafe is not None and failsafe.step is FailsafeStep.HOLD
+
+    await wait_until(held, timeout=20)

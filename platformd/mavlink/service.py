@@ -250,7 +250,9 @@ class MavlinkService(Actor):
         now = asyncio.get_running_loop().time()
         peer = (str(peer[0]), int(peer[1]))
         requests = self.vehicle.feed(data, peer, now)
-        self._refresh_sessions(peer)
+        link = self.vehicle.links.get(peer)
+        if link is not None and link.last_trusted == now:
+            self._refresh_sessions(peer)
         for request in requests:
             if isinstance(request, ManualInput):
                 self._manual_control(request)
@@ -295,6 +297,8 @@ class MavlinkService(Actor):
         return session
 
     def _refresh_sessions(self, peer: Peer) -> None:
+        """A trusted message from ``peer``: its sessions are alive (a spoofed unsigned one
+        never holds off the session timeout or the failsafe ladder)."""
         now = time.monotonic()
         for (session_peer, _system), session in self.sessions.items():
             if session_peer == peer:

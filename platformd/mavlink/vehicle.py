@@ -157,6 +157,9 @@ class Link:
     encoder: Any
     configured: bool
     last_heard: float = -math.inf
+    last_trusted: float = -math.inf
+    """The last message that could command the robot (signed, or unsigned control allowed):
+    only those keep a ground station's session, and the failsafe ladder, alive."""
     gcs_system: int = 0
     check: SignatureCheck | None = None
     upload: _Upload | None = None
@@ -252,6 +255,8 @@ class MavlinkVehicle:
                 continue
             self.counters["received"] += 1
             link.last_heard = now
+            if signed or self.allow_unsigned_control:
+                link.last_trusted = now
             try:
                 requests.extend(self._handle(link, message, signed, now))
             except Exception:  # one odd message never stops the endpoint
