@@ -158,6 +158,12 @@ def test_control_from_an_unsigned_link_is_refused_and_the_joystick_ignored() -> 
     assert vehicle.feed(station.frame(joystick), GCS, 0.1) == []
     assert vehicle.counters["refused_unsigned"] == 2
 
+    # Nobody sets the key over the air.
+    setup = mavlink.MAVLink_setup_signing_message(1, 1, [7] * 32, 0)
+    assert vehicle.feed(station.frame(setup), GCS, 0.15) == []
+    assert vehicle.key == KEY and vehicle.counters["setup_signing_refused"] == 1
+    assert any("SETUP_SIGNING refused" in m.text for m in station.read(vehicle))
+
     signed = Station(KEY)
     [request] = vehicle.feed(signed.frame(set_auto), GCS, 0.2)
     assert isinstance(request, SetMode) and request.signed

@@ -215,6 +215,7 @@ class MavlinkVehicle:
                 "links_forgotten",
                 "handler_errors",
                 "links_refused",
+                "setup_signing_refused",
             ),
             0,
         )
@@ -797,6 +798,16 @@ class MavlinkVehicle:
             name.encode(), value, param_type, len(self.state.params), index
         )
 
+    def _on_setup_signing(self, link: Link, message: Any, origin: Any, now: float) -> list[Request]:
+        # Never from a ground station, signed or not: the key is the platform's own config.
+        self.counters["setup_signing_refused"] += 1
+        self._statustext_to(
+            link,
+            Severity.WARNING,
+            "SETUP_SIGNING refused: the key is the platform's mavlink.signing_key_file",
+        )
+        return []
+
     def _on_ftp(self, link: Link, message: Any, origin: Any, now: float) -> list[Request]:
         _peer, system, component, _signed = origin
         request = bytes(message.payload)
@@ -1057,6 +1068,7 @@ _HANDLERS: dict[str, _Handler] = {
     "PARAM_REQUEST_READ": MavlinkVehicle._on_param_request_read,
     "PARAM_SET": MavlinkVehicle._on_param_set,
     "FILE_TRANSFER_PROTOCOL": MavlinkVehicle._on_ftp,
+    "SETUP_SIGNING": MavlinkVehicle._on_setup_signing,
     "MISSION_REQUEST_LIST": MavlinkVehicle._on_mission_request_list,
     "MISSION_REQUEST_INT": MavlinkVehicle._on_mission_request,
     "MISSION_REQUEST": MavlinkVehicle._on_mission_request,
