@@ -135,7 +135,12 @@ def test_garbage_and_strangers_cost_nothing() -> None:
     station = Station()
     frame = station.frame(mavlink.MAVLink_command_long_message(7, 1, 176, 0, 1, 4, 0, 0, 0, 0, 0))
     assert vehicle.feed(frame, GCS, 0.0) == []
-    assert vehicle.counters["not_for_us"] == 1
+    # Nor a joystick for another vehicle, nor a command to a component we do not have.
+    frame = station.frame(mavlink.MAVLink_manual_control_message(7, 1000, 0, 500, 0, 0))
+    assert vehicle.feed(frame, GCS, 0.0) == []
+    gimbal = mavlink.MAVLink_command_long_message(1, 154, 176, 0, 1, 4, 0, 0, 0, 0, 0)
+    assert vehicle.feed(station.frame(gimbal), GCS, 0.0) == []
+    assert vehicle.counters["not_for_us"] == 3
     assert not vehicle.take()
     # A flood from made-up addresses: a bounded table of links, the rest dropped and counted.
     heartbeat = station.frame(mavlink.MAVLink_heartbeat_message(6, 8, 0, 0, 0, 3))

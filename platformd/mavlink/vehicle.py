@@ -198,6 +198,10 @@ class MavlinkVehicle:
         self.camera = camera
         self._wall = wall_clock
         self.mission_items = mission_items
+        self._components = {None, 0, modes.VEHICLE_COMPONENT}
+        """Target components answered: the vehicle's, the camera's, and broadcasts."""
+        if camera is not None:
+            self._components.add(modes.CAMERA_COMPONENT)
         """The stored mission (MISSION) or fence (FENCE) as items, for downloads."""
         self.state = VehicleState()
         self.links: dict[Peer, Link] = {}
@@ -284,9 +288,11 @@ class MavlinkVehicle:
 
     def _handle(self, link: Link, message: Any, signed: bool, now: float) -> list[Request]:
         kind = message.get_type()
-        system, component = message.get_srcSystem(), message.get_srcComponent()
-        target = getattr(message, "target_system", None)
-        if target not in (None, 0, self.system_id):
+        system = message.get_srcSystem()
+        # MANUAL_CONTROL names its vehicle in ``target``, the others in ``target_system``.
+        target = getattr(message, "target_system", getattr(message, "target", None))
+        component = getattr(message, "target_component", None)
+        if target not in (None, 0, self.system_id) or component not in self._components:
             self.counters["not_for_us"] += 1
             return []
         handler = _HANDLERS.get(kind)
@@ -294,7 +300,7 @@ class MavlinkVehicle:
             link.gcs_system = system
         if handler is None:
             return []
-        origin = (link.peer, system, component, signed)
+        origin = (link.peer, system, message.get_srcComponent(), signed)
         result: list[Request] = handler(self, link, message, origin, now)
         return result
 
