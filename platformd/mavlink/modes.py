@@ -51,6 +51,8 @@ CAPABILITIES = (
     | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
     | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
     | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
 )
 """What AUTOPILOT_VERSION claims: only what the endpoint does (no FTP, no rally, no
-parameter writes)."""
+parameter writes). Integer parameters are sent as their value cast to float (ArduPilot's
+encoding), and the bit says so."""
