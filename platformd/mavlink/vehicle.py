@@ -665,7 +665,9 @@ class MavlinkVehicle:
                 return []
             return [SetMode(peer, system, component, signed, mode, command)]
         if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
-            ack(mavlink.MAV_RESULT_DENIED, "rates are the platform's (mavlink.*_hz)")
+            # Ground stations set many intervals at connect: the ACK says no, without a text
+            # for each (the rates are the platform's, mavlink.*_hz).
+            ack(mavlink.MAV_RESULT_DENIED)
             return []
         ack(
             mavlink.MAV_RESULT_UNSUPPORTED,
@@ -716,7 +718,7 @@ class MavlinkVehicle:
                 reply = self._video_stream_information()
                 requests.append(StartVideo(peer, system, component, signed))
         if reply is None:
-            ack(mavlink.MAV_RESULT_UNSUPPORTED, f"message {message_id} is not available")
+            ack(mavlink.MAV_RESULT_UNSUPPORTED)  # asked at connect for optional ones: no text
             return []
         ack(mavlink.MAV_RESULT_ACCEPTED)
         self._send(link, reply, source)
