@@ -308,9 +308,9 @@ async def test_signing_control_needs_a_signed_link_and_replays_are_refused(
 
     # A wrong passphrase is dropped and counted.
     gcs.sign("wrong")
-    bad = counters()["bad_signature"]
+    bad = counters().get("bad_signature", 0)
     gcs.send(mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_MISSION_START, 0, *[0] * 7))
-    await wait_until(lambda: counters()["bad_signature"] > bad)
+    await wait_until(lambda: counters().get("bad_signature", 0) > bad)
 
     gcs.sign(PASSPHRASE)
     ack = await gcs.command(mavlink.MAV_CMD_MISSION_START)
@@ -318,10 +318,10 @@ async def test_signing_control_needs_a_signed_link_and_replays_are_refused(
     ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 4)
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED
     # The same signed frame again: refused and counted, the mode stays HOLD.
-    replayed = counters()["replayed"]
+    replayed = counters().get("replayed", 0)
     since = gcs.mark()
     gcs.send_raw(gcs.frames[-2])  # the signed MISSION_START
-    await wait_until(lambda: counters()["replayed"] > replayed)
+    await wait_until(lambda: counters().get("replayed", 0) > replayed)
     status = daemon.bus.last(topics.PATROL_STATUS)
     assert status is not None and status.state is not PatrolState.PATROLLING
     assert not [m for m in gcs.received[since:] if m.get_type() == "COMMAND_ACK"]

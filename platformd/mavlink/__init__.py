@@ -26,5 +26,13 @@ async def async_setup(ctx: PlatformContext) -> None:
     service = MavlinkService(ctx, key)
     await service.open()
     ctx.mavlink_port = service.port
-    ctx.telemetry.add_counters("mavlink", lambda: {**service.vehicle.counters, **service.counters})
+    # Only the counters that moved: a telemetry datagram has room for little (1200 bytes).
+    ctx.telemetry.add_counters(
+        "mavlink",
+        lambda: {
+            name: count
+            for name, count in {**service.vehicle.counters, **service.counters}.items()
+            if count
+        },
+    )
     ctx.supervisor.start(service)
