@@ -336,7 +336,8 @@ class MavlinkVehicle:
         link = self.links.get(request.peer)
         if link is None:
             return
-        link.upload = None
+        if link.upload is not None and link.upload.waiting:
+            link.upload = None  # not a newer upload the station started meanwhile
         link.last_ack = (request.mission_type, result)
         self._mission_ack(link, request.system, request.component, result, request.mission_type)
         if text:
