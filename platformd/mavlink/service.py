@@ -174,6 +174,13 @@ class MavlinkService(Actor):
             self.config.system_id,
             ", ".join(self.config.targets) or "whoever talks to it",
         )
+        if self.vehicle.key is None and not self.config.allow_unsigned_control:
+            _LOGGER.warning(
+                "MAVLink: no mavlink.signing_key_file and unsigned control not allowed: "
+                "ground stations may watch but not command"
+            )
+        elif self.config.allow_unsigned_control:
+            _LOGGER.warning("MAVLink: unsigned control allowed: anyone reaching the port commands")
 
     async def run(self) -> None:
         if self.transport is None:
