@@ -118,6 +118,14 @@ async def test_parameters_are_listed_read_only_and_ftp_is_refused_cleanly(
     assert values["PLAT_MAX_SPEED_K"] == daemon.config.platform.max_speed_kmh
 
     since = gcs.mark()
+    gcs.send(mavlink.MAVLink_param_request_read_message(1, 1, b"MAVL_SYSTEM_ID", -1))
+    by_name = await gcs.expect("PARAM_VALUE", since=since)
+    assert by_name.param_id == "MAVL_SYSTEM_ID" and by_name.param_value == 1
+    gcs.send(mavlink.MAVLink_param_request_read_message(1, 1, b"", by_name.param_index))
+    by_index = await gcs.expect("PARAM_VALUE", lambda m: m is not by_name, since=since)
+    assert by_index.param_id == "MAVL_SYSTEM_ID"
+
+    since = gcs.mark()
     gcs.send(mavlink.MAVLink_param_set_message(1, 1, b"MAVL_SYSTEM_ID", 7, 6))
     unchanged = await gcs.expect("PARAM_VALUE", since=since)
     assert unchanged.param_id == "MAVL_SYSTEM_ID" and unchanged.param_value == 1
