@@ -124,7 +124,9 @@ LEVELS = (0.2, 0.4, 0.6, 0.8)
 """Linear commands cycled through, each a different serial value, so every sentence changes it."""
 
 
-async def _platform_with_tap(key: bytes) -> tuple[PlatformDaemon, SerialTap, Ax3500Simulator]:
+async def _platform_with_tap(
+    key: bytes, *overrides: str
+) -> tuple[PlatformDaemon, SerialTap, Ax3500Simulator]:
     """An in-process platform whose driver talks to a simulated AX3500 through a tap."""
     simulator = Ax3500Simulator(SimOptions(), vehicle=VehicleModel())
     simulator.start()
@@ -144,6 +146,7 @@ async def _platform_with_tap(key: bytes) -> tuple[PlatformDaemon, SerialTap, Ax3
             f"motor.port={tap.driver_path}",
             "motor.bytesize=8",  # a pty refuses 7E1; the bytes are the same
             "motor.parity=N",
+            *overrides,
         ],
     )
     daemon = PlatformDaemon(config, key)

@@ -40,6 +40,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "platformd.autonomy",  # localization (POSE) and the patrol (CMD_VEL)
     "platformd.media",
     "platformd.payloads",
+    "platformd.mavlink",  # after autonomy and media: ctx.patrol, ctx.media
     "platformd.telemetry",
     "platformd.signaling",
     "platformd.beacon",

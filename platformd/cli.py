@@ -15,6 +15,7 @@ from brasidas.actor import stop_on_signals
 from brasidas.config import ConfigError, PlatformConfig, dump_toml, load_config
 from brasidas.log import LEVELS, level_argument, setup_logging
 from brasidas.sdnotify import Notifier
+from platformd.mavlink.signing import SigningKeyError
 
 _LOGGER = logging.getLogger("platformd")
 
@@ -132,7 +133,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as err:  # found at start: the id and URL as the beacon carries them
         print(f"brasidas-platform: {err}", file=sys.stderr)
         return 2
-    except OSError as err:
+    except (OSError, SigningKeyError) as err:
         print(f"brasidas-platform: {err}", file=sys.stderr)
         return 1
     return 0

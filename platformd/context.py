@@ -3,9 +3,9 @@ router, sessions, capabilities."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from brasidas.actor import Supervisor
 from brasidas.admission import ServerAdmission
@@ -17,6 +17,11 @@ from platformd.authority import Authority
 from platformd.commands import CommandRouter
 from platformd.session_table import Session, SessionTable
 from platformd.sim import SimulatedDevices
+
+if TYPE_CHECKING:
+    from brasidas.autonomy.areamap import AreaMap
+    from brasidas.autonomy.patrol import Patrol
+    from brasidas.autonomy.route import Route
 
 
 @dataclass(frozen=True)
@@ -80,6 +85,30 @@ class MediaHandle(Protocol):
     def nav_camera(self) -> dict[str, Any]:
         """The NavCam's parameters (``get_nav_camera_parameters``)."""
 
+    async def start_stream(
+        self, name: str, host: str = "", port: int = 0, *, session_id: str | None = None
+    ) -> object:
+        """Start ``session_id``'s copy of a stream, sent to ``host:port``."""
+
+
+class PatrolHandle(Protocol):
+    """What other subsystems use of the patrol (platformd.autonomy.patrol.PatrolActor)."""
+
+    @property
+    def core(self) -> Patrol:
+        """The patrol's state: map (and its revision), route, cursor (read only)."""
+
+    async def set_waypoints(self, items: list[Any]) -> Route:
+        """Replace the route (``set_waypoints``'s checks); raises RouteError."""
+
+    async def reshape_map(self, source: Mapping[str, Any]) -> AreaMap:
+        """Replace boundary and keep-outs, keeping the route; raises MapError or RouteError."""
+
+    def start_patrol(self) -> None:
+        """Start patrolling the route; raises RouteError."""
+
+    def stop_patrol(self) -> None: ...
+
 
 @dataclass
 class PlatformContext:
@@ -112,6 +141,10 @@ class PlatformContext:
     """The media service (streams, NavCam), set by its setup (platformd.media)."""
     payloads: dict[str, PayloadInfo] = field(default_factory=dict)
     """The payloads carried, by name (platformd.payloads): none without ``payload.enabled``."""
+    mavlink_port: int = 0
+    """The MAVLink endpoint's bound UDP port (platformd.mavlink), 0 when it is off."""
+    patrol: PatrolHandle | None = None
+    """The patrol (platformd.autonomy): its route and map, for the MAVLink endpoint."""
 
     @property
     def motor_serial(self) -> SerialDevice:

@@ -31,6 +31,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--api-port", type=int, default=8780)
     parser.add_argument("--beacon-port", type=int, default=21000)
     parser.add_argument("--velocity-port", type=int, default=21001)
+    parser.add_argument(
+        "--mavlink-target",
+        default="127.0.0.1:14550",
+        help="where the MAVLink endpoint sends (QGroundControl listens on UDP 14550)",
+    )
+    parser.add_argument(
+        "--mavlink-port", type=int, default=14555, help="UDP port the MAVLink endpoint listens on"
+    )
     parser.add_argument("--once", action="store_true", help="stop after connecting (for tests)")
     parser.add_argument("--timeout", type=float, default=15.0, help="seconds to wait for discovery")
     return parser.parse_args(argv)
@@ -55,6 +63,16 @@ async def run(args: argparse.Namespace) -> int:
         f"beacon.port={args.beacon_port}",
         "--set",
         f"velocity.port={args.velocity_port}",
+        # The MAVLink endpoint for ground control stations (README "Ground control stations"):
+        # on loopback only, so unsigned control costs nothing here.
+        "--set",
+        "mavlink.enabled=true",
+        "--set",
+        f'mavlink.targets=["{args.mavlink_target}"]',
+        "--set",
+        f"mavlink.port={args.mavlink_port}",
+        "--set",
+        "mavlink.allow_unsigned_control=true",
     ]
     station_overrides = [
         "--set",
@@ -81,6 +99,7 @@ async def run(args: argparse.Namespace) -> int:
         summary = await _discover_and_connect(config, args, processes)
         print(f"\nDiscovered and connected in {time.monotonic() - started:.1f} s:\n")
         print(_describe_connection(summary))
+        print(_ground_station_line(args), flush=True)
         if args.once:
             return 0
         _print_next_steps(args)
@@ -152,6 +171,17 @@ def _print_next_steps(args: argparse.Namespace) -> None:
         f"Platform signaling: http://127.0.0.1:{args.signaling_port}/rpc\n"
         "Press Ctrl-C to stop both daemons.",
         flush=True,
+    )
+
+
+def _ground_station_line(args: argparse.Namespace) -> str:
+    """How to open the platform in a MAVLink ground control station."""
+    port = args.mavlink_target.rpartition(":")[2]
+    return (
+        f"\nGround control station: open QGroundControl (it listens on UDP {port}); the rover "
+        f"'{args.platform_id}' appears as MAVLink system 1, mode HOLD. Or: "
+        f"mavproxy.py --master=udpin:127.0.0.1:{port}, or MAVSDK with udpin://127.0.0.1:{port}"
+        f" (the endpoint listens on UDP {args.mavlink_port})."
     )
 
 

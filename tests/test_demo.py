@@ -24,6 +24,10 @@ async def test_demo_discovers_and_connects_then_stops_both_daemons() -> None:
         str(free_udp_port()),
         "--velocity-port",
         str(free_udp_port()),
+        "--mavlink-target",
+        f"127.0.0.1:{free_udp_port()}",
+        "--mavlink-port",
+        str(free_udp_port()),
         stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.PIPE,
     )
@@ -32,6 +36,7 @@ async def test_demo_discovers_and_connects_then_stops_both_daemons() -> None:
     assert process.returncode == 0, err.decode()
     assert "discovered platform 'demo-rover' from its beacon" in text
     assert "platform   demo-rover" in text and "session" in text
+    assert "Ground control station: open QGroundControl" in text
 
 
 def test_example_deployment_config_loads() -> None:

@@ -496,6 +496,50 @@ class MapSection:
     """The area map (GeoJSON, R-12). Empty: $XDG_STATE_HOME/brasidas/map.geojson."""
 
 
+def _udp_target(value: str) -> bool:
+    host, sep, port = value.rpartition(":")
+    return bool(sep) and port.isdecimal() and 1 <= int(port) <= 65535 and ip_address.ok(host)
+
+
+@dataclass(frozen=True)
+class MavlinkSection:
+    """The MAVLink 2 endpoint for ground control stations (issue 22; README "Ground control
+    stations")."""
+
+    enabled: bool = False
+    """Speak MAVLink 2 to QGroundControl, Mission Planner, MAVProxy and MAVSDK."""
+    system_id: int = setting(1, at_least(1, most=254))
+    """This vehicle's MAVLink system id (255 is the ground stations' usual one)."""
+    host: str = setting("127.0.0.1", ip_address)
+    """Address the endpoint listens on (0.0.0.0: every interface, for a GCS on the mesh)."""
+    port: int = setting(0, bind_port)
+    """UDP port it listens on (0: any free port; ground stations answer the source port)."""
+    targets: tuple[str, ...] = setting(("127.0.0.1:14550",), each(Check("HOST:PORT", _udp_target)))
+    """Where telemetry is sent unasked (14550: QGroundControl's listening port). Any other
+    station that talks to the endpoint is answered and sent telemetry while it is heard."""
+    link_timeout: float = setting(10.0, above(0, most=3600))
+    """A station not in ``targets`` is forgotten this long after its last message."""
+    upload_window: int = setting(16, at_least(1, most=32))
+    """Mission items requested ahead during an upload: a lossy 100 ms link moves a 100-item
+    mission in ~2 s instead of ~15 s. 1 is the one-at-a-time protocol of ArduPilot and PX4,
+    for a ground station that answers only the request it expects (MAVProxy, MAVSDK and
+    pymavlink answer every request; QGroundControl is not tested here)."""
+    heartbeat_hz: float = setting(1.0, above(0, most=10))
+    """HEARTBEAT of the vehicle and of the camera component."""
+    position_hz: float = setting(5.0, above(0, most=50))
+    """GLOBAL_POSITION_INT, GPS_RAW_INT, ATTITUDE, VFR_HUD."""
+    status_hz: float = setting(1.0, above(0, most=10))
+    """SYS_STATUS, BATTERY_STATUS, MISSION_CURRENT; HOME_POSITION at a fifth of this."""
+    signing_key_file: str = ""
+    """MAVLink 2 signing passphrase (one line; key = SHA-256 of it, as MAVProxy's ``signing
+    setup`` and QGroundControl). Owner-only like the fleet key. Empty: no signing."""
+    allow_unsigned_control: bool = False
+    """With signing configured: let unsigned links change the robot (modes, missions, fences,
+    joystick). Anyone who can send a UDP datagram to the endpoint could then drive it."""
+    camera: bool = True
+    """Announce the NavCam as a MAVLink camera component (id 100) with its video stream."""
+
+
 @dataclass(frozen=True)
 class PlatformConfig:
     RULES: ClassVar[tuple[Rule, ...]] = (
@@ -524,3 +568,4 @@ class PlatformConfig:
     sim: SimSection = field(default_factory=SimSection)
     autonomy: AutonomySection = field(default_factory=AutonomySection)
     map: MapSection = field(default_factory=MapSection)
+    mavlink: MavlinkSection = field(default_factory=MavlinkSection)

@@ -66,6 +66,7 @@ async def async_setup(ctx: PlatformContext) -> None:
         commands=ctx.commands,
     )
     await patrol.load()
+    ctx.patrol = patrol
     PatrolMethods(patrol).register(ctx.rpc, ctx.authority)
     ctx.telemetry.register(Autonomy, lambda: _autonomy(patrol))
     ctx.telemetry.register(Pose, lambda: _pose(ctx))

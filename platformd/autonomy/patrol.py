@@ -390,6 +390,41 @@ class PatrolActor(Actor):
         self.tick()
         return area
 
+    async def reshape_map(self, source: Mapping[str, Any]) -> AreaMap:
+        """Replace the map's boundary and keep-outs (a ground station's fence) keeping the
+        route, which must still be valid on the new map: the checks of ``update_map`` plus the
+        route's own. Geometry and the file in a worker thread; the patrol holds until the
+        path is replanned."""
+        async with self._changing:
+            base, route, position = self.core.area, self.core.route, self.robot_position()
+            area = await asyncio.to_thread(self._reshaped_map, source, base, route, position)
+            self.core.update_map(area, build=False)
+            self._replan()
+        self.tick()
+        return area
+
+    def _reshaped_map(
+        self,
+        source: Mapping[str, Any],
+        base: AreaMap | None,
+        route: Route,
+        position: tuple[float, float] | None,
+    ) -> AreaMap:
+        """(Worker thread.) The new shape, checked with the route it keeps, and stored under
+        the map's load id (the stored route stays paired with it)."""
+        from dataclasses import replace
+
+        area = parse_map(source)
+        if position is not None:
+            area.check_position(*position)
+        check_route(route, area)
+        area = replace(area, load_id=base.load_id if base is not None else secrets.token_hex(8))
+        area.keepout_index()
+        write_atomically(self.storage.map_file, _map_text(area))
+        if base is None:
+            self.routes.save(Route(), area.load_id)
+        return area
+
     def _changed_map(
         self,
         base: AreaMap,

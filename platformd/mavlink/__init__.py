@@ -1,0 +1,38 @@
+"""The MAVLink 2 endpoint (issue 22): the platform as a ground rover for QGroundControl,
+Mission Planner, MAVProxy and MAVSDK. ``[mavlink] enabled`` turns it on.
+
+``vehicle`` is the sans-IO protocol (pymavlink for the wire format), ``missions`` the mission
+and fence mapping, ``modes`` the identity and modes, ``signing`` the key and the signature
+check, ``service`` the UDP transport and the platform's decisions.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from platformd.context import PlatformContext
+from platformd.mavlink.signing import load_signing_key
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    """Needs ``ctx.patrol`` (platformd.autonomy) and ``ctx.media`` (platformd.media)."""
+    config = ctx.config.mavlink
+    if not config.enabled:
+        return
+    # pymavlink's dialect (a few MB) is imported only on a platform that speaks MAVLink.
+    from platformd.mavlink.service import MavlinkService
+
+    key = load_signing_key(Path(config.signing_key_file)) if config.signing_key_file else None
+    service = MavlinkService(ctx, key)
+    await service.open()
+    ctx.mavlink_port = service.port
+    # Only the counters that moved: a telemetry datagram has room for little (1200 bytes).
+    ctx.telemetry.add_counters(
+        "mavlink",
+        lambda: {
+            name: count
+            for name, count in {**service.vehicle.counters, **service.counters}.items()
+            if count
+        },
+    )
+    ctx.supervisor.start(service)

@@ -1,0 +1,124 @@
+"""MAVSDK (the ``mavsdk`` wheel, its bundled C++ library) against a --sim platform's MAVLink
+endpoint: it connects, imports a QGroundControl ``.plan``, uploads its mission and geofence,
+downloads both back, starts the mission and reads the position."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+from conftest import free_udp_port, wait_until
+from mavlink_gcs import LAT, LON, sim_rover_config
+from mavlink_gcs import at as position
+from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
+from mavsdk.asyncio.plugins.mission_raw import MissionRawAsync
+from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+
+from brasidas import topics
+from brasidas.messages import PatrolState
+from platformd.app import PlatformDaemon
+
+
+def at(east: float, north: float) -> list[float]:
+    return list(position(east, north))
+
+
+def qgc_plan() -> dict[str, Any]:
+    """A plan as QGroundControl saves it: four waypoints, a boundary, a keep-out polygon and
+    an exclusion circle."""
+    items = [
+        {
+            "type": "SimpleItem",
+            "autoContinue": True,
+            "command": 16,
+            "doJumpId": index,
+            "frame": 3,
+            "params": [0, 0, 0, None, *point, 0],
+            "AltitudeMode": 1,
+            "Altitude": 0,
+            "AMSLAltAboveTerrain": None,
+        }
+        for index, point in enumerate([at(0, 0), at(40, 0), at(40, 30), at(0, 30)], start=1)
+    ]
+    return {
+        "fileType": "Plan",
+        "groundStation": "QGroundControl",
+        "version": 1,
+        "mission": {
+            "version": 2,
+            "firmwareType": 3,
+            "vehicleType": 10,
+            "cruiseSpeed": 1.6,
+            "hoverSpeed": 1,
+            "plannedHomePosition": [LAT, LON, 0],
+            "items": items,
+        },
+        "geoFence": {
+            "version": 2,
+            "polygons": [
+                {
+                    "inclusion": True,
+                    "version": 1,
+                    "polygon": [at(-12, -12), at(52, -12), at(52, 42), at(-12, 42)],
+                },
+                {"inclusion": False, "version": 1, "polygon": [at(30, 12), at(34, 12), at(34, 16)]},
+            ],
+            "circles": [
+                {"inclusion": False, "version": 1, "circle": {"center": at(20, 15), "radius": 6}}
+            ],
+        },
+        "rallyPoints": {"version": 2, "points": []},
+    }
+
+
+def patrolling(daemon: PlatformDaemon) -> bool:
+    status = daemon.bus.last(topics.PATROL_STATUS)
+    return status is not None and status.state is PatrolState.PATROLLING
+
+
+def raw(items: list[Any]) -> list[tuple[int, int, int, int, float]]:
+    return [(item.seq, item.command, item.x, item.y, item.param1) for item in items]
+
+
+async def test_mavsdk_uploads_a_qgc_plan_downloads_it_and_starts_the_mission(
+    platform_factory: Callable[..., Awaitable[PlatformDaemon]], tmp_path: Path
+) -> None:
+    port = free_udp_port()
+    daemon = await platform_factory(
+        sim_rover_config(tmp_path, port, "mavlink.allow_unsigned_control=true"), None
+    )
+    patrol = daemon.ctx.patrol
+    assert patrol is not None
+    plan = tmp_path / "field.plan"
+    plan.write_text(json.dumps(qgc_plan()))
+
+    configuration = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+    async with Mavsdk(configuration) as mavsdk:
+        await mavsdk.add_any_connection(f"udpin://127.0.0.1:{port}")
+        system = await mavsdk.first_autopilot(timeout_s=30.0)
+        assert system is not None
+        missions = MissionRawAsync(system)
+        imported = await missions.import_qgroundcontrol_mission(str(plan))
+        assert len(imported.mission_items) == 5  # home, then the four waypoints
+        await missions.upload_mission(imported.mission_items)
+        await missions.upload_geofence(imported.geofence_items)
+        assert patrol.core.route.stops == 4
+        area = patrol.core.area
+        assert area is not None and sorted(area.keepouts) == ["fence-1", "fence-2"]
+
+        assert raw(await missions.download_mission()) == raw(imported.mission_items)
+        assert raw(await missions.download_geofence()) == raw(imported.geofence_items)
+
+        # The position (once the simulated receiver has a fix), then the patrol.
+        telemetry = TelemetryAsync(system)
+        async for position in telemetry.subscribe_position():
+            if math.isfinite(position.latitude_deg):
+                break
+        assert abs(position.latitude_deg - LAT) < 1e-3
+        assert abs(position.longitude_deg - LON) < 1e-3
+
+        await missions.start_mission()
+        await wait_until(lambda: patrolling(daemon), timeout=10)

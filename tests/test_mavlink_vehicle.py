@@ -1,0 +1,237 @@
+"""The sans-IO MAVLink vehicle without sockets: frames in, frames and requests out, time given.
+
+Lost mission items are asked for again on the vehicle's own clock; garbage is dropped and
+counted; a forged signed frame with a far-future timestamp cannot lock out the real ground
+station (pymavlink's own parser records a stream's timestamp before checking the signature);
+mission and fence items map onto routes and keep-outs with the right refusals.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from typing import Any
+
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from platformd.mavlink.missions import (
+    FENCE_EXCLUSION_CIRCLE,
+    FENCE_INCLUSION_VERTEX,
+    MissionItem,
+    MissionRefused,
+    fence_from_items,
+    route_from_items,
+)
+from platformd.mavlink.vehicle import (
+    MAX_LINKS,
+    UPLOAD_RETRIES,
+    UPLOAD_RETRY_S,
+    ManualInput,
+    MavlinkVehicle,
+    SetMode,
+    UploadItems,
+)
+
+GCS = ("127.0.0.1", 14550)
+KEY = hashlib.sha256(b"passphrase").digest()
+
+
+class Station:
+    """pymavlink's encoder and parser, as a ground station's."""
+
+    def __init__(self, key: bytes | None = None, timestamp: int = 10**12) -> None:
+        self.mav = mavlink.MAVLink(None, 255, 190)
+        if key is not None:
+            self.mav.signing.secret_key = key
+            self.mav.signing.sign_outgoing = True
+            self.mav.signing.link_id = 3
+            self.mav.signing.timestamp = timestamp
+        self.parser = mavlink.MAVLink(None, 0, 0)
+
+    def frame(self, message: Any) -> bytes:
+        data = message.pack(self.mav)
+        self.mav.seq = (self.mav.seq + 1) % 256
+        return bytes(data)
+
+    def read(self, vehicle: MavlinkVehicle) -> list[Any]:
+        out = []
+        for data, peer in vehicle.take():
+            assert peer == GCS
+            out.extend(self.parser.parse_buffer(data) or [])
+        return out
+
+
+def item(seq: int, lat: float, lon: float) -> Any:
+    return mavlink.MAVLink_mission_item_int_message(
+        1, 1, seq, 3, 16, 0, 1, 0, 0, 0, 0, round(lat * 1e7), round(lon * 1e7), 0, 0
+    )
+
+
+def test_an_upload_asks_again_for_a_lost_item_then_gives_up() -> None:
+    vehicle = MavlinkVehicle(1, allow_unsigned_control=True)
+    station = Station()
+    vehicle.feed(station.frame(mavlink.MAVLink_mission_count_message(1, 1, 3, 0)), GCS, 0.0)
+    [request] = station.read(vehicle)
+    assert request.get_type() == "MISSION_REQUEST_INT" and request.seq == 0
+    vehicle.feed(station.frame(item(0, 1.0, 2.0)), GCS, 0.1)
+    assert [m.seq for m in station.read(vehicle)] == [1]
+    # Item 1 is lost: asked for again once the retry time has passed, not before.
+    vehicle.tick(0.1 + UPLOAD_RETRY_S / 2)
+    assert not [m for m in station.read(vehicle) if m.get_type() == "MISSION_REQUEST_INT"]
+    vehicle.tick(0.1 + UPLOAD_RETRY_S * 1.01)
+    assert [m.seq for m in station.read(vehicle) if m.get_type() == "MISSION_REQUEST_INT"] == [1]
+    vehicle.feed(station.frame(item(1, 1.0, 2.1)), GCS, 0.5)
+    requests = vehicle.feed(station.frame(item(2, 1.1, 2.1)), GCS, 0.6)
+    [upload] = requests
+    assert isinstance(upload, UploadItems) and [i.seq for i in upload.items] == [0, 1, 2]
+    vehicle.answer_upload(upload, mavlink.MAV_MISSION_ACCEPTED)
+    acks = [m for m in station.read(vehicle) if m.get_type() == "MISSION_ACK"]
+    assert [a.type for a in acks] == [mavlink.MAV_MISSION_ACCEPTED]
+    # The ACK was lost: the station repeats its last item and gets the ACK again.
+    vehicle.feed(station.frame(item(2, 1.1, 2.1)), GCS, 0.7)
+    assert [m.type for m in station.read(vehicle) if m.get_type() == "MISSION_ACK"] == [0]
+
+    # A station that never sends item 0: abandoned after the retries, with a reason.
+    vehicle.feed(station.frame(mavlink.MAVLink_mission_count_message(1, 1, 2, 0)), GCS, 1.0)
+    now = 1.0
+    for _ in range(UPLOAD_RETRIES + 1):
+        now += UPLOAD_RETRY_S * 1.01
+        vehicle.tick(now)
+    messages = station.read(vehicle)
+    acks = [m for m in messages if m.get_type() == "MISSION_ACK"]
+    assert [a.type for a in acks] == [mavlink.MAV_MISSION_OPERATION_CANCELLED]
+    assert any("abandoned" in m.text for m in messages if m.get_type() == "STATUSTEXT")
+
+
+def test_an_upload_window_asks_ahead_and_takes_items_in_any_order() -> None:
+    vehicle = MavlinkVehicle(1, allow_unsigned_control=True, upload_window=4)
+    station = Station()
+    vehicle.feed(station.frame(mavlink.MAVLink_mission_count_message(1, 1, 6, 0)), GCS, 0.0)
+    assert [m.seq for m in station.read(vehicle)] == [0, 1, 2, 3]
+    # Item 0 is lost; 2 arrives before 1: each arrival asks for the next missing one.
+    vehicle.feed(station.frame(item(2, 1.0, 2.2)), GCS, 0.05)
+    vehicle.feed(station.frame(item(1, 1.0, 2.1)), GCS, 0.06)
+    assert [m.seq for m in station.read(vehicle)] == [4, 5]
+    vehicle.feed(station.frame(item(3, 1.0, 2.3)), GCS, 0.07)
+    vehicle.feed(station.frame(item(5, 1.0, 2.5)), GCS, 0.08)
+    vehicle.feed(station.frame(item(4, 1.0, 2.4)), GCS, 0.09)
+    assert not station.read(vehicle)
+    vehicle.tick(0.0 + UPLOAD_RETRY_S * 1.01)
+    requests = [m for m in station.read(vehicle) if m.get_type() == "MISSION_REQUEST_INT"]
+    assert [m.seq for m in requests] == [0]
+    [upload] = vehicle.feed(station.frame(item(0, 1.0, 2.0)), GCS, 0.3)
+    assert isinstance(upload, UploadItems)
+    assert [i.seq for i in upload.items] == [0, 1, 2, 3, 4, 5]
+
+
+def test_garbage_and_strangers_cost_nothing() -> None:
+    vehicle = MavlinkVehicle(1)
+    for size in (0, 1, 7, 300, 2000):
+        assert vehicle.feed(os.urandom(size), ("192.0.2.9", 9999), 0.0) == []
+    assert vehicle.feed(b"\xfd" * 280, ("192.0.2.9", 9999), 0.0) == []
+    assert ("192.0.2.9", 9999) not in vehicle.links  # no state kept for garbage
+    # A command for another vehicle is not ours to answer.
+    station = Station()
+    frame = station.frame(mavlink.MAVLink_command_long_message(7, 1, 176, 0, 1, 4, 0, 0, 0, 0, 0))
+    assert vehicle.feed(frame, GCS, 0.0) == []
+    # Nor a joystick for another vehicle, nor a command to a component we do not have.
+    frame = station.frame(mavlink.MAVLink_manual_control_message(7, 1000, 0, 500, 0, 0))
+    assert vehicle.feed(frame, GCS, 0.0) == []
+    gimbal = mavlink.MAVLink_command_long_message(1, 154, 176, 0, 1, 4, 0, 0, 0, 0, 0)
+    assert vehicle.feed(station.frame(gimbal), GCS, 0.0) == []
+    assert vehicle.counters["not_for_us"] == 3
+    assert not vehicle.take()
+    # A flood from made-up addresses: a bounded table of links, the rest dropped and counted.
+    heartbeat = station.frame(mavlink.MAVLink_heartbeat_message(6, 8, 0, 0, 0, 3))
+    for port in range(1000, 1100):
+        vehicle.feed(heartbeat, ("192.0.2.10", port), 0.0)
+    assert len(vehicle.links) == MAX_LINKS
+    assert vehicle.counters["links_refused"] == 100 - MAX_LINKS + 1  # GCS's link is one
+
+
+def test_control_from_an_unsigned_link_is_refused_and_the_joystick_ignored() -> None:
+    vehicle = MavlinkVehicle(1, key=KEY)
+    station = Station()
+    set_auto = mavlink.MAVLink_command_long_message(1, 1, 176, 0, 1, 10, 0, 0, 0, 0, 0)
+    assert vehicle.feed(station.frame(set_auto), GCS, 0.0) == []
+    messages = station.read(vehicle)
+    assert [m.result for m in messages if m.get_type() == "COMMAND_ACK"] == [
+        mavlink.MAV_RESULT_DENIED
+    ]
+    joystick = mavlink.MAVLink_manual_control_message(1, 1000, 0, 500, 0, 0)
+    assert vehicle.feed(station.frame(joystick), GCS, 0.1) == []
+    assert vehicle.counters["refused_unsigned"] == 2
+
+    # Nobody sets the key over the air.
+    setup = mavlink.MAVLink_setup_signing_message(1, 1, [7] * 32, 0)
+    assert vehicle.feed(station.frame(setup), GCS, 0.15) == []
+    assert vehicle.key == KEY and vehicle.counters["setup_signing_refused"] == 1
+    assert any("SETUP_SIGNING refused" in m.text for m in station.read(vehicle))
+
+    signed = Station(KEY)
+    [request] = vehicle.feed(signed.frame(set_auto), GCS, 0.2)
+    assert isinstance(request, SetMode) and request.signed
+    [manual] = vehicle.feed(signed.frame(joystick), GCS, 0.3)
+    assert isinstance(manual, ManualInput) and manual.linear == 1.0
+
+
+def test_a_forged_future_timestamp_does_not_lock_out_the_real_station() -> None:
+    vehicle = MavlinkVehicle(1, key=KEY)
+    set_hold = mavlink.MAVLink_command_long_message(1, 1, 176, 0, 1, 4, 0, 0, 0, 0, 0)
+    forger = Station(hashlib.sha256(b"guess").digest(), timestamp=2**47)
+    forger.mav.signing.link_id = 3  # the real station's stream
+    assert vehicle.feed(forger.frame(set_hold), GCS, 0.0) == []
+    assert vehicle.counters["bad_signature"] == 1
+    real = Station(KEY)
+    [request] = vehicle.feed(real.frame(set_hold), GCS, 0.1)
+    assert isinstance(request, SetMode)
+    # Its own frame again is a replay.
+    frame = real.frame(set_hold)
+    assert len(vehicle.feed(frame, GCS, 0.2)) == 1
+    assert vehicle.feed(frame, GCS, 0.3) == []
+    assert vehicle.counters["replayed"] == 1
+
+
+def mission(*rows: tuple[int, int]) -> list[MissionItem]:
+    """(command, param1) rows at seq 0.. with made-up positions."""
+    return [
+        MissionItem(seq, 3, command, param1, x=10_000_000 + seq, y=20_000_000 + seq)
+        for seq, (command, param1) in enumerate(rows)
+    ]
+
+
+def test_mission_items_map_onto_routes() -> None:
+    plan = route_from_items(mission((16, 0), (16, 0), (16, 0), (16, 0), (177, 1)))
+    assert len(plan.waypoints) == 4 and plan.waypoints[0] == plan.waypoints[-1]
+    assert plan.home == (1.0, 2.0)
+    open_route = route_from_items(mission((16, 0), (16, 0), (16, 0)))
+    assert len(open_route.waypoints) == 2
+    with pytest.raises(MissionRefused) as refused:
+        route_from_items(mission((16, 0), (16, 0), (16, 0), (177, 2)))
+    assert refused.value.result == mavlink.MAV_MISSION_INVALID_PARAM1
+    with pytest.raises(MissionRefused) as refused:
+        route_from_items(mission((16, 0), (21, 0)))
+    assert refused.value.result == mavlink.MAV_MISSION_UNSUPPORTED
+    assert "NAV_LAND" in str(refused.value)
+    local = [MissionItem(0, 3, 16), MissionItem(1, mavlink.MAV_FRAME_LOCAL_NED, 16)]
+    with pytest.raises(MissionRefused) as refused:
+        route_from_items(local)
+    assert refused.value.result == mavlink.MAV_MISSION_UNSUPPORTED_FRAME
+    with pytest.raises(MissionRefused) as refused:
+        route_from_items([MissionItem(0, 3, 16), MissionItem(1, 3, 16, x=950_000_000)])
+    assert refused.value.result == mavlink.MAV_MISSION_INVALID_PARAM5_X
+
+
+def test_fence_items_map_onto_boundary_and_keepouts() -> None:
+    rows = [(FENCE_INCLUSION_VERTEX, 4)] * 4 + [(FENCE_EXCLUSION_CIRCLE, 5)]
+    fence = fence_from_items(mission(*rows))
+    assert fence.boundary is not None and len(fence.boundary) == 4
+    assert len(fence.keepouts) == 1 and len(fence.keepouts[0]) == 32
+    with pytest.raises(MissionRefused) as refused:
+        fence_from_items(mission(*[(FENCE_INCLUSION_VERTEX, 4)] * 3))
+    assert refused.value.result == mavlink.MAV_MISSION_INVALID_PARAM1
+    with pytest.raises(MissionRefused, match="second inclusion polygon"):
+        fence_from_items(mission(*[(FENCE_INCLUSION_VERTEX, 3)] * 6))
+    with pytest.raises(MissionRefused, match="inclusion circle"):
+        fence_from_items(mission((5003, 10)))
