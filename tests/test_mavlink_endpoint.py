@@ -172,7 +172,9 @@ async def test_a_mission_becomes_the_route_and_downloads_back(
     ack = await gcs.upload(bad)
     assert ack.type == mavlink.MAV_MISSION_INVALID_PARAM5_X
     text = await gcs.expect_text(lambda t: "shed" in t, since)
-    assert text.startswith("mission upload refused: waypoint 1")
+    assert text.startswith(
+        "mission upload refused: waypoint 2"
+    )  # counted from 1, as the console, the CLI and a ground station number it
     assert daemon.ctx.patrol.core.route == route  # type: ignore[union-attr]
 
     # A takeoff has no place in a rover's route.
