@@ -41,6 +41,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "platformd.media",
     "platformd.payloads",
     "platformd.telemetry",
+    "platformd.recorder",  # after media (it taps the NavCam), before signaling (its routes)
     "platformd.signaling",
     "platformd.beacon",
 )

@@ -89,6 +89,7 @@ async def async_setup(ctx: PlatformContext) -> None:
     config = ctx.config.signaling
     app = web.Application(client_max_size=config.max_request_bytes)
     add_rpc_routes(app, ctx.rpc, "/rpc", config.max_request_bytes)
+    app.router.add_routes(ctx.http_routes)
     port = await serve_app(
         app, config.host, config.port, supervisor=ctx.supervisor, bus=ctx.bus, name="signaling"
     )

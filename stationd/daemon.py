@@ -26,6 +26,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "stationd.teleop",
     "stationd.media",
     "stationd.patrol",
+    "stationd.recordings",
     "stationd.console",
 )
 

@@ -207,6 +207,7 @@ def quiet_platform_config(*overrides: str) -> PlatformConfig:
         "imu.enabled=false",
         "navcam.enabled=false",
         "audio.enabled=false",
+        "recorder.enabled=false",  # tests of the recorder switch it on (tests/test_recorder.py)
         # No latency assumed without a report: the speed cap stays out of the way of tests that
         # are not about it (tests/test_speedcap.py sets the default worst case back).
         "safety.worst_latency_ms=0",
