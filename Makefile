@@ -4,6 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP_APT := $(VENV)/.apt-stamp
 STAMP_PIP := $(VENV)/.pip-stamp
+STAMP_NPM := tests/foxglove_client/node_modules/.npm-stamp
 
 APT_PACKAGES := python3 python3-venv python3-dev gcc pkg-config \
 	libgirepository1.0-dev libcairo2-dev gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0 \
@@ -13,7 +14,7 @@ APT_PACKAGES := python3 python3-venv python3-dev gcc pkg-config \
 
 .PHONY: demo test bench lint deps apt venv clean net-demo soak
 
-deps: $(STAMP_APT) $(STAMP_PIP)
+deps: $(STAMP_APT) $(STAMP_PIP) $(STAMP_NPM)
 
 # Debian packages: installed only when one is missing.
 $(STAMP_APT):
@@ -28,6 +29,14 @@ $(STAMP_PIP): pyproject.toml $(STAMP_APT)
 	@test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[test,bench]'
+	@touch $@
+
+# Test-only Node clients (a real Foxglove WebSocket client: @foxglove/ws-protocol + ws).
+# Debian's nodejs and npm only when no npm is there (a NodeSource nodejs carries its own).
+$(STAMP_NPM): tests/foxglove_client/package.json $(STAMP_APT)
+	@command -v npm >/dev/null || (apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends nodejs npm)
+	cd tests/foxglove_client && npm install --no-audit --no-fund --silent
 	@touch $@
 
 demo: deps

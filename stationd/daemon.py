@@ -28,6 +28,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "stationd.patrol",
     "stationd.recordings",
     "stationd.console",
+    "stationd.foxglove_live",  # after the console: it shares its video feeds
 )
 
 WEB_ROOT = Path(__file__).parent / "web"

@@ -49,6 +49,14 @@ def _isolated_state(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator
 
 
 @pytest.fixture(autouse=True)
+def _foxglove_on_ephemeral_ports(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every station a test starts serves Foxglove on a port of the kernel's choice."""
+    import stationd.foxglove_live
+
+    monkeypatch.setattr(stationd.foxglove_live, "PORT_OVERRIDE", 0)
+
+
+@pytest.fixture(autouse=True)
 def _restore_logging() -> Iterator[None]:
     """A CLI's ``setup_logging`` replaces the root handlers with one bound to this test's
     captured stderr; left in place it would write to a closed file in every later test."""
