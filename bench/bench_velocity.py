@@ -124,8 +124,11 @@ LEVELS = (0.2, 0.4, 0.6, 0.8)
 """Linear commands cycled through, each a different serial value, so every sentence changes it."""
 
 
-async def _platform_with_tap(key: bytes) -> tuple[PlatformDaemon, SerialTap, Ax3500Simulator]:
-    """An in-process platform whose driver talks to a simulated AX3500 through a tap."""
+async def _platform_with_tap(
+    key: bytes, extra: tuple[str, ...] = ()
+) -> tuple[PlatformDaemon, SerialTap, Ax3500Simulator]:
+    """An in-process platform whose driver talks to a simulated AX3500 through a tap
+    (``extra``: further config overrides, e.g. the recorder's in bench_recorder)."""
     simulator = Ax3500Simulator(SimOptions(), vehicle=VehicleModel())
     simulator.start()
     tap = SerialTap(simulator.path)
@@ -144,6 +147,7 @@ async def _platform_with_tap(key: bytes) -> tuple[PlatformDaemon, SerialTap, Ax3
             f"motor.port={tap.driver_path}",
             "motor.bytesize=8",  # a pty refuses 7E1; the bytes are the same
             "motor.parity=N",
+            *extra,
         ],
     )
     daemon = PlatformDaemon(config, key)
@@ -156,9 +160,9 @@ def _velocity_commands(tap: SerialTap) -> list[Command]:
     return [c for c in tap.commands if c.text[:2] in ("!A", "!a")]
 
 
-async def _serial_latency(key: bytes) -> dict[str, Any]:
+async def _serial_latency(key: bytes, extra: tuple[str, ...] = ()) -> dict[str, Any]:
     """``$PVEL`` sent to the first byte of the resulting command at the pty master."""
-    daemon, tap, simulator = await _platform_with_tap(key)
+    daemon, tap, simulator = await _platform_with_tap(key, extra)
     figures: dict[str, Any] = {}
     try:
         deadline = time.monotonic() + 10

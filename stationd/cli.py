@@ -286,7 +286,12 @@ def cmd_logs(args: argparse.Namespace, config: StationConfig) -> int:
     source = api_call(config, "recording_source", platform_id=args.id, name=args.name)
     target = Path(args.output or Path(args.name).name)
     have = target.stat().st_size if target.exists() else 0
-    size = asyncio.run(_download(source["url"], dict(source["headers"]), target, have))
+    from stationd.recordings import DownloadError, download
+
+    try:
+        size = asyncio.run(download(source["url"], dict(source["headers"]), target, have))
+    except DownloadError as err:
+        raise CliError(str(err)) from None
     print(f"{target}: {size} bytes")
     return 0
 
@@ -309,35 +314,6 @@ def _describe_recordings(answer: dict[str, Any]) -> str:
         topics = ", ".join(sorted(item.get("channels", {})))
         lines.append(f"{item['name']}  {when}  {length}  {item['size'] / 1e6:8.2f} MB  {topics}")
     return "\n".join(lines)
-
-
-async def _download(url: str, headers: dict[str, str], target: Path, have: int) -> int:
-    """GET ``url`` into ``target``, resuming after the ``have`` bytes it already holds (a
-    Range request); the file's final size."""
-    import aiohttp
-
-    if have:
-        headers = {**headers, "Range": f"bytes={have}-"}
-    timeout = aiohttp.ClientTimeout(total=None, sock_connect=10, sock_read=30)
-    try:
-        async with (
-            aiohttp.ClientSession(timeout=timeout) as session,
-            session.get(url, headers=headers) as response,
-        ):
-            if response.status == 416 and have:
-                return have  # nothing past what we have: already complete
-            if response.status not in (200, 206):
-                text = (await response.text())[:200]
-                raise CliError(f"download refused ({response.status}): {text}")
-            size = have if response.status == 206 else 0
-            mode = "ab" if response.status == 206 else "wb"
-            with open(target, mode) as out:  # noqa: ASYNC230 (a CLI's own loop, nothing else)
-                async for chunk in response.content.iter_chunked(256 * 1024):
-                    await asyncio.to_thread(out.write, chunk)
-                    size += len(chunk)
-    except aiohttp.ClientError as err:
-        raise CliError(f"download failed: {err} (run it again to resume)") from None
-    return size
 
 
 def cmd_keygen(args: argparse.Namespace, config: StationConfig) -> int:

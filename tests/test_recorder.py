@@ -402,3 +402,47 @@ async def test_a_quota_at_the_current_size_stops_recording(tmp_path: Path) -> No
     assert events and events[0][0] == schemas.LOG_WARNING and "recording stopped" in events[0][1]
     assert not recorder.submit(0, time.time_ns(), b"x")
     assert recorder.stats.not_recording >= 1
+
+
+async def test_downloads_need_a_session_and_a_plain_recording_name(
+    platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+) -> None:
+    import aiohttp
+
+    recordings = tmp_path / "recordings"
+    daemon = await platform_factory(
+        quiet_platform_config("recorder.enabled=true", f"recorder.dir={recordings}"), fleet_key
+    )
+    recorder = recorder_of(daemon)
+    await wait_until(lambda: bool(recorder.writer.stats.current), 10)
+    (tmp_path / "secret.mcap").write_bytes(b"not yours")
+    conn = await open_connection(daemon, fleet_key)
+    url = f"{daemon.ctx.signaling_url}/recordings"
+    name = recorder.writer.stats.current
+    try:
+        async with aiohttp.ClientSession() as http:
+            async with http.get(f"{url}/{name}") as response:
+                assert response.status == 401  # no session
+            async with http.get(
+                f"{url}/{name}", headers={"X-Brasidas-Session": "forged"}
+            ) as response:
+                assert response.status == 401
+            good = {"X-Brasidas-Session": conn.session_id}
+            for bad in (
+                "..%2Fsecret.mcap",
+                "%2E%2E/secret.mcap",
+                ".hidden.mcap",
+                "x.txt",
+                "a" * 300,
+            ):
+                async with http.get(f"{url}/{bad}", headers=good) as response:
+                    assert response.status == 404, bad
+            async with http.get(f"{url}/{name}", headers=good) as response:
+                assert response.status == 200
+                assert (await response.read()).startswith(b"\x89MCAP0\r\n")
+            async with http.get(
+                f"{url}/{name}", headers={**good, "Range": "bytes=0-7"}
+            ) as response:
+                assert response.status == 206 and await response.read() == b"\x89MCAP0\r\n"
+    finally:
+        await conn.close()

@@ -320,6 +320,7 @@ class Recorder:
             stream: BinaryIO = open(path, "wb")  # closed by _close_file
             writer = Writer(stream, compression=CompressionType.ZSTD, chunk_size=4 * 1024 * 1024)
             writer.start(profile="", library="brasidas")
+            stream.flush()  # the magic and header on disk at once: a listed file is an MCAP
         except OSError as err:
             self._stop_recording(f"cannot create {path.name}: {err}")
             return None
