@@ -23,6 +23,12 @@ VIDEO_WINDOW_NS = 3_000_000_000
 """Where the keyframe before a time is looked for (the NavCam has one every second)."""
 LOG_WINDOW_NS = 120_000_000_000
 LOG_LINES = 30
+PLOTS: dict[str, tuple[str, str]] = {
+    "speed m/s": ("/telemetry/pose", "speed"),
+    "battery V": ("/telemetry/battery", "volts"),
+    "motor linear": ("/motor/command", "linear"),
+}
+"""What the view plots along the timeline: a label, then the channel and the field."""
 
 
 def _is_keyframe(access_unit: bytes) -> bool:
@@ -57,8 +63,10 @@ def recording_index(path: Path) -> dict[str, Any]:
             [message.log_time, *_lat_lon(message.data)]
             for _s, _c, message in reader.iter_messages(topics=[source])
         ]
+        plots = _plots(reader, channels)
     step = max(1, len(track) // TRACK_POINTS)
     return {
+        "plots": plots,
         "start_ns": stats.message_start_time,
         "end_ns": stats.message_end_time,
         "channels": channels,
@@ -66,6 +74,23 @@ def recording_index(path: Path) -> dict[str, Any]:
         "track": track[::step],
         "video": schemas.NAVCAM.topic in channels,
     }
+
+
+def _plots(reader: Any, channels: dict[str, Any]) -> dict[str, list[list[float]]]:
+    """Each plot's [t, value] points, thinned like the track."""
+    wanted = {topic for topic, _field in PLOTS.values() if topic in channels}
+    series: dict[str, list[list[float]]] = {label: [] for label in PLOTS}
+    if not wanted:
+        return series
+    for _s, channel, message in reader.iter_messages(topics=list(wanted)):
+        value = json.loads(message.data)
+        for label, (topic, field) in PLOTS.items():
+            item = value.get(field) if topic == channel.topic else None
+            if isinstance(item, int | float) and not isinstance(item, bool):
+                series[label].append([message.log_time, float(item)])
+    for label, points in series.items():
+        series[label] = points[:: max(1, len(points) // TRACK_POINTS)]
+    return series
 
 
 def _lat_lon(data: bytes) -> list[float]:

@@ -157,8 +157,15 @@ async def test_seeking_shows_that_times_position_and_frame(
                     }"""
                 )
                 assert lit > 50  # the ball and the clock overlays on black
+                # The plots' cursor is at that time.
+                cursor = float(await page.locator("#rec-plot").get_attribute("data-cursor-ns") or 0)
+                assert abs(cursor - expected["at"]) < 2000
                 # The marker on the map is at that position.
                 assert await page.locator("#rec-map path.leaflet-interactive").count() >= 2
+                marker = await page.locator("#rec-map").get_attribute("data-marker")
+                assert marker is not None
+                shown_at = [float(part) for part in marker.split(",")]
+                assert abs(shown_at[0] - lat) < 1e-9 and abs(shown_at[1] - lon) < 1e-9
                 assert not errors, errors
             finally:
                 await browser.close()

@@ -34,6 +34,7 @@ const mapBox = element("div", { id: "rec-map", "aria-label": "recorded track" })
 const position = element("p", { id: "rec-position", role: "status" }, "position —");
 const instruments = element("dl", { id: "rec-instruments", "aria-label": "instruments" });
 const log = element("ol", { id: "rec-log", "aria-label": "recorded log" });
+const plot = element("canvas", { id: "rec-plot", width: "900", height: "160", "aria-label": "plots" });
 const message = element("p", { id: "rec-message", role: "status" });
 const view = element(
   "section",
@@ -42,6 +43,7 @@ const view = element(
   element("div", { class: "rec-timeline" }, play, speed, timeline, clock),
   element("div", { class: "rec-panes" }, canvas, mapBox),
   position,
+  plot,
   instruments,
   log,
 );
@@ -162,7 +164,11 @@ function show(state) {
     position.dataset.lat = String(lat);
     position.dataset.lon = String(lon);
     position.dataset.timeNs = String(state.position.time_ns);
-    if (marker) marker.setLatLng([lat, lon]);
+    if (marker) {
+      marker.setLatLng([lat, lon]);
+      const at = marker.getLatLng();
+      mapBox.dataset.marker = `${at.lat},${at.lng}`;
+    }
   } else {
     position.textContent = "position —";
   }
@@ -178,7 +184,37 @@ function show(state) {
   add("motor", t.motion ? `${t.motion.linear ?? ""} ${t.motion.angular ?? ""}` : undefined);
   instruments.replaceChildren(...rows);
   log.replaceChildren(...state.log.map((line) => element("li", { class: line.level >= 3 ? "warning" : "" }, `${new Date(line.time_ns / 1e6).toISOString().slice(11, 19)} ${line.text}`)));
+  drawPlots(state.time_ns);
   decodeFrames(state.frames);
+}
+
+const PLOT_COLORS = ["#1565c0", "#2e7d32", "#c62828", "#6a1b9a"];
+
+/** Each series scaled to its own range, along the recording's span; a cursor at ``timeNs``. */
+function drawPlots(timeNs) {
+  const context = plot.getContext("2d");
+  const { width, height } = plot;
+  context.clearRect(0, 0, width, height);
+  const span = Math.max(1, recording.end_ns - recording.start_ns);
+  const x = (t) => ((t - recording.start_ns) / span) * width;
+  Object.entries(recording.plots ?? {}).forEach(([label, points], i) => {
+    context.strokeStyle = context.fillStyle = PLOT_COLORS[i % PLOT_COLORS.length];
+    context.fillText(label, 4 + 110 * i, 12);
+    if (points.length < 2) return;
+    let low = Infinity;
+    let high = -Infinity;
+    for (const [, v] of points) { low = Math.min(low, v); high = Math.max(high, v); }
+    const y = (v) => height - 4 - ((v - low) / Math.max(1e-9, high - low)) * (height - 24);
+    context.beginPath();
+    points.forEach(([t, v], j) => (j ? context.lineTo(x(t), y(v)) : context.moveTo(x(t), y(v))));
+    context.stroke();
+  });
+  context.strokeStyle = "#000";
+  context.beginPath();
+  context.moveTo(x(timeNs), 0);
+  context.lineTo(x(timeNs), height);
+  context.stroke();
+  plot.dataset.cursorNs = String(timeNs);
 }
 
 function codecFromSps(bytes) {
