@@ -133,8 +133,10 @@ async def test_a_sim_recording_is_listed_downloaded_and_reads_back(
     port = str(free_udp_port())
     code, _, err = await run_cli(station, "stream", "rover-23", "navcam", "start", "--port", port)
     assert code == 0, err
-    code, _, err = await run_cli(station, "lights", "rover-23", "main", "on")
-    assert code == 0, err
+    controller = topics.CONTROLLER_STATUS
+    await wait_until(lambda: getattr(platform.bus.last(controller), "connected", False), 20)
+    code, out, err = await run_cli(station, "lights", "rover-23", "main", "on")
+    assert code == 0, out + err
     code, _, err = await run_cli(station, "movrd", "rover-23", "on")  # the motors to zero
     assert code == 0, err
     started = time.monotonic()

@@ -169,8 +169,9 @@ class VideoOut(FanOutStream[VideoSettings]):
         sink = self.make_sink()
         tap: list[Any] = []
         if self.access_unit_sinks:
-            tee = make("tee", "encoded")
-            tap = [tee, make("queue", "send_queue")]
+            # No queue on the sending branch: the tee pushes to it first, on the encoder's
+            # thread as before (no added hop, no added latency); the tap's leaky queue after.
+            tap = [make("tee", "encoded")]
         chain = [
             *source_chain,
             stamp,
