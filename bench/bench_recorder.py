@@ -96,6 +96,10 @@ async def _cpu_and_bytes(recorder: bool, directory: Path) -> dict[str, float]:
                     figures[f"bytes_per_hour_{fps}fps_mb"] = round(
                         (size1 - size0) / (wall1 - wall0) * HOUR_S / 1e6, 1
                     )
+            if recorder:
+                listing = await connection.call("list_recordings")
+                figures["recorder_dropped"] = listing["counters"]["dropped"]
+                figures["recorder_written"] = listing["counters"]["written"]
         finally:
             await connection.close()
     finally:

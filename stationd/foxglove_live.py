@@ -251,9 +251,9 @@ class FoxgloveLive(Actor):
             return
         try:
             feed = await feeds.open_feed(platform.platform_id)
-        except (RpcError, ConnectionError, TimeoutError) as err:
+        except Exception as err:  # refused, lost, or the platform has no NavCam
             _LOGGER.warning("foxglove: no NavCam from %s: %s", platform.platform_id, err)
-            platform.video_task = None
+            platform.video_task = None  # the next subscription tries again
             return
         viewer = Viewer(feed.number)
         remove = feed.fanout.add(viewer)
