@@ -448,3 +448,34 @@ async def test_downloads_need_a_session_and_a_plain_recording_name(
                 assert response.status == 206 and await response.read() == b"\x89MCAP0\r\n"
     finally:
         await conn.close()
+
+
+async def test_the_open_files_index_is_freed_at_every_rotation(tmp_path: Path) -> None:
+    """The MCAP writer keeps a chunk's index entry until the file ends (the summary needs it):
+    it grows a second at a time within a file and is freed at each rotation, never across."""
+    import tracemalloc
+
+    recorder = _recorder(
+        tmp_path, Quota(10**9, 30, 0), rotate_seconds=0.4, chunk_seconds=0.02, check_seconds=60
+    )
+
+    def index_bytes() -> int:
+        snapshot = tracemalloc.take_snapshot().filter_traces(
+            [tracemalloc.Filter(True, "*mcap/writer.py")]
+        )
+        return sum(stat.size for stat in snapshot.statistics("filename"))
+
+    tracemalloc.start()
+    sizes: dict[int, int] = {}
+    try:
+        recorder.start()
+        while len(sizes) < 2:
+            recorder.submit(0, time.time_ns(), b'{"name": "10.6"}')
+            files = recorder.stats.files
+            if files in (3, 8) and files not in sizes and recorder.stats.written:
+                sizes[files] = index_bytes()  # just after a rotation, both times
+            await asyncio.sleep(0.002)
+    finally:
+        await asyncio.to_thread(recorder.stop)
+        tracemalloc.stop()
+    assert sizes[8] - sizes[3] < 4_000, sizes
