@@ -5,7 +5,11 @@
   and off, at 5 fps (idle) and 30 fps (manual override engaged): process CPU time over wall
   time, and the recordings' growth scaled to an hour.
 - ``loop_stall_*``: an in-process --sim platform streaming the NavCam at 30 fps: how late a
-  2 ms timer fires on its event loop (p99, max), recorder on versus off (target: < 1 ms added).
+  2 ms timer fires on its event loop (p99), recorder on versus off, three alternated runs each
+  (median): target < 1 ms added. On a shared, loaded machine this difference is mostly noise,
+  so ``recorder_*`` also times the recorder's own loop work directly: recording every
+  telemetry section (2 Hz), and queueing one bus message (the bus delivers to every
+  subscriber, the recorder's callback among them).
 - ``pvel_to_serial_*``: ``$PVEL`` to the first byte at the motor controller's pty
   (bench_velocity's tap), recorder on versus off: unchanged.
 - ``one_hour_*``: a synthetic one-hour recording (NavCam 5 fps, every telemetry section at
@@ -22,6 +26,7 @@ import json
 import os
 import random
 import shutil
+import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -39,17 +44,20 @@ from bench.support import (
     start_platform,
     stop_process,
 )
-from brasidas import security
+from brasidas import security, topics
 from brasidas.codecs.telemetry_schema import SECTIONS
 from brasidas.config import PlatformConfig, StationConfig, load_config
+from brasidas.messages import Velocity
 from brasidas.recording import schemas
 from platformd.app import PlatformDaemon
+from platformd.recorder import PlatformRecorder
 from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
 from stationd.foxglove_live import FoxgloveLive
 
 PHASE_S = 20.0
-STALL_S = 10.0
+STALL_S = 5.0
+STALL_RUNS = 3
 HOUR_S = 3600
 CLIENT = Path(__file__).resolve().parent.parent / "tests" / "foxglove_client"
 
@@ -143,6 +151,49 @@ async def _loop_stalls(recorder: bool, directory: Path, key: bytes) -> list[floa
     finally:
         await daemon.stop()
     return lateness
+
+
+async def _recorder_loop_work(key: bytes, directory: Path) -> dict[str, float]:
+    """What the recorder itself does on the event loop, timed directly (load-independent):
+    a telemetry record (every section built and queued, 2 Hz) and one bus message queued."""
+    config = load_config(
+        PlatformConfig,
+        None,
+        [
+            "signaling.port=0",
+            "velocity.port=0",
+            "beacon.enabled=false",
+            "audio.enabled=false",
+            "navcam.enabled=false",
+            "sim.enabled=true",
+            f"recorder.dir={directory}",
+            "recorder.queue_messages=100000",
+        ],
+    )
+    daemon = PlatformDaemon(config, key)
+    await daemon.start()
+    try:
+        await asyncio.sleep(2.0)
+        recorder = next(a for a in daemon.supervisor.actors if isinstance(a, PlatformRecorder))
+        telemetry: list[float] = []
+        for _ in range(200):
+            began = time.perf_counter()
+            recorder._record_telemetry()
+            telemetry.append((time.perf_counter() - began) * 1000)
+            await asyncio.sleep(0.005)
+        message = Velocity(0.3, 0.1)
+        began = time.perf_counter()
+        for _ in range(5000):
+            daemon.bus.publish(topics.TELEOP_VELOCITY, message)
+        per_message_us = (time.perf_counter() - began) / 5000 * 1e6
+    finally:
+        await daemon.stop()
+    result = percentiles(telemetry)
+    return {
+        "recorder_telemetry_record_p50_ms": result["p50"],
+        "recorder_telemetry_record_p99_ms": result["p99"],
+        "recorder_bus_message_us": round(per_message_us, 2),
+    }
 
 
 def _write_hour(path: Path) -> dict[str, int]:
@@ -291,13 +342,18 @@ async def run() -> dict[str, Any]:
                 - figures[f"cpu_{fps}fps_recorder_off_pct"],
                 2,
             )
-        for recorder in (False, True):
-            tag = "on" if recorder else "off"
-            stalls = percentiles(await _loop_stalls(recorder, base / f"stall-{tag}", key))
-            figures[f"loop_stall_recorder_{tag}_p99_ms"] = stalls["p99"]
+        runs: dict[str, list[float]] = {"off": [], "on": []}
+        for attempt in range(STALL_RUNS):  # alternated: the machine's load drifts
+            for recorder in (False, True):
+                tag = "on" if recorder else "off"
+                lateness = await _loop_stalls(recorder, base / f"stall-{tag}-{attempt}", key)
+                runs[tag].append(percentiles(lateness)["p99"])
+        for tag, values in runs.items():
+            figures[f"loop_stall_recorder_{tag}_p99_ms"] = statistics.median(values)
         figures["loop_stall_added_p99_ms"] = round(
             figures["loop_stall_recorder_on_p99_ms"] - figures["loop_stall_recorder_off_p99_ms"], 3
         )
+        figures.update(await _recorder_loop_work(key, base / "work"))
         for recorder in (False, True):
             tag = "on" if recorder else "off"
             serial = await bench_velocity._serial_latency(
