@@ -240,6 +240,9 @@ class Recorder:
             if item is not None and not self._stopped_for:
                 self._write(item, now)
             self._maybe_close_chunk(now)
+            # Let the event loop's thread have the GIL between messages: without this, a busy
+            # writer holds it for the interpreter's whole switch interval (5 ms) at a time.
+            time.sleep(0)
 
     def _next_deadline(self, now: float) -> float:
         deadline = self._next_check
