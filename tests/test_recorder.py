@@ -5,13 +5,15 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import json
 import logging
 import os
 import signal
+import subprocess
 import sys
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -479,3 +481,62 @@ async def test_the_open_files_index_is_freed_at_every_rotation(tmp_path: Path) -
         await asyncio.to_thread(recorder.stop)
         tracemalloc.stop()
     assert sizes[8] - sizes[3] < 4_000, sizes
+
+
+@contextlib.contextmanager
+def tiny_tmpfs(path: Path, size: str) -> Iterator[Path]:
+    """A tmpfs of ``size`` mounted at ``path`` (root: the tests run as root, see README)."""
+    path.mkdir()
+    mounted = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.strip()}")
+    try:
+        yield path
+    finally:
+        subprocess.run(["umount", "-l", str(path)], check=False)
+
+
+async def test_a_full_tmpfs_stops_recording_with_a_warning_and_teleop_carries_on(
+    platform_factory: Factory, fleet_key: bytes, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.WARNING, "brasidas.recording.writer")
+    with tiny_tmpfs(tmp_path / "disk", "400k") as disk:
+        daemon = await platform_factory(
+            quiet_platform_config(
+                "sim.enabled=true",
+                "navcam.enabled=true",
+                "recorder.enabled=true",
+                f"recorder.dir={disk}",
+                "recorder.min_free_bytes=0",  # the disk itself says no: ENOSPC
+                "recorder.chunk_seconds=0.2",
+            ),
+            fleet_key,
+        )
+        recorder = recorder_of(daemon)
+        motors: list[Velocity] = []
+        daemon.bus.subscribe(topics.MOTOR_COMMAND, motors.append)
+        conn = await open_connection(daemon, fleet_key)
+        sock = udp_socket()
+        try:
+            await conn.call("start_stream", name="navcam", port=free_udp_port())
+            assert await conn.call("set_manual_override", engaged=True) is True  # 30 fps
+            await wait_until(lambda: "write failed" in recorder.writer.stats.reason, 60)
+            assert "No space left on device" in recorder.writer.stats.reason
+            assert "recorder stopped: write failed" in caplog.text
+            # The control path never noticed: the stream drives the motors.
+            info = await conn.call("get_velocity_connection_info")
+            encoder = pvel.PvelEncoder(key=conn.session_key, session_id=conn.session_id)
+            sock.sendto(encoder.encode(0.4, 0.1), (info["host"], info["port"]))
+            await wait_until(lambda: bool(motors) and motors[-1] == Velocity(0.4, 0.1))
+            listing = await conn.call("list_recordings")
+            assert listing["recording"] is False and "write failed" in listing["reason"]
+            assert (await conn.call("get_nav_camera_parameters"))["state"] == "playing"
+        finally:
+            sock.close()
+            await conn.close()
+            await daemon.stop()

@@ -45,6 +45,8 @@ NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}\.mcap$")
 """A recording's name as listed and downloaded: no path separators, no hidden files."""
 QUOTA_CHECK_S = 5.0
 """How often the writer re-checks the quota and free space while recording (and while stopped)."""
+RESUME_FREE_BYTES = 16 * 1024**2
+"""After a failed write, recording resumes only with this much free beyond the floor."""
 VIDEO_GAP_S = 2.0
 """A rotation waits for a keyframe only while video came in the last this many seconds."""
 
@@ -152,6 +154,7 @@ class Recorder:
         self._thread: threading.Thread | None = None
         self._file: _OpenFile | None = None
         self._stopped_for = ""
+        self._write_failed = False
         self._next_check = 0.0
         self._last_video = -1e9
         self._rotate_due = False
@@ -286,7 +289,7 @@ class Recorder:
                 channel_id = self._register(f, item.channel)
             f.writer.add_message(channel_id, item.time_ns, data, item.time_ns)
         except OSError as err:
-            self._stop_recording(f"write failed: {err}")
+            self._stop_recording(f"write failed: {err}", write_failed=True)
             return
         f.pending += 1
         self.stats.written += 1
@@ -308,7 +311,7 @@ class Recorder:
             f.writer.flush()  # type: ignore[no-untyped-call]
             os.fsync(f.stream.fileno())
         except OSError as err:
-            self._stop_recording(f"write failed: {err}")
+            self._stop_recording(f"write failed: {err}", write_failed=True)
             return
         f.pending = 0
         f.last_chunk = now
@@ -334,26 +337,33 @@ class Recorder:
         return self._file
 
     def _close_file(self) -> None:
+        """Finish the file (its summary) and name it ``.mcap``; a file that cannot be finished
+        (the disk failed) keeps its ``.active`` name, for the next start to recover."""
         f = self._file
         if f is None:
             return
         self._file = None
         self.stats.current = ""
+        finished = False
         try:
             f.writer.finish()  # type: ignore[no-untyped-call]
             f.stream.flush()
             os.fsync(f.stream.fileno())
+            finished = True
         except OSError as err:
             _LOGGER.warning("recorder: finishing %s failed: %s", f.path.name, err)
         finally:
-            f.stream.close()
-        with contextlib.suppress(OSError):
-            f.path.rename(f.path.with_name(f.path.name.removesuffix(ACTIVE_SUFFIX) + SUFFIX))
+            with contextlib.suppress(OSError):  # what the buffer still held cannot be written
+                f.stream.close()
+        if finished:
+            with contextlib.suppress(OSError):
+                f.path.rename(f.path.with_name(f.path.name.removesuffix(ACTIVE_SUFFIX) + SUFFIX))
 
-    def _stop_recording(self, reason: str) -> None:
+    def _stop_recording(self, reason: str, *, write_failed: bool = False) -> None:
         if self._stopped_for:
             return
         self._stopped_for = reason
+        self._write_failed = write_failed
         self.stats.recording = False
         self.stats.reason = reason
         _LOGGER.warning("recorder stopped: %s", reason)
@@ -384,6 +394,15 @@ class Recorder:
         if reason and not self._stopped_for:
             self._stop_recording(reason)
         elif not reason and self._stopped_for:
+            if self._write_failed:
+                # The disk refused a write (full below the floor, or failing): wait for room
+                # beyond the floor, or it would stop again at once, a file at a time.
+                try:
+                    free = shutil.disk_usage(self.directory).free
+                except OSError:
+                    return
+                if free < self.quota.min_free_bytes + RESUME_FREE_BYTES:
+                    return
             self._resume()
 
     def _deleted(self, path: Path) -> None:
