@@ -385,7 +385,12 @@ async def test_a_full_disk_stops_recording_with_a_warning_and_teleop_carries_on(
         await conn.close()
 
 
-async def test_a_quota_at_the_current_size_stops_recording(tmp_path: Path) -> None:
+async def test_a_quota_below_the_current_size_stops_deletes_the_oldest_and_resumes(
+    tmp_path: Path,
+) -> None:
+    """The file being written outgrows the quota: recording stops with a warning (the file
+    finished), the oldest files go (here that one: nothing can keep a file over the quota),
+    and recording resumes in a new file."""
     events: list[tuple[int, str]] = []
     recorder = _recorder(
         tmp_path,
@@ -400,12 +405,15 @@ async def test_a_quota_at_the_current_size_stops_recording(tmp_path: Path) -> No
         for _ in range(10):
             recorder.submit(0, time.time_ns(), os.urandom(20_000))
             await asyncio.sleep(0.03)
-        await wait_until(lambda: "quota reached" in recorder.stats.reason, 10)
+        await wait_until(lambda: any("resumed" in text for _level, text in events), 10)
+        assert recorder.stats.deleted >= 1
+        recorder.submit(0, time.time_ns(), b'{"after": true}')
+        await wait_until(lambda: recorder.stats.files >= 2, 10)
     finally:
         await asyncio.to_thread(recorder.stop)
-    assert events and events[0][0] == schemas.LOG_WARNING and "recording stopped" in events[0][1]
-    assert not recorder.submit(0, time.time_ns(), b"x")
-    assert recorder.stats.not_recording >= 1
+    level, text = events[0]
+    assert level == schemas.LOG_WARNING and text.startswith("recording stopped: quota reached")
+    assert events[1] == (schemas.LOG_INFO, "recording resumed")
 
 
 async def test_downloads_need_a_session_and_a_plain_recording_name(
