@@ -363,6 +363,9 @@ async def run() -> dict[str, Any]:
             figures[f"pvel_to_serial_20hz_recorder_{tag}_p99_ms"] = serial[
                 "pvel_to_serial_20hz_p99_ms"
             ]
+            figures[f"pvel_to_serial_20hz_recorder_{tag}_p50_ms"] = serial[
+                "pvel_to_serial_20hz_p50_ms"
+            ]
         hour = base / "hour.mcap"
         started = time.monotonic()
         await asyncio.to_thread(_write_hour, hour)
