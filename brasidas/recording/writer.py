@@ -47,6 +47,8 @@ QUOTA_CHECK_S = 5.0
 """How often the writer re-checks the quota and free space while recording (and while stopped)."""
 RESUME_FREE_BYTES = 16 * 1024**2
 """After a failed write, recording resumes only with this much free beyond the floor."""
+BATCH_S = 0.05
+"""The writer thread writes what was queued this often (a chunk closes every second)."""
 VIDEO_GAP_S = 2.0
 """A rotation waits for a keyframe only while video came in the last this many seconds."""
 
@@ -227,25 +229,29 @@ class Recorder:
             self._close_file()
 
     def _loop(self) -> None:
+        """Wake every :data:`BATCH_S` and write what came meanwhile. Not woken by each message:
+        a writer that ran the moment a message was queued would take the GIL exactly when the
+        event loop is busy (a velocity datagram's way to the motors, say); in batches, it meets
+        the loop only by chance, and gives the GIL back after every message."""
         while True:
             now = self.clock()
-            wait = max(0.01, self._next_deadline(now) - now)
-            try:
-                item = self._queue.get(timeout=wait)
-            except queue.Empty:
-                item = None
-            if item is _STOP:
-                return
+            time.sleep(min(BATCH_S, max(0.0, self._next_deadline(now) - now)))
+            while True:
+                try:
+                    item = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if item is _STOP:
+                    return
+                now = self.clock()
+                if not self._stopped_for:
+                    self._write(item, now)
+                time.sleep(0)  # the GIL to the event loop's thread, if it waits
             now = self.clock()
             if now >= self._next_check:
                 self._next_check = now + self.check_seconds
                 self._check_space()
-            if item is not None and not self._stopped_for:
-                self._write(item, now)
             self._maybe_close_chunk(now)
-            # Let the event loop's thread have the GIL between messages: without this, a busy
-            # writer holds it for the interpreter's whole switch interval (5 ms) at a time.
-            time.sleep(0)
 
     def _next_deadline(self, now: float) -> float:
         deadline = self._next_check
