@@ -4,7 +4,8 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP_APT := $(VENV)/.apt-stamp
 STAMP_PIP := $(VENV)/.pip-stamp
-# The console's JavaScript packages (package-lock.json): uPlot, served by the station, and ESLint.
+# The JavaScript packages (package-lock.json): uPlot, served by the station, ESLint, and the
+# tests' real Foxglove WebSocket client (@foxglove/ws-protocol + ws).
 STAMP_NPM := node_modules/.npm-stamp
 
 APT_PACKAGES := python3 python3-venv python3-dev gcc pkg-config \
@@ -38,6 +39,7 @@ $(STAMP_PIP): pyproject.toml $(STAMP_APT)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[test,bench]'
 	@touch $@
+
 
 demo: deps
 	$(PY) -m stationd.demo

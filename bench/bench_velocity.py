@@ -127,7 +127,8 @@ LEVELS = (0.2, 0.4, 0.6, 0.8)
 async def _platform_with_tap(
     key: bytes, *overrides: str
 ) -> tuple[PlatformDaemon, SerialTap, Ax3500Simulator]:
-    """An in-process platform whose driver talks to a simulated AX3500 through a tap."""
+    """An in-process platform whose driver talks to a simulated AX3500 through a tap
+    (``overrides``: further config settings, e.g. the recorder's or the MAVLink endpoint's)."""
     simulator = Ax3500Simulator(SimOptions(), vehicle=VehicleModel())
     simulator.start()
     tap = SerialTap(simulator.path)
@@ -159,9 +160,9 @@ def _velocity_commands(tap: SerialTap) -> list[Command]:
     return [c for c in tap.commands if c.text[:2] in ("!A", "!a")]
 
 
-async def _serial_latency(key: bytes) -> dict[str, Any]:
+async def _serial_latency(key: bytes, extra: tuple[str, ...] = ()) -> dict[str, Any]:
     """``$PVEL`` sent to the first byte of the resulting command at the pty master."""
-    daemon, tap, simulator = await _platform_with_tap(key)
+    daemon, tap, simulator = await _platform_with_tap(key, *extra)
     figures: dict[str, Any] = {}
     try:
         deadline = time.monotonic() + 10

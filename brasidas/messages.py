@@ -436,3 +436,23 @@ class Automations:
 
     def as_dict(self) -> dict[str, bool]:
         return dict(self.switches)
+
+
+# --------------------------------------------------------------------------- recorder (issue 23)
+
+
+@dataclass(frozen=True)
+class CommandReceived:
+    """A command a station sent (a system command, or a control method such as a route or a
+    map) and the answer it got, with who sent it: what the recorder keeps."""
+
+    kind: str
+    """"system" (a command code) or "rpc" (a control method)."""
+    name: str
+    """The code ("10.4") or the method ("set_waypoints")."""
+    payload: str
+    """The payload, or the method's parameters as JSON (cut at 4 KiB)."""
+    session_id: str | None
+    station_id: str | None
+    accepted: bool
+    reason: str = ""

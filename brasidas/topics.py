@@ -7,6 +7,7 @@ from brasidas.messages import (
     Attitude,
     Automations,
     CommandAge,
+    CommandReceived,
     ControllerStatus,
     ControlState,
     FailsafeState,
@@ -105,3 +106,7 @@ PATROL_STATUS: Topic[PatrolStatus] = Topic("patrol_status", retain=True)
 """The patrol's state, target, lap and planned path, on every change (platformd.autonomy)."""
 AUTOMATIONS: Topic[Automations] = Topic("automations", retain=True)
 """Onboard automations switched on or off (R-3): see :func:`platformd.automation.report_switch`."""
+
+# --------------------------------------------------------------------------- recorder (issue 23)
+COMMAND_RECEIVED: Topic[CommandReceived] = Topic("command_received")
+"""Every system command and control method a station sent, with the sender and the answer."""

@@ -42,6 +42,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "platformd.payloads",
     "platformd.mavlink",  # after autonomy and media: ctx.patrol, ctx.media
     "platformd.telemetry",
+    "platformd.recorder",  # after media (it taps the NavCam), before signaling (its routes)
     "platformd.signaling",
     "platformd.beacon",
 )

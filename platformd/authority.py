@@ -17,6 +17,7 @@ owner sees a command, and control RPC methods are registered through :meth:`Auth
 from __future__ import annotations
 
 import functools
+import json
 import logging
 from collections.abc import Awaitable, Callable
 from typing import Any
@@ -34,11 +35,13 @@ from brasidas.codecs.commands import (
     parse_switch,
 )
 from brasidas.codecs.jsonrpc import CallContext, RpcError
-from brasidas.messages import ControlState, FailsafeStep, SessionClosed
+from brasidas.messages import CommandReceived, ControlState, FailsafeStep, SessionClosed
 from platformd.commands import SystemCommand
 from platformd.session_table import Session, SessionTable
 
 _LOGGER = logging.getLogger(__name__)
+PAYLOAD_KEPT = 4096
+"""A control method's parameters are recorded up to this many characters."""
 
 CONTROL_REFUSED = -32003
 """JSON-RPC error code of a control method refused to an observer."""
@@ -130,10 +133,38 @@ class Authority:
         async def guarded(call: CallContext, **params: Any) -> Any:
             reason = self.refusal(call.session, what)
             if reason is not None:
+                self._received(what, params, call.session, False, reason)
                 raise RpcError(CONTROL_REFUSED, reason)
-            return await handler(call, **params)
+            try:
+                result = await handler(call, **params)
+            except RpcError as err:
+                self._received(what, params, call.session, False, err.message)
+                raise
+            self._received(what, params, call.session, True)
+            return result
 
         return guarded
+
+    def _received(
+        self, what: str, params: dict[str, Any], session: Session | None, ok: bool, reason: str = ""
+    ) -> None:
+        """Tell the bus (the recorder) who sent which control method and how it went."""
+        try:
+            payload = json.dumps(params, default=str)[:PAYLOAD_KEPT]
+        except (TypeError, ValueError):
+            payload = "<unprintable>"
+        self.bus.publish(
+            topics.COMMAND_RECEIVED,
+            CommandReceived(
+                "rpc",
+                what,
+                payload,
+                session.session_id if session else None,
+                session.station_id if session else None,
+                ok,
+                reason,
+            ),
+        )
 
     def release(self, session_id: str, reason: str) -> None:
         """The controller's session ended: control is free."""

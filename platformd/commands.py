@@ -88,6 +88,8 @@ class CommandRouter:
         self.counters: dict[str, int] = dict.fromkeys(
             ("dispatched", "unknown", "unavailable", "refused", "timeouts", "failures"), 0
         )
+        self.on_answered: Callable[[SystemCommand, CommandResult], None] | None = None
+        """Told of every command with an owner and its answer (the context publishes it)."""
 
     def register(
         self,
@@ -155,6 +157,13 @@ class CommandRouter:
             self.counters["unavailable"] += 1
             return CommandResult(False, f"{code} ({description}) is not available on this platform")
         command = SystemCommand(code, payload, session)
+        result = await self._answer(command, registration)
+        if self.on_answered is not None:
+            self.on_answered(command, result)
+        return result
+
+    async def _answer(self, command: SystemCommand, registration: _Registration) -> CommandResult:
+        code, session = command.code, command.session
         refusal = self.authorize(command)
         if refusal is not None:
             self.counters["refused"] += 1

@@ -7,14 +7,18 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
+from aiohttp import web
+
+from brasidas import topics
 from brasidas.actor import Supervisor
 from brasidas.admission import ServerAdmission
 from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.config import PlatformConfig
+from brasidas.messages import CommandReceived, CommandResult
 from brasidas.telemetry_sources import TelemetrySources
 from platformd.authority import Authority
-from platformd.commands import CommandRouter
+from platformd.commands import CommandRouter, SystemCommand
 from platformd.session_table import Session, SessionTable
 from platformd.sim import SimulatedDevices
 
@@ -145,6 +149,9 @@ class PlatformContext:
     """The MAVLink endpoint's bound UDP port (platformd.mavlink), 0 when it is off."""
     patrol: PatrolHandle | None = None
     """The patrol (platformd.autonomy): its route and map, for the MAVLink endpoint."""
+    http_routes: list[web.RouteDef] = field(default_factory=list)
+    """Plain HTTP routes served beside signaling's (the recorder's downloads); added before
+    signaling's setup."""
 
     @property
     def motor_serial(self) -> SerialDevice:
@@ -178,6 +185,22 @@ class PlatformContext:
         self.authority = Authority(self.bus, self.sessions, self.commands.is_engagement)
         self.commands.authorize = self.authority.authorize
         self.authority.command_name = self.commands.spec_name
+        self.commands.on_answered = self._command_answered
+
+    def _command_answered(self, command: SystemCommand, result: CommandResult) -> None:
+        session = command.session
+        self.bus.publish(
+            topics.COMMAND_RECEIVED,
+            CommandReceived(
+                "system",
+                str(command.code),
+                command.payload,
+                session.session_id if session else None,
+                session.station_id if session else None,
+                result.accepted,
+                result.reason,
+            ),
+        )
 
     def session(self, session_id: str | None) -> Session | None:
         """The open session with this token, or None."""

@@ -114,6 +114,7 @@ async def async_setup(ctx: PlatformContext) -> None:
     ctx.rpc.max_answer_bytes = config.max_answer_bytes
     app = web.Application(client_max_size=config.max_request_bytes)
     add_rpc_routes(app, ctx.rpc, "/rpc", config.max_request_bytes)
+    app.router.add_routes(ctx.http_routes)
     port = await serve_app(
         app,
         config.host,

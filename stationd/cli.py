@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import datetime
 import json
 import logging
 import sys
@@ -350,6 +351,47 @@ def cmd_audio(args: argparse.Namespace, config: StationConfig) -> int:
     return run_audio(args, config)
 
 
+def cmd_logs(args: argparse.Namespace, config: StationConfig) -> int:
+    """``logs ID``: the platform's recordings; ``logs ID get NAME [-o FILE]``: download one."""
+    if args.action is None:
+        answer = api_call(config, "recordings_list", platform_id=args.id)
+        _print(args, answer, _describe_recordings)
+        return 0
+    if not args.name:
+        raise CliError("logs ID get NAME: which recording (see 'brasidas-station logs ID')")
+    source = api_call(config, "recording_source", platform_id=args.id, name=args.name)
+    target = Path(args.output or Path(args.name).name)
+    have = target.stat().st_size if target.exists() else 0
+    from stationd.recordings import DownloadError, download
+
+    try:
+        size = asyncio.run(download(source["url"], dict(source["headers"]), target, have))
+    except DownloadError as err:
+        raise CliError(str(err)) from None
+    print(f"{target}: {size} bytes")
+    return 0
+
+
+def _describe_recordings(answer: dict[str, Any]) -> str:
+    state = "recording" if answer.get("recording") else f"NOT recording: {answer.get('reason')}"
+    counters = answer.get("counters", {})
+    lines = [f"recorder   {state}; dropped {counters.get('dropped', 0)}"]
+    for item in answer.get("recordings", []):
+        start = item.get("start")
+        when = (
+            datetime.datetime.fromtimestamp(start, datetime.UTC).strftime("%Y-%m-%d %H:%M:%S")
+            if isinstance(start, int | float)
+            else "(being written)"
+            if item.get("recording")
+            else "?"
+        )
+        duration = item.get("duration_s")
+        length = f"{duration:7.1f} s" if isinstance(duration, int | float) else "      -  "
+        topics = ", ".join(sorted(item.get("channels", {})))
+        lines.append(f"{item['name']}  {when}  {length}  {item['size'] / 1e6:8.2f} MB  {topics}")
+    return "\n".join(lines)
+
+
 def cmd_keygen(args: argparse.Namespace, config: StationConfig) -> int:
     path = Path(args.path) if args.path else security.key_path(config.security.key_file)
     try:
@@ -425,6 +467,7 @@ COMMANDS: dict[str, Callable[[argparse.Namespace, StationConfig], int]] = {
     "map": cmd_map,
     "route": cmd_route,
     "patrol": cmd_patrol,
+    "logs": cmd_logs,
 }
 
 
@@ -575,6 +618,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("patrol", parents=[common], help="the patrol's state; start or stop it")
     p.add_argument("id")
     p.add_argument("action", nargs="?", choices=["start", "stop"])
+    p = sub.add_parser(
+        "logs", parents=[common], help="a platform's recordings; 'get NAME' downloads one"
+    )
+    p.add_argument("id")
+    p.add_argument("action", nargs="?", choices=["get"])
+    p.add_argument("name", nargs="?", help="the recording to download")
+    p.add_argument("-o", "--output", metavar="FILE", help="where (default: NAME here)")
     p = sub.add_parser("keygen", parents=[common], help="write a new fleet key")
     p.add_argument("--path", help="where (default: the configured key file)")
     p.add_argument("--force", action="store_true", help="replace an existing key")

@@ -11,6 +11,7 @@ from brasidas.codecs.jsonrpc import UNAVAILABLE, Dispatcher, RpcError
 from brasidas.config import StationConfig
 from brasidas.messages import Velocity
 from stationd.client import PlatformConnection
+from stationd.video_feed import Feed
 
 
 class Connector(Protocol):
@@ -29,6 +30,18 @@ class DriveInputs(Protocol):
         ...
 
 
+class VideoFeeds(Protocol):
+    """What other subsystems use of the console's video feeds (stationd.console)."""
+
+    async def open_feed(self, platform_id: str, stream: str = "navcam") -> Feed:
+        """The platform's feed, started if needed; add a viewer to ``feed.fanout``."""
+        ...
+
+    def release_feed(self, platform_id: str, stream: str = "navcam") -> None:
+        """A viewer added to the feed left."""
+        ...
+
+
 @dataclass
 class StationContext:
     config: StationConfig
@@ -43,6 +56,8 @@ class StationContext:
     """Set by stationd.connections: ``await ctx.connection_manager.ensure(platform_id)``."""
     teleop: DriveInputs | None = None
     """Set by stationd.teleop: the velocity senders and the operator's drive inputs."""
+    video_feeds: VideoFeeds | None = None
+    """Set by stationd.console: the platforms' video feeds, received once, shared."""
 
     async def connection(self, platform_id: str) -> PlatformConnection:
         """The open connection to ``platform_id``, connecting first if needed."""

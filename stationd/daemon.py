@@ -29,7 +29,9 @@ SUBSYSTEMS: tuple[str, ...] = (
     "stationd.media",
     "stationd.patrol",
     "stationd.mapfiles",
+    "stationd.recordings",
     "stationd.console",
+    "stationd.foxglove_live",  # after the console: it shares its video feeds
 )
 
 WEB_ROOT = Path(__file__).parent / "web"

@@ -49,6 +49,14 @@ def _isolated_state(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator
 
 
 @pytest.fixture(autouse=True)
+def _foxglove_on_ephemeral_ports(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every station a test starts serves Foxglove on a port of the kernel's choice."""
+    import stationd.foxglove_live
+
+    monkeypatch.setattr(stationd.foxglove_live, "PORT_OVERRIDE", 0)
+
+
+@pytest.fixture(autouse=True)
 def _restore_logging() -> Iterator[None]:
     """A CLI's ``setup_logging`` replaces the root handlers with one bound to this test's
     captured stderr; left in place it would write to a closed file in every later test."""
@@ -207,6 +215,7 @@ def quiet_platform_config(*overrides: str) -> PlatformConfig:
         "imu.enabled=false",
         "navcam.enabled=false",
         "audio.enabled=false",
+        "recorder.enabled=false",  # tests of the recorder switch it on (tests/test_recorder.py)
         # No latency assumed without a report: the speed cap stays out of the way of tests that
         # are not about it (tests/test_speedcap.py sets the default worst case back).
         "safety.worst_latency_ms=0",

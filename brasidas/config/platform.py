@@ -541,6 +541,30 @@ class MavlinkSection:
 
 
 @dataclass(frozen=True)
+class RecorderSection:
+    """The on-board recorder (issue 23): MCAP files of telemetry, commands and the NavCam."""
+
+    enabled: bool = True
+    dir: str = ""
+    """Where recordings are written. Empty: $XDG_STATE_HOME/brasidas/recordings."""
+    rotate_minutes: float = setting(10.0, above(0, most=1440))
+    """A new file is started after this long (at the NavCam's next keyframe)."""
+    chunk_seconds: float = setting(1.0, above(0, most=10))
+    """A chunk is closed (compressed, written and synced) at least this often: what a power
+    cut can lose."""
+    max_bytes: int = setting(2 * 1024**3, at_least(1024 * 1024, most=2**50))
+    """The recordings' total size; the oldest files are deleted past it."""
+    keep_days: float = setting(30.0, above(0, most=3650))
+    """Files older than this are deleted."""
+    min_free_bytes: int = setting(256 * 1024**2, at_least(0, most=2**50))
+    """Free space kept on the recordings' disk: old files go first, then recording stops."""
+    queue_messages: int = setting(2000, at_least(16, most=1_000_000))
+    """Messages waiting for the writer thread at most; past it new ones are dropped (counted)."""
+    telemetry_hz: float = setting(2.0, above(0, most=50))
+    """How often every telemetry section is recorded."""
+
+
+@dataclass(frozen=True)
 class PlatformConfig:
     RULES: ClassVar[tuple[Rule, ...]] = (
         ordered_across(
@@ -569,3 +593,4 @@ class PlatformConfig:
     autonomy: AutonomySection = field(default_factory=AutonomySection)
     map: MapSection = field(default_factory=MapSection)
     mavlink: MavlinkSection = field(default_factory=MavlinkSection)
+    recorder: RecorderSection = field(default_factory=RecorderSection)

@@ -184,6 +184,19 @@ class ConsoleSection:
 
 
 @dataclass(frozen=True)
+class FoxgloveSection:
+    """Live Foxglove WebSocket server (issue 23): every connected platform's channels."""
+
+    enabled: bool = True
+    host: str = setting("127.0.0.1", ip_address)
+    """Where it listens: loopback unless an operator elsewhere needs it."""
+    port: int = setting(8766, bind_port)
+    """0: any free port (tests)."""
+    video: bool = True
+    """Serve the NavCam (H.264 access units as foxglove.CompressedVideo)."""
+
+
+@dataclass(frozen=True)
 class StationConfig:
     station: StationSection = field(default_factory=StationSection)
     security: SecuritySection = field(default_factory=SecuritySection)
@@ -193,3 +206,4 @@ class StationConfig:
     joystick: JoystickSection = field(default_factory=JoystickSection)
     media: StationMediaSection = field(default_factory=StationMediaSection)
     console: ConsoleSection = field(default_factory=ConsoleSection)
+    foxglove: FoxgloveSection = field(default_factory=FoxgloveSection)

@@ -17,6 +17,7 @@ import collections
 import statistics
 import time
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,6 +25,7 @@ from brasidas.media.fanout import Destinations, FanOutStream
 from brasidas.media.gst import (
     NTP64_EXT_ID,
     NTP64_URI,
+    NTP_UNIX_OFFSET_NS,
     MediaError,
     caps,
     capture_age_ms,
@@ -46,6 +48,12 @@ RTP_VIDEO_CAPS = (
     f"payload={PAYLOAD_TYPE},extmap-{NTP64_EXT_ID}=(string){NTP64_URI}"
 )
 """What a receiver must tell ``udpsrc``: plain RTP carries no SDP."""
+TAP_QUEUE_BUFFERS = 30
+"""Access units the encoded tap may hold before its leaky queue drops the oldest."""
+
+AccessUnitSink = Callable[[bytes, bool, int], None]
+"""``(annex_b, keyframe, capture_time_ns)`` for each encoded access unit, called on
+GStreamer's streaming thread: it must not block (hand the bytes to a queue)."""
 
 
 def choose_encoder(forced: str = "") -> str:
@@ -101,6 +109,9 @@ class VideoOut(FanOutStream[VideoSettings]):
         self.encoder_name = ""
         self._encoder: Any = None
         self._rate_filter: Any = None
+        self.access_unit_sinks: list[AccessUnitSink] = []
+        """Who gets the encoded stream (the recorder): a tee after the encoder feeds them,
+        as sent, never a second encoder. Set before the pipeline is built."""
 
     def describe(self) -> dict[str, Any]:
         s = self.settings
@@ -156,6 +167,11 @@ class VideoOut(FanOutStream[VideoSettings]):
         extension.set_id(NTP64_EXT_ID)
         pay.emit("add-extension", extension)
         sink = self.make_sink()
+        tap: list[Any] = []
+        if self.access_unit_sinks:
+            # No queue on the sending branch: the tee pushes to it first, on the encoder's
+            # thread as before (no added hop, no added latency); the tap's leaky queue after.
+            tap = [make("tee", "encoded")]
         chain = [
             *source_chain,
             stamp,
@@ -165,12 +181,15 @@ class VideoOut(FanOutStream[VideoSettings]):
             convert,
             encoder,
             h264_filter,
+            *tap,
             pay,
             sink,
         ]
         for element in chain:
             pipeline.add(element)
         link_all(*chain)
+        if tap:
+            self._add_tap(pipeline, tap[0])
         self.encoder_name = encoder_name
         self._encoder = encoder
         self._rate_filter = rate_filter
@@ -180,6 +199,39 @@ class VideoOut(FanOutStream[VideoSettings]):
         super().on_torn_down()
         self._encoder = None
         self._rate_filter = None
+
+    def _add_tap(self, pipeline: Any, tee: Any) -> None:
+        """tee → leaky queue → h264parse (SPS/PPS on every keyframe, Annex B, whole access
+        units) → appsink: a slow consumer loses access units here, never the stream."""
+        branch = [
+            make(
+                "queue",
+                "tap_queue",
+                leaky="downstream",
+                max_size_buffers=TAP_QUEUE_BUFFERS,
+                max_size_bytes=0,
+                max_size_time=0,
+            ),
+            make("h264parse", "tap_parse", config_interval=-1),
+            make(
+                "capsfilter",
+                "tap_caps",
+                caps=caps("video/x-h264,stream-format=byte-stream,alignment=au"),
+            ),
+            make(
+                "appsink",
+                "tap",
+                emit_signals=True,
+                sync=False,
+                async_=False,
+                drop=True,
+                max_buffers=TAP_QUEUE_BUFFERS,
+            ),
+        ]
+        for element in branch:
+            pipeline.add(element)
+        link_all(tee, *branch)
+        branch[-1].connect("new-sample", _on_access_unit, (weakref.ref(self), ntp_caps()))
 
     def _source_elements(self) -> list[Any]:
         s = self.settings
@@ -195,6 +247,30 @@ class VideoOut(FanOutStream[VideoSettings]):
         if s.source_format == "raw":
             return [source, make("capsfilter", caps=caps(f"video/x-raw,{size}"))]
         raise MediaError(f"unknown camera format '{s.source_format}' (raw or mjpeg)")
+
+
+def _on_access_unit(appsink: Any, data: tuple[weakref.ref[VideoOut], Any]) -> Any:
+    """Streaming thread: hand one access unit (bytes, keyframe, capture time) to the sinks."""
+    Gst = gst()
+    ref, reference = data
+    sample = appsink.emit("pull-sample")
+    stream = ref()
+    if sample is None or stream is None:
+        return Gst.FlowReturn.OK
+    buffer = sample.get_buffer()
+    keyframe = not buffer.has_flags(Gst.BufferFlags.DELTA_UNIT)
+    meta = buffer.get_reference_timestamp_meta(reference)
+    if meta is not None and meta.timestamp:
+        captured_ns = int(meta.timestamp) - NTP_UNIX_OFFSET_NS
+    else:
+        captured_ns = time.time_ns()
+    payload = buffer.extract_dup(0, buffer.get_size())
+    for sink in tuple(stream.access_unit_sinks):
+        try:
+            sink(payload, keyframe, captured_ns)
+        except Exception:
+            pass  # a consumer's failure never stops the stream; it counts its own errors
+    return Gst.FlowReturn.OK
 
 
 def _h264_caps(encoder_name: str) -> str:

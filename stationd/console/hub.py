@@ -234,4 +234,5 @@ async def async_setup(ctx: StationContext) -> None:
         "console_latency",
     ):
         ctx.api.add(name, getattr(hub, f"api_{name}"), session_required=False)
+    ctx.video_feeds = hub
     ctx.supervisor.start(hub)

@@ -188,6 +188,19 @@ class ConsoleMedia(ConsoleParts):
             connection.video_latency = PageLatency(self, platform_id, connection.video_latency)
         return True
 
+    async def open_feed(self, platform_id: str, stream: str = "navcam") -> Feed:
+        """A platform's video feed, started if needed and shared with the pages watching it:
+        another station subsystem (the Foxglove server) adds its own viewer to its fan-out."""
+        return await self._feed(platform_id, stream, audio=False)
+
+    def release_feed(self, platform_id: str, stream: str = "navcam") -> None:
+        """A viewer added through :meth:`open_feed` left: with none left, the feed lingers
+        and stops like a page's."""
+        key = (platform_id, stream)
+        feed = self.feeds.get(key)
+        if feed is not None and not feed.fanout.viewers:
+            self._unwatched_since.setdefault(key, time.monotonic())
+
     async def _feed(self, platform_id: str, stream: str, *, audio: bool) -> Feed:
         async with self._feed_lock:
             key = (platform_id, stream)

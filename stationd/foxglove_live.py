@@ -1,0 +1,280 @@
+"""Foxglove, live (issue 23): the station serves the Foxglove WebSocket protocol
+(``foxglove-sdk``, subprotocol ``foxglove.sdk.v1``) on ``foxglove.host:port``.
+
+Every connected platform gets the recorder's channels (:mod:`brasidas.recording.schemas`),
+topics prefixed by its id (``/rover-1/gps``): positions and every telemetry section from the
+station's telemetry link, the station's notifications as ``foxglove.Log``, the area map and
+the planned route as ``foxglove.GeoJSON``, and the NavCam as ``foxglove.CompressedVideo``
+while a client subscribes to it (the console's shared feed, no re-encoding). Read-only: the
+server advertises no client publishing, services or parameters; control goes through the
+station's own authority.
+
+The SDK runs its server on its own threads. Logging to a channel is safe from any thread;
+its listener's callbacks (subscribe, unsubscribe) arrive on those threads and reach the
+event loop only through ``loop.call_soon_threadsafe``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+import foxglove
+from foxglove.websocket import ChannelView, Client, ServerListener
+
+from brasidas import topics
+from brasidas.actor import Actor
+from brasidas.codecs.jsonrpc import RpcError
+from brasidas.codecs.telemetry_schema import BY_NAME
+from brasidas.messages import PlatformLink, StationNotification
+from brasidas.recording import schemas
+from brasidas.recording.schemas import ChannelSpec
+from stationd.context import StationContext
+from stationd.video_feed import HEADER, Viewer, pump
+
+_LOGGER = logging.getLogger(__name__)
+
+POLL_S = 0.1
+"""How often the telemetry links are read (the stream's 5 Hz, twice over)."""
+PORT_OVERRIDE: int | None = None
+"""Replaces ``foxglove.port`` when set: the test suite sets 0, so the many stations its tests
+start never take the well-known port (nor collide on it)."""
+
+
+class _Listener(ServerListener):
+    """The SDK's server listener: called on its threads, forwards to the loop."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, owner: FoxgloveLive) -> None:
+        self.loop = loop
+        self.owner = owner
+
+    def on_subscribe(self, client: Client, channel: ChannelView) -> None:
+        self._forward(self.owner.subscribed, str(channel.topic), 1)
+
+    def on_unsubscribe(self, client: Client, channel: ChannelView) -> None:
+        self._forward(self.owner.subscribed, str(channel.topic), -1)
+
+    def _forward(self, callback: Callable[[str, int], None], topic: str, delta: int) -> None:
+        with contextlib.suppress(RuntimeError):  # the loop closed: nobody to tell
+            self.loop.call_soon_threadsafe(callback, topic, delta)
+
+
+class _PlatformChannels:
+    """One platform's channels and what was last published on them."""
+
+    def __init__(self, platform_id: str, context: foxglove.Context) -> None:
+        self.platform_id = platform_id
+        self.channels: dict[str, foxglove.Channel] = {}
+        for spec in schemas.all_channels():
+            self.channels[spec.topic] = foxglove.Channel(
+                f"/{platform_id}{spec.topic}",
+                message_encoding=schemas.MESSAGE_ENCODING,
+                schema=foxglove.Schema(
+                    name=spec.schema_name,
+                    encoding=schemas.SCHEMA_ENCODING,
+                    data=spec.schema_bytes(),
+                ),
+                context=context,
+            )
+        self.last: dict[str, Any] = {}
+        self.map_rev: int | None = None
+        self.video_subscribers = 0
+        self.video_task: asyncio.Task[None] | None = None
+
+    def log(self, spec: ChannelSpec, data: bytes, time_ns: int) -> None:
+        self.channels[spec.topic].log(data, log_time=time_ns)
+
+    def close(self) -> None:
+        if self.video_task is not None:
+            self.video_task.cancel("platform gone")
+        for channel in self.channels.values():
+            channel.close()
+
+
+class FoxgloveLive(Actor):
+    """The Foxglove WebSocket server and its channels, one set per connected platform."""
+
+    name = "foxglove"
+
+    def __init__(self, ctx: StationContext) -> None:
+        super().__init__(ctx.bus)
+        self.ctx = ctx
+        self.port = 0
+        """The bound port (the kernel's choice for 0), once serving."""
+        self.serving = asyncio.Event()
+        self.platforms: dict[str, _PlatformChannels] = {}
+        self.video_units = 0
+        self._context: foxglove.Context | None = None
+        self._server: Any = None
+
+    async def run(self) -> None:
+        config = self.ctx.config.foxglove
+        loop = asyncio.get_running_loop()
+        self._context = foxglove.Context()
+        port = config.port if PORT_OVERRIDE is None else PORT_OVERRIDE
+        try:
+            self._server = await asyncio.to_thread(
+                foxglove.start_server,
+                name=f"brasidas-station {self.ctx.config.station.id}",
+                host=config.host,
+                port=port,
+                capabilities=[],  # read-only: no client publishing, parameters or services
+                server_listener=_Listener(loop, self),
+                context=self._context,
+            )
+        except Exception as err:  # the port taken: the station runs on without it
+            _LOGGER.error("foxglove: cannot serve on %s:%d: %s", config.host, port, err)
+            return
+        self.port = int(self._server.port)
+        self.serving.set()
+        _LOGGER.info("foxglove: serving ws://%s:%d", config.host, self.port)
+        self.subscribe(topics.PLATFORM_CONNECTED, self._on_connected)
+        self.subscribe(topics.PLATFORM_DISCONNECTED, self._on_disconnected)
+        self.subscribe(topics.STATION_NOTIFICATIONS, self._on_notification)
+        for platform_id in list(self.ctx.connections):
+            self._add(platform_id)
+        try:
+            while True:
+                await asyncio.sleep(POLL_S)
+                for platform in list(self.platforms.values()):
+                    await self._poll(platform)
+        finally:
+            for platform in self.platforms.values():
+                platform.close()
+            self.platforms.clear()
+            self.serving.clear()
+            server, self._server = self._server, None
+            if server is not None:  # a crash (restarted): the next run binds again
+                server.stop()
+
+    async def async_stop(self) -> None:
+        server, self._server = self._server, None
+        if server is not None:
+            await asyncio.to_thread(server.stop)
+
+    # ------------------------------------------------------------------ platforms (loop)
+
+    def _add(self, platform_id: str) -> None:
+        if platform_id not in self.platforms and self._context is not None:
+            self.platforms[platform_id] = _PlatformChannels(platform_id, self._context)
+
+    def _on_connected(self, link: PlatformLink) -> None:
+        self._add(link.platform_id)
+
+    def _on_disconnected(self, link: PlatformLink) -> None:
+        platform = self.platforms.pop(link.platform_id, None)
+        if platform is not None:
+            platform.close()
+
+    def _on_notification(self, note: StationNotification) -> None:
+        platform = self.platforms.get(note.platform_id)
+        if platform is None:
+            return
+        time_ns = int(note.time * 1e9)
+        level = schemas.LOG_WARNING if note.active else schemas.LOG_INFO
+        text = f"{note.code} {note.name}: {note.message}{'' if note.active else ' (cleared)'}"
+        platform.log(
+            schemas.LOG_CHANNEL, schemas.encode_log(time_ns, level, note.name, text), time_ns
+        )
+
+    async def _poll(self, platform: _PlatformChannels) -> None:
+        try:
+            report = await self.ctx.api.call_local(
+                "get_telemetry", platform_id=platform.platform_id
+            )
+        except (RpcError, ConnectionError, TimeoutError):
+            return
+        snapshot = report.get("snapshot") if isinstance(report, dict) else None
+        if not isinstance(snapshot, dict):
+            return
+        now = time.time_ns()
+        for name, section in snapshot.items():
+            cls = BY_NAME.get(name)
+            if cls is None or not isinstance(section, dict) or platform.last.get(name) == section:
+                continue
+            platform.last[name] = section
+            platform.log(schemas.telemetry_channel(cls), schemas.encode_json(section), now)
+            if self._derived(platform, name, section, now):
+                await self._map(platform)
+
+    def _derived(
+        self, platform: _PlatformChannels, name: str, section: dict[str, Any], now: int
+    ) -> bool:
+        """The well-known channels a section feeds (positions, the route); True when the
+        area map changed."""
+        lat, lon = section.get("lat"), section.get("lon")
+        if name == "gps" and section.get("fix") and lat is not None and lon is not None:
+            sigma = section["hdop"] * 2.5 if section.get("hdop") is not None else None
+            data = schemas.encode_location(now, lat, lon, section.get("alt"), sigma)
+            platform.log(schemas.GPS, data, now)
+        elif name == "pose" and lat is not None and lon is not None:
+            data = schemas.encode_location(now, lat, lon, None, section.get("sigma_m"))
+            platform.log(schemas.POSE, data, now)
+        elif name == "autonomy":
+            path = [(float(p[0]), float(p[1])) for p in section.get("path", ()) if len(p) >= 2]
+            platform.log(schemas.ROUTE, schemas.encode_path(path), now)
+            if section.get("map_rev") != platform.map_rev:
+                platform.map_rev = section.get("map_rev")
+                return True
+        return False
+
+    async def _map(self, platform: _PlatformChannels) -> None:
+        with contextlib.suppress(RpcError, ConnectionError, TimeoutError):
+            answer = await self.ctx.api.call_local("map_get", platform_id=platform.platform_id)
+            if isinstance(answer, dict) and answer.get("map") is not None:
+                now = time.time_ns()
+                platform.log(schemas.MAP, schemas.encode_geojson(answer["map"]), now)
+
+    # ------------------------------------------------------------------ video (loop)
+
+    def subscribed(self, topic: str, delta: int) -> None:
+        """A client subscribed to (1) or left (-1) ``topic``; the NavCam is fetched while
+        anyone watches it."""
+        for platform in self.platforms.values():
+            if topic == f"/{platform.platform_id}{schemas.NAVCAM.topic}":
+                platform.video_subscribers = max(0, platform.video_subscribers + delta)
+                if platform.video_subscribers and platform.video_task is None:
+                    platform.video_task = asyncio.get_running_loop().create_task(
+                        self._video(platform), name=f"foxglove:video:{platform.platform_id}"
+                    )
+                elif not platform.video_subscribers and platform.video_task is not None:
+                    platform.video_task.cancel("no subscriber")
+                    platform.video_task = None
+
+    async def _video(self, platform: _PlatformChannels) -> None:
+        feeds = self.ctx.video_feeds
+        if feeds is None or not self.ctx.config.foxglove.video:
+            return
+        try:
+            feed = await feeds.open_feed(platform.platform_id)
+        except Exception as err:  # refused, lost, or the platform has no NavCam
+            _LOGGER.warning("foxglove: no NavCam from %s: %s", platform.platform_id, err)
+            platform.video_task = None  # the next subscription tries again
+            return
+        viewer = Viewer(feed.number)
+        remove = feed.fanout.add(viewer)
+
+        async def send(message: bytes) -> None:
+            # The viewer starts each run at a keyframe (its GOP replay, or after a cutback).
+            _kind, _flags, _feed, _seq, capture_ms, arrival_ms = HEADER.unpack_from(message)
+            time_ns = int((capture_ms or arrival_ms) * 1e6)
+            self.video_units += 1
+            data = schemas.encode_video(time_ns, message[HEADER.size :])
+            platform.log(schemas.NAVCAM, data, time_ns)
+
+        try:
+            await pump(viewer, send)
+        finally:
+            remove()
+            feeds.release_feed(platform.platform_id)
+
+
+async def async_setup(ctx: StationContext) -> None:
+    if not ctx.config.foxglove.enabled:
+        return
+    live = FoxgloveLive(ctx)
+    ctx.supervisor.start(live)

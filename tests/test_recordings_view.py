@@ -1,0 +1,171 @@
+"""The console's recordings view (issue 23) in headless Chromium: a --sim platform's recording
+is listed, opened (the station fetches it) and replayed; seeking to a time shows that time's
+position on the map and that time's NavCam frame."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import shutil
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+from conftest import free_udp_port, quiet_platform_config, running_station
+from mcap.reader import make_reader
+from test_station import run_cli
+
+from platformd.app import PlatformDaemon
+
+Factory = Callable[..., Awaitable[PlatformDaemon]]
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking"]
+
+
+def finished_with_video(directory: Path) -> list[Path]:
+    found = []
+    for path in sorted(directory.glob("*.mcap")):
+        with open(path, "rb") as stream:
+            summary = make_reader(stream).get_summary()
+        if summary is not None and any(c.topic == "/navcam" for c in summary.channels.values()):
+            found.append(path)
+    return found
+
+
+def expected_at(path: Path, fraction: float) -> dict[str, Any]:
+    """The time at ``fraction`` of the file, the position then and the frame shown then."""
+    with open(path, "rb") as stream:
+        reader = make_reader(stream)
+        stats = reader.get_summary().statistics  # type: ignore[union-attr]
+        assert stats is not None
+        at = stats.message_start_time + int(
+            (stats.message_end_time - stats.message_start_time) * fraction
+        )
+        pose = frame = None
+        for _s, channel, message in reader.iter_messages(ending_at=at):
+            if channel.topic == "/pose":
+                pose = (message.log_time, json.loads(message.data))
+            elif channel.topic == "/navcam":
+                frame = message.log_time
+    assert pose is not None and frame is not None
+    return {"at": at, "start": stats.message_start_time, "pose": pose, "frame": frame}
+
+
+async def test_seeking_shows_that_times_position_and_frame(
+    platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+) -> None:
+    from playwright.async_api import async_playwright, expect
+
+    recordings = tmp_path / "recordings"
+    platform = await platform_factory(
+        quiet_platform_config(
+            "platform.id=rover-rp",
+            "sim.enabled=true",
+            "gps.enabled=true",
+            "navcam.enabled=true",
+            "recorder.enabled=true",
+            f"recorder.dir={recordings}",
+            "recorder.rotate_minutes=0.15",
+            f"map.file={tmp_path / 'map.geojson'}",
+            f"autonomy.route_file={tmp_path / 'route.json'}",
+        ),
+        fleet_key,
+    )
+    async with running_station(fleet_key) as station:
+        code, _, err = await run_cli(
+            station, "connect", "rover-rp", "--url", platform.ctx.signaling_url
+        )
+        assert code == 0, err
+        port = str(free_udp_port())
+        code, _, err = await run_cli(
+            station, "stream", "rover-rp", "navcam", "start", "--port", port
+        )
+        assert code == 0, err
+
+        async def recorded() -> bool:
+            return bool(await asyncio.to_thread(finished_with_video, recordings))
+
+        deadline = asyncio.get_running_loop().time() + 60
+        while not await recorded():
+            assert asyncio.get_running_loop().time() < deadline, "no finished recording"
+            await asyncio.sleep(0.5)
+        path = (await asyncio.to_thread(finished_with_video, recordings))[0]
+        expected = await asyncio.to_thread(expected_at, path, 0.7)
+
+        async with async_playwright() as playwright:
+            browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            try:
+                page = await browser.new_page()
+                errors: list[str] = []
+                page.on("pageerror", lambda error: errors.append(str(error)))
+                await page.goto(f"http://127.0.0.1:{station.api_port}/")
+                await page.locator("#recordings-toggle").click()
+                await page.locator("#rec-platform").fill("rover-rp")
+                await page.locator("#rec-list-button").click()
+                option = page.locator(f'#rec-list option[value="{path.name}"]')
+                await expect(option).to_have_count(1, timeout=15_000)
+                await page.locator("#rec-list").select_option(path.name)
+                await page.locator("#rec-open").click()
+                view = page.locator("#recordings")
+                await expect(view).to_have_attribute("data-recording", path.name, timeout=30_000)
+
+                seconds = (expected["at"] - expected["start"]) / 1e9
+                await page.evaluate(
+                    """(seconds) => {
+                        const slider = document.getElementById("rec-time");
+                        slider.value = String(seconds);
+                        slider.dispatchEvent(new Event("input"));
+                    }""",
+                    seconds,
+                )
+                pose_time, pose = expected["pose"]
+
+                async def shown(selector: str, attribute: str) -> float:
+                    value = await page.locator(selector).get_attribute(attribute)
+                    return float(value) if value else 0.0
+
+                async def in_step() -> bool:
+                    position_ns = await shown("#rec-position", "data-time-ns")
+                    frame_ns = await shown("#rec-video", "data-frame-time-ns")
+                    return (
+                        abs(position_ns - pose_time) < 2000
+                        and abs(frame_ns - expected["frame"]) < 2000
+                    )
+
+                deadline = asyncio.get_running_loop().time() + 20
+                while not await in_step():
+                    assert asyncio.get_running_loop().time() < deadline, (
+                        await page.locator("#rec-position").get_attribute("data-time-ns"),
+                        await page.locator("#rec-video").get_attribute("data-frame-time-ns"),
+                        pose_time,
+                        expected["frame"],
+                        await page.locator("#rec-message").text_content(),
+                    )
+                    await asyncio.sleep(0.2)
+                lat = float(await page.locator("#rec-position").get_attribute("data-lat") or 0)
+                lon = float(await page.locator("#rec-position").get_attribute("data-lon") or 0)
+                assert abs(lat - pose["latitude"]) < 1e-9 and abs(lon - pose["longitude"]) < 1e-9
+                await expect(page.locator("#rec-position")).to_contain_text(f"{lat:.6f}")
+                # The frame was drawn: the canvas holds a picture, not the empty black.
+                lit = await page.evaluate(
+                    """() => {
+                        const c = document.getElementById("rec-video");
+                        const d = c.getContext("2d").getImageData(0, 0, c.width, c.height).data;
+                        let lit = 0;
+                        for (let i = 0; i < d.length; i += 4 * 13) if (d[i] + d[i + 1] + d[i + 2] > 60) lit++;
+                        return lit;
+                    }"""
+                )
+                assert lit > 50  # the ball and the clock overlays on black
+                # The plots' cursor is at that time.
+                cursor = float(await page.locator("#rec-plot").get_attribute("data-cursor-ns") or 0)
+                assert abs(cursor - expected["at"]) < 2000
+                # The marker on the map is at that position.
+                assert await page.locator("#rec-map path.leaflet-interactive").count() >= 2
+                marker = await page.locator("#rec-map").get_attribute("data-marker")
+                assert marker is not None
+                shown_at = [float(part) for part in marker.split(",")]
+                assert abs(shown_at[0] - lat) < 1e-9 and abs(shown_at[1] - lon) < 1e-9
+                assert not errors, errors
+            finally:
+                await browser.close()

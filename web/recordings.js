@@ -1,0 +1,266 @@
+// The recordings view (issue 23): replay a platform's MCAP recording in the console — a
+// timeline with seek and speed (0.5× to 8×), the track on a map, the NavCam frame of that
+// moment, the instruments and the log, in step. The station fetches the file from the platform
+// once (recording_open) and answers the state at any time (recording_state): position,
+// telemetry sections, log lines and the access units from the keyframe before it, decoded
+// here with WebCodecs. Standalone: its own API socket, its own DOM, one hook in index.html.
+
+import { StationApi } from "./api.js";
+
+const SPEEDS = [0.5, 1, 2, 4, 8];
+const TICK_MS = 250;
+
+const api = new StationApi(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/rpc/ws`);
+
+function element(tag, attributes = {}, ...children) {
+  const node = document.createElement(tag);
+  for (const [key, value] of Object.entries(attributes)) node.setAttribute(key, value);
+  for (const child of children) node.append(child);
+  return node;
+}
+
+const toggle = element("button", { id: "recordings-toggle", type: "button", "aria-pressed": "false" }, "recordings");
+const platformInput = element("input", { id: "rec-platform", type: "text", placeholder: "platform id", "aria-label": "platform" });
+const listButton = element("button", { id: "rec-list-button", type: "button" }, "list");
+const list = element("select", { id: "rec-list", "aria-label": "recording" });
+const openButton = element("button", { id: "rec-open", type: "button" }, "open");
+const timeline = element("input", { id: "rec-time", type: "range", min: "0", max: "0", step: "any", value: "0", "aria-label": "time" });
+const clock = element("span", { id: "rec-clock", role: "status" }, "—");
+const play = element("button", { id: "rec-play", type: "button", "aria-pressed": "false" }, "play");
+const speed = element("select", { id: "rec-speed", "aria-label": "speed" });
+for (const s of SPEEDS) speed.append(element("option", s === 1 ? { value: String(s), selected: "" } : { value: String(s) }, `${s}×`));
+const canvas = element("canvas", { id: "rec-video", width: "640", height: "480", "aria-label": "recorded NavCam" });
+const mapBox = element("div", { id: "rec-map", "aria-label": "recorded track" });
+const position = element("p", { id: "rec-position", role: "status" }, "position —");
+const instruments = element("dl", { id: "rec-instruments", "aria-label": "instruments" });
+const log = element("ol", { id: "rec-log", "aria-label": "recorded log" });
+const plot = element("canvas", { id: "rec-plot", width: "900", height: "160", "aria-label": "plots" });
+const message = element("p", { id: "rec-message", role: "status" });
+const view = element(
+  "section",
+  { id: "recordings", "aria-label": "recordings", hidden: "" },
+  element("div", { class: "rec-tools" }, platformInput, listButton, list, openButton, message),
+  element("div", { class: "rec-timeline" }, play, speed, timeline, clock),
+  element("div", { class: "rec-panes" }, canvas, mapBox),
+  position,
+  plot,
+  instruments,
+  log,
+);
+view.style.cssText = "position:fixed;inset:3rem 1rem 1rem 1rem;overflow:auto;z-index:2000;background:#fff;padding:0.5rem;border:1px solid #888";
+mapBox.style.cssText = "display:inline-block;width:420px;height:320px;vertical-align:top";
+canvas.style.cssText = "width:480px;height:360px;background:#000;vertical-align:top";
+timeline.style.cssText = "width:60%";
+document.querySelector("header")?.append(toggle);
+document.body.append(view);
+
+let recording = null; // {name, platform, start_ns, end_ns, track, ...}
+let playing = false;
+let inFlight = false;
+let pendingSeek = null;
+let map = null;
+let marker = null;
+let decoder = null;
+
+toggle.addEventListener("click", () => {
+  const shown = view.hidden;
+  view.hidden = !shown;
+  toggle.setAttribute("aria-pressed", String(shown));
+  if (shown && !platformInput.value) {
+    const current = document.getElementById("current")?.textContent ?? "";
+    if (current && current !== "no platform") platformInput.value = current.split(/\s/)[0];
+  }
+});
+
+listButton.addEventListener("click", async () => {
+  message.textContent = "";
+  list.replaceChildren();
+  try {
+    const answer = await api.call("recordings_list", { platform_id: platformInput.value.trim() }, 15000);
+    for (const item of answer.recordings) {
+      if (item.recording) continue; // being written: replay finished files
+      const label = `${item.name} (${item.duration_s ?? "?"} s, ${(item.size / 1e6).toFixed(1)} MB)`;
+      list.append(element("option", { value: item.name }, label));
+    }
+    message.textContent = `${list.options.length} recordings${answer.recording ? "" : ` — not recording: ${answer.reason}`}`;
+  } catch (error) {
+    message.textContent = `cannot list: ${error.message}`;
+  }
+});
+
+openButton.addEventListener("click", async () => {
+  const name = list.value;
+  if (!name) return;
+  message.textContent = `opening ${name}…`;
+  try {
+    const index = await api.call("recording_open", { platform_id: platformInput.value.trim(), name }, 120000);
+    recording = { ...index, platform: platformInput.value.trim() };
+    timeline.max = String((recording.end_ns - recording.start_ns) / 1e9);
+    timeline.value = "0";
+    view.dataset.recording = name;
+    drawTrack();
+    message.textContent = `${name}: ${timeline.max} s`;
+    await seek(recording.start_ns);
+  } catch (error) {
+    message.textContent = `cannot open: ${error.message}`;
+  }
+});
+
+timeline.addEventListener("input", () => {
+  if (recording) seek(recording.start_ns + Math.round(Number(timeline.value) * 1e9));
+});
+
+play.addEventListener("click", () => {
+  playing = !playing;
+  play.textContent = playing ? "pause" : "play";
+  play.setAttribute("aria-pressed", String(playing));
+});
+
+setInterval(() => {
+  if (!playing || !recording) return;
+  const next = Number(timeline.value) + (TICK_MS / 1000) * Number(speed.value);
+  if (next >= Number(timeline.max)) { playing = false; play.textContent = "play"; play.setAttribute("aria-pressed", "false"); }
+  timeline.value = String(Math.min(next, Number(timeline.max)));
+  seek(recording.start_ns + Math.round(Number(timeline.value) * 1e9));
+}, TICK_MS);
+
+function drawTrack() {
+  if (typeof L === "undefined") return;
+  if (!map) map = L.map(mapBox, { attributionControl: false, zoomControl: true });
+  map.eachLayer((layer) => map.removeLayer(layer));
+  const points = recording.track.map(([, lat, lon]) => [lat, lon]);
+  if (points.length) {
+    L.polyline(points, { color: "#1565c0", weight: 3 }).addTo(map);
+    map.fitBounds(L.latLngBounds(points).pad(0.2));
+    marker = L.circleMarker(points[0], { radius: 7, color: "#c62828" }).addTo(map);
+  } else {
+    map.setView([0, 0], 2);
+    marker = null;
+  }
+}
+
+/** Show the state at ``timeNs``; seeks that come while one is answered keep only the last. */
+async function seek(timeNs) {
+  if (inFlight) { pendingSeek = timeNs; return; }
+  inFlight = true;
+  try {
+    const state = await api.call("recording_state", { platform_id: recording.platform, name: recording.name, time_ns: timeNs }, 10000);
+    show(state);
+  } catch (error) {
+    message.textContent = `cannot seek: ${error.message}`;
+  } finally {
+    inFlight = false;
+    if (pendingSeek !== null) { const next = pendingSeek; pendingSeek = null; seek(next); }
+  }
+}
+
+function show(state) {
+  const seconds = (state.time_ns - recording.start_ns) / 1e9;
+  clock.textContent = `${new Date(state.time_ns / 1e6).toISOString().slice(11, 23)} UTC (+${seconds.toFixed(1)} s)`;
+  view.dataset.timeNs = String(state.time_ns);
+  if (state.position) {
+    const { lat, lon } = state.position;
+    position.textContent = `position ${lat.toFixed(6)}, ${lon.toFixed(6)}`;
+    position.dataset.lat = String(lat);
+    position.dataset.lon = String(lon);
+    position.dataset.timeNs = String(state.position.time_ns);
+    if (marker) {
+      marker.setLatLng([lat, lon]);
+      const at = marker.getLatLng();
+      mapBox.dataset.marker = `${at.lat},${at.lng}`;
+    }
+  } else {
+    position.textContent = "position —";
+  }
+  const rows = [];
+  const t = state.telemetry;
+  const add = (label, value) => { if (value !== undefined && value !== null) rows.push(element("dt", {}, label), element("dd", {}, String(value))); };
+  add("mode", t.override?.mode);
+  add("speed m/s", t.pose?.speed?.toFixed?.(2));
+  add("heading °", t.pose?.heading?.toFixed?.(0));
+  add("battery V", t.battery?.volts);
+  add("failsafe", t.failsafe?.step);
+  add("patrol", t.autonomy?.state);
+  add("motor", t.motion ? `${t.motion.linear ?? ""} ${t.motion.angular ?? ""}` : undefined);
+  instruments.replaceChildren(...rows);
+  log.replaceChildren(...state.log.map((line) => element("li", { class: line.level >= 3 ? "warning" : "" }, `${new Date(line.time_ns / 1e6).toISOString().slice(11, 19)} ${line.text}`)));
+  drawPlots(state.time_ns);
+  decodeFrames(state.frames);
+}
+
+const PLOT_COLORS = ["#1565c0", "#2e7d32", "#c62828", "#6a1b9a"];
+
+/** Each series scaled to its own range, along the recording's span; a cursor at ``timeNs``. */
+function drawPlots(timeNs) {
+  const context = plot.getContext("2d");
+  const { width, height } = plot;
+  context.clearRect(0, 0, width, height);
+  const span = Math.max(1, recording.end_ns - recording.start_ns);
+  const x = (t) => ((t - recording.start_ns) / span) * width;
+  Object.entries(recording.plots ?? {}).forEach(([label, points], i) => {
+    context.strokeStyle = context.fillStyle = PLOT_COLORS[i % PLOT_COLORS.length];
+    context.fillText(label, 4 + 110 * i, 12);
+    if (points.length < 2) return;
+    let low = Infinity;
+    let high = -Infinity;
+    for (const [, v] of points) { low = Math.min(low, v); high = Math.max(high, v); }
+    const y = (v) => height - 4 - ((v - low) / Math.max(1e-9, high - low)) * (height - 24);
+    context.beginPath();
+    points.forEach(([t, v], j) => (j ? context.lineTo(x(t), y(v)) : context.moveTo(x(t), y(v))));
+    context.stroke();
+  });
+  context.strokeStyle = "#000";
+  context.beginPath();
+  context.moveTo(x(timeNs), 0);
+  context.lineTo(x(timeNs), height);
+  context.stroke();
+  plot.dataset.cursorNs = String(timeNs);
+}
+
+function codecFromSps(bytes) {
+  for (let i = 0; i + 7 < bytes.length; i++) {
+    if (bytes[i] === 0 && bytes[i + 1] === 0 && bytes[i + 2] === 1 && (bytes[i + 3] & 0x1f) === 7) {
+      const hex = (v) => v.toString(16).padStart(2, "0");
+      return `avc1.${hex(bytes[i + 4])}${hex(bytes[i + 5])}${hex(bytes[i + 6])}`;
+    }
+  }
+  return "";
+}
+
+function bytesOf(base64) {
+  const text = atob(base64);
+  const out = new Uint8Array(text.length);
+  for (let i = 0; i < text.length; i++) out[i] = text.charCodeAt(i);
+  return out;
+}
+
+/** Decode from the keyframe to the frame of that moment; the last one drawn stays. */
+async function decodeFrames(frames) {
+  if (!frames.length || typeof VideoDecoder === "undefined") {
+    canvas.dataset.frameTimeNs = "";
+    return;
+  }
+  const units = frames.map((f) => ({ time: f.time_ns, data: bytesOf(f.data) }));
+  const codec = codecFromSps(units[0].data);
+  if (!codec) return;
+  if (decoder && decoder.state !== "closed") decoder.close();
+  const last = units[units.length - 1].time;
+  const context = canvas.getContext("2d");
+  decoder = new VideoDecoder({
+    output: (frame) => {
+      if (frame.timestamp * 1000 === last || frame.timestamp === Math.round(last / 1000)) {
+        canvas.width = frame.displayWidth;
+        canvas.height = frame.displayHeight;
+        context.drawImage(frame, 0, 0);
+        canvas.dataset.frameTimeNs = String(last);
+      }
+      frame.close();
+    },
+    error: (error) => { message.textContent = `video: ${error.message}`; },
+  });
+  decoder.configure({ codec, optimizeForLatency: true });
+  units.forEach((unit, i) => {
+    decoder.decode(new EncodedVideoChunk({ type: i === 0 ? "key" : "delta", timestamp: Math.round(unit.time / 1000), data: unit.data }));
+  });
+  try { await decoder.flush(); } catch { /* replaced by a newer seek */ }
+}
