@@ -5,6 +5,15 @@ import { state } from "./store.js";
 
 export const $ = (selector, root = document) => root.querySelector(selector);
 
+/** A new element with ``attributes`` and ``children`` (nodes or text), for views that build
+ * their own part of the page (map files, recordings). */
+export function element(tag, attributes = {}, ...children) {
+  const node = document.createElement(tag);
+  for (const [name, value] of Object.entries(attributes)) node.setAttribute(name, value);
+  for (const child of children) if (child !== "") node.append(child);
+  return node;
+}
+
 /** Set an element's text only when it changed (a write forces layout work). */
 export function put(element, text) {
   if (element.textContent !== text) element.textContent = text;

@@ -9,6 +9,7 @@ import { startMapFiles } from "./mapfiles.js";
 import { startNotifications } from "./notifications.js";
 import { startPatrol } from "./patrol.js";
 import { startPlots } from "./plots.js";
+import { startRecordings } from "./recordings.js";
 import { apiStates, api } from "./station.js";
 import { startVideo } from "./video.js";
 
@@ -20,6 +21,7 @@ startNotifications();
 startPlots();
 startLayout();
 startMapFiles();
+startRecordings();
 
 // What tests and benchmarks read (the page's CSP allows no eval of their own).
 window.navcam = {

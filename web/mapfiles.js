@@ -5,18 +5,12 @@
 // CLI's, so the page holds no copy of any parser. After an import the patrol view reloads
 // the area ("area-changed" on the store).
 
+import { element } from "./common.js";
 import { notify, state } from "./store.js";
 import { api } from "./station.js";
 
 const MAX_FILE_BYTES = 4 * 1024 * 1024; // brasidas.mapfiles.MAX_FILE_BYTES: refused before upload
 const ACCEPT = ".plan,.waypoints,.txt,.kml,.osm,.geojson,.json,.fen,.fence";
-
-function element(tag, attributes = {}, text = "") {
-  const node = document.createElement(tag);
-  for (const [name, value] of Object.entries(attributes)) node.setAttribute(name, value);
-  if (text) node.textContent = text;
-  return node;
-}
 
 const tools = element("div", { class: "mapfile-tools", role: "group", "aria-label": "map and route files" });
 const input = element("input", { id: "mapfile", type: "file", accept: ACCEPT, "aria-label": "map or route file" });

@@ -3,21 +3,15 @@
 // moment, the instruments and the log, in step. The station fetches the file from the platform
 // once (recording_open) and answers the state at any time (recording_state): position,
 // telemetry sections, log lines and the access units from the keyframe before it, decoded
-// here with WebCodecs. Standalone: its own API socket, its own DOM, one hook in index.html.
+// here with WebCodecs. A view of its own: its DOM, started by the wiring (console.js).
 
-import { StationApi } from "./api.js";
+import { element } from "./common.js";
+import { api } from "./station.js";
+import { state } from "./store.js";
 
 const SPEEDS = [0.5, 1, 2, 4, 8];
 const TICK_MS = 250;
 
-const api = new StationApi(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/rpc/ws`);
-
-function element(tag, attributes = {}, ...children) {
-  const node = document.createElement(tag);
-  for (const [key, value] of Object.entries(attributes)) node.setAttribute(key, value);
-  for (const child of children) node.append(child);
-  return node;
-}
 
 const toggle = element("button", { id: "recordings-toggle", type: "button", "aria-pressed": "false" }, "recordings");
 const platformInput = element("input", { id: "rec-platform", type: "text", placeholder: "platform id", "aria-label": "platform" });
@@ -51,8 +45,12 @@ view.style.cssText = "position:fixed;inset:3rem 1rem 1rem 1rem;overflow:auto;z-i
 mapBox.style.cssText = "display:inline-block;width:420px;height:320px;vertical-align:top";
 canvas.style.cssText = "width:480px;height:360px;background:#000;vertical-align:top";
 timeline.style.cssText = "width:60%";
-document.querySelector("header")?.append(toggle);
-document.body.append(view);
+
+/** The recordings button in the header and its view (hidden until asked for). */
+export function startRecordings() {
+  document.querySelector("header")?.append(toggle);
+  document.body.append(view);
+}
 
 let recording = null; // {name, platform, start_ns, end_ns, track, ...}
 let playing = false;
@@ -67,8 +65,7 @@ toggle.addEventListener("click", () => {
   view.hidden = !shown;
   toggle.setAttribute("aria-pressed", String(shown));
   if (shown && !platformInput.value) {
-    const current = document.getElementById("current")?.textContent ?? "";
-    if (current && current !== "no platform") platformInput.value = current.split(/\s/)[0];
+    if (state.current) platformInput.value = state.current;
   }
 });
 
@@ -125,7 +122,8 @@ setInterval(() => {
 }, TICK_MS);
 
 function drawTrack() {
-  if (typeof L === "undefined") return;
+  const L = window.L; // Leaflet, loaded by index.html before the modules run
+  if (!L) return;
   if (!map) map = L.map(mapBox, { attributionControl: false, zoomControl: true });
   map.eachLayer((layer) => map.removeLayer(layer));
   const points = recording.track.map(([, lat, lon]) => [lat, lon]);
