@@ -157,6 +157,11 @@ def _print_next_steps(args: argparse.Namespace) -> None:
         (f"movrd {pid} on|off", "manual override (teleop / autonomous)"),
         (f"patrol {pid} start", "patrol the demo loop around the shed (patrol: its state)"),
         (f"route {pid} sw ne sw", "new waypoints on the fly (named points or LAT,LON)"),
+        (
+            f"route {pid} --export patrol.plan",
+            "the route as a QGroundControl plan (.waypoints too)",
+        ),
+        (f"logs {pid}", "the platform's recordings (MCAP); logs ID get NAME downloads one"),
         (f"lights {pid} main on", "main lights (10.6)"),
         (f"cmd {pid} 10 5 navcam=10", "any system command of table 10.1"),
     ]
@@ -169,6 +174,8 @@ def _print_next_steps(args: argparse.Namespace) -> None:
         " driving with keys or a game controller, audio, patrol, telemetry and warnings)\n"
         f"Station API: http://127.0.0.1:{args.api_port}/api/rpc   "
         f"Platform signaling: http://127.0.0.1:{args.signaling_port}/rpc\n"
+        "Foxglove or Lichtblick: open a Foxglove WebSocket connection to ws://127.0.0.1:8766 "
+        "(the live fleet, read-only); a downloaded recording opens as a file.\n"
         "Press Ctrl-C to stop both daemons.",
         flush=True,
     )
