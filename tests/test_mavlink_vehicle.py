@@ -9,6 +9,7 @@ mission and fence items map onto routes and keep-outs with the right refusals.
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 from typing import Any
 
@@ -194,9 +195,17 @@ def test_a_forged_future_timestamp_does_not_lock_out_the_real_station() -> None:
 
 
 def mission(*rows: tuple[int, int]) -> list[MissionItem]:
-    """(command, param1) rows at seq 0.. with made-up positions."""
+    """(command, param1) rows at seq 0.. with made-up positions: seq 0 at (1.0, 2.0), the
+    others around a circle from it (any run of them makes a valid polygon)."""
     return [
-        MissionItem(seq, 3, command, param1, x=10_000_000 + seq, y=20_000_000 + seq)
+        MissionItem(
+            seq,
+            3,
+            command,
+            param1,
+            x=10_000_000 + round(1000 * math.sin(seq * 0.8)),
+            y=20_000_000 + round(1000 * (1 - math.cos(seq * 0.8))),
+        )
         for seq, (command, param1) in enumerate(rows)
     ]
 

@@ -498,7 +498,7 @@ class MavlinkService(Actor):
             if uploaded is not None and uploaded[0] == patrol.core.map_revision:
                 return uploaded[1]
             area = patrol.core.area
-            return items_from_fence(_fence_of(area.geojson())) if area is not None else []
+            return items_from_fence(area.geojson()) if area is not None else []
         return []
 
     # ------------------------------------------------------------------ bus
@@ -631,30 +631,6 @@ def _polygon(ring: tuple[tuple[float, float], ...]) -> dict[str, Any]:
     if coordinates[0] != coordinates[-1]:
         coordinates.append(coordinates[0])
     return {"type": "Polygon", "coordinates": [coordinates]}
-
-
-def _fence_of(geojson: Mapping[str, Any]) -> FencePlan:
-    """The boundary and keep-out rings (lat, lon; no closing vertex) of a map's GeoJSON."""
-    boundary: tuple[tuple[float, float], ...] | None = None
-    keepouts: list[tuple[tuple[float, float], ...]] = []
-    for feature in geojson.get("features", []):
-        role = _role(feature)
-        geometry = feature.get("geometry") or {}
-        if geometry.get("type") == "Polygon":
-            polygons = [geometry["coordinates"]]
-        elif geometry.get("type") == "MultiPolygon":
-            polygons = list(geometry["coordinates"])
-        else:
-            continue
-        for polygon in polygons:
-            exterior = [(float(lat), float(lon)) for lon, lat, *_ in polygon[0]]
-            if len(exterior) > 1 and exterior[0] == exterior[-1]:
-                exterior.pop()
-            if role == "boundary" and boundary is None:
-                boundary = tuple(exterior)
-            elif role == "keepout":
-                keepouts.append(tuple(exterior))
-    return FencePlan(boundary, tuple(keepouts))
 
 
 def _position_result() -> int:
