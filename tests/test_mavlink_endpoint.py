@@ -5,7 +5,9 @@ authority, signing and the joystick's deadman."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
+import os
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
@@ -342,13 +344,42 @@ def test_the_signing_passphrase_file_must_be_owner_only(tmp_path: Path) -> None:
     key_file = tmp_path / "mavlink.pass"
     key_file.write_text(PASSPHRASE + "\n")
     key_file.chmod(0o644)
-    with pytest.raises(SigningKeyError, match="readable by others"):
+    # The fleet key's rule and words (brasidas.security.read_private_file), the fix named.
+    with pytest.raises(SigningKeyError) as refused:
+        load_signing_key(key_file)
+    assert str(refused.value) == (
+        f"{key_file}: permissions 0644 for the MAVLink signing key are too open: it must be "
+        f"accessible by its owner only (chmod 600 {key_file})"
+    )
+    key_file.chmod(0o620)  # writable by the group: as bad
+    with pytest.raises(SigningKeyError, match=f"too open: .*chmod 600 {key_file}"):
         load_signing_key(key_file)
     key_file.chmod(0o600)
     assert load_signing_key(key_file) == hashlib.sha256(PASSPHRASE.encode()).digest()
     key_file.write_text("")
     with pytest.raises(SigningKeyError, match="one non-empty line"):
         load_signing_key(key_file)
+
+
+async def test_a_signing_key_that_is_a_fifo_or_huge_is_refused_at_once(tmp_path: Path) -> None:
+    fifo = tmp_path / "mavlink.fifo"
+    os.mkfifo(fifo, 0o600)
+    loading = asyncio.create_task(asyncio.to_thread(load_signing_key, fifo))
+    try:
+        # Opening a FIFO with no writer waits for one forever: the start would hang.
+        with pytest.raises(SigningKeyError, match="not a regular file"):
+            await asyncio.wait_for(asyncio.shield(loading), 10.0)
+    finally:
+        if not loading.done():  # the old reader: give it a writer and an end so it returns
+            with contextlib.suppress(OSError):
+                os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+            with contextlib.suppress(Exception):
+                await loading
+    huge = tmp_path / "mavlink.pass"
+    huge.write_bytes(b"x" * 1_000_000)
+    huge.chmod(0o600)
+    with pytest.raises(SigningKeyError, match="more than the 4096 allowed"):
+        load_signing_key(huge)
 
 
 async def test_the_navcam_announced_to_a_ground_station_decodes_with_gstreamer(
