@@ -26,8 +26,9 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from brasidas import topics
+from brasidas import annunciator, topics
 from brasidas.actor import Actor
+from brasidas.annunciator import Annunciator
 from brasidas.autonomy.route import RouteError
 from brasidas.codecs.commands import MANUAL_OVERRIDE
 from brasidas.codecs.telemetry_schema import Snapshot
@@ -74,8 +75,6 @@ from platformd.mavlink.vehicle import (
     UploadItems,
 )
 from platformd.session_table import Session
-from stationd.telemetry import annunciator
-from stationd.telemetry.annunciator import Annunciator
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -144,8 +143,9 @@ class MavlinkService(Actor):
         self._override = OverrideState(False)
         self._patrol_state: PatrolState | None = None
         telemetry = ctx.config.telemetry
-        # The station's group 90 warnings, from the platform's own telemetry (the link's two,
-        # degraded and control taken, are a station's view: CONTROL_STATE has its own text).
+        # The station's group 90 warnings (brasidas.annunciator), from the platform's own
+        # telemetry (the link's two, degraded and control taken, are a station's view:
+        # CONTROL_STATE has its own text).
         self.annunciator = Annunciator(
             TelemetryReceiverSection(
                 battery_low_v=telemetry.battery_low_v,
