@@ -340,6 +340,42 @@ async def test_signing_control_needs_a_signed_link_and_replays_are_refused(
     assert not [m for m in gcs.received[since:] if m.get_type() == "COMMAND_ACK"]
 
 
+async def test_a_stranger_gets_no_more_bytes_than_it_sends(
+    platform_factory: Factory, tmp_path: Path, gcs: Gcs
+) -> None:
+    """An unsigned address not in mavlink.targets may be a spoofed one: a burst of refused
+    commands and parameter lists from it gets back no more bytes than it sent."""
+    key_file = tmp_path / "mavlink.pass"
+    key_file.write_text(PASSPHRASE + "\n")
+    key_file.chmod(0o600)
+    daemon = await connected(
+        platform_factory, tmp_path, gcs, f"mavlink.signing_key_file={key_file}"
+    )
+    counters = daemon.ctx.telemetry.counters["mavlink"]
+    stranger = await Gcs.open(system=254)
+    try:
+        stranger.vehicle = gcs.vehicle
+        start = mavlink.MAVLink_command_long_message(
+            1, 1, mavlink.MAV_CMD_MISSION_START, 0, *[0] * 7
+        )
+        for n in range(60):
+            stranger.send(start if n % 6 else mavlink.MAVLink_param_request_list_message(1, 1))
+        sent = sum(len(frame) for frame in stranger.frames)
+        await wait_until(lambda: counters().get("refused_unsigned", 0) >= 50)
+        # Two heartbeats later every answer has arrived, and the telemetry of those ticks
+        # (broadcast to whoever was heard: the stranger's share is held back too).
+        for _ in range(2):
+            await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1)
+        assert 0 < stranger.bytes_received <= sent
+        denied = [m for m in stranger.received if m.get_type() == "COMMAND_ACK"]
+        assert denied and all(m.result == mavlink.MAV_RESULT_DENIED for m in denied)
+        assert counters().get("stranger_bytes_suppressed", 0) > sent - stranger.bytes_received
+    finally:
+        stranger.close()
+    # The configured ground station is not held back.
+    assert len(await gcs.download()) == 6
+
+
 def test_the_signing_passphrase_file_must_be_owner_only(tmp_path: Path) -> None:
     key_file = tmp_path / "mavlink.pass"
     key_file.write_text(PASSPHRASE + "\n")

@@ -43,6 +43,10 @@ NO_HOLDER = 0
 MAX_LINKS = 32
 """Ground station addresses kept at once: a flood from made-up source addresses costs a
 bounded table (the configured targets are always kept)."""
+STRANGER_WINDOW_S = 10.0
+"""A stranger (an address neither in ``mavlink.targets`` nor ever trusted) is sent at most the
+bytes it sent us in each window of this long: a spoofed source address never makes the
+endpoint a reflector that answers a victim with more than the attacker spent."""
 
 
 class Severity:
@@ -166,6 +170,21 @@ class Link:
     upload_owner: tuple[int, int] = (0, 0)
     last_ack: tuple[int, int] | None = None
     """(mission_type, result) of the last upload, resent if the station repeats its last item."""
+    credit: int = 0
+    """A stranger's bytes received in this window not yet answered: what may still be sent."""
+    credit_since: float = -math.inf
+    """When the stranger's current window began."""
+
+    @property
+    def stranger(self) -> bool:
+        """Not a configured target and never trusted (signed, or unsigned control allowed):
+        its source address may be anyone's, so it gets no more than it gives."""
+        return not self.configured and self.last_trusted == -math.inf
+
+    def renew_credit(self, now: float) -> None:
+        if now - self.credit_since >= STRANGER_WINDOW_S:
+            self.credit_since = now
+            self.credit = 0
 
 
 # --------------------------------------------------------------------------- the vehicle
@@ -220,6 +239,8 @@ class MavlinkVehicle:
                 "handler_errors",
                 "links_refused",
                 "setup_signing_refused",
+                "stranger_frames_suppressed",
+                "stranger_bytes_suppressed",
             ),
             0,
         )
@@ -241,6 +262,8 @@ class MavlinkVehicle:
                 self.counters["links_refused"] += 1
                 return []
             link = self._link(peer, configured=False)
+        link.renew_credit(now)
+        link.credit += len(data)
         try:
             messages = link.decoder.parse_buffer(data) or []
         except Exception:  # pymavlink raises for a frame it cannot even delimit
@@ -365,6 +388,7 @@ class MavlinkVehicle:
                 del self.links[peer]
                 self.counters["links_forgotten"] += 1
                 continue
+            link.renew_credit(now)
             self._retry_upload(link, now)
         if self._due_now("heartbeat", self.heartbeat_hz, now):
             self._broadcast(self._heartbeat())
@@ -1045,13 +1069,30 @@ class MavlinkVehicle:
                 self._send(link, message, component)
 
     def _send(self, link: Link, message: Any, component: int = modes.VEHICLE_COMPONENT) -> None:
+        self._send_all(link, [message], component)
+
+    def _send_all(
+        self, link: Link, messages: list[Any], component: int = modes.VEHICLE_COMPONENT
+    ) -> None:
+        """All of ``messages`` to ``link``, or, to a stranger out of credit, none (counted)."""
         encoder = link.encoder
         encoder.srcComponent = component
         if encoder.signing.sign_outgoing and self._wall is not None:
             encoder.signing.timestamp = max(encoder.signing.timestamp, timestamp_at(self._wall()))
-        frame = message.pack(encoder)
-        encoder.seq = (encoder.seq + 1) % 256
-        self.outbox.append((frame, link.peer))
+        first_seq = encoder.seq
+        frames = []
+        for message in messages:
+            frames.append(message.pack(encoder))
+            encoder.seq = (encoder.seq + 1) % 256
+        if link.stranger:
+            size = sum(len(frame) for frame in frames)
+            if size > link.credit:
+                encoder.seq = first_seq  # what it is sent shows no gap for what it was not
+                self.counters["stranger_frames_suppressed"] += len(frames)
+                self.counters["stranger_bytes_suppressed"] += size
+                return
+            link.credit -= size
+        self.outbox.extend((frame, link.peer) for frame in frames)
 
     def _statustext_to(self, link: Link, severity: int, text: str) -> None:
         data = text.encode("utf-8", "replace")[: STATUSTEXT_CHUNK * 4]
@@ -1062,8 +1103,13 @@ class MavlinkVehicle:
             message_id = self._statustext_id
             if len(chunks[-1]) == STATUSTEXT_CHUNK:
                 chunks.append(b"")  # a full last chunk: an empty one ends the text
-        for index, chunk in enumerate(chunks):
-            self._send(link, mavlink.MAVLink_statustext_message(severity, chunk, message_id, index))
+        self._send_all(
+            link,
+            [
+                mavlink.MAVLink_statustext_message(severity, chunk, message_id, index)
+                for index, chunk in enumerate(chunks)
+            ],
+        )
 
 
 _Handler = Callable[[MavlinkVehicle, Link, Any, Any, float], list[Request]]
