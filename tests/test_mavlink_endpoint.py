@@ -272,6 +272,58 @@ async def test_an_observer_ground_station_is_refused_with_the_holders_id(
     daemon.ctx.sessions.sessions.pop(station.session_id)
 
 
+async def test_set_current_chooses_the_patrols_next_waypoint_for_the_holder_only(
+    platform_factory: Factory, tmp_path: Path, gcs: Gcs
+) -> None:
+    daemon = await connected(platform_factory, tmp_path, gcs, "mavlink.allow_unsigned_control=true")
+    patrol = daemon.ctx.patrol
+    assert patrol is not None and patrol.core.route.stops == 4  # the demo loop
+
+    def waypoint_reported() -> int | None:
+        status = daemon.bus.last(topics.PATROL_STATUS)
+        return status.waypoint if status is not None else None
+
+    # MISSION_SET_CURRENT 3 (item 0 is home): the third waypoint, index 2; answered at once.
+    since = gcs.mark()
+    gcs.send(mavlink.MAVLink_mission_set_current_message(1, 1, 3))
+    await gcs.expect("MISSION_CURRENT", lambda m: m.seq == 3, since=since)
+    assert patrol.core.cursor.index == 2 and waypoint_reported() == 2
+    # None such, or home: refused with the reason, the target unchanged.
+    for seq, reason in ((9, "no waypoint 9: the route has 4"), (0, "item 0 is home")):
+        since = gcs.mark()
+        gcs.send(mavlink.MAVLink_mission_set_current_message(1, 1, seq))
+        text = await gcs.expect_text(lambda t, r=reason: r in t, since)  # chunks joined
+        assert text.startswith("set current refused: ")
+    assert patrol.core.cursor.index == 2
+    # By command (DO_SET_MISSION_CURRENT): a COMMAND_ACK.
+    ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MISSION_CURRENT, 2)
+    assert ack.result == mavlink.MAV_RESULT_ACCEPTED and patrol.core.cursor.index == 1
+    ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MISSION_CURRENT, 7)
+    assert ack.result == mavlink.MAV_RESULT_FAILED
+
+    # Another ground station while this one holds control: refused, the holder named.
+    other = await Gcs.open(system=254)
+    try:
+        other.vehicle = gcs.vehicle
+        since = other.mark()
+        ack = await other.command(mavlink.MAV_CMD_DO_SET_MISSION_CURRENT, 4)
+        assert ack.result == mavlink.MAV_RESULT_DENIED and ack.result_param2 == 255
+        since = other.mark()
+        other.send(mavlink.MAVLink_mission_set_current_message(1, 1, 4))
+        holder = f"gcs255@127.0.0.1:{gcs.port}"
+        text = await other.expect_text(lambda t: holder in t, since)
+        assert "refused" in text
+    finally:
+        other.close()
+    assert patrol.core.cursor.index == 1
+
+    # Started, the patrol heads for the waypoint chosen.
+    ack = await gcs.command(mavlink.MAV_CMD_MISSION_START)
+    assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+    status = daemon.bus.last(topics.PATROL_STATUS)
+    assert status is not None and status.waypoint == 1
+
+
 async def test_manual_control_drives_through_the_deadman(
     platform_factory: Factory, tmp_path: Path, gcs: Gcs
 ) -> None:

@@ -69,6 +69,7 @@ from platformd.mavlink.vehicle import (
     MavlinkVehicle,
     Peer,
     Request,
+    SetCurrent,
     SetMode,
     Severity,
     StartVideo,
@@ -341,6 +342,8 @@ class MavlinkService(Actor):
             await self._upload(request)
         elif isinstance(request, StartVideo):
             await self._start_video(request)
+        elif isinstance(request, SetCurrent):
+            self._set_current(request)
 
     def _refused(self, request: Request, what: str) -> str | None:
         return self.ctx.authority.refusal(self._session(request), what)
@@ -381,6 +384,32 @@ class MavlinkService(Actor):
         if self._override.engaged and self._override.session_id == session.session_id:
             await self.ctx.commands.dispatch(MANUAL_OVERRIDE, "off", session)
         vehicle.answer_command(request, mavlink.MAV_RESULT_ACCEPTED)
+
+    def _set_current(self, request: SetCurrent) -> None:
+        """The patrol's next waypoint: mission item ``seq`` is route index ``seq - 1`` (item 0
+        is home), through the patrol's own ``go_to_waypoint``, for the control holder only."""
+        vehicle = self.vehicle
+        refusal = self._refused(request, "set current waypoint")
+        if refusal is not None:
+            vehicle.answer_set_current(
+                request, mavlink.MAV_RESULT_DENIED, refusal, holder_system=self._holder_system()
+            )
+            return
+        patrol = self.ctx.patrol
+        if patrol is None:
+            vehicle.answer_set_current(request, mavlink.MAV_RESULT_UNSUPPORTED, "no patrol here")
+            return
+        try:
+            if request.seq < 1:
+                raise RouteError(f"item {request.seq} is home, not a waypoint")
+            patrol.go_to_waypoint(request.seq - 1)
+        except RouteError as exc:
+            vehicle.answer_set_current(
+                request, mavlink.MAV_RESULT_FAILED, f"set current refused: {exc}"
+            )
+            return
+        _LOGGER.info("MAVLink: next waypoint %d, from %s", request.seq, request.peer)
+        vehicle.answer_set_current(request, mavlink.MAV_RESULT_ACCEPTED)
 
     def _manual_control(self, request: ManualInput) -> None:
         """The joystick, from the override's holder only: the velocity path of ``$PVEL``."""

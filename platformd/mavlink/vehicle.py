@@ -88,6 +88,17 @@ class UploadItems(Request):
 
 
 @dataclass(frozen=True)
+class SetCurrent(Request):
+    """MISSION_SET_CURRENT or MAV_CMD_DO_SET_MISSION_CURRENT: the patrol's next waypoint."""
+
+    seq: int
+    """The mission item (1: the first waypoint; 0 is home)."""
+    command: int | None
+    """MAV_CMD_DO_SET_MISSION_CURRENT when asked by command (a COMMAND_ACK answers), None
+    for the message (MISSION_CURRENT answers, a STATUSTEXT says a refusal)."""
+
+
+@dataclass(frozen=True)
 class ManualInput(Request):
     """MANUAL_CONTROL as a velocity: linear forward, angular to the left, each in [-1, 1]."""
 
@@ -343,7 +354,8 @@ class MavlinkVehicle:
         if link is None:
             return
         if command is None:
-            command = request.command if isinstance(request, SetMode) else 0
+            asked = request.command if isinstance(request, SetMode | SetCurrent) else None
+            command = asked or 0
         self._send(
             link,
             mavlink.MAVLink_command_ack_message(
@@ -366,6 +378,23 @@ class MavlinkVehicle:
         if text:
             severity = Severity.INFO if result == mavlink.MAV_MISSION_ACCEPTED else Severity.WARNING
             self._statustext_to(link, severity, text)
+
+    def answer_set_current(
+        self, request: SetCurrent, result: int, text: str = "", *, holder_system: int = NO_HOLDER
+    ) -> None:
+        """The answer to a new current item: a COMMAND_ACK when asked by command; accepted,
+        MISSION_CURRENT with it at once (the mission protocol's answer); refused, the reason."""
+        link = self.links.get(request.peer)
+        if link is None:
+            return
+        accepted = result == mavlink.MAV_RESULT_ACCEPTED
+        if request.command is not None:
+            self.answer_command(request, result, text, holder_system=holder_system)
+        elif text:
+            self._statustext_to(link, Severity.INFO if accepted else Severity.WARNING, text)
+        if accepted:
+            self.state.waypoint = request.seq - 1
+            self._send(link, self._mission_current())
 
     def statustext(self, severity: int, text: str) -> None:
         """A warning (or notice) for every ground station (group 90's annunciations)."""
@@ -576,9 +605,14 @@ class MavlinkVehicle:
                     -1,
                 )
             )
-        seq = state.waypoint + 1 if state.waypoint is not None else 0
-        out.append(mavlink.MAVLink_mission_current_message(seq, state.waypoints + 1))
+        out.append(self._mission_current())
         return out
+
+    def _mission_current(self) -> Any:
+        """The patrol's target as a mission item (route index + 1: item 0 is home)."""
+        state = self.state
+        seq = state.waypoint + 1 if state.waypoint is not None else 0
+        return mavlink.MAVLink_mission_current_message(seq, state.waypoints + 1)
 
     def _home_position(self) -> Any | None:
         home = self.state.home
@@ -689,6 +723,11 @@ class MavlinkVehicle:
             if not self._may_control(signed, "set mode", ack, mavlink.MAV_RESULT_DENIED):
                 return []
             return [SetMode(peer, system, component, signed, mode, command)]
+        if command == mavlink.MAV_CMD_DO_SET_MISSION_CURRENT:
+            if not self._may_control(signed, "set current", ack, mavlink.MAV_RESULT_DENIED):
+                return []
+            seq = int(params[0]) if math.isfinite(params[0]) else -1
+            return [SetCurrent(peer, system, component, signed, seq, command)]
         if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             # Ground stations set many intervals at connect: the ACK says no, without a text
             # for each (the rates are the platform's, mavlink.*_hz).
@@ -995,6 +1034,18 @@ class MavlinkVehicle:
         link.upload = _Upload(mission_type, 0, waiting=True)
         return [UploadItems(peer, system, component, signed, mission_type, ())]
 
+    def _on_mission_set_current(
+        self, link: Link, message: Any, origin: Any, now: float
+    ) -> list[Request]:
+        peer, system, component, signed = origin
+
+        def refuse(result: int, text: str) -> None:
+            self._statustext_to(link, Severity.WARNING, text)
+
+        if not self._may_control(signed, "set current", refuse, mavlink.MAV_RESULT_DENIED):
+            return []
+        return [SetCurrent(peer, system, component, signed, message.seq, None)]
+
     def _on_mission_ack(self, link: Link, message: Any, origin: Any, now: float) -> list[Request]:
         return []  # the end of a download: nothing kept per download
 
@@ -1131,6 +1182,7 @@ _HANDLERS: dict[str, _Handler] = {
     "MISSION_ITEM_INT": MavlinkVehicle._on_mission_item,
     "MISSION_ITEM": MavlinkVehicle._on_mission_item,
     "MISSION_CLEAR_ALL": MavlinkVehicle._on_mission_clear_all,
+    "MISSION_SET_CURRENT": MavlinkVehicle._on_mission_set_current,
     "MISSION_ACK": MavlinkVehicle._on_mission_ack,
 }
 
