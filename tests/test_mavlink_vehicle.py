@@ -30,6 +30,7 @@ from platformd.mavlink.vehicle import (
     UPLOAD_RETRY_S,
     ManualInput,
     MavlinkVehicle,
+    SetCurrent,
     SetMode,
     UploadItems,
 )
@@ -290,3 +291,22 @@ def test_a_stranger_gets_no_more_bytes_than_it_sends() -> None:
     vehicle.feed(signed.frame(mavlink.MAVLink_param_request_list_message(1, 1)), station, now)
     values = [d for d, p in vehicle.take() if p == station]
     assert len(values) == 60 and sum(map(len, values)) > 10 * len(signed.frame(asks[1]))
+
+
+def test_set_current_needs_control_like_any_change() -> None:
+    vehicle = MavlinkVehicle(1, key=KEY, targets=(GCS,))
+    unsigned, signed = Station(), Station(KEY)
+    by_message = mavlink.MAVLink_mission_set_current_message(1, 1, 2)
+    by_command = mavlink.MAVLink_command_long_message(1, 1, 224, 0, 3, 0, 0, 0, 0, 0, 0)
+    assert vehicle.feed(unsigned.frame(by_message), GCS, 0.0) == []
+    assert vehicle.feed(unsigned.frame(by_command), GCS, 0.0) == []
+    assert vehicle.counters["refused_unsigned"] == 2
+    texts = [m.text for m in unsigned.read(vehicle) if m.get_type() == "STATUSTEXT"]
+    assert texts[0].startswith("set current refused: unsigned link")
+    [request] = vehicle.feed(signed.frame(by_message), GCS, 0.1)
+    assert isinstance(request, SetCurrent) and request.seq == 2 and request.command is None
+    vehicle.answer_set_current(request, mavlink.MAV_RESULT_ACCEPTED)
+    [current] = [m for m in unsigned.read(vehicle) if m.get_type() == "MISSION_CURRENT"]
+    assert current.seq == 2 and vehicle.state.waypoint == 1
+    [request] = vehicle.feed(signed.frame(by_command), GCS, 0.2)
+    assert isinstance(request, SetCurrent) and (request.seq, request.command) == (3, 224)
