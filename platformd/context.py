@@ -113,6 +113,9 @@ class PatrolHandle(Protocol):
 
     def stop_patrol(self) -> None: ...
 
+    def go_to_waypoint(self, index: int) -> None:
+        """Head for waypoint ``index`` (from 0) next; raises RouteError."""
+
 
 @dataclass
 class PlatformContext:

@@ -57,6 +57,7 @@ class Gcs(asyncio.DatagramProtocol):
         self.received: list[Any] = []
         self.frames: list[bytes] = []
         """Every datagram sent, as sent (for replay tests)."""
+        self.bytes_received = 0
         self._changed = asyncio.Event()
 
     @classmethod
@@ -77,6 +78,7 @@ class Gcs(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
         self.vehicle = (addr[0], addr[1])
+        self.bytes_received += len(data)
         for message in self.parser.parse_buffer(data) or []:
             if message.get_type() != "BAD_DATA":
                 self.received.append(message)

@@ -129,3 +129,30 @@ def test_the_graph_sees_every_kind_of_import() -> None:
 def test_no_import_cycles() -> None:
     cycles = find_cycles(import_graph())
     assert not cycles, "import cycles: " + "; ".join(" <-> ".join(c) for c in cycles)
+
+
+LAYERS = {
+    "brasidas": ("platformd", "stationd"),
+    "platformd": ("stationd",),
+    "stationd": ("platformd",),
+}
+"""Who may not import whom: the shared library neither daemon; each daemon not the other (a
+platform runs without the station's code, and the reverse)."""
+
+
+def test_the_layers_hold() -> None:
+    graph = import_graph()
+    crossings = [
+        f"{module} imports {target}"
+        for module, targets in sorted(graph.items())
+        for target in sorted(targets)
+        if target.split(".")[0] in LAYERS[module.split(".")[0]]
+    ]
+    assert not crossings, "; ".join(crossings)
+    # The check sees a crossing written anywhere (a function's body too).
+    assert "stationd.telemetry" in imports_of(
+        "platformd.x",
+        "def f():\n    from stationd.telemetry import annunciator\n",
+        False,
+        ["platformd.x", "stationd", "stationd.telemetry", "stationd.telemetry.annunciator"],
+    )

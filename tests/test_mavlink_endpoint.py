@@ -5,7 +5,9 @@ authority, signing and the joystick's deadman."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
+import os
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
@@ -270,6 +272,58 @@ async def test_an_observer_ground_station_is_refused_with_the_holders_id(
     daemon.ctx.sessions.sessions.pop(station.session_id)
 
 
+async def test_set_current_chooses_the_patrols_next_waypoint_for_the_holder_only(
+    platform_factory: Factory, tmp_path: Path, gcs: Gcs
+) -> None:
+    daemon = await connected(platform_factory, tmp_path, gcs, "mavlink.allow_unsigned_control=true")
+    patrol = daemon.ctx.patrol
+    assert patrol is not None and patrol.core.route.stops == 4  # the demo loop
+
+    def waypoint_reported() -> int | None:
+        status = daemon.bus.last(topics.PATROL_STATUS)
+        return status.waypoint if status is not None else None
+
+    # MISSION_SET_CURRENT 3 (item 0 is home): the third waypoint, index 2; answered at once.
+    since = gcs.mark()
+    gcs.send(mavlink.MAVLink_mission_set_current_message(1, 1, 3))
+    await gcs.expect("MISSION_CURRENT", lambda m: m.seq == 3, since=since)
+    assert patrol.core.cursor.index == 2 and waypoint_reported() == 2
+    # None such, or home: refused with the reason, the target unchanged.
+    for seq, reason in ((9, "no waypoint 9: the route has 4"), (0, "item 0 is home")):
+        since = gcs.mark()
+        gcs.send(mavlink.MAVLink_mission_set_current_message(1, 1, seq))
+        text = await gcs.expect_text(lambda t, r=reason: r in t, since)  # chunks joined
+        assert text.startswith("set current refused: ")
+    assert patrol.core.cursor.index == 2
+    # By command (DO_SET_MISSION_CURRENT): a COMMAND_ACK.
+    ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MISSION_CURRENT, 2)
+    assert ack.result == mavlink.MAV_RESULT_ACCEPTED and patrol.core.cursor.index == 1
+    ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MISSION_CURRENT, 7)
+    assert ack.result == mavlink.MAV_RESULT_FAILED
+
+    # Another ground station while this one holds control: refused, the holder named.
+    other = await Gcs.open(system=254)
+    try:
+        other.vehicle = gcs.vehicle
+        since = other.mark()
+        ack = await other.command(mavlink.MAV_CMD_DO_SET_MISSION_CURRENT, 4)
+        assert ack.result == mavlink.MAV_RESULT_DENIED and ack.result_param2 == 255
+        since = other.mark()
+        other.send(mavlink.MAVLink_mission_set_current_message(1, 1, 4))
+        holder = f"gcs255@127.0.0.1:{gcs.port}"
+        text = await other.expect_text(lambda t: holder in t, since)
+        assert "refused" in text
+    finally:
+        other.close()
+    assert patrol.core.cursor.index == 1
+
+    # Started, the patrol heads for the waypoint chosen.
+    ack = await gcs.command(mavlink.MAV_CMD_MISSION_START)
+    assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+    status = daemon.bus.last(topics.PATROL_STATUS)
+    assert status is not None and status.waypoint == 1
+
+
 async def test_manual_control_drives_through_the_deadman(
     platform_factory: Factory, tmp_path: Path, gcs: Gcs
 ) -> None:
@@ -338,17 +392,82 @@ async def test_signing_control_needs_a_signed_link_and_replays_are_refused(
     assert not [m for m in gcs.received[since:] if m.get_type() == "COMMAND_ACK"]
 
 
+async def test_a_stranger_gets_no_more_bytes_than_it_sends(
+    platform_factory: Factory, tmp_path: Path, gcs: Gcs
+) -> None:
+    """An unsigned address not in mavlink.targets may be a spoofed one: a burst of refused
+    commands and parameter lists from it gets back no more bytes than it sent."""
+    key_file = tmp_path / "mavlink.pass"
+    key_file.write_text(PASSPHRASE + "\n")
+    key_file.chmod(0o600)
+    daemon = await connected(
+        platform_factory, tmp_path, gcs, f"mavlink.signing_key_file={key_file}"
+    )
+    counters = daemon.ctx.telemetry.counters["mavlink"]
+    stranger = await Gcs.open(system=254)
+    try:
+        stranger.vehicle = gcs.vehicle
+        start = mavlink.MAVLink_command_long_message(
+            1, 1, mavlink.MAV_CMD_MISSION_START, 0, *[0] * 7
+        )
+        for n in range(60):
+            stranger.send(start if n % 6 else mavlink.MAVLink_param_request_list_message(1, 1))
+        sent = sum(len(frame) for frame in stranger.frames)
+        await wait_until(lambda: counters().get("refused_unsigned", 0) >= 50)
+        # Two heartbeats later every answer has arrived, and the telemetry of those ticks
+        # (broadcast to whoever was heard: the stranger's share is held back too).
+        for _ in range(2):
+            await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1)
+        assert 0 < stranger.bytes_received <= sent
+        denied = [m for m in stranger.received if m.get_type() == "COMMAND_ACK"]
+        assert denied and all(m.result == mavlink.MAV_RESULT_DENIED for m in denied)
+        assert counters().get("stranger_bytes_suppressed", 0) > sent - stranger.bytes_received
+    finally:
+        stranger.close()
+    # The configured ground station is not held back.
+    assert len(await gcs.download()) == 6
+
+
 def test_the_signing_passphrase_file_must_be_owner_only(tmp_path: Path) -> None:
     key_file = tmp_path / "mavlink.pass"
     key_file.write_text(PASSPHRASE + "\n")
     key_file.chmod(0o644)
-    with pytest.raises(SigningKeyError, match="readable by others"):
+    # The fleet key's rule and words (brasidas.security.read_private_file), the fix named.
+    with pytest.raises(SigningKeyError) as refused:
+        load_signing_key(key_file)
+    assert str(refused.value) == (
+        f"{key_file}: permissions 0644 for the MAVLink signing key are too open: it must be "
+        f"accessible by its owner only (chmod 600 {key_file})"
+    )
+    key_file.chmod(0o620)  # writable by the group: as bad
+    with pytest.raises(SigningKeyError, match=f"too open: .*chmod 600 {key_file}"):
         load_signing_key(key_file)
     key_file.chmod(0o600)
     assert load_signing_key(key_file) == hashlib.sha256(PASSPHRASE.encode()).digest()
     key_file.write_text("")
     with pytest.raises(SigningKeyError, match="one non-empty line"):
         load_signing_key(key_file)
+
+
+async def test_a_signing_key_that_is_a_fifo_or_huge_is_refused_at_once(tmp_path: Path) -> None:
+    fifo = tmp_path / "mavlink.fifo"
+    os.mkfifo(fifo, 0o600)
+    loading = asyncio.create_task(asyncio.to_thread(load_signing_key, fifo))
+    try:
+        # Opening a FIFO with no writer waits for one forever: the start would hang.
+        with pytest.raises(SigningKeyError, match="not a regular file"):
+            await asyncio.wait_for(asyncio.shield(loading), 10.0)
+    finally:
+        if not loading.done():  # the old reader: give it a writer and an end so it returns
+            with contextlib.suppress(OSError):
+                os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+            with contextlib.suppress(Exception):
+                await loading
+    huge = tmp_path / "mavlink.pass"
+    huge.write_bytes(b"x" * 1_000_000)
+    huge.chmod(0o600)
+    with pytest.raises(SigningKeyError, match="more than the 4096 allowed"):
+        load_signing_key(huge)
 
 
 async def test_the_navcam_announced_to_a_ground_station_decodes_with_gstreamer(

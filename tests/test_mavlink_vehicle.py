@@ -9,6 +9,7 @@ mission and fence items map onto routes and keep-outs with the right refusals.
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 from typing import Any
 
@@ -29,6 +30,7 @@ from platformd.mavlink.vehicle import (
     UPLOAD_RETRY_S,
     ManualInput,
     MavlinkVehicle,
+    SetCurrent,
     SetMode,
     UploadItems,
 )
@@ -151,7 +153,8 @@ def test_garbage_and_strangers_cost_nothing() -> None:
 
 
 def test_control_from_an_unsigned_link_is_refused_and_the_joystick_ignored() -> None:
-    vehicle = MavlinkVehicle(1, key=KEY)
+    # A configured target: a stranger would get no more bytes than it sends (tested below).
+    vehicle = MavlinkVehicle(1, key=KEY, targets=(GCS,))
     station = Station()
     set_auto = mavlink.MAVLink_command_long_message(1, 1, 176, 0, 1, 10, 0, 0, 0, 0, 0)
     assert vehicle.feed(station.frame(set_auto), GCS, 0.0) == []
@@ -194,9 +197,17 @@ def test_a_forged_future_timestamp_does_not_lock_out_the_real_station() -> None:
 
 
 def mission(*rows: tuple[int, int]) -> list[MissionItem]:
-    """(command, param1) rows at seq 0.. with made-up positions."""
+    """(command, param1) rows at seq 0.. with made-up positions: seq 0 at (1.0, 2.0), the
+    others around a circle from it (any run of them makes a valid polygon)."""
     return [
-        MissionItem(seq, 3, command, param1, x=10_000_000 + seq, y=20_000_000 + seq)
+        MissionItem(
+            seq,
+            3,
+            command,
+            param1,
+            x=10_000_000 + round(1000 * math.sin(seq * 0.8)),
+            y=20_000_000 + round(1000 * (1 - math.cos(seq * 0.8))),
+        )
         for seq, (command, param1) in enumerate(rows)
     ]
 
@@ -235,3 +246,67 @@ def test_fence_items_map_onto_boundary_and_keepouts() -> None:
         fence_from_items(mission(*[(FENCE_INCLUSION_VERTEX, 3)] * 6))
     with pytest.raises(MissionRefused, match="inclusion circle"):
         fence_from_items(mission((5003, 10)))
+
+
+def test_a_stranger_gets_no_more_bytes_than_it_sends() -> None:
+    """An address neither configured nor trusted may be a spoofed victim's: whatever it asks
+    (refused control, the parameter list, a download), it gets at most the bytes it sent in
+    each window, and what is held back is counted. A signed station is not held back."""
+    vehicle = MavlinkVehicle(1, key=KEY, targets=(GCS,))
+    vehicle.state.params = [
+        (f"PARAM_{i}", float(i), mavlink.MAV_PARAM_TYPE_REAL32) for i in range(60)
+    ]
+    stranger, victim = Station(), ("192.0.2.7", 14550)
+    asks = [
+        mavlink.MAVLink_command_long_message(1, 1, 176, 0, 1, 10, 0, 0, 0, 0, 0),
+        mavlink.MAVLink_param_request_list_message(1, 1),
+        mavlink.MAVLink_mission_request_list_message(1, 1, 0),
+        mavlink.MAVLink_setup_signing_message(1, 1, [7] * 32, 0),
+    ]
+    sent = received = 0
+    now = 0.0
+    for _ in range(50):
+        for ask in asks:
+            frame = stranger.frame(ask)
+            sent += len(frame)
+            vehicle.feed(frame, victim, now)
+        vehicle.tick(now)
+        received += sum(len(data) for data, peer in vehicle.take() if peer == victim)
+        now += 0.1  # 5 s: half a window
+    assert 0 < received <= sent
+    assert vehicle.counters["stranger_frames_suppressed"] > 0
+    assert vehicle.counters["stranger_bytes_suppressed"] > sent - received
+    # What it gets first is an answer, in whole: the COMMAND_ACK of its first request.
+    vehicle.feed(stranger.frame(asks[0]), victim, now)
+    answers = stranger.parser.parse_buffer(b"".join(d for d, p in vehicle.take() if p == victim))
+    assert [m.get_type() for m in answers or []] == ["COMMAND_ACK"]
+    # A new window gives no credit of its own: silence earns nothing.
+    held = vehicle.counters["stranger_frames_suppressed"]
+    vehicle.tick(now + 9.9)  # its heartbeat is due, and its window is new
+    assert not [peer for _, peer in vehicle.take() if peer == victim]
+    assert vehicle.counters["stranger_frames_suppressed"] > held
+
+    # A signed station at another address is no stranger: the whole list.
+    signed, station = Station(KEY), ("192.0.2.8", 14550)
+    vehicle.feed(signed.frame(mavlink.MAVLink_param_request_list_message(1, 1)), station, now)
+    values = [d for d, p in vehicle.take() if p == station]
+    assert len(values) == 60 and sum(map(len, values)) > 10 * len(signed.frame(asks[1]))
+
+
+def test_set_current_needs_control_like_any_change() -> None:
+    vehicle = MavlinkVehicle(1, key=KEY, targets=(GCS,))
+    unsigned, signed = Station(), Station(KEY)
+    by_message = mavlink.MAVLink_mission_set_current_message(1, 1, 2)
+    by_command = mavlink.MAVLink_command_long_message(1, 1, 224, 0, 3, 0, 0, 0, 0, 0, 0)
+    assert vehicle.feed(unsigned.frame(by_message), GCS, 0.0) == []
+    assert vehicle.feed(unsigned.frame(by_command), GCS, 0.0) == []
+    assert vehicle.counters["refused_unsigned"] == 2
+    texts = [m.text for m in unsigned.read(vehicle) if m.get_type() == "STATUSTEXT"]
+    assert texts[0].startswith("set current refused: unsigned link")
+    [request] = vehicle.feed(signed.frame(by_message), GCS, 0.1)
+    assert isinstance(request, SetCurrent) and request.seq == 2 and request.command is None
+    vehicle.answer_set_current(request, mavlink.MAV_RESULT_ACCEPTED)
+    [current] = [m for m in unsigned.read(vehicle) if m.get_type() == "MISSION_CURRENT"]
+    assert current.seq == 2 and vehicle.state.waypoint == 1
+    [request] = vehicle.feed(signed.frame(by_command), GCS, 0.2)
+    assert isinstance(request, SetCurrent) and (request.seq, request.command) == (3, 224)

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 
 from brasidas.autonomy.follower import FollowerParameters, PurePursuit
 from brasidas.autonomy.localization import Estimate
-from brasidas.autonomy.route import Cursor, Route
+from brasidas.autonomy.route import Cursor, Route, RouteError
 from brasidas.messages import PatrolState, PatrolStatus
 
 if TYPE_CHECKING:
@@ -235,6 +235,19 @@ class Patrol:
             waypoints=len(self.route.waypoints),
             path=tuple(frame.to_geo(x, y) for x, y in self.planned_path) if frame else (),
         )
+
+    def go_to(self, index: int) -> None:
+        """The next waypoint is ``index`` (a ground station's MISSION_SET_CURRENT): the patrol
+        heads there at once, or from there once started; direction and lap go on. Raises
+        RouteError for a waypoint the route does not have."""
+        stops = self.route.stops
+        if not 0 <= index < stops:
+            raise RouteError(
+                f"no waypoint {index + 1}: the route has {stops}" if stops else "no waypoints"
+            )
+        cursor = self.cursor
+        self.cursor = Cursor(index, cursor.forward, cursor.lap, cursor.departed or index != 0)
+        self._needs_plan = True
 
     # ------------------------------------------------------------------ helpers
 

@@ -1,10 +1,15 @@
 """MAVLink mission items and what a Brasidas route or map makes of them: the one place that maps
-MAV_CMD and MAV_FRAME numbers to waypoints, keep-outs and named points (sans-IO).
+MAV_CMD and MAV_FRAME numbers to waypoints, keep-outs and named points (sans-IO). The station's
+``.plan`` and ``.waypoints`` readers and writers and the platform's MAVLink endpoint (mission
+and fence uploads and downloads, platformd.mavlink.missions) both go through it.
 
 Numbers from the MAVLink ``common.xml`` definitions (mavlink.io "Mission protocol" and
-"File formats"): a ground robot's route is NAV_WAYPOINT items in a global frame, possibly
-closed by a DO_JUMP back to the first; a fence is polygon vertices (param1 = vertex count) and
-circles (param1 = radius); rally points are named places.
+"File formats"): a ground robot's route is NAV_WAYPOINT items in a global frame, item 0 being
+home where the convention has one (ArduPilot, Mission Planner, the mission protocol), possibly
+closed by a DO_JUMP back to the first waypoint or by a last waypoint equal to the first; a fence
+is polygon vertices (param1 = vertex count) and circles (param1 = radius) with a return point;
+rally points are named places. A refusal names every item it refuses and carries the
+``MAV_MISSION_RESULT`` a ground station's MISSION_ACK says.
 """
 
 from __future__ import annotations
@@ -14,6 +19,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any
+
+from shapely import Polygon
 
 from brasidas.mapfiles.errors import FileRefused
 from brasidas.mapfiles.shapes import CIRCLE_VERTICES, Shape, circle, polygon_shape
@@ -45,6 +52,22 @@ class MavFrame(IntEnum):
     GLOBAL_TERRAIN_ALT_INT = 11
 
 
+class MissionResult(IntEnum):
+    """MAV_MISSION_RESULT: what a MISSION_ACK says of an upload."""
+
+    ACCEPTED = 0
+    ERROR = 1
+    UNSUPPORTED_FRAME = 2
+    UNSUPPORTED = 3
+    NO_SPACE = 4
+    INVALID = 5
+    INVALID_PARAM1 = 6
+    INVALID_PARAM5_X = 10
+    INVALID_PARAM6_Y = 11
+    INVALID_SEQUENCE = 13
+    DENIED = 14
+
+
 GLOBAL_FRAMES = frozenset(
     {
         MavFrame.GLOBAL,
@@ -73,12 +96,18 @@ OTHER_NAMES = {
     179: "DO_SET_HOME",
     181: "DO_SET_RELAY",
     183: "DO_SET_SERVO",
+    192: "DO_REPOSITION",
     201: "DO_SET_ROI",
     203: "DO_DIGICAM_CONTROL",
     206: "DO_SET_CAM_TRIGG_DIST",
+    224: "DO_SET_MISSION_CURRENT",
+    246: "PREFLIGHT_REBOOT_SHUTDOWN",
+    400: "COMPONENT_ARM_DISARM",
+    519: "REQUEST_PROTOCOL_VERSION",
     2000: "IMAGE_START_CAPTURE",
     2500: "VIDEO_START_CAPTURE",
 }
+"""Commands ground stations and mission files often hold that are not ours (named, not driven)."""
 
 
 def command_name(command: int) -> str:
@@ -95,6 +124,30 @@ def frame_name(frame: int) -> str:
         return f"MAV_FRAME_{MavFrame(frame).name} ({frame})"
     except ValueError:
         return f"MAV_FRAME {frame}"
+
+
+class MissionRefused(FileRefused):
+    """Mission or fence items refused: the message names every item refused and why;
+    ``result`` is the MAV_MISSION_RESULT of the first (what a MISSION_ACK says)."""
+
+    def __init__(self, result: MissionResult, message: str) -> None:
+        super().__init__(message)
+        self.result = result
+
+
+class _Refusals:
+    """Every item refused, each with its MAV_MISSION_RESULT: one message names them all."""
+
+    def __init__(self) -> None:
+        self.found: list[tuple[MissionResult, str]] = []
+
+    def add(self, result: MissionResult, text: str) -> None:
+        self.found.append((result, text))
+
+    def check(self, prefix: str = "") -> None:
+        if self.found:
+            text = "; ".join(text for _, text in self.found)
+            raise MissionRefused(self.found[0][0], prefix + text)
 
 
 @dataclass(frozen=True)
@@ -126,33 +179,53 @@ class MissionRoute:
         return len(self.waypoints) >= 3 and self.waypoints[0] == self.waypoints[-1]
 
 
+def seq_jump_target(items: Sequence[MissionItem]) -> Callable[[MissionItem], int | None]:
+    """A DO_JUMP's target when its param1 is a sequence number (WPL files, the mission
+    protocol): the index of that item, None for no such item."""
+
+    def target(item: MissionItem) -> int | None:
+        seq = item.params[0]
+        return int(seq) if math.isfinite(seq) and 0 <= seq < len(items) else None
+
+    return target
+
+
 def route_from_items(
     items: Sequence[MissionItem],
     *,
     home_first: bool,
     jump_target: Callable[[MissionItem], int | None],
+    empty_ok: bool = False,
 ) -> MissionRoute:
-    """The route of a mission, or FileRefused naming every item we cannot drive.
+    """The route of a mission, or MissionRefused naming every item we cannot drive.
 
-    ``home_first``: item 0 is home (ArduPilot and Mission Planner), not a waypoint.
-    ``jump_target`` gives the index in ``items`` a DO_JUMP goes to (None: no such item)."""
+    ``home_first``: item 0 is home (ArduPilot, Mission Planner, the mission protocol), not a
+    waypoint; home at 0, 0 is no home. ``jump_target`` gives the index in ``items`` a DO_JUMP
+    goes to (None: no such item). ``empty_ok``: no waypoints is an empty route (a ground station
+    clearing the mission), not a refusal."""
     route = MissionRoute([])
     body = list(items)
     if home_first and body:
         home = body.pop(0)
-        _check_position(home, "home")
-        route.home = (home.latitude, home.longitude)
-        route.notes.append(
-            f"{home.where} is home ({home.latitude:.7f}, {home.longitude:.7f}), not a waypoint"
-        )
-    refused: list[str] = []
+        if home.latitude == 0 and home.longitude == 0:
+            route.notes.append(f"{home.where} is home, without a position (0, 0)")
+        else:
+            _check_position(home, "home")
+            route.home = (home.latitude, home.longitude)
+            route.notes.append(
+                f"{home.where} is home ({home.latitude:.7f}, {home.longitude:.7f}), not a waypoint"
+            )
+    refused = _Refusals()
     first_waypoint: int | None = None
     loop = False
     altitudes = False
     for index, item in enumerate(body):
         if item.command == MavCmd.NAV_WAYPOINT:
             if item.frame not in GLOBAL_FRAMES:
-                refused.append(f"{item.where}: a waypoint in {frame_name(item.frame)}")
+                refused.add(
+                    MissionResult.UNSUPPORTED_FRAME,
+                    f"{item.where}: a waypoint in {frame_name(item.frame)}",
+                )
                 continue
             _check_position(item, "waypoint")
             if first_waypoint is None:
@@ -168,9 +241,10 @@ def route_from_items(
             target = jump_target(item)
             last = index == len(body) - 1
             if target is None or target != first_waypoint or not last:
-                refused.append(
+                refused.add(
+                    MissionResult.INVALID_PARAM1 if last else MissionResult.INVALID_SEQUENCE,
                     f"{item.where}: {command_name(item.command)} to {item.params[0]:g}: only a "
-                    "last jump back to the first waypoint (a loop) can be driven"
+                    "last jump back to the first waypoint (a loop) can be driven",
                 )
                 continue
             repeat = item.params[1]
@@ -181,19 +255,19 @@ def route_from_items(
                 )
             loop = True
         elif item.command in FENCE_COMMANDS or item.command == MavCmd.NAV_RALLY_POINT:
-            refused.append(
+            refused.add(
+                MissionResult.UNSUPPORTED,
                 f"{item.where}: {command_name(item.command)} is a fence or rally item, "
-                "not a waypoint (load it as a map)"
+                "not a waypoint (load it as a map)",
             )
         else:
-            refused.append(f"{item.where}: {command_name(item.command)}")
-    if refused:
-        raise FileRefused("commands we cannot fly: " + "; ".join(refused))
-    if not route.waypoints:
-        raise FileRefused("no waypoints in the mission")
+            refused.add(MissionResult.UNSUPPORTED, f"{item.where}: {command_name(item.command)}")
+    refused.check("commands we cannot fly: ")
+    if not route.waypoints and not empty_ok:
+        raise MissionRefused(MissionResult.INVALID, "no waypoints in the mission")
     if altitudes:
         route.notes.append("altitudes ignored (a ground robot)")
-    if loop and route.waypoints[-1] != route.waypoints[0]:
+    if loop and len(route.waypoints) >= 2 and route.waypoints[-1] != route.waypoints[0]:
         route.waypoints.append(route.waypoints[0])
     if loop:
         route.notes.append("a jump back to the first waypoint: the route is closed (loops)")
@@ -202,14 +276,15 @@ def route_from_items(
 
 def fence_shapes(items: Sequence[MissionItem], first_index: int = 0) -> list[Shape]:
     """Fence and rally items as shapes: inclusion polygons and circles (the boundary: their
-    intersection), exclusion ones (keep-outs), the return point and rally points (named)."""
+    intersection), exclusion ones (keep-outs), the return point and rally points (named).
+    MissionRefused names every item refused."""
     shapes: list[Shape] = []
-    refused: list[str] = []
+    refused = _Refusals()
     rally = 0
     pending: list[MissionItem] = []
     for item in items:
         if pending and (item.command != pending[0].command or len(pending) >= _count(pending[0])):
-            refused.extend(_close_polygon(pending, shapes, first_index))
+            _close_polygon(pending, shapes, first_index, refused)
             pending = []
         if item.command in (
             MavCmd.NAV_FENCE_POLYGON_VERTEX_INCLUSION,
@@ -218,25 +293,30 @@ def fence_shapes(items: Sequence[MissionItem], first_index: int = 0) -> list[Sha
             pending.append(item)
             continue
         if item.frame not in GLOBAL_FRAMES:
-            refused.append(f"{item.where}: {frame_name(item.frame)} is not latitude, longitude")
+            refused.add(
+                MissionResult.UNSUPPORTED_FRAME,
+                f"{item.where}: {frame_name(item.frame)} is not latitude, longitude",
+            )
             continue
         if item.command in (MavCmd.NAV_FENCE_CIRCLE_INCLUSION, MavCmd.NAV_FENCE_CIRCLE_EXCLUSION):
             _check_position(item, "circle centre")
             inclusion = item.command == MavCmd.NAV_FENCE_CIRCLE_INCLUSION
             kind = "inclusion" if inclusion else "exclusion"
-            label = f"{item.where} (fence circle, {kind})"
-            shapes.append(
-                circle(
-                    label,
-                    first_index + len(shapes),
-                    item.latitude,
-                    item.longitude,
-                    item.params[0],
-                    role="inclusion" if inclusion else "keepout",
-                    ident=f"fence-circle-{len(shapes) + 1}",
-                    vertices=CIRCLE_VERTICES,
+            try:
+                shapes.append(
+                    circle(
+                        f"{item.where} (fence circle, {kind})",
+                        first_index + len(shapes),
+                        item.latitude,
+                        item.longitude,
+                        item.params[0],
+                        role="inclusion" if inclusion else "keepout",
+                        ident=f"fence-circle-{len(shapes) + 1}",
+                        vertices=CIRCLE_VERTICES,
+                    )
                 )
-            )
+            except FileRefused as exc:  # the radius (param1)
+                refused.add(MissionResult.INVALID_PARAM1, str(exc))
         elif item.command == MavCmd.NAV_FENCE_RETURN_POINT:
             _check_position(item, "return point")
             shapes.append(
@@ -261,12 +341,59 @@ def fence_shapes(items: Sequence[MissionItem], first_index: int = 0) -> list[Sha
                 )
             )
         else:
-            refused.append(f"{item.where}: {command_name(item.command)} is not a fence item")
+            refused.add(
+                MissionResult.UNSUPPORTED,
+                f"{item.where}: {command_name(item.command)} is not a fence item",
+            )
     if pending:
-        refused.extend(_close_polygon(pending, shapes, first_index))
-    if refused:
-        raise FileRefused("; ".join(refused))
+        _close_polygon(pending, shapes, first_index, refused)
+    refused.check()
     return shapes
+
+
+LatLonRing = tuple[tuple[float, float], ...]
+"""(latitude, longitude) corners, the first not repeated."""
+
+
+@dataclass(frozen=True)
+class FencePlan:
+    """A fence as the platform's map takes it: the boundary (None: keep the map's) and
+    keep-out rings."""
+
+    boundary: LatLonRing | None = None
+    keepouts: tuple[LatLonRing, ...] = ()
+
+
+def fence_plan(items: Sequence[MissionItem]) -> FencePlan:
+    """A fence uploaded to the platform: :func:`fence_shapes`' checks, then the map's own rules
+    (one inclusion polygon, its boundary; keep-outs; the return point is not used: a rover holds
+    inside the boundary). MissionRefused names every item refused."""
+    shapes = fence_shapes(items)
+    refused = _Refusals()
+    boundary: LatLonRing | None = None
+    keepouts: list[LatLonRing] = []
+    for shape in shapes:
+        if shape.role == "keepout":
+            keepouts.append(_ring(shape))
+        elif shape.role == "inclusion" and "circle_radius_m" in shape.properties:
+            refused.add(
+                MissionResult.UNSUPPORTED,
+                f"{shape.label}: an inclusion circle (the boundary is a polygon)",
+            )
+        elif shape.role == "inclusion" and boundary is not None:
+            refused.add(
+                MissionResult.UNSUPPORTED,
+                f"{shape.label}: a second inclusion polygon (the map has one boundary)",
+            )
+        elif shape.role == "inclusion":
+            boundary = _ring(shape)
+        elif shape.ident != "fence-return":
+            refused.add(
+                MissionResult.UNSUPPORTED,
+                f"{shape.label}: a rally point is not a fence item (rally points are not taken)",
+            )
+    refused.check()
+    return FencePlan(boundary, tuple(keepouts))
 
 
 def mission_items(
@@ -297,10 +424,10 @@ def mission_items(
 _NO_PARAMS = (0.0, 0.0, 0.0, 0.0)
 
 
-def fence_items(area: Mapping[str, Any]) -> list[MissionItem]:
-    """A canonical map as fence and rally items (what a ground station downloads): the
+def fence_items(area: Mapping[str, Any], *, rally: bool = True) -> list[MissionItem]:
+    """A canonical map as fence (and rally) items, what a ground station downloads: the
     boundary as an inclusion polygon, each keep-out's polygons as exclusion polygons (holes
-    cannot be said), the named points as rally points."""
+    cannot be said), and with ``rally`` the named points as rally points."""
     items: list[MissionItem] = []
 
     def polygon(ring: Sequence[Sequence[float]], command: MavCmd, where: str) -> None:
@@ -327,7 +454,7 @@ def fence_items(area: Mapping[str, Any]) -> list[MissionItem]:
             parts = [coordinates] if kind == "Polygon" else coordinates
             for rings in parts:
                 polygon(rings[0], MavCmd.NAV_FENCE_POLYGON_VERTEX_EXCLUSION, str(feature.get("id")))
-        elif kind == "Point":
+        elif kind == "Point" and rally:
             lon, lat = coordinates[:2]
             items.append(
                 MissionItem(
@@ -347,37 +474,71 @@ def _count(item: MissionItem) -> int:
     return int(count) if math.isfinite(count) and count >= 3 and count == int(count) else 0
 
 
-def _close_polygon(pending: list[MissionItem], shapes: list[Shape], first_index: int) -> list[str]:
+def _close_polygon(
+    pending: list[MissionItem], shapes: list[Shape], first_index: int, refused: _Refusals
+) -> None:
     head = pending[0]
     count = _count(head)
     inclusion = head.command == MavCmd.NAV_FENCE_POLYGON_VERTEX_INCLUSION
     kind = "inclusion" if inclusion else "exclusion"
     where = f"{head.where} to {pending[-1].where}"
     if count == 0:
-        return [f"{head.where}: polygon vertex count (param1) {head.params[0]:g} is not 3 or more"]
+        refused.add(
+            MissionResult.INVALID_PARAM1,
+            f"{head.where}: polygon vertex count (param1) {head.params[0]:g} is not 3 or more",
+        )
+        return
     if len(pending) != count:
-        return [f"{where}: a {kind} polygon of {count} vertices has {len(pending)}"]
+        refused.add(
+            MissionResult.INVALID_PARAM1,
+            f"{where}: a {kind} polygon of {count} vertices has {len(pending)}",
+        )
+        return
     bad = [item.where for item in pending if item.frame not in GLOBAL_FRAMES]
     if bad:
-        return [f"{', '.join(bad)}: not in a latitude, longitude frame"]
+        refused.add(
+            MissionResult.UNSUPPORTED_FRAME,
+            f"{', '.join(bad)}: not in a latitude, longitude frame",
+        )
+        return
     for item in pending:
         _check_position(item, "vertex")
     ring = [(item.longitude, item.latitude) for item in pending]
-    shapes.append(
-        polygon_shape(
-            f"{where} (fence polygon, {kind})",
-            first_index + len(shapes),
-            [ring],
-            role="inclusion" if inclusion else "keepout",
-            ident=f"fence-{len(shapes) + 1}",
+    try:
+        shapes.append(
+            polygon_shape(
+                f"{where} (fence polygon, {kind})",
+                first_index + len(shapes),
+                [ring],
+                role="inclusion" if inclusion else "keepout",
+                ident=f"fence-{len(shapes) + 1}",
+            )
         )
-    )
-    return []
+    except FileRefused as exc:  # crossing edges, no area
+        refused.add(MissionResult.INVALID, str(exc))
+
+
+def _ring(shape: Shape) -> LatLonRing:
+    """A polygon shape's outer ring as (lat, lon), the closing corner left out."""
+    geometry = shape.geometry
+    assert isinstance(geometry, Polygon)  # fence polygons and circles are one ring each
+    corners = [(float(lat), float(lon)) for lon, lat in geometry.exterior.coords]
+    return tuple(corners[:-1] if len(corners) > 1 and corners[0] == corners[-1] else corners)
 
 
 def _check_position(item: MissionItem, what: str) -> None:
     lat, lon = item.latitude, item.longitude
-    if not (math.isfinite(lat) and math.isfinite(lon)) or abs(lat) > 90 or abs(lon) > 180:
-        raise FileRefused(f"{item.where}: {what} {lat}, {lon} is not a latitude, longitude")
+    if not (math.isfinite(lat) and abs(lat) <= 90):
+        raise MissionRefused(
+            MissionResult.INVALID_PARAM5_X,
+            f"{item.where}: {what} {lat}, {lon} is not a latitude, longitude",
+        )
+    if not (math.isfinite(lon) and abs(lon) <= 180):
+        raise MissionRefused(
+            MissionResult.INVALID_PARAM6_Y,
+            f"{item.where}: {what} {lat}, {lon} is not a latitude, longitude",
+        )
     if lat == 0 and lon == 0:
-        raise FileRefused(f"{item.where}: {what} at 0, 0 (no position given)")
+        raise MissionRefused(
+            MissionResult.INVALID_PARAM5_X, f"{item.where}: {what} at 0, 0 (no position given)"
+        )

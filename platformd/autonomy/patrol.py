@@ -473,6 +473,11 @@ class PatrolActor(Actor):
         self.core.stop()
         self.tick()
 
+    def go_to_waypoint(self, index: int) -> None:
+        """Head for waypoint ``index`` (from 0) next; RouteError for none such."""
+        self.core.go_to(index)
+        self.tick()
+
     def set_enabled(self, enabled: bool) -> None:
         self.core.set_enabled(enabled)
         report_switch(self.bus, "patrol", enabled)

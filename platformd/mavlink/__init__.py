@@ -2,7 +2,7 @@
 Mission Planner, MAVProxy and MAVSDK. ``[mavlink] enabled`` turns it on.
 
 ``vehicle`` is the sans-IO protocol (pymavlink for the wire format), ``missions`` the mission
-and fence mapping, ``modes`` the identity and modes, ``signing`` the key and the signature
+and fence items' wire form (their meaning is brasidas.mapfiles.mission's), ``modes`` the identity and modes, ``signing`` the key and the signature
 check, ``service`` the UDP transport and the platform's decisions.
 """
 

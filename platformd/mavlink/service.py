@@ -26,8 +26,9 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from brasidas import topics
+from brasidas import annunciator, topics
 from brasidas.actor import Actor
+from brasidas.annunciator import Annunciator
 from brasidas.autonomy.route import RouteError
 from brasidas.codecs.commands import MANUAL_OVERRIDE
 from brasidas.codecs.telemetry_schema import Snapshot
@@ -68,14 +69,13 @@ from platformd.mavlink.vehicle import (
     MavlinkVehicle,
     Peer,
     Request,
+    SetCurrent,
     SetMode,
     Severity,
     StartVideo,
     UploadItems,
 )
 from platformd.session_table import Session
-from stationd.telemetry import annunciator
-from stationd.telemetry.annunciator import Annunciator
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -144,8 +144,9 @@ class MavlinkService(Actor):
         self._override = OverrideState(False)
         self._patrol_state: PatrolState | None = None
         telemetry = ctx.config.telemetry
-        # The station's group 90 warnings, from the platform's own telemetry (the link's two,
-        # degraded and control taken, are a station's view: CONTROL_STATE has its own text).
+        # The station's group 90 warnings (brasidas.annunciator), from the platform's own
+        # telemetry (the link's two, degraded and control taken, are a station's view:
+        # CONTROL_STATE has its own text).
         self.annunciator = Annunciator(
             TelemetryReceiverSection(
                 battery_low_v=telemetry.battery_low_v,
@@ -341,6 +342,8 @@ class MavlinkService(Actor):
             await self._upload(request)
         elif isinstance(request, StartVideo):
             await self._start_video(request)
+        elif isinstance(request, SetCurrent):
+            self._set_current(request)
 
     def _refused(self, request: Request, what: str) -> str | None:
         return self.ctx.authority.refusal(self._session(request), what)
@@ -381,6 +384,32 @@ class MavlinkService(Actor):
         if self._override.engaged and self._override.session_id == session.session_id:
             await self.ctx.commands.dispatch(MANUAL_OVERRIDE, "off", session)
         vehicle.answer_command(request, mavlink.MAV_RESULT_ACCEPTED)
+
+    def _set_current(self, request: SetCurrent) -> None:
+        """The patrol's next waypoint: mission item ``seq`` is route index ``seq - 1`` (item 0
+        is home), through the patrol's own ``go_to_waypoint``, for the control holder only."""
+        vehicle = self.vehicle
+        refusal = self._refused(request, "set current waypoint")
+        if refusal is not None:
+            vehicle.answer_set_current(
+                request, mavlink.MAV_RESULT_DENIED, refusal, holder_system=self._holder_system()
+            )
+            return
+        patrol = self.ctx.patrol
+        if patrol is None:
+            vehicle.answer_set_current(request, mavlink.MAV_RESULT_UNSUPPORTED, "no patrol here")
+            return
+        try:
+            if request.seq < 1:
+                raise RouteError(f"item {request.seq} is home, not a waypoint")
+            patrol.go_to_waypoint(request.seq - 1)
+        except RouteError as exc:
+            vehicle.answer_set_current(
+                request, mavlink.MAV_RESULT_FAILED, f"set current refused: {exc}"
+            )
+            return
+        _LOGGER.info("MAVLink: next waypoint %d, from %s", request.seq, request.peer)
+        vehicle.answer_set_current(request, mavlink.MAV_RESULT_ACCEPTED)
 
     def _manual_control(self, request: ManualInput) -> None:
         """The joystick, from the override's holder only: the velocity path of ``$PVEL``."""
@@ -498,7 +527,7 @@ class MavlinkService(Actor):
             if uploaded is not None and uploaded[0] == patrol.core.map_revision:
                 return uploaded[1]
             area = patrol.core.area
-            return items_from_fence(_fence_of(area.geojson())) if area is not None else []
+            return items_from_fence(area.geojson()) if area is not None else []
         return []
 
     # ------------------------------------------------------------------ bus
@@ -631,30 +660,6 @@ def _polygon(ring: tuple[tuple[float, float], ...]) -> dict[str, Any]:
     if coordinates[0] != coordinates[-1]:
         coordinates.append(coordinates[0])
     return {"type": "Polygon", "coordinates": [coordinates]}
-
-
-def _fence_of(geojson: Mapping[str, Any]) -> FencePlan:
-    """The boundary and keep-out rings (lat, lon; no closing vertex) of a map's GeoJSON."""
-    boundary: tuple[tuple[float, float], ...] | None = None
-    keepouts: list[tuple[tuple[float, float], ...]] = []
-    for feature in geojson.get("features", []):
-        role = _role(feature)
-        geometry = feature.get("geometry") or {}
-        if geometry.get("type") == "Polygon":
-            polygons = [geometry["coordinates"]]
-        elif geometry.get("type") == "MultiPolygon":
-            polygons = list(geometry["coordinates"])
-        else:
-            continue
-        for polygon in polygons:
-            exterior = [(float(lat), float(lon)) for lon, lat, *_ in polygon[0]]
-            if len(exterior) > 1 and exterior[0] == exterior[-1]:
-                exterior.pop()
-            if role == "boundary" and boundary is None:
-                boundary = tuple(exterior)
-            elif role == "keepout":
-                keepouts.append(tuple(exterior))
-    return FencePlan(boundary, tuple(keepouts))
 
 
 def _position_result() -> int:

@@ -12,9 +12,9 @@ from __future__ import annotations
 import enum
 import hashlib
 import hmac
-import os
-import stat
 from pathlib import Path
+
+from brasidas.security import PrivateFileError, read_private_file
 
 SIGNED_FLAG = 0x01
 """MAVLINK_IFLAG_SIGNED: the incompat flag of a signed frame."""
@@ -28,29 +28,23 @@ MAX_STREAMS = 64
 """Streams remembered; a flood of made-up stream ids cannot grow the table without bound."""
 
 
-class SigningKeyError(Exception):
-    """The passphrase file is missing, unreadable, empty or readable by others."""
+class SigningKeyError(PrivateFileError):
+    """The passphrase file is missing, unreadable, not a regular file, too large, accessible by
+    others, or not one line of text."""
 
 
 def load_signing_key(path: Path) -> bytes:
-    """SHA-256 of the file's one line (trailing newline ignored). Like the fleet key, the file
-    must be readable by its owner only.
-
-    TODO(lead): merge with the shared key-file permission check of brasidas.security (i19b).
-    """
+    """SHA-256 of the file's one line (trailing newline ignored). The file is a secret under
+    the fleet key's rules (:func:`brasidas.security.read_private_file`: a regular file of
+    bounded size, this user's, no group or other bits). Blocking: call it at start."""
     try:
-        mode = path.stat().st_mode
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise SigningKeyError(f"{path}: MAVLink signing passphrase not found") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise SigningKeyError(f"{path}: cannot read the signing passphrase: {err}") from None
-    if mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise SigningKeyError(
-            f"{path}: readable by others (mode {stat.S_IMODE(mode):04o}); chmod 600 it"
-        )
-    if hasattr(os, "getuid") and path.stat().st_uid != os.getuid():
-        raise SigningKeyError(f"{path}: not owned by the user running the platform")
+        data = read_private_file(path, "MAVLink signing key")
+    except PrivateFileError as err:
+        raise SigningKeyError(str(err)) from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise SigningKeyError(f"{path}: the MAVLink signing key is not UTF-8 text") from None
     passphrase = text.removesuffix("\n").removesuffix("\r")
     if not passphrase or "\n" in passphrase:
         raise SigningKeyError(f"{path}: expected one non-empty line")

@@ -43,6 +43,10 @@ NO_HOLDER = 0
 MAX_LINKS = 32
 """Ground station addresses kept at once: a flood from made-up source addresses costs a
 bounded table (the configured targets are always kept)."""
+STRANGER_WINDOW_S = 10.0
+"""A stranger (an address neither in ``mavlink.targets`` nor ever trusted) is sent at most the
+bytes it sent us in each window of this long: a spoofed source address never makes the
+endpoint a reflector that answers a victim with more than the attacker spent."""
 
 
 class Severity:
@@ -81,6 +85,17 @@ class UploadItems(Request):
 
     mission_type: int
     items: tuple[MissionItem, ...]
+
+
+@dataclass(frozen=True)
+class SetCurrent(Request):
+    """MISSION_SET_CURRENT or MAV_CMD_DO_SET_MISSION_CURRENT: the patrol's next waypoint."""
+
+    seq: int
+    """The mission item (1: the first waypoint; 0 is home)."""
+    command: int | None
+    """MAV_CMD_DO_SET_MISSION_CURRENT when asked by command (a COMMAND_ACK answers), None
+    for the message (MISSION_CURRENT answers, a STATUSTEXT says a refusal)."""
 
 
 @dataclass(frozen=True)
@@ -166,6 +181,21 @@ class Link:
     upload_owner: tuple[int, int] = (0, 0)
     last_ack: tuple[int, int] | None = None
     """(mission_type, result) of the last upload, resent if the station repeats its last item."""
+    credit: int = 0
+    """A stranger's bytes received in this window not yet answered: what may still be sent."""
+    credit_since: float = -math.inf
+    """When the stranger's current window began."""
+
+    @property
+    def stranger(self) -> bool:
+        """Not a configured target and never trusted (signed, or unsigned control allowed):
+        its source address may be anyone's, so it gets no more than it gives."""
+        return not self.configured and self.last_trusted == -math.inf
+
+    def renew_credit(self, now: float) -> None:
+        if now - self.credit_since >= STRANGER_WINDOW_S:
+            self.credit_since = now
+            self.credit = 0
 
 
 # --------------------------------------------------------------------------- the vehicle
@@ -220,6 +250,8 @@ class MavlinkVehicle:
                 "handler_errors",
                 "links_refused",
                 "setup_signing_refused",
+                "stranger_frames_suppressed",
+                "stranger_bytes_suppressed",
             ),
             0,
         )
@@ -241,6 +273,8 @@ class MavlinkVehicle:
                 self.counters["links_refused"] += 1
                 return []
             link = self._link(peer, configured=False)
+        link.renew_credit(now)
+        link.credit += len(data)
         try:
             messages = link.decoder.parse_buffer(data) or []
         except Exception:  # pymavlink raises for a frame it cannot even delimit
@@ -320,7 +354,8 @@ class MavlinkVehicle:
         if link is None:
             return
         if command is None:
-            command = request.command if isinstance(request, SetMode) else 0
+            asked = request.command if isinstance(request, SetMode | SetCurrent) else None
+            command = asked or 0
         self._send(
             link,
             mavlink.MAVLink_command_ack_message(
@@ -344,6 +379,23 @@ class MavlinkVehicle:
             severity = Severity.INFO if result == mavlink.MAV_MISSION_ACCEPTED else Severity.WARNING
             self._statustext_to(link, severity, text)
 
+    def answer_set_current(
+        self, request: SetCurrent, result: int, text: str = "", *, holder_system: int = NO_HOLDER
+    ) -> None:
+        """The answer to a new current item: a COMMAND_ACK when asked by command; accepted,
+        MISSION_CURRENT with it at once (the mission protocol's answer); refused, the reason."""
+        link = self.links.get(request.peer)
+        if link is None:
+            return
+        accepted = result == mavlink.MAV_RESULT_ACCEPTED
+        if request.command is not None:
+            self.answer_command(request, result, text, holder_system=holder_system)
+        elif text:
+            self._statustext_to(link, Severity.INFO if accepted else Severity.WARNING, text)
+        if accepted:
+            self.state.waypoint = request.seq - 1
+            self._send(link, self._mission_current())
+
     def statustext(self, severity: int, text: str) -> None:
         """A warning (or notice) for every ground station (group 90's annunciations)."""
         for link in self.links.values():
@@ -365,6 +417,7 @@ class MavlinkVehicle:
                 del self.links[peer]
                 self.counters["links_forgotten"] += 1
                 continue
+            link.renew_credit(now)
             self._retry_upload(link, now)
         if self._due_now("heartbeat", self.heartbeat_hz, now):
             self._broadcast(self._heartbeat())
@@ -552,9 +605,14 @@ class MavlinkVehicle:
                     -1,
                 )
             )
-        seq = state.waypoint + 1 if state.waypoint is not None else 0
-        out.append(mavlink.MAVLink_mission_current_message(seq, state.waypoints + 1))
+        out.append(self._mission_current())
         return out
+
+    def _mission_current(self) -> Any:
+        """The patrol's target as a mission item (route index + 1: item 0 is home)."""
+        state = self.state
+        seq = state.waypoint + 1 if state.waypoint is not None else 0
+        return mavlink.MAVLink_mission_current_message(seq, state.waypoints + 1)
 
     def _home_position(self) -> Any | None:
         home = self.state.home
@@ -665,6 +723,11 @@ class MavlinkVehicle:
             if not self._may_control(signed, "set mode", ack, mavlink.MAV_RESULT_DENIED):
                 return []
             return [SetMode(peer, system, component, signed, mode, command)]
+        if command == mavlink.MAV_CMD_DO_SET_MISSION_CURRENT:
+            if not self._may_control(signed, "set current", ack, mavlink.MAV_RESULT_DENIED):
+                return []
+            seq = int(params[0]) if math.isfinite(params[0]) else -1
+            return [SetCurrent(peer, system, component, signed, seq, command)]
         if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             # Ground stations set many intervals at connect: the ACK says no, without a text
             # for each (the rates are the platform's, mavlink.*_hz).
@@ -971,6 +1034,18 @@ class MavlinkVehicle:
         link.upload = _Upload(mission_type, 0, waiting=True)
         return [UploadItems(peer, system, component, signed, mission_type, ())]
 
+    def _on_mission_set_current(
+        self, link: Link, message: Any, origin: Any, now: float
+    ) -> list[Request]:
+        peer, system, component, signed = origin
+
+        def refuse(result: int, text: str) -> None:
+            self._statustext_to(link, Severity.WARNING, text)
+
+        if not self._may_control(signed, "set current", refuse, mavlink.MAV_RESULT_DENIED):
+            return []
+        return [SetCurrent(peer, system, component, signed, message.seq, None)]
+
     def _on_mission_ack(self, link: Link, message: Any, origin: Any, now: float) -> list[Request]:
         return []  # the end of a download: nothing kept per download
 
@@ -1045,13 +1120,30 @@ class MavlinkVehicle:
                 self._send(link, message, component)
 
     def _send(self, link: Link, message: Any, component: int = modes.VEHICLE_COMPONENT) -> None:
+        self._send_all(link, [message], component)
+
+    def _send_all(
+        self, link: Link, messages: list[Any], component: int = modes.VEHICLE_COMPONENT
+    ) -> None:
+        """All of ``messages`` to ``link``, or, to a stranger out of credit, none (counted)."""
         encoder = link.encoder
         encoder.srcComponent = component
         if encoder.signing.sign_outgoing and self._wall is not None:
             encoder.signing.timestamp = max(encoder.signing.timestamp, timestamp_at(self._wall()))
-        frame = message.pack(encoder)
-        encoder.seq = (encoder.seq + 1) % 256
-        self.outbox.append((frame, link.peer))
+        first_seq = encoder.seq
+        frames = []
+        for message in messages:
+            frames.append(message.pack(encoder))
+            encoder.seq = (encoder.seq + 1) % 256
+        if link.stranger:
+            size = sum(len(frame) for frame in frames)
+            if size > link.credit:
+                encoder.seq = first_seq  # what it is sent shows no gap for what it was not
+                self.counters["stranger_frames_suppressed"] += len(frames)
+                self.counters["stranger_bytes_suppressed"] += size
+                return
+            link.credit -= size
+        self.outbox.extend((frame, link.peer) for frame in frames)
 
     def _statustext_to(self, link: Link, severity: int, text: str) -> None:
         data = text.encode("utf-8", "replace")[: STATUSTEXT_CHUNK * 4]
@@ -1062,8 +1154,13 @@ class MavlinkVehicle:
             message_id = self._statustext_id
             if len(chunks[-1]) == STATUSTEXT_CHUNK:
                 chunks.append(b"")  # a full last chunk: an empty one ends the text
-        for index, chunk in enumerate(chunks):
-            self._send(link, mavlink.MAVLink_statustext_message(severity, chunk, message_id, index))
+        self._send_all(
+            link,
+            [
+                mavlink.MAVLink_statustext_message(severity, chunk, message_id, index)
+                for index, chunk in enumerate(chunks)
+            ],
+        )
 
 
 _Handler = Callable[[MavlinkVehicle, Link, Any, Any, float], list[Request]]
@@ -1085,6 +1182,7 @@ _HANDLERS: dict[str, _Handler] = {
     "MISSION_ITEM_INT": MavlinkVehicle._on_mission_item,
     "MISSION_ITEM": MavlinkVehicle._on_mission_item,
     "MISSION_CLEAR_ALL": MavlinkVehicle._on_mission_clear_all,
+    "MISSION_SET_CURRENT": MavlinkVehicle._on_mission_set_current,
     "MISSION_ACK": MavlinkVehicle._on_mission_ack,
 }
 
