@@ -33,15 +33,12 @@ from brasidas.codecs.commands import (
     parse_payload,
     parse_switch,
 )
-from brasidas.codecs.jsonrpc import CallContext, RpcError
+from brasidas.codecs.jsonrpc import CONTROL_REFUSED, CallContext, RpcError
 from brasidas.messages import ControlState, FailsafeStep, SessionClosed
 from platformd.commands import SystemCommand
 from platformd.session_table import Session, SessionTable
 
 _LOGGER = logging.getLogger(__name__)
-
-CONTROL_REFUSED = -32003
-"""JSON-RPC error code of a control method refused to an observer."""
 
 
 class Authority:

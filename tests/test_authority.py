@@ -14,11 +14,19 @@ import pytest
 from conftest import free_udp_port, quiet_platform_config, wait_until
 
 from brasidas import topics
-from brasidas.codecs.jsonrpc import RpcError
+from brasidas.codecs.commands import CommandCode
+from brasidas.codecs.jsonrpc import (
+    CONTROL_REFUSED,
+    REQUEST_TOO_LARGE,
+    TIMEOUT,
+    UNAUTHORIZED,
+    UNAVAILABLE,
+    RpcError,
+)
 from brasidas.media.video import VideoIn
-from brasidas.messages import OverrideState
+from brasidas.messages import CommandResult, OverrideState
 from platformd.app import PlatformDaemon
-from platformd.authority import CONTROL_REFUSED
+from platformd.commands import SystemCommand
 from stationd.client import PlatformConnection
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
@@ -179,3 +187,44 @@ async def test_only_the_controller_changes_the_patrol(
     finally:
         await a.close()
         await b.close()
+
+
+async def test_a_refused_override_and_a_timed_out_command_answer_different_codes(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    """Control refused (-32005) is not a timeout (-32003): a station retrying a timeout must
+    not read an observer's refusal as one, nor the other way round."""
+    daemon = await platform_factory(
+        quiet_platform_config("signaling.command_timeout=10"), fleet_key
+    )
+    release = asyncio.Event()
+
+    async def stuck(command: SystemCommand) -> CommandResult:
+        await release.wait()
+        return CommandResult(True)
+
+    unregister = daemon.ctx.commands.register("stuck", {CommandCode(40, 1): stuck})
+    holder = PlatformConnection(
+        daemon.config.platform.id,
+        daemon.ctx.signaling_url,
+        station_id="alpha",
+        fleet_key=fleet_key,
+        timeout=0.5,
+    )
+    await holder.open()
+    observer = await station(daemon, fleet_key, "bravo")
+    try:
+        assert await holder.call("set_manual_override", engaged=True) is True
+        with pytest.raises(RpcError) as refused:
+            await observer.call("set_manual_override", engaged=True)
+        assert refused.value.code == CONTROL_REFUSED and "alpha" in refused.value.message
+        with pytest.raises(RpcError) as timed_out:
+            await holder.call("issue_system_command", group=40, command=1, payload="")
+        assert timed_out.value.code == TIMEOUT
+        assert refused.value.code != timed_out.value.code
+        assert len({CONTROL_REFUSED, TIMEOUT, UNAUTHORIZED, UNAVAILABLE, REQUEST_TOO_LARGE}) == 5
+    finally:
+        release.set()
+        unregister()
+        await observer.close()
+        await holder.close()
