@@ -38,6 +38,10 @@ ACCEPT_BACKOFF_MAX = 1.0
 """Seconds before accepting again after the process ran out of file descriptors (doubling)."""
 LOG_INTERVAL = 10.0
 """A repeated admission problem (out of descriptors, refusals) is logged once per interval."""
+REFUSAL_WINDOW = 10.0
+"""Seconds over which refused connections are tallied per source address."""
+MAX_TALLIED_HOSTS = 256
+"""Addresses tallied per window, at most (the first ones refused; the rest are only counted)."""
 _OUT_OF_RESOURCES = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
 
 
@@ -63,6 +67,46 @@ class AdmissionLimits:
 def fd_limit() -> int:
     """The process's soft limit on open file descriptors."""
     return resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+
+
+@dataclass
+class RefusalTally:
+    """Connections refused (or evicted) per source address, over fixed windows. Sans-IO."""
+
+    window: float = REFUSAL_WINDOW
+    started: float | None = None
+    current: dict[str, int] = field(default_factory=dict)
+    """The window under way (since ``started``)."""
+    previous: dict[str, int] = field(default_factory=dict)
+    """The last whole window, if it ended less than a window ago."""
+
+    def count(self, host: str, now: float) -> None:
+        self._roll(now)
+        current = self.current
+        if host in current or len(current) < MAX_TALLIED_HOSTS:
+            current[host] = current.get(host, 0) + 1
+
+    def top(self, now: float) -> tuple[str, int]:
+        """The address refused most in the last whole window or the one under way (each
+        at most ``window`` seconds), with its count; ``("", 0)`` when none was."""
+        self._roll(now)
+        best = ("", 0)
+        for tally in (self.previous, self.current):
+            for host, refused in tally.items():
+                if refused > best[1]:
+                    best = (host, refused)
+        return best
+
+    def _roll(self, now: float) -> None:
+        if self.started is None:
+            self.started = now
+            return
+        elapsed = now - self.started
+        if elapsed < self.window:
+            return
+        self.previous = self.current if elapsed < 2 * self.window else {}
+        self.current = {}
+        self.started = now - elapsed % self.window
 
 
 @dataclass(eq=False, slots=True)
@@ -99,6 +143,8 @@ class AdmissionPolicy:
     """Connections without a session, by source address, oldest first."""
     budgets: dict[str, tuple[float, float]] = field(default_factory=dict)
     """Per address whose strangers sent something: bytes it may still send, and when."""
+    refusals: RefusalTally = field(default_factory=RefusalTally)
+    """Refused and evicted connections per address, lately (the station's warning)."""
     counters: dict[str, int] = field(
         default_factory=lambda: dict.fromkeys(
             (
@@ -133,12 +179,14 @@ class AdmissionPolicy:
         limits = self.limits
         if len(self.slots) >= self.capacity:
             self.counters["refused_full"] += 1
+            self.refusals.count(host, now)
             return None, None
         evicted = None
         if not limits.trusted:
             same_host = self.strangers.get(host, ())
             if len(same_host) >= limits.max_strangers_per_host:
                 self.counters["refused_host"] += 1
+                self.refusals.count(host, now)
                 return None, None
             if self.stranger_count >= limits.max_strangers:
                 # The oldest of the host that holds the most goes: one busy host cannot keep
@@ -147,6 +195,7 @@ class AdmissionPolicy:
                 evicted = crowded[0]
                 self.release(evicted)
                 self.counters["evicted"] += 1
+                self.refusals.count(evicted.host, now)
         slot = Slot(host, now, limits.trusted, now, now)
         self.slots.add(slot)
         if not slot.has_session:
@@ -506,3 +555,16 @@ class ServerAdmission:
             for name, value in listener.policy.counters.items():
                 total[name] = total.get(name, 0) + value
         return total
+
+    def stranger_count(self) -> int:
+        """Connections without a session held now."""
+        return sum(listener.policy.stranger_count for listener in self.listeners)
+
+    def top_refused(self, now: float) -> tuple[str, int]:
+        """The address refused most lately on any listener (:meth:`RefusalTally.top`)."""
+        best = ("", 0)
+        for listener in self.listeners:
+            found = listener.policy.refusals.top(now)
+            if found[1] > best[1]:
+                best = found
+        return best
