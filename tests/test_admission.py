@@ -17,6 +17,7 @@ from brasidas.admission import (
     AdmissionLimits,
     AdmissionPolicy,
     AdmittingListener,
+    RefusalTally,
 )
 from brasidas.config import ConfigError, PlatformConfig, StationConfig, load_config
 from platformd.app import PlatformDaemon
@@ -28,6 +29,24 @@ FLOOD = b"[" + b",".join([b"{}"] * 21_000) + b"]"
 
 
 # --------------------------------------------------------------------------- the policy
+
+
+def test_refusals_are_tallied_per_address_over_whole_windows() -> None:
+    policy = AdmissionPolicy(
+        AdmissionLimits(max_strangers=4, max_strangers_per_host=1), descriptors=1024
+    )
+    policy.admit("10.0.0.9", 0.0)
+    for step in range(30):
+        policy.admit("10.0.0.9", 0.1 + step * 0.1)
+    policy.admit("10.0.0.7", 3.5)
+    policy.admit("10.0.0.7", 3.6)
+    assert policy.refusals.top(4.0) == ("10.0.0.9", 30)
+    assert policy.refusals.top(15.0) == ("10.0.0.9", 30)  # the last whole window
+    assert policy.refusals.top(25.0) == ("", 0)  # two windows later: forgotten
+    tally = RefusalTally(window=10.0)
+    for host in range(1000):  # many addresses: the table stays bounded
+        tally.count(f"10.1.{host // 250}.{host % 250}", 1.0)
+    assert len(tally.current) == 256
 
 
 def test_strangers_are_capped_per_host_and_the_busiest_host_gives_way() -> None:

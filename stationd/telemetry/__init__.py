@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from stationd.context import StationContext
 from stationd.telemetry.annunciator import (
+    CONNECTIONS_REFUSED,
     CONTROL_TAKEN,
     CONTROLLER_OVER_TEMPERATURE,
     GPS_FIX_LOST,
@@ -28,6 +29,7 @@ from stationd.telemetry.receiver import TelemetryReceiver, receive_host
 from stationd.telemetry.stats import LinkStats
 
 __all__ = [
+    "CONNECTIONS_REFUSED",
     "CONTROLLER_OVER_TEMPERATURE",
     "CONTROL_TAKEN",
     "GPS_FIX_LOST",
