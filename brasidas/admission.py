@@ -1,10 +1,13 @@
 """Admission before work: which TCP connections a server holds, and for how long.
 
 A connection without a session is a stranger's: strangers are capped per source address and
-in total, must send their headers and bodies within a timeout and are closed when idle. Every
-connection is capped in total (below the process's file descriptor limit, less a reserve for
-the daemon's own files, pipelines and serial lines), and closed when its unsent data grows
-past a bound or stops draining (a reader that does not read is closed, never buffered for).
+in total (past a cap, the oldest stranger of the address, once held a second, or of the
+busiest address, is closed for the newcomer; a connection that proves the key stops
+counting), must send their headers and bodies within a timeout and are closed when idle.
+Every connection is capped in total (below the process's file descriptor limit, less a
+reserve for the daemon's own files, pipelines and serial lines), and closed when its unsent
+data grows past a bound or stops draining (a reader that does not read is closed, never
+buffered for).
 
 :class:`AdmissionPolicy` decides (sans-IO, ``now`` passed in); :class:`AdmittingListener`
 accepts on a listening socket through it, without spinning when the process is out of file
@@ -59,6 +62,9 @@ class AdmissionLimits:
     write_timeout: float = 10.0
     max_unsent_bytes: int = 1 << 20
     reserved_fds: int = 128
+    host_evict_after: float = 1.0
+    """An address at its cap: its oldest stranger held this long (s) is closed for a newcomer;
+    younger, the newcomer is refused."""
     stranger_bytes_per_s: int = 16384
     """What all of one address's strangers may send, on average (a burst of twice as much)."""
     trusted: bool = False
@@ -151,6 +157,7 @@ class AdmissionPolicy:
                 "accepted",
                 "refused_full",
                 "refused_host",
+                "evicted_host",
                 "evicted",
                 "header_timeouts",
                 "body_timeouts",
@@ -170,6 +177,17 @@ class AdmissionPolicy:
         limits = self.limits
         return max(1, min(limits.max_connections, self.descriptors - limits.reserved_fds))
 
+    def capacity_shortfall(self) -> str | None:
+        """Why fewer than ``max_connections`` can be held (the open-file limit), or None."""
+        limits = self.limits
+        if self.capacity >= limits.max_connections:
+            return None
+        return (
+            f"the open-file limit ({self.descriptors}) less reserved_fds ({limits.reserved_fds}) "
+            f"holds {self.capacity} connections, fewer than max_connections "
+            f"({limits.max_connections}): raise the limit (LimitNOFILE, ulimit -n)"
+        )
+
     @property
     def stranger_count(self) -> int:
         return sum(len(slots) for slots in self.strangers.values())
@@ -183,12 +201,22 @@ class AdmissionPolicy:
             return None, None
         evicted = None
         if not limits.trusted:
-            same_host = self.strangers.get(host, ())
+            same_host = self.strangers.get(host, [])
             if len(same_host) >= limits.max_strangers_per_host:
-                self.counters["refused_host"] += 1
+                # Behind one address (NAT) a station may share it with whoever holds its cap:
+                # the address's oldest stranger goes for the newcomer, which needs its slot
+                # only until it proves the key. A younger one stays (the newcomer is refused)
+                # so that a host opening connections as fast as it can churns at most
+                # max_strangers_per_host / host_evict_after of them a second, not all.
+                oldest = same_host[0]
                 self.refusals.count(host, now)
-                return None, None
-            if self.stranger_count >= limits.max_strangers:
+                if now - oldest.opened < limits.host_evict_after:
+                    self.counters["refused_host"] += 1
+                    return None, None
+                evicted = oldest
+                self.release(evicted)
+                self.counters["evicted_host"] += 1
+            elif self.stranger_count >= limits.max_strangers:
                 # The oldest of the host that holds the most goes: one busy host cannot keep
                 # a station from another out.
                 crowded = max(self.strangers.values(), key=len)
@@ -469,8 +497,12 @@ class AdmittingListener:
 
     def _admit(self, conn: socket.socket, host: str) -> None:
         slot, evicted = self.policy.admit(host, self.loop.time())
-        if evicted is not None and (transport := self._transports.get(evicted)) is not None:
-            transport.abort()
+        if evicted is not None:
+            self._log_once(
+                "evicted", f"{self.name}: closing strangers from {evicted.host} (over cap)"
+            )
+            if (transport := self._transports.get(evicted)) is not None:
+                transport.abort()
         if slot is None:
             self._log_once("refused", f"{self.name}: refusing connections from {host} (over cap)")
             conn.close()

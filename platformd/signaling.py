@@ -89,6 +89,7 @@ class Signaling:
 
 ADMISSION_COUNTERS = (
     "refused_host",
+    "evicted_host",
     "refused_full",
     "evicted",
     "header_timeouts",

@@ -79,7 +79,7 @@ FULL: dict[type[Section], SectionValue] = {
         ((37.9838096, 23.7275388), (37.98391, 23.72771)),
     ),
     Automation: Automation({"patrol": True, "auto_framerate": False, "diagnostics": True}),
-    Admission: Admission({"refused_host": 340, "idle_timeouts": 12}, 8, "10.0.0.9", 340, 10.0),
+    Admission: Admission({"evicted_host": 340, "idle_timeouts": 12}, 8, "10.0.0.9", 340, 10.0),
     Diagnostics: None,
 }  # fmt: skip
 

@@ -346,7 +346,7 @@ class Admission(Section):
         default_factory=dict,
         metadata=wire(
             "n",
-            doc="since start, the non-zero ones: refused_host, refused_full, evicted, "
+            doc="since start, the non-zero ones: refused_host, evicted_host, evicted, refused_full, "
             "header_timeouts, body_timeouts, idle_timeouts, slow_readers, out_of_descriptors, "
             "throttled, refused_batches",
         ),
