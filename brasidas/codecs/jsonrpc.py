@@ -29,7 +29,8 @@ UNAUTHORIZED = -32001
 UNAVAILABLE = -32002
 """The method exists but what it needs is not on this platform (no camera, ...)."""
 TIMEOUT = -32003
-"""No answer within the caller's limit (the client's own error; never sent by a server)."""
+"""No answer within the caller's limit: raised by the client itself (a platform never answers
+it; the station's local API passes on its own calls' timeouts)."""
 REQUEST_TOO_LARGE = -32004
 CONTROL_REFUSED = -32005
 """A control method refused to an observer: another station holds control (the message names
