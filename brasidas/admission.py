@@ -1,10 +1,13 @@
 """Admission before work: which TCP connections a server holds, and for how long.
 
 A connection without a session is a stranger's: strangers are capped per source address and
-in total, must send their headers and bodies within a timeout and are closed when idle. Every
-connection is capped in total (below the process's file descriptor limit, less a reserve for
-the daemon's own files, pipelines and serial lines), and closed when its unsent data grows
-past a bound or stops draining (a reader that does not read is closed, never buffered for).
+in total (past a cap, the oldest stranger of the address, once held a second, or of the
+busiest address, is closed for the newcomer; a connection that proves the key stops
+counting), must send their headers and bodies within a timeout and are closed when idle.
+Every connection is capped in total (below the process's file descriptor limit, less a
+reserve for the daemon's own files, pipelines and serial lines), and closed when its unsent
+data grows past a bound or stops draining (a reader that does not read is closed, never
+buffered for).
 
 :class:`AdmissionPolicy` decides (sans-IO, ``now`` passed in); :class:`AdmittingListener`
 accepts on a listening socket through it, without spinning when the process is out of file
@@ -38,6 +41,10 @@ ACCEPT_BACKOFF_MAX = 1.0
 """Seconds before accepting again after the process ran out of file descriptors (doubling)."""
 LOG_INTERVAL = 10.0
 """A repeated admission problem (out of descriptors, refusals) is logged once per interval."""
+REFUSAL_WINDOW = 10.0
+"""Seconds over which refused connections are tallied per source address."""
+MAX_TALLIED_HOSTS = 256
+"""Addresses tallied per window, at most (the first ones refused; the rest are only counted)."""
 _OUT_OF_RESOURCES = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
 
 
@@ -55,6 +62,9 @@ class AdmissionLimits:
     write_timeout: float = 10.0
     max_unsent_bytes: int = 1 << 20
     reserved_fds: int = 128
+    host_evict_after: float = 1.0
+    """An address at its cap: its oldest stranger held this long (s) is closed for a newcomer;
+    younger, the newcomer is refused."""
     stranger_bytes_per_s: int = 16384
     """What all of one address's strangers may send, on average (a burst of twice as much)."""
     trusted: bool = False
@@ -63,6 +73,46 @@ class AdmissionLimits:
 def fd_limit() -> int:
     """The process's soft limit on open file descriptors."""
     return resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+
+
+@dataclass
+class RefusalTally:
+    """Connections refused (or evicted) per source address, over fixed windows. Sans-IO."""
+
+    window: float = REFUSAL_WINDOW
+    started: float | None = None
+    current: dict[str, int] = field(default_factory=dict)
+    """The window under way (since ``started``)."""
+    previous: dict[str, int] = field(default_factory=dict)
+    """The last whole window, if it ended less than a window ago."""
+
+    def count(self, host: str, now: float) -> None:
+        self._roll(now)
+        current = self.current
+        if host in current or len(current) < MAX_TALLIED_HOSTS:
+            current[host] = current.get(host, 0) + 1
+
+    def top(self, now: float) -> tuple[str, int]:
+        """The address refused most in the last whole window or the one under way (each
+        at most ``window`` seconds), with its count; ``("", 0)`` when none was."""
+        self._roll(now)
+        best = ("", 0)
+        for tally in (self.previous, self.current):
+            for host, refused in tally.items():
+                if refused > best[1]:
+                    best = (host, refused)
+        return best
+
+    def _roll(self, now: float) -> None:
+        if self.started is None:
+            self.started = now
+            return
+        elapsed = now - self.started
+        if elapsed < self.window:
+            return
+        self.previous = self.current if elapsed < 2 * self.window else {}
+        self.current = {}
+        self.started = now - elapsed % self.window
 
 
 @dataclass(eq=False, slots=True)
@@ -99,12 +149,15 @@ class AdmissionPolicy:
     """Connections without a session, by source address, oldest first."""
     budgets: dict[str, tuple[float, float]] = field(default_factory=dict)
     """Per address whose strangers sent something: bytes it may still send, and when."""
+    refusals: RefusalTally = field(default_factory=RefusalTally)
+    """Refused and evicted connections per address, lately (the station's warning)."""
     counters: dict[str, int] = field(
         default_factory=lambda: dict.fromkeys(
             (
                 "accepted",
                 "refused_full",
                 "refused_host",
+                "evicted_host",
                 "evicted",
                 "header_timeouts",
                 "body_timeouts",
@@ -124,6 +177,17 @@ class AdmissionPolicy:
         limits = self.limits
         return max(1, min(limits.max_connections, self.descriptors - limits.reserved_fds))
 
+    def capacity_shortfall(self) -> str | None:
+        """Why fewer than ``max_connections`` can be held (the open-file limit), or None."""
+        limits = self.limits
+        if self.capacity >= limits.max_connections:
+            return None
+        return (
+            f"the open-file limit ({self.descriptors}) less reserved_fds ({limits.reserved_fds}) "
+            f"holds {self.capacity} connections, fewer than max_connections "
+            f"({limits.max_connections}): raise the limit (LimitNOFILE, ulimit -n)"
+        )
+
     @property
     def stranger_count(self) -> int:
         return sum(len(slots) for slots in self.strangers.values())
@@ -133,20 +197,33 @@ class AdmissionPolicy:
         limits = self.limits
         if len(self.slots) >= self.capacity:
             self.counters["refused_full"] += 1
+            self.refusals.count(host, now)
             return None, None
         evicted = None
         if not limits.trusted:
-            same_host = self.strangers.get(host, ())
+            same_host = self.strangers.get(host, [])
             if len(same_host) >= limits.max_strangers_per_host:
-                self.counters["refused_host"] += 1
-                return None, None
-            if self.stranger_count >= limits.max_strangers:
+                # Behind one address (NAT) a station may share it with whoever holds its cap:
+                # the address's oldest stranger goes for the newcomer, which needs its slot
+                # only until it proves the key. A younger one stays (the newcomer is refused)
+                # so that a host opening connections as fast as it can churns at most
+                # max_strangers_per_host / host_evict_after of them a second, not all.
+                oldest = same_host[0]
+                self.refusals.count(host, now)
+                if now - oldest.opened < limits.host_evict_after:
+                    self.counters["refused_host"] += 1
+                    return None, None
+                evicted = oldest
+                self.release(evicted)
+                self.counters["evicted_host"] += 1
+            elif self.stranger_count >= limits.max_strangers:
                 # The oldest of the host that holds the most goes: one busy host cannot keep
                 # a station from another out.
                 crowded = max(self.strangers.values(), key=len)
                 evicted = crowded[0]
                 self.release(evicted)
                 self.counters["evicted"] += 1
+                self.refusals.count(evicted.host, now)
         slot = Slot(host, now, limits.trusted, now, now)
         self.slots.add(slot)
         if not slot.has_session:
@@ -420,8 +497,12 @@ class AdmittingListener:
 
     def _admit(self, conn: socket.socket, host: str) -> None:
         slot, evicted = self.policy.admit(host, self.loop.time())
-        if evicted is not None and (transport := self._transports.get(evicted)) is not None:
-            transport.abort()
+        if evicted is not None:
+            self._log_once(
+                "evicted", f"{self.name}: closing strangers from {evicted.host} (over cap)"
+            )
+            if (transport := self._transports.get(evicted)) is not None:
+                transport.abort()
         if slot is None:
             self._log_once("refused", f"{self.name}: refusing connections from {host} (over cap)")
             conn.close()
@@ -506,3 +587,16 @@ class ServerAdmission:
             for name, value in listener.policy.counters.items():
                 total[name] = total.get(name, 0) + value
         return total
+
+    def stranger_count(self) -> int:
+        """Connections without a session held now."""
+        return sum(listener.policy.stranger_count for listener in self.listeners)
+
+    def top_refused(self, now: float) -> tuple[str, int]:
+        """The address refused most lately on any listener (:meth:`RefusalTally.top`)."""
+        best = ("", 0)
+        for listener in self.listeners:
+            found = listener.policy.refusals.top(now)
+            if found[1] > best[1]:
+                best = found
+        return best

@@ -2,7 +2,7 @@
 
 Feed it a snapshot and the link figures with the time; it answers which warnings were raised
 and cleared (low battery, controller over-temperature, GPS fix lost, a stale sensor reading,
-link degraded, failed streams), each with its group 90 code. The station's telemetry receiver
+link degraded, failed streams, connections refused), each with its group 90 code. The station's telemetry receiver
 evaluates it on each platform's stream (stationd.telemetry re-exports it), the platform's
 MAVLink endpoint on its own telemetry (STATUSTEXT): one set of warnings, worded once.
 """
@@ -14,6 +14,7 @@ from typing import Any
 
 from brasidas.codecs.commands import CommandCode
 from brasidas.codecs.telemetry_schema import (
+    Admission,
     Attitude,
     Autonomy,
     Battery,
@@ -40,6 +41,9 @@ LINK_LOST = CommandCode(NOTIFICATION_GROUP, 18)
 """The platform's failsafe ladder stepped (hold, release): it lost this station's link."""
 MAP_REFUSED = CommandCode(NOTIFICATION_GROUP, 21)
 """The platform refused its stored map at start (issue 21): it has no map, and says why."""
+CONNECTIONS_REFUSED = CommandCode(NOTIFICATION_GROUP, 24)
+"""The platform is refusing many connections from one address (strangers without the fleet
+key, issue 19): ``telemetry.refused_warn`` within its 10 s window."""
 FAILED_STREAM_STATES = frozenset({"failed", "error"})
 
 
@@ -129,6 +133,13 @@ class Annunciator:
             )
         if autonomy is not None and autonomy.map_error:
             wanted["map_refused"] = (MAP_REFUSED, f"no map: {autonomy.map_error}")
+        admission = snapshot.get(Admission)
+        if admission is not None and admission.refused >= self.config.refused_warn:
+            wanted["connections_refused"] = (
+                CONNECTIONS_REFUSED,
+                f"connections refused from {admission.refusing or '?'}: "
+                f"{admission.refused} in {admission.window_s:g} s",
+            )
         changes: list[Change] = []
         for name in list(self.active):
             if name not in wanted and name not in keep:

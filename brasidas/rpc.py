@@ -335,6 +335,8 @@ async def serve_app_sites(
         raise
     for listener in listeners:
         listener.start()
+    if listeners and (shortfall := listeners[0].policy.capacity_shortfall()) is not None:
+        _LOGGER.warning("%s: %s", name, shortfall)
     admission.listeners += listeners
     supervisor.start(WebServer(bus, runner, name, listeners))
     return [int(listener.sock.getsockname()[1]) for listener in listeners]

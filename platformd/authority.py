@@ -34,7 +34,7 @@ from brasidas.codecs.commands import (
     parse_payload,
     parse_switch,
 )
-from brasidas.codecs.jsonrpc import CallContext, RpcError
+from brasidas.codecs.jsonrpc import CONTROL_REFUSED, CallContext, RpcError
 from brasidas.messages import CommandReceived, ControlState, FailsafeStep, SessionClosed
 from platformd.commands import SystemCommand
 from platformd.session_table import Session, SessionTable
@@ -42,9 +42,6 @@ from platformd.session_table import Session, SessionTable
 _LOGGER = logging.getLogger(__name__)
 PAYLOAD_KEPT = 4096
 """A control method's parameters are recorded up to this many characters."""
-
-CONTROL_REFUSED = -32003
-"""JSON-RPC error code of a control method refused to an observer."""
 
 
 class Authority:

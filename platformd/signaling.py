@@ -8,18 +8,24 @@ codes nobody handles are rejected with the reason (known codes) or answered with
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from typing import Any
 
 from aiohttp import web
 
-from brasidas.admission import AdmissionLimits
+from brasidas.admission import REFUSAL_WINDOW, AdmissionLimits, ServerAdmission
 from brasidas.codecs.commands import MAIN_LIGHTS, MANUAL_OVERRIDE, POSITIONAL_LIGHTS, CommandCode
-from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, RpcError
-from brasidas.codecs.telemetry_schema import SCHEMA_VERSION, snapshot_to_json
+from brasidas.codecs.jsonrpc import (
+    CONTROL_REFUSED,
+    INVALID_PARAMS,
+    UNAVAILABLE,
+    CallContext,
+    RpcError,
+)
+from brasidas.codecs.telemetry_schema import SCHEMA_VERSION, Admission, snapshot_to_json
 from brasidas.config import SignalingSection
 from brasidas.rpc import ADMISSION, add_rpc_routes, serve_app
-from platformd.authority import CONTROL_REFUSED
 from platformd.context import PlatformContext
 from platformd.sessions import platform_parameters, velocity_endpoint
 
@@ -81,6 +87,36 @@ class Signaling:
         }
 
 
+ADMISSION_COUNTERS = (
+    "refused_host",
+    "evicted_host",
+    "refused_full",
+    "evicted",
+    "header_timeouts",
+    "body_timeouts",
+    "idle_timeouts",
+    "slow_readers",
+    "out_of_descriptors",
+    "throttled",
+)
+"""What telemetry's admission section carries of the admission counters (not ``accepted``)."""
+
+
+def admission_section(admission: ServerAdmission, rpc_counters: dict[str, int]) -> Admission:
+    """Telemetry's admission section. Runs on the event loop (its clock is the admission's)."""
+    counters = admission.counters()
+    carried = {name: counters.get(name, 0) for name in ADMISSION_COUNTERS}
+    carried["refused_batches"] = rpc_counters.get("refused_batches", 0)
+    host, refused = admission.top_refused(asyncio.get_running_loop().time())
+    return Admission(
+        counters={name: value for name, value in carried.items() if value},
+        strangers=admission.stranger_count(),
+        refusing=host,
+        refused=refused,
+        window_s=REFUSAL_WINDOW if refused else 0.0,
+    )
+
+
 def admission_limits(config: SignalingSection) -> AdmissionLimits:
     """Who signaling holds connections for, and how long (``signaling.*``)."""
     return AdmissionLimits(
@@ -124,6 +160,7 @@ async def async_setup(ctx: PlatformContext) -> None:
         name="signaling",
         limits=admission_limits(config),
     )
-    ctx.signaling_admission = app[ADMISSION]
+    ctx.signaling_admission = admission = app[ADMISSION]
+    ctx.telemetry.register(Admission, lambda: admission_section(admission, ctx.rpc.counters))
     # With port 0 the kernel chose one; beacons must carry the real one.
     ctx.signaling_url = f"http://{config.advertise_host or config.host}:{port}"

@@ -19,7 +19,7 @@ from typing import Any
 
 from brasidas import security
 from brasidas.actor import stop_on_signals
-from brasidas.codecs.jsonrpc import RpcError
+from brasidas.codecs.jsonrpc import CONTROL_REFUSED, TIMEOUT, RpcError
 from brasidas.codecs.telemetry_schema import Override, snapshot_from_json
 from brasidas.config import ConfigError, StationConfig, load_config
 from brasidas.log import LEVELS, level_argument, setup_logging
@@ -139,6 +139,15 @@ def cmd_status(args: argparse.Namespace, config: StationConfig) -> int:
 
     _print(args, summary, human)
     return 0
+
+
+def _rpc_error_text(err: RpcError) -> str:
+    """An error answer as the operator reads it: a refusal of control is not a timeout."""
+    if err.code == CONTROL_REFUSED:
+        return f"control refused: {err.message} ('movrd ID on --force' takes control)"
+    if err.code == TIMEOUT:
+        return f"timed out: {err.message}"
+    return err.message
 
 
 def cmd_movrd(args: argparse.Namespace, config: StationConfig) -> int:
@@ -647,7 +656,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"brasidas-station: {err}; or pass --insecure", file=sys.stderr)
         return 2
     except RpcError as err:
-        print(f"brasidas-station: {err.message}", file=sys.stderr)
+        print(f"brasidas-station: {_rpc_error_text(err)}", file=sys.stderr)
         return 1
     except CliError as err:
         print(f"brasidas-station: {err}", file=sys.stderr)

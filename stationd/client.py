@@ -15,7 +15,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from brasidas import security
-from brasidas.codecs.jsonrpc import EncodedParams, RpcError
+from brasidas.codecs.jsonrpc import UNAUTHORIZED, EncodedParams, RpcError
 from brasidas.rpc import RpcClient
 from brasidas.security import accept_proof, connect_proof
 
@@ -184,7 +184,7 @@ class PlatformConnection:
             except RpcError as err:
                 misses += 1
                 _LOGGER.warning("heartbeat to %s failed: %s", self.platform_id, err.message)
-                if err.code == -32001 or misses >= 3:
+                if err.code == UNAUTHORIZED or misses >= 3:
                     self._mark_closed(f"heartbeat failed: {err.message}")
                     await self._client.close()
                     return

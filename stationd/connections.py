@@ -18,6 +18,7 @@ from typing import Any
 
 from brasidas import topics
 from brasidas.actor import Actor, wait_forever
+from brasidas.annunciator import CONTROL_TAKEN
 from brasidas.backoff import Backoff
 from brasidas.codecs.commands import (
     MAIN_LIGHTS,
@@ -30,7 +31,6 @@ from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, Rp
 from brasidas.messages import PlatformLink, StationNotification
 from stationd.client import CLOSED_BY_STATION, AuthenticationError, PlatformConnection
 from stationd.context import StationContext
-from stationd.telemetry.annunciator import CONTROL_TAKEN
 
 _LOGGER = logging.getLogger(__name__)
 

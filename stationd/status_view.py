@@ -16,6 +16,7 @@ from typing import Any, TextIO
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.codecs.telemetry_schema import (
     SCHEMA_VERSION,
+    Admission,
     Attitude,
     Automation,
     Autonomy,
@@ -115,6 +116,9 @@ def render(report: dict[str, Any], *, color: bool = True, now: float | None = No
     if turret is not None:  # only on a platform that carries one
         lines.append(f"turret     {_turret(turret)}")
     lines.append(f"link       {_link(link)}")
+    admission = snap.get(Admission)
+    if admission is not None and (admission.counters or admission.refused):
+        lines.append(f"admission  {_admission(admission)}")
     diag = snap.get(Diagnostics)
     if diag is not None:
         restarts = diag.actor_restarts
@@ -129,6 +133,20 @@ def render(report: dict[str, Any], *, color: bool = True, now: float | None = No
     if link.get("error"):
         lines.append(paint(link["error"], RED))
     return lines
+
+
+def _admission(admission: Admission) -> str:
+    """What signaling refused or closed of strangers: lately, since start, held now."""
+    parts = []
+    if admission.refused:
+        parts.append(
+            f"refused {admission.refused} from {admission.refusing} in {admission.window_s:g} s"
+        )
+    since = ", ".join(f"{name} {value}" for name, value in sorted(admission.counters.items()))
+    if since:
+        parts.append(f"since start: {since}")
+    parts.append(f"strangers now {admission.strangers}")
+    return "; ".join(parts)
 
 
 def frame(lines: list[str], width: int) -> str:

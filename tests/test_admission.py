@@ -17,6 +17,7 @@ from brasidas.admission import (
     AdmissionLimits,
     AdmissionPolicy,
     AdmittingListener,
+    RefusalTally,
 )
 from brasidas.config import ConfigError, PlatformConfig, StationConfig, load_config
 from platformd.app import PlatformDaemon
@@ -30,6 +31,24 @@ FLOOD = b"[" + b",".join([b"{}"] * 21_000) + b"]"
 # --------------------------------------------------------------------------- the policy
 
 
+def test_refusals_are_tallied_per_address_over_whole_windows() -> None:
+    policy = AdmissionPolicy(
+        AdmissionLimits(max_strangers=4, max_strangers_per_host=1), descriptors=1024
+    )
+    policy.admit("10.0.0.9", 0.0)
+    for step in range(30):
+        policy.admit("10.0.0.9", 0.1 + step * 0.1)
+    policy.admit("10.0.0.7", 3.5)
+    policy.admit("10.0.0.7", 3.6)
+    assert policy.refusals.top(4.0) == ("10.0.0.9", 30)
+    assert policy.refusals.top(15.0) == ("10.0.0.9", 30)  # the last whole window
+    assert policy.refusals.top(25.0) == ("", 0)  # two windows later: forgotten
+    tally = RefusalTally(window=10.0)
+    for host in range(1000):  # many addresses: the table stays bounded
+        tally.count(f"10.1.{host // 250}.{host % 250}", 1.0)
+    assert len(tally.current) == 256
+
+
 def test_strangers_are_capped_per_host_and_the_busiest_host_gives_way() -> None:
     policy = AdmissionPolicy(
         AdmissionLimits(max_strangers=4, max_strangers_per_host=2), descriptors=1024
@@ -37,21 +56,35 @@ def test_strangers_are_capped_per_host_and_the_busiest_host_gives_way() -> None:
     first, _ = policy.admit("10.0.0.9", 0.0)
     second, _ = policy.admit("10.0.0.9", 0.1)
     assert first is not None and second is not None
-    assert policy.admit("10.0.0.9", 0.2) == (None, None)  # the host's cap
+    # The host's cap: a newcomer is refused while the host's oldest is younger than a second,
+    assert policy.admit("10.0.0.9", 0.2) == (None, None)
     assert policy.counters["refused_host"] == 1
-    policy.admit("10.0.0.8", 0.3)
-    policy.admit("10.0.0.7", 0.4)
-    station, evicted = policy.admit("10.0.0.1", 0.5)  # the total cap: the busiest host yields
-    assert station is not None and evicted is first and first.closed
+    # then the oldest gives way (a station may be behind the same address: NAT).
+    third, evicted = policy.admit("10.0.0.9", 1.0)
+    assert third is not None and evicted is first and first.closed
+    assert policy.counters["evicted_host"] == 1 and policy.strangers["10.0.0.9"] == [second, third]
+    policy.admit("10.0.0.8", 1.1)
+    policy.admit("10.0.0.7", 1.2)
+    station, evicted = policy.admit("10.0.0.1", 1.3)  # the total cap: the busiest host yields
+    assert station is not None and evicted is second and second.closed
     assert policy.stranger_count == 4
-    policy.session_opened(station)  # a station's now: no longer counted
+    policy.session_opened(station)  # a station's now: no longer counted, never evicted
     assert policy.stranger_count == 3 and station in policy.slots
+    for step in range(10):
+        policy.admit("10.0.0.1", 2.0 + step)
+        policy.admit("10.0.0.5", 2.5 + step)
+    assert not station.closed and station in policy.slots
 
 
 def test_capacity_keeps_descriptors_in_reserve() -> None:
     limits = AdmissionLimits(max_connections=512, reserved_fds=128, trusted=True)
+    assert AdmissionPolicy(limits, descriptors=4096).capacity_shortfall() is None
+    assert AdmissionPolicy(limits, descriptors=1024).capacity_shortfall() is None
     policy = AdmissionPolicy(limits, descriptors=200)
     assert policy.capacity == 72
+    assert "holds 72 connections, fewer than max_connections (512)" in str(
+        policy.capacity_shortfall()
+    )
     for number in range(72):
         assert policy.admit("127.0.0.1", number)[0] is not None
     assert policy.admit("127.0.0.1", 100.0) == (None, None)

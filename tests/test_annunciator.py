@@ -7,6 +7,7 @@ import dataclasses
 from brasidas.codecs.telemetry import TelemetryEncoder
 from brasidas.codecs.telemetry_schema import (
     SCHEMA_VERSION,
+    Admission,
     Attitude,
     Autonomy,
     Battery,
@@ -22,6 +23,7 @@ from brasidas.codecs.telemetry_schema import (
 from brasidas.config import TelemetryReceiverSection
 from brasidas.messages import StationNotification
 from stationd.telemetry import (
+    CONNECTIONS_REFUSED,
     CONTROLLER_OVER_TEMPERATURE,
     GPS_FIX_LOST,
     LINK_DEGRADED,
@@ -242,3 +244,18 @@ def test_failsafe_hold_raises_link_lost_until_the_operator_re_engages() -> None:
     assert annunciator.evaluate(with_(Failsafe, Failsafe("normal", "", "st-1")), 0, 0, 2) == [
         dataclasses.replace(change, active=False)
     ]
+
+
+def test_connections_refused_at_a_high_rate_raise_90_24_and_clear() -> None:
+    annunciator = Annunciator(dataclasses.replace(CONFIG, refused_warn=100))
+    few = Admission({"evicted_host": 99}, 8, "10.0.0.9", 99, 10.0)
+    assert annunciator.evaluate(with_(Admission, few), 0.0, 0.1, now=0.0) == []
+    many = Admission({"evicted_host": 340}, 8, "10.0.0.9", 340, 10.0)
+    (change,) = annunciator.evaluate(with_(Admission, many), 0.0, 0.1, now=1.0)
+    assert change.active and change.warning.code == CONNECTIONS_REFUSED
+    assert str(CONNECTIONS_REFUSED) == "90.24"
+    assert change.warning.message == "connections refused from 10.0.0.9: 340 in 10 s"
+    # The window moved on: the counters since start stay, the warning clears.
+    quiet = Admission({"evicted_host": 340}, 0, "", 0, 0.0)
+    (cleared,) = annunciator.evaluate(with_(Admission, quiet), 0.0, 0.1, now=12.0)
+    assert not cleared.active and names(annunciator) == set()

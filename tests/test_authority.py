@@ -7,19 +7,31 @@ everything else with the holder's station id, until it takes control with ``forc
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import io
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
 import pytest
-from conftest import free_udp_port, quiet_platform_config, wait_until
+from conftest import free_udp_port, quiet_platform_config, running_station, wait_until
 
 from brasidas import topics
-from brasidas.codecs.jsonrpc import RpcError
+from brasidas.codecs.commands import CommandCode
+from brasidas.codecs.jsonrpc import (
+    CONTROL_REFUSED,
+    REQUEST_TOO_LARGE,
+    TIMEOUT,
+    UNAUTHORIZED,
+    UNAVAILABLE,
+    RpcError,
+)
 from brasidas.media.video import VideoIn
-from brasidas.messages import OverrideState
+from brasidas.messages import CommandResult, OverrideState
 from platformd.app import PlatformDaemon
-from platformd.authority import CONTROL_REFUSED
+from platformd.commands import SystemCommand
+from stationd import cli
 from stationd.client import PlatformConnection
+from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 
@@ -179,3 +191,82 @@ async def test_only_the_controller_changes_the_patrol(
     finally:
         await a.close()
         await b.close()
+
+
+async def test_a_refused_override_and_a_timed_out_command_answer_different_codes(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    """Control refused (-32005) is not a timeout (-32003): a station retrying a timeout must
+    not read an observer's refusal as one, nor the other way round."""
+    daemon = await platform_factory(
+        quiet_platform_config("signaling.command_timeout=10"), fleet_key
+    )
+    release = asyncio.Event()
+
+    async def stuck(command: SystemCommand) -> CommandResult:
+        await release.wait()
+        return CommandResult(True)
+
+    unregister = daemon.ctx.commands.register("stuck", {CommandCode(40, 1): stuck})
+    holder = PlatformConnection(
+        daemon.config.platform.id,
+        daemon.ctx.signaling_url,
+        station_id="alpha",
+        fleet_key=fleet_key,
+        timeout=0.5,
+    )
+    await holder.open()
+    observer = await station(daemon, fleet_key, "bravo")
+    try:
+        assert await holder.call("set_manual_override", engaged=True) is True
+        with pytest.raises(RpcError) as refused:
+            await observer.call("set_manual_override", engaged=True)
+        assert refused.value.code == CONTROL_REFUSED and "alpha" in refused.value.message
+        with pytest.raises(RpcError) as timed_out:
+            await holder.call("issue_system_command", group=40, command=1, payload="")
+        assert timed_out.value.code == TIMEOUT
+        assert refused.value.code != timed_out.value.code
+        assert len({CONTROL_REFUSED, TIMEOUT, UNAUTHORIZED, UNAVAILABLE, REQUEST_TOO_LARGE}) == 5
+    finally:
+        release.set()
+        unregister()
+        await observer.close()
+        await holder.close()
+
+
+async def test_the_station_cli_says_control_refused_naming_the_holder(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    """Through the station daemon: the platform's refusal keeps its code and the CLI says
+    what it is (not 'timed out', not a bare message)."""
+    daemon = await platform_factory(
+        quiet_platform_config("sim.enabled=true", "motor.enabled=true", "gps.enabled=true"),
+        fleet_key,
+    )
+    holder = await station(daemon, fleet_key, "alpha")
+    try:
+        assert (await command(holder, 10, 0, "True"))["accepted"]
+        async with running_station(fleet_key, "station.id=bravo") as observer:
+            pid, url = daemon.config.platform.id, daemon.ctx.signaling_url
+            code, _, err = await run_cli(observer, "connect", pid, "--url", url)
+            assert code == 0, err
+            code, _, err = await run_cli(observer, "patrol", pid, "stop")
+        assert code == 1
+        assert err == (
+            "brasidas-station: control refused: patrol_stop refused: control held by station "
+            "alpha ('movrd ID on --force' takes control)\n"
+        )
+    finally:
+        await holder.close()
+
+
+async def run_cli(station: StationDaemon, *argv: str) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    api = ["--set", f"station.api_port={station.api_port}"]
+
+    def call() -> int:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            return cli.main([*argv, *api])
+
+    code = await asyncio.to_thread(call)
+    return code, out.getvalue(), err.getvalue()

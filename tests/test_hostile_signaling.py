@@ -21,7 +21,7 @@ from pathlib import Path
 
 import aiohttp
 import pytest
-from conftest import quiet_platform_config, running_station
+from conftest import quiet_platform_config, running_station, wait_until
 
 from brasidas.codecs.jsonrpc import encode_request
 from platformd.app import PlatformDaemon
@@ -320,3 +320,46 @@ async def test_a_strangers_flood_at_full_rate_is_read_at_its_budget(
     figures = json.loads(out.decode().splitlines()[-1])
     assert figures["answered_bytes"] < 16_384, figures
     assert counters(daemon)["throttled"] >= 1
+
+
+async def test_a_station_behind_the_address_of_a_stranger_at_its_cap_still_connects(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    """NAT: the station and a stranger share 127.0.0.1, which holds its 8 idle stranger
+    connections. The station's connection gets its chance (the address's oldest stranger,
+    held over a second, goes) and, once it has proven the key, is no stranger's: more
+    strangers from the same address, or filling the platform's whole stranger pool, never
+    close it."""
+    daemon = await platform_factory(
+        quiet_platform_config("signaling.max_strangers=16", "signaling.heartbeat_interval=0.2"),
+        fleet_key,
+    )
+    admission = daemon.ctx.signaling_admission
+    assert admission is not None
+    address = signaling_address(daemon)
+    idle = [stranger_socket(address, source="127.0.0.1") for _ in range(8)]
+    conn = PlatformConnection(
+        "brasidas-1", daemon.ctx.signaling_url, station_id="st-1", fleet_key=fleet_key
+    )
+    try:
+        await wait_until(lambda: admission.stranger_count() == 8)
+        policy = admission.listeners[0].policy
+        loop = asyncio.get_running_loop()
+        oldest = policy.strangers["127.0.0.1"][0]
+        await wait_until(lambda: loop.time() - oldest.opened > policy.limits.host_evict_after)
+        async with asyncio.timeout(10):
+            await conn.open()
+        assert await ends_within(idle[0], 5)  # the oldest stranger made room
+        assert admission.stranger_count() == 7  # the station is none of them
+        more = [stranger_socket(address, source="127.0.0.1") for _ in range(8)]
+        more += [stranger_socket(address, source=f"127.0.0.{n}") for n in (3, 4) for _ in range(8)]
+        idle += more
+        await wait_until(lambda: admission.counters()["accepted"] >= 33)
+        assert admission.stranger_count() == 16  # the pool is full...
+        for _ in range(3):  # ...and the station's session goes on
+            await conn.call("heartbeat")
+        assert not conn.closed.is_set()
+    finally:
+        await conn.close()
+        for sock in idle:
+            sock.close()

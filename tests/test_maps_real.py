@@ -200,7 +200,7 @@ async def test_a_map_refused_at_start_is_a_warning_not_only_a_log_line(
     section = daemon.ctx.telemetry.build_one(Autonomy)
     assert isinstance(section, Autonomy) and section.reason == "no map"
     assert "keep-out id 'shed' used twice" in getattr(section, "map_error", "")
-    from stationd.telemetry.annunciator import MAP_REFUSED
+    from brasidas.annunciator import MAP_REFUSED
 
     annunciator = Annunciator(TelemetryReceiverSection())
     (change,) = annunciator.evaluate(Snapshot({Autonomy: section}), 0.0, None, now=1.0)

@@ -12,13 +12,12 @@ from typing import Any
 import pytest
 from conftest import free_tcp_port, free_udp_port, quiet_platform_config, wait_until
 
-from brasidas.codecs.jsonrpc import RpcError
+from brasidas.codecs.jsonrpc import CONTROL_REFUSED, RpcError
 from brasidas.media.audio import AudioIn, AudioOut, AudioSettings
 from brasidas.media.gst import gst
 from brasidas.media.pipeline import StreamState
 from brasidas.media.video import VideoIn
 from platformd.app import PlatformDaemon
-from platformd.authority import CONTROL_REFUSED
 from stationd.client import PlatformConnection
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]

@@ -14,11 +14,10 @@ from conftest import quiet_platform_config, wait_until
 
 from brasidas import topics
 from brasidas.codecs.commands import BATTERY_MONITOR, DESCRIPTIONS, MAIN_LIGHTS, CommandCode
-from brasidas.codecs.jsonrpc import RpcError
+from brasidas.codecs.jsonrpc import CONTROL_REFUSED, RpcError
 from brasidas.messages import CommandResult
 from brasidas.rpc import STRANGER_MAX_BYTES, RpcClient
 from platformd.app import PlatformDaemon
-from platformd.authority import CONTROL_REFUSED
 from platformd.commands import DuplicateCommandError, SystemCommand
 from stationd.client import AuthenticationError, PlatformConnection
 

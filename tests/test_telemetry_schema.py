@@ -14,6 +14,7 @@ from brasidas.codecs.telemetry_schema import (
     BY_WIRE,
     SCHEMA_VERSION,
     SECTIONS,
+    Admission,
     Attitude,
     Automation,
     Autonomy,
@@ -48,6 +49,7 @@ from brasidas.codecs.telemetry_schema import (
     snapshot_to_wire,
     stale_after,
 )
+from platformd.signaling import ADMISSION_COUNTERS
 
 FULL: dict[type[Section], SectionValue] = {
     Override: Override("teleop", True, "station-1"),
@@ -78,6 +80,7 @@ FULL: dict[type[Section], SectionValue] = {
         ((37.9838096, 23.7275388), (37.98391, 23.72771)),
     ),
     Automation: Automation({"patrol": True, "auto_framerate": False, "diagnostics": True}),
+    Admission: Admission({"evicted_host": 340, "idle_timeouts": 12}, 8, "10.0.0.9", 340, 10.0),
     Diagnostics: None,
 }  # fmt: skip
 
@@ -165,3 +168,17 @@ def test_any_sections_decode_to_values_or_errors_never_an_exception(
     for cls, value in decoded.sections.items():
         assert value is None or isinstance(value, cls | SectionError)
     assert set(unknown) <= {"zz"}
+
+
+def test_the_largest_admission_section_fits_one_datagram_untrimmed() -> None:
+    """Every counter at its largest, an IPv6 address: still far under a datagram, so the
+    admission section never crowds out the others nor is trimmed."""
+    counters = dict.fromkeys((*ADMISSION_COUNTERS, "refused_batches"), 2**63 - 1)
+    worst = Admission(counters, 2**31, "ffff:ffff:ffff:ffff:ffff:ffff:255.255.255.255", 2**63, 10.0)
+    encoder = TelemetryEncoder("x" * 32, bytes(32))
+    (datagram,) = encoder.encode(snapshot_to_wire({Admission: worst}), 1.0)
+    assert len(datagram) < MAX_DATAGRAM // 3 and encoder.trimmed == 0
+    decoder = TelemetryDecoder("x" * 32, bytes(32))
+    (frame,) = decoder.feed(datagram)
+    decoded, _ = snapshot_from_wire(frame.sections)
+    assert decoded.get(Admission) == worst

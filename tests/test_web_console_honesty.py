@@ -28,12 +28,12 @@ from test_web_console_station import (
 )
 
 from brasidas import topics
+from brasidas.annunciator import LINK_LOST
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.messages import StationNotification
 from platformd.app import PlatformDaemon
 from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
-from stationd.telemetry.annunciator import LINK_LOST
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 """Screenshots at both screen sizes, kept current in docs/ when BRASIDAS_SCREENSHOT=1."""

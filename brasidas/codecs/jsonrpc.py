@@ -2,7 +2,7 @@
 
 Supports single calls, batches and notifications, and answers the standard errors:
 -32700 parse error, -32600 invalid request, -32601 method not found, -32602 invalid params,
--32603 internal error; plus -32001 unauthorized for calls that need a session.
+-32603 internal error; plus the application's codes below (README, "The common protocol").
 """
 
 from __future__ import annotations
@@ -29,7 +29,12 @@ UNAUTHORIZED = -32001
 UNAVAILABLE = -32002
 """The method exists but what it needs is not on this platform (no camera, ...)."""
 TIMEOUT = -32003
+"""No answer within the caller's limit: raised by the client itself (a platform never answers
+it; the station's local API passes on its own calls' timeouts)."""
 REQUEST_TOO_LARGE = -32004
+CONTROL_REFUSED = -32005
+"""A control method refused to an observer: another station holds control (the message names
+it). Not a timeout: the platform answered, and retrying will not help until control changes."""
 
 
 class RpcError(Exception):

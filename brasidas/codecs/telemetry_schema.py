@@ -24,12 +24,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
-SCHEMA_VERSION = 7
+SCHEMA_VERSION = 8
 """Version of the schema (and the datagram layout); the first byte of every datagram.
 4: the failsafe, speed_cap and turret sections, the velocity link's ``held`` drops.
 5: the lights' ``errors`` (GPIO lines), the turret's ``streams``.
 6: the autonomy section's ``map_rev``.
-7: the turret's ``error`` (its line cannot be opened, or went away)."""
+7: the turret's ``error`` (its line cannot be opened, or went away).
+8: the admission section (strangers refused and closed, issue 19)."""
 ERROR_KEY = "!"
 """A section's wire map holding only this key is that section's error."""
 STALE_PERIODS = 3.0
@@ -334,6 +335,31 @@ class Diagnostics(Section):
 
 
 @dataclass(frozen=True)
+class Admission(Section):
+    """What signaling refused or closed of connections without a session (issue 19).
+
+    Always sent, small: only the counters that are not zero."""
+
+    NAME = "admission"
+    WIRE = "adm"
+    counters: dict[str, int] = field(
+        default_factory=dict,
+        metadata=wire(
+            "n",
+            doc="since start, the non-zero ones: refused_host, evicted_host, evicted, refused_full, "
+            "header_timeouts, body_timeouts, idle_timeouts, slow_readers, out_of_descriptors, "
+            "throttled, refused_batches",
+        ),
+    )
+    strangers: int = field(default=0, metadata=wire("s", doc="connections without a session"))
+    refusing: str = field(
+        default="", metadata=wire("h", doc="the address refused most in the window, or empty")
+    )
+    refused: int = field(default=0, metadata=wire("r", doc="its refusals in the window"))
+    window_s: float = field(default=0.0, metadata=wire("w", unit="s"))
+
+
+@dataclass(frozen=True)
 class Pose(Section):
     """Where the robot is: localization from GPS, the IMU and the commanded motion (issue 12)."""
 
@@ -408,6 +434,7 @@ SECTIONS: tuple[type[Section], ...] = (
     Pose,
     Autonomy,
     Automation,
+    Admission,
     Diagnostics,
 )
 """Every top-level section, in snapshot order."""

@@ -142,6 +142,9 @@ class TelemetryReceiverSection:
     """How many recent sequence numbers the loss figure covers (10 s at 5 Hz)."""
     silence_s: float = setting(1.0, above(0, most=600))
     """Link degraded when no valid datagram arrived for this long."""
+    refused_warn: int = setting(100, at_least(1, most=1_000_000))
+    """Warning 90.24 when the platform refused at least this many connections from one address
+    within its tally window (10 s): a host without the fleet key hammering signaling."""
 
 
 @dataclass(frozen=True)

@@ -1,14 +1,14 @@
 """The station's telemetry receiver and annunciator (the seed's Status Display, ch. 11 §4.2).
 
-:mod:`.stats` (loss and silence) and :mod:`.annunciator` (warnings) are pure;
+:mod:`.stats` (loss and silence) and :mod:`brasidas.annunciator` (warnings) are pure;
 :mod:`.link` verifies and merges one platform's datagrams; :mod:`.receiver` is the actor that
 binds the sockets and asks each connected platform for its stream.
 """
 
 from __future__ import annotations
 
-from stationd.context import StationContext
-from stationd.telemetry.annunciator import (
+from brasidas.annunciator import (
+    CONNECTIONS_REFUSED,
     CONTROL_TAKEN,
     CONTROLLER_OVER_TEMPERATURE,
     GPS_FIX_LOST,
@@ -23,11 +23,13 @@ from stationd.telemetry.annunciator import (
     Annunciator,
     Change,
 )
+from stationd.context import StationContext
 from stationd.telemetry.link import TelemetryLink
 from stationd.telemetry.receiver import TelemetryReceiver, receive_host
 from stationd.telemetry.stats import LinkStats
 
 __all__ = [
+    "CONNECTIONS_REFUSED",
     "CONTROLLER_OVER_TEMPERATURE",
     "CONTROL_TAKEN",
     "GPS_FIX_LOST",

@@ -12,6 +12,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from brasidas.annunciator import Annunciator, Change
 from brasidas.codecs.telemetry import TelemetryDecoder
 from brasidas.codecs.telemetry_schema import (
     SCHEMA_VERSION,
@@ -24,7 +25,6 @@ from brasidas.codecs.telemetry_schema import (
 )
 from brasidas.config import TelemetryReceiverSection
 from brasidas.messages import StationNotification
-from stationd.telemetry.annunciator import Annunciator, Change
 from stationd.telemetry.stats import LinkStats
 
 _LOGGER = logging.getLogger(__name__)
