@@ -112,7 +112,7 @@ async def town(buildings: int = 1000, edits: int = 10, plans: int = 200) -> dict
         started = time.perf_counter()
         await rpc.call_local("load_map", map=text)
         load_answer = time.perf_counter() - started
-        await _until(lambda: patrol.core.planner is not None)
+        await _until(lambda: patrol.planner_ready)
         load_ready = time.perf_counter() - started
         rss_with_map = _rss_mb()
         route = [area.frame.to_geo(*p) for p in _loop_points(area, planner, free)]
@@ -155,7 +155,7 @@ async def town(buildings: int = 1000, edits: int = 10, plans: int = 200) -> dict
                 except Exception:  # the robot may be standing where the shed would go
                     continue
                 answers.append((time.perf_counter() - started) * 1000)
-                await _until(lambda: patrol.core.planner is not None)
+                await _until(lambda: patrol.planner_ready)
                 rebuilds.append((patrol.last_build_s or 0.0) * 1000)
                 blocks.append(max(stalls[mark:], default=0.0))
         await asyncio.sleep(1.0)
