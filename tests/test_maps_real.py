@@ -415,3 +415,59 @@ async def test_a_new_map_stops_the_build_of_the_one_it_replaces(
     await wait_until(lambda: patrol.planner_ready, 60)
     assert patrol.core.area is not None and patrol.core.area.name == "demo field"
     await wait_until(lambda: "dropped: a new map came" in caplog.text, 30)
+
+
+def test_remote_planning_holds_until_the_answer_and_drops_one_for_an_old_map() -> None:
+    from brasidas.autonomy.follower import FollowerParameters
+    from brasidas.autonomy.localization import Estimate
+    from brasidas.autonomy.patrol import Patrol, PatrolParameters
+    from brasidas.autonomy.route import parse_waypoints
+    from brasidas.messages import PatrolState
+
+    follower = FollowerParameters(
+        cruise_speed=1.6, max_turn_rate=1.0, full_speed=1.6, full_turn_rate=1.5
+    )
+    patrol = Patrol(PatrolParameters(follower=follower, clearance_m=1.5))
+    patrol.remote = True
+    area = parse_map(demo_map(LAT, LON))
+    patrol.set_map(area, build=False)
+    patrol.set_route(parse_waypoints(demo_route(), area.points))
+    patrol.start()
+    x, y = area.local(LAT, LON)
+    here = Estimate(time=0.0, x=x, y=y, yaw=0.0, speed=0.0, sigma_xy=0.1, sigma_yaw=0.01)
+    patrol.step(here, 0.1)
+    assert patrol.reason == "the map changed: waiting for the new plan (being built)"
+    assert not patrol.plan_requests
+    assert patrol.planner_ready(patrol.map_revision)
+    patrol.step(here, 0.1)
+    (asked,) = patrol.plan_requests
+    assert patrol.status().state is PatrolState.HOLDING
+    assert patrol.reason.startswith("planning the path to")
+    patrol.plan_requests.clear()
+    patrol.step(here, 0.1)
+    assert not patrol.plan_requests  # asked once
+    # A keep-out comes before the answer: the answer is for the old map, and dropped.
+    rock = feature("keepout", "Polygon", [square(area.frame, 30, 5, 32, 7)], id="rock")
+    patrol.update_map(area.with_keepouts(add=[rock]), build=False)
+    assert not patrol.set_plan(asked.revision, asked.id, [asked.start, asked.goal])
+    assert patrol.stale_plans == 1
+    patrol.step(here, 0.1)
+    assert patrol.status().state is PatrolState.HOLDING and not patrol.planned_path
+    assert not patrol.planner_ready(asked.revision)  # a graph of the old map: not ready
+    assert patrol.planner_ready(patrol.map_revision)
+    patrol.step(here, 0.1)
+    (again,) = patrol.plan_requests
+    assert again.revision == patrol.map_revision and again.id != asked.id
+    assert patrol.set_plan(again.revision, again.id, [again.start, again.goal])
+    patrol.plan_requests.clear()
+    patrol.step(here, 0.1)  # at the first waypoint (where it starts): the next one's path
+    (then,) = patrol.plan_requests
+    assert then.id != again.id and patrol.events[-1].kind == "arrived"
+    assert patrol.set_plan(then.revision, then.id, [then.start, then.goal])
+    patrol.step(here, 0.1)
+    assert patrol.status().state is PatrolState.PATROLLING
+    # The planner process dies: hold, saying why, until it has the graph again.
+    patrol.planner_lost("the planner process stopped (exit code -9)")
+    patrol.step(here, 0.1)
+    assert patrol.status().state is PatrolState.HOLDING
+    assert patrol.reason == "the planner process stopped (exit code -9)"
