@@ -183,13 +183,17 @@ class _Worker:
             self._send({"op": "stale", **answer})
             return
         start, goal = header["start"], header["goal"]
+        started = time.perf_counter()
+        answer["plan_s"] = 0.0
         try:
             path = self.planner.plan(
                 (float(start[0]), float(start[1])), (float(goal[0]), float(goal[1]))
             )
         except Unreachable as exc:
+            answer["plan_s"] = time.perf_counter() - started
             self._send({"op": "unreachable", "reason": str(exc), **answer})
             return
+        answer["plan_s"] = time.perf_counter() - started
         self._send({"op": "path", "points": [list(p) for p in path.points], **answer})
 
 

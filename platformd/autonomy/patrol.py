@@ -17,6 +17,8 @@ import asyncio
 import logging
 import math
 import secrets
+import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,6 +59,8 @@ if TYPE_CHECKING:
 ROOM_FRACTION = 0.25
 """A map whose boundary, shrunk by the clearance, keeps less than this of its area is said
 to leave no room (at load, in the answer's notes)."""
+PLAN_TIMES_KEPT = 1000
+"""Plans whose times are kept (for the benchmark and diagnostics)."""
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -104,6 +108,10 @@ class PatrolActor(Actor):
         """How long the last planner took to build (in the planner process), seconds."""
         self._changing = asyncio.Lock()
         """One map change at a time: each starts from the map the one before left."""
+        self.plan_times: deque[tuple[float, float]] = deque(maxlen=PLAN_TIMES_KEPT)
+        """The last plans' (round trip, time in the planner process), seconds."""
+        self._asked: dict[int, float] = {}
+        """Plans asked and not yet answered: when (perf_counter)."""
         self.planner = PlannerProcess(self._on_planner_answer, self._on_planner_lost)
         """The process that holds the map's graph and answers plans (started with the actor:
         NumPy and Shapely there never hold the event loop's GIL)."""
@@ -236,6 +244,11 @@ class PatrolActor(Actor):
             path = [(float(x), float(y)) for x, y in points] if isinstance(points, list) else None
             if not isinstance(request, int) or (op == "path" and path is None):
                 return
+            asked = self._asked.pop(request, None)
+            if asked is not None:
+                spent = answer.get("plan_s")
+                inside = float(spent) if isinstance(spent, int | float) else 0.0
+                self.plan_times.append((time.perf_counter() - asked, inside))
             reason = str(answer.get("reason", "")) if op == "unreachable" else ""
             if op == "stale" or not self.core.set_plan(revision, request, path, reason):
                 _LOGGER.debug("patrol: plan %s for map revision %d dropped", request, revision)
@@ -267,6 +280,10 @@ class PatrolActor(Actor):
                 request.revision, request.id, request.start, request.goal
             ):  # no process right now: the patrol holds and asks again at its next step
                 self.core.plan_not_sent(request)
+            else:
+                if len(self._asked) >= PLAN_TIMES_KEPT:  # answers lost with a dead process
+                    self._asked.clear()
+                self._asked[request.id] = time.perf_counter()
         self.core.plan_requests.clear()
         self._report()
 
