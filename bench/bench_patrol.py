@@ -47,11 +47,13 @@ async def run() -> dict[str, Any]:
 
 
 async def town(
-    buildings: int = 1000, edits: int = 10, plans: int = 200, floor_s: float = 5.0
+    buildings: int = 1000, edits: int = 10, plans: int = 200, floor_s: float = 10.0
 ) -> dict[str, Any]:
     """A town of ``buildings`` (``platformd.sim.town``: OSM-like footprints, streets, names)
-    on a --sim platform: load, planner build, one keep-out added and removed while it
-    patrols (answer, event-loop stall, the planner's change in its thread), plans, RSS."""
+    on a --sim platform: load, the graph's build in the planner process, one keep-out added
+    and removed while it patrols (answer, event-loop stall, the graph's change), the patrol's
+    plans (round trip to the planner process), RSS of both processes; the event loop's stall
+    against the same patrol with nothing built, in the same run (the machine's floor)."""
     import asyncio
     import json
     import tempfile
@@ -105,6 +107,7 @@ async def town(
     daemon = PlatformDaemon(config, None)
     await daemon.start()
     stalls: list[float] = []
+    floor_stalls: list[float] = []
     phases: dict[str, tuple[int, int]] = {}
     probe_task: asyncio.Task[None] | None = None
 
@@ -138,10 +141,11 @@ async def town(
             "set_waypoints", waypoints=[f"{lat:.7f},{lon:.7f}" for lat, lon in route]
         )
         await rpc.call_local("patrol_start")
-        # The machine's floor in this run: the same patrol on the same map, nothing built.
+        # The machine's floor in this run: the same patrol on the same map, nothing built
+        # (half before the edits, half after: the machine's load drifts).
         mark = len(stalls)
-        await asyncio.sleep(floor_s)
-        phases["floor"] = (mark, len(stalls))
+        await asyncio.sleep(floor_s / 2)
+        floor_stalls = stalls[mark:]
         answers, rebuilds, blocks = [], [], []
         mark = len(stalls)
         for index in range(edits):
@@ -173,6 +177,9 @@ async def town(
                 blocks.append(max(stalls[first:], default=0.0))
         await asyncio.sleep(1.0)
         phases["edits"] = (mark, len(stalls))
+        mark = len(stalls)
+        await asyncio.sleep(floor_s / 2)
+        floor_stalls += stalls[mark:]
         rss_after = _rss_mb(), _rss_mb(patrol.planner.pid)
         state = patrol.core.state.value
         trips = [trip * 1000 for trip, _ in patrol.plan_times]
@@ -185,7 +192,7 @@ async def town(
 
     def stall(phase: str) -> dict[str, float]:
         first, last = phases.get(phase, (0, 0))
-        part = stalls[first:last] or [0.0]
+        part = (floor_stalls if phase == "floor" else stalls[first:last]) or [0.0]
         return {**percentiles(part), "max": round(max(part), 1)}
 
     load, floor, edited = stall("load"), stall("floor"), stall("edits")
@@ -238,7 +245,7 @@ async def town(
         "town_note": (
             "stall: lateness of a 5 ms sleep on the platform's event loop; load: from "
             "load_map until the planner process has the graph; floor: the same patrol on the "
-            f"same map for {floor_s:g} s with nothing built (the machine's own lateness at "
+            f"same map for {floor_s:g} s (half before the edits, half after) with nothing built (the machine's own lateness at "
             "this load); edits: a keep-out added and removed while it patrols, until each "
             "graph is ready; loop_block: the longest stall during each update_map; rebuild: "
             "the graph's change in the planner process (add, remove); plan round trip: asked "

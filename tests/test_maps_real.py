@@ -260,6 +260,27 @@ def test_one_keepout_changes_the_planner_as_a_rebuild_would() -> None:
             assert full._free.covers(LineString([a, b]))
 
 
+def test_removing_a_keepout_checks_only_the_corner_pairs_that_can_cross_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    area = parse_map(town_map(LAT, LON, buildings=120, seed=5))
+    planner = Planner(area.boundary, area.keepouts, 4.5)
+    tested: list[int] = []
+    meets_box = planner_module._meets_box
+
+    def counted(a: Any, b: Any, box: Any) -> Any:
+        tested.append(len(a))
+        return meets_box(a, b, box)
+
+    monkeypatch.setattr(planner_module, "_meets_box", counted)
+    key = sorted(area.keepouts)[len(area.keepouts) // 2]
+    planner.changed({}, [key])
+    count = len(planner.nodes)
+    # Not every pair of corners (a removal's cost grew with their square): those in the wedge
+    # the reopened zone spans from each corner.
+    assert 0 < sum(tested) < 0.2 * count * (count - 1) / 2, (sum(tested), count)
+
+
 async def test_map_updates_never_run_geometry_on_the_event_loop(
     platform_factory: Callable[..., Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

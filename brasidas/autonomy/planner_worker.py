@@ -20,6 +20,7 @@ socket closes (the platform is gone): it never outlives its owner.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import queue
 import signal
@@ -36,6 +37,8 @@ HEADER = struct.Struct("!II")
 """A frame's header: the JSON header's length, the body's length."""
 MAX_FRAME_BYTES = 64 * 1024 * 1024
 """A frame larger than this is a broken peer (a map is at most a few MB)."""
+PR_SET_PDEATHSIG = 1
+"""prctl(2): the signal a process gets when its parent dies."""
 INCREMENTAL_MOST = 20
 """Keep-outs changed at once up to which the last graph is changed rather than rebuilt."""
 
@@ -197,8 +200,24 @@ class _Worker:
         self._send({"op": "path", "points": [list(p) for p in path.points], **answer})
 
 
+def _die_with_parent() -> None:
+    """Linux: killed when the platform dies (even by SIGKILL; prctl names the thread that
+    started it, the event loop's), not only when the reader
+    thread gets the socket's end, which waits for the GIL a long block may hold."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    parent = os.getppid()
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != parent:  # the platform died before prctl
+        os._exit(0)
+
+
 def main(argv: list[str]) -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the platform stops it, not a terminal's ^C
+    _die_with_parent()
     sock = socket.socket(fileno=int(argv[1]))
     sock.setblocking(True)
     worker = _Worker(sock)
