@@ -3,6 +3,7 @@ repeated names, thousands of buildings, limits that agree end to end, atomic loa
 
 from __future__ import annotations
 
+import asyncio
 import copy
 import io
 import json
@@ -492,3 +493,78 @@ def test_remote_planning_holds_until_the_answer_and_drops_one_for_an_old_map() -
     patrol.step(here, 0.1)
     assert patrol.status().state is PatrolState.HOLDING
     assert patrol.reason == "the planner process stopped (exit code -9)"
+
+
+async def test_the_planner_process_answers_edits_plans_and_asks_for_a_map_it_lacks() -> None:
+    """The planner process's protocol, on its socket: an edit of a map it never had is
+    answered ``resend``; a map, then an edit of it, each ready; a plan for an old revision
+    ``stale``; a frame over the limit ends it."""
+    import socket
+    import struct
+    import sys
+
+    import orjson
+
+    from brasidas.autonomy.planner_worker import HEADER, frame, parse_header
+
+    ours, theirs = socket.socketpair()
+    process = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "brasidas.autonomy.planner_worker", str(theirs.fileno()),
+        pass_fds=(theirs.fileno(),),
+    )  # fmt: skip
+    theirs.close()
+    reader, writer = await asyncio.open_unix_connection(sock=ours)
+
+    async def answer() -> dict[str, Any]:
+        head, size = parse_header(await reader.readexactly(HEADER.size))
+        header: dict[str, Any] = orjson.loads(await reader.readexactly(head))
+        await reader.readexactly(size)
+        return header
+
+    try:
+        area = parse_map(demo_map(LAT, LON))
+        rock = feature("keepout", "Polygon", [square(area.frame, 30, 5, 32, 7)], id="rock")
+        edit = orjson.dumps({"add": [rock], "remove": []})
+        writer.write(frame({"op": "edit", "revision": 2, "base": 1, "clearance": 1.5}, edit))
+        assert (await asyncio.wait_for(answer(), 60)) == {"op": "resend", "revision": 2}
+        writer.write(
+            frame({"op": "map", "revision": 1, "clearance": 1.5}, orjson.dumps(area.geojson()))
+        )
+        # Revision 2 was asked for already: 1 is parsed (for the edit) but not built.
+        assert (await asyncio.wait_for(answer(), 60)) == {"op": "dropped", "revision": 1}
+        writer.write(frame({"op": "edit", "revision": 2, "base": 1, "clearance": 1.5}, edit))
+        ready = await asyncio.wait_for(answer(), 60)
+        assert (ready["op"], ready["revision"], ready["incremental"]) == ("ready", 2, False)
+        writer.write(frame({"op": "edit", "revision": 3, "base": 2, "clearance": 1.5}, b"{"))
+        assert (await asyncio.wait_for(answer(), 60))["op"] == "failed"  # said, not a crash
+        again = orjson.dumps({"add": [], "remove": ["rock"]})
+        writer.write(frame({"op": "edit", "revision": 3, "base": 2, "clearance": 1.5}, again))
+        ready = await asyncio.wait_for(answer(), 60)
+        assert (ready["op"], ready["revision"], ready["incremental"]) == ("ready", 3, True)
+        writer.write(frame({"op": "edit", "revision": 4, "base": 3, "clearance": 1.5}, edit))
+        ready = await asyncio.wait_for(answer(), 60)
+        assert (ready["op"], ready["revision"], ready["incremental"]) == ("ready", 4, True)
+        start, goal = area.local(LAT, LON), area.local(*offset(LAT, LON, 40, 6))
+        for revision in (3, 4):
+            plan = {
+                "op": "plan",
+                "revision": revision,
+                "id": revision,
+                "start": start,
+                "goal": goal,
+            }
+            writer.write(frame(plan))
+        stale = await asyncio.wait_for(answer(), 60)
+        assert (stale["op"], stale["id"]) == ("stale", 3), stale
+        path = await asyncio.wait_for(answer(), 60)
+        assert path["op"] == "path" and path["id"] == 4, path
+        assert not LineString(path["points"]).intersects(
+            parse_map(area.with_keepouts(add=[rock]).geojson()).keepouts["rock"]
+        )
+        writer.write(struct.pack("!II", 1 << 30, 0))  # a broken peer: the process ends
+        assert await asyncio.wait_for(process.wait(), 30) == 0
+    finally:
+        writer.close()
+        if process.returncode is None:
+            process.kill()
+            await process.wait()

@@ -10,10 +10,13 @@ The two talk over a Unix socket in frames (:func:`frame`): a JSON header and a b
 - ``{"op": "map", "revision", "clearance"}`` with the map's GeoJSON as the body: the graph of
   that map (a few keep-outs changed since the last one: the last graph changed, not rebuilt).
   A newer map stops the build of an older one (answered ``dropped``).
+- ``{"op": "edit", "revision", "base", "clearance"}`` with ``{"add": [features], "remove":
+  [ids]}`` as the body: keep-outs changed on map ``base`` (the last one sent); answered
+  ``resend`` when this process does not have that one (it was started since).
 - ``{"op": "plan", "revision", "id", "start", "goal"}``: a path on that revision's graph,
   queued behind its build; ``stale`` when the graph is of another revision.
 
-Answers: ``ready`` (revision, build_s, nodes, edges, incremental), ``dropped``, ``failed``
+Answers: ``ready`` (revision, build_s, nodes, edges, incremental), ``dropped``, ``resend``, ``failed``
 (error), ``path`` (points), ``unreachable`` (reason), ``stale``. The process exits when the
 socket closes (the platform is gone): it never outlives its owner.
 """
@@ -39,6 +42,7 @@ MAX_FRAME_BYTES = 64 * 1024 * 1024
 """A frame larger than this is a broken peer (a map is at most a few MB)."""
 PR_SET_PDEATHSIG = 1
 """prctl(2): the signal a process gets when its parent dies."""
+MAP_OPS = ("map", "edit")
 INCREMENTAL_MOST = 20
 """Keep-outs changed at once up to which the last graph is changed rather than rebuilt."""
 
@@ -68,6 +72,8 @@ class _Worker:
         """The newest map revision received (the reader thread's view)."""
         self.building: tuple[int, threading.Event] | None = None
         self.revision = -1
+        self.received: tuple[int, Any] | None = None
+        """The last map received (revision, AreaMap): what the next edit changes."""
         self.area: Any = None
         self.planner: Any = None
 
@@ -81,7 +87,7 @@ class _Worker:
                 head, size = parse_header(self._exactly(HEADER.size))
                 header = orjson.loads(self._exactly(head))
                 body = self._exactly(size)
-                if header.get("op") == "map":
+                if header.get("op") in MAP_OPS:
                     with self.lock:
                         self.newest_map = max(self.newest_map, int(header["revision"]))
                         if self.building is not None and self.building[0] < self.newest_map:
@@ -107,7 +113,7 @@ class _Worker:
         while True:
             header, body = self.inbox.get()
             try:
-                if header.get("op") == "map":
+                if header.get("op") in MAP_OPS:
                     self._map(header, body)
                 elif header.get("op") == "plan":
                     self._plan(header)
@@ -122,16 +128,26 @@ class _Worker:
         from brasidas.autonomy.planner import BuildCancelled
 
         revision = int(header["revision"])
+        started = time.perf_counter()
+        if header["op"] == "map":
+            area = parse_map(body)
+        else:  # an edit of the map received last (parsed once, not at every edit)
+            base, received = int(header["base"]), self.received
+            if received is None or received[0] != base:
+                if received is None or revision > received[0]:
+                    self._send({"op": "resend", "revision": revision})  # the whole map, please
+                return
+            changes = orjson.loads(body)
+            area = received[1].with_keepouts(add=changes["add"], remove=changes["remove"])
+        self.received = (revision, area)
         cancelled = threading.Event()
         with self.lock:
             if revision < self.newest_map:
                 cancelled.set()
             self.building = (revision, cancelled)
-        started = time.perf_counter()
         try:
             if cancelled.is_set():
                 raise BuildCancelled("a newer map came")
-            area = parse_map(body)
             planner, incremental = self._planner_for(area, float(header["clearance"]), cancelled)
         except BuildCancelled:
             self._send({"op": "dropped", "revision": revision})

@@ -209,11 +209,17 @@ class PatrolActor(Actor):
         text = _map_bytes(area) if area is not None else b""
         return area, text, route, bool(route.waypoints), f"map.file {refused}" if refused else ""
 
-    def _replan(self, geojson: bytes) -> None:
+    def _replan(self, geojson: bytes, changes: bytes | None = None) -> None:
         """The map changed: its graph is built in the planner process (the patrol holds
-        until it is ready); a build for an older map there is stopped."""
-        if self.core.area is not None:
-            self.planner.set_map(self.core.map_revision, geojson, self.core.p.clearance_m)
+        until it is ready); a build for an older map there is stopped. With ``changes`` (the
+        keep-outs added and removed, as JSON) only those are sent."""
+        if self.core.area is None:
+            return
+        revision, clearance = self.core.map_revision, self.core.p.clearance_m
+        if changes is None:
+            self.planner.set_map(revision, geojson, clearance)
+        else:
+            self.planner.edit_map(revision, revision - 1, changes, geojson, clearance)
 
     @property
     def planner_ready(self) -> bool:
@@ -238,6 +244,9 @@ class PatrolActor(Actor):
             _LOGGER.info("patrol: planner for map revision %d dropped: a new map came", revision)
         elif op == "failed":
             _LOGGER.error("patrol: planner for map revision %d failed: %s", revision, answer)
+            self.planner.resend(revision)
+        elif op == "resend":
+            self.planner.resend(revision)
         elif op in ("path", "unreachable", "stale"):
             request = answer.get("id")
             points = answer.get("points") if op == "path" else None
@@ -389,9 +398,11 @@ class PatrolActor(Actor):
 
                 raise MapError("no map loaded")
             base, position = self.core.area, self.robot_position()
-            area, text = await asyncio.to_thread(self._changed_map, base, add, remove, position)
+            area, text, changes = await asyncio.to_thread(
+                self._changed_map, base, add, remove, position
+            )
             self.core.update_map(area, build=False)
-            self._replan(text)
+            self._replan(text, changes)
         self.tick()
         return area
 
@@ -437,15 +448,16 @@ class PatrolActor(Actor):
         add: list[Mapping[str, Any]],
         remove: list[str],
         position: tuple[float, float] | None,
-    ) -> tuple[AreaMap, bytes]:
-        """(Worker thread.) The map with keep-outs changed, checked and stored."""
+    ) -> tuple[AreaMap, bytes, bytes]:
+        """(Worker thread.) The map with keep-outs changed, checked and stored; its text and
+        the changes' (for the planner process)."""
         area = base.with_keepouts(add=add, remove=remove)
         area.keepout_index()  # here, not at the patrol's next step on the event loop
         if position is not None:
             area.check_position(*position)
         text = _map_bytes(area)
         write_atomically(self.storage.map_file, text.decode())
-        return area, text
+        return area, text, orjson.dumps({"add": add, "remove": remove})
 
     async def set_waypoints(self, items: list[Any]) -> Route:
         """Replace the waypoints on the fly (R-5.3.3.3); stored before they are used (checks

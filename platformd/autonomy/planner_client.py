@@ -50,6 +50,7 @@ class PlannerProcess:
         self._backoff = Backoff(backoff_initial, backoff_max)
         self._map: MapRevision | None = None
         self._writer: asyncio.StreamWriter | None = None
+        self._resent: int | None = None
         self.pid: int | None = None
         """The running process's id (None while there is none)."""
         self.restarts = 0
@@ -59,6 +60,25 @@ class PlannerProcess:
         """The map the graph is for from now on (sent at once when the process runs)."""
         self._map = MapRevision(revision, geojson, clearance)
         self._send({"op": "map", "revision": revision, "clearance": clearance}, geojson)
+
+    def edit_map(
+        self, revision: int, base: int, changes: bytes, geojson: bytes, clearance: float
+    ) -> None:
+        """Keep-outs changed (``changes``: ``{"add": [...], "remove": [...]}`` as JSON) on map
+        ``base``; ``geojson`` is the whole map, sent instead if the process asks for it."""
+        self._map = MapRevision(revision, geojson, clearance)
+        header = {"op": "edit", "revision": revision, "base": base, "clearance": clearance}
+        self._send(header, changes)
+
+    def resend(self, revision: int) -> None:
+        """The process has not the map an edit changes (or failed on one): the whole of the
+        latest map, once per revision."""
+        latest = self._map
+        if latest is None or latest.revision != revision or self._resent == revision:
+            return
+        self._resent = revision
+        header = {"op": "map", "revision": latest.revision, "clearance": latest.clearance}
+        self._send(header, latest.geojson)
 
     def request_plan(
         self, revision: int, request: int, start: tuple[float, float], goal: tuple[float, float]
@@ -111,6 +131,7 @@ class PlannerProcess:
         try:
             reader, writer = await asyncio.open_unix_connection(sock=ours)
             self._writer = writer
+            self._resent = None
             if self._map is not None:
                 latest = self._map
                 self._send(
