@@ -568,3 +568,23 @@ async def test_the_planner_process_answers_edits_plans_and_asks_for_a_map_it_lac
         if process.returncode is None:
             process.kill()
             await process.wait()
+
+
+async def test_a_planner_process_that_cannot_start_is_said_and_tried_again(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    import sys
+
+    from platformd.autonomy.planner_client import PlannerProcess
+
+    lost: list[str] = []
+    planner = PlannerProcess(lambda answer: None, lost.append, backoff_initial=0.01)
+    monkeypatch.setattr(sys, "executable", str(tmp_path / "no-python"))
+    task = asyncio.get_running_loop().create_task(planner.run())
+    try:
+        await wait_until(lambda: len(lost) >= 2, 10)
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    assert lost[0].startswith("the planner process could not start"), lost
+    assert not planner.request_plan(1, 1, (0.0, 0.0), (1.0, 1.0))  # none to ask: said

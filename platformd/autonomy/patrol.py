@@ -6,6 +6,10 @@ when it stops). The manual override suspends it inside the ``OVERRIDE_STATE`` de
 arbiter stops obeying ``CMD_VEL`` in the same delivery); releasing it replans from where the
 operator left the robot. Nothing here needs a station (R-0.4).
 
+Plans come from the planner process (:mod:`platformd.autonomy.planner_client`), which holds
+the map's graph: the patrol asks and holds, saying why, until the answer; NumPy and Shapely
+building a graph there never hold this process's GIL.
+
 The map and the route are files on the platform (``map.file``, ``autonomy.route_file``),
 replaced atomically; they survive a restart. Shapely and NumPy (~17 MB) are imported when a
 map is, never on a platform without one.

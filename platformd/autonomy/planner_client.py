@@ -122,6 +122,9 @@ class PlannerProcess:
                 pass_fds=(theirs.fileno(),), stdin=asyncio.subprocess.DEVNULL,
                 stdout=asyncio.subprocess.DEVNULL, start_new_session=True,
             )  # fmt: skip
+        except OSError as exc:  # (out of processes, memory): tried again after the backoff
+            ours.close()
+            return f"the planner process could not start ({exc})"
         except BaseException:
             ours.close()
             raise
