@@ -146,7 +146,7 @@ async def town(
         mark = len(stalls)
         await asyncio.sleep(floor_s / 2)
         floor_stalls = stalls[mark:]
-        answers, rebuilds, blocks = [], [], []
+        answers, rebuilds, blocks, loop_cpu = [], [], [], []
         mark = len(stalls)
         for index in range(edits):
             x, y = free[-1 - index]
@@ -166,12 +166,13 @@ async def town(
             }
             for kind, change in (("add", {"add": [shed]}), ("remove", {"remove": [shed["id"]]})):
                 first = len(stalls)
-                started = time.perf_counter()
+                started, cpu = time.perf_counter(), time.thread_time()
                 try:
                     await rpc.call_local("update_map", **change)
                 except Exception:  # the robot may be standing where the shed would go
                     continue
                 answers.append((time.perf_counter() - started) * 1000)
+                loop_cpu.append((time.thread_time() - cpu) * 1000)
                 await _until(lambda: patrol.planner_ready)
                 rebuilds.append((kind, (patrol.last_build_s or 0.0) * 1000))
                 blocks.append(max(stalls[first:], default=0.0))
@@ -219,6 +220,8 @@ async def town(
         "town_update_map_answer_p50_ms": percentiles(answers or [0.0])["p50"],
         "town_update_map_answer_p99_ms": percentiles(answers or [0.0])["p99"],
         "town_update_map_loop_block_p99_ms": percentiles(blocks or [0.0])["p99"],
+        "town_update_map_loop_cpu_p50_ms": percentiles(loop_cpu or [0.0])["p50"],
+        "town_update_map_loop_cpu_p99_ms": percentiles(loop_cpu or [0.0])["p99"],
         "town_update_map_add_rebuild_p50_ms": percentiles(added)["p50"],
         "town_update_map_add_rebuild_max_ms": round(max(added), 1),
         "town_update_map_remove_rebuild_p50_ms": percentiles(removed)["p50"],
@@ -247,7 +250,9 @@ async def town(
             "load_map until the planner process has the graph; floor: the same patrol on the "
             f"same map for {floor_s:g} s (half before the edits, half after) with nothing built (the machine's own lateness at "
             "this load); edits: a keep-out added and removed while it patrols, until each "
-            "graph is ready; loop_block: the longest stall during each update_map; rebuild: "
+            "graph is ready; loop_block: the longest stall during each update_map; loop_cpu: the event "
+            "loop thread's CPU from the call to its answer (update_map's share, and whatever "
+            "else ran on the loop meanwhile); rebuild: "
             "the graph's change in the planner process (add, remove); plan round trip: asked "
             "on the event loop, answered by the planner process"
         ),
