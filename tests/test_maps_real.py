@@ -480,14 +480,29 @@ def test_remote_planning_holds_until_the_answer_and_drops_one_for_an_old_map() -
     patrol.step(here, 0.1)
     (again,) = patrol.plan_requests
     assert again.revision == patrol.map_revision and again.id != asked.id
-    assert patrol.set_plan(again.revision, again.id, [again.start, again.goal])
     patrol.plan_requests.clear()
-    patrol.step(here, 0.1)  # at the first waypoint (where it starts): the next one's path
+    assert patrol.set_plan(again.revision, again.id, [again.start, again.goal])
+    # With a path, the next leg is asked ahead (from the target to the one after).
     (then,) = patrol.plan_requests
-    assert then.id != again.id and patrol.events[-1].kind == "arrived"
+    patrol.plan_requests.clear()
+    assert then.origin == again.waypoint and then.start == again.goal
+    patrol.step(here, 0.1)  # at the first waypoint (where it starts): holds for that leg
+    assert patrol.events[-1].kind == "arrived" and not patrol.plan_requests  # not asked again
+    assert patrol.reason.startswith("planning the path to")
     assert patrol.set_plan(then.revision, then.id, [then.start, then.goal])
+    (after,) = patrol.plan_requests  # and the one after that, ahead
     patrol.step(here, 0.1)
     assert patrol.status().state is PatrolState.PATROLLING
+    # Answered before the robot gets there: it goes on at the waypoint without holding.
+    assert patrol.set_plan(after.revision, after.id, [after.start, after.goal])
+    there = Estimate(
+        time=1.0, x=then.goal[0], y=then.goal[1], yaw=0.0, speed=0.0, sigma_xy=0.1, sigma_yaw=0.01
+    )
+    patrol.plan_requests.clear()
+    patrol.step(there, 0.1)
+    assert patrol.events[-1].kind == "arrived"
+    assert patrol.status().state is PatrolState.PATROLLING, patrol.reason
+    assert patrol.planned_path[0] == after.start and len(patrol.plan_requests) == 1
     # The planner process dies: hold, saying why, until it has the graph again.
     patrol.planner_lost("the planner process stopped (exit code -9)")
     patrol.step(here, 0.1)
