@@ -592,9 +592,16 @@ async def platform_cpu(seconds: float = 20.0) -> dict[str, Any]:
         idle, idle_emulation = await _cpu_percent(seconds, emulation)
         await daemon.ctx.rpc.call_local("patrol_start")
         await asyncio.sleep(2.0)
+        from platformd.autonomy.patrol import PatrolActor
+
+        patrol = next(a for a in daemon.supervisor.actors if isinstance(a, PatrolActor))
+        planner_pid = patrol.planner.pid
         devices_cpu = cpu_seconds(devices.pid)
+        planner_cpu = cpu_seconds(planner_pid) if planner_pid is not None else 0.0
         patrolling, patrol_emulation = await _cpu_percent(seconds, emulation)
         devices_cpu = cpu_seconds(devices.pid) - devices_cpu
+        if planner_pid is not None and planner_pid == patrol.planner.pid:
+            planner_cpu = cpu_seconds(planner_pid) - planner_cpu
         report = bus.last(topics.PATROL_STATUS)
         state = report.state if report is not None else "?"
         lap = report.lap if report is not None else 0
@@ -611,6 +618,7 @@ async def platform_cpu(seconds: float = 20.0) -> dict[str, Any]:
         "platform_cpu_patrolling_with_imu_emulation_pct": round(patrolling, 2),
         "platform_cpu_imu_emulation_pct": round(patrol_emulation, 2),
         "sim_devices_process_cpu_pct": round(100.0 * devices_cpu / seconds, 2),
+        "planner_process_cpu_patrolling_pct": round(100.0 * planner_cpu / seconds, 2),
         "platform_cpu_patrol_state": f"{state} (waypoint {waypoint}, lap {lap})",
         "platform_cpu_note": (
             "the platform's own share: AX3500 and GPS simulated in another process, the "
