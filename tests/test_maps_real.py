@@ -503,6 +503,21 @@ def test_remote_planning_holds_until_the_answer_and_drops_one_for_an_old_map() -
     assert patrol.events[-1].kind == "arrived"
     assert patrol.status().state is PatrolState.PATROLLING, patrol.reason
     assert patrol.planned_path[0] == after.start and len(patrol.plan_requests) == 1
+    # The target changed under a request (a ground station's MISSION_SET_CURRENT sets the
+    # cursor): its answer, a path to the old target, is dropped and the new one asked.
+    from brasidas.autonomy.route import Cursor
+
+    patrol.plan_requests.clear()
+    patrol.stop()
+    patrol.start()
+    patrol.step(there, 0.1)
+    asked = next(r for r in patrol.plan_requests if r.origin == -1)
+    patrol.cursor = Cursor((asked.waypoint + 1) % patrol.route.stops, True, 0, True)
+    assert not patrol.set_plan(asked.revision, asked.id, [asked.start, asked.goal])
+    patrol.plan_requests.clear()
+    patrol.step(there, 0.1)
+    (new,) = patrol.plan_requests
+    assert new.waypoint == patrol.cursor.index and patrol.reason.startswith("planning the path")
     # The planner process dies: hold, saying why, until it has the graph again.
     patrol.planner_lost("the planner process stopped (exit code -9)")
     patrol.step(here, 0.1)

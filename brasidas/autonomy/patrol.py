@@ -188,7 +188,8 @@ class Patrol:
             self.stale_plans += 1
             return False
         self._waiting = None
-        if revision != self.map_revision:  # (cleared on every map change; kept as a guard)
+        if revision != self.map_revision or waiting.waypoint != self.cursor.index:
+            # (cleared on every map change; the target changed without saying so: a guard)
             self.stale_plans += 1
             return False
         if points is None:
@@ -471,6 +472,8 @@ class Patrol:
         """(Remote planning.) Ask for a path to the current target, once; hold meanwhile."""
         assert self.area is not None
         index = self.cursor.index
+        if self._waiting is not None and self._waiting.waypoint != index:
+            self._waiting = None  # another target since it was asked: its answer is dropped
         if self._waiting is None:
             waypoint = self.route.waypoints[index]
             goal = self.area.local(waypoint.latitude, waypoint.longitude)
