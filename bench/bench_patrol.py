@@ -11,6 +11,7 @@ the planned path, and from where the receiver puts the vehicle (the part the pla
 from __future__ import annotations
 
 import math
+import os
 import random
 import statistics
 import time
@@ -45,10 +46,14 @@ async def run() -> dict[str, Any]:
     return figures
 
 
-async def town(buildings: int = 1000, edits: int = 10, plans: int = 200) -> dict[str, Any]:
+async def town(
+    buildings: int = 1000, edits: int = 10, plans: int = 200, floor_s: float = 10.0
+) -> dict[str, Any]:
     """A town of ``buildings`` (``platformd.sim.town``: OSM-like footprints, streets, names)
-    on a --sim platform: load, planner build, one keep-out added and removed while it
-    patrols (answer, event-loop stall, the planner's change in its thread), plans, RSS."""
+    on a --sim platform: load, the graph's build in the planner process, one keep-out added
+    and removed while it patrols (answer, event-loop stall, the graph's change), the patrol's
+    plans (round trip to the planner process), RSS of both processes; the event loop's stall
+    against the same patrol with nothing built, in the same run (the machine's floor)."""
     import asyncio
     import json
     import tempfile
@@ -102,35 +107,47 @@ async def town(buildings: int = 1000, edits: int = 10, plans: int = 200) -> dict
     daemon = PlatformDaemon(config, None)
     await daemon.start()
     stalls: list[float] = []
+    floor_stalls: list[float] = []
+    phases: dict[str, tuple[int, int]] = {}
     probe_task: asyncio.Task[None] | None = None
+
+    async def probe() -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            due = loop.time() + 0.005
+            await asyncio.sleep(0.005)
+            stalls.append((loop.time() - due) * 1000)
+
     try:
         bus = daemon.ctx.bus
         await _until(lambda: bus.last(topics.POSE) is not None)
         patrol = next(a for a in daemon.supervisor.actors if isinstance(a, PatrolActor))
         rpc = daemon.ctx.rpc
-        rss_before = _rss_mb()
+        probe_task = asyncio.get_running_loop().create_task(probe())
+        await _until(lambda: patrol.planner.pid is not None)
+        await asyncio.sleep(1.0)
+        rss_before = _rss_mb() + _rss_mb(patrol.planner.pid)
         started = time.perf_counter()
+        mark = len(stalls)
         await rpc.call_local("load_map", map=text)
         load_answer = time.perf_counter() - started
-        await _until(lambda: patrol.core.planner is not None)
+        await _until(lambda: patrol.planner_ready)
         load_ready = time.perf_counter() - started
-        rss_with_map = _rss_mb()
+        phases["load"] = (mark, len(stalls))
+        load_build = patrol.last_build_s or 0.0
+        rss_parent, rss_planner = _rss_mb(), _rss_mb(patrol.planner.pid)
         route = [area.frame.to_geo(*p) for p in _loop_points(area, planner, free)]
         await rpc.call_local(
             "set_waypoints", waypoints=[f"{lat:.7f},{lon:.7f}" for lat, lon in route]
         )
         await rpc.call_local("patrol_start")
-
-        async def probe() -> None:
-            loop = asyncio.get_running_loop()
-            while True:
-                due = loop.time() + 0.005
-                await asyncio.sleep(0.005)
-                stalls.append((loop.time() - due) * 1000)
-
-        probe_task = asyncio.get_running_loop().create_task(probe())
-        await asyncio.sleep(3.0)
-        answers, rebuilds, blocks = [], [], []
+        # The machine's floor in this run: the same patrol on the same map, nothing built
+        # (half before the edits, half after: the machine's load drifts).
+        mark = len(stalls)
+        await asyncio.sleep(floor_s / 2)
+        floor_stalls = stalls[mark:]
+        answers, rebuilds, blocks, loop_cpu = [], [], [], []
+        mark = len(stalls)
         for index in range(edits):
             x, y = free[-1 - index]
             shed = {
@@ -147,25 +164,41 @@ async def town(buildings: int = 1000, edits: int = 10, plans: int = 200) -> dict
                     ],
                 },
             }
-            for change in ({"add": [shed]}, {"remove": [shed["id"]]}):
-                mark = len(stalls)
-                started = time.perf_counter()
+            for kind, change in (("add", {"add": [shed]}), ("remove", {"remove": [shed["id"]]})):
+                first = len(stalls)
+                started, cpu = time.perf_counter(), time.thread_time()
                 try:
                     await rpc.call_local("update_map", **change)
                 except Exception:  # the robot may be standing where the shed would go
                     continue
                 answers.append((time.perf_counter() - started) * 1000)
-                await _until(lambda: patrol.core.planner is not None)
-                rebuilds.append((patrol.last_build_s or 0.0) * 1000)
-                blocks.append(max(stalls[mark:], default=0.0))
+                loop_cpu.append((time.thread_time() - cpu) * 1000)
+                await _until(lambda: patrol.planner_ready)
+                rebuilds.append((kind, (patrol.last_build_s or 0.0) * 1000))
+                blocks.append(max(stalls[first:], default=0.0))
         await asyncio.sleep(1.0)
+        phases["edits"] = (mark, len(stalls))
+        mark = len(stalls)
+        await asyncio.sleep(floor_s / 2)
+        floor_stalls += stalls[mark:]
+        rss_after = _rss_mb(), _rss_mb(patrol.planner.pid)
         state = patrol.core.state.value
+        trips = [trip * 1000 for trip, _ in patrol.plan_times]
+        inside = [spent * 1000 for _, spent in patrol.plan_times]
     finally:
         if probe_task is not None:
             probe_task.cancel()
             await asyncio.gather(probe_task, return_exceptions=True)
         await daemon.stop()
-    stall = percentiles(stalls or [0.0])
+
+    def stall(phase: str) -> dict[str, float]:
+        first, last = phases.get(phase, (0, 0))
+        part = (floor_stalls if phase == "floor" else stalls[first:last]) or [0.0]
+        return {**percentiles(part), "max": round(max(part), 1)}
+
+    load, floor, edited = stall("load"), stall("floor"), stall("edits")
+    added = [ms for kind, ms in rebuilds if kind == "add"] or [0.0]
+    removed = [ms for kind, ms in rebuilds if kind == "remove"] or [0.0]
     return {
         "town_buildings": len(area.keepouts),
         "town_vertices": area.summary()["vertices"],
@@ -178,27 +211,50 @@ async def town(buildings: int = 1000, edits: int = 10, plans: int = 200) -> dict
         "town_plan_p99_ms": plan["p99"],
         "town_load_map_answer_ms": round(load_answer * 1000, 1),
         "town_load_map_to_plan_ready_ms": round(load_ready * 1000, 1),
+        "town_load_planner_process_build_ms": round(load_build * 1000, 1),
         "town_rss_before_map_mb": rss_before,
-        "town_rss_with_map_mb": rss_with_map,
+        "town_rss_with_map_mb": f"{rss_parent + rss_planner:.1f} "
+        f"(platform {rss_parent}, planner process {rss_planner})",
+        "town_rss_after_edits_mb": f"{sum(rss_after):.1f} "
+        f"(platform {rss_after[0]}, planner process {rss_after[1]})",
         "town_update_map_answer_p50_ms": percentiles(answers or [0.0])["p50"],
         "town_update_map_answer_p99_ms": percentiles(answers or [0.0])["p99"],
         "town_update_map_loop_block_p99_ms": percentiles(blocks or [0.0])["p99"],
-        "town_update_map_rebuild_p50_ms": percentiles(rebuilds or [0.0])["p50"],
-        "town_update_map_rebuild_p99_ms": percentiles(rebuilds or [0.0])["p99"],
+        "town_update_map_loop_cpu_p50_ms": percentiles(loop_cpu or [0.0])["p50"],
+        "town_update_map_loop_cpu_p99_ms": percentiles(loop_cpu or [0.0])["p99"],
+        "town_update_map_add_rebuild_p50_ms": percentiles(added)["p50"],
+        "town_update_map_add_rebuild_max_ms": round(max(added), 1),
+        "town_update_map_remove_rebuild_p50_ms": percentiles(removed)["p50"],
+        "town_update_map_remove_rebuild_max_ms": round(max(removed), 1),
         "town_update_map_count": len(answers),
-        "town_loop_stall_p50_ms": stall["p50"],
-        "town_loop_stall_p99_ms": stall["p99"],
-        "town_loop_stall_max_ms": round(max(stalls or [0.0]), 1),
+        "town_patrol_plans": len(trips),
+        "town_patrol_plan_round_trip_p50_ms": percentiles(trips or [0.0])["p50"],
+        "town_patrol_plan_round_trip_p99_ms": percentiles(trips or [0.0])["p99"],
+        "town_patrol_plan_in_process_p99_ms": percentiles(inside or [0.0])["p99"],
+        "town_loop_stall_floor_p50_ms": floor["p50"],
+        "town_loop_stall_floor_p99_ms": floor["p99"],
+        "town_loop_stall_floor_max_ms": floor["max"],
+        "town_loop_stall_load_p99_ms": load["p99"],
+        "town_loop_stall_load_max_ms": load["max"],
+        "town_loop_stall_edits_p50_ms": edited["p50"],
+        "town_loop_stall_edits_p99_ms": edited["p99"],
+        "town_loop_stall_edits_max_ms": edited["max"],
+        "town_load_average": " ".join(f"{x:.1f}" for x in os.getloadavg()),
         "town_patrol_state_after": state,
         "town_limits": (
             f"{MAX_VERTICES} vertices (planner build time and memory), "
             f"{MAP_REQUEST_MAX_BYTES} bytes per request (brasidas.limits)"
         ),
         "town_note": (
-            "stall: lateness of a 5 ms sleep on the platform's event loop while it patrols "
-            "the town and a keep-out is added and removed; loop_block: the longest stall "
-            "during each update_map until its planner is ready; rebuild: the planner's "
-            "change in its worker thread"
+            "stall: lateness of a 5 ms sleep on the platform's event loop; load: from "
+            "load_map until the planner process has the graph; floor: the same patrol on the "
+            f"same map for {floor_s:g} s (half before the edits, half after) with nothing built (the machine's own lateness at "
+            "this load); edits: a keep-out added and removed while it patrols, until each "
+            "graph is ready; loop_block: the longest stall during each update_map; loop_cpu: the event "
+            "loop thread's CPU from the call to its answer (update_map's share, and whatever "
+            "else ran on the loop meanwhile); rebuild: "
+            "the graph's change in the planner process (add, remove); plan round trip: asked "
+            "on the event loop, answered by the planner process"
         ),
     }
 
@@ -244,8 +300,11 @@ def largest(buildings: int = 3400) -> dict[str, Any]:
     }
 
 
-def _rss_mb() -> float:
-    with open("/proc/self/status", encoding="ascii") as status:
+def _rss_mb(pid: int | None = 0) -> float:
+    """A process's resident memory (this one's by default; 0.0 for none)."""
+    if pid is None:
+        return 0.0
+    with open(f"/proc/{pid or 'self'}/status", encoding="ascii") as status:
         for line in status:
             if line.startswith("VmRSS:"):
                 return round(int(line.split()[1]) / 1024, 1)
@@ -533,9 +592,16 @@ async def platform_cpu(seconds: float = 20.0) -> dict[str, Any]:
         idle, idle_emulation = await _cpu_percent(seconds, emulation)
         await daemon.ctx.rpc.call_local("patrol_start")
         await asyncio.sleep(2.0)
+        from platformd.autonomy.patrol import PatrolActor
+
+        patrol = next(a for a in daemon.supervisor.actors if isinstance(a, PatrolActor))
+        planner_pid = patrol.planner.pid
         devices_cpu = cpu_seconds(devices.pid)
+        planner_cpu = cpu_seconds(planner_pid) if planner_pid is not None else 0.0
         patrolling, patrol_emulation = await _cpu_percent(seconds, emulation)
         devices_cpu = cpu_seconds(devices.pid) - devices_cpu
+        if planner_pid is not None and planner_pid == patrol.planner.pid:
+            planner_cpu = cpu_seconds(planner_pid) - planner_cpu
         report = bus.last(topics.PATROL_STATUS)
         state = report.state if report is not None else "?"
         lap = report.lap if report is not None else 0
@@ -552,6 +618,7 @@ async def platform_cpu(seconds: float = 20.0) -> dict[str, Any]:
         "platform_cpu_patrolling_with_imu_emulation_pct": round(patrolling, 2),
         "platform_cpu_imu_emulation_pct": round(patrol_emulation, 2),
         "sim_devices_process_cpu_pct": round(100.0 * devices_cpu / seconds, 2),
+        "planner_process_cpu_patrolling_pct": round(100.0 * planner_cpu / seconds, 2),
         "platform_cpu_patrol_state": f"{state} (waypoint {waypoint}, lap {lap})",
         "platform_cpu_note": (
             "the platform's own share: AX3500 and GPS simulated in another process, the "

@@ -3,6 +3,7 @@ repeated names, thousands of buildings, limits that agree end to end, atomic loa
 
 from __future__ import annotations
 
+import asyncio
 import copy
 import io
 import json
@@ -260,6 +261,27 @@ def test_one_keepout_changes_the_planner_as_a_rebuild_would() -> None:
             assert full._free.covers(LineString([a, b]))
 
 
+def test_removing_a_keepout_checks_only_the_corner_pairs_that_can_cross_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    area = parse_map(town_map(LAT, LON, buildings=120, seed=5))
+    planner = Planner(area.boundary, area.keepouts, 4.5)
+    tested: list[int] = []
+    meets_box = planner_module._meets_box
+
+    def counted(a: Any, b: Any, box: Any) -> Any:
+        tested.append(len(a))
+        return meets_box(a, b, box)
+
+    monkeypatch.setattr(planner_module, "_meets_box", counted)
+    key = sorted(area.keepouts)[len(area.keepouts) // 2]
+    planner.changed({}, [key])
+    count = len(planner.nodes)
+    # Not every pair of corners (a removal's cost grew with their square): those in the wedge
+    # the reopened zone spans from each corner.
+    assert 0 < sum(tested) < 0.2 * count * (count - 1) / 2, (sum(tested), count)
+
+
 async def test_map_updates_never_run_geometry_on_the_event_loop(
     platform_factory: Callable[..., Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -305,10 +327,12 @@ async def test_map_updates_never_run_geometry_on_the_event_loop(
     if answer["patrol"]["state"] == "holding":  # (or a late fix on a busy machine)
         reason = answer["patrol"]["reason"]
         assert "waiting for the new plan" in reason or "GPS fix" in reason, reason
-    await wait_until(lambda: len(built_in) >= 2, 60)  # the town's planner, then its change
-    assert threading.main_thread().name not in built_in, built_in
     patrol = next(a for a in daemon.supervisor.actors if isinstance(a, PatrolActor))
-    await wait_until(lambda: patrol.core.planner is not None, 60)
+    await wait_until(lambda: patrol.planner_ready, 60)
+    # Built in the planner process: not on the event loop, nor in a thread of this process
+    # (NumPy and Shapely there would hold the loop's GIL).
+    assert built_in == [], built_in
+    assert patrol.planner.pid not in (None, os.getpid())
 
 
 def test_the_patrol_holds_until_the_new_plan_is_ready() -> None:
@@ -410,6 +434,187 @@ async def test_a_new_map_stops_the_build_of_the_one_it_replaces(
     caplog.set_level("INFO", logger="platformd.autonomy.patrol")
     await daemon.ctx.rpc.call_local("load_map", map=town_map(LAT, LON, buildings=1000, seed=6))
     await daemon.ctx.rpc.call_local("load_map", map=demo_map(LAT, LON))
-    await wait_until(lambda: patrol.core.planner is not None, 60)
+    await wait_until(lambda: patrol.planner_ready, 60)
     assert patrol.core.area is not None and patrol.core.area.name == "demo field"
     await wait_until(lambda: "dropped: a new map came" in caplog.text, 30)
+
+
+def test_remote_planning_holds_until_the_answer_and_drops_one_for_an_old_map() -> None:
+    from brasidas.autonomy.follower import FollowerParameters
+    from brasidas.autonomy.localization import Estimate
+    from brasidas.autonomy.patrol import Patrol, PatrolParameters
+    from brasidas.autonomy.route import parse_waypoints
+    from brasidas.messages import PatrolState
+
+    follower = FollowerParameters(
+        cruise_speed=1.6, max_turn_rate=1.0, full_speed=1.6, full_turn_rate=1.5
+    )
+    patrol = Patrol(PatrolParameters(follower=follower, clearance_m=1.5))
+    patrol.remote = True
+    area = parse_map(demo_map(LAT, LON))
+    patrol.set_map(area, build=False)
+    patrol.set_route(parse_waypoints(demo_route(), area.points))
+    patrol.start()
+    x, y = area.local(LAT, LON)
+    here = Estimate(time=0.0, x=x, y=y, yaw=0.0, speed=0.0, sigma_xy=0.1, sigma_yaw=0.01)
+    patrol.step(here, 0.1)
+    assert patrol.reason == "the map changed: waiting for the new plan (being built)"
+    assert not patrol.plan_requests
+    assert patrol.planner_ready(patrol.map_revision)
+    patrol.step(here, 0.1)
+    (asked,) = patrol.plan_requests
+    assert patrol.status().state is PatrolState.HOLDING
+    assert patrol.reason.startswith("planning the path to")
+    patrol.plan_requests.clear()
+    patrol.step(here, 0.1)
+    assert not patrol.plan_requests  # asked once
+    # A keep-out comes before the answer: the answer is for the old map, and dropped.
+    rock = feature("keepout", "Polygon", [square(area.frame, 30, 5, 32, 7)], id="rock")
+    patrol.update_map(area.with_keepouts(add=[rock]), build=False)
+    assert not patrol.set_plan(asked.revision, asked.id, [asked.start, asked.goal])
+    assert patrol.stale_plans == 1
+    patrol.step(here, 0.1)
+    assert patrol.status().state is PatrolState.HOLDING and not patrol.planned_path
+    assert not patrol.planner_ready(asked.revision)  # a graph of the old map: not ready
+    assert patrol.planner_ready(patrol.map_revision)
+    patrol.step(here, 0.1)
+    (again,) = patrol.plan_requests
+    assert again.revision == patrol.map_revision and again.id != asked.id
+    patrol.plan_requests.clear()
+    assert patrol.set_plan(again.revision, again.id, [again.start, again.goal])
+    # With a path, the next leg is asked ahead (from the target to the one after).
+    (then,) = patrol.plan_requests
+    patrol.plan_requests.clear()
+    assert then.origin == again.waypoint and then.start == again.goal
+    patrol.step(here, 0.1)  # at the first waypoint (where it starts): holds for that leg
+    assert patrol.events[-1].kind == "arrived" and not patrol.plan_requests  # not asked again
+    assert patrol.reason.startswith("planning the path to")
+    assert patrol.set_plan(then.revision, then.id, [then.start, then.goal])
+    (after,) = patrol.plan_requests  # and the one after that, ahead
+    patrol.step(here, 0.1)
+    assert patrol.status().state is PatrolState.PATROLLING
+    # Answered before the robot gets there: it goes on at the waypoint without holding.
+    assert patrol.set_plan(after.revision, after.id, [after.start, after.goal])
+    there = Estimate(
+        time=1.0, x=then.goal[0], y=then.goal[1], yaw=0.0, speed=0.0, sigma_xy=0.1, sigma_yaw=0.01
+    )
+    patrol.plan_requests.clear()
+    patrol.step(there, 0.1)
+    assert patrol.events[-1].kind == "arrived"
+    assert patrol.status().state is PatrolState.PATROLLING, patrol.reason
+    assert patrol.planned_path[0] == after.start and len(patrol.plan_requests) == 1
+    # The target changed under a request (a ground station's MISSION_SET_CURRENT sets the
+    # cursor): its answer, a path to the old target, is dropped and the new one asked.
+    from brasidas.autonomy.route import Cursor
+
+    patrol.plan_requests.clear()
+    patrol.stop()
+    patrol.start()
+    patrol.step(there, 0.1)
+    asked = next(r for r in patrol.plan_requests if r.origin == -1)
+    patrol.cursor = Cursor((asked.waypoint + 1) % patrol.route.stops, True, 0, True)
+    assert not patrol.set_plan(asked.revision, asked.id, [asked.start, asked.goal])
+    patrol.plan_requests.clear()
+    patrol.step(there, 0.1)
+    (new,) = patrol.plan_requests
+    assert new.waypoint == patrol.cursor.index and patrol.reason.startswith("planning the path")
+    # The planner process dies: hold, saying why, until it has the graph again.
+    patrol.planner_lost("the planner process stopped (exit code -9)")
+    patrol.step(here, 0.1)
+    assert patrol.status().state is PatrolState.HOLDING
+    assert patrol.reason == "the planner process stopped (exit code -9)"
+
+
+async def test_the_planner_process_answers_edits_plans_and_asks_for_a_map_it_lacks() -> None:
+    """The planner process's protocol, on its socket: an edit of a map it never had is
+    answered ``resend``; a map, then an edit of it, each ready; a plan for an old revision
+    ``stale``; a frame over the limit ends it."""
+    import socket
+    import struct
+    import sys
+
+    import orjson
+
+    from brasidas.autonomy.planner_worker import HEADER, frame, parse_header
+
+    ours, theirs = socket.socketpair()
+    process = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "brasidas.autonomy.planner_worker", str(theirs.fileno()),
+        pass_fds=(theirs.fileno(),),
+    )  # fmt: skip
+    theirs.close()
+    reader, writer = await asyncio.open_unix_connection(sock=ours)
+
+    async def answer() -> dict[str, Any]:
+        head, size = parse_header(await reader.readexactly(HEADER.size))
+        header: dict[str, Any] = orjson.loads(await reader.readexactly(head))
+        await reader.readexactly(size)
+        return header
+
+    try:
+        area = parse_map(demo_map(LAT, LON))
+        rock = feature("keepout", "Polygon", [square(area.frame, 30, 5, 32, 7)], id="rock")
+        edit = orjson.dumps({"add": [rock], "remove": []})
+        writer.write(frame({"op": "edit", "revision": 2, "base": 1, "clearance": 1.5}, edit))
+        assert (await asyncio.wait_for(answer(), 60)) == {"op": "resend", "revision": 2}
+        writer.write(
+            frame({"op": "map", "revision": 1, "clearance": 1.5}, orjson.dumps(area.geojson()))
+        )
+        # Revision 2 was asked for already: 1 is parsed (for the edit) but not built.
+        assert (await asyncio.wait_for(answer(), 60)) == {"op": "dropped", "revision": 1}
+        writer.write(frame({"op": "edit", "revision": 2, "base": 1, "clearance": 1.5}, edit))
+        ready = await asyncio.wait_for(answer(), 60)
+        assert (ready["op"], ready["revision"], ready["incremental"]) == ("ready", 2, False)
+        writer.write(frame({"op": "edit", "revision": 3, "base": 2, "clearance": 1.5}, b"{"))
+        assert (await asyncio.wait_for(answer(), 60))["op"] == "failed"  # said, not a crash
+        again = orjson.dumps({"add": [], "remove": ["rock"]})
+        writer.write(frame({"op": "edit", "revision": 3, "base": 2, "clearance": 1.5}, again))
+        ready = await asyncio.wait_for(answer(), 60)
+        assert (ready["op"], ready["revision"], ready["incremental"]) == ("ready", 3, True)
+        writer.write(frame({"op": "edit", "revision": 4, "base": 3, "clearance": 1.5}, edit))
+        ready = await asyncio.wait_for(answer(), 60)
+        assert (ready["op"], ready["revision"], ready["incremental"]) == ("ready", 4, True)
+        start, goal = area.local(LAT, LON), area.local(*offset(LAT, LON, 40, 6))
+        for revision in (3, 4):
+            plan = {
+                "op": "plan",
+                "revision": revision,
+                "id": revision,
+                "start": start,
+                "goal": goal,
+            }
+            writer.write(frame(plan))
+        stale = await asyncio.wait_for(answer(), 60)
+        assert (stale["op"], stale["id"]) == ("stale", 3), stale
+        path = await asyncio.wait_for(answer(), 60)
+        assert path["op"] == "path" and path["id"] == 4, path
+        assert not LineString(path["points"]).intersects(
+            parse_map(area.with_keepouts(add=[rock]).geojson()).keepouts["rock"]
+        )
+        writer.write(struct.pack("!II", 1 << 30, 0))  # a broken peer: the process ends
+        assert await asyncio.wait_for(process.wait(), 30) == 0
+    finally:
+        writer.close()
+        if process.returncode is None:
+            process.kill()
+            await process.wait()
+
+
+async def test_a_planner_process_that_cannot_start_is_said_and_tried_again(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    import sys
+
+    from platformd.autonomy.planner_client import PlannerProcess
+
+    lost: list[str] = []
+    planner = PlannerProcess(lambda answer: None, lost.append, backoff_initial=0.01)
+    monkeypatch.setattr(sys, "executable", str(tmp_path / "no-python"))
+    task = asyncio.get_running_loop().create_task(planner.run())
+    try:
+        await wait_until(lambda: len(lost) >= 2, 10)
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    assert lost[0].startswith("the planner process could not start"), lost
+    assert not planner.request_plan(1, 1, (0.0, 0.0), (1.0, 1.0))  # none to ask: said

@@ -16,6 +16,8 @@ from __future__ import annotations
 import asyncio
 import itertools
 import math
+import os
+import signal
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
@@ -28,6 +30,7 @@ from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import PlatformConfig
 from brasidas.messages import PatrolStatus, PoseEstimate, Velocity
 from platformd.app import PlatformDaemon
+from platformd.autonomy.patrol import PatrolActor
 from platformd.beacon import BeaconAdvertiser
 from platformd.mode import ModeArbiter
 from platformd.session_table import Session
@@ -128,7 +131,8 @@ class Robot:
 
         def done() -> bool:
             status = self.status
-            transient = ("GPS fix", "waiting for the new plan")  # a late fix, a map change
+            # a late fix, a map change, a plan asked of the planner process
+            transient = ("GPS fix", "waiting for the new plan", "planning the path")
             if status.state == "holding" and not any(t in status.reason for t in transient):
                 raise AssertionError(f"holding: {status.reason}; history {self.history()}")
             return status.lap >= laps
@@ -206,6 +210,10 @@ async def test_closed_route_twice_around_a_keepout_never_entered(robot_factory: 
     targets = [r.waypoint for r in robot.reports if r.state == "patrolling"]
     order = [t for i, t in enumerate(targets) if i == 0 or t != targets[i - 1]]
     assert order[:8] == [0, 1, 2, 3, 0, 1, 2, 3]
+    # The next leg is planned while the robot drives this one: it does not stop at each
+    # waypoint to wait for the planner process (a station would hear "holding" each time).
+    waits = [h for h in robot.history() if h[3].startswith("planning the path")]
+    assert len(waits) <= 2, robot.history()
 
 
 async def test_open_route_is_driven_back_in_reverse(robot_factory: Any) -> None:
@@ -245,7 +253,10 @@ async def test_override_gps_loss_and_map_reload(robot_factory: Any) -> None:
         bus.publish(topics.TELEOP_VELOCITY, Velocity(0.0, 0.6))
     assert len(robot.cmd_vel) == published
     assert mode.request(False, operator).accepted
-    assert robot.status.state == "patrolling" and robot.status.waypoint == 1
+    # Replanned in the planner process: the patrol holds (saying so) until the path comes.
+    assert robot.status.state == "holding" and robot.status.waypoint == 1
+    assert robot.status.reason.startswith("planning the path to waypoint")
+    await wait_for_state(robot, "patrolling", 10)
     await wait_until(lambda: len(robot.cmd_vel) > published + 5, 5)
     path = robot.status.path  # replanned from where the operator left it
     here = robot.ctx.bus.last(topics.POSE)
@@ -314,3 +325,92 @@ def _bowtie() -> dict[str, Any]:
     ring = data["features"][1]["geometry"]["coordinates"][0]
     ring[1], ring[2] = ring[2], ring[1]
     return data
+
+
+# --------------------------------------------------------------------------- planner process
+
+
+def patrol_of(robot: Robot) -> PatrolActor:
+    return next(a for a in robot.daemon.supervisor.actors if isinstance(a, PatrolActor))
+
+
+def alive(pid: int) -> bool:
+    """The process exists and is not a zombie (a killed child not yet reaped counts as gone
+    only once it is reaped: /proc keeps a zombie)."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+async def test_the_planner_process_dying_holds_the_patrol_which_says_why_and_recovers(
+    robot_factory: Any,
+) -> None:
+    robot: Robot = await robot_factory()
+    patrol = patrol_of(robot)
+    await robot.call("set_waypoints", waypoints=[at(0, 0), at(25, 0), at(25, 20), at(0, 0)])
+    await robot.call("patrol_start")
+    await wait_for_state(robot, "patrolling", 30)
+    first = patrol.planner.pid
+    assert first is not None and first != os.getpid()
+    os.kill(first, signal.SIGKILL)
+    # The patrol holds, motors at zero, and says why; no plan is asked of a dead process.
+    await wait_until(lambda: "planner process stopped" in robot.status.reason, 10)
+    assert robot.status.state == "holding"
+    assert "waiting for it to start again" in robot.status.reason
+    assert robot.cmd_vel[-1] == Velocity(0.0, 0.0)
+    # Another process is started, gets the map again, and the patrol goes on.
+    await wait_until(lambda: patrol.planner.pid not in (None, first) and patrol.planner_ready, 30)
+    assert not alive(first)
+    await wait_for_state(robot, "patrolling", 30)
+    assert patrol.planner.restarts == 1
+
+
+async def test_a_plan_for_an_old_map_revision_is_dropped(robot_factory: Any) -> None:
+    robot: Robot = await robot_factory()
+    patrol = patrol_of(robot)
+    await robot.call("set_waypoints", waypoints=[at(0, 0), at(25, 0), at(25, 20), at(0, 0)])
+    await robot.call("patrol_start")
+    await wait_for_state(robot, "patrolling", 30)
+    # An answer made for the map before a keep-out was added: never followed.
+    old = patrol.core.map_revision
+    rock = [[list(reversed(offset(LAT, LON, e, n))) for e, n in
+             ((40, 40), (42, 40), (42, 42), (40, 42), (40, 40))]]  # fmt: skip
+    shed = {"type": "Feature", "id": "rock", "properties": {"role": "keepout"},
+            "geometry": {"type": "Polygon", "coordinates": rock}}  # fmt: skip
+    await robot.call("update_map", add=[shed])
+    assert patrol.core.map_revision == old + 1
+    dropped = patrol.core.stale_plans
+    far = [robot.local(*offset(LAT, LON, 90, 90))] * 2
+    for request in range(0, 1000):
+        patrol._on_planner_answer(
+            {"op": "path", "revision": old, "id": request, "points": [list(p) for p in far]}
+        )
+    assert patrol.core.stale_plans == dropped + 1000
+    assert all(math.dist(robot.local(*p), far[0]) > 5 for p in robot.status.path)
+    await wait_for_state(robot, "patrolling", 30)  # on the new map's own plan
+
+
+async def test_daemon_stop_during_a_build_leaves_no_planner_process(
+    robot_factory: Any, tmp_path: Path
+) -> None:
+    from platformd.sim.town import clear_around, town_map
+
+    robot: Robot = await robot_factory()
+    patrol = patrol_of(robot)
+    here = robot.ctx.bus.last(topics.POSE)
+    assert here is not None
+    town = clear_around(town_map(here.latitude, here.longitude, buildings=1000, seed=3),
+                        here.latitude, here.longitude)  # fmt: skip
+    await robot.call("load_map", map=town)
+    pid = patrol.planner.pid
+    assert pid is not None and alive(pid)
+    assert not patrol.planner_ready  # building (a thousand buildings: seconds)
+    loop = asyncio.get_running_loop()
+    started = loop.time()
+    robot.close()
+    await robot.daemon.stop()
+    stopped = loop.time() - started
+    assert not alive(pid), f"planner process {pid} left behind"
+    assert stopped < 5.0  # the daemon's whole stop (its SIGTERM budget is 1 s on a quiet box)

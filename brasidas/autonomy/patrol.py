@@ -51,6 +51,24 @@ class PatrolEvent:
 
 
 @dataclass(frozen=True)
+class PlanRequest:
+    """A path the patrol waits for, from a planner elsewhere (:meth:`Patrol.set_plan`)."""
+
+    id: int
+    revision: int
+    """The map revision it is for: an answer for another one is dropped."""
+    start: XY
+    goal: XY
+    waypoint: int = -1
+    """The target's index."""
+    origin: int = -1
+    """A leg asked ahead: the waypoint it starts from (-1: from where the robot was)."""
+
+
+BUILDING = "the map changed: waiting for the new plan (being built)"
+
+
+@dataclass(frozen=True)
 class Command:
     linear: float
     angular: float
@@ -80,6 +98,22 @@ class Patrol:
         self._distance: float | None = None
         self.events: list[PatrolEvent] = []
         """Drained by the actor."""
+        self.remote = False
+        """Plans come from elsewhere (a planner process): :attr:`plan_requests` out,
+        :meth:`planner_ready` and :meth:`set_plan` in; the patrol holds while it waits."""
+        self.plan_requests: list[PlanRequest] = []
+        """Drained by the actor (remote planning)."""
+        self.stale_plans = 0
+        """Answers dropped: for another map revision or a request since given up."""
+        self._ready_revision: int | None = None
+        self._planner_down = ""
+        self._waiting: PlanRequest | None = None
+        self._ahead: PlanRequest | None = None
+        """The next leg, asked when the current one is planned (from its waypoint to the
+        next): at the waypoint the patrol goes on without holding for it."""
+        self._ahead_answer: tuple[list[XY] | None, str] | None = None
+        self._next_request = 0
+        self._skips = 0
 
     # ------------------------------------------------------------------ inputs
 
@@ -93,6 +127,7 @@ class Patrol:
         self.cursor = Cursor()
         self._running = False
         self._path = None
+        self._forget_plans()
         if area is None:  # said at once, not only from the next step
             self._settle(PatrolState.IDLE, "no map")
         else:
@@ -105,6 +140,84 @@ class Patrol:
         self.map_revision += 1
         self._planner = self._build(area) if build else None
         self._needs_plan = True
+        self._forget_plans()
+
+    def planner_ready(self, revision: int) -> bool:
+        """(Remote planning.) The planner has the graph of map ``revision``; False (ignored)
+        when the map has changed since."""
+        if revision != self.map_revision:
+            return False
+        self._ready_revision = revision
+        self._planner_down = ""
+        self._needs_plan = True
+        self._forget_plans()
+        return True
+
+    def planner_lost(self, reason: str) -> None:
+        """(Remote planning.) The planner is gone (``reason``): hold until it is back."""
+        self._ready_revision = None
+        self._planner_down = reason
+        self._forget_plans()
+
+    def plan_not_sent(self, request: PlanRequest) -> None:
+        """(Remote planning.) ``request`` could not be sent: asked again at the next step."""
+        if self._waiting is request:
+            self._waiting = None
+        if self._ahead is request:
+            self._ahead = None
+
+    @property
+    def planner_is_ready(self) -> bool:
+        """A plan can be had for the current map (built here, or ready elsewhere)."""
+        if self.remote:
+            return self._ready_revision == self.map_revision
+        return self._planner is not None
+
+    def set_plan(
+        self, revision: int, request: int, points: list[XY] | None, unreachable: str = ""
+    ) -> bool:
+        """(Remote planning.) The answer to request ``request``: a path, or why the waypoint
+        cannot be reached (it is skipped). Dropped (False) when it is not the one waited for
+        (another map revision, a route or start since)."""
+        ahead = self._ahead
+        if ahead is not None and (ahead.id, ahead.revision) == (request, revision):
+            self._ahead_answer = (points, unreachable)
+            return True
+        waiting = self._waiting
+        if waiting is None or (waiting.id, waiting.revision) != (request, revision):
+            self.stale_plans += 1
+            return False
+        self._waiting = None
+        if revision != self.map_revision or waiting.waypoint != self.cursor.index:
+            # (cleared on every map change; the target changed without saying so: a guard)
+            self.stale_plans += 1
+            return False
+        if points is None:
+            index = self.cursor.index
+            self.events.append(
+                PatrolEvent("skipped", index, f"{self._label(index)} skipped: {unreachable}")
+            )
+            self.cursor = self.cursor.advance(self.route)
+            self._path = None
+            self._skips += 1
+            if self._skips >= self.route.stops:
+                self._running = False
+                self._skips = 0
+                self._settle(PatrolState.STOPPED, "no waypoint can be reached")
+            return True
+        from brasidas.autonomy.planner import Path
+
+        self._skips = 0
+        self._use(Path(tuple(points)))
+        self._ask_ahead()
+        return True
+
+    def _forget_plans(self) -> None:
+        """The plans asked (and the next leg's) are of no use any more: their answers are
+        dropped."""
+        self._waiting = None
+        self._ahead = None
+        self._ahead_answer = None
 
     def set_planner(self, area: AreaMap, planner: Planner) -> bool:
         """The planner built for ``area``; ignored (False) when the map has changed since."""
@@ -136,6 +249,8 @@ class Patrol:
                 self.cursor = Cursor(kept[0], True, lap, kept[0] != 0)
                 break
         self._needs_plan = True
+        self._forget_plans()
+        self._skips = 0
         if not route.waypoints:
             self._path = None
         if not self._running:
@@ -144,6 +259,8 @@ class Patrol:
     def start(self) -> None:
         self._running = True
         self._needs_plan = True
+        self._forget_plans()
+        self._skips = 0
 
     def stop(self, reason: str = "stopped by the operator") -> None:
         self._running = False
@@ -162,6 +279,7 @@ class Patrol:
         self._override = engaged
         if not engaged:
             self._needs_plan = True  # from wherever the operator left the robot
+            self._forget_plans()
 
     # ------------------------------------------------------------------ stepping
 
@@ -178,14 +296,15 @@ class Patrol:
             return self._settle(PatrolState.IDLE, "no waypoints")
         if self._override:
             return self._settle(PatrolState.SUSPENDED, "manual override engaged")
-        if self._planner is None:
+        if not self.planner_is_ready:
             self._needs_plan = True
-            return self._settle(
-                PatrolState.HOLDING, "the map changed: waiting for the new plan (being built)"
-            )
+            if self._planner_down:
+                return self._settle(PatrolState.HOLDING, self._planner_down)
+            return self._settle(PatrolState.HOLDING, BUILDING)
         hold = self._hazard(estimate, fix_age)
         if hold:
             self._needs_plan = True
+            self._waiting = None  # replanned from where the robot is when it may go on
             return self._settle(PatrolState.HOLDING, hold)
         assert estimate is not None
         here = (estimate.x, estimate.y)
@@ -193,6 +312,8 @@ class Patrol:
             return self._align(here)
         for _ in range(self.route.stops):
             if self._needs_plan or self._path is None:
+                if self._planner is None:
+                    return self._ask(here)  # remote: ask, and hold until the answer
                 if not self._plan(here):
                     continue
             steering = self._follower.step(here[0], here[1], estimate.yaw)
@@ -204,6 +325,8 @@ class Patrol:
                 self._needs_plan = True
                 if self.route.stops == 1:
                     return self._settle(PatrolState.PATROLLING, "at the only waypoint")
+                if self._planner is None:
+                    self._take_ahead(index)
                 continue
             if steering.cross_track_m > self.p.corridor_m:
                 self._needs_plan = True
@@ -306,11 +429,71 @@ class Patrol:
             self.cursor = self.cursor.advance(self.route)
             self._path = None
             return False
+        self._use(path)
+        return True
+
+    def _use(self, path: Path) -> None:
         self._path = path
         self._follower.set_path(path.points)
         self._needs_plan = False
         self._distance = path.length
+
+    def _take_ahead(self, arrived: int) -> bool:
+        """(Remote planning.) At waypoint ``arrived``: the leg asked ahead from it to the new
+        target, answered with a path, is followed now (True); asked and not answered yet, it
+        is waited for (not asked again)."""
+        ahead, answer = self._ahead, self._ahead_answer
+        self._ahead = self._ahead_answer = None
+        if (
+            ahead is None
+            or (ahead.origin, ahead.waypoint) != (arrived, self.cursor.index)
+            or self._waiting is not None
+        ):
+            return False
+        if answer is None:  # on its way: the patrol holds for it instead of asking again
+            self._waiting = ahead
+            return False
+        points, _ = answer
+        if points is None:  # unreachable from the waypoint: asked again from here
+            return False
+        from brasidas.autonomy.planner import Path
+
+        self._use(Path(tuple(points)))
+        self._ask_ahead()
         return True
+
+    def _ask_ahead(self) -> None:
+        """(Remote planning.) Ask for the leg after the current target's, from its waypoint."""
+        if self.area is None or self.route.stops <= 1:
+            return
+        here = self.route.waypoints[self.cursor.index]
+        after = self.cursor.advance(self.route).index
+        there = self.route.waypoints[after]
+        self._next_request += 1
+        self._ahead = PlanRequest(
+            self._next_request,
+            self.map_revision,
+            self.area.local(here.latitude, here.longitude),
+            self.area.local(there.latitude, there.longitude),
+            after,
+            self.cursor.index,
+        )
+        self._ahead_answer = None
+        self.plan_requests.append(self._ahead)
+
+    def _ask(self, here: XY) -> Command:
+        """(Remote planning.) Ask for a path to the current target, once; hold meanwhile."""
+        assert self.area is not None
+        index = self.cursor.index
+        if self._waiting is not None and self._waiting.waypoint != index:
+            self._waiting = None  # another target since it was asked: its answer is dropped
+        if self._waiting is None:
+            waypoint = self.route.waypoints[index]
+            goal = self.area.local(waypoint.latitude, waypoint.longitude)
+            self._next_request += 1
+            self._waiting = PlanRequest(self._next_request, self.map_revision, here, goal, index)
+            self.plan_requests.append(self._waiting)
+        return self._settle(PatrolState.HOLDING, f"planning the path to {self._label(index)}")
 
     def _label(self, index: int) -> str:
         return self.route.waypoints[index].label(index)

@@ -15,7 +15,6 @@ import copy
 import heapq
 import math
 import threading
-import time
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -34,8 +33,7 @@ SAMPLE_ROUNDS = 4
 RASTER_SAMPLES = 63
 """Points tested along a segment in the free space's raster, evenly spaced."""
 RASTER_BLOCK = 2048
-"""Segments sampled at once in the raster: small arrays, so each NumPy call holds the GIL
-briefly (the event loop waits for it between calls, not for a whole block)."""
+"""Segments sampled at once in the raster (bounds the arrays: 63 points a segment)."""
 RASTER_CELLS = 4_000_000
 """The raster's cells at most (4 MB); 1 m cells up to 2 km x 2 km, larger beyond."""
 CHECK_MARGIN = 0.98
@@ -65,7 +63,8 @@ class Path:
 
 class Planner:
     """The visibility graph of one map at one clearance; :meth:`plan` is cheap, building is not
-    (seconds for thousands of buildings: build in a worker thread). :meth:`changed` gives the
+    (seconds for thousands of buildings: the platform builds it in a process of its own,
+    :mod:`brasidas.autonomy.planner_worker`). :meth:`changed` gives the
     graph with keep-outs added or removed, reusing what they do not touch."""
 
     def __init__(
@@ -277,7 +276,6 @@ class Planner:
         """The node pairs that are edges: both ends tangent, the segment in the free space."""
         found_u, found_v = [], []
         for i, j in blocks:
-            _yield_gil()
             if self._cancelled is not None and self._cancelled.is_set():
                 raise BuildCancelled("the planner's build was stopped")
             a, b = self.nodes[i], self.nodes[j]
@@ -297,11 +295,7 @@ class Planner:
         edges: list[list[tuple[int, float]]] = [[] for _ in range(len(self.nodes))]
         u, v = self._edge_u, self._edge_v
         lengths = np.hypot(*(self.nodes[v] - self.nodes[u]).T) if len(u) else np.empty(0)
-        for count, (a, b, length) in enumerate(
-            zip(u.tolist(), v.tolist(), lengths.tolist(), strict=True)
-        ):
-            if count % 2000 == 0:
-                _yield_gil()
+        for a, b, length in zip(u.tolist(), v.tolist(), lengths.tolist(), strict=True):
             edges[a].append((b, length))
             edges[b].append((a, length))
         return edges
@@ -368,7 +362,6 @@ class Raster:
         xs = self.x0 + (np.arange(col0, col1) + 0.5) * self.cell
         step = max(1, 200_000 // max(len(xs), 1))
         for first in range(row0, row1, step):
-            _yield_gil()
             last = min(first + step, row1)
             if self._cancelled is not None and self._cancelled.is_set():
                 raise BuildCancelled("the planner's build was stopped")
@@ -397,13 +390,6 @@ def _prepared(geometry: BaseGeometry) -> BaseGeometry:
     return geometry
 
 
-def _yield_gil() -> None:
-    """Let a thread waiting for the GIL (the event loop's) have it now, not at the end of the
-    interpreter's 5 ms switch interval: a build in a worker thread calls this between its
-    blocks of NumPy work, so the loop waits for one block at most."""
-    time.sleep(0)
-
-
 def _minus(space: BaseGeometry, zones: list[BaseGeometry]) -> BaseGeometry:
     return space.difference(unary_union(zones)) if zones else space
 
@@ -427,20 +413,66 @@ def _pair_blocks(
     pairs whose segment crosses one of those geometries' bounding boxes."""
     rows = np.arange(len(nodes), dtype=np.int64) if among is None else np.sort(among)
     count = len(rows)
-    step = max(1, CHUNK // max(count, 1))
+    # The wedge test's arrays are booleans and two floats a pair: blocks of 8x the pairs.
+    step = max(1, (CHUNK if through is None else 8 * CHUNK) // max(count, 1))
+    wedges = [_wedges(nodes[rows], geometry.bounds) for geometry in through or ()]
     for first in range(0, count, step):
-        _yield_gil()
         block = rows[first : first + step]
-        i, j = np.meshgrid(block, rows, indexing="ij")
-        keep = i < j
-        i, j = i[keep], j[keep]
         if through is not None:
+            # Only the pairs whose far end is in the wedge the box spans from the near end:
+            # a few per cent of them, so removing a keep-out checks those, not every pair.
+            later = rows[first:]  # (i < j: the columns from the block's first row on)
+            seen = np.zeros((len(block), len(later)), dtype=bool)
+            dx = nodes[later, 0][None, :] - nodes[block, 0][:, None]
+            dy = nodes[later, 1][None, :] - nodes[block, 1][:, None]
+            for everywhere, low, high in wedges:
+                part = slice(first, first + len(block))
+                lx, ly = low[part, 0, None], low[part, 1, None]
+                hx, hy = high[part, 0, None], high[part, 1, None]
+                seen |= everywhere[part, None] | (
+                    (lx * dy - ly * dx >= 0) & (dx * hy - dy * hx >= 0)
+                )
+            seen &= block[:, None] < later[None, :]
+            a, b = np.nonzero(seen)
+            i, j = block[a], later[b]
             meets = np.zeros(len(i), dtype=bool)
             for geometry in through:
                 meets |= _meets_box(nodes[i], nodes[j], geometry.bounds)
             i, j = i[meets], j[meets]
+        else:
+            i, j = np.meshgrid(block, rows, indexing="ij")
+            keep = i < j
+            i, j = i[keep], j[keep]
         if len(i):
             yield i, j
+
+
+def _wedges(
+    points: npt.NDArray[np.float64], box: tuple[float, float, float, float]
+) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """For each point, the wedge of directions in which it sees the box: its two extreme
+    corners (counter-clockwise from ``low`` to ``high``); ``everywhere`` where the point is
+    in the box or next to it (every direction)."""
+    minx, miny, maxx, maxy = box
+    margin = 1e-6
+    corners = np.array([[minx, miny], [maxx, miny], [maxx, maxy], [minx, maxy]])
+    centre = np.array([(minx + maxx) / 2, (miny + maxy) / 2])
+    everywhere = (
+        (points[:, 0] >= minx - margin)
+        & (points[:, 0] <= maxx + margin)
+        & (points[:, 1] >= miny - margin)
+        & (points[:, 1] <= maxy + margin)
+    )
+    v = corners[None, :, :] - points[:, None, :]  # (n, 4, 2)
+    r = centre[None, :] - points  # (n, 2)
+    angle = np.arctan2(
+        r[:, None, 0] * v[..., 1] - r[:, None, 1] * v[..., 0],
+        r[:, None, 0] * v[..., 0] + r[:, None, 1] * v[..., 1],
+    )
+    rows = np.arange(len(points))
+    low = v[rows, np.argmin(angle, axis=1)]
+    high = v[rows, np.argmax(angle, axis=1)]
+    return everywhere, low, high
 
 
 def _meets_box(
@@ -488,7 +520,6 @@ def _covered(
     if raster is not None:
         fractions = np.arange(1, RASTER_SAMPLES + 1) / (RASTER_SAMPLES + 1)
         for first in range(0, len(a), RASTER_BLOCK):
-            _yield_gil()
             part = slice(first, first + RASTER_BLOCK)
             xs = a[part, 0, None] + d[part, 0, None] * fractions
             ys = a[part, 1, None] + d[part, 1, None] * fractions

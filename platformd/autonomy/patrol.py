@@ -6,6 +6,10 @@ when it stops). The manual override suspends it inside the ``OVERRIDE_STATE`` de
 arbiter stops obeying ``CMD_VEL`` in the same delivery); releasing it replans from where the
 operator left the robot. Nothing here needs a station (R-0.4).
 
+Plans come from the planner process (:mod:`platformd.autonomy.planner_client`), which holds
+the map's graph: the patrol asks and holds, saying why, until the answer; NumPy and Shapely
+building a graph there never hold this process's GIL.
+
 The map and the route are files on the platform (``map.file``, ``autonomy.route_file``),
 replaced atomically; they survive a restart. Shapely and NumPy (~17 MB) are imported when a
 map is, never on a platform without one.
@@ -17,8 +21,8 @@ import asyncio
 import logging
 import math
 import secrets
-import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,17 +54,17 @@ from brasidas.messages import (
     Velocity,
 )
 from platformd.automation import report_switch
+from platformd.autonomy.planner_client import PlannerProcess
 from platformd.commands import CommandRouter, SystemCommand
 
 if TYPE_CHECKING:
     from brasidas.autonomy.areamap import AreaMap
-    from brasidas.autonomy.planner import Planner
 
 ROOM_FRACTION = 0.25
 """A map whose boundary, shrunk by the clearance, keeps less than this of its area is said
 to leave no room (at load, in the answer's notes)."""
-INCREMENTAL_MOST = 20
-"""Keep-outs changed at once up to which the last planner is changed rather than rebuilt."""
+PLAN_TIMES_KEPT = 1000
+"""Plans whose times are kept (for the benchmark and diagnostics)."""
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -90,6 +94,7 @@ class PatrolActor(Actor):
         super().__init__(bus)
         self.commands = commands
         self.core = Patrol(parameters)
+        self.core.remote = True
         self.core.enabled = enabled
         self.storage = storage
         self.routes = RouteStore(storage.route_file)
@@ -104,14 +109,16 @@ class PatrolActor(Actor):
         self.map_error = ""
         """Why the stored map was refused at start ("" when it was not): in telemetry."""
         self.last_build_s: float | None = None
-        """How long the last planner took to build (worker thread), seconds."""
+        """How long the last planner took to build (in the planner process), seconds."""
         self._changing = asyncio.Lock()
         """One map change at a time: each starts from the map the one before left."""
-        self._map_changed = asyncio.Event()
-        self._building: tuple[AreaMap, threading.Event] | None = None
-        """The map whose planner is being built and the event that stops that build."""
-        self._planned: tuple[AreaMap, Planner] | None = None
-        """The last planner built and its map: changed, not rebuilt, by keep-out updates."""
+        self.plan_times: deque[tuple[float, float]] = deque(maxlen=PLAN_TIMES_KEPT)
+        """The last plans' (round trip, time in the planner process), seconds."""
+        self._asked: dict[int, float] = {}
+        """Plans asked and not yet answered: when (perf_counter)."""
+        self.planner = PlannerProcess(self._on_planner_answer, self._on_planner_lost)
+        """The process that holds the map's graph and answers plans (started with the actor:
+        NumPy and Shapely there never hold the event loop's GIL)."""
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -126,7 +133,7 @@ class PatrolActor(Actor):
         self.subscribe(topics.OVERRIDE_STATE, self._on_override)
         try:
             async with asyncio.TaskGroup() as group:
-                group.create_task(self._build_planners(), name="patrol:planner")
+                group.create_task(self.planner.run(), name="patrol:planner")
                 while True:
                     self.tick()
                     await asyncio.sleep(self.period)
@@ -139,10 +146,10 @@ class PatrolActor(Actor):
         """The stored map and route (the --sim demo when none is stored); start if configured.
         Files and geometry in a worker thread."""
         self.loaded = True
-        area, route, stored, refused = await asyncio.to_thread(self._stored)
+        area, text, route, stored, refused = await asyncio.to_thread(self._stored)
         self.map_error = refused
         self.core.set_map(area, build=False)
-        self._replan()
+        self._replan(text)
         if area is not None:
             self.core.set_route(route)
         report_switch(self.bus, "patrol", self.core.enabled)
@@ -153,9 +160,10 @@ class PatrolActor(Actor):
             )
         self._report()
 
-    def _stored(self) -> tuple[AreaMap | None, Route, bool, str]:
-        """(Worker thread.) The stored map, its route, whether the route was stored, and why
-        the stored map was refused ("" when it was not); stale temporary files removed."""
+    def _stored(self) -> tuple[AreaMap | None, bytes, Route, bool, str]:
+        """(Worker thread.) The stored map, its GeoJSON for the planner, its route, whether
+        the route was stored, and why the stored map was refused ("" when it was not); stale
+        temporary files removed."""
         refused = ""
         for path in (self.storage.map_file, self.routes.path):
             for removed in remove_stale_temporaries(path):
@@ -197,73 +205,72 @@ class PatrolActor(Actor):
             area = parse_map(self.demo[0])
             _LOGGER.info("patrol: no stored map, the --sim demo map %r", area.name)
             if not route.waypoints:
-                return area, parse_waypoints(self.demo[1], area.points), False, refused
+                demo_route = parse_waypoints(self.demo[1], area.points)
+                return area, _map_bytes(area), demo_route, False, refused
         if area is not None:
             for note in area.notes:
                 _LOGGER.warning("patrol: map %r: %s", area.name, note)
-        return area, route, bool(route.waypoints), f"map.file {refused}" if refused else ""
+        text = _map_bytes(area) if area is not None else b""
+        return area, text, route, bool(route.waypoints), f"map.file {refused}" if refused else ""
 
-    async def _build_planners(self) -> None:
-        """Build the planner of each new map in a worker thread, as maps change; one at a time,
-        always for the latest map (a keep-out added or removed changes the last planner)."""
-        while True:
-            await self._map_changed.wait()
-            self._map_changed.clear()
-            area = self.core.area
-            if area is None or self.core.planner is not None:
-                continue
-            from brasidas.autonomy.planner import BuildCancelled  # loaded with the map already
+    def _replan(self, geojson: bytes, changes: bytes | None = None) -> None:
+        """The map changed: its graph is built in the planner process (the patrol holds
+        until it is ready); a build for an older map there is stopped. With ``changes`` (the
+        keep-outs added and removed, as JSON) only those are sent."""
+        if self.core.area is None:
+            return
+        revision, clearance = self.core.map_revision, self.core.p.clearance_m
+        if changes is None:
+            self.planner.set_map(revision, geojson, clearance)
+        else:
+            self.planner.edit_map(revision, revision - 1, changes, geojson, clearance)
 
-            base = self._planned
-            started = time.perf_counter()
-            cancelled = threading.Event()
-            self._building = (area, cancelled)
-            try:
-                planner = await asyncio.to_thread(self._planner_for, area, base, cancelled)
-            except asyncio.CancelledError:
-                cancelled.set()  # the thread stops within a block of node pairs
-                raise
-            except BuildCancelled:
-                _LOGGER.info("patrol: planner for map %r dropped: a new map came", area.name)
-                continue
-            finally:
-                self._building = None
-            self.last_build_s = time.perf_counter() - started
-            self._planned = (area, planner)
-            if self.core.set_planner(area, planner):
+    @property
+    def planner_ready(self) -> bool:
+        """The planner process has the graph of the current map."""
+        return self.core.planner_is_ready
+
+    def _on_planner_answer(self, answer: dict[str, Any]) -> None:
+        op, revision = answer.get("op"), answer.get("revision")
+        if not isinstance(revision, int):
+            return
+        if op == "ready":
+            build_s = float(answer.get("build_s", 0.0))
+            if self.core.planner_ready(revision):
+                self.last_build_s = build_s
                 _LOGGER.info(
-                    "patrol: planner for map %r ready in %.2f s (%d nodes, %d edges)",
-                    area.name, self.last_build_s, len(planner.nodes), planner.edge_count,
+                    "patrol: planner for map revision %d ready in %.2f s (%s nodes, %s edges%s)",
+                    revision, build_s, answer.get("nodes"), answer.get("edges"),
+                    ", changed" if answer.get("incremental") else "",
                 )  # fmt: skip
                 self.tick()
+        elif op == "dropped":
+            _LOGGER.info("patrol: planner for map revision %d dropped: a new map came", revision)
+        elif op == "failed":
+            _LOGGER.error("patrol: planner for map revision %d failed: %s", revision, answer)
+            self.planner.resend(revision)
+        elif op == "resend":
+            self.planner.resend(revision)
+        elif op in ("path", "unreachable", "stale"):
+            request = answer.get("id")
+            points = answer.get("points") if op == "path" else None
+            path = [(float(x), float(y)) for x, y in points] if isinstance(points, list) else None
+            if not isinstance(request, int) or (op == "path" and path is None):
+                return
+            asked = self._asked.pop(request, None)
+            if asked is not None:
+                spent = answer.get("plan_s")
+                inside = float(spent) if isinstance(spent, int | float) else 0.0
+                self.plan_times.append((time.perf_counter() - asked, inside))
+            reason = str(answer.get("reason", "")) if op == "unreachable" else ""
+            if op == "stale" or not self.core.set_plan(revision, request, path, reason):
+                _LOGGER.debug("patrol: plan %s for map revision %d dropped", request, revision)
+                return
+            self.tick()
 
-    def _planner_for(
-        self,
-        area: AreaMap,
-        base: tuple[AreaMap, Planner] | None,
-        cancelled: threading.Event,
-    ) -> Planner:
-        """(Worker thread.) The planner of ``area``: ``base``'s changed by the keep-outs added
-        and removed since, when it is the same boundary and a few changes; else a new one."""
-        from brasidas.autonomy.planner import Planner
-
-        clearance = self.core.p.clearance_m
-        if base is not None and base[0].boundary is area.boundary:
-            before, planner = base
-            removed = [k for k, z in before.keepouts.items() if area.keepouts.get(k) is not z]
-            added = {k: z for k, z in area.keepouts.items() if before.keepouts.get(k) is not z}
-            if len(removed) + len(added) <= INCREMENTAL_MOST:
-                return planner.changed(added, removed, cancelled)
-        return Planner(area.boundary, area.keepouts, clearance, cancelled)
-
-    def _replan(self) -> None:
-        """The map changed: its planner is built off the event loop (the patrol holds). A
-        build for another boundary (a map since replaced) is stopped: its graph is of no use."""
-        building = self._building
-        area = self.core.area
-        if building is not None and (area is None or building[0].boundary is not area.boundary):
-            building[1].set()
-        self._map_changed.set()
+    def _on_planner_lost(self, reason: str) -> None:
+        self.core.planner_lost(f"{reason}: waiting for it to start again")
+        self.tick()
 
     # ------------------------------------------------------------------ stepping
 
@@ -281,6 +288,16 @@ class PatrolActor(Actor):
             log = _LOGGER.warning if event.kind == "skipped" else _LOGGER.info
             log("patrol: %s", event.message)
         self.core.events.clear()
+        for request in self.core.plan_requests:
+            if not self.planner.request_plan(
+                request.revision, request.id, request.start, request.goal
+            ):  # no process right now: the patrol holds and asks again at its next step
+                self.core.plan_not_sent(request)
+            else:
+                if len(self._asked) >= PLAN_TIMES_KEPT:  # answers lost with a dead process
+                    self._asked.clear()
+                self._asked[request.id] = time.perf_counter()
+        self.core.plan_requests.clear()
         self._report()
 
     def _estimate(self) -> tuple[Estimate | None, float | None]:
@@ -332,17 +349,17 @@ class PatrolActor(Actor):
         Parsing, checks and files in a worker thread; the planner is built after."""
         async with self._changing:
             position = self.robot_position()
-            area = await asyncio.to_thread(self._new_map, source, position)
+            area, text = await asyncio.to_thread(self._new_map, source, position)
             self.core.set_map(area, build=False)
             self.map_error = ""
-            self._replan()
+            self._replan(text)
         _LOGGER.warning("patrol: map %r loaded; waypoints cleared, patrol stopped", area.name)
         self.tick()
         return area
 
     def _new_map(
         self, source: str | bytes | Mapping[str, Any], position: tuple[float, float] | None
-    ) -> AreaMap:
+    ) -> tuple[AreaMap, bytes]:
         """(Worker thread.) Parse, check and store a new map with its empty route."""
         from dataclasses import replace
 
@@ -353,9 +370,10 @@ class PatrolActor(Actor):
         area.keepout_index()
         # The map's rename is the one step: the old route names the old map's load_id, so a
         # crash before the new empty route is stored cannot pair it with the new map.
-        write_atomically(self.storage.map_file, _map_text(area))
+        text = _map_bytes(area)
+        write_atomically(self.storage.map_file, text.decode())
         self.routes.save(Route(), area.load_id)
-        return area
+        return area, text
 
     def _room(self, area: AreaMap) -> list[str]:
         """(Worker thread.) A note when the clearance leaves (almost) no room in the boundary:
@@ -384,9 +402,11 @@ class PatrolActor(Actor):
 
                 raise MapError("no map loaded")
             base, position = self.core.area, self.robot_position()
-            area = await asyncio.to_thread(self._changed_map, base, add, remove, position)
+            area, text, changes = await asyncio.to_thread(
+                self._changed_map, base, add, remove, position
+            )
             self.core.update_map(area, build=False)
-            self._replan()
+            self._replan(text, changes)
         self.tick()
         return area
 
@@ -397,9 +417,9 @@ class PatrolActor(Actor):
         path is replanned."""
         async with self._changing:
             base, route, position = self.core.area, self.core.route, self.robot_position()
-            area = await asyncio.to_thread(self._reshaped_map, source, base, route, position)
+            area, text = await asyncio.to_thread(self._reshaped_map, source, base, route, position)
             self.core.update_map(area, build=False)
-            self._replan()
+            self._replan(text)
         self.tick()
         return area
 
@@ -409,7 +429,7 @@ class PatrolActor(Actor):
         base: AreaMap | None,
         route: Route,
         position: tuple[float, float] | None,
-    ) -> AreaMap:
+    ) -> tuple[AreaMap, bytes]:
         """(Worker thread.) The new shape, checked with the route it keeps, and stored under
         the map's load id (the stored route stays paired with it)."""
         from dataclasses import replace
@@ -420,10 +440,11 @@ class PatrolActor(Actor):
         check_route(route, area)
         area = replace(area, load_id=base.load_id if base is not None else secrets.token_hex(8))
         area.keepout_index()
-        write_atomically(self.storage.map_file, _map_text(area))
+        text = _map_bytes(area)
+        write_atomically(self.storage.map_file, text.decode())
         if base is None:
             self.routes.save(Route(), area.load_id)
-        return area
+        return area, text
 
     def _changed_map(
         self,
@@ -431,14 +452,16 @@ class PatrolActor(Actor):
         add: list[Mapping[str, Any]],
         remove: list[str],
         position: tuple[float, float] | None,
-    ) -> AreaMap:
-        """(Worker thread.) The map with keep-outs changed, checked and stored."""
+    ) -> tuple[AreaMap, bytes, bytes]:
+        """(Worker thread.) The map with keep-outs changed, checked and stored; its text and
+        the changes' (for the planner process)."""
         area = base.with_keepouts(add=add, remove=remove)
         area.keepout_index()  # here, not at the patrol's next step on the event loop
         if position is not None:
             area.check_position(*position)
-        write_atomically(self.storage.map_file, _map_text(area))
-        return area
+        text = _map_bytes(area)
+        write_atomically(self.storage.map_file, text.decode())
+        return area, text, orjson.dumps({"add": add, "remove": remove})
 
     async def set_waypoints(self, items: list[Any]) -> Route:
         """Replace the waypoints on the fly (R-5.3.3.3); stored before they are used (checks
@@ -500,10 +523,10 @@ def parse_map(source: str | bytes | Mapping[str, Any]) -> AreaMap:
     return parse_map(source)
 
 
-def _map_text(area: AreaMap) -> str:
-    """The map file's text. orjson: a town's map in a few milliseconds, for the GIL is held
-    while encoding and the event loop waits for it."""
-    return orjson.dumps(area.geojson()).decode()
+def _map_bytes(area: AreaMap) -> bytes:
+    """The map file's text (and what the planner process is sent). orjson: a town's map in a
+    few milliseconds, for the GIL is held while encoding and the event loop waits for it."""
+    return orjson.dumps(area.geojson())
 
 
 def _differs(last: PatrolStatus, report: PatrolStatus) -> bool:
