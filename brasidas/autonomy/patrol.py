@@ -371,6 +371,7 @@ class Patrol:
         cursor = self.cursor
         self.cursor = Cursor(index, cursor.forward, cursor.lap, cursor.departed or index != 0)
         self._needs_plan = True
+        self._forget_plans()  # a plan asked for the old target (or the leg after it) is dropped
 
     # ------------------------------------------------------------------ helpers
 
