@@ -35,7 +35,7 @@ function batteryEstimate(volts) {
 function renderCompass(heading) {
   $("#compass-needle").setAttribute("transform", `rotate(${heading ?? 0} 50 50)`);
   $("#compass-needle").style.opacity = heading == null ? "0.2" : "1";
-  put($("#heading"), heading == null ? "—" : `${String(Math.round(heading) % 360).padStart(3, "0")}°`);
+  put($("#heading"), heading == null ? "unknown" : `${String(Math.round(heading) % 360).padStart(3, "0")}°`);
 }
 
 function renderStick() {

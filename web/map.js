@@ -41,6 +41,7 @@ export class PlatformMap {
     // (the stylesheet applying after the map was made, a resized window) fitting uses a stale
     // size and a marker can sit outside the visible map, where it cannot be clicked.
     new ResizeObserver(() => this.map.invalidateSize()).observe(element);
+    this.map.on("zoomend moveend resize", () => this.declutterSoon());
   }
 
   /** Local metres [north, east] (Leaflet's [y, x] in CRS.Simple) of a WGS-84 position. */
@@ -74,34 +75,64 @@ export class PlatformMap {
     const before = entry.points[entry.points.length - 2];
     if (heading == null && before) heading = (Math.atan2(point[1] - before[1], point[0] - before[0]) * 180) / Math.PI;
     entry.marker.setLatLng(point);
+    entry.current = current;
     // A new icon only when it looks different: rebuilding it five times a second is the
-    // page's costliest work otherwise.
-    const left = this.labelCrowded(id, point);
-    const look = `${Math.round(heading ?? 0)}|${current}|${connected}|${left}`;
-    if (entry.look !== look) { entry.look = look; entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected, left)); }
+    // page's costliest work otherwise. Its name keeps the side the last declutter gave it.
+    const look = `${Math.round(heading ?? 0)}|${current}|${connected}`;
+    if (entry.look !== look) {
+      entry.look = look;
+      entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected, entry.labelLeft));
+    }
     if (this.following) this.followPlatforms();
+    this.declutterSoon();
   }
 
-  /** A platform's name written on its right would cover another's name or a named point of
-   * the area map: it goes on the left then. */
-  labelCrowded(id, point) {
-    const at = this.map.latLngToContainerPoint(point);
-    const box = { x: at.x + 14, y: at.y - 8, w: 7 * id.length + 6, h: 16 };
-    const covers = (x, y, w, h) => box.x < x + w && x < box.x + box.w && box.y < y + h && y < box.y + box.h;
-    for (const [other, entry] of this.markers) {
-      if (other === id) continue;
-      const there = this.map.latLngToContainerPoint(entry.marker.getLatLng());
-      const side = entry.look?.endsWith("|true") ? there.x - 14 - (7 * other.length + 6) : there.x + 14;
-      if (covers(side, there.y - 8, 7 * other.length + 6, 16)) return true;
+  /** Labels never cover each other: platform names (the shown platform's first), then the
+   * area map's named points, each on its right, else its left, else hidden until the view
+   * gives it room. Placed by their drawn boxes, after every view change and marker move. */
+  declutter() {
+    this.declutterPending = false;
+    if (!this.available) return;
+    const placed = [];
+    const free = (element) => {
+      const box = element.getBoundingClientRect();
+      if (!box.width) return true;
+      return !placed.some((o) => box.left < o.right && o.left < box.right && box.top < o.bottom && o.top < box.bottom);
+    };
+    const place = (element, sides) => {
+      element.classList.remove("label-hidden");
+      for (const side of sides) {
+        side();
+        if (free(element)) { placed.push(element.getBoundingClientRect()); return; }
+      }
+      element.classList.add("label-hidden");
+    };
+    for (const entry of [...this.markers.values()].sort((a, b) => Number(b.current) - Number(a.current))) {
+      const icon = entry.marker.getElement()?.querySelector(".platform-icon");
+      const label = icon?.querySelector("span");
+      if (!label) continue;
+      const side = (left) => () => { entry.labelLeft = left; icon.classList.toggle("label-left", left); };
+      place(label, [side(entry.labelLeft ?? false), side(!(entry.labelLeft ?? false))]);
     }
-    let crowded = false;
     this.area?.eachLayer((layer) => {
-      const name = layer.getTooltip?.()?.getContent();
-      if (crowded || !name || !layer.getLatLng) return;
-      const there = this.map.latLngToContainerPoint(layer.getLatLng());
-      if (covers(there.x - 4, there.y - 8, 7 * String(name).length + 14, 16)) crowded = true;
+      const tooltip = layer.getTooltip?.();
+      const element = tooltip?.getElement?.();
+      if (!element || !tooltip.options.permanent) return;
+      const side = (direction) => () => {
+        if (tooltip.options.direction === direction) return;
+        tooltip.options.direction = direction;
+        element.classList.remove("leaflet-tooltip-left", "leaflet-tooltip-right");
+        tooltip.update();
+      };
+      place(element, [side("right"), side("left")]);
     });
-    return crowded;
+  }
+
+  /** One declutter on the next frame, however many changes came before it. */
+  declutterSoon() {
+    if (this.declutterPending) return;
+    this.declutterPending = true;
+    requestAnimationFrame(() => this.declutter());
   }
 
   /** Every platform in sight, the view changed only when one is not (or close to the edge). */
@@ -152,6 +183,7 @@ export class PlatformMap {
     this.area = this.geoJsonLayer(data, (role) => `area-map${role ? ` area-${role}` : ""}`).addTo(this.map);
     const bounds = this.area.getBounds();
     if (fit && bounds.isValid()) { this.map.fitBounds(bounds); this.following = false; }
+    this.declutterSoon();
   }
 
   clearArea() {
@@ -159,7 +191,6 @@ export class PlatformMap {
   }
 
   geoJsonLayer(data, className) {
-    const placed = []; // label boxes already placed (pixels): names must not overlap
     return L.geoJSON(data, {
       coordsToLatLng: (coords) => L.latLng(this.local(coords[1], coords[0])),
       style: (feature) => {
@@ -173,16 +204,7 @@ export class PlatformMap {
       pointToLayer: (feature, latlng) => {
         const marker = L.circleMarker(latlng, { radius: 3, color: "#aaa", weight: 1, className: "area-point" });
         const name = feature?.properties?.name;
-        if (name) {
-          // Right of the point, or left when that would cover a name already placed.
-          const at = this.map.latLngToContainerPoint(latlng);
-          const width = 7 * String(name).length + 8;
-          const right = { x: at.x + 6, y: at.y - 7, w: width, h: 14 };
-          const overlaps = (box) => placed.some((o) => box.x < o.x + o.w && o.x < box.x + box.w && box.y < o.y + o.h && o.y < box.y + box.h);
-          const direction = overlaps(right) ? "left" : "right";
-          placed.push(direction === "right" ? right : { ...right, x: at.x - 6 - width });
-          marker.bindTooltip(String(name), { permanent: true, direction, className: "area-point-name" });
-        }
+        if (name) marker.bindTooltip(String(name), { permanent: true, direction: "right", className: "area-point-name" });
         return marker;
       },
     });

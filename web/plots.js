@@ -64,6 +64,11 @@ function sample() {
   }
 }
 
+/** How many points each shown plot holds, per series (numbers, not gaps): for tests. */
+export function plotPoints() {
+  return Object.fromEntries([...charts].map(([key, chart]) => [key, chart.data.map((series) => series.filter((v) => v != null).length)]));
+}
+
 export function startPlots() {
   // Its stylesheet loaded from here, not the page's head: it must not hold up the first frame.
   const style = document.createElement("link");
