@@ -14,6 +14,7 @@ import re
 import time
 from typing import Any
 
+from conftest import wait_until
 from test_station import run_cli
 from test_web_console_honesty import browser, rover, station, station_settings
 from test_web_console_station import Factory, frames_decoded, sim_platform
@@ -173,6 +174,12 @@ async def test_instruments_plots_map_notifications_and_answers(
         )
         await expect(page.get_by_label("ground speed")).not_to_have_text("0.0 km/h", timeout=10_000)
         await expect(heading).to_have_text(re.compile(r"^\d{3}°$"), timeout=15_000)
+
+        def heading_known() -> bool:
+            pose = platform.bus.last(topics.POSE)
+            return pose is not None and pose.heading_known
+
+        await wait_until(heading_known, timeout=15)  # the localization's, kept once stopped
     finally:
         await page.keyboard.up("KeyW")
     await expect(page.locator("#stick")).to_have_attribute("data-active", "false")
@@ -192,6 +199,13 @@ async def test_instruments_plots_map_notifications_and_answers(
     assert abs(angle - cli) <= 2, needle
     await page.clock.fast_forward(9_000)
     await expect(answer).to_have_text("", timeout=5_000)
+
+    # The patrol's answer line too: a sentence, gone after its time.
+    patrol_answer = page.locator("#patrol-answer")
+    await page.get_by_role("button", name="stop patrol").click()
+    await expect(patrol_answer).to_have_text("stop patrol: done.", timeout=10_000)
+    await page.clock.fast_forward(16_000)
+    await expect(patrol_answer).to_have_text("", timeout=5_000)
 
     # Plots: each shown one receives points.
     await expect(page.locator("#plots .uplot")).to_have_count(2, timeout=10_000)

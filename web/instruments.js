@@ -60,7 +60,7 @@ function renderPanel() {
   put($("#ground-speed"), ground == null ? "—" : `${(ground * KMH).toFixed(1)} km/h`);
   put($("#commanded-speed"), motion ? `${fixed(motion.linear, 2)} / ${fixed(motion.angular, 2)}` : "—");
   renderCompass(compassHeading(snapshot));
-  put($("#attitude"), `roll ${fixed(attitude?.roll, 1)}°  pitch ${fixed(attitude?.pitch, 1)}°`);
+  put($("#attitude"), attitude ? `roll ${fixed(attitude.roll, 1)}°  pitch ${fixed(attitude.pitch, 1)}°` : "—");
   const { percent, minutes } = batteryEstimate(battery?.volts);
   put($("#battery"), battery
     ? `${fixed(battery.volts, 1)} V  ≈${percent == null ? "—" : percent.toFixed(0)} %  ${minutes == null ? "time left —" : `≈${minutes.toFixed(0)} min left`}${battery.level ? `  (${battery.level})` : ""}`

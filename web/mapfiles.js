@@ -5,6 +5,7 @@
 // CLI's, so the page holds no copy of any parser. After an import the patrol view reloads
 // the area ("area-changed" on the store).
 
+import { sayOn } from "./answer.js";
 import { notify, state } from "./store.js";
 import { api } from "./station.js";
 
@@ -47,8 +48,7 @@ tools.append(
 );
 
 function say(text, refused = false) {
-  answer.textContent = text;
-  answer.classList.toggle("refused", refused);
+  sayOn(answer, text, { refused, keepMs: 15000 });
 }
 
 function notes(result) {
