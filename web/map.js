@@ -81,15 +81,16 @@ export class PlatformMap {
     const look = `${Math.round(heading ?? 0)}|${current}|${connected}`;
     if (entry.look !== look) {
       entry.look = look;
-      entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected, entry.labelLeft));
+      entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected, entry.labelSide));
     }
     if (this.following) this.followPlatforms();
     this.declutterSoon();
   }
 
-  /** Labels never cover each other: platform names (the shown platform's first), then the
-   * area map's named points, each on its right, else its left, else hidden until the view
-   * gives it room. Placed by their drawn boxes, after every view change and marker move. */
+  /** Labels never cover each other: platform names (the shown platform's first), the area
+   * map's named points (right, left, above, below), the route's waypoint numbers (left, above,
+   * below),
+   * each hidden when neither side is free, until the view gives it room. Placed by their drawn boxes, after every view change and marker move. */
   declutter() {
     this.declutterPending = false;
     if (!this.available) return;
@@ -111,21 +112,27 @@ export class PlatformMap {
       const icon = entry.marker.getElement()?.querySelector(".platform-icon");
       const label = icon?.querySelector("span");
       if (!label) continue;
-      const side = (left) => () => { entry.labelLeft = left; icon.classList.toggle("label-left", left); };
-      place(label, [side(entry.labelLeft ?? false), side(!(entry.labelLeft ?? false))]);
+      const side = (name) => () => {
+        entry.labelSide = name;
+        for (const other of LABEL_SIDES) icon.classList.toggle(`label-${other}`, other === name);
+      };
+      // The side it has first (a label that jumps at every move is hard to follow).
+      const sides = [entry.labelSide ?? "right", ...LABEL_SIDES.filter((name) => name !== (entry.labelSide ?? "right"))];
+      place(label, sides.map(side));
     }
-    this.area?.eachLayer((layer) => {
+    const tooltips = (group, directions) => group?.eachLayer((layer) => {
       const tooltip = layer.getTooltip?.();
       const element = tooltip?.getElement?.();
       if (!element || !tooltip.options.permanent) return;
       const side = (direction) => () => {
         if (tooltip.options.direction === direction) return;
         tooltip.options.direction = direction;
-        element.classList.remove("leaflet-tooltip-left", "leaflet-tooltip-right");
         tooltip.update();
       };
-      place(element, [side("right"), side("left")]);
+      place(element, directions.map(side));
     });
+    tooltips(this.area, ["right", "left", "top", "bottom"]);
+    for (const { layer } of this.waypointLabels?.values() ?? []) tooltips(layer, ["left", "top", "bottom"]);
   }
 
   /** One declutter on the next frame, however many changes came before it. */
@@ -210,8 +217,22 @@ export class PlatformMap {
     });
   }
 
-  /** Draw ``platformId``'s waypoint route ([lat, lon] points; closed when last = first). */
-  setRoute(platformId, points) { this.setLine(`route:${platformId}`, points, { color: "#d6d67a", weight: 2, dashArray: "6 4", className: "route-line" }); }
+  /** Draw ``platformId``'s waypoint route ([lat, lon] points; closed when last = first), each
+   * waypoint numbered from 1 as the patrol's status counts them. */
+  setRoute(platformId, points) {
+    this.setLine(`route:${platformId}`, points, { color: "#d6d67a", weight: 2, dashArray: "6 4", className: "route-line" });
+    if (!this.available) return;
+    this.waypointLabels ??= new Map(); // platform id → { wanted, layer }
+    const wanted = JSON.stringify(points ?? []);
+    const known = this.waypointLabels.get(platformId);
+    if (known?.wanted === wanted) return;
+    known?.layer.remove();
+    const stops = points?.length >= 3 && samePlace(points[0], points[points.length - 1]) ? points.slice(0, -1) : points ?? [];
+    const layer = L.layerGroup(stops.map(([lat, lon], index) => L.circleMarker(this.local(lat, lon), { radius: 0, opacity: 0, interactive: false })
+      .bindTooltip(String(index + 1), { permanent: true, direction: "top", className: "waypoint-label" }))).addTo(this.map);
+    this.waypointLabels.set(platformId, { wanted, layer });
+    this.declutterSoon();
+  }
 
   /** Draw the path ``platformId``'s planner chose. */
   setPlannedPath(platformId, points) { this.setLine(`path:${platformId}`, points, { color: "#5fd0a0", weight: 3, className: "planned-path" }); }
@@ -296,9 +317,12 @@ export class PlatformMap {
 
 function samePlace(a, b) { return Math.abs(a[0] - b[0]) < 1e-7 && Math.abs(a[1] - b[1]) < 1e-7; }
 
-function platformIcon(id, heading, current, connected, labelLeft = false) {
+/** Where a platform's name may be written beside its arrow (console.css .label-*). */
+const LABEL_SIDES = ["right", "left", "below", "above"];
+
+function platformIcon(id, heading, current, connected, labelSide = "right") {
   const element = document.createElement("div");
-  element.className = `platform-icon${current ? " current" : ""}${connected ? " connected" : ""}${labelLeft ? " label-left" : ""}`;
+  element.className = `platform-icon${current ? " current" : ""}${connected ? " connected" : ""}${labelSide === "right" ? "" : ` label-${labelSide}`}`;
   const arrow = document.createElement("div");
   arrow.className = "arrow";
   arrow.style.transform = `rotate(${Number(heading) || 0}deg)`;
