@@ -16,7 +16,7 @@ from typing import Any
 
 from conftest import wait_until
 from test_station import run_cli
-from test_web_console_honesty import browser, rover, station, station_settings
+from test_web_console_honesty import browser, rover, screenshots, station, station_settings
 from test_web_console_station import Factory, frames_decoded, sim_platform
 
 from brasidas import topics
@@ -69,7 +69,13 @@ def battery_reading(text: str | None) -> tuple[float, int]:
 async def labels_apart(page: Any) -> list[str]:
     """The map's labels shown, none covering another once the view settles (a zoom animates
     for a quarter second); returns their texts."""
+    settled = """() => new Promise((done) => {
+      const frames = () => requestAnimationFrame(() => requestAnimationFrame(done));
+      const wait = () => document.querySelector("#map.leaflet-zoom-anim") ? setTimeout(wait, 50) : frames();
+      wait();
+    })"""
     labels: dict[str, Any] = {}
+    await page.evaluate(settled)  # the zoom's animation over, the declutter after it run
     for _ in range(50):
         labels = await page.evaluate(OVERLAP_JS)
         if not labels["overlaps"]:
@@ -215,14 +221,18 @@ async def test_instruments_plots_map_notifications_and_answers(
     await expect(page.locator("#map .platform-icon")).to_have_count(2, timeout=15_000)
     await expect(page.locator("#map .area-point-name")).to_have_count(4, timeout=15_000)
     await expect(page.locator("#map .waypoint-label")).to_have_count(4)  # the demo loop's
+    shown = await labels_apart(page)
+    assert {"web-rover", "web-rover-2"} <= set(shown) and len(shown) >= 7, shown  # of 10
+    # Two rovers and the demo field, the heading known: fits both screens (and is
+    # docs/console-fleet-*.png).
+    await screenshots(page, "console-fleet")
     zoom_out = page.locator("#map .leaflet-control-zoom-out")
     zoom_in = page.locator("#map .leaflet-control-zoom-in")
     for _ in range(4):
         await zoom_in.click()
     shown = await labels_apart(page)
     assert {"web-rover", "web-rover-2"} <= set(shown), shown
-    assert len({"sw", "se", "ne", "nw"} & set(shown)) >= 3, shown
-    assert len({"1", "2", "3", "4"} & set(shown)) >= 2, shown
+
     for _ in range(10):
         await zoom_out.click()
         shown = await labels_apart(page)

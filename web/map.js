@@ -94,7 +94,8 @@ export class PlatformMap {
   declutter() {
     this.declutterPending = false;
     if (!this.available) return;
-    const placed = [];
+    // Nor over the map's own controls (zoom, scale bar) or a platform's arrow.
+    const placed = [...this.map.getContainer().querySelectorAll(".leaflet-control, .platform-icon .arrow")].map((element) => element.getBoundingClientRect());
     const free = (element) => {
       const box = element.getBoundingClientRect();
       if (!box.width) return true;
