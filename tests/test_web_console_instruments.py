@@ -200,6 +200,8 @@ async def test_instruments_plots_map_notifications_and_answers(
         )
     ).json_value()
     assert after["speed"][0] >= 2, after
+    await page.get_by_role("checkbox", name="speed km/h").uncheck()  # back to the default two
+    await expect(page.locator("#plots .uplot")).to_have_count(2, timeout=5_000)
 
     # The map: a scale bar; the map takes the main area and gives it back (button and key).
     scale = page.locator("#map .leaflet-control-scale-line")
@@ -226,6 +228,16 @@ async def test_instruments_plots_map_notifications_and_answers(
     # Two rovers and the demo field, the heading known: fits both screens (and is
     # docs/console-fleet-*.png).
     await screenshots(page, "console-fleet")
+    for width, height in ((1366, 768), (1920, 1080)):  # and no column hides a part below
+        await page.set_viewport_size({"width": width, "height": height})
+        await page.wait_for_timeout(300)
+        columns = await page.evaluate(
+            """["#video-pane", "#middle", "#side"].map((s) => {
+              const e = document.querySelector(s); return [s, e.scrollHeight, e.clientHeight];
+            })"""
+        )
+        assert all(scroll <= client + 1 for _, scroll, client in columns), (width, columns)
+    await page.set_viewport_size({"width": 1366, "height": 768})
     zoom_out = page.locator("#map .leaflet-control-zoom-out")
     zoom_in = page.locator("#map .leaflet-control-zoom-in")
     for _ in range(4):

@@ -101,9 +101,10 @@ async function exportRoute(format) {
     return `${result.waypoints} waypoints exported as ${platformId}.${format}`;
   });
 }
-/** The file tools, under the patrol panel. */
+/** The file tools, with the background's under the map (folded: the column must fit a
+ * 1366x768 screen with the plots in sight). */
 export function startMapFiles() {
-  (document.querySelector("#patrol") ?? document.body).append(tools);
+  (document.querySelector("#map-files") ?? document.body).append(tools);
   importMap.onclick = () => importMapFile();
   importRoute.onclick = () => importRouteFile();
   exportPlan.onclick = () => exportRoute("plan");

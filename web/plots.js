@@ -28,7 +28,7 @@ function makeChart(quantity) {
   $("#plots").append(box);
   const width = Math.max(200, $("#plots").clientWidth - 4);
   const plot = new window.uPlot({
-    width, height: 70, legend: { show: false }, cursor: { show: false },
+    width, height: window.innerHeight < 900 ? 56 : 70, // 1366x768: the column must fit legend: { show: false }, cursor: { show: false },
     title: quantity.label,
     // Seconds before now, the last minute always (ticks at -60 … 0 s from the first sample).
     scales: { x: { time: false, range: () => [-WINDOW_S, 0] } },
