@@ -334,7 +334,9 @@ function platformIcon(id, heading, current, connected, labelSide = "right") {
 }
 
 function metricGrid() {
-  // Each tile's border is a grid line; its label is the tile's south-west corner in metres.
+  // Each tile's border is a grid line, labelled in metres from the origin halfway along it: the
+  // bottom line's north at its middle, the left line's east at its middle. Not at the corner:
+  // the origin is where the first platform was heard, and its name is written there.
   return L.GridLayer.extend({
     createTile(coords) {
       const tile = document.createElement("canvas");
@@ -347,7 +349,10 @@ function metricGrid() {
       const metres = size.x / 2 ** coords.z;
       g.fillStyle = "#50606e";
       g.font = "10px sans-serif";
-      g.fillText(`${Math.round(coords.x * metres)} E, ${Math.round(-(coords.y + 1) * metres)} N (${metres} m)`, 3, size.y - 4);
+      g.textAlign = "center";
+      g.fillText(`${Math.round(-(coords.y + 1) * metres)} N`, size.x / 2, size.y - 4);
+      g.rotate(-Math.PI / 2);
+      g.fillText(`${Math.round(coords.x * metres)} E`, -size.y / 2, 12);
       return tile;
     },
   });
