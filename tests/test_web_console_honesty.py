@@ -239,6 +239,7 @@ async def test_a_loaded_background_keeps_the_area_map(
             }
         )
     )
+    await page.get_by_text("map files and background").click()  # folded at first
     await page.locator("#map-geojson").set_input_files(str(area))
     await expect(page.locator("#map path.area-background")).to_have_count(1)
     await expect(boundary).to_have_count(1)

@@ -45,6 +45,7 @@ async def test_console_imports_and_exports_map_and_route_files(
             row = page.locator('#platforms tr[data-platform="file-rover"]')
             await expect(row).to_be_visible(timeout=10_000)
             await page.locator("#map .platform-icon", has_text="file-rover").click()
+            await page.get_by_text("map files and background").click()  # folded at first
             tools = page.get_by_role("group", name="map and route files")
             await expect(tools).to_be_visible(timeout=15_000)
             answer = page.locator("#mapfile-answer")

@@ -373,6 +373,8 @@ async def test_operator_station_in_the_browser(
                     }
                 )
             )
+            files = page.get_by_text("map files and background")
+            await files.click()  # folded at first
             await page.locator("#map-geojson").set_input_files(str(area))
             await expect(page.locator("#map path.area-background")).to_have_count(1)
             await page.locator("#map-bounds").fill("37.940,23.651,37.943,23.656")
@@ -380,6 +382,7 @@ async def test_operator_station_in_the_browser(
             await expect(page.locator("#map img.area-image")).to_have_count(1)
             await expect(page.locator("#map path.area-background")).to_have_count(0)  # replaced
             await page.locator("#map-clear").click()
+            await files.click()  # folded again
             await expect(page.locator("#map img.area-image")).to_have_count(0)
 
             # Click the platform on the map: connected, and its NavCam decoded in the Worker.

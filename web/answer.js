@@ -4,15 +4,20 @@
 import { $ } from "./common.js";
 
 const KEEP_MS = 8000;
-let timer = null;
+const timers = new WeakMap(); // answer line → its expiry
 
-/** Say ``text`` (a sentence) on the answer line; ``refused`` shows it as a refusal. */
-export function say(text, { refused = false } = {}) {
-  const line = $("#answer");
+/** Say ``text`` (a sentence) on ``line``, an answer line of the page, for ``keepMs``;
+ * ``refused`` shows it as a refusal. */
+export function sayOn(line, text, { refused = false, keepMs = KEEP_MS } = {}) {
   line.textContent = text;
   line.classList.toggle("refused", refused);
-  clearTimeout(timer);
-  timer = setTimeout(() => { line.textContent = ""; }, KEEP_MS);
+  clearTimeout(timers.get(line));
+  timers.set(line, setTimeout(() => { line.textContent = ""; line.classList.remove("refused"); }, keepMs));
+}
+
+/** Say ``text`` (a sentence) on the console's answer line. */
+export function say(text, { refused = false } = {}) {
+  sayOn($("#answer"), text, { refused });
 }
 
 /** A command's answer as a sentence: "diagnostics: acknowledged." or "…: refused (reason)." */

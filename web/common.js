@@ -44,13 +44,11 @@ export function setPill(selector, text, kind) {
   if (pill.className !== `pill ${kind}`) pill.className = `pill ${kind}`;
 }
 
-/** Compass heading (degrees clockwise from north, 0–360) of a platform: its localization, its
- * GPS course, else its IMU's yaw (counter-clockwise from east). One convention everywhere. */
+/** Compass heading (degrees clockwise from north, 0–360) of a platform: its localization's,
+ * else its GPS course; null when neither knows (as `brasidas-station status` says "heading
+ * unknown"). Never the IMU's yaw: counted from where the platform was powered up, not north. */
 export function compassHeading(snapshot) {
-  const pose = section(snapshot, "pose");
-  const gps = section(snapshot, "gps");
-  const attitude = section(snapshot, "attitude");
-  const degrees = pose?.heading ?? gps?.course ?? (attitude?.yaw != null ? 90 - attitude.yaw : null);
+  const degrees = section(snapshot, "pose")?.heading ?? section(snapshot, "gps")?.course ?? null;
   return degrees == null ? null : ((degrees % 360) + 360) % 360;
 }
 

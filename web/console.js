@@ -8,7 +8,7 @@ import { startLayout } from "./layout.js";
 import { startMapFiles } from "./mapfiles.js";
 import { startNotifications } from "./notifications.js";
 import { startPatrol } from "./patrol.js";
-import { startPlots } from "./plots.js";
+import { plotPoints, startPlots } from "./plots.js";
 import { startRecordings } from "./recordings.js";
 import { apiStates, api } from "./station.js";
 import { startVideo } from "./video.js";
@@ -33,4 +33,5 @@ window.navcam = {
   dropStationConnection: () => api.ws?.close(),
   /** Where [lat, lon] is on the map, in pixels from its top-left corner: for clicking it. */
   mapPixel: patrol.mapPixel,
+  plotPoints,
 };

@@ -35,7 +35,7 @@ function batteryEstimate(volts) {
 function renderCompass(heading) {
   $("#compass-needle").setAttribute("transform", `rotate(${heading ?? 0} 50 50)`);
   $("#compass-needle").style.opacity = heading == null ? "0.2" : "1";
-  put($("#heading"), heading == null ? "—" : `${String(Math.round(heading) % 360).padStart(3, "0")}°`);
+  put($("#heading"), heading == null ? "unknown" : `${String(Math.round(heading) % 360).padStart(3, "0")}°`);
 }
 
 function renderStick() {
@@ -60,7 +60,7 @@ function renderPanel() {
   put($("#ground-speed"), ground == null ? "—" : `${(ground * KMH).toFixed(1)} km/h`);
   put($("#commanded-speed"), motion ? `${fixed(motion.linear, 2)} / ${fixed(motion.angular, 2)}` : "—");
   renderCompass(compassHeading(snapshot));
-  put($("#attitude"), `roll ${fixed(attitude?.roll, 1)}°  pitch ${fixed(attitude?.pitch, 1)}°`);
+  put($("#attitude"), attitude ? `roll ${fixed(attitude.roll, 1)}°  pitch ${fixed(attitude.pitch, 1)}°` : "—");
   const { percent, minutes } = batteryEstimate(battery?.volts);
   put($("#battery"), battery
     ? `${fixed(battery.volts, 1)} V  ≈${percent == null ? "—" : percent.toFixed(0)} %  ${minutes == null ? "time left —" : `≈${minutes.toFixed(0)} min left`}${battery.level ? `  (${battery.level})` : ""}`

@@ -41,6 +41,7 @@ export class PlatformMap {
     // (the stylesheet applying after the map was made, a resized window) fitting uses a stale
     // size and a marker can sit outside the visible map, where it cannot be clicked.
     new ResizeObserver(() => this.map.invalidateSize()).observe(element);
+    this.map.on("zoomend moveend resize", () => this.declutterSoon());
   }
 
   /** Local metres [north, east] (Leaflet's [y, x] in CRS.Simple) of a WGS-84 position. */
@@ -74,34 +75,72 @@ export class PlatformMap {
     const before = entry.points[entry.points.length - 2];
     if (heading == null && before) heading = (Math.atan2(point[1] - before[1], point[0] - before[0]) * 180) / Math.PI;
     entry.marker.setLatLng(point);
+    entry.current = current;
     // A new icon only when it looks different: rebuilding it five times a second is the
-    // page's costliest work otherwise.
-    const left = this.labelCrowded(id, point);
-    const look = `${Math.round(heading ?? 0)}|${current}|${connected}|${left}`;
-    if (entry.look !== look) { entry.look = look; entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected, left)); }
+    // page's costliest work otherwise. Its name keeps the side the last declutter gave it.
+    const look = `${Math.round(heading ?? 0)}|${current}|${connected}`;
+    if (entry.look !== look) {
+      entry.look = look;
+      entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected, entry.labelSide));
+    }
     if (this.following) this.followPlatforms();
+    this.declutterSoon();
   }
 
-  /** A platform's name written on its right would cover another's name or a named point of
-   * the area map: it goes on the left then. */
-  labelCrowded(id, point) {
-    const at = this.map.latLngToContainerPoint(point);
-    const box = { x: at.x + 14, y: at.y - 8, w: 7 * id.length + 6, h: 16 };
-    const covers = (x, y, w, h) => box.x < x + w && x < box.x + box.w && box.y < y + h && y < box.y + box.h;
-    for (const [other, entry] of this.markers) {
-      if (other === id) continue;
-      const there = this.map.latLngToContainerPoint(entry.marker.getLatLng());
-      const side = entry.look?.endsWith("|true") ? there.x - 14 - (7 * other.length + 6) : there.x + 14;
-      if (covers(side, there.y - 8, 7 * other.length + 6, 16)) return true;
+  /** Labels never cover each other: platform names (the shown platform's first), the area
+   * map's named points (right, left, above, below), the route's waypoint numbers (left, above,
+   * below),
+   * each hidden when neither side is free, until the view gives it room. Placed by their drawn boxes, after every view change and marker move. */
+  declutter() {
+    this.declutterPending = false;
+    if (!this.available) return;
+    // Nor over the map's own controls (zoom, scale bar) or a platform's arrow.
+    const placed = [...this.map.getContainer().querySelectorAll(".leaflet-control, .platform-icon .arrow")].map((element) => element.getBoundingClientRect());
+    const free = (element) => {
+      const box = element.getBoundingClientRect();
+      if (!box.width) return true;
+      return !placed.some((o) => box.left < o.right && o.left < box.right && box.top < o.bottom && o.top < box.bottom);
+    };
+    const place = (element, sides) => {
+      element.classList.remove("label-hidden");
+      for (const side of sides) {
+        side();
+        if (free(element)) { placed.push(element.getBoundingClientRect()); return; }
+      }
+      element.classList.add("label-hidden");
+    };
+    for (const entry of [...this.markers.values()].sort((a, b) => Number(b.current) - Number(a.current))) {
+      const icon = entry.marker.getElement()?.querySelector(".platform-icon");
+      const label = icon?.querySelector("span");
+      if (!label) continue;
+      const side = (name) => () => {
+        entry.labelSide = name;
+        for (const other of LABEL_SIDES) icon.classList.toggle(`label-${other}`, other === name);
+      };
+      // The side it has first (a label that jumps at every move is hard to follow).
+      const sides = [entry.labelSide ?? "right", ...LABEL_SIDES.filter((name) => name !== (entry.labelSide ?? "right"))];
+      place(label, sides.map(side));
     }
-    let crowded = false;
-    this.area?.eachLayer((layer) => {
-      const name = layer.getTooltip?.()?.getContent();
-      if (crowded || !name || !layer.getLatLng) return;
-      const there = this.map.latLngToContainerPoint(layer.getLatLng());
-      if (covers(there.x - 4, there.y - 8, 7 * String(name).length + 14, 16)) crowded = true;
+    const tooltips = (group, directions) => group?.eachLayer((layer) => {
+      const tooltip = layer.getTooltip?.();
+      const element = tooltip?.getElement?.();
+      if (!element || !tooltip.options.permanent) return;
+      const side = (direction) => () => {
+        if (tooltip.options.direction === direction) return;
+        tooltip.options.direction = direction;
+        tooltip.update();
+      };
+      place(element, directions.map(side));
     });
-    return crowded;
+    tooltips(this.area, ["right", "left", "top", "bottom"]);
+    for (const { layer } of this.waypointLabels?.values() ?? []) tooltips(layer, ["left", "top", "bottom"]);
+  }
+
+  /** One declutter on the next frame, however many changes came before it. */
+  declutterSoon() {
+    if (this.declutterPending) return;
+    this.declutterPending = true;
+    requestAnimationFrame(() => this.declutter());
   }
 
   /** Every platform in sight, the view changed only when one is not (or close to the edge). */
@@ -152,6 +191,7 @@ export class PlatformMap {
     this.area = this.geoJsonLayer(data, (role) => `area-map${role ? ` area-${role}` : ""}`).addTo(this.map);
     const bounds = this.area.getBounds();
     if (fit && bounds.isValid()) { this.map.fitBounds(bounds); this.following = false; }
+    this.declutterSoon();
   }
 
   clearArea() {
@@ -159,7 +199,6 @@ export class PlatformMap {
   }
 
   geoJsonLayer(data, className) {
-    const placed = []; // label boxes already placed (pixels): names must not overlap
     return L.geoJSON(data, {
       coordsToLatLng: (coords) => L.latLng(this.local(coords[1], coords[0])),
       style: (feature) => {
@@ -173,23 +212,28 @@ export class PlatformMap {
       pointToLayer: (feature, latlng) => {
         const marker = L.circleMarker(latlng, { radius: 3, color: "#aaa", weight: 1, className: "area-point" });
         const name = feature?.properties?.name;
-        if (name) {
-          // Right of the point, or left when that would cover a name already placed.
-          const at = this.map.latLngToContainerPoint(latlng);
-          const width = 7 * String(name).length + 8;
-          const right = { x: at.x + 6, y: at.y - 7, w: width, h: 14 };
-          const overlaps = (box) => placed.some((o) => box.x < o.x + o.w && o.x < box.x + box.w && box.y < o.y + o.h && o.y < box.y + box.h);
-          const direction = overlaps(right) ? "left" : "right";
-          placed.push(direction === "right" ? right : { ...right, x: at.x - 6 - width });
-          marker.bindTooltip(String(name), { permanent: true, direction, className: "area-point-name" });
-        }
+        if (name) marker.bindTooltip(String(name), { permanent: true, direction: "right", className: "area-point-name" });
         return marker;
       },
     });
   }
 
-  /** Draw ``platformId``'s waypoint route ([lat, lon] points; closed when last = first). */
-  setRoute(platformId, points) { this.setLine(`route:${platformId}`, points, { color: "#d6d67a", weight: 2, dashArray: "6 4", className: "route-line" }); }
+  /** Draw ``platformId``'s waypoint route ([lat, lon] points; closed when last = first), each
+   * waypoint numbered from 1 as the patrol's status counts them. */
+  setRoute(platformId, points) {
+    this.setLine(`route:${platformId}`, points, { color: "#d6d67a", weight: 2, dashArray: "6 4", className: "route-line" });
+    if (!this.available) return;
+    this.waypointLabels ??= new Map(); // platform id → { wanted, layer }
+    const wanted = JSON.stringify(points ?? []);
+    const known = this.waypointLabels.get(platformId);
+    if (known?.wanted === wanted) return;
+    known?.layer.remove();
+    const stops = points?.length >= 3 && samePlace(points[0], points[points.length - 1]) ? points.slice(0, -1) : points ?? [];
+    const layer = L.layerGroup(stops.map(([lat, lon], index) => L.circleMarker(this.local(lat, lon), { radius: 0, opacity: 0, interactive: false })
+      .bindTooltip(String(index + 1), { permanent: true, direction: "top", className: "waypoint-label" }))).addTo(this.map);
+    this.waypointLabels.set(platformId, { wanted, layer });
+    this.declutterSoon();
+  }
 
   /** Draw the path ``platformId``'s planner chose. */
   setPlannedPath(platformId, points) { this.setLine(`path:${platformId}`, points, { color: "#5fd0a0", weight: 3, className: "planned-path" }); }
@@ -274,9 +318,12 @@ export class PlatformMap {
 
 function samePlace(a, b) { return Math.abs(a[0] - b[0]) < 1e-7 && Math.abs(a[1] - b[1]) < 1e-7; }
 
-function platformIcon(id, heading, current, connected, labelLeft = false) {
+/** Where a platform's name may be written beside its arrow (console.css .label-*). */
+const LABEL_SIDES = ["right", "left", "below", "above"];
+
+function platformIcon(id, heading, current, connected, labelSide = "right") {
   const element = document.createElement("div");
-  element.className = `platform-icon${current ? " current" : ""}${connected ? " connected" : ""}${labelLeft ? " label-left" : ""}`;
+  element.className = `platform-icon${current ? " current" : ""}${connected ? " connected" : ""}${labelSide === "right" ? "" : ` label-${labelSide}`}`;
   const arrow = document.createElement("div");
   arrow.className = "arrow";
   arrow.style.transform = `rotate(${Number(heading) || 0}deg)`;
@@ -287,7 +334,9 @@ function platformIcon(id, heading, current, connected, labelLeft = false) {
 }
 
 function metricGrid() {
-  // Each tile's border is a grid line; its label is the tile's south-west corner in metres.
+  // Each tile's border is a grid line, labelled in metres from the origin halfway along it: the
+  // bottom line's north at its middle, the left line's east at its middle. Not at the corner:
+  // the origin is where the first platform was heard, and its name is written there.
   return L.GridLayer.extend({
     createTile(coords) {
       const tile = document.createElement("canvas");
@@ -300,7 +349,10 @@ function metricGrid() {
       const metres = size.x / 2 ** coords.z;
       g.fillStyle = "#50606e";
       g.font = "10px sans-serif";
-      g.fillText(`${Math.round(coords.x * metres)} E, ${Math.round(-(coords.y + 1) * metres)} N (${metres} m)`, 3, size.y - 4);
+      g.textAlign = "center";
+      g.fillText(`${Math.round(-(coords.y + 1) * metres)} N`, size.x / 2, size.y - 4);
+      g.rotate(-Math.PI / 2);
+      g.fillText(`${Math.round(coords.x * metres)} E`, -size.y / 2, 12);
       return tile;
     },
   });

@@ -5,6 +5,7 @@
 // CLI's, so the page holds no copy of any parser. After an import the patrol view reloads
 // the area ("area-changed" on the store).
 
+import { sayOn } from "./answer.js";
 import { element } from "./common.js";
 import { notify, state } from "./store.js";
 import { api } from "./station.js";
@@ -41,8 +42,7 @@ tools.append(
 );
 
 function say(text, refused = false) {
-  answer.textContent = text;
-  answer.classList.toggle("refused", refused);
+  sayOn(answer, text, { refused, keepMs: 15000 });
 }
 
 function notes(result) {
@@ -95,9 +95,10 @@ async function exportRoute(format) {
     return `${result.waypoints} waypoints exported as ${platformId}.${format}`;
   });
 }
-/** The file tools, under the patrol panel. */
+/** The file tools, with the background's under the map (folded: the column must fit a
+ * 1366x768 screen with the plots in sight). */
 export function startMapFiles() {
-  (document.querySelector("#patrol") ?? document.body).append(tools);
+  (document.querySelector("#map-files") ?? document.body).append(tools);
   importMap.onclick = () => importMapFile();
   importRoute.onclick = () => importRouteFile();
   exportPlan.onclick = () => exportRoute("plan");

@@ -4,6 +4,7 @@
 // keep-out zones (map_update), and the operator's offline backgrounds. An observer's patrol
 // and map tools are disabled, saying who holds control. Waypoints count from 1, with names.
 
+import { sayOn } from "./answer.js";
 import { $, compassHeading, controlHolder, observerReason, put, section, snapshotOf } from "./common.js";
 import { PlatformMap } from "./map.js";
 import { api, select } from "./station.js";
@@ -84,13 +85,8 @@ function clearArea(platformId) {
   renderKeepouts();
 }
 
-let answerTimer = null;
 function patrolAnswer(text, refused = false) {
-  const line = $("#patrol-answer");
-  line.textContent = text;
-  line.classList.toggle("refused", refused);
-  clearTimeout(answerTimer);
-  answerTimer = setTimeout(() => { line.textContent = ""; }, 15000);
+  sayOn($("#patrol-answer"), text, { refused, keepMs: 15000 });
 }
 
 function renderPatrol() {

@@ -28,14 +28,15 @@ function makeChart(quantity) {
   $("#plots").append(box);
   const width = Math.max(200, $("#plots").clientWidth - 4);
   const plot = new window.uPlot({
-    width, height: 70, legend: { show: false }, cursor: { show: false },
+    width, height: window.innerHeight < 900 ? 56 : 70, // 1366x768: the column must fit legend: { show: false }, cursor: { show: false },
     title: quantity.label,
-    scales: { x: { time: true } },
+    // Seconds before now, the last minute always (ticks at -60 … 0 s from the first sample).
+    scales: { x: { time: false, range: () => [-WINDOW_S, 0] } },
     axes: [{ stroke: "#889", grid: { stroke: "#223" }, size: 20, font: "10px sans-serif",
-      values: (u, ticks) => ticks.map((t) => `${Math.round(t - Date.now() / 1000)} s`) },
+      values: (u, ticks) => ticks.map((t) => `${Math.round(t)} s`) },
       { stroke: "#889", grid: { stroke: "#223" }, size: 36, font: "10px sans-serif" }],
     series: [{}, ...quantity.series.map((label, i) => ({ label, stroke: COLOURS[i], width: 1.5, spanGaps: false }))],
-  }, [times, ...quantity.series.map(() => [])], box);
+  }, [[], ...quantity.series.map(() => [])], box);
   return { plot, data: quantity.series.map(() => []), box };
 }
 
@@ -46,6 +47,7 @@ function sample() {
   times.push(now);
   const drop = times.findIndex((t) => now - t <= WINDOW_S);
   if (drop > 0) times = times.slice(drop);
+  const ago = times.map((t) => t - now);
   for (const quantity of QUANTITIES) {
     let chart = charts.get(quantity.key);
     if (!chosen.has(quantity.key)) {
@@ -60,8 +62,13 @@ function sample() {
       while (series.length > times.length) series.shift();
       while (series.length < times.length) series.unshift(null);
     });
-    chart.plot.setData([times, ...chart.data]);
+    chart.plot.setData([ago, ...chart.data]);
   }
+}
+
+/** How many points each shown plot holds, per series (numbers, not gaps): for tests. */
+export function plotPoints() {
+  return Object.fromEntries([...charts].map(([key, chart]) => [key, chart.data.map((series) => series.filter((v) => v != null).length)]));
 }
 
 export function startPlots() {
