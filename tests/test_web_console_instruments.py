@@ -20,10 +20,10 @@ from test_web_console_honesty import browser, rover, screenshots, station, stati
 from test_web_console_station import Factory, frames_decoded, sim_platform
 
 from brasidas import topics
+from brasidas.annunciator import LINK_LOST
 from brasidas.messages import StationNotification
 from platformd.app import PlatformDaemon
 from stationd.daemon import StationDaemon
-from stationd.telemetry.annunciator import LINK_LOST
 
 __all__ = ["browser", "station", "station_settings"]  # the fixtures, shared
 
