@@ -25,7 +25,7 @@ from aiohttp import web
 from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.codecs.jsonrpc import CallContext
-from brasidas.codecs.telemetry_schema import SECTIONS, Autonomy, Section
+from brasidas.codecs.telemetry_schema import SECTIONS, Autonomy, RecorderStatus, Section
 from brasidas.messages import (
     CommandReceived,
     ControlState,
@@ -49,6 +49,9 @@ _LOGGER = logging.getLogger(__name__)
 
 SESSION_HEADER = "X-Brasidas-Session"
 """The header a download carries its session token in."""
+REASON_MAX_CHARS = 60
+"""Telemetry carries this much of why recording stopped (an OSError may name a long path):
+the full snapshot stays within one datagram."""
 
 
 def _index(channels: list[ChannelSpec]) -> dict[str, int]:
@@ -132,6 +135,19 @@ class PlatformRecorder(Actor):
 
     def counters(self) -> dict[str, int]:
         return {**self.writer.stats.counters(), "queued": self.writer.queued}
+
+    def status_section(self) -> RecorderStatus:
+        """The telemetry section: the station warns (90.23) when recording stopped."""
+        stats = self.writer.stats
+        reason = stats.reason
+        return RecorderStatus(
+            recording=stats.recording and not reason,
+            reason=reason
+            if len(reason) <= REASON_MAX_CHARS
+            else reason[: REASON_MAX_CHARS - 1] + "…",
+            dropped=stats.dropped,
+            not_recorded=stats.not_recording,
+        )
 
     def describe(self) -> dict[str, Any]:
         stats = self.writer.stats
@@ -329,6 +345,7 @@ async def async_setup(ctx: PlatformContext) -> None:
         return
     recorder = PlatformRecorder(ctx, recordings_dir(ctx))
     ctx.telemetry.add_counters("recorder", recorder.counters)
+    ctx.telemetry.register(RecorderStatus, recorder.status_section)
     ctx.rpc.add("list_recordings", recorder.rpc_list_recordings)
     ctx.http_routes.append(web.get("/recordings/{name}", recorder.http_download))
     ctx.supervisor.start(recorder)

@@ -32,6 +32,7 @@ from brasidas.codecs.telemetry_schema import (
     Override,
     Platforms,
     Pose,
+    RecorderStatus,
     Section,
     SectionError,
     SectionValue,
@@ -78,6 +79,9 @@ FULL: dict[type[Section], SectionValue] = {
         ((37.9838096, 23.7275388), (37.98391, 23.72771)),
     ),
     Automation: Automation({"patrol": True, "auto_framerate": False, "diagnostics": True}),
+    RecorderStatus: RecorderStatus(
+        False, "write failed: [Errno 28] No space left on device", 12, 3456
+    ),
     Diagnostics: None,
 }  # fmt: skip
 

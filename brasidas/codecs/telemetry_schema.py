@@ -24,12 +24,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
-SCHEMA_VERSION = 7
+SCHEMA_VERSION = 8
 """Version of the schema (and the datagram layout); the first byte of every datagram.
 4: the failsafe, speed_cap and turret sections, the velocity link's ``held`` drops.
 5: the lights' ``errors`` (GPIO lines), the turret's ``streams``.
 6: the autonomy section's ``map_rev``.
-7: the turret's ``error`` (its line cannot be opened, or went away)."""
+7: the turret's ``error`` (its line cannot be opened, or went away).
+8: the recorder section (recording, or stopped and why; its drops)."""
 ERROR_KEY = "!"
 """A section's wire map holding only this key is that section's error."""
 STALE_PERIODS = 3.0
@@ -388,6 +389,24 @@ class Automation(Section):
     switches: dict[str, bool] = field(default_factory=dict, metadata=wire("s"))
 
 
+@dataclass(frozen=True)
+class RecorderStatus(Section):
+    """The flight recorder (issue 23): recording, or stopped and why; what it dropped."""
+
+    NAME = "recorder"
+    WIRE = "rec"
+    recording: bool = field(default=False, metadata=wire("r"))
+    reason: str = field(
+        default="", metadata=wire("w", doc="why it stopped: disk full, a write failed, quota")
+    )
+    dropped: int = field(
+        default=0, metadata=wire("d", doc="messages dropped: the writer could not keep up")
+    )
+    not_recorded: int = field(
+        default=0, metadata=wire("n", doc="messages not recorded while it was stopped")
+    )
+
+
 SECTIONS: tuple[type[Section], ...] = (
     Override,
     Lights,
@@ -408,6 +427,7 @@ SECTIONS: tuple[type[Section], ...] = (
     Pose,
     Autonomy,
     Automation,
+    RecorderStatus,
     Diagnostics,
 )
 """Every top-level section, in snapshot order."""

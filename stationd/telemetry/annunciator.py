@@ -18,6 +18,7 @@ from brasidas.codecs.telemetry_schema import (
     Controller,
     Failsafe,
     Gps,
+    RecorderStatus,
     Snapshot,
     Streams,
 )
@@ -38,6 +39,8 @@ LINK_LOST = CommandCode(NOTIFICATION_GROUP, 18)
 """The platform's failsafe ladder stepped (hold, release): it lost this station's link."""
 MAP_REFUSED = CommandCode(NOTIFICATION_GROUP, 21)
 """The platform refused its stored map at start (issue 21): it has no map, and says why."""
+RECORDER_STOPPED = CommandCode(NOTIFICATION_GROUP, 23)
+"""The platform's flight recorder stopped: disk full or failing, its quota (issue 23)."""
 FAILED_STREAM_STATES = frozenset({"failed", "error"})
 
 
@@ -127,6 +130,9 @@ class Annunciator:
             )
         if autonomy is not None and autonomy.map_error:
             wanted["map_refused"] = (MAP_REFUSED, f"no map: {autonomy.map_error}")
+        recorder = snapshot.get(RecorderStatus)
+        if recorder is not None and not recorder.recording and recorder.reason:
+            wanted["recorder_stopped"] = (RECORDER_STOPPED, f"recorder stopped: {recorder.reason}")
         changes: list[Change] = []
         for name in list(self.active):
             if name not in wanted and name not in keep:
