@@ -59,21 +59,7 @@ def _index(channels: list[ChannelSpec]) -> dict[str, int]:
 
 
 def _velocity(message: Velocity) -> bytes:
-    return schemas.encode_json({"linear": message.linear, "angular": message.angular})
-
-
-def _command(message: CommandReceived) -> bytes:
-    return schemas.encode_json(
-        {
-            "kind": message.kind,
-            "name": message.name,
-            "payload": message.payload,
-            "session": message.session_id,
-            "station": message.station_id,
-            "accepted": message.accepted,
-            "reason": message.reason,
-        }
-    )
+    return schemas.encode_velocity(message.linear, message.angular)
 
 
 class PlatformRecorder(Actor):
@@ -221,7 +207,7 @@ class PlatformRecorder(Actor):
         )
 
     def _on_command(self, message: CommandReceived) -> None:
-        self._submit(schemas.COMMANDS, message, _command)
+        self._submit(schemas.COMMANDS, message, schemas.encode_command)
         verdict = "accepted" if message.accepted else f"refused: {message.reason}"
         self._log(
             LOG_INFO if message.accepted else LOG_WARNING,
