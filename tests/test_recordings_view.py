@@ -5,7 +5,9 @@ position on the map and that time's NavCam frame."""
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
+import os
 import shutil
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -16,6 +18,7 @@ from mcap.reader import make_reader
 from test_station import run_cli
 
 from platformd.app import PlatformDaemon
+from stationd.api_client import api_call_async
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -169,3 +172,58 @@ async def test_seeking_shows_that_times_position_and_frame(
                 assert not errors, errors
             finally:
                 await browser.close()
+
+
+def small_recording(path: Path, payload_bytes: int) -> None:
+    """A finished MCAP file of about ``payload_bytes`` (one incompressible log message)."""
+    from mcap.writer import CompressionType, Writer
+
+    with open(path, "wb") as stream:
+        writer = Writer(stream, compression=CompressionType.NONE)
+        writer.start(profile="", library="test")
+        schema = writer.register_schema("foxglove.Log", "jsonschema", b"{}")
+        channel = writer.register_channel("/log", "json", schema)
+        writer.add_message(channel, 1_000, os.urandom(payload_bytes), 1_000)
+        writer.finish()  # type: ignore[no-untyped-call]
+
+
+async def test_the_replay_cache_keeps_within_its_quota_least_recently_opened_first(
+    platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+) -> None:
+    recordings = tmp_path / "recordings"
+    recordings.mkdir()
+    names = [f"2026112{n}T000000.000Z-rover-rc.mcap" for n in range(4)]
+    for name in names:
+        small_recording(recordings / name, 400_000)
+    platform = await platform_factory(
+        quiet_platform_config(
+            "platform.id=rover-rc", "recorder.enabled=true", f"recorder.dir={recordings}"
+        ),
+        fleet_key,
+    )
+    async with running_station(fleet_key, f"replay.max_bytes={1024 * 1024}") as station:
+        code, _, err = await run_cli(
+            station, "connect", "rover-rc", "--url", platform.ctx.signaling_url
+        )
+        assert code == 0, err
+        cache = tmp_path / "state" / "brasidas" / "replay" / "rover-rc"
+        config = dataclasses.replace(
+            station.ctx.config,
+            station=dataclasses.replace(station.ctx.config.station, api_port=station.api_port),
+        )
+
+        async def open_(name: str) -> set[str]:
+            answer = await api_call_async(
+                config, "recording_open", platform_id="rover-rc", name=name
+            )
+            assert answer["channels"]["/log"]["messages"] == 1
+            return {p.name for p in cache.iterdir()}
+
+        a, b, c, d = names
+        assert await open_(a) == {a}
+        assert await open_(b) == {a, b}
+        assert await open_(c) == {b, c}  # 1.2 MB > 1 MiB: the oldest goes
+        await asyncio.sleep(0.02)  # a later mtime than c's, on any file system's clock
+        assert await open_(b) == {b, c}  # cached: opened again, now the most recent
+        assert await open_(d) == {b, d}  # c is now the least recently opened
+        assert sum(p.stat().st_size for p in cache.iterdir()) <= 1024 * 1024
