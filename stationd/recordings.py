@@ -145,14 +145,24 @@ class RecordingsApi:
             raise RpcError(INVALID_PARAMS, f"cannot read {name}: {err}") from None
 
     async def api_recording_state(
-        self, call: CallContext, platform_id: str, name: str, time_ns: int
+        self,
+        call: CallContext,
+        platform_id: str,
+        name: str,
+        time_ns: int,
+        frames_after_ns: int | None = None,
     ) -> dict[str, Any]:
-        """The state at ``time_ns``: position, telemetry, log and the frames to decode."""
-        if not isinstance(time_ns, int):
+        """The state at ``time_ns``: position, telemetry, log and the frames to decode (while
+        playing: those after ``frames_after_ns``, which the console's decoder has had)."""
+        if not isinstance(time_ns, int) or isinstance(time_ns, bool):
             raise RpcError(INVALID_PARAMS, "invalid params: time_ns must be an integer")
+        if frames_after_ns is not None and (
+            not isinstance(frames_after_ns, int) or isinstance(frames_after_ns, bool)
+        ):
+            raise RpcError(INVALID_PARAMS, "invalid params: frames_after_ns must be an integer")
         path = await self._local(platform_id, name)
         try:
-            return await asyncio.to_thread(recording_state, path, time_ns)
+            return await asyncio.to_thread(recording_state, path, time_ns, frames_after_ns)
         except Exception as err:
             raise RpcError(INVALID_PARAMS, f"cannot read {name}: {err}") from None
 
