@@ -355,12 +355,17 @@ async def test_video_waits_for_a_keyframe_in_every_file(tmp_path: Path) -> None:
 
 
 async def test_a_full_disk_stops_recording_with_a_warning_and_teleop_carries_on(
-    platform_factory: Factory, fleet_key: bytes, tmp_path: Path, caplog: pytest.LogCaptureFixture
+    station: StationDaemon,
+    platform_factory: Factory,
+    fleet_key: bytes,
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
 ) -> None:
     caplog.set_level(logging.WARNING, "brasidas.recording.writer")
     # The floor above the disk's size: the disk is full as far as the recorder knows.
     daemon = await platform_factory(
         quiet_platform_config(
+            "platform.id=rover-floor",
             "recorder.enabled=true",
             f"recorder.dir={tmp_path / 'recordings'}",
             f"recorder.min_free_bytes={2**50}",
@@ -384,6 +389,7 @@ async def test_a_full_disk_stops_recording_with_a_warning_and_teleop_carries_on(
         listing = await conn.call("list_recordings")
         assert listing["recording"] is False and "disk full" in listing["reason"]
         assert listing["counters"]["not_recording"] > 0
+        await station_sees_the_recorder_stopped(station, daemon, "disk full", "DISK FULL")
     finally:
         sock.close()
         await conn.close()
@@ -555,7 +561,9 @@ async def test_a_full_tmpfs_stops_recording_with_a_warning_and_teleop_carries_on
             assert (await conn.call("get_nav_camera_parameters"))["state"] == "playing"
             # The operator sees it: a station warning (90.23) in status and the notifications
             # the console shows, from the recorder's telemetry section.
-            await station_sees_the_recorder_stopped(station, daemon, "No space left on device")
+            await station_sees_the_recorder_stopped(
+                station, daemon, "No space left on device", "WRITE FAILED"
+            )
         finally:
             sock.close()
             await conn.close()
@@ -563,7 +571,7 @@ async def test_a_full_tmpfs_stops_recording_with_a_warning_and_teleop_carries_on
 
 
 async def station_sees_the_recorder_stopped(
-    station: StationDaemon, daemon: PlatformDaemon, why: str
+    station: StationDaemon, daemon: PlatformDaemon, why: str, shown: str
 ) -> None:
     platform_id = daemon.ctx.config.platform.id
     code, _, err = await run_cli(station, "connect", platform_id, "--url", daemon.ctx.signaling_url)
@@ -581,8 +589,8 @@ async def station_sees_the_recorder_stopped(
     assert note["platform_id"] == platform_id and why in note["message"], note
     code, out, err = await run_cli(station, "status", platform_id)
     assert code == 0, err
-    assert "RECORDER STOPPED: WRITE FAILED" in out, out
-    assert "recorder   STOPPED: write failed" in out and "not recorded" in out, out
+    assert f"RECORDER STOPPED: {shown}" in out, out
+    assert f"recorder   STOPPED: {shown.lower()}" in out and "not recorded" in out, out
     code, out, _ = await run_cli(station, "status", platform_id, "--json")
     section = json.loads(out)["telemetry"]["snapshot"]["recorder"]
     assert section["recording"] is False and why in section["reason"]
