@@ -68,19 +68,35 @@ class _Listener(ServerListener):
             self.loop.call_soon_threadsafe(callback, topic, delta)
 
 
+FED_AT_ONCE = (
+    schemas.NAVCAM,
+    schemas.GPS,
+    schemas.POSE,
+    schemas.STATE,
+    schemas.MAP,
+    schemas.ROUTE,
+    schemas.COMMANDS,
+    schemas.TELEOP_VELOCITY,
+    schemas.AUTONOMY_VELOCITY,
+    schemas.MOTOR_COMMAND,
+)
+"""Advertised when a platform connects: what the station feeds from every platform."""
+
+
 class _PlatformChannels:
     """One platform's channels and what was last published on them.
 
-    A channel is advertised when its first message is published (the NavCam at once: a
-    client's subscription is what fetches it), so a client is never offered a channel that
-    nothing feeds (``/pose/local``: telemetry carries no local frame; ``/telemetry/turret``
-    on a platform without one)."""
+    The channels the station feeds are advertised at once (the NavCam's subscription is what
+    fetches it); a telemetry section's and the log's with their first message, so a client is
+    never offered a channel that nothing feeds (``/pose/local``: telemetry carries no local
+    frame; ``/telemetry/turret`` on a platform without one)."""
 
     def __init__(self, platform_id: str, context: foxglove.Context) -> None:
         self.platform_id = platform_id
         self.context = context
         self.channels: dict[str, foxglove.Channel] = {}
-        self._channel(schemas.NAVCAM)
+        for spec in FED_AT_ONCE:
+            self._channel(spec)
         self.last: dict[str, Any] = {}
         self.logged_at: dict[str, int] = {}
         """When each telemetry section was last published (ns): re-published every
