@@ -118,7 +118,7 @@ setInterval(() => {
   const next = Number(timeline.value) + (TICK_MS / 1000) * Number(speed.value);
   if (next >= Number(timeline.max)) { playing = false; play.textContent = "play"; play.setAttribute("aria-pressed", "false"); }
   timeline.value = String(Math.min(next, Number(timeline.max)));
-  seek(recording.start_ns + Math.round(Number(timeline.value) * 1e9));
+  seek(recording.start_ns + Math.round(Number(timeline.value) * 1e9), true);
 }, TICK_MS);
 
 function drawTrack() {
@@ -138,24 +138,25 @@ function drawTrack() {
 }
 
 /** Show the state at ``timeNs``; seeks that come while one is answered keep only the last. */
-async function seek(timeNs) {
-  if (inFlight) { pendingSeek = timeNs; return; }
+async function seek(timeNs, tick = false) {
+  // A tick of play goes on from the previous one; a seek by hand starts over at a keyframe.
+  if (inFlight) { pendingSeek = { timeNs, tick: tick && (pendingSeek?.tick ?? true) }; return; }
   inFlight = true;
   try {
     const params = { platform_id: recording.platform, name: recording.name, time_ns: timeNs };
     // Playing on: only the access units the decoder has not had.
-    if (playing && continuable()) params.frames_after_ns = video.lastFed;
+    if (tick && playing && continuable()) params.frames_after_ns = video.lastFed;
     const state = await api.call("recording_state", params, 10000);
-    show(state);
+    show(state, tick);
   } catch (error) {
     message.textContent = `cannot seek: ${error.message}`;
   } finally {
     inFlight = false;
-    if (pendingSeek !== null) { const next = pendingSeek; pendingSeek = null; seek(next); }
+    if (pendingSeek !== null) { const next = pendingSeek; pendingSeek = null; seek(next.timeNs, next.tick); }
   }
 }
 
-function show(state) {
+function show(state, tick = false) {
   const seconds = (state.time_ns - recording.start_ns) / 1e9;
   clock.textContent = `${new Date(state.time_ns / 1e6).toISOString().slice(11, 23)} UTC (+${seconds.toFixed(1)} s)`;
   view.dataset.timeNs = String(state.time_ns);
@@ -186,7 +187,7 @@ function show(state) {
   instruments.replaceChildren(...rows);
   log.replaceChildren(...state.log.map((line) => element("li", { class: line.level >= 3 ? "warning" : "" }, `${new Date(line.time_ns / 1e6).toISOString().slice(11, 19)} ${line.text}`)));
   drawPlots(state.time_ns);
-  const pacing = playing && previousNs !== null && state.time_ns > previousNs
+  const pacing = tick && playing && previousNs !== null && state.time_ns > previousNs
     ? { wallMs: performance.now(), fromNs: previousNs, speed: Number(speed.value) }
     : null;
   previousNs = playing ? state.time_ns : null;
