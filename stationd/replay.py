@@ -139,7 +139,8 @@ def recording_state(path: Path, time_ns: int, frames_after_ns: int | None = None
             unit = base64.b64decode(json.loads(message.data)["data"])
             if following:
                 frames.append((message.log_time, unit))
-            elif _is_keyframe(unit):
+                continue
+            if _is_keyframe(unit):
                 frames = []
             if frames or _is_keyframe(unit):
                 frames.append((message.log_time, unit))

@@ -343,3 +343,40 @@ async def test_playing_at_1x_shows_every_recorded_frame(
     # Every one, but for a frame or two of a tick that came too late under load (the old
     # player drew one a tick: 6 here).
     assert drawn >= 0.9 * recorded, (drawn, recorded, played_s, message)
+
+
+def test_a_tick_of_play_gets_the_units_after_the_decoders_last_across_a_keyframe(
+    tmp_path: Path,
+) -> None:
+    """30 fps, a keyframe every 10 units: at a tick, the units after the last one the
+    decoder had (keyframes or not), not only those from the latest keyframe."""
+    from mcap.writer import CompressionType, Writer
+
+    from brasidas.recording import schemas
+    from stationd.replay import recording_state
+
+    path = tmp_path / "video.mcap"
+    start, step = 1_000_000_000_000, 33_333_333
+    with open(path, "wb") as stream:
+        writer = Writer(stream, compression=CompressionType.ZSTD)
+        writer.start(profile="", library="test")
+        schema = writer.register_schema("foxglove.CompressedVideo", "jsonschema", b"{}")
+        channel = writer.register_channel("/navcam", "json", schema)
+        for i in range(60):
+            nal = b"\x00\x00\x00\x01\x65" if i % 10 == 0 else b"\x00\x00\x00\x01\x41"
+            t = start + i * step
+            writer.add_message(channel, t, schemas.encode_video(t, nal + bytes([i])), t)
+        writer.finish()  # type: ignore[no-untyped-call]
+    at = start + 25 * step
+    from_keyframe = recording_state(path, at)
+    assert [f["time_ns"] for f in from_keyframe["frames"]] == [
+        start + i * step for i in range(20, 26)
+    ]
+    assert from_keyframe["frames_after_ns"] is None
+    after = start + 17 * step
+    following = recording_state(path, at, after)
+    assert [f["time_ns"] for f in following["frames"]] == [start + i * step for i in range(18, 26)]
+    assert following["frames_after_ns"] == after
+    # Too far back (past the video window) or ahead: from the keyframe again.
+    assert recording_state(path, at, at)["frames_after_ns"] is None
+    assert recording_state(path, at, at - 4_000_000_000)["frames_after_ns"] is None
