@@ -51,7 +51,8 @@ SESSION_HEADER = "X-Brasidas-Session"
 """The header a download carries its session token in."""
 REASON_MAX_CHARS = 60
 """Telemetry carries this much of why recording stopped (an OSError may name a long path):
-the full snapshot stays within one datagram."""
+the section stays small (a stopped recorder on top of the fullest snapshot may take a datagram
+of its own: the encoder splits by section)."""
 
 
 def _index(channels: list[ChannelSpec]) -> dict[str, int]:

@@ -27,8 +27,13 @@ from test_velocity import open_connection, udp_socket
 
 from brasidas import topics
 from brasidas.codecs import pvel
-from brasidas.codecs.telemetry import MAX_DATAGRAM, TelemetryEncoder
-from brasidas.codecs.telemetry_schema import RecorderStatus, Snapshot, snapshot_to_wire
+from brasidas.codecs.telemetry import MAX_DATAGRAM, TelemetryDecoder, TelemetryEncoder
+from brasidas.codecs.telemetry_schema import (
+    RecorderStatus,
+    Snapshot,
+    snapshot_from_wire,
+    snapshot_to_wire,
+)
 from brasidas.config import TelemetryReceiverSection
 from brasidas.media.gst import gst
 from brasidas.messages import Velocity
@@ -610,12 +615,17 @@ def test_a_stopped_recorder_is_a_station_warning_until_it_records_again() -> Non
     assert not change.active and change.warning.code == RECORDER_STOPPED
 
 
-def test_a_stopped_recorder_with_its_longest_reason_keeps_the_full_snapshot_in_one_datagram() -> (
-    None
-):
+def test_a_stopped_recorder_with_its_longest_reason_reaches_the_station_whole() -> None:
+    """On top of the fullest snapshot it may take a datagram of its own (the encoder splits by
+    section): every datagram stays under the limit and the station gets the section entire."""
     from test_telemetry_schema import FULL
 
     longest = RecorderStatus(False, "x" * REASON_MAX_CHARS, 2**31, 2**31)
     encoder = TelemetryEncoder("brasidas-1", bytes(32))
-    (datagram,) = encoder.encode(snapshot_to_wire({**FULL, RecorderStatus: longest}), 0.0)
-    assert len(datagram) < MAX_DATAGRAM
+    decoder = TelemetryDecoder("brasidas-1", bytes(32))
+    sections: dict[str, Any] = {}
+    for datagram in encoder.encode(snapshot_to_wire({**FULL, RecorderStatus: longest}), 0.0):
+        assert len(datagram) < MAX_DATAGRAM
+        sections.update(decoder.decode(datagram).sections)
+    decoded, unknown = snapshot_from_wire(sections)
+    assert unknown == [] and decoded.get(RecorderStatus) == longest

@@ -79,9 +79,7 @@ FULL: dict[type[Section], SectionValue] = {
         ((37.9838096, 23.7275388), (37.98391, 23.72771)),
     ),
     Automation: Automation({"patrol": True, "auto_framerate": False, "diagnostics": True}),
-    RecorderStatus: RecorderStatus(
-        False, "write failed: [Errno 28] No space left on device", 12, 3456
-    ),
+    RecorderStatus: RecorderStatus(True, "", 3, 0),  # stopped: tests/test_recorder.py
     Diagnostics: None,
 }  # fmt: skip
 
