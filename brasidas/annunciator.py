@@ -21,6 +21,7 @@ from brasidas.codecs.telemetry_schema import (
     Controller,
     Failsafe,
     Gps,
+    RecorderStatus,
     Snapshot,
     Streams,
 )
@@ -41,6 +42,8 @@ LINK_LOST = CommandCode(NOTIFICATION_GROUP, 18)
 """The platform's failsafe ladder stepped (hold, release): it lost this station's link."""
 MAP_REFUSED = CommandCode(NOTIFICATION_GROUP, 21)
 """The platform refused its stored map at start (issue 21): it has no map, and says why."""
+RECORDER_STOPPED = CommandCode(NOTIFICATION_GROUP, 23)
+"""The platform's flight recorder stopped: disk full or failing, its quota (issue 23)."""
 CONNECTIONS_REFUSED = CommandCode(NOTIFICATION_GROUP, 24)
 """The platform is refusing many connections from one address (strangers without the fleet
 key, issue 19): ``telemetry.refused_warn`` within its 10 s window."""
@@ -133,6 +136,9 @@ class Annunciator:
             )
         if autonomy is not None and autonomy.map_error:
             wanted["map_refused"] = (MAP_REFUSED, f"no map: {autonomy.map_error}")
+        recorder = snapshot.get(RecorderStatus)
+        if recorder is not None and not recorder.recording and recorder.reason:
+            wanted["recorder_stopped"] = (RECORDER_STOPPED, f"recorder stopped: {recorder.reason}")
         admission = snapshot.get(Admission)
         if admission is not None and admission.refused >= self.config.refused_warn:
             wanted["connections_refused"] = (

@@ -456,3 +456,12 @@ class CommandReceived:
     station_id: str | None
     accepted: bool
     reason: str = ""
+
+
+@dataclass(frozen=True)
+class CommandSent:
+    """Station side: a system command this station sent a platform for its operator, with the
+    answer (stationd.connections): what Foxglove's live ``/commands`` shows."""
+
+    platform_id: str
+    command: CommandReceived

@@ -8,6 +8,7 @@ from brasidas.messages import (
     Automations,
     CommandAge,
     CommandReceived,
+    CommandSent,
     ControllerStatus,
     ControlState,
     FailsafeState,
@@ -63,6 +64,8 @@ PLATFORM_DISCOVERED: Topic[PlatformSighting] = Topic("platform_discovered")
 """A platform's first beacon (stationd.discovery)."""
 PLATFORM_LOST: Topic[PlatformSighting] = Topic("platform_lost")
 """No beacon from a platform for ``discovery.expiry`` seconds."""
+COMMAND_SENT: Topic[CommandSent] = Topic("command_sent")
+"""A system command this station sent for its operator, and the answer (stationd.connections)."""
 
 # --------------------------------------------------------------------------- velocity stream (issue 3)
 TELEOP_VELOCITY: Topic[Velocity] = Topic("teleop_velocity")

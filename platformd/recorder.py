@@ -25,7 +25,7 @@ from aiohttp import web
 from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.codecs.jsonrpc import CallContext
-from brasidas.codecs.telemetry_schema import SECTIONS, Autonomy, Section
+from brasidas.codecs.telemetry_schema import SECTIONS, Autonomy, RecorderStatus, Section
 from brasidas.messages import (
     CommandReceived,
     ControlState,
@@ -49,6 +49,10 @@ _LOGGER = logging.getLogger(__name__)
 
 SESSION_HEADER = "X-Brasidas-Session"
 """The header a download carries its session token in."""
+REASON_MAX_CHARS = 60
+"""Telemetry carries this much of why recording stopped (an OSError may name a long path):
+the section stays small (a stopped recorder on top of the fullest snapshot may take a datagram
+of its own: the encoder splits by section)."""
 
 
 def _index(channels: list[ChannelSpec]) -> dict[str, int]:
@@ -56,21 +60,7 @@ def _index(channels: list[ChannelSpec]) -> dict[str, int]:
 
 
 def _velocity(message: Velocity) -> bytes:
-    return schemas.encode_json({"linear": message.linear, "angular": message.angular})
-
-
-def _command(message: CommandReceived) -> bytes:
-    return schemas.encode_json(
-        {
-            "kind": message.kind,
-            "name": message.name,
-            "payload": message.payload,
-            "session": message.session_id,
-            "station": message.station_id,
-            "accepted": message.accepted,
-            "reason": message.reason,
-        }
-    )
+    return schemas.encode_velocity(message.linear, message.angular)
 
 
 class PlatformRecorder(Actor):
@@ -132,6 +122,19 @@ class PlatformRecorder(Actor):
 
     def counters(self) -> dict[str, int]:
         return {**self.writer.stats.counters(), "queued": self.writer.queued}
+
+    def status_section(self) -> RecorderStatus:
+        """The telemetry section: the station warns (90.23) when recording stopped."""
+        stats = self.writer.stats
+        reason = stats.reason
+        return RecorderStatus(
+            recording=stats.recording and not reason,
+            reason=reason
+            if len(reason) <= REASON_MAX_CHARS
+            else reason[: REASON_MAX_CHARS - 1] + "…",
+            dropped=stats.dropped,
+            not_recorded=stats.not_recording,
+        )
 
     def describe(self) -> dict[str, Any]:
         stats = self.writer.stats
@@ -205,7 +208,7 @@ class PlatformRecorder(Actor):
         )
 
     def _on_command(self, message: CommandReceived) -> None:
-        self._submit(schemas.COMMANDS, message, _command)
+        self._submit(schemas.COMMANDS, message, schemas.encode_command)
         verdict = "accepted" if message.accepted else f"refused: {message.reason}"
         self._log(
             LOG_INFO if message.accepted else LOG_WARNING,
@@ -329,6 +332,7 @@ async def async_setup(ctx: PlatformContext) -> None:
         return
     recorder = PlatformRecorder(ctx, recordings_dir(ctx))
     ctx.telemetry.add_counters("recorder", recorder.counters)
+    ctx.telemetry.register(RecorderStatus, recorder.status_section)
     ctx.rpc.add("list_recordings", recorder.rpc_list_recordings)
     ctx.http_routes.append(web.get("/recordings/{name}", recorder.http_download))
     ctx.supervisor.start(recorder)

@@ -28,7 +28,7 @@ from brasidas.codecs.commands import (
     CommandCode,
 )
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, UNAVAILABLE, CallContext, RpcError
-from brasidas.messages import PlatformLink, StationNotification
+from brasidas.messages import CommandReceived, CommandSent, PlatformLink, StationNotification
 from stationd.client import CLOSED_BY_STATION, AuthenticationError, PlatformConnection
 from stationd.context import StationContext
 
@@ -220,12 +220,26 @@ class ConnectionManager(Actor):
         self, call: CallContext, platform_id: str, group: int, command: int, payload: str = ""
     ) -> dict[str, Any]:
         connection = await self.ensure(platform_id)
-        answer: dict[str, Any] = await connection.call(
-            "issue_system_command", group=group, command=command, payload=payload
-        )
-        if answer.get("accepted") and CommandCode(group, command) not in OBSERVER_CODES:
+        code = CommandCode(group, command)
+        try:
+            answer: dict[str, Any] = await connection.call(
+                "issue_system_command", group=group, command=command, payload=payload
+            )
+        except RpcError as err:
+            self._sent(platform_id, code, payload, False, err.message)
+            raise
+        accepted = bool(answer.get("accepted"))
+        self._sent(platform_id, code, payload, accepted, str(answer.get("reason") or ""))
+        if accepted and code not in OBSERVER_CODES:
             connection.control = True  # a control command went through: this station holds it
         return answer
+
+    def _sent(self, platform_id: str, code: CommandCode, payload: str, ok: bool, why: str) -> None:
+        """Tell the bus what this station sent for its operator (Foxglove's ``/commands``;
+        without the session token, which opens downloads)."""
+        station = self.ctx.config.station.id
+        command = CommandReceived("system", str(code), payload, None, station, ok, why)
+        self.bus.publish(topics.COMMAND_SENT, CommandSent(platform_id, command))
 
     async def api_movrd(
         self, call: CallContext, platform_id: str, engaged: bool, force: bool = False

@@ -2,10 +2,13 @@
 (``foxglove-sdk``, subprotocol ``foxglove.sdk.v1``) on ``foxglove.host:port``.
 
 Every connected platform gets the recorder's channels (:mod:`brasidas.recording.schemas`),
-topics prefixed by its id (``/rover-1/gps``): positions and every telemetry section from the
-station's telemetry link, the station's notifications as ``foxglove.Log``, the area map and
-the planned route as ``foxglove.GeoJSON``, and the NavCam as ``foxglove.CompressedVideo``
-while a client subscribes to it (the console's shared feed, no re-encoding). Read-only: the
+topics prefixed by its id (``/rover-1/gps``): positions, every telemetry section, the motor
+command and the velocity source it came from (the motion section), state changes (failsafe,
+control, override, streams, patrol) from the station's telemetry link; the system commands
+this station sends (``/commands``); the station's notifications as ``foxglove.Log``; the area
+map and the planned route as ``foxglove.GeoJSON``; and the NavCam as
+``foxglove.CompressedVideo`` while a client subscribes to it (the console's shared feed, no
+re-encoding). ``/pose/local`` is not served: telemetry carries no local frame. Read-only: the
 server advertises no client publishing, services or parameters; control goes through the
 station's own authority.
 
@@ -30,9 +33,9 @@ from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.codecs.telemetry_schema import BY_NAME
-from brasidas.messages import PlatformLink, StationNotification
+from brasidas.messages import CommandSent, PlatformLink, StationNotification
 from brasidas.recording import schemas
-from brasidas.recording.schemas import ChannelSpec
+from brasidas.recording.schemas import AUTONOMY_VELOCITY, TELEOP_VELOCITY, ChannelSpec
 from stationd.context import StationContext
 from stationd.video_feed import HEADER, Viewer, pump
 
@@ -40,6 +43,8 @@ _LOGGER = logging.getLogger(__name__)
 
 POLL_S = 0.1
 """How often the telemetry links are read (the stream's 5 Hz, twice over)."""
+REPUBLISH_NS = 1_000_000_000
+"""An unchanged telemetry section (and what it feeds) is published again this often."""
 PORT_OVERRIDE: int | None = None
 """Replaces ``foxglove.port`` when set: the test suite sets 0, so the many stations its tests
 start never take the well-known port (nor collide on it)."""
@@ -63,30 +68,71 @@ class _Listener(ServerListener):
             self.loop.call_soon_threadsafe(callback, topic, delta)
 
 
+FED_AT_ONCE = (
+    schemas.NAVCAM,
+    schemas.GPS,
+    schemas.POSE,
+    schemas.STATE,
+    schemas.MAP,
+    schemas.ROUTE,
+    schemas.COMMANDS,
+    schemas.TELEOP_VELOCITY,
+    schemas.AUTONOMY_VELOCITY,
+    schemas.MOTOR_COMMAND,
+)
+"""Advertised when a platform connects: what the station feeds from every platform."""
+
+
 class _PlatformChannels:
-    """One platform's channels and what was last published on them."""
+    """One platform's channels and what was last published on them.
+
+    The channels the station feeds are advertised at once (the NavCam's subscription is what
+    fetches it); a telemetry section's and the log's with their first message, so a client is
+    never offered a channel that nothing feeds (``/pose/local``: telemetry carries no local
+    frame; ``/telemetry/turret`` on a platform without one)."""
 
     def __init__(self, platform_id: str, context: foxglove.Context) -> None:
         self.platform_id = platform_id
+        self.context = context
         self.channels: dict[str, foxglove.Channel] = {}
-        for spec in schemas.all_channels():
-            self.channels[spec.topic] = foxglove.Channel(
-                f"/{platform_id}{spec.topic}",
+        for spec in FED_AT_ONCE:
+            self._channel(spec)
+        self.last: dict[str, Any] = {}
+        self.logged_at: dict[str, int] = {}
+        """When each telemetry section was last published (ns): re-published every
+        :data:`REPUBLISH_NS` unchanged, so a client that subscribes later gets it too."""
+        self.states: dict[str, tuple[str, str | None, str]] = {}
+        self.map_rev: int | None = None
+        self.map_data: bytes | None = None
+        """The area map last published: again to each new subscriber (it changes rarely)."""
+        self.video_subscribers = 0
+        self.video_task: asyncio.Task[None] | None = None
+
+    def _channel(self, spec: ChannelSpec) -> foxglove.Channel:
+        channel = self.channels.get(spec.topic)
+        if channel is None:
+            channel = self.channels[spec.topic] = foxglove.Channel(
+                f"/{self.platform_id}{spec.topic}",
                 message_encoding=schemas.MESSAGE_ENCODING,
                 schema=foxglove.Schema(
                     name=spec.schema_name,
                     encoding=schemas.SCHEMA_ENCODING,
                     data=spec.schema_bytes(),
                 ),
-                context=context,
+                context=self.context,
             )
-        self.last: dict[str, Any] = {}
-        self.map_rev: int | None = None
-        self.video_subscribers = 0
-        self.video_task: asyncio.Task[None] | None = None
+        return channel
 
     def log(self, spec: ChannelSpec, data: bytes, time_ns: int) -> None:
-        self.channels[spec.topic].log(data, log_time=time_ns)
+        self._channel(spec).log(data, log_time=time_ns)
+
+    def state(self, what: str, state: str, station: str | None, reason: str, now: int) -> None:
+        """A ``/state`` change, as the recorder writes it; nothing when it did not change."""
+        if self.states.get(what) == (state, station, reason):
+            return
+        self.states[what] = (state, station, reason)
+        change = {"what": what, "state": state, "station": station, "reason": reason}
+        self.log(schemas.STATE, schemas.encode_json(change), now)
 
     def close(self) -> None:
         if self.video_task is not None:
@@ -135,6 +181,7 @@ class FoxgloveLive(Actor):
         self.subscribe(topics.PLATFORM_CONNECTED, self._on_connected)
         self.subscribe(topics.PLATFORM_DISCONNECTED, self._on_disconnected)
         self.subscribe(topics.STATION_NOTIFICATIONS, self._on_notification)
+        self.subscribe(topics.COMMAND_SENT, self._on_command)
         for platform_id in list(self.ctx.connections):
             self._add(platform_id)
         try:
@@ -181,6 +228,12 @@ class FoxgloveLive(Actor):
             schemas.LOG_CHANNEL, schemas.encode_log(time_ns, level, note.name, text), time_ns
         )
 
+    def _on_command(self, sent: CommandSent) -> None:
+        platform = self.platforms.get(sent.platform_id)
+        if platform is not None:
+            now = time.time_ns()
+            platform.log(schemas.COMMANDS, schemas.encode_command(sent.command), now)
+
     async def _poll(self, platform: _PlatformChannels) -> None:
         try:
             report = await self.ctx.api.call_local(
@@ -194,9 +247,15 @@ class FoxgloveLive(Actor):
         now = time.time_ns()
         for name, section in snapshot.items():
             cls = BY_NAME.get(name)
-            if cls is None or not isinstance(section, dict) or platform.last.get(name) == section:
+            if cls is None or not isinstance(section, dict):
+                continue
+            changed = platform.last.get(name) != section
+            if not changed and now - platform.logged_at.get(name, 0) < REPUBLISH_NS:
                 continue
             platform.last[name] = section
+            platform.logged_at[name] = now
+            if changed:
+                self._states(platform, name, section, now)
             platform.log(schemas.telemetry_channel(cls), schemas.encode_json(section), now)
             if self._derived(platform, name, section, now):
                 await self._map(platform)
@@ -214,6 +273,14 @@ class FoxgloveLive(Actor):
         elif name == "pose" and lat is not None and lon is not None:
             data = schemas.encode_location(now, lat, lon, None, section.get("sigma_m"))
             platform.log(schemas.POSE, data, now)
+        elif name == "motion":
+            # The motion section's velocity is the last motor command the arbiter published;
+            # its mode says which source it came from (the override's $PVEL, or cmd_vel).
+            linear, angular = float(section.get("linear", 0.0)), float(section.get("angular", 0.0))
+            data = schemas.encode_velocity(linear, angular)
+            platform.log(schemas.MOTOR_COMMAND, data, now)
+            source = TELEOP_VELOCITY if section.get("mode") == "teleop" else AUTONOMY_VELOCITY
+            platform.log(source, data, now)
         elif name == "autonomy":
             path = [(float(p[0]), float(p[1])) for p in section.get("path", ()) if len(p) >= 2]
             platform.log(schemas.ROUTE, schemas.encode_path(path), now)
@@ -222,19 +289,41 @@ class FoxgloveLive(Actor):
                 return True
         return False
 
+    def _states(
+        self, platform: _PlatformChannels, name: str, section: dict[str, Any], now: int
+    ) -> None:
+        """The ``/state`` changes a changed section shows (the recorder's, from telemetry)."""
+        if name == "failsafe":
+            reason = str(section.get("reason", ""))
+            platform.state("failsafe", str(section.get("step", "")), None, reason, now)
+            holder = section.get("controller")
+            platform.state("control", "held" if holder else "free", holder, "", now)
+        elif name == "override":
+            engaged = "engaged" if section.get("engaged") else "disengaged"
+            platform.state("override", engaged, section.get("station"), "", now)
+        elif name == "streams":
+            for stream, state in (section.get("states") or {}).items():
+                platform.state(f"stream:{stream}", str(state), None, "", now)
+        elif name == "autonomy":
+            reason = str(section.get("reason", ""))
+            platform.state("patrol", str(section.get("state", "")), None, reason, now)
+
     async def _map(self, platform: _PlatformChannels) -> None:
         with contextlib.suppress(RpcError, ConnectionError, TimeoutError):
             answer = await self.ctx.api.call_local("map_get", platform_id=platform.platform_id)
             if isinstance(answer, dict) and answer.get("map") is not None:
-                now = time.time_ns()
-                platform.log(schemas.MAP, schemas.encode_geojson(answer["map"]), now)
+                platform.map_data = schemas.encode_geojson(answer["map"])
+                platform.log(schemas.MAP, platform.map_data, time.time_ns())
 
     # ------------------------------------------------------------------ video (loop)
 
     def subscribed(self, topic: str, delta: int) -> None:
         """A client subscribed to (1) or left (-1) ``topic``; the NavCam is fetched while
-        anyone watches it."""
+        anyone watches it, and a new subscriber to the map gets the current one."""
         for platform in self.platforms.values():
+            if topic == f"/{platform.platform_id}{schemas.MAP.topic}" and delta > 0:
+                if platform.map_data is not None:
+                    platform.log(schemas.MAP, platform.map_data, time.time_ns())
             if topic == f"/{platform.platform_id}{schemas.NAVCAM.topic}":
                 platform.video_subscribers = max(0, platform.video_subscribers + delta)
                 if platform.video_subscribers and platform.video_task is None:

@@ -5,6 +5,9 @@ fetches the file itself, over HTTP with ranges, so a cut download resumes)."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import logging
+import os
 import re
 from pathlib import Path
 from typing import Any
@@ -16,6 +19,8 @@ from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
 from brasidas.security import state_dir
 from stationd.context import StationContext
 from stationd.replay import recording_index, recording_state
+
+_LOGGER = logging.getLogger(__name__)
 
 SESSION_HEADER = "X-Brasidas-Session"
 """The header the platform reads the session token from (platformd.recorder)."""
@@ -53,11 +58,35 @@ async def download(url: str, headers: dict[str, str], target: Path, have: int) -
     return size
 
 
+def trim_cache(cache: Path, max_bytes: int, keep: frozenset[Path]) -> list[Path]:
+    """Delete cached recordings (and partial downloads), least recently opened first, until
+    the cache holds at most ``max_bytes``; never those in ``keep`` (being opened or fetched).
+    Blocking: call it in a thread."""
+    found: list[tuple[float, Path, int]] = []
+    for path in cache.glob("*/*"):
+        if path.name.endswith((".mcap", ".mcap.part")):
+            with contextlib.suppress(OSError):  # gone meanwhile
+                info = path.stat()
+                found.append((info.st_mtime, path, info.st_size))
+    total = sum(size for _mtime, _path, size in found)
+    deleted: list[Path] = []
+    for _mtime, path, size in sorted(found):
+        if total <= max_bytes:
+            break
+        if path in keep:
+            continue
+        path.unlink(missing_ok=True)
+        total -= size
+        deleted.append(path)
+        _LOGGER.info("replay cache: deleted %s (replay.max_bytes)", path.name)
+    return deleted
+
+
 class RecordingsApi:
     def __init__(self, ctx: StationContext) -> None:
         self.ctx = ctx
         self.cache = state_dir() / "replay"
-        """Recordings fetched for replay, by platform: kept until the operator deletes them."""
+        """Recordings fetched for replay, by platform, within ``replay.max_bytes``."""
         self._fetching: dict[Path, asyncio.Lock] = {}
 
     async def api_recordings_list(self, call: CallContext, platform_id: str) -> Any:
@@ -83,6 +112,8 @@ class RecordingsApi:
         lock = self._fetching.setdefault(path, asyncio.Lock())
         async with lock:
             if await asyncio.to_thread(path.is_file):
+                with contextlib.suppress(OSError):  # its use, for the cache's order
+                    await asyncio.to_thread(os.utime, path)
                 return path
             partial = path.with_name(name + ".part")
             await asyncio.to_thread(partial.parent.mkdir, parents=True, exist_ok=True)
@@ -95,6 +126,12 @@ class RecordingsApi:
             except DownloadError as err:
                 raise RpcError(INVALID_PARAMS, str(err)) from None
             await asyncio.to_thread(partial.rename, path)
+            busy = frozenset(
+                p.with_name(p.name + ".part") if p != path else p
+                for p, other in self._fetching.items()
+                if p == path or other.locked()
+            )
+            await asyncio.to_thread(trim_cache, self.cache, self.ctx.config.replay.max_bytes, busy)
             return path
 
     async def api_recording_open(
@@ -108,14 +145,24 @@ class RecordingsApi:
             raise RpcError(INVALID_PARAMS, f"cannot read {name}: {err}") from None
 
     async def api_recording_state(
-        self, call: CallContext, platform_id: str, name: str, time_ns: int
+        self,
+        call: CallContext,
+        platform_id: str,
+        name: str,
+        time_ns: int,
+        frames_after_ns: int | None = None,
     ) -> dict[str, Any]:
-        """The state at ``time_ns``: position, telemetry, log and the frames to decode."""
-        if not isinstance(time_ns, int):
+        """The state at ``time_ns``: position, telemetry, log and the frames to decode (while
+        playing: those after ``frames_after_ns``, which the console's decoder has had)."""
+        if not isinstance(time_ns, int) or isinstance(time_ns, bool):
             raise RpcError(INVALID_PARAMS, "invalid params: time_ns must be an integer")
+        if frames_after_ns is not None and (
+            not isinstance(frames_after_ns, int) or isinstance(frames_after_ns, bool)
+        ):
+            raise RpcError(INVALID_PARAMS, "invalid params: frames_after_ns must be an integer")
         path = await self._local(platform_id, name)
         try:
-            return await asyncio.to_thread(recording_state, path, time_ns)
+            return await asyncio.to_thread(recording_state, path, time_ns, frames_after_ns)
         except Exception as err:
             raise RpcError(INVALID_PARAMS, f"cannot read {name}: {err}") from None
 

@@ -98,10 +98,14 @@ def _lat_lon(data: bytes) -> list[float]:
     return [float(fix["latitude"]), float(fix["longitude"])]
 
 
-def recording_state(path: Path, time_ns: int) -> dict[str, Any]:
+def recording_state(path: Path, time_ns: int, frames_after_ns: int | None = None) -> dict[str, Any]:
     """What the robot knew and saw at ``time_ns``: the latest of each channel within
     :data:`STATE_WINDOW_NS` (position, telemetry sections), the log up to then, and the NavCam
-    access units from the last keyframe to the frame shown then (base64, oldest first)."""
+    access units from the last keyframe to the frame shown then (base64, oldest first).
+
+    While playing, the console's decoder already has every unit up to ``frames_after_ns``:
+    then (within :data:`VIDEO_WINDOW_NS`) the units after it are sent, keyframes or not, and
+    the answer's ``frames_after_ns`` says so (None: from the keyframe)."""
     latest: dict[str, tuple[int, Any]] = {}
     log: list[dict[str, Any]] = []
     frames: list[tuple[int, bytes]] = []
@@ -122,12 +126,20 @@ def recording_state(path: Path, time_ns: int) -> dict[str, Any]:
             log.append(
                 {"time_ns": message.log_time, "level": entry["level"], "text": entry["message"]}
             )
+        following = frames_after_ns is not None and (
+            time_ns - VIDEO_WINDOW_NS <= frames_after_ns < time_ns
+        )
         for _s, _c, message in reader.iter_messages(
             topics=[schemas.NAVCAM.topic],
-            starting_at=time_ns - VIDEO_WINDOW_NS,
+            starting_at=frames_after_ns + 1
+            if following and frames_after_ns is not None
+            else time_ns - VIDEO_WINDOW_NS,
             ending_at=time_ns,
         ):
             unit = base64.b64decode(json.loads(message.data)["data"])
+            if following:
+                frames.append((message.log_time, unit))
+                continue
             if _is_keyframe(unit):
                 frames = []
             if frames or _is_keyframe(unit):
@@ -151,4 +163,5 @@ def recording_state(path: Path, time_ns: int) -> dict[str, Any]:
         "frames": [
             {"time_ns": t, "data": base64.b64encode(unit).decode("ascii")} for t, unit in frames
         ],
+        "frames_after_ns": frames_after_ns if following else None,
     }

@@ -31,6 +31,7 @@ from brasidas.codecs.telemetry_schema import (
     Override,
     Platforms,
     Pose,
+    RecorderStatus,
     Section,
     Streams,
     Turret,
@@ -99,6 +100,7 @@ def render(report: dict[str, Any], *, color: bool = True, now: float | None = No
         ("automation", Automation, _automation),
         ("streams", Streams, _streams),
         ("platforms", Platforms, _platforms),
+        ("recorder", RecorderStatus, _recorder),
     ]
     for title, section, show in rows:
         error = snap.error(section)
@@ -408,6 +410,17 @@ def _link(link: dict[str, Any]) -> str:
 def _platforms(platforms: Platforms) -> str:
     heard = [f"{name} ({age:.0f} s ago)" for name, age in platforms.age_s.items()]
     return "  ".join(heard) or "none heard"
+
+
+def _recorder(recorder: RecorderStatus) -> str:
+    state = (
+        "recording"
+        if recorder.recording
+        else f"STOPPED: {recorder.reason}"
+        if recorder.reason
+        else "not recording yet"
+    )
+    return f"{state}  dropped {recorder.dropped}  not recorded {recorder.not_recorded}"
 
 
 def _clip(line: str, width: int) -> str:

@@ -12,9 +12,10 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
-from conftest import quiet_platform_config, running_station
+from conftest import quiet_platform_config, running_station, wait_until
 from test_station import run_cli
 
+from brasidas import topics
 from platformd.app import PlatformDaemon
 from stationd.foxglove_live import FoxgloveLive
 
@@ -39,6 +40,10 @@ async def subscribe(port: int, count: int, *topics: str) -> list[dict[str, Any]]
     )
     try:
         out, err = await asyncio.wait_for(process.communicate(), 60)
+    except TimeoutError:
+        process.terminate()  # the client says what it still misses
+        _out, err = await process.communicate()
+        raise AssertionError(f"the client timed out: {err.decode()[-1500:]}") from None
     finally:
         if process.returncode is None:
             process.kill()
@@ -86,3 +91,87 @@ async def test_a_foxglove_client_receives_location_fixes_and_compressed_video(
     # The first frame a client gets is a keyframe with its SPS (NAL type 7) in front.
     first = base64.b64decode(video[0]["json"]["data"][:16])
     assert first[:5] in (b"\x00\x00\x00\x01\x67", b"\x00\x00\x00\x01\x09"), first
+
+
+async def test_every_channel_the_station_advertises_is_fed(
+    platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+) -> None:
+    """Commands the station sends, state changes, the velocities and motor commands telemetry
+    shows: a real client subscribed to every channel advertised gets a message on each; a
+    channel nothing feeds (``/pose/local``) is not advertised."""
+    platform = await platform_factory(
+        quiet_platform_config(
+            "platform.id=rover-fa",
+            "sim.enabled=true",
+            "gps.enabled=true",
+            "navcam.enabled=true",
+            "motor.enabled=true",
+            f"map.file={tmp_path / 'map.geojson'}",
+            f"autonomy.route_file={tmp_path / 'route.json'}",
+        ),
+        fleet_key,
+    )
+    required = [
+        f"/rover-fa{topic}"
+        for topic in (
+            "/gps",
+            "/pose",
+            "/navcam",
+            "/route",
+            "/commands",
+            "/state",
+            "/velocity/teleop",
+            "/velocity/autonomy",
+            "/motor/command",
+            "/telemetry/motion",
+            "/telemetry/override",
+        )
+    ]
+    async with running_station(fleet_key, "foxglove.port=0") as station:
+        (live,) = [a for a in station.supervisor.actors if isinstance(a, FoxgloveLive)]
+        await asyncio.wait_for(live.serving.wait(), 30)
+        code, _, err = await run_cli(
+            station, "connect", "rover-fa", "--url", platform.ctx.signaling_url
+        )
+        assert code == 0, err
+        controller = topics.CONTROLLER_STATUS  # the override needs the motors
+        await wait_until(lambda: getattr(platform.bus.last(controller), "connected", False), 20)
+        client = asyncio.create_task(subscribe(live.port, 1, "--all", *required))
+        try:
+            engaged = False
+            # The operator drives and switches lights until the client has had everything:
+            # commands sent, override and mode changes (a later subscriber misses earlier ones).
+            while not client.done():
+                engaged = not engaged
+                for args in (("movrd", "rover-fa", "on" if engaged else "off"),
+                             ("lights", "rover-fa", "main", "on" if engaged else "off")):  # fmt: skip
+                    code, out, err = await run_cli(station, *args)
+                    assert code == 0, out + err
+                await asyncio.wait([client], timeout=0.5)
+            lines = await client
+        finally:
+            client.cancel()
+    advertised = {line["advertised"]: line["schema"] for line in lines if "advertised" in line}
+    messages: dict[str, list[dict[str, Any]]] = {}
+    for line in lines:
+        if "topic" in line:
+            messages.setdefault(line["topic"], []).append(line)
+    assert set(required) <= set(advertised), advertised
+    assert set(messages) == set(advertised), set(advertised) - set(messages)
+    assert "/rover-fa/pose/local" not in advertised  # telemetry carries no local frame
+    for topic, schema in {
+        "/commands": "brasidas.Command",
+        "/state": "brasidas.StateChange",
+        "/velocity/teleop": "brasidas.Velocity",
+        "/velocity/autonomy": "brasidas.Velocity",
+        "/motor/command": "brasidas.Velocity",
+    }.items():
+        assert advertised[f"/rover-fa{topic}"] == schema
+    (command,) = messages["/rover-fa/commands"]
+    assert command["json"]["station"] == station.ctx.config.station.id
+    assert command["json"]["kind"] == "system" and command["json"]["accepted"] is True
+    assert command["json"]["name"] in ("10.0", "10.6") and command["json"]["session"] is None
+    (state,) = messages["/rover-fa/state"]
+    assert set(state["json"]) == {"what", "state", "station", "reason"}
+    (motor,) = messages["/rover-fa/motor/command"]
+    assert set(motor["json"]) == {"linear", "angular"}

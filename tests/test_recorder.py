@@ -22,17 +22,26 @@ from conftest import free_tcp_port, free_udp_port, quiet_platform_config, wait_u
 from mcap.reader import make_reader
 from mcap.records import Message
 from mcap.stream_reader import StreamReader
+from stationd.telemetry.annunciator import RECORDER_STOPPED, Annunciator
 from test_station import run_cli, station
 from test_velocity import open_connection, udp_socket
 
 from brasidas import topics
 from brasidas.codecs import pvel
+from brasidas.codecs.telemetry import MAX_DATAGRAM, TelemetryDecoder, TelemetryEncoder
+from brasidas.codecs.telemetry_schema import (
+    RecorderStatus,
+    Snapshot,
+    snapshot_from_wire,
+    snapshot_to_wire,
+)
+from brasidas.config import TelemetryReceiverSection
 from brasidas.media.gst import gst
 from brasidas.messages import Velocity
 from brasidas.recording import schemas
 from brasidas.recording.writer import ACTIVE_SUFFIX, Quota, Recorder
 from platformd.app import PlatformDaemon
-from platformd.recorder import PlatformRecorder
+from platformd.recorder import REASON_MAX_CHARS, PlatformRecorder
 from stationd.daemon import StationDaemon
 
 __all__ = ["station"]
@@ -351,12 +360,17 @@ async def test_video_waits_for_a_keyframe_in_every_file(tmp_path: Path) -> None:
 
 
 async def test_a_full_disk_stops_recording_with_a_warning_and_teleop_carries_on(
-    platform_factory: Factory, fleet_key: bytes, tmp_path: Path, caplog: pytest.LogCaptureFixture
+    station: StationDaemon,
+    platform_factory: Factory,
+    fleet_key: bytes,
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
 ) -> None:
     caplog.set_level(logging.WARNING, "brasidas.recording.writer")
     # The floor above the disk's size: the disk is full as far as the recorder knows.
     daemon = await platform_factory(
         quiet_platform_config(
+            "platform.id=rover-floor",
             "recorder.enabled=true",
             f"recorder.dir={tmp_path / 'recordings'}",
             f"recorder.min_free_bytes={2**50}",
@@ -380,6 +394,7 @@ async def test_a_full_disk_stops_recording_with_a_warning_and_teleop_carries_on(
         listing = await conn.call("list_recordings")
         assert listing["recording"] is False and "disk full" in listing["reason"]
         assert listing["counters"]["not_recording"] > 0
+        await station_sees_the_recorder_stopped(station, daemon, "disk full", "DISK FULL")
     finally:
         sock.close()
         await conn.close()
@@ -510,12 +525,17 @@ def tiny_tmpfs(path: Path, size: str) -> Iterator[Path]:
 
 
 async def test_a_full_tmpfs_stops_recording_with_a_warning_and_teleop_carries_on(
-    platform_factory: Factory, fleet_key: bytes, tmp_path: Path, caplog: pytest.LogCaptureFixture
+    station: StationDaemon,
+    platform_factory: Factory,
+    fleet_key: bytes,
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
 ) -> None:
     caplog.set_level(logging.WARNING, "brasidas.recording.writer")
     with tiny_tmpfs(tmp_path / "disk", "400k") as disk:
         daemon = await platform_factory(
             quiet_platform_config(
+                "platform.id=rover-full",
                 "sim.enabled=true",
                 "navcam.enabled=true",
                 "recorder.enabled=true",
@@ -544,7 +564,68 @@ async def test_a_full_tmpfs_stops_recording_with_a_warning_and_teleop_carries_on
             listing = await conn.call("list_recordings")
             assert listing["recording"] is False and "write failed" in listing["reason"]
             assert (await conn.call("get_nav_camera_parameters"))["state"] == "playing"
+            # The operator sees it: a station warning (90.23) in status and the notifications
+            # the console shows, from the recorder's telemetry section.
+            await station_sees_the_recorder_stopped(
+                station, daemon, "No space left on device", "WRITE FAILED"
+            )
         finally:
             sock.close()
             await conn.close()
             await daemon.stop()
+
+
+async def station_sees_the_recorder_stopped(
+    station: StationDaemon, daemon: PlatformDaemon, why: str, shown: str
+) -> None:
+    platform_id = daemon.ctx.config.platform.id
+    code, _, err = await run_cli(station, "connect", platform_id, "--url", daemon.ctx.signaling_url)
+    assert code == 0, err
+
+    async def warned() -> list[dict[str, Any]]:
+        while True:
+            notes = await station.ctx.api.call_local("telemetry_notifications", limit=50)
+            if any(n["code"] == str(RECORDER_STOPPED) and n["active"] for n in notes):
+                return list(notes)
+            await asyncio.sleep(0.05)
+
+    notes = await asyncio.wait_for(warned(), 20)
+    (note,) = [n for n in notes if n["code"] == str(RECORDER_STOPPED)]
+    assert note["platform_id"] == platform_id and why in note["message"], note
+    code, out, err = await run_cli(station, "status", platform_id)
+    assert code == 0, err
+    assert f"RECORDER STOPPED: {shown}" in out, out
+    assert f"recorder   STOPPED: {shown.lower()}" in out and "not recorded" in out, out
+    code, out, _ = await run_cli(station, "status", platform_id, "--json")
+    section = json.loads(out)["telemetry"]["snapshot"]["recorder"]
+    assert section["recording"] is False and why in section["reason"]
+    assert section["not_recorded"] > 0
+
+
+def test_a_stopped_recorder_is_a_station_warning_until_it_records_again() -> None:
+    annunciator = Annunciator(TelemetryReceiverSection())
+    assert annunciator.evaluate(Snapshot({RecorderStatus: RecorderStatus(True)}), 0, None, 1) == []
+    idle = RecorderStatus(False)  # nothing to record yet: no warning
+    assert annunciator.evaluate(Snapshot({RecorderStatus: idle}), 0, None, 2) == []
+    stopped = RecorderStatus(False, "quota reached: 2.0 GiB of 2.0 GiB", 0, 12)
+    (change,) = annunciator.evaluate(Snapshot({RecorderStatus: stopped}), 0, None, 3)
+    assert change.active and change.warning.code == RECORDER_STOPPED
+    assert change.warning.message == "recorder stopped: quota reached: 2.0 GiB of 2.0 GiB"
+    (change,) = annunciator.evaluate(Snapshot({RecorderStatus: RecorderStatus(True)}), 0, None, 4)
+    assert not change.active and change.warning.code == RECORDER_STOPPED
+
+
+def test_a_stopped_recorder_with_its_longest_reason_reaches_the_station_whole() -> None:
+    """On top of the fullest snapshot it may take a datagram of its own (the encoder splits by
+    section): every datagram stays under the limit and the station gets the section entire."""
+    from test_telemetry_schema import FULL
+
+    longest = RecorderStatus(False, "x" * REASON_MAX_CHARS, 2**31, 2**31)
+    encoder = TelemetryEncoder("brasidas-1", bytes(32))
+    decoder = TelemetryDecoder("brasidas-1", bytes(32))
+    sections: dict[str, Any] = {}
+    for datagram in encoder.encode(snapshot_to_wire({**FULL, RecorderStatus: longest}), 0.0):
+        assert len(datagram) < MAX_DATAGRAM
+        sections.update(decoder.decode(datagram).sections)
+    decoded, unknown = snapshot_from_wire(sections)
+    assert unknown == [] and decoded.get(RecorderStatus) == longest

@@ -5,17 +5,21 @@ position on the map and that time's NavCam frame."""
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
+import os
 import shutil
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
-from conftest import free_udp_port, quiet_platform_config, running_station
+from conftest import free_udp_port, quiet_platform_config, running_station, wait_until
 from mcap.reader import make_reader
 from test_station import run_cli
 
+from brasidas import topics
 from platformd.app import PlatformDaemon
+from stationd.api_client import api_call_async
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -169,3 +173,210 @@ async def test_seeking_shows_that_times_position_and_frame(
                 assert not errors, errors
             finally:
                 await browser.close()
+
+
+def small_recording(path: Path, payload_bytes: int) -> None:
+    """A finished MCAP file of about ``payload_bytes`` (one incompressible log message)."""
+    from mcap.writer import CompressionType, Writer
+
+    with open(path, "wb") as stream:
+        writer = Writer(stream, compression=CompressionType.NONE)
+        writer.start(profile="", library="test")
+        schema = writer.register_schema("foxglove.Log", "jsonschema", b"{}")
+        channel = writer.register_channel("/log", "json", schema)
+        writer.add_message(channel, 1_000, os.urandom(payload_bytes), 1_000)
+        writer.finish()  # type: ignore[no-untyped-call]
+
+
+async def test_the_replay_cache_keeps_within_its_quota_least_recently_opened_first(
+    platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+) -> None:
+    recordings = tmp_path / "recordings"
+    recordings.mkdir()
+    names = [f"2026112{n}T000000.000Z-rover-rc.mcap" for n in range(4)]
+    for name in names:
+        small_recording(recordings / name, 400_000)
+    platform = await platform_factory(
+        quiet_platform_config(
+            "platform.id=rover-rc", "recorder.enabled=true", f"recorder.dir={recordings}"
+        ),
+        fleet_key,
+    )
+    async with running_station(fleet_key, f"replay.max_bytes={1024 * 1024}") as station:
+        code, _, err = await run_cli(
+            station, "connect", "rover-rc", "--url", platform.ctx.signaling_url
+        )
+        assert code == 0, err
+        cache = tmp_path / "state" / "brasidas" / "replay" / "rover-rc"
+        config = dataclasses.replace(
+            station.ctx.config,
+            station=dataclasses.replace(station.ctx.config.station, api_port=station.api_port),
+        )
+
+        async def open_(name: str) -> set[str]:
+            answer = await api_call_async(
+                config, "recording_open", platform_id="rover-rc", name=name
+            )
+            assert answer["channels"]["/log"]["messages"] == 1
+            return {p.name for p in cache.iterdir()}
+
+        a, b, c, d = names
+        assert await open_(a) == {a}
+        assert await open_(b) == {a, b}
+        assert await open_(c) == {b, c}  # 1.2 MB > 1 MiB: the oldest goes
+        await asyncio.sleep(0.02)  # a later mtime than c's, on any file system's clock
+        assert await open_(b) == {b, c}  # cached: opened again, now the most recent
+        assert await open_(d) == {b, d}  # c is now the least recently opened
+        assert sum(p.stat().st_size for p in cache.iterdir()) <= 1024 * 1024
+
+
+def video_times(path: Path) -> list[int]:
+    with open(path, "rb") as stream:
+        return [m.log_time for _s, _c, m in make_reader(stream).iter_messages(topics=["/navcam"])]
+
+
+def summary_start(path: Path) -> int:
+    with open(path, "rb") as stream:
+        stats = make_reader(stream).get_summary().statistics  # type: ignore[union-attr]
+    assert stats is not None
+    return int(stats.message_start_time)
+
+
+def fast_recording(directory: Path) -> Path | None:
+    """A finished recording whose NavCam ran at 30 fps (the override engaged) for most of it."""
+    for path in finished_with_video(directory):
+        times = video_times(path)
+        if len(times) > 60 and len(times) / ((times[-1] - times[0]) / 1e9) > 20:
+            return path
+    return None
+
+
+async def test_playing_at_1x_shows_every_recorded_frame(
+    platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+) -> None:
+    """Not 4 frames a second (the timeline's ticks): every access unit recorded, at its rate."""
+    from playwright.async_api import async_playwright, expect
+
+    recordings = tmp_path / "recordings"
+    platform = await platform_factory(
+        quiet_platform_config(
+            "platform.id=rover-fps",
+            "sim.enabled=true",
+            "navcam.enabled=true",
+            "motor.enabled=true",
+            "recorder.enabled=true",
+            f"recorder.dir={recordings}",
+            "recorder.rotate_minutes=0.1",
+        ),
+        fleet_key,
+    )
+    async with running_station(fleet_key) as station:
+        code, _, err = await run_cli(
+            station, "connect", "rover-fps", "--url", platform.ctx.signaling_url
+        )
+        assert code == 0, err
+        code, _, err = await run_cli(
+            station, "stream", "rover-fps", "navcam", "start", "--port", str(free_udp_port())
+        )
+        assert code == 0, err
+        controller = topics.CONTROLLER_STATUS
+        await wait_until(lambda: getattr(platform.bus.last(controller), "connected", False), 20)
+        code, out, err = await run_cli(station, "movrd", "rover-fps", "on")  # 30 fps
+        assert code == 0, out + err
+        deadline = asyncio.get_running_loop().time() + 90
+        while (path := await asyncio.to_thread(fast_recording, recordings)) is None:
+            assert asyncio.get_running_loop().time() < deadline, "no 30 fps recording"
+            await asyncio.sleep(0.5)
+        times = await asyncio.to_thread(video_times, path)
+        start = await asyncio.to_thread(summary_start, path)
+
+        async with async_playwright() as playwright:
+            browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            try:
+                page = await browser.new_page()
+                errors: list[str] = []
+                page.on("pageerror", lambda error: errors.append(str(error)))
+                await page.goto(f"http://127.0.0.1:{station.api_port}/")
+                await page.locator("#recordings-toggle").click()
+                await page.locator("#rec-platform").fill("rover-fps")
+                await page.locator("#rec-list-button").click()
+                option = page.locator(f'#rec-list option[value="{path.name}"]')
+                await expect(option).to_have_count(1, timeout=15_000)
+                await page.locator("#rec-list").select_option(path.name)
+                await page.locator("#rec-open").click()
+                view = page.locator("#recordings")
+                await expect(view).to_have_attribute("data-recording", path.name, timeout=30_000)
+                # From a second after the first frame, at 1x.
+                await page.evaluate(
+                    """(seconds) => {
+                        const slider = document.getElementById("rec-time");
+                        slider.value = String(seconds);
+                        slider.dispatchEvent(new Event("input"));
+                    }""",
+                    (times[0] - start) / 1e9 + 1.0,
+                )
+                await page.locator("#rec-play").click()
+
+                async def sample() -> tuple[int, int]:
+                    """Frames drawn so far and the last one's time, read at one moment."""
+                    drawn, at = await page.evaluate(
+                        """() => {
+                            const c = document.getElementById("rec-video");
+                            return [c.dataset.framesDrawn || "0", c.dataset.frameTimeNs || "0"];
+                        }"""
+                    )
+                    return int(drawn), int(at)
+
+                await asyncio.sleep(1.5)  # playing steadily
+                drawn_0, at_0 = await sample()
+                await asyncio.sleep(1.5)
+                drawn_1, at_1 = await sample()
+                message = await page.locator("#rec-message").text_content()
+                assert not errors, errors
+            finally:
+                await browser.close()
+    played_s = (at_1 - at_0) / 1e9
+    recorded = sum(1 for t in times if at_0 < t <= at_1)
+    drawn = drawn_1 - drawn_0
+    assert played_s > 0.5, (at_0, at_1, message)
+    assert recorded / played_s > 20, (recorded, played_s)
+    # Every one, but for a frame or two of a tick that came too late under load (the old
+    # player drew one a tick: 6 here).
+    assert 0.9 * recorded <= drawn <= recorded + 1, (drawn, recorded, played_s, message)
+
+
+def test_a_tick_of_play_gets_the_units_after_the_decoders_last_across_a_keyframe(
+    tmp_path: Path,
+) -> None:
+    """30 fps, a keyframe every 10 units: at a tick, the units after the last one the
+    decoder had (keyframes or not), not only those from the latest keyframe."""
+    from mcap.writer import CompressionType, Writer
+
+    from brasidas.recording import schemas
+    from stationd.replay import recording_state
+
+    path = tmp_path / "video.mcap"
+    start, step = 1_000_000_000_000, 33_333_333
+    with open(path, "wb") as stream:
+        writer = Writer(stream, compression=CompressionType.ZSTD)
+        writer.start(profile="", library="test")
+        schema = writer.register_schema("foxglove.CompressedVideo", "jsonschema", b"{}")
+        channel = writer.register_channel("/navcam", "json", schema)
+        for i in range(60):
+            nal = b"\x00\x00\x00\x01\x65" if i % 10 == 0 else b"\x00\x00\x00\x01\x41"
+            t = start + i * step
+            writer.add_message(channel, t, schemas.encode_video(t, nal + bytes([i])), t)
+        writer.finish()  # type: ignore[no-untyped-call]
+    at = start + 25 * step
+    from_keyframe = recording_state(path, at)
+    assert [f["time_ns"] for f in from_keyframe["frames"]] == [
+        start + i * step for i in range(20, 26)
+    ]
+    assert from_keyframe["frames_after_ns"] is None
+    after = start + 17 * step
+    following = recording_state(path, at, after)
+    assert [f["time_ns"] for f in following["frames"]] == [start + i * step for i in range(18, 26)]
+    assert following["frames_after_ns"] == after
+    # Too far back (past the video window) or ahead: from the keyframe again.
+    assert recording_state(path, at, at)["frames_after_ns"] is None
+    assert recording_state(path, at, at - 4_000_000_000)["frames_after_ns"] is None

@@ -33,6 +33,7 @@ from brasidas.codecs.telemetry_schema import (
     Override,
     Platforms,
     Pose,
+    RecorderStatus,
     Section,
     SectionError,
     SectionValue,
@@ -81,6 +82,7 @@ FULL: dict[type[Section], SectionValue] = {
     ),
     Automation: Automation({"patrol": True, "auto_framerate": False, "diagnostics": True}),
     Admission: Admission({"evicted_host": 340, "idle_timeouts": 12}, 8, "10.0.0.9", 340, 10.0),
+    RecorderStatus: RecorderStatus(True, "", 3, 0),  # stopped: tests/test_recorder.py
     Diagnostics: None,
 }  # fmt: skip
 

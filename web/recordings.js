@@ -58,7 +58,7 @@ let inFlight = false;
 let pendingSeek = null;
 let map = null;
 let marker = null;
-let decoder = null;
+let previousNs = null; // the moment shown at the previous tick while playing
 
 toggle.addEventListener("click", () => {
   const shown = view.hidden;
@@ -118,7 +118,7 @@ setInterval(() => {
   const next = Number(timeline.value) + (TICK_MS / 1000) * Number(speed.value);
   if (next >= Number(timeline.max)) { playing = false; play.textContent = "play"; play.setAttribute("aria-pressed", "false"); }
   timeline.value = String(Math.min(next, Number(timeline.max)));
-  seek(recording.start_ns + Math.round(Number(timeline.value) * 1e9));
+  seek(recording.start_ns + Math.round(Number(timeline.value) * 1e9), true);
 }, TICK_MS);
 
 function drawTrack() {
@@ -138,21 +138,25 @@ function drawTrack() {
 }
 
 /** Show the state at ``timeNs``; seeks that come while one is answered keep only the last. */
-async function seek(timeNs) {
-  if (inFlight) { pendingSeek = timeNs; return; }
+async function seek(timeNs, tick = false) {
+  // A tick of play goes on from the previous one; a seek by hand starts over at a keyframe.
+  if (inFlight) { pendingSeek = { timeNs, tick: tick && (pendingSeek?.tick ?? true) }; return; }
   inFlight = true;
   try {
-    const state = await api.call("recording_state", { platform_id: recording.platform, name: recording.name, time_ns: timeNs }, 10000);
-    show(state);
+    const params = { platform_id: recording.platform, name: recording.name, time_ns: timeNs };
+    // Playing on: only the access units the decoder has not had.
+    if (tick && playing && continuable()) params.frames_after_ns = video.lastFed;
+    const state = await api.call("recording_state", params, 10000);
+    show(state, tick);
   } catch (error) {
     message.textContent = `cannot seek: ${error.message}`;
   } finally {
     inFlight = false;
-    if (pendingSeek !== null) { const next = pendingSeek; pendingSeek = null; seek(next); }
+    if (pendingSeek !== null) { const next = pendingSeek; pendingSeek = null; seek(next.timeNs, next.tick); }
   }
 }
 
-function show(state) {
+function show(state, tick = false) {
   const seconds = (state.time_ns - recording.start_ns) / 1e9;
   clock.textContent = `${new Date(state.time_ns / 1e6).toISOString().slice(11, 23)} UTC (+${seconds.toFixed(1)} s)`;
   view.dataset.timeNs = String(state.time_ns);
@@ -183,7 +187,11 @@ function show(state) {
   instruments.replaceChildren(...rows);
   log.replaceChildren(...state.log.map((line) => element("li", { class: line.level >= 3 ? "warning" : "" }, `${new Date(line.time_ns / 1e6).toISOString().slice(11, 19)} ${line.text}`)));
   drawPlots(state.time_ns);
-  decodeFrames(state.frames);
+  const pacing = tick && playing && previousNs !== null && state.time_ns > previousNs
+    ? { wallMs: performance.now(), fromNs: previousNs, speed: Number(speed.value) }
+    : null;
+  previousNs = playing ? state.time_ns : null;
+  decodeFrames(state.frames, pacing, state.frames_after_ns);
 }
 
 const PLOT_COLORS = ["#1565c0", "#2e7d32", "#c62828", "#6a1b9a"];
@@ -232,33 +240,103 @@ function bytesOf(base64) {
   return out;
 }
 
-/** Decode from the keyframe to the frame of that moment; the last one drawn stays. */
-async function decodeFrames(frames) {
+// Video. Paused (a seek): decode from the keyframe to the frame of that moment and draw that
+// one. Playing: each tick's answer carries the access units up to the new moment; the decoder
+// is kept, fed only the units it has not had, and every one of them is drawn at its recorded
+// offset from the previous tick (divided by the speed), spread over the next tick: playback
+// shows the recorded frame rate, one tick late.
+let video = null; // {decoder, lastFed (ns), paced: timestamp → its tick's pacing, flushed}
+let generation = 0;
+let framesDrawn = 0;
+
+function draw(frame, timeNs) {
+  const context = canvas.getContext("2d");
+  if (canvas.width !== frame.displayWidth) canvas.width = frame.displayWidth;
+  if (canvas.height !== frame.displayHeight) canvas.height = frame.displayHeight;
+  context.drawImage(frame, 0, 0);
+  framesDrawn += 1;
+  canvas.dataset.framesDrawn = String(framesDrawn);
+  canvas.dataset.frameTimeNs = String(timeNs);
+}
+
+function resetVideo() {
+  generation += 1; // frames still waiting for their moment are dropped
+  if (video && video.decoder.state !== "closed") video.decoder.close();
+  video = null;
+}
+
+/** Decode ``units`` on ``chain``; played, the units new since the previous tick show at their
+ * moment, the others (the way from the keyframe to them) are decoded, not shown. */
+function feed(chain, units, pacing, first) {
+  units.forEach((unit, i) => {
+    const timestamp = Math.round(unit.time / 1000);
+    if (pacing && unit.time > pacing.fromNs) chain.paced.set(timestamp, pacing);
+    const type = (first && i === 0) || isKey(unit.data) ? "key" : "delta";
+    chain.decoder.decode(new EncodedVideoChunk({ type, timestamp, data: unit.data }));
+  });
+  chain.lastFed = units[units.length - 1].time;
+}
+
+/** Whether an Annex B access unit holds an IDR slice (NAL type 5). */
+function isKey(bytes) {
+  for (let i = 0; i + 3 < bytes.length; i++) {
+    if (bytes[i] === 0 && bytes[i + 1] === 0 && bytes[i + 2] === 1 && (bytes[i + 3] & 0x1f) === 5) return true;
+  }
+  return false;
+}
+
+function continuable() {
+  return video !== null && !video.flushed && video.decoder.state === "configured";
+}
+
+/** Decode ``frames``: from a keyframe, or (``after`` the last unit fed) the units that follow;
+ * ``pacing`` ({wallMs, fromNs, speed}) while playing. */
+async function decodeFrames(frames, pacing, after) {
+  if (pacing && after !== null && after !== undefined && continuable() && after === video.lastFed) {
+    if (frames.length) feed(video, frames.map((f) => ({ time: f.time_ns, data: bytesOf(f.data) })), pacing, false);
+    return;
+  }
   if (!frames.length || typeof VideoDecoder === "undefined") {
+    resetVideo();
     canvas.dataset.frameTimeNs = "";
     return;
   }
   const units = frames.map((f) => ({ time: f.time_ns, data: bytesOf(f.data) }));
+  const last = units[units.length - 1].time;
   const codec = codecFromSps(units[0].data);
   if (!codec) return;
-  if (decoder && decoder.state !== "closed") decoder.close();
-  const last = units[units.length - 1].time;
-  const context = canvas.getContext("2d");
-  decoder = new VideoDecoder({
+  resetVideo();
+  const mine = generation;
+  const lastStamp = Math.round(last / 1000);
+  const chain = { decoder: null, lastFed: last, paced: new Map(), flushed: !pacing };
+  chain.decoder = new VideoDecoder({
     output: (frame) => {
-      if (frame.timestamp * 1000 === last || frame.timestamp === Math.round(last / 1000)) {
-        canvas.width = frame.displayWidth;
-        canvas.height = frame.displayHeight;
-        context.drawImage(frame, 0, 0);
-        canvas.dataset.frameTimeNs = String(last);
+      const at = chain.paced.get(frame.timestamp);
+      chain.paced.delete(frame.timestamp);
+      const timeNs = frame.timestamp * 1000;
+      if (mine !== generation || (!at && (pacing || frame.timestamp !== lastStamp))) {
+        frame.close();
+        return;
       }
-      frame.close();
+      if (!at) { // paused: the moment's frame
+        draw(frame, last);
+        frame.close();
+        return;
+      }
+      const delay = at.wallMs + (timeNs - at.fromNs) / 1e6 / at.speed - performance.now();
+      setTimeout(() => {
+        if (mine === generation) draw(frame, timeNs);
+        frame.close();
+      }, Math.max(0, delay));
     },
     error: (error) => { message.textContent = `video: ${error.message}`; },
   });
-  decoder.configure({ codec, optimizeForLatency: true });
-  units.forEach((unit, i) => {
-    decoder.decode(new EncodedVideoChunk({ type: i === 0 ? "key" : "delta", timestamp: Math.round(unit.time / 1000), data: unit.data }));
-  });
-  try { await decoder.flush(); } catch { /* replaced by a newer seek */ }
+  chain.decoder.configure({ codec, optimizeForLatency: true });
+  feed(chain, units, pacing, true);
+  video = chain;
+  if (!pacing) {
+    // Paused: flush to get the moment's frame out (after a flush the next chunk must be a key:
+    // playing from here starts a new decoder).
+    try { await chain.decoder.flush(); } catch { /* replaced by a newer seek */ }
+  }
 }

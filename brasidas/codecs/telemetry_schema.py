@@ -24,13 +24,14 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
-SCHEMA_VERSION = 8
+SCHEMA_VERSION = 9
 """Version of the schema (and the datagram layout); the first byte of every datagram.
 4: the failsafe, speed_cap and turret sections, the velocity link's ``held`` drops.
 5: the lights' ``errors`` (GPIO lines), the turret's ``streams``.
 6: the autonomy section's ``map_rev``.
 7: the turret's ``error`` (its line cannot be opened, or went away).
-8: the admission section (strangers refused and closed, issue 19)."""
+8: the admission section (strangers refused and closed, issue 19).
+9: the recorder section (recording, or stopped and why; its drops)."""
 ERROR_KEY = "!"
 """A section's wire map holding only this key is that section's error."""
 STALE_PERIODS = 3.0
@@ -414,6 +415,24 @@ class Automation(Section):
     switches: dict[str, bool] = field(default_factory=dict, metadata=wire("s"))
 
 
+@dataclass(frozen=True)
+class RecorderStatus(Section):
+    """The flight recorder (issue 23): recording, or stopped and why; what it dropped."""
+
+    NAME = "recorder"
+    WIRE = "rec"
+    recording: bool = field(default=False, metadata=wire("r"))
+    reason: str = field(
+        default="", metadata=wire("w", doc="why it stopped: disk full, a write failed, quota")
+    )
+    dropped: int = field(
+        default=0, metadata=wire("d", doc="messages dropped: the writer could not keep up")
+    )
+    not_recorded: int = field(
+        default=0, metadata=wire("n", doc="messages not recorded while it was stopped")
+    )
+
+
 SECTIONS: tuple[type[Section], ...] = (
     Override,
     Lights,
@@ -435,6 +454,7 @@ SECTIONS: tuple[type[Section], ...] = (
     Autonomy,
     Automation,
     Admission,
+    RecorderStatus,
     Diagnostics,
 )
 """Every top-level section, in snapshot order."""

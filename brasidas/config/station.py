@@ -200,6 +200,15 @@ class FoxgloveSection:
 
 
 @dataclass(frozen=True)
+class ReplaySection:
+    """The console's replay cache (issue 23): recordings fetched from platforms to replay,
+    in ``$XDG_STATE_HOME/brasidas/replay``."""
+
+    max_bytes: int = setting(4 * 1024**3, at_least(1024 * 1024, most=2**50))
+    """The cache's total size; past it the least recently opened recordings are deleted."""
+
+
+@dataclass(frozen=True)
 class StationConfig:
     station: StationSection = field(default_factory=StationSection)
     security: SecuritySection = field(default_factory=SecuritySection)
@@ -210,3 +219,4 @@ class StationConfig:
     media: StationMediaSection = field(default_factory=StationMediaSection)
     console: ConsoleSection = field(default_factory=ConsoleSection)
     foxglove: FoxgloveSection = field(default_factory=FoxgloveSection)
+    replay: ReplaySection = field(default_factory=ReplaySection)

@@ -21,6 +21,7 @@ from typing import Any
 import orjson
 
 from brasidas.codecs.telemetry_schema import SECTIONS, Section, section_to_json
+from brasidas.messages import CommandReceived
 
 MESSAGE_ENCODING = "json"
 SCHEMA_ENCODING = "jsonschema"
@@ -292,6 +293,24 @@ def encode_path(points: typing.Sequence[tuple[float, float]]) -> bytes:
 
 def encode_section(value: Section) -> bytes:
     return orjson.dumps(section_to_json(value))
+
+
+def encode_command(message: CommandReceived) -> bytes:
+    return encode_json(
+        {
+            "kind": message.kind,
+            "name": message.name,
+            "payload": message.payload,
+            "session": message.session_id,
+            "station": message.station_id,
+            "accepted": message.accepted,
+            "reason": message.reason,
+        }
+    )
+
+
+def encode_velocity(linear: float, angular: float) -> bytes:
+    return encode_json({"linear": linear, "angular": angular})
 
 
 def encode_json(value: Any) -> bytes:

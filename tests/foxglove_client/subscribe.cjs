@@ -2,12 +2,16 @@
 // subscribes to the topics given, and prints one JSON line per message received:
 // {"topic", "schema", "encoding", "logTime", "bytes", "json"} (json: the decoded message, with a
 // CompressedVideo's data cut to its first bytes, base64). Exits after COUNT messages per topic.
-// usage: node subscribe.js ws://127.0.0.1:PORT COUNT TOPIC...
+// With --all (before the topics) it also subscribes to every other channel advertised, prints
+// {"advertised": topic} for each, and exits only once every advertised channel had a message.
+// usage: node subscribe.js ws://127.0.0.1:PORT COUNT [--all] TOPIC...
 "use strict";
 const { FoxgloveClient } = require("@foxglove/ws-protocol");
 const WebSocket = require("ws");
 
-const [url, countText, ...topics] = process.argv.slice(2);
+const [url, countText, ...rest] = process.argv.slice(2);
+const all = rest[0] === "--all";
+const topics = all ? rest.slice(1) : rest;
 const wanted = Number(countText);
 const ws = new WebSocket(url, [FoxgloveClient.SUPPORTED_SUBPROTOCOL, "foxglove.sdk.v1"]);
 const client = new FoxgloveClient({ ws });
@@ -20,6 +24,10 @@ client.on("serverInfo", (info) => {
 });
 client.on("advertise", (channels) => {
   for (const channel of channels) {
+    if (all) {
+      console.log(JSON.stringify({ advertised: channel.topic, schema: channel.schemaName }));
+      if (!received.has(channel.topic)) received.set(channel.topic, 0);
+    }
     if (received.has(channel.topic)) {
       bySubscription.set(client.subscribe(channel.id), channel);
     }
@@ -28,7 +36,9 @@ client.on("advertise", (channels) => {
 client.on("message", ({ subscriptionId, timestamp, data }) => {
   const channel = bySubscription.get(subscriptionId);
   if (!channel || received.get(channel.topic) >= wanted) return;
-  received.set(channel.topic, received.get(channel.topic) + 1);
+  const count = received.get(channel.topic) + 1;
+  received.set(channel.topic, count);
+  if (count > 1 && !topics.includes(channel.topic)) return; // --all: the first is enough
   const message = JSON.parse(decoder.decode(data));
   if (typeof message.data === "string") message.data = message.data.slice(0, 64);
   console.log(
@@ -42,10 +52,17 @@ client.on("message", ({ subscriptionId, timestamp, data }) => {
       json: message,
     }),
   );
-  if ([...received.values()].every((n) => n >= wanted)) {
+  const done = [...received].every(([topic, n]) => n >= (topics.includes(topic) ? wanted : 1));
+  if (done) {
     client.close();
     process.exit(0);
   }
+});
+// Stopped (SIGTERM) before it had everything: say what is still missing, on stderr.
+process.on("SIGTERM", () => {
+  const missing = [...received].filter(([topic, n]) => n < (topics.includes(topic) ? wanted : 1));
+  console.error(JSON.stringify({ missing: missing.map(([topic]) => topic) }));
+  process.exit(4);
 });
 client.on("error", (error) => {
   console.error(String(error));
