@@ -22,11 +22,11 @@ from conftest import free_tcp_port, free_udp_port, quiet_platform_config, wait_u
 from mcap.reader import make_reader
 from mcap.records import Message
 from mcap.stream_reader import StreamReader
-from stationd.telemetry.annunciator import RECORDER_STOPPED, Annunciator
 from test_station import run_cli, station
 from test_velocity import open_connection, udp_socket
 
 from brasidas import topics
+from brasidas.annunciator import RECORDER_STOPPED, Annunciator
 from brasidas.codecs import pvel
 from brasidas.codecs.telemetry import MAX_DATAGRAM, TelemetryDecoder, TelemetryEncoder
 from brasidas.codecs.telemetry_schema import (
