@@ -199,7 +199,7 @@ def write_atomically(path: Path, text: str) -> None:
 
 def remove_stale_temporaries(path: Path) -> list[Path]:
     """Remove the temporary files :func:`write_atomically` left beside ``path`` when a crash
-    came before their rename (``.NAME.XXXXXXXX``); the ones removed."""
+    came before their rename (``.NAME.`` and a random suffix); the ones removed."""
     removed = []
     for candidate in path.parent.glob(f".{path.name}.*"):
         suffix = candidate.name[len(path.name) + 2 :]
