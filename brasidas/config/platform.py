@@ -533,6 +533,9 @@ class MavlinkSection:
     signing_key_file: str = ""
     """MAVLink 2 signing passphrase (one line; key = SHA-256 of it, as MAVProxy's ``signing
     setup`` and QGroundControl). Owner-only like the fleet key. Empty: no signing."""
+    signing_state_file: str = ""
+    """The signing clock and replay table, kept across restarts so a captured session never
+    replays. Empty: $XDG_STATE_HOME/brasidas/mavlink-signing.json."""
     allow_unsigned_control: bool = False
     """With signing configured: let unsigned links change the robot (modes, missions, fences,
     joystick). Anyone who can send a UDP datagram to the endpoint could then drive it."""

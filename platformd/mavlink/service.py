@@ -63,6 +63,7 @@ from platformd.mavlink.missions import (
     route_from_items,
 )
 from platformd.mavlink.modes import FlightMode
+from platformd.mavlink.signing_state import SigningStateFile, gps_timestamp, signing_state_path
 from platformd.mavlink.vehicle import (
     CameraInfo,
     ManualInput,
@@ -156,11 +157,16 @@ class MavlinkService(Actor):
         self._fence_checked = -FENCE_CHECK_INTERVAL
         self._uploaded_fence: tuple[int, list[MissionItem]] | None = None
         """The last accepted fence's items and the map revision it made."""
+        self._signing_state = SigningStateFile(
+            self.vehicle.signatures, signing_state_path(config.signing_state_file)
+        )
 
     # ------------------------------------------------------------------ lifecycle
 
     async def open(self) -> None:
-        """Bind the UDP socket (before the daemon says it is up: tests read ``port``)."""
+        """Bind the UDP socket (before the daemon says it is up: tests read ``port``) after
+        taking the saved signing state."""
+        await self._signing_state.restore()
         loop = asyncio.get_running_loop()
         transport, _ = await loop.create_datagram_endpoint(
             lambda: _Protocol(self),
@@ -203,8 +209,10 @@ class MavlinkService(Actor):
                 group.create_task(self._tick_forever(), name="mavlink-tick")
                 group.create_task(self._decide_forever(), name="mavlink-requests")
                 group.create_task(self._annunciate_forever(), name="mavlink-warnings")
+                group.create_task(self._signing_state.save_forever(), name="mavlink-signing")
         finally:
             self.close()
+            await self._signing_state.save_at_stop()
 
     async def async_stop(self) -> None:
         self.close()
@@ -537,6 +545,7 @@ class MavlinkService(Actor):
         state.fix = fix
         if state.home is None:
             state.home = (fix.latitude, fix.longitude, fix.altitude_m or 0.0)
+        self.vehicle.signing_clock.advance(gps_timestamp(fix.time))
 
     def _on_fix_lost(self, lost: GpsFixLost) -> None:
         self.vehicle.state.fix = None

@@ -25,7 +25,7 @@ from brasidas.messages import Attitude, ControllerStatus, GpsFix, PoseEstimate
 from platformd.mavlink import modes
 from platformd.mavlink.missions import FENCE, MAX_ITEMS, MISSION, RALLY, MissionItem, command_name
 from platformd.mavlink.modes import FlightMode
-from platformd.mavlink.signing import SignatureCheck, Verdict, timestamp_at
+from platformd.mavlink.signing import SignatureCheck, SigningClock, Verdict
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -226,7 +226,9 @@ class MavlinkVehicle:
         """Mission items requested ahead during an upload (1: strictly one at a time)."""
         self.heartbeat_hz, self.position_hz, self.status_hz = rates
         self.camera = camera
-        self._wall = wall_clock
+        self.signing_clock = SigningClock(wall_clock)
+        self.signatures = SignatureCheck(key, self.signing_clock) if key is not None else None
+        """One replay table for the vehicle: every link's signed frames go through it."""
         self.mission_items = mission_items
         self._components = {None, 0, modes.VEHICLE_COMPONENT}
         """Target components answered: the vehicle's, the camera's, and broadcasts."""
@@ -1107,7 +1109,7 @@ class MavlinkVehicle:
         encoder = mavlink.MAVLink(None, self.system_id, modes.VEHICLE_COMPONENT)
         link = Link(peer, decoder, encoder, configured)
         if self.key is not None:
-            link.check = SignatureCheck(self.key)
+            link.check = self.signatures
             encoder.signing.secret_key = self.key
             encoder.signing.sign_outgoing = True
             encoder.signing.link_id = len(self.links) & 0xFF
@@ -1128,8 +1130,8 @@ class MavlinkVehicle:
         """All of ``messages`` to ``link``, or, to a stranger out of credit, none (counted)."""
         encoder = link.encoder
         encoder.srcComponent = component
-        if encoder.signing.sign_outgoing and self._wall is not None:
-            encoder.signing.timestamp = max(encoder.signing.timestamp, timestamp_at(self._wall()))
+        if encoder.signing.sign_outgoing:
+            encoder.signing.timestamp = max(encoder.signing.timestamp, self.signing_clock.now())
         first_seq = encoder.seq
         frames = []
         for message in messages:
