@@ -313,6 +313,8 @@ async def _lossy(state: str) -> dict[str, Any]:
             overrides = [
                 *_platform_overrides(state, f"{station.address}:14550", "mavlink.enabled=true"),
                 "mavlink.host=0.0.0.0",
+                # A closed test namespace: unsigned control off loopback is what is measured.
+                "mavlink.unsigned_control_off_loopback_i_accept_the_risk=true",
                 "signaling.port=0",
                 "velocity.port=0",
             ]

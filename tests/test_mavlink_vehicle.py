@@ -26,6 +26,7 @@ from platformd.mavlink.missions import (
 )
 from platformd.mavlink.vehicle import (
     MAX_LINKS,
+    STRANGER_LINKS,
     UPLOAD_RETRIES,
     UPLOAD_RETRY_S,
     ManualInput,
@@ -148,8 +149,9 @@ def test_garbage_and_strangers_cost_nothing() -> None:
     heartbeat = station.frame(mavlink.MAVLink_heartbeat_message(6, 8, 0, 0, 0, 3))
     for port in range(1000, 1100):
         vehicle.feed(heartbeat, ("192.0.2.10", port), 0.0)
-    assert len(vehicle.links) == MAX_LINKS
-    assert vehicle.counters["links_refused"] == 100 - MAX_LINKS + 1  # GCS's link is one
+    # (strangers all: their share of the table, STRANGER_LINKS of MAX_LINKS)
+    assert len(vehicle.links) == STRANGER_LINKS < MAX_LINKS
+    assert vehicle.counters["links_refused"] == 100 - STRANGER_LINKS + 1  # GCS's link is one
 
 
 def test_control_from_an_unsigned_link_is_refused_and_the_joystick_ignored() -> None:

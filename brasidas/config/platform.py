@@ -6,6 +6,7 @@ constraints are the checks given to :func:`~brasidas.config.loader.setting`.
 
 from __future__ import annotations
 
+import ipaddress
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -496,6 +497,13 @@ class MapSection:
     """The area map (GeoJSON, R-12). Empty: $XDG_STATE_HOME/brasidas/map.geojson."""
 
 
+def _is_loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
 def _udp_target(value: str) -> bool:
     host, sep, port = value.rpartition(":")
     return bool(sep) and port.isdecimal() and 1 <= int(port) <= 65535 and ip_address.ok(host)
@@ -505,6 +513,21 @@ def _udp_target(value: str) -> bool:
 class MavlinkSection:
     """The MAVLink 2 endpoint for ground control stations (issue 22; README "Ground control
     stations")."""
+
+    RULES: ClassVar[tuple[Rule, ...]] = (
+        Rule(
+            "allow_unsigned_control",
+            "false unless {section}.host is loopback or "
+            "{section}.unsigned_control_off_loopback_i_accept_the_risk is true (anyone who can "
+            "send the endpoint a datagram could then drive the robot: README, Signing)",
+            lambda s: (
+                not s.allow_unsigned_control
+                or _is_loopback(s.host)
+                or s.unsigned_control_off_loopback_i_accept_the_risk
+            ),
+            ("host", "unsigned_control_off_loopback_i_accept_the_risk"),
+        ),
+    )
 
     enabled: bool = False
     """Speak MAVLink 2 to QGroundControl, Mission Planner, MAVProxy and MAVSDK."""
@@ -538,7 +561,11 @@ class MavlinkSection:
     replays. Empty: $XDG_STATE_HOME/brasidas/mavlink-signing.json."""
     allow_unsigned_control: bool = False
     """With signing configured: let unsigned links change the robot (modes, missions, fences,
-    joystick). Anyone who can send a UDP datagram to the endpoint could then drive it."""
+    joystick). Anyone who can send a UDP datagram to the endpoint could then drive it: refused
+    unless ``host`` is loopback or the next key is set."""
+    unsigned_control_off_loopback_i_accept_the_risk: bool = False
+    """Let ``allow_unsigned_control`` work on a non-loopback ``host``: every consequence is in
+    the README (Signing); never on a mesh others can reach."""
     camera: bool = True
     """Announce the NavCam as a MAVLink camera component (id 100) with its video stream."""
 

@@ -43,6 +43,8 @@ NO_HOLDER = 0
 MAX_LINKS = 32
 """Ground station addresses kept at once: a flood from made-up source addresses costs a
 bounded table (the configured targets are always kept)."""
+STRANGER_LINKS = 16
+"""Of those, at most this many strangers: a trusted ground station always finds a slot."""
 STRANGER_WINDOW_S = 10.0
 """A stranger (an address neither in ``mavlink.targets`` nor ever trusted) is sent at most the
 bytes it sent us in each window of this long: a spoofed source address never makes the
@@ -254,6 +256,7 @@ class MavlinkVehicle:
                 "setup_signing_refused",
                 "stranger_frames_suppressed",
                 "stranger_bytes_suppressed",
+                "video_refused",
             ),
             0,
         )
@@ -270,8 +273,9 @@ class MavlinkVehicle:
         if self._boot is None:
             self._boot = now
         link = self.links.get(peer)
+        new = link is None
         if link is None:
-            if len(self.links) >= MAX_LINKS:
+            if not self._admit(data):
                 self.counters["links_refused"] += 1
                 return []
             link = self._link(peer, configured=False)
@@ -305,7 +309,35 @@ class MavlinkVehicle:
                 _LOGGER.exception("MAVLink: %s from %s not handled", message.get_type(), peer)
         if not link.configured and link.last_heard == -math.inf:
             del self.links[peer]  # nothing valid from a stranger: no state kept for it
+        elif new and link.stranger and self._strangers() > STRANGER_LINKS:
+            del self.links[peer]  # admitted for its signed flag, which did not verify
+            self.counters["links_refused"] += 1
         return requests
+
+    def _strangers(self) -> int:
+        return sum(1 for link in self.links.values() if link.stranger)
+
+    def _admit(self, data: bytes) -> bool:
+        """Room for a new address: strangers share :data:`STRANGER_LINKS` slots; a datagram
+        that may be signed (verified once parsed) may also take the slot of the stranger
+        heard longest ago."""
+        strangers = self._strangers()
+        if strangers < STRANGER_LINKS and len(self.links) < MAX_LINKS:
+            return True
+        maybe_signed = (
+            self.signatures is not None and len(data) > 2 and data[0] == 0xFD and data[2] & 1
+        )
+        if not maybe_signed:
+            return False
+        if len(self.links) >= MAX_LINKS:
+            if not strangers:
+                return False
+            oldest = min(
+                (link for link in self.links.values() if link.stranger),
+                key=lambda link: link.last_heard,
+            )
+            del self.links[oldest.peer]
+        return True
 
     def _verdict(self, link: Link, message: Any) -> bool | None:
         """True signed, False unsigned, None to drop (bad signature, replay)."""
@@ -782,7 +814,17 @@ class MavlinkVehicle:
                 reply = self._camera_information()
             else:
                 reply = self._video_stream_information()
-                requests.append(StartVideo(peer, system, component, signed))
+                # Video is megabytes for a 44-byte request from an address anyone can claim:
+                # only for a signed request or a configured target (issue 26, defect 2).
+                if signed or link.configured:
+                    requests.append(StartVideo(peer, system, component, signed))
+                else:
+                    self.counters["video_refused"] += 1
+                    self._statustext_to(
+                        link,
+                        Severity.WARNING,
+                        "video: only for a signed ground station or one in mavlink.targets",
+                    )
         if reply is None:
             ack(mavlink.MAV_RESULT_UNSUPPORTED)  # asked at connect for optional ones: no text
             return []
