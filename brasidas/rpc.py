@@ -96,7 +96,7 @@ def add_rpc_routes(
     async def post(request: web.Request) -> web.Response:
         if (refusal := refused(request)) is not None:
             return refusal
-        ctx = CallContext(peer_host=_peer_host(request), transport="http")
+        ctx = CallContext(peer_host=peer_host(request), transport="http")
         admission = request.app.get(ADMISSION)
         found = admission.slot_of(request.transport) if admission is not None else None
         limit = max_bytes
@@ -139,7 +139,7 @@ def add_rpc_routes(
             return refusal
         ws = web.WebSocketResponse(max_msg_size=max_bytes, heartbeat=None)
         await ws.prepare(request)
-        ctx = CallContext(peer_host=_peer_host(request), transport="ws")
+        ctx = CallContext(peer_host=peer_host(request), transport="ws")
         ctx.extra["ws"] = ws
         admission = request.app.get(ADMISSION)
         found = admission.slot_of(request.transport) if admission is not None else None
@@ -393,7 +393,8 @@ def _is_unauthorized(answer: bytes) -> bool:
     return isinstance(error, dict) and error.get("code") == UNAUTHORIZED
 
 
-def _peer_host(request: web.Request) -> str:
+def peer_host(request: web.Request) -> str:
+    """The address an HTTP or WebSocket request came from ("" if unknown)."""
     peer = request.transport.get_extra_info("peername") if request.transport else None
     return str(peer[0]) if peer else ""
 

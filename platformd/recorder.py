@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 import time
 from pathlib import Path
 from typing import Any
@@ -42,6 +43,7 @@ from brasidas.messages import (
 from brasidas.recording import schemas
 from brasidas.recording.schemas import LOG_INFO, LOG_WARNING, ChannelSpec
 from brasidas.recording.writer import Quota, Recorder, list_recordings, resolve_name
+from brasidas.rpc import peer_host
 from brasidas.security import state_dir
 from platformd.context import PlatformContext
 
@@ -313,13 +315,24 @@ class PlatformRecorder(Actor):
         return {**self.describe(), "recordings": items}
 
     async def http_download(self, request: web.Request) -> web.StreamResponse:
-        """``GET /recordings/NAME``: one file, to an open session, ranges honoured."""
-        if self.ctx.session(request.headers.get(SESSION_HEADER)) is None:
+        """``GET /recordings/NAME``: one file, to an open session from the session's own host
+        (as every RPC), ranges honoured; a symbolic link is no recording."""
+        session = self.ctx.session(request.headers.get(SESSION_HEADER))
+        if session is None:
             raise web.HTTPUnauthorized(text="a session token is needed (X-Brasidas-Session)")
+        if peer_host(request) != session.peer_host:
+            raise web.HTTPUnauthorized(text="the session was opened from another host")
         path = resolve_name(self.directory, request.match_info["name"])
         if path is None:
             raise web.HTTPNotFound(text="no such recording")
+        if EMPTY_SUFFIX_RANGE.fullmatch(request.headers.get("Range", "").strip()):
+            size = (await asyncio.to_thread(path.stat)).st_size
+            raise web.HTTPRequestRangeNotSatisfiable(headers={"Content-Range": f"bytes */{size}"})
         return web.FileResponse(path, headers={"Content-Type": "application/octet-stream"})
+
+
+EMPTY_SUFFIX_RANGE = re.compile(r"bytes\s*=\s*-0+", re.IGNORECASE)
+"""``Range: bytes=-0``, the last zero bytes: unsatisfiable (RFC 9110 14.1.1)."""
 
 
 def recordings_dir(ctx: PlatformContext) -> Path:

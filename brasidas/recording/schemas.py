@@ -106,7 +106,6 @@ COMMAND = _object(
         "kind": {"type": "string", "description": "system (a command code) or rpc (a method)"},
         "name": {"type": "string", "description": "the code (10.4) or the method"},
         "payload": {"type": "string"},
-        "session": {"type": ["string", "null"], "description": "the sending session's token"},
         "station": {"type": ["string", "null"], "description": "the sending station"},
         "accepted": {"type": "boolean"},
         "reason": {"type": "string"},
@@ -295,13 +294,21 @@ def encode_section(value: Section) -> bytes:
     return orjson.dumps(section_to_json(value))
 
 
+REDACTED = "<session>"
+"""What a session token in a command's payload is recorded as."""
+
+
 def encode_command(message: CommandReceived) -> bytes:
+    """The command with its sender's station id, never its session token: a token is a live
+    credential, and whoever holds a recording could act as that session."""
+    payload = message.payload
+    if message.session_id:
+        payload = payload.replace(message.session_id, REDACTED)
     return encode_json(
         {
             "kind": message.kind,
             "name": message.name,
-            "payload": message.payload,
-            "session": message.session_id,
+            "payload": payload,
             "station": message.station_id,
             "accepted": message.accepted,
             "reason": message.reason,

@@ -548,4 +548,5 @@ def resolve_name(directory: Path, name: str) -> Path | None:
     if not NAME_PATTERN.match(base):
         return None
     path = directory / name
-    return path if path.is_file() else None
+    # Not a symbolic link: one planted in the folder would serve whatever it points at.
+    return path if path.is_file() and not path.is_symlink() else None
