@@ -63,6 +63,21 @@ STRANGER_MAX_BYTES = 4096
 _CONNECTION_ENDED = (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSING, aiohttp.WSMsgType.CLOSED)
 
 
+def browser_refusal(
+    host: str, origin: str | None, local_hosts: frozenset[str], origins: tuple[str, ...] = ()
+) -> str | None:
+    """Why a local server refuses a request a web page elsewhere could make through the
+    operator's browser (answered 403), or None: a ``Host`` not among ``local_hosts`` (DNS
+    rebinding), an ``Origin`` that is neither this very server nor one of ``origins``
+    (cross-site requests, and WebSockets, which browsers do not hold to CORS)."""
+    name = host.rsplit(":", 1)[0] if not host.endswith("]") else host
+    if name not in local_hosts:
+        return f"host {host!r} not served"
+    if origin is not None and origin.split("://", 1)[-1] != host and origin not in origins:
+        return "cross-origin request refused"
+    return None
+
+
 def add_rpc_routes(
     app: web.Application,
     dispatcher: Dispatcher,
@@ -84,14 +99,8 @@ def add_rpc_routes(
     def refused(request: web.Request) -> web.Response | None:
         if local_hosts is None:
             return None
-        host = request.host
-        name = host.rsplit(":", 1)[0] if not host.endswith("]") else host
-        if name not in local_hosts:
-            return web.Response(status=403, text=f"host {host!r} not served")
-        origin = request.headers.get("Origin")
-        if origin is not None and origin.split("://", 1)[-1] != host:
-            return web.Response(status=403, text="cross-origin request refused")
-        return None
+        reason = browser_refusal(request.host, request.headers.get("Origin"), local_hosts)
+        return None if reason is None else web.Response(status=403, text=reason)
 
     async def post(request: web.Request) -> web.Response:
         if (refusal := refused(request)) is not None:

@@ -37,6 +37,7 @@ from brasidas.messages import CommandSent, PlatformLink, StationNotification
 from brasidas.recording import schemas
 from brasidas.recording.schemas import AUTONOMY_VELOCITY, TELEOP_VELOCITY, ChannelSpec
 from stationd.context import StationContext
+from stationd.foxglove_guard import OriginGuard, guard_for
 from stationd.video_feed import HEADER, Viewer, pump
 
 _LOGGER = logging.getLogger(__name__)
@@ -156,6 +157,7 @@ class FoxgloveLive(Actor):
         self.video_units = 0
         self._context: foxglove.Context | None = None
         self._server: Any = None
+        self.guard: OriginGuard | None = None
 
     async def run(self) -> None:
         config = self.ctx.config.foxglove
@@ -163,19 +165,25 @@ class FoxgloveLive(Actor):
         self._context = foxglove.Context()
         port = config.port if PORT_OVERRIDE is None else PORT_OVERRIDE
         try:
+            # The SDK's server behind the Origin/Host guard (stationd.foxglove_guard).
             self._server = await asyncio.to_thread(
                 foxglove.start_server,
                 name=f"brasidas-station {self.ctx.config.station.id}",
-                host=config.host,
-                port=port,
+                host="127.0.0.1",
+                port=0,
                 capabilities=[],  # read-only: no client publishing, parameters or services
                 server_listener=_Listener(loop, self),
                 context=self._context,
             )
+            self.guard = guard_for(self.ctx.config, int(self._server.port), port)
+            await self.guard.start()
         except Exception as err:  # the port taken: the station runs on without it
             _LOGGER.error("foxglove: cannot serve on %s:%d: %s", config.host, port, err)
+            if self._server is not None:
+                await asyncio.to_thread(self._server.stop)
+                self._server = None
             return
-        self.port = int(self._server.port)
+        self.port = self.guard.port
         self.serving.set()
         _LOGGER.info("foxglove: serving ws://%s:%d", config.host, self.port)
         self.subscribe(topics.PLATFORM_CONNECTED, self._on_connected)
@@ -197,8 +205,12 @@ class FoxgloveLive(Actor):
             server, self._server = self._server, None
             if server is not None:  # a crash (restarted): the next run binds again
                 server.stop()
+            if self.guard is not None:
+                await self.guard.close()
 
     async def async_stop(self) -> None:
+        if self.guard is not None:
+            await self.guard.close()
         server, self._server = self._server, None
         if server is not None:
             await asyncio.to_thread(server.stop)

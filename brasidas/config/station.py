@@ -197,6 +197,10 @@ class FoxgloveSection:
     """0: any free port (tests)."""
     video: bool = True
     """Serve the NavCam (H.264 access units as foxglove.CompressedVideo)."""
+    origins: tuple[str, ...] = ()
+    """Web origins whose pages may connect besides the server's own (the console's rule: any
+    other ``Origin`` is answered 403), e.g. ``["https://app.foxglove.dev"]`` for Foxglove's
+    web app. Clients that send no ``Origin`` (Foxglove desktop, scripts) are not affected."""
 
 
 @dataclass(frozen=True)
