@@ -134,6 +134,10 @@ class PlatformDirectory:
         entry.beacons += 1
         return entry, False
 
+    def announce_boot(self, platform_id: str, boot: int) -> None:
+        """A connected platform's authenticated boot number (:meth:`ReplayGuard.announce`)."""
+        self._replay.announce(platform_id, boot)
+
     def expire(self) -> list[DiscoveredPlatform]:
         """Drop and return the entries silent for longer than the expiry."""
         now = self._clock()

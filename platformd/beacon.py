@@ -18,8 +18,8 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-import secrets
 import socket
+import time
 from typing import Any
 
 from brasidas import discovery, topics
@@ -37,6 +37,7 @@ from brasidas.messages import (
     Position,
 )
 from brasidas.status import Battery, StatusWord
+from platformd.boot_counter import boot_counter_path, next_boot
 from platformd.context import PlatformContext
 
 _LOGGER = logging.getLogger(__name__)
@@ -58,7 +59,7 @@ class BeaconAdvertiser(Actor):
         super().__init__(ctx.bus)
         self.ctx = ctx
         self.config = ctx.config.beacon
-        self.boot = secrets.randbits(32)
+        self.boot = ctx.boot
         self.seq = 0
         self.sent = 0
         self.send_errors = 0
@@ -263,6 +264,7 @@ async def async_setup(ctx: PlatformContext) -> None:
             "the beacon advertises signaling's URL: set up platformd.signaling first"
         )
     check_beacon_fits(ctx.config.platform.id, ctx.signaling_url, ctx.fleet_key)
+    ctx.boot = await asyncio.to_thread(next_boot, boot_counter_path(), time.time())
     if ctx.config.beacon.listen:
         setup_directory(ctx)
     advertiser = BeaconAdvertiser(ctx)

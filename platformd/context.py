@@ -148,6 +148,9 @@ class PlatformContext:
     """The media service (streams, NavCam), set by its setup (platformd.media)."""
     payloads: dict[str, PayloadInfo] = field(default_factory=dict)
     """The payloads carried, by name (platformd.payloads): none without ``payload.enabled``."""
+    boot: int = 0
+    """This start's boot number (platformd.boot_counter; only grows), set by the beacon's setup;
+    0 without beacons."""
     mavlink_port: int = 0
     """The MAVLink endpoint's bound UDP port (platformd.mavlink), 0 when it is off."""
     patrol: PatrolHandle | None = None

@@ -21,6 +21,7 @@ from typing import Any
 
 from brasidas import __version__, security, topics
 from brasidas.actor import Actor
+from brasidas.codecs.beacon import boot_proof
 from brasidas.codecs.commands import PAYLOAD_GROUPS
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError, Unauthorized
 from brasidas.messages import FailsafeStep, SessionClosed, SessionOpened
@@ -175,9 +176,14 @@ class SessionManager(Actor):
             call.extra.setdefault("on_close", []).append(lambda: self.connection_lost(token))
         _LOGGER.info("session opened by %s from %s", station_id, call.peer_host)
         self.bus.publish(topics.SESSION_OPENED, SessionOpened(token, station_id, call.peer_host))
+        boot = self.ctx.boot
         return {
             "session": token,
             "proof": platform_proof,
+            # The boot number, signed for this station: it then takes beacons of this boot
+            # even below one it saw (a reset counter), never of an earlier one.
+            "boot": boot,
+            "boot_proof": boot_proof(key, platform_id, boot, station_nonce) if key else "",
             "heartbeat_interval": self.ctx.config.signaling.heartbeat_interval,
             "session_timeout": self.ctx.config.signaling.session_timeout,
             "parameters": platform_parameters(self.ctx),

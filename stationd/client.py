@@ -15,6 +15,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from brasidas import security
+from brasidas.codecs.beacon import boot_proof
 from brasidas.codecs.jsonrpc import UNAUTHORIZED, EncodedParams, RpcError
 from brasidas.rpc import RpcClient
 from brasidas.security import accept_proof, connect_proof
@@ -88,6 +89,9 @@ class PlatformConnection:
         self.session_key: bytes | None = None
         self.parameters: dict[str, Any] = {}
         self.capabilities: dict[str, Any] = {}
+        self.boot: int | None = None
+        """The platform's boot number as it announced it, signed for this connection (None
+        unsigned): discovery then takes that boot's beacons (brasidas.codecs.beacon)."""
         self.manual_override = False
         self.control = False
         """This station holds control of the platform (its last heartbeat answer said so)."""
@@ -152,6 +156,7 @@ class PlatformConnection:
             if not security.verify(expected.encode(), str(answer.get("proof", "")).encode()):
                 raise AuthenticationError("platform failed to prove it holds the fleet key")
             self.session_key = security.session_key(self.fleet_key, token, nonce, station_nonce)
+            self.boot = _announced_boot(answer, self.fleet_key, self.platform_id, station_nonce)
         self.session_id = token
         self._session_params = EncodedParams.of({"session": token})
         self.parameters = dict(answer.get("parameters", {}))
@@ -272,3 +277,14 @@ class PlatformConnection:
             "parameters": self.parameters,
             "capabilities": self.capabilities,
         }
+
+
+def _announced_boot(
+    answer: dict[str, Any], key: bytes, platform_id: str, station_nonce: str
+) -> int | None:
+    boot = answer.get("boot")
+    if not isinstance(boot, int) or isinstance(boot, bool) or not 0 < boot < 2**32:
+        return None
+    expected = boot_proof(key, platform_id, boot, station_nonce)
+    received = str(answer.get("boot_proof", ""))
+    return boot if security.verify(expected.encode(), received.encode()) else None

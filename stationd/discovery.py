@@ -11,9 +11,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from brasidas import discovery
+from brasidas import discovery, topics
 from brasidas.codecs.jsonrpc import CallContext
 from brasidas.config import StationConfig
+from brasidas.messages import PlatformLink
 from stationd.context import StationContext
 
 
@@ -37,6 +38,15 @@ async def async_setup(ctx: StationContext) -> None:
     settings = listen_settings(ctx.config)
     directory = discovery.PlatformDirectory(ctx.fleet_key, settings.expiry)
     ctx.supervisor.start(discovery.BeaconListener(ctx.bus, directory, settings))
+
+    def on_connected(link: PlatformLink) -> None:
+        """A platform's signed boot announcement: its beacons of that boot are taken."""
+        connection = ctx.connections.get(link.platform_id)
+        if connection is not None and connection.boot is not None:
+            directory.announce_boot(link.platform_id, connection.boot)
+
+    # The station's lifetime: the bus and the directory end with the daemon.
+    ctx.bus.subscribe(topics.PLATFORM_CONNECTED, on_connected)
 
     async def list_platforms(call: CallContext) -> list[dict[str, Any]]:
         """The platforms online (heard within ``discovery.expiry`` seconds)."""

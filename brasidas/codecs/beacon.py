@@ -7,9 +7,12 @@ that array, made with the fleet key::
 
 ``status_word`` is :class:`brasidas.status.StatusWord`; latitude and longitude are signed
 integers in units of 1e-7 degree (about 1 cm; msgpack packs them in 5 bytes each) or nil
-when the position is unknown. ``boot`` is a random 32-bit nonce drawn when the platform
-starts and ``seq`` counts beacons within that boot, so a receiver refuses a replayed beacon
-(same boot, sequence not newer). The whole datagram stays under :data:`MAX_BEACON` bytes.
+when the position is unknown. ``boot`` is the platform's boot number (kept on disk, it only
+grows: platformd.boot_counter) and ``seq`` counts beacons within that boot, so a receiver
+refuses a replayed beacon: an earlier boot, or the same boot with a sequence not newer. A
+lower boot is taken only once the platform has announced it over an authenticated session
+(:func:`boot_proof`, :meth:`ReplayGuard.announce`): a platform whose counter was reset.
+The whole datagram stays under :data:`MAX_BEACON` bytes.
 
 Without a fleet key (``--insecure``) the tag is absent; a receiver that has a key refuses
 such beacons.
@@ -139,17 +142,37 @@ def _tag(key: bytes, body: bytes) -> bytes:
     return security.tag(key, _TAG_DOMAIN, body, length=TAG_LENGTH)
 
 
+_BOOT_DOMAIN = b"brasidas-boot-v1"
+
+
+def boot_proof(key: bytes, platform_id: str, boot: int, station_nonce: str) -> str:
+    """The platform's signed announcement of its boot number to one connecting station (the
+    station's fresh nonce: it cannot be replayed to another connection), in hex."""
+    return security.tag(key, _BOOT_DOMAIN, platform_id, str(boot), station_nonce).hex()
+
+
 class ReplayGuard:
-    """Per platform: refuses a beacon whose (boot, seq) is not newer than the last accepted."""
+    """Per platform: refuses a beacon whose (boot, seq) is not newer than the last accepted:
+    an earlier boot is a replay too (boots only grow), unless announced."""
 
     def __init__(self) -> None:
         self._last: dict[str, tuple[int, int]] = {}
 
     def check(self, beacon: Beacon) -> None:
         last = self._last.get(beacon.platform_id)
+        if last is not None and beacon.boot < last[0]:
+            raise BeaconError(DropReason.REPLAY, f"boot {beacon.boot} after boot {last[0]}")
         if last is not None and last[0] == beacon.boot and beacon.seq <= last[1]:
             raise BeaconError(DropReason.REPLAY, f"seq {beacon.seq} after {last[1]}")
         self._last[beacon.platform_id] = (beacon.boot, beacon.seq)
+
+    def announce(self, platform_id: str, boot: int) -> None:
+        """The platform said, authenticated, that it runs boot ``boot``: its beacons of that
+        boot are taken from now on, even if lower than one seen (its counter was reset);
+        earlier boots' are not."""
+        last = self._last.get(platform_id)
+        if last is None or last[0] != boot:
+            self._last[platform_id] = (boot, -1)
 
     def forget(self, platform_id: str) -> None:
         self._last.pop(platform_id, None)

@@ -1,0 +1,86 @@
+"""Issue 26, defect 6: beacons from an earlier boot are refused. The platform's boot number is
+kept on disk and only grows; a station takes a lower one only after the platform announced it,
+signed for that station's connection."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from conftest import free_udp_port, quiet_platform_config
+from test_beacon import Factory, beacon_config, sample
+
+from brasidas.codecs import beacon as codec
+from brasidas.codecs.beacon import DropReason
+from brasidas.discovery import PlatformDirectory
+from platformd.boot_counter import boot_counter_path, next_boot
+from stationd.client import PlatformConnection, _announced_boot
+
+
+def test_beacons_of_an_earlier_boot_are_refused_even_interleaved(fleet_key: bytes) -> None:
+    directory = PlatformDirectory(fleet_key)
+    old, new = 1_790_000_000, 1_790_000_500
+    directory.receive(codec.encode(sample(boot=new, seq=1), fleet_key), "192.0.2.5")
+    for seq in (7, 8, 9):  # the previous boot's beacons, replayed between the live ones
+        assert (
+            directory.receive(codec.encode(sample(boot=old, seq=seq), fleet_key), "10.6.6.6")
+            is None
+        )
+        live = codec.encode(sample(boot=new, seq=seq), fleet_key)
+        entry, _ = directory.receive(live, "192.0.2.5") or (None, False)
+        assert entry is not None and entry.address == "192.0.2.5"
+    assert directory.dropped[DropReason.REPLAY.value] == 3
+
+
+def test_a_lower_boot_is_taken_only_once_announced(fleet_key: bytes) -> None:
+    directory = PlatformDirectory(fleet_key)
+    platform_id = sample().platform_id
+    directory.receive(codec.encode(sample(boot=5000, seq=3), fleet_key), "192.0.2.5")
+    reset = codec.encode(sample(boot=12, seq=1), fleet_key)  # its state folder was lost
+    assert directory.receive(reset, "192.0.2.5") is None
+    directory.announce_boot(platform_id, 12)
+    assert directory.receive(reset, "192.0.2.5") is not None
+    # Earlier than the announced boot: still refused.
+    earlier = codec.encode(sample(boot=11, seq=99), fleet_key)
+    assert directory.receive(earlier, "10.6.6.6") is None
+
+
+def test_the_announcement_is_signed_for_one_connection(fleet_key: bytes) -> None:
+    proof = codec.boot_proof(fleet_key, "rover-1", 12, "nonce-a")
+    answer = {"boot": 12, "boot_proof": proof}
+    assert _announced_boot(answer, fleet_key, "rover-1", "nonce-a") == 12
+    assert _announced_boot(answer, fleet_key, "rover-1", "nonce-b") is None  # replayed
+    assert _announced_boot(answer, fleet_key, "rover-2", "nonce-a") is None
+    assert _announced_boot({**answer, "boot": 13}, fleet_key, "rover-1", "nonce-a") is None
+    forged = {"boot": 12, "boot_proof": codec.boot_proof(bytes(32), "rover-1", 12, "nonce-a")}
+    assert _announced_boot(forged, fleet_key, "rover-1", "nonce-a") is None
+
+
+def test_the_boot_counter_only_grows_and_is_kept(tmp_path: Path) -> None:
+    path = tmp_path / "boot-counter"
+    first = next_boot(path, 1_790_000_000.0)
+    assert first == 1_790_000_000
+    assert next_boot(path, 1_790_000_000.0) == first + 1
+    assert next_boot(path, 0.0) == first + 2  # the clock at 1970 (no RTC): still grows
+    assert int(path.read_text()) == first + 2
+    path.write_text("garbage")
+    assert next_boot(path, 1_790_000_100.0) == 1_790_000_100  # damaged: from the clock
+
+
+async def test_a_restarted_platform_announces_a_higher_boot_to_its_station(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    config = quiet_platform_config(*beacon_config(free_udp_port()))
+    platform = await platform_factory(config, fleet_key)
+    first = platform.ctx.boot
+    assert first > 0 and int(boot_counter_path().read_text()) == first
+    await platform.stop()
+    platform = await platform_factory(config, fleet_key)
+    assert platform.ctx.boot > first
+    connection = PlatformConnection(
+        config.platform.id, platform.ctx.signaling_url, station_id="op", fleet_key=fleet_key
+    )
+    await connection.open()
+    try:
+        assert connection.boot == platform.ctx.boot
+    finally:
+        await connection.close()
