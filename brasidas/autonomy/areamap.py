@@ -128,6 +128,8 @@ class AreaMap:
     ) -> AreaMap:
         """A copy with keep-out features added (GeoJSON features) and others removed (by id);
         only the changed zones are parsed."""
+        add = list(add)
+        _check_positions([feature.get("geometry") for feature in add], already=self.vertices)
         features = dict(self._features)
         keepouts = dict(self.keepouts)
         for zone_id in remove:
@@ -219,6 +221,8 @@ def parse_map(source: str | bytes | Mapping[str, Any]) -> AreaMap:
         raise MapError(
             "a map needs a boundary: a Polygon or MultiPolygon feature with role 'boundary'"
         )
+    # Every geometry counted before any is built: the boundary and its holes too.
+    _check_positions(feature.get("geometry") for feature in features)
     frame, boundary = _boundary(boundaries)
     keepouts: dict[str, Area] = {}
     kept: dict[str, dict[str, Any]] = {}
@@ -279,6 +283,33 @@ def room_to_drive(area: AreaMap) -> float:
 
 
 # --------------------------------------------------------------------------- helpers
+
+
+def count_positions(geometries: Iterable[Any], limit: int) -> int:
+    """The positions (arrays that start with a number) in GeoJSON geometries, without building
+    any: counting stops once past ``limit``."""
+    count = 0
+    stack = list(geometries)
+    while stack:
+        item = stack.pop()
+        if isinstance(item, Mapping):
+            stack.extend(item.values())
+        elif isinstance(item, list | tuple) and item:
+            if isinstance(item[0], int | float) and not isinstance(item[0], bool):
+                count += 1
+                if count > limit:
+                    break
+            else:
+                stack.extend(item)
+    return count
+
+
+def _check_positions(geometries: Iterable[Any], already: int = 0) -> None:
+    """Refuse geometries with more than :data:`MAX_VERTICES` positions (with ``already``)
+    before Shapely builds any: a 150,000-vertex boundary costs a count, not seconds."""
+    count = already + count_positions(geometries, MAX_VERTICES - already)
+    if count > MAX_VERTICES:
+        raise MapError(f"too many vertices (more than {MAX_VERTICES})")
 
 
 def _role(feature: Mapping[str, Any]) -> str:

@@ -19,12 +19,14 @@ from typing import Any
 
 from shapely import Point, Polygon
 
+from brasidas.autonomy.areamap import MAX_VERTICES
 from brasidas.autonomy.geo import LocalFrame
 from brasidas.autonomy.route import MAX_WAYPOINTS
 from brasidas.mapfiles import qgc
 from brasidas.mapfiles.errors import MAX_FILE_BYTES, FileRefused
 from brasidas.mapfiles.geojson import geojson_shapes, is_geojson, loads
 from brasidas.mapfiles.mission import MavCmd, MissionRoute
+from brasidas.mapfiles.precount import check_positions, plan_items_in
 from brasidas.mapfiles.shapes import MapImport, MapOptions, assemble_map
 from brasidas.mapfiles.shapes import plain_json as _plain
 from brasidas.mapfiles.xmlfiles import (
@@ -49,6 +51,8 @@ __all__ = [
     "write_route",
 ]
 
+MAX_PLAN_ITEMS = 2 * MAX_WAYPOINTS
+"""Mission items a route file may hold (commands besides waypoints: speed changes, jumps)."""
 NEAR_M = 50_000.0
 """A route within this distance of the robot is where it is (when there is no map)."""
 EXPORT_FORMATS = ("plan", "waypoints")
@@ -80,6 +84,7 @@ def read_map(text: str, filename: str = "", options: MapOptions | None = None) -
     options = options or MapOptions()
     stem = PurePath(filename).stem if filename else ""
     body = _body(text)
+    check_positions(body, MAX_VERTICES, "the map")
     if qgc.is_wpl(body):
         return assemble_map(qgc.wpl_shapes(body), options, "QGC WPL 110 fence", name=stem)
     if body.startswith("<"):
@@ -118,6 +123,11 @@ def read_map(text: str, filename: str = "", options: MapOptions | None = None) -
 def read_route(text: str, filename: str = "", *, fence: bool = False) -> RouteImport:
     """A route file's waypoints, or FileRefused. ``fence``: a plan's exclusion fences too."""
     body = _body(text)
+    items = plan_items_in(body) if body.startswith("{") else 0
+    if items > MAX_PLAN_ITEMS:
+        raise FileRefused(f"{items} mission items, more than {MAX_PLAN_ITEMS} (not read)")
+    # A plan's fence (or a KML's other shapes) may add a map's worth of vertices.
+    check_positions(body, MAX_VERTICES + MAX_PLAN_ITEMS, "the route")
     if qgc.is_wpl(body):
         items = qgc.wpl_items(body)
         fences = [item for item in items[1:] if item.command >= MavCmd.NAV_FENCE_RETURN_POINT]
@@ -132,6 +142,8 @@ def read_route(text: str, filename: str = "", *, fence: bool = False) -> RouteIm
         _, lines, _ = kml_shapes(root)
         if len(lines) != 1:
             raise FileRefused(f"a KML route is one LineString (this file has {len(lines)})")
+        if len(lines[0]) > MAX_WAYPOINTS:
+            raise FileRefused(f"{len(lines[0])} waypoints, more than {MAX_WAYPOINTS}")
         return RouteImport([_waypoint(lat, lon) for lat, lon in lines[0]], "KML")
     if body.startswith(("{", "[")):
         data = loads(body, filename or "the file")
@@ -259,6 +271,8 @@ def _waypoint(lat: float, lon: float, name: str = "") -> dict[str, Any]:
 
 
 def _mission_import(mission: MissionRoute, fmt: str) -> RouteImport:
+    if len(mission.waypoints) > MAX_WAYPOINTS:
+        raise FileRefused(f"{len(mission.waypoints)} waypoints, more than {MAX_WAYPOINTS}")
     return RouteImport(
         [_waypoint(lat, lon) for lat, lon in mission.waypoints],
         fmt,

@@ -13,14 +13,24 @@ from brasidas.mapfiles.shapes import Shape, check_position, multipolygon_shape, 
 GEOMETRIES = ("Point", "MultiPoint", "LineString", "MultiLineString", "Polygon", "MultiPolygon")
 
 
+MAX_INTEGER_DIGITS = 20
+"""Longer integers are refused (64-bit ids fit; no coordinate needs more)."""
+
+
 def loads(text: str, what: str) -> Any:
     """JSON, refusing NaN and Infinity (not JSON, and never a position)."""
 
     def constant(name: str) -> Any:
         raise FileRefused(f"{what}: {name} is not a number JSON allows")
 
+    def integer(digits: str) -> int:
+        # A 4,000-digit integer is no coordinate: refused here, not an OverflowError later.
+        if len(digits) > MAX_INTEGER_DIGITS:
+            raise FileRefused(f"{what}: a number of {len(digits)} digits")
+        return int(digits)
+
     try:
-        value = json.loads(text, parse_constant=constant)
+        value = json.loads(text, parse_constant=constant, parse_int=integer)
     except RecursionError:
         raise FileRefused(f"{what}: nested too deeply") from None
     except ValueError as exc:

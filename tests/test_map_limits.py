@@ -1,0 +1,159 @@
+"""Issue 26, defects 3, 4 and 10: every limit applies to every geometry and is counted before
+parsing where the format allows. A 150,001-vertex boundary, a boundary with 9,996 holes, a KML
+of 172,000 coordinates and a 25,000-item plan are refused without being parsed or built; a
+refused map changes nothing; a 4,000-digit coordinate is a refusal, not an internal error."""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+import pytest
+from test_patrol_platform import LAT, LON, Robot, robot_factory  # noqa: F401 (a fixture)
+
+from brasidas.autonomy import areamap
+from brasidas.autonomy.areamap import MAX_VERTICES, MapError, parse_map
+from brasidas.codecs.jsonrpc import RpcError
+from brasidas.mapfiles import files
+from brasidas.mapfiles.errors import FileRefused
+from platformd.sim.demo_area import demo_map
+
+
+def ring(n: int, lat: float = 37.94, lon: float = 23.65, radius: float = 0.001) -> list[Any]:
+    points = [
+        [round(lon + radius * math.cos(2 * math.pi * i / n), 6),
+         round(lat + radius * math.sin(2 * math.pi * i / n), 6)]
+        for i in range(n)
+    ]  # fmt: skip
+    return [*points, points[0]]
+
+
+def boundary_map(*rings: list[Any]) -> dict[str, Any]:
+    return {
+        "type": "FeatureCollection",
+        "features": [
+            {
+                "type": "Feature",
+                "properties": {"role": "boundary"},
+                "geometry": {"type": "Polygon", "coordinates": list(rings)},
+            }
+        ],
+    }
+
+
+def holes(count: int) -> list[list[Any]]:
+    return [ring(4, 37.94 + i * 1e-6, 23.65, 1e-7) for i in range(count)]
+
+
+@pytest.fixture
+def nothing_built(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Building any geometry fails the test: the refusal must come first."""
+
+    def built(*args: Any, **kwargs: Any) -> Any:
+        raise AssertionError("a geometry was built before the count refused it")
+
+    monkeypatch.setattr(areamap, "_boundary", built)
+    monkeypatch.setattr(areamap, "_keepout", built)
+
+
+@pytest.mark.usefixtures("nothing_built")
+@pytest.mark.parametrize(
+    "geojson",
+    [
+        boundary_map(ring(150_001)),
+        boundary_map(ring(100), *holes(9_996)),
+    ],
+    ids=["150001-vertex boundary", "9996 holes"],
+)
+def test_the_platform_counts_every_geometry_before_building_any(geojson: Any) -> None:
+    with pytest.raises(MapError, match=f"more than {MAX_VERTICES}"):
+        parse_map(json.dumps(geojson))
+
+
+def test_added_keepouts_are_counted_before_they_are_built(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    area = parse_map(demo_map(LAT, LON))
+    huge = {
+        "type": "Feature",
+        "properties": {"role": "keepout"},
+        "geometry": {"type": "Polygon", "coordinates": [ring(MAX_VERTICES, LAT, LON, 1e-5)]},
+    }
+    monkeypatch.setattr(areamap, "_keepout", lambda *a: (_ for _ in ()).throw(AssertionError()))
+    with pytest.raises(MapError, match=f"more than {MAX_VERTICES}"):
+        area.with_keepouts(add=[huge])
+
+
+@pytest.fixture
+def nothing_parsed(monkeypatch: pytest.MonkeyPatch) -> None:
+    def parsed(*args: Any, **kwargs: Any) -> Any:
+        raise AssertionError("the file was parsed before the count refused it")
+
+    monkeypatch.setattr(files, "parse_xml", parsed)
+    monkeypatch.setattr(files, "loads", parsed)
+
+
+def kml(coordinates: int) -> str:
+    text = " ".join(f"23.{i:06d},37.9,0" for i in range(coordinates))
+    return (
+        '<?xml version="1.0"?><kml xmlns="http://www.opengis.net/kml/2.2"><Document>'
+        f"<Placemark><Polygon><outerBoundaryIs><LinearRing><coordinates>{text}</coordinates>"
+        "</LinearRing></outerBoundaryIs></Polygon></Placemark></Document></kml>"
+    )
+
+
+def plan(items: int) -> str:
+    mission = [
+        {"type": "SimpleItem", "command": 16, "frame": 3,
+         "params": [0, 0, 0, None, 37.94 + i * 1e-6, 23.65, 0]}
+        for i in range(items)
+    ]  # fmt: skip
+    return json.dumps(
+        {
+            "fileType": "Plan",
+            "version": 1,
+            "groundStation": "QGroundControl",
+            "mission": {"version": 2, "items": mission, "plannedHomePosition": [37.94, 23.65, 0]},
+            "geoFence": {"version": 2, "polygons": [], "circles": []},
+            "rallyPoints": {"version": 2, "points": []},
+        },
+        separators=(",", ":"),
+    )
+
+
+@pytest.mark.usefixtures("nothing_parsed")
+def test_the_station_counts_a_files_vertices_and_items_before_parsing() -> None:
+    with pytest.raises(FileRefused, match="vertices, more than"):
+        files.read_map(json.dumps(boundary_map(ring(150_001))), "big.geojson")
+    with pytest.raises(FileRefused, match="vertices, more than"):
+        files.read_map(kml(172_000), "big.kml")
+    with pytest.raises(FileRefused, match="25000 mission items, more than"):
+        files.read_route(plan(25_000), "big.plan")
+
+
+def test_a_plan_with_more_waypoints_than_a_route_takes_is_refused_at_the_station() -> None:
+    with pytest.raises(FileRefused, match="1500 waypoints, more than 1000"):
+        files.read_route(plan(1_500), "long.plan")
+
+
+def test_a_4000_digit_coordinate_is_a_refusal() -> None:
+    big = "1" + "0" * 4000
+    boundary = json.dumps(boundary_map(ring(8))).replace("23.651", big, 1)
+    assert big in boundary
+    with pytest.raises(FileRefused, match="4001 digits"):
+        files.read_map(boundary, "x.geojson")
+    with pytest.raises(FileRefused, match="4001 digits"):
+        files.read_route(f"[[{big}, 23.6]]", "x.json")
+    boundary = json.dumps(boundary_map(ring(8))).replace("23.651", "1e400", 1)
+    with pytest.raises(FileRefused):
+        files.read_map(boundary, "x.geojson")
+
+
+async def test_a_refused_map_changes_nothing_on_the_platform(robot_factory: Any) -> None:  # noqa: F811
+    robot: Robot = await robot_factory()
+    await robot.call("set_waypoints", waypoints=["sw", "se"])
+    before = await robot.call("get_map")
+    with pytest.raises(RpcError, match=f"more than {MAX_VERTICES}"):
+        await robot.call("load_map", map=boundary_map(ring(25_000, LAT, LON)))
+    assert await robot.call("get_map") == before  # the map and its waypoints stay
