@@ -123,9 +123,9 @@ def read_map(text: str, filename: str = "", options: MapOptions | None = None) -
 def read_route(text: str, filename: str = "", *, fence: bool = False) -> RouteImport:
     """A route file's waypoints, or FileRefused. ``fence``: a plan's exclusion fences too."""
     body = _body(text)
-    items = plan_items_in(body) if body.startswith("{") else 0
-    if items > MAX_PLAN_ITEMS:
-        raise FileRefused(f"{items} mission items, more than {MAX_PLAN_ITEMS} (not read)")
+    plan_items = plan_items_in(body) if body.startswith("{") else 0
+    if plan_items > MAX_PLAN_ITEMS:
+        raise FileRefused(f"{plan_items} mission items, more than {MAX_PLAN_ITEMS} (not read)")
     # A plan's fence (or a KML's other shapes) may add a map's worth of vertices.
     check_positions(body, MAX_VERTICES + MAX_PLAN_ITEMS, "the route")
     if qgc.is_wpl(body):
