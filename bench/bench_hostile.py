@@ -13,6 +13,9 @@ times a heartbeat every 50 ms. Three attacks, one after the other:
 - 1,000 connections sending half a request's headers: how many the platform closed, and
   when the last was closed (``signaling.header_timeout`` 5 s).
 
+Then issue 26's rows on loopback (:mod:`bench.hostile_round2`: replays, spoofed video, big
+files); only those: ``BENCH_HOSTILE_ONLY=round2``.
+
 Run alone: ``.venv/bin/python -m bench hostile``.
 """
 
@@ -47,6 +50,15 @@ PROBE_INTERVAL = 0.05
 
 
 async def run() -> dict[str, Any]:
+    from bench import hostile_round2  # issue 26's rows, on loopback
+
+    figures: dict[str, Any] = {}
+    if os.environ.get("BENCH_HOSTILE_ONLY") != "round2":
+        figures |= await _round_one()
+    return figures | await hostile_round2.run()
+
+
+async def _round_one() -> dict[str, Any]:
     reason = unavailable_reason()
     if reason is not None:
         return {"skipped": reason}

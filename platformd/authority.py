@@ -42,6 +42,20 @@ from platformd.session_table import Session, SessionTable
 _LOGGER = logging.getLogger(__name__)
 PAYLOAD_KEPT = 4096
 """A control method's parameters are recorded up to this many characters."""
+ITEMS_KEPT = 64
+"""Of a list in those parameters, this many items are recorded (then a count of the rest)."""
+
+
+def _shortened(value: Any, depth: int = 0) -> Any:
+    """``value`` with every list cut to :data:`ITEMS_KEPT` items: what is recorded of it."""
+    if depth > 32:
+        return "..."
+    if isinstance(value, dict):
+        return {key: _shortened(item, depth + 1) for key, item in value.items()}
+    if isinstance(value, list):
+        kept = [_shortened(item, depth + 1) for item in value[:ITEMS_KEPT]]
+        return kept + ([f"... {len(value) - ITEMS_KEPT} more"] if len(value) > ITEMS_KEPT else [])
+    return value
 
 
 class Authority:
@@ -147,7 +161,8 @@ class Authority:
     ) -> None:
         """Tell the bus (the recorder) who sent which control method and how it went."""
         try:
-            payload = json.dumps(params, default=str)[:PAYLOAD_KEPT]
+            # Long lists cut first: a 3 MB map is not serialized on the loop to keep 4 KiB.
+            payload = json.dumps(_shortened(params), default=str)[:PAYLOAD_KEPT]
         except (TypeError, ValueError):
             payload = "<unprintable>"
         self.bus.publish(

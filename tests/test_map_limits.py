@@ -157,3 +157,13 @@ async def test_a_refused_map_changes_nothing_on_the_platform(robot_factory: Any)
     with pytest.raises(RpcError, match=f"more than {MAX_VERTICES}"):
         await robot.call("load_map", map=boundary_map(ring(25_000, LAT, LON)))
     assert await robot.call("get_map") == before  # the map and its waypoints stay
+
+
+def test_a_big_control_request_is_recorded_cut_not_serialized_whole() -> None:
+    from platformd.authority import ITEMS_KEPT, _shortened
+
+    big = boundary_map(ring(150_001))
+    cut = _shortened({"map": big})
+    coordinates = cut["map"]["features"][0]["geometry"]["coordinates"][0]
+    assert len(coordinates) == ITEMS_KEPT + 1 and coordinates[-1] == "... 149938 more"
+    assert big["features"][0]["geometry"]["coordinates"][0][0] == coordinates[0]

@@ -1,0 +1,342 @@
+"""A hostile mesh, second round (issue 26): the rows of ``make bench hostile`` that run on
+loopback (no namespaces needed), after round one's.
+
+- **Replay**: a signed ground station drives a ``--sim`` platform (MANUAL, the joystick,
+  HOLD); its datagrams, recorded, are sent again from a new source port 1 s later,
+  ``BENCH_HOSTILE_REPLAY_WAIT_S`` (60) s later, and after the platform restarts: the commands
+  accepted (COMMAND_ACK ACCEPTED to the replayer).
+- **Spoofed video**: an unsigned REQUEST_MESSAGE(VIDEO_STREAM_INFORMATION) every second for
+  ``BENCH_HOSTILE_VIDEO_S`` (21) s from a stranger's address: the bytes that address receives
+  (MAVLink answers and RTP on the NavCam's port) over the bytes it sent.
+- **Big files**: a station holding the override drives at 20 Hz while it imports a
+  150,001-vertex boundary and a 25,000-item ``.plan``, and while a misbehaving station sends
+  the boundary straight to the platform's ``load_map``: the time to the refusal, the
+  platform's RSS growth, a probe's heartbeat p99 and the deadman stops meanwhile.
+
+Only these rows: ``BENCH_HOSTILE_ONLY=round2 python -m bench hostile``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import math
+import os
+import socket
+import sys
+import tempfile
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from bench.support import (
+    PLATFORM_LOG,
+    connect_to_platform,
+    free_port,
+    percentiles,
+    rss_mb,
+    start_platform,
+    station_connect,
+    stop_process,
+)
+from brasidas import security
+from brasidas.codecs.jsonrpc import RpcError
+from brasidas.config import StationConfig, load_config
+from stationd.daemon import StationDaemon
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from mavlink_gcs import Gcs
+
+PASSPHRASE = "bench hostile round two"
+REPLAY_WAIT_S = float(os.environ.get("BENCH_HOSTILE_REPLAY_WAIT_S", "60"))
+VIDEO_S = float(os.environ.get("BENCH_HOSTILE_VIDEO_S", "21"))
+SETTLE_S = 2.0
+"""After a replay or the last request, how long answers (and RTP) may still arrive."""
+
+
+async def run() -> dict[str, Any]:
+    figures: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory() as scratch:
+        key_file = Path(scratch) / "mavlink.pass"
+        key_file.write_text(PASSPHRASE + "\n")
+        key_file.chmod(0o600)
+        figures |= await _replay(key_file, Path(scratch))
+        figures |= await _spoofed_video(key_file)
+    figures |= await _big_files()
+    figures["loadavg"] = list(os.getloadavg())
+    return figures
+
+
+# --------------------------------------------------------------------------- replay
+
+
+@contextlib.asynccontextmanager
+async def _mavlink_platform(*extra: str) -> AsyncIterator[tuple[asyncio.subprocess.Process, int]]:
+    port = free_port(socket.SOCK_DGRAM)
+    process = await start_platform("mavlink.enabled=true", f"mavlink.port={port}", *extra)
+    try:
+        yield process, port
+    finally:
+        await stop_process(process)
+
+
+async def _replay(key_file: Path, scratch: Path) -> dict[str, Any]:
+    gcs = await Gcs.open()
+    state = f"mavlink.signing_state_file={scratch / 'signing.json'}"
+    settings = (
+        f'mavlink.targets=["127.0.0.1:{gcs.port}"]',
+        f"mavlink.signing_key_file={key_file}",
+        state,
+    )
+    figures: dict[str, Any] = {}
+    try:
+        async with _mavlink_platform(*settings) as (_, port):
+            await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1, timeout=60)
+            gcs.sign(PASSPHRASE)
+            capture = await _drive(gcs)
+            figures["replay_capture_frames"] = len(capture)
+            await asyncio.sleep(1.0)
+            figures["replay_1s_accepted"] = await _send_again(capture, port)
+            await asyncio.sleep(REPLAY_WAIT_S)
+            figures[f"replay_{REPLAY_WAIT_S:g}s_accepted"] = await _send_again(capture, port)
+        async with _mavlink_platform(*settings) as (_, port):
+            await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1, timeout=60)
+            figures["replay_after_restart_accepted"] = await _send_again(capture, port)
+    finally:
+        gcs.close()
+    return figures
+
+
+async def _drive(gcs: Gcs) -> list[bytes]:
+    """MANUAL, the joystick forward for a second, HOLD, as a ground station drives."""
+    gcs.send(
+        mavlink.MAVLink_heartbeat_message(
+            mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3
+        )
+    )
+    ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 0)
+    if ack.result != mavlink.MAV_RESULT_ACCEPTED:
+        raise RuntimeError(f"the signed ground station was refused MANUAL ({ack.result})")
+    for _ in range(20):
+        gcs.send(mavlink.MAVLink_manual_control_message(1, 500, 0, 500, 0, 0))
+        await asyncio.sleep(0.05)
+    await gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 4)
+    return list(gcs.frames)
+
+
+async def _send_again(capture: list[bytes], port: int) -> int:
+    """The capture from a new source port, at its pace; the commands it got ACCEPTED."""
+    replayer = await Gcs.open()
+    replayer.vehicle = ("127.0.0.1", port)
+    try:
+        for frame in capture:
+            replayer.send_raw(frame)
+            await asyncio.sleep(0.05)
+        await asyncio.sleep(SETTLE_S)
+        return sum(
+            1
+            for message in replayer.received
+            if message.get_type() == "COMMAND_ACK" and message.result == mavlink.MAV_RESULT_ACCEPTED
+        )
+    finally:
+        replayer.close()
+
+
+# --------------------------------------------------------------------------- spoofed video
+
+
+async def _spoofed_video(key_file: Path) -> dict[str, Any]:
+    loop = asyncio.get_running_loop()
+    victim_rtp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    victim_rtp.bind(("127.0.0.1", 0))
+    victim_rtp.setblocking(False)
+    rtp_port = victim_rtp.getsockname()[1]
+    received = [0]
+
+    def drain() -> None:
+        with contextlib.suppress(BlockingIOError):
+            while True:
+                received[0] += len(victim_rtp.recv(65536))
+
+    loop.add_reader(victim_rtp.fileno(), drain)
+    target = await Gcs.open()  # the configured ground station, elsewhere
+    attacker = await Gcs.open(system=249)
+    try:
+        async with _mavlink_platform(
+            f'mavlink.targets=["127.0.0.1:{target.port}"]',
+            f"mavlink.signing_key_file={key_file}",
+            "navcam.enabled=true",
+            f"navcam.port={rtp_port}",
+        ) as (_, port):
+            await target.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1, timeout=60)
+            attacker.vehicle = ("127.0.0.1", port)
+            request = mavlink.MAVLink_command_long_message(
+                1, 100, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
+                mavlink.MAVLINK_MSG_ID_VIDEO_STREAM_INFORMATION, 0, 0, 0, 0, 0, 0,
+            )  # fmt: skip
+            deadline = time.monotonic() + VIDEO_S
+            while time.monotonic() < deadline:
+                attacker.send(request)
+                await asyncio.sleep(1.0)
+            await asyncio.sleep(SETTLE_S)
+    finally:
+        loop.remove_reader(victim_rtp.fileno())
+        victim_rtp.close()
+        target.close()
+        attacker.close()
+    sent = sum(len(frame) for frame in attacker.frames)
+    back = attacker.bytes_received + received[0]
+    return {
+        "spoofed_video_bytes_in": sent,
+        "spoofed_video_bytes_out": back,
+        "spoofed_video_rtp_bytes": received[0],
+        "spoofed_video_ratio": round(back / sent, 3),
+    }
+
+
+# --------------------------------------------------------------------------- big files
+
+
+def _boundary(vertices: int) -> dict[str, Any]:
+    lat, lon = 37.9415, 23.6530
+    ring = [
+        [round(lon + 0.002 * math.cos(2 * math.pi * i / vertices), 6),
+         round(lat + 0.002 * math.sin(2 * math.pi * i / vertices), 6)]
+        for i in range(vertices)
+    ]  # fmt: skip
+    ring.append(ring[0])
+    feature = {
+        "type": "Feature",
+        "properties": {"role": "boundary"},
+        "geometry": {"type": "Polygon", "coordinates": [ring]},
+    }
+    return {"type": "FeatureCollection", "features": [feature]}
+
+
+def _plan(items: int) -> str:
+    mission = [
+        {"type": "SimpleItem", "command": 16, "frame": 3,
+         "params": [0, 0, 0, None, 37.9415 + i * 1e-6, 23.6530, 0]}
+        for i in range(items)
+    ]  # fmt: skip
+    plan = {
+        "fileType": "Plan",
+        "version": 1,
+        "groundStation": "QGroundControl",
+        "mission": {"version": 2, "items": mission, "plannedHomePosition": [37.9415, 23.653, 0]},
+        "geoFence": {"version": 2, "polygons": [], "circles": []},
+        "rallyPoints": {"version": 2, "points": []},
+    }
+    return json.dumps(plan, separators=(",", ":"))
+
+
+async def _big_files() -> dict[str, Any]:
+    signaling = free_port()
+    process = await start_platform(f"signaling.port={signaling}")
+    key = security.load_or_create_key(security.default_key_path())
+    station = StationDaemon(load_config(StationConfig, None, ["station.api_port=0"]), key)
+    boundary = _boundary(150_001)
+    boundary_text = json.dumps(boundary, separators=(",", ":"))
+    plan_text = _plan(25_000)
+    figures: dict[str, Any] = {
+        "big_boundary_kib": len(boundary_text) // 1024,
+        "big_plan_kib": len(plan_text) // 1024,
+    }
+    try:
+        await station.start()
+        api = station.ctx.api
+        await station_connect(api, f"http://127.0.0.1:{signaling}", timeout=60)
+        answer = await api.call_local("movrd", platform_id="brasidas-1", engaged=True)
+        if not answer.get("accepted"):
+            raise RuntimeError(f"manual override refused: {answer}")
+        probe = await connect_to_platform(signaling)
+        async with asyncio.TaskGroup() as group:
+            driving = group.create_task(_drive_station(api))
+            try:
+                await asyncio.sleep(SETTLE_S)
+                station_import = {
+                    "boundary_150001": ("map_import", boundary_text, "big.geojson"),
+                    "plan_25000": ("route_import", plan_text, "big.plan"),
+                }
+                for row, (method, text, name) in station_import.items():
+                    figures |= await _during(
+                        row, process.pid, probe, _import(api, method, text, name)
+                    )
+                figures |= await _during(
+                    "boundary_150001_direct",
+                    process.pid,
+                    probe,
+                    _refused(probe.call("load_map", map=boundary)),
+                )
+            finally:
+                driving.cancel()
+        await probe.close()
+    finally:
+        await station.stop()
+        await stop_process(process)
+    return figures
+
+
+async def _drive_station(api: Any) -> None:
+    """The holder's setpoint every 50 ms (the station streams ``$PVEL`` at 20 Hz)."""
+    while True:
+        with contextlib.suppress(RpcError):
+            await api.call_local("teleop_set", platform_id="brasidas-1", linear=0.3, angular=0.0)
+        await asyncio.sleep(0.05)
+
+
+async def _import(api: Any, method: str, text: str, name: str) -> str:
+    return await _refused(
+        api.call_local(method, platform_id="brasidas-1", text=text, filename=name)
+    )
+
+
+async def _refused(call: Any) -> str:
+    try:
+        await call
+    except RpcError as err:
+        return err.message
+    return "accepted"
+
+
+async def _during(row: str, pid: int, probe: Any, work: Any) -> dict[str, Any]:
+    """``work``'s time to its answer, the platform's RSS growth, the probe's heartbeats and
+    the deadman stops (the platform's log) meanwhile (and a second after)."""
+    deadman_before = _deadman_lines()
+    rss_before = rss_mb(pid)
+    samples: list[float] = []
+    done = asyncio.Event()
+
+    async def heartbeats() -> None:
+        while not done.is_set():
+            started = time.perf_counter()
+            await probe.call("heartbeat")
+            samples.append((time.perf_counter() - started) * 1000)
+            await asyncio.sleep(0.05)
+
+    async with asyncio.TaskGroup() as group:
+        beating = group.create_task(heartbeats())
+        started = time.perf_counter()
+        answer = await work
+        seconds = time.perf_counter() - started
+        await asyncio.sleep(1.0)
+        done.set()
+        await beating
+    return {
+        f"{row}_answer": answer[:100],
+        f"{row}_refused_s": round(seconds, 3),
+        f"{row}_platform_rss_growth_mb": round(rss_mb(pid) - rss_before, 1),
+        f"{row}_heartbeat_ms": percentiles(samples),
+        f"{row}_deadman_stops": _deadman_lines() - deadman_before,
+    }
+
+
+def _deadman_lines() -> int:
+    try:
+        return PLATFORM_LOG.read_text(errors="replace").count("deadman:")
+    except FileNotFoundError:
+        return 0
