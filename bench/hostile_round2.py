@@ -9,9 +9,10 @@ loopback (no namespaces needed), after round one's.
   ``BENCH_HOSTILE_VIDEO_S`` (21) s from a stranger's address: the bytes that address receives
   (MAVLink answers and RTP on the NavCam's port) over the bytes it sent.
 - **Big files**: a station holding the override drives at 20 Hz while it imports a
-  150,001-vertex boundary and a 25,000-item ``.plan``, and while a misbehaving station sends
-  the boundary straight to the platform's ``load_map``: the time to the refusal, the
-  platform's RSS growth, a probe's heartbeat p99 and the deadman stops meanwhile.
+  150,001-vertex boundary and a 25,000-item ``.plan``, while another session sends the
+  boundary straight to the platform's ``load_map``, and while 16 downloads of a recording
+  run: the time to the answer, the platform's RSS growth, a probe's heartbeat p99 and the
+  deadman stops meanwhile.
 
 Only these rows: ``BENCH_HOSTILE_ONLY=round2 python -m bench hostile``.
 """
@@ -272,6 +273,9 @@ async def _big_files() -> dict[str, Any]:
                     probe,
                     _refused(probe.call("load_map", map=boundary)),
                 )
+                figures |= await _during(
+                    "downloads_16", process.pid, probe, _downloads(signaling, probe.session_id)
+                )
             finally:
                 driving.cancel()
         await probe.close()
@@ -279,6 +283,54 @@ async def _big_files() -> dict[str, Any]:
         await station.stop()
         await stop_process(process)
     return figures
+
+
+DOWNLOAD_MB = 32
+DOWNLOADERS = 16
+DOWNLOAD_S = float(os.environ.get("BENCH_HOSTILE_DOWNLOAD_S", "10"))
+
+
+async def _downloads(signaling: int, session: str) -> str:
+    """16 parallel downloads of a 32 MB recording for ``BENCH_HOSTILE_DOWNLOAD_S`` (10) s, from
+    another process (as another station would: not on the driving station's loop); one
+    recording planted (the live one is small). What they got together."""
+    folder = security.state_dir() / "recordings"
+    name = "bench-hostile-download.mcap"
+    await asyncio.to_thread(folder.mkdir, parents=True, exist_ok=True)
+    await asyncio.to_thread((folder / name).write_bytes, os.urandom(DOWNLOAD_MB * 1024 * 1024))
+    url = f"http://127.0.0.1:{signaling}/recordings/{name}"
+    try:
+        process = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "bench.hostile_round2", url, session,
+            str(DOWNLOADERS), str(DOWNLOAD_S),
+            stdout=asyncio.subprocess.PIPE,
+        )  # fmt: skip
+        out, _ = await process.communicate()
+    finally:
+        await asyncio.to_thread((folder / name).unlink, missing_ok=True)
+    return out.decode().strip()
+
+
+async def _download_for(url: str, session: str, count: int, seconds: float) -> str:
+    """(The downloaders' process.) ``count`` parallel GETs of ``url`` for ``seconds``."""
+    import aiohttp
+
+    got = [0]
+
+    async def one(http: aiohttp.ClientSession) -> None:
+        async with http.get(url, headers={"X-Brasidas-Session": session}) as response:
+            async for chunk in response.content.iter_chunked(65536):
+                got[0] += len(chunk)
+
+    started = time.monotonic()
+    async with aiohttp.ClientSession() as http:
+        tasks = [asyncio.ensure_future(one(http)) for _ in range(count)]
+        _, pending = await asyncio.wait(tasks, timeout=seconds)
+        for task in pending:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+    rate = got[0] / (time.monotonic() - started) / 1024
+    return f"{count} downloads: {rate:.0f} KiB/s together"
 
 
 async def _drive_station(api: Any) -> None:
@@ -340,3 +392,9 @@ def _deadman_lines() -> int:
         return PLATFORM_LOG.read_text(errors="replace").count("deadman:")
     except FileNotFoundError:
         return 0
+
+
+if __name__ == "__main__":
+    print(
+        asyncio.run(_download_for(sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])))
+    )

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import re
 import time
 from pathlib import Path
 from typing import Any
@@ -46,6 +45,7 @@ from brasidas.recording.writer import Quota, Recorder, list_recordings, resolve_
 from brasidas.rpc import peer_host
 from brasidas.security import state_dir
 from platformd.context import PlatformContext
+from platformd.recording_download import RateShare, send_file
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -77,6 +77,7 @@ class PlatformRecorder(Actor):
         self.ctx = ctx
         self.directory = directory
         config = ctx.config.recorder
+        self.download_share = RateShare(config.download_kib_s * 1024)
         self.channels = schemas.all_channels()
         self.index = _index(self.channels)
         self.writer = Recorder(
@@ -325,14 +326,10 @@ class PlatformRecorder(Actor):
         path = resolve_name(self.directory, request.match_info["name"])
         if path is None:
             raise web.HTTPNotFound(text="no such recording")
-        if EMPTY_SUFFIX_RANGE.fullmatch(request.headers.get("Range", "").strip()):
-            size = (await asyncio.to_thread(path.stat)).st_size
-            raise web.HTTPRequestRangeNotSatisfiable(headers={"Content-Range": f"bytes */{size}"})
-        return web.FileResponse(path, headers={"Content-Type": "application/octet-stream"})
-
-
-EMPTY_SUFFIX_RANGE = re.compile(r"bytes\s*=\s*-0+", re.IGNORECASE)
-"""``Range: bytes=-0``, the last zero bytes: unsatisfiable (RFC 9110 14.1.1)."""
+        # Every download together at recorder.download_kib_s (issue 26).
+        return await send_file(
+            request, path, self.download_share, {"Content-Type": "application/octet-stream"}
+        )
 
 
 def recordings_dir(ctx: PlatformContext) -> Path:

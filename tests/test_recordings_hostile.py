@@ -9,6 +9,7 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 import aiohttp
+import pytest
 from conftest import quiet_platform_config, wait_until
 from test_recorder import recorder_of
 from test_velocity import open_connection
@@ -16,6 +17,7 @@ from test_velocity import open_connection
 from brasidas.messages import CommandReceived
 from brasidas.recording import schemas
 from platformd.app import PlatformDaemon
+from platformd.recording_download import RateShare
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 
@@ -65,3 +67,11 @@ def test_the_commands_channel_records_the_station_never_the_token() -> None:
         assert token not in json.dumps(record)
         assert record["station"] == "ops-1"
     assert "session" not in schemas.COMMAND["properties"]
+
+
+def test_parallel_downloads_share_one_rate() -> None:
+    share = RateShare(1024 * 1024)  # 1 MiB/s for everyone together
+    delays = [share.reserve(64 * 1024, 10.0) for _ in range(16)]  # 16 downloaders, one chunk
+    assert delays[0] == 0 and delays[-1] == pytest.approx(15 / 16)
+    assert share.reserve(64 * 1024, 12.0) == 0  # idle since: no debt carried
+    assert RateShare(0).reserve(10**9, 0.0) == 0  # 0: no limit

@@ -592,6 +592,9 @@ class RecorderSection:
     """Messages waiting for the writer thread at most; past it new ones are dropped (counted)."""
     telemetry_hz: float = setting(2.0, above(0, most=50))
     """How often every telemetry section is recorded."""
+    download_kib_s: int = setting(2048, at_least(0, most=10**7))
+    """Every recording download together is sent at most this fast (KiB/s; 0: no limit): a
+    station fetching recordings leaves the link's rest to video and control."""
 
 
 @dataclass(frozen=True)
