@@ -2,8 +2,9 @@
 an attacker host without the fleet key, as network namespaces on one bridge (tests/netns.py).
 
 The holder sits behind a link emulator, so a test can cut its link and see what it sent
-(:class:`Capture`); the attacker (:class:`Attacker`) sends what it likes, from any source
-address it likes (a raw socket: the spoofing a host on the same segment can do). Test modules
+(:class:`Capture`: a listener recording the air); the attacker (:class:`Attacker`) sends what it
+likes, from any source address it likes (a raw socket: the spoofing a host on the same segment
+can do), recorded datagrams included (:meth:`Attacker.replay`). Test modules
 build one :class:`HostileRig` per module with :func:`hostile_rig_fixture`.
 """
 
@@ -106,6 +107,12 @@ class Attacker:
             )
         self._raw.sendto(spoofed_udp(source, destination, payload), (destination[0], 0))
         self.sent += 1
+
+    def replay(self, recorded: list[Datagram], source: tuple[str, int] | None = None) -> None:
+        """Send datagrams a listener recorded (:class:`Capture`) again, to where they went,
+        from ``source`` (their own source when None: the sender's address, spoofed)."""
+        for datagram in recorded:
+            self.send_as(source or datagram.source, datagram.destination, datagram.payload)
 
     def close(self) -> None:
         if self._raw is not None:
