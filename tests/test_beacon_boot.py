@@ -4,14 +4,19 @@ signed for that station's connection."""
 
 from __future__ import annotations
 
+import asyncio
+import socket
+from collections.abc import Awaitable, Callable
 from pathlib import Path
+from typing import Any
 
-from conftest import free_udp_port, quiet_platform_config
+from conftest import free_udp_port, quiet_platform_config, running_station
 from test_beacon import Factory, beacon_config, sample
 
 from brasidas.codecs import beacon as codec
 from brasidas.codecs.beacon import DropReason
 from brasidas.discovery import PlatformDirectory
+from brasidas.status import StatusWord
 from platformd.boot_counter import boot_counter_path, next_boot
 from stationd.client import PlatformConnection, _announced_boot
 
@@ -84,3 +89,43 @@ async def test_a_restarted_platform_announces_a_higher_boot_to_its_station(
         assert connection.boot == platform.ctx.boot
     finally:
         await connection.close()
+
+
+async def test_a_station_takes_a_lower_boot_after_the_platforms_signed_announcement(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    port = free_udp_port()
+    config = quiet_platform_config(
+        *beacon_config(port, "beacon.min_interval=0.1", "beacon.max_interval=0.3")
+    )
+    platform = await platform_factory(config, fleet_key)
+    platform_id = config.platform.id
+    async with running_station(fleet_key, f"discovery.port={port}") as station:
+        api = station.ctx.api
+
+        async def stats() -> dict[str, Any]:
+            return dict(await api.call_local("discovery_stats"))
+
+        await wait_until_async(lambda s: s["accepted"] >= 1, stats)
+        # A higher boot was seen once (before the platform's counter was reset): the live
+        # beacons of the platform's real, lower boot are refused as replays ...
+        higher = codec.Beacon(
+            platform_id, platform.ctx.signaling_url, StatusWord(), platform.ctx.boot + 1000, 1
+        )
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            sock.sendto(codec.encode(higher, fleet_key), ("127.0.0.1", port))
+        await wait_until_async(lambda s: s["dropped"]["replay"] >= 2, stats)
+        # ... until the platform announces its boot over the session the station opens.
+        await api.call_local("connect", platform_id=platform_id, url=platform.ctx.signaling_url)
+        accepted = (await stats())["accepted"]
+        await wait_until_async(lambda s: s["accepted"] >= accepted + 2, stats)
+
+
+async def wait_until_async(
+    condition: Callable[[dict[str, Any]], bool],
+    read: Callable[[], Awaitable[dict[str, Any]]],
+    timeout: float = 10.0,
+) -> None:
+    async with asyncio.timeout(timeout):
+        while not condition(await read()):
+            await asyncio.sleep(0.05)
