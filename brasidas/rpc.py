@@ -191,7 +191,7 @@ def add_rpc_routes(
                     if ctx.stranger and len(message.data) > stranger_max_bytes:
                         await send(_TOO_LARGE)  # not even parsed
                         continue
-                    incoming = dispatcher.parse(message.data)
+                    incoming = await dispatcher.parse_off_loop(message.data)
                     if dispatcher.answers_at_once(incoming):
                         try:
                             reply = dispatcher.answer_at_once(incoming, ctx)

@@ -167,3 +167,22 @@ def test_a_big_control_request_is_recorded_cut_not_serialized_whole() -> None:
     coordinates = cut["map"]["features"][0]["geometry"]["coordinates"][0]
     assert len(coordinates) == ITEMS_KEPT + 1 and coordinates[-1] == "... 149938 more"
     assert big["features"][0]["geometry"]["coordinates"][0][0] == coordinates[0]
+
+
+async def test_a_large_request_is_parsed_off_the_loop_to_the_same_answer() -> None:
+    from brasidas.codecs.jsonrpc import LARGE_MESSAGE_BYTES, Dispatcher
+
+    dispatcher = Dispatcher()
+    big = {
+        "jsonrpc": "2.0",
+        "id": 1,
+        "method": "load_map",
+        "params": {"map": boundary_map(ring(30_000))},
+    }
+    text = json.dumps(big)
+    assert len(text) > LARGE_MESSAGE_BYTES
+    off_loop = await dispatcher.parse_off_loop(text)
+    assert off_loop.message == dispatcher.parse(text).message == big
+    for bad in (text.replace("23.65", "NaN", 1), "[" * 200_000 + " " * LARGE_MESSAGE_BYTES):
+        refused = await dispatcher.parse_off_loop(bad)
+        assert refused.message is None and refused.parse_error is not None
