@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import secrets
 
 from brasidas.config import StationConfig
 from brasidas.rpc import browser_refusal
@@ -24,6 +25,12 @@ HEAD_MAX_BYTES = 16 * 1024
 HEAD_TIMEOUT_S = 5.0
 """A client that has not sent its whole head by then is dropped (a slow-loris holds nothing)."""
 CHUNK = 64 * 1024
+UPSTREAM_HOST = (
+    f"127.{secrets.randbelow(254) + 1}.{secrets.randbelow(256)}.{secrets.randbelow(254) + 1}"
+)
+"""Where the SDK's own server listens: a random loopback address (Linux answers all of 127/8)
+as well as an ephemeral port, so a web page cannot find it by scanning 127.0.0.1's ports and
+go round the guard."""
 
 
 def head_refusal(head: bytes, local_hosts: frozenset[str], origins: tuple[str, ...]) -> str | None:
@@ -44,18 +51,20 @@ def head_refusal(head: bytes, local_hosts: frozenset[str], origins: tuple[str, .
 
 
 class OriginGuard:
-    """Listens on ``host:port``; each admitted client is spliced to ``127.0.0.1:upstream``."""
+    """Listens on ``host:port``; each admitted client is spliced to the upstream server."""
 
     def __init__(
         self,
         host: str,
         port: int,
+        upstream_host: str,
         upstream_port: int,
         local_hosts: frozenset[str],
         origins: tuple[str, ...] = (),
     ) -> None:
         self.host = host
         self.port = port
+        self.upstream_host = upstream_host
         self.upstream_port = upstream_port
         self.local_hosts = local_hosts
         self.origins = origins
@@ -107,7 +116,7 @@ class OriginGuard:
             with contextlib.suppress(ConnectionError):
                 await writer.drain()
             return
-        up_reader, up_writer = await asyncio.open_connection("127.0.0.1", self.upstream_port)
+        up_reader, up_writer = await asyncio.open_connection(self.upstream_host, self.upstream_port)
         self._writers.add(up_writer)
         try:
             up_writer.write(head)
@@ -135,10 +144,14 @@ async def _pipe(source: asyncio.StreamReader, sink: asyncio.StreamWriter) -> Non
             sink.close()
 
 
-def guard_for(config: StationConfig, upstream_port: int, port: int) -> OriginGuard:
+def guard_for(
+    config: StationConfig, upstream_host: str, upstream_port: int, port: int
+) -> OriginGuard:
     """The guard on ``foxglove.host:port`` with the console's host names."""
     foxglove = config.foxglove
     local_hosts = frozenset(
         {"127.0.0.1", "localhost", "[::1]", foxglove.host, *config.console.https_names}
     )
-    return OriginGuard(foxglove.host, port, upstream_port, local_hosts, foxglove.origins)
+    return OriginGuard(
+        foxglove.host, port, upstream_host, upstream_port, local_hosts, foxglove.origins
+    )

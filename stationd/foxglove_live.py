@@ -37,7 +37,7 @@ from brasidas.messages import CommandSent, PlatformLink, StationNotification
 from brasidas.recording import schemas
 from brasidas.recording.schemas import AUTONOMY_VELOCITY, TELEOP_VELOCITY, ChannelSpec
 from stationd.context import StationContext
-from stationd.foxglove_guard import OriginGuard, guard_for
+from stationd.foxglove_guard import UPSTREAM_HOST, OriginGuard, guard_for
 from stationd.video_feed import HEADER, Viewer, pump
 
 _LOGGER = logging.getLogger(__name__)
@@ -169,13 +169,13 @@ class FoxgloveLive(Actor):
             self._server = await asyncio.to_thread(
                 foxglove.start_server,
                 name=f"brasidas-station {self.ctx.config.station.id}",
-                host="127.0.0.1",
+                host=UPSTREAM_HOST,
                 port=0,
                 capabilities=[],  # read-only: no client publishing, parameters or services
                 server_listener=_Listener(loop, self),
                 context=self._context,
             )
-            self.guard = guard_for(self.ctx.config, int(self._server.port), port)
+            self.guard = guard_for(self.ctx.config, UPSTREAM_HOST, int(self._server.port), port)
             await self.guard.start()
         except Exception as err:  # the port taken: the station runs on without it
             _LOGGER.error("foxglove: cannot serve on %s:%d: %s", config.host, port, err)

@@ -43,6 +43,9 @@ async def test_foreign_origin_and_host_are_refused_like_the_consoles(fleet_key: 
         own = {"Origin": f"http://127.0.0.1:{live.port}"}
         assert (await upgrade_status(foxglove, own))[0] == 101
         assert live.guard is not None and live.guard.refused == 2
+        # The SDK's own server is not on 127.0.0.1, where a page could scan for its port.
+        assert live.guard.upstream_host.startswith("127.")
+        assert live.guard.upstream_host != "127.0.0.1"
 
 
 @pytest.mark.parametrize(
