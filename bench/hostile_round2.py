@@ -373,6 +373,8 @@ async def _refused(call: Any) -> str:
         await call
     except RpcError as err:
         return err.message
+    except (ConnectionError, TimeoutError) as err:  # the sender's own session lost meanwhile
+        return f"{type(err).__name__}: {err}"
     return "accepted"
 
 
