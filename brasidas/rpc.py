@@ -24,6 +24,7 @@ from brasidas.admission import (
 from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import (
     INTERNAL_ERROR,
+    LARGE_MESSAGE_BYTES,
     REQUEST_TOO_LARGE,
     TIMEOUT,
     UNAUTHORIZED,
@@ -174,12 +175,17 @@ def add_rpc_routes(
                 reply = broken()
             await send(reply)
 
+        async def parse_then_answer(data: bytes | str) -> None:
+            await answer(await dispatcher.parse_off_loop(data))
+
         # A request whose method may wait (a command waiting seconds for its actor) is answered
         # in its own task, owned by this connection, so it does not hold up the heartbeats
         # behind it; answers carry their ids and may come back out of order. Methods that
         # answer at once run inline, without a task or even a coroutine. Past the cap,
         # requests wait in line.
         in_flight: set[asyncio.Task[None]] = set()
+        parsing: set[asyncio.Task[None]] = set()
+        """The large message being parsed in a worker thread (at most one)."""
         loop = asyncio.get_running_loop()
         try:
             async for message in ws:
@@ -190,6 +196,20 @@ def add_rpc_routes(
                 elif kind is aiohttp.WSMsgType.TEXT or kind is aiohttp.WSMsgType.BINARY:
                     if ctx.stranger and len(message.data) > stranger_max_bytes:
                         await send(_TOO_LARGE)  # not even parsed
+                        continue
+                    if (
+                        len(message.data) > LARGE_MESSAGE_BYTES
+                        and not parsing
+                        and len(in_flight) < MAX_IN_FLIGHT_PER_SOCKET
+                    ):
+                        # Parsed in a worker thread while this socket's next requests (its
+                        # heartbeats: a session must not time out behind its own map) go on;
+                        # one at a time (a second waits here, reading stops: backpressure).
+                        task = loop.create_task(parse_then_answer(message.data))
+                        parsing.add(task)
+                        task.add_done_callback(parsing.discard)
+                        in_flight.add(task)
+                        task.add_done_callback(in_flight.discard)
                         continue
                     incoming = await dispatcher.parse_off_loop(message.data)
                     if dispatcher.answers_at_once(incoming):

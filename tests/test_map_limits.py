@@ -5,6 +5,7 @@ refused map changes nothing; a 4,000-digit coordinate is a refusal, not an inter
 
 from __future__ import annotations
 
+import asyncio
 import json
 import math
 from typing import Any
@@ -186,3 +187,31 @@ async def test_a_large_request_is_parsed_off_the_loop_to_the_same_answer() -> No
     for bad in (text.replace("23.65", "NaN", 1), "[" * 200_000 + " " * LARGE_MESSAGE_BYTES):
         refused = await dispatcher.parse_off_loop(bad)
         assert refused.message is None and refused.parse_error is not None
+
+
+async def test_a_sessions_heartbeat_is_answered_while_its_large_request_is_parsed(
+    platform_factory: Any, fleet_key: bytes
+) -> None:
+    from conftest import quiet_platform_config
+    from test_velocity import open_connection
+
+    daemon = await platform_factory(quiet_platform_config(), fleet_key)
+    conn = await open_connection(daemon, fleet_key)
+    finished: list[str] = []
+
+    async def call(method: str, **params: Any) -> None:
+        try:
+            await conn.call(method, **params)
+        except RpcError:
+            pass  # load_map without a map module, or refused: its answer is what counts
+        finished.append(method)
+
+    try:
+        big = boundary_map(ring(60_000, LAT, LON))  # ~1.4 MB: parsed in a worker thread
+        async with asyncio.TaskGroup() as group:
+            group.create_task(call("load_map", map=big))
+            await asyncio.sleep(0)  # sent first
+            group.create_task(call("heartbeat"))
+        assert finished == ["heartbeat", "load_map"]
+    finally:
+        await conn.close()
