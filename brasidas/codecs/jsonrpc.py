@@ -205,14 +205,16 @@ class Dispatcher:
 
     async def handle_bytes(self, data: bytes | str, ctx: CallContext) -> bytes | None:
         """Answer one JSON-RPC message (single or batch); None when nothing is to be sent."""
-        answer = await self.answer(await self.parse_off_loop(data), ctx)
+        answer = await self.answer(self.parse(data), ctx)
         return None if answer is None else answer.encode()
 
     async def parse_off_loop(self, data: bytes | str) -> Incoming:
         """:meth:`parse`; a message over :data:`LARGE_MESSAGE_BYTES` in a worker thread with
         the pure-Python parser, which lets the loop take the GIL every few milliseconds (the C
         parser holds it for the whole document: 0.2-0.6 s for a 3 MB map, enough to trip the
-        0.3 s deadman of a station driving meanwhile)."""
+        0.3 s deadman of a station driving meanwhile). For the platform's WebSocket, where maps
+        arrive as numbers: a file's text in one escaped string (the station's local API over
+        HTTP) is quick for the C parser and slow for Python's, and keeps :meth:`parse`."""
         if len(data) <= LARGE_MESSAGE_BYTES:
             return self.parse(data)
         return await asyncio.to_thread(self.parse, data, interruptible=True)
