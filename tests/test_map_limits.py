@@ -215,3 +215,14 @@ async def test_a_sessions_heartbeat_is_answered_while_its_large_request_is_parse
         assert finished == ["heartbeat", "load_map"]
     finally:
         await conn.close()
+
+
+def test_file_text_keeps_the_c_parser_and_a_maps_numbers_go_off_the_loop() -> None:
+    from brasidas.codecs.jsonrpc import escape_heavy
+
+    lines = [f'  <node id="{i}" lat="37.94{i:05d}" lon="23.65{i:05d}"/>' for i in range(20_000)]
+    text = "<osm>\n" + "\n".join(lines) + "\n</osm>\n"
+    file_import = json.dumps({"method": "map_import", "params": {"text": text}})
+    assert escape_heavy(file_import) and escape_heavy(file_import.encode())
+    map_load = json.dumps({"method": "load_map", "params": {"map": boundary_map(ring(20_000))}})
+    assert not escape_heavy(map_load) and not escape_heavy(map_load.encode())
