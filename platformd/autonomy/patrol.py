@@ -106,6 +106,12 @@ class PatrolActor(Actor):
         self._driving = False
         self._reported: PatrolStatus | None = None
         self.loaded = False
+        self.resumable = False
+        """A stored route was loaded on an enabled patrol: what autostart resumes."""
+        self.start_check: Callable[[], str | None] | None = None
+        """Before any start (platformd.arming): the refusal (pre-arm), or None (armed)."""
+        self.on_stop: Callable[[], None] | None = None
+        """After an operator's stop (platformd.arming keeps it as the last word)."""
         self.map_error = ""
         """Why the stored map was refused at start ("" when it was not): in telemetry."""
         self.last_build_s: float | None = None
@@ -153,7 +159,8 @@ class PatrolActor(Actor):
         if area is not None:
             self.core.set_route(route)
         report_switch(self.bus, "patrol", self.core.enabled)
-        if route.waypoints and stored and self.autostart and self.core.enabled:
+        self.resumable = bool(route.waypoints and stored and self.core.enabled)
+        if self.resumable and self.autostart:
             self.core.start()
             _LOGGER.info(
                 "patrol: %d waypoints on %r, starting", len(route.waypoints), area and area.name
@@ -489,12 +496,17 @@ class PatrolActor(Actor):
             raise RouteError("no map loaded")
         if not self.core.route.waypoints:
             raise RouteError("no waypoints")
+        refusal = self.start_check() if self.start_check is not None else None
+        if refusal is not None:
+            raise RouteError(refusal)
         self.core.start()
         self.tick()
 
     def stop_patrol(self) -> None:
         self.core.stop()
         self.tick()
+        if self.on_stop is not None:
+            self.on_stop()
 
     def go_to_waypoint(self, index: int) -> None:
         """Head for waypoint ``index`` (from 0) next; RouteError for none such."""

@@ -1,0 +1,257 @@
+"""Arming, pre-arm checks, the stop for everyone and the operator's last word (issue 27)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import signal
+import sys
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import free_tcp_port, free_udp_port, wait_until
+
+from brasidas import security, topics
+from brasidas.bus import Bus
+from brasidas.codecs.jsonrpc import RpcError
+from brasidas.messages import ArmingState, ControllerStatus, ImuStatus, OverrideState, Velocity
+from platformd.arbiter import MotionArbiter
+from platformd.arming import CLOCK_SET_AFTER, PrearmInputs, prearm_reasons
+from platformd.sim.demo_area import demo_map
+from stationd.client import PlatformConnection
+
+NOW = CLOCK_SET_AFTER + 1000.0
+
+
+# --------------------------------------------------------------------------- pre-arm checks
+
+
+def test_prearm_names_every_failing_check_and_passes_when_healthy() -> None:
+    bad = PrearmInputs(
+        now=100.0,
+        wall=0.0,
+        gps_enabled=True,
+        fix_age_s=None,
+        imu_enabled=True,
+        imu_age_s=None,
+        motor_enabled=True,
+        controller=ControllerStatus(False, error="no answer on /dev/ttyUSB0"),
+        recorder_error="disk full",
+        map_error="self-intersection",
+    )
+    assert prearm_reasons(bad) == (
+        "PreArm: no GPS fix",
+        "PreArm: IMU silent",
+        "PreArm: motor controller not answering (no answer on /dev/ttyUSB0)",
+        "PreArm: map refused: self-intersection",
+        "PreArm: recorder cannot write: disk full",
+        "PreArm: clock not set",
+    )
+    # Driving by hand needs neither a position nor the sensors: the recorder and the clock.
+    assert prearm_reasons(bad, manual=True) == (
+        "PreArm: recorder cannot write: disk full",
+        "PreArm: clock not set",
+    )
+    good = PrearmInputs(
+        now=100.0,
+        wall=NOW,
+        gps_enabled=True,
+        fix_age_s=0.2,
+        imu_enabled=True,
+        imu=ImuStatus(True),
+        imu_age_s=0.5,
+        motor_enabled=True,
+        controller=ControllerStatus(True),
+    )
+    assert prearm_reasons(good) == ()
+    stale = PrearmInputs(now=100.0, wall=NOW, gps_enabled=True, fix_age_s=2.5, fix_stale_s=2.0)
+    assert prearm_reasons(stale) == ("PreArm: no GPS fix",)
+    failed_imu = PrearmInputs(
+        now=1.0, wall=NOW, imu_enabled=True, imu=ImuStatus(False, "WHO_AM_I 0x00"), imu_age_s=0.1
+    )
+    assert prearm_reasons(failed_imu) == ("PreArm: IMU: WHO_AM_I 0x00",)
+
+
+# --------------------------------------------------------------------------- the arbiter's gate
+
+
+class _Timer:
+    def cancel(self) -> None:
+        pass
+
+
+def test_disarmed_nothing_but_zero_reaches_the_motors() -> None:
+    bus = Bus()
+    now = [0.0]
+    arbiter = MotionArbiter(
+        bus, deadman=0.3, clock=lambda: now[0], call_later=lambda delay, callback: _Timer()
+    )
+    commands: list[Velocity] = []
+    bus.subscribe(topics.MOTOR_COMMAND, commands.append)
+    arbiter.start()
+    bus.publish(topics.CMD_VEL, Velocity(0.5, 0.1))
+    assert commands[-1] == Velocity(0.5, 0.1)  # armed (no arming actor): as before
+
+    bus.publish(topics.ARMING_STATE, ArmingState(False, "stop by observer"))
+    assert commands[-1] == Velocity(0.0, 0.0)
+    commands.clear()
+    bus.publish(topics.CMD_VEL, Velocity(0.5, 0.1))
+    bus.publish(topics.OVERRIDE_STATE, OverrideState(True, "s1", "alpha"))
+    bus.publish(topics.TELEOP_VELOCITY, Velocity(1.0, 0.0))
+    bus.publish(topics.OVERRIDE_STATE, OverrideState(False))
+    bus.publish(topics.CMD_VEL, Velocity(0.3, 0.0))
+    assert commands and all(c == Velocity(0.0, 0.0) for c in commands)
+
+    bus.publish(topics.ARMING_STATE, ArmingState(True, "armed by alpha"))
+    bus.publish(topics.CMD_VEL, Velocity(0.3, 0.0))
+    assert commands[-1] == Velocity(0.3, 0.0)
+
+
+# --------------------------------------------------------------------------- a real process
+
+
+class Platform:
+    """``python -m platformd --sim`` on files in ``tmp_path``; killed with SIGKILL."""
+
+    def __init__(self, tmp_path: Path) -> None:
+        self.tmp_path = tmp_path
+        self.port = free_tcp_port()
+        self.process: asyncio.subprocess.Process | None = None
+        self.log = tmp_path / "platform.log"
+
+    async def start(self) -> None:
+        settings = [
+            "sim.demo_map=false",
+            f"map.file={self.tmp_path / 'map.geojson'}",
+            f"autonomy.route_file={self.tmp_path / 'route.json'}",
+            f"arming.state_file={self.tmp_path / 'last_word.json'}",
+            "arming.countdown_s=1",
+            f"recorder.dir={self.tmp_path / 'recordings'}",
+            f"signaling.port={self.port}",
+            f"beacon.port={free_udp_port()}",
+            f"velocity.port={free_udp_port()}",
+        ]
+        args = [arg for setting in settings for arg in ("--set", setting)]
+        with self.log.open("ab") as log:
+            self.process = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "platformd", "--sim", *args, stderr=log
+            )
+
+    async def connect(self, station_id: str) -> PlatformConnection:
+        async def attempt() -> PlatformConnection:
+            while True:
+                assert self.process is not None and self.process.returncode is None
+                if not security.default_key_path().exists():  # --sim makes it at start
+                    await asyncio.sleep(0.1)
+                    continue
+                connection = PlatformConnection(
+                    "brasidas-1",
+                    f"http://127.0.0.1:{self.port}",
+                    station_id=station_id,
+                    fleet_key=security.load_key(security.default_key_path()),
+                )
+                try:
+                    await connection.open()
+                    return connection
+                except OSError:
+                    await connection.close()
+                    await asyncio.sleep(0.1)
+
+        return await asyncio.wait_for(attempt(), 20)
+
+    async def kill(self) -> None:
+        if self.process is not None and self.process.returncode is None:
+            self.process.send_signal(signal.SIGKILL)
+            await self.process.wait()
+
+
+@pytest.fixture
+async def platform(tmp_path: Path) -> AsyncIterator[Platform]:
+    running = Platform(tmp_path)
+    try:
+        yield running
+    finally:
+        await running.kill()
+
+
+async def _poll(connection: PlatformConnection, method: str, check: Any, timeout: float) -> Any:
+    """Call ``method`` until ``check(answer)``; the last answer."""
+    answer: Any = None
+
+    async def loop() -> None:
+        nonlocal answer
+        while True:
+            answer = await connection.call(method)
+            if check(answer):
+                return
+            await asyncio.sleep(0.1)
+
+    try:
+        await asyncio.wait_for(loop(), timeout)
+    except TimeoutError:
+        raise AssertionError(f"{method}: {answer}") from None
+    return answer
+
+
+async def test_kill_9_after_a_stop_stays_stopped_and_after_a_start_resumes_through_countdown(
+    platform: Platform,
+) -> None:
+    await platform.start()
+    operator = await platform.connect("alpha")
+    observer = await platform.connect("observer")
+    try:
+        await operator.call("load_map", map=demo_map(37.9415, 23.6530))
+        await operator.call("set_waypoints", waypoints=["sw", "se", "ne", "sw"])
+        # A start arms through the checks (a fix, the IMU, the controller: wait for them).
+        await _poll(operator, "get_arming", lambda a: a["ready"], 20)
+        assert (await operator.call("patrol_start"))["state"] in ("patrolling", "holding")
+        assert (await operator.call("get_arming"))["armed"] is True
+        # An observer cannot arm, but may stop: motors to zero, the patrol stopped, on disk.
+        with pytest.raises(RpcError, match="refused: control held by station alpha"):
+            await observer.call("arm")
+        answer = await observer.call("stop")
+        assert answer["armed"] is False and answer["last_stop"].startswith("stop by observer")
+        word = json.loads((platform.tmp_path / "last_word.json").read_text())
+        assert word["word"] == "stop" and word["by"] == "observer"
+        assert (await operator.call("get_patrol"))["state"] == "stopped"
+    finally:
+        await operator.close()
+        await observer.close()
+
+    await platform.kill()  # no clean shutdown
+    await platform.start()
+    watcher = await platform.connect("watcher")
+    try:
+        # Every check passes (autostart would count down now): still stopped, disarmed.
+        await _poll(watcher, "get_arming", lambda a: a["ready"], 20)
+        await asyncio.sleep(0)
+        arming = await watcher.call("get_arming")
+        assert arming["armed"] is False and arming["countdown_s"] is None
+        assert arming["last_stop"].startswith("stop by observer")
+        assert (await watcher.call("get_patrol"))["state"] != "patrolling"
+        # The operator starts it again: that is the new last word.
+        assert (await watcher.call("patrol_start"))["state"] in ("patrolling", "holding")
+        await _poll(
+            watcher,
+            "get_arming",
+            lambda a: json.loads((platform.tmp_path / "last_word.json").read_text())["word"]
+            == "start",
+            5,
+        )
+    finally:
+        await watcher.close()
+
+    await platform.kill()
+    await platform.start()
+    watcher = await platform.connect("watcher")
+    try:
+        # After a start, autostart resumes it: announced, then armed and patrolling.
+        await _poll(watcher, "get_patrol", lambda p: p["state"] == "patrolling", 30)
+        assert (await watcher.call("get_arming"))["armed"] is True
+    finally:
+        await watcher.close()
+    log = platform.log.read_text()
+    assert "autostart: arming and patrolling in 1 s" in log
+    assert "not resuming the patrol: the last word was stop by observer" in log
