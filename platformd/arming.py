@@ -102,6 +102,8 @@ class PrearmInputs:
     imu_enabled: bool = False
     imu: ImuStatus | None = None
     imu_age_s: float | None = None
+    up_s: float = 0.0
+    """Since the platform started."""
     motor_enabled: bool = False
     controller: ControllerStatus | None = None
     recorder_error: str = ""
@@ -122,10 +124,13 @@ def prearm_reasons(inputs: PrearmInputs, *, manual: bool = False) -> tuple[str, 
         if inputs.fix_age_s is None or inputs.fix_age_s > inputs.fix_stale_s:
             reasons.append("PreArm: no GPS fix")
     if inputs.imu_enabled:
-        if inputs.imu_age_s is None or inputs.imu_age_s > IMU_SILENT_S:
+        imu = inputs.imu
+        if imu is not None and imu.error:
+            reasons.append(f"PreArm: IMU: {imu.error}")
+        elif inputs.up_s > IMU_SILENT_S and (
+            imu is None or not imu.ok or inputs.imu_age_s is None or inputs.imu_age_s > IMU_SILENT_S
+        ):  # a driver still starting (no sample yet, no error) is not silent yet
             reasons.append("PreArm: IMU silent")
-        elif inputs.imu is not None and not inputs.imu.ok:
-            reasons.append(f"PreArm: IMU: {inputs.imu.error or 'not reading'}")
     if inputs.motor_enabled:
         controller = inputs.controller
         if controller is None or not controller.connected:
@@ -244,6 +249,7 @@ class ArmingActor(Actor):
             imu_enabled=config.imu.enabled,
             imu=self.bus.last(topics.IMU_STATUS),
             imu_age_s=None if imu_seen is None else now - imu_seen,
+            up_s=now - self._started,
             motor_enabled=config.motor.enabled,
             controller=self.bus.last(topics.CONTROLLER_STATUS),
             recorder_error=recorder_error,

@@ -36,6 +36,7 @@ def test_prearm_names_every_failing_check_and_passes_when_healthy() -> None:
         fix_age_s=None,
         imu_enabled=True,
         imu_age_s=None,
+        up_s=10.0,
         motor_enabled=True,
         controller=ControllerStatus(False, error="no answer on /dev/ttyUSB0"),
         recorder_error="disk full",
@@ -72,6 +73,10 @@ def test_prearm_names_every_failing_check_and_passes_when_healthy() -> None:
         now=1.0, wall=NOW, imu_enabled=True, imu=ImuStatus(False, "WHO_AM_I 0x00"), imu_age_s=0.1
     )
     assert prearm_reasons(failed_imu) == ("PreArm: IMU: WHO_AM_I 0x00",)
+    starting = PrearmInputs(now=1.0, wall=NOW, imu_enabled=True, imu=ImuStatus(False), up_s=1.0)
+    assert prearm_reasons(starting) == ()  # no sample yet, no error: starting, not silent
+    silent = PrearmInputs(now=9.0, wall=NOW, imu_enabled=True, imu_age_s=4.0, up_s=9.0)
+    assert prearm_reasons(silent) == ("PreArm: IMU silent",)
 
 
 # --------------------------------------------------------------------------- the arbiter's gate
@@ -236,8 +241,9 @@ async def test_kill_9_after_a_stop_stays_stopped_and_after_a_start_resumes_throu
         await _poll(
             watcher,
             "get_arming",
-            lambda a: json.loads((platform.tmp_path / "last_word.json").read_text())["word"]
-            == "start",
+            lambda a: (
+                json.loads((platform.tmp_path / "last_word.json").read_text())["word"] == "start"
+            ),
             5,
         )
     finally:
@@ -255,3 +261,92 @@ async def test_kill_9_after_a_stop_stays_stopped_and_after_a_start_resumes_throu
     log = platform.log.read_text()
     assert "autostart: arming and patrolling in 1 s" in log
     assert "not resuming the patrol: the last word was stop by observer" in log
+
+
+# --------------------------------------------------------------------------- ground stations
+
+PASSPHRASE = "correct horse battery staple"
+
+
+async def test_a_signed_non_controlling_ground_station_stops_and_an_unsigned_one_cannot(
+    platform_factory: Any, tmp_path: Path
+) -> None:
+    from mavlink_gcs import Gcs, sim_rover_config
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    key_file = tmp_path / "mavlink.pass"
+    key_file.write_text(PASSPHRASE + "\n")
+    key_file.chmod(0o600)
+    holder, other, stranger = [await Gcs.open(system) for system in (255, 254, 253)]
+    try:
+        daemon = await platform_factory(
+            sim_rover_config(
+                tmp_path, holder.port, "gps.sim_rate_hz=10", f"mavlink.signing_key_file={key_file}"
+            ),
+            None,
+        )
+        heartbeat = await holder.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1)
+        assert not heartbeat.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED  # disarmed at start
+        for gcs in (holder, other, stranger):
+            gcs.vehicle = holder.vehicle
+        holder.sign(PASSPHRASE)
+        other.sign(PASSPHRASE)
+        arming = daemon.ctx.arming
+        assert arming is not None
+        await wait_until(lambda: not arming.reasons(), 20)
+        # SYS_STATUS's pre-arm bit says arming would pass (MAVSDK's is_armable).
+        await holder.expect(
+            "SYS_STATUS",
+            lambda m: m.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK,
+        )
+        ack = await holder.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+        ack = await holder.command(mavlink.MAV_CMD_MISSION_START)
+        assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+        await holder.expect(
+            "HEARTBEAT",
+            lambda m: (
+                m.get_srcComponent() == 1
+                and m.custom_mode == 10
+                and m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+            ),
+        )
+
+        # Unsigned: no stop, no disarm; the robot patrols on.
+        ack = await stranger.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)
+        assert ack.result == mavlink.MAV_RESULT_DENIED
+        assert arming.armed
+
+        # Signed, not holding control: arming is refused, HOLD and force-disarm are not.
+        ack = await other.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        assert ack.result in (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_DENIED)
+        ack = await other.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 4)  # HOLD
+        assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+        assert not arming.armed
+        motion = daemon.bus.last(topics.MOTION_STATE)
+        assert motion is not None and motion.command == Velocity(0.0, 0.0)
+        status = daemon.bus.last(topics.PATROL_STATUS)
+        assert status is not None and status.state.value == "stopped"
+        assert arming.last_word is not None and arming.last_word.word == "hold"
+        assert arming.last_word.by == f"gcs254@127.0.0.1:{other.port}"
+        await holder.expect(
+            "HEARTBEAT",
+            lambda m: (
+                m.get_srcComponent() == 1 and not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+            ),
+        )
+        # Re-arming needs control: the other ground station is refused with the holder's id.
+        ack = await other.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        assert ack.result == mavlink.MAV_RESULT_DENIED and ack.result_param2 == 255
+        ack = await holder.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        assert ack.result == mavlink.MAV_RESULT_ACCEPTED and arming.armed
+        since = holder.mark()
+        ack = await other.command(mavlink.MAV_CMD_DO_FLIGHTTERMINATION, 1)
+        assert ack.result == mavlink.MAV_RESULT_ACCEPTED and not arming.armed
+        await holder.expect_text(lambda t: "terminate (forced) by gcs254" in t, since)
+        ack = await holder.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)
+        assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+        assert arming.last_word.word == "disarm"
+    finally:
+        for gcs in (holder, other, stranger):
+            gcs.close()

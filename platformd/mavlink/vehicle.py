@@ -60,6 +60,9 @@ class Severity:
 
 # --------------------------------------------------------------------------- requests
 
+SAFETY_COMMANDS = (mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_DO_FLIGHTTERMINATION)
+"""Arm, disarm, terminate: platformd.mavlink.arming (issue 27)."""
+
 
 @dataclass(frozen=True)
 class Request:
@@ -137,6 +140,10 @@ class VehicleState:
     gps_present: bool = False
     mode: FlightMode = FlightMode.HOLD
     failsafe: bool = False
+    armed: bool = True
+    """The heartbeat's SAFETY_ARMED flag (platformd.arming; armed without it)."""
+    prearm_ok: bool | None = None
+    """SYS_STATUS's pre-arm check bit: the pre-arm checks pass (None: not reported)."""
     throttle: float = 0.0
     waypoint: int | None = None
     """The patrol's target (route index), None when idle."""
@@ -447,7 +454,9 @@ class MavlinkVehicle:
 
     def _heartbeat(self) -> Any:
         state = self.state
-        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        if state.armed:
+            base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
         if state.mode is FlightMode.MANUAL:
             base |= mavlink.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
         elif state.mode is FlightMode.AUTO:
@@ -563,6 +572,8 @@ class MavlinkVehicle:
                 sensors.add(bit, True, state.imu_ok)
         if state.inside_fence is not None:
             sensors.add(mavlink.MAV_SYS_STATUS_GEOFENCE, True, state.inside_fence)
+        if state.prearm_ok is not None:  # "always healthy when armed" (MAVLink's definition)
+            sensors.add(mavlink.MAV_SYS_STATUS_PREARM_CHECK, True, state.prearm_ok or state.armed)
         controller = state.controller
         if controller is not None:
             sensors.add(mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS, True, controller.connected)
@@ -728,6 +739,10 @@ class MavlinkVehicle:
                 return []
             seq = int(params[0]) if math.isfinite(params[0]) else -1
             return [SetCurrent(peer, system, component, signed, seq, command)]
+        if command in SAFETY_COMMANDS:
+            from platformd.mavlink.arming import safety_request  # it builds on Request
+
+            return safety_request(command, params, origin, ack, self._may_control)
         if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             # Ground stations set many intervals at connect: the ACK says no, without a text
             # for each (the rates are the platform's, mavlink.*_hz).
