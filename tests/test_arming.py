@@ -12,6 +12,9 @@ from typing import Any
 
 import pytest
 from conftest import free_tcp_port, free_udp_port, wait_until
+from test_station import station
+
+__all__ = ["station"]  # the fixture, shared with the station's tests
 
 from brasidas import security, topics
 from brasidas.bus import Bus
@@ -350,3 +353,34 @@ async def test_a_signed_non_controlling_ground_station_stops_and_an_unsigned_one
     finally:
         for gcs in (holder, other, stranger):
             gcs.close()
+
+
+# --------------------------------------------------------------------------- the CLI
+
+
+async def test_cli_stop_arm_and_disarm(
+    station: Any, platform_factory: Any, fleet_key: bytes, tmp_path: Path
+) -> None:
+    from conftest import quiet_platform_config
+    from test_station import run_cli
+
+    platform = await platform_factory(
+        quiet_platform_config(
+            "platform.id=rover-7",
+            "motor.enabled=true",
+            f"motor.port={tmp_path / 'no-such-port'}",
+            f"arming.state_file={tmp_path / 'last_word.json'}",
+        ),
+        fleet_key,
+    )
+    code, _, _ = await run_cli(station, "connect", "rover-7", "--url", platform.ctx.signaling_url)
+    assert code == 0
+    code, out, err = await run_cli(station, "arm", "rover-7")
+    assert code != 0 and "PreArm: motor controller not answering" in err
+    code, out, _ = await run_cli(station, "stop", "rover-7")
+    station_id = station.ctx.config.station.id
+    assert code == 0 and "disarmed" in out and f"last stop: stop by {station_id}" in out
+    code, out, _ = await run_cli(station, "disarm", "rover-7", "--force", "--json")
+    assert code == 0 and json.loads(out)["armed"] is False
+    word = json.loads((tmp_path / "last_word.json").read_text())
+    assert word == {"word": "disarm", "by": station_id, "at": word["at"]}
