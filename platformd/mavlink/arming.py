@@ -130,8 +130,15 @@ def follow(service: MavlinkService) -> Callable[[], None]:
     return remove
 
 
-def refresh(state: VehicleState, snapshot: Snapshot) -> None:
-    """SYS_STATUS's pre-arm bit from the telemetry's ``arming`` section (once a second)."""
+def refresh(service: MavlinkService, snapshot: Snapshot) -> None:
+    """SYS_STATUS's pre-arm bit from the telemetry's ``arming`` section (once a second); a
+    STATUSTEXT for each pre-arm check that starts failing, as ArduPilot's ``PreArm: ...``."""
     section = snapshot.sections.get(Arming)
-    if isinstance(section, Arming):
-        state.prearm_ok = section.ready
+    if not isinstance(section, Arming):
+        return
+    state: VehicleState = service.vehicle.state
+    state.prearm_ok = section.ready
+    for reason in section.prearm:
+        if reason not in service.prearm_said:
+            service.vehicle.statustext(mavlink.MAV_SEVERITY_WARNING, reason)
+    service.prearm_said = section.prearm

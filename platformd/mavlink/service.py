@@ -157,6 +157,8 @@ class MavlinkService(Actor):
         self._fence_checked = -FENCE_CHECK_INTERVAL
         self._uploaded_fence: tuple[int, list[MissionItem]] | None = None
         """The last accepted fence's items and the map revision it made."""
+        self.prearm_said: tuple[str, ...] = ()
+        """The failing pre-arm checks last said in a STATUSTEXT (platformd.mavlink.arming)."""
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -235,7 +237,7 @@ class MavlinkService(Actor):
     def annunciate(self, now: float) -> None:
         """STATUSTEXT for each group 90 warning raised or cleared since the last call."""
         snapshot = Snapshot(self.ctx.telemetry.build())
-        arming.refresh(self.vehicle.state, snapshot)
+        arming.refresh(self, snapshot)
         for change in self.annunciator.evaluate(snapshot, 0.0, None, now):
             warning = change.warning
             if change.active:

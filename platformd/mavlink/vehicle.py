@@ -570,6 +570,10 @@ class MavlinkVehicle:
                 mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL,
             ):
                 sensors.add(bit, True, state.imu_ok)
+            # No compass: the bit stands for the heading source (the IMU fused with GPS
+            # course), which ground stations (MAVSDK's health) require before arming.
+            heading = self._heading_deg() is not None
+            sensors.add(mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG, True, state.imu_ok and heading)
         if state.inside_fence is not None:
             sensors.add(mavlink.MAV_SYS_STATUS_GEOFENCE, True, state.inside_fence)
         if state.prearm_ok is not None:  # "always healthy when armed" (MAVLink's definition)
