@@ -346,17 +346,23 @@ class ArmingActor(Actor):
                 _LOGGER.warning("arming: override engaged but disarmed: %s", refusal)
 
     def _on_control(self, control: ControlState) -> None:
-        self._controller_session = control.session_id
+        # Kept past a release: the authority may free control before this hears the
+        # session's end (SESSION_CLOSED's subscribers run in order).
+        if control.session_id is not None:
+            self._controller_session = control.session_id
 
     def _on_session_closed(self, event: SessionClosed) -> None:
         """``failsafe.gcs_loss_action = hold``: the controller lost while patrolling holds."""
         if self.ctx.config.failsafe.gcs_loss_action != "hold":
             return
-        if event.session_id != self._controller_session:
-            return
+        current = self.ctx.authority.controller
+        if event.session_id != self._controller_session or (
+            current is not None and current.session_id != event.session_id
+        ):
+            return  # not the controller's (or control has passed to someone since)
         patrol = self.ctx.patrol
-        if patrol is None or patrol.core.state.value != "patrolling":
-            return
+        if patrol is None or patrol.core.state.value in ("idle", "stopped"):
+            return  # nothing started: nothing to hold
         self._notice(NOTICE_CRITICAL, f"ground station lost ({event.station_id}): patrol holds")
         patrol.core.stop()
         self._remember_soon(LastWord("hold", f"{event.station_id} lost", self._wall()))

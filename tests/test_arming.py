@@ -384,3 +384,43 @@ async def test_cli_stop_arm_and_disarm(
     assert code == 0 and json.loads(out)["armed"] is False
     word = json.loads((tmp_path / "last_word.json").read_text())
     assert word == {"word": "disarm", "by": station_id, "at": word["at"]}
+
+
+async def test_gcs_loss_in_auto_holds_when_configured(
+    platform_factory: Any, tmp_path: Path
+) -> None:
+    from mavlink_gcs import Gcs, sim_rover_config
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    gcs = await Gcs.open()
+    try:
+        daemon = await platform_factory(
+            sim_rover_config(
+                tmp_path,
+                gcs.port,
+                "mavlink.allow_unsigned_control=true",
+                "failsafe.gcs_loss_action=hold",
+                "signaling.session_timeout=2",
+            ),
+            None,
+        )
+        await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1)
+        arming = daemon.ctx.arming
+        assert arming is not None
+        await wait_until(lambda: not arming.reasons(), 20)
+        ack = await gcs.command(mavlink.MAV_CMD_MISSION_START)
+        assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+        status = daemon.bus.last(topics.PATROL_STATUS)
+        assert status is not None and status.state.value in ("patrolling", "holding")
+        # The ground station falls silent: its session times out, the patrol holds.
+        await wait_until(
+            lambda: (
+                (s := daemon.bus.last(topics.PATROL_STATUS)) is not None
+                and s.state.value == "stopped"
+            ),
+            10,
+        )
+        assert arming.last_word is not None and arming.last_word.word == "hold"
+        assert arming.last_word.by == f"gcs255@127.0.0.1:{gcs.port} lost"
+    finally:
+        gcs.close()
