@@ -1,0 +1,53 @@
+"""The console's safety parts (issue 27) in headless Chromium against a --sim platform: the
+STOP every operator has (this station does not hold control), and a platform gone silent
+greyed out with its age and said in a notification within 3 s, unmarked when it is back."""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+from conftest import wait_until
+from test_web_console_honesty import browser, console, rover, station, station_settings
+from test_web_console_station import Factory
+
+from stationd.daemon import StationDaemon
+
+__all__ = ["browser", "station", "station_settings"]  # the fixtures, shared
+
+
+async def test_stop_for_an_observer_and_a_silent_platform_greyed_with_its_age(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes, browser: Any
+) -> None:
+    from playwright.async_api import expect
+
+    platform = await rover(platform_factory, fleet_key, station)
+    page = await console(browser, station, "web-rover")
+    panel = page.locator("#instruments")
+    await expect(page.get_by_label("heading")).not_to_have_text("—", timeout=15_000)
+    await expect(panel).not_to_have_class(re.compile("silent"))
+
+    # Telemetry stops (its datagrams dropped at the station, as when the platform is killed).
+    (receiver,) = [a for a in station.supervisor.actors if a.name == "telemetry"]
+    link = receiver.links["web-rover"]
+    link.datagram_received = lambda data, addr: None  # on the instance only
+    try:
+        await expect(panel).to_have_class(re.compile("silent"), timeout=3_500)
+        await expect(page.locator("#instruments-age")).to_have_text(
+            re.compile(r"platform silent \d+\.\d s: the last values shown")
+        )
+        note = page.locator("#notifications li", has_text="platform silent: no telemetry")
+        await expect(note.first).to_be_visible(timeout=2_000)
+    finally:
+        del link.datagram_received
+    await expect(panel).not_to_have_class(re.compile("silent"), timeout=10_000)
+    cleared = page.locator("#notifications li.cleared", has_text="platform silent")
+    await expect(cleared.first).to_be_visible(timeout=5_000)
+
+    # STOP: this station holds no control; the platform stops and says who.
+    arming = platform.ctx.arming
+    assert arming is not None
+    await page.get_by_role("button", name="emergency stop").click()
+    await wait_until(lambda: arming.last_word is not None and arming.last_word.word == "stop")
+    assert arming.last_word is not None and arming.last_word.by == station.ctx.config.station.id
+    await expect(page.locator("#answer")).to_contain_text("STOP: web-rover stopped")

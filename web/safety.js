@@ -1,0 +1,59 @@
+// Safety on the console (issue 27): a STOP every operator has (an observer's too: stopping
+// never needs control), and a platform that went silent shown as such: within 3 s of its
+// last telemetry the instruments grey out with the age and a notification says so; when it
+// comes back, the NavCam is asked for again by itself (a restarted platform lost the stream).
+
+import { $, put, telemetryAgeMs } from "./common.js";
+import { say } from "./answer.js";
+import { api } from "./station.js";
+import { notify, state, subscribe } from "./store.js";
+
+const SILENT_MS = 2500; // "within 3 s": telemetry comes five times a second
+const CHECK_MS = 250;
+const silent = new Set(); // platform ids said silent
+
+async function stop() {
+  const platformId = state.current;
+  if (!platformId) return;
+  try {
+    const answer = await api.call("stop", { platform_id: platformId }, 5000);
+    say(`STOP: ${platformId} stopped, disarmed (${answer.last_stop}).`);
+  } catch (error) {
+    say(`STOP failed: ${error.message}.`, { refused: true });
+  }
+}
+
+function note(platformId, active, message) {
+  notify("notification", { platform_id: platformId, name: "platform_silent", active, message, time: Date.now() / 1000 });
+}
+
+function checkSilence() {
+  const platformId = state.current;
+  const panel = $("#instruments");
+  const ageLine = $("#instruments-age");
+  $("#stop").hidden = !platformId;
+  if (!platformId) { panel.classList.remove("silent"); ageLine.hidden = true; return; }
+  const entry = state.telemetry.get(platformId);
+  const age = telemetryAgeMs(entry);
+  const quiet = entry != null && age > SILENT_MS;
+  panel.classList.toggle("silent", quiet);
+  ageLine.hidden = !quiet;
+  if (quiet) put(ageLine, `platform silent ${(age / 1000).toFixed(1)} s: the last values shown`);
+  if (quiet && !silent.has(platformId)) {
+    silent.add(platformId);
+    note(platformId, true, `platform silent: no telemetry for ${(age / 1000).toFixed(1)} s`);
+  } else if (!quiet && silent.has(platformId) && entry != null) {
+    silent.delete(platformId);
+    note(platformId, false, "platform silent");
+    // It is back (perhaps restarted): ask for its picture again, as the operator's click would.
+    const again = $("#video-resume");
+    if (!again.closest("[hidden]")) again.click();
+  }
+}
+
+/** Start the STOP button and the silent-platform marking. */
+export function startSafety() {
+  $("#stop").onclick = stop;
+  subscribe("current", checkSilence);
+  setInterval(checkSilence, CHECK_MS);
+}
