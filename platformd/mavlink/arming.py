@@ -12,17 +12,33 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from brasidas import topics
+from brasidas.bus import Bus
 from brasidas.codecs.telemetry_schema import Arming, Snapshot
 from brasidas.messages import ArmingState, SafetyNotice
-from platformd.mavlink.vehicle import Request, VehicleState
+from platformd.context import PlatformContext
+from platformd.mavlink.vehicle import MavlinkVehicle, Request, VehicleState
+from platformd.session_table import Session
 
-if TYPE_CHECKING:
-    from platformd.mavlink.service import MavlinkService
+
+class Endpoint(Protocol):
+    """What this needs of the MAVLink service (platformd.mavlink.service)."""
+
+    ctx: PlatformContext
+    bus: Bus
+    vehicle: MavlinkVehicle
+    prearm_said: tuple[str, ...]
+
+    def _session(self, request: Request) -> Session: ...
+
+    def _holder_system(self) -> int: ...
+
+    def _flush(self) -> None: ...
+
 
 FORCE_DISARM_MAGIC = 21196.0
 """param2 of MAV_CMD_COMPONENT_ARM_DISARM that forces a disarm (ArduPilot, PX4)."""
@@ -61,7 +77,7 @@ def safety_request(
     return [SafetyCommand(peer, system, component, signed, action, force, command)]
 
 
-async def decide(service: MavlinkService, request: SafetyCommand) -> None:
+async def decide(service: Endpoint, request: SafetyCommand) -> None:
     """Arm needs control and the pre-arm checks; disarm and terminate are anyone's."""
     arming = service.ctx.arming
     vehicle = service.vehicle
@@ -91,7 +107,7 @@ async def decide(service: MavlinkService, request: SafetyCommand) -> None:
     vehicle.answer_command(request, mavlink.MAV_RESULT_ACCEPTED, command=request.command)
 
 
-async def hold_for_anyone(service: MavlinkService, request: Any) -> bool:
+async def hold_for_anyone(service: Endpoint, request: Any) -> bool:
     """HOLD from a trusted ground station that does not hold control: a stop (True), as
     a station observer's; False when the sender holds (or may claim) control."""
     arming = service.ctx.arming
@@ -104,7 +120,7 @@ async def hold_for_anyone(service: MavlinkService, request: Any) -> bool:
     return True
 
 
-def follow(service: MavlinkService) -> Callable[[], None]:
+def follow(service: Endpoint) -> Callable[[], None]:
     """The heartbeat's armed flag from ``ARMING_STATE``; each safety notice (pre-arm
     refusals, the countdown, stops) as a STATUSTEXT. Returns the way to unsubscribe."""
     state = service.vehicle.state
@@ -130,7 +146,7 @@ def follow(service: MavlinkService) -> Callable[[], None]:
     return remove
 
 
-def refresh(service: MavlinkService, snapshot: Snapshot) -> None:
+def refresh(service: Endpoint, snapshot: Snapshot) -> None:
     """SYS_STATUS's pre-arm bit from the telemetry's ``arming`` section (once a second); a
     STATUSTEXT for each pre-arm check that starts failing, as ArduPilot's ``PreArm: ...``."""
     section = snapshot.sections.get(Arming)

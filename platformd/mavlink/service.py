@@ -130,6 +130,7 @@ class MavlinkService(Actor):
             mission_items=self.mission_items,
         )
         self.vehicle.state.params = config_parameters(ctx.config)
+        self.vehicle.safety_request = arming.safety_request
         self.vehicle.state.gps_present = ctx.config.gps.enabled
         self.transport: asyncio.DatagramTransport | None = None
         self.port = 0

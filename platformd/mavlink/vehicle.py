@@ -228,6 +228,9 @@ class MavlinkVehicle:
         self.system_id = system_id
         self.key = key
         self.allow_unsigned_control = allow_unsigned_control
+        self.safety_request: Callable[..., list[Request]] | None = None
+        """Arm, disarm, terminate (:data:`SAFETY_COMMANDS`): platformd.mavlink.arming's
+        ``safety_request``, set by the service; unsupported without it."""
         self.link_timeout = link_timeout
         self.upload_window = upload_window
         """Mission items requested ahead during an upload (1: strictly one at a time)."""
@@ -743,10 +746,8 @@ class MavlinkVehicle:
                 return []
             seq = int(params[0]) if math.isfinite(params[0]) else -1
             return [SetCurrent(peer, system, component, signed, seq, command)]
-        if command in SAFETY_COMMANDS:
-            from platformd.mavlink.arming import safety_request  # it builds on Request
-
-            return safety_request(command, params, origin, ack, self._may_control)
+        if command in SAFETY_COMMANDS and self.safety_request is not None:
+            return self.safety_request(command, params, origin, ack, self._may_control)
         if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             # Ground stations set many intervals at connect: the ACK says no, without a text
             # for each (the rates are the platform's, mavlink.*_hz).
