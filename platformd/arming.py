@@ -298,8 +298,8 @@ class ArmingActor(Actor):
         record = LastWord(word, by, self._wall())
         self.last_stop = _stop_text(record)
         level = NOTICE_CRITICAL if force or word == "terminate" else NOTICE_WARNING
-        self._notice(level, f"{word}{' (forced)' if force else ''} by {by}")
-        _LOGGER.warning("arming: %s by %s (was %s)", word, by, "armed" if was_armed else "disarmed")
+        state = "" if was_armed else " (already disarmed)"
+        self._notice(level, f"{word}{' (forced)' if force else ''} by {by}{state}")
         self._received(word, session, force)
         await self.remember(record)
 
