@@ -51,3 +51,27 @@ async def test_stop_for_an_observer_and_a_silent_platform_greyed_with_its_age(
     await wait_until(lambda: arming.last_word is not None and arming.last_word.word == "stop")
     assert arming.last_word is not None and arming.last_word.by == station.ctx.config.station.id
     await expect(page.locator("#answer")).to_contain_text("STOP: web-rover stopped")
+
+
+async def test_a_closed_driving_page_releases_its_override_after_the_deadman(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes, browser: Any
+) -> None:
+    """Before: the override stayed engaged (the station's heartbeats kept it) and the patrol
+    suspended for as long as the station ran."""
+    from playwright.async_api import expect
+
+    from brasidas import topics
+
+    platform = await rover(platform_factory, fleet_key, station)
+    page = await console(browser, station, "web-rover")
+    override = page.get_by_role("button", name="manual override")
+    await expect(override).to_be_enabled(timeout=15_000)
+    await override.click()
+
+    def engaged() -> bool:
+        state = platform.bus.last(topics.OVERRIDE_STATE)
+        return state is not None and state.engaged
+
+    await wait_until(engaged, 10)
+    await page.close()
+    await wait_until(lambda: not engaged(), 5)
