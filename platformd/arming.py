@@ -114,12 +114,12 @@ class PrearmInputs:
 def prearm_reasons(inputs: PrearmInputs, *, manual: bool = False) -> tuple[str, ...]:
     """Every failing pre-arm check, as ``PreArm: ...``; empty when arming may proceed.
 
-    ``manual``: engaging the override, where neither a position nor the sensors are needed
-    to drive by hand (a controller that does not answer moves nothing either): only the
-    recorder and the clock refuse."""
-    reasons: list[str] = []
+    ``manual``: engaging the override, the controller taking the robot by hand: nothing
+    here is needed to drive by hand (teleop carries on with a full disk, issue 23; a
+    controller that does not answer moves nothing either), so nothing refuses."""
     if manual:
-        return _common(inputs)
+        return ()
+    reasons: list[str] = []
     if inputs.gps_enabled:
         if inputs.fix_age_s is None or inputs.fix_age_s > inputs.fix_stale_s:
             reasons.append("PreArm: no GPS fix")
@@ -138,12 +138,6 @@ def prearm_reasons(inputs: PrearmInputs, *, manual: bool = False) -> tuple[str, 
             reasons.append("PreArm: motor controller not answering" + (f" ({why})" if why else ""))
     if inputs.map_error:
         reasons.append(f"PreArm: map refused: {inputs.map_error}")
-    return (*reasons, *_common(inputs))
-
-
-def _common(inputs: PrearmInputs) -> tuple[str, ...]:
-    """The checks that refuse driving by hand too: the recorder failed, the clock unset."""
-    reasons: list[str] = []
     if inputs.recorder_error:
         reasons.append(f"PreArm: recorder cannot write: {inputs.recorder_error}")
     if inputs.check_clock and inputs.wall < CLOCK_SET_AFTER:
