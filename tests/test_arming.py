@@ -377,6 +377,9 @@ async def test_cli_stop_arm_and_disarm(
     code, out, _ = await run_cli(station, "stop", "rover-7")
     station_id = station.ctx.config.station.id
     assert code == 0 and "disarmed" in out and f"last stop: stop by {station_id}" in out
+    code, out, _ = await run_cli(station, "status", "rover-7")
+    (line,) = [line for line in out.splitlines() if line.startswith("arming")]
+    assert "disarmed" in line and "PreArm: motor controller not answering" in line
     code, out, _ = await run_cli(station, "disarm", "rover-7", "--force", "--json")
     assert code == 0 and json.loads(out)["armed"] is False
     word = json.loads((tmp_path / "last_word.json").read_text())
