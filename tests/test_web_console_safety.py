@@ -75,3 +75,41 @@ async def test_a_closed_driving_page_releases_its_override_after_the_deadman(
     await wait_until(engaged, 10)
     await page.close()
     await wait_until(lambda: not engaged(), 5)
+
+
+async def test_releasing_the_override_over_a_waiting_patrol_asks_first(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes, browser: Any
+) -> None:
+    """Before: releasing the override with a patrol suspended drove off at once, unsaid."""
+    from playwright.async_api import expect
+
+    from brasidas import topics
+
+    platform = await rover(platform_factory, fleet_key, station)
+    arming = platform.ctx.arming
+    assert arming is not None
+    page = await console(browser, station, "web-rover")
+    await expect(page.get_by_role("button", name="start patrol")).to_be_enabled(timeout=15_000)
+    await wait_until(lambda: not arming.reasons(), 20)  # a start arms through the checks
+    await page.get_by_role("button", name="start patrol").click()
+    await wait_until(lambda: arming.armed, 10)
+
+    def engaged() -> bool:
+        state = platform.bus.last(topics.OVERRIDE_STATE)
+        return state is not None and state.engaged
+
+    override = page.get_by_role("button", name="manual override")
+    await override.click()
+    await wait_until(engaged, 10)
+    await expect(page.locator("#patrol-state")).to_contain_text("suspended", timeout=10_000)
+    confirm = page.get_by_role("group", name="confirm release")
+    await override.click()
+    await expect(confirm).to_be_visible()
+    await expect(confirm).to_contain_text("The patrol resumes toward waypoint")
+    assert engaged()  # nothing released yet
+    await page.get_by_role("button", name="keep the override").click()
+    await expect(confirm).to_be_hidden()
+    assert engaged()
+    await override.click()
+    await page.get_by_role("button", name="confirm release").click()
+    await wait_until(lambda: not engaged(), 10)

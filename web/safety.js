@@ -1,9 +1,10 @@
 // Safety on the console (issue 27): a STOP every operator has (an observer's too: stopping
 // never needs control), and a platform that went silent shown as such: within 3 s of its
 // last telemetry the instruments grey out with the age and a notification says so; when it
-// comes back, the NavCam is asked for again by itself (a restarted platform lost the stream).
+// comes back, the NavCam is asked for again by itself (a restarted platform lost the stream);
+// releasing the override while the patrol waits behind it asks first (the robot drives off).
 
-import { $, put, telemetryAgeMs } from "./common.js";
+import { $, engagedHere, holding, put, section, snapshotOf, telemetryAgeMs } from "./common.js";
 import { say } from "./answer.js";
 import { api } from "./station.js";
 import { notify, state, subscribe } from "./store.js";
@@ -51,9 +52,34 @@ function checkSilence() {
   }
 }
 
-/** Start the STOP button and the silent-platform marking. */
+let releaseConfirmed = false;
+
+function guardRelease(event) {
+  // Runs before controls.js's handler (a capture listener on the button itself).
+  if (releaseConfirmed) { releaseConfirmed = false; return; }
+  if (!engagedHere() || holding()) return; // engaging, or re-engaging after a hold: no question
+  const autonomy = section(snapshotOf(), "autonomy");
+  if (autonomy?.state !== "suspended") return;
+  event.stopImmediatePropagation();
+  event.preventDefault();
+  const toward = autonomy.waypoint != null ? `waypoint ${autonomy.waypoint + 1} of ${autonomy.waypoints}` : "its route";
+  put($("#release-text"), `Release the override? The patrol resumes toward ${toward} at once, at its cruise speed.`);
+  $("#release-confirm").hidden = false;
+}
+
+function answerRelease(release) {
+  $("#release-confirm").hidden = true;
+  if (!release) return;
+  releaseConfirmed = true;
+  $("#override").click();
+}
+
+/** Start the STOP button, the silent-platform marking and the release confirmation. */
 export function startSafety() {
   $("#stop").onclick = stop;
+  $("#override").addEventListener("click", guardRelease, { capture: true });
+  $("#release-yes").onclick = () => answerRelease(true);
+  $("#release-no").onclick = () => answerRelease(false);
   subscribe("current", checkSilence);
   setInterval(checkSilence, CHECK_MS);
 }
