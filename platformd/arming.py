@@ -181,6 +181,9 @@ class ArmingActor(Actor):
         self._imu_at: float | None = None
         self._announced: tuple[str, ...] = ()
         self._saving = asyncio.Lock()
+        self._said = asyncio.Event()
+        """A word said by a synchronous hook waits to be written."""
+        self._unsaved = False
         self._controller_session: str | None = None
 
     # ------------------------------------------------------------------ lifecycle
@@ -196,7 +199,8 @@ class ArmingActor(Actor):
         if patrol is not None:
             patrol.start_check = self._before_patrol_start
             patrol.on_stop = self._on_patrol_stop
-            resumes = word is None or word.word == "start"
+            # Only after a start: a route uploaded (or set) and never started stays put.
+            resumes = word is not None and word.word == "start"
             if self.ctx.config.autonomy.autostart and patrol.resumable and resumes:
                 self.autostart_pending = True
                 _LOGGER.warning("arming: autostart: the patrol resumes after pre-arm checks")
@@ -212,11 +216,25 @@ class ArmingActor(Actor):
         self.subscribe(topics.OVERRIDE_STATE, self._on_override)
         self.subscribe(topics.CONTROL_STATE, self._on_control)
         self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
+        async with asyncio.TaskGroup() as group:
+            group.create_task(self._write_forever(), name="arming:last-word")
+            while True:
+                await self.tick()
+                await asyncio.sleep(TICK_S)
+
+    async def _write_forever(self) -> None:
+        """Writes a word said from a synchronous hook (a patrol start or stop) at once."""
         while True:
-            await self.tick()
-            await asyncio.sleep(TICK_S)
+            await self._said.wait()
+            self._said.clear()
+            if self._unsaved and self.last_word is not None:
+                self._unsaved = False
+                await self.remember(self.last_word)
 
     async def async_stop(self) -> None:
+        if self._unsaved and self.last_word is not None:  # said just before the stop
+            self._unsaved = False
+            await self.remember(self.last_word)
         if self.armed:
             self.armed = False
             self._publish("platform stopping")
@@ -328,8 +346,7 @@ class ArmingActor(Actor):
         # Called synchronously from the patrol: the write runs at the next tick (≤ 100 ms).
         self.last_word = word
         self._unsaved = True
-
-    _unsaved = False
+        self._said.set()
 
     def _on_override(self, state: OverrideState) -> None:
         if state.engaged and not self.armed:
@@ -374,10 +391,7 @@ class ArmingActor(Actor):
     # ------------------------------------------------------------------ stepping
 
     async def tick(self) -> None:
-        """The autostart's checks and countdown; an unsaved word written."""
-        if self._unsaved and self.last_word is not None:
-            self._unsaved = False
-            await self.remember(self.last_word)
+        """The autostart's checks and countdown."""
         if not self.autostart_pending:
             return
         now = self._clock()
