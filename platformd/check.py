@@ -123,6 +123,8 @@ def check_motor(config: PlatformConfig) -> CheckResult | None:
     motor = config.motor
     if not motor.enabled:
         return None
+    if config.sim.enabled:
+        return CheckResult("motor", True, "simulated (--sim): the simulator stands in")
     missing = _missing_port("motor", motor.port, "motor.port")
     if missing is not None:
         return missing
@@ -192,6 +194,8 @@ def check_gps(config: PlatformConfig) -> CheckResult | None:
     gps = config.gps
     if not gps.enabled:
         return None
+    if config.sim.enabled:
+        return CheckResult("gps", True, "simulated (--sim): the simulator stands in")
     missing = _missing_port("gps", gps.port, "gps.port")
     if missing is not None:
         return missing
@@ -231,6 +235,8 @@ def check_imu(config: PlatformConfig) -> CheckResult | None:
     imu = config.imu
     if not imu.enabled:
         return None
+    if config.sim.enabled:
+        return CheckResult("imu", True, "simulated (--sim): the simulator stands in")
     device = f"/dev/i2c-{imu.i2c_bus}"
     if not os.path.exists(device):
         return CheckResult(
