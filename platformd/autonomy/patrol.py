@@ -107,7 +107,8 @@ class PatrolActor(Actor):
         self._reported: PatrolStatus | None = None
         self.loaded = False
         self.resumable = False
-        """A stored route was loaded on an enabled patrol: what autostart resumes."""
+        """A route (stored, or the --sim demo's) on an enabled patrol: what autostart resumes
+        after an operator's start (platformd.arming)."""
         self.start_check: Callable[[], str | None] | None = None
         """Before any start (platformd.arming): the refusal (pre-arm), or None (armed)."""
         self.on_stop: Callable[[], None] | None = None
@@ -159,8 +160,8 @@ class PatrolActor(Actor):
         if area is not None:
             self.core.set_route(route)
         report_switch(self.bus, "patrol", self.core.enabled)
-        self.resumable = bool(route.waypoints and stored and self.core.enabled)
-        if self.resumable and self.autostart:
+        self.resumable = bool(route.waypoints and self.core.enabled)
+        if self.resumable and stored and self.autostart:
             self.core.start()
             _LOGGER.info(
                 "patrol: %d waypoints on %r, starting", len(route.waypoints), area and area.name
