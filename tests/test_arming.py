@@ -424,3 +424,47 @@ async def test_gcs_loss_in_auto_holds_when_configured(
         assert arming.last_word.by == f"gcs255@127.0.0.1:{gcs.port} lost"
     finally:
         gcs.close()
+
+
+async def test_the_heartbeat_is_critical_while_the_ladder_holds_and_not_after_it_released(
+    platform_factory: Any, tmp_path: Path
+) -> None:
+    """Before: CRITICAL stayed for as long as the released state did (60 s+ of patrolling)."""
+    from mavlink_gcs import Gcs, sim_rover_config
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from brasidas.messages import FailsafeStep
+
+    gcs = await Gcs.open()
+    try:
+        daemon = await platform_factory(
+            sim_rover_config(
+                tmp_path,
+                gcs.port,
+                "mavlink.allow_unsigned_control=true",
+                "failsafe.release_after=3",
+            ),
+            None,
+        )
+        await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1)
+        ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 0)  # MANUAL, then silence
+        assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+        await gcs.expect(
+            "HEARTBEAT",
+            lambda m: m.get_srcComponent() == 1 and m.system_status == mavlink.MAV_STATE_CRITICAL,
+            timeout=10,
+        )
+        await wait_until(
+            lambda: (
+                (f := daemon.bus.last(topics.FAILSAFE_STATE)) is not None
+                and f.step is FailsafeStep.RELEASED
+            ),
+            10,
+        )
+        await gcs.expect(
+            "HEARTBEAT",
+            lambda m: m.get_srcComponent() == 1 and m.system_status == mavlink.MAV_STATE_ACTIVE,
+            timeout=5,
+        )
+    finally:
+        gcs.close()
