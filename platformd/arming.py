@@ -199,6 +199,7 @@ class ArmingActor(Actor):
         if patrol is not None:
             patrol.start_check = self._before_patrol_start
             patrol.on_stop = self._on_patrol_stop
+            patrol.settle = self.flush
             # Only after a start: a route uploaded (or set) and never started stays put.
             resumes = word is not None and word.word == "start"
             if self.ctx.config.autonomy.autostart and patrol.resumable and resumes:
@@ -221,6 +222,15 @@ class ArmingActor(Actor):
             while True:
                 await self.tick()
                 await asyncio.sleep(TICK_S)
+
+    async def flush(self) -> None:
+        """Until the last word said is on disk."""
+        if self._unsaved and self.last_word is not None:
+            self._unsaved = False
+            await self.remember(self.last_word)
+        else:
+            async with self._saving:
+                pass  # a write in flight has finished
 
     async def _write_forever(self) -> None:
         """Writes a word said from a synchronous hook (a patrol start or stop) at once."""

@@ -3,7 +3,7 @@ router, sessions, capabilities."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -130,6 +130,8 @@ class PatrolHandle(Protocol):
     """Before a start: a refusal (platformd.arming's pre-arm) or None."""
     on_stop: Callable[[], None] | None
     """After an operator's stop (platformd.arming)."""
+    settle: Callable[[], Awaitable[None]] | None
+    """Awaits the last word's write (platformd.arming)."""
 
     def start_patrol(self) -> None:
         """Start patrolling the route; raises RouteError."""

@@ -256,6 +256,10 @@ async def test_kill_9_after_a_stop_stays_stopped_and_after_a_start_resumes_throu
         # After a start, autostart resumes it: announced, then armed and patrolling.
         await _poll(watcher, "get_patrol", lambda p: p["state"] == "patrolling", 30)
         assert (await watcher.call("get_arming"))["armed"] is True
+        # A patrol stop is answered once it is on disk (a kill -9 right after keeps it).
+        await watcher.call("patrol_stop")
+        word = json.loads((platform.tmp_path / "last_word.json").read_text())
+        assert word["word"] == "stop"
     finally:
         await watcher.close()
     log = platform.log.read_text()

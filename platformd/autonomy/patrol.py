@@ -23,7 +23,7 @@ import math
 import secrets
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -113,6 +113,8 @@ class PatrolActor(Actor):
         """Before any start (platformd.arming): the refusal (pre-arm), or None (armed)."""
         self.on_stop: Callable[[], None] | None = None
         """After an operator's stop (platformd.arming keeps it as the last word)."""
+        self.settle: Callable[[], Awaitable[None]] | None = None
+        """Awaits the last word's write (platformd.arming): a stop is answered once kept."""
         self.map_error = ""
         """Why the stored map was refused at start ("" when it was not): in telemetry."""
         self.last_build_s: float | None = None
