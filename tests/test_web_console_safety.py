@@ -9,7 +9,7 @@ from typing import Any
 
 from conftest import wait_until
 from test_web_console_honesty import browser, console, rover, station, station_settings
-from test_web_console_station import Factory
+from test_web_console_station import Factory, frames_decoded
 
 from stationd.daemon import StationDaemon
 
@@ -26,6 +26,8 @@ async def test_stop_for_an_observer_and_a_silent_platform_greyed_with_its_age(
     panel = page.locator("#instruments")
     await expect(page.get_by_label("heading")).not_to_have_text("—", timeout=15_000)
     await expect(panel).not_to_have_class(re.compile("silent"))
+    await frames_decoded(page, at_least=5)
+    stale = page.get_by_role("alert", name="video stale")
 
     # Telemetry stops (its datagrams dropped at the station, as when the platform is killed).
     (receiver,) = [a for a in station.supervisor.actors if a.name == "telemetry"]
@@ -38,9 +40,16 @@ async def test_stop_for_an_observer_and_a_silent_platform_greyed_with_its_age(
         )
         note = page.locator("#notifications li", has_text="platform silent: no telemetry")
         await expect(note.first).to_be_visible(timeout=2_000)
+        # The picture stops too (a restarted platform has lost the stream).
+        await station.ctx.api.call_local("stream_pause", platform_id="web-rover", stream="navcam")
+        await expect(stale).to_be_visible(timeout=5_000)
     finally:
         del link.datagram_received
     await expect(panel).not_to_have_class(re.compile("silent"), timeout=10_000)
+    # Back: the page asks for the picture again by itself (it stayed "NO VIDEO" until a click).
+    decoded = await frames_decoded(page, at_least=1)
+    await frames_decoded(page, at_least=decoded + 10)
+    await expect(stale).to_be_hidden(timeout=5_000)
     cleared = page.locator("#notifications li.cleared", has_text="platform silent")
     await expect(cleared.first).to_be_visible(timeout=5_000)
 
