@@ -62,7 +62,8 @@ function guardRelease(event) {
   if (autonomy?.state !== "suspended") return;
   event.stopImmediatePropagation();
   event.preventDefault();
-  const toward = autonomy.waypoint != null ? `waypoint ${autonomy.waypoint + 1} of ${autonomy.waypoints}` : "its route";
+  const away = typeof autonomy.distance_m === "number" ? `, ${Math.round(autonomy.distance_m)} m away,` : "";
+  const toward = autonomy.waypoint != null ? `waypoint ${autonomy.waypoint + 1} of ${autonomy.waypoints}${away}` : "its route";
   put($("#release-text"), `Release the override? The patrol resumes toward ${toward} at once, at its cruise speed.`);
   $("#release-confirm").hidden = false;
 }
