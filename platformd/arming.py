@@ -55,7 +55,7 @@ NOTICE_NOTICE = 5
 NOTICE_CRITICAL = 2
 """MAVLink severities (MAV_SEVERITY_*) of the announcements."""
 
-STOP_WORDS = ("stop", "hold", "disarm")
+STOP_WORDS = ("stop", "hold", "disarm", "terminate")
 """Last words after which nothing moves until an operator says so."""
 
 
@@ -261,7 +261,7 @@ class ArmingActor(Actor):
                 if isinstance(status, RecorderStatus) and not status.recording:
                     recorder_error = status.reason
         patrol = self.ctx.patrol
-        imu_seen = self._imu_at if self._imu_at is not None else None
+        imu_seen = self._imu_at
         return PrearmInputs(
             now=now,
             wall=self._wall(),
@@ -275,7 +275,7 @@ class ArmingActor(Actor):
             motor_enabled=config.motor.enabled,
             controller=self.bus.last(topics.CONTROLLER_STATUS),
             recorder_error=recorder_error,
-            map_error=getattr(patrol, "map_error", "") if patrol is not None else "",
+            map_error=patrol.map_error if patrol is not None else "",
             check_clock=config.arming.check_clock,
         )
 
