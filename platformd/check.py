@@ -27,6 +27,7 @@ from brasidas.codecs import ax3500
 from brasidas.codecs.nmea import NmeaDecoder
 from brasidas.config import PlatformConfig
 from brasidas.config.platform import GPIO_PREFIX, GpioLine
+from platformd.arming import CLOCK_SET_AFTER, LastWordStore
 
 if TYPE_CHECKING:
     import serial
@@ -37,8 +38,6 @@ LISTEN_S = 2.5
 """How long the GPS port is listened to at one baud (a receiver talks at least at 1 Hz)."""
 WHO_AM_I = 0x75
 MPU6050_ID = 0x68
-CLOCK_SET_AFTER = 1_704_067_200.0
-"""2024-01-01 UTC (the same as the pre-arm check: platformd.arming)."""
 
 
 @dataclass(frozen=True)
@@ -61,6 +60,7 @@ def run_checks(config: PlatformConfig) -> list[CheckResult]:
         check_signing_key,
         check_disk,
         check_clock,
+        check_last_word,
     ]
     results = []
     for check in checks:
@@ -373,6 +373,22 @@ def check_clock(config: PlatformConfig) -> CheckResult:
         f"{time.strftime('%Y-%m-%d %H:%M:%S', time.gmtime(now))} UTC"
         + (", NTP synchronized" if synced else " (NTP state unknown)"),
     )
+
+
+def check_last_word(config: PlatformConfig) -> CheckResult:
+    """Not a failure either way: what the platform will do at start (platformd.arming)."""
+    configured = config.arming.state_file
+    path = Path(configured) if configured else security.state_dir() / "last_word.json"
+    word = LastWordStore(path).load()
+    if word is None:
+        return CheckResult("last word", True, "none: nothing starts by itself")
+    when = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(word.at))
+    then = (
+        "autostart resumes the patrol (pre-arm, countdown)"
+        if word.word == "start" and config.autonomy.autostart
+        else "nothing moves until an operator says so"
+    )
+    return CheckResult("last word", True, f"{word.word} by {word.by} at {when} UTC: {then}")
 
 
 def _permission_fix(exc: OSError) -> str:

@@ -80,6 +80,7 @@ async def test_check_passes_on_the_simulators_and_names_wrong_and_missing_device
     assert results["motor"]["ok"] and "AX3500 answers" in results["motor"]["detail"]
     assert results["gps"]["ok"] and "NMEA" in results["gps"]["detail"]
     assert results["fleet key"]["ok"] and results["clock"]["ok"] and results["disk"]["ok"]
+    assert results["last word"]["detail"] == "none: nothing starts by itself"
 
     # The ports swapped: the motor port speaks NMEA, the GPS port says nothing by itself.
     code, out = await _check(
