@@ -115,6 +115,7 @@ async def test_releasing_the_override_over_a_waiting_patrol_asks_first(
     await override.click()
     await expect(confirm).to_be_visible()
     await expect(confirm).to_contain_text("The patrol resumes toward waypoint")
+    await expect(confirm).to_contain_text(re.compile(r"at once, at \d+(\.\d)? km/h"))
     assert engaged()  # nothing released yet
     await page.get_by_role("button", name="keep the override").click()
     await expect(confirm).to_be_hidden()

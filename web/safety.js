@@ -53,6 +53,23 @@ function checkSilence() {
 }
 
 let releaseConfirmed = false;
+const patrolSpeeds = new Map(); // platform id → its patrol speed, km/h (the connect answer's limits)
+
+async function patrolSpeed(platformId) {
+  if (!patrolSpeeds.has(platformId)) {
+    const list = await api.call("connections", {}, 2000).catch(() => []);
+    const kmh = list.find((c) => c.platform_id === platformId)?.parameters?.limits?.patrol_speed_kmh;
+    if (typeof kmh === "number") patrolSpeeds.set(platformId, kmh);
+  }
+  return patrolSpeeds.get(platformId);
+}
+
+function releaseText(autonomy, kmh) {
+  const away = typeof autonomy.distance_m === "number" ? `, ${Math.round(autonomy.distance_m)} m away,` : "";
+  const toward = autonomy.waypoint != null ? `waypoint ${autonomy.waypoint + 1} of ${autonomy.waypoints}${away}` : "its route";
+  const speed = typeof kmh === "number" ? `at ${kmh.toFixed(kmh % 1 ? 1 : 0)} km/h` : "at its cruise speed";
+  return `Release the override? The patrol resumes toward ${toward} at once, ${speed}.`;
+}
 
 function guardRelease(event) {
   // Runs before controls.js's handler (a capture listener on the button itself).
@@ -62,10 +79,12 @@ function guardRelease(event) {
   if (autonomy?.state !== "suspended") return;
   event.stopImmediatePropagation();
   event.preventDefault();
-  const away = typeof autonomy.distance_m === "number" ? `, ${Math.round(autonomy.distance_m)} m away,` : "";
-  const toward = autonomy.waypoint != null ? `waypoint ${autonomy.waypoint + 1} of ${autonomy.waypoints}${away}` : "its route";
-  put($("#release-text"), `Release the override? The patrol resumes toward ${toward} at once, at its cruise speed.`);
+  const platformId = state.current;
+  put($("#release-text"), releaseText(autonomy, patrolSpeeds.get(platformId)));
   $("#release-confirm").hidden = false;
+  patrolSpeed(platformId).then((kmh) => {
+    if (state.current === platformId && !$("#release-confirm").hidden) put($("#release-text"), releaseText(autonomy, kmh));
+  });
 }
 
 function answerRelease(release) {
