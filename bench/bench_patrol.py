@@ -140,6 +140,9 @@ async def town(
         await rpc.call_local(
             "set_waypoints", waypoints=[f"{lat:.7f},{lon:.7f}" for lat, lon in route]
         )
+        arming = daemon.ctx.arming
+        assert arming is not None  # a start arms through the pre-arm checks (issue 27)
+        await _until(lambda: not arming.reasons())
         await rpc.call_local("patrol_start")
         # The machine's floor in this run: the same patrol on the same map, nothing built
         # (half before the edits, half after: the machine's load drifts).
@@ -590,6 +593,9 @@ async def platform_cpu(seconds: float = 20.0) -> dict[str, Any]:
         aggregator.sender.start_stream("bench", None, sink.getsockname(), 5.0)
         await asyncio.sleep(2.0)
         idle, idle_emulation = await _cpu_percent(seconds, emulation)
+        arming = daemon.ctx.arming
+        assert arming is not None  # a start arms through the pre-arm checks (issue 27)
+        await _until(lambda: not arming.reasons())
         await daemon.ctx.rpc.call_local("patrol_start")
         await asyncio.sleep(2.0)
         from platformd.autonomy.patrol import PatrolActor

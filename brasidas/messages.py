@@ -53,6 +53,23 @@ class ControlState:
     reason: str = ""
 
 
+@dataclass(frozen=True)
+class ArmingState:
+    """Armed (motors may move) or disarmed (held at zero), and why it changed (issue 27)."""
+
+    armed: bool
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class SafetyNotice:
+    """A safety announcement for ground stations and logs: pre-arm reasons, the autostart
+    countdown, who stopped the robot. ``severity`` is a MAVLink severity (0-7)."""
+
+    severity: int
+    text: str
+
+
 class FailsafeStep(Enum):
     """The failsafe ladder's step (platformd.failsafe)."""
 

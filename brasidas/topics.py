@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from brasidas.bus import Topic
 from brasidas.messages import (
+    ArmingState,
     Attitude,
     Automations,
     CommandAge,
@@ -25,6 +26,7 @@ from brasidas.messages import (
     PlatformSighting,
     PoseEstimate,
     Position,
+    SafetyNotice,
     SessionClosed,
     SessionOpened,
     SpeedCap,
@@ -46,6 +48,10 @@ FAILSAFE_STATE: Topic[FailsafeState] = Topic("failsafe_state", retain=True)
 """The failsafe ladder's step (platformd.failsafe): hold and release while teleoperated."""
 SPEED_CAP: Topic[SpeedCap] = Topic("speed_cap", retain=True)
 """The teleop speed limit for the measured latency (platformd.speedcap)."""
+ARMING_STATE: Topic[ArmingState] = Topic("arming_state", retain=True)
+"""Armed or disarmed (platformd.arming): the motion arbiter holds zero while disarmed."""
+SAFETY_NOTICES: Topic[SafetyNotice] = Topic("safety_notices")
+"""Pre-arm refusals, the autostart countdown, stops (platformd.arming): STATUSTEXT, logs."""
 CMD_VEL: Topic[Velocity] = Topic("cmd_vel")
 """Autonomy's velocity commands; obeyed only in Autonomous Mode."""
 MOTOR_COMMAND: Topic[Velocity] = Topic("motor_command")

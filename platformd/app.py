@@ -38,6 +38,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "platformd.gps",
     "platformd.imu",
     "platformd.autonomy",  # localization (POSE) and the patrol (CMD_VEL)
+    "platformd.arming",  # after autonomy (it hooks ctx.patrol), before mavlink (ctx.arming)
     "platformd.media",
     "platformd.payloads",
     "platformd.mavlink",  # after autonomy and media: ctx.patrol, ctx.media

@@ -23,6 +23,7 @@ from brasidas.actor import Actor, wait_forever
 from brasidas.bus import Bus
 from brasidas.codecs.telemetry_schema import Motion
 from brasidas.messages import (
+    ArmingState,
     FailsafeState,
     FailsafeStep,
     Mode,
@@ -75,6 +76,8 @@ class MotionArbiter(Actor):
         self.cap = 1.0
         """The speed cap (platformd.speedcap): teleop linear speed clamped to ±this."""
         """The failsafe ladder holds: motors at zero, the stream ignored until re-engaged."""
+        self.armed = True
+        """Disarmed (platformd.arming): nothing but zero reaches the motors."""
         self.command = STOP
         self._last_valid = 0.0
         self._timer: TimerHandle | None = None
@@ -98,6 +101,7 @@ class MotionArbiter(Actor):
         self.subscribe(topics.OVERRIDE_STATE, self._on_override)
         self.subscribe(topics.FAILSAFE_STATE, self._on_failsafe)
         self.subscribe(topics.SPEED_CAP, self._on_speed_cap)
+        self.subscribe(topics.ARMING_STATE, self._on_arming)
         self._publish(self.command)
 
     async def async_stop(self) -> None:
@@ -137,6 +141,15 @@ class MotionArbiter(Actor):
         if held:
             self._cancel_timer()
             self.deadman_tripped = True
+            self._publish(STOP)
+
+    def _on_arming(self, state: ArmingState) -> None:
+        if state.armed == self.armed:
+            return
+        self.armed = state.armed
+        if not state.armed:
+            self._cancel_timer()
+            self.deadman_tripped = self.mode is Mode.TELEOP
             self._publish(STOP)
 
     def _on_speed_cap(self, cap: SpeedCap) -> None:
@@ -188,6 +201,8 @@ class MotionArbiter(Actor):
             self._timer = None
 
     def _publish(self, velocity: Velocity) -> None:
+        if not self.armed:
+            velocity = STOP
         self.command = velocity
         self.bus.publish(topics.MOTOR_COMMAND, velocity)
         state = (self.mode, self.deadman_tripped, velocity)

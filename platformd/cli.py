@@ -40,6 +40,10 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command")
     sub.add_parser("run", parents=[after], help="run the daemon (default)")
     sub.add_parser("config", parents=[after], help="print the effective configuration as TOML")
+    check = sub.add_parser(
+        "check", parents=[after], help="bring-up check: devices, keys, disk, clock (exit 1: failed)"
+    )
+    check.add_argument("--json", action="store_true", help="the results as JSON")
     simulate = sub.add_parser(
         "simulate", parents=[after], help="run a simulated device on a pty, standalone"
     )
@@ -121,6 +125,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if command == "simulate":
         return _simulate(args, config)
+    if command == "check":
+        from platformd.check import main as check_main
+
+        return check_main(config, as_json=args.json)
     try:
         fleet_key = load_fleet_key(config)
     except security.FleetKeyError as err:

@@ -3,7 +3,7 @@ router, sessions, capabilities."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -95,6 +95,21 @@ class MediaHandle(Protocol):
         """Start ``session_id``'s copy of a stream, sent to ``host:port``."""
 
 
+class ArmingHandle(Protocol):
+    """What other subsystems use of arming (platformd.arming.ArmingActor)."""
+
+    armed: bool
+
+    def arm(self, by: str, *, manual: bool = False) -> str | None:
+        """Arm through the pre-arm checks: None, or the failing reasons."""
+
+    async def stop(self, session: Session | None, word: str, *, force: bool = False) -> None:
+        """Stop, hold or disarm on anyone's behalf; the last word kept on disk."""
+
+    def reasons(self, *, manual: bool = False) -> tuple[str, ...]:
+        """The failing pre-arm checks (empty: arming would pass)."""
+
+
 class PatrolHandle(Protocol):
     """What other subsystems use of the patrol (platformd.autonomy.patrol.PatrolActor)."""
 
@@ -107,6 +122,16 @@ class PatrolHandle(Protocol):
 
     async def reshape_map(self, source: Mapping[str, Any]) -> AreaMap:
         """Replace boundary and keep-outs, keeping the route; raises MapError or RouteError."""
+
+    resumable: bool
+    """A stored route on an enabled patrol: what autostart resumes."""
+    map_error: str
+    start_check: Callable[[], str | None] | None
+    """Before a start: a refusal (platformd.arming's pre-arm) or None."""
+    on_stop: Callable[[], None] | None
+    """After an operator's stop (platformd.arming)."""
+    settle: Callable[[], Awaitable[None]] | None
+    """Awaits the last word's write (platformd.arming)."""
 
     def start_patrol(self) -> None:
         """Start patrolling the route; raises RouteError."""
@@ -154,6 +179,8 @@ class PlatformContext:
     mavlink_port: int = 0
     """The MAVLink endpoint's bound UDP port (platformd.mavlink), 0 when it is off."""
     patrol: PatrolHandle | None = None
+    arming: ArmingHandle | None = None
+    """Armed or not, the stop for everyone (platformd.arming)."""
     """The patrol (platformd.autonomy): its route and map, for the MAVLink endpoint."""
     http_routes: list[web.RouteDef] = field(default_factory=list)
     """Plain HTTP routes served beside signaling's (the recorder's downloads); added before

@@ -219,6 +219,9 @@ def platform_parameters(ctx: PlatformContext) -> dict[str, Any]:
         "simulated": config.sim.enabled,
         "limits": {
             "max_speed_kmh": config.platform.max_speed_kmh,
+            "patrol_speed_kmh": min(
+                config.autonomy.cruise_speed_kmh, config.platform.max_speed_kmh
+            ),
             # What one request may hold: the station refuses a bigger map or route itself.
             "max_request_bytes": config.signaling.max_request_bytes,
             "linear": [-1.0, 1.0],

@@ -158,6 +158,27 @@ def cmd_movrd(args: argparse.Namespace, config: StationConfig) -> int:
     return _check_ack(answer)
 
 
+def _describe_arming(answer: dict[str, Any]) -> str:
+    lines = [
+        f"{'ARMED' if answer.get('armed') else 'disarmed'}"
+        f" · pre-arm {'ok' if answer.get('ready') else 'failing'}"
+    ]
+    lines += [f"  {reason}" for reason in answer.get("prearm") or []]
+    if answer.get("countdown_s") is not None:
+        lines.append(f"autostart in {answer['countdown_s']:.0f} s")
+    if answer.get("last_stop"):
+        lines.append(f"last stop: {answer['last_stop']}")
+    return "\n".join(lines)
+
+
+def cmd_arming(args: argparse.Namespace, config: StationConfig) -> int:
+    """``arm``, ``disarm [--force]``, ``stop``: the platform's answer, or its refusal."""
+    params: dict[str, Any] = {"force": True} if getattr(args, "force", False) else {}
+    answer = api_call(config, args.command, platform_id=args.id, **params)
+    _print(args, answer, _describe_arming)
+    return 0
+
+
 def cmd_cmd(args: argparse.Namespace, config: StationConfig) -> int:
     answer = api_call(
         config,
@@ -476,6 +497,9 @@ COMMANDS: dict[str, Callable[[argparse.Namespace, StationConfig], int]] = {
     "map": cmd_map,
     "route": cmd_route,
     "patrol": cmd_patrol,
+    "arm": cmd_arming,
+    "disarm": cmd_arming,
+    "stop": cmd_arming,
     "logs": cmd_logs,
 }
 
@@ -542,6 +566,13 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="take control from the station holding it (it is told at once)",
     )
+    p = sub.add_parser("stop", parents=[common], help="stop the platform now (anyone may)")
+    p.add_argument("id")
+    p = sub.add_parser("arm", parents=[common], help="arm through the pre-arm checks (control)")
+    p.add_argument("id")
+    p = sub.add_parser("disarm", parents=[common], help="disarm: motors held at zero (anyone)")
+    p.add_argument("id")
+    p.add_argument("--force", action="store_true", help="a forced disarm, recorded as such")
     p = sub.add_parser("cmd", parents=[common], help="issue a system command (table 10.1)")
     p.add_argument("id")
     p.add_argument("group", type=int)

@@ -28,6 +28,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "stationd.teleop",
     "stationd.media",
     "stationd.patrol",
+    "stationd.arming",
     "stationd.mapfiles",
     "stationd.recordings",
     "stationd.console",

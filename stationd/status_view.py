@@ -17,6 +17,7 @@ from brasidas.codecs.jsonrpc import RpcError
 from brasidas.codecs.telemetry_schema import (
     SCHEMA_VERSION,
     Admission,
+    Arming,
     Attitude,
     Automation,
     Autonomy,
@@ -101,6 +102,7 @@ def render(report: dict[str, Any], *, color: bool = True, now: float | None = No
         ("streams", Streams, _streams),
         ("platforms", Platforms, _platforms),
         ("recorder", RecorderStatus, _recorder),
+        ("arming", Arming, _arming),
     ]
     for title, section, show in rows:
         error = snap.error(section)
@@ -443,3 +445,14 @@ def _clip(line: str, width: int) -> str:
         visible += 1
         i += 1
     return "".join(out)
+
+
+def _arming(arming: Arming) -> str:
+    """ARMED or disarmed, the autostart countdown, every failing pre-arm check, the last stop."""
+    parts = ["ARMED" if arming.armed else "disarmed"]
+    if arming.countdown_s is not None:
+        parts.append(f"AUTOSTART: arming and patrolling in {arming.countdown_s:.0f} s")
+    parts.append("pre-arm ok" if arming.ready else "; ".join(arming.prearm))
+    if arming.last_stop:
+        parts.append(f"last stop: {arming.last_stop}")
+    return "  ".join(parts)

@@ -186,6 +186,9 @@ async def test_only_the_controller_changes_the_patrol(
             assert f"{method} refused: control held by station alpha" in info.value.message
         assert len((await b.call("get_map"))["route"]) == 3  # unchanged, and readable
         assert (await b.call("get_patrol"))["waypoints"] == 3
+        arming = daemon.ctx.arming
+        assert arming is not None  # a start arms through the pre-arm checks (issue 27)
+        await wait_until(lambda: not arming.reasons(), 20)
         assert (await a.call("patrol_start"))["state"] != "idle"
         assert (await a.call("patrol_stop"))["state"] == "stopped"
     finally:

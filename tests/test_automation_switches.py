@@ -56,6 +56,9 @@ async def test_each_automation_switches_off_and_on_with_its_state_in_telemetry(
         await wait_until(lambda: switches() == expected)
 
         # 10.8: the patrol off stops it and refuses a start; on again, it starts.
+        arming = ctx.arming  # a start arms through the pre-arm checks (issue 27)
+        assert arming is not None
+        await wait_until(lambda: not arming.reasons(), 20)
         await ctx.rpc.call_local("patrol_start")  # the --sim demo map and loop
         assert (await send(PATROL, "False")).accepted
         patrol = ctx.bus.last(topics.PATROL_STATUS)

@@ -317,6 +317,9 @@ async def test_map_updates_never_run_geometry_on_the_event_loop(
         for e, n in ((0, 0), (0, 6), (0, 0))
     ]
     await daemon.ctx.rpc.call_local("set_waypoints", waypoints=waypoints)
+    arming = daemon.ctx.arming
+    assert arming is not None  # a start arms through the pre-arm checks (issue 27)
+    await wait_until(lambda: not arming.reasons(), 20)
     await daemon.ctx.rpc.call_local("patrol_start")
     frame = LocalFrame(pose.latitude, pose.longitude)
     shed = feature("keepout", "Polygon", [square(frame, 30, 30, 36, 36)], id="new shed")

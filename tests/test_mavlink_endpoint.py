@@ -55,6 +55,9 @@ async def connected(
 ) -> PlatformDaemon:
     daemon = await platform_factory(config_for(tmp_path, gcs, *overrides), None)
     await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1)
+    arming = daemon.ctx.arming
+    assert arming is not None  # AUTO arms through the pre-arm checks (a fix, the controller)
+    await wait_until(lambda: not arming.reasons(), 20)
     gcs.send(
         mavlink.MAVLink_heartbeat_message(
             mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3
@@ -249,7 +252,7 @@ async def test_an_observer_ground_station_is_refused_with_the_holders_id(
     try:
         other.vehicle = gcs.vehicle
         since = other.mark()
-        ack = await other.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 4)
+        ack = await other.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 10)  # AUTO: moving
         assert ack.result == mavlink.MAV_RESULT_DENIED
         assert ack.result_param2 == 255  # the holder's system id
         text = await other.expect_text(lambda t: "refused" in t, since)

@@ -4,12 +4,15 @@ downloads both back, starts the mission and reads the position."""
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import json
 import math
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
+import pytest
 from conftest import free_udp_port, wait_until
 from mavlink_gcs import LAT, LON, sim_rover_config
 from mavlink_gcs import at as position
@@ -122,3 +125,66 @@ async def test_mavsdk_uploads_a_qgc_plan_downloads_it_and_starts_the_mission(
 
         await missions.start_mission()
         await wait_until(lambda: patrolling(daemon), timeout=10)
+
+
+async def test_mavsdk_health_all_ok_is_true_exactly_when_arming_would_pass(
+    platform_factory: Callable[..., Awaitable[PlatformDaemon]], tmp_path: Path
+) -> None:
+    """Issue 27: a script's ``health_all_ok`` wait ends on a healthy rover; without a GPS fix
+    it is false and a STATUSTEXT says why; arm, disarm and kill do what they say."""
+    from mavsdk.asyncio.plugins.action import ActionAsync, ActionError
+
+    port = free_udp_port()
+    daemon = await platform_factory(
+        sim_rover_config(tmp_path, port, "mavlink.allow_unsigned_control=true", "imu.enabled=true"),
+        None,
+    )
+    arming = daemon.ctx.arming
+    assert arming is not None
+    configuration = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+    async with Mavsdk(configuration) as mavsdk:
+        await mavsdk.add_any_connection(f"udpin://127.0.0.1:{port}")
+        system = await mavsdk.first_autopilot(timeout_s=30.0)
+        assert system is not None
+        telemetry, action = TelemetryAsync(system), ActionAsync(system)
+        async for ok in telemetry.subscribe_health_all_ok():
+            if ok:
+                break
+        assert arming.reasons() == ()
+        async for armed in telemetry.subscribe_armed():
+            assert not armed  # disarmed at start
+            break
+        await action.arm()
+        await wait_until(lambda: arming.armed)
+        async for armed in telemetry.subscribe_armed():
+            if armed:
+                break
+        await action.disarm()
+        await wait_until(lambda: not arming.armed)
+        await action.arm()
+        await action.kill()  # force-disarm (21196)
+        await wait_until(lambda: not arming.armed)
+        assert arming.last_word is not None and arming.last_word.word == "disarm"
+
+        # The receiver goes silent: not armable, and the reason in a STATUSTEXT.
+        texts: list[str] = []
+
+        async def collect() -> None:
+            async for text in telemetry.subscribe_status_text():
+                texts.append(text.text)
+
+        collecting = asyncio.create_task(collect())
+        try:
+            assert daemon.ctx.sim.gps is not None
+            daemon.ctx.sim.gps.close()
+            async for ok in telemetry.subscribe_health_all_ok():
+                if not ok:
+                    break
+            await wait_until(lambda: "PreArm: no GPS fix" in texts, 10)
+            with pytest.raises(ActionError):
+                await action.arm()
+            assert not arming.armed
+        finally:
+            collecting.cancel("test over")
+            with contextlib.suppress(asyncio.CancelledError):
+                await collecting

@@ -345,6 +345,10 @@ async def test_sim_platform_teleop_override_and_deadman(
     sim, vehicle = simulated(ctx)
     sim.device.record = True  # a --sim platform keeps no record unless asked
     await connected(ctx)
+    arming = ctx.arming  # disarmed at start (issue 27): armed through its checks
+    assert arming is not None
+    await wait_until(lambda: not arming.reasons(), 20)
+    assert arming.arm("test") is None
     # Autonomous Mode: cmd_vel drives the controller.
     daemon.bus.publish(topics.CMD_VEL, Velocity(0.3, 0.0))
     await wait_until(lambda: sim.device.channels == (38, 0))

@@ -313,11 +313,18 @@ async def test_invalid_maps_and_waypoints_are_refused_and_a_restart_keeps_the_ro
     # Stored on the platform: a new daemon on the same files has the route and patrols it.
     await robot.call("load_map", map=demo_map(LAT, LON))
     route = await robot.call("set_waypoints", waypoints=["sw", "se", "ne", "sw"])
+    arming = robot.ctx.arming
+    assert arming is not None
+    await wait_until(lambda: not arming.reasons(), 20)
+    await robot.call("patrol_start")  # the operator's last word: start (issue 27)
+    await wait_until(lambda: arming.last_word is not None and arming.last_word.word == "start")
     await robot.daemon.stop()
-    again: Robot = await robot_factory()
+    again: Robot = await robot_factory("arming.countdown_s=0")
     stored = await again.call("get_map")
     assert stored["route"] == route["waypoints"] and stored["closed"]
-    assert again.status.waypoints == 4 and again.status.state in ("patrolling", "holding")
+    # Autostart resumes it once the pre-arm checks pass (issue 27: no operator said stop).
+    await wait_for_state(again, "patrolling", 20)
+    assert again.status.waypoints == 4
 
 
 def _bowtie() -> dict[str, Any]:

@@ -280,6 +280,8 @@ async def test_stream_end_to_end_with_spoofs_and_session_loss(
         await wait_until(lambda: stats().dropped["not_engaged"] == 1)
 
         # Engaging is acknowledged only once the motors follow the stream (and are at zero).
+        assert daemon.ctx.arming is not None  # disarmed at start (issue 27): armed for autonomy
+        assert daemon.ctx.arming.arm("test") is None
         bus.publish(topics.CMD_VEL, Velocity(0.3, 0.0))
         assert commands[-1] == Velocity(0.3, 0.0)
         assert await conn.call("set_manual_override", engaged=True) is True

@@ -24,14 +24,15 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
-SCHEMA_VERSION = 9
+SCHEMA_VERSION = 11
 """Version of the schema (and the datagram layout); the first byte of every datagram.
 4: the failsafe, speed_cap and turret sections, the velocity link's ``held`` drops.
 5: the lights' ``errors`` (GPIO lines), the turret's ``streams``.
 6: the autonomy section's ``map_rev``.
 7: the turret's ``error`` (its line cannot be opened, or went away).
 8: the admission section (strangers refused and closed, issue 19).
-9: the recorder section (recording, or stopped and why; its drops)."""
+9: the recorder section (recording, or stopped and why; its drops).
+11: the arming section (armed, pre-arm reasons, autostart countdown, last stop; issue 27)."""
 ERROR_KEY = "!"
 """A section's wire map holding only this key is that section's error."""
 STALE_PERIODS = 3.0
@@ -407,6 +408,24 @@ class Autonomy(Section):
 
 
 @dataclass(frozen=True)
+class Arming(Section):
+    """Armed or not (disarmed: motors held at zero), why arming would be refused, the
+    autostart countdown and who stopped the robot last (issue 27)."""
+
+    NAME = "arming"
+    WIRE = "arm"
+    armed: bool = field(default=False, metadata=wire("a", doc="motors may move"))
+    ready: bool = field(default=False, metadata=wire("r", doc="the pre-arm checks pass"))
+    prearm: tuple[str, ...] = field(
+        default=(), metadata=wire("p", doc="failing pre-arm checks (PreArm: no GPS fix)")
+    )
+    countdown_s: float | None = field(
+        default=None, metadata=wire("c", unit="s", doc="autostart arms and patrols in this")
+    )
+    last_stop: str = field(default="", metadata=wire("s", doc="who stopped the robot, when"))
+
+
+@dataclass(frozen=True)
 class Automation(Section):
     """Onboard automations switched on or off (R-3: 10.8-10.10, 20.0, 20.4), by name."""
 
@@ -453,6 +472,7 @@ SECTIONS: tuple[type[Section], ...] = (
     Pose,
     Autonomy,
     Automation,
+    Arming,
     Admission,
     RecorderStatus,
     Diagnostics,

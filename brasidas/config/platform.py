@@ -281,6 +281,9 @@ class FailsafeSection:
     expiry, releases the override."""
     action: str = setting("release", one_of("release", "hold"))
     """At ``release_after``: release the override (autonomy resumes) or keep holding."""
+    gcs_loss_action: str = setting("continue", one_of("continue", "hold"))
+    """The controlling station's or ground station's session lost while patrolling: the
+    patrol goes on, or holds (stopped, until an operator starts it): ArduPilot's FS_GCS_ENABLE."""
 
 
 @dataclass(frozen=True)
@@ -598,6 +601,23 @@ class RecorderSection:
 
 
 @dataclass(frozen=True)
+class ArmingSection:
+    """Arming and pre-arm checks, the operator's last word kept on disk (issue 27)."""
+
+    state_file: str = ""
+    """The operator's last word (start, stop, hold, disarm) across restarts. Empty:
+    $XDG_STATE_HOME/brasidas/last_word.json."""
+    countdown_s: float = setting(10.0, at_least(0, most=600))
+    """Autostart: announced this long before the platform arms itself and patrols."""
+    check_gps: bool = True
+    """Pre-arm: a GPS fix (when the GPS is enabled)."""
+    check_clock: bool = True
+    """Pre-arm: the wall clock is set (not before 2024)."""
+    check_recorder: bool = True
+    """Pre-arm: the recorder can write (when it is enabled)."""
+
+
+@dataclass(frozen=True)
 class PlatformConfig:
     RULES: ClassVar[tuple[Rule, ...]] = (
         ordered_across(
@@ -627,3 +647,4 @@ class PlatformConfig:
     map: MapSection = field(default_factory=MapSection)
     mavlink: MavlinkSection = field(default_factory=MavlinkSection)
     recorder: RecorderSection = field(default_factory=RecorderSection)
+    arming: ArmingSection = field(default_factory=ArmingSection)

@@ -59,7 +59,7 @@ async def async_setup(ctx: PlatformContext) -> None:
         storage,
         rate_hz=config.rate_hz,
         enabled=config.enabled,
-        autostart=config.autostart,
+        autostart=False,  # platformd.arming resumes it: pre-arm, countdown, the last word
         demo=(demo_map(sim.latitude, sim.longitude), demo_route())
         if sim.enabled and sim.demo_map
         else None,

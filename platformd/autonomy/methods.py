@@ -97,4 +97,6 @@ class PatrolMethods:
 
     async def patrol_stop(self, call: CallContext) -> dict[str, Any]:
         self.actor.stop_patrol()
+        if self.actor.settle is not None:  # answered once the stop is on disk (issue 27)
+            await self.actor.settle()
         return self.actor.report.as_dict()

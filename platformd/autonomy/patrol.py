@@ -23,7 +23,7 @@ import math
 import secrets
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -106,6 +106,15 @@ class PatrolActor(Actor):
         self._driving = False
         self._reported: PatrolStatus | None = None
         self.loaded = False
+        self.resumable = False
+        """A route (stored, or the --sim demo's) on an enabled patrol: what autostart resumes
+        after an operator's start (platformd.arming)."""
+        self.start_check: Callable[[], str | None] | None = None
+        """Before any start (platformd.arming): the refusal (pre-arm), or None (armed)."""
+        self.on_stop: Callable[[], None] | None = None
+        """After an operator's stop (platformd.arming keeps it as the last word)."""
+        self.settle: Callable[[], Awaitable[None]] | None = None
+        """Awaits the last word's write (platformd.arming): a stop is answered once kept."""
         self.map_error = ""
         """Why the stored map was refused at start ("" when it was not): in telemetry."""
         self.last_build_s: float | None = None
@@ -153,7 +162,8 @@ class PatrolActor(Actor):
         if area is not None:
             self.core.set_route(route)
         report_switch(self.bus, "patrol", self.core.enabled)
-        if route.waypoints and stored and self.autostart and self.core.enabled:
+        self.resumable = bool(route.waypoints and self.core.enabled)
+        if self.resumable and stored and self.autostart:
             self.core.start()
             _LOGGER.info(
                 "patrol: %d waypoints on %r, starting", len(route.waypoints), area and area.name
@@ -489,12 +499,17 @@ class PatrolActor(Actor):
             raise RouteError("no map loaded")
         if not self.core.route.waypoints:
             raise RouteError("no waypoints")
+        refusal = self.start_check() if self.start_check is not None else None
+        if refusal is not None:
+            raise RouteError(refusal)
         self.core.start()
         self.tick()
 
     def stop_patrol(self) -> None:
         self.core.stop()
         self.tick()
+        if self.on_stop is not None:
+            self.on_stop()
 
     def go_to_waypoint(self, index: int) -> None:
         """Head for waypoint ``index`` (from 0) next; RouteError for none such."""

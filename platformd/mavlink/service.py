@@ -51,6 +51,7 @@ from brasidas.messages import (
     Velocity,
 )
 from platformd.context import PlatformContext
+from platformd.mavlink import arming
 from platformd.mavlink.missions import (
     FENCE,
     MISSION,
@@ -130,6 +131,7 @@ class MavlinkService(Actor):
             mission_items=self.mission_items,
         )
         self.vehicle.state.params = config_parameters(ctx.config)
+        self.vehicle.safety_request = arming.safety_request
         self.vehicle.state.gps_present = ctx.config.gps.enabled
         self.transport: asyncio.DatagramTransport | None = None
         self.port = 0
@@ -160,6 +162,8 @@ class MavlinkService(Actor):
         self._signing_state = SigningStateFile(
             self.vehicle.signatures, signing_state_path(config.signing_state_file)
         )
+        self.prearm_said: tuple[str, ...] = ()
+        """The failing pre-arm checks last said in a STATUSTEXT (platformd.mavlink.arming)."""
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -204,6 +208,7 @@ class MavlinkService(Actor):
         self.subscribe(topics.CONTROL_STATE, self._on_control)
         self.subscribe(topics.MOTION_STATE, self._on_motion)
         self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
+        self.on_remove(arming.follow(self))
         try:
             async with asyncio.TaskGroup() as group:
                 group.create_task(self._tick_forever(), name="mavlink-tick")
@@ -241,6 +246,7 @@ class MavlinkService(Actor):
     def annunciate(self, now: float) -> None:
         """STATUSTEXT for each group 90 warning raised or cleared since the last call."""
         snapshot = Snapshot(self.ctx.telemetry.build())
+        arming.refresh(self, snapshot)
         for change in self.annunciator.evaluate(snapshot, 0.0, None, now):
             warning = change.warning
             if change.active:
@@ -352,6 +358,8 @@ class MavlinkService(Actor):
             await self._start_video(request)
         elif isinstance(request, SetCurrent):
             self._set_current(request)
+        elif isinstance(request, arming.SafetyCommand):
+            await arming.decide(self, request)
 
     def _refused(self, request: Request, what: str) -> str | None:
         return self.ctx.authority.refusal(self._session(request), what)
@@ -371,6 +379,8 @@ class MavlinkService(Actor):
                 return
             vehicle.answer_command(request, mavlink.MAV_RESULT_ACCEPTED)
             return
+        if request.mode is FlightMode.HOLD and await arming.hold_for_anyone(self, request):
+            return  # stopping never needs control
         refusal = self._refused(request, f"mode {request.mode.name}")
         if refusal is not None:
             vehicle.answer_command(
@@ -602,7 +612,8 @@ class MavlinkService(Actor):
         self.vehicle.state.mode = mode
 
     def _on_failsafe(self, failsafe: FailsafeState) -> None:
-        self.vehicle.state.failsafe = failsafe.step is not FailsafeStep.NORMAL
+        # RELEASED is over: the override went, autonomy drives normally (not CRITICAL).
+        self.vehicle.state.failsafe = failsafe.step is FailsafeStep.HOLD
 
     def _on_control(self, control: ControlState) -> None:
         if control.reason:

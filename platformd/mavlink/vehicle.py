@@ -62,6 +62,9 @@ class Severity:
 
 # --------------------------------------------------------------------------- requests
 
+SAFETY_COMMANDS = (mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_DO_FLIGHTTERMINATION)
+"""Arm, disarm, terminate: platformd.mavlink.arming (issue 27)."""
+
 
 @dataclass(frozen=True)
 class Request:
@@ -139,6 +142,10 @@ class VehicleState:
     gps_present: bool = False
     mode: FlightMode = FlightMode.HOLD
     failsafe: bool = False
+    armed: bool = True
+    """The heartbeat's SAFETY_ARMED flag (platformd.arming; armed without it)."""
+    prearm_ok: bool | None = None
+    """SYS_STATUS's pre-arm check bit: the pre-arm checks pass (None: not reported)."""
     throttle: float = 0.0
     waypoint: int | None = None
     """The patrol's target (route index), None when idle."""
@@ -223,6 +230,9 @@ class MavlinkVehicle:
         self.system_id = system_id
         self.key = key
         self.allow_unsigned_control = allow_unsigned_control
+        self.safety_request: Callable[..., list[Request]] | None = None
+        """Arm, disarm, terminate (:data:`SAFETY_COMMANDS`): platformd.mavlink.arming's
+        ``safety_request``, set by the service; unsupported without it."""
         self.link_timeout = link_timeout
         self.upload_window = upload_window
         """Mission items requested ahead during an upload (1: strictly one at a time)."""
@@ -481,7 +491,9 @@ class MavlinkVehicle:
 
     def _heartbeat(self) -> Any:
         state = self.state
-        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        if state.armed:
+            base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
         if state.mode is FlightMode.MANUAL:
             base |= mavlink.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
         elif state.mode is FlightMode.AUTO:
@@ -595,8 +607,14 @@ class MavlinkVehicle:
                 mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL,
             ):
                 sensors.add(bit, True, state.imu_ok)
+            # No compass: the bit stands for the heading source (the IMU fused with GPS
+            # course), which ground stations (MAVSDK's health) require before arming.
+            heading = self._heading_deg() is not None
+            sensors.add(mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG, True, state.imu_ok and heading)
         if state.inside_fence is not None:
             sensors.add(mavlink.MAV_SYS_STATUS_GEOFENCE, True, state.inside_fence)
+        if state.prearm_ok is not None:  # "always healthy when armed" (MAVLink's definition)
+            sensors.add(mavlink.MAV_SYS_STATUS_PREARM_CHECK, True, state.prearm_ok or state.armed)
         controller = state.controller
         if controller is not None:
             sensors.add(mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS, True, controller.connected)
@@ -762,6 +780,8 @@ class MavlinkVehicle:
                 return []
             seq = int(params[0]) if math.isfinite(params[0]) else -1
             return [SetCurrent(peer, system, component, signed, seq, command)]
+        if command in SAFETY_COMMANDS and self.safety_request is not None:
+            return self.safety_request(command, params, origin, ack, self._may_control)
         if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             # Ground stations set many intervals at connect: the ACK says no, without a text
             # for each (the rates are the platform's, mavlink.*_hz).

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 from typing import Any
 
 from brasidas.codecs.jsonrpc import CallContext, RpcError
@@ -11,6 +12,7 @@ from stationd.console.session import ConsoleParts, ConsoleSession
 from stationd.teleop import STOP
 
 NOT_DRIVING = -32011
+_LOGGER = logging.getLogger(__name__)
 
 
 class ConsoleDrive(ConsoleParts):
@@ -64,3 +66,27 @@ class ConsoleDrive(ConsoleParts):
             stop.cancel()
         if self.ctx.teleop is not None:
             self.ctx.teleop.set_drive(platform_id, STOP)
+
+    def _release_when_gone(self, session: ConsoleSession, platform_id: str) -> None:
+        """The driving page closed: release its override after the drive deadman, as a cut
+        link would be, unless another page engaged it meanwhile (issue 27: an engaged
+        override left behind kept a patrol suspended indefinitely)."""
+        if self._group is None:
+            return
+        self._group.create_task(
+            self._release_after(session.number, platform_id),
+            name=f"console:{session.number}:release:{platform_id}",
+        )
+
+    async def _release_after(self, number: int, platform_id: str) -> None:
+        await asyncio.sleep(self.ctx.config.console.drive_timeout)
+        if self.drivers.get(platform_id) != number:
+            return  # another page engaged it since
+        self.drivers.pop(platform_id, None)
+        try:
+            answer = await self.ctx.api.call_local("movrd", platform_id=platform_id, engaged=False)
+        except RpcError as err:
+            _LOGGER.warning("%s: the closed page's override not released: %s", platform_id, err)
+            return
+        _LOGGER.warning("%s: the driving page closed: override released (%s)", platform_id, answer)
+        self._mark_dirty()

@@ -156,6 +156,8 @@ class ConsoleHub(ConsoleMedia, ConsoleDrive, Actor):
         driven = {p for p, number in self.drivers.items() if number == session.number}
         for platform_id in driven | set(session.drive_stops):
             self._stop_driving(session, platform_id)
+        for platform_id in driven:
+            self._release_when_gone(session, platform_id)
         for task in list(session.tasks):
             task.cancel("console closed")
 
