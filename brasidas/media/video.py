@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import collections
 import statistics
+import threading
 import time
 import weakref
 from collections.abc import Callable
@@ -37,6 +38,7 @@ from brasidas.media.gst import (
     set_prop,
     stamp_capture_time,
 )
+from brasidas.media.keyframes import KeyframeClock
 from brasidas.media.pipeline import PipelineStream, StreamState
 
 ENCODERS: tuple[str, ...] = ("v4l2h264enc", "omxh264enc", "x264enc", "openh264enc")
@@ -49,6 +51,9 @@ RTP_VIDEO_CAPS = (
 )
 """What a receiver must tell ``udpsrc``: plain RTP carries no SDP."""
 TAP_QUEUE_BUFFERS = 30
+ENCODER_GOP_S = 10
+"""The encoder's own keyframe interval, a backstop only: :class:`KeyframeClock` forces the
+keyframes, at the current framerate (the encoders' own settings cannot change while running)."""
 """Access units the encoded tap may hold before its leaky queue drops the oldest."""
 
 AccessUnitSink = Callable[[bytes, bool, int], None]
@@ -109,6 +114,11 @@ class VideoOut(FanOutStream[VideoSettings]):
         self.encoder_name = ""
         self._encoder: Any = None
         self._rate_filter: Any = None
+        self.keyframes = KeyframeClock(settings.framerate)
+        self._keyframes_lock = threading.Lock()
+        """The clock is used by the streaming thread, RTCP's thread and the event loop."""
+        self._forced_seqnums: collections.deque[int] = collections.deque(maxlen=8)
+        """Our own force-key-unit events, told apart from a receiver's request (PLI/FIR)."""
         self.access_unit_sinks: list[AccessUnitSink] = []
         """Who gets the encoded stream (the recorder): a tee after the encoder feeds them,
         as sent, never a second encoder. Set before the pipeline is built."""
@@ -124,7 +134,15 @@ class VideoOut(FanOutStream[VideoSettings]):
             "encoder": self.encoder_name or None,
             "bitrate_kbps": s.effective_bitrate_kbps(),
             "rtp_caps": RTP_VIDEO_CAPS,
+            "keyframe_interval_frames": self.keyframes.interval_frames,
+            "keyframes_requested": self.keyframes.counters.requested,
+            "keyframe_requests_refused": self.keyframes.counters.refused,
         }
+
+    def request_keyframe(self) -> bool:
+        """Make the next frame a keyframe (rate-limited); any thread. False when refused."""
+        with self._keyframes_lock:
+            return self.keyframes.request(time.monotonic())
 
     def set_framerate(self, fps: int) -> None:
         """Change the sent framerate; applied live (keyframe interval follows). Event loop."""
@@ -132,8 +150,9 @@ class VideoOut(FanOutStream[VideoSettings]):
         if not 1 <= fps <= s.camera_framerate:
             raise ValueError(f"framerate must be 1-{s.camera_framerate} fps, not {fps}")
         s.framerate = fps
+        with self._keyframes_lock:
+            self.keyframes.set_framerate(fps)
         if self._encoder is not None and self._rate_filter is not None:
-            _set_keyframe_interval(self._encoder, self.encoder_name, fps)
             _set_bitrate(self._encoder, self.encoder_name, s.effective_bitrate_kbps())
             # New caps renegotiate downstream: the encoder restarts with the new rate.
             self._rate_filter.set_property("caps", caps(f"video/x-raw,framerate={fps}/1"))
@@ -190,10 +209,25 @@ class VideoOut(FanOutStream[VideoSettings]):
         link_all(*chain)
         if tap:
             self._add_tap(pipeline, tap[0])
+        self._watch_keyframes(encoder)
         self.encoder_name = encoder_name
         self._encoder = encoder
         self._rate_filter = rate_filter
         return pipeline
+
+    def _watch_keyframes(self, encoder: Any) -> None:
+        """Force the clock's keyframes into the encoder; take a receiver's requests (the
+        force-key-unit events rtpbin makes of PLI/FIR, or a depayloader's) through its limit."""
+        Gst = gst()
+        ref = weakref.ref(self)
+        with self._keyframes_lock:
+            self.keyframes = KeyframeClock(self.settings.framerate)
+        encoder.get_static_pad("sink").add_probe(
+            Gst.PadProbeType.BUFFER, _force_keyframe_probe, (ref, encoder)
+        )
+        encoder.get_static_pad("src").add_probe(
+            Gst.PadProbeType.EVENT_UPSTREAM, _keyframe_request_probe, ref
+        )
 
     def on_torn_down(self) -> None:
         super().on_torn_down()
@@ -273,6 +307,44 @@ def _on_access_unit(appsink: Any, data: tuple[weakref.ref[VideoOut], Any]) -> An
     return Gst.FlowReturn.OK
 
 
+def _force_keyframe_probe(pad: Any, info: Any, data: tuple[weakref.ref[VideoOut], Any]) -> Any:
+    """Streaming thread, before a raw frame enters the encoder: force it to a keyframe when
+    the clock says so (the encoder applies a pending force-key-unit to its next frame)."""
+    ref, encoder = data
+    stream = ref()
+    if stream is not None:
+        with stream._keyframes_lock:
+            force = stream.keyframes.on_frame(time.monotonic())
+        if force:
+            event = _force_key_unit_event()
+            stream._forced_seqnums.append(event.get_seqnum())
+            encoder.send_event(event)
+    return gst().PadProbeReturn.OK
+
+
+def _keyframe_request_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
+    """Any thread: a force-key-unit from downstream is a request, rate-limited by the clock."""
+    Gst = gst()
+    stream = ref()
+    event = info.get_event()
+    if stream is None or event is None or event.type != Gst.EventType.CUSTOM_UPSTREAM:
+        return Gst.PadProbeReturn.OK
+    structure = event.get_structure()
+    if structure is None or structure.get_name() != "GstForceKeyUnit":
+        return Gst.PadProbeReturn.OK
+    if event.get_seqnum() in stream._forced_seqnums:
+        return Gst.PadProbeReturn.OK  # our own, on its way to the encoder
+    stream.request_keyframe()
+    return Gst.PadProbeReturn.DROP  # the clock forces it on the next frame
+
+
+def _force_key_unit_event() -> Any:
+    Gst = gst()
+    from gi.repository import GstVideo
+
+    return GstVideo.video_event_new_upstream_force_key_unit(Gst.CLOCK_TIME_NONE, True, 0)
+
+
 def _h264_caps(encoder_name: str) -> str:
     if encoder_name == "omxh264enc":
         # The OMX encoder only announces "baseline"; its output has no B-frames or FMO either.
@@ -313,7 +385,7 @@ def _configure_encoder(encoder: Any, name: str, s: VideoSettings) -> None:
         _nick(encoder, "control-rate", "variable")
         if encoder.find_property("inline-header") is not None:
             encoder.set_property("inline-header", True)
-    _set_keyframe_interval(encoder, name, s.framerate)
+    _set_keyframe_interval(encoder, name, ENCODER_GOP_S * s.camera_framerate)
 
 
 def _set_bitrate(encoder: Any, name: str, kbps: int) -> None:
@@ -331,19 +403,19 @@ def _set_bitrate(encoder: Any, name: str, kbps: int) -> None:
             encoder.set_property("extra-controls", controls)
 
 
-def _set_keyframe_interval(encoder: Any, name: str, fps: int) -> None:
-    """A keyframe every second (nobody can ask for one over plain RTP)."""
+def _set_keyframe_interval(encoder: Any, name: str, frames: int) -> None:
+    """The encoder's own interval (a backstop: the keyframe clock forces them sooner)."""
     if name == "x264enc":
-        encoder.set_property("key-int-max", fps)
+        encoder.set_property("key-int-max", frames)
     elif name == "openh264enc":
-        encoder.set_property("gop-size", fps)
+        encoder.set_property("gop-size", frames)
     elif name == "omxh264enc" and encoder.find_property("periodicity-idr") is not None:
-        encoder.set_property("periodicity-idr", fps)
+        encoder.set_property("periodicity-idr", frames)
     elif name == "v4l2h264enc":
         controls = encoder.get_property("extra-controls")
         if controls is not None:
             controls = controls.copy()
-            controls.set_value("h264_i_frame_period", fps)
+            controls.set_value("h264_i_frame_period", frames)
             encoder.set_property("extra-controls", controls)
 
 
