@@ -42,6 +42,7 @@ from typing import Any
 from brasidas.media.audio import AUDIO_PAYLOAD_TYPE, RTP_AUDIO_CAPS
 from brasidas.media.gst import NTP_UNIX_OFFSET_NS, caps, gst, link_all, make, ntp_caps
 from brasidas.media.pipeline import PipelineStream
+from brasidas.media.repair import RepairReceiver, add_repair_receiver
 from brasidas.media.video import RTP_VIDEO_CAPS
 
 _LOGGER = logging.getLogger(__name__)
@@ -239,6 +240,8 @@ class RtpDepayloader(PipelineStream, abc.ABC):
 
     kind = "feed"
     rtp_caps = ""
+    repair = False
+    """Receive through rtpbin: NACK, retransmission, keyframe requests (brasidas.media.repair)."""
 
     def __init__(
         self, name: str, *, host: str, port: int, on_unit: Callable[[AccessUnit], None], **kw: Any
@@ -248,6 +251,19 @@ class RtpDepayloader(PipelineStream, abc.ABC):
         self.port = port
         self.on_unit = on_unit
         self._loop: asyncio.AbstractEventLoop | None = None
+        self.repairs: RepairReceiver | None = None
+        self._feedback: tuple[str, int] = ("", 0)
+
+    def set_feedback(self, host: str, port: int | None) -> None:
+        """Where the sender takes RTCP feedback (its ``rtcp_port``); applied live. Loop."""
+        self._feedback = (host, port or 0)
+        if self.repairs is not None:
+            self.repairs.set_feedback(host, port or 0)
+
+    def describe(self) -> dict[str, Any]:
+        if self.repairs is None:
+            return super().describe()
+        return {**super().describe(), "repair": vars(self.repairs.counters())}
 
     def destination(self) -> str:
         return f"{self.host}:{self.port}"
@@ -267,7 +283,12 @@ class RtpDepayloader(PipelineStream, abc.ABC):
         chain = [source, *self.depayload(), sink]
         for element in chain:
             pipeline.add(element)
-        link_all(*chain)
+        if self.repair:
+            link_all(*chain[1:])
+            self.repairs = add_repair_receiver(pipeline, source, chain[1], self.rtp_caps)
+            self.repairs.set_feedback(*self._feedback)
+        else:
+            link_all(*chain)
         sink.connect("new-sample", _on_sample, (weakref.ref(self), ntp_caps()))
         return pipeline
 
@@ -284,6 +305,7 @@ class H264Depayloader(RtpDepayloader):
 
     kind = "video_feed"
     rtp_caps = RTP_VIDEO_CAPS
+    repair = True
 
     def depayload(self) -> list[Any]:
         depay = make("rtph264depay", "depay")

@@ -40,6 +40,12 @@ from brasidas.media.gst import (
 )
 from brasidas.media.keyframes import KeyframeClock
 from brasidas.media.pipeline import PipelineStream, StreamState
+from brasidas.media.repair import (
+    FeedbackSocket,
+    RepairReceiver,
+    add_repair_receiver,
+    add_repair_sender,
+)
 
 ENCODERS: tuple[str, ...] = ("v4l2h264enc", "omxh264enc", "x264enc", "openh264enc")
 """Hardware first (current Raspberry Pi, old Raspbian), then software; first found wins."""
@@ -97,6 +103,10 @@ class VideoSettings(Destinations):
     encoder: str = ""
     """Force an encoder from :data:`ENCODERS`; empty: the first available."""
     mtu: int = 1200
+    repair: bool = True
+    """RTCP feedback, retransmission on NACK, keyframes on PLI (:mod:`brasidas.media.repair`)."""
+    rtcp_port: int = 0
+    """Where receivers send their RTCP feedback (0: a free port, announced as ``rtcp_port``)."""
 
     def effective_bitrate_kbps(self) -> int:
         """Bitrate for the current framerate: 5 fps monitoring needs a sixth of 30 fps."""
@@ -119,6 +129,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         """The clock is used by the streaming thread, RTCP's thread and the event loop."""
         self._forced_seqnums: collections.deque[int] = collections.deque(maxlen=8)
         """Our own force-key-unit events, told apart from a receiver's request (PLI/FIR)."""
+        self.feedback: FeedbackSocket | None = None
         self.access_unit_sinks: list[AccessUnitSink] = []
         """Who gets the encoded stream (the recorder): a tee after the encoder feeds them,
         as sent, never a second encoder. Set before the pipeline is built."""
@@ -134,6 +145,7 @@ class VideoOut(FanOutStream[VideoSettings]):
             "encoder": self.encoder_name or None,
             "bitrate_kbps": s.effective_bitrate_kbps(),
             "rtp_caps": RTP_VIDEO_CAPS,
+            "rtcp_port": self.feedback.port if self.feedback is not None else None,
             "keyframe_interval_frames": self.keyframes.interval_frames,
             "keyframes_requested": self.keyframes.counters.requested,
             "keyframe_requests_refused": self.keyframes.counters.refused,
@@ -202,11 +214,17 @@ class VideoOut(FanOutStream[VideoSettings]):
             h264_filter,
             *tap,
             pay,
-            sink,
         ]
-        for element in chain:
+        for element in (*chain, sink):
             pipeline.add(element)
         link_all(*chain)
+        if s.repair:
+            if self.feedback is None:
+                # Bound once and kept across rebuilds: receivers were told this port.
+                self.feedback = FeedbackSocket(port=s.rtcp_port)
+            add_repair_sender(pipeline, pay, sink, self.feedback)
+        else:
+            link_all(pay, sink)
         if tap:
             self._add_tap(pipeline, tap[0])
         self._watch_keyframes(encoder)
@@ -233,6 +251,9 @@ class VideoOut(FanOutStream[VideoSettings]):
         super().on_torn_down()
         self._encoder = None
         self._rate_filter = None
+        if self.wanted is StreamState.IDLE and self.feedback is not None:
+            self.feedback.close()
+            self.feedback = None
 
     def _add_tap(self, pipeline: Any, tee: Any) -> None:
         """tee → leaky queue → h264parse (SPS/PPS on every keyframe, Annex B, whole access
@@ -437,9 +458,14 @@ class VideoIn(PipelineStream):
         sink: str = "fakesink",
         jitter_ms: int = 0,
         window: int = 2000,
+        repair: bool = True,
         **kwargs: Any,
     ) -> None:
         super().__init__(name, **kwargs)
+        self.repair = repair
+        """Ask the sender for lost packets and keyframes (its ``rtcp_port``: set_feedback)."""
+        self.repairs: RepairReceiver | None = None
+        self._feedback: tuple[str, int] = ("", 0)
         self.host = host
         self.port = port
         self.sink_factory = sink
@@ -469,7 +495,19 @@ class VideoIn(PipelineStream):
             "rtp_packets": self.rtp_packets,
             "rtp_lost": self.rtp_lost,
             "longest_freeze_ms": round(self.longest_freeze_ms, 1),
+            **self.repair_stats(),
         }
+
+    def set_feedback(self, host: str, port: int | None) -> None:
+        """Where the sender takes RTCP feedback (its ``rtcp_port``); applied live. Loop."""
+        self._feedback = (host, port or 0)
+        if self.repairs is not None:
+            self.repairs.set_feedback(host, port or 0)
+
+    def repair_stats(self) -> dict[str, Any]:
+        if self.repairs is None:
+            return {}
+        return {"repair": vars(self.repairs.counters())}
 
     def count_packet(self, seq: int) -> None:
         """Streaming thread: one RTP packet; a gap in the sequence counts as lost."""
@@ -512,7 +550,7 @@ class VideoIn(PipelineStream):
             "udpsrc", "source", address=self.host, port=self.port, caps=caps(RTP_VIDEO_CAPS)
         )
         chain = [source]
-        if self.jitter_ms > 0:
+        if self.jitter_ms > 0 and not self.repair:
             chain.append(make("rtpjitterbuffer", latency=self.jitter_ms, drop_on_latency=True))
         decoder = make("avdec_h264", "decoder")
         if decoder.find_property("thread-type") is not None:
@@ -529,7 +567,12 @@ class VideoIn(PipelineStream):
         chain += [depay, decoder, make("videoconvert"), sink]
         for element in chain:
             pipeline.add(element)
-        link_all(*chain)
+        if self.repair:
+            link_all(*chain[1:])
+            self.repairs = add_repair_receiver(pipeline, source, depay, RTP_VIDEO_CAPS)
+            self.repairs.set_feedback(*self._feedback)
+        else:
+            link_all(*chain)
         decoder.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _latency_probe, (weakref.ref(self), ntp_caps())
         )
@@ -564,6 +607,6 @@ def _bytes_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
     if stream is not None and buffer is not None:
         stream.rtp_bytes += buffer.get_size()
         header = buffer.extract_dup(0, 4)
-        if len(header) == 4:
+        if len(header) == 4 and header[1] & 0x7F == PAYLOAD_TYPE:  # not retransmissions
             stream.count_packet(int.from_bytes(header[2:4], "big"))
     return gst().PadProbeReturn.OK

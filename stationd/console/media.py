@@ -224,7 +224,9 @@ class ConsoleMedia(ConsoleParts):
                     INVALID_PARAMS, f"cannot receive {stream}: {feed.depayloader.reason}"
                 )
             try:
-                await connection.call("start_stream", name=stream, port=feed.port)
+                started = await connection.call("start_stream", name=stream, port=feed.port)
+                if isinstance(started, dict) and isinstance(started.get("rtcp_port"), int):
+                    feed.depayloader.set_feedback(connection.platform_host, started["rtcp_port"])
             except BaseException:
                 await feed.depayloader.stop()
                 raise
