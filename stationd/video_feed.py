@@ -193,6 +193,15 @@ class FanOut:
         self.bytes = 0
         self._seq = itertools.count(1)
         self._frozen = True  # nothing decodable before the first keyframe
+        self.last_passed_ms: float | None = None
+        """Arrival (Unix ms, station clock) of the last unit passed to the viewers."""
+
+    def staleness_ms(self, now_ms: float) -> float | None:
+        """How long the pages' picture has waited for its next frame (None: no frame yet):
+        a frozen picture ages by this much beyond the glass-to-glass of its last frame."""
+        if self.last_passed_ms is None:
+            return None
+        return max(0.0, now_ms - self.last_passed_ms)
 
     def feed(self, unit: AccessUnit) -> None:
         """One access unit from the depayloader."""
@@ -208,6 +217,7 @@ class FanOut:
         if self._frozen:
             self.held += 1
             return
+        self.last_passed_ms = unit.arrival_ms
         seq = next(self._seq)
         if len(self.gop) < self.gop_max:
             self.gop.append((seq, unit))

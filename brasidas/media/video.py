@@ -525,11 +525,17 @@ class VideoIn(PipelineStream):
             self.longest_freeze_ms = max(self.longest_freeze_ms, (now - self.last_frame_at) * 1000)
         self.last_frame_at = now
 
-    def recent_latency_ms(self) -> float | None:
-        """The median glass-to-glass latency of the last 30 frames while playing, else None."""
+    def recent_latency_ms(self, now: float | None = None) -> float | None:
+        """The age of the picture: the median glass-to-glass latency of the last 30 frames
+        plus the wait since the last one (a frozen picture is latency: the speed cap falls
+        as the video fails), while playing, else None. ``now``: time.monotonic()."""
         if self.state is not StreamState.PLAYING or not self.latencies:
             return None
-        return float(statistics.median(list(self.latencies)[-30:]))
+        median = float(statistics.median(list(self.latencies)[-30:]))
+        if self.last_frame_at is None:
+            return median
+        waited = (time.monotonic() if now is None else now) - self.last_frame_at
+        return median + max(0.0, waited) * 1000
 
     def latency_stats(self) -> dict[str, Any]:
         values = sorted(self.latencies)

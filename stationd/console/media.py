@@ -335,7 +335,14 @@ class PageLatency:
         self.fallback = fallback
 
     def __call__(self) -> float | None:
+        """The age of the picture on the page: its last glass-to-glass p95 plus how long the
+        feed has been frozen since (issue 28: a frozen picture is latency, so the speed cap
+        falls as the video fails), while the feed runs; else the fallback."""
         report = self.hub.page_latency.get(self.platform_id)
+        feed = self.hub.feeds.get((self.platform_id, "navcam"))
+        staleness = feed.fanout.staleness_ms(time.time() * 1000) if feed is not None else None
+        if report is not None and staleness is not None:
+            return report[0] + staleness
         if report is not None and time.monotonic() - report[1] <= PAGE_LATENCY_MAX_AGE_S:
             return report[0]
         return self.fallback() if self.fallback is not None else None
