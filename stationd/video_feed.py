@@ -440,9 +440,31 @@ class Feed:
             f"{platform_id}/{stream}", host=host, port=port, on_unit=self.fanout.feed
         )
 
+        self._loss_seen = (0, 0, 0)
+        """Lost packets, repaired packets and held units when :meth:`loss_reason` last looked."""
+
     @property
     def port(self) -> int:
         return self.depayloader.port
+
+    def loss_reason(self) -> str:
+        """Why the picture froze, if the link lost it ("" when nothing was lost since the
+        last look): packets given up on, or frames held back waiting for a keyframe."""
+        repairs = self.depayloader.repairs
+        counters = repairs.counters() if repairs is not None else None
+        lost = counters.lost if counters is not None else 0
+        repaired = counters.repaired if counters is not None else 0
+        seen = (lost, repaired, self.fanout.held)
+        new_lost, new_repaired, new_held = (
+            a - b for a, b in zip(seen, self._loss_seen, strict=True)
+        )
+        self._loss_seen = seen
+        if new_lost <= 0 and new_held <= 0:
+            return ""
+        return (
+            f"packet loss on the link ({new_lost} packets lost, {new_repaired} repaired; "
+            "waiting for a keyframe)"
+        )
 
     def viewer(self) -> Viewer:
         """A new viewer of this feed (not yet added)."""

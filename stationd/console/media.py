@@ -118,7 +118,8 @@ class ConsoleMedia(ConsoleParts):
         if watch is None:
             return ""
         now = time.monotonic()
-        units = watch.feed.fanout.units
+        # Units held back after a loss (waiting for a keyframe) show nothing: not movement.
+        units = watch.feed.fanout.units - watch.feed.fanout.held
         if units != watch.units_seen:
             watch.units_seen, watch.units_moved_at = units, now
         if now - watch.units_moved_at < VIDEO_SILENT_S:
@@ -136,6 +137,9 @@ class ConsoleMedia(ConsoleParts):
                 return f"{feed.stream} failed on the platform"
         if feed.depayloader.state is StreamState.FAILED:
             return f"the station's receiver failed: {feed.depayloader.reason}"
+        loss = feed.loss_reason()
+        if loss:
+            return loss
         destinations = await self._platform_destinations(feed)
         if destinations is not None and not any(d.endswith(f":{feed.port}") for d in destinations):
             elsewhere = ", ".join(destinations) or "nowhere"
