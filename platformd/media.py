@@ -95,6 +95,8 @@ class MediaService(Actor):
         """Streams paused by control: only the station holding control resumes them."""
         self.retry = True
         """Failed streams are rebuilt with backoff (10.10)."""
+        self.record_fps = 0
+        """The recorder's own NavCam copy while nobody watches (0: none): :meth:`record_navcam`."""
         if navcam.enabled:
             self.navcam = VideoOut(
                 "navcam",
@@ -182,6 +184,8 @@ class MediaService(Actor):
 
     def _on_override(self, state: OverrideState) -> None:
         fps = self.framerate.set_override(state.engaged)
+        if self.navcam is not None and self.navcam.nowhere:
+            return  # the recorder's own copy keeps its rate until a station watches
         if self.navcam is not None and fps != self.navcam.settings.framerate:
             _LOGGER.info("navcam framerate %d fps", fps)
             self.navcam.set_framerate(fps)
@@ -321,7 +325,10 @@ class MediaService(Actor):
             if key not in viewers and key != session_id and len(copies) >= COPIES_MAX:
                 raise ValueError(f"stream '{name}': at most {COPIES_MAX} copies per station")
             viewers[key] = (host or settings.host, port or settings.port)
+            recorded_only = stream.nowhere
             stream.set_destinations(list(viewers.values()))
+            if recorded_only and stream is self.navcam:
+                self._follow_policy()  # the first viewer after the recorder's own copy
         else:
             viewers[session_id] = ("", 0)  # the platform's own address: nothing to choose
         if name in self.paused and not self._controls(session_id):
@@ -375,7 +382,31 @@ class MediaService(Actor):
                 return stream.state
         viewers.clear()
         self.paused.discard(name)
+        if stream is self.navcam and self.record_fps:
+            return await self._record_only()
         return await stream.stop()
+
+    async def record_navcam(self, fps: int) -> StreamState | None:
+        """The recorder's own copy (issue 28): while no station watches, the NavCam runs at
+        ``fps`` sent nowhere, its encoded frames to the recorder (the same encoder a station's
+        copy then uses). None without a NavCam or with ``fps`` 0."""
+        self.record_fps = fps
+        if self.navcam is None or fps <= 0:
+            return None
+        if self.viewers.get("navcam"):
+            return self.navcam.state
+        return await self._record_only()
+
+    async def _record_only(self) -> StreamState:
+        assert self.navcam is not None
+        self.navcam.set_destinations([])
+        self.navcam.set_framerate(min(self.record_fps, self.navcam.settings.camera_framerate))
+        return await self.navcam.start()
+
+    def _follow_policy(self) -> None:
+        """The NavCam at the framerate of the current mode (a station watches)."""
+        if self.navcam is not None and self.navcam.settings.framerate != self.framerate.current:
+            self.navcam.set_framerate(self.framerate.current)
 
     def set_framerate(self, name: str, raw: Any) -> int:
         """10.5: the framerate of a video stream in the current mode; ValueError if invalid."""

@@ -562,6 +562,9 @@ class RecorderSection:
     """Messages waiting for the writer thread at most; past it new ones are dropped (counted)."""
     telemetry_hz: float = setting(2.0, above(0, most=50))
     """How often every telemetry section is recorded."""
+    video_fps: int = setting(5, at_least(0, most=30))
+    """The NavCam's rate while no station watches: the recorder's own copy, from the same
+    encoder (0: the camera is recorded only while a station watches)."""
 
 
 @dataclass(frozen=True)
