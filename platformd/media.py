@@ -36,6 +36,7 @@ import ipaddress
 import logging
 import re
 import socket
+import time
 from collections.abc import Awaitable, Coroutine
 from typing import Any
 
@@ -54,6 +55,7 @@ from brasidas.codecs.commands import (
 )
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
 from brasidas.media.audio import AudioIn, AudioOut, AudioSettings
+from brasidas.media.bitrate import STEP_S as BITRATE_STEP_S
 from brasidas.media.fanout import FanOutStream
 from brasidas.media.navcam import FrameratePolicy, navcam_settings, parse_framerate
 from brasidas.media.pipeline import PipelineStream, StreamState
@@ -157,10 +159,22 @@ class MediaService(Actor):
             self._group = group
             for stream in self.streams.values():
                 group.create_task(stream.supervise(), name=f"media:{stream.name}")
+            if self.navcam is not None:
+                group.create_task(self._adapt_bitrate(self.navcam), name="media:bitrate")
             try:
                 await wait_forever()
             finally:
                 self._group = None
+
+    async def _adapt_bitrate(self, navcam: VideoOut) -> None:
+        """The NavCam's bitrate follows the receivers' reports (brasidas.media.bitrate)."""
+        while True:
+            await asyncio.sleep(BITRATE_STEP_S / 2)
+            kbps = navcam.adapt_bitrate(time.monotonic())
+            if kbps is not None:
+                _LOGGER.debug(
+                    "navcam bitrate %d kbit/s (reported loss %.2f)", kbps, navcam.bitrate.loss
+                )
 
     async def async_stop(self) -> None:
         """Stop every pipeline (their NULL state changes run in threads, in parallel)."""

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from netns import Daemon, Fleet, network_fixture, requires_netns, wait_for
+from netns import Daemon, Fleet, RpcFailed, network_fixture, requires_netns, wait_for
 
 from brasidas.media.repair import REPAIR_LATENCY_MS
 from brasidas.netem.core import Profile
@@ -122,3 +122,25 @@ async def test_a_loss_beyond_repair_asks_the_encoder_for_a_keyframe(watching: Fl
         return (await _receiver(fleet))["frames"] > frames + 5
 
     await wait_for(picture_back, timeout=10, step=0.2)
+
+
+async def test_the_bitrate_falls_under_a_rate_limit(watching: Fleet) -> None:
+    fleet = watching
+    fleet.net.impair("rover", up=Profile(rate_kbps=500), down=Profile())
+    start = (await _navcam(fleet))["bitrate_kbps"]
+    assert start > 500
+
+    async def settled() -> bool:
+        try:  # the platform's answers share the saturated link until the bitrate falls
+            return bool((await _navcam(fleet))["bitrate_kbps"] < 500)
+        except RpcFailed:
+            return False
+
+    await wait_for(settled, timeout=20, step=0.25)
+    # Through the drop the picture went on (repaired, then within capacity).
+    frames = (await _receiver(fleet))["frames"]
+
+    async def flowing() -> bool:
+        return (await _receiver(fleet))["frames"] > frames + 20
+
+    await wait_for(flowing, timeout=20, step=0.5)

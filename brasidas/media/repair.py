@@ -93,6 +93,7 @@ def _aux_sender(rtpbin: Any, session: int) -> Any:
     bin_ = Gst.Bin.new(f"rtx_send_{session}")
     rtx = make(
         "rtprtxsend",
+        "rtxsend",
         payload_type_map=Gst.Structure.new_from_string(
             f"application/x-rtp-pt-map,96=(uint){RTX_PAYLOAD_TYPE}"
         ),

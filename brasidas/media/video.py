@@ -22,6 +22,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from brasidas.media.bitrate import BitrateController
 from brasidas.media.fanout import Destinations, FanOutStream
 from brasidas.media.gst import (
     NTP64_EXT_ID,
@@ -130,6 +131,10 @@ class VideoOut(FanOutStream[VideoSettings]):
         self._forced_seqnums: collections.deque[int] = collections.deque(maxlen=8)
         """Our own force-key-unit events, told apart from a receiver's request (PLI/FIR)."""
         self.feedback: FeedbackSocket | None = None
+        self.bitrate = BitrateController(settings.effective_bitrate_kbps(), MIN_BITRATE_KBPS)
+        self._rtpbin: Any = None
+        self._reports_seen: dict[int, int] = {}
+        """Each receiver's highest sequence number in its last report used (new ones only)."""
         self.access_unit_sinks: list[AccessUnitSink] = []
         """Who gets the encoded stream (the recorder): a tee after the encoder feeds them,
         as sent, never a second encoder. Set before the pipeline is built."""
@@ -143,13 +148,60 @@ class VideoOut(FanOutStream[VideoSettings]):
             "framerate": s.framerate,
             "codec": "H264",
             "encoder": self.encoder_name or None,
-            "bitrate_kbps": s.effective_bitrate_kbps(),
+            "bitrate_kbps": self.current_bitrate_kbps(),
+            "bitrate_ceiling_kbps": s.effective_bitrate_kbps(),
+            "reported_loss": round(self.bitrate.loss, 3),
+            **self.retransmissions(),
             "rtp_caps": RTP_VIDEO_CAPS,
             "rtcp_port": self.feedback.port if self.feedback is not None else None,
             "keyframe_interval_frames": self.keyframes.interval_frames,
             "keyframes_requested": self.keyframes.counters.requested,
             "keyframe_requests_refused": self.keyframes.counters.refused,
         }
+
+    def current_bitrate_kbps(self) -> int:
+        return self.bitrate.effective_kbps(self.settings.effective_bitrate_kbps())
+
+    def retransmissions(self) -> dict[str, int]:
+        """NACKed packets asked for and sent again (the sender's side of repair)."""
+        rtx = self.pipeline.get_by_name("rtxsend") if self.pipeline is not None else None
+        if rtx is None:
+            return {}
+        return {
+            "retransmission_requests": int(rtx.get_property("num-rtx-requests")),
+            "retransmitted": int(rtx.get_property("num-rtx-packets")),
+        }
+
+    def adapt_bitrate(self, now: float) -> int | None:
+        """Event loop, a few times a second: the encoder's bitrate from the receivers' newest
+        reports (:class:`BitrateController`); the new bitrate when it changed."""
+        if self._rtpbin is None or self._encoder is None:
+            return None
+        loss = self._newest_reported_loss()
+        kbps = self.bitrate.update(loss, self.settings.effective_bitrate_kbps(), now)
+        if kbps is not None:
+            _set_bitrate(self._encoder, self.encoder_name, kbps)
+        return kbps
+
+    def _newest_reported_loss(self) -> float | None:
+        """The worst fraction lost among the receivers' reports new since the last look."""
+        session = self._rtpbin.emit("get-internal-session", 0)
+        stats = session.get_property("stats") if session is not None else None
+        if stats is None:
+            return None
+        worst: float | None = None
+        for source in stats.get_value("source-stats") or []:
+            ok, have_rb = source.get_boolean("have-rb")
+            if not ok or not have_rb:
+                continue
+            _, ssrc = source.get_uint("ssrc")
+            _, highest = source.get_uint("rb-exthighestseq")
+            if self._reports_seen.get(ssrc) == highest:
+                continue
+            self._reports_seen[ssrc] = highest
+            _, fraction = source.get_uint("rb-fractionlost")
+            worst = max(worst or 0.0, fraction / 256)
+        return worst
 
     def request_keyframe(self) -> bool:
         """Make the next frame a keyframe (rate-limited); any thread. False when refused."""
@@ -165,7 +217,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         with self._keyframes_lock:
             self.keyframes.set_framerate(fps)
         if self._encoder is not None and self._rate_filter is not None:
-            _set_bitrate(self._encoder, self.encoder_name, s.effective_bitrate_kbps())
+            _set_bitrate(self._encoder, self.encoder_name, self.current_bitrate_kbps())
             # New caps renegotiate downstream: the encoder restarts with the new rate.
             self._rate_filter.set_property("caps", caps(f"video/x-raw,framerate={fps}/1"))
 
@@ -190,6 +242,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         convert = make("videoconvert")
         encoder = make(encoder_name, "encoder")
         _configure_encoder(encoder, encoder_name, s)
+        _set_bitrate(encoder, encoder_name, self.current_bitrate_kbps())  # as adapted so far
         h264_filter = make("capsfilter", caps=caps(_h264_caps(encoder_name)))
         pay = make(
             "rtph264pay", "pay", config_interval=-1, mtu=s.mtu, pt=PAYLOAD_TYPE, aggregate_mode=0
@@ -222,7 +275,7 @@ class VideoOut(FanOutStream[VideoSettings]):
             if self.feedback is None:
                 # Bound once and kept across rebuilds: receivers were told this port.
                 self.feedback = FeedbackSocket(port=s.rtcp_port)
-            add_repair_sender(pipeline, pay, sink, self.feedback)
+            self._rtpbin = add_repair_sender(pipeline, pay, sink, self.feedback)
         else:
             link_all(pay, sink)
         if tap:
@@ -251,6 +304,8 @@ class VideoOut(FanOutStream[VideoSettings]):
         super().on_torn_down()
         self._encoder = None
         self._rate_filter = None
+        self._rtpbin = None
+        self._reports_seen.clear()
         if self.wanted is StreamState.IDLE and self.feedback is not None:
             self.feedback.close()
             self.feedback = None
