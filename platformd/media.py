@@ -178,6 +178,7 @@ class MediaService(Actor):
 
     async def async_stop(self) -> None:
         """Stop every pipeline (their NULL state changes run in threads, in parallel)."""
+        self.record_fps = 0  # a copy stopping meanwhile must not restart the recorder's
         await asyncio.gather(
             *(stream.stop() for stream in self.streams.values()), return_exceptions=True
         )

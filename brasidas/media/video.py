@@ -539,6 +539,8 @@ class VideoIn(PipelineStream):
         self.last_frame_at: float | None = None
         self.longest_freeze_ms = 0.0
         """The longest wait between two decoded frames (a loss freezes to the next keyframe)."""
+        self.gaps_ms: collections.deque[float] = collections.deque(maxlen=window)
+        """Recent waits between two decoded frames (ms), appended on the streaming thread."""
 
     def destination(self) -> str:
         return f"{self.host}:{self.port}"
@@ -550,6 +552,7 @@ class VideoIn(PipelineStream):
             "rtp_packets": self.rtp_packets,
             "rtp_lost": self.rtp_lost,
             "longest_freeze_ms": round(self.longest_freeze_ms, 1),
+            **self.gap_stats(),
             **self.repair_stats(),
         }
 
@@ -558,6 +561,23 @@ class VideoIn(PipelineStream):
         self._feedback = (host, port or 0)
         if self.repairs is not None:
             self.repairs.set_feedback(host, port or 0)
+
+    def gap_stats(self) -> dict[str, Any]:
+        """The waits between decoded frames of the recent window: percentiles, and the time
+        frozen (the part of each gap over twice the usual one is a frozen picture)."""
+        gaps = sorted(self.gaps_ms)
+        if not gaps:
+            return {}
+        usual = statistics.median(gaps)
+
+        def at(q: float) -> float:
+            return round(gaps[min(len(gaps) - 1, int(len(gaps) * q))], 1)
+
+        frozen = sum(gap - usual for gap in gaps if gap > 2 * usual)
+        return {
+            "gap_ms": {"p50": at(0.5), "p95": at(0.95), "p99": at(0.99), "max": at(1.0)},
+            "frozen_pct": round(100 * frozen / max(1.0, sum(gaps)), 2),
+        }
 
     def repair_stats(self) -> dict[str, Any]:
         if self.repairs is None:
@@ -577,7 +597,9 @@ class VideoIn(PipelineStream):
     def count_frame(self, now: float) -> None:
         """Streaming thread: one decoded frame."""
         if self.last_frame_at is not None:
-            self.longest_freeze_ms = max(self.longest_freeze_ms, (now - self.last_frame_at) * 1000)
+            gap = (now - self.last_frame_at) * 1000
+            self.longest_freeze_ms = max(self.longest_freeze_ms, gap)
+            self.gaps_ms.append(gap)
         self.last_frame_at = now
 
     def recent_latency_ms(self, now: float | None = None) -> float | None:
@@ -601,6 +623,7 @@ class VideoIn(PipelineStream):
             "rtp_bytes": self.rtp_bytes,
             "latency_ms": self.last_latency_ms,
             "latency_p50_ms": statistics.median(values),
+            "latency_p95_ms": values[min(len(values) - 1, int(len(values) * 0.95))],
             "latency_p99_ms": values[min(len(values) - 1, int(len(values) * 0.99))],
         }
 
