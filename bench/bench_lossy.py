@@ -83,6 +83,15 @@ async def _row(
     relay.clear()
     await fleet.connect(station, platform_id, 40)
     await wait_for(lambda: fleet.engage(station, platform_id), 15, step=0.2)
+    # The camera runs at 30 fps; 10.5 sets the engaged mode's rate (5 fps: a sixth the bits).
+    await fleet.api(
+        station,
+        "command",
+        platform_id=platform_id,
+        group=10,
+        command=5,
+        payload=f"navcam={row.fps}",
+    )
     first = Profile(rate_kbps=row.cap_kbps[0]) if row.cap_kbps else Profile(loss=row.loss)
     fleet.net.impair(host.name, down=first, up=first)
     sender_before = await _navcam(fleet, station, platform_id)
@@ -188,7 +197,7 @@ async def run() -> dict[str, Any]:
                     "imu.enabled=false",
                     "audio.enabled=false",
                     "recorder.enabled=false",
-                    f"navcam.framerate={fps}",
+                    "navcam.framerate=30",
                     f"navcam.idle_framerate={fps}",
                     "navcam.sim_pattern=smpte",
                     "navcam.sim_motion=4",
