@@ -12,6 +12,7 @@ import { plotPoints, startPlots } from "./plots.js";
 import { startRecordings } from "./recordings.js";
 import { apiStates, api } from "./station.js";
 import { startVideo } from "./video.js";
+import { startVideoLink } from "./video-link.js";
 
 const video = startVideo();
 const controls = startControls();
@@ -22,6 +23,7 @@ startPlots();
 startLayout();
 startMapFiles();
 startRecordings();
+startVideoLink();
 
 // What tests and benchmarks read (the page's CSP allows no eval of their own).
 window.navcam = {
