@@ -48,6 +48,12 @@ class KeyframeClock:
         self._pending = False
         self._last_forced: float | None = None
 
+    def restart(self) -> None:
+        """A new encoder: its first frame is a keyframe; the counters go on."""
+        self._since_keyframe = 0
+        self._pending = False
+        self._last_forced = None
+
     def set_framerate(self, framerate: int) -> None:
         """The interval in frames follows the framerate (5 fps: every 5th frame)."""
         self.interval_frames = max(1, round(framerate * self.interval_s))

@@ -292,7 +292,8 @@ class VideoOut(FanOutStream[VideoSettings]):
         Gst = gst()
         ref = weakref.ref(self)
         with self._keyframes_lock:
-            self.keyframes = KeyframeClock(self.settings.framerate)
+            self.keyframes.restart()
+            self.keyframes.set_framerate(self.settings.framerate)
         encoder.get_static_pad("sink").add_probe(
             Gst.PadProbeType.BUFFER, _force_keyframe_probe, (ref, encoder)
         )
