@@ -295,7 +295,7 @@ class VideoOut(FanOutStream[VideoSettings]):
             self.keyframes.restart()
             self.keyframes.set_framerate(self.settings.framerate)
         encoder.get_static_pad("sink").add_probe(
-            Gst.PadProbeType.BUFFER, _force_keyframe_probe, (ref, encoder)
+            Gst.PadProbeType.BUFFER, _force_keyframe_probe, ref
         )
         encoder.get_static_pad("src").add_probe(
             Gst.PadProbeType.EVENT_UPSTREAM, _keyframe_request_probe, ref
@@ -384,12 +384,13 @@ def _on_access_unit(appsink: Any, data: tuple[weakref.ref[VideoOut], Any]) -> An
     return Gst.FlowReturn.OK
 
 
-def _force_keyframe_probe(pad: Any, info: Any, data: tuple[weakref.ref[VideoOut], Any]) -> Any:
+def _force_keyframe_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
     """Streaming thread, before a raw frame enters the encoder: force it to a keyframe when
-    the clock says so (the encoder applies a pending force-key-unit to its next frame)."""
-    ref, encoder = data
+    the clock says so (the encoder applies a pending force-key-unit to its next frame). The
+    encoder is found from the pad: a reference held by the probe would keep it alive."""
     stream = ref()
-    if stream is not None:
+    encoder = pad.get_parent_element()
+    if stream is not None and encoder is not None:
         with stream._keyframes_lock:
             force = stream.keyframes.on_frame(time.monotonic())
         if force:
