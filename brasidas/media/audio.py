@@ -100,9 +100,12 @@ class AudioIn(PipelineStream):
         device: str = "",
         sink: str = "",
         jitter_ms: int = 40,
+        conceal: bool = True,
         **kwargs: Any,
     ) -> None:
         super().__init__(name, **kwargs)
+        self.conceal = conceal
+        """Rebuild lost packets from in-band FEC, else conceal them (PLC)."""
         self.host = host
         self.port = port
         self.device = device
@@ -143,11 +146,16 @@ class AudioIn(PipelineStream):
             sink.set_property("sync", False)
         # A lost packet: rebuilt from the next one's FEC, else concealed (PLC) from the
         # jitter buffer's lost-packet event, so the sound stutters instead of dropping out.
-        decoder = make("opusdec", plc=True, use_inband_fec=True)
+        decoder = make("opusdec", plc=self.conceal, use_inband_fec=self.conceal)
         s16 = make("capsfilter", caps=caps("audio/x-raw,format=S16LE,channels=1"))
         chain = [
             make("udpsrc", "source", address=self.host, port=self.port, caps=caps(RTP_AUDIO_CAPS)),
-            make("rtpjitterbuffer", latency=self.jitter_ms, drop_on_latency=True, do_lost=True),
+            make(
+                "rtpjitterbuffer",
+                latency=self.jitter_ms,
+                drop_on_latency=True,
+                do_lost=self.conceal,
+            ),
             make("rtpopusdepay"),
             decoder,
             make("audioconvert"),
