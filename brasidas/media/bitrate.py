@@ -3,7 +3,7 @@
 Loss-based, as the loss half of Google's congestion control: every :data:`STEP_S` the worst
 receiver's smoothed fraction of packets lost (RTCP receiver reports, counted before repair:
 the link's own loss) decides. Above :data:`CONGESTED_LOSS` the link is over its capacity (a
-full queue drops) and the bitrate falls in proportion to the loss; below
+full queue drops the excess) and the bitrate falls to what got through, less 5 %; below
 :data:`CLEAN_LOSS` it climbs back by :data:`CLIMB` a step toward the configured ceiling; in
 between (a mesh's routine random loss, which retransmission repairs) it holds. Never below
 ``floor_kbps``, never above the ceiling the framerate allows.
@@ -40,7 +40,8 @@ class BitrateController:
         self._last_step = now
         before = self.effective_kbps(ceiling_kbps)
         if loss is not None and self.loss > CONGESTED_LOSS:
-            lowered = min(self.target_kbps, float(ceiling_kbps)) * (1 - 0.5 * self.loss)
+            # What got through: over capacity, the loss is the excess (a full queue drops it).
+            lowered = min(self.target_kbps, float(ceiling_kbps)) * (1 - self.loss) * 0.95
             self.target_kbps = max(float(self.floor_kbps), lowered)
             self.decreases += 1
         elif loss is not None and self.loss < CLEAN_LOSS:
