@@ -58,6 +58,8 @@ RTP_VIDEO_CAPS = (
 )
 """What a receiver must tell ``udpsrc``: plain RTP carries no SDP."""
 TAP_QUEUE_BUFFERS = 30
+VIDEO_DSCP = 34
+"""AF41, interactive video: below the velocity stream's EF on a link that honours DSCP."""
 ENCODER_GOP_S = 10
 """The encoder's own keyframe interval, a backstop only: :class:`KeyframeClock` forces the
 keyframes, at the current framerate (the encoders' own settings cannot change while running)."""
@@ -300,6 +302,12 @@ class VideoOut(FanOutStream[VideoSettings]):
         encoder.get_static_pad("src").add_probe(
             Gst.PadProbeType.EVENT_UPSTREAM, _keyframe_request_probe, ref
         )
+
+    def make_sink(self) -> Any:
+        # AF41: a Wi-Fi (WMM) link queues video behind teleop's EF and telemetry, never ahead.
+        sink = super().make_sink()
+        sink.set_property("qos-dscp", VIDEO_DSCP)
+        return sink
 
     def on_torn_down(self) -> None:
         super().on_torn_down()
