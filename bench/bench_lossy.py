@@ -131,6 +131,9 @@ async def _row(
     async with asyncio.TaskGroup() as group:
         tasks = [group.create_task(drive())]
         await asyncio.sleep(WARMUP_S)
+        # A fresh receiver for the window: its gaps and latencies leave out the warm-up and
+        # the framerate switch (the first frame after it needs a keyframe: a request).
+        await fleet.api(station, "receive", platform_id=platform_id, stream="navcam")
         tasks.append(group.create_task(watch_deadman()))
         start = await _receiver(fleet, station, platform_id)
         started = time.monotonic()
