@@ -18,6 +18,7 @@ HERE = Path(__file__).resolve().parent
 
 
 def main(argv: list[str]) -> int:
+    argv = _options(argv)
     selected = set(argv)
     os.environ.setdefault("XDG_STATE_HOME", str(HERE / "results" / "state"))
     results: dict[str, dict[str, object]] = {}
@@ -43,6 +44,19 @@ def main(argv: list[str]) -> int:
     print("\nJSON:")
     print(text)
     return 0
+
+
+def _options(argv: list[str]) -> list[str]:
+    """``--seconds N`` and ``--rows a,b`` for the benchmarks that read them (BENCH_SECONDS,
+    BENCH_ROWS: bench_lossy); the rest are benchmark names."""
+    names: list[str] = []
+    words = iter(argv)
+    for word in words:
+        if word in ("--seconds", "--rows"):
+            os.environ[f"BENCH_{word[2:].upper()}"] = next(words, "")
+        else:
+            names.append(word)
+    return names
 
 
 if __name__ == "__main__":

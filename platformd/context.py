@@ -94,6 +94,9 @@ class MediaHandle(Protocol):
     ) -> object:
         """Start ``session_id``'s copy of a stream, sent to ``host:port``."""
 
+    async def record_navcam(self, fps: int) -> object:
+        """Keep the NavCam running for the recorder at ``fps`` while no station watches."""
+
 
 class ArmingHandle(Protocol):
     """What other subsystems use of arming (platformd.arming.ArmingActor)."""

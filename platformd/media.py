@@ -36,6 +36,7 @@ import ipaddress
 import logging
 import re
 import socket
+import time
 from collections.abc import Awaitable, Coroutine
 from typing import Any
 
@@ -54,6 +55,7 @@ from brasidas.codecs.commands import (
 )
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
 from brasidas.media.audio import AudioIn, AudioOut, AudioSettings
+from brasidas.media.bitrate import STEP_S as BITRATE_STEP_S
 from brasidas.media.fanout import FanOutStream
 from brasidas.media.navcam import FrameratePolicy, navcam_settings, parse_framerate
 from brasidas.media.pipeline import PipelineStream, StreamState
@@ -95,6 +97,8 @@ class MediaService(Actor):
         """Streams paused by control: only the station holding control resumes them."""
         self.retry = True
         """Failed streams are rebuilt with backoff (10.10)."""
+        self.record_fps = 0
+        """The recorder's own NavCam copy while nobody watches (0: none): :meth:`record_navcam`."""
         if navcam.enabled:
             self.navcam = VideoOut(
                 "navcam",
@@ -155,13 +159,26 @@ class MediaService(Actor):
             self._group = group
             for stream in self.streams.values():
                 group.create_task(stream.supervise(), name=f"media:{stream.name}")
+            if self.navcam is not None:
+                group.create_task(self._adapt_bitrate(self.navcam), name="media:bitrate")
             try:
                 await wait_forever()
             finally:
                 self._group = None
 
+    async def _adapt_bitrate(self, navcam: VideoOut) -> None:
+        """The NavCam's bitrate follows the receivers' reports (brasidas.media.bitrate)."""
+        while True:
+            await asyncio.sleep(BITRATE_STEP_S / 2)
+            kbps = navcam.adapt_bitrate(time.monotonic())
+            if kbps is not None:
+                _LOGGER.debug(
+                    "navcam bitrate %d kbit/s (reported loss %.2f)", kbps, navcam.bitrate.loss
+                )
+
     async def async_stop(self) -> None:
         """Stop every pipeline (their NULL state changes run in threads, in parallel)."""
+        self.record_fps = 0  # a copy stopping meanwhile must not restart the recorder's
         await asyncio.gather(
             *(stream.stop() for stream in self.streams.values()), return_exceptions=True
         )
@@ -182,6 +199,8 @@ class MediaService(Actor):
 
     def _on_override(self, state: OverrideState) -> None:
         fps = self.framerate.set_override(state.engaged)
+        if self.navcam is not None and self.navcam.nowhere:
+            return  # the recorder's own copy keeps its rate until a station watches
         if self.navcam is not None and fps != self.navcam.settings.framerate:
             _LOGGER.info("navcam framerate %d fps", fps)
             self.navcam.set_framerate(fps)
@@ -321,7 +340,10 @@ class MediaService(Actor):
             if key not in viewers and key != session_id and len(copies) >= COPIES_MAX:
                 raise ValueError(f"stream '{name}': at most {COPIES_MAX} copies per station")
             viewers[key] = (host or settings.host, port or settings.port)
+            recorded_only = stream.nowhere
             stream.set_destinations(list(viewers.values()))
+            if recorded_only and stream is self.navcam:
+                self._follow_policy()  # the first viewer after the recorder's own copy
         else:
             viewers[session_id] = ("", 0)  # the platform's own address: nothing to choose
         if name in self.paused and not self._controls(session_id):
@@ -375,7 +397,31 @@ class MediaService(Actor):
                 return stream.state
         viewers.clear()
         self.paused.discard(name)
+        if stream is self.navcam and self.record_fps:
+            return await self._record_only()
         return await stream.stop()
+
+    async def record_navcam(self, fps: int) -> StreamState | None:
+        """The recorder's own copy (issue 28): while no station watches, the NavCam runs at
+        ``fps`` sent nowhere, its encoded frames to the recorder (the same encoder a station's
+        copy then uses). None without a NavCam or with ``fps`` 0."""
+        self.record_fps = fps
+        if self.navcam is None or fps <= 0:
+            return None
+        if self.viewers.get("navcam"):
+            return self.navcam.state
+        return await self._record_only()
+
+    async def _record_only(self) -> StreamState:
+        assert self.navcam is not None
+        self.navcam.set_destinations([])
+        self.navcam.set_framerate(min(self.record_fps, self.navcam.settings.camera_framerate))
+        return await self.navcam.start()
+
+    def _follow_policy(self) -> None:
+        """The NavCam at the framerate of the current mode (a station watches)."""
+        if self.navcam is not None and self.navcam.settings.framerate != self.framerate.current:
+            self.navcam.set_framerate(self.framerate.current)
 
     def set_framerate(self, name: str, raw: Any) -> int:
         """10.5: the framerate of a video stream in the current mode; ValueError if invalid."""

@@ -3,7 +3,8 @@
 Subscribes to the bus (positions, velocities, motor commands, commands with their sender,
 state changes), records every telemetry section at ``recorder.telemetry_hz``, and taps the
 NavCam's encoded H.264 as it is sent (:attr:`brasidas.media.video.VideoOut.access_unit_sinks`:
-no second encoder, only while the stream plays, at the rate it streams). Bus callbacks only
+no second encoder, at the rate it streams; while no station watches, the NavCam runs for the
+recorder alone at ``recorder.video_fps``, sent nowhere). Bus callbacks only
 queue the message object; encoding and writing happen on the writer thread
 (:class:`brasidas.recording.writer.Recorder`), so the event loop pays a queue put per message.
 
@@ -107,6 +108,9 @@ class PlatformRecorder(Actor):
         if navcam is not None and hasattr(navcam, "access_unit_sinks"):
             navcam.access_unit_sinks.append(self._on_access_unit)
             self.on_remove(lambda: navcam.access_unit_sinks.remove(self._on_access_unit))
+            if media is not None:
+                # Recorded when nobody watches too (an unattended patrol), at its own rate.
+                await media.record_navcam(self.ctx.config.recorder.video_fps)
         self._subscribe_all()
         self._log(LOG_INFO, "recorder", "recording started")
         period = 1.0 / self.ctx.config.recorder.telemetry_hz

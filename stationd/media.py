@@ -214,11 +214,16 @@ class StationMedia(Actor):
             await receiver.stop()
             raise RpcError(INVALID_PARAMS, f"cannot receive: {receiver.reason}")
         try:
-            await connection.call("start_stream", name=stream, port=port)
+            started = await connection.call("start_stream", name=stream, port=port)
         except (RpcError, MediaError):
             self.receivers.pop(key, None)
             await receiver.stop()
             raise
+        if isinstance(receiver, VideoIn) and isinstance(started, dict):
+            rtcp_port = started.get("rtcp_port")
+            receiver.set_feedback(
+                connection.platform_host, rtcp_port if isinstance(rtcp_port, int) else 0
+            )
         if isinstance(receiver, VideoIn) and stream == "navcam":
             connection.video_latency = receiver.recent_latency_ms
         return {"platform_id": platform_id, **receiver.describe()}

@@ -42,6 +42,7 @@ from typing import Any
 from brasidas.media.audio import AUDIO_PAYLOAD_TYPE, RTP_AUDIO_CAPS
 from brasidas.media.gst import NTP_UNIX_OFFSET_NS, caps, gst, link_all, make, ntp_caps
 from brasidas.media.pipeline import PipelineStream
+from brasidas.media.repair import RepairReceiver, add_repair_receiver
 from brasidas.media.video import RTP_VIDEO_CAPS
 
 _LOGGER = logging.getLogger(__name__)
@@ -192,6 +193,15 @@ class FanOut:
         self.bytes = 0
         self._seq = itertools.count(1)
         self._frozen = True  # nothing decodable before the first keyframe
+        self.last_passed_ms: float | None = None
+        """Arrival (Unix ms, station clock) of the last unit passed to the viewers."""
+
+    def staleness_ms(self, now_ms: float) -> float | None:
+        """How long the pages' picture has waited for its next frame (None: no frame yet):
+        a frozen picture ages by this much beyond the glass-to-glass of its last frame."""
+        if self.last_passed_ms is None:
+            return None
+        return max(0.0, now_ms - self.last_passed_ms)
 
     def feed(self, unit: AccessUnit) -> None:
         """One access unit from the depayloader."""
@@ -207,6 +217,7 @@ class FanOut:
         if self._frozen:
             self.held += 1
             return
+        self.last_passed_ms = unit.arrival_ms
         seq = next(self._seq)
         if len(self.gop) < self.gop_max:
             self.gop.append((seq, unit))
@@ -239,6 +250,8 @@ class RtpDepayloader(PipelineStream, abc.ABC):
 
     kind = "feed"
     rtp_caps = ""
+    repair = False
+    """Receive through rtpbin: NACK, retransmission, keyframe requests (brasidas.media.repair)."""
 
     def __init__(
         self, name: str, *, host: str, port: int, on_unit: Callable[[AccessUnit], None], **kw: Any
@@ -248,6 +261,19 @@ class RtpDepayloader(PipelineStream, abc.ABC):
         self.port = port
         self.on_unit = on_unit
         self._loop: asyncio.AbstractEventLoop | None = None
+        self.repairs: RepairReceiver | None = None
+        self._feedback: tuple[str, int] = ("", 0)
+
+    def set_feedback(self, host: str, port: int | None) -> None:
+        """Where the sender takes RTCP feedback (its ``rtcp_port``); applied live. Loop."""
+        self._feedback = (host, port or 0)
+        if self.repairs is not None:
+            self.repairs.set_feedback(host, port or 0)
+
+    def describe(self) -> dict[str, Any]:
+        if self.repairs is None:
+            return super().describe()
+        return {**super().describe(), "repair": vars(self.repairs.counters())}
 
     def destination(self) -> str:
         return f"{self.host}:{self.port}"
@@ -267,7 +293,12 @@ class RtpDepayloader(PipelineStream, abc.ABC):
         chain = [source, *self.depayload(), sink]
         for element in chain:
             pipeline.add(element)
-        link_all(*chain)
+        if self.repair:
+            link_all(*chain[1:])
+            self.repairs = add_repair_receiver(pipeline, source, chain[1], self.rtp_caps)
+            self.repairs.set_feedback(*self._feedback)
+        else:
+            link_all(*chain)
         sink.connect("new-sample", _on_sample, (weakref.ref(self), ntp_caps()))
         return pipeline
 
@@ -284,6 +315,7 @@ class H264Depayloader(RtpDepayloader):
 
     kind = "video_feed"
     rtp_caps = RTP_VIDEO_CAPS
+    repair = True
 
     def depayload(self) -> list[Any]:
         depay = make("rtph264depay", "depay")
@@ -408,9 +440,31 @@ class Feed:
             f"{platform_id}/{stream}", host=host, port=port, on_unit=self.fanout.feed
         )
 
+        self._loss_seen = (0, 0, 0)
+        """Lost packets, repaired packets and held units when :meth:`loss_reason` last looked."""
+
     @property
     def port(self) -> int:
         return self.depayloader.port
+
+    def loss_reason(self) -> str:
+        """Why the picture froze, if the link lost it ("" when nothing was lost since the
+        last look): packets given up on, or frames held back waiting for a keyframe."""
+        repairs = self.depayloader.repairs
+        counters = repairs.counters() if repairs is not None else None
+        lost = counters.lost if counters is not None else 0
+        repaired = counters.repaired if counters is not None else 0
+        seen = (lost, repaired, self.fanout.held)
+        new_lost, new_repaired, new_held = (
+            a - b for a, b in zip(seen, self._loss_seen, strict=True)
+        )
+        self._loss_seen = seen
+        if new_lost <= 0 and new_held <= 0:
+            return ""
+        return (
+            f"packet loss on the link ({new_lost} packets lost, {new_repaired} repaired; "
+            "waiting for a keyframe)"
+        )
 
     def viewer(self) -> Viewer:
         """A new viewer of this feed (not yet added)."""

@@ -93,6 +93,9 @@ async def _view(args: argparse.Namespace, config: StationConfig) -> int:
         answer = await api_call_async(
             config, "stream_start", platform_id=args.id, stream=args.stream, port=receiver.port
         )
+        rtcp_port = answer.get("rtcp_port")
+        if isinstance(rtcp_port, int) and platform_host:
+            receiver.set_feedback(platform_host, rtcp_port)  # NACKs and keyframe requests
         print(
             f"{args.id} {args.stream}: {answer.get('width')}x{answer.get('height')} "
             f"@{answer.get('framerate')} fps {answer.get('codec')} on UDP {receiver.port}",

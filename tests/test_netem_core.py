@@ -76,3 +76,25 @@ def test_profile_refuses_nonsense() -> None:
         Profile(loss=1.5)
     with pytest.raises(ValueError, match="delay"):
         Profile(delay=-1)
+
+
+def test_a_rate_limit_spaces_frames_and_drops_beyond_its_queue() -> None:
+    # 1000-byte frames offered at 2 Mbit/s into an 800 kbit/s link (100 B per ms).
+    link = Impairment(Profile(rate_kbps=800, burst_bytes=1000, queue_s=0.05))
+    out: list[tuple[float, bytes]] = []
+    now = 0.0
+    for n in range(1000):  # 4 s, one frame every 4 ms
+        now = n * 0.004
+        link.feed(bytes(1000), now)
+        out.extend((now, f) for f in link.due(now))
+    now += 1
+    out.extend((now, f) for f in link.due(now))
+    delivered_bytes = 1000 * len(out)
+    assert 0.95 < delivered_bytes * 8 / 4 / 800_000 < 1.1  # the capacity, not the offer
+    assert link.counters.overflow == 1000 - len(out)
+    assert link.in_flight == 0
+    # Below the rate, nothing waits and nothing is dropped.
+    calm = Impairment(Profile(rate_kbps=800, burst_bytes=1000))
+    assert _run(calm, 100, 0.02, 3) and calm.counters.overflow == 0
+    with pytest.raises(ValueError, match="rate_kbps"):
+        Profile(rate_kbps=-1)

@@ -166,8 +166,8 @@ async def test_the_pages_latency_reaches_the_speed_cap(
     station: StationDaemon, platform_factory: Factory, fleet_key: bytes, browser: Any
 ) -> None:
     """The console holding the override: the platform's cap follows the page's measured
-    glass-to-glass (it used to stay at the 400 ms assumption). The page stops reporting (its
-    video stops): the platform falls back to its assumption."""
+    glass-to-glass (it used to stay at the 400 ms assumption). The video freezes: the picture's
+    age counts, and the cap falls below the assumption's."""
     from playwright.async_api import expect
 
     platform = await rover(platform_factory, fleet_key, station, "safety.report_max_age_s=1.5")
@@ -197,17 +197,18 @@ async def test_the_pages_latency_reaches_the_speed_cap(
     await expect(page.locator("#side > #map")).to_have_count(1)
     await expect(page.locator("#video-box")).to_have_css("position", "relative")
     await page.keyboard.up("KeyW")
-    cap = platform.bus.last(topics.SPEED_CAP)
-    assert cap is not None and cap.video_ms is not None and 0 < cap.video_ms < 400
+    # The measured age, below the assumption (a heartbeat may catch a stall on a loaded
+    # machine: the picture's age counts then, issue 28).
+    await wait_until(lambda: 0 < (cap_video_ms() or 0) < 400, timeout=10)
     readout = page.get_by_label("speed cap", exact=True)
     reason = page.get_by_label("why this cap")  # in plain sight, not a tooltip
     await expect(readout).to_contain_text(re.compile(r"video \d+ ms"), timeout=5_000)
     await expect(reason).not_to_contain_text("no latency report")
-    # The page stops reporting: nothing decoded, nothing measured, nothing sent.
+    # The picture freezes (paused): its age is the latency now (issue 28), past the 400 ms
+    # assumption within a second or two of heartbeats, and the cap falls below its worst case.
     await station.ctx.api.call_local("stream_pause", platform_id="web-rover", stream="navcam")
-    await wait_until(lambda: cap_video_ms() is None, timeout=10)
-    await expect(reason).to_contain_text("no latency report", timeout=5_000)
-    await expect(readout).to_contain_text("video —")
+    await wait_until(lambda: (cap_video_ms() or 0) > 400, timeout=10)
+    await expect(readout).to_contain_text(re.compile(r"video \d{3,} ms"), timeout=5_000)
 
 
 async def test_a_loaded_background_keeps_the_area_map(

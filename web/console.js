@@ -13,6 +13,7 @@ import { startRecordings } from "./recordings.js";
 import { startSafety } from "./safety.js";
 import { apiStates, api } from "./station.js";
 import { startVideo } from "./video.js";
+import { startVideoLink } from "./video-link.js";
 
 const video = startVideo();
 const controls = startControls();
@@ -24,6 +25,7 @@ startLayout();
 startMapFiles();
 startRecordings();
 startSafety();
+startVideoLink();
 
 // What tests and benchmarks read (the page's CSP allows no eval of their own).
 window.navcam = {

@@ -598,6 +598,9 @@ class RecorderSection:
     download_kib_s: int = setting(2048, at_least(0, most=10**7))
     """Every recording download together is sent at most this fast (KiB/s; 0: no limit): a
     station fetching recordings leaves the link's rest to video and control."""
+    video_fps: int = setting(5, at_least(0, most=30))
+    """The NavCam's rate while no station watches: the recorder's own copy, from the same
+    encoder (0: the camera is recorded only while a station watches)."""
 
 
 @dataclass(frozen=True)

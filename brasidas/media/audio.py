@@ -1,9 +1,9 @@
 """Opus over RTP: a microphone out (the seed's PiGstAudioOut) and a speaker in (PiGstAudioIn).
 
 Out: ALSA capture (or ``audiotestsrc`` in sim and tests) → 48 kHz mono → ``opusenc`` (20 ms
-frames, low-delay) → ``rtpopuspay`` → ``multiudpsink sync=false``, one destination per station
+frames, low-delay, in-band FEC) → ``rtpopuspay`` → ``multiudpsink sync=false``, one destination per station
 (:mod:`brasidas.media.fanout`). In: ``udpsrc`` with explicit caps
-→ a small jitter buffer → ``rtpopusdepay`` → ``opusdec`` → S16 → ALSA playback (or
+→ a small jitter buffer → ``rtpopusdepay`` → ``opusdec`` (in-band FEC, loss concealment) → S16 → ALSA playback (or
 ``fakesink``), with the peak level of what was received, so a test can tell sound from silence.
 """
 
@@ -17,6 +17,9 @@ from typing import Any
 from brasidas.media.fanout import Destinations, FanOutStream
 from brasidas.media.gst import caps, gst, link_all, make
 from brasidas.media.pipeline import PipelineStream
+
+FEC_EXPECTED_LOSS_PCT = 10
+"""The loss the Opus encoder plans its FEC for (a mesh loses 1-10 %)."""
 
 AUDIO_PAYLOAD_TYPE = 97
 RTP_AUDIO_CAPS = (
@@ -69,6 +72,10 @@ class AudioOut(FanOutStream[AudioSettings]):
                 bitrate=s.bitrate,
                 frame_size=20,
                 audio_type="restricted-lowdelay",
+                # In-band FEC: each packet carries a low-rate copy of the one before, so a
+                # single lost packet is rebuilt by the receiver (issue 28).
+                inband_fec=True,
+                packet_loss_percentage=FEC_EXPECTED_LOSS_PCT,
             ),
             make("rtpopuspay", pt=AUDIO_PAYLOAD_TYPE),
             self.make_sink(),
@@ -93,15 +100,20 @@ class AudioIn(PipelineStream):
         device: str = "",
         sink: str = "",
         jitter_ms: int = 40,
+        conceal: bool = True,
         **kwargs: Any,
     ) -> None:
         super().__init__(name, **kwargs)
+        self.conceal = conceal
+        """Rebuild lost packets from in-band FEC, else conceal them (PLC)."""
         self.host = host
         self.port = port
         self.device = device
         self.sink_factory = sink or ("alsasink" if device else "autoaudiosink")
         self.jitter_ms = jitter_ms
         self.buffers = 0
+        self.samples = 0
+        """Samples decoded (48 kHz): the sound's duration, concealed losses included."""
         self.loud_buffers = 0
         self.peak = 0
         """Highest 16-bit sample magnitude received so far."""
@@ -132,11 +144,18 @@ class AudioIn(PipelineStream):
             sink.set_property("device", self.device)
         if sink.find_property("sync") is not None and self.sink_factory == "fakesink":
             sink.set_property("sync", False)
-        decoder = make("opusdec")
+        # A lost packet: rebuilt from the next one's FEC, else concealed (PLC) from the
+        # jitter buffer's lost-packet event, so the sound stutters instead of dropping out.
+        decoder = make("opusdec", plc=self.conceal, use_inband_fec=self.conceal)
         s16 = make("capsfilter", caps=caps("audio/x-raw,format=S16LE,channels=1"))
         chain = [
             make("udpsrc", "source", address=self.host, port=self.port, caps=caps(RTP_AUDIO_CAPS)),
-            make("rtpjitterbuffer", latency=self.jitter_ms, drop_on_latency=True),
+            make(
+                "rtpjitterbuffer",
+                latency=self.jitter_ms,
+                drop_on_latency=True,
+                do_lost=self.conceal,
+            ),
             make("rtpopusdepay"),
             decoder,
             make("audioconvert"),
@@ -167,6 +186,7 @@ def _level_probe(pad: Any, info: Any, ref: weakref.ref[AudioIn]) -> Any:
     samples = array("h", data[: len(data) // 2 * 2])
     peak = max((abs(v) for v in (max(samples), min(samples))), default=0) if samples else 0
     stream.buffers += 1
+    stream.samples += len(samples)
     stream.peak = max(stream.peak, peak)
     if peak > SILENCE_PEAK:
         stream.loud_buffers += 1

@@ -39,19 +39,27 @@ class FanOutStream(PipelineStream, Generic[D]):
     def __init__(self, name: str, settings: D, **kwargs: Any) -> None:
         super().__init__(name, **kwargs)
         self.settings = settings
+        self.nowhere = False
+        """Sent to nobody: the pipeline runs for a local consumer (the recorder's copy)."""
         self._sink: Any = None
 
     def destination(self) -> str:
+        if self.nowhere:
+            return "nowhere (recorded only)"
         return f"{self.settings.host}:{self.settings.port}"
 
     def set_destinations(self, destinations: list[tuple[str, int]]) -> None:
-        """Send to each of ``destinations`` (at least one); applied live. Event loop."""
-        if not destinations:
-            raise ValueError(f"stream {self.name} needs a destination")
+        """Send to each of ``destinations`` (none: to nobody, for a local consumer such as the
+        recorder; the settings keep the last ones); applied live. Event loop."""
         s = self.settings
-        (s.host, s.port), s.extra = destinations[0], tuple(destinations[1:])
+        self.nowhere = not destinations
+        if destinations:
+            (s.host, s.port), s.extra = destinations[0], tuple(destinations[1:])
         if self._sink is not None:
-            self._sink.set_property("clients", s.clients())
+            self._sink.set_property("clients", self._clients())
+
+    def _clients(self) -> str:
+        return "" if self.nowhere else self.settings.clients()
 
     def describe(self) -> dict[str, Any]:
         s = self.settings
@@ -59,7 +67,7 @@ class FanOutStream(PipelineStream, Generic[D]):
             **super().describe(),
             "host": s.host,
             "port": s.port,
-            "destinations": s.clients().split(","),
+            "destinations": self._clients().split(",") if not self.nowhere else [],
         }
 
     def make_sink(self) -> Any:
@@ -69,7 +77,7 @@ class FanOutStream(PipelineStream, Generic[D]):
         self._sink = make(
             "multiudpsink",
             "sink",
-            clients=self.settings.clients(),
+            clients=self._clients(),
             sync=False,
             async_=False,
             auto_multicast=False,

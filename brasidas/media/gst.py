@@ -60,7 +60,12 @@ def gst() -> Any:
 
                 gi.require_version("Gst", "1.0")
                 gi.require_version("GstRtp", "1.0")
-                from gi.repository import Gst, GstRtp  # noqa: F401  (GstRtp: hdrext API)
+                gi.require_version("GstVideo", "1.0")
+                from gi.repository import (  # noqa: F401  (hdrext API, force-key-unit events)
+                    Gst,
+                    GstRtp,
+                    GstVideo,
+                )
             except (ImportError, ValueError) as err:
                 raise MediaUnavailable(
                     f"GStreamer Python bindings unavailable ({err}); run 'make deps'"

@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import collections
 import statistics
+import threading
 import time
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from brasidas.media.bitrate import BitrateController
 from brasidas.media.fanout import Destinations, FanOutStream
 from brasidas.media.gst import (
     NTP64_EXT_ID,
@@ -37,7 +39,14 @@ from brasidas.media.gst import (
     set_prop,
     stamp_capture_time,
 )
+from brasidas.media.keyframes import KeyframeClock
 from brasidas.media.pipeline import PipelineStream, StreamState
+from brasidas.media.repair import (
+    FeedbackSocket,
+    RepairReceiver,
+    add_repair_receiver,
+    add_repair_sender,
+)
 
 ENCODERS: tuple[str, ...] = ("v4l2h264enc", "omxh264enc", "x264enc", "openh264enc")
 """Hardware first (current Raspberry Pi, old Raspbian), then software; first found wins."""
@@ -49,6 +58,11 @@ RTP_VIDEO_CAPS = (
 )
 """What a receiver must tell ``udpsrc``: plain RTP carries no SDP."""
 TAP_QUEUE_BUFFERS = 30
+VIDEO_DSCP = 34
+"""AF41, interactive video: below the velocity stream's EF on a link that honours DSCP."""
+ENCODER_GOP_S = 10
+"""The encoder's own keyframe interval, a backstop only: :class:`KeyframeClock` forces the
+keyframes, at the current framerate (the encoders' own settings cannot change while running)."""
 """Access units the encoded tap may hold before its leaky queue drops the oldest."""
 
 AccessUnitSink = Callable[[bytes, bool, int], None]
@@ -92,6 +106,10 @@ class VideoSettings(Destinations):
     encoder: str = ""
     """Force an encoder from :data:`ENCODERS`; empty: the first available."""
     mtu: int = 1200
+    repair: bool = True
+    """RTCP feedback, retransmission on NACK, keyframes on PLI (:mod:`brasidas.media.repair`)."""
+    rtcp_port: int = 0
+    """Where receivers send their RTCP feedback (0: a free port, announced as ``rtcp_port``)."""
 
     def effective_bitrate_kbps(self) -> int:
         """Bitrate for the current framerate: 5 fps monitoring needs a sixth of 30 fps."""
@@ -109,6 +127,16 @@ class VideoOut(FanOutStream[VideoSettings]):
         self.encoder_name = ""
         self._encoder: Any = None
         self._rate_filter: Any = None
+        self.keyframes = KeyframeClock(settings.framerate)
+        self._keyframes_lock = threading.Lock()
+        """The clock is used by the streaming thread, RTCP's thread and the event loop."""
+        self._forced_seqnums: collections.deque[int] = collections.deque(maxlen=8)
+        """Our own force-key-unit events, told apart from a receiver's request (PLI/FIR)."""
+        self.feedback: FeedbackSocket | None = None
+        self.bitrate = BitrateController(settings.effective_bitrate_kbps(), MIN_BITRATE_KBPS)
+        self._rtpbin: Any = None
+        self._reports_seen: dict[int, int] = {}
+        """Each receiver's highest sequence number in its last report used (new ones only)."""
         self.access_unit_sinks: list[AccessUnitSink] = []
         """Who gets the encoded stream (the recorder): a tee after the encoder feeds them,
         as sent, never a second encoder. Set before the pipeline is built."""
@@ -122,9 +150,65 @@ class VideoOut(FanOutStream[VideoSettings]):
             "framerate": s.framerate,
             "codec": "H264",
             "encoder": self.encoder_name or None,
-            "bitrate_kbps": s.effective_bitrate_kbps(),
+            "bitrate_kbps": self.current_bitrate_kbps(),
+            "bitrate_ceiling_kbps": s.effective_bitrate_kbps(),
+            "reported_loss": round(self.bitrate.loss, 3),
+            **self.retransmissions(),
             "rtp_caps": RTP_VIDEO_CAPS,
+            "rtcp_port": self.feedback.port if self.feedback is not None else None,
+            "keyframe_interval_frames": self.keyframes.interval_frames,
+            "keyframes_requested": self.keyframes.counters.requested,
+            "keyframe_requests_refused": self.keyframes.counters.refused,
         }
+
+    def current_bitrate_kbps(self) -> int:
+        return self.bitrate.effective_kbps(self.settings.effective_bitrate_kbps())
+
+    def retransmissions(self) -> dict[str, int]:
+        """NACKed packets asked for and sent again (the sender's side of repair)."""
+        rtx = self.pipeline.get_by_name("rtxsend") if self.pipeline is not None else None
+        if rtx is None:
+            return {}
+        return {
+            "retransmission_requests": int(rtx.get_property("num-rtx-requests")),
+            "retransmitted": int(rtx.get_property("num-rtx-packets")),
+        }
+
+    def adapt_bitrate(self, now: float) -> int | None:
+        """Event loop, a few times a second: the encoder's bitrate from the receivers' newest
+        reports (:class:`BitrateController`); the new bitrate when it changed."""
+        if self._rtpbin is None or self._encoder is None:
+            return None
+        loss = self._newest_reported_loss()
+        kbps = self.bitrate.update(loss, self.settings.effective_bitrate_kbps(), now)
+        if kbps is not None:
+            _set_bitrate(self._encoder, self.encoder_name, kbps)
+        return kbps
+
+    def _newest_reported_loss(self) -> float | None:
+        """The worst fraction lost among the receivers' reports new since the last look."""
+        session = self._rtpbin.emit("get-internal-session", 0)
+        stats = session.get_property("stats") if session is not None else None
+        if stats is None:
+            return None
+        worst: float | None = None
+        for source in stats.get_value("source-stats") or []:
+            ok, have_rb = source.get_boolean("have-rb")
+            if not ok or not have_rb:
+                continue
+            _, ssrc = source.get_uint("ssrc")
+            _, highest = source.get_uint("rb-exthighestseq")
+            if self._reports_seen.get(ssrc) == highest:
+                continue
+            self._reports_seen[ssrc] = highest
+            _, fraction = source.get_uint("rb-fractionlost")
+            worst = max(worst or 0.0, fraction / 256)
+        return worst
+
+    def request_keyframe(self) -> bool:
+        """Make the next frame a keyframe (rate-limited); any thread. False when refused."""
+        with self._keyframes_lock:
+            return self.keyframes.request(time.monotonic())
 
     def set_framerate(self, fps: int) -> None:
         """Change the sent framerate; applied live (keyframe interval follows). Event loop."""
@@ -132,9 +216,10 @@ class VideoOut(FanOutStream[VideoSettings]):
         if not 1 <= fps <= s.camera_framerate:
             raise ValueError(f"framerate must be 1-{s.camera_framerate} fps, not {fps}")
         s.framerate = fps
+        with self._keyframes_lock:
+            self.keyframes.set_framerate(fps)
         if self._encoder is not None and self._rate_filter is not None:
-            _set_keyframe_interval(self._encoder, self.encoder_name, fps)
-            _set_bitrate(self._encoder, self.encoder_name, s.effective_bitrate_kbps())
+            _set_bitrate(self._encoder, self.encoder_name, self.current_bitrate_kbps())
             # New caps renegotiate downstream: the encoder restarts with the new rate.
             self._rate_filter.set_property("caps", caps(f"video/x-raw,framerate={fps}/1"))
 
@@ -159,6 +244,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         convert = make("videoconvert")
         encoder = make(encoder_name, "encoder")
         _configure_encoder(encoder, encoder_name, s)
+        _set_bitrate(encoder, encoder_name, self.current_bitrate_kbps())  # as adapted so far
         h264_filter = make("capsfilter", caps=caps(_h264_caps(encoder_name)))
         pay = make(
             "rtph264pay", "pay", config_interval=-1, mtu=s.mtu, pt=PAYLOAD_TYPE, aggregate_mode=0
@@ -183,22 +269,55 @@ class VideoOut(FanOutStream[VideoSettings]):
             h264_filter,
             *tap,
             pay,
-            sink,
         ]
-        for element in chain:
+        for element in (*chain, sink):
             pipeline.add(element)
         link_all(*chain)
+        if s.repair:
+            if self.feedback is None:
+                # Bound once and kept across rebuilds: receivers were told this port.
+                self.feedback = FeedbackSocket(port=s.rtcp_port)
+            self._rtpbin = add_repair_sender(pipeline, pay, sink, self.feedback)
+        else:
+            link_all(pay, sink)
         if tap:
             self._add_tap(pipeline, tap[0])
+        self._watch_keyframes(encoder)
         self.encoder_name = encoder_name
         self._encoder = encoder
         self._rate_filter = rate_filter
         return pipeline
 
+    def _watch_keyframes(self, encoder: Any) -> None:
+        """Force the clock's keyframes into the encoder; take a receiver's requests (the
+        force-key-unit events rtpbin makes of PLI/FIR, or a depayloader's) through its limit."""
+        Gst = gst()
+        ref = weakref.ref(self)
+        with self._keyframes_lock:
+            self.keyframes.restart()
+            self.keyframes.set_framerate(self.settings.framerate)
+        encoder.get_static_pad("sink").add_probe(
+            Gst.PadProbeType.BUFFER, _force_keyframe_probe, ref
+        )
+        encoder.get_static_pad("src").add_probe(
+            Gst.PadProbeType.EVENT_UPSTREAM, _keyframe_request_probe, ref
+        )
+
+    def make_sink(self) -> Any:
+        # AF41: a Wi-Fi (WMM) link queues video behind teleop's EF and telemetry, never ahead.
+        sink = super().make_sink()
+        sink.set_property("qos-dscp", VIDEO_DSCP)
+        return sink
+
     def on_torn_down(self) -> None:
         super().on_torn_down()
         self._encoder = None
         self._rate_filter = None
+        self._rtpbin = None
+        self._reports_seen.clear()
+        if self.wanted is StreamState.IDLE and self.feedback is not None:
+            self.feedback.close()
+            self.feedback = None
 
     def _add_tap(self, pipeline: Any, tee: Any) -> None:
         """tee → leaky queue → h264parse (SPS/PPS on every keyframe, Annex B, whole access
@@ -273,6 +392,45 @@ def _on_access_unit(appsink: Any, data: tuple[weakref.ref[VideoOut], Any]) -> An
     return Gst.FlowReturn.OK
 
 
+def _force_keyframe_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
+    """Streaming thread, before a raw frame enters the encoder: force it to a keyframe when
+    the clock says so (the encoder applies a pending force-key-unit to its next frame). The
+    encoder is found from the pad: a reference held by the probe would keep it alive."""
+    stream = ref()
+    encoder = pad.get_parent_element()
+    if stream is not None and encoder is not None:
+        with stream._keyframes_lock:
+            force = stream.keyframes.on_frame(time.monotonic())
+        if force:
+            event = _force_key_unit_event()
+            stream._forced_seqnums.append(event.get_seqnum())
+            encoder.send_event(event)
+    return gst().PadProbeReturn.OK
+
+
+def _keyframe_request_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
+    """Any thread: a force-key-unit from downstream is a request, rate-limited by the clock."""
+    Gst = gst()
+    stream = ref()
+    event = info.get_event()
+    if stream is None or event is None or event.type != Gst.EventType.CUSTOM_UPSTREAM:
+        return Gst.PadProbeReturn.OK
+    structure = event.get_structure()
+    if structure is None or structure.get_name() != "GstForceKeyUnit":
+        return Gst.PadProbeReturn.OK
+    if event.get_seqnum() in stream._forced_seqnums:
+        return Gst.PadProbeReturn.OK  # our own, on its way to the encoder
+    stream.request_keyframe()
+    return Gst.PadProbeReturn.DROP  # the clock forces it on the next frame
+
+
+def _force_key_unit_event() -> Any:
+    Gst = gst()
+    from gi.repository import GstVideo
+
+    return GstVideo.video_event_new_upstream_force_key_unit(Gst.CLOCK_TIME_NONE, True, 0)
+
+
 def _h264_caps(encoder_name: str) -> str:
     if encoder_name == "omxh264enc":
         # The OMX encoder only announces "baseline"; its output has no B-frames or FMO either.
@@ -313,7 +471,7 @@ def _configure_encoder(encoder: Any, name: str, s: VideoSettings) -> None:
         _nick(encoder, "control-rate", "variable")
         if encoder.find_property("inline-header") is not None:
             encoder.set_property("inline-header", True)
-    _set_keyframe_interval(encoder, name, s.framerate)
+    _set_keyframe_interval(encoder, name, ENCODER_GOP_S * s.camera_framerate)
 
 
 def _set_bitrate(encoder: Any, name: str, kbps: int) -> None:
@@ -331,19 +489,19 @@ def _set_bitrate(encoder: Any, name: str, kbps: int) -> None:
             encoder.set_property("extra-controls", controls)
 
 
-def _set_keyframe_interval(encoder: Any, name: str, fps: int) -> None:
-    """A keyframe every second (nobody can ask for one over plain RTP)."""
+def _set_keyframe_interval(encoder: Any, name: str, frames: int) -> None:
+    """The encoder's own interval (a backstop: the keyframe clock forces them sooner)."""
     if name == "x264enc":
-        encoder.set_property("key-int-max", fps)
+        encoder.set_property("key-int-max", frames)
     elif name == "openh264enc":
-        encoder.set_property("gop-size", fps)
+        encoder.set_property("gop-size", frames)
     elif name == "omxh264enc" and encoder.find_property("periodicity-idr") is not None:
-        encoder.set_property("periodicity-idr", fps)
+        encoder.set_property("periodicity-idr", frames)
     elif name == "v4l2h264enc":
         controls = encoder.get_property("extra-controls")
         if controls is not None:
             controls = controls.copy()
-            controls.set_value("h264_i_frame_period", fps)
+            controls.set_value("h264_i_frame_period", frames)
             encoder.set_property("extra-controls", controls)
 
 
@@ -365,9 +523,14 @@ class VideoIn(PipelineStream):
         sink: str = "fakesink",
         jitter_ms: int = 0,
         window: int = 2000,
+        repair: bool = True,
         **kwargs: Any,
     ) -> None:
         super().__init__(name, **kwargs)
+        self.repair = repair
+        """Ask the sender for lost packets and keyframes (its ``rtcp_port``: set_feedback)."""
+        self.repairs: RepairReceiver | None = None
+        self._feedback: tuple[str, int] = ("", 0)
         self.host = host
         self.port = port
         self.sink_factory = sink
@@ -386,6 +549,8 @@ class VideoIn(PipelineStream):
         self.last_frame_at: float | None = None
         self.longest_freeze_ms = 0.0
         """The longest wait between two decoded frames (a loss freezes to the next keyframe)."""
+        self.gaps_ms: collections.deque[float] = collections.deque(maxlen=window)
+        """Recent waits between two decoded frames (ms), appended on the streaming thread."""
 
     def destination(self) -> str:
         return f"{self.host}:{self.port}"
@@ -397,7 +562,37 @@ class VideoIn(PipelineStream):
             "rtp_packets": self.rtp_packets,
             "rtp_lost": self.rtp_lost,
             "longest_freeze_ms": round(self.longest_freeze_ms, 1),
+            **self.gap_stats(),
+            **self.repair_stats(),
         }
+
+    def set_feedback(self, host: str, port: int | None) -> None:
+        """Where the sender takes RTCP feedback (its ``rtcp_port``); applied live. Loop."""
+        self._feedback = (host, port or 0)
+        if self.repairs is not None:
+            self.repairs.set_feedback(host, port or 0)
+
+    def gap_stats(self) -> dict[str, Any]:
+        """The waits between decoded frames of the recent window: percentiles, and the time
+        frozen (the part of each gap over twice the usual one is a frozen picture)."""
+        gaps = sorted(self.gaps_ms)
+        if not gaps:
+            return {}
+        usual = statistics.median(gaps)
+
+        def at(q: float) -> float:
+            return round(gaps[min(len(gaps) - 1, int(len(gaps) * q))], 1)
+
+        frozen = sum(gap - usual for gap in gaps if gap > 2 * usual)
+        return {
+            "gap_ms": {"p50": at(0.5), "p95": at(0.95), "p99": at(0.99), "max": at(1.0)},
+            "frozen_pct": round(100 * frozen / max(1.0, sum(gaps)), 2),
+        }
+
+    def repair_stats(self) -> dict[str, Any]:
+        if self.repairs is None:
+            return {}
+        return {"repair": vars(self.repairs.counters())}
 
     def count_packet(self, seq: int) -> None:
         """Streaming thread: one RTP packet; a gap in the sequence counts as lost."""
@@ -412,14 +607,22 @@ class VideoIn(PipelineStream):
     def count_frame(self, now: float) -> None:
         """Streaming thread: one decoded frame."""
         if self.last_frame_at is not None:
-            self.longest_freeze_ms = max(self.longest_freeze_ms, (now - self.last_frame_at) * 1000)
+            gap = (now - self.last_frame_at) * 1000
+            self.longest_freeze_ms = max(self.longest_freeze_ms, gap)
+            self.gaps_ms.append(gap)
         self.last_frame_at = now
 
-    def recent_latency_ms(self) -> float | None:
-        """The median glass-to-glass latency of the last 30 frames while playing, else None."""
+    def recent_latency_ms(self, now: float | None = None) -> float | None:
+        """The age of the picture: the median glass-to-glass latency of the last 30 frames
+        plus the wait since the last one (a frozen picture is latency: the speed cap falls
+        as the video fails), while playing, else None. ``now``: time.monotonic()."""
         if self.state is not StreamState.PLAYING or not self.latencies:
             return None
-        return float(statistics.median(list(self.latencies)[-30:]))
+        median = float(statistics.median(list(self.latencies)[-30:]))
+        if self.last_frame_at is None:
+            return median
+        waited = (time.monotonic() if now is None else now) - self.last_frame_at
+        return median + max(0.0, waited) * 1000
 
     def latency_stats(self) -> dict[str, Any]:
         values = sorted(self.latencies)
@@ -430,6 +633,7 @@ class VideoIn(PipelineStream):
             "rtp_bytes": self.rtp_bytes,
             "latency_ms": self.last_latency_ms,
             "latency_p50_ms": statistics.median(values),
+            "latency_p95_ms": values[min(len(values) - 1, int(len(values) * 0.95))],
             "latency_p99_ms": values[min(len(values) - 1, int(len(values) * 0.99))],
         }
 
@@ -440,7 +644,7 @@ class VideoIn(PipelineStream):
             "udpsrc", "source", address=self.host, port=self.port, caps=caps(RTP_VIDEO_CAPS)
         )
         chain = [source]
-        if self.jitter_ms > 0:
+        if self.jitter_ms > 0 and not self.repair:
             chain.append(make("rtpjitterbuffer", latency=self.jitter_ms, drop_on_latency=True))
         decoder = make("avdec_h264", "decoder")
         if decoder.find_property("thread-type") is not None:
@@ -457,7 +661,12 @@ class VideoIn(PipelineStream):
         chain += [depay, decoder, make("videoconvert"), sink]
         for element in chain:
             pipeline.add(element)
-        link_all(*chain)
+        if self.repair:
+            link_all(*chain[1:])
+            self.repairs = add_repair_receiver(pipeline, source, depay, RTP_VIDEO_CAPS)
+            self.repairs.set_feedback(*self._feedback)
+        else:
+            link_all(*chain)
         decoder.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _latency_probe, (weakref.ref(self), ntp_caps())
         )
@@ -492,6 +701,6 @@ def _bytes_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
     if stream is not None and buffer is not None:
         stream.rtp_bytes += buffer.get_size()
         header = buffer.extract_dup(0, 4)
-        if len(header) == 4:
+        if len(header) == 4 and header[1] & 0x7F == PAYLOAD_TYPE:  # not retransmissions
             stream.count_packet(int.from_bytes(header[2:4], "big"))
     return gst().PadProbeReturn.OK

@@ -24,6 +24,7 @@ from brasidas.netem.relay import FrameRelay
 
 HELP = """commands (rover1's link, station to rover1 unless 'up' is given first):
   loss PCT | delay MS [JITTER_MS] | reorder PCT | duplicate PCT   e.g. 'loss 10', 'up loss 5'
+  rate KBPS (a capacity limit, 0: none)                            e.g. 'up rate 500'
   cut | restore | clear | stats | help | quit"""
 
 
@@ -50,6 +51,8 @@ def _apply(relay: FrameRelay, words: list[str]) -> str:
         return "\n".join(f"{k}: {v}" for k, v in relay.stats().items())
     if command in ("loss", "reorder", "duplicate") and len(numbers) == 1:
         fields[command] = numbers[0] / 100
+    elif command == "rate" and len(numbers) == 1:
+        fields["rate_kbps"] = numbers[0]
     elif command == "delay" and numbers:
         fields["delay"] = numbers[0] / 1000
         fields["jitter"] = numbers[1] / 1000 if len(numbers) > 1 else 0.0

@@ -27,13 +27,19 @@ class Profile:
     reorder: float = 0.0
     """Share of frames sent at once, ahead of the ones being delayed (as netem's reorder)."""
     duplicate: float = 0.0
+    rate_kbps: float = 0.0
+    """Capacity (token bucket, kbit/s; 0: unlimited): frames wait for tokens in a queue of
+    at most ``queue_s`` of waiting, and are dropped beyond it (a radio link's capacity drop)."""
+    burst_bytes: int = 3000
+    """The bucket's depth: what may leave at once after the link was idle."""
+    queue_s: float = 0.1
 
     def __post_init__(self) -> None:
         for name in ("loss", "reorder", "duplicate"):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name}: must be within 0-1, not {value}")
-        for name in ("delay", "jitter"):
+        for name in ("delay", "jitter", "rate_kbps", "burst_bytes", "queue_s"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name}: must be >= 0")
 
@@ -45,6 +51,8 @@ class Profile:
             parts.append(f"reorder {self.reorder:.0%}")
         if self.duplicate:
             parts.append(f"duplicate {self.duplicate:.0%}")
+        if self.rate_kbps:
+            parts.append(f"rate {self.rate_kbps:g} kbit/s")
         return ", ".join(parts)
 
 
@@ -60,6 +68,8 @@ class Counters:
     reordered: int = 0
     cut: int = 0
     """Dropped because the link was cut (on arrival or in flight)."""
+    overflow: int = 0
+    """Dropped because the rate limit's queue was full."""
 
 
 @dataclass(order=True)
@@ -80,6 +90,9 @@ class Impairment:
         self.is_cut = False
         self._queue: list[_Pending] = []
         self._order = 0
+        self._tokens = 0.0
+        """Bytes the bucket holds (negative: owed by frames waiting in its queue)."""
+        self._tokens_at: float | None = None
 
     def set_profile(self, profile: Profile) -> None:
         """New impairments apply to frames fed from now on."""
@@ -109,6 +122,11 @@ class Impairment:
         if lost:
             self.counters.lost += 1
             return
+        wait = self._rate_wait(len(frame), now)
+        if wait is None:
+            self.counters.overflow += 1
+            return
+        now += wait
         copies = 2 if duplicate else 1
         self.counters.duplicated += copies - 1
         for copy in range(copies):
@@ -119,6 +137,24 @@ class Impairment:
                 when = now + max(0.0, profile.delay + profile.jitter * delays[copy])
             self._order += 1
             heapq.heappush(self._queue, _Pending(when, self._order, frame))
+
+    def _rate_wait(self, size: int, now: float) -> float | None:
+        """How long a frame of ``size`` bytes waits for tokens; None: the queue is full."""
+        profile = self.profile
+        if not profile.rate_kbps:
+            return 0.0
+        bytes_per_s = profile.rate_kbps * 125
+        if self._tokens_at is None:
+            self._tokens = float(profile.burst_bytes)
+        else:
+            refill = (now - self._tokens_at) * bytes_per_s
+            self._tokens = min(float(profile.burst_bytes), self._tokens + refill)
+        self._tokens_at = now
+        wait = max(0.0, size - self._tokens) / bytes_per_s
+        if wait > profile.queue_s:
+            return None
+        self._tokens -= size
+        return wait
 
     def deadline(self) -> float | None:
         """When the next frame is due, or None when nothing is in flight."""

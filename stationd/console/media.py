@@ -118,7 +118,8 @@ class ConsoleMedia(ConsoleParts):
         if watch is None:
             return ""
         now = time.monotonic()
-        units = watch.feed.fanout.units
+        # Units held back after a loss (waiting for a keyframe) show nothing: not movement.
+        units = watch.feed.fanout.units - watch.feed.fanout.held
         if units != watch.units_seen:
             watch.units_seen, watch.units_moved_at = units, now
         if now - watch.units_moved_at < VIDEO_SILENT_S:
@@ -136,6 +137,9 @@ class ConsoleMedia(ConsoleParts):
                 return f"{feed.stream} failed on the platform"
         if feed.depayloader.state is StreamState.FAILED:
             return f"the station's receiver failed: {feed.depayloader.reason}"
+        loss = feed.loss_reason()
+        if loss:
+            return loss
         destinations = await self._platform_destinations(feed)
         if destinations is not None and not any(d.endswith(f":{feed.port}") for d in destinations):
             elsewhere = ", ".join(destinations) or "nowhere"
@@ -224,7 +228,9 @@ class ConsoleMedia(ConsoleParts):
                     INVALID_PARAMS, f"cannot receive {stream}: {feed.depayloader.reason}"
                 )
             try:
-                await connection.call("start_stream", name=stream, port=feed.port)
+                started = await connection.call("start_stream", name=stream, port=feed.port)
+                if isinstance(started, dict) and isinstance(started.get("rtcp_port"), int):
+                    feed.depayloader.set_feedback(connection.platform_host, started["rtcp_port"])
             except BaseException:
                 await feed.depayloader.stop()
                 raise
@@ -333,7 +339,14 @@ class PageLatency:
         self.fallback = fallback
 
     def __call__(self) -> float | None:
+        """The age of the picture on the page: its last glass-to-glass p95 plus how long the
+        feed has been frozen since (issue 28: a frozen picture is latency, so the speed cap
+        falls as the video fails), while the feed runs; else the fallback."""
         report = self.hub.page_latency.get(self.platform_id)
+        feed = self.hub.feeds.get((self.platform_id, "navcam"))
+        staleness = feed.fanout.staleness_ms(time.time() * 1000) if feed is not None else None
+        if report is not None and staleness is not None:
+            return report[0] + staleness
         if report is not None and time.monotonic() - report[1] <= PAGE_LATENCY_MAX_AGE_S:
             return report[0]
         return self.fallback() if self.fallback is not None else None

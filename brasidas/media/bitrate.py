@@ -1,0 +1,56 @@
+"""A NavCam bitrate that follows the link, from the receivers' RTCP reports (sans-IO).
+
+Loss-based, as the loss half of Google's congestion control: every :data:`STEP_S` the worst
+receiver's smoothed fraction of packets lost (RTCP receiver reports, counted before repair:
+the link's own loss) decides. Above :data:`CONGESTED_LOSS` the link is over its capacity (a
+full queue drops the excess) and the bitrate falls to what got through, less 5 %; below
+:data:`CLEAN_LOSS` it climbs back by :data:`CLIMB` a step toward the configured ceiling; in
+between (a mesh's routine random loss, which retransmission repairs) it holds. Never below
+``floor_kbps``, never above the ceiling the framerate allows.
+"""
+
+from __future__ import annotations
+
+STEP_S = 0.5
+CONGESTED_LOSS = 0.10
+CLEAN_LOSS = 0.02
+CLIMB = 1.08
+SMOOTHING = 0.5
+"""Weight of the newest report in the smoothed loss."""
+
+
+class BitrateController:
+    """The target bitrate (kbit/s) for the encoder."""
+
+    def __init__(self, ceiling_kbps: int, floor_kbps: int) -> None:
+        self.floor_kbps = floor_kbps
+        self.target_kbps = float(ceiling_kbps)
+        self.loss = 0.0
+        """Smoothed fraction lost of the worst receiver."""
+        self.decreases = 0
+        self._last_step: float | None = None
+
+    def update(self, loss: float | None, ceiling_kbps: int, now: float) -> int | None:
+        """A report's fraction lost (None: no receiver reported) at ``now``; the new
+        target when it changed, else None."""
+        if loss is not None:
+            self.loss = SMOOTHING * loss + (1 - SMOOTHING) * self.loss
+        if self._last_step is not None and now - self._last_step < STEP_S:
+            return None
+        self._last_step = now
+        before = self.effective_kbps(ceiling_kbps)
+        if loss is not None and self.loss > CONGESTED_LOSS:
+            # What got through: over capacity, the loss is the excess (a full queue drops it).
+            lowered = min(self.target_kbps, float(ceiling_kbps)) * (1 - self.loss) * 0.95
+            self.target_kbps = max(float(self.floor_kbps), lowered)
+            self.decreases += 1
+        elif loss is not None and self.loss < CLEAN_LOSS:
+            # Up to the ceiling; a target above it (a lower framerate's) is kept for later.
+            raised = max(self.target_kbps * CLIMB, self.target_kbps + 10)
+            self.target_kbps = max(self.target_kbps, min(raised, float(ceiling_kbps)))
+        after = self.effective_kbps(ceiling_kbps)
+        return after if after != before else None
+
+    def effective_kbps(self, ceiling_kbps: int) -> int:
+        """What the encoder is set to: the target within the framerate's ceiling."""
+        return max(self.floor_kbps, round(min(self.target_kbps, float(ceiling_kbps))))

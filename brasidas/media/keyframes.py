@@ -1,0 +1,83 @@
+"""When the NavCam's encoder must make a keyframe (sans-IO: the caller passes ``now``).
+
+The encoders' own GOP settings cannot follow a live framerate change (x264enc's
+``key-int-max`` and openh264enc's ``gop-size`` are fixed once the encoder runs, and the
+hardware encoders differ again), so the sender owns the cadence instead: the encoder's own
+interval is set long, and :class:`KeyframeClock` asks for a keyframe (a force-key-unit event,
+which every encoder understands) every ``interval_s`` of frames at the *current* framerate,
+and at once when a receiver reports a loss (RTCP PLI/FIR), no more often than
+``min_request_gap_s`` so a burst of requests from a lossy link cannot turn every frame into a
+keyframe.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+KEYFRAME_INTERVAL_S = 1.0
+"""Periodic keyframes: a new viewer starts within a second, a lost repair heals within one."""
+MIN_REQUEST_GAP_S = 0.25
+"""Keyframes on request no closer than this (a keyframe is 5-10 times a delta frame)."""
+
+
+@dataclass
+class KeyframeCounters:
+    periodic: int = 0
+    requested: int = 0
+    """Requests (PLI/FIR, a new viewer) answered by a keyframe."""
+    refused: int = 0
+    """Requests dropped by the rate limit (a keyframe had just been made)."""
+
+
+class KeyframeClock:
+    """Decides, frame by frame, whether the encoder must make the next frame a keyframe."""
+
+    def __init__(
+        self,
+        framerate: int,
+        *,
+        interval_s: float = KEYFRAME_INTERVAL_S,
+        min_request_gap_s: float = MIN_REQUEST_GAP_S,
+    ) -> None:
+        self.interval_s = interval_s
+        self.min_request_gap_s = min_request_gap_s
+        self.interval_frames = 1
+        self.set_framerate(framerate)
+        self.counters = KeyframeCounters()
+        self._since_keyframe = 0
+        self._pending = False
+        self._last_forced: float | None = None
+
+    def restart(self) -> None:
+        """A new encoder: its first frame is a keyframe; the counters go on."""
+        self._since_keyframe = 0
+        self._pending = False
+        self._last_forced = None
+
+    def set_framerate(self, framerate: int) -> None:
+        """The interval in frames follows the framerate (5 fps: every 5th frame)."""
+        self.interval_frames = max(1, round(framerate * self.interval_s))
+
+    def request(self, now: float) -> bool:
+        """A receiver asks for a keyframe; False when refused (one was made just now)."""
+        if self._pending:
+            return True
+        if self._last_forced is not None and now - self._last_forced < self.min_request_gap_s:
+            self.counters.refused += 1
+            return False
+        self._pending = True
+        self.counters.requested += 1
+        return True
+
+    def on_frame(self, now: float) -> bool:
+        """A raw frame goes into the encoder: True when it must be encoded as a keyframe."""
+        self._since_keyframe += 1
+        periodic = self._since_keyframe >= self.interval_frames
+        if not (periodic or self._pending or self._last_forced is None):
+            return False
+        if periodic and not self._pending and self._last_forced is not None:
+            self.counters.periodic += 1
+        self._pending = False
+        self._since_keyframe = 0
+        self._last_forced = now
+        return True

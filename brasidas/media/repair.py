@@ -1,0 +1,253 @@
+"""Repair on a video path: RTCP feedback, NACK + retransmission (RFC 4588), keyframes on request.
+
+Sender (:func:`add_repair_sender`): payloader → ``rtpbin`` (AVPF profile) with an
+``rtprtxsend`` keeping the last :data:`RTX_HISTORY_MS` of packets → the stream's
+``multiudpsink``; the receivers' RTCP (receiver reports, NACK, PLI/FIR) arrives on a UDP port
+of its own (:class:`FeedbackSocket`, announced as ``rtcp_port``). A NACK is answered by the
+packet again (payload type :data:`RTX_PAYLOAD_TYPE`, its own SSRC, same UDP port); a PLI/FIR
+becomes a force-key-unit event that :class:`~brasidas.media.video.VideoOut` rate-limits.
+
+Receiver (:func:`add_repair_receiver`): ``udpsrc`` → ``rtpbin`` with ``rtprtxreceive`` and a
+jitter buffer that asks for a missing packet at once and waits for it at most
+:data:`REPAIR_LATENCY_MS` (contiguous packets pass straight through: the buffer delays only a
+frame that has a hole, and never beyond its budget) → the depayloader, which asks for a
+keyframe (PLI) when a packet stays lost; the feedback goes to the platform's ``rtcp_port``
+(:meth:`RepairReceiver.set_feedback`, from the ``start_stream`` answer). A receiver without
+feedback (no ``rtcp_port``, an old platform) still works: it only cannot ask.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+from dataclasses import dataclass, field
+from typing import Any
+
+from brasidas.media.gst import caps, gst, make
+
+RTX_PAYLOAD_TYPE = 97
+"""RFC 4588 retransmissions of payload type 96, sent on the stream's own port."""
+RTX_HISTORY_MS = 1000
+"""How far back the sender can retransmit (beyond the receiver's wait, for a slow NACK)."""
+REPAIR_LATENCY_MS = 200
+"""The longest a frame with a hole waits for its repair: well inside the deadman's 500 ms,
+long enough for two or three tries on a 50 ms round trip. Then it is dropped, and the
+depayloader asks for a keyframe."""
+RTX_DELAY_MS = 0
+"""Ask for a missing packet as soon as the gap shows."""
+FEEDBACK_INTERVAL_NS = 20_000_000
+"""Regular receiver reports no closer than 20 ms: what the link really carries (~4 kB/s)."""
+FEEDBACK_BYTES_PER_S = 64000.0
+"""The RTCP budget the receiver's session plans with. AVPF sends a NACK early only once per
+regular interval, and the default budget (5 % of a guessed 64 kbit/s) spaces those ~50 ms
+apart: half the losses then missed their frame. Measured on loopback at 5 % loss: 16 kB/s
+repaired 93 % of frames, 64 kB/s all of them (RTT 6 ms)."""
+FEEDBACK_CAPS = (
+    "rtcp-fb-nack=(boolean)true,rtcp-fb-nack-pli=(boolean)true,rtcp-fb-ccm-fir=(boolean)true"
+)
+
+
+class FeedbackSocket:
+    """The platform's RTCP port for one stream: bound at once (the port is announced before
+    the pipeline plays), handed to ``udpsrc``; kept across pipeline rebuilds."""
+
+    def __init__(self, host: str = "0.0.0.0", port: int = 0) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind((host, port))
+        self.port: int = self.sock.getsockname()[1]
+
+    def gio_socket(self) -> Any:
+        """A GSocket of its own for one pipeline (it closes its copy of the descriptor)."""
+        from gi.repository import Gio
+
+        return Gio.Socket.new_from_fd(os.dup(self.sock.fileno()))
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def add_repair_sender(
+    pipeline: Any, payloader: Any, rtp_sink: Any, feedback: FeedbackSocket
+) -> Any:
+    """Link ``payloader`` → rtpbin (with retransmission) → ``rtp_sink``; RTCP in from
+    ``feedback``. Returns the rtpbin. The elements must already be in ``pipeline``."""
+    rtpbin = make("rtpbin", "rtpbin", rtp_profile="avpf")
+    rtpbin.connect("request-aux-sender", _aux_sender)
+    # The reports go nowhere: the receivers need none to ask (NACK, PLI), and sending them
+    # would need a second port at each station.
+    reports = make("fakesink", "rtcp_reports", sync=False, async_=False)
+    rtcp_in = make("udpsrc", "rtcp_in", caps=caps("application/x-rtcp"))
+    rtcp_in.set_property("socket", feedback.gio_socket())
+    for element in (rtpbin, reports, rtcp_in):
+        pipeline.add(element)
+    _link(payloader, "src", rtpbin, "send_rtp_sink_0")
+    _link(rtpbin, "send_rtp_src_0", rtp_sink, "sink")
+    _link(rtpbin, "send_rtcp_src_0", reports, "sink")
+    _link(rtcp_in, "src", rtpbin, "recv_rtcp_sink_0")
+    return rtpbin
+
+
+def _aux_sender(rtpbin: Any, session: int) -> Any:
+    Gst = gst()
+    bin_ = Gst.Bin.new(f"rtx_send_{session}")
+    rtx = make(
+        "rtprtxsend",
+        "rtxsend",
+        payload_type_map=Gst.Structure.new_from_string(
+            f"application/x-rtp-pt-map,96=(uint){RTX_PAYLOAD_TYPE}"
+        ),
+        max_size_time=RTX_HISTORY_MS,
+        max_size_packets=0,
+    )
+    bin_.add(rtx)
+    bin_.add_pad(Gst.GhostPad.new(f"src_{session}", rtx.get_static_pad("src")))
+    bin_.add_pad(Gst.GhostPad.new(f"sink_{session}", rtx.get_static_pad("sink")))
+    return bin_
+
+
+@dataclass
+class RepairCounters:
+    """The receiver's view of the link, from its jitter buffer (read on the event loop)."""
+
+    lost: int = 0
+    """Packets given up on (not repaired within the budget)."""
+    late: int = 0
+    retransmission_requests: int = 0
+    repaired: int = 0
+    """Packets that arrived by retransmission in time."""
+    rtt_ms: float | None = None
+    keyframe_requests: int = 0
+    """Losses the depayloader answered by asking the sender for a keyframe."""
+
+
+@dataclass
+class RepairReceiver:
+    """The receive side's rtpbin, its feedback sink, and its counters."""
+
+    rtpbin: Any
+    feedback_sink: Any
+    jitterbuffers: list[Any] = field(default_factory=list)
+    keyframe_requests: int = 0
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def set_feedback(self, host: str, port: int) -> None:
+        """Send RTCP feedback to the sender's ``rtcp_port`` (applied live)."""
+        self.feedback_sink.set_property("clients", f"{host}:{port}" if port else "")
+
+    def counters(self) -> RepairCounters:
+        counters = RepairCounters(keyframe_requests=self.keyframe_requests)
+        with self._lock:
+            buffers = list(self.jitterbuffers)
+        for jitterbuffer in buffers:
+            stats = jitterbuffer.get_property("stats")
+            counters.lost += _uint(stats, "num-lost")
+            counters.late += _uint(stats, "num-late")
+            counters.retransmission_requests += _uint(stats, "rtx-count")
+            counters.repaired += _uint(stats, "rtx-success-count")
+            ok, rtt = stats.get_uint64("rtx-rtt")
+            if ok and rtt:
+                counters.rtt_ms = round(rtt / 1e6, 1)
+        return counters
+
+
+def _uint(structure: Any, key: str) -> int:
+    ok, value = structure.get_uint64(key)
+    return int(value) if ok else 0
+
+
+def add_repair_receiver(
+    pipeline: Any, source: Any, depayloader: Any, rtp_caps: str
+) -> RepairReceiver:
+    """Link ``source`` (udpsrc) → rtpbin → ``depayloader`` (linked when the stream's first
+    packet arrives) and an RTCP feedback sink (no destination until :meth:`set_feedback`)."""
+    rtpbin = make(
+        "rtpbin",
+        "rtpbin",
+        rtp_profile="avpf",
+        latency=REPAIR_LATENCY_MS,
+        do_retransmission=True,
+        do_lost=True,
+        drop_on_latency=True,
+        autoremove=True,
+    )
+    feedback_sink = make(
+        "multiudpsink", "rtcp_out", clients="", sync=False, async_=False, auto_multicast=False
+    )
+    receiver = RepairReceiver(rtpbin, feedback_sink)
+    media_caps = caps(f"{rtp_caps},{FEEDBACK_CAPS}")
+    rtx_caps = caps(
+        f"application/x-rtp,media=video,clock-rate=90000,encoding-name=RTX,"
+        f"payload={RTX_PAYLOAD_TYPE},apt=96"
+    )
+
+    def pt_map(_bin: Any, _session: int, pt: int) -> Any:
+        return rtx_caps if pt == RTX_PAYLOAD_TYPE else media_caps
+
+    def new_jitterbuffer(_bin: Any, jitterbuffer: Any, _session: int, _ssrc: int) -> None:
+        # Ask for a missing packet at once (a reordered one costs a NACK, a wait costs a frame).
+        jitterbuffer.set_property("rtx-delay", RTX_DELAY_MS)
+        with receiver._lock:
+            receiver.jitterbuffers.append(jitterbuffer)
+
+    def pad_added(_bin: Any, pad: Any) -> None:
+        if not pad.get_name().startswith("recv_rtp_src_"):
+            return
+        # A new SSRC is the sender rebuilt (a camera came back): follow it, drop the old.
+        sink = depayloader.get_static_pad("sink")
+        old = sink.get_peer()
+        if old is not None:
+            old.unlink(sink)
+        pad.link(sink)
+
+    rtpbin.connect("request-pt-map", pt_map)
+    rtpbin.connect("request-aux-receiver", _aux_receiver)
+    rtpbin.connect("new-jitterbuffer", new_jitterbuffer)
+    rtpbin.connect("pad-added", pad_added)
+    source.set_property("caps", media_caps)
+    for element in (rtpbin, feedback_sink):
+        pipeline.add(element)
+    _link(source, "src", rtpbin, "recv_rtp_sink_0")
+    _link(rtpbin, "send_rtcp_src_0", feedback_sink, "sink")
+    session = rtpbin.emit("get-session", 0)
+    session.set_property("rtcp-fraction", FEEDBACK_BYTES_PER_S)
+    session.set_property("rtcp-min-interval", FEEDBACK_INTERVAL_NS)
+    if depayloader.find_property("request-keyframe") is not None:
+        depayloader.set_property("request-keyframe", True)
+        depayloader.get_static_pad("sink").add_probe(
+            gst().PadProbeType.EVENT_UPSTREAM, _count_keyframe_request, receiver
+        )
+    return receiver
+
+
+def _count_keyframe_request(pad: Any, info: Any, receiver: RepairReceiver) -> Any:
+    event = info.get_event()
+    structure = event.get_structure() if event is not None else None
+    if structure is not None and structure.get_name() == "GstForceKeyUnit":
+        receiver.keyframe_requests += 1
+    return gst().PadProbeReturn.OK
+
+
+def _aux_receiver(rtpbin: Any, session: int) -> Any:
+    Gst = gst()
+    bin_ = Gst.Bin.new(f"rtx_receive_{session}")
+    # Mapped the same way as the sender's: original payload type → retransmission's.
+    rtx = make(
+        "rtprtxreceive",
+        payload_type_map=Gst.Structure.new_from_string(
+            f"application/x-rtp-pt-map,96=(uint){RTX_PAYLOAD_TYPE}"
+        ),
+    )
+    bin_.add(rtx)
+    bin_.add_pad(Gst.GhostPad.new(f"src_{session}", rtx.get_static_pad("src")))
+    bin_.add_pad(Gst.GhostPad.new(f"sink_{session}", rtx.get_static_pad("sink")))
+    return bin_
+
+
+def _link(upstream: Any, src: str, downstream: Any, sink: str) -> None:
+    from brasidas.media.gst import MediaError
+
+    if not upstream.link_pads(src, downstream, sink):
+        raise MediaError(
+            f"cannot link {upstream.get_name()}.{src} to {downstream.get_name()}.{sink}"
+        )

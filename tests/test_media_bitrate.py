@@ -1,0 +1,41 @@
+"""The NavCam's bitrate follows the receivers' reported loss, within its bounds (sans-IO)."""
+
+from __future__ import annotations
+
+from brasidas.media.bitrate import STEP_S, BitrateController
+
+
+def _steps(controller: BitrateController, loss: float | None, count: int, start: float) -> float:
+    now = start
+    for _ in range(count):
+        controller.update(loss, 1500, now)
+        now += STEP_S
+    return now
+
+
+def test_congestion_lowers_the_bitrate_within_two_seconds_and_clean_reports_raise_it() -> None:
+    controller = BitrateController(1500, 150)
+    # A 500 kbit/s bottleneck under 1500 kbit/s: two thirds of the packets dropped.
+    now = _steps(controller, 0.66, 4, 0.0)  # 2 s
+    assert controller.effective_kbps(1500) < 500
+    now = _steps(controller, 0.66, 40, now)
+    assert controller.effective_kbps(1500) == 150  # never below the floor
+    # Routine random loss that retransmission repairs (5 %) neither lowers nor raises it.
+    held = controller.target_kbps
+    now = _steps(controller, 0.05, 10, now)
+    assert controller.target_kbps == held
+    # A clean link: back up to the ceiling, never above it.
+    _steps(controller, 0.0, 100, now)
+    assert controller.target_kbps == 1500
+
+
+def test_no_report_changes_nothing_and_steps_are_spaced() -> None:
+    controller = BitrateController(1500, 150)
+    assert controller.update(None, 1500, 0.0) is None
+    assert controller.update(0.9, 1500, 0.1) is None  # within the step: smoothed only
+    assert controller.update(0.9, 1500, 0.6) is not None
+    # A lower framerate's ceiling bounds what the encoder gets, not the target kept for later.
+    controller = BitrateController(1500, 150)
+    assert controller.effective_kbps(250) == 250
+    controller.update(0.0, 250, 1.0)
+    assert controller.effective_kbps(1500) == 1500

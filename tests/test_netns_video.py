@@ -1,0 +1,146 @@
+"""The NavCam across hosts through the link emulator: lost packets are asked for again (NACK)
+and arrive in time, a loss beyond repair asks the platform's encoder for a keyframe (PLI).
+The platform runs ``--sim`` (a moving test picture), the station receives with ``receive``."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from netns import Daemon, Fleet, RpcFailed, network_fixture, requires_netns, wait_for
+
+from brasidas.media.repair import REPAIR_LATENCY_MS
+from brasidas.netem.core import Profile
+from brasidas.netem.netns import TestNetwork
+
+pytestmark = requires_netns
+network = network_fixture("vid")
+
+ROVER = "rover-1"
+
+
+@pytest.fixture(scope="module")
+def fleet(network: TestNetwork, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
+    fleet = Fleet(network, Path(tmp_path_factory.mktemp("video")))
+    station_host = network.add_host("st")
+    rover_host = network.add_host("rover", impaired=True)
+    fleet.platform(
+        rover_host,
+        ROVER,
+        "gps.enabled=false",
+        "imu.enabled=false",
+        "audio.enabled=false",
+        "navcam.idle_framerate=30",  # no override engaged: the idle rate is what is sent
+        "navcam.sim_pattern=smpte",
+        "navcam.sim_motion=4",
+    )
+    fleet.station(station_host, "station-1", "station.connect_timeout=1.0")
+    yield fleet
+    fleet.stop()
+
+
+def _station(fleet: Fleet) -> Daemon:
+    return next(d for d in fleet.daemons if d.name == "station-1")
+
+
+@pytest.fixture
+async def watching(fleet: Fleet) -> AsyncIterator[Fleet]:
+    """The station receiving the rover's NavCam over a link losing 5 % each way."""
+    station = _station(fleet)
+    relay = fleet.net.hosts["rover"].relay
+    assert relay is not None
+    relay.clear()
+    await fleet.wait_listening(station, "127.0.0.1", 8780)
+    await fleet.connect(station, ROVER)
+    lossy = Profile(loss=0.05, delay=0.01)
+    fleet.net.impair("rover", down=lossy, up=lossy)
+    await fleet.api(station, "receive", platform_id=ROVER, stream="navcam")
+    yield fleet
+    relay.clear()
+    await fleet.api(station, "stream_stop", platform_id=ROVER, stream="navcam")
+
+
+async def _receiver(fleet: Fleet) -> dict[str, Any]:
+    receivers = await fleet.api(_station(fleet), "receivers")
+    return next(r for r in receivers if r["platform_id"] == ROVER and r["stream"] == "navcam")
+
+
+async def _navcam(fleet: Fleet) -> dict[str, Any]:
+    streams = await fleet.api(_station(fleet), "streams", platform_id=ROVER)
+    return next(s for s in streams if s["name"] == "navcam")
+
+
+async def test_a_frame_lost_on_the_link_is_repaired_before_its_display_deadline(
+    watching: Fleet,
+) -> None:
+    fleet = watching
+
+    async def enough() -> bool:
+        return (await _receiver(fleet))["frames"] >= 150
+
+    await wait_for(enough, timeout=40, step=0.5)
+    rx = await _receiver(fleet)
+    repair = rx["repair"]
+    # Packets of the video went missing on the link (a gap in the sequence as received) ...
+    assert rx["rtp_lost"] >= 10, rx
+    # ... and nearly every one was asked for and arrived again, in time to be decoded: a
+    # frame waits at most REPAIR_LATENCY_MS for its repair, then is dropped.
+    assert repair["repaired"] >= 0.9 * rx["rtp_lost"], rx
+    assert repair["lost"] <= 0.1 * rx["rtp_lost"], rx
+    assert rx["latency_p99_ms"] < REPAIR_LATENCY_MS + 100, rx
+    # Without repair each loss froze the picture to the next keyframe (a second).
+    assert rx["longest_freeze_ms"] < 1000, rx
+
+
+async def test_a_loss_beyond_repair_asks_the_encoder_for_a_keyframe(watching: Fleet) -> None:
+    fleet = watching
+    relay = fleet.net.hosts["rover"].relay
+    assert relay is not None
+
+    async def flowing() -> bool:
+        return (await _receiver(fleet))["frames"] >= 30
+
+    await wait_for(flowing, timeout=40, step=0.5)
+    asked = (await _navcam(fleet))["keyframes_requested"]
+    # A cut longer than the repair budget: those frames are gone, the depayloader asks.
+    relay.cut()
+    await asyncio.sleep(REPAIR_LATENCY_MS / 1000 * 2)
+    relay.restore()
+    frames = (await _receiver(fleet))["frames"]
+
+    async def answered() -> bool:
+        return (await _navcam(fleet))["keyframes_requested"] > asked
+
+    await wait_for(answered, timeout=10, step=0.2)
+    rx = await _receiver(fleet)
+    assert rx["repair"]["keyframe_requests"] >= 1, rx
+
+    async def picture_back() -> bool:
+        return (await _receiver(fleet))["frames"] > frames + 5
+
+    await wait_for(picture_back, timeout=10, step=0.2)
+
+
+async def test_the_bitrate_falls_under_a_rate_limit(watching: Fleet) -> None:
+    fleet = watching
+    fleet.net.impair("rover", up=Profile(rate_kbps=500), down=Profile())
+    start = (await _navcam(fleet))["bitrate_kbps"]
+    assert start > 500
+
+    async def settled() -> bool:
+        try:  # the platform's answers share the saturated link until the bitrate falls
+            return bool((await _navcam(fleet))["bitrate_kbps"] < 500)
+        except RpcFailed:
+            return False
+
+    await wait_for(settled, timeout=20, step=0.25)
+    # Through the drop the picture went on (repaired, then within capacity).
+    frames = (await _receiver(fleet))["frames"]
+
+    async def flowing() -> bool:
+        return (await _receiver(fleet))["frames"] > frames + 20
+
+    await wait_for(flowing, timeout=20, step=0.5)
