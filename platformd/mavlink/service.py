@@ -111,7 +111,12 @@ class MavlinkService(Actor):
         navcam = ctx.config.navcam
         camera = (
             CameraInfo(
-                navcam.width, navcam.height, navcam.framerate, navcam.bitrate_kbps, navcam.port
+                navcam.width,
+                navcam.height,
+                navcam.framerate,
+                navcam.bitrate_kbps,
+                navcam.port,
+                framerate_now=self._navcam_framerate,
             )
             if config.camera and navcam.enabled
             else None
@@ -156,6 +161,13 @@ class MavlinkService(Actor):
         self._fence_checked = -FENCE_CHECK_INTERVAL
         self._uploaded_fence: tuple[int, list[MissionItem]] | None = None
         """The last accepted fence's items and the map revision it made."""
+
+    def _navcam_framerate(self) -> float:
+        """The NavCam's framerate now (idle or engaged), the configured one without media."""
+        media = self.ctx.media
+        if media is not None and media.navcam is not None:
+            return float(media.nav_camera().get("framerate", self.ctx.config.navcam.framerate))
+        return float(self.ctx.config.navcam.framerate)
 
     # ------------------------------------------------------------------ lifecycle
 

@@ -22,7 +22,7 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from brasidas.messages import Attitude, ControllerStatus, GpsFix, PoseEstimate
-from platformd.mavlink import modes
+from platformd.mavlink import ftp, modes, protocol_version
 from platformd.mavlink.missions import FENCE, MAX_ITEMS, MISSION, RALLY, MissionItem, command_name
 from platformd.mavlink.modes import FlightMode
 from platformd.mavlink.signing import SignatureCheck, Verdict, timestamp_at
@@ -36,8 +36,6 @@ UPLOAD_RETRY_S = 0.25
 UPLOAD_RETRIES = 8
 """Requests of one item before the upload is abandoned."""
 STATUSTEXT_CHUNK = 50
-FTP_NAK = 129
-FTP_ERROR_UNKNOWN_COMMAND = 7
 """MAVFTP's "unknown command": the client falls back (MAVProxy to PARAM_REQUEST_LIST)."""
 NO_HOLDER = 0
 MAX_LINKS = 32
@@ -123,6 +121,8 @@ class CameraInfo:
     framerate: float
     bitrate_kbps: int
     port: int
+    framerate_now: Callable[[], float] | None = None
+    """What is really sent now (the NavCam's idle/engaged rate), if known."""
 
 
 @dataclass
@@ -626,7 +626,9 @@ class MavlinkVehicle:
     def _autopilot_version(self) -> Any:
         return mavlink.MAVLink_autopilot_version_message(
             modes.CAPABILITIES,
-            0x00010000 | mavlink.FIRMWARE_VERSION_TYPE_OFFICIAL,
+            # Not OFFICIAL: QGroundControl compares an official version with ArduPilot's
+            # latest stable release and says "not the latest stable firmware".
+            0x00010000 | mavlink.FIRMWARE_VERSION_TYPE_DEV,
             0,
             0,
             0,
@@ -670,14 +672,15 @@ class MavlinkVehicle:
             1,
             mavlink.VIDEO_STREAM_TYPE_RTPUDP,
             mavlink.VIDEO_STREAM_STATUS_FLAGS_RUNNING,
-            camera.framerate,
+            camera.framerate_now() if camera.framerate_now is not None else camera.framerate,
             camera.width,
             camera.height,
             camera.bitrate_kbps,
             0,
             0,
             b"NavCam",
-            f"udp://0.0.0.0:{camera.port}".encode(),
+            # RTP over UDP: the port alone (the spec's form; QGC reads it so).
+            str(camera.port).encode(),
             mavlink.VIDEO_STREAM_ENCODING_H264,
         )
 
@@ -763,6 +766,8 @@ class MavlinkVehicle:
         requests: list[Request] = []
         if message_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             reply = self._autopilot_version()
+        elif message_id == protocol_version.MSG_ID:
+            reply = protocol_version.protocol_version()
         elif message_id == mavlink.MAVLINK_MSG_ID_HOME_POSITION:
             reply = self._home_position()
             if reply is None:
@@ -882,16 +887,12 @@ class MavlinkVehicle:
 
     def _on_ftp(self, link: Link, message: Any, origin: Any, now: float) -> list[Request]:
         _peer, system, component, _signed = origin
-        request = bytes(message.payload)
-        seq = int.from_bytes(request[0:2], "little")
-        session, opcode = request[2], request[3]
-        nak = bytearray(251)
-        nak[0:2] = ((seq + 1) & 0xFFFF).to_bytes(2, "little")
-        nak[2], nak[3], nak[4], nak[5] = session, FTP_NAK, 1, opcode
-        nak[12] = FTP_ERROR_UNKNOWN_COMMAND
-        self._send(
-            link, mavlink.MAVLink_file_transfer_protocol_message(0, system, component, list(nak))
-        )
+        answer = ftp.reply(bytes(message.payload))
+        if answer is not None:
+            self._send(
+                link,
+                mavlink.MAVLink_file_transfer_protocol_message(0, system, component, list(answer)),
+            )
         return []
 
     # ------------------------------------------------------------------ missions

@@ -1,0 +1,92 @@
+"""QGroundControl's connect sequence, replayed from its source with pymavlink and its
+timeouts, against a --sim platform over loopback UDP: every step answered at once (no
+"Loading parameters" stall, fences on, no firmware popup, the video the spec's way)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import free_udp_port
+from mavlink_gcs import Gcs, qgc_connect, sim_rover_config
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from platformd.app import PlatformDaemon
+
+Factory = Callable[..., Awaitable[PlatformDaemon]]
+
+
+@pytest.fixture
+async def gcs() -> AsyncIterator[Gcs]:
+    station = await Gcs.open()
+    yield station
+    station.close()
+
+
+async def start(platform_factory: Factory, tmp_path: Path, gcs: Gcs, *overrides: str) -> Any:
+    daemon = await platform_factory(sim_rover_config(tmp_path, gcs.port, *overrides), None)
+    await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1)
+    gcs.send(
+        mavlink.MAVLink_heartbeat_message(
+            mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3
+        )
+    )
+    return daemon
+
+
+async def test_qgroundcontrols_connect_runs_through_without_a_timeout(
+    platform_factory: Factory, tmp_path: Path, gcs: Gcs
+) -> None:
+    await start(platform_factory, tmp_path, gcs)
+    started = time.monotonic()
+    got = await qgc_connect(gcs)  # any step past QGC's timeout raises TimeoutError
+    assert got["params_complete"] - started < 5.0
+    # MAVLink 2 known: QGroundControl keeps fences (and asks for them and rally points).
+    assert got["PROTOCOL_VERSION_ack"].result == mavlink.MAV_RESULT_ACCEPTED
+    assert got["PROTOCOL_VERSION"].version == got["PROTOCOL_VERSION"].max_version == 200
+    assert got["transfers"] == (0, 1, 2)
+    # MAVFTP: a NAK of OpenFileRO with FileNotFound, QGC's cue to use PARAM_REQUEST_LIST.
+    assert got["ftp"][3] == 129 and got["ftp"][5] == 4 and got["ftp"][12] == 10
+    # Not "official": QGC compares an official version with the latest stable ArduPilot.
+    version = got["AUTOPILOT_VERSION"].flight_sw_version
+    assert version & 0xFF != mavlink.FIRMWARE_VERSION_TYPE_OFFICIAL
+
+
+async def test_the_video_stream_is_announced_by_port_at_the_rate_really_sent(
+    platform_factory: Factory, tmp_path: Path, gcs: Gcs
+) -> None:
+    video_port = free_udp_port()
+    daemon = await start(
+        platform_factory,
+        tmp_path,
+        gcs,
+        "navcam.enabled=true",
+        f"navcam.port={video_port}",
+        "navcam.framerate=30",
+        "navcam.idle_framerate=5",
+    )
+    await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 100)
+    since = gcs.mark()
+    gcs.send(
+        mavlink.MAVLink_command_long_message(
+            1,
+            100,
+            mavlink.MAV_CMD_REQUEST_MESSAGE,
+            0,
+            mavlink.MAVLINK_MSG_ID_VIDEO_STREAM_INFORMATION,
+            0,
+            0,
+            0,
+            0,
+            0,
+            0,
+        )
+    )
+    stream = await gcs.expect("VIDEO_STREAM_INFORMATION", since=since)
+    assert stream.uri == str(video_port)  # RTP over UDP: the port alone
+    # No manual override engaged: the NavCam sends its idle rate, not the configured 30.
+    assert daemon.ctx.media.nav_camera()["framerate"] == 5
+    assert stream.framerate == 5
