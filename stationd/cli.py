@@ -303,6 +303,7 @@ def cmd_route(args: argparse.Namespace, config: StationConfig) -> int:
             text=_read_file(items[0]),
             filename=Path(items[0]).name,
             fence=args.fence,
+            skip_unsupported=args.skip_unsupported,
         )
     elif args.fence:
         raise CliError("--fence reads a QGC .plan file's geofence: give one file")
@@ -311,6 +312,11 @@ def cmd_route(args: argparse.Namespace, config: StationConfig) -> int:
 
     def human(value: dict[str, Any]) -> str:
         kind = "closed, loops" if value["closed"] else "open, driven back in reverse"
+        laps = value.get("laps")
+        if laps:
+            kind = (
+                f"closed, {laps} laps, then stops" if value["closed"] else "driven once, then stops"
+            )
         fmt = f" from {value['format']}" if value.get("format") else ""
         added = value.get("keepouts_added") or []
         return (
@@ -623,6 +629,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--export", metavar="FILE", help="write the platform's route to FILE.plan or .waypoints"
+    )
+    p.add_argument(
+        "--skip-unsupported",
+        action="store_true",
+        help="a mission file's commands a rover cannot do are left out (each named), "
+        "instead of refusing the file",
     )
     p = sub.add_parser("patrol", parents=[common], help="the patrol's state; start or stop it")
     p.add_argument("id")

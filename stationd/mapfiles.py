@@ -57,9 +57,11 @@ class MapFilesApi:
         text: str,
         filename: str = "",
         fence: bool = False,
+        skip_unsupported: bool = False,
     ) -> dict[str, Any]:
         """Read a route file and set it as the platform's waypoints (``fence``: a plan's
-        exclusion fences are added as keep-outs first)."""
+        exclusion fences are added as keep-outs first; ``skip_unsupported``: a mission's
+        commands a rover cannot do are left out, each named in the notes)."""
         connection = await self.ctx.connection(platform_id)
         robot = await self._robot(platform_id)
         area = await connection.call("get_map")
@@ -70,7 +72,7 @@ class MapFilesApi:
             _read_route,
             text,
             filename,
-            fence,
+            (fence, skip_unsupported),
             boundary,
             robot,
             limit,
@@ -79,7 +81,8 @@ class MapFilesApi:
         if added:
             await connection.call("update_map", add=found.keepouts, remove=[])
         try:
-            answer = await connection.call("set_waypoints", waypoints=found.waypoints)
+            laps = {"laps": found.laps} if found.laps is not None else {}
+            answer = await connection.call("set_waypoints", waypoints=found.waypoints, **laps)
         except RpcError:
             if added:  # all or nothing: the fence's keep-outs go with the refused route
                 await connection.call("update_map", add=[], remove=added)
@@ -170,14 +173,15 @@ def _request_limit(parameters: Mapping[str, Any]) -> int:
 def _read_route(
     text: str,
     filename: str,
-    fence: bool,
+    options: tuple[bool, bool],
     boundary: list[tuple[float, float]] | None,
     robot: tuple[float, float] | None,
     limit: int,
 ) -> RouteImport:
     from brasidas.mapfiles.files import check_route_order, read_route
 
-    found = read_route(text, filename, fence=fence)
+    fence, skip_unsupported = options
+    found = read_route(text, filename, fence=fence, skip_unsupported=skip_unsupported)
     check_route_order(found, boundary, robot)
     _check_size(found.waypoints, limit, "the route", "fewer waypoints")
     _check_size(found.keepouts, limit, "the plan's fence", "fewer fence polygons and circles")

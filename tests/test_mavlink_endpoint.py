@@ -150,6 +150,7 @@ async def test_a_mission_becomes_the_route_and_downloads_back(
     daemon = await connected(platform_factory, tmp_path, gcs, "mavlink.allow_unsigned_control=true")
     corners = [at(0, 0), at(40, 0), at(40, 30), at(0, 30)]
     home = waypoint(0, *at(0, 0))
+    home.frame = mavlink.MAV_FRAME_GLOBAL  # home as ArduPilot's ground stations send it
     items = [home, *(waypoint(i + 1, *p) for i, p in enumerate(corners))]
     items.append(
         mavlink.MAVLink_mission_item_int_message(

@@ -538,6 +538,9 @@ class MavlinkSection:
     joystick). Anyone who can send a UDP datagram to the endpoint could then drive it."""
     camera: bool = True
     """Announce the NavCam as a MAVLink camera component (id 100) with its video stream."""
+    skip_unsupported: bool = False
+    """Mission uploads: leave out the items a rover cannot do (each named in the upload's
+    answer) instead of refusing the mission."""
 
 
 @dataclass(frozen=True)

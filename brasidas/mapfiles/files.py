@@ -68,6 +68,8 @@ class RouteImport:
     notes: list[str] = field(default_factory=list)
     keepouts: list[dict[str, Any]] = field(default_factory=list)
     home: tuple[float, float] | None = None
+    laps: int | None = None
+    """A mission's end (:attr:`brasidas.autonomy.route.Route.laps`)."""
 
     def positions(self) -> list[tuple[float, float]]:
         return [
@@ -115,15 +117,18 @@ def read_map(text: str, filename: str = "", options: MapOptions | None = None) -
     raise FileRefused(f"not a map format this station reads ({FORMATS_HELP})")
 
 
-def read_route(text: str, filename: str = "", *, fence: bool = False) -> RouteImport:
-    """A route file's waypoints, or FileRefused. ``fence``: a plan's exclusion fences too."""
+def read_route(
+    text: str, filename: str = "", *, fence: bool = False, skip_unsupported: bool = False
+) -> RouteImport:
+    """A route file's waypoints, or FileRefused. ``fence``: a plan's exclusion fences too;
+    ``skip_unsupported``: a mission's commands a rover cannot do are left out (named)."""
     body = _body(text)
     if qgc.is_wpl(body):
         items = qgc.wpl_items(body)
         fences = [item for item in items[1:] if item.command >= MavCmd.NAV_FENCE_RETURN_POINT]
         if fences and len(fences) == len(items) - 1:
             raise FileRefused("a fence or rally file, not a mission: load it with 'map'")
-        mission = qgc.wpl_route(body)
+        mission = qgc.wpl_route(body, skip_unsupported=skip_unsupported)
         return _mission_import(mission, "QGC WPL 110")
     if body.startswith("<"):
         root = parse_xml(body, filename or "the file")
@@ -136,7 +141,9 @@ def read_route(text: str, filename: str = "", *, fence: bool = False) -> RouteIm
     if body.startswith(("{", "[")):
         data = loads(body, filename or "the file")
         if qgc.is_plan(data):
-            result = _mission_import(qgc.plan_route(data), "QGC plan")
+            result = _mission_import(
+                qgc.plan_route(data, skip_unsupported=skip_unsupported), "QGC plan"
+            )
             if fence:
                 _plan_fence(data, result)
             return result
@@ -260,11 +267,7 @@ def _waypoint(lat: float, lon: float, name: str = "") -> dict[str, Any]:
 
 def _mission_import(mission: MissionRoute, fmt: str) -> RouteImport:
     return RouteImport(
-        [_waypoint(lat, lon) for lat, lon in mission.waypoints],
-        fmt,
-        mission.notes,
-        [],
-        mission.home,
+        list(mission.waypoint_items()), fmt, mission.notes, [], mission.home, mission.laps
     )
 
 

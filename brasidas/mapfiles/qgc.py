@@ -70,7 +70,7 @@ def wpl_items(text: str) -> list[MissionItem]:
     return items
 
 
-def wpl_route(text: str) -> MissionRoute:
+def wpl_route(text: str, *, skip_unsupported: bool = False) -> MissionRoute:
     """A ``.waypoints`` mission: row 0 is home, the rest waypoints (a DO_JUMP's param1 is a
     sequence number)."""
     items = wpl_items(text)
@@ -79,7 +79,9 @@ def wpl_route(text: str) -> MissionRoute:
         seq = item.params[0]
         return int(seq) if math.isfinite(seq) and 0 <= seq < len(items) else None
 
-    return route_from_items(items, home_first=True, jump_target=target)
+    return route_from_items(
+        items, home_first=True, jump_target=target, skip_unsupported=skip_unsupported
+    )
 
 
 def wpl_shapes(text: str) -> list[Shape]:
@@ -113,7 +115,7 @@ def is_plan(data: Any) -> bool:
     return isinstance(data, Mapping) and data.get("fileType") == "Plan"
 
 
-def plan_route(data: Mapping[str, Any]) -> MissionRoute:
+def plan_route(data: Mapping[str, Any], *, skip_unsupported: bool = False) -> MissionRoute:
     """A ``.plan`` mission: its SimpleItems (home is ``plannedHomePosition``, not an item)."""
     mission = _section(data, "mission")
     raw = mission.get("items", [])
@@ -125,10 +127,20 @@ def plan_route(data: Mapping[str, Any]) -> MissionRoute:
     def target(item: MissionItem) -> int | None:
         return by_jump_id.get(int(item.params[0])) if math.isfinite(item.params[0]) else None
 
-    route = route_from_items(items, home_first=False, jump_target=target)
     home = mission.get("plannedHomePosition")
-    if isinstance(home, list) and len(home) >= 2 and all(_number(v) for v in home[:2]):
-        route.home = (float(home[0]), float(home[1]))
+    planned = (
+        (float(home[0]), float(home[1]))
+        if isinstance(home, list) and len(home) >= 2 and all(_number(v) for v in home[:2])
+        else None
+    )
+    route = route_from_items(
+        items,
+        home_first=False,
+        jump_target=target,
+        skip_unsupported=skip_unsupported,
+        home=planned,
+    )
+    if route.home is not None:
         route.notes.append(
             f"planned home {route.home[0]:.7f}, {route.home[1]:.7f} is not a waypoint"
         )

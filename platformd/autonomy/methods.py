@@ -70,17 +70,23 @@ class PatrolMethods:
             "closed": self.actor.core.route.closed,
         }
 
-    async def set_waypoints(self, call: CallContext, waypoints: Any) -> dict[str, Any]:
-        """Replace the waypoints on the fly: "LAT,LON", point names, [lat, lon] or {lat, lon}."""
+    async def set_waypoints(
+        self, call: CallContext, waypoints: Any, laps: Any = None
+    ) -> dict[str, Any]:
+        """Replace the waypoints on the fly: "LAT,LON", point names, [lat, lon] or {lat, lon
+        [, speed]}; ``laps``: stop after that many laps (once at an open route's end)."""
         if not isinstance(waypoints, list):
             raise RpcError(INVALID_PARAMS, "waypoints refused: expected a list")
+        if laps is not None and (isinstance(laps, bool) or not isinstance(laps, int) or laps < 1):
+            raise RpcError(INVALID_PARAMS, "waypoints refused: 'laps' is a whole number ≥ 1")
         try:
-            route = await self.actor.set_waypoints(waypoints)
+            route = await self.actor.set_waypoints(waypoints, laps)
         except RouteError as exc:
             raise RpcError(INVALID_PARAMS, f"waypoints refused: {exc}") from None
         return {
             "waypoints": route.as_list(),
             "closed": route.closed,
+            "laps": route.laps,
             "patrol": self.actor.report.as_dict(),
         }
 

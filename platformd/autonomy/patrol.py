@@ -18,6 +18,7 @@ map is, never on a platform without one.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import math
 import secrets
@@ -463,21 +464,21 @@ class PatrolActor(Actor):
         write_atomically(self.storage.map_file, text.decode())
         return area, text, orjson.dumps({"add": add, "remove": remove})
 
-    async def set_waypoints(self, items: list[Any]) -> Route:
+    async def set_waypoints(self, items: list[Any], laps: int | None = None) -> Route:
         """Replace the waypoints on the fly (R-5.3.3.3); stored before they are used (checks
-        and the file in a worker thread)."""
+        and the file in a worker thread). ``laps``: :attr:`Route.laps` (a mission's end)."""
         async with self._changing:
             area = self.core.area
             if area is None:
                 raise RouteError("no map loaded: load one first")
-            route = await asyncio.to_thread(self._new_route, area, items)
+            route = await asyncio.to_thread(self._new_route, area, items, laps)
             self.core.set_route(route)
         self.tick()
         return route
 
-    def _new_route(self, area: AreaMap, items: list[Any]) -> Route:
+    def _new_route(self, area: AreaMap, items: list[Any], laps: int | None = None) -> Route:
         """(Worker thread.) Parse, check and store waypoints on ``area``."""
-        route = parse_waypoints(items, area.points)
+        route = dataclasses.replace(parse_waypoints(items, area.points), laps=laps)
         check_route(route, area)
         self.routes.save(route, area.load_id)
         return route

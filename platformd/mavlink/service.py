@@ -145,6 +145,8 @@ class MavlinkService(Actor):
         self._requests: asyncio.Queue[Request] = asyncio.Queue(maxsize=64)
         self._uploaded: tuple[Any, list[MissionItem]] | None = None
         """The last accepted mission's route and items: downloads return them verbatim."""
+        self._uploaded_seqs: tuple[int, ...] = ()
+        """Its waypoints' item numbers (MISSION_CURRENT)."""
         self._video_sessions: set[str] = set()
         self._override = OverrideState(False)
         self._patrol_state: PatrolState | None = None
@@ -448,12 +450,12 @@ class MavlinkService(Actor):
         items = list(request.items)
         try:
             if request.mission_type == MISSION:
-                plan = route_from_items(items)
-                route = await patrol.set_waypoints([list(point) for point in plan.waypoints])
+                plan = route_from_items(items, skip_unsupported=self.config.skip_unsupported)
+                route = await patrol.set_waypoints(plan.waypoint_items(), plan.laps)
                 self._uploaded = (route, items) if items else None
-                text = f"mission: {len(route.waypoints)} waypoints" + (
-                    ", closed" if route.closed else ""
-                )
+                self._uploaded_seqs = tuple(plan.seqs)
+                self.vehicle.state.waypoint_seqs = self._uploaded_seqs
+                text = mission_summary(route, plan.notes)
             else:
                 fence = fence_from_items(items)
                 area = await patrol.reshape_map(self._fence_map(fence))
@@ -592,6 +594,10 @@ class MavlinkService(Actor):
         state = self.vehicle.state
         state.waypoint = status.waypoint
         state.waypoints = status.waypoints
+        patrol = self.ctx.patrol
+        uploaded = self._uploaded
+        current = patrol is not None and uploaded is not None and uploaded[0] == patrol.core.route
+        state.waypoint_seqs = self._uploaded_seqs if current else ()
         self._patrol_state = status.state
         self._update_mode()
 
@@ -677,3 +683,16 @@ def _polygon(ring: tuple[tuple[float, float], ...]) -> dict[str, Any]:
 def _position_result() -> int:
     """A waypoint or vertex the map refuses (outside the boundary, in a keep-out)."""
     return int(mavlink.MAV_MISSION_INVALID_PARAM5_X)
+
+
+def mission_summary(route: Any, notes: list[str]) -> str:
+    """An accepted mission's answer: waypoints, loop or laps, and each item skipped."""
+    text = f"mission: {len(route.waypoints)} waypoints"
+    if route.closed:
+        text += ", closed" + (f", {route.laps} laps" if route.laps else "")
+    elif route.laps:
+        text += ", once"
+    skipped = [note for note in notes if note.endswith(": skipped")]
+    if skipped:
+        text += "; " + "; ".join(skipped)
+    return text

@@ -22,7 +22,7 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from brasidas.messages import Attitude, ControllerStatus, GpsFix, PoseEstimate
-from platformd.mavlink import ftp, modes, protocol_version
+from platformd.mavlink import ftp, missions, modes, protocol_version
 from platformd.mavlink.missions import FENCE, MAX_ITEMS, MISSION, RALLY, MissionItem, command_name
 from platformd.mavlink.modes import FlightMode
 from platformd.mavlink.signing import SignatureCheck, Verdict, timestamp_at
@@ -141,6 +141,9 @@ class VehicleState:
     waypoint: int | None = None
     """The patrol's target (route index), None when idle."""
     waypoints: int = 0
+    waypoint_seqs: tuple[int, ...] = ()
+    """The mission item of each route waypoint, when an uploaded mission is the route (its
+    speed items and a home-less first item shift the numbering); empty: index + 1."""
     home: tuple[float, float, float] | None = None
     inside_fence: bool | None = None
     """The robot inside the map's boundary and out of its keep-outs; None without a map."""
@@ -393,7 +396,7 @@ class MavlinkVehicle:
         elif text:
             self._statustext_to(link, Severity.INFO if accepted else Severity.WARNING, text)
         if accepted:
-            self.state.waypoint = request.seq - 1
+            self.state.waypoint = missions.route_index(self.state.waypoint_seqs, request.seq)
             self._send(link, self._mission_current())
 
     def statustext(self, severity: int, text: str) -> None:
@@ -611,8 +614,15 @@ class MavlinkVehicle:
     def _mission_current(self) -> Any:
         """The patrol's target as a mission item (route index + 1: item 0 is home)."""
         state = self.state
-        seq = state.waypoint + 1 if state.waypoint is not None else 0
-        return mavlink.MAVLink_mission_current_message(seq, state.waypoints + 1)
+        seqs = state.waypoint_seqs
+        if state.waypoint is None:
+            seq = 0
+        elif state.waypoint < len(seqs):
+            seq = seqs[state.waypoint]
+        else:
+            seq = state.waypoint + 1
+        total = seqs[-1] + 1 if seqs else state.waypoints + 1
+        return mavlink.MAVLink_mission_current_message(seq, total)
 
     def _home_position(self) -> Any | None:
         home = self.state.home
