@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
+import secrets
 import time
 from pathlib import Path
 from typing import Any
@@ -41,7 +43,14 @@ from brasidas.messages import (
 )
 from brasidas.recording import schemas
 from brasidas.recording.schemas import LOG_INFO, LOG_WARNING, ChannelSpec
-from brasidas.recording.writer import Quota, Recorder, list_recordings, resolve_name
+from brasidas.recording.writer import (
+    ACTIVE_SUFFIX,
+    Quota,
+    Recorder,
+    list_recordings,
+    recover_file,
+    resolve_name,
+)
 from brasidas.security import state_dir
 from platformd.context import PlatformContext
 
@@ -50,6 +59,8 @@ _LOGGER = logging.getLogger(__name__)
 SESSION_HEADER = "X-Brasidas-Session"
 """The header a download carries its session token in."""
 REASON_MAX_CHARS = 60
+DOWNLOAD_CHUNK = 256 * 1024
+"""Bytes read (in a thread) per write of a recording being written's download."""
 """Telemetry carries this much of why recording stopped (an OSError may name a long path):
 the section stays small (a stopped recorder on top of the fullest snapshot may take a datagram
 of its own: the encoder splits by section)."""
@@ -319,7 +330,30 @@ class PlatformRecorder(Actor):
         path = resolve_name(self.directory, request.match_info["name"])
         if path is None:
             raise web.HTTPNotFound(text="no such recording")
+        if path.name.endswith(ACTIVE_SUFFIX):
+            return await self._snapshot_download(request, path)
         return web.FileResponse(path, headers={"Content-Type": "application/octet-stream"})
+
+    async def _snapshot_download(self, request: web.Request, path: Path) -> web.StreamResponse:
+        """The file being written, as a complete MCAP up to its last closed chunk (summary
+        and footer written): what readers open. A new copy each time, so ranges are not
+        honoured (200, the whole copy: a resuming client starts over)."""
+        copy = path.with_name(f".{path.name}.{secrets.token_hex(4)}.download")
+        try:
+            await asyncio.to_thread(recover_file, path, copy)
+            stream = await asyncio.to_thread(open, copy, "rb")
+        finally:
+            copy.unlink(missing_ok=True)  # the open file stays readable until closed
+        with stream:
+            size = os.fstat(stream.fileno()).st_size
+            response = web.StreamResponse(
+                headers={"Content-Type": "application/octet-stream", "Content-Length": str(size)}
+            )
+            await response.prepare(request)
+            while chunk := await asyncio.to_thread(stream.read, DOWNLOAD_CHUNK):
+                await response.write(chunk)
+        await response.write_eof()
+        return response
 
 
 def recordings_dir(ctx: PlatformContext) -> Path:
