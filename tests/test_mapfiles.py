@@ -574,3 +574,24 @@ def test_a_kmz_is_named_as_a_zip_archive() -> None:
         kmz.writestr("doc.kml", (DATA / "field.kml").read_text())
     with pytest.raises(FileRefused, match="a zip archive \\(a KMZ\\?\\)"):
         read_map(archive.getvalue().decode("latin-1"), "field.kmz")
+
+
+def test_a_circle_keepout_holds_the_whole_circle_and_an_inclusion_stays_inside() -> None:
+    """At 500 m radius an inscribed 32-gon leaves 2.4 m of the circle outside a keep-out (more
+    than an RTK clearance): keep-outs are circumscribed, inclusions inscribed."""
+    from shapely import Point
+
+    from brasidas.autonomy.geo import LocalFrame
+    from brasidas.mapfiles.shapes import circle
+
+    lat, lon, radius = -36.88, 174.82, 500.0
+    frame = LocalFrame(lat, lon)
+    keepout = circle("c", 0, lat, lon, radius, role="keepout", ident="k")
+    inclusion = circle("c", 0, lat, lon, radius, role="inclusion", ident="i")
+    for k in range(360):
+        angle = math.radians(k + 0.5)
+        on_circle = frame.to_geo(radius * math.cos(angle), radius * math.sin(angle))
+        assert keepout.geometry.buffer(1e-9).covers(Point(on_circle[1], on_circle[0]))
+    for x, y in inclusion.geometry.exterior.coords:
+        east, north = frame.to_local(y, x)
+        assert math.hypot(east, north) <= radius + 1e-3

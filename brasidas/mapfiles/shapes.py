@@ -148,15 +148,18 @@ def circle(
     ident: str,
     vertices: int = CIRCLE_VERTICES,
 ) -> Shape:
-    """A circle as a polygon of ``vertices`` corners on it (the polygon lies inside the circle)."""
+    """A circle as a polygon of ``vertices`` corners: a keep-out's polygon holds the circle
+    (circumscribed: corners at r / cos(π/n), so no point of the circle is left out), an
+    inclusion's lies inside it (inscribed: corners on it), each erring on the safe side."""
     check_position(longitude, latitude, label)
     if not (math.isfinite(radius_m) and 0.5 <= radius_m <= 10_000):
         raise FileRefused(f"{label}: radius {radius_m} m is not between 0.5 m and 10 km")
     frame = LocalFrame(latitude, longitude)
+    corner_m = radius_m / math.cos(math.pi / vertices) if role == "keepout" else radius_m
     ring = []
     for k in range(vertices):
         angle = 2 * math.pi * k / vertices
-        lat, lon = frame.to_geo(radius_m * math.cos(angle), radius_m * math.sin(angle))
+        lat, lon = frame.to_geo(corner_m * math.cos(angle), corner_m * math.sin(angle))
         ring.append((lon, lat))
     ring.append(ring[0])
     properties = {"circle_radius_m": radius_m, "circle_vertices": vertices}
