@@ -320,6 +320,9 @@ def test_mission_routes_home_jumps_and_refused_commands() -> None:
     with pytest.raises(FileRefused, match="mission item 1: a 'survey' pattern"):
         read_route(json.dumps(survey))
     assert command_name(22) == "MAV_CMD_NAV_TAKEOFF (22)" and command_name(31999) == "MAV_CMD 31999"
+    # Refusals name commands as pymavlink does, not by number alone.
+    assert command_name(211) == "MAV_CMD_DO_GRIPPER (211)"
+    assert command_name(92) == "MAV_CMD_NAV_GUIDED_ENABLE (92)"
 
 
 def test_route_text_and_json_forms() -> None:

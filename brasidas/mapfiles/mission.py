@@ -115,8 +115,18 @@ def command_name(command: int) -> str:
     try:
         name = MavCmd(command).name
     except ValueError:
-        name = OTHER_NAMES.get(command, "")
+        name = OTHER_NAMES.get(command, "") or _pymavlink_name(command)
     return f"MAV_CMD_{name} ({command})" if name else f"MAV_CMD {command}"
+
+
+def _pymavlink_name(command: int) -> str:
+    """The name in pymavlink's MAV_CMD table (ArduPilot's dialect: common.xml and its own),
+    without the ``MAV_CMD_`` prefix; empty for a number it does not know."""
+    from pymavlink.dialects.v20 import ardupilotmega
+
+    entry = ardupilotmega.enums["MAV_CMD"].get(command)
+    name = entry.name if entry is not None else ""
+    return name.removeprefix("MAV_CMD_") if name.startswith("MAV_CMD_") else ""
 
 
 def frame_name(frame: int) -> str:
