@@ -1,19 +1,23 @@
 """QGroundControl's connect sequence, replayed from its source with pymavlink and its
 timeouts, against a --sim platform over loopback UDP: every step answered at once (no
-"Loading parameters" stall, fences on, no firmware popup, the video the spec's way)."""
+"Loading parameters" stall, fences on, no firmware popup, the video the spec's way); and
+driving from a ground station with RC overrides."""
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import free_udp_port
+from conftest import free_udp_port, wait_until
 from mavlink_gcs import Gcs, qgc_connect, sim_rover_config
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from brasidas import topics
+from brasidas.messages import Velocity
 from platformd.app import PlatformDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
@@ -90,3 +94,37 @@ async def test_the_video_stream_is_announced_by_port_at_the_rate_really_sent(
     # No manual override engaged: the NavCam sends its idle rate, not the configured 30.
     assert daemon.ctx.media.nav_camera()["framerate"] == 5
     assert stream.framerate == 5
+
+
+def rc_override(steering_us: int, throttle_us: int) -> Any:
+    return mavlink.MAVLink_rc_channels_override_message(
+        1, 1, steering_us, 0, throttle_us, 0, 0, 0, 0, 0
+    )
+
+
+async def test_rc_overrides_drive_like_the_joystick_through_the_deadman(
+    platform_factory: Factory, tmp_path: Path, gcs: Gcs
+) -> None:
+    """MAVProxy's ``rc 3 1750`` (RC_CHANNELS_OVERRIDE): moves nothing before MANUAL, drives in
+    MANUAL (throttle channel 3, steering channel 1 to the right), and stops when it stops."""
+    daemon = await start(platform_factory, tmp_path, gcs, "mavlink.allow_unsigned_control=true")
+    commands: list[Velocity] = []
+    daemon.bus.subscribe(topics.MOTOR_COMMAND, commands.append)
+    gcs.send(rc_override(1500, 1750))
+    since = gcs.mark()
+    gcs.send(
+        mavlink.MAVLink_command_long_message(
+            1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 0, 0, 0, 0, 0, 0
+        )
+    )
+    ack = await gcs.expect("COMMAND_ACK", since=since)
+    assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+    assert not any(c.linear for c in commands)
+    trips = daemon.ctx.telemetry.counters["arbiter"]()["deadman_trips"]
+    for _ in range(5):
+        gcs.send(rc_override(1375, 1750))  # half ahead, a quarter to the left
+        await asyncio.sleep(0.05)
+    await wait_until(lambda: Velocity(0.5, 0.25) in commands)
+    moving = commands.index(Velocity(0.5, 0.25))
+    await wait_until(lambda: Velocity(0.0, 0.0) in commands[moving:])
+    assert daemon.ctx.telemetry.counters["arbiter"]()["deadman_trips"] > trips

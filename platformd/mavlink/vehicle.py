@@ -22,7 +22,7 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from brasidas.messages import Attitude, ControllerStatus, GpsFix, PoseEstimate
-from platformd.mavlink import ftp, missions, modes, protocol_version
+from platformd.mavlink import ftp, manual, missions, modes, protocol_version
 from platformd.mavlink.missions import FENCE, MAX_ITEMS, MISSION, RALLY, MissionItem, command_name
 from platformd.mavlink.modes import FlightMode
 from platformd.mavlink.signing import SignatureCheck, Verdict, timestamp_at
@@ -838,6 +838,17 @@ class MavlinkVehicle:
         angular = -_axis(message.r)  # MAVLink's r is yaw to the right; ours turns left
         return [ManualInput(peer, system, component, signed, linear, angular)]
 
+    def _on_rc_override(self, link: Link, message: Any, origin: Any, now: float) -> list[Request]:
+        """RC_CHANNELS_OVERRIDE: the joystick as ArduRover's channels (see manual.py)."""
+        peer, system, component, signed = origin
+        if message.target_system not in (0, self.system_id):
+            return []
+        if not (signed or self.allow_unsigned_control):
+            self.counters["refused_unsigned"] += 1
+            return []
+        linear, angular = manual.rc_velocity(message)
+        return [ManualInput(peer, system, component, signed, linear, angular)]
+
     def _on_param_request_list(
         self, link: Link, message: Any, origin: Any, now: float
     ) -> list[Request]:
@@ -1181,6 +1192,7 @@ _HANDLERS: dict[str, _Handler] = {
     "COMMAND_INT": MavlinkVehicle._on_command,
     "SET_MODE": MavlinkVehicle._on_set_mode,
     "MANUAL_CONTROL": MavlinkVehicle._on_manual_control,
+    "RC_CHANNELS_OVERRIDE": MavlinkVehicle._on_rc_override,
     "PARAM_REQUEST_LIST": MavlinkVehicle._on_param_request_list,
     "PARAM_REQUEST_READ": MavlinkVehicle._on_param_request_read,
     "PARAM_SET": MavlinkVehicle._on_param_set,
