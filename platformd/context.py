@@ -108,6 +108,13 @@ class PatrolHandle(Protocol):
     async def reshape_map(self, source: Mapping[str, Any]) -> AreaMap:
         """Replace boundary and keep-outs, keeping the route; raises MapError or RouteError."""
 
+    @property
+    def detour(self) -> str | None:
+        """Driving to one point (a go-to or RTL): its label; None otherwise."""
+
+    async def go_to_point(self, latitude: float, longitude: float, label: str) -> Route:
+        """Drive to one point through the planner and stop there; raises RouteError."""
+
     def start_patrol(self) -> None:
         """Start patrolling the route; raises RouteError."""
 

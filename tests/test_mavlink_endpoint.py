@@ -203,7 +203,7 @@ async def test_modes_start_and_stop_the_patrol(
     ack = await gcs.command(mavlink.MAV_CMD_MISSION_START)
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED
     await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1 and m.custom_mode == 10)
-    ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 15)  # GUIDED: not ours
+    ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 3)  # STEERING: not ours
     assert ack.result == mavlink.MAV_RESULT_UNSUPPORTED
 
 

@@ -6,6 +6,7 @@ driving from a ground station with RC overrides."""
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
@@ -13,7 +14,7 @@ from typing import Any
 
 import pytest
 from conftest import free_udp_port, wait_until
-from mavlink_gcs import Gcs, qgc_connect, sim_rover_config
+from mavlink_gcs import Gcs, at, qgc_connect, sim_rover_config
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from brasidas import topics
@@ -128,3 +129,80 @@ async def test_rc_overrides_drive_like_the_joystick_through_the_deadman(
     moving = commands.index(Velocity(0.5, 0.25))
     await wait_until(lambda: Velocity(0.0, 0.0) in commands[moving:])
     assert daemon.ctx.telemetry.counters["arbiter"]()["deadman_trips"] > trips
+
+
+async def test_guided_goes_to_a_point_around_the_keepout_and_rtl_comes_home(
+    platform_factory: Factory, tmp_path: Path, gcs: Gcs
+) -> None:
+    """QGroundControl's "Go to location" (DO_REPOSITION): GUIDED, planned around the shed
+    (the straight line crosses it), stopped there; RTL drives home the same way; AUTO goes back
+    to the patrol's own route, which was kept."""
+    from shapely import LineString
+
+    daemon = await start(platform_factory, tmp_path, gcs, "mavlink.allow_unsigned_control=true")
+    patrol = daemon.ctx.patrol
+    assert patrol is not None
+    await wait_until(lambda: patrol.core.area is not None and patrol.core.route.waypoints)
+    route = patrol.core.route
+    await gcs.expect("HOME_POSITION", timeout=15)
+    goal = at(30, 25)  # the straight line from the start crosses the shed (east 15-25, north 10-20)
+    since = gcs.mark()
+    gcs.send(
+        mavlink.MAVLink_command_int_message(
+            1,
+            1,
+            mavlink.MAV_FRAME_GLOBAL_INT,
+            mavlink.MAV_CMD_DO_REPOSITION,
+            0,
+            0,
+            -1,
+            0,
+            0,
+            float("nan"),
+            round(goal[0] * 1e7),
+            round(goal[1] * 1e7),
+            0,
+        )
+    )
+    ack = await gcs.expect(
+        "COMMAND_ACK", lambda m: m.command == mavlink.MAV_CMD_DO_REPOSITION, since=since
+    )
+    assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+    await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1 and m.custom_mode == 15)
+    area = patrol.core.area
+    assert area is not None
+    shed = area.keepouts["shed"]
+
+    def planned() -> tuple[tuple[float, float], ...]:
+        return patrol.core.planned_path
+
+    await wait_until(lambda: len(planned()) >= 3, 20)  # around, not straight through
+    assert not LineString(planned()).intersects(shed)
+    await wait_until(lambda: patrol.core.reason.startswith("mission complete"), 90)
+    pose = daemon.bus.last(topics.POSE)
+    assert pose is not None
+    assert math.dist(area.local(pose.latitude, pose.longitude), area.local(*goal)) < 2.0
+    await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1 and m.custom_mode == 15)
+
+    since = gcs.mark()
+    gcs.send(
+        mavlink.MAVLink_command_long_message(
+            1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 11, 0, 0, 0, 0, 0
+        )
+    )
+    ack = await gcs.expect("COMMAND_ACK", since=since)
+    assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+    await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1 and m.custom_mode == 11)
+    assert patrol.detour == "home"
+    (home,) = patrol.core.route.waypoints
+    assert home.name == "home"
+
+    since = gcs.mark()
+    gcs.send(
+        mavlink.MAVLink_command_long_message(
+            1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 10, 0, 0, 0, 0, 0
+        )
+    )
+    ack = await gcs.expect("COMMAND_ACK", since=since)
+    assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+    assert patrol.core.route == route and patrol.detour is None

@@ -39,6 +39,7 @@ from brasidas.autonomy.route import (
     Route,
     RouteError,
     RouteStore,
+    Waypoint,
     check_route,
     parse_waypoints,
     remove_stale_temporaries,
@@ -99,6 +100,10 @@ class PatrolActor(Actor):
         self.core.enabled = enabled
         self.storage = storage
         self.routes = RouteStore(storage.route_file)
+        self.detour: str | None = None
+        """Driving to one point (``go_to_point``'s label), the route kept aside; None: the
+        route is the patrol's own."""
+        self._kept_route = Route()
         self.period = 1.0 / rate_hz
         self.autostart = autostart
         self.demo = demo
@@ -472,6 +477,7 @@ class PatrolActor(Actor):
             if area is None:
                 raise RouteError("no map loaded: load one first")
             route = await asyncio.to_thread(self._new_route, area, items, laps)
+            self.detour = None
             self.core.set_route(route)
         self.tick()
         return route
@@ -483,7 +489,29 @@ class PatrolActor(Actor):
         self.routes.save(route, area.load_id)
         return route
 
+    async def go_to_point(self, latitude: float, longitude: float, label: str) -> Route:
+        """Drive to one point through the planner (around keep-outs) and stop there: a ground
+        station's GUIDED go-to or RTL. The route is kept, not stored over: ``start_patrol``
+        goes back to it. Raises RouteError (no map, a point the map refuses)."""
+        area = self.core.area
+        if area is None:
+            raise RouteError("no map loaded")
+        if not self.core.enabled:
+            raise RouteError("the patrol is switched off (command 10.8)")
+        route = Route((Waypoint(latitude, longitude, label),), laps=1)
+        await asyncio.to_thread(check_route, route, area)
+        if self.detour is None:
+            self._kept_route = self.core.route
+        self.detour = label
+        self.core.set_route(route)
+        self.core.start()
+        self.tick()
+        return route
+
     def start_patrol(self) -> None:
+        if self.detour is not None:  # back from a go-to: the patrol's own route again
+            self.core.set_route(self._kept_route)
+            self.detour = None
         if not self.core.enabled:
             raise RouteError("the patrol is switched off (command 10.8)")
         if self.core.area is None:

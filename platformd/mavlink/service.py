@@ -65,6 +65,7 @@ from platformd.mavlink.missions import (
 from platformd.mavlink.modes import FlightMode
 from platformd.mavlink.vehicle import (
     CameraInfo,
+    GoTo,
     ManualInput,
     MavlinkVehicle,
     Peer,
@@ -150,6 +151,8 @@ class MavlinkService(Actor):
         self._video_sessions: set[str] = set()
         self._override = OverrideState(False)
         self._patrol_state: PatrolState | None = None
+        self._guided: FlightMode | None = None
+        """GUIDED or RTL while going to a point (or stopped at it); None otherwise."""
         telemetry = ctx.config.telemetry
         # The station's group 90 warnings (brasidas.annunciator), from the platform's own
         # telemetry (the link's two, degraded and control taken, are a station's view:
@@ -358,6 +361,44 @@ class MavlinkService(Actor):
             await self._start_video(request)
         elif isinstance(request, SetCurrent):
             self._set_current(request)
+        elif isinstance(request, GoTo):
+            await self._go_to(request, FlightMode.GUIDED)
+
+    async def _go_to(self, request: GoTo | SetMode, mode: FlightMode) -> None:
+        """GUIDED's point or RTL's home through the patrol's ``go_to_point`` (the planner,
+        around keep-outs; stops there), for the control holder only."""
+        vehicle = self.vehicle
+        what = "go to" if mode is FlightMode.GUIDED else "RTL"
+        refusal = self._refused(request, what)
+        if refusal is not None:
+            vehicle.answer_command(
+                request, mavlink.MAV_RESULT_DENIED, refusal, holder_system=self._holder_system()
+            )
+            return
+        patrol = self.ctx.patrol
+        if patrol is None:
+            vehicle.answer_command(request, mavlink.MAV_RESULT_UNSUPPORTED, "no patrol here")
+            return
+        if isinstance(request, GoTo):
+            point, label = (request.latitude, request.longitude), "guided"
+        elif vehicle.state.home is not None:
+            point, label = vehicle.state.home[:2], "home"
+        else:
+            vehicle.answer_command(request, mavlink.MAV_RESULT_FAILED, "RTL: no home yet")
+            return
+        try:
+            await patrol.go_to_point(point[0], point[1], label)
+        except RouteError as exc:
+            vehicle.answer_command(request, mavlink.MAV_RESULT_FAILED, f"{what} refused: {exc}")
+            return
+        session = self._session(request)
+        if self._override.engaged and self._override.session_id == session.session_id:
+            await self.ctx.commands.dispatch(MANUAL_OVERRIDE, "off", session)
+        self._guided = mode
+        self._update_mode()
+        _LOGGER.info("MAVLink: %s %.7f, %.7f from %s", what, point[0], point[1], request.peer)
+        if request.command is not None:
+            vehicle.answer_command(request, mavlink.MAV_RESULT_ACCEPTED)
 
     def _refused(self, request: Request, what: str) -> str | None:
         return self.ctx.authority.refusal(self._session(request), what)
@@ -377,12 +418,16 @@ class MavlinkService(Actor):
                 return
             vehicle.answer_command(request, mavlink.MAV_RESULT_ACCEPTED)
             return
+        if request.mode is FlightMode.RTL:
+            await self._go_to(request, FlightMode.RTL)
+            return
         refusal = self._refused(request, f"mode {request.mode.name}")
         if refusal is not None:
             vehicle.answer_command(
                 request, mavlink.MAV_RESULT_DENIED, refusal, holder_system=self._holder_system()
             )
             return
+        self._guided = FlightMode.GUIDED if request.mode is FlightMode.GUIDED else None
         patrol = self.ctx.patrol
         if request.mode is FlightMode.AUTO:
             if patrol is None:
@@ -602,9 +647,14 @@ class MavlinkService(Actor):
         self._update_mode()
 
     def _update_mode(self) -> None:
+        patrol = self.ctx.patrol
+        patrolling = self._patrol_state is PatrolState.PATROLLING
+        detour = patrol is not None and patrol.detour is not None
         if self._override.engaged:
             mode = FlightMode.MANUAL
-        elif self._patrol_state is PatrolState.PATROLLING:
+        elif self._guided is not None and (detour or not patrolling):
+            mode = self._guided  # GUIDED or RTL: driving to the point, or stopped there
+        elif patrolling:
             mode = FlightMode.AUTO
         else:
             mode = FlightMode.HOLD

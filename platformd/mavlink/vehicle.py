@@ -22,7 +22,7 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from brasidas.messages import Attitude, ControllerStatus, GpsFix, PoseEstimate
-from platformd.mavlink import ftp, manual, missions, modes, protocol_version
+from platformd.mavlink import ftp, guided, manual, missions, modes, protocol_version
 from platformd.mavlink.missions import FENCE, MAX_ITEMS, MISSION, RALLY, MissionItem, command_name
 from platformd.mavlink.modes import FlightMode
 from platformd.mavlink.signing import SignatureCheck, Verdict, timestamp_at
@@ -83,6 +83,16 @@ class UploadItems(Request):
 
     mission_type: int
     items: tuple[MissionItem, ...]
+
+
+@dataclass(frozen=True)
+class GoTo(Request):
+    """GUIDED: drive to (latitude, longitude) and stop (DO_REPOSITION, or
+    SET_POSITION_TARGET_GLOBAL_INT with ``command`` None: no COMMAND_ACK)."""
+
+    latitude: float
+    longitude: float
+    command: int | None
 
 
 @dataclass(frozen=True)
@@ -357,7 +367,7 @@ class MavlinkVehicle:
         if link is None:
             return
         if command is None:
-            asked = request.command if isinstance(request, SetMode | SetCurrent) else None
+            asked = request.command if isinstance(request, SetMode | SetCurrent | GoTo) else None
             command = asked or 0
         self._send(
             link,
@@ -730,12 +740,20 @@ class MavlinkVehicle:
             if mode is None:
                 ack(
                     mavlink.MAV_RESULT_UNSUPPORTED,
-                    f"mode {int(params[1])} is not a Brasidas mode (MANUAL, HOLD, AUTO)",
+                    f"mode {int(params[1])} is not a Brasidas mode (MANUAL, HOLD, AUTO, RTL, GUIDED)",
                 )
                 return []
             if not self._may_control(signed, "set mode", ack, mavlink.MAV_RESULT_DENIED):
                 return []
             return [SetMode(peer, system, component, signed, mode, command)]
+        if command == mavlink.MAV_CMD_DO_REPOSITION:
+            target = guided.reposition_target(message)
+            if target is None:
+                ack(mavlink.MAV_RESULT_DENIED, "go to: no latitude, longitude in a global frame")
+                return []
+            if not self._may_control(signed, "go to", ack, mavlink.MAV_RESULT_DENIED):
+                return []
+            return [GoTo(peer, system, component, signed, *target, command)]
         if command == mavlink.MAV_CMD_DO_SET_MISSION_CURRENT:
             if not self._may_control(signed, "set current", ack, mavlink.MAV_RESULT_DENIED):
                 return []
@@ -810,7 +828,7 @@ class MavlinkVehicle:
         if mode is None or not message.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
             ack(
                 mavlink.MAV_RESULT_UNSUPPORTED,
-                f"mode {message.custom_mode} is not a Brasidas mode (MANUAL, HOLD, AUTO)",
+                f"mode {message.custom_mode} is not a Brasidas mode (MANUAL, HOLD, AUTO, RTL, GUIDED)",
             )
             return []
         if not self._may_control(signed, "set mode", ack, mavlink.MAV_RESULT_DENIED):
@@ -837,6 +855,21 @@ class MavlinkVehicle:
         linear = _axis(message.x)
         angular = -_axis(message.r)  # MAVLink's r is yaw to the right; ours turns left
         return [ManualInput(peer, system, component, signed, linear, angular)]
+
+    def _on_position_target(
+        self, link: Link, message: Any, origin: Any, now: float
+    ) -> list[Request]:
+        """SET_POSITION_TARGET_GLOBAL_INT: a go-to (no answer but the mode and the position)."""
+        peer, system, component, signed = origin
+        if message.target_system not in (0, self.system_id):
+            return []
+        if not (signed or self.allow_unsigned_control):
+            self.counters["refused_unsigned"] += 1
+            return []
+        target = guided.position_target(message)
+        if target is None:
+            return []
+        return [GoTo(peer, system, component, signed, *target, None)]
 
     def _on_rc_override(self, link: Link, message: Any, origin: Any, now: float) -> list[Request]:
         """RC_CHANNELS_OVERRIDE: the joystick as ArduRover's channels (see manual.py)."""
@@ -1193,6 +1226,7 @@ _HANDLERS: dict[str, _Handler] = {
     "SET_MODE": MavlinkVehicle._on_set_mode,
     "MANUAL_CONTROL": MavlinkVehicle._on_manual_control,
     "RC_CHANNELS_OVERRIDE": MavlinkVehicle._on_rc_override,
+    "SET_POSITION_TARGET_GLOBAL_INT": MavlinkVehicle._on_position_target,
     "PARAM_REQUEST_LIST": MavlinkVehicle._on_param_request_list,
     "PARAM_REQUEST_READ": MavlinkVehicle._on_param_request_read,
     "PARAM_SET": MavlinkVehicle._on_param_set,
