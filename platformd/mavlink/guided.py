@@ -2,7 +2,8 @@
 
 QGroundControl's "Go to location" and MAVSDK's ``goto_location`` send ``MAV_CMD_DO_REPOSITION``
 (COMMAND_INT: x, y in degrees times 1e7; COMMAND_LONG: param5, param6 in degrees); others stream
-SET_POSITION_TARGET_GLOBAL_INT. The service drives there through the patrol's planner (around
+SET_POSITION_TARGET_GLOBAL_INT; MAVProxy's ``guided LAT LON`` sends a MISSION_ITEM_INT with
+``current`` 2 (ArduPilot's guided waypoint). The service drives there through the patrol's planner (around
 keep-outs) and stops; RTL is the same to home.
 """
 
@@ -35,6 +36,19 @@ def reposition_target(message: Any) -> tuple[float, float] | None:
             return None
         return _point(message.x / 1e7, message.y / 1e7)
     return _point(message.param5, message.param6)
+
+
+GUIDED_ITEM = 2
+"""MISSION_ITEM(_INT)'s ``current`` for ArduPilot's guided waypoint (not part of a mission)."""
+
+
+def item_target(message: Any) -> tuple[float, float] | None:
+    """A guided mission item's point (MISSION_ITEM_INT: degrees times 1e7)."""
+    if message.frame not in GLOBAL_FRAMES:
+        return None
+    if message.get_type() == "MISSION_ITEM_INT":
+        return _point(message.x / 1e7, message.y / 1e7)
+    return _point(message.x, message.y)
 
 
 def position_target(message: Any) -> tuple[float, float] | None:

@@ -871,6 +871,23 @@ class MavlinkVehicle:
             return []
         return [GoTo(peer, system, component, signed, *target, None)]
 
+    def _on_guided_item(self, link: Link, message: Any, origin: Any) -> list[Request]:
+        """A mission item with ``current`` 2 (MAVProxy's ``guided LAT LON``, ArduPilot's
+        guided waypoint): a go-to; MISSION_ACK says whether it was taken."""
+        peer, system, component, signed = origin
+
+        def refuse(result: int, text: str) -> None:
+            self._mission_ack(link, system, component, mavlink.MAV_MISSION_DENIED, MISSION)
+            self._statustext_to(link, Severity.WARNING, text)
+
+        target = guided.item_target(message)
+        if target is None:
+            refuse(0, "go to: no latitude, longitude in a global frame")
+            return []
+        if not self._may_control(signed, "go to", refuse, mavlink.MAV_MISSION_DENIED):
+            return []
+        return [GoTo(peer, system, component, signed, *target, None)]
+
     def _on_rc_override(self, link: Link, message: Any, origin: Any, now: float) -> list[Request]:
         """RC_CHANNELS_OVERRIDE: the joystick as ArduRover's channels (see manual.py)."""
         peer, system, component, signed = origin
@@ -1038,6 +1055,8 @@ class MavlinkVehicle:
         peer, system, component, signed = origin
         upload = link.upload
         mission_type = message.mission_type
+        if message.current == guided.GUIDED_ITEM and mission_type == MISSION:
+            return self._on_guided_item(link, message, origin)
         if upload is None or upload.waiting or upload.mission_type != mission_type:
             if link.last_ack is not None and link.last_ack[0] == mission_type:
                 # Our ACK was lost and the station repeats its last item: repeat the ACK.
