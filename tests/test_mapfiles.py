@@ -607,3 +607,34 @@ def test_a_circle_keepout_holds_the_whole_circle_and_an_inclusion_stays_inside()
     for x, y in inclusion.geometry.exterior.coords:
         east, north = frame.to_local(y, x)
         assert math.hypot(east, north) <= radius + 1e-3
+
+
+def test_a_map_across_the_antimeridian_loads_at_the_station_as_on_the_platform() -> None:
+    """A field on 180° with wrapped longitudes (one ring, 20 vertices, made here): valid in
+    metres, self-crossing in degrees; both readers check it in the local frame."""
+    lat0, lon0 = -16.55, 179.98
+    ring = []
+    for k in range(20):
+        angle = 2 * math.pi * k / 20
+        lon = lon0 + 0.04 * math.cos(angle)
+        ring.append(
+            [round(lon - 360 if lon > 180 else lon, 7), round(lat0 + 0.001 * math.sin(angle), 7)]
+        )
+    ring.append(ring[0])
+    assert any(lon < 0 for lon, _ in ring) and any(lon > 0 for lon, _ in ring)
+    geojson = {
+        "type": "FeatureCollection",
+        "features": [
+            {
+                "type": "Feature",
+                "properties": {"role": "boundary"},
+                "geometry": {"type": "Polygon", "coordinates": [ring]},
+            }
+        ],
+    }
+    found = read_map(json.dumps(geojson))
+    area = parse_map(found.geojson).summary()["area_m2"]
+    assert 1.4e6 < area < 1.5e6  # an ellipse 8.5 km by 220 m, not the width of the world
+    bowtie = [[179.99, -16.55], [-179.99, -16.54], [-179.99, -16.55], [179.99, -16.54]]
+    with pytest.raises(FileRefused, match="invalid polygon: self-intersection at -16.54"):
+        read_map(json.dumps({"type": "Polygon", "coordinates": [[*bowtie, bowtie[0]]]}))

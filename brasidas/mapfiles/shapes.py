@@ -393,12 +393,13 @@ def _polygon(rings: Sequence[Ring], label: str) -> Polygon:
         if len(set(positions)) < 3:
             raise FileRefused(f"{label}: ring {n} has fewer than 3 corners")
         closed.append(positions)
-    polygon = Polygon(closed[0], closed[1:])
-    if not polygon.is_valid:
-        raise FileRefused(f"{label}: invalid polygon: {explain(polygon)}")
-    if polygon.area <= 0:
-        raise FileRefused(f"{label}: the polygon has no area")
-    return polygon
+    from brasidas.autonomy.areamap import local_polygon
+
+    first_lon, first_lat = closed[0][0]
+    _local, problem = local_polygon(closed, LocalFrame(first_lat, first_lon))
+    if problem:
+        raise FileRefused(f"{label}: {problem}")
+    return Polygon(closed[0], closed[1:])
 
 
 def plain_json(value: Any) -> Any:
