@@ -102,7 +102,9 @@ class PatrolHandle(Protocol):
     def core(self) -> Patrol:
         """The patrol's state: map (and its revision), route, cursor (read only)."""
 
-    async def set_waypoints(self, items: list[Any], laps: int | None = None) -> Route:
+    async def set_waypoints(
+        self, items: list[Any], laps: int | None = None, home: tuple[float, float] | None = None
+    ) -> Route:
         """Replace the route (``set_waypoints``'s checks); raises RouteError."""
 
     async def reshape_map(self, source: Mapping[str, Any]) -> AreaMap:

@@ -81,8 +81,12 @@ class MapFilesApi:
         if added:
             await connection.call("update_map", add=found.keepouts, remove=[])
         try:
-            laps = {"laps": found.laps} if found.laps is not None else {}
-            answer = await connection.call("set_waypoints", waypoints=found.waypoints, **laps)
+            extra: dict[str, Any] = {}
+            if found.laps is not None:
+                extra["laps"] = found.laps
+            if found.home is not None:
+                extra["home"] = list(found.home)
+            answer = await connection.call("set_waypoints", waypoints=found.waypoints, **extra)
         except RpcError:
             if added:  # all or nothing: the fence's keep-outs go with the refused route
                 await connection.call("update_map", add=[], remove=added)
@@ -103,8 +107,17 @@ class MapFilesApi:
         area = await connection.call("get_map")
         area = area if isinstance(area, Mapping) else {}
         route = area.get("route", [])
+        home = area.get("home")  # the mission file's, when the route came from one
+        if isinstance(home, list) and len(home) == 2:
+            robot = (float(home[0]), float(home[1]))
         text = await _refusing(
-            f"export refused ({format})", _write_route, format, route, robot, area.get("map")
+            f"export refused ({format})",
+            _write_route,
+            format,
+            route,
+            robot,
+            area.get("map"),
+            area.get("laps"),
         )
         return {"text": text, "format": format, "waypoints": len(route)}
 
@@ -188,12 +201,15 @@ def _read_route(
     return found
 
 
-def _write_route(fmt: str, route: Any, robot: tuple[float, float] | None, area: Any) -> str:
+def _write_route(
+    fmt: str, route: Any, home: tuple[float, float] | None, area: Any, laps: Any = None
+) -> str:
     from brasidas.mapfiles.files import write_route
 
     if not isinstance(route, list) or not all(isinstance(w, Mapping) for w in route):
         raise FileRefused("the platform's route is not a list of waypoints")
-    return write_route(fmt, route, robot, area if isinstance(area, Mapping) else None)
+    laps = laps if isinstance(laps, int) and not isinstance(laps, bool) and laps >= 1 else None
+    return write_route(fmt, route, home, area if isinstance(area, Mapping) else None, laps)
 
 
 def _boundary(area: Any) -> list[tuple[float, float]] | None:

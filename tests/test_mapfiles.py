@@ -421,8 +421,9 @@ def test_mission_items_are_the_one_mapping_both_ways() -> None:
     route = [(37.9414, 23.6526), (37.9414, 23.6534), (37.9419, 23.6534), (37.9414, 23.6526)]
     items = mission_items(route, ROBOT)
     assert items[0].frame == MavFrame.GLOBAL and items[1].frame == MavFrame.GLOBAL_RELATIVE_ALT
-    assert {item.command for item in items} == {MavCmd.NAV_WAYPOINT}
-    again = route_from_items(items, home_first=True, jump_target=lambda item: None)
+    # A closed route: its waypoints, then a jump back to the first (item 1).
+    assert [item.command for item in items] == [MavCmd.NAV_WAYPOINT] * 4 + [MavCmd.DO_JUMP]
+    again = route_from_items(items, home_first=True, jump_target=lambda item: 1)
     assert again.home == ROBOT and again.waypoints == route and again.closed
     kml = read_route((DATA / "field.kml").read_text(), "field.kml")
     assert kml.format == "KML" and len(kml.waypoints) == 3
@@ -638,3 +639,19 @@ def test_a_map_across_the_antimeridian_loads_at_the_station_as_on_the_platform()
     bowtie = [[179.99, -16.55], [-179.99, -16.54], [-179.99, -16.55], [179.99, -16.54]]
     with pytest.raises(FileRefused, match="invalid polygon: self-intersection at -16.54"):
         read_map(json.dumps({"type": "Polygon", "coordinates": [[*bowtie, bowtie[0]]]}))
+
+
+def test_an_exported_loop_ends_with_a_jump_and_keeps_the_files_home() -> None:
+    """Another autopilot loops an exported closed route (a DO_JUMP, not a last waypoint that
+    happens to be the first), counted laps survive, and home is the one given (the file's)."""
+    corners = [(37.9414, 23.6526), (37.9419, 23.6526), (37.9419, 23.6534)]
+    route = [{"lat": lat, "lon": lon} for lat, lon in [*corners, corners[0]]]
+    home = (37.9413, 23.6529)
+    for fmt in ("waypoints", "plan"):
+        text = write_route(fmt, route, home, None, 3)
+        back = read_route(text)
+        assert back.home == home, fmt
+        assert [(w["lat"], w["lon"]) for w in back.waypoints] == [*corners, corners[0]], fmt
+        assert back.laps == 3, fmt
+    rows = write_route("waypoints", route, home).splitlines()
+    assert rows[-1].split("\t")[3:6] == ["177", "1", "-1"]  # DO_JUMP to item 1, forever

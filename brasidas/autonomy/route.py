@@ -62,6 +62,8 @@ class Route:
     laps: int | None = None
     """Stop after this many laps of a closed route, or once at the end of an open one (a
     mission's DO_JUMP count, or its RETURN_TO_LAUNCH); None: patrol until stopped."""
+    home: tuple[float, float] | None = None
+    """A mission file's home (lat, lon), kept so an export says the file's, not the robot's."""
 
     @property
     def closed(self) -> bool:
@@ -165,9 +167,9 @@ class RouteStore:
             raise RouteError(f"{self.path}: no 'waypoints' list")
         laps = data.get("laps")
         route = parse_waypoints(data["waypoints"])
-        if isinstance(laps, int) and not isinstance(laps, bool) and laps >= 1:
-            route = Route(route.waypoints, laps)
-        return route
+        if not (isinstance(laps, int) and not isinstance(laps, bool) and laps >= 1):
+            laps = None
+        return Route(route.waypoints, laps, parse_home(data.get("home")))
 
     def map_id(self) -> str | None:
         """The ``load_id`` of the map the stored route was set on ("" when the file does not
@@ -184,6 +186,8 @@ class RouteStore:
         plain: dict[str, Any] = {"waypoints": route.as_list()}
         if route.laps is not None:
             plain["laps"] = route.laps
+        if route.home is not None:
+            plain["home"] = list(route.home)
         if map_id:
             plain["map"] = map_id
         write_atomically(self.path, json.dumps(plain, indent=1, allow_nan=False))
@@ -261,6 +265,21 @@ def _waypoint(item: Any, points: Mapping[str, tuple[float, float]], where: str) 
             raise RouteError(f"{where}: 'speed' must be a positive number of m/s")
         return Waypoint(waypoint.latitude, waypoint.longitude, name, float(speed))
     raise RouteError(f'{where}: expected "LAT,LON", a point name, [lat, lon] or {{lat, lon}}')
+
+
+def parse_home(value: Any) -> tuple[float, float] | None:
+    """A route's home: [lat, lon] in range, else None (no home)."""
+    if (
+        isinstance(value, list | tuple)
+        and len(value) == 2
+        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+        and math.isfinite(value[0])
+        and math.isfinite(value[1])
+        and abs(value[0]) <= 90
+        and abs(value[1]) <= 180
+    ):
+        return float(value[0]), float(value[1])
+    return None
 
 
 def _positive(value: Any) -> bool:

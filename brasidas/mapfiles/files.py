@@ -162,17 +162,19 @@ def write_route(
     route: Sequence[Mapping[str, Any]],
     home: tuple[float, float] | None,
     area: Mapping[str, Any] | None = None,
+    laps: int | None = None,
 ) -> str:
     """The platform's route (``get_map``'s list) as a ``plan`` or ``waypoints`` file. Home is
-    the robot's position, else the first waypoint."""
+    the mission file's (``home``: the station passes it, else the robot's position), else the
+    first waypoint; a closed route ends with a DO_JUMP (``laps`` its repeat count)."""
     positions = [(float(w["lat"]), float(w["lon"])) for w in route]
     if not positions:
         raise FileRefused("the platform has no route to export")
     home = home or positions[0]
     if fmt == "plan":
-        return qgc.plan_text(positions, home, area)
+        return qgc.plan_text(positions, home, area, laps)
     if fmt == "waypoints":
-        return qgc.wpl_text(positions, home)
+        return qgc.wpl_text(positions, home, laps)
     raise FileRefused(f"export format {fmt!r}: {' or '.join(EXPORT_FORMATS)}")
 
 

@@ -498,10 +498,18 @@ def fence_plan(items: Sequence[MissionItem]) -> FencePlan:
 
 
 def mission_items(
-    route: Sequence[tuple[float, float]], home: tuple[float, float] | None
+    route: Sequence[tuple[float, float]],
+    home: tuple[float, float] | None,
+    laps: int | None = None,
 ) -> list[MissionItem]:
     """A route as mission items: home first when given (ArduPilot's sequence 0, in the global
-    frame), then NAV_WAYPOINTs at relative altitude 0 (a closed route ends on its first)."""
+    frame), then NAV_WAYPOINTs at relative altitude 0; a closed route (its last waypoint its
+    first) ends with a DO_JUMP back to the first waypoint instead, repeated forever (or
+    ``laps`` - 1 times), so another autopilot loops it too. The jump's param1 is 1 both as a
+    sequence number (after home) and as a ``.plan`` doJumpId (the first waypoint's)."""
+    closed = len(route) >= 3 and route[0] == route[-1]
+    if closed:
+        route = route[:-1]
     items = []
     if home is not None:
         items.append(
@@ -516,6 +524,19 @@ def mission_items(
                 _NO_PARAMS,
                 latitude,
                 longitude,
+                jump_id=len(items) + (0 if home is not None else 1),
+            )
+        )
+    if closed:
+        repeat = -1.0 if laps is None else float(laps - 1)
+        items.append(
+            MissionItem(
+                f"item {len(items)}",
+                int(MavCmd.DO_JUMP),
+                int(MavFrame.MISSION),
+                (1.0, repeat, 0.0, 0.0),
+                0.0,
+                0.0,
                 jump_id=len(items) + (0 if home is not None else 1),
             )
         )

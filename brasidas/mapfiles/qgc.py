@@ -89,10 +89,12 @@ def wpl_shapes(text: str) -> list[Shape]:
     return fence_shapes(wpl_items(text))
 
 
-def wpl_text(route: Sequence[tuple[float, float]], home: tuple[float, float]) -> str:
+def wpl_text(
+    route: Sequence[tuple[float, float]], home: tuple[float, float], laps: int | None = None
+) -> str:
     """A route as ``QGC WPL 110``: row 0 home, then NAV_WAYPOINT rows (relative altitude 0)."""
     rows = [WPL_HEADER]
-    for index, item in enumerate(mission_items(route, home)):
+    for index, item in enumerate(mission_items(route, home, laps)):
         fields = [
             str(index),
             "1" if index == 0 else "0",
@@ -206,6 +208,7 @@ def plan_text(
     route: Sequence[tuple[float, float]],
     home: tuple[float, float],
     fence: Mapping[str, Any] | None = None,
+    laps: int | None = None,
 ) -> str:
     """A route (and the map's boundary and keep-outs as its geofence) as a QGC ``.plan``."""
     items = [
@@ -220,7 +223,7 @@ def plan_text(
             "Altitude": item.altitude,
             "AltitudeMode": 1,
         }
-        for item in mission_items(route, None)
+        for item in mission_items(route, None, laps)
     ]
     plan = {
         "fileType": "Plan",

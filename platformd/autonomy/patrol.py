@@ -469,22 +469,31 @@ class PatrolActor(Actor):
         write_atomically(self.storage.map_file, text.decode())
         return area, text, orjson.dumps({"add": add, "remove": remove})
 
-    async def set_waypoints(self, items: list[Any], laps: int | None = None) -> Route:
+    async def set_waypoints(
+        self, items: list[Any], laps: int | None = None, home: tuple[float, float] | None = None
+    ) -> Route:
         """Replace the waypoints on the fly (R-5.3.3.3); stored before they are used (checks
-        and the file in a worker thread). ``laps``: :attr:`Route.laps` (a mission's end)."""
+        and the file in a worker thread). ``laps``, ``home``: :attr:`Route.laps`,
+        :attr:`Route.home` (a mission's)."""
         async with self._changing:
             area = self.core.area
             if area is None:
                 raise RouteError("no map loaded: load one first")
-            route = await asyncio.to_thread(self._new_route, area, items, laps)
+            route = await asyncio.to_thread(self._new_route, area, items, laps, home)
             self.detour = None
             self.core.set_route(route)
         self.tick()
         return route
 
-    def _new_route(self, area: AreaMap, items: list[Any], laps: int | None = None) -> Route:
+    def _new_route(
+        self,
+        area: AreaMap,
+        items: list[Any],
+        laps: int | None = None,
+        home: tuple[float, float] | None = None,
+    ) -> Route:
         """(Worker thread.) Parse, check and store waypoints on ``area``."""
-        route = dataclasses.replace(parse_waypoints(items, area.points), laps=laps)
+        route = dataclasses.replace(parse_waypoints(items, area.points), laps=laps, home=home)
         check_route(route, area)
         self.routes.save(route, area.load_id)
         return route

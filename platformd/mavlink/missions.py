@@ -143,12 +143,14 @@ def fence_from_items(items: list[MissionItem]) -> FencePlan:
 
 
 def items_from_route(
-    waypoints: list[tuple[float, float]], home: tuple[float, float] | None
+    waypoints: list[tuple[float, float]],
+    home: tuple[float, float] | None,
+    laps: int | None = None,
 ) -> list[MissionItem]:
     """A route as mission items: home at 0 (the first waypoint when there is no home yet),
-    then one NAV_WAYPOINT per waypoint."""
+    then one NAV_WAYPOINT per waypoint (a closed route: a DO_JUMP back instead of its last)."""
     home = home if home is not None else (waypoints[0] if waypoints else (0.0, 0.0))
-    return _written(mission.mission_items(waypoints, home))
+    return _written(mission.mission_items(waypoints, home, laps))
 
 
 def items_from_fence(area: dict[str, Any]) -> list[MissionItem]:

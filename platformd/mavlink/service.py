@@ -496,7 +496,7 @@ class MavlinkService(Actor):
         try:
             if request.mission_type == MISSION:
                 plan = route_from_items(items, skip_unsupported=self.config.skip_unsupported)
-                route = await patrol.set_waypoints(plan.waypoint_items(), plan.laps)
+                route = await patrol.set_waypoints(plan.waypoint_items(), plan.laps, plan.home)
                 self._uploaded = (route, items) if items else None
                 self._uploaded_seqs = tuple(plan.seqs)
                 self.vehicle.state.waypoint_seqs = self._uploaded_seqs
@@ -576,10 +576,11 @@ class MavlinkService(Actor):
                 return self._uploaded[1]
             if not route.waypoints:
                 return []
-            home = self.vehicle.state.home
+            home = route.home or self.vehicle.state.home
             return items_from_route(
                 [(w.latitude, w.longitude) for w in route.waypoints],
                 (home[0], home[1]) if home is not None else None,
+                route.laps,
             )
         if mission_type == FENCE:
             uploaded = self._uploaded_fence
