@@ -655,3 +655,16 @@ def test_an_exported_loop_ends_with_a_jump_and_keeps_the_files_home() -> None:
         assert back.laps == 3, fmt
     rows = write_route("waypoints", route, home).splitlines()
     assert rows[-1].split("\t")[3:6] == ["177", "1", "-1"]  # DO_JUMP to item 1, forever
+
+
+def test_a_rally_file_given_as_a_route_says_what_it_is() -> None:
+    rally = "RALLY -36.8801 174.8201 20 0 0 0\nRALLY -36.8805 174.8209 20 0 0 0\n"
+    with pytest.raises(FileRefused, match="an ArduPilot rally file, not a route: load it with"):
+        read_route(rally)
+    points = parse_map(
+        read_map(
+            "-36.8800 174.8200\n-36.8790 174.8190\n-36.8790 174.8220\n-36.8810 174.8220\n"
+            "-36.8810 174.8190\n-36.8790 174.8190\n" + rally
+        ).geojson
+    ).points
+    assert sorted(points) == ["fence-return", "rally-1", "rally-2"]

@@ -130,6 +130,13 @@ def read_route(
             raise FileRefused("a fence or rally file, not a mission: load it with 'map'")
         mission = qgc.wpl_route(body, skip_unsupported=skip_unsupported)
         return _mission_import(mission, "QGC WPL 110")
+    if qgc.is_rally_or_old_fence(body) and any(
+        line.split()[:1] == ["RALLY"] for line in body.upper().splitlines()
+    ):
+        raise FileRefused(
+            "an ArduPilot rally file, not a route: load it with 'map' (its rally points become "
+            "the map's named points rally-1, rally-2, ..., which a route can name)"
+        )
     if body.startswith("<"):
         root = parse_xml(body, filename or "the file")
         if local(root.tag) != "kml":
