@@ -668,3 +668,50 @@ def test_a_rally_file_given_as_a_route_says_what_it_is() -> None:
         ).geojson
     ).points
     assert sorted(points) == ["fence-return", "rally-1", "rally-2"]
+
+
+def older_item(jump_id: int, command: int, lat: float, lon: float, param1: float = 0) -> Any:
+    """An item in QGroundControl's older layout (param1..4 and coordinate), made here."""
+    return {
+        "autoContinue": True,
+        "command": command,
+        "coordinate": [lat, lon, 15],
+        "frame": 3,
+        "id": jump_id,
+        "param1": param1,
+        "param2": -1 if command == 177 else 0,
+        "param3": 0,
+        "param4": 0,
+        "type": "missionItem",
+    }
+
+
+def test_qgcs_older_mission_and_item_layouts_are_read() -> None:
+    corners = [(37.9414, 23.6526), (37.9419, 23.6526), (37.9419, 23.6534)]
+    items = [older_item(n + 1, 16, lat, lon) for n, (lat, lon) in enumerate(corners)]
+    items.append(older_item(4, 177, 0, 0, param1=1))
+    old = {
+        "MAV_AUTOPILOT": 3,
+        "complexItems": [],
+        "groundStation": "QGroundControl",
+        "items": items,
+        "plannedHomePosition": {"coordinate": [37.9415, 23.653, 0], "type": "missionItem"},
+        "version": "1.0",
+    }
+    found = read_route(json.dumps(old), "old.mission")
+    assert found.format == "QGC mission (old)" and found.home == (37.9415, 23.653)
+    assert [(w["lat"], w["lon"]) for w in found.waypoints] == [*corners, corners[0]]
+    # A .plan whose SimpleItems use the older layout, with a command a rover cannot do.
+    plan = json.loads((DATA / "field.plan").read_text())
+    older = [
+        older_item(n + 1, 16, lat, lon) | {"type": "SimpleItem"}
+        for n, (lat, lon) in enumerate(corners)
+    ]
+    plan["mission"]["items"] = older
+    assert len(read_route(json.dumps(plan)).waypoints) == 3
+    plan["mission"]["items"] = [
+        *older,
+        older_item(4, 21, 37.9414, 23.6526) | {"type": "SimpleItem"},
+    ]
+    with pytest.raises(FileRefused, match=r"commands we cannot fly: .*MAV_CMD_NAV_LAND \(21\)"):
+        read_route(json.dumps(plan))

@@ -154,6 +154,11 @@ def read_route(
             if fence:
                 _plan_fence(data, result)
             return result
+        if qgc.is_old_mission(data):
+            plan = qgc.old_mission_as_plan(data)
+            return _mission_import(
+                qgc.plan_route(plan, skip_unsupported=skip_unsupported), "QGC mission (old)"
+            )
         if fence:
             raise FileRefused("--fence reads a QGC .plan's geofence; this file is not a plan")
         if isinstance(data, list):

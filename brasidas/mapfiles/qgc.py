@@ -117,6 +117,29 @@ def is_plan(data: Any) -> bool:
     return isinstance(data, Mapping) and data.get("fileType") == "Plan"
 
 
+def is_old_mission(data: Any) -> bool:
+    """QGroundControl's ``.mission`` file (before ``.plan``): ``items`` and a planned home at
+    the top, no ``fileType``."""
+    return (
+        isinstance(data, Mapping)
+        and "fileType" not in data
+        and isinstance(data.get("items"), list)
+        and ("plannedHomePosition" in data or data.get("groundStation") == "QGroundControl")
+    )
+
+
+def old_mission_as_plan(data: Mapping[str, Any]) -> dict[str, Any]:
+    """A ``.mission`` file as the ``.plan`` layout :func:`plan_route` reads (its items keep
+    their older layout, which :func:`plan_route` reads too); its planned home is an item with
+    a ``coordinate``."""
+    home = data.get("plannedHomePosition")
+    coordinate = home.get("coordinate") if isinstance(home, Mapping) else home
+    mission: dict[str, Any] = {"items": data["items"]}
+    if isinstance(coordinate, list):
+        mission["plannedHomePosition"] = coordinate
+    return {"fileType": "Plan", "mission": mission}
+
+
 def plan_route(data: Mapping[str, Any], *, skip_unsupported: bool = False) -> MissionRoute:
     """A ``.plan`` mission: its SimpleItems (home is ``plannedHomePosition``, not an item)."""
     mission = _section(data, "mission")
@@ -290,9 +313,11 @@ def _plan_item(item: Any, index: int) -> MissionItem:
             f"commands we cannot fly: {where}: a {item.get('complexItemType', 'complex')!r} "
             "pattern (convert it to waypoints in QGroundControl first)"
         )
-    if kind != "SimpleItem":
+    if kind not in ("SimpleItem", "missionItem"):
         raise FileRefused(f"{where}: type {kind!r} (SimpleItem or ComplexItem)")
     params = item.get("params")
+    if params is None and "coordinate" in item:
+        params = _older_params(item, where)
     command, frame = item.get("command"), item.get("frame")
     if not isinstance(command, int) or not isinstance(frame, int):
         raise FileRefused(f"{where}: 'command' and 'frame' are integers")
@@ -306,7 +331,7 @@ def _plan_item(item: Any, index: int) -> MissionItem:
             values.append(float(value))
         else:
             raise FileRefused(f"{where}: param {value!r} is not a number")
-    jump_id = item.get("doJumpId", 0)
+    jump_id = item.get("doJumpId", item.get("id", 0) if kind == "missionItem" else 0)
     return MissionItem(
         f"{where} (doJumpId {jump_id})" if jump_id else where,
         command,
@@ -317,6 +342,15 @@ def _plan_item(item: Any, index: int) -> MissionItem:
         0.0 if math.isnan(values[6]) else values[6],
         jump_id if isinstance(jump_id, int) else 0,
     )
+
+
+def _older_params(item: Mapping[str, Any], where: str) -> list[Any]:
+    """QGroundControl's older item layout (``.mission`` files, early ``.plan`` ones):
+    ``param1``..``param4`` and ``coordinate`` [lat, lon, alt] instead of ``params``."""
+    coordinate = item.get("coordinate")
+    if not isinstance(coordinate, list) or len(coordinate) != 3:
+        raise FileRefused(f"{where}: 'coordinate' is [latitude, longitude, altitude]")
+    return [item.get(f"param{n}", 0) for n in range(1, 5)] + list(coordinate)
 
 
 def _number(value: Any) -> bool:
