@@ -715,3 +715,17 @@ def test_qgcs_older_mission_and_item_layouts_are_read() -> None:
     ]
     with pytest.raises(FileRefused, match=r"commands we cannot fly: .*MAV_CMD_NAV_LAND \(21\)"):
         read_route(json.dumps(plan))
+
+
+def test_a_named_point_far_outside_the_boundary_is_said() -> None:
+    data = json.loads((DATA / "plain.geojson").read_text())
+    data["features"].append(
+        {
+            "type": "Feature",
+            "properties": {"name": "typo"},
+            "geometry": {"type": "Point", "coordinates": [32.6531, 37.9416]},
+        }
+    )
+    found = read_map(json.dumps(data), options=MapOptions(boundary="yard", keepouts="rest"))
+    (note,) = [n for n in found.notes if "far outside the boundary" in n]
+    assert "'typo' 7" in note and "km out" in note and "gate" not in note

@@ -294,6 +294,7 @@ def assemble_map(
         )
     unnamed = 0
     names: set[str] = set()
+    far: list[str] = []
     for shape in shapes:
         if shape.polygonal:
             continue
@@ -301,6 +302,9 @@ def assemble_map(
             unnamed += 1
             continue
         point_name = _unique(shape.name, names)
+        outside_m = _outside_m(boundary, shape.geometry)
+        if outside_m > FAR_POINT_M:
+            far.append(f"{point_name!r} {_distance_text(outside_m)}")
         features.append(
             {
                 "type": "Feature",
@@ -310,7 +314,34 @@ def assemble_map(
         )
     if unnamed:
         notes.append(f"{unnamed} points without a name not used (a named point needs a name)")
+    if far:
+        notes.append(
+            "named points far outside the boundary (kept; a route cannot use them): "
+            + ", ".join(far[:LISTED_MAX])
+            + (f" and {len(far) - LISTED_MAX} more" if len(far) > LISTED_MAX else "")
+        )
     return MapImport({"type": "FeatureCollection", "name": name, "features": features}, fmt, notes)
+
+
+FAR_POINT_M = 1000.0
+"""A named point further than this outside the boundary is said in a note (a typo'd
+coordinate, or a point of another site)."""
+
+
+def _outside_m(boundary: BaseGeometry, point: BaseGeometry) -> float:
+    """About how far (metres) ``point`` lies outside ``boundary`` (0 inside), in the local
+    frame of the boundary's own point."""
+    if boundary.covers(point):
+        return 0.0
+    anchor = boundary.representative_point()
+    frame = LocalFrame(anchor.y, anchor.x)
+    exterior = boundary.exterior if isinstance(boundary, Polygon) else boundary.convex_hull.exterior
+    ring = Polygon([frame.to_local(lat, lon) for lon, lat, *_ in exterior.coords])
+    return float(ring.distance(Point(frame.to_local(point.y, point.x))))
+
+
+def _distance_text(metres: float) -> str:
+    return f"{metres / 1000:.0f} km out" if metres >= 10_000 else f"{metres:.0f} m out"
 
 
 def _names(shapes: Sequence[Shape]) -> str:
