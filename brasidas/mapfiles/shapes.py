@@ -331,12 +331,14 @@ coordinate, or a point of another site)."""
 def _outside_m(boundary: BaseGeometry, point: BaseGeometry) -> float:
     """About how far (metres) ``point`` lies outside ``boundary`` (0 inside), in the local
     frame of the boundary's own point."""
-    if boundary.covers(point):
+    if not isinstance(point, Point) or boundary.covers(point):
         return 0.0
-    anchor = boundary.representative_point()
+    hull = boundary if isinstance(boundary, Polygon) else boundary.convex_hull
+    if not isinstance(hull, Polygon):
+        return 0.0
+    anchor = hull.representative_point()
     frame = LocalFrame(anchor.y, anchor.x)
-    exterior = boundary.exterior if isinstance(boundary, Polygon) else boundary.convex_hull.exterior
-    ring = Polygon([frame.to_local(lat, lon) for lon, lat, *_ in exterior.coords])
+    ring = Polygon([frame.to_local(lat, lon) for lon, lat, *_ in hull.exterior.coords])
     return float(ring.distance(Point(frame.to_local(point.y, point.x))))
 
 
