@@ -270,6 +270,7 @@ def cmd_map(args: argparse.Namespace, config: StationConfig) -> int:
         boundary=args.boundary or "",
         keepouts=args.keepouts or "",
         boundary_bbox=args.boundary_bbox,
+        union=args.union,
     )
 
     def human(value: dict[str, Any]) -> str:
@@ -616,6 +617,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--boundary-bbox",
         action="store_true",
         help="the boundary is the bounding box of the file (an OSM export's bounds)",
+    )
+    p.add_argument(
+        "--union",
+        action="store_true",
+        help="several boundary polygons make their union (ArduPilot's FENCE_OPTIONS), "
+        "not their intersection",
     )
     p = sub.add_parser(
         "route",

@@ -38,11 +38,12 @@ class MapFilesApi:
         boundary: str = "",
         keepouts: str = "",
         boundary_bbox: bool = False,
+        union: bool = False,
     ) -> dict[str, Any]:
         """Read a map file (any format :func:`read_map` knows) and load it on the platform."""
         connection = await self.ctx.connection(platform_id)
         robot = await self._robot(platform_id)
-        options = (boundary, keepouts, boundary_bbox)
+        options = (boundary, keepouts, boundary_bbox, union)
         limit = _request_limit(connection.parameters)
         found = await _refusing(
             f"map refused: {filename}", _read_map, text, filename, options, robot, limit
@@ -151,7 +152,7 @@ async def _refusing(what: str, function: Callable[..., T], *args: Any) -> T:
 def _read_map(
     text: str,
     filename: str,
-    options: tuple[str, str, bool],
+    options: tuple[str, str, bool, bool],
     robot: tuple[float, float] | None,
     limit: int,
 ) -> MapImport:

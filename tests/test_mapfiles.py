@@ -729,3 +729,31 @@ def test_a_named_point_far_outside_the_boundary_is_said() -> None:
     found = read_map(json.dumps(data), options=MapOptions(boundary="yard", keepouts="rest"))
     (note,) = [n for n in found.notes if "far outside the boundary" in n]
     assert "'typo' 7" in note and "km out" in note and "gate" not in note
+
+
+def test_several_inclusion_fences_as_their_union_when_asked() -> None:
+    """ArduPilot's FENCE_OPTIONS: two overlapping fields as one boundary (their union); two
+    apart are refused; by default the intersection, as before."""
+
+    def field(west: float, east: float) -> dict[str, Any]:
+        ring = [[west, 37.941], [east, 37.941], [east, 37.942], [west, 37.942], [west, 37.941]]
+        return {
+            "type": "Feature",
+            "properties": {"role": "boundary"},
+            "geometry": {"type": "Polygon", "coordinates": [ring]},
+        }
+
+    overlapping = {
+        "type": "FeatureCollection",
+        "features": [field(23.652, 23.654), field(23.653, 23.655)],
+    }
+    text = json.dumps(overlapping)
+    both = parse_map(read_map(text, options=MapOptions(union=True)).geojson).summary()["area_m2"]
+    one = parse_map(read_map(text).geojson).summary()["area_m2"]
+    assert both == pytest.approx(3 * one, rel=0.01)
+    apart = {
+        "type": "FeatureCollection",
+        "features": [field(23.652, 23.653), field(23.654, 23.655)],
+    }
+    with pytest.raises(FileRefused, match="is 2 separate areas"):
+        read_map(json.dumps(apart), options=MapOptions(union=True))

@@ -13,7 +13,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from shapely import MultiPolygon, Point, Polygon, box, intersection_all
+from shapely import MultiPolygon, Point, Polygon, box, intersection_all, unary_union
 from shapely.geometry import mapping
 from shapely.geometry.base import BaseGeometry
 from shapely.validation import explain_validity
@@ -78,6 +78,9 @@ class MapOptions:
     """Selector of the keep-outs; "rest": every other polygon; "none"."""
     boundary_bbox: bool = False
     """The boundary is the bounding box of everything in the file (or of its stated bounds)."""
+    union: bool = False
+    """Several boundary polygons make their union (ArduPilot's ``FENCE_OPTIONS`` bit 2), not
+    their intersection (its default); the union must be one area."""
 
 
 @dataclass
@@ -226,10 +229,9 @@ def assemble_map(
         raise FileRefused("give --boundary or --boundary-bbox, not both")
     if options.boundary:
         chosen = select(polygons, options.boundary, "--boundary")
-        boundary = _intersection(chosen)
-        notes.append(
-            f"boundary: {_names(chosen)}" + (" (their intersection)" if len(chosen) > 1 else "")
-        )
+        boundary = _combined(chosen, options.union)
+        how = " (their union)" if options.union else " (their intersection)"
+        notes.append(f"boundary: {_names(chosen)}" + (how if len(chosen) > 1 else ""))
     elif options.boundary_bbox:
         chosen = []
         boundary = _bbox(shapes, bounds)
@@ -253,9 +255,10 @@ def assemble_map(
                 "which polygon is the boundary? say --boundary SELECTOR (a number, id, name or "
                 f"KEY=VALUE) or --boundary-bbox; the file has: {listing(shapes)}"
             )
-        boundary = _intersection(chosen)
+        boundary = _combined(chosen, options.union)
         if len(chosen) > 1:
-            notes.append(f"boundary: the intersection of {_names(chosen)}")
+            how = "union" if options.union else "intersection"
+            notes.append(f"boundary: the {how} of {_names(chosen)}")
     rest = [s for s in polygons if s not in chosen]
     if options.keepouts:
         keepouts = select(rest, options.keepouts, "--keepouts")
@@ -359,6 +362,20 @@ def _unique(base: str, used: set[str]) -> str:
         candidate = f"{base}-{n}"
     used.add(candidate)
     return candidate
+
+
+def _combined(chosen: Sequence[Shape], union: bool) -> Polygon:
+    """The boundary of several polygons: their intersection, or with ``union`` their union
+    (one area: separate pieces are refused, naming them)."""
+    if not union or len(chosen) < 2:
+        return _intersection(chosen)
+    merged = unary_union([shape.geometry for shape in chosen])
+    if not isinstance(merged, Polygon):
+        raise FileRefused(
+            f"the union of {_names(chosen)} is {len(getattr(merged, 'geoms', []))} separate "
+            "areas: a boundary is one (choose polygons that overlap or touch)"
+        )
+    return merged
 
 
 def _intersection(chosen: Sequence[Shape]) -> Polygon:
