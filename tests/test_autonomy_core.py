@@ -450,3 +450,20 @@ def test_a_missions_laps_end_the_patrol_and_its_leg_speeds_are_driven() -> None:
     assert fastest[0] <= SPEED + 1e-6
     p.start()  # a finished mission starts again from its first waypoint
     assert p.cursor == Cursor()
+
+
+def test_a_mission_with_an_end_starts_from_its_first_waypoint() -> None:
+    """Its last waypoint (home, after RETURN_TO_LAUNCH) may be where the old route was heading:
+    going on toward it would end the mission before it starts."""
+    area = parse_map(demo())
+    p = patrol()
+    p.set_map(area)
+    loop = parse_waypoints(demo_route(), area.points)
+    p.set_route(loop)
+    assert p.cursor.index == 0
+    first, second = loop.waypoints[1], loop.waypoints[2]
+    mission = Route((first, second, loop.waypoints[0]), laps=1)  # ends where the loop starts
+    p.set_route(mission)
+    assert p.cursor == Cursor()
+    p.set_route(Route((second, loop.waypoints[0], first)))  # a patrol goes on toward its target
+    assert p.cursor.index == 2  # toward "first", where it was heading

@@ -244,7 +244,9 @@ class Patrol:
         self.route = route
         self.cursor = Cursor()
         stops = route.waypoints[: route.stops]
-        for step in range(len(old)):
+        # A mission with an end (laps, a return home) is driven from its first waypoint: going
+        # on toward a kept waypoint could be its last, and end it at once.
+        for step in range(len(old) if route.laps is None else 0):
             wanted = old[(start + step) % len(old)]
             kept = [i for i, waypoint in enumerate(stops) if waypoint.same_place(wanted)]
             if kept:
