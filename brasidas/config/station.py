@@ -197,6 +197,10 @@ class FoxgloveSection:
     """0: any free port (tests)."""
     video: bool = True
     """Serve the NavCam (H.264 access units as foxglove.CompressedVideo)."""
+    platform_prefix: bool = True
+    """Topics carry the platform id (``/rover-1/navcam``: the whole fleet on one server).
+    False: a recording's names (``/navcam``), so one Foxglove layout works live and on files;
+    one platform at a time is then served (the first connected), the others are logged."""
 
 
 @dataclass(frozen=True)
