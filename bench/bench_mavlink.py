@@ -12,6 +12,12 @@
   emulator at 10 % loss and 50 ± 20 ms each way (target ≤ 3 s; root only).
 - ``manual_control_to_serial_*``: MANUAL_CONTROL at 20 Hz to the first byte of the resulting
   AX3500 command at a pty tap, beside ``$PVEL``'s (``bench velocity``).
+- ``qgc_connect_to_params_*`` (issue 29): QGroundControl's connect sequence (AUTOPILOT_VERSION,
+  PROTOCOL_VERSION, MAVFTP ``@PARAM/param.pck`` then PARAM_REQUEST_LIST) from the first request
+  to "parameters complete", on loopback (target ≤ 2 s). The missions uploaded above hold a
+  DO_CHANGE_SPEED after every waypoint (MAVSDK's form), 100 items in all.
+
+``BENCH_MAVLINK_QUICK=1`` shortens the CPU windows and the repetitions (a loaded machine).
 
 Run alone: ``.venv/bin/python -m bench mavlink``.
 """
@@ -43,9 +49,12 @@ from brasidas.netem.core import Profile
 from platformd.sim.demo_area import offset
 
 LAT, LON = 37.9415, 23.6530
-CPU_S = 10.0
-ACKS = 200
-UPLOADS = 5
+QUICK = os.environ.get("BENCH_MAVLINK_QUICK") == "1"
+CPU_S = 4.0 if QUICK else 10.0
+ACKS = 50 if QUICK else 200
+UPLOADS = 3 if QUICK else 5
+CONNECTS = 3 if QUICK else 10
+PARAM_FILE = b"@PARAM/param.pck?withdefaults=1"
 MANUAL_SAMPLES = 200
 ITEM_TIMEOUT = 0.5
 """The ground station's retry timer for a request it is waiting on (QGroundControl's is 1.5 s
@@ -108,6 +117,36 @@ class BlockingGcs:
                 samples.append((time.perf_counter() - sent) * 1000)
         return samples
 
+    def qgc_connect(self) -> float:
+        """QGroundControl's connect to "parameters complete" (its order; each step waits
+        for its answer): seconds."""
+        start = time.perf_counter()
+        for message_id in (mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION, 300):  # 300: PROTOCOL_VERSION
+            self.send(
+                mavlink.MAVLink_command_long_message(
+                    1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, message_id, 0, 0, 0, 0, 0, 0
+                )
+            )
+            if self.receive(("COMMAND_ACK",), time.perf_counter() + 1.2) is None:
+                raise RuntimeError(f"REQUEST_MESSAGE({message_id}) unanswered")
+        request = bytearray(251)
+        request[3], request[4] = 4, len(PARAM_FILE)  # OpenFileRO
+        request[12 : 12 + len(PARAM_FILE)] = PARAM_FILE
+        self.send(mavlink.MAVLink_file_transfer_protocol_message(0, 1, 1, list(request)))
+        nak = self.receive(("FILE_TRANSFER_PROTOCOL",), time.perf_counter() + 1.0)
+        if nak is None or bytes(nak.payload)[12] != 10:
+            raise RuntimeError("MAVFTP: no FileNotFound NAK (QGroundControl would wait)")
+        self.send(mavlink.MAVLink_param_request_list_message(1, 1))
+        seen: set[int] = set()
+        total = None
+        while total is None or len(seen) < total:
+            value = self.receive(("PARAM_VALUE",), time.perf_counter() + 5.0)
+            if value is None:
+                raise RuntimeError("parameters incomplete")
+            total = value.param_count
+            seen.add(value.param_index)
+        return time.perf_counter() - start
+
     def upload(self, items: list[Any]) -> tuple[float, int]:
         """Seconds from MISSION_COUNT to MISSION_ACK ACCEPTED, and the resends it took."""
         start = time.perf_counter()
@@ -134,9 +173,17 @@ class BlockingGcs:
 
 
 def mission(count: int) -> list[Any]:
-    """Home and ``count - 1`` waypoints zigzagging inside the demo field, clear of the shed."""
-    items = [_item(0, LAT, LON)]
+    """``count`` items: home (the global frame), then waypoints zigzagging inside the demo
+    field, clear of the shed, each followed by a DO_CHANGE_SPEED (as MAVSDK sends speeds)."""
+    items = [_item(0, LAT, LON, frame=0)]
     for seq in range(1, count):
+        if seq % 2 == 0:
+            items.append(
+                mavlink.MAVLink_mission_item_int_message(
+                    1, 1, seq, 2, 178, 0, 1, 1, 0.5 + (seq % 7) * 0.1, -1, 0, 0, 0, 0, 0
+                )
+            )
+            continue
         east = -4 + (seq % 10) * 4.5
         north = 0 if (seq // 10) % 2 else 30
         lat, lon = offset(LAT, LON, east, north)
@@ -144,9 +191,9 @@ def mission(count: int) -> list[Any]:
     return items
 
 
-def _item(seq: int, lat: float, lon: float) -> Any:
+def _item(seq: int, lat: float, lon: float, frame: int = 3) -> Any:
     return mavlink.MAVLink_mission_item_int_message(
-        1, 1, seq, 3, 16, 0, 1, 0, 0, 0, 0, round(lat * 1e7), round(lon * 1e7), 0, 0
+        1, 1, seq, frame, 16, 0, 1, 0, 0, 0, 0, round(lat * 1e7), round(lon * 1e7), 0, 0
     )
 
 
@@ -280,11 +327,15 @@ async def _loopback(state: str) -> dict[str, Any]:
         try:
             gcs = BlockingGcs(sock)
             await asyncio.to_thread(gcs.wait_vehicle)
+            connects = [await asyncio.to_thread(gcs.qgc_connect) for _ in range(CONNECTS)]
             acks = await asyncio.to_thread(gcs.command_rtt, ACKS)
             uploads = [await asyncio.to_thread(gcs.upload, mission(100)) for _ in range(UPLOADS)]
         finally:
             await stop_process(process)
     figures: dict[str, Any] = {}
+    connect = sorted(connects)
+    figures["qgc_connect_to_params_median_s"] = round(connect[len(connect) // 2], 3)
+    figures["qgc_connect_to_params_max_s"] = round(connect[-1], 3)
     ack = percentiles(acks)
     figures["command_ack_p50_ms"], figures["command_ack_p99_ms"] = ack["p50"], ack["p99"]
     figures["command_ack_lost"] = ACKS - len(acks)

@@ -120,7 +120,9 @@ class PatrolHandle(Protocol):
     def core(self) -> Patrol:
         """The patrol's state: map (and its revision), route, cursor (read only)."""
 
-    async def set_waypoints(self, items: list[Any]) -> Route:
+    async def set_waypoints(
+        self, items: list[Any], laps: int | None = None, home: tuple[float, float] | None = None
+    ) -> Route:
         """Replace the route (``set_waypoints``'s checks); raises RouteError."""
 
     async def reshape_map(self, source: Mapping[str, Any]) -> AreaMap:
@@ -135,6 +137,13 @@ class PatrolHandle(Protocol):
     """After an operator's stop (platformd.arming)."""
     settle: Callable[[], Awaitable[None]] | None
     """Awaits the last word's write (platformd.arming)."""
+
+    @property
+    def detour(self) -> str | None:
+        """Driving to one point (a go-to or RTL): its label; None otherwise."""
+
+    async def go_to_point(self, latitude: float, longitude: float, label: str) -> Route:
+        """Drive to one point through the planner and stop there; raises RouteError."""
 
     def start_patrol(self) -> None:
         """Start patrolling the route; raises RouteError."""

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import secrets
 import time
 from pathlib import Path
 from typing import Any
@@ -42,7 +43,14 @@ from brasidas.messages import (
 )
 from brasidas.recording import schemas
 from brasidas.recording.schemas import LOG_INFO, LOG_WARNING, ChannelSpec
-from brasidas.recording.writer import Quota, Recorder, list_recordings, resolve_name
+from brasidas.recording.writer import (
+    ACTIVE_SUFFIX,
+    Quota,
+    Recorder,
+    list_recordings,
+    recover_file,
+    resolve_name,
+)
 from brasidas.rpc import peer_host
 from brasidas.security import state_dir
 from platformd.context import PlatformContext
@@ -53,6 +61,8 @@ _LOGGER = logging.getLogger(__name__)
 SESSION_HEADER = "X-Brasidas-Session"
 """The header a download carries its session token in."""
 REASON_MAX_CHARS = 60
+DOWNLOAD_CHUNK = 256 * 1024
+"""Bytes read (in a thread) per write of a recording being written's download."""
 """Telemetry carries this much of why recording stopped (an OSError may name a long path):
 the section stays small (a stopped recorder on top of the fullest snapshot may take a datagram
 of its own: the encoder splits by section)."""
@@ -330,11 +340,25 @@ class PlatformRecorder(Actor):
         path = resolve_name(self.directory, request.match_info["name"])
         if path is None:
             raise web.HTTPNotFound(text="no such recording")
+        if path.name.endswith(ACTIVE_SUFFIX):
+            return await self._snapshot_download(request, path)
         # Every download together at recorder.download_kib_s (issue 26).
         return await send_file(
             request, path, self.download_share, {"Content-Type": "application/octet-stream"}
         )
 
+    async def _snapshot_download(self, request: web.Request, path: Path) -> web.StreamResponse:
+        """The file being written, as a complete MCAP up to its last closed chunk (summary
+        and footer written): what readers open. A new copy each time (a resuming client's
+        range is of the copy it gets), sent at the downloads' share like any file."""
+        copy = path.with_name(f".{path.name}.{secrets.token_hex(4)}.download")
+        try:
+            await asyncio.to_thread(recover_file, path, copy)
+            return await send_file(
+                request, copy, self.download_share, {"Content-Type": "application/octet-stream"}
+            )
+        finally:
+            copy.unlink(missing_ok=True)
 
 def recordings_dir(ctx: PlatformContext) -> Path:
     configured = ctx.config.recorder.dir

@@ -12,6 +12,7 @@ import asyncio
 import datetime
 import json
 import logging
+import re
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -290,6 +291,7 @@ def cmd_map(args: argparse.Namespace, config: StationConfig) -> int:
         boundary=args.boundary or "",
         keepouts=args.keepouts or "",
         boundary_bbox=args.boundary_bbox,
+        union=args.union,
     )
 
     def human(value: dict[str, Any]) -> str:
@@ -313,7 +315,7 @@ EXPORT_SUFFIXES = {".plan": "plan", ".waypoints": "waypoints", ".txt": "waypoint
 def cmd_route(args: argparse.Namespace, config: StationConfig) -> int:
     if args.export:
         return _export_route(args, config)
-    items: list[Any] = list(args.waypoints)
+    items: list[Any] = [waypoint.strip() for waypoint in args.waypoints]
     if not items:
         raise CliError("give a route file, waypoints (LAT,LON or point names) or --export FILE")
     if len(items) == 1 and Path(items[0]).is_file():
@@ -324,6 +326,7 @@ def cmd_route(args: argparse.Namespace, config: StationConfig) -> int:
             text=_read_file(items[0]),
             filename=Path(items[0]).name,
             fence=args.fence,
+            skip_unsupported=args.skip_unsupported,
         )
     elif args.fence:
         raise CliError("--fence reads a QGC .plan file's geofence: give one file")
@@ -332,6 +335,11 @@ def cmd_route(args: argparse.Namespace, config: StationConfig) -> int:
 
     def human(value: dict[str, Any]) -> str:
         kind = "closed, loops" if value["closed"] else "open, driven back in reverse"
+        laps = value.get("laps")
+        if laps:
+            kind = (
+                f"closed, {laps} laps, then stops" if value["closed"] else "driven once, then stops"
+            )
         fmt = f" from {value['format']}" if value.get("format") else ""
         added = value.get("keepouts_added") or []
         return (
@@ -641,6 +649,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="the boundary is the bounding box of the file (an OSM export's bounds)",
     )
+    p.add_argument(
+        "--union",
+        action="store_true",
+        help="several boundary polygons make their union (ArduPilot's FENCE_OPTIONS), "
+        "not their intersection",
+    )
     p = sub.add_parser(
         "route",
         parents=[common],
@@ -654,6 +668,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--export", metavar="FILE", help="write the platform's route to FILE.plan or .waypoints"
+    )
+    p.add_argument(
+        "--skip-unsupported",
+        action="store_true",
+        help="a mission file's commands a rover cannot do are left out (each named), "
+        "instead of refusing the file",
     )
     p = sub.add_parser("patrol", parents=[common], help="the patrol's state; start or stop it")
     p.add_argument("id")
@@ -671,8 +691,41 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+COORDINATES = re.compile(r"-\d+(\.\d*)?\s*,\s*-?\d+(\.\d*)?")
+"""A southern or western ``LAT,LON`` ("-36.88,174.82"), which argparse takes for an option."""
+
+
+def coordinates_as_positionals(argv: Sequence[str]) -> list[str]:
+    """argv with each negative ``LAT,LON`` marked positional: argparse reads a word starting
+    with "-" as an option unless it is a plain number, and a "--" before it only reaches the
+    top-level parser, not the command's. A leading space is not an option prefix; the
+    waypoint reader strips it. A "--" before nothing that looks like an option is dropped
+    (argparse's subcommand would take it for an argument)."""
+    marked = [f" {arg}" if COORDINATES.fullmatch(arg) else arg for arg in argv]
+    if "--" in marked:
+        end = marked.index("--")
+        if not any(arg.startswith("-") for arg in marked[end + 1 :]):
+            del marked[end]
+    return marked
+
+
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    words = sys.argv[1:] if argv is None else argv
+    parser = build_parser()
+    args, rest = parser.parse_known_args(coordinates_as_positionals(words))
+    # argparse fills a "*" positional before an option that follows it (``route ID --json
+    # WAYPOINTS``): the waypoints after the option are left over, and are still waypoints.
+    if rest and isinstance(getattr(args, "waypoints", None), list):
+        if not any(word.startswith("-") for word in rest):
+            args.waypoints.extend(rest)
+            rest = []
+    if rest:
+        parser.error(f"unrecognized arguments: {' '.join(rest)}")
+    return args
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = parse_args(argv)
     setup_logging(args.verbose if args.command == "serve" else args.verbose - 1, args.log_level)
     try:
         overrides = [*args.overrides, *getattr(args, "command_overrides", [])]

@@ -92,8 +92,10 @@ class _PlatformChannels:
     never offered a channel that nothing feeds (``/pose/local``: telemetry carries no local
     frame; ``/telemetry/turret`` on a platform without one)."""
 
-    def __init__(self, platform_id: str, context: foxglove.Context) -> None:
+    def __init__(self, platform_id: str, context: foxglove.Context, *, prefix: bool = True) -> None:
         self.platform_id = platform_id
+        self.prefix = f"/{platform_id}" if prefix else ""
+        """Before each topic: the platform id, or nothing (the recordings' names)."""
         self.context = context
         self.channels: dict[str, foxglove.Channel] = {}
         for spec in FED_AT_ONCE:
@@ -113,7 +115,7 @@ class _PlatformChannels:
         channel = self.channels.get(spec.topic)
         if channel is None:
             channel = self.channels[spec.topic] = foxglove.Channel(
-                f"/{self.platform_id}{spec.topic}",
+                f"{self.prefix}{spec.topic}",
                 message_encoding=schemas.MESSAGE_ENCODING,
                 schema=foxglove.Schema(
                     name=spec.schema_name,
@@ -219,7 +221,17 @@ class FoxgloveLive(Actor):
 
     def _add(self, platform_id: str) -> None:
         if platform_id not in self.platforms and self._context is not None:
-            self.platforms[platform_id] = _PlatformChannels(platform_id, self._context)
+            prefix = self.ctx.config.foxglove.platform_prefix
+            if not prefix and self.platforms:
+                _LOGGER.warning(
+                    "foxglove: %s not served: foxglove.platform_prefix is off and %s is",
+                    platform_id,
+                    next(iter(self.platforms)),
+                )
+                return
+            self.platforms[platform_id] = _PlatformChannels(
+                platform_id, self._context, prefix=prefix
+            )
 
     def _on_connected(self, link: PlatformLink) -> None:
         self._add(link.platform_id)

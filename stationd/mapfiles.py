@@ -38,11 +38,12 @@ class MapFilesApi:
         boundary: str = "",
         keepouts: str = "",
         boundary_bbox: bool = False,
+        union: bool = False,
     ) -> dict[str, Any]:
         """Read a map file (any format :func:`read_map` knows) and load it on the platform."""
         connection = await self.ctx.connection(platform_id)
         robot = await self._robot(platform_id)
-        options = (boundary, keepouts, boundary_bbox)
+        options = (boundary, keepouts, boundary_bbox, union)
         limit = _request_limit(connection.parameters)
         found = await _refusing(
             f"map refused: {filename}", _read_map, text, filename, options, robot, limit
@@ -57,9 +58,11 @@ class MapFilesApi:
         text: str,
         filename: str = "",
         fence: bool = False,
+        skip_unsupported: bool = False,
     ) -> dict[str, Any]:
         """Read a route file and set it as the platform's waypoints (``fence``: a plan's
-        exclusion fences are added as keep-outs first)."""
+        exclusion fences are added as keep-outs first; ``skip_unsupported``: a mission's
+        commands a rover cannot do are left out, each named in the notes)."""
         connection = await self.ctx.connection(platform_id)
         robot = await self._robot(platform_id)
         area = await connection.call("get_map")
@@ -70,7 +73,7 @@ class MapFilesApi:
             _read_route,
             text,
             filename,
-            fence,
+            (fence, skip_unsupported),
             boundary,
             robot,
             limit,
@@ -79,7 +82,12 @@ class MapFilesApi:
         if added:
             await connection.call("update_map", add=found.keepouts, remove=[])
         try:
-            answer = await connection.call("set_waypoints", waypoints=found.waypoints)
+            extra: dict[str, Any] = {}
+            if found.laps is not None:
+                extra["laps"] = found.laps
+            if found.home is not None:
+                extra["home"] = list(found.home)
+            answer = await connection.call("set_waypoints", waypoints=found.waypoints, **extra)
         except RpcError:
             if added:  # all or nothing: the fence's keep-outs go with the refused route
                 await connection.call("update_map", add=[], remove=added)
@@ -100,8 +108,17 @@ class MapFilesApi:
         area = await connection.call("get_map")
         area = area if isinstance(area, Mapping) else {}
         route = area.get("route", [])
+        home = area.get("home")  # the mission file's, when the route came from one
+        if isinstance(home, list) and len(home) == 2:
+            robot = (float(home[0]), float(home[1]))
         text = await _refusing(
-            f"export refused ({format})", _write_route, format, route, robot, area.get("map")
+            f"export refused ({format})",
+            _write_route,
+            format,
+            route,
+            robot,
+            area.get("map"),
+            area.get("laps"),
         )
         return {"text": text, "format": format, "waypoints": len(route)}
 
@@ -135,7 +152,7 @@ async def _refusing(what: str, function: Callable[..., T], *args: Any) -> T:
 def _read_map(
     text: str,
     filename: str,
-    options: tuple[str, str, bool],
+    options: tuple[str, str, bool, bool],
     robot: tuple[float, float] | None,
     limit: int,
 ) -> MapImport:
@@ -170,26 +187,30 @@ def _request_limit(parameters: Mapping[str, Any]) -> int:
 def _read_route(
     text: str,
     filename: str,
-    fence: bool,
+    options: tuple[bool, bool],
     boundary: list[tuple[float, float]] | None,
     robot: tuple[float, float] | None,
     limit: int,
 ) -> RouteImport:
     from brasidas.mapfiles.files import check_route_order, read_route
 
-    found = read_route(text, filename, fence=fence)
+    fence, skip_unsupported = options
+    found = read_route(text, filename, fence=fence, skip_unsupported=skip_unsupported)
     check_route_order(found, boundary, robot)
     _check_size(found.waypoints, limit, "the route", "fewer waypoints")
     _check_size(found.keepouts, limit, "the plan's fence", "fewer fence polygons and circles")
     return found
 
 
-def _write_route(fmt: str, route: Any, robot: tuple[float, float] | None, area: Any) -> str:
+def _write_route(
+    fmt: str, route: Any, home: tuple[float, float] | None, area: Any, laps: Any = None
+) -> str:
     from brasidas.mapfiles.files import write_route
 
     if not isinstance(route, list) or not all(isinstance(w, Mapping) for w in route):
         raise FileRefused("the platform's route is not a list of waypoints")
-    return write_route(fmt, route, robot, area if isinstance(area, Mapping) else None)
+    laps = laps if isinstance(laps, int) and not isinstance(laps, bool) and laps >= 1 else None
+    return write_route(fmt, route, home, area if isinstance(area, Mapping) else None, laps)
 
 
 def _boundary(area: Any) -> list[tuple[float, float]] | None:

@@ -254,3 +254,83 @@ def fence_item(seq: int, command: int, param1: float, lat: float, lon: float) ->
         0,
         1,
     )
+
+
+QGC_COMMAND_TIMEOUT = 1.2
+"""QGroundControl's wait for a COMMAND_ACK before each of its three retries."""
+QGC_FTP_TIMEOUT = 1.0
+QGC_PARAMS_FIRST_TIMEOUT = 5.0
+QGC_TRANSFER_TIMEOUT = 1.5
+PARAM_FILE = b"@PARAM/param.pck?withdefaults=1"
+
+
+async def qgc_connect(gcs: Gcs) -> dict[str, Any]:
+    """QGroundControl 4.x's connect (``InitialConnectStateMachine``) replayed with its
+    timeouts: autopilot version, protocol version, parameters (MAVFTP first, then the
+    parameter protocol), mission, fence and rally downloads. Each step must be answered inside
+    QGC's timeout (a timeout is a stall a user sees: raises ``TimeoutError``). Returns what
+    each step got."""
+    got: dict[str, Any] = {}
+    for name, message_id in (
+        ("AUTOPILOT_VERSION", mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION),
+        ("PROTOCOL_VERSION", 300),  # not in pymavlink 2.4 dialects
+    ):
+        since = gcs.mark()
+        gcs.send(
+            mavlink.MAVLink_command_long_message(
+                1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, message_id, 0, 0, 0, 0, 0, 0
+            )
+        )
+        got[f"{name}_ack"] = await gcs.expect(
+            "COMMAND_ACK",
+            lambda m: m.command == mavlink.MAV_CMD_REQUEST_MESSAGE,
+            QGC_COMMAND_TIMEOUT,
+            since=since,
+        )
+        if got[f"{name}_ack"].result == mavlink.MAV_RESULT_ACCEPTED:
+            got[name] = await gcs.expect(name, timeout=QGC_COMMAND_TIMEOUT, since=since)
+    # Parameters: MAVFTP's OpenFileRO of the parameter file; at once to PARAM_REQUEST_LIST
+    # only on "file not found" (QGC's other NAKs wait out its retries).
+    request = bytearray(251)
+    request[0:2] = (1).to_bytes(2, "little")
+    request[3], request[4] = 4, len(PARAM_FILE)
+    request[12 : 12 + len(PARAM_FILE)] = PARAM_FILE
+    since = gcs.mark()
+    gcs.send(mavlink.MAVLink_file_transfer_protocol_message(0, 1, 1, list(request)))
+    got["ftp"] = bytes(
+        (await gcs.expect("FILE_TRANSFER_PROTOCOL", timeout=QGC_FTP_TIMEOUT, since=since)).payload
+    )
+    if got["ftp"][3] != 129 or got["ftp"][12] != 10:
+        raise TimeoutError("MAVFTP: not a FileNotFound NAK: QGroundControl waits out its retries")
+    since = gcs.mark()
+    gcs.send(mavlink.MAVLink_param_request_list_message(1, 1))
+    first = await gcs.expect("PARAM_VALUE", timeout=QGC_PARAMS_FIRST_TIMEOUT, since=since)
+
+    def indexes() -> set[int]:
+        return {m.param_index for m in gcs.received[since:] if m.get_type() == "PARAM_VALUE"}
+
+    while len(indexes()) < first.param_count:
+        await gcs.expect("PARAM_VALUE", timeout=QGC_TRANSFER_TIMEOUT)
+    got["params_complete"] = time.monotonic()
+    # Fence and rally only over a link known to be MAVLink 2 (else QGC turns fences off).
+    protocol = got.get("PROTOCOL_VERSION")
+    kinds = (0, 1, 2) if protocol is not None and protocol.max_version >= 200 else (0,)
+    got["transfers"] = kinds
+    for mission_type in kinds:
+        since = gcs.mark()
+        gcs.send(mavlink.MAVLink_mission_request_list_message(1, 1, mission_type))
+        count = await gcs.expect(
+            "MISSION_COUNT",
+            lambda m, t=mission_type: m.mission_type == t,
+            QGC_TRANSFER_TIMEOUT,
+            since=since,
+        )
+        for seq in range(count.count):
+            mark = gcs.mark()
+            gcs.send(mavlink.MAVLink_mission_request_int_message(1, 1, seq, mission_type))
+            await gcs.expect(
+                "MISSION_ITEM_INT", lambda m, s=seq: m.seq == s, QGC_TRANSFER_TIMEOUT, since=mark
+            )
+        if count.count:
+            gcs.send(mavlink.MAVLink_mission_ack_message(1, 1, 0, mission_type))
+    return got

@@ -422,3 +422,48 @@ def test_a_new_route_goes_on_toward_the_target_not_back_to_the_first() -> None:
     without = parse_waypoints([w.as_dict() for i, w in enumerate(edited.waypoints) if i != 3])
     p.set_route(without)
     assert without.waypoints[p.cursor.index].same_place(route.waypoints[3])
+
+
+def test_a_missions_laps_end_the_patrol_and_its_leg_speeds_are_driven() -> None:
+    """A DO_JUMP's count (laps) stops the patrol back at the first waypoint after that many
+    laps; a DO_CHANGE_SPEED's speed is the leg's (never above the top speed)."""
+    area = parse_map(demo())
+    p = patrol()
+    p.set_map(area)
+    loop = parse_waypoints(demo_route(), area.points)
+    slow = [
+        {"lat": w.latitude, "lon": w.longitude, "speed": 0.5 if index == 1 else 99.0}
+        for index, w in enumerate(loop.waypoints)
+    ]
+    p.set_route(Route(parse_waypoints(slow).waypoints, laps=1))
+    p.start()
+    run = KinematicRun(p, area, start=(LAT, LON), seed=5)
+    fastest = {0: 0.0, 1: 0.0}
+    while not p.reason.startswith("mission complete") and run.now < 400:
+        command = run.tick().command
+        if p.cursor.index in fastest and command is not None:
+            fastest[p.cursor.index] = max(fastest[p.cursor.index], command.linear * SPEED)
+    assert p.state is PatrolState.STOPPED and p.reason.startswith("mission complete")
+    assert p.cursor.lap == 1 and p.cursor.index == 0
+    assert fastest[1] <= 0.5 + 1e-6  # the slow leg
+    assert fastest[0] > 1.0  # 99 m/s asked, the top speed driven
+    assert fastest[0] <= SPEED + 1e-6
+    p.start()  # a finished mission starts again from its first waypoint
+    assert p.cursor == Cursor()
+
+
+def test_a_mission_with_an_end_starts_from_its_first_waypoint() -> None:
+    """Its last waypoint (home, after RETURN_TO_LAUNCH) may be where the old route was heading:
+    going on toward it would end the mission before it starts."""
+    area = parse_map(demo())
+    p = patrol()
+    p.set_map(area)
+    loop = parse_waypoints(demo_route(), area.points)
+    p.set_route(loop)
+    assert p.cursor.index == 0
+    first, second = loop.waypoints[1], loop.waypoints[2]
+    mission = Route((first, second, loop.waypoints[0]), laps=1)  # ends where the loop starts
+    p.set_route(mission)
+    assert p.cursor == Cursor()
+    p.set_route(Route((second, loop.waypoints[0], first)))  # a patrol goes on toward its target
+    assert p.cursor.index == 2  # toward "first", where it was heading

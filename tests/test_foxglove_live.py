@@ -175,3 +175,34 @@ async def test_every_channel_the_station_advertises_is_fed(
     assert set(state["json"]) == {"what", "state", "station", "reason"}
     (motor,) = messages["/rover-fa/motor/command"]
     assert set(motor["json"]) == {"linear", "angular"}
+
+
+async def test_live_topics_can_be_named_as_recorded_so_one_layout_fits_both(
+    platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+) -> None:
+    """``foxglove.platform_prefix = false``: ``/gps`` live, as in a recording (one robot)."""
+    from brasidas.recording import schemas as recorded
+
+    platform = await platform_factory(
+        quiet_platform_config(
+            "platform.id=rover-fy",
+            "sim.enabled=true",
+            "gps.enabled=true",
+            f"map.file={tmp_path / 'map.geojson'}",
+            f"autonomy.route_file={tmp_path / 'route.json'}",
+        ),
+        fleet_key,
+    )
+    async with running_station(
+        fleet_key, "foxglove.port=0", "foxglove.platform_prefix=false"
+    ) as station:
+        (live,) = [a for a in station.supervisor.actors if isinstance(a, FoxgloveLive)]
+        await asyncio.wait_for(live.serving.wait(), 30)
+        code, _, err = await run_cli(
+            station, "connect", "rover-fy", "--url", platform.ctx.signaling_url
+        )
+        assert code == 0, err
+        lines = await subscribe(live.port, 2, "/gps")
+    fixes = [line for line in lines if line.get("topic") == "/gps"]
+    assert len(fixes) == 2 and fixes[0]["schema"] == "foxglove.LocationFix"
+    assert recorded.GPS.topic == "/gps"  # the recorder's name for the same channel

@@ -269,3 +269,21 @@ def test_params_encoded_once_make_the_same_request() -> None:
         "method": "go",
         "params": params,
     }
+
+
+async def test_the_specifications_batch_of_numbers_gets_an_error_each_before_a_session(
+    dispatcher: Dispatcher,
+) -> None:
+    """JSON-RPC 2.0's own example: ``[1,2,3]`` is answered with three -32600 errors, also
+    from a stranger (bounded by the batch cap); a session method in its batch is refused whole."""
+    incoming = dispatcher.parse(b"[1,2,3]")
+    answer = await dispatcher.answer(incoming, CallContext(stranger=True))
+    assert answer is not None
+    errors = json.loads(answer)
+    assert [e["error"]["code"] for e in errors] == [-32600] * 3
+    assert all(e["id"] is None for e in errors)
+    mixed = json.dumps([1, {"jsonrpc": "2.0", "id": 1, "method": "whoami"}]).encode()
+    refused = json.loads(
+        await dispatcher.answer(dispatcher.parse(mixed), CallContext(stranger=True)) or "null"
+    )
+    assert isinstance(refused, dict) and refused["error"]["code"] == -32600

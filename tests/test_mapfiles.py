@@ -171,7 +171,9 @@ def test_fence_files_refuse_what_they_cannot_be() -> None:
                 )
             )
         )
-    with pytest.raises(FileRefused, match="row 1 .*: MAV_CMD 31000 is not a fence item"):
+    with pytest.raises(
+        FileRefused, match=r"row 1 .*: MAV_CMD_WAYPOINT_USER_1 \(31000\) is not a fence item"
+    ):
         read_map(wpl(row(0, 0, 5000, lat=37.94, lon=23.65), row(1, 0, 31000, lat=37.94, lon=23.65)))
     with pytest.raises(FileRefused, match="radius 0.1 m is not between"):
         read_map(wpl(row(0, 0, 5003, 0.1, lat=37.94, lon=23.65)))
@@ -218,11 +220,18 @@ def test_kml_osm_and_overpass() -> None:
     found = read_map(json.dumps(overpass), options=MapOptions(boundary="landuse=meadow"))
     assert found.format == "Overpass JSON"
     assert parse_map(found.geojson).summary()["keepouts"] == ["way/7"]
-    with pytest.raises(FileRefused, match="way 100: node 4 is not in the file"):
-        read_map(
-            (DATA / "buildings.osm").read_text().replace('<node id="4"', '<node id="44"'),
-            options=MapOptions(boundary_bbox=True),
-        )
+    # A box export cuts ways at its edge (their outer nodes are not in the file): each is
+    # left out and named, not the whole file refused.
+    cut = read_map(
+        (DATA / "buildings.osm").read_text().replace('<node id="4"', '<node id="44"'),
+        options=MapOptions(boundary_bbox=True),
+    )
+    assert any(
+        "ways cut at the export's edge left out: way 100" in note
+        and "node 4 not in the file" in note
+        for note in cut.notes
+    ), cut.notes
+    assert "way/100" not in parse_map(cut.geojson).summary()["keepouts"]
 
 
 @pytest.mark.parametrize(
@@ -309,10 +318,8 @@ def test_mission_routes_home_jumps_and_refused_commands() -> None:
         )
     with pytest.raises(FileRefused, match=r"row 1 .*: a waypoint in MAV_FRAME_LOCAL_NED \(1\)"):
         read_route(wpl(HOME, row(1, 1, 16, lat=1, lon=2)))
-    with pytest.raises(
-        FileRefused, match="commands we cannot fly: row 1 .*MAV_CMD_NAV_RETURN_TO_LAUNCH"
-    ):
-        read_route(wpl(HOME, row(1, 3, 20)))
+    with pytest.raises(FileRefused, match="commands we cannot fly: row 1 .*MAV_CMD_NAV_LAND"):
+        read_route(wpl(HOME, row(1, 3, 21)))
     with pytest.raises(FileRefused, match="a fence or rally file, not a mission"):
         read_route((DATA / "fence.waypoints").read_text())
     with pytest.raises(FileRefused, match="line 3: 11 fields, a QGC WPL 110 row has 12"):
@@ -322,6 +329,9 @@ def test_mission_routes_home_jumps_and_refused_commands() -> None:
     with pytest.raises(FileRefused, match="mission item 1: a 'survey' pattern"):
         read_route(json.dumps(survey))
     assert command_name(22) == "MAV_CMD_NAV_TAKEOFF (22)" and command_name(31999) == "MAV_CMD 31999"
+    # Refusals name commands as pymavlink does, not by number alone.
+    assert command_name(211) == "MAV_CMD_DO_GRIPPER (211)"
+    assert command_name(92) == "MAV_CMD_NAV_GUIDED_ENABLE (92)"
 
 
 def test_route_text_and_json_forms() -> None:
@@ -411,8 +421,9 @@ def test_mission_items_are_the_one_mapping_both_ways() -> None:
     route = [(37.9414, 23.6526), (37.9414, 23.6534), (37.9419, 23.6534), (37.9414, 23.6526)]
     items = mission_items(route, ROBOT)
     assert items[0].frame == MavFrame.GLOBAL and items[1].frame == MavFrame.GLOBAL_RELATIVE_ALT
-    assert {item.command for item in items} == {MavCmd.NAV_WAYPOINT}
-    again = route_from_items(items, home_first=True, jump_target=lambda item: None)
+    # A closed route: its waypoints, then a jump back to the first (item 1).
+    assert [item.command for item in items] == [MavCmd.NAV_WAYPOINT] * 4 + [MavCmd.DO_JUMP]
+    again = route_from_items(items, home_first=True, jump_target=lambda item: 1)
     assert again.home == ROBOT and again.waypoints == route and again.closed
     kml = read_route((DATA / "field.kml").read_text(), "field.kml")
     assert kml.format == "KML" and len(kml.waypoints) == 3
@@ -576,3 +587,173 @@ def test_a_kmz_is_named_as_a_zip_archive() -> None:
         kmz.writestr("doc.kml", (DATA / "field.kml").read_text())
     with pytest.raises(FileRefused, match="a zip archive \\(a KMZ\\?\\)"):
         read_map(archive.getvalue().decode("latin-1"), "field.kmz")
+
+
+def test_a_circle_keepout_holds_the_whole_circle_and_an_inclusion_stays_inside() -> None:
+    """At 500 m radius an inscribed 32-gon leaves 2.4 m of the circle outside a keep-out (more
+    than an RTK clearance): keep-outs are circumscribed, inclusions inscribed."""
+    from shapely import Point
+
+    from brasidas.autonomy.geo import LocalFrame
+    from brasidas.mapfiles.shapes import circle
+
+    lat, lon, radius = -36.88, 174.82, 500.0
+    frame = LocalFrame(lat, lon)
+    keepout = circle("c", 0, lat, lon, radius, role="keepout", ident="k")
+    inclusion = circle("c", 0, lat, lon, radius, role="inclusion", ident="i")
+    for k in range(360):
+        angle = math.radians(k + 0.5)
+        on_circle = frame.to_geo(radius * math.cos(angle), radius * math.sin(angle))
+        assert keepout.geometry.buffer(1e-9).covers(Point(on_circle[1], on_circle[0]))
+    for x, y in inclusion.geometry.exterior.coords:
+        east, north = frame.to_local(y, x)
+        assert math.hypot(east, north) <= radius + 1e-3
+
+
+def test_a_map_across_the_antimeridian_loads_at_the_station_as_on_the_platform() -> None:
+    """A field on 180° with wrapped longitudes (one ring, 20 vertices, made here): valid in
+    metres, self-crossing in degrees; both readers check it in the local frame."""
+    lat0, lon0 = -16.55, 179.98
+    ring = []
+    for k in range(20):
+        angle = 2 * math.pi * k / 20
+        lon = lon0 + 0.04 * math.cos(angle)
+        ring.append(
+            [round(lon - 360 if lon > 180 else lon, 7), round(lat0 + 0.001 * math.sin(angle), 7)]
+        )
+    ring.append(ring[0])
+    assert any(lon < 0 for lon, _ in ring) and any(lon > 0 for lon, _ in ring)
+    geojson = {
+        "type": "FeatureCollection",
+        "features": [
+            {
+                "type": "Feature",
+                "properties": {"role": "boundary"},
+                "geometry": {"type": "Polygon", "coordinates": [ring]},
+            }
+        ],
+    }
+    found = read_map(json.dumps(geojson))
+    area = parse_map(found.geojson).summary()["area_m2"]
+    assert 1.4e6 < area < 1.5e6  # an ellipse 8.5 km by 220 m, not the width of the world
+    bowtie = [[179.99, -16.55], [-179.99, -16.54], [-179.99, -16.55], [179.99, -16.54]]
+    with pytest.raises(FileRefused, match="invalid polygon: self-intersection at -16.54"):
+        read_map(json.dumps({"type": "Polygon", "coordinates": [[*bowtie, bowtie[0]]]}))
+
+
+def test_an_exported_loop_ends_with_a_jump_and_keeps_the_files_home() -> None:
+    """Another autopilot loops an exported closed route (a DO_JUMP, not a last waypoint that
+    happens to be the first), counted laps survive, and home is the one given (the file's)."""
+    corners = [(37.9414, 23.6526), (37.9419, 23.6526), (37.9419, 23.6534)]
+    route = [{"lat": lat, "lon": lon} for lat, lon in [*corners, corners[0]]]
+    home = (37.9413, 23.6529)
+    for fmt in ("waypoints", "plan"):
+        text = write_route(fmt, route, home, None, 3)
+        back = read_route(text)
+        assert back.home == home, fmt
+        assert [(w["lat"], w["lon"]) for w in back.waypoints] == [*corners, corners[0]], fmt
+        assert back.laps == 3, fmt
+    rows = write_route("waypoints", route, home).splitlines()
+    assert rows[-1].split("\t")[3:6] == ["177", "1", "-1"]  # DO_JUMP to item 1, forever
+
+
+def test_a_rally_file_given_as_a_route_says_what_it_is() -> None:
+    rally = "RALLY -36.8801 174.8201 20 0 0 0\nRALLY -36.8805 174.8209 20 0 0 0\n"
+    with pytest.raises(FileRefused, match="an ArduPilot rally file, not a route: load it with"):
+        read_route(rally)
+    points = parse_map(
+        read_map(
+            "-36.8800 174.8200\n-36.8790 174.8190\n-36.8790 174.8220\n-36.8810 174.8220\n"
+            "-36.8810 174.8190\n-36.8790 174.8190\n" + rally
+        ).geojson
+    ).points
+    assert sorted(points) == ["fence-return", "rally-1", "rally-2"]
+
+
+def older_item(jump_id: int, command: int, lat: float, lon: float, param1: float = 0) -> Any:
+    """An item in QGroundControl's older layout (param1..4 and coordinate), made here."""
+    return {
+        "autoContinue": True,
+        "command": command,
+        "coordinate": [lat, lon, 15],
+        "frame": 3,
+        "id": jump_id,
+        "param1": param1,
+        "param2": -1 if command == 177 else 0,
+        "param3": 0,
+        "param4": 0,
+        "type": "missionItem",
+    }
+
+
+def test_qgcs_older_mission_and_item_layouts_are_read() -> None:
+    corners = [(37.9414, 23.6526), (37.9419, 23.6526), (37.9419, 23.6534)]
+    items = [older_item(n + 1, 16, lat, lon) for n, (lat, lon) in enumerate(corners)]
+    items.append(older_item(4, 177, 0, 0, param1=1))
+    old = {
+        "MAV_AUTOPILOT": 3,
+        "complexItems": [],
+        "groundStation": "QGroundControl",
+        "items": items,
+        "plannedHomePosition": {"coordinate": [37.9415, 23.653, 0], "type": "missionItem"},
+        "version": "1.0",
+    }
+    found = read_route(json.dumps(old), "old.mission")
+    assert found.format == "QGC mission (old)" and found.home == (37.9415, 23.653)
+    assert [(w["lat"], w["lon"]) for w in found.waypoints] == [*corners, corners[0]]
+    # A .plan whose SimpleItems use the older layout, with a command a rover cannot do.
+    plan = json.loads((DATA / "field.plan").read_text())
+    older = [
+        older_item(n + 1, 16, lat, lon) | {"type": "SimpleItem"}
+        for n, (lat, lon) in enumerate(corners)
+    ]
+    plan["mission"]["items"] = older
+    assert len(read_route(json.dumps(plan)).waypoints) == 3
+    plan["mission"]["items"] = [
+        *older,
+        older_item(4, 21, 37.9414, 23.6526) | {"type": "SimpleItem"},
+    ]
+    with pytest.raises(FileRefused, match=r"commands we cannot fly: .*MAV_CMD_NAV_LAND \(21\)"):
+        read_route(json.dumps(plan))
+
+
+def test_a_named_point_far_outside_the_boundary_is_said() -> None:
+    data = json.loads((DATA / "plain.geojson").read_text())
+    data["features"].append(
+        {
+            "type": "Feature",
+            "properties": {"name": "typo"},
+            "geometry": {"type": "Point", "coordinates": [32.6531, 37.9416]},
+        }
+    )
+    found = read_map(json.dumps(data), options=MapOptions(boundary="yard", keepouts="rest"))
+    (note,) = [n for n in found.notes if "far outside the boundary" in n]
+    assert "'typo' 7" in note and "km out" in note and "gate" not in note
+
+
+def test_several_inclusion_fences_as_their_union_when_asked() -> None:
+    """ArduPilot's FENCE_OPTIONS: two overlapping fields as one boundary (their union); two
+    apart are refused; by default the intersection, as before."""
+
+    def field(west: float, east: float) -> dict[str, Any]:
+        ring = [[west, 37.941], [east, 37.941], [east, 37.942], [west, 37.942], [west, 37.941]]
+        return {
+            "type": "Feature",
+            "properties": {"role": "boundary"},
+            "geometry": {"type": "Polygon", "coordinates": [ring]},
+        }
+
+    overlapping = {
+        "type": "FeatureCollection",
+        "features": [field(23.652, 23.654), field(23.653, 23.655)],
+    }
+    text = json.dumps(overlapping)
+    both = parse_map(read_map(text, options=MapOptions(union=True)).geojson).summary()["area_m2"]
+    one = parse_map(read_map(text).geojson).summary()["area_m2"]
+    assert both == pytest.approx(3 * one, rel=0.01)
+    apart = {
+        "type": "FeatureCollection",
+        "features": [field(23.652, 23.653), field(23.654, 23.655)],
+    }
+    with pytest.raises(FileRefused, match="is 2 separate areas"):
+        read_map(json.dumps(apart), options=MapOptions(union=True))

@@ -81,10 +81,13 @@ async def test_pymavlink_reads_our_files_and_we_read_its_files(tmp_path: Path) -
     await asyncio.to_thread((tmp_path / "ours.waypoints").write_text, text)
     seen = await pymavlink(tmp_path)
 
-    # Ours, as MAVProxy sees it: home at 0, then NAV_WAYPOINTs at relative altitude.
-    assert [row[:3] for row in seen["mission"]] == [[0, 0, 16]] + [[i, 3, 16] for i in range(1, 5)]
-    assert [(row[3], row[4]) for row in seen["mission"][1:]] == [
-        (w["lat"], w["lon"]) for w in ROUTE
+    # Ours, as MAVProxy sees it: home at 0, NAV_WAYPOINTs at relative altitude, and a closed
+    # route's DO_JUMP back to item 1 (for ever) in place of its last waypoint.
+    assert [row[:3] for row in seen["mission"]] == [[0, 0, 16]] + [
+        [i, 3, 16] for i in range(1, 4)
+    ] + [[4, 2, 177]]
+    assert [(row[3], row[4]) for row in seen["mission"][1:4]] == [
+        (w["lat"], w["lon"]) for w in ROUTE[:3]
     ]
     # Our hand-written samples parse there too: 1 return point, 4+4 polygon vertices, a circle.
     assert seen["fence"] == [[5000, 0.0]] + [[5001, 4.0]] * 4 + [[5002, 4.0]] * 4 + [[5004, 6.0]]

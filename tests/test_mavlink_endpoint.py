@@ -144,7 +144,7 @@ async def test_parameters_are_listed_read_only_and_ftp_is_refused_cleanly(
     nak = await gcs.expect("FILE_TRANSFER_PROTOCOL", since=since)
     payload = bytes(nak.payload)
     assert int.from_bytes(payload[0:2], "little") == 42
-    assert payload[3] == 129 and payload[5] == 4  # NAK of OpenFileRO
+    assert payload[3] == 129 and payload[5] == 4 and payload[12] == 10  # FileNotFound
 
 
 async def test_a_mission_becomes_the_route_and_downloads_back(
@@ -153,6 +153,7 @@ async def test_a_mission_becomes_the_route_and_downloads_back(
     daemon = await connected(platform_factory, tmp_path, gcs, "mavlink.allow_unsigned_control=true")
     corners = [at(0, 0), at(40, 0), at(40, 30), at(0, 30)]
     home = waypoint(0, *at(0, 0))
+    home.frame = mavlink.MAV_FRAME_GLOBAL  # home as ArduPilot's ground stations send it
     items = [home, *(waypoint(i + 1, *p) for i, p in enumerate(corners))]
     items.append(
         mavlink.MAVLink_mission_item_int_message(
@@ -205,7 +206,7 @@ async def test_modes_start_and_stop_the_patrol(
     ack = await gcs.command(mavlink.MAV_CMD_MISSION_START)
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED
     await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1 and m.custom_mode == 10)
-    ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 15)  # GUIDED: not ours
+    ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 3)  # STEERING: not ours
     assert ack.result == mavlink.MAV_RESULT_UNSUPPORTED
 
 
@@ -521,7 +522,7 @@ async def test_the_navcam_announced_to_a_ground_station_decodes_with_gstreamer(
         assert ack.result == mavlink.MAV_RESULT_ACCEPTED
         stream = await gcs.expect("VIDEO_STREAM_INFORMATION", since=since)
         assert stream.type == mavlink.VIDEO_STREAM_TYPE_RTPUDP
-        assert stream.uri == f"udp://0.0.0.0:{video_port}"
+        assert stream.uri == str(video_port)
         assert stream.get_srcComponent() == 100
         assert await asyncio.wait_for(receiver.wait(), 60) == 0  # five decoded frames
     finally:

@@ -11,11 +11,11 @@ import sys
 from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 
-from conftest import free_udp_port
+from conftest import free_udp_port, wait_until
 from mavlink_gcs import LAT, LON, at, sim_rover_config
 
 from brasidas import topics
-from brasidas.messages import PatrolState
+from brasidas.messages import PatrolState, Velocity
 from platformd.app import PlatformDaemon
 
 MAVPROXY = Path(sys.executable).parent / "mavproxy.py"
@@ -146,6 +146,26 @@ async def test_mavproxy_loads_a_mission_and_a_fence_and_starts_the_patrol(
         since = client.send("mode AUTO")
         await client.expect("Mode AUTO", since)
         assert patrolling(daemon)
+
+        # "guided LAT LON": ArduPilot's guided waypoint, driven to through the planner.
+        goal = at(30, 25)
+        since = client.send(f"guided {goal[0]:.7f} {goal[1]:.7f} 0")
+        await client.expect("Mode GUIDED", since)
+        assert patrol.detour == "guided"
+        (target,) = patrol.core.route.waypoints
+        assert abs(target.latitude - goal[0]) < 1e-6 and abs(target.longitude - goal[1]) < 1e-6
+        since = client.send("mode RTL")
+        await client.expect("Mode RTL", since)
+        assert patrol.detour == "home"
+
+        # "rc 3 1750" in MANUAL: the throttle channel drives, as the joystick does.
+        commands: list[Velocity] = []
+        daemon.bus.subscribe(topics.MOTOR_COMMAND, commands.append)
+        since = client.send("mode MANUAL")
+        await client.expect("Mode MANUAL", since)
+        client.send("rc 3 1750")
+        await wait_until(lambda: any(c.linear > 0.3 for c in commands), 10)
+        client.send("rc 3 1500")
 
 
 async def test_mavproxy_controls_only_once_it_signs(

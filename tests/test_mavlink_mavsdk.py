@@ -17,6 +17,7 @@ from conftest import free_udp_port, wait_until
 from mavlink_gcs import LAT, LON, sim_rover_config
 from mavlink_gcs import at as position
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
+from mavsdk.asyncio.plugins.mission import MissionAsync, MissionItem, MissionPlan
 from mavsdk.asyncio.plugins.mission_raw import MissionRawAsync
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
@@ -188,3 +189,53 @@ async def test_mavsdk_health_all_ok_is_true_exactly_when_arming_would_pass(
             collecting.cancel("test over")
             with contextlib.suppress(asyncio.CancelledError):
                 await collecting
+
+
+def mission_item(lat: float, lon: float, speed: float | None) -> Any:
+    nan = float("nan")
+    return MissionItem(
+        lat,
+        lon,
+        0.0,
+        nan if speed is None else speed,
+        True,
+        nan,
+        nan,
+        MissionItem.CameraAction.NONE,
+        nan,
+        nan,
+        nan,
+        nan,
+        nan,
+        MissionItem.VehicleAction.NONE,
+    )
+
+
+async def test_mavsdks_mission_plugin_keeps_every_waypoint_and_its_speed(
+    platform_factory: Callable[..., Awaitable[PlatformDaemon]], tmp_path: Path
+) -> None:
+    """Its plugin sends the first waypoint as item 0 in a relative frame, and a DO_CHANGE_SPEED
+    after each waypoint whose speed is set: four waypoints, four driven, at that speed."""
+    port = free_udp_port()
+    daemon = await platform_factory(
+        sim_rover_config(tmp_path, port, "mavlink.allow_unsigned_control=true"), None
+    )
+    patrol = daemon.ctx.patrol
+    assert patrol is not None
+    corners = [position(0, 0), position(40, 0), position(40, 30), position(0, 30)]
+    configuration = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+    async with Mavsdk(configuration) as mavsdk:
+        await mavsdk.add_any_connection(f"udpin://127.0.0.1:{port}")
+        system = await mavsdk.first_autopilot(timeout_s=30.0)
+        assert system is not None
+        plugin = MissionAsync(system)
+        await plugin.upload_mission(MissionPlan([mission_item(*c, None) for c in corners]))
+        route = patrol.core.route
+        assert len(route.waypoints) == 4  # the first is a waypoint, not home
+        for waypoint, corner in zip(route.waypoints, corners, strict=True):
+            assert math.dist((waypoint.latitude, waypoint.longitude), corner) < 1e-6
+        await plugin.upload_mission(MissionPlan([mission_item(*c, 0.75) for c in corners]))
+        route = patrol.core.route
+        assert len(route.waypoints) == 4
+        # The speed set after the first waypoint is the speed of the legs after it.
+        assert [w.speed for w in route.waypoints] == [None, 0.75, 0.75, 0.75]

@@ -8,6 +8,7 @@ mission and fence items map onto routes and keep-outs with the right refusals.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import os
@@ -23,6 +24,7 @@ from platformd.mavlink.missions import (
     MissionRefused,
     fence_from_items,
     route_from_items,
+    route_index,
 )
 from platformd.mavlink.vehicle import (
     MAX_LINKS,
@@ -199,12 +201,13 @@ def test_a_forged_future_timestamp_does_not_lock_out_the_real_station() -> None:
 
 
 def mission(*rows: tuple[int, int]) -> list[MissionItem]:
-    """(command, param1) rows at seq 0.. with made-up positions: seq 0 at (1.0, 2.0), the
-    others around a circle from it (any run of them makes a valid polygon)."""
+    """(command, param1) rows at seq 0.. with made-up positions: seq 0 at (1.0, 2.0) (home:
+    the global frame), the others around a circle from it (any run of them makes a valid
+    polygon)."""
     return [
         MissionItem(
             seq,
-            3,
+            0 if seq == 0 else 3,
             command,
             param1,
             x=10_000_000 + round(1000 * math.sin(seq * 0.8)),
@@ -227,12 +230,12 @@ def test_mission_items_map_onto_routes() -> None:
         route_from_items(mission((16, 0), (21, 0)))
     assert refused.value.result == mavlink.MAV_MISSION_UNSUPPORTED
     assert "NAV_LAND" in str(refused.value)
-    local = [MissionItem(0, 3, 16), MissionItem(1, mavlink.MAV_FRAME_LOCAL_NED, 16)]
+    local = [MissionItem(0, 0, 16), MissionItem(1, mavlink.MAV_FRAME_LOCAL_NED, 16)]
     with pytest.raises(MissionRefused) as refused:
         route_from_items(local)
     assert refused.value.result == mavlink.MAV_MISSION_UNSUPPORTED_FRAME
     with pytest.raises(MissionRefused) as refused:
-        route_from_items([MissionItem(0, 3, 16), MissionItem(1, 3, 16, x=950_000_000)])
+        route_from_items([MissionItem(0, 0, 16), MissionItem(1, 3, 16, x=950_000_000)])
     assert refused.value.result == mavlink.MAV_MISSION_INVALID_PARAM5_X
 
 
@@ -312,3 +315,41 @@ def test_set_current_needs_control_like_any_change() -> None:
     assert current.seq == 2 and vehicle.state.waypoint == 1
     [request] = vehicle.feed(signed.frame(by_command), GCS, 0.2)
     assert isinstance(request, SetCurrent) and (request.seq, request.command) == (3, 224)
+
+
+def test_speed_return_to_launch_and_jump_counts_map_onto_the_route() -> None:
+    # ArduPilot's rover missions: home, a speed change, waypoints, RETURN_TO_LAUNCH.
+    plan = route_from_items(mission((16, 0), (178, 1), (16, 0), (16, 0), (20, 0)))
+    assert plan.speeds[0] is None  # param2 of the helper's rows is 0: the cruise speed
+    items = mission((16, 0), (16, 0), (178, 1), (16, 0), (16, 0), (20, 0))
+    items[2] = dataclasses.replace(items[2], param2=1.5)
+    plan = route_from_items(items)
+    assert plan.home == (1.0, 2.0)
+    assert plan.waypoints[-1] == plan.home and len(plan.waypoints) == 4  # home appended
+    assert plan.speeds == [None, 1.5, 1.5, 1.5] and plan.laps == 1
+    assert plan.seqs == [1, 3, 4, 5]
+    # A jump to the first waypoint repeated twice: three laps.
+    items = mission((16, 0), (16, 0), (16, 0), (16, 0), (177, 1))
+    items[4] = dataclasses.replace(items[4], param2=2)
+    looped = route_from_items(items)
+    assert looped.laps == 3 and looped.closed
+    forever = mission((16, 0), (16, 0), (16, 0), (16, 0), (177, 1))
+    forever[4] = dataclasses.replace(forever[4], param2=-1)
+    assert route_from_items(forever).laps is None
+    # What a rover cannot do is refused by name, or skipped (named) when asked.
+    with_takeoff = mission((16, 0), (22, 0), (16, 0), (16, 0))
+    with pytest.raises(MissionRefused, match="NAV_TAKEOFF"):
+        route_from_items(with_takeoff)
+    skipped = route_from_items(with_takeoff, skip_unsupported=True)
+    assert len(skipped.waypoints) == 2
+    assert "item 1: MAV_CMD_NAV_TAKEOFF (22): skipped" in skipped.notes
+
+
+def test_a_first_item_in_a_relative_frame_is_a_waypoint_not_home() -> None:
+    """MAVSDK's mission plugin sends its first waypoint as item 0 (relative altitude)."""
+    items = mission((16, 0), (16, 0), (16, 0), (16, 0))
+    items[0] = dataclasses.replace(items[0], frame=mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)
+    plan = route_from_items(items)
+    assert len(plan.waypoints) == 4 and plan.home is None
+    assert plan.seqs == [0, 1, 2, 3]
+    assert route_index(tuple(plan.seqs), 0) == 0

@@ -19,7 +19,7 @@ from typing import Any
 
 import pytest
 from conftest import free_tcp_port, free_udp_port, quiet_platform_config, wait_until
-from mcap.reader import make_reader
+from mcap.reader import NonSeekingReader, make_reader
 from mcap.records import Message
 from mcap.stream_reader import StreamReader
 from test_station import run_cli, station
@@ -180,6 +180,34 @@ async def test_a_sim_recording_is_listed_downloaded_and_reads_back(
     )
     assert code == 0, err
     assert target.read_bytes() == original
+
+    # The file being written downloads as a complete MCAP (to its last closed chunk) that
+    # the mcap package's seeking and streaming readers both open; a partial copy left by an
+    # earlier download is replaced, not resumed.
+    def being_written() -> Path | None:
+        files = [p for p in recordings.glob(f"*{ACTIVE_SUFFIX}") if p.stat().st_size > 20_000]
+        return files[0] if files else None
+
+    await wait_until(lambda: being_written() is not None, 30)
+    active = being_written()
+    assert active is not None
+    partial = tmp_path / "active.mcap"
+    partial.write_bytes(b"stale bytes of an earlier copy")
+    code, out, err = await run_cli(
+        station, "logs", "rover-23", "get", active.name, "-o", str(partial)
+    )
+    assert code == 0, err
+    live = await asyncio.to_thread(summary_of, partial)
+    assert live is not None and live.statistics is not None
+    assert live.statistics.message_count > 0
+    seeking = await asyncio.to_thread(read_messages, partial)
+    assert seeking["/navcam"] and seeking["/gps"]
+
+    def streamed_count() -> int:
+        with open(partial, "rb") as stream:
+            return sum(1 for _ in NonSeekingReader(stream).iter_messages())
+
+    assert await asyncio.to_thread(streamed_count) == live.statistics.message_count
 
     summary = await asyncio.to_thread(summary_of, target)
     assert summary is not None

@@ -156,8 +156,13 @@ def expected_answers(raw: bytes, *, stranger: bool = False) -> tuple[Any, int | 
     if isinstance(request, list):
         if not request:
             return request, 1
-        if stranger and not all(
-            isinstance(item, dict) and item.get("method") in OPEN_METHODS for item in request
+        # A stranger's batch is refused whole for a call of a method needing a session; what
+        # is no request at all is answered -32600 each (JSON-RPC's ``[1,2,3]`` example).
+        if stranger and any(
+            isinstance(item, dict)
+            and isinstance(item.get("method"), str)
+            and item["method"] not in OPEN_METHODS
+            for item in request
         ):
             return {"refused batch": request}, 1
         return request, sum(1 for item in request if _answered(item)) or None

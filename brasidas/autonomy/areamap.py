@@ -480,13 +480,26 @@ def _position(position: Any, where: str) -> tuple[float, float]:
 
 
 def _polygon(rings: list[list[tuple[float, float]]], frame: LocalFrame, where: str) -> Polygon:
+    polygon, problem = local_polygon(rings, frame)
+    if problem:
+        raise MapError(f"{where}: {problem}")
+    return polygon
+
+
+def local_polygon(
+    rings: Iterable[Iterable[tuple[float, float]]], frame: LocalFrame
+) -> tuple[Polygon, str]:
+    """Rings of (lon, lat) as a polygon in ``frame``'s metres, and what is wrong with it
+    ("" when nothing): the one validity check of the platform's map and the station's files,
+    made in metres (in degrees a ring across 180° crosses itself, and degrees are not square
+    away from the equator)."""
     local = [[frame.to_local(lat, lon) for lon, lat in ring] for ring in rings]
     polygon = Polygon(local[0], local[1:])
     if not polygon.is_valid:
-        raise MapError(f"{where}: invalid polygon: {_explain(polygon, frame)}")
+        return polygon, f"invalid polygon: {_explain(polygon, frame)}"
     if polygon.area <= 0.01:
-        raise MapError(f"{where}: the polygon has no area")
-    return polygon
+        return polygon, "the polygon has no area"
+    return polygon, ""
 
 
 def _explain(polygon: Polygon, frame: LocalFrame) -> str:

@@ -56,6 +56,13 @@ class PurePursuit:
         self.p = parameters
         self._path: tuple[XY, ...] = ()
         self._segment = 0
+        self.cruise_speed = parameters.cruise_speed
+        """m/s on this leg: the cruise speed, or a mission's DO_CHANGE_SPEED for it."""
+
+    def set_speed(self, speed: float | None) -> None:
+        """The leg's speed (None: the cruise speed), never above the platform's top speed."""
+        wanted = self.p.cruise_speed if speed is None else speed
+        self.cruise_speed = max(MIN_SPEED, min(wanted, self.p.full_speed))
 
     @property
     def path(self) -> tuple[XY, ...]:
@@ -90,7 +97,7 @@ class PurePursuit:
             turn = math.copysign(self.p.max_turn_rate, alpha)
             return self._command(0.0, turn, cross, remaining)
         curvature = 2.0 * math.sin(alpha) / max(distance, 1e-6)
-        speed = self.p.cruise_speed
+        speed = self.cruise_speed
         if abs(curvature) > 1e-9:
             speed = min(speed, self.p.max_turn_rate / abs(curvature))
         speed = min(speed, math.sqrt(2.0 * self.p.decel * remaining))

@@ -114,6 +114,8 @@ class Patrol:
         self._ahead_answer: tuple[list[XY] | None, str] | None = None
         self._next_request = 0
         self._skips = 0
+        self._completed = False
+        """The route's laps are driven (a mission's end): start begins it again."""
 
     # ------------------------------------------------------------------ inputs
 
@@ -242,7 +244,9 @@ class Patrol:
         self.route = route
         self.cursor = Cursor()
         stops = route.waypoints[: route.stops]
-        for step in range(len(old)):
+        # A mission with an end (laps, a return home) is driven from its first waypoint: going
+        # on toward a kept waypoint could be its last, and end it at once.
+        for step in range(len(old) if route.laps is None else 0):
             wanted = old[(start + step) % len(old)]
             kept = [i for i, waypoint in enumerate(stops) if waypoint.same_place(wanted)]
             if kept:
@@ -251,12 +255,16 @@ class Patrol:
         self._needs_plan = True
         self._forget_plans()
         self._skips = 0
+        self._completed = False
         if not route.waypoints:
             self._path = None
         if not self._running:
             self.reason = "not started" if route.waypoints else "no waypoints"
 
     def start(self) -> None:
+        if self._completed:  # a finished mission starts again from its first waypoint
+            self.cursor = Cursor()
+            self._completed = False
         self._running = True
         self._needs_plan = True
         self._forget_plans()
@@ -323,6 +331,16 @@ class Patrol:
                 self.events.append(PatrolEvent("arrived", index, f"reached {self._label(index)}"))
                 self.cursor = self.cursor.advance(self.route)
                 self._needs_plan = True
+                if self._finished(index):
+                    # Stays at the last waypoint reached (what MISSION_CURRENT shows).
+                    self.cursor = Cursor(index, self.cursor.forward, self.cursor.lap, True)
+                    self._running = False
+                    self._completed = True
+                    self._path = None
+                    self.events.append(PatrolEvent("finished", index, "mission complete"))
+                    return self._settle(
+                        PatrolState.STOPPED, f"mission complete at {self._label(index)}"
+                    )
                 if self.route.stops == 1:
                     return self._settle(PatrolState.PATROLLING, "at the only waypoint")
                 if self._planner is None:
@@ -433,9 +451,19 @@ class Patrol:
         self._use(path)
         return True
 
+    def _finished(self, arrived: int) -> bool:
+        """The route's laps are done on arriving at waypoint ``arrived`` (cursor advanced)."""
+        laps = self.route.laps
+        if laps is None:
+            return False
+        if self.route.closed:
+            return self.cursor.lap >= laps
+        return arrived == self.route.stops - 1
+
     def _use(self, path: Path) -> None:
         self._path = path
         self._follower.set_path(path.points)
+        self._follower.set_speed(self.route.waypoints[self.cursor.index].speed)
         self._needs_plan = False
         self._distance = path.length
 

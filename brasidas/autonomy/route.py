@@ -34,6 +34,8 @@ class Waypoint:
     longitude: float
     name: str = ""
     """The map's named point it came from, if any."""
+    speed: float | None = None
+    """m/s on the leg to it (a mission's DO_CHANGE_SPEED); None: the cruise speed."""
 
     def same_place(self, other: Waypoint) -> bool:
         return (
@@ -45,6 +47,8 @@ class Waypoint:
         plain: dict[str, Any] = {"lat": self.latitude, "lon": self.longitude}
         if self.name:
             plain["name"] = self.name
+        if self.speed is not None:
+            plain["speed"] = self.speed
         return plain
 
     def label(self, index: int) -> str:
@@ -55,6 +59,11 @@ class Waypoint:
 @dataclass(frozen=True)
 class Route:
     waypoints: tuple[Waypoint, ...] = ()
+    laps: int | None = None
+    """Stop after this many laps of a closed route, or once at the end of an open one (a
+    mission's DO_JUMP count, or its RETURN_TO_LAUNCH); None: patrol until stopped."""
+    home: tuple[float, float] | None = None
+    """A mission file's home (lat, lon), kept so an export says the file's, not the robot's."""
 
     @property
     def closed(self) -> bool:
@@ -156,7 +165,11 @@ class RouteStore:
             raise RouteError(f"{self.path}: not JSON: {exc}") from None
         if not isinstance(data, Mapping) or not isinstance(data.get("waypoints"), list):
             raise RouteError(f"{self.path}: no 'waypoints' list")
-        return parse_waypoints(data["waypoints"])
+        laps = data.get("laps")
+        route = parse_waypoints(data["waypoints"])
+        if not (isinstance(laps, int) and not isinstance(laps, bool) and laps >= 1):
+            laps = None
+        return Route(route.waypoints, laps, parse_home(data.get("home")))
 
     def map_id(self) -> str | None:
         """The ``load_id`` of the map the stored route was set on ("" when the file does not
@@ -171,6 +184,10 @@ class RouteStore:
     def save(self, route: Route, map_id: str = "") -> None:
         """Store the route, with the ``load_id`` of the map it belongs to."""
         plain: dict[str, Any] = {"waypoints": route.as_list()}
+        if route.laps is not None:
+            plain["laps"] = route.laps
+        if route.home is not None:
+            plain["home"] = list(route.home)
         if map_id:
             plain["map"] = map_id
         write_atomically(self.path, json.dumps(plain, indent=1, allow_nan=False))
@@ -238,10 +255,40 @@ def _waypoint(item: Any, points: Mapping[str, tuple[float, float]], where: str) 
                 raise RouteError(f"{where}: no named point {name!r} on the map")
             lat, lon = points[name]
             return Waypoint(lat, lon, name)
-        return _checked(
+        waypoint = _checked(
             _number(item.get("lat"), where), _number(item.get("lon"), where), name, where
         )
+        speed = item.get("speed")
+        if speed is None:
+            return waypoint
+        if not _positive(speed):
+            raise RouteError(f"{where}: 'speed' must be a positive number of m/s")
+        return Waypoint(waypoint.latitude, waypoint.longitude, name, float(speed))
     raise RouteError(f'{where}: expected "LAT,LON", a point name, [lat, lon] or {{lat, lon}}')
+
+
+def parse_home(value: Any) -> tuple[float, float] | None:
+    """A route's home: [lat, lon] in range, else None (no home)."""
+    if (
+        isinstance(value, list | tuple)
+        and len(value) == 2
+        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+        and math.isfinite(value[0])
+        and math.isfinite(value[1])
+        and abs(value[0]) <= 90
+        and abs(value[1]) <= 180
+    ):
+        return float(value[0]), float(value[1])
+    return None
+
+
+def _positive(value: Any) -> bool:
+    return (
+        isinstance(value, int | float)
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and value > 0
+    )
 
 
 def _number(value: Any, where: str) -> float:

@@ -287,7 +287,9 @@ class Dispatcher:
         if ctx.stranger:
             for item in batch:
                 name = item.get("method") if type(item) is dict else None
-                method = self._methods.get(name) if type(name) is str else None
+                if type(name) is not str:
+                    continue  # not a request: answered -32600 on its own, as the spec says
+                method = self._methods.get(name)
                 if method is None or method.session_required:
                     return "before a session, a batch may hold only calls that need none"
         return None

@@ -571,6 +571,9 @@ class MavlinkSection:
     the README (Signing); never on a mesh others can reach."""
     camera: bool = True
     """Announce the NavCam as a MAVLink camera component (id 100) with its video stream."""
+    skip_unsupported: bool = False
+    """Mission uploads: leave out the items a rover cannot do (each named in the upload's
+    answer) instead of refusing the mission."""
 
 
 @dataclass(frozen=True)

@@ -72,6 +72,8 @@ class RouteImport:
     notes: list[str] = field(default_factory=list)
     keepouts: list[dict[str, Any]] = field(default_factory=list)
     home: tuple[float, float] | None = None
+    laps: int | None = None
+    """A mission's end (:attr:`brasidas.autonomy.route.Route.laps`)."""
 
     def positions(self) -> list[tuple[float, float]]:
         return [
@@ -120,8 +122,11 @@ def read_map(text: str, filename: str = "", options: MapOptions | None = None) -
     raise FileRefused(f"not a map format this station reads ({FORMATS_HELP})")
 
 
-def read_route(text: str, filename: str = "", *, fence: bool = False) -> RouteImport:
-    """A route file's waypoints, or FileRefused. ``fence``: a plan's exclusion fences too."""
+def read_route(
+    text: str, filename: str = "", *, fence: bool = False, skip_unsupported: bool = False
+) -> RouteImport:
+    """A route file's waypoints, or FileRefused. ``fence``: a plan's exclusion fences too;
+    ``skip_unsupported``: a mission's commands a rover cannot do are left out (named)."""
     body = _body(text)
     plan_items = plan_items_in(body) if body.startswith("{") else 0
     if plan_items > MAX_PLAN_ITEMS:
@@ -133,8 +138,15 @@ def read_route(text: str, filename: str = "", *, fence: bool = False) -> RouteIm
         fences = [item for item in items[1:] if item.command >= MavCmd.NAV_FENCE_RETURN_POINT]
         if fences and len(fences) == len(items) - 1:
             raise FileRefused("a fence or rally file, not a mission: load it with 'map'")
-        mission = qgc.wpl_route(body)
+        mission = qgc.wpl_route(body, skip_unsupported=skip_unsupported)
         return _mission_import(mission, "QGC WPL 110")
+    if qgc.is_rally_or_old_fence(body) and any(
+        line.split()[:1] == ["RALLY"] for line in body.upper().splitlines()
+    ):
+        raise FileRefused(
+            "an ArduPilot rally file, not a route: load it with 'map' (its rally points become "
+            "the map's named points rally-1, rally-2, ..., which a route can name)"
+        )
     if body.startswith("<"):
         root = parse_xml(body, filename or "the file")
         if local(root.tag) != "kml":
@@ -148,10 +160,17 @@ def read_route(text: str, filename: str = "", *, fence: bool = False) -> RouteIm
     if body.startswith(("{", "[")):
         data = loads(body, filename or "the file")
         if qgc.is_plan(data):
-            result = _mission_import(qgc.plan_route(data), "QGC plan")
+            result = _mission_import(
+                qgc.plan_route(data, skip_unsupported=skip_unsupported), "QGC plan"
+            )
             if fence:
                 _plan_fence(data, result)
             return result
+        if qgc.is_old_mission(data):
+            plan = qgc.old_mission_as_plan(data)
+            return _mission_import(
+                qgc.plan_route(plan, skip_unsupported=skip_unsupported), "QGC mission (old)"
+            )
         if fence:
             raise FileRefused("--fence reads a QGC .plan's geofence; this file is not a plan")
         if isinstance(data, list):
@@ -167,17 +186,19 @@ def write_route(
     route: Sequence[Mapping[str, Any]],
     home: tuple[float, float] | None,
     area: Mapping[str, Any] | None = None,
+    laps: int | None = None,
 ) -> str:
     """The platform's route (``get_map``'s list) as a ``plan`` or ``waypoints`` file. Home is
-    the robot's position, else the first waypoint."""
+    the mission file's (``home``: the station passes it, else the robot's position), else the
+    first waypoint; a closed route ends with a DO_JUMP (``laps`` its repeat count)."""
     positions = [(float(w["lat"]), float(w["lon"])) for w in route]
     if not positions:
         raise FileRefused("the platform has no route to export")
     home = home or positions[0]
     if fmt == "plan":
-        return qgc.plan_text(positions, home, area)
+        return qgc.plan_text(positions, home, area, laps)
     if fmt == "waypoints":
-        return qgc.wpl_text(positions, home)
+        return qgc.wpl_text(positions, home, laps)
     raise FileRefused(f"export format {fmt!r}: {' or '.join(EXPORT_FORMATS)}")
 
 
@@ -274,11 +295,7 @@ def _mission_import(mission: MissionRoute, fmt: str) -> RouteImport:
     if len(mission.waypoints) > MAX_WAYPOINTS:
         raise FileRefused(f"{len(mission.waypoints)} waypoints, more than {MAX_WAYPOINTS}")
     return RouteImport(
-        [_waypoint(lat, lon) for lat, lon in mission.waypoints],
-        fmt,
-        mission.notes,
-        [],
-        mission.home,
+        list(mission.waypoint_items()), fmt, mission.notes, [], mission.home, mission.laps
     )
 
 

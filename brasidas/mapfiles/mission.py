@@ -30,7 +30,9 @@ class MavCmd(IntEnum):
     """The MAV_CMD values a route or map file may hold (others are named in refusals)."""
 
     NAV_WAYPOINT = 16
+    NAV_RETURN_TO_LAUNCH = 20
     DO_JUMP = 177
+    DO_CHANGE_SPEED = 178
     NAV_FENCE_RETURN_POINT = 5000
     NAV_FENCE_POLYGON_VERTEX_INCLUSION = 5001
     NAV_FENCE_POLYGON_VERTEX_EXCLUSION = 5002
@@ -84,7 +86,6 @@ OTHER_NAMES = {
     17: "NAV_LOITER_UNLIM",
     18: "NAV_LOITER_TURNS",
     19: "NAV_LOITER_TIME",
-    20: "NAV_RETURN_TO_LAUNCH",
     21: "NAV_LAND",
     22: "NAV_TAKEOFF",
     82: "NAV_SPLINE_WAYPOINT",
@@ -92,7 +93,6 @@ OTHER_NAMES = {
     112: "CONDITION_DELAY",
     114: "CONDITION_DISTANCE",
     176: "DO_SET_MODE",
-    178: "DO_CHANGE_SPEED",
     179: "DO_SET_HOME",
     181: "DO_SET_RELAY",
     183: "DO_SET_SERVO",
@@ -115,8 +115,18 @@ def command_name(command: int) -> str:
     try:
         name = MavCmd(command).name
     except ValueError:
-        name = OTHER_NAMES.get(command, "")
+        name = OTHER_NAMES.get(command, "") or _pymavlink_name(command)
     return f"MAV_CMD_{name} ({command})" if name else f"MAV_CMD {command}"
+
+
+def _pymavlink_name(command: int) -> str:
+    """The name in pymavlink's MAV_CMD table (ArduPilot's dialect: common.xml and its own),
+    without the ``MAV_CMD_`` prefix; empty for a number it does not know."""
+    from pymavlink.dialects.v20 import ardupilotmega
+
+    entry = ardupilotmega.enums["MAV_CMD"].get(command)
+    name = entry.name if entry is not None else ""
+    return name.removeprefix("MAV_CMD_") if name.startswith("MAV_CMD_") else ""
 
 
 def frame_name(frame: int) -> str:
@@ -173,10 +183,28 @@ class MissionRoute:
     waypoints: list[tuple[float, float]]
     home: tuple[float, float] | None = None
     notes: list[str] = field(default_factory=list)
+    speeds: list[float | None] = field(default_factory=list)
+    """m/s on the leg to each waypoint (DO_CHANGE_SPEED); None: the cruise speed."""
+    laps: int | None = None
+    """Stop after this many laps (a DO_JUMP's count) or once at the end (RETURN_TO_LAUNCH);
+    None: patrol until stopped."""
+    seqs: list[int] = field(default_factory=list)
+    """The index in the items of each waypoint (MISSION_CURRENT's numbering)."""
 
     @property
     def closed(self) -> bool:
         return len(self.waypoints) >= 3 and self.waypoints[0] == self.waypoints[-1]
+
+    def waypoint_items(self) -> list[dict[str, float]]:
+        """The waypoints as the patrol's ``set_waypoints`` items ({lat, lon[, speed]})."""
+        items: list[dict[str, float]] = []
+        for index, (latitude, longitude) in enumerate(self.waypoints):
+            item = {"lat": latitude, "lon": longitude}
+            speed = self.speeds[index] if index < len(self.speeds) else None
+            if speed is not None:
+                item["speed"] = speed
+            items.append(item)
+        return items
 
 
 def seq_jump_target(items: Sequence[MissionItem]) -> Callable[[MissionItem], int | None]:
@@ -190,46 +218,88 @@ def seq_jump_target(items: Sequence[MissionItem]) -> Callable[[MissionItem], int
     return target
 
 
+def looks_like_home(item: MissionItem) -> bool:
+    """Sequence 0 is home when it is a waypoint in the absolute global frame (ArduPilot,
+    Mission Planner, QGroundControl's ArduPilot plans); MAVSDK's mission plugin sends its
+    first waypoint there in a relative frame: that one is a waypoint."""
+    return item.command == MavCmd.NAV_WAYPOINT and item.frame in (
+        MavFrame.GLOBAL,
+        MavFrame.GLOBAL_INT,
+    )
+
+
+SKIPPABLE = frozenset({MissionResult.UNSUPPORTED, MissionResult.UNSUPPORTED_FRAME})
+"""What ``skip_unsupported`` leaves out (named in the notes): commands and frames a rover
+cannot do; a malformed item (position, jump target) is refused all the same."""
+
+
 def route_from_items(
     items: Sequence[MissionItem],
     *,
     home_first: bool,
     jump_target: Callable[[MissionItem], int | None],
     empty_ok: bool = False,
+    skip_unsupported: bool = False,
+    home: tuple[float, float] | None = None,
 ) -> MissionRoute:
     """The route of a mission, or MissionRefused naming every item we cannot drive.
 
     ``home_first``: item 0 is home (ArduPilot, Mission Planner, the mission protocol), not a
     waypoint; home at 0, 0 is no home. ``jump_target`` gives the index in ``items`` a DO_JUMP
     goes to (None: no such item). ``empty_ok``: no waypoints is an empty route (a ground station
-    clearing the mission), not a refusal."""
-    route = MissionRoute([])
+    clearing the mission), not a refusal. ``skip_unsupported``: commands a rover cannot do are
+    left out, each named in the notes, instead of refusing the mission. ``home``: the home
+    when no item holds it (a ``.plan``'s planned home).
+
+    DO_CHANGE_SPEED (param2 m/s; -1 no change, -2 or 0 the cruise speed) sets the speed of the
+    legs after it; a last RETURN_TO_LAUNCH drives back to home and stops there; a last DO_JUMP
+    to the first waypoint closes the route, its count (param2) giving the laps."""
+    route = MissionRoute([], home)
     body = list(items)
+    offset = 0
     if home_first and body:
-        home = body.pop(0)
-        if home.latitude == 0 and home.longitude == 0:
-            route.notes.append(f"{home.where} is home, without a position (0, 0)")
+        first = body.pop(0)
+        offset = 1
+        if first.latitude == 0 and first.longitude == 0:
+            route.notes.append(f"{first.where} is home, without a position (0, 0)")
         else:
-            _check_position(home, "home")
-            route.home = (home.latitude, home.longitude)
+            _check_position(first, "home")
+            route.home = (first.latitude, first.longitude)
             route.notes.append(
-                f"{home.where} is home ({home.latitude:.7f}, {home.longitude:.7f}), not a waypoint"
+                f"{first.where} is home ({first.latitude:.7f}, {first.longitude:.7f}), "
+                "not a waypoint"
             )
     refused = _Refusals()
     first_waypoint: int | None = None
     loop = False
+    returns = False
+    speed: float | None = None
     altitudes = False
+
+    def unsupported(result: MissionResult, text: str) -> None:
+        if skip_unsupported and result in SKIPPABLE:
+            route.notes.append(f"{text}: skipped")
+        else:
+            refused.add(result, text)
+
     for index, item in enumerate(body):
+        last = index == len(body) - 1
+        if returns:
+            unsupported(
+                MissionResult.UNSUPPORTED,
+                f"{item.where}: {command_name(item.command)} after RETURN_TO_LAUNCH",
+            )
+            continue
         if item.command == MavCmd.NAV_WAYPOINT:
             if item.frame not in GLOBAL_FRAMES:
-                refused.add(
+                unsupported(
                     MissionResult.UNSUPPORTED_FRAME,
                     f"{item.where}: a waypoint in {frame_name(item.frame)}",
                 )
                 continue
             _check_position(item, "waypoint")
             if first_waypoint is None:
-                first_waypoint = index + (1 if home_first else 0)
+                first_waypoint = index + offset
             hold = item.params[0]
             if math.isfinite(hold) and hold > 0:
                 route.notes.append(
@@ -237,9 +307,25 @@ def route_from_items(
                 )
             altitudes = altitudes or item.altitude != 0
             route.waypoints.append((item.latitude, item.longitude))
+            route.speeds.append(speed)
+            route.seqs.append(index + offset)
+        elif item.command == MavCmd.DO_CHANGE_SPEED:
+            wanted = item.params[1]
+            if not math.isfinite(wanted) or wanted < -2:
+                refused.add(
+                    MissionResult.INVALID,
+                    f"{item.where}: {command_name(item.command)}: speed {wanted:g} m/s",
+                )
+            elif wanted == -1:
+                pass  # no change
+            elif wanted in (0, -2):
+                speed = None
+            else:
+                speed = float(wanted)
+        elif item.command == MavCmd.NAV_RETURN_TO_LAUNCH:
+            returns = True
         elif item.command == MavCmd.DO_JUMP:
             target = jump_target(item)
-            last = index == len(body) - 1
             if target is None or target != first_waypoint or not last:
                 refused.add(
                     MissionResult.INVALID_PARAM1 if last else MissionResult.INVALID_SEQUENCE,
@@ -249,19 +335,32 @@ def route_from_items(
                 continue
             repeat = item.params[1]
             if math.isfinite(repeat) and repeat >= 0:
+                route.laps = int(repeat) + 1
                 route.notes.append(
-                    f"{item.where}: the jump's repeat count {repeat:g} is not used: the "
-                    "patrol loops until stopped"
+                    f"{item.where}: {route.laps} laps (the jump repeats {repeat:g} times), "
+                    "then the patrol stops at the first waypoint"
                 )
             loop = True
         elif item.command in FENCE_COMMANDS or item.command == MavCmd.NAV_RALLY_POINT:
-            refused.add(
+            unsupported(
                 MissionResult.UNSUPPORTED,
                 f"{item.where}: {command_name(item.command)} is a fence or rally item, "
                 "not a waypoint (load it as a map)",
             )
         else:
-            refused.add(MissionResult.UNSUPPORTED, f"{item.where}: {command_name(item.command)}")
+            unsupported(MissionResult.UNSUPPORTED, f"{item.where}: {command_name(item.command)}")
+    if returns:
+        if route.home is None:
+            refused.add(
+                MissionResult.INVALID,
+                "RETURN_TO_LAUNCH without a home (item 0 in the global frame)",
+            )
+        else:
+            route.waypoints.append(route.home)
+            route.speeds.append(speed)
+            route.seqs.append(len(items) - 1)
+            route.laps = 1
+            route.notes.append("RETURN_TO_LAUNCH: the route ends at home; the patrol stops there")
     refused.check("commands we cannot fly: ")
     if not route.waypoints and not empty_ok:
         raise MissionRefused(MissionResult.INVALID, "no waypoints in the mission")
@@ -269,6 +368,8 @@ def route_from_items(
         route.notes.append("altitudes ignored (a ground robot)")
     if loop and len(route.waypoints) >= 2 and route.waypoints[-1] != route.waypoints[0]:
         route.waypoints.append(route.waypoints[0])
+        route.speeds.append(speed)
+        route.seqs.append(route.seqs[0])
     if loop:
         route.notes.append("a jump back to the first waypoint: the route is closed (loops)")
     return route
@@ -397,10 +498,18 @@ def fence_plan(items: Sequence[MissionItem]) -> FencePlan:
 
 
 def mission_items(
-    route: Sequence[tuple[float, float]], home: tuple[float, float] | None
+    route: Sequence[tuple[float, float]],
+    home: tuple[float, float] | None,
+    laps: int | None = None,
 ) -> list[MissionItem]:
     """A route as mission items: home first when given (ArduPilot's sequence 0, in the global
-    frame), then NAV_WAYPOINTs at relative altitude 0 (a closed route ends on its first)."""
+    frame), then NAV_WAYPOINTs at relative altitude 0; a closed route (its last waypoint its
+    first) ends with a DO_JUMP back to the first waypoint instead, repeated forever (or
+    ``laps`` - 1 times), so another autopilot loops it too. The jump's param1 is 1 both as a
+    sequence number (after home) and as a ``.plan`` doJumpId (the first waypoint's)."""
+    closed = len(route) >= 3 and route[0] == route[-1]
+    if closed:
+        route = route[:-1]
     items = []
     if home is not None:
         items.append(
@@ -415,6 +524,19 @@ def mission_items(
                 _NO_PARAMS,
                 latitude,
                 longitude,
+                jump_id=len(items) + (0 if home is not None else 1),
+            )
+        )
+    if closed:
+        repeat = -1.0 if laps is None else float(laps - 1)
+        items.append(
+            MissionItem(
+                f"item {len(items)}",
+                int(MavCmd.DO_JUMP),
+                int(MavFrame.MISSION),
+                (1.0, repeat, 0.0, 0.0),
+                0.0,
+                0.0,
                 jump_id=len(items) + (0 if home is not None else 1),
             )
         )

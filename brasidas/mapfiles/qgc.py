@@ -70,7 +70,7 @@ def wpl_items(text: str) -> list[MissionItem]:
     return items
 
 
-def wpl_route(text: str) -> MissionRoute:
+def wpl_route(text: str, *, skip_unsupported: bool = False) -> MissionRoute:
     """A ``.waypoints`` mission: row 0 is home, the rest waypoints (a DO_JUMP's param1 is a
     sequence number)."""
     items = wpl_items(text)
@@ -79,7 +79,9 @@ def wpl_route(text: str) -> MissionRoute:
         seq = item.params[0]
         return int(seq) if math.isfinite(seq) and 0 <= seq < len(items) else None
 
-    return route_from_items(items, home_first=True, jump_target=target)
+    return route_from_items(
+        items, home_first=True, jump_target=target, skip_unsupported=skip_unsupported
+    )
 
 
 def wpl_shapes(text: str) -> list[Shape]:
@@ -87,10 +89,12 @@ def wpl_shapes(text: str) -> list[Shape]:
     return fence_shapes(wpl_items(text))
 
 
-def wpl_text(route: Sequence[tuple[float, float]], home: tuple[float, float]) -> str:
+def wpl_text(
+    route: Sequence[tuple[float, float]], home: tuple[float, float], laps: int | None = None
+) -> str:
     """A route as ``QGC WPL 110``: row 0 home, then NAV_WAYPOINT rows (relative altitude 0)."""
     rows = [WPL_HEADER]
-    for index, item in enumerate(mission_items(route, home)):
+    for index, item in enumerate(mission_items(route, home, laps)):
         fields = [
             str(index),
             "1" if index == 0 else "0",
@@ -113,7 +117,30 @@ def is_plan(data: Any) -> bool:
     return isinstance(data, Mapping) and data.get("fileType") == "Plan"
 
 
-def plan_route(data: Mapping[str, Any]) -> MissionRoute:
+def is_old_mission(data: Any) -> bool:
+    """QGroundControl's ``.mission`` file (before ``.plan``): ``items`` and a planned home at
+    the top, no ``fileType``."""
+    return (
+        isinstance(data, Mapping)
+        and "fileType" not in data
+        and isinstance(data.get("items"), list)
+        and ("plannedHomePosition" in data or data.get("groundStation") == "QGroundControl")
+    )
+
+
+def old_mission_as_plan(data: Mapping[str, Any]) -> dict[str, Any]:
+    """A ``.mission`` file as the ``.plan`` layout :func:`plan_route` reads (its items keep
+    their older layout, which :func:`plan_route` reads too); its planned home is an item with
+    a ``coordinate``."""
+    home = data.get("plannedHomePosition")
+    coordinate = home.get("coordinate") if isinstance(home, Mapping) else home
+    mission: dict[str, Any] = {"items": data["items"]}
+    if isinstance(coordinate, list):
+        mission["plannedHomePosition"] = coordinate
+    return {"fileType": "Plan", "mission": mission}
+
+
+def plan_route(data: Mapping[str, Any], *, skip_unsupported: bool = False) -> MissionRoute:
     """A ``.plan`` mission: its SimpleItems (home is ``plannedHomePosition``, not an item)."""
     mission = _section(data, "mission")
     raw = mission.get("items", [])
@@ -125,10 +152,20 @@ def plan_route(data: Mapping[str, Any]) -> MissionRoute:
     def target(item: MissionItem) -> int | None:
         return by_jump_id.get(int(item.params[0])) if math.isfinite(item.params[0]) else None
 
-    route = route_from_items(items, home_first=False, jump_target=target)
     home = mission.get("plannedHomePosition")
-    if isinstance(home, list) and len(home) >= 2 and all(_number(v) for v in home[:2]):
-        route.home = (float(home[0]), float(home[1]))
+    planned = (
+        (float(home[0]), float(home[1]))
+        if isinstance(home, list) and len(home) >= 2 and all(_number(v) for v in home[:2])
+        else None
+    )
+    route = route_from_items(
+        items,
+        home_first=False,
+        jump_target=target,
+        skip_unsupported=skip_unsupported,
+        home=planned,
+    )
+    if route.home is not None:
         route.notes.append(
             f"planned home {route.home[0]:.7f}, {route.home[1]:.7f} is not a waypoint"
         )
@@ -194,6 +231,7 @@ def plan_text(
     route: Sequence[tuple[float, float]],
     home: tuple[float, float],
     fence: Mapping[str, Any] | None = None,
+    laps: int | None = None,
 ) -> str:
     """A route (and the map's boundary and keep-outs as its geofence) as a QGC ``.plan``."""
     items = [
@@ -208,7 +246,7 @@ def plan_text(
             "Altitude": item.altitude,
             "AltitudeMode": 1,
         }
-        for item in mission_items(route, None)
+        for item in mission_items(route, None, laps)
     ]
     plan = {
         "fileType": "Plan",
@@ -275,9 +313,11 @@ def _plan_item(item: Any, index: int) -> MissionItem:
             f"commands we cannot fly: {where}: a {item.get('complexItemType', 'complex')!r} "
             "pattern (convert it to waypoints in QGroundControl first)"
         )
-    if kind != "SimpleItem":
+    if kind not in ("SimpleItem", "missionItem"):
         raise FileRefused(f"{where}: type {kind!r} (SimpleItem or ComplexItem)")
     params = item.get("params")
+    if params is None and "coordinate" in item:
+        params = _older_params(item, where)
     command, frame = item.get("command"), item.get("frame")
     if not isinstance(command, int) or not isinstance(frame, int):
         raise FileRefused(f"{where}: 'command' and 'frame' are integers")
@@ -291,7 +331,7 @@ def _plan_item(item: Any, index: int) -> MissionItem:
             values.append(float(value))
         else:
             raise FileRefused(f"{where}: param {value!r} is not a number")
-    jump_id = item.get("doJumpId", 0)
+    jump_id = item.get("doJumpId", item.get("id", 0) if kind == "missionItem" else 0)
     return MissionItem(
         f"{where} (doJumpId {jump_id})" if jump_id else where,
         command,
@@ -302,6 +342,15 @@ def _plan_item(item: Any, index: int) -> MissionItem:
         0.0 if math.isnan(values[6]) else values[6],
         jump_id if isinstance(jump_id, int) else 0,
     )
+
+
+def _older_params(item: Mapping[str, Any], where: str) -> list[Any]:
+    """QGroundControl's older item layout (``.mission`` files, early ``.plan`` ones):
+    ``param1``..``param4`` and ``coordinate`` [lat, lon, alt] instead of ``params``."""
+    coordinate = item.get("coordinate")
+    if not isinstance(coordinate, list) or len(coordinate) != 3:
+        raise FileRefused(f"{where}: 'coordinate' is [latitude, longitude, altitude]")
+    return [item.get(f"param{n}", 0) for n in range(1, 5)] + list(coordinate)
 
 
 def _number(value: Any) -> bool:

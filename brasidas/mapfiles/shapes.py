@@ -13,7 +13,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from shapely import MultiPolygon, Point, Polygon, box, intersection_all
+from shapely import MultiPolygon, Point, Polygon, box, intersection_all, unary_union
 from shapely.geometry import mapping
 from shapely.geometry.base import BaseGeometry
 from shapely.validation import explain_validity
@@ -78,6 +78,9 @@ class MapOptions:
     """Selector of the keep-outs; "rest": every other polygon; "none"."""
     boundary_bbox: bool = False
     """The boundary is the bounding box of everything in the file (or of its stated bounds)."""
+    union: bool = False
+    """Several boundary polygons make their union (ArduPilot's ``FENCE_OPTIONS`` bit 2), not
+    their intersection (its default); the union must be one area."""
 
 
 @dataclass
@@ -148,15 +151,18 @@ def circle(
     ident: str,
     vertices: int = CIRCLE_VERTICES,
 ) -> Shape:
-    """A circle as a polygon of ``vertices`` corners on it (the polygon lies inside the circle)."""
+    """A circle as a polygon of ``vertices`` corners: a keep-out's polygon holds the circle
+    (circumscribed: corners at r / cos(π/n), so no point of the circle is left out), an
+    inclusion's lies inside it (inscribed: corners on it), each erring on the safe side."""
     check_position(longitude, latitude, label)
     if not (math.isfinite(radius_m) and 0.5 <= radius_m <= 10_000):
         raise FileRefused(f"{label}: radius {radius_m} m is not between 0.5 m and 10 km")
     frame = LocalFrame(latitude, longitude)
+    corner_m = radius_m / math.cos(math.pi / vertices) if role == "keepout" else radius_m
     ring = []
     for k in range(vertices):
         angle = 2 * math.pi * k / vertices
-        lat, lon = frame.to_geo(radius_m * math.cos(angle), radius_m * math.sin(angle))
+        lat, lon = frame.to_geo(corner_m * math.cos(angle), corner_m * math.sin(angle))
         ring.append((lon, lat))
     ring.append(ring[0])
     properties = {"circle_radius_m": radius_m, "circle_vertices": vertices}
@@ -223,10 +229,9 @@ def assemble_map(
         raise FileRefused("give --boundary or --boundary-bbox, not both")
     if options.boundary:
         chosen = select(polygons, options.boundary, "--boundary")
-        boundary = _intersection(chosen)
-        notes.append(
-            f"boundary: {_names(chosen)}" + (" (their intersection)" if len(chosen) > 1 else "")
-        )
+        boundary = _combined(chosen, options.union)
+        how = " (their union)" if options.union else " (their intersection)"
+        notes.append(f"boundary: {_names(chosen)}" + (how if len(chosen) > 1 else ""))
     elif options.boundary_bbox:
         chosen = []
         boundary = _bbox(shapes, bounds)
@@ -250,9 +255,10 @@ def assemble_map(
                 "which polygon is the boundary? say --boundary SELECTOR (a number, id, name or "
                 f"KEY=VALUE) or --boundary-bbox; the file has: {listing(shapes)}"
             )
-        boundary = _intersection(chosen)
+        boundary = _combined(chosen, options.union)
         if len(chosen) > 1:
-            notes.append(f"boundary: the intersection of {_names(chosen)}")
+            how = "union" if options.union else "intersection"
+            notes.append(f"boundary: the {how} of {_names(chosen)}")
     rest = [s for s in polygons if s not in chosen]
     if options.keepouts:
         keepouts = select(rest, options.keepouts, "--keepouts")
@@ -291,6 +297,7 @@ def assemble_map(
         )
     unnamed = 0
     names: set[str] = set()
+    far: list[str] = []
     for shape in shapes:
         if shape.polygonal:
             continue
@@ -298,6 +305,9 @@ def assemble_map(
             unnamed += 1
             continue
         point_name = _unique(shape.name, names)
+        outside_m = _outside_m(boundary, shape.geometry)
+        if outside_m > FAR_POINT_M:
+            far.append(f"{point_name!r} {_distance_text(outside_m)}")
         features.append(
             {
                 "type": "Feature",
@@ -307,7 +317,36 @@ def assemble_map(
         )
     if unnamed:
         notes.append(f"{unnamed} points without a name not used (a named point needs a name)")
+    if far:
+        notes.append(
+            "named points far outside the boundary (kept; a route cannot use them): "
+            + ", ".join(far[:LISTED_MAX])
+            + (f" and {len(far) - LISTED_MAX} more" if len(far) > LISTED_MAX else "")
+        )
     return MapImport({"type": "FeatureCollection", "name": name, "features": features}, fmt, notes)
+
+
+FAR_POINT_M = 1000.0
+"""A named point further than this outside the boundary is said in a note (a typo'd
+coordinate, or a point of another site)."""
+
+
+def _outside_m(boundary: BaseGeometry, point: BaseGeometry) -> float:
+    """About how far (metres) ``point`` lies outside ``boundary`` (0 inside), in the local
+    frame of the boundary's own point."""
+    if not isinstance(point, Point) or boundary.covers(point):
+        return 0.0
+    hull = boundary if isinstance(boundary, Polygon) else boundary.convex_hull
+    if not isinstance(hull, Polygon):
+        return 0.0
+    anchor = hull.representative_point()
+    frame = LocalFrame(anchor.y, anchor.x)
+    ring = Polygon([frame.to_local(lat, lon) for lon, lat, *_ in hull.exterior.coords])
+    return float(ring.distance(Point(frame.to_local(point.y, point.x))))
+
+
+def _distance_text(metres: float) -> str:
+    return f"{metres / 1000:.0f} km out" if metres >= 10_000 else f"{metres:.0f} m out"
 
 
 def _names(shapes: Sequence[Shape]) -> str:
@@ -323,6 +362,20 @@ def _unique(base: str, used: set[str]) -> str:
         candidate = f"{base}-{n}"
     used.add(candidate)
     return candidate
+
+
+def _combined(chosen: Sequence[Shape], union: bool) -> Polygon:
+    """The boundary of several polygons: their intersection, or with ``union`` their union
+    (one area: separate pieces are refused, naming them)."""
+    if not union or len(chosen) < 2:
+        return _intersection(chosen)
+    merged = unary_union([shape.geometry for shape in chosen])
+    if not isinstance(merged, Polygon):
+        raise FileRefused(
+            f"the union of {_names(chosen)} is {len(getattr(merged, 'geoms', []))} separate "
+            "areas: a boundary is one (choose polygons that overlap or touch)"
+        )
+    return merged
 
 
 def _intersection(chosen: Sequence[Shape]) -> Polygon:
@@ -390,12 +443,13 @@ def _polygon(rings: Sequence[Ring], label: str) -> Polygon:
         if len(set(positions)) < 3:
             raise FileRefused(f"{label}: ring {n} has fewer than 3 corners")
         closed.append(positions)
-    polygon = Polygon(closed[0], closed[1:])
-    if not polygon.is_valid:
-        raise FileRefused(f"{label}: invalid polygon: {explain(polygon)}")
-    if polygon.area <= 0:
-        raise FileRefused(f"{label}: the polygon has no area")
-    return polygon
+    from brasidas.autonomy.areamap import local_polygon
+
+    first_lon, first_lat = closed[0][0]
+    _local, problem = local_polygon(closed, LocalFrame(first_lat, first_lon))
+    if problem:
+        raise FileRefused(f"{label}: {problem}")
+    return Polygon(closed[0], closed[1:])
 
 
 def plain_json(value: Any) -> Any:

@@ -166,12 +166,15 @@ def osm_xml_shapes(
             tags = {t.get("k", ""): t.get("v", "") for t in element if local(t.tag) == "tag"}
             relations.append(Relation(element.get("id", ""), members, tags))
     geometries = []
+    cut: list[str] = []
     for way_id, refs, tags in ways:
         missing = [r for r in refs if r not in nodes]
         if missing:
-            raise FileRefused(f"way {way_id}: node {missing[0]} is not in the file")
+            cut.append(_cut_way(way_id, missing[0], tags))
+            continue
         geometries.append((way_id, [(nodes[r][1], nodes[r][0]) for r in refs], tags, refs))
     shapes, notes = _osm_ways(geometries)
+    notes.extend(_cut_ways_note(cut))
     _osm_relations(relations, {g[0]: g[1] for g in geometries}, shapes, notes)
     south_west_north_east = None
     if bounds is not None:
@@ -204,6 +207,7 @@ def overpass_shapes(
         elif kind == "relation":
             relations.append(_overpass_relation(element))
     geometries = []
+    cut: list[str] = []
     for way in raw_ways:
         way_id = str(way.get("id"))
         raw_tags = way.get("tags")
@@ -218,13 +222,15 @@ def overpass_shapes(
         else:
             missing = [r for r in refs if r not in nodes]
             if missing:
-                raise FileRefused(f"way {way_id}: node {missing[0]} is not in the file")
+                cut.append(_cut_way(way_id, missing[0], {str(k): str(v) for k, v in tags.items()}))
+                continue
             positions = [(nodes[r][1], nodes[r][0]) for r in refs]
         closed_refs = refs if refs else [str(p) for p in positions]
         geometries.append(
             (way_id, positions, {str(k): str(v) for k, v in tags.items()}, closed_refs)
         )
     shapes, notes = _osm_ways(geometries)
+    notes.extend(_cut_ways_note(cut))
     _osm_relations(relations, {g[0]: g[1] for g in geometries}, shapes, notes)
     bounds = None
     raw_bounds = data.get("bounds")
@@ -239,6 +245,26 @@ def overpass_shapes(
         except (KeyError, TypeError, ValueError):
             raise FileRefused("'bounds' has minlat, minlon, maxlat, maxlon") from None
     return shapes, bounds, notes
+
+
+CUT_WAYS_NAMED = 5
+"""Ways cut at an export's edge named in the note (the rest counted)."""
+
+
+def _cut_way(way_id: str, node: str, tags: Mapping[str, str]) -> str:
+    kind = next((f"{k}={tags[k]}" for k in ("building", "highway", "boundary") if k in tags), "")
+    return f"way {way_id}" + (f" ({kind})" if kind else "") + f": node {node} not in the file"
+
+
+def _cut_ways_note(cut: list[str]) -> list[str]:
+    """A box export cuts the ways crossing its edge (their nodes outside it are not in the
+    file): each is left out, and said, whatever it is (a building cut there is not a keep-out
+    of this map)."""
+    if not cut:
+        return []
+    named = "; ".join(cut[:CUT_WAYS_NAMED])
+    more = f"; and {len(cut) - CUT_WAYS_NAMED} more" if len(cut) > CUT_WAYS_NAMED else ""
+    return [f"{len(cut)} ways cut at the export's edge left out: {named}{more}"]
 
 
 @dataclass(frozen=True)

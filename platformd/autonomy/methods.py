@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from brasidas.autonomy.route import RouteError
+from brasidas.autonomy.route import RouteError, parse_home
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, Dispatcher, RpcError
 from platformd.authority import Authority
 from platformd.autonomy.patrol import PatrolActor
@@ -68,19 +68,28 @@ class PatrolMethods:
             "map_rev": self.actor.core.map_revision,
             "route": self.actor.core.route.as_list(),
             "closed": self.actor.core.route.closed,
+            "laps": self.actor.core.route.laps,
+            "home": self.actor.core.route.home,
         }
 
-    async def set_waypoints(self, call: CallContext, waypoints: Any) -> dict[str, Any]:
-        """Replace the waypoints on the fly: "LAT,LON", point names, [lat, lon] or {lat, lon}."""
+    async def set_waypoints(
+        self, call: CallContext, waypoints: Any, laps: Any = None, home: Any = None
+    ) -> dict[str, Any]:
+        """Replace the waypoints on the fly: "LAT,LON", point names, [lat, lon] or {lat, lon
+        [, speed]}; ``laps``: stop after that many laps (once at an open route's end); ``home``:
+        [lat, lon], a mission file's home (what an export says)."""
         if not isinstance(waypoints, list):
             raise RpcError(INVALID_PARAMS, "waypoints refused: expected a list")
+        if laps is not None and (isinstance(laps, bool) or not isinstance(laps, int) or laps < 1):
+            raise RpcError(INVALID_PARAMS, "waypoints refused: 'laps' is a whole number ≥ 1")
         try:
-            route = await self.actor.set_waypoints(waypoints)
+            route = await self.actor.set_waypoints(waypoints, laps, parse_home(home))
         except RouteError as exc:
             raise RpcError(INVALID_PARAMS, f"waypoints refused: {exc}") from None
         return {
             "waypoints": route.as_list(),
             "closed": route.closed,
+            "laps": route.laps,
             "patrol": self.actor.report.as_dict(),
         }
 

@@ -18,6 +18,7 @@ map is, never on a platform without one.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import math
 import secrets
@@ -38,6 +39,7 @@ from brasidas.autonomy.route import (
     Route,
     RouteError,
     RouteStore,
+    Waypoint,
     check_route,
     parse_waypoints,
     remove_stale_temporaries,
@@ -98,6 +100,10 @@ class PatrolActor(Actor):
         self.core.enabled = enabled
         self.storage = storage
         self.routes = RouteStore(storage.route_file)
+        self.detour: str | None = None
+        """Driving to one point (``go_to_point``'s label), the route kept aside; None: the
+        route is the patrol's own."""
+        self._kept_route = Route()
         self.period = 1.0 / rate_hz
         self.autostart = autostart
         self.demo = demo
@@ -473,26 +479,58 @@ class PatrolActor(Actor):
         write_atomically(self.storage.map_file, text.decode())
         return area, text, orjson.dumps({"add": add, "remove": remove})
 
-    async def set_waypoints(self, items: list[Any]) -> Route:
+    async def set_waypoints(
+        self, items: list[Any], laps: int | None = None, home: tuple[float, float] | None = None
+    ) -> Route:
         """Replace the waypoints on the fly (R-5.3.3.3); stored before they are used (checks
-        and the file in a worker thread)."""
+        and the file in a worker thread). ``laps``, ``home``: :attr:`Route.laps`,
+        :attr:`Route.home` (a mission's)."""
         async with self._changing:
             area = self.core.area
             if area is None:
                 raise RouteError("no map loaded: load one first")
-            route = await asyncio.to_thread(self._new_route, area, items)
+            route = await asyncio.to_thread(self._new_route, area, items, laps, home)
+            self.detour = None
             self.core.set_route(route)
         self.tick()
         return route
 
-    def _new_route(self, area: AreaMap, items: list[Any]) -> Route:
+    def _new_route(
+        self,
+        area: AreaMap,
+        items: list[Any],
+        laps: int | None = None,
+        home: tuple[float, float] | None = None,
+    ) -> Route:
         """(Worker thread.) Parse, check and store waypoints on ``area``."""
-        route = parse_waypoints(items, area.points)
+        route = dataclasses.replace(parse_waypoints(items, area.points), laps=laps, home=home)
         check_route(route, area)
         self.routes.save(route, area.load_id)
         return route
 
+    async def go_to_point(self, latitude: float, longitude: float, label: str) -> Route:
+        """Drive to one point through the planner (around keep-outs) and stop there: a ground
+        station's GUIDED go-to or RTL. The route is kept, not stored over: ``start_patrol``
+        goes back to it. Raises RouteError (no map, a point the map refuses)."""
+        area = self.core.area
+        if area is None:
+            raise RouteError("no map loaded")
+        if not self.core.enabled:
+            raise RouteError("the patrol is switched off (command 10.8)")
+        route = Route((Waypoint(latitude, longitude, label),), laps=1)
+        await asyncio.to_thread(check_route, route, area)
+        if self.detour is None:
+            self._kept_route = self.core.route
+        self.detour = label
+        self.core.set_route(route)
+        self.core.start()
+        self.tick()
+        return route
+
     def start_patrol(self) -> None:
+        if self.detour is not None:  # back from a go-to: the patrol's own route again
+            self.core.set_route(self._kept_route)
+            self.detour = None
         if not self.core.enabled:
             raise RouteError("the patrol is switched off (command 10.8)")
         if self.core.area is None:

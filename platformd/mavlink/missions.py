@@ -112,13 +112,29 @@ class MissionItem:
         )
 
 
-def route_from_items(items: list[MissionItem]) -> MissionRoute:
-    """The route of an uploaded mission (item 0 is home; none but home clears the route);
+def route_from_items(items: list[MissionItem], *, skip_unsupported: bool = False) -> MissionRoute:
+    """The route of an uploaded mission (item 0 is home when it looks like home: see
+    :func:`~brasidas.mapfiles.mission.looks_like_home`; none but home clears the route);
     raises :class:`MissionRefused`."""
     read = [item.read() for item in items]
     return mission.route_from_items(
-        read, home_first=True, jump_target=mission.seq_jump_target(read), empty_ok=True
+        read,
+        home_first=bool(read) and mission.looks_like_home(read[0]),
+        jump_target=mission.seq_jump_target(read),
+        empty_ok=True,
+        skip_unsupported=skip_unsupported,
     )
+
+
+def route_index(waypoint_seqs: tuple[int, ...], seq: int) -> int:
+    """The route waypoint of mission item ``seq`` (item 0 is home without ``waypoint_seqs``;
+    an item that is no waypoint: the next waypoint's)."""
+    if not waypoint_seqs:
+        return seq - 1
+    for index, waypoint_seq in enumerate(waypoint_seqs):
+        if waypoint_seq >= seq:
+            return index
+    return -1
 
 
 def fence_from_items(items: list[MissionItem]) -> FencePlan:
@@ -127,12 +143,14 @@ def fence_from_items(items: list[MissionItem]) -> FencePlan:
 
 
 def items_from_route(
-    waypoints: list[tuple[float, float]], home: tuple[float, float] | None
+    waypoints: list[tuple[float, float]],
+    home: tuple[float, float] | None,
+    laps: int | None = None,
 ) -> list[MissionItem]:
     """A route as mission items: home at 0 (the first waypoint when there is no home yet),
-    then one NAV_WAYPOINT per waypoint."""
+    then one NAV_WAYPOINT per waypoint (a closed route: a DO_JUMP back instead of its last)."""
     home = home if home is not None else (waypoints[0] if waypoints else (0.0, 0.0))
-    return _written(mission.mission_items(waypoints, home))
+    return _written(mission.mission_items(waypoints, home, laps))
 
 
 def items_from_fence(area: dict[str, Any]) -> list[MissionItem]:

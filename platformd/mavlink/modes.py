@@ -15,6 +15,9 @@ Brasidas               ArduRover mode  meaning
 manual override        MANUAL (0)      the controlling station drives (MANUAL_CONTROL)
 patrolling             AUTO (10)       the patrol drives the route (mission)
 holding / stopped      HOLD (4)        nobody drives: the motors hold at zero
+going to home          RTL (11)        the patrol drives to home through the planner, stops
+going to a point       GUIDED (15)     the same to a ground station's point (DO_REPOSITION,
+                                       SET_POSITION_TARGET_GLOBAL_INT); set alone: holds
 =====================  ==============  =================================================
 """
 
@@ -36,6 +39,8 @@ class FlightMode(enum.IntEnum):
     MANUAL = 0
     HOLD = 4
     AUTO = 10
+    RTL = 11
+    GUIDED = 15
 
 
 def mode_named(custom_mode: int) -> FlightMode | None:

@@ -67,6 +67,7 @@ from platformd.mavlink.modes import FlightMode
 from platformd.mavlink.signing_state import SigningStateFile, gps_timestamp, signing_state_path
 from platformd.mavlink.vehicle import (
     CameraInfo,
+    GoTo,
     ManualInput,
     MavlinkVehicle,
     Peer,
@@ -113,7 +114,12 @@ class MavlinkService(Actor):
         navcam = ctx.config.navcam
         camera = (
             CameraInfo(
-                navcam.width, navcam.height, navcam.framerate, navcam.bitrate_kbps, navcam.port
+                navcam.width,
+                navcam.height,
+                navcam.framerate,
+                navcam.bitrate_kbps,
+                navcam.port,
+                framerate_now=self._navcam_framerate,
             )
             if config.camera and navcam.enabled
             else None
@@ -143,9 +149,13 @@ class MavlinkService(Actor):
         self._requests: asyncio.Queue[Request] = asyncio.Queue(maxsize=64)
         self._uploaded: tuple[Any, list[MissionItem]] | None = None
         """The last accepted mission's route and items: downloads return them verbatim."""
+        self._uploaded_seqs: tuple[int, ...] = ()
+        """Its waypoints' item numbers (MISSION_CURRENT)."""
         self._video_sessions: set[str] = set()
         self._override = OverrideState(False)
         self._patrol_state: PatrolState | None = None
+        self._guided: FlightMode | None = None
+        """GUIDED or RTL while going to a point (or stopped at it); None otherwise."""
         telemetry = ctx.config.telemetry
         # The station's group 90 warnings (brasidas.annunciator), from the platform's own
         # telemetry (the link's two, degraded and control taken, are a station's view:
@@ -164,6 +174,13 @@ class MavlinkService(Actor):
         )
         self.prearm_said: tuple[str, ...] = ()
         """The failing pre-arm checks last said in a STATUSTEXT (platformd.mavlink.arming)."""
+
+    def _navcam_framerate(self) -> float:
+        """The NavCam's framerate now (idle or engaged), the configured one without media."""
+        media = self.ctx.media
+        if media is not None and media.navcam is not None:
+            return float(media.nav_camera().get("framerate", self.ctx.config.navcam.framerate))
+        return float(self.ctx.config.navcam.framerate)
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -360,6 +377,44 @@ class MavlinkService(Actor):
             self._set_current(request)
         elif isinstance(request, arming.SafetyCommand):
             await arming.decide(self, request)
+        elif isinstance(request, GoTo):
+            await self._go_to(request, FlightMode.GUIDED)
+
+    async def _go_to(self, request: GoTo | SetMode, mode: FlightMode) -> None:
+        """GUIDED's point or RTL's home through the patrol's ``go_to_point`` (the planner,
+        around keep-outs; stops there), for the control holder only."""
+        vehicle = self.vehicle
+        what = "go to" if mode is FlightMode.GUIDED else "RTL"
+        refusal = self._refused(request, what)
+        if refusal is not None:
+            vehicle.answer_command(
+                request, mavlink.MAV_RESULT_DENIED, refusal, holder_system=self._holder_system()
+            )
+            return
+        patrol = self.ctx.patrol
+        if patrol is None:
+            vehicle.answer_command(request, mavlink.MAV_RESULT_UNSUPPORTED, "no patrol here")
+            return
+        if isinstance(request, GoTo):
+            point, label = (request.latitude, request.longitude), "guided"
+        elif vehicle.state.home is not None:
+            point, label = vehicle.state.home[:2], "home"
+        else:
+            vehicle.answer_command(request, mavlink.MAV_RESULT_FAILED, "RTL: no home yet")
+            return
+        try:
+            await patrol.go_to_point(point[0], point[1], label)
+        except RouteError as exc:
+            vehicle.answer_command(request, mavlink.MAV_RESULT_FAILED, f"{what} refused: {exc}")
+            return
+        session = self._session(request)
+        if self._override.engaged and self._override.session_id == session.session_id:
+            await self.ctx.commands.dispatch(MANUAL_OVERRIDE, "off", session)
+        self._guided = mode
+        self._update_mode()
+        _LOGGER.info("MAVLink: %s %.7f, %.7f from %s", what, point[0], point[1], request.peer)
+        if request.command is not None:
+            vehicle.answer_command(request, mavlink.MAV_RESULT_ACCEPTED)
 
     def _refused(self, request: Request, what: str) -> str | None:
         return self.ctx.authority.refusal(self._session(request), what)
@@ -381,12 +436,16 @@ class MavlinkService(Actor):
             return
         if request.mode is FlightMode.HOLD and await arming.hold_for_anyone(self, request):
             return  # stopping never needs control
+        if request.mode is FlightMode.RTL:
+            await self._go_to(request, FlightMode.RTL)
+            return
         refusal = self._refused(request, f"mode {request.mode.name}")
         if refusal is not None:
             vehicle.answer_command(
                 request, mavlink.MAV_RESULT_DENIED, refusal, holder_system=self._holder_system()
             )
             return
+        self._guided = FlightMode.GUIDED if request.mode is FlightMode.GUIDED else None
         patrol = self.ctx.patrol
         if request.mode is FlightMode.AUTO:
             if patrol is None:
@@ -454,12 +513,12 @@ class MavlinkService(Actor):
         items = list(request.items)
         try:
             if request.mission_type == MISSION:
-                plan = route_from_items(items)
-                route = await patrol.set_waypoints([list(point) for point in plan.waypoints])
+                plan = route_from_items(items, skip_unsupported=self.config.skip_unsupported)
+                route = await patrol.set_waypoints(plan.waypoint_items(), plan.laps, plan.home)
                 self._uploaded = (route, items) if items else None
-                text = f"mission: {len(route.waypoints)} waypoints" + (
-                    ", closed" if route.closed else ""
-                )
+                self._uploaded_seqs = tuple(plan.seqs)
+                self.vehicle.state.waypoint_seqs = self._uploaded_seqs
+                text = mission_summary(route, plan.notes)
             else:
                 fence = fence_from_items(items)
                 area = await patrol.reshape_map(self._fence_map(fence))
@@ -535,10 +594,11 @@ class MavlinkService(Actor):
                 return self._uploaded[1]
             if not route.waypoints:
                 return []
-            home = self.vehicle.state.home
+            home = route.home or self.vehicle.state.home
             return items_from_route(
                 [(w.latitude, w.longitude) for w in route.waypoints],
                 (home[0], home[1]) if home is not None else None,
+                route.laps,
             )
         if mission_type == FENCE:
             uploaded = self._uploaded_fence
@@ -599,13 +659,22 @@ class MavlinkService(Actor):
         state = self.vehicle.state
         state.waypoint = status.waypoint
         state.waypoints = status.waypoints
+        patrol = self.ctx.patrol
+        uploaded = self._uploaded
+        current = patrol is not None and uploaded is not None and uploaded[0] == patrol.core.route
+        state.waypoint_seqs = self._uploaded_seqs if current else ()
         self._patrol_state = status.state
         self._update_mode()
 
     def _update_mode(self) -> None:
+        patrol = self.ctx.patrol
+        patrolling = self._patrol_state is PatrolState.PATROLLING
+        detour = patrol is not None and patrol.detour is not None
         if self._override.engaged:
             mode = FlightMode.MANUAL
-        elif self._patrol_state is PatrolState.PATROLLING:
+        elif self._guided is not None and (detour or not patrolling):
+            mode = self._guided  # GUIDED or RTL: driving to the point, or stopped there
+        elif patrolling:
             mode = FlightMode.AUTO
         else:
             mode = FlightMode.HOLD
@@ -685,3 +754,16 @@ def _polygon(ring: tuple[tuple[float, float], ...]) -> dict[str, Any]:
 def _position_result() -> int:
     """A waypoint or vertex the map refuses (outside the boundary, in a keep-out)."""
     return int(mavlink.MAV_MISSION_INVALID_PARAM5_X)
+
+
+def mission_summary(route: Any, notes: list[str]) -> str:
+    """An accepted mission's answer: waypoints, loop or laps, and each item skipped."""
+    text = f"mission: {len(route.waypoints)} waypoints"
+    if route.closed:
+        text += ", closed" + (f", {route.laps} laps" if route.laps else "")
+    elif route.laps:
+        text += ", once"
+    skipped = [note for note in notes if note.endswith(": skipped")]
+    if skipped:
+        text += "; " + "; ".join(skipped)
+    return text

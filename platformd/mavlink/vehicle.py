@@ -22,7 +22,7 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from brasidas.messages import Attitude, ControllerStatus, GpsFix, PoseEstimate
-from platformd.mavlink import modes
+from platformd.mavlink import ftp, guided, manual, missions, modes, protocol_version
 from platformd.mavlink.missions import FENCE, MAX_ITEMS, MISSION, RALLY, MissionItem, command_name
 from platformd.mavlink.modes import FlightMode
 from platformd.mavlink.signing import SignatureCheck, SigningClock, Verdict
@@ -36,8 +36,6 @@ UPLOAD_RETRY_S = 0.25
 UPLOAD_RETRIES = 8
 """Requests of one item before the upload is abandoned."""
 STATUSTEXT_CHUNK = 50
-FTP_NAK = 129
-FTP_ERROR_UNKNOWN_COMMAND = 7
 """MAVFTP's "unknown command": the client falls back (MAVProxy to PARAM_REQUEST_LIST)."""
 NO_HOLDER = 0
 MAX_LINKS = 32
@@ -93,6 +91,16 @@ class UploadItems(Request):
 
 
 @dataclass(frozen=True)
+class GoTo(Request):
+    """GUIDED: drive to (latitude, longitude) and stop (DO_REPOSITION, or
+    SET_POSITION_TARGET_GLOBAL_INT with ``command`` None: no COMMAND_ACK)."""
+
+    latitude: float
+    longitude: float
+    command: int | None
+
+
+@dataclass(frozen=True)
 class SetCurrent(Request):
     """MISSION_SET_CURRENT or MAV_CMD_DO_SET_MISSION_CURRENT: the patrol's next waypoint."""
 
@@ -128,6 +136,8 @@ class CameraInfo:
     framerate: float
     bitrate_kbps: int
     port: int
+    framerate_now: Callable[[], float] | None = None
+    """What is really sent now (the NavCam's idle/engaged rate), if known."""
 
 
 @dataclass
@@ -150,6 +160,9 @@ class VehicleState:
     waypoint: int | None = None
     """The patrol's target (route index), None when idle."""
     waypoints: int = 0
+    waypoint_seqs: tuple[int, ...] = ()
+    """The mission item of each route waypoint, when an uploaded mission is the route (its
+    speed items and a home-less first item shift the numbering); empty: index + 1."""
     home: tuple[float, float, float] | None = None
     inside_fence: bool | None = None
     """The robot inside the map's boundary and out of its keep-outs; None without a map."""
@@ -398,7 +411,7 @@ class MavlinkVehicle:
         if link is None:
             return
         if command is None:
-            asked = request.command if isinstance(request, SetMode | SetCurrent) else None
+            asked = request.command if isinstance(request, SetMode | SetCurrent | GoTo) else None
             command = asked or 0
         self._send(
             link,
@@ -437,7 +450,7 @@ class MavlinkVehicle:
         elif text:
             self._statustext_to(link, Severity.INFO if accepted else Severity.WARNING, text)
         if accepted:
-            self.state.waypoint = request.seq - 1
+            self.state.waypoint = missions.route_index(self.state.waypoint_seqs, request.seq)
             self._send(link, self._mission_current())
 
     def statustext(self, severity: int, text: str) -> None:
@@ -663,8 +676,15 @@ class MavlinkVehicle:
     def _mission_current(self) -> Any:
         """The patrol's target as a mission item (route index + 1: item 0 is home)."""
         state = self.state
-        seq = state.waypoint + 1 if state.waypoint is not None else 0
-        return mavlink.MAVLink_mission_current_message(seq, state.waypoints + 1)
+        seqs = state.waypoint_seqs
+        if state.waypoint is None:
+            seq = 0
+        elif state.waypoint < len(seqs):
+            seq = seqs[state.waypoint]
+        else:
+            seq = state.waypoint + 1
+        total = seqs[-1] + 1 if seqs else state.waypoints + 1
+        return mavlink.MAVLink_mission_current_message(seq, total)
 
     def _home_position(self) -> Any | None:
         home = self.state.home
@@ -678,7 +698,9 @@ class MavlinkVehicle:
     def _autopilot_version(self) -> Any:
         return mavlink.MAVLink_autopilot_version_message(
             modes.CAPABILITIES,
-            0x00010000 | mavlink.FIRMWARE_VERSION_TYPE_OFFICIAL,
+            # Not OFFICIAL: QGroundControl compares an official version with ArduPilot's
+            # latest stable release and says "not the latest stable firmware".
+            0x00010000 | mavlink.FIRMWARE_VERSION_TYPE_DEV,
             0,
             0,
             0,
@@ -722,14 +744,15 @@ class MavlinkVehicle:
             1,
             mavlink.VIDEO_STREAM_TYPE_RTPUDP,
             mavlink.VIDEO_STREAM_STATUS_FLAGS_RUNNING,
-            camera.framerate,
+            camera.framerate_now() if camera.framerate_now is not None else camera.framerate,
             camera.width,
             camera.height,
             camera.bitrate_kbps,
             0,
             0,
             b"NavCam",
-            f"udp://0.0.0.0:{camera.port}".encode(),
+            # RTP over UDP: the port alone (the spec's form; QGC reads it so).
+            str(camera.port).encode(),
             mavlink.VIDEO_STREAM_ENCODING_H264,
         )
 
@@ -769,12 +792,20 @@ class MavlinkVehicle:
             if mode is None:
                 ack(
                     mavlink.MAV_RESULT_UNSUPPORTED,
-                    f"mode {int(params[1])} is not a Brasidas mode (MANUAL, HOLD, AUTO)",
+                    f"mode {int(params[1])} is not a Brasidas mode (MANUAL, HOLD, AUTO, RTL, GUIDED)",
                 )
                 return []
             if not self._may_control(signed, "set mode", ack, mavlink.MAV_RESULT_DENIED):
                 return []
             return [SetMode(peer, system, component, signed, mode, command)]
+        if command == mavlink.MAV_CMD_DO_REPOSITION:
+            target = guided.reposition_target(message)
+            if target is None:
+                ack(mavlink.MAV_RESULT_DENIED, "go to: no latitude, longitude in a global frame")
+                return []
+            if not self._may_control(signed, "go to", ack, mavlink.MAV_RESULT_DENIED):
+                return []
+            return [GoTo(peer, system, component, signed, *target, command)]
         if command == mavlink.MAV_CMD_DO_SET_MISSION_CURRENT:
             if not self._may_control(signed, "set current", ack, mavlink.MAV_RESULT_DENIED):
                 return []
@@ -817,6 +848,8 @@ class MavlinkVehicle:
         requests: list[Request] = []
         if message_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             reply = self._autopilot_version()
+        elif message_id == protocol_version.MSG_ID:
+            reply = protocol_version.protocol_version()
         elif message_id == mavlink.MAVLINK_MSG_ID_HOME_POSITION:
             reply = self._home_position()
             if reply is None:
@@ -859,7 +892,7 @@ class MavlinkVehicle:
         if mode is None or not message.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
             ack(
                 mavlink.MAV_RESULT_UNSUPPORTED,
-                f"mode {message.custom_mode} is not a Brasidas mode (MANUAL, HOLD, AUTO)",
+                f"mode {message.custom_mode} is not a Brasidas mode (MANUAL, HOLD, AUTO, RTL, GUIDED)",
             )
             return []
         if not self._may_control(signed, "set mode", ack, mavlink.MAV_RESULT_DENIED):
@@ -885,6 +918,49 @@ class MavlinkVehicle:
             return []
         linear = _axis(message.x)
         angular = -_axis(message.r)  # MAVLink's r is yaw to the right; ours turns left
+        return [ManualInput(peer, system, component, signed, linear, angular)]
+
+    def _on_position_target(
+        self, link: Link, message: Any, origin: Any, now: float
+    ) -> list[Request]:
+        """SET_POSITION_TARGET_GLOBAL_INT: a go-to (no answer but the mode and the position)."""
+        peer, system, component, signed = origin
+        if message.target_system not in (0, self.system_id):
+            return []
+        if not (signed or self.allow_unsigned_control):
+            self.counters["refused_unsigned"] += 1
+            return []
+        target = guided.position_target(message)
+        if target is None:
+            return []
+        return [GoTo(peer, system, component, signed, *target, None)]
+
+    def _on_guided_item(self, link: Link, message: Any, origin: Any) -> list[Request]:
+        """A mission item with ``current`` 2 (MAVProxy's ``guided LAT LON``, ArduPilot's
+        guided waypoint): a go-to; MISSION_ACK says whether it was taken."""
+        peer, system, component, signed = origin
+
+        def refuse(result: int, text: str) -> None:
+            self._mission_ack(link, system, component, mavlink.MAV_MISSION_DENIED, MISSION)
+            self._statustext_to(link, Severity.WARNING, text)
+
+        target = guided.item_target(message)
+        if target is None:
+            refuse(0, "go to: no latitude, longitude in a global frame")
+            return []
+        if not self._may_control(signed, "go to", refuse, mavlink.MAV_MISSION_DENIED):
+            return []
+        return [GoTo(peer, system, component, signed, *target, None)]
+
+    def _on_rc_override(self, link: Link, message: Any, origin: Any, now: float) -> list[Request]:
+        """RC_CHANNELS_OVERRIDE: the joystick as ArduRover's channels (see manual.py)."""
+        peer, system, component, signed = origin
+        if message.target_system not in (0, self.system_id):
+            return []
+        if not (signed or self.allow_unsigned_control):
+            self.counters["refused_unsigned"] += 1
+            return []
+        linear, angular = manual.rc_velocity(message)
         return [ManualInput(peer, system, component, signed, linear, angular)]
 
     def _on_param_request_list(
@@ -946,16 +1022,12 @@ class MavlinkVehicle:
 
     def _on_ftp(self, link: Link, message: Any, origin: Any, now: float) -> list[Request]:
         _peer, system, component, _signed = origin
-        request = bytes(message.payload)
-        seq = int.from_bytes(request[0:2], "little")
-        session, opcode = request[2], request[3]
-        nak = bytearray(251)
-        nak[0:2] = ((seq + 1) & 0xFFFF).to_bytes(2, "little")
-        nak[2], nak[3], nak[4], nak[5] = session, FTP_NAK, 1, opcode
-        nak[12] = FTP_ERROR_UNKNOWN_COMMAND
-        self._send(
-            link, mavlink.MAVLink_file_transfer_protocol_message(0, system, component, list(nak))
-        )
+        answer = ftp.reply(bytes(message.payload))
+        if answer is not None:
+            self._send(
+                link,
+                mavlink.MAVLink_file_transfer_protocol_message(0, system, component, list(answer)),
+            )
         return []
 
     # ------------------------------------------------------------------ missions
@@ -1047,6 +1119,8 @@ class MavlinkVehicle:
         peer, system, component, signed = origin
         upload = link.upload
         mission_type = message.mission_type
+        if message.current == guided.GUIDED_ITEM and mission_type == MISSION:
+            return self._on_guided_item(link, message, origin)
         if upload is None or upload.waiting or upload.mission_type != mission_type:
             if link.last_ack is not None and link.last_ack[0] == mission_type:
                 # Our ACK was lost and the station repeats its last item: repeat the ACK.
@@ -1234,6 +1308,8 @@ _HANDLERS: dict[str, _Handler] = {
     "COMMAND_INT": MavlinkVehicle._on_command,
     "SET_MODE": MavlinkVehicle._on_set_mode,
     "MANUAL_CONTROL": MavlinkVehicle._on_manual_control,
+    "RC_CHANNELS_OVERRIDE": MavlinkVehicle._on_rc_override,
+    "SET_POSITION_TARGET_GLOBAL_INT": MavlinkVehicle._on_position_target,
     "PARAM_REQUEST_LIST": MavlinkVehicle._on_param_request_list,
     "PARAM_REQUEST_READ": MavlinkVehicle._on_param_request_read,
     "PARAM_SET": MavlinkVehicle._on_param_set,
