@@ -14,9 +14,11 @@ capped backoff, as the GPS's is.
 from __future__ import annotations
 
 import asyncio
+import collections
 import concurrent.futures
 import dataclasses
 import logging
+import math
 from typing import Any
 
 from brasidas import topics
@@ -25,6 +27,7 @@ from brasidas.backoff import Backoff
 from brasidas.bus import Bus
 from brasidas.clock import Clock, LoopClock, sleep, timeout_at
 from brasidas.codecs.ldlidar import LidarDecoder, LidarScan, ScanAssembler
+from brasidas.codecs.telemetry_schema import Perception
 from brasidas.config.lidar import LidarSection
 from brasidas.perception.messages import Proximity, RobotScan
 from brasidas.perception.proximity import Geometry, proximity, silent, to_robot
@@ -68,6 +71,7 @@ class LidarReader(Actor):
         self.last: RobotScan | None = None
         self.proximity: Proximity = silent(0.0, config.scan_timeout_s)
         self._last_scan_at: float | None = None
+        self._scan_times: collections.deque[float] = collections.deque(maxlen=64)
         self._pending: LidarScan | None = None
         self._wake = asyncio.Event()
         self._worker = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="lidar")
@@ -143,6 +147,7 @@ class LidarReader(Actor):
             if scan is not None:
                 self.scans += 1
                 self._last_scan_at = now
+                self._scan_times.append(now)
                 if self._pending is not None:
                     self.scans_skipped += 1
                 self._pending = scan
@@ -196,6 +201,35 @@ class LidarReader(Actor):
         robot = to_robot(scan, self.geometry)
         return robot, proximity(robot, self.geometry, self.proximity)
 
+    def scan_hz(self) -> float:
+        """Revolutions in the last second."""
+        now = self.clock.time()
+        return float(sum(1 for t in self._scan_times if now - t <= 1.0))
+
+    def section(self) -> Perception:
+        """The ``perception`` telemetry section."""
+        limits, scan = self.proximity, self.last
+        obstacles: list[tuple[float, ...]] = []
+        if scan is not None and self._last_scan_at is not None:
+            for o in scan.obstacles:
+                bearing = math.degrees(math.atan2(-o.y_m, o.x_m)) % 360.0
+                obstacles.append(
+                    (round(bearing, 1), round(math.hypot(o.x_m, o.y_m), 2), o.radius_m)
+                )
+            obstacles = sorted(obstacles, key=lambda o: o[1])[:12]
+        return Perception(
+            connected=self.connected,
+            scan_hz=self.scan_hz(),
+            points_used=scan.points_used if scan is not None else 0,
+            nearest_m=limits.nearest_m,
+            nearest_bearing_deg=limits.nearest_bearing_deg,
+            forward_limit=round(limits.forward_limit, 3),
+            reverse_limit=round(limits.reverse_limit, 3),
+            reason=limits.reason,
+            obstacles=tuple(obstacles),
+            crc_errors=self.decoder.crc_errors,
+        )
+
     def counters(self) -> dict[str, Any]:
         return {
             "scans": self.scans,
@@ -226,4 +260,5 @@ async def async_setup(ctx: PlatformContext) -> None:
     reader = LidarReader(ctx.bus, section, geometry)
     ctx.capabilities.register("lidar", lambda: capabilities(section))
     ctx.telemetry.add_counters("lidar", reader.counters)
+    ctx.telemetry.register(Perception, reader.section)
     ctx.supervisor.start(reader)

@@ -19,6 +19,7 @@ from test_patrol_platform import LAT, LON, RTK, Robot, at, config
 from brasidas import topics
 from brasidas.bus import Bus
 from brasidas.codecs.ldlidar import LidarScan
+from brasidas.codecs.telemetry_schema import Perception, section_from_wire, section_to_wire
 from brasidas.config.lidar import LidarSection
 from brasidas.messages import Velocity
 from brasidas.perception.messages import Proximity
@@ -218,6 +219,15 @@ async def test_hand_driving_is_slowed_then_stopped_short_of_an_obstacle(
     assert abs(robot.vehicle.pose().speed_mps) < 0.02
     assert start - clearance(robot, *post) > 5.0  # it did drive most of the way
     assert clearance(robot, *post) >= 0.3
+    # Everyone sees why: telemetry's perception section, through the wire form and back.
+    section = robot.ctx.telemetry.build_one(Perception)
+    assert isinstance(section, Perception)
+    section = section_from_wire(Perception, section_to_wire(section))
+    assert section.connected and section.scan_hz >= 5
+    assert section.forward_limit == 0.0 and section.reason.startswith("stopped: obstacle")
+    assert section.nearest_m is not None and section.nearest_m < 1.2
+    bearing, distance, _radius = section.obstacles[0]
+    assert min(bearing, 360 - bearing) < 10 and abs(distance - section.nearest_m) < 0.5
     # Backing away is allowed.
     bus.publish(topics.TELEOP_VELOCITY, Velocity(-0.3, 0.0))
     assert commands[-1] == -0.3
