@@ -262,3 +262,7 @@ async def async_setup(ctx: PlatformContext) -> None:
     ctx.telemetry.add_counters("lidar", reader.counters)
     ctx.telemetry.register(Perception, reader.section)
     ctx.supervisor.start(reader)
+    if config.map_obstacles:
+        from platformd import obstacle_zones  # the patrol's temporary keep-outs
+
+        obstacle_zones.start(ctx)

@@ -163,7 +163,10 @@ async def test_patrol_stops_for_an_obstacle_the_map_does_not_have(
 ) -> None:
     post = (14.0, 0.0, 0.5)
     robot: Robot = await robot_factory(
-        *RTK, "lidar.enabled=true", f"sim.obstacles_file={obstacles_file(tmp_path, post)}"
+        *RTK,
+        "lidar.enabled=true",
+        "lidar.map_obstacles=false",  # stop only: the next test has the patrol plan around it
+        f"sim.obstacles_file={obstacles_file(tmp_path, post)}",
     )
     closest: list[float] = []
     robot.watchers.append(lambda _pose, _truth: closest.append(clearance(robot, *post)))
@@ -226,8 +229,7 @@ async def test_hand_driving_is_slowed_then_stopped_short_of_an_obstacle(
     assert section.connected and section.scan_hz >= 5
     assert section.forward_limit == 0.0 and section.reason.startswith("stopped: obstacle")
     assert section.nearest_m is not None and section.nearest_m < 1.2
-    bearing, distance, _radius = section.obstacles[0]
-    assert min(bearing, 360 - bearing) < 10 and abs(distance - section.nearest_m) < 0.5
+    assert any(min(b, 360 - b) < 10 and d < 1.5 for b, d, _r in section.obstacles)
     # Backing away is allowed.
     bus.publish(topics.TELEOP_VELOCITY, Velocity(-0.3, 0.0))
     assert commands[-1] == -0.3
@@ -267,3 +269,40 @@ def test_an_obstacle_that_vanishes_close_up_keeps_the_stop() -> None:
     # One seen far away does not hold anything when it disappears.
     far = limits(wall(0, 5.0))
     assert proximity(to_robot(scan_of({}), geometry), geometry, far).forward_limit == 1.0
+
+
+async def test_an_obstacle_becomes_a_keepout_the_patrol_plans_around_then_leaves(
+    robot_factory: Any, tmp_path: Path
+) -> None:
+    post = (14.0, 0.0, 0.5)
+    robot: Robot = await robot_factory(
+        *RTK, "lidar.enabled=true", f"sim.obstacles_file={obstacles_file(tmp_path, post)}"
+    )
+    closest: list[float] = []
+    robot.watchers.append(lambda _pose, _truth: closest.append(clearance(robot, *post)))
+    await robot.call("set_waypoints", waypoints=[at(0, 0), at(25, 0)])
+    await robot.call("patrol_start")
+    patrol = robot.ctx.patrol
+    assert patrol is not None
+
+    def zones() -> list[str]:
+        area = patrol.core.area
+        return [z for z in area.keepouts if z.startswith("lidar:")] if area else []
+
+    await wait_until(lambda: bool(zones()), 20)
+
+    # The patrol goes round it to the far waypoint, without touching it.
+    def beyond_it() -> bool:
+        pose = robot.vehicle.pose()
+        return robot.local(pose.latitude, pose.longitude)[0] > 18.0
+
+    await wait_until(beyond_it, 40)
+    assert min(closest) >= 0.3
+    # It is taken away (from the simulated world): the keep-out leaves within 3 s.
+    simulator = robot.ctx.sim.lidar
+    assert simulator is not None
+    simulator.world_source = None
+    simulator.generator.world = LidarWorld([], [])
+    await wait_until(lambda: not zones(), 6)
+    stored = tmp_path / "map.geojson"  # temporary: never written to map.file
+    assert not stored.exists() or "lidar:" not in stored.read_text()

@@ -62,5 +62,8 @@ class LidarSection:
     """Dead time from an obstacle entering the scan to the wheels slowing: up to a revolution
     (0.1 s), the analysis, the motor controller's refresh (0.1 s) and the drive's own lag
     (~0.25 s on the simulated rover)."""
+    map_obstacles: bool = True
+    """Obstacles seen become temporary keep-outs of the patrol's map, which re-plans around
+    them (false: the robot only stops for them)."""
     scan_timeout_s: float = setting(0.5, above(0, most=10))
     """No scan for this long: the lidar is lost, and the robot stops until it returns."""

@@ -341,7 +341,8 @@ class LidarSimulator(Actor):
         self.origin = origin
         """The world's frame when it is not the vehicle's own (x, y from the vehicle's
         latitude and longitude); None: the vehicle's x, y."""
-        self._world = world
+        self.world_source = world
+        """Asked every tick for a changed world (the area map's); None: the world stays."""
         self._clock = clock
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)
@@ -363,8 +364,8 @@ class LidarSimulator(Actor):
         sent = 0
         while True:
             await asyncio.sleep(TICK_S)
-            if self._world is not None:
-                world = self._world()
+            if self.world_source is not None:
+                world = self.world_source()
                 if world is not None:
                     self.generator.world = world
             now = self._clock()
