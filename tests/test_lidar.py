@@ -261,13 +261,14 @@ def test_sunlight_shortens_and_thins_returns(lux: float) -> None:
 
 
 def test_an_obstacle_that_vanishes_close_up_keeps_the_stop() -> None:
-    stopped = limits(wall(0, 0.35))
+    stopped = limits(wall(0, 0.15))  # then it goes into the blind zone (body_radius_m 0.1)
     assert stopped.forward_limit == 0.0
     geometry = GEOMETRY
     gone = proximity(to_robot(scan_of({}), geometry), geometry, stopped)
     assert gone.forward_limit == 0.0 and gone.reason.startswith("stopped: obstacle")
-    # One seen far away does not hold anything when it disappears.
-    far = limits(wall(0, 5.0))
+    # One seen farther away does not hold anything when it disappears (taken away).
+    far = limits(wall(0, 0.35))
+    assert far.forward_limit == 0.0
     assert proximity(to_robot(scan_of({}), geometry), geometry, far).forward_limit == 1.0
 
 

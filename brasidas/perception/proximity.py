@@ -27,6 +27,8 @@ from brasidas.perception.messages import Obstacle, Proximity, RobotScan
 
 CLUSTER_GAP_M = 0.3
 """Neighbouring returns closer than this belong to one object."""
+BLIND_MARGIN_M = 0.1
+"""An obstacle last seen within the body radius plus this, then not at all, holds the stop."""
 STOP_BELOW = 0.02
 """A limit under this fraction of top speed is a stop (the motors would not turn anyway)."""
 
@@ -120,7 +122,8 @@ def proximity(scan: RobotScan, geometry: Geometry, previous: Proximity | None = 
         i = int(np.argmin(np.where(used, ranges, np.inf)))
         nearest = round(float(ranges[i]), 3)
         nearest_bearing = round(math.degrees(float(bearings[i])) % 360.0, 1)
-    held = lidar.clearance_m + 0.05
+    # Vanished this close: into the sensor's blind zone, not away (it would be seen going).
+    held = lidar.body_radius_m + BLIND_MARGIN_M
     if forward_free is None and previous and (previous.forward_free_m or held) < held:
         forward_free = previous.forward_free_m
     if reverse_free is None and previous and (previous.reverse_free_m or held) < held:
