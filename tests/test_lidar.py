@@ -307,3 +307,21 @@ async def test_an_obstacle_becomes_a_keepout_the_patrol_plans_around_then_leaves
     await wait_until(lambda: not zones(), 6)
     stored = tmp_path / "map.geojson"  # temporary: never written to map.file
     assert not stored.exists() or "lidar:" not in stored.read_text()
+
+
+def test_laser_scan_for_the_recorder_is_counter_clockwise_in_the_robots_frame() -> None:
+    import orjson
+
+    from brasidas.recording.schemas import encode_laser_scan
+
+    message = orjson.loads(
+        encode_laser_scan(1_500_000_000, (0.0, 90.0, 90.4, 200.0), (1.0, 2.0, 1.5, 0.0))
+    )
+    assert message["frame_id"] == "base_link" and message["timestamp"] == {
+        "sec": 1,
+        "nsec": 500_000_000,
+    }
+    ranges = message["ranges"]
+    assert len(ranges) == 360 and ranges[0] == 1.0
+    assert ranges[270] == 1.5  # 90 degrees clockwise (right) is 270 counter-clockwise: nearest kept
+    assert ranges[160] == 0.0  # no return
