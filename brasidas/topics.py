@@ -35,6 +35,7 @@ from brasidas.messages import (
     Velocity,
     VelocityLinkStats,
 )
+from brasidas.perception.messages import Proximity, RobotScan
 
 # Signaling
 SESSION_OPENED: Topic[SessionOpened] = Topic("session_opened")
@@ -119,3 +120,9 @@ AUTOMATIONS: Topic[Automations] = Topic("automations", retain=True)
 # --------------------------------------------------------------------------- recorder (issue 23)
 COMMAND_RECEIVED: Topic[CommandReceived] = Topic("command_received")
 """Every system command and control method a station sent, with the sender and the answer."""
+
+# --------------------------------------------------------------------------- perception (issue 30)
+LIDAR_SCAN: Topic[RobotScan] = Topic("lidar_scan", retain=True)
+"""Each lidar revolution in the robot's frame, with its obstacles (platformd.lidar)."""
+PROXIMITY: Topic[Proximity] = Topic("proximity", retain=True)
+"""Speed limits for what the lidar sees (platformd.lidar); the motion arbiter applies them."""

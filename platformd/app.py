@@ -7,6 +7,7 @@ import logging
 import time
 
 from brasidas.actor import Daemon
+from brasidas.autonomy.areamap import AreaMap
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.config import PlatformConfig
 from brasidas.sdnotify import Notifier, WatchdogPinger
@@ -37,6 +38,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "platformd.motor",
     "platformd.gps",
     "platformd.imu",
+    "platformd.lidar",  # before autonomy: the arbiter's limits from the first scan
     "platformd.autonomy",  # localization (POSE) and the patrol (CMD_VEL)
     "platformd.arming",  # after autonomy (it hooks ctx.patrol), before mavlink (ctx.arming)
     "platformd.media",
@@ -72,7 +74,15 @@ async def start_simulators(ctx: PlatformContext) -> SimulatedDevices:
     turret = None
     if "turret" in config.payload.enabled:
         turret = turret_sim.start_simulator(ctx.bus, ctx.supervisor, config.payload)
-    return SimulatedDevices(vehicle, ax3500, gpio, gps, chip, i2c_bus, turret)
+    lidar = None
+    if config.lidar.enabled:
+        from platformd.sim import lidar as lidar_sim
+
+        def area() -> AreaMap | None:  # the patrol's map, once autonomy has set up
+            return ctx.patrol.core.area if ctx.patrol is not None else None
+
+        lidar = lidar_sim.start_simulator(ctx.bus, ctx.supervisor, config, vehicle, area)
+    return SimulatedDevices(vehicle, ax3500, gpio, gps, chip, i2c_bus, turret, lidar)
 
 
 class PlatformDaemon(Daemon):

@@ -6,6 +6,9 @@ ignored. Every switch commands zero first, so a robot never carries one source's
 other's mode. The switch happens inside the ``OVERRIDE_STATE`` delivery, which is synchronous,
 so by the time the mode arbiter answers an engage request the motors already obey the stream.
 
+Proximity (issue 30): in every mode, the linear speed is clamped to the lidar's limits for
+what it sees ahead and behind (``PROXIMITY``, platformd.lidar), down to zero with the reason.
+
 Deadman: in teleop, when no valid velocity has arrived for ``velocity.deadman`` seconds, the
 command becomes zero until the next valid packet.
 """
@@ -32,6 +35,7 @@ from brasidas.messages import (
     SpeedCap,
     Velocity,
 )
+from brasidas.perception.messages import Proximity
 from platformd.context import PlatformContext
 
 _LOGGER = logging.getLogger(__name__)
@@ -78,6 +82,8 @@ class MotionArbiter(Actor):
         """The failsafe ladder holds: motors at zero, the stream ignored until re-engaged."""
         self.armed = True
         """Disarmed (platformd.arming): nothing but zero reaches the motors."""
+        self.proximity: Proximity | None = None
+        """The lidar's speed limits (None: no lidar, no limit)."""
         self.command = STOP
         self._last_valid = 0.0
         self._timer: TimerHandle | None = None
@@ -102,6 +108,7 @@ class MotionArbiter(Actor):
         self.subscribe(topics.FAILSAFE_STATE, self._on_failsafe)
         self.subscribe(topics.SPEED_CAP, self._on_speed_cap)
         self.subscribe(topics.ARMING_STATE, self._on_arming)
+        self.subscribe(topics.PROXIMITY, self._on_proximity)
         self._publish(self.command)
 
     async def async_stop(self) -> None:
@@ -157,6 +164,21 @@ class MotionArbiter(Actor):
         if self.mode is Mode.TELEOP and abs(self.command.linear) > self.cap:
             self._publish(self._capped(self.command))
 
+    def _on_proximity(self, limits: Proximity) -> None:
+        self.proximity = limits
+        if self._near_limited(self.command) != self.command:
+            self._publish(self.command)
+
+    def _near_limited(self, velocity: Velocity) -> Velocity:
+        limits = self.proximity
+        if limits is None:
+            return velocity
+        if velocity.linear > limits.forward_limit:
+            return Velocity(limits.forward_limit, velocity.angular)
+        if -velocity.linear > limits.reverse_limit:
+            return Velocity(-limits.reverse_limit, velocity.angular)
+        return velocity
+
     def _capped(self, velocity: Velocity) -> Velocity:
         if abs(velocity.linear) <= self.cap:
             return velocity
@@ -201,6 +223,7 @@ class MotionArbiter(Actor):
             self._timer = None
 
     def _publish(self, velocity: Velocity) -> None:
+        velocity = self._near_limited(velocity)
         if not self.armed:
             velocity = STOP
         self.command = velocity

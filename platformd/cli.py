@@ -24,6 +24,7 @@ SIMULATORS: dict[str, str] = {
     "gps": "platformd.sim.gps:serve",
     "ax3500": "platformd.sim.ax3500:serve",
     "turret": "platformd.sim.turret:serve",
+    "lidar": "platformd.sim.lidar:serve",
     "vehicle": "platformd.sim.rover:serve",  # the AX3500 and the GPS on one vehicle: 2 ptys
 }
 

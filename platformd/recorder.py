@@ -41,6 +41,7 @@ from brasidas.messages import (
     StreamStatus,
     Velocity,
 )
+from brasidas.perception.messages import RobotScan
 from brasidas.recording import schemas
 from brasidas.recording.schemas import LOG_INFO, LOG_WARNING, ChannelSpec
 from brasidas.recording.writer import (
@@ -61,8 +62,8 @@ _LOGGER = logging.getLogger(__name__)
 SESSION_HEADER = "X-Brasidas-Session"
 """The header a download carries its session token in."""
 REASON_MAX_CHARS = 60
-DOWNLOAD_CHUNK = 256 * 1024
-"""Bytes read (in a thread) per write of a recording being written's download."""
+LIDAR_HZ = 2.0
+"""Lidar scans recorded a second (the sensor makes 10)."""
 """Telemetry carries this much of why recording stopped (an OSError may name a long path):
 the section stays small (a stopped recorder on top of the fullest snapshot may take a datagram
 of its own: the encoder splits by section)."""
@@ -106,6 +107,7 @@ class PlatformRecorder(Actor):
         self._map_rev: int | None = None
         self._path: tuple[tuple[float, float], ...] | None = None
         self._patrol_state = ""
+        self._scan_at = -1e9
         self._map_task: asyncio.Task[None] | None = None
 
     # ------------------------------------------------------------------ lifecycle
@@ -182,6 +184,7 @@ class PlatformRecorder(Actor):
         self.subscribe(topics.SESSION_OPENED, self._on_session_opened)
         self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
         self.subscribe(topics.PATROL_STATUS, self._on_patrol)
+        self.subscribe(topics.LIDAR_SCAN, self._on_scan)
 
     def _velocity(self, spec: ChannelSpec) -> Any:
         def record(message: Velocity) -> None:
@@ -222,6 +225,18 @@ class PlatformRecorder(Actor):
             now,
             pose,
             lambda p: schemas.encode_pose(now, p.x_m, p.y_m, p.yaw_rad),
+        )
+
+    def _on_scan(self, scan: RobotScan) -> None:
+        """At most ``LIDAR_HZ`` scans a second (a revolution is a few kB of JSON)."""
+        if scan.time - self._scan_at < 1.0 / LIDAR_HZ:
+            return
+        self._scan_at = scan.time
+        now = time.time_ns()
+        self._submit(
+            schemas.LIDAR_SCAN,
+            scan,
+            lambda s: schemas.encode_laser_scan(now, s.bearings_deg, s.ranges_m),
         )
 
     def _on_command(self, message: CommandReceived) -> None:

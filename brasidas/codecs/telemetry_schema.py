@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
-SCHEMA_VERSION = 11
+SCHEMA_VERSION = 12
 """Version of the schema (and the datagram layout); the first byte of every datagram.
 4: the failsafe, speed_cap and turret sections, the velocity link's ``held`` drops.
 5: the lights' ``errors`` (GPIO lines), the turret's ``streams``.
@@ -32,7 +32,8 @@ SCHEMA_VERSION = 11
 7: the turret's ``error`` (its line cannot be opened, or went away).
 8: the admission section (strangers refused and closed, issue 19).
 9: the recorder section (recording, or stopped and why; its drops).
-11: the arming section (armed, pre-arm reasons, autostart countdown, last stop; issue 27)."""
+11: the arming section (armed, pre-arm reasons, autostart countdown, last stop; issue 27).
+12: the perception section (the lidar: scan rate, nearest obstacle, speed limit and why)."""
 ERROR_KEY = "!"
 """A section's wire map holding only this key is that section's error."""
 STALE_PERIODS = 3.0
@@ -452,6 +453,35 @@ class RecorderStatus(Section):
     )
 
 
+@dataclass(frozen=True)
+class Perception(Section):
+    """The lidar (issue 30): its scans, the nearest obstacle, and the speed limit it sets."""
+
+    NAME = "perception"
+    WIRE = "per"
+    connected: bool = field(default=False, metadata=wire("c", doc="the sensor's line is open"))
+    scan_hz: float = field(default=0.0, metadata=wire("hz", unit="Hz", doc="revolutions a second"))
+    points_used: int = field(
+        default=0, metadata=wire("pu", doc="returns in obstacles in the last scan")
+    )
+    nearest_m: float | None = field(
+        default=None, metadata=wire("nd", unit="m", doc="nearest obstacle from the centre")
+    )
+    nearest_bearing_deg: float | None = field(
+        default=None, metadata=wire("nb", unit="°", doc="its bearing, clockwise from forward")
+    )
+    forward_limit: float = field(
+        default=1.0, metadata=wire("fl", doc="forward speed allowed, fraction of top speed")
+    )
+    reverse_limit: float = field(default=1.0, metadata=wire("rl", doc="reverse, likewise"))
+    reason: str = field(default="", metadata=wire("r", doc="why it slows or stops the robot"))
+    obstacles: tuple[tuple[float, ...], ...] = field(
+        default=(),
+        metadata=wire("o", doc="[bearing °, range m, radius m] of each obstacle (12 nearest)"),
+    )
+    crc_errors: int = field(default=0, metadata=wire("ce", doc="corrupt frames dropped"))
+
+
 SECTIONS: tuple[type[Section], ...] = (
     Override,
     Lights,
@@ -475,6 +505,7 @@ SECTIONS: tuple[type[Section], ...] = (
     Arming,
     Admission,
     RecorderStatus,
+    Perception,
     Diagnostics,
 )
 """Every top-level section, in snapshot order."""

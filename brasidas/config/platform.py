@@ -10,6 +10,7 @@ import ipaddress
 from dataclasses import dataclass, field
 from typing import ClassVar
 
+from brasidas.config.lidar import LidarSection
 from brasidas.config.loader import (
     Check,
     Rule,
@@ -452,6 +453,16 @@ class SimSection:
     """The simulated GPS receiver's error: "neo6m" (the rover's u-blox NEO-6M, 2.5 m CEP
     wandering over minutes) or "rtk" (an RTK-corrected u-blox ZED-F9P class, 0.02 m per axis;
     pair it with autonomy.gps_sigma_m = 0.02, autonomy.gps_jitter_m = 0.02)."""
+    obstacles_file: str = ""
+    """Obstacles the map does not have, known to the simulated lidar only (issue 30): GeoJSON
+    polygons, and Points with a ``radius_m`` property; ``"material": "glass"`` is not seen."""
+    pedestrians: int = setting(0, at_least(0, most=100))
+    """People (0.3 m discs) walking back and forth at 1.2 m/s near the start, for the lidar."""
+    lux: float = setting(0.0, at_least(0, most=150000))
+    """Ambient light on the simulated lidar: sunlight (~100,000 lux) thins and shortens its
+    returns."""
+    seed: int = setting(1, at_least(0, most=2**31))
+    """Seeds the simulated lidar's noise and pedestrians (reproducible runs)."""
 
 
 @dataclass(frozen=True)
@@ -631,6 +642,11 @@ class PlatformConfig:
             "signaling.session_timeout",
             "a silent override holder's session would end before the failsafe ladder holds",
         ),
+        ordered_across(
+            "lidar.body_radius_m",
+            "lidar.clearance_m",
+            "an obstacle the robot stopped for would vanish into its own body's blind zone",
+        ),
     )
 
     platform: PlatformSection = field(default_factory=PlatformSection)
@@ -654,3 +670,4 @@ class PlatformConfig:
     mavlink: MavlinkSection = field(default_factory=MavlinkSection)
     recorder: RecorderSection = field(default_factory=RecorderSection)
     arming: ArmingSection = field(default_factory=ArmingSection)
+    lidar: LidarSection = field(default_factory=LidarSection)

@@ -15,6 +15,7 @@ import dataclasses
 import math
 import types
 import typing
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -125,6 +126,19 @@ STATE_CHANGE = _object(
     },
 )
 
+LASER_SCAN = _object(
+    "foxglove.LaserScan",
+    {
+        "timestamp": _TIME,
+        "frame_id": {"type": "string"},
+        "pose": _object("foxglove.Pose", {"position": _VECTOR3, "orientation": _QUATERNION}),
+        "start_angle": {"type": "number"},
+        "end_angle": {"type": "number"},
+        "ranges": {"type": "array", "items": {"type": "number"}},
+        "intensities": {"type": "array", "items": {"type": "number"}},
+    },
+)
+
 LOG_DEBUG, LOG_INFO, LOG_WARNING, LOG_ERROR = 1, 2, 3, 4
 
 
@@ -176,6 +190,7 @@ TELEOP_VELOCITY = ChannelSpec("/velocity/teleop", "brasidas.Velocity", VELOCITY)
 AUTONOMY_VELOCITY = ChannelSpec("/velocity/autonomy", "brasidas.Velocity", VELOCITY)
 MOTOR_COMMAND = ChannelSpec("/motor/command", "brasidas.Velocity", VELOCITY)
 STATE = ChannelSpec("/state", "brasidas.StateChange", STATE_CHANGE)
+LIDAR_SCAN = ChannelSpec("/lidar/scan", "foxglove.LaserScan", LASER_SCAN)
 TELEMETRY: dict[type[Section], ChannelSpec] = {
     cls: ChannelSpec(f"/telemetry/{cls.NAME}", f"brasidas.telemetry.{cls.__name__}", {})
     for cls in SECTIONS
@@ -205,6 +220,7 @@ def all_channels() -> list[ChannelSpec]:
         TELEOP_VELOCITY,
         AUTONOMY_VELOCITY,
         MOTOR_COMMAND,
+        LIDAR_SCAN,
         *(telemetry_channel(cls) for cls in SECTIONS),
     ]
 
@@ -245,6 +261,32 @@ def encode_pose(time_ns: int, x_m: float, y_m: float, yaw_rad: float) -> bytes:
                 "position": {"x": x_m, "y": y_m, "z": 0.0},
                 "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(half), "w": math.cos(half)},
             },
+        }
+    )
+
+
+def encode_laser_scan(
+    time_ns: int, bearings_deg: Sequence[float], ranges_m: Sequence[float]
+) -> bytes:
+    """foxglove.LaserScan in the robot's frame (``base_link``: x forward, y left), one range a
+    degree counter-clockwise from forward (the nearest return in it; 0: none)."""
+    ranges = [0.0] * 360
+    for bearing, distance in zip(bearings_deg, ranges_m, strict=True):
+        if distance > 0:
+            ccw = round(-bearing) % 360
+            ranges[ccw] = distance if ranges[ccw] == 0 else min(ranges[ccw], distance)
+    return orjson.dumps(
+        {
+            "timestamp": stamp(time_ns),
+            "frame_id": "base_link",
+            "pose": {
+                "position": {"x": 0.0, "y": 0.0, "z": 0.0},
+                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+            },
+            "start_angle": 0.0,
+            "end_angle": math.radians(359.0),
+            "ranges": ranges,
+            "intensities": [],
         }
     )
 

@@ -409,9 +409,12 @@ class PatrolActor(Actor):
         _LOGGER.warning("patrol: map %r: %s", area.name, note)
         return [note]
 
-    async def update_map(self, add: list[Mapping[str, Any]], remove: list[str]) -> AreaMap:
+    async def update_map(
+        self, add: list[Mapping[str, Any]], remove: list[str], *, store: bool = True
+    ) -> AreaMap:
         """Add or remove keep-out zones; the route stays; the patrol holds until the path is
-        replanned. Geometry and the file in a worker thread."""
+        replanned. Geometry and the file in a worker thread; ``store=False``: not written to
+        ``map.file`` (the lidar's temporary keep-outs, platformd.obstacle_zones)."""
         async with self._changing:
             if self.core.area is None:
                 from brasidas.autonomy.areamap import MapError
@@ -419,7 +422,7 @@ class PatrolActor(Actor):
                 raise MapError("no map loaded")
             base, position = self.core.area, self.robot_position()
             area, text, changes = await asyncio.to_thread(
-                self._changed_map, base, add, remove, position
+                self._changed_map, base, add, remove, position, store
             )
             self.core.update_map(area, build=False)
             self._replan(text, changes)
@@ -468,6 +471,7 @@ class PatrolActor(Actor):
         add: list[Mapping[str, Any]],
         remove: list[str],
         position: tuple[float, float] | None,
+        store: bool = True,
     ) -> tuple[AreaMap, bytes, bytes]:
         """(Worker thread.) The map with keep-outs changed, checked and stored; its text and
         the changes' (for the planner process)."""
@@ -476,7 +480,8 @@ class PatrolActor(Actor):
         if position is not None:
             area.check_position(*position)
         text = _map_bytes(area)
-        write_atomically(self.storage.map_file, text.decode())
+        if store:
+            write_atomically(self.storage.map_file, text.decode())
         return area, text, orjson.dumps({"add": add, "remove": remove})
 
     async def set_waypoints(

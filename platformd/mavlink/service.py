@@ -249,8 +249,17 @@ class MavlinkService(Actor):
 
     async def _tick_forever(self) -> None:
         loop = asyncio.get_running_loop()
+        proximity = None
+        if self.ctx.config.lidar.enabled:  # OBSTACLE_DISTANCE for QGroundControl (issue 30)
+            from platformd.mavlink.proximity import ObstacleDistanceSender
+            from platformd.sim.lidar import MODELS
+
+            reach = MODELS[self.ctx.config.lidar.model].range_m
+            proximity = ObstacleDistanceSender(self.ctx.bus, self.vehicle, reach)
         while True:
             self.vehicle.tick(loop.time())
+            if proximity is not None:
+                proximity.tick(loop.time())
             self._flush()
             await asyncio.sleep(TICK)
 

@@ -1252,6 +1252,10 @@ class MavlinkVehicle:
         self.links[peer] = link
         return link
 
+    def broadcast(self, message: Any) -> None:
+        """A message from another module (platformd.mavlink.proximity) to every link."""
+        self._broadcast(message)
+
     def _broadcast(self, message: Any, component: int = modes.VEHICLE_COMPONENT) -> None:
         for link in self.links.values():
             if link.configured or link.last_heard > -math.inf:

@@ -15,6 +15,7 @@ if TYPE_CHECKING:  # the simulators import the context, which holds this
     from platformd.sim.ax3500 import Ax3500Simulator
     from platformd.sim.gpio import SimulatedGpio
     from platformd.sim.gps import GpsSimulator
+    from platformd.sim.lidar import LidarSimulator
     from platformd.sim.mpu6050 import Mpu6050
     from platformd.sim.turret import TurretSimulator
     from platformd.sim.vehicle import VehicleModel
@@ -38,3 +39,5 @@ class SimulatedDevices:
     """Opens the emulated I2C bus with the MPU-6050 on it, instead of ``smbus2.SMBus``."""
     turret: TurretSimulator | None = None
     """The turret's microcontroller, on a pty (``payload.enabled`` names the turret)."""
+    lidar: LidarSimulator | None = None
+    """The 2-D lidar on the vehicle, on a pty (``lidar.enabled``)."""

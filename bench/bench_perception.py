@@ -1,0 +1,203 @@
+"""The lidar (issue 30): obstacle to motors at zero, stopping clearance, CPU per scan.
+
+The real pipeline on one event loop: the simulated LD19 ray-casting the world from a moving
+vehicle model on a pty, the real reader (decoder, scan assembler, analysis in its worker
+thread), and the real motion arbiter, whose ``MOTOR_COMMAND`` drives the vehicle model (no
+motor controller in the loop: its 10 Hz refresh would add up to 100 ms, a fixed figure).
+
+- **pop-up**: the vehicle drives at 1 m/s; a 0.3 m post appears 0.35 m ahead of the sensor
+  (a person stepping out); measured from the moment it appears to ``MOTOR_COMMAND`` = 0, and
+  from the end of the first scan that shows it (the issue's "from the scan that shows it").
+- **approach**: the vehicle drives at 1 m/s toward a post 4 m ahead and must stop by itself;
+  the clearance left (sensor to the post's edge; ``lidar.clearance_m`` 0.4 m).
+- **CPU**: the reader's and analysis's process CPU per scan (the simulator's own casting is
+  measured apart and subtracted).
+
+Seeded (``sim.seed``); ``BENCH_PERCEPTION_TRIALS`` (default 50) pop-ups. Figures not reached
+in this issue (fused position error, GPS outage and spoofing, the town's 50 laps, a replayed
+CARMEN log) are listed under ``not_measured``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import random
+import time
+from typing import Any
+
+import numpy as np
+
+from bench.support import percentiles
+from brasidas import topics
+from brasidas.bus import Bus
+from brasidas.config.lidar import LidarSection
+from brasidas.messages import Velocity
+from brasidas.perception.messages import RobotScan
+from brasidas.perception.proximity import Geometry
+from platformd.arbiter import MotionArbiter
+from platformd.lidar import LidarReader
+from platformd.sim.lidar import LidarSimulator, LidarWorld, ScanGenerator
+from platformd.sim.vehicle import VehicleModel
+
+TRIALS = int(os.environ.get("BENCH_PERCEPTION_TRIALS", "50"))
+SPEED_MPS = 1.0
+MAX_SPEED_MPS = 6.0 / 3.6
+
+
+class Rig:
+    def __init__(self, seed: int) -> None:
+        self.bus = Bus()
+        self.vehicle = VehicleModel(max_speed_mps=MAX_SPEED_MPS)
+        self.config = LidarSection(enabled=True, mount_x_m=0.0)
+        generator = ScanGenerator(self.config, LidarWorld([], []), rng=np.random.default_rng(seed))
+        self.simulator = LidarSimulator(self.bus, self.vehicle, generator)
+        self.config = LidarSection(enabled=True, port=self.simulator.path, mount_x_m=0.0)
+        geometry = Geometry(self.config, 4.2, MAX_SPEED_MPS)
+        self.reader = LidarReader(self.bus, self.config, geometry)
+        self.arbiter = MotionArbiter(self.bus, deadman=0.3)
+        self.zero_at: float | None = None
+        self.scans: list[RobotScan] = []
+        self.bus.subscribe(topics.MOTOR_COMMAND, self._on_command)
+        self.bus.subscribe(topics.LIDAR_SCAN, self.scans.append)
+
+    def _on_command(self, velocity: Velocity) -> None:
+        self.vehicle.set_command(velocity.linear, velocity.angular)
+        if velocity.linear == 0.0 and self.zero_at is None:
+            self.zero_at = time.monotonic()
+
+    def world_with_post(self, ahead_m: float) -> None:
+        pose = self.vehicle.pose()
+        x = pose.x_m + ahead_m * math.cos(pose.yaw_rad)
+        y = pose.y_m + ahead_m * math.sin(pose.yaw_rad)
+        self.post = (x, y, 0.15)
+        self.simulator.generator.world = LidarWorld([], [(x, y, 0.15, 0.5)])
+        self.simulator.generator._cache = None  # the casting cache is per world
+
+    def clear_world(self) -> None:
+        self.simulator.generator.world = LidarWorld([], [])
+        self.simulator.generator._cache = None
+
+    async def back_off(self) -> None:
+        """Reverse away from the last post (a stop held for one in the blind zone releases
+        only when the robot backs off), then clear the world."""
+        for _ in range(15):  # 0.75 m
+            self.bus.publish(topics.CMD_VEL, Velocity(-0.3, 0.0))
+            await asyncio.sleep(0.1)
+        self.bus.publish(topics.CMD_VEL, Velocity(0.0, 0.0))
+        self.clear_world()
+        await asyncio.sleep(0.3)  # the old post's scans are gone
+
+    def drive(self) -> None:
+        self.bus.publish(topics.CMD_VEL, Velocity(SPEED_MPS / MAX_SPEED_MPS, 0.0))
+
+    def edge_clearance(self) -> float:
+        pose = self.vehicle.pose()
+        return math.hypot(self.post[0] - pose.x_m, self.post[1] - pose.y_m) - self.post[2]
+
+
+async def _until(predicate: Any, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        await asyncio.sleep(0.005)
+    return True
+
+
+async def _trials(rig: Rig, rng: random.Random) -> dict[str, Any]:
+    from_appearance: list[float] = []
+    from_scan: list[float] = []
+    missed = 0
+    for _ in range(TRIALS):
+        await rig.back_off()
+        rig.drive()
+        await _until(lambda: rig.vehicle.pose().speed_mps > 0.95 * SPEED_MPS, 3)
+        await asyncio.sleep(rng.uniform(0.0, 0.1))  # anywhere in the revolution
+        rig.zero_at = None
+        seen_before = len(rig.scans)
+        appeared = time.monotonic()
+        rig.world_with_post(0.35 + 0.15)
+        ok = await _until(lambda: rig.zero_at is not None, 2)
+        if not ok or rig.zero_at is None:
+            missed += 1
+            continue
+        from_appearance.append((rig.zero_at - appeared) * 1000)
+        showing = [s for s in rig.scans[seen_before:] if s.obstacles]
+        if showing:
+            from_scan.append((rig.zero_at - showing[0].time) * 1000)
+        await _until(lambda: abs(rig.vehicle.pose().speed_mps) < 0.01, 3)
+    return {
+        "popup_trials": TRIALS,
+        "popup_missed": missed,
+        "popup_to_zero_ms": percentiles(from_appearance),
+        "scan_to_zero_ms": percentiles(from_scan),
+    }
+
+
+async def _approach(rig: Rig, runs: int = 5) -> dict[str, Any]:
+    clearances = []
+    for _ in range(runs):
+        await rig.back_off()
+        rig.drive()
+        await _until(lambda: rig.vehicle.pose().speed_mps > 0.95 * SPEED_MPS, 3)
+        rig.world_with_post(4.0 + 0.15)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            rig.drive()  # the autonomy keeps asking for 1 m/s
+            await asyncio.sleep(0.1)
+            if abs(rig.vehicle.pose().speed_mps) < 0.005 and rig.zero_at is not None:
+                break
+        clearances.append(rig.edge_clearance())
+        rig.zero_at = None
+    return {
+        "approach_runs": runs,
+        "approach_clearance_m_min": round(min(clearances), 3),
+        "approach_clearance_m_mean": round(sum(clearances) / len(clearances), 3),
+    }
+
+
+def _cast_cost_s(rig: Rig, frames: int = 2000) -> float:
+    generator = rig.simulator.generator
+    pose = rig.vehicle.pose()
+    started = time.process_time()
+    for i in range(frames):
+        generator.frame(pose, i * 0.00267, pose.x_m, pose.y_m)
+    return (time.process_time() - started) / frames
+
+
+async def run() -> dict[str, Any]:
+    rig = Rig(seed=1)
+    load = os.getloadavg()
+    async with asyncio.TaskGroup() as group:
+        tasks = [
+            group.create_task(rig.simulator.run()),
+            group.create_task(rig.reader.run()),
+            group.create_task(rig.arbiter.run()),
+        ]
+        try:
+            await _until(lambda: rig.reader.scans >= 3, 5)
+            cpu0, wall0, scans0 = time.process_time(), time.monotonic(), rig.reader.scans
+            frames0 = rig.simulator.generator.frames
+            figures = await _trials(rig, random.Random(1))
+            figures |= await _approach(rig)
+            cpu = time.process_time() - cpu0
+            wall = time.monotonic() - wall0
+            scans = rig.reader.scans - scans0
+            frames = rig.simulator.generator.frames - frames0
+        finally:
+            for task in tasks:
+                task.cancel()
+    cast = _cast_cost_s(rig)
+    pipeline = max(0.0, cpu - cast * frames)
+    figures |= {
+        "scan_hz": round(scans / wall, 2),
+        "crc_errors": rig.reader.decoder.crc_errors,
+        "cpu_simulator_pct_of_core": round(100 * cast * frames / wall, 1),
+        "cpu_reader_and_analysis_pct_of_core": round(100 * pipeline / wall, 1),
+        "cpu_per_scan_ms": round(1000 * pipeline / max(1, scans), 2),
+        "loadavg_1m": round(load[0], 2),
+        "not_measured": "fused error, GPS outage/spoof, town laps, CARMEN replay (issue 30 note)",
+    }
+    return figures

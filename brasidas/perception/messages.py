@@ -1,0 +1,49 @@
+"""Bus messages of perception (topics in :mod:`brasidas.topics`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """A cluster of returns, in the robot's frame at the scan (x forward, y left, metres)."""
+
+    x_m: float
+    y_m: float
+    radius_m: float
+    points: int
+
+
+@dataclass(frozen=True)
+class RobotScan:
+    """One lidar revolution in the robot's frame, after the body, masks and noise are removed."""
+
+    time: float
+    """When its last frame arrived (the platform's monotonic clock)."""
+    bearings_deg: tuple[float, ...]
+    """Clockwise from the robot's forward axis, in [0, 360): every point of the revolution."""
+    ranges_m: tuple[float, ...]
+    """From the robot's centre; 0.0 = no return, or dropped (body, masked sector)."""
+    points_used: int
+    obstacles: tuple[Obstacle, ...]
+
+
+@dataclass(frozen=True)
+class Proximity:
+    """How fast the robot may go for what the lidar sees (the motion arbiter applies it)."""
+
+    time: float
+    forward_limit: float
+    """Largest forward speed, as a fraction of the platform's top speed (0: stop)."""
+    reverse_limit: float
+    """Largest reverse speed, likewise."""
+    forward_free_m: float | None
+    """Free distance ahead in the robot's corridor (None: nothing seen)."""
+    reverse_free_m: float | None
+    nearest_m: float | None
+    """The nearest obstacle from the robot's centre, any direction."""
+    nearest_bearing_deg: float | None
+    """Its bearing, clockwise from the robot's forward axis."""
+    reason: str
+    """Why the limit is what it is ("" when the way is clear)."""

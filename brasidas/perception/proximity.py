@@ -1,0 +1,163 @@
+"""From a lidar revolution to obstacles and speed limits (pure computation, run in a thread).
+
+The sensor's points are turned into the robot's frame (``lidar.mount_*``, ``lidar.yaw_deg``);
+returns from the robot's own body (closer than ``lidar.body_radius_m`` to the sensor, or in a
+``lidar.masked_sectors`` bearing) are dropped. Neighbouring returns (in scan order, under
+``CLUSTER_GAP_M`` apart) make a cluster; a cluster of fewer than ``lidar.min_points`` is noise,
+so a single stray return never stops the robot.
+
+The robot may go forward at the speed that still stops ``lidar.clearance_m`` short of the
+nearest obstacle in its corridor (``lidar.half_width_m`` either side of its axis), after the
+dead time ``lidar.reaction_s`` and braking at ``safety.braking_mps2``: a robot (autonomous or
+hand-driven) is slowed as it closes in and stopped at the clearance. Reversing likewise for
+what is behind. Turning on the spot is never limited (a skid-steer robot turns inside its
+footprint).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from brasidas.codecs.ldlidar import LidarScan
+from brasidas.config.lidar import LidarSection, parse_sector
+from brasidas.perception.messages import Obstacle, Proximity, RobotScan
+
+CLUSTER_GAP_M = 0.3
+"""Neighbouring returns closer than this belong to one object."""
+BLIND_MARGIN_M = 0.1
+"""An obstacle last seen within the body radius plus this, then not at all, holds the stop."""
+STOP_BELOW = 0.02
+"""A limit under this fraction of top speed is a stop (the motors would not turn anyway)."""
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """What the analysis needs of the configuration."""
+
+    lidar: LidarSection
+    braking_mps2: float
+    max_speed_mps: float
+
+    @property
+    def sectors(self) -> list[tuple[float, float]]:
+        return [parse_sector(s) for s in self.lidar.masked_sectors]
+
+
+def stopping_speed(free_m: float, dead_s: float, braking_mps2: float) -> float:
+    """The speed (m/s) that stops within ``free_m`` after ``dead_s`` then braking."""
+    if free_m <= 0:
+        return 0.0
+    return braking_mps2 * (-dead_s + math.sqrt(dead_s * dead_s + 2 * free_m / braking_mps2))
+
+
+def to_robot(scan: LidarScan, geometry: Geometry) -> RobotScan:
+    """The scan in the robot's frame with the body, masks and noise dropped, and its clusters."""
+    lidar = geometry.lidar
+    angles = np.asarray(scan.angles_deg, dtype=float)
+    ranges = np.asarray(scan.ranges_m, dtype=float)
+    # Sensor angles grow clockwise from its zero, which is yaw_deg counter-clockwise of forward.
+    sensor_bearing = np.radians(angles - lidar.yaw_deg)
+    x = lidar.mount_x_m + ranges * np.cos(sensor_bearing)
+    y = lidar.mount_y_m - ranges * np.sin(sensor_bearing)
+    keep = ranges > max(lidar.body_radius_m, 1e-3)
+    bearings = np.degrees(np.arctan2(-y, x)) % 360.0
+    for start, end in geometry.sectors:
+        lo, hi = start % 360.0, end % 360.0
+        inside = (
+            (bearings >= lo) & (bearings <= hi) if lo <= hi else (bearings >= lo) | (bearings <= hi)
+        )
+        keep &= ~inside
+    obstacles: list[Obstacle] = []
+    clustered = np.zeros(len(ranges), dtype=bool)
+    index = np.flatnonzero(keep)
+    if len(index):
+        px, py = x[index], y[index]
+        gaps = np.hypot(np.diff(px), np.diff(py))
+        breaks = np.flatnonzero(gaps > CLUSTER_GAP_M) + 1
+        groups = np.split(np.arange(len(index)), breaks)
+        # The scan is a circle: the last group may continue the first.
+        if len(groups) > 1 and math.hypot(px[-1] - px[0], py[-1] - py[0]) <= CLUSTER_GAP_M:
+            groups[0] = np.concatenate((groups[-1], groups[0]))
+            groups.pop()
+        for group in groups:
+            if len(group) < lidar.min_points:
+                continue
+            clustered[index[group]] = True
+            gx, gy = px[group], py[group]
+            cx, cy = float(gx.mean()), float(gy.mean())
+            radius = float(np.hypot(gx - cx, gy - cy).max())
+            obstacles.append(Obstacle(round(cx, 3), round(cy, 3), round(radius, 3), len(group)))
+    robot_ranges = np.where(clustered, np.hypot(x, y), 0.0)
+    return RobotScan(
+        time=scan.ended,
+        bearings_deg=tuple(np.round(bearings, 2).tolist()),
+        ranges_m=tuple(np.round(robot_ranges, 3).tolist()),
+        points_used=int(clustered.sum()),
+        obstacles=tuple(obstacles),
+    )
+
+
+def proximity(scan: RobotScan, geometry: Geometry, previous: Proximity | None = None) -> Proximity:
+    """The speed limits for the obstacles of ``scan`` (only clustered returns count).
+
+    An obstacle the robot stopped for that is no longer seen at all (it went into the
+    sensor's blind zone, or the returns dropped out) still holds the stop: ``previous``."""
+    lidar = geometry.lidar
+    ranges = np.asarray(scan.ranges_m, dtype=float)
+    bearings = np.radians(np.asarray(scan.bearings_deg, dtype=float))
+    used = ranges > 0
+    x = ranges * np.cos(bearings)
+    y = -ranges * np.sin(bearings)
+    corridor = used & (np.abs(y) <= lidar.half_width_m)
+    # Free distance from the sensor's edge of the robot (its front; the rear taken as far back).
+    front = corridor & (x > 0)
+    rear = corridor & (x < 0)
+    forward_free = float(x[front].min()) - abs(lidar.mount_x_m) if front.any() else None
+    reverse_free = float(-x[rear].max()) - abs(lidar.mount_x_m) if rear.any() else None
+    nearest = nearest_bearing = None
+    if used.any():
+        i = int(np.argmin(np.where(used, ranges, np.inf)))
+        nearest = round(float(ranges[i]), 3)
+        nearest_bearing = round(math.degrees(float(bearings[i])) % 360.0, 1)
+    # Vanished this close: into the sensor's blind zone, not away (it would be seen going).
+    held = lidar.body_radius_m + BLIND_MARGIN_M
+    if forward_free is None and previous and (previous.forward_free_m or held) < held:
+        forward_free = previous.forward_free_m
+    if reverse_free is None and previous and (previous.reverse_free_m or held) < held:
+        reverse_free = previous.reverse_free_m
+    forward, forward_why = _limit(forward_free, "ahead", geometry)
+    reverse, reverse_why = _limit(reverse_free, "behind", geometry)
+    reason = forward_why or reverse_why
+    return Proximity(
+        time=scan.time,
+        forward_limit=forward,
+        reverse_limit=reverse,
+        forward_free_m=None if forward_free is None else round(forward_free, 3),
+        reverse_free_m=None if reverse_free is None else round(reverse_free, 3),
+        nearest_m=nearest,
+        nearest_bearing_deg=nearest_bearing,
+        reason=reason,
+    )
+
+
+def _limit(free_m: float | None, where: str, geometry: Geometry) -> tuple[float, str]:
+    if free_m is None:
+        return 1.0, ""
+    lidar = geometry.lidar
+    speed = stopping_speed(free_m - lidar.clearance_m, lidar.reaction_s, geometry.braking_mps2)
+    fraction = min(1.0, speed / geometry.max_speed_mps)
+    if fraction < STOP_BELOW:
+        return 0.0, f"stopped: obstacle {free_m:.1f} m {where}"
+    if fraction < 1.0:
+        return fraction, f"slowed to {speed:.1f} m/s: obstacle {free_m:.1f} m {where}"
+    return 1.0, ""
+
+
+def silent(now: float, seconds: float) -> Proximity:
+    """The limits while the lidar sends nothing: stopped (it cannot see), turning allowed."""
+    return Proximity(
+        now, 0.0, 0.0, None, None, None, None, f"stopped: no lidar scan for {seconds:g} s"
+    )

@@ -1,0 +1,327 @@
+"""The lidar: obstacle analysis, the simulator's bytes through the real reader on a pty, and
+collision prevention through the running --sim daemon (patrol and hand driving)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+from collections.abc import AsyncIterator, Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from conftest import wait_until
+from shapely.geometry import Polygon
+from test_patrol_platform import LAT, LON, RTK, Robot, at, config
+
+from brasidas import topics
+from brasidas.bus import Bus
+from brasidas.codecs.ldlidar import LidarScan
+from brasidas.codecs.telemetry_schema import Perception, section_from_wire, section_to_wire
+from brasidas.config.lidar import LidarSection
+from brasidas.messages import Velocity
+from brasidas.perception.messages import Proximity
+from brasidas.perception.proximity import Geometry, proximity, to_robot
+from platformd.app import PlatformDaemon
+from platformd.lidar import LidarReader
+from platformd.mode import ModeArbiter
+from platformd.session_table import Session
+from platformd.sim.demo_area import offset
+from platformd.sim.lidar import LidarSimulator, LidarWorld, ScanGenerator
+from platformd.sim.vehicle import VehicleModel
+
+GEOMETRY = Geometry(LidarSection(mount_x_m=0.0), braking_mps2=4.2, max_speed_mps=5.0)
+
+
+def scan_of(points: dict[float, float], n: int = 450) -> LidarScan:
+    """A revolution of ``n`` points with nothing seen except ``points`` (angle -> range)."""
+    angles = [i * 360.0 / n for i in range(n)]
+    ranges = [0.0] * n
+    for angle, distance in points.items():
+        ranges[round(angle * n / 360.0) % n] = distance
+    return LidarScan(tuple(angles), tuple(ranges), (100,) * n, 3600, 0.0, 1.0)
+
+
+def wall(angle: float, distance: float, width_deg: float = 6.0) -> dict[float, float]:
+    """A flat object facing the sensor at ``angle``: returns over ``width_deg``."""
+    steps = np.arange(-width_deg / 2, width_deg / 2 + 1e-9, 0.8)
+    return {angle + a: distance / math.cos(math.radians(a)) for a in steps}
+
+
+def limits(points: dict[float, float], geometry: Geometry = GEOMETRY) -> Proximity:
+    return proximity(to_robot(scan_of(points), geometry), geometry)
+
+
+def test_an_obstacle_ahead_slows_then_stops() -> None:
+    far, near, close = limits(wall(0, 8.0)), limits(wall(0, 2.0)), limits(wall(0, 0.4))
+    assert far.forward_limit == 1.0 and far.reason == ""
+    assert 0 < near.forward_limit < 1.0 and near.reason.startswith("slowed")
+    assert close.forward_limit == 0.0 and close.reason == "stopped: obstacle 0.4 m ahead"
+    assert close.reverse_limit == 1.0  # backing away is allowed
+    assert close.nearest_bearing_deg is not None and close.nearest_bearing_deg < 4.0
+
+
+def test_behind_limits_reversing_only() -> None:
+    result = limits(wall(180, 0.4))
+    assert result.forward_limit == 1.0 and result.reverse_limit == 0.0
+    assert result.reason == "stopped: obstacle 0.4 m behind"
+
+
+def test_a_single_noisy_return_the_body_and_masked_sectors_never_stop_it() -> None:
+    assert limits({0.0: 0.5}).forward_limit == 1.0  # one stray return: noise
+    assert limits(wall(0, 0.08)).forward_limit == 1.0  # inside body_radius_m: the robot
+    masked = Geometry(
+        LidarSection(mount_x_m=0.0, masked_sectors=("350:10",)), braking_mps2=4.2, max_speed_mps=5.0
+    )
+    assert limits(wall(0, 0.4), masked).forward_limit == 1.0
+    assert limits(wall(0, 0.4)).forward_limit == 0.0
+    # Beside the corridor (a wall 2 m to the left) does not stop forward driving.
+    assert limits(wall(270, 2.0, 60)).forward_limit == 1.0
+
+
+def test_mount_and_yaw_put_points_in_the_robots_frame() -> None:
+    # Sensor turned 90 degrees left: its clockwise 90 degrees is the robot's forward.
+    turned = Geometry(LidarSection(mount_x_m=0.0, yaw_deg=90.0), 4.2, 5.0)
+    assert limits(wall(90, 0.4), turned).forward_limit == 0.0
+    assert limits(wall(0, 0.4), turned).forward_limit == 1.0
+
+
+async def test_simulator_bytes_through_the_reader_on_a_pty() -> None:
+    vehicle = VehicleModel()  # standing at the origin, facing north
+    world = LidarWorld([], [(0.0, 3.0, 0.5, 0.5)])  # a 1 m post 3 m north
+    generator = ScanGenerator(LidarSection(mount_x_m=0.0), world, rng=np.random.default_rng(3))
+    bus = Bus()
+    simulator = LidarSimulator(bus, vehicle, generator)
+    config = LidarSection(enabled=True, port=simulator.path, mount_x_m=0.0)
+    reader = LidarReader(bus, config, Geometry(config, 4.2, 1.0))
+    seen: list[Proximity] = []
+    bus.subscribe(topics.PROXIMITY, seen.append)
+    async with asyncio.TaskGroup() as group:
+        tasks = [group.create_task(simulator.run()), group.create_task(reader.run())]
+        try:
+            await wait_until(lambda: reader.scans >= 5, 5)
+        finally:
+            for task in tasks:
+                task.cancel()
+    assert reader.decoder.crc_errors == 0
+    assert reader.decoder.frames >= 5 * 37
+    last = seen[-1]
+    assert last.nearest_m is not None and abs(last.nearest_m - 2.5) < 0.06
+    assert last.nearest_bearing_deg is not None
+    assert min(last.nearest_bearing_deg, 360 - last.nearest_bearing_deg) < 3.0
+    assert last.forward_free_m is not None and abs(last.forward_free_m - 2.5) < 0.06
+    # 2.5 m ahead at 1 m/s top speed: not limited.
+    assert last.forward_limit == 1.0
+    assert reader.last is not None and len(reader.last.obstacles) == 1
+
+
+@pytest.fixture
+async def robot_factory(tmp_path: Path) -> AsyncIterator[Callable[..., Awaitable[Robot]]]:
+    """--sim platforms as test_patrol_platform's (an 18 km/h rover), stopped after the test."""
+    started: list[tuple[PlatformDaemon, Robot]] = []
+
+    async def start(*overrides: str) -> Robot:
+        daemon = PlatformDaemon(config(tmp_path, *overrides), None)
+        await daemon.start()
+        robot = Robot(daemon)
+        started.append((daemon, robot))
+        await wait_until(lambda: daemon.ctx.bus.last(topics.POSE) is not None, 10)
+        return robot
+
+    yield start
+    for daemon, robot in started:
+        robot.close()
+        await daemon.stop()
+
+
+def obstacles_file(tmp_path: Path, *discs: tuple[float, float, float]) -> str:
+    features = []
+    for east, north, radius in discs:
+        lat, lon = offset(LAT, LON, east, north)
+        features.append(
+            {
+                "type": "Feature",
+                "properties": {"radius_m": radius},
+                "geometry": {"type": "Point", "coordinates": [lon, lat]},
+            }
+        )
+    path = tmp_path / "obstacles.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": features}))
+    return str(path)
+
+
+def clearance(robot: Robot, east: float, north: float, radius: float) -> float:
+    """From the true vehicle's centre to the obstacle's edge."""
+    pose = robot.vehicle.pose()
+    return math.dist(robot.local(pose.latitude, pose.longitude), (east, north)) - radius
+
+
+async def test_patrol_stops_for_an_obstacle_the_map_does_not_have(
+    robot_factory: Any, tmp_path: Path
+) -> None:
+    post = (14.0, 0.0, 0.5)
+    robot: Robot = await robot_factory(
+        *RTK,
+        "lidar.enabled=true",
+        "lidar.map_obstacles=false",  # stop only: the next test has the patrol plan around it
+        f"sim.obstacles_file={obstacles_file(tmp_path, post)}",
+    )
+    closest: list[float] = []
+    robot.watchers.append(lambda _pose, _truth: closest.append(clearance(robot, *post)))
+    await robot.call("set_waypoints", waypoints=[at(0, 0), at(25, 0)])
+    await robot.call("patrol_start")
+    await wait_until(lambda: robot.vehicle.pose().speed_mps > 2.0, 20)
+
+    def stopped_for_it() -> bool:
+        limits = robot.ctx.bus.last(topics.PROXIMITY)
+        return (
+            limits is not None
+            and limits.reason.startswith("stopped: obstacle")
+            and abs(robot.vehicle.pose().speed_mps) < 0.02
+        )
+
+    await wait_until(stopped_for_it, 20)
+    motion = robot.ctx.bus.last(topics.MOTION_STATE)
+    assert motion is not None and motion.command.linear == 0.0
+    assert min(closest) >= 0.3, min(closest)
+    assert clearance(robot, *post) >= 0.3
+    await asyncio.sleep(0.5)  # the patrol keeps asking; the robot stays put
+    assert abs(robot.vehicle.pose().speed_mps) < 0.02
+
+
+async def test_hand_driving_is_slowed_then_stopped_short_of_an_obstacle(
+    robot_factory: Any, tmp_path: Path
+) -> None:
+    post = (0.0, 11.0, 0.4)  # north, where the simulated vehicle faces
+    robot: Robot = await robot_factory(
+        "lidar.enabled=true",
+        "autonomy.autostart=false",
+        f"sim.obstacles_file={obstacles_file(tmp_path, post)}",
+    )
+    bus = robot.ctx.bus
+    await wait_until(lambda: bus.last(topics.LIDAR_SCAN) is not None, 5)
+    mode = next(a for a in robot.daemon.supervisor.actors if isinstance(a, ModeArbiter))
+    operator = Session("operator", "station-1", "127.0.0.1", None, 0.0, 0.0)
+    assert mode.request(True, operator).accepted
+    commands: list[float] = []
+    bus.subscribe(topics.MOTOR_COMMAND, lambda v: commands.append(v.linear))
+    start = clearance(robot, *post)
+    for _ in range(80):  # full ahead for 8 s, as a joystick held forward
+        bus.publish(topics.TELEOP_VELOCITY, Velocity(1.0, 0.0))
+        await asyncio.sleep(0.1)
+    cap = robot.ctx.bus.last(topics.SPEED_CAP)
+    assert cap is not None
+    # It drove at the latency speed cap while the way was clear, then slowed as it closed in.
+    assert commands.count(cap.fraction) > 10
+    assert any(0.0 < c < 0.8 * cap.fraction for c in commands)
+    assert commands[-1] == 0.0
+    limits = bus.last(topics.PROXIMITY)
+    assert limits is not None and limits.reason.startswith("stopped: obstacle")
+    assert abs(robot.vehicle.pose().speed_mps) < 0.02
+    assert start - clearance(robot, *post) > 5.0  # it did drive most of the way
+    assert clearance(robot, *post) >= 0.3
+    # Everyone sees why: telemetry's perception section, through the wire form and back.
+    section = robot.ctx.telemetry.build_one(Perception)
+    assert isinstance(section, Perception)
+    section = section_from_wire(Perception, section_to_wire(section))
+    assert section.connected and section.scan_hz >= 5
+    assert section.forward_limit == 0.0 and section.reason.startswith("stopped: obstacle")
+    assert section.nearest_m is not None and section.nearest_m < 1.2
+    assert any(min(b, 360 - b) < 10 and d < 1.5 for b, d, _r in section.obstacles)
+    # Backing away is allowed.
+    bus.publish(topics.TELEOP_VELOCITY, Velocity(-0.3, 0.0))
+    assert commands[-1] == -0.3
+    assert mode.request(False, operator).accepted
+
+
+def test_world_polygons_block_rays() -> None:
+    square = Polygon([(2, -1), (4, -1), (4, 1), (2, 1)])
+    world = LidarWorld([(square, 0.5)], [])
+    ranges, _ = LidarWorld.cast(0.0, 0.0, np.array([0.0, math.pi]), *world.near(0, 0, 12))
+    assert abs(ranges[0] - 2.0) < 1e-9 and math.isinf(ranges[1])
+
+
+@pytest.mark.parametrize("lux", [0.0, 100_000.0])
+def test_sunlight_shortens_and_thins_returns(lux: float) -> None:
+    far_wall = Polygon([(-20, 10), (20, 10), (20, 11), (-20, 11)])
+    world = LidarWorld([(far_wall, 0.3)], [])
+    generator = ScanGenerator(LidarSection(), world, lux=lux, rng=np.random.default_rng(5))
+    vehicle = VehicleModel(clock=lambda: 0.0)
+    frames = [generator.frame(vehicle.pose(), i * 0.00267, 0.0, 0.0) for i in range(375)]
+    from brasidas.codecs.ldlidar import LidarDecoder
+
+    ranges = [d for f in LidarDecoder().feed(b"".join(frames), 0.0) for d in f.distances_mm]
+    seen = sum(1 for d in ranges if d > 0)
+    if lux == 0:
+        assert seen > 100
+    else:
+        assert generator.reach_m < 8.0 and seen < 60
+
+
+def test_an_obstacle_that_vanishes_close_up_keeps_the_stop() -> None:
+    stopped = limits(wall(0, 0.15))  # then it goes into the blind zone (body_radius_m 0.1)
+    assert stopped.forward_limit == 0.0
+    geometry = GEOMETRY
+    gone = proximity(to_robot(scan_of({}), geometry), geometry, stopped)
+    assert gone.forward_limit == 0.0 and gone.reason.startswith("stopped: obstacle")
+    # One seen farther away does not hold anything when it disappears (taken away).
+    far = limits(wall(0, 0.35))
+    assert far.forward_limit == 0.0
+    assert proximity(to_robot(scan_of({}), geometry), geometry, far).forward_limit == 1.0
+
+
+async def test_an_obstacle_becomes_a_keepout_the_patrol_plans_around_then_leaves(
+    robot_factory: Any, tmp_path: Path
+) -> None:
+    post = (14.0, 0.0, 0.5)
+    robot: Robot = await robot_factory(
+        *RTK, "lidar.enabled=true", f"sim.obstacles_file={obstacles_file(tmp_path, post)}"
+    )
+    closest: list[float] = []
+    robot.watchers.append(lambda _pose, _truth: closest.append(clearance(robot, *post)))
+    await robot.call("set_waypoints", waypoints=[at(0, 0), at(25, 0)])
+    await robot.call("patrol_start")
+    patrol = robot.ctx.patrol
+    assert patrol is not None
+
+    def zones() -> list[str]:
+        area = patrol.core.area
+        return [z for z in area.keepouts if z.startswith("lidar:")] if area else []
+
+    await wait_until(lambda: bool(zones()), 20)
+
+    # The patrol goes round it to the far waypoint, without touching it.
+    def beyond_it() -> bool:
+        pose = robot.vehicle.pose()
+        return robot.local(pose.latitude, pose.longitude)[0] > 18.0
+
+    await wait_until(beyond_it, 40)
+    assert min(closest) >= 0.3
+    # It is taken away (from the simulated world): the keep-out leaves within 3 s.
+    simulator = robot.ctx.sim.lidar
+    assert simulator is not None
+    simulator.world_source = None
+    simulator.generator.world = LidarWorld([], [])
+    await wait_until(lambda: not zones(), 6)
+    stored = tmp_path / "map.geojson"  # temporary: never written to map.file
+    assert not stored.exists() or "lidar:" not in stored.read_text()
+
+
+def test_laser_scan_for_the_recorder_is_counter_clockwise_in_the_robots_frame() -> None:
+    import orjson
+
+    from brasidas.recording.schemas import encode_laser_scan
+
+    message = orjson.loads(
+        encode_laser_scan(1_500_000_000, (0.0, 90.0, 90.4, 200.0), (1.0, 2.0, 1.5, 0.0))
+    )
+    assert message["frame_id"] == "base_link" and message["timestamp"] == {
+        "sec": 1,
+        "nsec": 500_000_000,
+    }
+    ranges = message["ranges"]
+    assert len(ranges) == 360 and ranges[0] == 1.0
+    assert ranges[270] == 1.5  # 90 degrees clockwise (right) is 270 counter-clockwise: nearest kept
+    assert ranges[160] == 0.0  # no return
