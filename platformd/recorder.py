@@ -375,6 +375,7 @@ class PlatformRecorder(Actor):
         finally:
             copy.unlink(missing_ok=True)
 
+
 def recordings_dir(ctx: PlatformContext) -> Path:
     configured = ctx.config.recorder.dir
     return Path(configured) if configured else state_dir() / "recordings"
