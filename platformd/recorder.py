@@ -364,13 +364,16 @@ class PlatformRecorder(Actor):
 
     async def _snapshot_download(self, request: web.Request, path: Path) -> web.StreamResponse:
         """The file being written, as a complete MCAP up to its last closed chunk (summary
-        and footer written): what readers open. A new copy each time (a resuming client's
-        range is of the copy it gets), sent at the downloads' share like any file."""
+        and footer written): what readers open. A new copy each time: a range is of the copy it
+        gets, so the station never resumes one (stationd.recordings); at the downloads' share."""
         copy = path.with_name(f".{path.name}.{secrets.token_hex(4)}.download")
         try:
             await asyncio.to_thread(recover_file, path, copy)
             return await send_file(
-                request, copy, self.download_share, {"Content-Type": "application/octet-stream"}
+                request,
+                copy,
+                self.download_share,
+                {"Content-Type": "application/octet-stream"},
             )
         finally:
             copy.unlink(missing_ok=True)

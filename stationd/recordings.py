@@ -16,6 +16,7 @@ from urllib.parse import quote
 import aiohttp
 
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
+from brasidas.recording.writer import ACTIVE_SUFFIX
 from brasidas.security import state_dir
 from stationd.context import StationContext
 from stationd.replay import recording_index, recording_state
@@ -33,8 +34,9 @@ class DownloadError(Exception):
 
 async def download(url: str, headers: dict[str, str], target: Path, have: int) -> int:
     """GET ``url`` into ``target``, resuming after the ``have`` bytes it already holds (an
-    HTTP range); the file's final size."""
-    if have:
+    HTTP range); the file's final size. The recording being written is fetched whole each
+    time: the platform hands out a new complete copy per request, which a range would splice."""
+    if have and not url.endswith(ACTIVE_SUFFIX):
         headers = {**headers, "Range": f"bytes={have}-"}
     timeout = aiohttp.ClientTimeout(total=None, sock_connect=10, sock_read=30)
     try:

@@ -524,6 +524,10 @@ class PatrolActor(Actor):
             raise RouteError("the patrol is switched off (command 10.8)")
         route = Route((Waypoint(latitude, longitude, label),), laps=1)
         await asyncio.to_thread(check_route, route, area)
+        # Moving needs arming: a go-to arms through the pre-arm checks as a start does.
+        refusal = self.start_check() if self.start_check is not None else None
+        if refusal is not None:
+            raise RouteError(refusal)
         if self.detour is None:
             self._kept_route = self.core.route
         self.detour = label
