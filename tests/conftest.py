@@ -17,6 +17,8 @@ from pathlib import Path
 
 import pytest
 from hypothesis import HealthCheck, settings
+from support import markers
+from support.cli import run_cli as run_cli  # re-exported: modules import helpers from here
 
 from brasidas.codecs.telemetry_schema import VelocityLink
 from brasidas.config import PlatformConfig, StationConfig, load_config
@@ -30,6 +32,11 @@ pytest_plugins = ["pytester"]
 settings.register_profile("brasidas", deadline=None, suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile("brasidas")
 settings.load_profile("brasidas")
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    markers.apply(items)
 
 
 def pytest_configure(config: pytest.Config) -> None:

@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 from conftest import free_udp_port, quiet_platform_config, udp_port_bound, wait_until
+from support.cli import run_cli
 
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import StationConfig, load_config
 from platformd.app import PlatformDaemon
-from stationd import cli
 from stationd.daemon import StationDaemon
 from stationd.media import GST_LAUNCH_RECEIVER, sdp_text
 
@@ -40,21 +40,6 @@ async def sim_platform(factory: Factory, key: bytes, *overrides: str) -> Platfor
         ),
         key,
     )
-
-
-async def run_cli(station: StationDaemon, *argv: str) -> tuple[int, str, str]:
-    import contextlib
-    import io
-
-    out, err = io.StringIO(), io.StringIO()
-    api = ["--set", f"station.api_port={station.api_port}"]
-
-    def call() -> int:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            return cli.main([*argv, *api])
-
-    code = await asyncio.to_thread(call)
-    return code, out.getvalue(), err.getvalue()
 
 
 async def read_until(process: asyncio.subprocess.Process, pattern: re.Pattern[str]) -> str:

@@ -8,6 +8,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 
 import pytest
 from conftest import free_tcp_port, quiet_platform_config, wait_until
+from support.cli import run_cli
 
 from brasidas import topics
 from brasidas.config import StationConfig, load_config
@@ -26,22 +27,6 @@ async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
     await daemon.start()
     yield daemon
     await daemon.stop()
-
-
-async def run_cli(station: StationDaemon, *argv: str) -> tuple[int, str, str]:
-    """Run ``brasidas-station`` in a thread (it has its own event loop), capturing output."""
-    import contextlib
-    import io
-
-    out, err = io.StringIO(), io.StringIO()
-    api = ["--set", f"station.api_port={station.api_port}"]
-
-    def call() -> int:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            return cli.main([*argv, *api])
-
-    code = await asyncio.to_thread(call)
-    return code, out.getvalue(), err.getvalue()
 
 
 async def test_connect_movrd_lights_and_commands_through_the_daemon(

@@ -14,6 +14,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 
 import pytest
 from conftest import quiet_platform_config, wait_until
+from support.cli import run_cli
 
 from brasidas import topics
 from brasidas.codecs.telemetry_schema import (
@@ -118,18 +119,6 @@ async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
     await daemon.start()
     yield daemon
     await daemon.stop()
-
-
-async def run_cli(station: StationDaemon, *argv: str) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    api = ["--set", f"station.api_port={station.api_port}"]
-
-    def call() -> int:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            return cli.main([*argv, *api])
-
-    code = await asyncio.to_thread(call)
-    return code, out.getvalue(), err.getvalue()
 
 
 async def test_status_prints_connection_and_telemetry(
