@@ -253,6 +253,12 @@ def velocities_dropped(daemon: PlatformDaemon, reason: str) -> int:
     return link.dropped.get(reason, 0) if isinstance(link, VelocityLink) else 0
 
 
+def velocities_accepted(daemon: PlatformDaemon) -> int:
+    """The velocity packets the platform's receiver has accepted (now, as telemetry reads it)."""
+    link = daemon.ctx.telemetry.build_one(VelocityLink)
+    return link.accepted if isinstance(link, VelocityLink) else 0
+
+
 @contextlib.asynccontextmanager
 async def running_station(key: bytes, *overrides: str) -> AsyncIterator[StationDaemon]:
     """A station daemon on loopback with an ephemeral API port; stopped on exit."""
@@ -272,3 +278,11 @@ async def running_station(key: bytes, *overrides: str) -> AsyncIterator[StationD
         yield daemon
     finally:
         await daemon.stop()
+
+
+@pytest.fixture
+async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
+    """A station on loopback (:func:`running_station`); a module that needs other settings
+    defines its own ``station``."""
+    async with running_station(fleet_key) as daemon:
+        yield daemon

@@ -7,7 +7,7 @@ import json
 from collections.abc import AsyncIterator, Awaitable, Callable
 
 import pytest
-from conftest import free_tcp_port, quiet_platform_config, wait_until
+from conftest import free_tcp_port, quiet_platform_config, running_station, wait_until
 from support.cli import run_cli
 
 from brasidas import topics
@@ -22,11 +22,9 @@ Factory = Callable[..., Awaitable[PlatformDaemon]]
 
 @pytest.fixture
 async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
-    config = load_config(StationConfig, None, ["station.api_port=0", "station.connect_timeout=1"])
-    daemon = StationDaemon(config, fleet_key)
-    await daemon.start()
-    yield daemon
-    await daemon.stop()
+    """conftest's, with a 1 s connect timeout (modules import this one too)."""
+    async with running_station(fleet_key, "station.connect_timeout=1") as daemon:
+        yield daemon
 
 
 async def test_connect_movrd_lights_and_commands_through_the_daemon(
