@@ -428,7 +428,9 @@ async def test_operator_station_in_the_browser(
             )
             # A move would show by now: the page has read the stick (LB up) three times, and
             # three velocity packets have reached the platform since.
-            await page.wait_for_function(f"window.__pad.polls >= {polls + 3}")
+            async with asyncio.timeout(10):  # polled from here: the CSP forbids wait_for_function
+                while await page.evaluate("window.__pad.polls") < polls + 3:
+                    await asyncio.sleep(0.02)
             accepted = velocities_accepted(rover)
             await wait_until(lambda: velocities_accepted(rover) >= accepted + 3, timeout=10)
             assert vehicle.command == (0.0, 0.0), "moved without the enable button"

@@ -6,9 +6,11 @@
 seconds of real time); ``make test-quick`` runs the rest. A test may also carry a marker
 itself. A module found by what it imports marks its new tests too (no list to keep current).
 
-Under pytest-xdist (``--dist loadgroup``) a test that uses a fixture wider than one test (a
-module's network, browser or rig) runs in its module's group, on one worker, so the rig is
-built once; every other test goes to whichever worker is free. The markers are registered
+Under pytest-xdist (``--dist loadgroup``) the browser tests run one after another on one
+worker (one Chromium at a time: several at once on two cores starve each other's page timing);
+a test that uses a fixture wider than one test (a module's network or rig) runs in its
+module's group, on one worker, so the rig is built once; every other test goes to whichever
+worker is free. The markers are registered
 in pyproject.toml.
 """
 
@@ -110,9 +112,14 @@ def apply(items: list[pytest.Item]) -> None:
     """Mark each collected test by its module, and group the ones sharing a rig."""
     for item in items:
         path = Path(str(item.fspath))
-        for name in module_markers(path):
+        marks = module_markers(path)
+        for name in marks:
             item.add_marker(name)
         if f"{path.name}::{getattr(item, 'originalname', item.name)}" in SLOW_TESTS:
             item.add_marker("slow")
-        if shares_a_rig(item) and item.get_closest_marker("xdist_group") is None:
+        if item.get_closest_marker("xdist_group") is not None:
+            continue
+        if "browser" in marks:
+            item.add_marker(pytest.mark.xdist_group("browser"))
+        elif shares_a_rig(item):
             item.add_marker(pytest.mark.xdist_group(path.stem))
