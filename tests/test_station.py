@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import json
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import Awaitable, Callable
 
 import pytest
-from conftest import free_tcp_port, quiet_platform_config, running_station, wait_until
+from conftest import free_tcp_port, quiet_platform_config, wait_until
+from conftest import station as station  # re-exported: other modules import it from here
 from support.cli import run_cli
 
 from brasidas import topics
@@ -18,13 +19,6 @@ from stationd import cli
 from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
-
-
-@pytest.fixture
-async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
-    """conftest's, with a 1 s connect timeout (modules import this one too)."""
-    async with running_station(fleet_key, "station.connect_timeout=1") as daemon:
-        yield daemon
 
 
 async def test_connect_movrd_lights_and_commands_through_the_daemon(
