@@ -109,7 +109,9 @@ def shares_a_rig(item: pytest.Item) -> bool:
 
 
 def apply(items: list[pytest.Item]) -> None:
-    """Mark each collected test by its module, and group the ones sharing a rig."""
+    """Mark each collected test by its module, group the ones sharing a rig, and put the
+    slow ones first (the browser tests, one worker's long queue, at the very front): the
+    workers finish together instead of one starting a long queue near the end."""
     for item in items:
         path = Path(str(item.fspath))
         marks = module_markers(path)
@@ -123,3 +125,10 @@ def apply(items: list[pytest.Item]) -> None:
             item.add_marker(pytest.mark.xdist_group("browser"))
         elif shares_a_rig(item):
             item.add_marker(pytest.mark.xdist_group(path.stem))
+    items.sort(key=_start_order)
+
+
+def _start_order(item: pytest.Item) -> int:
+    if item.get_closest_marker("browser") is not None:
+        return 0
+    return 1 if item.get_closest_marker("slow") is not None else 2
