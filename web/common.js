@@ -98,3 +98,19 @@ export function telemetryAgeMs(entry) {
   if (!entry) return null;
   return (entry.report.link?.silence_s ?? 0) * 1000 + (performance.now() - entry.at);
 }
+
+const TEXT_INPUTS = new Set(["text", "search", "email", "password", "url", "tel"]);
+const NUMBER_KEYS = /^(Digit|Numpad|Minus|Period|Comma|Backspace|Delete|Arrow(Up|Down)$|Home|End|Enter|Tab)/;
+
+/** Whether a key belongs to the element that has focus (a letter typed into a text box, a digit
+ * or ↑/↓ in a number box) rather than to the console's keys (drive, M). A ticked checkbox, a
+ * button or a number box keep no letters: focus there used to swallow W, the arrows and M. */
+export function keyForFocusedField(event) {
+  const target = event.target;
+  if (target instanceof HTMLTextAreaElement || target instanceof HTMLSelectElement) return true;
+  if (target instanceof HTMLElement && target.isContentEditable) return true;
+  if (!(target instanceof HTMLInputElement)) return false;
+  if (TEXT_INPUTS.has(target.type)) return true;
+  if (target.type === "number" || target.type === "range") return NUMBER_KEYS.test(event.code);
+  return false;
+}
