@@ -12,6 +12,7 @@ import test_web_console_honesty as honesty
 from test_web_console_honesty import console, rover, screenshots
 from test_web_console_station import Factory, frames_decoded
 
+from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
 
 # The honesty tests' fixtures: a station daemon and a headless Chromium.
@@ -87,3 +88,61 @@ async def test_a_ticked_checkbox_or_the_fps_box_keep_no_drive_keys(
     await expect(framerate).to_have_value("12")
     await expect(framerate).to_be_focused()
     await screenshots(page, "console-keys")
+
+
+async def test_an_observer_gets_what_it_may_do_and_sentences(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes, browser: Any
+) -> None:
+    """Another station holds control. Import buttons used to stay enabled and then fail with
+    `set_waypoints refused: control held by station station-1`; stream start/stop were
+    disabled though an observer may start and stop its own copy; the hint said "engage the
+    override" with that button disabled; the speed cap read as the patrol's."""
+    from playwright.async_api import expect
+
+    platform = await rover(
+        platform_factory,
+        fleet_key,
+        station,
+        "signaling.session_timeout=60",
+        "failsafe.release_after=60",
+    )
+    page = await console(browser, station, "web-rover")
+    await expect(page.get_by_role("button", name="manual override")).to_be_enabled(timeout=15_000)
+    files = page.locator("#map-files")  # folded: its buttons are looked up by label
+    await expect(files.locator('[aria-label="import map file"]')).to_be_enabled()
+    intruder = PlatformConnection(
+        "web-rover", platform.ctx.signaling_url, station_id="intruder", fleet_key=fleet_key
+    )
+    await intruder.open()
+    try:
+        taken = await intruder.call(
+            "issue_system_command", group=10, command=0, payload="state=True,force=yes"
+        )
+        assert taken["accepted"], taken
+        for name in ("import map file", "import route file"):
+            button = files.locator(f'[aria-label="{name}"]')
+            await expect(button).to_be_disabled(timeout=15_000)
+            await expect(button).to_have_attribute("title", re.compile("^intruder holds control"))
+            await expect(files.locator('[aria-label="export route as plan"]')).to_be_enabled()
+        await expect(page.get_by_role("button", name="start navcam")).to_be_enabled()
+        await expect(page.get_by_role("button", name="stop navcam")).to_be_enabled()
+        await expect(page.get_by_role("button", name="pause navcam")).to_be_disabled()
+        hint = page.get_by_label("driving hint")
+        await expect(hint).to_contain_text("intruder holds control")
+        await expect(hint).not_to_contain_text("engage the override")
+        await expect(page.get_by_label("speed cap", exact=True)).to_have_attribute(
+            "data-applies", "false"
+        )
+        await expect(page.get_by_label("why this cap")).to_contain_text("driving by hand")
+        # The platform's refusal is said in words, not as a method name.
+        said = await page.evaluate(
+            "import('/static/common.js').then((m) => m.plainReason("
+            "'route import: set_waypoints refused: control held by station station-1'))"
+        )
+        assert said == "route import: station-1 holds control of web-rover: take control first"
+        # An observer stops and starts its own copy of the NavCam.
+        await page.get_by_role("button", name="stop navcam").click()
+        await expect(page.locator("#answer")).to_contain_text("acknowledged", timeout=10_000)
+        await screenshots(page, "console-observer")
+    finally:
+        await intruder.close()

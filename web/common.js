@@ -74,7 +74,17 @@ export function observing() {
 
 /** Why a control is disabled for an observer ("" when it is not). */
 export function observerReason() {
-  return observing() ? `control held by station ${controlHolder()}: take control to use this` : "";
+  return observing() ? `${controlHolder()} holds control of ${state.current}: take control to use this` : "";
+}
+
+const HELD_REFUSAL = /[\w.]+ refused: control held by station ([\w.-]+?)(?=\.?$|[;)\s])/;
+
+/** A refusal in words: the platform's "set_waypoints refused: control held by station X"
+ * (a method name, and "station" twice with ids like station-1) becomes "X holds control of
+ * P: take control first" wherever it is quoted. Other text passes unchanged. */
+export function plainReason(reason) {
+  const text = String(reason ?? "");
+  return text.replace(HELD_REFUSAL, (_, holder) => `${holder} holds control of ${state.current ?? "the platform"}: take control first`);
 }
 
 /** This console engaged the shown platform's override and this station holds control. */

@@ -5,7 +5,7 @@
 // a driving hint. Telemetry older than 2 s is STALE, counted from its last report.
 
 import { $, compassHeading, engagedHere, failure, fixed, put, section, snapshotOf, telemetryAgeMs } from "./common.js";
-import { teleop } from "./controls.js";
+import { drivingHint, teleop } from "./controls.js";
 import { state, subscribe } from "./store.js";
 import { videoAgeMs } from "./video.js";
 
@@ -33,8 +33,10 @@ function batteryEstimate(volts) {
 }
 
 function renderCompass(heading) {
-  $("#compass-needle").setAttribute("transform", `rotate(${heading ?? 0} 50 50)`);
-  $("#compass-needle").style.opacity = heading == null ? "0.2" : "1";
+  // No heading: no needle (a needle at north read as "heading north").
+  const needle = $("#compass-needle");
+  if (heading != null) needle.setAttribute("transform", `rotate(${heading} 50 50)`);
+  needle.setAttribute("visibility", heading == null ? "hidden" : "visible");
   put($("#heading"), heading == null ? "unknown" : `${String(Math.round(heading) % 360).padStart(3, "0")}°`);
 }
 
@@ -75,11 +77,12 @@ function renderPanel() {
     put(readout, `cap ${fixed(cap.cap_kmh, 1)} km/h (video ${ms(cap.video_ms)}, command ${ms(cap.command_ms)})`);
     readout.dataset.assumed = String(cap.video_ms == null);
     readout.dataset.kmh = String(cap.cap_kmh);
-    put($("#speed-cap-reason"), cap.reason);
+    // The cap limits driving by hand; a patrol keeps its own speed: greyed, and said, then.
+    const applies = engagedHere();
+    readout.dataset.applies = String(applies);
+    put($("#speed-cap-reason"), applies ? cap.reason : `for driving by hand (a patrol keeps its own speed): ${cap.reason}`);
   }
-  put($("#drive-hint"), engagedHere()
-    ? "Driving: hold W/A/S/D or the arrows, space stops; game controller: hold LB and use the left stick."
-    : "Not driving: engage the override to drive (a drive key says why nothing moves).");
+  put($("#drive-hint"), drivingHint());
 }
 
 function telemetryRows(snapshot, link) {
