@@ -146,3 +146,94 @@ async def test_an_observer_gets_what_it_may_do_and_sentences(
         await screenshots(page, "console-observer")
     finally:
         await intruder.close()
+
+
+# What the arming section (issue 27) adds to each report, injected into the page's copy of it:
+# window.__arming is the section (null: the platform reports none).
+INJECT_ARMING = """
+window.__arming = null;
+const parse = JSON.parse;
+JSON.parse = function (text, reviver) {
+  const value = parse.call(this, text, reviver);
+  for (const report of [value?.result, value?.params]) {
+    if (report && typeof report === "object" && report.snapshot && window.__arming) {
+      report.snapshot.arming = window.__arming;
+    }
+  }
+  return value;
+};
+"""
+
+
+async def test_the_toolbar_shows_mode_arm_state_and_readiness(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes, browser: Any
+) -> None:
+    """Mode (chosen here: MANUAL engages the override, AUTO after a slide starts the patrol),
+    arm state, READY / NOT READY opening the pre-arm reasons, and the slide to arm calling the
+    station's ``arm`` with the platform's id; "—" while the platform reports no arming."""
+    from playwright.async_api import expect
+
+    armed: list[dict[str, Any]] = []
+
+    async def arm(ctx: Any, platform_id: str) -> dict[str, Any]:
+        armed.append({"platform_id": platform_id})
+        return {"accepted": True}
+
+    if not station.ctx.api.has("arm"):  # issue 27's method; stood in for until it is merged
+        station.ctx.api.add("arm", arm, session_required=False)
+    platform = await rover(platform_factory, fleet_key, station)
+    page = await honesty_browser_page(browser, station)
+    await expect(page.get_by_role("button", name="manual override")).to_be_enabled(timeout=15_000)
+    mode = page.get_by_label("mode", exact=True)
+    await expect(mode).to_have_value("HOLD", timeout=10_000)
+    await expect(page.get_by_label("arm state")).to_have_text("arm —")
+    await expect(page.get_by_label("readiness")).to_have_text("ready —")
+    await expect(page.get_by_label("slide to arm")).to_be_hidden()
+
+    await page.evaluate(
+        "window.__arming = {armed: false, ready: false, prearm: ['no GPS fix', 'battery 10.1 V'],"
+        " countdown_s: null, last_stop: ''}"
+    )
+    readiness = page.get_by_label("readiness")
+    await expect(readiness).to_have_text("NOT READY", timeout=10_000)
+    await expect(page.get_by_label("arm state")).to_have_text("DISARMED")
+    await readiness.click()
+    reasons = page.get_by_role("dialog", name="pre-arm checks")
+    await expect(reasons).to_be_visible()
+    await expect(reasons).to_contain_text("no GPS fix")
+    await expect(reasons).to_contain_text("battery 10.1 V")
+    await expect(page.get_by_label("slide to arm")).to_be_disabled()
+    await readiness.click()
+    await expect(reasons).to_be_hidden()
+
+    await page.evaluate(
+        "window.__arming = {armed: false, ready: true, prearm: [], countdown_s: null,"
+        " last_stop: ''}"
+    )
+    await expect(readiness).to_have_text("READY", timeout=10_000)
+    slider = page.get_by_label("slide to arm")
+    await expect(slider).to_be_enabled()
+    await slider.fill("40")  # let go half-way: nothing
+    await page.wait_for_timeout(300)
+    assert armed == []
+    await slider.fill("100")
+    await expect(page.locator("#answer")).to_contain_text("arm: acknowledged", timeout=10_000)
+    assert armed == [{"platform_id": "web-rover"}]
+
+    # MANUAL engages the override; AUTO waits for its slide, then starts the patrol.
+    await mode.select_option("MANUAL")
+    await expect(page.locator("#driving")).to_contain_text("driving web-rover", timeout=10_000)
+    await expect(mode).to_have_value("MANUAL", timeout=10_000)
+    await mode.select_option("AUTO")
+    await expect(page.get_by_label("slide to start patrol")).to_be_visible()
+    await page.get_by_label("slide to start patrol").fill("100")
+    await expect(mode).to_have_value("AUTO", timeout=15_000)
+    assert platform.ctx.config.platform.id == "web-rover"
+    await screenshots(page, "console-toolbar")
+
+
+async def honesty_browser_page(browser: Any, station: StationDaemon) -> Any:
+    page = await browser.new_page(viewport={"width": 1366, "height": 768})
+    await page.add_init_script(INJECT_ARMING)
+    await page.goto(f"http://127.0.0.1:{station.api_port}/?platform=web-rover")
+    return page

@@ -10,6 +10,7 @@ import { startNotifications } from "./notifications.js";
 import { startPatrol } from "./patrol.js";
 import { plotPoints, startPlots } from "./plots.js";
 import { startRecordings } from "./recordings.js";
+import { startToolbar } from "./toolbar.js";
 import { apiStates, api } from "./station.js";
 import { startVideo } from "./video.js";
 
@@ -22,6 +23,7 @@ startPlots();
 startLayout();
 startMapFiles();
 startRecordings();
+startToolbar();
 
 // What tests and benchmarks read (the page's CSP allows no eval of their own).
 window.navcam = {
