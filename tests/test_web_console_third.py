@@ -89,6 +89,21 @@ async def test_a_ticked_checkbox_or_the_fps_box_keep_no_drive_keys(
     await expect(framerate).to_be_focused()
     await screenshots(page, "console-keys")
 
+    # All five plots ticked: readable (≥ 90 px each), and the platform table stays on screen.
+    for box in await page.locator("#plot-choices input").all():
+        if not await box.is_checked():
+            await box.check()
+    await expect(page.locator("#plots .plot")).to_have_count(5, timeout=10_000)
+    for width, height in ((1366, 768), (1920, 1080)):
+        await page.set_viewport_size({"width": width, "height": height})
+        await page.wait_for_timeout(300)
+        for plot in await page.locator("#plots .plot canvas").all():
+            size = await plot.bounding_box()
+            assert size is not None and size["height"] >= 90, size
+        table = await page.locator("#platforms").bounding_box()
+        assert table is not None and table["y"] + table["height"] <= height, (width, table)
+    await screenshots(page, "console-plots")
+
 
 async def test_an_observer_gets_what_it_may_do_and_sentences(
     station: StationDaemon, platform_factory: Factory, fleet_key: bytes, browser: Any

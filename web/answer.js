@@ -10,6 +10,7 @@ const timers = new WeakMap(); // answer line → its expiry
  * ``refused`` shows it as a refusal. */
 export function sayOn(line, text, { refused = false, keepMs = KEEP_MS } = {}) {
   line.textContent = plainReason(text);
+  line.title = line.textContent; // one line on screen: the whole answer on hover
   line.classList.toggle("refused", refused);
   clearTimeout(timers.get(line));
   timers.set(line, setTimeout(() => { line.textContent = ""; line.classList.remove("refused"); }, keepMs));
