@@ -6,12 +6,16 @@ from __future__ import annotations
 
 import asyncio
 import re
+import time
 from typing import Any
 
 import test_web_console_honesty as honesty
 from test_web_console_honesty import console, rover, screenshots
 from test_web_console_station import Factory, frames_decoded
 
+from brasidas import topics
+from brasidas.annunciator import PATROL_HOLDING
+from brasidas.messages import StationNotification
 from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
 
@@ -158,6 +162,26 @@ async def test_an_observer_gets_what_it_may_do_and_sentences(
         # An observer stops and starts its own copy of the NavCam.
         await page.get_by_role("button", name="stop navcam").click()
         await expect(page.locator("#answer")).to_contain_text("acknowledged", timeout=10_000)
+        # A routine event is information, not a warning, and its clearing is no note.
+        for active in (True, False):
+            station.bus.publish(
+                topics.STATION_NOTIFICATIONS,
+                StationNotification(
+                    PATROL_HOLDING,
+                    "web-rover",
+                    "patrol_holding",
+                    active,
+                    "patrol holding: planning a path",
+                    time.time(),
+                ),
+            )
+        routine = page.locator("#notifications li", has_text="planning a path")
+        await expect(routine).to_have_count(1, timeout=10_000)
+        await expect(routine).to_have_class(re.compile(r"\binfo\b"))
+        await expect(routine).not_to_contain_text("\u26a0")
+        await expect(page.locator("#annunciator")).not_to_contain_text("planning")
+        await page.wait_for_timeout(500)
+        await expect(routine).to_have_count(1)  # no "cleared" line
         await screenshots(page, "console-observer")
     finally:
         await intruder.close()
