@@ -350,9 +350,11 @@ function metricGrid() {
       g.fillStyle = "#50606e";
       g.font = "10px sans-serif";
       g.textAlign = "center";
-      g.fillText(`${Math.round(-(coords.y + 1) * metres)} N`, size.x / 2, size.y - 4);
+      // Distances, not coordinates: "64 E" read as a longitude.
+      const along = (value, ahead, behind) => (value >= 0 ? `${value} m ${ahead}` : `${-value} m ${behind}`);
+      g.fillText(along(Math.round(-(coords.y + 1) * metres), "north", "south"), size.x / 2, size.y - 4);
       g.rotate(-Math.PI / 2);
-      g.fillText(`${Math.round(coords.x * metres)} E`, -size.y / 2, 12);
+      g.fillText(along(Math.round(coords.x * metres), "east", "west"), -size.y / 2, 12);
       return tile;
     },
   });
