@@ -187,16 +187,16 @@ async def test_an_observer_gets_what_it_may_do_and_sentences(
         await intruder.close()
 
 
-# What the arming section (issue 27) adds to each report, injected into the page's copy of it:
-# window.__arming is the section (null: the platform reports none).
-INJECT_ARMING = """
-window.__arming = null;
+# Sections put into each report the page receives (window.__sections: name → value): the
+# arming section of issue 27, or an attitude the simulator does not report.
+INJECT_SECTIONS = """
+window.__sections = {};
 const parse = JSON.parse;
 JSON.parse = function (text, reviver) {
   const value = parse.call(this, text, reviver);
   for (const report of [value?.result, value?.params]) {
-    if (report && typeof report === "object" && report.snapshot && window.__arming) {
-      report.snapshot.arming = window.__arming;
+    if (report && typeof report === "object" && report.snapshot) {
+      Object.assign(report.snapshot, window.__sections);
     }
   }
   return value;
@@ -230,7 +230,7 @@ async def test_the_toolbar_shows_mode_arm_state_and_readiness(
     await expect(page.get_by_label("slide to arm")).to_be_hidden()
 
     await page.evaluate(
-        "window.__arming = {armed: false, ready: false, prearm: ['no GPS fix', 'battery 10.1 V'],"
+        "window.__sections.arming = {armed: false, ready: false, prearm: ['no GPS fix', 'battery 10.1 V'],"
         " countdown_s: null, last_stop: ''}"
     )
     readiness = page.get_by_label("readiness")
@@ -246,7 +246,7 @@ async def test_the_toolbar_shows_mode_arm_state_and_readiness(
     await expect(reasons).to_be_hidden()
 
     await page.evaluate(
-        "window.__arming = {armed: false, ready: true, prearm: [], countdown_s: null,"
+        "window.__sections.arming = {armed: false, ready: true, prearm: [], countdown_s: null,"
         " last_stop: ''}"
     )
     await expect(readiness).to_have_text("READY", timeout=10_000)
@@ -268,11 +268,25 @@ async def test_the_toolbar_shows_mode_arm_state_and_readiness(
     await page.get_by_label("slide to start patrol").fill("100")
     await expect(mode).to_have_value("AUTO", timeout=15_000)
     assert platform.ctx.config.platform.id == "web-rover"
+    # The attitude indicator beside the compass: the horizon turns against the roll; with no
+    # attitude it says so. No heading: no needle (it used to point north).
+    world = page.locator("#horizon-world")
+    await expect(page.locator("#horizon-unknown")).to_have_attribute("visibility", "visible")
+    await page.evaluate(
+        "window.__sections.attitude = {roll: 20, pitch: 5};"
+        "window.__sections.pose = {heading: null, speed: 0};"
+        "window.__sections.gps = {fix: true, sats: 8, course: null};"
+    )
+    await expect(world).to_have_attribute("data-roll", "20.0", timeout=10_000)
+    await expect(world).to_have_attribute("transform", re.compile(r"rotate\(-20\.0 50 50\)"))
+    await expect(page.locator("#horizon-unknown")).to_have_attribute("visibility", "hidden")
+    await expect(page.get_by_label("heading", exact=True)).to_have_text("unknown")
+    await expect(page.locator("#compass-needle")).to_have_attribute("visibility", "hidden")
     await screenshots(page, "console-toolbar")
 
 
 async def honesty_browser_page(browser: Any, station: StationDaemon) -> Any:
     page = await browser.new_page(viewport={"width": 1366, "height": 768})
-    await page.add_init_script(INJECT_ARMING)
+    await page.add_init_script(INJECT_SECTIONS)
     await page.goto(f"http://127.0.0.1:{station.api_port}/?platform=web-rover")
     return page

@@ -32,6 +32,22 @@ function batteryEstimate(volts) {
   return { percent, minutes };
 }
 
+const PITCH_PX_PER_DEGREE = 1.5; // ±30° of pitch fills the dial
+
+/** The artificial horizon: the world turns against the roll and slides with the pitch; with
+ * no attitude reported the dial says so (a level horizon would be a guess). */
+function renderHorizon(attitude) {
+  const world = $("#horizon-world");
+  const known = typeof attitude?.roll === "number" && typeof attitude?.pitch === "number";
+  $("#horizon-unknown").setAttribute("visibility", known ? "hidden" : "visible");
+  world.setAttribute("visibility", known ? "visible" : "hidden");
+  if (!known) return;
+  const pitch = Math.max(-30, Math.min(30, attitude.pitch));
+  world.setAttribute("transform", `rotate(${(-attitude.roll).toFixed(1)} 50 50) translate(0 ${(pitch * PITCH_PX_PER_DEGREE).toFixed(1)})`);
+  world.dataset.roll = attitude.roll.toFixed(1);
+  world.dataset.pitch = attitude.pitch.toFixed(1);
+}
+
 function renderCompass(heading) {
   // No heading: no needle (a needle at north read as "heading north").
   const needle = $("#compass-needle");
@@ -62,6 +78,7 @@ function renderPanel() {
   put($("#ground-speed"), ground == null ? "—" : `${(ground * KMH).toFixed(1)} km/h`);
   put($("#commanded-speed"), motion ? `${fixed(motion.linear, 2)} / ${fixed(motion.angular, 2)}` : "—");
   renderCompass(compassHeading(snapshot));
+  renderHorizon(attitude);
   put($("#attitude"), attitude ? `roll ${fixed(attitude.roll, 1)}°  pitch ${fixed(attitude.pitch, 1)}°` : "—");
   const { percent, minutes } = batteryEstimate(battery?.volts);
   put($("#battery"), battery

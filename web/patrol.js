@@ -54,7 +54,7 @@ function updateMarker(platformId) {
   if (position) map.update(platformId, position, compassHeading(snapshot), { current: platformId === state.current, connected: true });
 }
 
-async function loadArea(platformId) {
+async function loadArea(platformId, { refit = false } = {}) {
   const asked = (patrol.loading = Symbol(platformId));
   let area;
   try {
@@ -64,7 +64,8 @@ async function loadArea(platformId) {
     return;
   }
   if (patrol.loading !== asked || state.current !== platformId) return;
-  if (area.map) map.setArea(area.map, { fit: !patrol.routes.has(platformId) }); // zoomed once
+  // Zoomed once, and again after a map file is imported (its named points were off screen).
+  if (area.map) map.setArea(area.map, { fit: refit || !patrol.routes.has(platformId) });
   else map.clearArea();
   const features = area.map?.features ?? [];
   patrol.keepouts.set(platformId, features.filter((f) => f?.properties?.role === "keepout").map((f) => String(f.id)));
@@ -294,7 +295,7 @@ export function startPatrol() {
     try { map.setGeoJson(JSON.parse(await file.text())); } catch (error) { patrolAnswer(`GeoJSON: ${error.message}.`, true); }
   };
   $("#map-clear").onclick = () => map.clearBackground();
-  subscribe("area-changed", (platformId) => { if (platformId === state.current) loadArea(platformId); }); // a file imported
+  subscribe("area-changed", (platformId) => { if (platformId === state.current) loadArea(platformId, { refit: true }); }); // a file imported
 
   subscribe("platforms", renderPlatforms);
   subscribe("connections", () => { renderPlatforms(); renderPatrol(); });
