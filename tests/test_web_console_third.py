@@ -9,9 +9,10 @@ import re
 import time
 from typing import Any
 
+import pytest
 import test_web_console_honesty as honesty
 from test_web_console_honesty import console, rover, screenshots
-from test_web_console_station import Factory, frames_decoded
+from test_web_console_station import Factory, frames_decoded, platforms_in_view
 
 from brasidas import topics
 from brasidas.annunciator import PATROL_HOLDING
@@ -91,6 +92,20 @@ async def test_a_ticked_checkbox_or_the_fps_box_keep_no_drive_keys(
     await page.keyboard.type("12")
     await expect(framerate).to_have_value("12")
     await expect(framerate).to_be_focused()
+    # The map's re-centre button: dragged away, one click brings the platform back in view.
+    await expect(page.locator("#side > #map")).to_have_count(1)
+    box = await page.locator("#map").bounding_box()
+    assert box is not None
+    middle = (box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    await page.mouse.move(*middle)
+    await page.mouse.down()
+    await page.mouse.move(middle[0] + box["width"], middle[1], steps=5)
+    await page.mouse.move(middle[0] + 2 * box["width"], middle[1] + box["height"], steps=5)
+    await page.mouse.up()
+    with pytest.raises(AssertionError):
+        await platforms_in_view(page, timeout=1.0)
+    await page.get_by_role("button", name="centre on the platform").click()
+    await platforms_in_view(page, timeout=5.0)
     await screenshots(page, "console-keys")
 
     # All five plots ticked: readable (≥ 90 px each), and the platform table stays on screen.
@@ -258,6 +273,12 @@ async def test_the_toolbar_shows_mode_arm_state_and_readiness(
     await slider.fill("100")
     await expect(page.locator("#answer")).to_contain_text("arm: acknowledged", timeout=10_000)
     assert armed == [{"platform_id": "web-rover"}]
+
+    # The panel's start patrol offers a slide to confirm, not a one-click start.
+    await page.get_by_role("button", name="start patrol").click()
+    await expect(page.get_by_label("slide to confirm start patrol")).to_be_visible()
+    await page.get_by_role("button", name="start patrol").click()
+    await expect(page.get_by_label("slide to confirm start patrol")).to_be_hidden()
 
     # MANUAL engages the override; AUTO waits for its slide, then starts the patrol.
     await mode.select_option("MANUAL")

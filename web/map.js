@@ -41,7 +41,28 @@ export class PlatformMap {
     // (the stylesheet applying after the map was made, a resized window) fitting uses a stale
     // size and a marker can sit outside the visible map, where it cannot be clicked.
     new ResizeObserver(() => this.map.invalidateSize()).observe(element);
+    this.shown = null; // the platform shown (the re-centre button's)
+    const centre = L.control({ position: "topleft" });
+    centre.onAdd = () => {
+      const button = L.DomUtil.create("button", "map-centre");
+      button.type = "button";
+      button.textContent = "⌖";
+      button.title = "centre on the platform shown (the view follows it again)";
+      button.setAttribute("aria-label", "centre on the platform");
+      L.DomEvent.disableClickPropagation(button);
+      button.onclick = () => this.centreOnShown();
+      return button;
+    };
+    centre.addTo(this.map);
     this.map.on("zoomend moveend resize", () => this.declutterSoon());
+  }
+
+  /** Re-centre on the platform shown (else every platform) and follow again. */
+  centreOnShown() {
+    const entry = this.shown ? this.markers.get(this.shown) : null;
+    this.following = true;
+    if (entry) this.map.setView(entry.marker.getLatLng(), Math.max(this.map.getZoom(), 1), { animate: false });
+    else this.followPlatforms();
   }
 
   /** Local metres [north, east] (Leaflet's [y, x] in CRS.Simple) of a WGS-84 position. */
@@ -54,6 +75,8 @@ export class PlatformMap {
   /** One platform at ``position`` [lat, lon] with ``heading`` degrees (0 north, clockwise). */
   update(id, position, heading, { current = false, connected = false } = {}) {
     if (!this.available || !position) return;
+    if (current) this.shown = id;
+    else if (this.shown === id) this.shown = null;
     const point = this.local(position[0], position[1]);
     let entry = this.markers.get(id);
     if (!entry) {

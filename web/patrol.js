@@ -6,6 +6,7 @@
 
 import { sayOn } from "./answer.js";
 import { $, compassHeading, controlHolder, observerReason, put, section, snapshotOf } from "./common.js";
+import { slideToConfirm } from "./confirm.js";
 import { PlatformMap } from "./map.js";
 import { api, select } from "./station.js";
 import { state, subscribe } from "./store.js";
@@ -267,7 +268,14 @@ async function removeKeepout(id) {
 }
 
 export function startPatrol() {
-  $("#patrol-start").onclick = () => patrolCall("start patrol", "patrol_start");
+  // Starting (or resuming) a patrol moves the robot: the button offers a slide to confirm.
+  const startSlide = slideToConfirm("patrol-start-slide", "slide to confirm start patrol", () => {
+    startSlide.box.hidden = true;
+    patrolCall("start patrol", "patrol_start");
+  });
+  startSlide.box.hidden = true;
+  $("#patrol-start").after(startSlide.box);
+  $("#patrol-start").onclick = () => { startSlide.box.hidden = !startSlide.box.hidden; };
   $("#patrol-stop").onclick = () => patrolCall("stop patrol", "patrol_stop");
   $("#route-edit").onclick = editRoute;
   $("#route-send").onclick = sendRoute;
