@@ -8,6 +8,7 @@ import asyncio
 import dataclasses
 import json
 import os
+import re
 import shutil
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -22,6 +23,7 @@ from platformd.app import PlatformDaemon
 from stationd.api_client import api_call_async
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
+DOCS = Path(__file__).resolve().parent.parent / "docs"
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking"]
 
@@ -234,6 +236,21 @@ async def test_seeking_shows_that_times_position_and_frame(
                         await expect(no_video).to_contain_text("NO VIDEO at this time")
                     else:
                         await expect(no_video).to_be_hidden(timeout=10_000)
+
+                # The same dark theme and units as the live view, everything above the fold.
+                background = await view.evaluate("(e) => getComputedStyle(e).backgroundColor")
+                assert background == "rgb(21, 26, 32)", background
+                rows = page.locator("#rec-instruments")
+                await expect(rows).to_contain_text(re.compile(r"\d+\.\d km/h"))
+                await expect(rows).not_to_contain_text(re.compile(r"\d\.\d{4,}"))
+                for width, height in ((1366, 768), (1920, 1080)):
+                    await page.set_viewport_size({"width": width, "height": height})
+                    await page.wait_for_timeout(300)
+                    for part in ("#rec-instruments", "#rec-log", "#rec-plot", "#rec-map"):
+                        box = await page.locator(part).bounding_box()
+                        assert box is not None and box["y"] + box["height"] <= height, (part, box)
+                    if os.environ.get("BRASIDAS_SCREENSHOT") == "1":
+                        await page.screenshot(path=str(DOCS / f"recordings-{width}x{height}.png"))
                 assert not errors, errors
             finally:
                 await browser.close()

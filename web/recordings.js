@@ -31,7 +31,7 @@ const mapBox = element("div", { id: "rec-map", "aria-label": "recorded track" })
 const position = element("p", { id: "rec-position", role: "status" }, "position —");
 const instruments = element("dl", { id: "rec-instruments", "aria-label": "instruments" });
 const log = element("ol", { id: "rec-log", "aria-label": "recorded log" });
-const plot = element("canvas", { id: "rec-plot", width: "900", height: "160", "aria-label": "plots" });
+const plot = element("canvas", { id: "rec-plot", width: "1200", height: "120", "aria-label": "plots" });
 // Outside recorded video the picture says so, as the live view's NO VIDEO does: the frame up
 // is from another time (or there is none), greyed, with its age against the moment shown.
 const noVideoAge = element("strong", { id: "rec-no-video-age" }, "NO VIDEO");
@@ -44,11 +44,12 @@ const view = element(
   { id: "recordings", "aria-label": "recordings", hidden: "" },
   element("div", { class: "rec-tools" }, platformInput, listButton, list, openButton, message),
   element("div", { class: "rec-timeline" }, play, speed, timeline, clock),
-  element("div", { class: "rec-panes" }, videoBox, mapBox),
-  position,
+  // At 1366x768 everything above the fold: the picture with its instruments under it, the
+  // track with the log under it, the plots across the bottom.
+  element("div", { class: "rec-panes" },
+    element("div", { class: "rec-column" }, videoBox, position, instruments),
+    element("div", { class: "rec-column" }, mapBox, log)),
   plot,
-  instruments,
-  log,
 );
 // Looks: console.css (#recordings), the live view's dark theme.
 
@@ -102,7 +103,7 @@ openButton.addEventListener("click", async () => {
     timeline.value = "0";
     view.dataset.recording = name;
     drawTrack();
-    message.textContent = `${name}: ${timeline.max} s`;
+    message.textContent = `${name}: ${Number(timeline.max).toFixed(1)} s`;
     await seek(recording.start_ns);
   } catch (error) {
     message.textContent = `cannot open: ${error.message}`;
@@ -192,7 +193,12 @@ function show(state, tick = false) {
   add("patrol", t.autonomy?.state);
   if (t.motion) add("motor", `linear ${fixed(t.motion.linear, 2)}, angular ${fixed(t.motion.angular, 2)}`);
   instruments.replaceChildren(...rows);
-  log.replaceChildren(...state.log.map((line) => element("li", { class: line.level >= 3 ? "warning" : "" }, `${new Date(line.time_ns / 1e6).toISOString().slice(11, 19)} ${line.text}`)));
+  log.replaceChildren(...state.log.map((line) => {
+    const text = readable(line.text);
+    const item = element("li", { class: line.level >= 3 ? "warning" : "" }, `${new Date(line.time_ns / 1e6).toISOString().slice(11, 19)} ${text}`);
+    if (text !== line.text) item.title = line.text; // the whole line on hover
+    return item;
+  }));
   drawPlots(state.time_ns);
   const pacing = tick && playing && previousNs !== null && state.time_ns > previousNs
     ? { wallMs: performance.now(), fromNs: previousNs, speed: Number(speed.value) }
@@ -220,6 +226,19 @@ function markVideoTime() {
     : `the picture is from ${new Date(frameNs / 1e6).toISOString().slice(11, 19)} UTC, ${(behindNs / 1e9).toFixed(1)} s ${behindNs > 0 ? "before" : "after"} this moment.`;
 }
 
+const LOG_LINE_CHARS = 120;
+
+/** A log line for the eye: a JSON document in it (a load_map's whole map) is named by its
+ * size, and a long line is cut. */
+function readable(text) {
+  const brace = text.search(/[[{]/);
+  let shown = text;
+  if (brace >= 0 && text.length - brace > 40) {
+    try { JSON.parse(text.slice(brace)); shown = `${text.slice(0, brace)}(${text.length - brace} characters of JSON)`; } catch { /* not JSON */ }
+  }
+  return shown.length > LOG_LINE_CHARS ? `${shown.slice(0, LOG_LINE_CHARS)}…` : shown;
+}
+
 const PLOT_COLORS = ["#4fc3f7", "#81c784", "#ef9a9a", "#ce93d8"];
 
 /** Each series scaled to its own range, along the recording's span; a cursor at ``timeNs``. */
@@ -229,7 +248,11 @@ function drawPlots(timeNs) {
   context.clearRect(0, 0, width, height);
   const span = Math.max(1, recording.end_ns - recording.start_ns);
   const x = (t) => ((t - recording.start_ns) / span) * width;
-  Object.entries(recording.plots ?? {}).forEach(([label, points], i) => {
+  Object.entries(recording.plots ?? {}).forEach(([recorded, recordedPoints], i) => {
+    // The live view's units: speed in km/h.
+    const metres = recorded === "speed m/s";
+    const label = metres ? "speed km/h" : recorded;
+    const points = metres ? recordedPoints.map(([t, v]) => [t, v * KMH]) : recordedPoints;
     context.strokeStyle = context.fillStyle = PLOT_COLORS[i % PLOT_COLORS.length];
     context.fillText(label, 4 + 110 * i, 12);
     if (points.length < 2) return;
@@ -237,6 +260,9 @@ function drawPlots(timeNs) {
     let high = -Infinity;
     for (const [, v] of points) { low = Math.min(low, v); high = Math.max(high, v); }
     const y = (v) => height - 4 - ((v - low) / Math.max(1e-9, high - low)) * (height - 24);
+    // Its scale: the highest and lowest value, at their heights, in the series' colour.
+    context.fillText(String(Number(high.toFixed(2))), width - 40 - 44 * i, y(high) + 10);
+    context.fillText(String(Number(low.toFixed(2))), width - 40 - 44 * i, y(low) - 2);
     context.beginPath();
     points.forEach(([t, v], j) => (j ? context.lineTo(x(t), y(v)) : context.moveTo(x(t), y(v))));
     context.stroke();
