@@ -108,6 +108,37 @@ async def test_a_ticked_checkbox_or_the_fps_box_keep_no_drive_keys(
     await platforms_in_view(page, timeout=5.0)
     await screenshots(page, "console-keys")
 
+    # Map main: the route is fitted again, beside the NavCam inset, not under it (zoomed in
+    # first, part of the route off the side map).
+    for _ in range(3):
+        await page.locator("#map .leaflet-control-zoom-in").click()
+    await page.keyboard.press("KeyM")
+    await expect(page.locator("body")).to_have_class(re.compile(r"\bmap-main\b"))
+    await page.wait_for_timeout(500)
+    inset = await page.locator("#video-box").bounding_box()
+    labels = page.locator("#map .waypoint-label")
+    assert await labels.count() >= 4
+    for index in range(await labels.count()):
+        label = await labels.nth(index).bounding_box()
+        assert inset is not None and label is not None
+        apart = (
+            label["x"] > inset["x"] + inset["width"]
+            or label["x"] + label["width"] < inset["x"]
+            or label["y"] + label["height"] < inset["y"]
+            or label["y"] > inset["y"] + inset["height"]
+        )
+        assert apart, (index, label, inset)
+        area = await page.locator("#map").bounding_box()
+        assert area is not None
+        inside = (
+            area["x"] <= label["x"]
+            and label["x"] + label["width"] <= area["x"] + area["width"]
+            and area["y"] <= label["y"]
+            and label["y"] + label["height"] <= area["y"] + area["height"]
+        )
+        assert inside, (index, label, area)
+    await screenshots(page, "console-map-main")
+
     # All five plots ticked: readable (≥ 90 px each), and the platform table stays on screen.
     for box in await page.locator("#plot-choices input").all():
         if not await box.is_checked():

@@ -11,6 +11,8 @@ const L = window.L;
 const EARTH_M_PER_DEG = 111_320;
 const TRACK_POINTS = 600;
 
+const INSET_ROOM_PX = 360; // the NavCam inset's width in map main, and a margin
+
 export class PlatformMap {
   constructor(element, { onSelect }) {
     this.onSelect = onSelect;
@@ -46,7 +48,7 @@ export class PlatformMap {
     centre.onAdd = () => {
       const button = L.DomUtil.create("button", "map-centre");
       button.type = "button";
-      button.textContent = "⌖";
+      button.textContent = "centre";
       button.title = "centre on the platform shown (the view follows it again)";
       button.setAttribute("aria-label", "centre on the platform");
       L.DomEvent.disableClickPropagation(button);
@@ -54,7 +56,31 @@ export class PlatformMap {
       return button;
     };
     centre.addTo(this.map);
+    // Map main (layout.js): the NavCam inset sits over the map's lower left; what is fitted
+    // (the area, the route, the platforms) is fitted beside it, not under it.
+    new MutationObserver(() => {
+      const inset = document.body.classList.contains("map-main");
+      if (inset === this.inset) return;
+      this.inset = inset;
+      requestAnimationFrame(() => this.refit());
+    }).observe(document.body, { attributes: true, attributeFilter: ["class"] });
+    this.inset = document.body.classList.contains("map-main");
     this.map.on("zoomend moveend resize", () => this.declutterSoon());
+  }
+
+  /** fitBounds' padding: room for the NavCam inset on the left in map main. */
+  fitPadding() {
+    return { paddingTopLeft: [this.inset ? INSET_ROOM_PX : 20, 20], paddingBottomRight: [20, 20], animate: false };
+  }
+
+  /** Fit the area, the routes and the platforms again (after the layout changed). */
+  refit() {
+    this.map.invalidateSize({ pan: false }); // the map just moved: its new size, not the old
+    const bounds = L.latLngBounds([]);
+    if (this.area) bounds.extend(this.area.getBounds());
+    for (const { layer } of this.waypointLabels?.values() ?? []) layer.eachLayer((point) => bounds.extend(point.getLatLng()));
+    for (const entry of this.markers.values()) bounds.extend(entry.marker.getLatLng());
+    if (bounds.isValid()) this.map.fitBounds(bounds, this.fitPadding());
   }
 
   /** Re-centre on the platform shown (else every platform) and follow again. */
@@ -213,7 +239,7 @@ export class PlatformMap {
     this.clearArea();
     this.area = this.geoJsonLayer(data, (role) => `area-map${role ? ` area-${role}` : ""}`).addTo(this.map);
     const bounds = this.area.getBounds();
-    if (fit && bounds.isValid()) { this.map.fitBounds(bounds); this.following = false; }
+    if (fit && bounds.isValid()) { this.map.fitBounds(bounds, this.fitPadding()); this.following = false; }
     this.declutterSoon();
   }
 
