@@ -112,6 +112,7 @@ async def test_a_ticked_checkbox_or_the_fps_box_keep_no_drive_keys(
     # first, part of the route off the side map).
     for _ in range(3):
         await page.locator("#map .leaflet-control-zoom-in").click()
+    await page.wait_for_timeout(800)  # the zoom animations end (one ending late undid a fit)
     await page.keyboard.press("KeyM")
     await expect(page.locator("body")).to_have_class(re.compile(r"\bmap-main\b"))
     await page.wait_for_timeout(500)

@@ -12,6 +12,7 @@ const EARTH_M_PER_DEG = 111_320;
 const TRACK_POINTS = 600;
 
 const INSET_ROOM_PX = 360; // the NavCam inset's width in map main, and a margin
+const REFIT_SETTLE_MS = 1000; // after a swap, each resize of the map fits it again
 
 export class PlatformMap {
   constructor(element, { onSelect }) {
@@ -42,7 +43,11 @@ export class PlatformMap {
     // Leaflet keeps the container's size from when it looked last: when the layout changes it
     // (the stylesheet applying after the map was made, a resized window) fitting uses a stale
     // size and a marker can sit outside the visible map, where it cannot be clicked.
-    new ResizeObserver(() => this.map.invalidateSize()).observe(element);
+    new ResizeObserver(() => {
+      this.map.invalidateSize();
+      if (performance.now() < this.refitUntil) this.refit(); // the swap's layout settling
+    }).observe(element);
+    this.refitUntil = 0;
     this.shown = null; // the platform shown (the re-centre button's)
     const centre = L.control({ position: "topleft" });
     centre.onAdd = () => {
@@ -62,6 +67,7 @@ export class PlatformMap {
       const inset = document.body.classList.contains("map-main");
       if (inset === this.inset) return;
       this.inset = inset;
+      this.refitUntil = performance.now() + REFIT_SETTLE_MS;
       requestAnimationFrame(() => this.refit());
     }).observe(document.body, { attributes: true, attributeFilter: ["class"] });
     this.inset = document.body.classList.contains("map-main");
@@ -70,7 +76,7 @@ export class PlatformMap {
 
   /** fitBounds' padding: room for the NavCam inset on the left in map main. */
   fitPadding() {
-    return { paddingTopLeft: [this.inset ? INSET_ROOM_PX : 20, 20], paddingBottomRight: [20, 20], animate: false };
+    return this.inset ? { paddingTopLeft: [INSET_ROOM_PX, 20], paddingBottomRight: [20, 20], animate: false } : {};
   }
 
   /** Fit the area, the routes and the platforms again (after the layout changed). */
@@ -80,7 +86,9 @@ export class PlatformMap {
     if (this.area) bounds.extend(this.area.getBounds());
     for (const { layer } of this.waypointLabels?.values() ?? []) layer.eachLayer((point) => bounds.extend(point.getLatLng()));
     for (const entry of this.markers.values()) bounds.extend(entry.marker.getLatLng());
-    if (bounds.isValid()) this.map.fitBounds(bounds, this.fitPadding());
+    if (!bounds.isValid()) return;
+    this.map.fitBounds(bounds, this.fitPadding());
+    this.following = false; // following one platform would pan the fitted route out again
   }
 
   /** Re-centre on the platform shown (else every platform) and follow again. */
