@@ -501,6 +501,7 @@ async def test_operator_station_in_the_browser(
             patrol_answer = page.locator("#patrol-answer")
             start = await telemetry_position(station, "rover-2")
             await page.get_by_role("button", name="start patrol").click()
+            await page.get_by_label("slide to confirm start patrol").fill("100")  # issue 31
             await expect(patrol_state).to_have_attribute("data-state", "patrolling", timeout=10_000)
             await expect(patrol_state).to_contain_text("→ waypoint")
             await expect(page.locator("#map path.planned-path")).to_have_count(1, timeout=10_000)
