@@ -14,7 +14,7 @@ APT_PACKAGES := python3 python3-venv python3-dev gcc pkg-config \
 	gstreamer1.0-plugins-good gstreamer1.0-plugins-bad gstreamer1.0-plugins-ugly \
 	gstreamer1.0-libav gstreamer1.0-x iproute2 chromium libjs-leaflet
 
-.PHONY: demo test bench lint deps apt venv clean net-demo soak
+.PHONY: demo test test-quick bench lint deps apt venv clean net-demo soak
 
 deps: $(STAMP_APT) $(STAMP_PIP) $(STAMP_NPM)
 
@@ -52,8 +52,18 @@ net-demo: deps
 soak: deps
 	$(PY) -m bench.soak --minutes 30
 
+# Parallel workers (pytest-xdist): the suite mostly waits on sockets, processes and Chromium,
+# so more workers than cores pays; a test sharing a module's rig keeps to one worker
+# (tests/support/markers.py). `make test TEST_WORKERS=0` runs it in one process.
+TEST_WORKERS ?= 4
+PYTEST := $(PY) -m pytest -q -p no:cacheprovider --durations=15 -n $(TEST_WORKERS) --dist loadgroup
+
 test: deps
-	$(PY) -m pytest -q -p no:cacheprovider
+	$(PYTEST)
+
+# The quick set (no browser, network namespace, interop or other slow tests): under a minute.
+test-quick: deps
+	$(PYTEST) -m "not slow"
 
 # `make bench console`: only the benchmarks named after `bench` (no-op goals of their own).
 BENCH_NAMES := $(if $(filter bench,$(MAKECMDGOALS)),$(filter-out bench,$(MAKECMDGOALS)))

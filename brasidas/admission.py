@@ -45,6 +45,21 @@ REFUSAL_WINDOW = 10.0
 """Seconds over which refused connections are tallied per source address."""
 MAX_TALLIED_HOSTS = 256
 """Addresses tallied per window, at most (the first ones refused; the rest are only counted)."""
+COUNTERS = (
+    "accepted",
+    "refused_host",
+    "evicted_host",
+    "refused_full",
+    "evicted",
+    "header_timeouts",
+    "body_timeouts",
+    "idle_timeouts",
+    "slow_readers",
+    "out_of_descriptors",
+    "throttled",
+)
+"""The admission's counters (:attr:`AdmissionPolicy.counters`); telemetry carries all but
+``accepted``."""
 _OUT_OF_RESOURCES = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
 
 
@@ -151,24 +166,7 @@ class AdmissionPolicy:
     """Per address whose strangers sent something: bytes it may still send, and when."""
     refusals: RefusalTally = field(default_factory=RefusalTally)
     """Refused and evicted connections per address, lately (the station's warning)."""
-    counters: dict[str, int] = field(
-        default_factory=lambda: dict.fromkeys(
-            (
-                "accepted",
-                "refused_full",
-                "refused_host",
-                "evicted_host",
-                "evicted",
-                "header_timeouts",
-                "body_timeouts",
-                "idle_timeouts",
-                "slow_readers",
-                "out_of_descriptors",
-                "throttled",
-            ),
-            0,
-        )
-    )
+    counters: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COUNTERS, 0))
 
     @property
     def capacity(self) -> int:

@@ -14,7 +14,7 @@ from typing import Any
 
 from aiohttp import web
 
-from brasidas.admission import REFUSAL_WINDOW, AdmissionLimits, ServerAdmission
+from brasidas.admission import COUNTERS, REFUSAL_WINDOW, AdmissionLimits, ServerAdmission
 from brasidas.codecs.commands import MAIN_LIGHTS, MANUAL_OVERRIDE, POSITIONAL_LIGHTS, CommandCode
 from brasidas.codecs.jsonrpc import (
     CONTROL_REFUSED,
@@ -87,18 +87,7 @@ class Signaling:
         }
 
 
-ADMISSION_COUNTERS = (
-    "refused_host",
-    "evicted_host",
-    "refused_full",
-    "evicted",
-    "header_timeouts",
-    "body_timeouts",
-    "idle_timeouts",
-    "slow_readers",
-    "out_of_descriptors",
-    "throttled",
-)
+ADMISSION_COUNTERS = tuple(name for name in COUNTERS if name != "accepted")
 """What telemetry's admission section carries of the admission counters (not ``accepted``)."""
 
 

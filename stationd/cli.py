@@ -14,6 +14,7 @@ import json
 import logging
 import re
 import sys
+import textwrap
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -425,8 +426,15 @@ def _describe_recordings(answer: dict[str, Any]) -> str:
         )
         duration = item.get("duration_s")
         length = f"{duration:7.1f} s" if isinstance(duration, int | float) else "      -  "
-        topics = ", ".join(sorted(item.get("channels", {})))
-        lines.append(f"{item['name']}  {when}  {length}  {item['size'] / 1e6:8.2f} MB  {topics}")
+        channels = sorted(item.get("channels", {}))
+        lines.append(
+            f"{item['name']}  {when}  {length}  {item['size'] / 1e6:8.2f} MB"
+            f"  {len(channels)} channels"
+        )
+        # The channel names wrapped under the file (32 of them used to make one line).
+        lines.extend(
+            textwrap.wrap(", ".join(channels), 96, initial_indent="    ", subsequent_indent="    ")
+        )
     return "\n".join(lines)
 
 

@@ -16,6 +16,7 @@ from urllib.parse import quote
 import aiohttp
 
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
+from brasidas.recording import NAME_PATTERN
 from brasidas.recording.writer import ACTIVE_SUFFIX
 from brasidas.security import state_dir
 from stationd.context import StationContext
@@ -25,7 +26,6 @@ _LOGGER = logging.getLogger(__name__)
 
 SESSION_HEADER = "X-Brasidas-Session"
 """The header the platform reads the session token from (platformd.recorder)."""
-_FINISHED = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}\.mcap$")
 
 
 class DownloadError(Exception):
@@ -108,7 +108,7 @@ class RecordingsApi:
 
     async def _local(self, platform_id: str, name: str) -> Path:
         """The recording, fetched from the platform into the cache once (finished ones only)."""
-        if not _FINISHED.match(name) or not re.match(r"^[A-Za-z0-9._-]{1,64}$", platform_id):
+        if not NAME_PATTERN.match(name) or not re.match(r"^[A-Za-z0-9._-]{1,64}$", platform_id):
             raise RpcError(INVALID_PARAMS, f"invalid params: not a finished recording: {name!r}")
         path = self.cache / platform_id / name
         lock = self._fetching.setdefault(path, asyncio.Lock())

@@ -411,7 +411,8 @@ def _link(link: dict[str, Any]) -> str:
 
 def _platforms(platforms: Platforms) -> str:
     heard = [f"{name} ({age:.0f} s ago)" for name, age in platforms.age_s.items()]
-    return "  ".join(heard) or "none heard"
+    # The platform's own mesh: other platforms' beacons (its station link is the "link" row).
+    return "  ".join(heard) or "no other platform's beacon heard"
 
 
 def _recorder(recorder: RecorderStatus) -> str:

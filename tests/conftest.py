@@ -17,6 +17,8 @@ from pathlib import Path
 
 import pytest
 from hypothesis import HealthCheck, settings
+from support import markers
+from support.cli import run_cli as run_cli  # re-exported: modules import helpers from here
 
 from brasidas.codecs.telemetry_schema import VelocityLink
 from brasidas.config import PlatformConfig, StationConfig, load_config
@@ -30,6 +32,11 @@ pytest_plugins = ["pytester"]
 settings.register_profile("brasidas", deadline=None, suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile("brasidas")
 settings.load_profile("brasidas")
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    markers.apply(items)
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -246,6 +253,12 @@ def velocities_dropped(daemon: PlatformDaemon, reason: str) -> int:
     return link.dropped.get(reason, 0) if isinstance(link, VelocityLink) else 0
 
 
+def velocities_accepted(daemon: PlatformDaemon) -> int:
+    """The velocity packets the platform's receiver has accepted (now, as telemetry reads it)."""
+    link = daemon.ctx.telemetry.build_one(VelocityLink)
+    return link.accepted if isinstance(link, VelocityLink) else 0
+
+
 @contextlib.asynccontextmanager
 async def running_station(key: bytes, *overrides: str) -> AsyncIterator[StationDaemon]:
     """A station daemon on loopback with an ephemeral API port; stopped on exit."""
@@ -265,3 +278,11 @@ async def running_station(key: bytes, *overrides: str) -> AsyncIterator[StationD
         yield daemon
     finally:
         await daemon.stop()
+
+
+@pytest.fixture
+async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
+    """A station on loopback (:func:`running_station`); a module that needs other settings
+    defines its own ``station``."""
+    async with running_station(fleet_key) as daemon:
+        yield daemon

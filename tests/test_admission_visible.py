@@ -5,8 +5,6 @@ the station's warning 90.24 (connections refused from the flooding address)."""
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import io
 import json
 import socket
 import time
@@ -14,10 +12,10 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 
 import pytest
 from conftest import quiet_platform_config, running_station
+from support.cli import run_cli
 
 from brasidas.codecs.telemetry_schema import Admission
 from platformd.app import PlatformDaemon
-from stationd import cli
 from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
@@ -32,18 +30,6 @@ async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
         fleet_key, "telemetry.refused_warn=50", "station.connect_timeout=2"
     ) as daemon:
         yield daemon
-
-
-async def run_cli(station: StationDaemon, *argv: str) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    api = ["--set", f"station.api_port={station.api_port}"]
-
-    def call() -> int:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            return cli.main([*argv, *api])
-
-    code = await asyncio.to_thread(call)
-    return code, out.getvalue(), err.getvalue()
 
 
 def idle_connection(address: tuple[str, int]) -> socket.socket:

@@ -7,13 +7,12 @@ everything else with the holder's station id, until it takes control with ``forc
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import io
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
 import pytest
 from conftest import free_udp_port, quiet_platform_config, running_station, wait_until
+from support.cli import run_cli
 
 from brasidas import topics
 from brasidas.codecs.commands import CommandCode
@@ -29,9 +28,7 @@ from brasidas.media.video import VideoIn
 from brasidas.messages import CommandResult, OverrideState
 from platformd.app import PlatformDaemon
 from platformd.commands import SystemCommand
-from stationd import cli
 from stationd.client import PlatformConnection
-from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 
@@ -262,15 +259,3 @@ async def test_the_station_cli_says_control_refused_naming_the_holder(
         ) in err.splitlines()
     finally:
         await holder.close()
-
-
-async def run_cli(station: StationDaemon, *argv: str) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    api = ["--set", f"station.api_port={station.api_port}"]
-
-    def call() -> int:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            return cli.main([*argv, *api])
-
-    code = await asyncio.to_thread(call)
-    return code, out.getvalue(), err.getvalue()

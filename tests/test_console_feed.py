@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import asyncio
 import json
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 import aiohttp
 import pytest
-from conftest import free_udp_port, quiet_platform_config, running_station, wait_until
+from conftest import free_udp_port, quiet_platform_config, wait_until
 
 from platformd.app import PlatformDaemon
 from stationd.daemon import StationDaemon
@@ -78,12 +78,6 @@ def test_a_viewer_that_falls_behind_skips_to_the_next_keyframe() -> None:
     fanout.feed(unit(False))
     assert [m["keyframe"] for m in drain(slow)] == [True, False]
     assert fast.cutbacks == 0 and fast.skipped == 0
-
-
-@pytest.fixture
-async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
-    async with running_station(fleet_key) as daemon:
-        yield daemon
 
 
 async def test_access_units_reach_a_websocket_viewer_with_capture_times(

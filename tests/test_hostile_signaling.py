@@ -16,7 +16,7 @@ import os
 import socket
 import struct
 import sys
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 import aiohttp
@@ -240,26 +240,22 @@ async def test_a_websocket_that_never_reads_is_closed(
 ) -> None:
     """Defect 3: WebSockets that never read grew the platform by 2.7 MB each, for good. A
     station's (a stranger's is not even read past its byte budget)."""
-    daemon = await platform_factory(quiet_platform_config(), None)  # connect needs no proof
+    # The write timeout scaled down from 10 s: what is tested is that it is applied.
+    config = quiet_platform_config("signaling.write_timeout=2")
+    daemon = await platform_factory(config, None)  # connect needs no proof
     sock = await websocket_handshake(signaling_address(daemon), "/rpc/ws")
     try:
         await asyncio.get_running_loop().sock_sendall(
             sock, ws_frame(encode_request("connect", ["reader"], 0).decode())
         )
         challenge = encode_request("challenge", None, 1).decode()
-        assert await closed_while_flooding(sock, ws_frame(challenge), 40)  # 10 s
+        assert await closed_while_flooding(sock, ws_frame(challenge), 40)
     finally:
         sock.close()
     assert counters(daemon)["slow_readers"] >= 1
 
 
 # --------------------------------------------------------------------------- the station
-
-
-@pytest.fixture
-async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
-    async with running_station(fleet_key) as daemon:
-        yield daemon
 
 
 def station_rpc(station: StationDaemon) -> str:
@@ -290,17 +286,18 @@ async def test_unknown_platform_ids_cost_the_station_nothing(station: StationDae
     assert manager._connecting == {}
 
 
-async def test_a_local_websocket_that_never_reads_is_closed(station: StationDaemon) -> None:
-    sock = await websocket_handshake(("127.0.0.1", station.api_port), "/api/rpc/ws")
-    try:
-        flood = ws_frame(encode_request("connections", None, 1).decode())
-        assert await closed_while_flooding(sock, flood, 40)
-    finally:
-        sock.close()
-    assert station.api_admission is not None
-    assert station.api_admission.counters()["slow_readers"] >= 1, str(
-        station.api_admission.counters()
-    )
+async def test_a_local_websocket_that_never_reads_is_closed(fleet_key: bytes) -> None:
+    async with running_station(fleet_key, "station.api_write_timeout=2") as station:
+        sock = await websocket_handshake(("127.0.0.1", station.api_port), "/api/rpc/ws")
+        try:
+            flood = ws_frame(encode_request("connections", None, 1).decode())
+            assert await closed_while_flooding(sock, flood, 40)
+        finally:
+            sock.close()
+        assert station.api_admission is not None
+        assert station.api_admission.counters()["slow_readers"] >= 1, str(
+            station.api_admission.counters()
+        )
 
 
 async def test_a_strangers_flood_at_full_rate_is_read_at_its_budget(

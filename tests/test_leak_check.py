@@ -4,6 +4,7 @@ pool worker is idle."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
@@ -60,6 +61,7 @@ def test_the_leak_check_fails_what_is_left_behind(pytester: pytest.Pytester) -> 
     conftest = (Path(__file__).parent / "conftest.py").read_text()
     assert "THREAD_GRACE = 2.0" in conftest
     pytester.makeconftest(conftest.replace("THREAD_GRACE = 2.0", "THREAD_GRACE = 0.5"))
+    shutil.copytree(Path(__file__).parent / "support", pytester.path / "support")  # its helpers
     pytester.makepyfile(test_cases=CASES)
     result = pytester.runpytest_subprocess(
         "-p", "no:cacheprovider", "-q", "-o", "asyncio_mode=auto"

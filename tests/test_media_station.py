@@ -6,31 +6,21 @@ import asyncio
 import json
 import re
 import shlex
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 import pytest
 from conftest import free_udp_port, quiet_platform_config, udp_port_bound, wait_until
+from support.cli import run_cli
 
 from brasidas.codecs.jsonrpc import RpcError
-from brasidas.config import StationConfig, load_config
 from platformd.app import PlatformDaemon
-from stationd import cli
 from stationd.daemon import StationDaemon
 from stationd.media import GST_LAUNCH_RECEIVER, sdp_text
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 DECODED_FRAME = re.compile(r"chain.*\(460800 bytes")
 """fakesink -v: one decoded 640x480 I420 frame."""
-
-
-@pytest.fixture
-async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
-    config = load_config(StationConfig, None, ["station.api_port=0", "station.connect_timeout=2"])
-    daemon = StationDaemon(config, fleet_key)
-    await daemon.start()
-    yield daemon
-    await daemon.stop()
 
 
 async def sim_platform(factory: Factory, key: bytes, *overrides: str) -> PlatformDaemon:
@@ -40,21 +30,6 @@ async def sim_platform(factory: Factory, key: bytes, *overrides: str) -> Platfor
         ),
         key,
     )
-
-
-async def run_cli(station: StationDaemon, *argv: str) -> tuple[int, str, str]:
-    import contextlib
-    import io
-
-    out, err = io.StringIO(), io.StringIO()
-    api = ["--set", f"station.api_port={station.api_port}"]
-
-    def call() -> int:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            return cli.main([*argv, *api])
-
-    code = await asyncio.to_thread(call)
-    return code, out.getvalue(), err.getvalue()
 
 
 async def read_until(process: asyncio.subprocess.Process, pattern: re.Pattern[str]) -> str:

@@ -8,6 +8,7 @@ import asyncio
 import dataclasses
 import json
 import os
+import re
 import shutil
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -22,6 +23,7 @@ from platformd.app import PlatformDaemon
 from stationd.api_client import api_call_async
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
+DOCS = Path(__file__).resolve().parent.parent / "docs"
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking"]
 
@@ -53,6 +55,43 @@ def expected_at(path: Path, fraction: float) -> dict[str, Any]:
                 frame = message.log_time
     assert pose is not None and frame is not None
     return {"at": at, "start": stats.message_start_time, "pose": pose, "frame": frame}
+
+
+def with_video_gap(path: Path, out: Path, fraction: float) -> int:
+    """A copy of ``path`` whose NavCam stops at ``fraction`` of the file while telemetry goes
+    on (a stream paused mid-recording); returns the time the video stops."""
+    from mcap.writer import Writer
+
+    with open(path, "rb") as source, open(out, "wb") as sink:
+        reader = make_reader(source)
+        stats = reader.get_summary().statistics  # type: ignore[union-attr]
+        assert stats is not None
+        stop = stats.message_start_time + int(
+            (stats.message_end_time - stats.message_start_time) * fraction
+        )
+        writer = Writer(sink)
+        writer.start(profile="", library="test")
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for schema, channel, message in reader.iter_messages(log_time_order=True):
+            if channel.topic == "/navcam" and message.log_time >= stop:
+                continue
+            if schema is not None and schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(
+                    schema.name, schema.encoding, schema.data
+                )
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(
+                    channel.topic,
+                    channel.message_encoding,
+                    schemas.get(channel.schema_id, 0),
+                    dict(channel.metadata),
+                )
+            writer.add_message(
+                channels[channel.id], message.log_time, message.data, message.publish_time
+            )
+        writer.finish()  # type: ignore[no-untyped-call]
+    return stop
 
 
 async def test_seeking_shows_that_times_position_and_frame(
@@ -170,6 +209,48 @@ async def test_seeking_shows_that_times_position_and_frame(
                 assert marker is not None
                 shown_at = [float(part) for part in marker.split(",")]
                 assert abs(shown_at[0] - lat) < 1e-9 and abs(shown_at[1] - lon) < 1e-9
+                no_video = page.get_by_role("alert", name="no recorded video")
+                await expect(no_video).to_be_hidden()  # the frame of that moment
+
+                # Issue 31: seeking into a stretch without video left the previous frame up,
+                # unmarked. The picture now says it is not of this moment.
+                gap = recordings / f"gap-{path.name}"
+                await asyncio.to_thread(with_video_gap, path, gap, 0.4)
+                await page.locator("#rec-list-button").click()
+                option = page.locator(f'#rec-list option[value="{gap.name}"]')
+                await expect(option).to_have_count(1, timeout=15_000)
+                await page.locator("#rec-list").select_option(gap.name)
+                await page.locator("#rec-open").click()
+                await expect(view).to_have_attribute("data-recording", gap.name, timeout=30_000)
+                for fraction, marked in ((0.3, False), (0.95, True), (0.3, False), (0.6, True)):
+                    await page.evaluate(
+                        """(seconds) => {
+                            const slider = document.getElementById("rec-time");
+                            slider.value = String(seconds);
+                            slider.dispatchEvent(new Event("input"));
+                        }""",
+                        (expected["at"] - expected["start"]) / 1e9 / 0.7 * fraction,
+                    )
+                    if marked:
+                        await expect(no_video).to_be_visible(timeout=10_000)
+                        await expect(no_video).to_contain_text("NO VIDEO at this time")
+                    else:
+                        await expect(no_video).to_be_hidden(timeout=10_000)
+
+                # The same dark theme and units as the live view, everything above the fold.
+                background = await view.evaluate("(e) => getComputedStyle(e).backgroundColor")
+                assert background == "rgb(21, 26, 32)", background
+                rows = page.locator("#rec-instruments")
+                await expect(rows).to_contain_text(re.compile(r"\d+\.\d km/h"))
+                await expect(rows).not_to_contain_text(re.compile(r"\d\.\d{4,}"))
+                for width, height in ((1366, 768), (1920, 1080)):
+                    await page.set_viewport_size({"width": width, "height": height})
+                    await page.wait_for_timeout(300)
+                    for part in ("#rec-instruments", "#rec-log", "#rec-plot", "#rec-map"):
+                        box = await page.locator(part).bounding_box()
+                        assert box is not None and box["y"] + box["height"] <= height, (part, box)
+                    if os.environ.get("BRASIDAS_SCREENSHOT") == "1":
+                        await page.screenshot(path=str(DOCS / f"recordings-{width}x{height}.png"))
                 assert not errors, errors
             finally:
                 await browser.close()

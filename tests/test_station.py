@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import asyncio
 import json
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import Awaitable, Callable
 
 import pytest
 from conftest import free_tcp_port, quiet_platform_config, wait_until
+from conftest import station as station  # re-exported: other modules import it from here
+from support.cli import run_cli
 
 from brasidas import topics
 from brasidas.config import StationConfig, load_config
@@ -17,31 +19,6 @@ from stationd import cli
 from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
-
-
-@pytest.fixture
-async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
-    config = load_config(StationConfig, None, ["station.api_port=0", "station.connect_timeout=1"])
-    daemon = StationDaemon(config, fleet_key)
-    await daemon.start()
-    yield daemon
-    await daemon.stop()
-
-
-async def run_cli(station: StationDaemon, *argv: str) -> tuple[int, str, str]:
-    """Run ``brasidas-station`` in a thread (it has its own event loop), capturing output."""
-    import contextlib
-    import io
-
-    out, err = io.StringIO(), io.StringIO()
-    api = ["--set", f"station.api_port={station.api_port}"]
-
-    def call() -> int:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            return cli.main([*argv, *api])
-
-    code = await asyncio.to_thread(call)
-    return code, out.getvalue(), err.getvalue()
 
 
 async def test_connect_movrd_lights_and_commands_through_the_daemon(

@@ -10,10 +10,10 @@ import json
 import os
 import random
 import tty
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import Awaitable, Callable
 
-import pytest
 from conftest import quiet_platform_config, wait_until
+from support.cli import run_cli
 
 from brasidas import topics
 from brasidas.codecs.telemetry_schema import (
@@ -34,7 +34,6 @@ from brasidas.codecs.telemetry_schema import (
     VelocityLink,
     snapshot_to_json,
 )
-from brasidas.config import StationConfig, load_config
 from brasidas.messages import LightsState
 from platformd.app import PlatformDaemon
 from platformd.sim.gps import NmeaGenerator
@@ -109,27 +108,6 @@ def test_frame_redraws_in_place_and_clips_to_the_terminal() -> None:
     drawn = frame(["\x1b[32m" + "x" * 50 + "\x1b[0m", "short"], width=10)
     assert drawn.startswith(HOME) and drawn.endswith("\x1b[J")
     assert "\x1b[32m" + "x" * 10 + "\x1b[0m\x1b[K\n" in drawn
-
-
-@pytest.fixture
-async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
-    config = load_config(StationConfig, None, ["station.api_port=0", "station.connect_timeout=2"])
-    daemon = StationDaemon(config, fleet_key)
-    await daemon.start()
-    yield daemon
-    await daemon.stop()
-
-
-async def run_cli(station: StationDaemon, *argv: str) -> tuple[int, str, str]:
-    out, err = io.StringIO(), io.StringIO()
-    api = ["--set", f"station.api_port={station.api_port}"]
-
-    def call() -> int:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            return cli.main([*argv, *api])
-
-    code = await asyncio.to_thread(call)
-    return code, out.getvalue(), err.getvalue()
 
 
 async def test_status_prints_connection_and_telemetry(

@@ -20,6 +20,7 @@ import pytest
 from conftest import (
     quiet_platform_config,
     running_station,
+    velocities_accepted,
     velocities_dropped,
     wait_until,
 )
@@ -46,7 +47,8 @@ FAKE_GAMEPAD = """
   // A standard-mapping game controller the test moves: window.__pad.
   const pad = { connected: false, axes: [0, 0, 0, 0], pressed: new Array(17).fill(false) };
   window.__pad = pad;
-  navigator.getGamepads = () => pad.connected ? [{
+  pad.polls = 0; // how often the page has read it
+  navigator.getGamepads = () => (pad.polls++, pad.connected) ? [{
     id: "fake F310", index: 0, mapping: "standard", connected: true, timestamp: performance.now(),
     axes: pad.axes.slice(), buttons: pad.pressed.map((p) => ({ pressed: p, touched: p, value: p ? 1 : 0 })),
   }] : [];
@@ -421,8 +423,16 @@ async def test_operator_station_in_the_browser(
             await page.keyboard.up("KeyW")
 
             # The game controller: the stick moves the robot only while LB (enable) is held.
-            await page.evaluate("window.__pad.connected = true; window.__pad.axes[1] = -1")
-            await page.wait_for_timeout(300)
+            polls = await page.evaluate(
+                "window.__pad.connected = true; window.__pad.axes[1] = -1; window.__pad.polls"
+            )
+            # A move would show by now: the page has read the stick (LB up) three times, and
+            # three velocity packets have reached the platform since.
+            async with asyncio.timeout(10):  # polled from here: the CSP forbids wait_for_function
+                while await page.evaluate("window.__pad.polls") < polls + 3:
+                    await asyncio.sleep(0.02)
+            accepted = velocities_accepted(rover)
+            await wait_until(lambda: velocities_accepted(rover) >= accepted + 3, timeout=10)
             assert vehicle.command == (0.0, 0.0), "moved without the enable button"
             await page.evaluate("window.__pad.pressed[4] = true")
             await wait_until(lambda: vehicle.command[0] > 0.9, timeout=15)
@@ -491,6 +501,7 @@ async def test_operator_station_in_the_browser(
             patrol_answer = page.locator("#patrol-answer")
             start = await telemetry_position(station, "rover-2")
             await page.get_by_role("button", name="start patrol").click()
+            await page.get_by_label("slide to confirm start patrol").fill("100")  # issue 31
             await expect(patrol_state).to_have_attribute("data-state", "patrolling", timeout=10_000)
             await expect(patrol_state).to_contain_text("→ waypoint")
             await expect(page.locator("#map path.planned-path")).to_have_count(1, timeout=10_000)

@@ -1,7 +1,7 @@
 // The answer line: what the platform or the station said to the operator's last action, in a
 // sentence, gone after a while so an old answer is never read as a new one.
 
-import { $ } from "./common.js";
+import { $, plainReason } from "./common.js";
 
 const KEEP_MS = 8000;
 const timers = new WeakMap(); // answer line → its expiry
@@ -9,7 +9,8 @@ const timers = new WeakMap(); // answer line → its expiry
 /** Say ``text`` (a sentence) on ``line``, an answer line of the page, for ``keepMs``;
  * ``refused`` shows it as a refusal. */
 export function sayOn(line, text, { refused = false, keepMs = KEEP_MS } = {}) {
-  line.textContent = text;
+  line.textContent = plainReason(text);
+  line.title = line.textContent; // one line on screen: the whole answer on hover
   line.classList.toggle("refused", refused);
   clearTimeout(timers.get(line));
   timers.set(line, setTimeout(() => { line.textContent = ""; line.classList.remove("refused"); }, keepMs));

@@ -74,7 +74,17 @@ export function observing() {
 
 /** Why a control is disabled for an observer ("" when it is not). */
 export function observerReason() {
-  return observing() ? `control held by station ${controlHolder()}: take control to use this` : "";
+  return observing() ? `${controlHolder()} holds control of ${state.current}: take control to use this` : "";
+}
+
+const HELD_REFUSAL = /[\w.]+ refused: control held by station ([\w.-]+?)(?=\.?$|[;)\s])/;
+
+/** A refusal in words: the platform's "set_waypoints refused: control held by station X"
+ * (a method name, and "station" twice with ids like station-1) becomes "X holds control of
+ * P: take control first" wherever it is quoted. Other text passes unchanged. */
+export function plainReason(reason) {
+  const text = String(reason ?? "");
+  return text.replace(HELD_REFUSAL, (_, holder) => `${holder} holds control of ${state.current ?? "the platform"}: take control first`);
 }
 
 /** This console engaged the shown platform's override and this station holds control. */
@@ -97,4 +107,20 @@ export function holding() {
 export function telemetryAgeMs(entry) {
   if (!entry) return null;
   return (entry.report.link?.silence_s ?? 0) * 1000 + (performance.now() - entry.at);
+}
+
+const TEXT_INPUTS = new Set(["text", "search", "email", "password", "url", "tel"]);
+const NUMBER_KEYS = /^(Digit|Numpad|Minus|Period|Comma|Backspace|Delete|Arrow(Up|Down)$|Home|End|Enter|Tab)/;
+
+/** Whether a key belongs to the element that has focus (a letter typed into a text box, a digit
+ * or ↑/↓ in a number box) rather than to the console's keys (drive, M). A ticked checkbox, a
+ * button or a number box keep no letters: focus there used to swallow W, the arrows and M. */
+export function keyForFocusedField(event) {
+  const target = event.target;
+  if (target instanceof HTMLTextAreaElement || target instanceof HTMLSelectElement) return true;
+  if (target instanceof HTMLElement && target.isContentEditable) return true;
+  if (!(target instanceof HTMLInputElement)) return false;
+  if (TEXT_INPUTS.has(target.type)) return true;
+  if (target.type === "number" || target.type === "range") return NUMBER_KEYS.test(event.code);
+  return false;
 }

@@ -11,6 +11,7 @@ import { startPatrol } from "./patrol.js";
 import { plotPoints, startPlots } from "./plots.js";
 import { startRecordings } from "./recordings.js";
 import { startSafety } from "./safety.js";
+import { startToolbar } from "./toolbar.js";
 import { apiStates, api } from "./station.js";
 import { startVideo } from "./video.js";
 import { startVideoLink } from "./video-link.js";
@@ -26,6 +27,7 @@ startMapFiles();
 startRecordings();
 startSafety();
 startVideoLink();
+startToolbar();
 
 // What tests and benchmarks read (the page's CSP allows no eval of their own).
 window.navcam = {

@@ -36,6 +36,14 @@ function whyNotDriving() {
   return `Nothing moves: engage the override to drive ${state.current}.`;
 }
 
+/** The driving hint under the instruments: what to do, never a disabled button's name. */
+export function drivingHint() {
+  if (engagedHere()) return "Driving: hold W/A/S/D or the arrows, space stops; game controller: hold LB and use the left stick.";
+  const holder = controlHolder();
+  if (holder != null && holder !== state.stationId) return `Watching: ${holder} holds control of ${state.current}. Take control to drive.`;
+  return "Not driving: engage the override to drive (a drive key says why nothing moves).";
+}
+
 async function toggleOverride() {
   if (!state.current || state.override === "pending") return;
   // During the platform's hold, pressing the switch re-engages (the deliberate act it waits for).
@@ -175,8 +183,11 @@ function renderStreams(snapshot, why) {
       button.type = "button";
       button.textContent = action;
       button.setAttribute("aria-label", `${action} ${name}`);
-      button.disabled = Boolean(why);
-      button.title = why;
+      // An observer starts and stops its own copy of a stream (OBSERVER_CODES); pausing is
+      // the platform's stream for everyone: a control command.
+      const forEveryone = action === "pause" ? why : "";
+      button.disabled = Boolean(forEveryone);
+      button.title = forEveryone || (why ? `${action} this console's own copy of ${name}` : "");
       button.onclick = () => command(`${action} ${name}`, "console_stream", { name, action });
       cell.append(button);
       row.append(cell);

@@ -5,7 +5,7 @@
 // a driving hint. Telemetry older than 2 s is STALE, counted from its last report.
 
 import { $, compassHeading, engagedHere, failure, fixed, put, section, snapshotOf, telemetryAgeMs } from "./common.js";
-import { teleop } from "./controls.js";
+import { drivingHint, teleop } from "./controls.js";
 import { state, subscribe } from "./store.js";
 import { videoAgeMs } from "./video.js";
 
@@ -32,9 +32,27 @@ function batteryEstimate(volts) {
   return { percent, minutes };
 }
 
+const PITCH_PX_PER_DEGREE = 1.5; // ±30° of pitch fills the dial
+
+/** The artificial horizon: the world turns against the roll and slides with the pitch; with
+ * no attitude reported the dial says so (a level horizon would be a guess). */
+function renderHorizon(attitude) {
+  const world = $("#horizon-world");
+  const known = typeof attitude?.roll === "number" && typeof attitude?.pitch === "number";
+  $("#horizon-unknown").setAttribute("visibility", known ? "hidden" : "visible");
+  world.setAttribute("visibility", known ? "visible" : "hidden");
+  if (!known) return;
+  const pitch = Math.max(-30, Math.min(30, attitude.pitch));
+  world.setAttribute("transform", `rotate(${(-attitude.roll).toFixed(1)} 50 50) translate(0 ${(pitch * PITCH_PX_PER_DEGREE).toFixed(1)})`);
+  world.dataset.roll = attitude.roll.toFixed(1);
+  world.dataset.pitch = attitude.pitch.toFixed(1);
+}
+
 function renderCompass(heading) {
-  $("#compass-needle").setAttribute("transform", `rotate(${heading ?? 0} 50 50)`);
-  $("#compass-needle").style.opacity = heading == null ? "0.2" : "1";
+  // No heading: no needle (a needle at north read as "heading north").
+  const needle = $("#compass-needle");
+  if (heading != null) needle.setAttribute("transform", `rotate(${heading} 50 50)`);
+  needle.setAttribute("visibility", heading == null ? "hidden" : "visible");
   put($("#heading"), heading == null ? "unknown" : `${String(Math.round(heading) % 360).padStart(3, "0")}°`);
 }
 
@@ -60,6 +78,7 @@ function renderPanel() {
   put($("#ground-speed"), ground == null ? "—" : `${(ground * KMH).toFixed(1)} km/h`);
   put($("#commanded-speed"), motion ? `${fixed(motion.linear, 2)} / ${fixed(motion.angular, 2)}` : "—");
   renderCompass(compassHeading(snapshot));
+  renderHorizon(attitude);
   put($("#attitude"), attitude ? `roll ${fixed(attitude.roll, 1)}°  pitch ${fixed(attitude.pitch, 1)}°` : "—");
   const { percent, minutes } = batteryEstimate(battery?.volts);
   put($("#battery"), battery
@@ -75,11 +94,12 @@ function renderPanel() {
     put(readout, `cap ${fixed(cap.cap_kmh, 1)} km/h (video ${ms(cap.video_ms)}, command ${ms(cap.command_ms)})`);
     readout.dataset.assumed = String(cap.video_ms == null);
     readout.dataset.kmh = String(cap.cap_kmh);
-    put($("#speed-cap-reason"), cap.reason);
+    // The cap limits driving by hand; a patrol keeps its own speed: greyed, and said, then.
+    const applies = engagedHere();
+    readout.dataset.applies = String(applies);
+    put($("#speed-cap-reason"), applies ? cap.reason : `for driving by hand (a patrol keeps its own speed): ${cap.reason}`);
   }
-  put($("#drive-hint"), engagedHere()
-    ? "Driving: hold W/A/S/D or the arrows, space stops; game controller: hold LB and use the left stick."
-    : "Not driving: engage the override to drive (a drive key says why nothing moves).");
+  put($("#drive-hint"), drivingHint());
 }
 
 function telemetryRows(snapshot, link) {

@@ -1,7 +1,7 @@
 // The map and the video swap places: the map takes the main area with the NavCam as a
 // picture-in-picture in its corner, and back (the button, or the M key outside inputs).
 
-import { $ } from "./common.js";
+import { $, keyForFocusedField } from "./common.js";
 
 function swap() {
   const mapMain = document.body.classList.toggle("map-main");
@@ -15,6 +15,6 @@ function swap() {
 export function startLayout() {
   $("#swap-view").onclick = swap;
   window.addEventListener("keydown", (event) => {
-    if (event.code === "KeyM" && !(event.target instanceof HTMLInputElement) && !event.repeat) swap();
+    if (event.code === "KeyM" && !keyForFocusedField(event) && !event.repeat) swap();
   });
 }

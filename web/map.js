@@ -11,6 +11,9 @@ const L = window.L;
 const EARTH_M_PER_DEG = 111_320;
 const TRACK_POINTS = 600;
 
+const INSET_ROOM_PX = 360; // the NavCam inset's width in map main, and a margin
+const REFIT_SETTLE_MS = 1000; // after a swap, each resize of the map fits it again
+
 export class PlatformMap {
   constructor(element, { onSelect }) {
     this.onSelect = onSelect;
@@ -40,8 +43,60 @@ export class PlatformMap {
     // Leaflet keeps the container's size from when it looked last: when the layout changes it
     // (the stylesheet applying after the map was made, a resized window) fitting uses a stale
     // size and a marker can sit outside the visible map, where it cannot be clicked.
-    new ResizeObserver(() => this.map.invalidateSize()).observe(element);
+    new ResizeObserver(() => {
+      this.map.invalidateSize();
+      if (performance.now() < this.refitUntil) this.refit(); // the swap's layout settling
+    }).observe(element);
+    this.refitUntil = 0;
+    this.shown = null; // the platform shown (the re-centre button's)
+    const centre = L.control({ position: "topleft" });
+    centre.onAdd = () => {
+      const button = L.DomUtil.create("button", "map-centre");
+      button.type = "button";
+      button.textContent = "centre";
+      button.title = "centre on the platform shown (the view follows it again)";
+      button.setAttribute("aria-label", "centre on the platform");
+      L.DomEvent.disableClickPropagation(button);
+      button.onclick = () => this.centreOnShown();
+      return button;
+    };
+    centre.addTo(this.map);
+    // Map main (layout.js): the NavCam inset sits over the map's lower left; what is fitted
+    // (the area, the route, the platforms) is fitted beside it, not under it.
+    new MutationObserver(() => {
+      const inset = document.body.classList.contains("map-main");
+      if (inset === this.inset) return;
+      this.inset = inset;
+      this.refitUntil = performance.now() + REFIT_SETTLE_MS;
+      requestAnimationFrame(() => this.refit());
+    }).observe(document.body, { attributes: true, attributeFilter: ["class"] });
+    this.inset = document.body.classList.contains("map-main");
     this.map.on("zoomend moveend resize", () => this.declutterSoon());
+  }
+
+  /** fitBounds' padding: room for the NavCam inset on the left in map main. */
+  fitPadding() {
+    return this.inset ? { paddingTopLeft: [INSET_ROOM_PX, 20], paddingBottomRight: [20, 20], animate: false } : {};
+  }
+
+  /** Fit the area, the routes and the platforms again (after the layout changed). */
+  refit() {
+    this.map.invalidateSize({ pan: false }); // the map just moved: its new size, not the old
+    const bounds = L.latLngBounds([]);
+    if (this.area) bounds.extend(this.area.getBounds());
+    for (const { layer } of this.waypointLabels?.values() ?? []) layer.eachLayer((point) => bounds.extend(point.getLatLng()));
+    for (const entry of this.markers.values()) bounds.extend(entry.marker.getLatLng());
+    if (!bounds.isValid()) return;
+    this.map.fitBounds(bounds, this.fitPadding());
+    this.following = false; // following one platform would pan the fitted route out again
+  }
+
+  /** Re-centre on the platform shown (else every platform) and follow again. */
+  centreOnShown() {
+    const entry = this.shown ? this.markers.get(this.shown) : null;
+    this.following = true;
+    if (entry) this.map.setView(entry.marker.getLatLng(), Math.max(this.map.getZoom(), 1), { animate: false });
+    else this.followPlatforms();
   }
 
   /** Local metres [north, east] (Leaflet's [y, x] in CRS.Simple) of a WGS-84 position. */
@@ -54,6 +109,8 @@ export class PlatformMap {
   /** One platform at ``position`` [lat, lon] with ``heading`` degrees (0 north, clockwise). */
   update(id, position, heading, { current = false, connected = false } = {}) {
     if (!this.available || !position) return;
+    if (current) this.shown = id;
+    else if (this.shown === id) this.shown = null;
     const point = this.local(position[0], position[1]);
     let entry = this.markers.get(id);
     if (!entry) {
@@ -190,7 +247,7 @@ export class PlatformMap {
     this.clearArea();
     this.area = this.geoJsonLayer(data, (role) => `area-map${role ? ` area-${role}` : ""}`).addTo(this.map);
     const bounds = this.area.getBounds();
-    if (fit && bounds.isValid()) { this.map.fitBounds(bounds); this.following = false; }
+    if (fit && bounds.isValid()) { this.map.fitBounds(bounds, this.fitPadding()); this.following = false; }
     this.declutterSoon();
   }
 
@@ -350,9 +407,11 @@ function metricGrid() {
       g.fillStyle = "#50606e";
       g.font = "10px sans-serif";
       g.textAlign = "center";
-      g.fillText(`${Math.round(-(coords.y + 1) * metres)} N`, size.x / 2, size.y - 4);
+      // Distances, not coordinates: "64 E" read as a longitude.
+      const along = (value, ahead, behind) => (value >= 0 ? `${value} m ${ahead}` : `${-value} m ${behind}`);
+      g.fillText(along(Math.round(-(coords.y + 1) * metres), "north", "south"), size.x / 2, size.y - 4);
       g.rotate(-Math.PI / 2);
-      g.fillText(`${Math.round(coords.x * metres)} E`, -size.y / 2, 12);
+      g.fillText(along(Math.round(coords.x * metres), "east", "west"), -size.y / 2, 12);
       return tile;
     },
   });

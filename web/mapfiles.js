@@ -6,8 +6,8 @@
 // the area ("area-changed" on the store).
 
 import { sayOn } from "./answer.js";
-import { element } from "./common.js";
-import { notify, state } from "./store.js";
+import { element, observerReason } from "./common.js";
+import { notify, state, subscribe } from "./store.js";
 import { api } from "./station.js";
 
 const MAX_FILE_BYTES = 4 * 1024 * 1024; // brasidas.mapfiles.MAX_FILE_BYTES: refused before upload
@@ -103,4 +103,16 @@ export function startMapFiles() {
   importRoute.onclick = () => importRouteFile();
   exportPlan.onclick = () => exportRoute("plan");
   exportWaypoints.onclick = () => exportRoute("waypoints");
+  // An observer's imports would be refused: disabled before the click, saying who holds
+  // control (exports only read, and stay).
+  const renderImports = () => {
+    const why = observerReason();
+    for (const button of [importMap, importRoute]) {
+      if (button.disabled !== Boolean(why)) button.disabled = Boolean(why);
+      if (button.title !== why) button.title = why;
+    }
+  };
+  subscribe("telemetry", (platformId) => { if (platformId === state.current) renderImports(); });
+  subscribe("connections", renderImports);
+  subscribe("current", renderImports);
 }

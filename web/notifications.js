@@ -12,9 +12,13 @@ const warnings = new Map(); // "platform/name" → { note, acknowledged }
 const warningButtons = new Map();
 const SEVERE = /^(link_lost|control_taken|battery_critical|stream_failed|temperature)/;
 const MAX_ITEMS = 30;
+// Routine events are not warnings: a patrol planning its path after a start or a takeover.
+// Listed as information, never flashed, and their clearing is not a note of its own.
+const ROUTINE = (note) => note.name === "patrol_holding" && /planning/i.test(note.message ?? "");
 
 function noteWarning(note) {
   const key = `${note.platform_id}/${note.name}`;
+  if (note.active && ROUTINE(note)) { warnings.delete(key); return; }
   if (!note.active) { warnings.delete(key); return; }
   const known = warnings.get(key);
   if (known) known.note = { ...known.note, message: note.message || known.note.message };
@@ -47,15 +51,22 @@ function renderAnnunciator() {
   }
 }
 
+const routineShown = new Set(); // "platform/name" of routine notes listed, whose clearing is not
+
 function severity(note) {
   if (!note.active) return "cleared";
+  if (ROUTINE(note)) return "info";
   return SEVERE.test(note.name) ? "critical" : "warning";
 }
 
 function addNotification(note) {
   const list = $("#notifications");
+  const key = `${note.platform_id}/${note.name}`;
+  if (!note.active && routineShown.delete(key)) return;
   const kind = severity(note);
-  const text = `${note.platform_id} ${note.active ? "⚠" : "✓ cleared:"} ${note.message || note.name}`;
+  if (kind === "info") routineShown.add(key);
+  const mark = kind === "info" ? "ℹ" : note.active ? "⚠" : "✓ cleared:";
+  const text = `${note.platform_id} ${mark} ${note.message || note.name}`;
   const first = list.firstElementChild;
   if (first && first.dataset.text === text) { // a burst: one line, counted
     const count = Number(first.dataset.count) + 1;

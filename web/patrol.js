@@ -6,6 +6,7 @@
 
 import { sayOn } from "./answer.js";
 import { $, compassHeading, controlHolder, observerReason, put, section, snapshotOf } from "./common.js";
+import { slideToConfirm } from "./confirm.js";
 import { PlatformMap } from "./map.js";
 import { api, select } from "./station.js";
 import { state, subscribe } from "./store.js";
@@ -54,7 +55,7 @@ function updateMarker(platformId) {
   if (position) map.update(platformId, position, compassHeading(snapshot), { current: platformId === state.current, connected: true });
 }
 
-async function loadArea(platformId) {
+async function loadArea(platformId, { refit = false } = {}) {
   const asked = (patrol.loading = Symbol(platformId));
   let area;
   try {
@@ -64,7 +65,8 @@ async function loadArea(platformId) {
     return;
   }
   if (patrol.loading !== asked || state.current !== platformId) return;
-  if (area.map) map.setArea(area.map, { fit: !patrol.routes.has(platformId) }); // zoomed once
+  // Zoomed once, and again after a map file is imported (its named points were off screen).
+  if (area.map) map.setArea(area.map, { fit: refit || !patrol.routes.has(platformId) });
   else map.clearArea();
   const features = area.map?.features ?? [];
   patrol.keepouts.set(platformId, features.filter((f) => f?.properties?.role === "keepout").map((f) => String(f.id)));
@@ -266,7 +268,14 @@ async function removeKeepout(id) {
 }
 
 export function startPatrol() {
-  $("#patrol-start").onclick = () => patrolCall("start patrol", "patrol_start");
+  // Starting (or resuming) a patrol moves the robot: the button offers a slide to confirm.
+  const startSlide = slideToConfirm("patrol-start-slide", "slide to confirm start patrol", () => {
+    startSlide.box.hidden = true;
+    patrolCall("start patrol", "patrol_start");
+  });
+  startSlide.box.hidden = true;
+  $("#patrol-start").after(startSlide.box);
+  $("#patrol-start").onclick = () => { startSlide.box.hidden = !startSlide.box.hidden; };
   $("#patrol-stop").onclick = () => patrolCall("stop patrol", "patrol_stop");
   $("#route-edit").onclick = editRoute;
   $("#route-send").onclick = sendRoute;
@@ -294,7 +303,7 @@ export function startPatrol() {
     try { map.setGeoJson(JSON.parse(await file.text())); } catch (error) { patrolAnswer(`GeoJSON: ${error.message}.`, true); }
   };
   $("#map-clear").onclick = () => map.clearBackground();
-  subscribe("area-changed", (platformId) => { if (platformId === state.current) loadArea(platformId); }); // a file imported
+  subscribe("area-changed", (platformId) => { if (platformId === state.current) loadArea(platformId, { refit: true }); }); // a file imported
 
   subscribe("platforms", renderPlatforms);
   subscribe("connections", () => { renderPlatforms(); renderPatrol(); });

@@ -20,6 +20,20 @@ const chosen = new Set(["volts", "latency"]);
 const charts = new Map(); // key → { plot, data }
 let times = [];
 
+/** Each plot's height: what the screen leaves for the ticked plots (their panel scrolls past
+ * the third), 90 to 160 px: ~35 px was unreadable, and 1920x1080 was left 40 % empty. */
+function plotHeight() {
+  const share = (window.innerHeight - 540) / Math.min(3, Math.max(1, chosen.size));
+  return Math.round(Math.max(90, Math.min(160, share)));
+}
+
+/** A y range around the values with a margin; 0–1 before any value. */
+function aroundValues(u, min, max) {
+  if (min == null || max == null) return [0, 1];
+  const margin = Math.max((max - min) * 0.15, Math.abs(max) * 0.02, 0.1);
+  return [min - margin, max + margin];
+}
+
 function makeChart(quantity) {
   const box = document.createElement("div");
   box.className = "plot";
@@ -28,13 +42,14 @@ function makeChart(quantity) {
   $("#plots").append(box);
   const width = Math.max(200, $("#plots").clientWidth - 4);
   const plot = new window.uPlot({
-    width, height: window.innerHeight < 900 ? 56 : 70, // 1366x768: the column must fit legend: { show: false }, cursor: { show: false },
+    width, height: plotHeight(), legend: { show: false }, cursor: { show: false },
     title: quantity.label,
-    // Seconds before now, the last minute always (ticks at -60 … 0 s from the first sample).
-    scales: { x: { time: false, range: () => [-WINDOW_S, 0] } },
-    axes: [{ stroke: "#889", grid: { stroke: "#223" }, size: 20, font: "10px sans-serif",
+    // Seconds before now, the last minute always (ticks at -60 … 0 s from the first sample);
+    // y around the values (a battery at 24.7 V on a 0-based axis was a flat line).
+    scales: { x: { time: false, range: () => [-WINDOW_S, 0] }, y: { range: aroundValues } },
+    axes: [{ stroke: "#aab", grid: { stroke: "#223" }, size: 30, font: "11px sans-serif",
       values: (u, ticks) => ticks.map((t) => `${Math.round(t)} s`) },
-      { stroke: "#889", grid: { stroke: "#223" }, size: 36, font: "10px sans-serif" }],
+      { stroke: "#aab", grid: { stroke: "#223" }, size: 48, font: "11px sans-serif", label: quantity.series[0], labelSize: 14, labelFont: "11px sans-serif" }],
     series: [{}, ...quantity.series.map((label, i) => ({ label, stroke: COLOURS[i], width: 1.5, spanGaps: false }))],
   }, [[], ...quantity.series.map(() => [])], box);
   return { plot, data: quantity.series.map(() => []), box };
@@ -92,5 +107,12 @@ export function startPlots() {
     for (const chart of charts.values()) { chart.plot.destroy(); chart.box.remove(); }
     charts.clear();
   });
+  // The screen or the ticked set changed: every plot takes its new share.
+  const resize = () => {
+    const width = Math.max(200, $("#plots").clientWidth - 4);
+    for (const chart of charts.values()) chart.plot.setSize({ width, height: plotHeight() });
+  };
+  window.addEventListener("resize", resize);
+  choices.addEventListener("change", () => setTimeout(() => { sample(); resize(); }, 0));
   setInterval(sample, SAMPLE_MS);
 }

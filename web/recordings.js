@@ -5,12 +5,15 @@
 // telemetry sections, log lines and the access units from the keyframe before it, decoded
 // here with WebCodecs. A view of its own: its DOM, started by the wiring (console.js).
 
-import { element } from "./common.js";
+import { element, fixed } from "./common.js";
 import { api } from "./station.js";
 import { state } from "./store.js";
 
 const SPEEDS = [0.5, 1, 2, 4, 8];
 const TICK_MS = 250;
+const KMH = 3.6;
+/** A frame this much older than the moment shown (recording time) is from another time. */
+const NO_VIDEO_AFTER_NS = 1e9;
 
 
 const toggle = element("button", { id: "recordings-toggle", type: "button", "aria-pressed": "false" }, "recordings");
@@ -28,23 +31,27 @@ const mapBox = element("div", { id: "rec-map", "aria-label": "recorded track" })
 const position = element("p", { id: "rec-position", role: "status" }, "position —");
 const instruments = element("dl", { id: "rec-instruments", "aria-label": "instruments" });
 const log = element("ol", { id: "rec-log", "aria-label": "recorded log" });
-const plot = element("canvas", { id: "rec-plot", width: "900", height: "160", "aria-label": "plots" });
+const plot = element("canvas", { id: "rec-plot", width: "1200", height: "120", "aria-label": "plots" });
+// Outside recorded video the picture says so, as the live view's NO VIDEO does: the frame up
+// is from another time (or there is none), greyed, with its age against the moment shown.
+const noVideoAge = element("strong", { id: "rec-no-video-age" }, "NO VIDEO");
+const noVideoText = element("span", { id: "rec-no-video-text" });
+const noVideo = element("div", { id: "rec-no-video", class: "video-stale", role: "alert", "aria-label": "no recorded video", hidden: "" }, noVideoAge, noVideoText);
+const videoBox = element("div", { class: "rec-video-box" }, canvas, noVideo);
 const message = element("p", { id: "rec-message", role: "status" });
 const view = element(
   "section",
   { id: "recordings", "aria-label": "recordings", hidden: "" },
   element("div", { class: "rec-tools" }, platformInput, listButton, list, openButton, message),
   element("div", { class: "rec-timeline" }, play, speed, timeline, clock),
-  element("div", { class: "rec-panes" }, canvas, mapBox),
-  position,
+  // At 1366x768 everything above the fold: the picture with its instruments under it, the
+  // track with the log under it, the plots across the bottom.
+  element("div", { class: "rec-panes" },
+    element("div", { class: "rec-column" }, videoBox, position, instruments),
+    element("div", { class: "rec-column" }, mapBox, log)),
   plot,
-  instruments,
-  log,
 );
-view.style.cssText = "position:fixed;inset:3rem 1rem 1rem 1rem;overflow:auto;z-index:2000;background:#fff;padding:0.5rem;border:1px solid #888";
-mapBox.style.cssText = "display:inline-block;width:420px;height:320px;vertical-align:top";
-canvas.style.cssText = "width:480px;height:360px;background:#000;vertical-align:top";
-timeline.style.cssText = "width:60%";
+// Looks: console.css (#recordings), the live view's dark theme.
 
 /** The recordings button in the header and its view (hidden until asked for). */
 export function startRecordings() {
@@ -96,7 +103,7 @@ openButton.addEventListener("click", async () => {
     timeline.value = "0";
     view.dataset.recording = name;
     drawTrack();
-    message.textContent = `${name}: ${timeline.max} s`;
+    message.textContent = `${name}: ${Number(timeline.max).toFixed(1)} s`;
     await seek(recording.start_ns);
   } catch (error) {
     message.textContent = `cannot open: ${error.message}`;
@@ -177,24 +184,62 @@ function show(state, tick = false) {
   const rows = [];
   const t = state.telemetry;
   const add = (label, value) => { if (value !== undefined && value !== null) rows.push(element("dt", {}, label), element("dd", {}, String(value))); };
+  const number = (value, digits, unit) => (typeof value === "number" ? `${value.toFixed(digits)} ${unit}` : undefined);
   add("mode", t.override?.mode);
-  add("speed m/s", t.pose?.speed?.toFixed?.(2));
-  add("heading °", t.pose?.heading?.toFixed?.(0));
-  add("battery V", t.battery?.volts);
+  add("speed", number(typeof t.pose?.speed === "number" ? t.pose.speed * KMH : null, 1, "km/h"));
+  add("heading", number(t.pose?.heading, 0, "°"));
+  add("battery", number(t.battery?.volts, 2, "V"));
   add("failsafe", t.failsafe?.step);
   add("patrol", t.autonomy?.state);
-  add("motor", t.motion ? `${t.motion.linear ?? ""} ${t.motion.angular ?? ""}` : undefined);
+  if (t.motion) add("motor", `linear ${fixed(t.motion.linear, 2)}, angular ${fixed(t.motion.angular, 2)}`);
   instruments.replaceChildren(...rows);
-  log.replaceChildren(...state.log.map((line) => element("li", { class: line.level >= 3 ? "warning" : "" }, `${new Date(line.time_ns / 1e6).toISOString().slice(11, 19)} ${line.text}`)));
+  log.replaceChildren(...state.log.map((line) => {
+    const text = readable(line.text);
+    const item = element("li", { class: line.level >= 3 ? "warning" : "" }, `${new Date(line.time_ns / 1e6).toISOString().slice(11, 19)} ${text}`);
+    if (text !== line.text) item.title = line.text; // the whole line on hover
+    return item;
+  }));
   drawPlots(state.time_ns);
   const pacing = tick && playing && previousNs !== null && state.time_ns > previousNs
     ? { wallMs: performance.now(), fromNs: previousNs, speed: Number(speed.value) }
     : null;
   previousNs = playing ? state.time_ns : null;
   decodeFrames(state.frames, pacing, state.frames_after_ns);
+  markVideoTime();
 }
 
-const PLOT_COLORS = ["#1565c0", "#2e7d32", "#c62828", "#6a1b9a"];
+/** Mark the picture when the frame up is not of the moment shown: seeking into a stretch
+ * without recorded video used to leave the previous frame up, unmarked. While playing, frames
+ * are drawn one tick late: that lag (at the speed) is not another time. */
+function markVideoTime() {
+  const momentNs = Number(view.dataset.timeNs ?? NaN);
+  const frameNs = canvas.dataset.frameTimeNs ? Number(canvas.dataset.frameTimeNs) : null;
+  const lagNs = playing ? 2 * TICK_MS * 1e6 * Number(speed.value) : 0;
+  const behindNs = frameNs === null ? null : momentNs - frameNs;
+  const other = !Number.isNaN(momentNs) && (behindNs === null || Math.abs(behindNs) > NO_VIDEO_AFTER_NS + lagNs);
+  if (noVideo.hidden === other) noVideo.hidden = !other;
+  videoBox.dataset.stale = String(other);
+  if (!other) return;
+  noVideoAge.textContent = "NO VIDEO at this time";
+  noVideoText.textContent = frameNs === null
+    ? "the NavCam recorded nothing in the seconds up to this moment."
+    : `the picture is from ${new Date(frameNs / 1e6).toISOString().slice(11, 19)} UTC, ${(behindNs / 1e9).toFixed(1)} s ${behindNs > 0 ? "before" : "after"} this moment.`;
+}
+
+const LOG_LINE_CHARS = 120;
+
+/** A log line for the eye: a JSON document in it (a load_map's whole map) is named by its
+ * size, and a long line is cut. */
+function readable(text) {
+  const brace = text.search(/[[{]/);
+  let shown = text;
+  if (brace >= 0 && text.length - brace > 40) {
+    try { JSON.parse(text.slice(brace)); shown = `${text.slice(0, brace)}(${text.length - brace} characters of JSON)`; } catch { /* not JSON */ }
+  }
+  return shown.length > LOG_LINE_CHARS ? `${shown.slice(0, LOG_LINE_CHARS)}…` : shown;
+}
+
+const PLOT_COLORS = ["#4fc3f7", "#81c784", "#ef9a9a", "#ce93d8"];
 
 /** Each series scaled to its own range, along the recording's span; a cursor at ``timeNs``. */
 function drawPlots(timeNs) {
@@ -203,7 +248,11 @@ function drawPlots(timeNs) {
   context.clearRect(0, 0, width, height);
   const span = Math.max(1, recording.end_ns - recording.start_ns);
   const x = (t) => ((t - recording.start_ns) / span) * width;
-  Object.entries(recording.plots ?? {}).forEach(([label, points], i) => {
+  Object.entries(recording.plots ?? {}).forEach(([recorded, recordedPoints], i) => {
+    // The live view's units: speed in km/h.
+    const metres = recorded === "speed m/s";
+    const label = metres ? "speed km/h" : recorded;
+    const points = metres ? recordedPoints.map(([t, v]) => [t, v * KMH]) : recordedPoints;
     context.strokeStyle = context.fillStyle = PLOT_COLORS[i % PLOT_COLORS.length];
     context.fillText(label, 4 + 110 * i, 12);
     if (points.length < 2) return;
@@ -211,11 +260,14 @@ function drawPlots(timeNs) {
     let high = -Infinity;
     for (const [, v] of points) { low = Math.min(low, v); high = Math.max(high, v); }
     const y = (v) => height - 4 - ((v - low) / Math.max(1e-9, high - low)) * (height - 24);
+    // Its scale: the highest and lowest value, at their heights, in the series' colour.
+    context.fillText(String(Number(high.toFixed(2))), width - 40 - 44 * i, y(high) + 10);
+    context.fillText(String(Number(low.toFixed(2))), width - 40 - 44 * i, y(low) - 2);
     context.beginPath();
     points.forEach(([t, v], j) => (j ? context.lineTo(x(t), y(v)) : context.moveTo(x(t), y(v))));
     context.stroke();
   });
-  context.strokeStyle = "#000";
+  context.strokeStyle = "#ddd";
   context.beginPath();
   context.moveTo(x(timeNs), 0);
   context.lineTo(x(timeNs), height);
@@ -257,6 +309,7 @@ function draw(frame, timeNs) {
   framesDrawn += 1;
   canvas.dataset.framesDrawn = String(framesDrawn);
   canvas.dataset.frameTimeNs = String(timeNs);
+  markVideoTime();
 }
 
 function resetVideo() {
@@ -298,7 +351,9 @@ async function decodeFrames(frames, pacing, after) {
   }
   if (!frames.length || typeof VideoDecoder === "undefined") {
     resetVideo();
+    canvas.getContext("2d").clearRect(0, 0, canvas.width, canvas.height); // no picture from another time
     canvas.dataset.frameTimeNs = "";
+    markVideoTime();
     return;
   }
   const units = frames.map((f) => ({ time: f.time_ns, data: bytesOf(f.data) }));

@@ -4,6 +4,8 @@
 // second; losing focus, hiding the tab or a vanished gamepad sends a stop at once. The station
 // stops the robot by itself when the sends stop coming (console.drive_timeout).
 
+import { keyForFocusedField } from "./common.js";
+
 const PERIOD_MS = 50;
 const KEY_SPEED = 0.5;
 const DEADZONE = 0.15;
@@ -35,7 +37,7 @@ export class Teleop {
   }
 
   key(event, down) {
-    if (event.target instanceof HTMLInputElement) return;
+    if (keyForFocusedField(event)) return;
     if (event.code === "Space") {
       if (down) this.held.clear();
       event.preventDefault();

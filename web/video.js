@@ -1,7 +1,7 @@
 // The NavCam: access units from the station decoded in a Worker (WebCodecs) onto the canvas,
 // and an honest overlay. Frame rate and latency are of the last second, never held; the age
-// of the last drawn frame is always shown; no frame for 3 frame intervals (at least 250 ms)
-// marks the picture STALE ("NO VIDEO 1.4 s", greyed) with the station's reason when it knows
+// of the last drawn frame is always shown; no frame for one interval of the stream plus a
+// margin (the interval again, at most 200 ms; at least 250 ms in all) marks the picture STALE ("NO VIDEO 1.4 s", greyed) with the station's reason when it knows
 // one, and a button to ask for the stream again. The page's glass-to-glass p95 of the last
 // second goes to the station once a second: the holder's heartbeats carry it to the
 // platform's speed cap.
@@ -11,7 +11,7 @@ import { api, onBinary } from "./station.js";
 import { notify, state, subscribe } from "./store.js";
 
 const STALE_MIN_MS = 250;
-const STALE_INTERVALS = 3;
+const STALE_MARGIN_MAX_MS = 200;
 const CHECK_MS = 50;
 
 const canvas = $("#video");
@@ -35,6 +35,14 @@ function wallNow() { return performance.timeOrigin + performance.now(); }
 export function videoAgeMs() {
   const drawn = state.video?.lastDrawnMs;
   return drawn == null ? null : wallNow() - drawn;
+}
+
+/** How long without a frame marks the picture STALE, for a stream drawing a frame every
+ * ``interval`` ms: 400 ms at 5 fps, 250 ms at 30 fps (the mark within 500 ms down to 4 fps;
+ * slower streams get one interval and 200 ms, so a frame on time is never marked). */
+export function staleLimitMs(interval) {
+  const every = interval ?? 0;
+  return Math.max(STALE_MIN_MS, every + Math.min(every, STALE_MARGIN_MAX_MS));
 }
 
 function onWorkerMessage(data) {
@@ -61,8 +69,7 @@ function onWorkerMessage(data) {
 function checkStale() {
   const age = videoAgeMs();
   put($("#video-age"), age == null ? "—" : `${(age / 1000).toFixed(1)} s`);
-  const interval = state.video?.frameIntervalMs;
-  const limit = Math.max(STALE_MIN_MS, STALE_INTERVALS * (interval ?? 0));
+  const limit = staleLimitMs(state.video?.frameIntervalMs);
   const now = age != null && watching != null && age > limit;
   if (now && !stale) staleMarks.push([performance.now() - age, performance.now()]);
   if (now !== stale) { stale = now; box.dataset.stale = String(now); staleMark.hidden = !now; }
@@ -139,6 +146,7 @@ export function startVideo() {
   return {
     stats: () => state.video,
     staleMarks: () => staleMarks.slice(),
+    staleLimitMs: () => staleLimitMs(state.video?.frameIntervalMs),
     keepLatencies: (on) => worker?.postMessage({ type: "keep", on }),
     dump: () => new Promise((resolve) => { dumpWaiters.push(resolve); worker?.postMessage({ type: "dump" }); }),
   };

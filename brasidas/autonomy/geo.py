@@ -6,6 +6,12 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 
+
+def to_e7(degrees: float) -> int:
+    """Degrees in integer units of 1e-7 degree (about 1 cm), as MAVLink and beacons carry them."""
+    return round(degrees * 1e7)
+
+
 WGS84_A = 6_378_137.0
 WGS84_F = 1.0 / 298.257223563
 WGS84_E2 = WGS84_F * (2.0 - WGS84_F)

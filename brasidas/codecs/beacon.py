@@ -26,6 +26,7 @@ from enum import Enum
 import msgpack
 
 from brasidas import security
+from brasidas.autonomy.geo import to_e7
 from brasidas.status import StatusWord
 
 VERSION = 1
@@ -63,15 +64,11 @@ class Beacon:
     """(latitude, longitude) in degrees, when the platform knows it."""
 
 
-def _e7(value: float) -> int:
-    return round(value * 1e7)
-
-
 def encode(beacon: Beacon, key: bytes | None) -> bytes:
     """The datagram for ``beacon``; raises ValueError if it would exceed :data:`MAX_BEACON`."""
     lat = lon = None
     if beacon.position is not None:
-        lat, lon = _e7(beacon.position[0]), _e7(beacon.position[1])
+        lat, lon = to_e7(beacon.position[0]), to_e7(beacon.position[1])
     body: bytes = msgpack.packb(
         [
             VERSION,

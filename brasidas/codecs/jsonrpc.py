@@ -251,7 +251,26 @@ class Dispatcher:
         coroutine in the way; None when nothing is to be sent."""
         if incoming.parse_error is not None:
             return incoming.parse_error
-        call = self._begin(incoming.message, ctx)
+        message = incoming.message
+        if (
+            type(message) is dict
+            and type(request_id := message.get("id")) is int
+            and message.get("jsonrpc") == "2.0"
+            and type(name := message.get("method")) is str
+            and type(params := message.get("params")) is dict
+            and (method := self._methods.get(name)) is not None
+        ):
+            # The usual request (a heartbeat, every call of every session): _begin's,
+            # _prepare's and _run_now's checks in one go, without their intermediate objects.
+            self.counters["calls"] += 1
+            try:
+                self._check(method, params, ctx)
+                result = method.handler(ctx, **params)
+            except Exception as err:
+                response = self._failed(request_id, False, name, err)
+                return None if response is None else self._encode_response(response)
+            return self._encode_response(_result(request_id, result))
+        call = self._begin(message, ctx)
         response = self._run_now(call, ctx) if isinstance(call, _Call) else call
         return None if response is None else self._encode_response(response)
 
@@ -413,6 +432,11 @@ class Dispatcher:
                 raise RpcError(INVALID_PARAMS, f"invalid params: {err}") from None
         else:
             kwargs = params  # type: ignore[assignment]  # decoded for this call alone
+        self._check(method, kwargs, ctx)
+        return method, kwargs
+
+    def _check(self, method: Method, kwargs: dict[str, Any], ctx: CallContext) -> None:
+        """The session (stripped from ``kwargs``) and the params of a call of ``method``."""
         if method.session_required:
             if self.authorizer is None:
                 raise RpcError(INTERNAL_ERROR, "no authorizer")
@@ -425,7 +449,6 @@ class Dispatcher:
             ctx.session_opened()
         if kwargs or method.required:
             self._check_params(method, kwargs)
-        return method, kwargs
 
 
 def _json_type_ok(value: Any, expected: type) -> bool:

@@ -35,14 +35,13 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+from brasidas.recording import NAME_PATTERN
 from brasidas.recording.schemas import MESSAGE_ENCODING, SCHEMA_ENCODING, ChannelSpec
 
 _LOGGER = logging.getLogger(__name__)
 
 SUFFIX = ".mcap"
 ACTIVE_SUFFIX = ".mcap.active"
-NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,200}\.mcap$")
-"""A recording's name as listed and downloaded: no path separators, no hidden files."""
 QUOTA_CHECK_S = 5.0
 """How often the writer re-checks the quota and free space while recording (and while stopped)."""
 RESUME_FREE_BYTES = 16 * 1024**2

@@ -13,6 +13,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from brasidas.autonomy.geo import to_e7
 from brasidas.autonomy.route import MAX_WAYPOINTS
 from brasidas.mapfiles import mission
 from brasidas.mapfiles.mission import (
@@ -106,8 +107,8 @@ class MissionItem:
             item.frame,
             item.command,
             *item.params,
-            x=_e7(item.latitude),
-            y=_e7(item.longitude),
+            x=to_e7(item.latitude),
+            y=to_e7(item.longitude),
             z=item.altitude,
         )
 
@@ -160,7 +161,3 @@ def items_from_fence(area: dict[str, Any]) -> list[MissionItem]:
 
 def _written(items: list[mission.MissionItem]) -> list[MissionItem]:
     return [MissionItem.written(seq, item) for seq, item in enumerate(items)]
-
-
-def _e7(degrees: float) -> int:
-    return round(degrees * 1e7)
