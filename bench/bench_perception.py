@@ -37,7 +37,7 @@ from brasidas.messages import Velocity
 from brasidas.perception.messages import RobotScan
 from brasidas.perception.proximity import Geometry
 from platformd.arbiter import MotionArbiter
-from platformd.lidar import LidarReader
+from platformd.lidar_reader import LidarReader
 from platformd.sim.lidar import LidarSimulator, LidarWorld, ScanGenerator
 from platformd.sim.vehicle import VehicleModel
 

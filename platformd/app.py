@@ -5,9 +5,9 @@ from __future__ import annotations
 import importlib
 import logging
 import time
+from typing import TYPE_CHECKING
 
 from brasidas.actor import Daemon
-from brasidas.autonomy.areamap import AreaMap
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.config import PlatformConfig
 from brasidas.sdnotify import Notifier, WatchdogPinger
@@ -18,6 +18,9 @@ from platformd.sim import gps as gps_sim
 from platformd.sim import mpu6050 as mpu6050_sim
 from platformd.sim import turret as turret_sim
 from platformd.sim.vehicle import vehicle_for
+
+if TYPE_CHECKING:  # Shapely loads with the first map, not at start
+    from brasidas.autonomy.areamap import AreaMap
 
 _LOGGER = logging.getLogger(__name__)
 

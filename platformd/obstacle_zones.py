@@ -31,7 +31,7 @@ from brasidas.autonomy.geo import LocalFrame
 from brasidas.messages import PoseEstimate
 from brasidas.perception.messages import RobotScan
 from platformd.context import PlatformContext
-from platformd.sim.lidar import TEMPORARY_KEEPOUT_PREFIX
+from platformd.lidar_models import TEMPORARY_KEEPOUT_PREFIX
 
 if TYPE_CHECKING:
     from brasidas.autonomy.areamap import AreaMap

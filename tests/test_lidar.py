@@ -25,7 +25,7 @@ from brasidas.messages import Velocity
 from brasidas.perception.messages import Proximity
 from brasidas.perception.proximity import Geometry, proximity, to_robot
 from platformd.app import PlatformDaemon
-from platformd.lidar import LidarReader
+from platformd.lidar_reader import LidarReader
 from platformd.mode import ModeArbiter
 from platformd.session_table import Session
 from platformd.sim.demo_area import offset

@@ -185,6 +185,10 @@ async def test_mavproxy_controls_only_once_it_signs(
         assert not patrolling(daemon)
 
         since = client.send("signing key brasidas-demo-passphrase")
+        # AUTO arms through the pre-arm checks: as a pilot waits for the GPS lock first.
+        arming = daemon.ctx.arming
+        assert arming is not None
+        await wait_until(lambda: arming.reasons() == (), 30)
         client.send("mode AUTO")
         await client.expect("Mode AUTO", since)
         assert patrolling(daemon)

@@ -101,6 +101,7 @@ async def test_releasing_the_override_over_a_waiting_patrol_asks_first(
     await expect(page.get_by_role("button", name="start patrol")).to_be_enabled(timeout=15_000)
     await wait_until(lambda: not arming.reasons(), 20)  # a start arms through the checks
     await page.get_by_role("button", name="start patrol").click()
+    await page.get_by_label("slide to confirm start patrol").fill("100")  # issue 31's slide
     await wait_until(lambda: arming.armed, 10)
 
     def engaged() -> bool:

@@ -11,6 +11,7 @@ from typing import Any
 
 import pytest
 import test_web_console_honesty as honesty
+from conftest import wait_until
 from test_web_console_honesty import console, rover, screenshots
 from test_web_console_station import Factory, frames_decoded, platforms_in_view
 
@@ -258,25 +259,16 @@ async def test_the_toolbar_shows_mode_arm_state_and_readiness(
 ) -> None:
     """Mode (chosen here: MANUAL engages the override, AUTO after a slide starts the patrol),
     arm state, READY / NOT READY opening the pre-arm reasons, and the slide to arm calling the
-    station's ``arm`` with the platform's id; "—" while the platform reports no arming."""
+    station's ``arm``, which arms the platform."""
     from playwright.async_api import expect
 
-    armed: list[dict[str, Any]] = []
-
-    async def arm(ctx: Any, platform_id: str) -> dict[str, Any]:
-        armed.append({"platform_id": platform_id})
-        return {"accepted": True}
-
-    if not station.ctx.api.has("arm"):  # issue 27's method; stood in for until it is merged
-        station.ctx.api.add("arm", arm, session_required=False)
     platform = await rover(platform_factory, fleet_key, station)
     page = await honesty_browser_page(browser, station)
     await expect(page.get_by_role("button", name="manual override")).to_be_enabled(timeout=15_000)
     mode = page.get_by_label("mode", exact=True)
     await expect(mode).to_have_value("HOLD", timeout=10_000)
-    await expect(page.get_by_label("arm state")).to_have_text("arm —")
-    await expect(page.get_by_label("readiness")).to_have_text("ready —")
-    await expect(page.get_by_label("slide to arm")).to_be_hidden()
+    # The platform's own word: it starts disarmed.
+    await expect(page.get_by_label("arm state")).to_have_text("DISARMED", timeout=10_000)
 
     await page.evaluate(
         "window.__sections.arming = {armed: false, ready: false, prearm: ['no GPS fix', 'battery 10.1 V'],"
@@ -303,10 +295,12 @@ async def test_the_toolbar_shows_mode_arm_state_and_readiness(
     await expect(slider).to_be_enabled()
     await slider.fill("40")  # let go half-way: nothing
     await page.wait_for_timeout(300)
-    assert armed == []
+    arming = platform.ctx.arming
+    assert arming is not None and not arming.armed  # let go half-way: nothing
+    await wait_until(lambda: arming.reasons() == (), 30)  # the real checks pass too
     await slider.fill("100")
     await expect(page.locator("#answer")).to_contain_text("arm: acknowledged", timeout=10_000)
-    assert armed == [{"platform_id": "web-rover"}]
+    await wait_until(lambda: arming.armed, 10)  # the station's arm reached web-rover
 
     # The panel's start patrol offers a slide to confirm, not a one-click start.
     await page.get_by_role("button", name="start patrol").click()

@@ -251,8 +251,8 @@ class MavlinkService(Actor):
         loop = asyncio.get_running_loop()
         proximity = None
         if self.ctx.config.lidar.enabled:  # OBSTACLE_DISTANCE for QGroundControl (issue 30)
+            from platformd.lidar_models import MODELS
             from platformd.mavlink.proximity import ObstacleDistanceSender
-            from platformd.sim.lidar import MODELS
 
             reach = MODELS[self.ctx.config.lidar.model].range_m
             proximity = ObstacleDistanceSender(self.ctx.bus, self.vehicle, reach)

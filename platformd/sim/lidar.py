@@ -35,7 +35,6 @@ import sys
 import time
 import tty
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -49,6 +48,7 @@ from brasidas.bus import Bus
 from brasidas.codecs.ldlidar import POINTS_PER_FRAME, encode_frame
 from brasidas.config import PlatformConfig
 from brasidas.config.lidar import LidarSection
+from platformd.lidar_models import MODELS, TEMPORARY_KEEPOUT_PREFIX
 from platformd.sim.vehicle import Pose, VehicleModel, vehicle_for
 
 if TYPE_CHECKING:
@@ -58,39 +58,9 @@ _LOGGER = logging.getLogger(__name__)
 
 TICK_S = 0.01
 """How often the simulator writes the frames that are due."""
-TEMPORARY_KEEPOUT_PREFIX = "lidar:"
-"""Keep-outs the platform made from what it saw: not part of the simulated world."""
 PEDESTRIAN_RADIUS_M = 0.3
 PEDESTRIAN_SPEED_MPS = 1.2
 PEDESTRIAN_WALK_M = 10.0
-
-
-@dataclass(frozen=True)
-class LidarModel:
-    """A sensor's figures from its data sheet."""
-
-    name: str
-    baudrate: int
-    points_per_s: int
-    range_m: float
-    min_range_m: float = 0.02
-    rate_hz: float = 10.0
-
-    @property
-    def frame_period_s(self) -> float:
-        return POINTS_PER_FRAME / self.points_per_s
-
-
-MODELS = {
-    "ld19": LidarModel("LD19", 230400, 4500, 12.0),
-    "ld06": LidarModel("LD06", 230400, 4500, 12.0),
-    "stl27l": LidarModel("STL-27L", 921600, 21600, 25.0, min_range_m=0.03),
-}
-
-
-def baudrate_of(config: LidarSection) -> int:
-    """The configured baud rate, or the model's own for 0."""
-    return config.baudrate or MODELS[config.model].baudrate
 
 
 class LidarWorld:

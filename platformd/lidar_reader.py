@@ -1,0 +1,268 @@
+"""The lidar: LD06/LD19/STL-27L frames from the serial line to scans, obstacles and speed limits.
+
+The reader opens ``lidar.port`` (8N1 at the model's baud rate) with pyserial-asyncio and hands
+the bytes to the sans-IO :mod:`brasidas.codecs.ldlidar` decoder and scan assembler (on the
+loop: a few hundred small frames a second). Each revolution is turned into the robot's frame
+and its obstacles and speed limits computed in the lidar's own worker thread
+(:mod:`brasidas.perception.proximity`), then published: ``LIDAR_SCAN`` and ``PROXIMITY``, which
+the motion arbiter applies to every motor command in every mode. When scans stop for
+``lidar.scan_timeout_s`` (port gone, sensor stalled) the limits become a stop: a robot that
+cannot see does not drive. A port that is missing or vanishes is reported and reopened with
+capped backoff, as the GPS's is.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import concurrent.futures
+import dataclasses
+import logging
+import math
+from typing import Any
+
+from brasidas import topics
+from brasidas.actor import Actor
+from brasidas.backoff import Backoff
+from brasidas.bus import Bus
+from brasidas.clock import Clock, LoopClock, sleep, timeout_at
+from brasidas.codecs.ldlidar import LidarDecoder, LidarScan, ScanAssembler
+from brasidas.codecs.telemetry_schema import Perception
+from brasidas.config.lidar import LidarSection
+from brasidas.perception.messages import Proximity, RobotScan
+from brasidas.perception.proximity import Geometry, proximity, silent, to_robot
+from platformd.context import PlatformContext, SerialDevice
+from platformd.gps import _streams
+from platformd.lidar_models import baudrate_of
+from platformd.serial_port import OPEN_ERRORS, PortError, PortOpener
+
+_LOGGER = logging.getLogger(__name__)
+
+BACKOFF_INITIAL = 0.2
+BACKOFF_MAX = 5.0
+READ_SIZE = 4096
+
+
+class LidarReader(Actor):
+    """Reads the sensor; publishes scans in the robot's frame and the speed limits."""
+
+    name = "lidar"
+
+    def __init__(
+        self,
+        bus: Bus,
+        config: LidarSection,
+        geometry: Geometry,
+        *,
+        clock: Clock | None = None,
+    ) -> None:
+        super().__init__(bus)
+        self.config = config
+        self.geometry = geometry
+        self.opener = PortOpener(SerialDevice(config.port, baudrate_of(config)))
+        self.clock: Clock = clock or LoopClock()
+        self.decoder = LidarDecoder()
+        self.assembler = ScanAssembler()
+        self.connected = False
+        self.error = ""
+        self.scans = 0
+        self.scans_skipped = 0
+        """Revolutions not analysed because the worker was still busy with the previous one."""
+        self.last: RobotScan | None = None
+        self.proximity: Proximity = silent(0.0, config.scan_timeout_s)
+        self._last_scan_at: float | None = None
+        self._scan_times: collections.deque[float] = collections.deque(maxlen=64)
+        self._pending: LidarScan | None = None
+        self._wake = asyncio.Event()
+        self._worker = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="lidar")
+
+    async def run(self) -> None:
+        self.bus.publish(topics.PROXIMITY, self.proximity)  # stopped until the first scan
+        try:
+            async with asyncio.TaskGroup() as group:
+                group.create_task(self._analyse_loop(), name="lidar:analyse")
+                await self._connect_loop()
+        finally:
+            self.opener.close()
+            self._worker.shutdown(wait=False, cancel_futures=True)
+
+    # ------------------------------------------------------------------ serial line
+
+    async def _connect_loop(self) -> None:
+        backoff = Backoff(BACKOFF_INITIAL, BACKOFF_MAX)
+        failures = 0
+        while True:
+            port = self.config.port
+            try:
+                device = await self.opener.open()
+                reader, writer = _streams(device)
+            except PortError as err:
+                failures += 1
+                self._port_down(str(err), log=failures == 1)
+                await sleep(self.clock, backoff.next())
+                continue
+            except OPEN_ERRORS as err:
+                failures += 1
+                self._port_down(f"cannot set up {port}: {err}", log=failures == 1)
+                await sleep(self.clock, backoff.next())
+                continue
+            _LOGGER.info("lidar (%s) reading %s", self.config.model, port)
+            self.connected = True
+            self.error = ""
+            self.decoder.reset()
+            try:
+                await self._read(reader)
+                reason = f"{port} closed"
+            except OSError as err:
+                reason = f"{port} lost: {err}"
+            finally:
+                writer.close()
+            failures = 1
+            self._port_down(reason, log=True)
+            backoff.reset()
+            await sleep(self.clock, backoff.next())
+
+    async def _read(self, reader: asyncio.StreamReader) -> None:
+        while True:
+            try:
+                async with timeout_at(self.clock, self._deadline()):
+                    data = await reader.read(READ_SIZE)
+            except TimeoutError:
+                self._check_silence()
+                continue
+            if not data:
+                return
+            self.feed(data)
+
+    def _deadline(self) -> float | None:
+        if self._last_scan_at is None:
+            return None
+        return self._last_scan_at + self.config.scan_timeout_s
+
+    def feed(self, data: bytes) -> None:
+        """Bytes from the sensor; a completed revolution goes to the worker. On the loop."""
+        now = self.clock.time()
+        for frame in self.decoder.feed(data, now):
+            scan = self.assembler.feed(frame)
+            if scan is not None:
+                self.scans += 1
+                self._last_scan_at = now
+                self._scan_times.append(now)
+                if self._pending is not None:
+                    self.scans_skipped += 1
+                self._pending = scan
+                self._wake.set()
+
+    def _check_silence(self) -> None:
+        last = self._last_scan_at
+        if last is not None and self.clock.time() - last >= self.config.scan_timeout_s:
+            self._last_scan_at = None
+            self._blind(f"no lidar scan for {self.config.scan_timeout_s:g} s")
+
+    def _port_down(self, reason: str, *, log: bool) -> None:
+        self.connected = False
+        self.error = reason
+        (_LOGGER.warning if log else _LOGGER.debug)("lidar: %s; retrying", reason)
+        self._last_scan_at = None
+        self._blind(reason)
+
+    def _blind(self, reason: str) -> None:
+        if self.proximity.forward_limit == 0 and self.proximity.reverse_limit == 0:
+            if self.proximity.reason.endswith(reason):
+                return
+        self.proximity = dataclasses.replace(
+            silent(self.clock.time(), self.config.scan_timeout_s), reason=f"stopped: {reason}"
+        )
+        _LOGGER.warning("lidar blind (%s): motors held at zero", reason)
+        self.bus.publish(topics.PROXIMITY, self.proximity)
+
+    # ------------------------------------------------------------------ analysis (worker thread)
+
+    async def _analyse_loop(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            scan, self._pending = self._pending, None
+            if scan is None:
+                continue
+            robot, limits = await loop.run_in_executor(self._worker, self._analyse, scan)
+            if self._last_scan_at is None:
+                continue  # went blind while the worker ran: the stop stands
+            self.last = robot
+            self.bus.publish(topics.LIDAR_SCAN, robot)
+            if _stopped(limits) != _stopped(self.proximity):  # not every slowing: the log
+                log = _LOGGER.warning if _stopped(limits) else _LOGGER.info
+                log("lidar: %s", limits.reason or "way clear")
+            self.proximity = limits
+            self.bus.publish(topics.PROXIMITY, limits)
+
+    def _analyse(self, scan: LidarScan) -> tuple[RobotScan, Proximity]:
+        robot = to_robot(scan, self.geometry)
+        return robot, proximity(robot, self.geometry, self.proximity)
+
+    def scan_hz(self) -> float:
+        """Revolutions in the last second."""
+        now = self.clock.time()
+        return float(sum(1 for t in self._scan_times if now - t <= 1.0))
+
+    def section(self) -> Perception:
+        """The ``perception`` telemetry section."""
+        limits, scan = self.proximity, self.last
+        obstacles: list[tuple[float, ...]] = []
+        if scan is not None and self._last_scan_at is not None:
+            for o in scan.obstacles:
+                bearing = math.degrees(math.atan2(-o.y_m, o.x_m)) % 360.0
+                obstacles.append(
+                    (round(bearing, 1), round(math.hypot(o.x_m, o.y_m), 2), o.radius_m)
+                )
+            obstacles = sorted(obstacles, key=lambda o: o[1])[:12]
+        return Perception(
+            connected=self.connected,
+            scan_hz=self.scan_hz(),
+            points_used=scan.points_used if scan is not None else 0,
+            nearest_m=limits.nearest_m,
+            nearest_bearing_deg=limits.nearest_bearing_deg,
+            forward_limit=round(limits.forward_limit, 3),
+            reverse_limit=round(limits.reverse_limit, 3),
+            reason=limits.reason,
+            obstacles=tuple(obstacles),
+            crc_errors=self.decoder.crc_errors,
+        )
+
+    def counters(self) -> dict[str, Any]:
+        return {
+            "scans": self.scans,
+            "scans_skipped": self.scans_skipped,
+            "frames": self.decoder.frames,
+            "crc_errors": self.decoder.crc_errors,
+            "resync_bytes": self.decoder.resync_bytes,
+        }
+
+
+def _stopped(limits: Proximity) -> bool:
+    return limits.forward_limit == 0.0 or limits.reverse_limit == 0.0
+
+
+def capabilities(config: LidarSection) -> dict[str, Any]:
+    return {"model": config.model, "port": config.port, "baudrate": baudrate_of(config)}
+
+
+async def async_setup(ctx: PlatformContext) -> None:
+    config = ctx.config.lidar
+    if not config.enabled:
+        return
+    simulator = ctx.sim.lidar
+    section = dataclasses.replace(config, port=simulator.path) if simulator else config
+    geometry = Geometry(
+        section, ctx.config.safety.braking_mps2, ctx.config.platform.max_speed_kmh / 3.6
+    )
+    reader = LidarReader(ctx.bus, section, geometry)
+    ctx.capabilities.register("lidar", lambda: capabilities(section))
+    ctx.telemetry.add_counters("lidar", reader.counters)
+    ctx.telemetry.register(Perception, reader.section)
+    ctx.supervisor.start(reader)
+    if config.map_obstacles:
+        from platformd import obstacle_zones  # the patrol's temporary keep-outs
+
+        obstacle_zones.start(ctx)
