@@ -23,6 +23,7 @@ from support.cli import run_cli as run_cli  # re-exported: modules import helper
 from brasidas.codecs.telemetry_schema import VelocityLink
 from brasidas.config import PlatformConfig, StationConfig, load_config
 from platformd.app import PlatformDaemon
+from platformd.context import PlatformContext
 from stationd.daemon import StationDaemon
 
 pytest_plugins = ["pytester"]
@@ -148,6 +149,14 @@ async def wait_until(predicate: Callable[[], bool], timeout: float = 5.0) -> Non
             await asyncio.sleep(0.01)
 
     await asyncio.wait_for(poll(), timeout)
+
+
+async def until_armable(ctx: PlatformContext, timeout: float = 20.0) -> None:
+    """Wait until the platform's pre-arm checks pass (GPS fix, controller answering): what a
+    pilot waits for before a start, which arms through them (platformd.arming)."""
+    arming = ctx.arming
+    assert arming is not None
+    await wait_until(lambda: not arming.reasons(), timeout)
 
 
 def hang_serial_opens(monkeypatch: pytest.MonkeyPatch) -> tuple[threading.Event, list[float]]:

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import wait_until
+from conftest import until_armable, wait_until
 from shapely.geometry import Polygon
 from test_patrol_platform import LAT, LON, RTK, Robot, at, config
 
@@ -171,6 +171,7 @@ async def test_patrol_stops_for_an_obstacle_the_map_does_not_have(
     closest: list[float] = []
     robot.watchers.append(lambda _pose, _truth: closest.append(clearance(robot, *post)))
     await robot.call("set_waypoints", waypoints=[at(0, 0), at(25, 0)])
+    await until_armable(robot.ctx)
     await robot.call("patrol_start")
     await wait_until(lambda: robot.vehicle.pose().speed_mps > 2.0, 20)
 
@@ -282,6 +283,7 @@ async def test_an_obstacle_becomes_a_keepout_the_patrol_plans_around_then_leaves
     closest: list[float] = []
     robot.watchers.append(lambda _pose, _truth: closest.append(clearance(robot, *post)))
     await robot.call("set_waypoints", waypoints=[at(0, 0), at(25, 0)])
+    await until_armable(robot.ctx)
     await robot.call("patrol_start")
     patrol = robot.ctx.patrol
     assert patrol is not None
