@@ -9,6 +9,7 @@ from time import monotonic
 from typing import Any
 
 from brasidas.codecs.commands import CommandCode
+from brasidas.codecs.telemetry_schema import Snapshot
 from brasidas.status import Battery
 
 
@@ -137,6 +138,17 @@ class PlatformSighting:
     platform_id: str
     signaling_url: str
     address: str
+
+
+@dataclass(frozen=True)
+class TelemetrySnapshot:
+    """Station side: a platform's telemetry as its link holds it after an accepted datagram
+    (the one read model adapters project; stationd.telemetry)."""
+
+    platform_id: str
+    snapshot: Snapshot
+    time_ns: int
+    """Wall clock when it arrived."""
 
 
 @dataclass(frozen=True)

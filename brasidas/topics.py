@@ -32,6 +32,7 @@ from brasidas.messages import (
     SpeedCap,
     StationNotification,
     StreamStatus,
+    TelemetrySnapshot,
     Velocity,
     VelocityLinkStats,
 )
@@ -92,6 +93,8 @@ PLATFORM_HEALTH: Topic[PlatformHealth] = Topic("platform_health", retain=True)
 """Coarse battery, GPS fix, streaming, controller and fault flags (platformd.telemetry; beacon)."""
 STATION_NOTIFICATIONS: Topic[StationNotification] = Topic("station_notifications")
 """Station only: group 90 notifications, e.g. annunciator warnings raised and cleared."""
+TELEMETRY_SNAPSHOTS: Topic[TelemetrySnapshot] = Topic("telemetry_snapshots")
+"""Station side: each platform's snapshot after every accepted telemetry datagram."""
 
 # --------------------------------------------------------------------------- media (issue 5)
 STREAM_STATES: Topic[StreamStatus] = Topic("stream_states")

@@ -26,6 +26,7 @@ if TYPE_CHECKING:
     from brasidas.autonomy.areamap import AreaMap
     from brasidas.autonomy.patrol import Patrol
     from brasidas.autonomy.route import Route
+    from brasidas.media.video import AccessUnitSink
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,10 @@ class MediaHandle(Protocol):
         self, name: str, host: str = "", port: int = 0, *, session_id: str | None = None
     ) -> object:
         """Start ``session_id``'s copy of a stream, sent to ``host:port``."""
+
+    def tap_navcam(self, sink: AccessUnitSink) -> Callable[[], None] | None:
+        """Give ``sink`` the NavCam's encoded access units; returns how to remove it, or None
+        on a platform without a NavCam."""
 
     async def record_navcam(self, fps: int) -> object:
         """Keep the NavCam running for the recorder at ``fps`` while no station watches."""

@@ -37,7 +37,7 @@ import logging
 import re
 import socket
 import time
-from collections.abc import Awaitable, Coroutine
+from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any
 
 from brasidas import topics
@@ -60,7 +60,7 @@ from brasidas.media.fanout import FanOutStream
 from brasidas.media.navcam import FrameratePolicy, navcam_settings, parse_framerate
 from brasidas.media.pipeline import PipelineStream, StreamState
 from brasidas.media.relay import ForwardSettings, RtspForward
-from brasidas.media.video import VideoOut
+from brasidas.media.video import AccessUnitSink, VideoOut
 from brasidas.messages import CommandResult, OverrideState, SessionClosed, StreamStatus
 from platformd.automation import report_switch
 from platformd.commands import SystemCommand
@@ -400,6 +400,15 @@ class MediaService(Actor):
         if stream is self.navcam and self.record_fps:
             return await self._record_only()
         return await stream.stop()
+
+    def tap_navcam(self, sink: AccessUnitSink) -> Callable[[], None] | None:
+        """``sink`` gets each of the NavCam's encoded access units as it is sent (on the
+        streaming thread); returns how to remove it, or None on a platform without a NavCam."""
+        navcam = self.navcam
+        if navcam is None:
+            return None
+        navcam.access_unit_sinks.append(sink)
+        return lambda: navcam.access_unit_sinks.remove(sink)
 
     async def record_navcam(self, fps: int) -> StreamState | None:
         """The recorder's own copy (issue 28): while no station watches, the NavCam runs at

@@ -2,7 +2,7 @@
 
 Subscribes to the bus (positions, velocities, motor commands, commands with their sender,
 state changes), records every telemetry section at ``recorder.telemetry_hz``, and taps the
-NavCam's encoded H.264 as it is sent (:attr:`brasidas.media.video.VideoOut.access_unit_sinks`:
+NavCam's encoded H.264 as it is sent (``media.tap_navcam``:
 no second encoder, at the rate it streams; while no station watches, the NavCam runs for the
 recorder alone at ``recorder.video_fps``, sent nowhere). Bus callbacks only
 queue the message object; encoding and writing happen on the writer thread
@@ -42,7 +42,8 @@ from brasidas.messages import (
     Velocity,
 )
 from brasidas.perception.messages import RobotScan
-from brasidas.recording import schemas
+from brasidas.recording import projection, schemas
+from brasidas.recording.projection import HDOP_TO_SIGMA_M, StateChange
 from brasidas.recording.schemas import LOG_INFO, LOG_WARNING, ChannelSpec
 from brasidas.recording.writer import (
     ACTIVE_SUFFIX,
@@ -116,13 +117,11 @@ class PlatformRecorder(Actor):
         self._loop = asyncio.get_running_loop()
         self.writer.start()
         media = self.ctx.media
-        navcam = media.navcam if media is not None else None
-        if navcam is not None and hasattr(navcam, "access_unit_sinks"):
-            navcam.access_unit_sinks.append(self._on_access_unit)
-            self.on_remove(lambda: navcam.access_unit_sinks.remove(self._on_access_unit))
-            if media is not None:
-                # Recorded when nobody watches too (an unattended patrol), at its own rate.
-                await media.record_navcam(self.ctx.config.recorder.video_fps)
+        untap = media.tap_navcam(self._on_access_unit) if media is not None else None
+        if media is not None and untap is not None:
+            self.on_remove(untap)
+            # Recorded when nobody watches too (an unattended patrol), at its own rate.
+            await media.record_navcam(self.ctx.config.recorder.video_fps)
         self._subscribe_all()
         self._log(LOG_INFO, "recorder", "recording started")
         period = 1.0 / self.ctx.config.recorder.telemetry_hz
@@ -204,7 +203,7 @@ class PlatformRecorder(Actor):
 
     def _on_fix(self, fix: GpsFix) -> None:
         now = time.time_ns()
-        sigma = fix.hdop * 2.5 if fix.hdop is not None else None
+        sigma = fix.hdop * HDOP_TO_SIGMA_M if fix.hdop is not None else None
         self.writer.submit(
             self.index[schemas.GPS.topic],
             now,
@@ -250,11 +249,8 @@ class PlatformRecorder(Actor):
         )
 
     def _state(self, what: str, state: str, station: str | None, reason: str, level: int) -> None:
-        self._submit(
-            schemas.STATE,
-            {"what": what, "state": state, "station": station, "reason": reason},
-            schemas.encode_json,
-        )
+        change = StateChange(what, state, station, reason)
+        self._submit(schemas.STATE, change, StateChange.encode)
         by = f" ({station})" if station else ""
         self._log(level, what, f"{what} {state}{by}{': ' + reason if reason else ''}")
 
@@ -312,8 +308,9 @@ class PlatformRecorder(Actor):
         for cls in SECTIONS:
             value = snapshot.get(cls)
             if isinstance(value, Section):
-                spec = schemas.TELEMETRY[cls]
-                self.writer.submit(self.index[spec.topic], now, value, schemas.encode_section)
+                # Encoded on the writer thread, as Foxglove live's (the shared projection).
+                spec = projection.section_channel(cls)
+                self.writer.submit(self.index[spec.topic], now, value, projection.encode_section)
         autonomy = snapshot.get(Autonomy)
         if isinstance(autonomy, Autonomy) and autonomy.map_rev != self._map_rev:
             self._map_rev = autonomy.map_rev

@@ -32,18 +32,17 @@ from foxglove.websocket import ChannelView, Client, ServerListener
 from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.codecs.jsonrpc import RpcError
-from brasidas.codecs.telemetry_schema import BY_NAME
-from brasidas.messages import CommandSent, PlatformLink, StationNotification
-from brasidas.recording import schemas
-from brasidas.recording.schemas import AUTONOMY_VELOCITY, TELEOP_VELOCITY, ChannelSpec
+from brasidas.codecs.telemetry_schema import Autonomy, Section, Snapshot
+from brasidas.messages import CommandSent, PlatformLink, StationNotification, TelemetrySnapshot
+from brasidas.recording import projection, schemas
+from brasidas.recording.projection import StateChange
+from brasidas.recording.schemas import ChannelSpec
 from stationd.context import StationContext
 from stationd.foxglove_guard import UPSTREAM_HOST, OriginGuard, guard_for
 from stationd.video_feed import HEADER, Viewer, pump
 
 _LOGGER = logging.getLogger(__name__)
 
-POLL_S = 0.1
-"""How often the telemetry links are read (the stream's 5 Hz, twice over)."""
 REPUBLISH_NS = 1_000_000_000
 """An unchanged telemetry section (and what it feeds) is published again this often."""
 PORT_OVERRIDE: int | None = None
@@ -100,11 +99,14 @@ class _PlatformChannels:
         self.channels: dict[str, foxglove.Channel] = {}
         for spec in FED_AT_ONCE:
             self._channel(spec)
-        self.last: dict[str, Any] = {}
-        self.logged_at: dict[str, int] = {}
+        self.pending: Snapshot | None = None
+        """The newest snapshot from the station's telemetry, not yet projected."""
+        self.previous: Snapshot | None = None
+        """The snapshot projected last."""
+        self.logged_at: dict[type[Section], int] = {}
         """When each telemetry section was last published (ns): re-published every
         :data:`REPUBLISH_NS` unchanged, so a client that subscribes later gets it too."""
-        self.states: dict[str, tuple[str, str | None, str]] = {}
+        self.states: dict[str, StateChange] = {}
         self.map_rev: int | None = None
         self.map_data: bytes | None = None
         """The area map last published: again to each new subscriber (it changes rarely)."""
@@ -129,13 +131,12 @@ class _PlatformChannels:
     def log(self, spec: ChannelSpec, data: bytes, time_ns: int) -> None:
         self._channel(spec).log(data, log_time=time_ns)
 
-    def state(self, what: str, state: str, station: str | None, reason: str, now: int) -> None:
+    def state(self, change: StateChange, now: int) -> None:
         """A ``/state`` change, as the recorder writes it; nothing when it did not change."""
-        if self.states.get(what) == (state, station, reason):
+        if self.states.get(change.what) == change:
             return
-        self.states[what] = (state, station, reason)
-        change = {"what": what, "state": state, "station": station, "reason": reason}
-        self.log(schemas.STATE, schemas.encode_json(change), now)
+        self.states[change.what] = change
+        self.log(schemas.STATE, change.encode(), now)
 
     def close(self) -> None:
         if self.video_task is not None:
@@ -157,6 +158,8 @@ class FoxgloveLive(Actor):
         self.serving = asyncio.Event()
         self.platforms: dict[str, _PlatformChannels] = {}
         self.video_units = 0
+        self._wake = asyncio.Event()
+        """Set when a platform's telemetry has a snapshot not yet projected."""
         self._context: foxglove.Context | None = None
         self._server: Any = None
         self.guard: OriginGuard | None = None
@@ -194,11 +197,13 @@ class FoxgloveLive(Actor):
         self.subscribe(topics.COMMAND_SENT, self._on_command)
         for platform_id in list(self.ctx.connections):
             self._add(platform_id)
+        self.subscribe(topics.TELEMETRY_SNAPSHOTS, self._on_snapshot)
         try:
             while True:
-                await asyncio.sleep(POLL_S)
+                await self._wake.wait()
+                self._wake.clear()
                 for platform in list(self.platforms.values()):
-                    await self._poll(platform)
+                    await self._project(platform)
         finally:
             for platform in self.platforms.values():
                 platform.close()
@@ -258,79 +263,37 @@ class FoxgloveLive(Actor):
             now = time.time_ns()
             platform.log(schemas.COMMANDS, schemas.encode_command(sent.command), now)
 
-    async def _poll(self, platform: _PlatformChannels) -> None:
-        try:
-            report = await self.ctx.api.call_local(
-                "get_telemetry", platform_id=platform.platform_id
-            )
-        except (RpcError, ConnectionError, TimeoutError):
-            return
-        snapshot = report.get("snapshot") if isinstance(report, dict) else None
-        if not isinstance(snapshot, dict):
+    def _on_snapshot(self, message: TelemetrySnapshot) -> None:
+        platform = self.platforms.get(message.platform_id)
+        if platform is not None:
+            platform.pending = message.snapshot
+            self._wake.set()
+
+    async def _project(self, platform: _PlatformChannels) -> None:
+        """The newest snapshot onto the channels (the shared projection): what changed, and
+        every :data:`REPUBLISH_NS` what did not, so a client that subscribes later gets it."""
+        snapshot, platform.pending = platform.pending, None
+        if snapshot is None:
             return
         now = time.time_ns()
-        for name, section in snapshot.items():
-            cls = BY_NAME.get(name)
-            if cls is None or not isinstance(section, dict):
-                continue
-            changed = platform.last.get(name) != section
-            if not changed and now - platform.logged_at.get(name, 0) < REPUBLISH_NS:
-                continue
-            platform.last[name] = section
-            platform.logged_at[name] = now
-            if changed:
-                self._states(platform, name, section, now)
-            platform.log(schemas.telemetry_channel(cls), schemas.encode_json(section), now)
-            if self._derived(platform, name, section, now):
-                await self._map(platform)
-
-    def _derived(
-        self, platform: _PlatformChannels, name: str, section: dict[str, Any], now: int
-    ) -> bool:
-        """The well-known channels a section feeds (positions, the route); True when the
-        area map changed."""
-        lat, lon = section.get("lat"), section.get("lon")
-        if name == "gps" and section.get("fix") and lat is not None and lon is not None:
-            sigma = section["hdop"] * 2.5 if section.get("hdop") is not None else None
-            data = schemas.encode_location(now, lat, lon, section.get("alt"), sigma)
-            platform.log(schemas.GPS, data, now)
-        elif name == "pose" and lat is not None and lon is not None:
-            data = schemas.encode_location(now, lat, lon, None, section.get("sigma_m"))
-            platform.log(schemas.POSE, data, now)
-        elif name == "motion":
-            # The motion section's velocity is the last motor command the arbiter published;
-            # its mode says which source it came from (the override's $PVEL, or cmd_vel).
-            linear, angular = float(section.get("linear", 0.0)), float(section.get("angular", 0.0))
-            data = schemas.encode_velocity(linear, angular)
-            platform.log(schemas.MOTOR_COMMAND, data, now)
-            source = TELEOP_VELOCITY if section.get("mode") == "teleop" else AUTONOMY_VELOCITY
-            platform.log(source, data, now)
-        elif name == "autonomy":
-            path = [(float(p[0]), float(p[1])) for p in section.get("path", ()) if len(p) >= 2]
-            platform.log(schemas.ROUTE, schemas.encode_path(path), now)
-            if section.get("map_rev") != platform.map_rev:
-                platform.map_rev = section.get("map_rev")
-                return True
-        return False
-
-    def _states(
-        self, platform: _PlatformChannels, name: str, section: dict[str, Any], now: int
-    ) -> None:
-        """The ``/state`` changes a changed section shows (the recorder's, from telemetry)."""
-        if name == "failsafe":
-            reason = str(section.get("reason", ""))
-            platform.state("failsafe", str(section.get("step", "")), None, reason, now)
-            holder = section.get("controller")
-            platform.state("control", "held" if holder else "free", holder, "", now)
-        elif name == "override":
-            engaged = "engaged" if section.get("engaged") else "disengaged"
-            platform.state("override", engaged, section.get("station"), "", now)
-        elif name == "streams":
-            for stream, state in (section.get("states") or {}).items():
-                platform.state(f"stream:{stream}", str(state), None, "", now)
-        elif name == "autonomy":
-            reason = str(section.get("reason", ""))
-            platform.state("patrol", str(section.get("state", "")), None, reason, now)
+        again = frozenset(
+            cls for cls in snapshot.sections if now - platform.logged_at.get(cls, 0) >= REPUBLISH_NS
+        )
+        messages, changes = projection.channel_messages(
+            platform.previous, snapshot, now, again=again
+        )
+        for value, old in projection.changed_sections(platform.previous, snapshot):
+            if value != old or type(value) in again:
+                platform.logged_at[type(value)] = now
+        platform.previous = snapshot
+        for change in changes:
+            platform.state(change, now)
+        for message in messages:
+            platform.log(message.spec, message.data, message.time_ns)
+        autonomy = snapshot.get(Autonomy)
+        if autonomy is not None and autonomy.map_rev != platform.map_rev:
+            platform.map_rev = autonomy.map_rev
+            await self._map(platform)
 
     async def _map(self, platform: _PlatformChannels) -> None:
         with contextlib.suppress(RpcError, ConnectionError, TimeoutError):

@@ -24,7 +24,7 @@ from brasidas.codecs.telemetry_schema import (
     snapshot_to_json,
 )
 from brasidas.config import TelemetryReceiverSection
-from brasidas.messages import StationNotification
+from brasidas.messages import StationNotification, TelemetrySnapshot
 from stationd.telemetry.stats import LinkStats
 
 _LOGGER = logging.getLogger(__name__)
@@ -51,6 +51,7 @@ class TelemetryLink(asyncio.DatagramProtocol):
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
         on_controller: Callable[[str | None], None] = lambda _controller: None,
+        on_snapshot: Callable[[TelemetrySnapshot], None] = lambda _snapshot: None,
     ) -> None:
         self.platform_id = platform_id
         self.decoder = TelemetryDecoder(platform_id, session_key)
@@ -71,6 +72,9 @@ class TelemetryLink(asyncio.DatagramProtocol):
         self.on_controller = on_controller
         """Called with the station holding control whenever a datagram says who does (the
         platform pushes one at once when control changes hands)."""
+        self.on_snapshot = on_snapshot
+        """Called with the merged snapshot after every accepted datagram (published on the
+        station's bus: what Foxglove live projects)."""
         self._clock = clock
         self._wall_clock = wall_clock
         self.transport: asyncio.DatagramTransport | None = None
@@ -106,6 +110,9 @@ class TelemetryLink(asyncio.DatagramProtocol):
         failsafe = snapshot.get(Failsafe)
         if failsafe is not None:
             self.on_controller(failsafe.controller)
+        # A copy: the link keeps merging into its own dict.
+        merged = Snapshot(dict(self.sections))
+        self.on_snapshot(TelemetrySnapshot(self.platform_id, merged, int(self._wall_clock() * 1e9)))
         return True
 
     def tick(self, now: float | None = None) -> list[Change]:

@@ -96,6 +96,7 @@ class TelemetryReceiver(Actor):
             connection.session_key,
             self.ctx.config.telemetry,
             lambda note: self.bus.publish(topics.STATION_NOTIFICATIONS, note),
+            on_snapshot=lambda snapshot: self.bus.publish(topics.TELEMETRY_SNAPSHOTS, snapshot),
         )
         link.stats.start(time.monotonic())
         worker = _Worker(connection, link)
