@@ -3,6 +3,7 @@
 // one import and one start call here (and its markup in index.html).
 
 import { startControls } from "./controls.js";
+import { startGoTo } from "./goto.js";
 import { startInstruments } from "./instruments.js";
 import { startLayout } from "./layout.js";
 import { startMapFiles } from "./mapfiles.js";
@@ -28,6 +29,7 @@ startRecordings();
 startSafety();
 startVideoLink();
 startToolbar();
+startGoTo();
 
 // What tests and benchmarks read (the page's CSP allows no eval of their own).
 window.navcam = {
