@@ -6,10 +6,12 @@ through ``brasidas-station goto ID LAT,LON``."""
 
 from __future__ import annotations
 
+import asyncio
 import math
 import re
 from typing import Any
 
+import pytest
 import test_web_console_honesty as honesty
 from conftest import wait_until
 from support.cli import run_cli
@@ -136,3 +138,50 @@ async def test_the_goto_command_drives_there_and_says_why_not(
     assert (await station.ctx.api.call_local("patrol_get", platform_id="web-rover"))[
         "waypoints"
     ] == len(shown["route"])
+
+
+def bearing(a: tuple[float, float], b: tuple[float, float]) -> float:
+    north = (b[0] - a[0]) * 111_320
+    east = (b[1] - a[1]) * 111_320 * math.cos(math.radians(a[0]))
+    return math.degrees(math.atan2(east, north)) % 360
+
+
+async def test_home_is_in_telemetry_on_the_map_and_in_the_toolbar(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes, browser: Any
+) -> None:
+    """Home is the first fix until the route brings its own (a mission file's); the map marks
+    it and the toolbar says how far and which way it is from the platform."""
+    from playwright.async_api import expect
+
+    await rover(platform_factory, fleet_key, station)
+    page = await console(browser, station, "web-rover")
+    home_pill = page.get_by_label("home", exact=True)
+    await expect(home_pill).to_have_text(re.compile(r"^⌂ \d+ m \d+°$"), timeout=15_000)
+    report = await station.ctx.api.call_local("get_telemetry", platform_id="web-rover")
+    first_fix = report["snapshot"]["autonomy"]["home"]
+    assert len(first_fix) == 2, report["snapshot"]["autonomy"]
+    await expect(page.locator("#map .map-flag.home")).to_have_count(1)
+
+    # A route with a home 30 m south-west of the first fix: that is home now.
+    home = (first_fix[0] - 21 / 110_574, first_fix[1] - 21 / (111_320 * math.cos(0.6622)))
+    connection = await station.ctx.connection("web-rover")
+    shown = await station.ctx.api.call_local("map_get", platform_id="web-rover")
+    await connection.call(
+        "set_waypoints", waypoints=[[w["lat"], w["lon"]] for w in shown["route"]], home=list(home)
+    )
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + 10
+    while True:
+        snapshot = (await station.ctx.api.call_local("get_telemetry", platform_id="web-rover"))[
+            "snapshot"
+        ]
+        if snapshot["autonomy"]["home"] == pytest.approx(list(home), abs=1e-7):
+            break
+        assert loop.time() < deadline, snapshot["autonomy"]
+        await asyncio.sleep(0.1)
+    here = (snapshot["pose"]["lat"], snapshot["pose"]["lon"])
+    away, towards = metres(here, home), bearing(here, home)
+    assert 25 < away < 35 and 200 < towards < 250, (away, towards)
+    await expect(home_pill).to_have_text(re.compile(r"^⌂ (2[5-9]|3[0-5]) m 2[0-4]\d°$"))
+    shown_m = float(await home_pill.get_attribute("data-metres") or "nan")
+    assert shown_m == pytest.approx(away, abs=2.0)

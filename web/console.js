@@ -4,6 +4,7 @@
 
 import { startControls } from "./controls.js";
 import { startGoTo } from "./goto.js";
+import { startHome } from "./home.js";
 import { startInstruments } from "./instruments.js";
 import { startLayout } from "./layout.js";
 import { startMapFiles } from "./mapfiles.js";
@@ -30,6 +31,7 @@ startSafety();
 startVideoLink();
 startToolbar();
 startGoTo();
+startHome();
 
 // What tests and benchmarks read (the page's CSP allows no eval of their own).
 window.navcam = {

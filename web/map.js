@@ -368,11 +368,14 @@ export class PlatformMap {
   flag(className, point, title) {
     if (!this.available) return;
     this.flags ??= new Map();
-    this.flags.get(className)?.remove();
+    const at = point && this.origin ? this.local(point[0], point[1]) : null;
+    const drawn = this.flags.get(className);
+    if (drawn && at && drawn.options.title === title) { drawn.setLatLng(at); return; } // each report
+    drawn?.remove();
     this.flags.delete(className);
-    if (!point || !this.origin) return;
+    if (!at) return;
     const icon = L.divIcon({ html: "", className: `map-flag ${className}`, iconSize: [16, 16], iconAnchor: [8, 8] });
-    this.flags.set(className, L.marker(this.local(point[0], point[1]), { icon, title, alt: title, keyboard: false, interactive: false }).addTo(this.map));
+    this.flags.set(className, L.marker(at, { icon, title, alt: title, keyboard: false, interactive: false }).addTo(this.map));
   }
 
   /** [lat, lon] of a map position (local metres). */
