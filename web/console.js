@@ -5,6 +5,7 @@
 import { startControls } from "./controls.js";
 import { startGoTo } from "./goto.js";
 import { startHome } from "./home.js";
+import { startTiles } from "./tiles.js";
 import { startInstruments } from "./instruments.js";
 import { startLayout } from "./layout.js";
 import { startMapFiles } from "./mapfiles.js";
@@ -32,6 +33,7 @@ startVideoLink();
 startToolbar();
 startGoTo();
 startHome();
+startTiles();
 
 // What tests and benchmarks read (the page's CSP allows no eval of their own).
 window.navcam = {
