@@ -384,6 +384,19 @@ def cmd_patrol(args: argparse.Namespace, config: StationConfig) -> int:
     return 0
 
 
+def cmd_goto(args: argparse.Namespace, config: StationConfig) -> int:
+    """``goto ID LAT,LON``: drive there through the platform's planner and stop."""
+    try:
+        latitude, longitude = (float(part) for part in args.point.strip().split(","))
+    except ValueError:
+        raise CliError(f"{args.point.strip()!r}: give the point as LAT,LON") from None
+    answer = api_call(config, "goto", platform_id=args.id, latitude=latitude, longitude=longitude)
+    _print(
+        args, answer, lambda v: f"going to {latitude:.7f}, {longitude:.7f}\n" + _describe_patrol(v)
+    )
+    return 0
+
+
 def cmd_audio(args: argparse.Namespace, config: StationConfig) -> int:
     from stationd.intercom import run_audio
 
@@ -513,6 +526,7 @@ COMMANDS: dict[str, Callable[[argparse.Namespace, StationConfig], int]] = {
     "map": cmd_map,
     "route": cmd_route,
     "patrol": cmd_patrol,
+    "goto": cmd_goto,
     "arm": cmd_arming,
     "disarm": cmd_arming,
     "stop": cmd_arming,
@@ -686,6 +700,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("patrol", parents=[common], help="the patrol's state; start or stop it")
     p.add_argument("id")
     p.add_argument("action", nargs="?", choices=["start", "stop"])
+    p = sub.add_parser(
+        "goto",
+        parents=[common],
+        help="drive to LAT,LON through the planner and stop there (patrol start resumes)",
+    )
+    p.add_argument("id")
+    p.add_argument("point", metavar="LAT,LON")
     p = sub.add_parser(
         "logs", parents=[common], help="a platform's recordings; 'get NAME' downloads one"
     )

@@ -17,6 +17,7 @@ from brasidas.config import ConfigError, ConsoleSection, StationConfig, StationS
 from brasidas.limits import STATION_API_MAX_BYTES
 from brasidas.rpc import ADMISSION, add_rpc_routes, serve_app_sites
 from stationd.context import StationContext
+from stationd.tiles import add_tile_routes
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -94,6 +95,7 @@ class StationDaemon(Daemon):
         add_rpc_routes(self.app, self.ctx.api, "/api/rpc", API_MAX_BYTES, local_hosts=local_hosts)
         self.app.router.add_get("/api/telemetry-schema.json", _telemetry_schema)
         _add_console_routes(self.app)
+        add_tile_routes(self.app, console)
         station = self.config.station
         port, *tls_ports = await serve_app_sites(
             self.app,

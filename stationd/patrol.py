@@ -19,6 +19,7 @@ METHODS = (
     "patrol_get",
     "patrol_start",
     "patrol_stop",
+    "goto",
 )
 
 
@@ -56,6 +57,12 @@ class PatrolApi:
 
     async def api_patrol_stop(self, call: CallContext, platform_id: str) -> Any:
         return await self._call(platform_id, "patrol_stop")
+
+    async def api_goto(
+        self, call: CallContext, platform_id: str, latitude: Any, longitude: Any
+    ) -> Any:
+        """Drive to one point through the platform's planner and stop there (the route kept)."""
+        return await self._call(platform_id, "go_to", latitude=latitude, longitude=longitude)
 
 
 async def async_setup(ctx: StationContext) -> None:

@@ -3,6 +3,9 @@
 // one import and one start call here (and its markup in index.html).
 
 import { startControls } from "./controls.js";
+import { startGoTo } from "./goto.js";
+import { startHome } from "./home.js";
+import { startTiles } from "./tiles.js";
 import { startInstruments } from "./instruments.js";
 import { startLayout } from "./layout.js";
 import { startMapFiles } from "./mapfiles.js";
@@ -28,6 +31,9 @@ startRecordings();
 startSafety();
 startVideoLink();
 startToolbar();
+startGoTo();
+startHome();
+startTiles();
 
 // What tests and benchmarks read (the page's CSP allows no eval of their own).
 window.navcam = {

@@ -356,6 +356,28 @@ export class PlatformMap {
     };
   }
 
+  /** The next click on the map picks a point: ``onPick([lat, lon])``; returns stop(). */
+  pickPoint(onPick) {
+    if (!this.available) return () => {};
+    const picked = (event) => { if (this.origin) onPick(this.geo(event.latlng)); };
+    this.map.on("click", picked);
+    return () => this.map.off("click", picked);
+  }
+
+  /** A flag at [lat, lon] (``className``: its look), or none (null). One per class. */
+  flag(className, point, title) {
+    if (!this.available) return;
+    this.flags ??= new Map();
+    const at = point && this.origin ? this.local(point[0], point[1]) : null;
+    const drawn = this.flags.get(className);
+    if (drawn && at && drawn.options.title === title) { drawn.setLatLng(at); return; } // each report
+    drawn?.remove();
+    this.flags.delete(className);
+    if (!at) return;
+    const icon = L.divIcon({ html: "", className: `map-flag ${className}`, iconSize: [16, 16], iconAnchor: [8, 8] });
+    this.flags.set(className, L.marker(at, { icon, title, alt: title, keyboard: false, interactive: false }).addTo(this.map));
+  }
+
   /** [lat, lon] of a map position (local metres). */
   geo(latlng) {
     const [lat0, lon0] = this.origin;

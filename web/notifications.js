@@ -14,7 +14,10 @@ const SEVERE = /^(link_lost|control_taken|battery_critical|stream_failed|tempera
 const MAX_ITEMS = 30;
 // Routine events are not warnings: a patrol planning its path after a start or a takeover.
 // Listed as information, never flashed, and their clearing is not a note of its own.
-const ROUTINE = (note) => note.name === "patrol_holding" && /planning/i.test(note.message ?? "");
+// A video stream paused or resumed (the page's own note, from the streams section) likewise.
+const ROUTINE = (note) => (note.name === "patrol_holding" && /planning/i.test(note.message ?? ""))
+  || /^video_(paused|resumed)$/.test(note.name);
+const streamStates = new Map(); // "platform/stream" → its last state
 
 function noteWarning(note) {
   const key = `${note.platform_id}/${note.name}`;
@@ -88,11 +91,30 @@ function addNotification(note) {
   while (list.children.length > MAX_ITEMS) list.lastElementChild.remove();
 }
 
+/** A note when a video stream pauses (frozen on purpose, not lost) and when it plays again. */
+function noteStreamPauses(platformId, report) {
+  for (const [name, now] of Object.entries(report?.snapshot?.streams?.states ?? {})) {
+    const key = `${platformId}/${name}`;
+    const before = streamStates.get(key);
+    streamStates.set(key, now);
+    if (before === undefined || before === now || (now !== "paused" && before !== "paused")) continue;
+    const paused = now === "paused";
+    addNotification({
+      platform_id: platformId,
+      name: paused ? "video_paused" : "video_resumed",
+      message: paused ? `${name} paused: the picture is held (start resumes it)` : `${name} ${now} again`,
+      time: Date.now() / 1000,
+      active: true,
+    });
+  }
+}
+
 export function startNotifications() {
   subscribe("telemetry", (platformId) => {
     // The report lists the warnings active now, with today's wording: one missing there has
     // cleared (a clearing notification can be missed while the socket reconnects).
     const report = state.telemetry.get(platformId)?.report;
+    noteStreamPauses(platformId, report);
     const active = new Set((report?.warnings ?? []).map((warning) => warning.name));
     for (const [key, { note }] of warnings) {
       if (note.platform_id === platformId && !active.has(note.name)) warnings.delete(key);

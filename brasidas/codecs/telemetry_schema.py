@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
-SCHEMA_VERSION = 12
+SCHEMA_VERSION = 13
 """Version of the schema (and the datagram layout); the first byte of every datagram.
 4: the failsafe, speed_cap and turret sections, the velocity link's ``held`` drops.
 5: the lights' ``errors`` (GPIO lines), the turret's ``streams``.
@@ -33,7 +33,8 @@ SCHEMA_VERSION = 12
 8: the admission section (strangers refused and closed, issue 19).
 9: the recorder section (recording, or stopped and why; its drops).
 11: the arming section (armed, pre-arm reasons, autostart countdown, last stop; issue 27).
-12: the perception section (the lidar: scan rate, nearest obstacle, speed limit and why)."""
+12: the perception section (the lidar: scan rate, nearest obstacle, speed limit and why).
+13: the autonomy section's ``home`` (the route's home, else the first fix; issue 31)."""
 ERROR_KEY = "!"
 """A section's wire map holding only this key is that section's error."""
 STALE_PERIODS = 3.0
@@ -405,6 +406,12 @@ class Autonomy(Section):
     )
     map_error: str = field(
         default="", metadata=wire("me", doc="why the stored map (map.file) was refused at start")
+    )
+    home: tuple[float, ...] = field(
+        default=(),
+        metadata=wire(
+            "hm", unit="°", doc="[lat, lon]: the route's home, else the first fix; empty: none yet"
+        ),
     )
 
 

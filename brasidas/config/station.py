@@ -184,6 +184,13 @@ class ConsoleSection:
     tls_client_ca: str = ""
     """PEM CA bundle: when set, HTTPS clients must present a certificate it signed (the local
     API has no login of its own, and it can move the robot)."""
+    tiles: str = ""
+    """The map's offline background (issue 31): an MBTiles file (a path ending .mbtiles) or a
+    tile URL template ("http://tiles.lan/{z}/{x}/{y}.png"), served to the console at
+    /tiles/{z}/{x}/{y}; a URL's tiles are kept in ``tiles_cache`` and served from there
+    offline. Empty: no tiles (the grid, the area image)."""
+    tiles_cache: str = ""
+    """Where a tile URL's tiles are kept. Empty: $XDG_STATE_HOME/brasidas/tiles."""
 
 
 @dataclass(frozen=True)

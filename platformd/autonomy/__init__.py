@@ -11,6 +11,7 @@ from brasidas.autonomy.localization import FilterParameters
 from brasidas.autonomy.patrol import PatrolParameters
 from brasidas.codecs.telemetry_schema import Automation, Autonomy, Pose
 from brasidas.security import state_dir
+from platformd.autonomy.home import Home
 from platformd.autonomy.localization import Localization
 from platformd.autonomy.methods import PatrolMethods
 from platformd.autonomy.patrol import PatrolActor, Storage
@@ -68,15 +69,17 @@ async def async_setup(ctx: PlatformContext) -> None:
     await patrol.load()
     ctx.patrol = patrol
     PatrolMethods(patrol).register(ctx.rpc, ctx.authority)
-    ctx.telemetry.register(Autonomy, lambda: _autonomy(patrol))
+    home = Home(ctx.bus, patrol)
+    ctx.telemetry.register(Autonomy, lambda: _autonomy(patrol, home))
     ctx.telemetry.register(Pose, lambda: _pose(ctx))
     ctx.telemetry.register(Automation, lambda: _automation(ctx))
     ctx.supervisor.start(localization)
     ctx.supervisor.start(patrol)
 
 
-def _autonomy(patrol: PatrolActor) -> Autonomy:
+def _autonomy(patrol: PatrolActor, home: Home) -> Autonomy:
     report = patrol.report
+    where = home.current()
     return Autonomy(
         state=report.state.value,
         enabled=report.enabled,
@@ -91,6 +94,7 @@ def _autonomy(patrol: PatrolActor) -> Autonomy:
         ),
         map_rev=patrol.core.map_revision,
         map_error=patrol.map_error,
+        home=() if where is None else (round(where[0], 7), round(where[1], 7)),
     )
 
 

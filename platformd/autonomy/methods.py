@@ -1,5 +1,5 @@
 """Signaling methods of the patrol: ``load_map``, ``update_map``, ``get_map``,
-``set_waypoints``, ``get_patrol``, ``patrol_start``, ``patrol_stop``.
+``set_waypoints``, ``get_patrol``, ``patrol_start``, ``patrol_stop``, ``go_to``.
 
 A refused map or route is answered -32602 with the reason; the old one stays. Those that
 change the patrol are control methods (issue 13): refused to an observer (CONTROL_REFUSED, the
@@ -15,7 +15,7 @@ from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, Dispatcher, Rpc
 from platformd.authority import Authority
 from platformd.autonomy.patrol import PatrolActor
 
-CONTROL = ("load_map", "update_map", "set_waypoints", "patrol_start", "patrol_stop")
+CONTROL = ("load_map", "update_map", "set_waypoints", "patrol_start", "patrol_stop", "go_to")
 """The methods that change the map, the route or the patrol: the controlling station's."""
 
 
@@ -102,6 +102,25 @@ class PatrolMethods:
             self.actor.start_patrol()
         except RouteError as exc:
             raise RpcError(INVALID_PARAMS, f"cannot start: {exc}") from None
+        return self.actor.report.as_dict()
+
+    async def go_to(
+        self, call: CallContext, latitude: Any, longitude: Any, label: Any = "go to"
+    ) -> dict[str, Any]:
+        """Drive to one point through the planner (around keep-outs) and stop there: the
+        console's click on the map, the CLI's ``goto``; arms through the pre-arm checks as a
+        start does. The route is kept: ``patrol_start`` goes back to it."""
+        point = [latitude, longitude]
+        if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in point):
+            raise RpcError(INVALID_PARAMS, "go to refused: latitude and longitude are numbers")
+        if not (-90 <= latitude <= 90 and -180 <= longitude <= 180):
+            raise RpcError(INVALID_PARAMS, f"go to refused: {latitude}, {longitude} is no place")
+        if not isinstance(label, str) or not 0 < len(label) <= 40:
+            raise RpcError(INVALID_PARAMS, "go to refused: 'label' is a short text")
+        try:
+            await self.actor.go_to_point(float(latitude), float(longitude), label)
+        except RouteError as exc:
+            raise RpcError(INVALID_PARAMS, f"go to refused: {exc}") from None
         return self.actor.report.as_dict()
 
     async def patrol_stop(self, call: CallContext) -> dict[str, Any]:

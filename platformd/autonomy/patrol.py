@@ -513,6 +513,11 @@ class PatrolActor(Actor):
         self.routes.save(route, area.load_id)
         return route
 
+    @property
+    def own_route(self) -> Route:
+        """The patrol's own route: the one kept aside while driving to one point."""
+        return self.core.route if self.detour is None else self._kept_route
+
     async def go_to_point(self, latitude: float, longitude: float, label: str) -> Route:
         """Drive to one point through the planner (around keep-outs) and stop there: a ground
         station's GUIDED go-to or RTL. The route is kept, not stored over: ``start_patrol``
