@@ -74,3 +74,16 @@ def test_every_screenshot_is_linked_from_the_docs() -> None:
     text = "\n".join(page.read_text(encoding="utf-8") for page in PAGES)
     unlinked = [png.name for png in sorted((ROOT / "docs").glob("*.png")) if png.name not in text]
     assert unlinked == []
+
+
+def test_history_lives_in_the_changelog() -> None:
+    """The manual says what is; which issue changed it is CHANGELOG.md's business."""
+    generated = {docs_reference.DOCS / name for name in docs_reference.PAGES}
+    dated = [
+        f"{page.relative_to(ROOT)}:{number}"
+        for page in PAGES
+        if page.name != "CHANGELOG.md" and page not in generated
+        for number, line in enumerate(page.read_text(encoding="utf-8").splitlines(), 1)
+        if re.search(r"\bissue \d+|before the fix", line, flags=re.I)
+    ]
+    assert dated == []
