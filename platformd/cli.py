@@ -34,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="brasidas-platform", description="Brasidas platform daemon (runs on the robot)."
     )
     _add_options(parser, defaults=True)
-    # The same options after the command too (`config --sim` as the README writes it); there
+    # The same options after the command too (`config --sim` as the docs write it); there
     # they default to nothing, so they override only what they give.
     after = argparse.ArgumentParser(add_help=False)
     _add_options(after, defaults=False)

@@ -32,7 +32,7 @@ async def api_call_async(config: StationConfig, method: str, **params: Any) -> A
     if len(request) > STATION_API_MAX_BYTES:
         raise CliError(
             f"{method}: the request is {len(request)} bytes, over the limit of "
-            f"{STATION_API_MAX_BYTES} bytes for one call (a map or a route; README: Limits)"
+            f"{STATION_API_MAX_BYTES} bytes for one call (a map or a route; docs/operator-guide.md: Limits)"
         )
     timeout = aiohttp.ClientTimeout(total=station.connect_timeout * 2 + 2)
     try:

@@ -266,7 +266,7 @@ def _read_file(name: str) -> str:
         size = Path(name).stat().st_size if Path(name).is_file() else len(data)
         raise CliError(
             f"{name}: {size} bytes, over the limit of {MAX_FILE_BYTES} bytes for a map or "
-            "route file (README: Limits)"
+            "route file (docs/operator-guide.md: Limits)"
         )
     if data.startswith(b"PK\x03\x04"):
         raise CliError(f"{name}: a zip archive (a KMZ?): unzip it and give the .kml inside")

@@ -63,7 +63,7 @@ async def run(args: argparse.Namespace) -> int:
         f"beacon.port={args.beacon_port}",
         "--set",
         f"velocity.port={args.velocity_port}",
-        # The MAVLink endpoint for ground control stations (README "Ground control stations"):
+        # The MAVLink endpoint for ground control stations (docs/integrations.md):
         # on loopback only, so unsigned control costs nothing here.
         "--set",
         "mavlink.enabled=true",

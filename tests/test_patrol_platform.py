@@ -60,7 +60,7 @@ def config(tmp_path: Path, *overrides: str) -> PlatformConfig:
 
 
 RTK = ("sim.gps_receiver=rtk", "autonomy.gps_sigma_m=0.02", "autonomy.gps_jitter_m=0.02")
-"""An RTK-corrected simulated receiver and the keys that tell the platform so (README)."""
+"""An RTK-corrected simulated receiver and the keys that tell the platform so (docs/operator-guide.md)."""
 
 
 def at(east: float, north: float) -> str:

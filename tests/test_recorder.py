@@ -540,7 +540,7 @@ async def test_the_open_files_index_is_freed_at_every_rotation(tmp_path: Path) -
 
 @contextlib.contextmanager
 def tiny_tmpfs(path: Path, size: str) -> Iterator[Path]:
-    """A tmpfs of ``size`` mounted at ``path`` (root: the tests run as root, see README)."""
+    """A tmpfs of ``size`` mounted at ``path`` (root: the tests run as root, see docs/development.md)."""
     path.mkdir()
     mounted = subprocess.run(
         ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)],

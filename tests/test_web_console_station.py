@@ -55,7 +55,7 @@ FAKE_GAMEPAD = """
 })();
 """
 SCREENSHOT = Path(__file__).resolve().parent.parent / "docs" / "console.png"
-"""Kept current in the README: written when BRASIDAS_SCREENSHOT=1."""
+"""The docs' screenshots (docs/operator-guide.md): written when BRASIDAS_SCREENSHOT=1."""
 
 
 @pytest.fixture

@@ -2,7 +2,7 @@
 
 Supports single calls, batches and notifications, and answers the standard errors:
 -32700 parse error, -32600 invalid request, -32601 method not found, -32602 invalid params,
--32603 internal error; plus the application's codes below (README, "The common protocol").
+-32603 internal error; plus the application's codes below (docs/reference/protocol.md).
 """
 
 from __future__ import annotations

@@ -525,7 +525,7 @@ def _udp_target(value: str) -> bool:
 
 @dataclass(frozen=True)
 class MavlinkSection:
-    """The MAVLink 2 endpoint for ground control stations (issue 22; README "Ground control
+    """The MAVLink 2 endpoint for ground control stations (docs/integrations.md, "Ground control
     stations")."""
 
     RULES: ClassVar[tuple[Rule, ...]] = (
@@ -533,7 +533,7 @@ class MavlinkSection:
             "allow_unsigned_control",
             "false unless {section}.host is loopback or "
             "{section}.unsigned_control_off_loopback_i_accept_the_risk is true (anyone who can "
-            "send the endpoint a datagram could then drive the robot: README, Signing)",
+            "send the endpoint a datagram could then drive the robot: docs/integrations.md, Signing)",
             lambda s: (
                 not s.allow_unsigned_control
                 or _is_loopback(s.host)
@@ -579,7 +579,7 @@ class MavlinkSection:
     unless ``host`` is loopback or the next key is set."""
     unsigned_control_off_loopback_i_accept_the_risk: bool = False
     """Let ``allow_unsigned_control`` work on a non-loopback ``host``: every consequence is in
-    the README (Signing); never on a mesh others can reach."""
+    docs/integrations.md (Signing); never on a mesh others can reach."""
     camera: bool = True
     """Announce the NavCam as a MAVLink camera component (id 100) with its video stream."""
     skip_unsupported: bool = False
