@@ -36,8 +36,9 @@ long enough for two or three tries on a 50 ms round trip. Then it is dropped, an
 depayloader asks for a keyframe."""
 RTX_DELAY_MS = 0
 """Ask for a missing packet as soon as the gap shows."""
-RTX_MAX_RETRIES = 3
-"""Asks per missing packet. Unlimited (the default), a packet is asked for every few ms for
+RTX_MAX_RETRIES = 5
+"""Asks per missing packet (at 10 % loss each way a try fails 19 % of the time: 5 tries leave
+0.03 % unrepaired). Unlimited (the default), a packet is asked for every few ms for
 the whole budget: measured at 10 % loss, ~4 retransmissions per lost packet, and behind a
 capacity limit the retransmissions filled the link (congestion collapse)."""
 FEEDBACK_INTERVAL_NS = 20_000_000
