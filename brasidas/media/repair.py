@@ -36,6 +36,11 @@ long enough for two or three tries on a 50 ms round trip. Then it is dropped, an
 depayloader asks for a keyframe."""
 RTX_DELAY_MS = 0
 """Ask for a missing packet as soon as the gap shows."""
+RTX_MAX_RETRIES = 5
+"""Asks per missing packet (at 10 % loss each way a try fails 19 % of the time: 5 tries leave
+0.03 % unrepaired). Unlimited (the default), a packet is asked for every few ms for
+the whole budget: measured at 10 % loss, ~4 retransmissions per lost packet, and behind a
+capacity limit the retransmissions filled the link (congestion collapse)."""
 FEEDBACK_INTERVAL_NS = 20_000_000
 """Regular receiver reports no closer than 20 ms: what the link really carries (~4 kB/s)."""
 FEEDBACK_BYTES_PER_S = 64000.0
@@ -187,6 +192,10 @@ def add_repair_receiver(
     def new_jitterbuffer(_bin: Any, jitterbuffer: Any, _session: int, _ssrc: int) -> None:
         # Ask for a missing packet at once (a reordered one costs a NACK, a wait costs a frame).
         jitterbuffer.set_property("rtx-delay", RTX_DELAY_MS)
+        # A gap shows when the next packet arrives: no guessing when a packet is "due" (with
+        # no delay, every packet a queue held back a little was asked for again).
+        jitterbuffer.set_property("rtx-next-seqnum", False)
+        jitterbuffer.set_property("rtx-max-retries", RTX_MAX_RETRIES)
         with receiver._lock:
             receiver.jitterbuffers.append(jitterbuffer)
 
