@@ -21,7 +21,10 @@ def _run(drive: SimulatedDrive, odometry: LidarOdometry, scans: int) -> list[tup
         truth = Pose2D(step.truth.x_m, step.truth.y_m, step.truth.yaw_rad)
         start = start or truth
         result = odometry.update(
-            scan_points(step.scan), step.time, step.speed_command_mps, step.gyro_rad_s
+            scan_points(step.scan, step.speed_command_mps, step.gyro_rad_s),
+            step.time,
+            step.speed_command_mps,
+            step.gyro_rad_s,
         )
         out.append((result.pose, start.between(truth)))
     return out
