@@ -34,6 +34,7 @@ import math
 import os
 import random
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -186,7 +187,9 @@ def _localization(model: str = "ld19", *, spoofing: bool = True) -> dict[str, An
     odometry = LidarOdometry()
     fusion = PoseFusion()
     fusion.heading_rad = 0.0  # the simulated vehicle starts facing east
-    phases = [("warmup", WARMUP_S, None)]
+    phases: list[tuple[str, float, Callable[[float], tuple[float, float]] | None]] = [
+        ("warmup", WARMUP_S, None)
+    ]
     if spoofing:
         phases += [
             ("outage", 60.0, None),
