@@ -33,6 +33,7 @@ from brasidas.perception.messages import Proximity, RobotScan
 from brasidas.perception.proximity import Geometry, proximity, silent, to_robot
 from platformd.context import PlatformContext, SerialDevice
 from platformd.gps import _streams
+from platformd.localization import Localizer
 from platformd.serial_port import OPEN_ERRORS, PortError, PortOpener
 from platformd.sim.lidar import baudrate_of
 
@@ -75,6 +76,8 @@ class LidarReader(Actor):
         self._pending: LidarScan | None = None
         self._wake = asyncio.Event()
         self._worker = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="lidar")
+        self.localizer: Localizer | None = None
+        """The odometry and GPS gate, when ``lidar.odometry``: its figures join the section."""
 
     async def run(self) -> None:
         self.bus.publish(topics.PROXIMITY, self.proximity)  # stopped until the first scan
@@ -228,6 +231,7 @@ class LidarReader(Actor):
             reason=limits.reason,
             obstacles=tuple(obstacles),
             crc_errors=self.decoder.crc_errors,
+            **_localization(self.localizer),
         )
 
     def counters(self) -> dict[str, Any]:
@@ -238,6 +242,19 @@ class LidarReader(Actor):
             "crc_errors": self.decoder.crc_errors,
             "resync_bytes": self.decoder.resync_bytes,
         }
+
+
+def _localization(localizer: Localizer | None) -> dict[str, Any]:
+    if localizer is None:
+        return {"localization": "off"}
+    fused = localizer.fused
+    return {
+        "localization": fused.source if fused is not None else "none",
+        "position_sigma_m": round(fused.sigma_m, 2) if fused is not None else None,
+        "gps_accepted": localizer.fusion.accepted,
+        "gps_rejected": localizer.fusion.rejected,
+        "gps_refusal": localizer.gps_refusal,
+    }
 
 
 def _stopped(limits: Proximity) -> bool:
@@ -262,6 +279,10 @@ async def async_setup(ctx: PlatformContext) -> None:
     ctx.telemetry.add_counters("lidar", reader.counters)
     ctx.telemetry.register(Perception, reader.section)
     ctx.supervisor.start(reader)
+    if config.odometry:
+        reader.localizer = Localizer(ctx.bus, ctx.config.platform.max_speed_kmh / 3.6)
+        ctx.telemetry.add_counters("localization", reader.localizer.counters)
+        ctx.supervisor.start(reader.localizer)
     if config.map_obstacles:
         from platformd import obstacle_zones  # the patrol's temporary keep-outs
 

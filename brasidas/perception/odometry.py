@@ -149,6 +149,9 @@ class LidarOdometry:
 
     def __init__(self, *, min_points: int = 60) -> None:
         self.min_points = min_points
+        self.yaw_slack_rad: float | None = None
+        """How far the registration may turn from the prior's turn (None: PRIOR_SLACK_RAD,
+        for a prior with a gyro)."""
         self.pose = IDENTITY
         self.last_time: float | None = None
         self.keyframe: Pose2D | None = None
@@ -192,7 +195,8 @@ class LidarOdometry:
             max_correspondence_distance=MAX_CORRESPONDENCE_M,
             max_iterations=MAX_ITERATIONS,
         )
-        registered, problem, note = _judge(result, source.size(), prior, guess)
+        slack = self.yaw_slack_rad if self.yaw_slack_rad is not None else PRIOR_SLACK_RAD
+        registered, problem, note = _judge(result, source.size(), prior, guess, slack)
         if problem:
             self.failures += 1
             if self.failures >= RESTART_AFTER:  # lost the local map: start a new one here
@@ -234,7 +238,11 @@ def _new_map() -> small_gicp.GaussianVoxelMap:
 
 
 def _judge(
-    result: small_gicp.RegistrationResult, size: int, prior: Pose2D, guess: Pose2D
+    result: small_gicp.RegistrationResult,
+    size: int,
+    prior: Pose2D,
+    guess: Pose2D,
+    yaw_slack_rad: float,
 ) -> tuple[Pose2D, str, str]:
     """The registered pose, why it cannot be trusted ("" when it can) and a note when the
     prior stood in along a degenerate direction."""
@@ -264,6 +272,6 @@ def _judge(
     distance = math.hypot(prior.x_m, prior.y_m)
     if math.hypot(off.x_m, off.y_m) > PRIOR_SLACK_M + PRIOR_SPEED_ERROR * distance:
         return registered, f"registration {math.hypot(off.x_m, off.y_m):.2f} m off the prior", ""
-    if abs(off.yaw_rad) > PRIOR_SLACK_RAD:
+    if abs(off.yaw_rad) > yaw_slack_rad:
         return registered, f"registration {math.degrees(abs(off.yaw_rad)):.0f}° off the prior", ""
     return registered, "", note
