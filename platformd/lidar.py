@@ -33,7 +33,7 @@ from brasidas.perception.messages import Proximity, RobotScan
 from brasidas.perception.proximity import Geometry, proximity, silent, to_robot
 from platformd.context import PlatformContext, SerialDevice
 from platformd.gps import _streams
-from platformd.localization import Localizer
+from platformd.lidar_localization import Localizer
 from platformd.serial_port import OPEN_ERRORS, PortError, PortOpener
 from platformd.sim.lidar import baudrate_of
 

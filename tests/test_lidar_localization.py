@@ -15,7 +15,7 @@ from brasidas.codecs.telemetry_schema import Perception, Snapshot
 from brasidas.config import TelemetryReceiverSection
 from brasidas.messages import Attitude, GpsFix, Velocity
 from platformd.lidar import _localization
-from platformd.localization import Localizer
+from platformd.lidar_localization import Localizer
 from platformd.sim.drive import MAX_SPEED_MPS, SimulatedDrive, loop_waypoints, street_grid
 
 
