@@ -19,6 +19,7 @@ import concurrent.futures
 import dataclasses
 import logging
 import math
+from pathlib import Path
 from typing import Any
 
 from brasidas import topics
@@ -31,6 +32,7 @@ from brasidas.codecs.telemetry_schema import Perception
 from brasidas.config.lidar import LidarSection
 from brasidas.perception.messages import Proximity, RobotScan
 from brasidas.perception.proximity import Geometry, proximity, silent, to_robot
+from brasidas.security import state_dir
 from platformd.context import PlatformContext, SerialDevice
 from platformd.gps import _streams
 from platformd.lidar_localization import Localizer
@@ -261,6 +263,11 @@ def _stopped(limits: Proximity) -> bool:
     return limits.forward_limit == 0.0 or limits.reverse_limit == 0.0
 
 
+def grid_path(config: LidarSection) -> Path:
+    """Where the occupancy grid is kept (``lidar.grid_file``)."""
+    return Path(config.grid_file).expanduser() if config.grid_file else state_dir() / "grid.npz"
+
+
 def capabilities(config: LidarSection) -> dict[str, Any]:
     return {"model": config.model, "port": config.port, "baudrate": baudrate_of(config)}
 
@@ -280,7 +287,9 @@ async def async_setup(ctx: PlatformContext) -> None:
     ctx.telemetry.register(Perception, reader.section)
     ctx.supervisor.start(reader)
     if config.odometry:
-        reader.localizer = Localizer(ctx.bus, ctx.config.platform.max_speed_kmh / 3.6)
+        reader.localizer = Localizer(
+            ctx.bus, ctx.config.platform.max_speed_kmh / 3.6, grid_path=grid_path(config)
+        )
         ctx.telemetry.add_counters("localization", reader.localizer.counters)
         ctx.supervisor.start(reader.localizer)
     if config.map_obstacles:

@@ -8,6 +8,12 @@ the gyro). ``GPS_FIX`` fixes go through the gate of :mod:`brasidas.perception.fu
 same thread (one owner for the filter). The fusion starts at the first fix that moves fast
 enough (0.5 m/s) to give a course: a heading the platform can trust without a compass.
 
+The scans also build an occupancy grid (:mod:`brasidas.perception.grid`) at the fused pose
+(not while dead reckoning), saved every ``GRID_SAVE_S`` and at stop to ``lidar.grid_file``
+and loaded at start: its anchor becomes the local frame, so the robot's pose and the grid
+it keeps stay in one frame across restarts (R-12). The area map is not involved: reloading
+it (R-5.3.2) leaves the localization as it was.
+
 What it says: the ``perception`` telemetry's localization source and uncertainty, GPS fixes
 accepted and refused, and why GPS is refused now (the annunciator's group 90 warning
 ``GPS_REJECTED``, which the MAVLink endpoint sends as STATUSTEXT).
@@ -20,6 +26,10 @@ import collections
 import concurrent.futures
 import logging
 import math
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
 
 from brasidas import topics
 from brasidas.actor import Actor
@@ -28,8 +38,15 @@ from brasidas.bus import Bus
 from brasidas.clock import Clock, LoopClock
 from brasidas.messages import Attitude, GpsFix, Velocity
 from brasidas.perception.fusion import FusedPose, GpsVerdict, PoseFusion
+from brasidas.perception.grid import GridError, OccupancyGrid
 from brasidas.perception.messages import RobotScan
-from brasidas.perception.odometry import LidarOdometry, OdometryStep, scan_points, wrap
+from brasidas.perception.odometry import (
+    LidarOdometry,
+    OdometryStep,
+    Pose2D,
+    scan_points,
+    wrap,
+)
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -37,6 +54,7 @@ HEADING_SPEED_MPS = 0.5
 """A fix moving at least this fast gives a course good enough to start from."""
 NO_GYRO_YAW_SLACK_RAD = math.radians(15.0)
 """Without an IMU the prior does not know the turn: let the registration find it."""
+GRID_SAVE_S = 30.0
 
 
 class Localizer(Actor):
@@ -44,8 +62,21 @@ class Localizer(Actor):
 
     name = "localization"
 
-    def __init__(self, bus: Bus, max_speed_mps: float, *, clock: Clock | None = None) -> None:
+    def __init__(
+        self,
+        bus: Bus,
+        max_speed_mps: float,
+        *,
+        grid_path: Path | None = None,
+        clock: Clock | None = None,
+    ) -> None:
         super().__init__(bus)
+        self.grid_path = grid_path
+        self.grid: OccupancyGrid | None = None
+        self.grid_error = ""
+        """Why the saved grid was not loaded ("" when it was, or there was none)."""
+        self._grid_saved_at: float | None = None
+        self._grid_dirty = False
         self.max_speed = max_speed_mps
         self.clock: Clock = clock or LoopClock()
         self.odometry = LidarOdometry()
@@ -70,6 +101,7 @@ class Localizer(Actor):
         self.subscribe(topics.ATTITUDE, self._on_attitude)
         self.subscribe(topics.GPS_FIX, self._on_fix)
         loop = asyncio.get_running_loop()
+        await loop.run_in_executor(self._worker, self.load_grid)
         try:
             while True:
                 await self._wake.wait()
@@ -82,7 +114,10 @@ class Localizer(Actor):
                     self._worker, self.process, scan, fixes, self._speed, yaw_rate
                 )
         finally:
-            self._worker.shutdown(wait=False, cancel_futures=True)
+            try:
+                await loop.run_in_executor(self._worker, self.save_grid)
+            finally:
+                self._worker.shutdown(wait=False, cancel_futures=True)
 
     def _on_scan(self, scan: RobotScan) -> None:
         self._scan = scan
@@ -121,6 +156,7 @@ class Localizer(Actor):
         """(Worker thread.) The fixes through the gate, then the scan through the odometry."""
         for fix in fixes:
             self._gps(fix)
+        points: NDArray[np.float64] = np.empty((0, 2))
         if scan is not None:
             self.odometry.yaw_slack_rad = None if yaw_rate is not None else NO_GYRO_YAW_SLACK_RAD
             rate = yaw_rate or 0.0
@@ -131,6 +167,61 @@ class Localizer(Actor):
             self.last = step
             self.fusion.predict(step.delta, step.source, scan.time)
         self.fused = self.fusion.pose() if self.fusion.started else None
+        if scan is not None and self.fused is not None and self.fused.source != "prior":
+            self._map(scan.time, points)
+
+    def _map(self, now: float, points: NDArray[np.float64]) -> None:
+        fused, frame = self.fused, self.frame
+        if fused is None or frame is None:
+            return
+        if self.grid is None:
+            self.grid = OccupancyGrid(frame.latitude, frame.longitude)
+        try:
+            self.grid.integrate(Pose2D(fused.x_m, fused.y_m, fused.yaw_rad), points)
+        except GridError as err:
+            if not self.grid_error:
+                _LOGGER.warning("occupancy grid not updated: %s", err)
+            self.grid_error = str(err)
+            return
+        self._grid_dirty = True
+        if self._grid_saved_at is None:
+            self._grid_saved_at = now
+        elif now - self._grid_saved_at >= GRID_SAVE_S:
+            self._grid_saved_at = now
+            self.save_grid()
+
+    def load_grid(self) -> None:
+        """(Worker thread.) The saved grid, if any: its anchor becomes the local frame."""
+        path = self.grid_path
+        if path is None or not path.exists():
+            return
+        try:
+            grid = OccupancyGrid.load(path)
+        except GridError as err:
+            self.grid_error = str(err)
+            _LOGGER.warning("occupancy grid refused, starting a new one: %s", err)
+            return
+        self.grid = grid
+        self.frame = LocalFrame(grid.latitude, grid.longitude)
+        rows, cols = grid.log_odds.shape
+        _LOGGER.info(
+            "occupancy grid loaded from %s: %d scans, %.0f x %.0f m",
+            path,
+            grid.scans,
+            cols * grid.resolution,
+            rows * grid.resolution,
+        )
+
+    def save_grid(self) -> None:
+        """(Worker thread.) Write the grid if it changed since it was last written."""
+        if self.grid is None or self.grid_path is None or not self._grid_dirty:
+            return
+        try:
+            self.grid.save(self.grid_path)
+        except OSError as err:
+            _LOGGER.warning("occupancy grid not saved to %s: %s", self.grid_path, err)
+            return
+        self._grid_dirty = False
 
     def _gps(self, fix: GpsFix) -> None:
         if self.frame is None:

@@ -65,6 +65,9 @@ class LidarSection:
     odometry: bool = True
     """Lidar odometry (small_gicp) fused with the GPS, whose fixes are refused when they jump or
     drag away from it (spoofing: reported, never followed); about 1.5 ms of CPU a scan."""
+    grid_file: str = ""
+    """The occupancy grid the odometry builds, kept across restarts (R-12). Empty:
+    $XDG_STATE_HOME/brasidas/grid.npz."""
     map_obstacles: bool = True
     """Obstacles seen become temporary keep-outs of the patrol's map, which re-plans around
     them (false: the robot only stops for them)."""
