@@ -13,9 +13,18 @@ motor controller in the loop: its 10 Hz refresh would add up to 100 ms, a fixed 
 - **CPU**: the reader's and analysis's process CPU per scan (the simulator's own casting is
   measured apart and subtracted).
 
+- **localization** (:func:`_localization`, simulated time on a stepped clock, no I/O): the
+  simulated LD19's real frames through the decoder and :func:`to_robot`, the small_gicp lidar
+  odometry and the GPS-gated fusion, against the simulator's ground truth with the GPS
+  simulator's NEO-6M error process, one drive round a street grid in phases: a warm-up with
+  GPS (fused vs GPS-only error), a 60 s GPS outage at 1 m/s (error at its end), honest GPS
+  again, a 30 m spoofed jump (fixes until the first rejection), honest again, a 0.5 m/s
+  spoofed drag (seconds to detection; how far the estimate was pulled); the odometry's CPU per
+  scan. ``BENCH_PERCEPTION_WARMUP_S`` (default 300) sets the warm-up; the STL-27L row drives
+  the warm-up only.
+
 Seeded (``sim.seed``); ``BENCH_PERCEPTION_TRIALS`` (default 50) pop-ups. Figures not reached
-in this issue (fused position error, GPS outage and spoofing, the town's 50 laps, a replayed
-CARMEN log) are listed under ``not_measured``.
+(the town's 50 laps, a replayed CARMEN log) are listed under ``not_measured``.
 """
 
 from __future__ import annotations
@@ -25,6 +34,7 @@ import math
 import os
 import random
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -34,14 +44,18 @@ from brasidas import topics
 from brasidas.bus import Bus
 from brasidas.config.lidar import LidarSection
 from brasidas.messages import Velocity
+from brasidas.perception.fusion import PoseFusion
 from brasidas.perception.messages import RobotScan
+from brasidas.perception.odometry import LidarOdometry, scan_points
 from brasidas.perception.proximity import Geometry
 from platformd.arbiter import MotionArbiter
 from platformd.lidar_reader import LidarReader
+from platformd.sim.drive import SimulatedDrive, loop_waypoints, street_grid
 from platformd.sim.lidar import LidarSimulator, LidarWorld, ScanGenerator
 from platformd.sim.vehicle import VehicleModel
 
 TRIALS = int(os.environ.get("BENCH_PERCEPTION_TRIALS", "50"))
+WARMUP_S = float(os.environ.get("BENCH_PERCEPTION_WARMUP_S", "300"))
 SPEED_MPS = 1.0
 MAX_SPEED_MPS = 6.0 / 3.6
 
@@ -167,7 +181,87 @@ def _cast_cost_s(rig: Rig, frames: int = 2000) -> float:
     return (time.process_time() - started) / frames
 
 
+def _localization(model: str = "ld19", *, spoofing: bool = True) -> dict[str, Any]:
+    """The localization rows (see the module's docstring); synchronous, simulated time."""
+    drive = SimulatedDrive(street_grid(), loop_waypoints(), model=model, seed=1)
+    odometry = LidarOdometry()
+    fusion = PoseFusion()
+    fusion.heading_rad = 0.0  # the simulated vehicle starts facing east
+    phases: list[tuple[str, float, Callable[[float], tuple[float, float]] | None]] = [
+        ("warmup", WARMUP_S, None)
+    ]
+    if spoofing:
+        phases += [
+            ("outage", 60.0, None),
+            ("recover", 30.0, None),
+            ("jump", 30.0, lambda t: (30.0, 0.0)),
+            ("honest", 30.0, None),
+            ("drag", 40.0, lambda t: (0.5 * t, 0.0)),
+        ]
+    cpu: list[float] = []
+    sources: dict[str, int] = {}
+    errors: dict[str, list[float]] = {}
+    gps_errors: list[float] = []
+    first_rejection: dict[str, float | None] = {}
+    accepted_before: dict[str, int] = {}
+    for name, seconds, spoof in phases:
+        start = drive.now
+        errors[name] = []
+        first_rejection[name] = None
+        accepted_before[name] = 0
+        while drive.now < start + seconds:
+            step = drive.step()
+            points = scan_points(step.scan, step.speed_command_mps, step.gyro_rad_s)
+            began = time.process_time()
+            result = odometry.update(points, step.time, step.speed_command_mps, step.gyro_rad_s)
+            cpu.append(time.process_time() - began)
+            sources[result.source] = sources.get(result.source, 0) + 1
+            fusion.predict(result.delta, result.source, step.time)
+            truth = step.truth
+            if step.gps is not None and name != "outage":
+                gx, gy = step.gps
+                if spoof is not None:
+                    sx, sy = spoof(step.time - start)
+                    gx, gy = gx + sx, gy + sy
+                verdict = fusion.gps(gx, gy, step.time)
+                if first_rejection[name] is None:
+                    if verdict.accepted:
+                        accepted_before[name] += 1
+                    else:
+                        first_rejection[name] = round(step.time - start, 1)
+                if name == "warmup" and step.time > 10.0:
+                    gps_errors.append(math.hypot(gx - truth.x_m, gy - truth.y_m))
+            pose = fusion.pose()
+            if fusion.started and step.time > 10.0:
+                errors[name].append(math.hypot(pose.x_m - truth.x_m, pose.y_m - truth.y_m))
+    figures: dict[str, Any] = {
+        f"{model}_warmup_s": WARMUP_S,
+        f"{model}_gps_only_error_mean_m": round(float(np.mean(gps_errors)), 2),
+        f"{model}_fused_error_mean_m": round(float(np.mean(errors["warmup"])), 2),
+        f"{model}_odometry_from_prior_pct": round(
+            100 * sources.get("prior", 0) / max(1, sum(sources.values())), 1
+        ),
+        f"{model}_odometry_cpu_ms_per_scan": percentiles([1000 * c for c in cpu]),
+    }
+    if spoofing:
+        outage = errors["outage"]
+        drag = errors["drag"]
+        figures |= {
+            "outage_60s_error_at_start_m": round(outage[0], 2),
+            "outage_60s_error_at_end_m": round(outage[-1], 2),
+            "outage_60s_error_growth_m": round(outage[-1] - outage[0], 2),
+            "jump_30m_bad_fixes_accepted": accepted_before["jump"],
+            "drag_0.5mps_detected_after_s": first_rejection["drag"],
+            "drag_error_before_m": round(drag[0], 2),
+            "drag_error_max_m": round(max(drag), 2),
+            "honest_fixes_rejected_in_warmup": first_rejection["warmup"] is not None,
+        }
+    return figures
+
+
 async def run() -> dict[str, Any]:
+    localization = await asyncio.to_thread(_localization)
+    localization |= await asyncio.to_thread(_localization, "stl27l", spoofing=False)
     rig = Rig(seed=1)
     load = os.getloadavg()
     async with asyncio.TaskGroup() as group:
@@ -198,6 +292,6 @@ async def run() -> dict[str, Any]:
         "cpu_reader_and_analysis_pct_of_core": round(100 * pipeline / wall, 1),
         "cpu_per_scan_ms": round(1000 * pipeline / max(1, scans), 2),
         "loadavg_1m": round(load[0], 2),
-        "not_measured": "fused error, GPS outage/spoof, town laps, CARMEN replay (issue 30 note)",
+        "not_measured": "town laps, CARMEN replay (issue 30 note)",
     }
-    return figures
+    return figures | localization

@@ -21,6 +21,7 @@ from brasidas.codecs.telemetry_schema import (
     Controller,
     Failsafe,
     Gps,
+    Perception,
     RecorderStatus,
     Snapshot,
     Streams,
@@ -47,6 +48,10 @@ RECORDER_STOPPED = CommandCode(NOTIFICATION_GROUP, 23)
 CONNECTIONS_REFUSED = CommandCode(NOTIFICATION_GROUP, 24)
 """The platform is refusing many connections from one address (strangers without the fleet
 key, issue 19): ``telemetry.refused_warn`` within its 10 s window."""
+GPS_REJECTED = CommandCode(NOTIFICATION_GROUP, 30)
+"""The lidar localization refuses the GPS: its fixes jumped or dragged away from the lidar
+odometry (spoofing, issue 30), until they agree again. Reported only: the patrol's pose does
+not use the fused estimate yet."""
 FAILED_STREAM_STATES = frozenset({"failed", "error"})
 
 
@@ -110,6 +115,9 @@ class Annunciator:
                     SENSOR_STALE,
                     f"{name} stale ({reading.age_ms / 1000:.0f} s old)",
                 )
+        perception = snapshot.get(Perception)
+        if perception is not None and perception.gps_refusal:
+            wanted["gps_rejected"] = (GPS_REJECTED, f"GPS refused: {perception.gps_refusal}")
         link: list[str] = []
         if silence is not None and silence >= self.config.silence_s:
             link.append(f"telemetry silent for {silence:.1f} s")

@@ -57,6 +57,7 @@ _MEANINGS = {
     "LOW_BATTERY": "The battery is below the station's `telemetry.battery_low_v`, or the platform says LOW.",
     "CONTROLLER_OVER_TEMPERATURE": "The motor controller's heat sink is over its warning limit.",
     "GPS_FIX_LOST": "The GPS receiver reports no fix.",
+    "GPS_REJECTED": "With `lidar.odometry` on, the GPS's fixes jumped or dragged away from the lidar odometry (a spoofer, or a receiver gone wrong); they are refused until five in a row agree again. Reported only: the patrol still steers on the GPS and IMU pose.",
     "LINK_DEGRADED": "The link's loss or latency is over the station's warning limits.",
     "STREAM_FAILED": "A video or audio stream failed on the platform.",
     "SENSOR_STALE": "A sensor reading (GPS, IMU, controller) stopped arriving.",

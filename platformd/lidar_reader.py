@@ -19,6 +19,7 @@ import concurrent.futures
 import dataclasses
 import logging
 import math
+from pathlib import Path
 from typing import Any
 
 from brasidas import topics
@@ -31,8 +32,10 @@ from brasidas.codecs.telemetry_schema import Perception
 from brasidas.config.lidar import LidarSection
 from brasidas.perception.messages import Proximity, RobotScan
 from brasidas.perception.proximity import Geometry, proximity, silent, to_robot
+from brasidas.security import state_dir
 from platformd.context import PlatformContext, SerialDevice
 from platformd.gps import _streams
+from platformd.lidar_localization import Localizer
 from platformd.lidar_models import baudrate_of
 from platformd.serial_port import OPEN_ERRORS, PortError, PortOpener
 
@@ -75,6 +78,8 @@ class LidarReader(Actor):
         self._pending: LidarScan | None = None
         self._wake = asyncio.Event()
         self._worker = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="lidar")
+        self.localizer: Localizer | None = None
+        """The odometry and GPS gate, when ``lidar.odometry``: its figures join the section."""
 
     async def run(self) -> None:
         self.bus.publish(topics.PROXIMITY, self.proximity)  # stopped until the first scan
@@ -228,6 +233,7 @@ class LidarReader(Actor):
             reason=limits.reason,
             obstacles=tuple(obstacles),
             crc_errors=self.decoder.crc_errors,
+            **_localization(self.localizer),
         )
 
     def counters(self) -> dict[str, Any]:
@@ -240,8 +246,26 @@ class LidarReader(Actor):
         }
 
 
+def _localization(localizer: Localizer | None) -> dict[str, Any]:
+    if localizer is None:
+        return {"localization": "off"}
+    fused = localizer.fused
+    return {
+        "localization": fused.source if fused is not None else "none",
+        "position_sigma_m": round(fused.sigma_m, 2) if fused is not None else None,
+        "gps_accepted": localizer.fusion.accepted,
+        "gps_rejected": localizer.fusion.rejected,
+        "gps_refusal": localizer.gps_refusal,
+    }
+
+
 def _stopped(limits: Proximity) -> bool:
     return limits.forward_limit == 0.0 or limits.reverse_limit == 0.0
+
+
+def grid_path(config: LidarSection) -> Path:
+    """Where the occupancy grid is kept (``lidar.grid_file``)."""
+    return Path(config.grid_file).expanduser() if config.grid_file else state_dir() / "grid.npz"
 
 
 def capabilities(config: LidarSection) -> dict[str, Any]:
@@ -262,6 +286,12 @@ async def async_setup(ctx: PlatformContext) -> None:
     ctx.telemetry.add_counters("lidar", reader.counters)
     ctx.telemetry.register(Perception, reader.section)
     ctx.supervisor.start(reader)
+    if config.odometry:
+        reader.localizer = Localizer(
+            ctx.bus, ctx.config.platform.max_speed_kmh / 3.6, grid_path=grid_path(config)
+        )
+        ctx.telemetry.add_counters("localization", reader.localizer.counters)
+        ctx.supervisor.start(reader.localizer)
     if config.map_obstacles:
         from platformd import obstacle_zones  # the patrol's temporary keep-outs
 

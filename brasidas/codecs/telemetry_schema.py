@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
-SCHEMA_VERSION = 13
+SCHEMA_VERSION = 14
 """Version of the schema (and the datagram layout); the first byte of every datagram.
 4: the failsafe, speed_cap and turret sections, the velocity link's ``held`` drops.
 5: the lights' ``errors`` (GPIO lines), the turret's ``streams``.
@@ -34,7 +34,8 @@ SCHEMA_VERSION = 13
 9: the recorder section (recording, or stopped and why; its drops).
 11: the arming section (armed, pre-arm reasons, autostart countdown, last stop; issue 27).
 12: the perception section (the lidar: scan rate, nearest obstacle, speed limit and why).
-13: the autonomy section's ``home`` (the route's home, else the first fix; issue 31)."""
+13: the autonomy section's ``home`` (the route's home, else the first fix; issue 31).
+14: perception's localization (source, uncertainty) and GPS gate (accepted, refused, why)."""
 ERROR_KEY = "!"
 """A section's wire map holding only this key is that section's error."""
 STALE_PERIODS = 3.0
@@ -487,6 +488,18 @@ class Perception(Section):
         metadata=wire("o", doc="[bearing °, range m, radius m] of each obstacle (12 nearest)"),
     )
     crc_errors: int = field(default=0, metadata=wire("ce", doc="corrupt frames dropped"))
+    localization: str = field(
+        default="",
+        metadata=wire("ls", doc="gps+lidar, lidar (no GPS), prior (dead reckoning), none, or off"),
+    )
+    position_sigma_m: float | None = field(
+        default=None, metadata=wire("lu", unit="m", doc="the fused position's uncertainty")
+    )
+    gps_accepted: int = field(default=0, metadata=wire("ga", doc="GPS fixes fused"))
+    gps_rejected: int = field(default=0, metadata=wire("gr", doc="GPS fixes refused by the gate"))
+    gps_refusal: str = field(
+        default="", metadata=wire("gx", doc="why GPS is refused now (jump, drag), never followed")
+    )
 
 
 SECTIONS: tuple[type[Section], ...] = (

@@ -62,6 +62,12 @@ class LidarSection:
     """Dead time from an obstacle entering the scan to the wheels slowing: up to a revolution
     (0.1 s), the analysis, the motor controller's refresh (0.1 s) and the drive's own lag
     (~0.25 s on the simulated rover)."""
+    odometry: bool = True
+    """Lidar odometry (small_gicp) fused with the GPS, whose fixes are refused when they jump or
+    drag away from it (spoofing: reported, never followed); about 1.5 ms of CPU a scan."""
+    grid_file: str = ""
+    """The occupancy grid the odometry builds, kept across restarts (R-12). Empty:
+    $XDG_STATE_HOME/brasidas/grid.npz."""
     map_obstacles: bool = True
     """Obstacles seen become temporary keep-outs of the patrol's map, which re-plans around
     them (false: the robot only stops for them)."""

@@ -1,0 +1,251 @@
+"""Localization from the lidar: odometry of every scan, fused with the GPS through its gate.
+
+Runs when ``lidar.enabled`` and ``lidar.odometry``. Each ``LIDAR_SCAN`` is registered to the
+local map (:mod:`brasidas.perception.odometry`) in this actor's own worker thread, the motion
+prior being the last ``MOTOR_COMMAND`` (times the platform's top speed: the drive is open
+loop) and the IMU's yaw change between scans (``ATTITUDE``: the Madgwick filter integrates
+the gyro). ``GPS_FIX`` fixes go through the gate of :mod:`brasidas.perception.fusion` in the
+same thread (one owner for the filter). The fusion starts at the first fix that moves fast
+enough (0.5 m/s) to give a course: a heading the platform can trust without a compass.
+
+The scans also build an occupancy grid (:mod:`brasidas.perception.grid`) at the fused pose
+(not while dead reckoning), saved every ``GRID_SAVE_S`` and at stop to ``lidar.grid_file``
+and loaded at start: its anchor becomes the local frame, so the robot's pose and the grid
+it keeps stay in one frame across restarts (R-12). The area map is not involved: reloading
+it (R-5.3.2) leaves the localization as it was.
+
+What it says: the ``perception`` telemetry's localization source and uncertainty, GPS fixes
+accepted and refused, and why GPS is refused now (the annunciator's group 90 warning
+``GPS_REJECTED``, which the MAVLink endpoint sends as STATUSTEXT).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import concurrent.futures
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from brasidas import topics
+from brasidas.actor import Actor
+from brasidas.autonomy.geo import LocalFrame
+from brasidas.bus import Bus
+from brasidas.clock import Clock, LoopClock
+from brasidas.messages import Attitude, GpsFix, Velocity
+from brasidas.perception.fusion import FusedPose, GpsVerdict, PoseFusion
+from brasidas.perception.grid import GridError, OccupancyGrid
+from brasidas.perception.messages import RobotScan
+from brasidas.perception.odometry import (
+    LidarOdometry,
+    OdometryStep,
+    Pose2D,
+    scan_points,
+    wrap,
+)
+
+_LOGGER = logging.getLogger(__name__)
+
+HEADING_SPEED_MPS = 0.5
+"""A fix moving at least this fast gives a course good enough to start from."""
+NO_GYRO_YAW_SLACK_RAD = math.radians(15.0)
+"""Without an IMU the prior does not know the turn: let the registration find it."""
+GRID_SAVE_S = 30.0
+
+
+class Localizer(Actor):
+    """Scans, commands, attitude and fixes in; the fused pose and the GPS gate's verdicts out."""
+
+    name = "localization"
+
+    def __init__(
+        self,
+        bus: Bus,
+        max_speed_mps: float,
+        *,
+        grid_path: Path | None = None,
+        clock: Clock | None = None,
+    ) -> None:
+        super().__init__(bus)
+        self.grid_path = grid_path
+        self.grid: OccupancyGrid | None = None
+        self.grid_error = ""
+        """Why the saved grid was not loaded ("" when it was, or there was none)."""
+        self._grid_saved_at: float | None = None
+        self._grid_dirty = False
+        self.max_speed = max_speed_mps
+        self.clock: Clock = clock or LoopClock()
+        self.odometry = LidarOdometry()
+        self.fusion = PoseFusion()
+        self.frame: LocalFrame | None = None
+        self.last: OdometryStep | None = None
+        self.fused: FusedPose | None = None
+        self.gps_refusal = ""
+        """Why GPS is refused now ("" when trusted, or no fix yet)."""
+        self._speed = 0.0
+        self._yaw: tuple[float, float] | None = None
+        """The IMU's latest yaw (rad) and its time."""
+        self._yaw_at_scan: float | None = None
+        self._scan: RobotScan | None = None
+        self._fixes: collections.deque[GpsFix] = collections.deque(maxlen=8)
+        self._wake = asyncio.Event()
+        self._worker = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="localize")
+
+    async def run(self) -> None:
+        self.subscribe(topics.LIDAR_SCAN, self._on_scan)
+        self.subscribe(topics.MOTOR_COMMAND, self._on_command)
+        self.subscribe(topics.ATTITUDE, self._on_attitude)
+        self.subscribe(topics.GPS_FIX, self._on_fix)
+        loop = asyncio.get_running_loop()
+        await loop.run_in_executor(self._worker, self.load_grid)
+        try:
+            while True:
+                await self._wake.wait()
+                self._wake.clear()
+                fixes = list(self._fixes)
+                self._fixes.clear()
+                scan, self._scan = self._scan, None
+                yaw_rate = self._yaw_rate(scan)
+                await loop.run_in_executor(
+                    self._worker, self.process, scan, fixes, self._speed, yaw_rate
+                )
+        finally:
+            try:
+                await loop.run_in_executor(self._worker, self.save_grid)
+            finally:
+                self._worker.shutdown(wait=False, cancel_futures=True)
+
+    def _on_scan(self, scan: RobotScan) -> None:
+        self._scan = scan
+        self._wake.set()
+
+    def _on_fix(self, fix: GpsFix) -> None:
+        self._fixes.append(fix)
+        self._wake.set()
+
+    def _on_command(self, velocity: Velocity) -> None:
+        self._speed = velocity.linear * self.max_speed
+
+    def _on_attitude(self, attitude: Attitude) -> None:
+        self._yaw = (math.radians(attitude.yaw_deg), attitude.stamp)
+
+    def _yaw_rate(self, scan: RobotScan | None) -> float | None:
+        """The IMU's mean yaw rate since the previous scan (None: no IMU)."""
+        if scan is None or self._yaw is None:
+            return None
+        yaw = self._yaw[0]
+        previous, self._yaw_at_scan = self._yaw_at_scan, yaw
+        last = self.last
+        if previous is None or last is None or scan.time <= last.time:
+            return 0.0
+        return wrap(yaw - previous) / (scan.time - last.time)
+
+    # ------------------------------------------------------------------ worker thread
+
+    def process(
+        self,
+        scan: RobotScan | None,
+        fixes: list[GpsFix],
+        speed_mps: float,
+        yaw_rate: float | None,
+    ) -> None:
+        """(Worker thread.) The fixes through the gate, then the scan through the odometry."""
+        for fix in fixes:
+            self._gps(fix)
+        points: NDArray[np.float64] = np.empty((0, 2))
+        if scan is not None:
+            self.odometry.yaw_slack_rad = None if yaw_rate is not None else NO_GYRO_YAW_SLACK_RAD
+            rate = yaw_rate or 0.0
+            points = scan_points(scan, speed_mps, rate)
+            step = self.odometry.update(points, scan.time, speed_mps, rate)
+            if step.source != "lidar" and (self.last is None or self.last.source == "lidar"):
+                _LOGGER.info("lidar odometry on the motion prior: %s", step.reason)
+            self.last = step
+            self.fusion.predict(step.delta, step.source, scan.time)
+        self.fused = self.fusion.pose() if self.fusion.started else None
+        if scan is not None and self.fused is not None and self.fused.source != "prior":
+            self._map(scan.time, points)
+
+    def _map(self, now: float, points: NDArray[np.float64]) -> None:
+        fused, frame = self.fused, self.frame
+        if fused is None or frame is None:
+            return
+        if self.grid is None:
+            self.grid = OccupancyGrid(frame.latitude, frame.longitude)
+        try:
+            self.grid.integrate(Pose2D(fused.x_m, fused.y_m, fused.yaw_rad), points)
+        except GridError as err:
+            if not self.grid_error:
+                _LOGGER.warning("occupancy grid not updated: %s", err)
+            self.grid_error = str(err)
+            return
+        self._grid_dirty = True
+        if self._grid_saved_at is None:
+            self._grid_saved_at = now
+        elif now - self._grid_saved_at >= GRID_SAVE_S:
+            self._grid_saved_at = now
+            self.save_grid()
+
+    def load_grid(self) -> None:
+        """(Worker thread.) The saved grid, if any: its anchor becomes the local frame."""
+        path = self.grid_path
+        if path is None or not path.exists():
+            return
+        try:
+            grid = OccupancyGrid.load(path)
+        except GridError as err:
+            self.grid_error = str(err)
+            _LOGGER.warning("occupancy grid refused, starting a new one: %s", err)
+            return
+        self.grid = grid
+        self.frame = LocalFrame(grid.latitude, grid.longitude)
+        rows, cols = grid.log_odds.shape
+        _LOGGER.info(
+            "occupancy grid loaded from %s: %d scans, %.0f x %.0f m",
+            path,
+            grid.scans,
+            cols * grid.resolution,
+            rows * grid.resolution,
+        )
+
+    def save_grid(self) -> None:
+        """(Worker thread.) Write the grid if it changed since it was last written."""
+        if self.grid is None or self.grid_path is None or not self._grid_dirty:
+            return
+        try:
+            self.grid.save(self.grid_path)
+        except OSError as err:
+            _LOGGER.warning("occupancy grid not saved to %s: %s", self.grid_path, err)
+            return
+        self._grid_dirty = False
+
+    def _gps(self, fix: GpsFix) -> None:
+        if self.frame is None:
+            self.frame = LocalFrame(fix.latitude, fix.longitude)
+        if not self.fusion.started:
+            speed, course = fix.speed_mps, fix.course_deg
+            if speed is None or course is None or speed < HEADING_SPEED_MPS:
+                return  # no heading yet: the fusion waits for the robot to move
+            self.fusion.heading_rad = math.radians(90.0 - course)
+        x, y = self.frame.to_local(fix.latitude, fix.longitude)
+        verdict: GpsVerdict = self.fusion.gps(x, y, fix.stamp)
+        refusal = "" if verdict.accepted else verdict.reason
+        if bool(refusal) != bool(self.gps_refusal):
+            if refusal:
+                _LOGGER.warning("GPS refused, not followed: %s", refusal)
+            else:
+                _LOGGER.info("GPS agrees with the odometry again: fixes accepted")
+        self.gps_refusal = refusal
+
+    def counters(self) -> dict[str, int]:
+        return {
+            "scans": self.odometry.scans,
+            "fallbacks": self.odometry.fallbacks,
+            "partial": self.odometry.partial,
+            "gps_accepted": self.fusion.accepted,
+            "gps_rejected": self.fusion.rejected,
+        }

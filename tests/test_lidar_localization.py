@@ -1,0 +1,139 @@
+"""The localizer on the bus: scans, commands, attitude and fixes in; a spoofed GPS refused,
+reported in the perception telemetry and raised by the annunciator (90.30)."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+from brasidas import topics
+from brasidas.annunciator import GPS_REJECTED, Annunciator
+from brasidas.autonomy.geo import LocalFrame
+from brasidas.bus import Bus
+from brasidas.codecs.telemetry_schema import Perception, Snapshot
+from brasidas.config import TelemetryReceiverSection
+from brasidas.messages import Attitude, GpsFix, Velocity
+from brasidas.perception.grid import OccupancyGrid
+from platformd.lidar_localization import Localizer
+from platformd.lidar_reader import _localization
+from platformd.sim.drive import MAX_SPEED_MPS, SimulatedDrive, loop_waypoints, street_grid
+
+
+async def _until(predicate: Callable[[], bool], timeout: float = 10.0) -> None:
+    async with asyncio.timeout(timeout):
+        while not predicate():
+            await asyncio.sleep(0.001)
+
+
+class Rig:
+    """The localizer on a bus, fed by a simulated drive (waits for each scan's processing)."""
+
+    def __init__(self, grid_path: Path | None = None) -> None:
+        self.bus = Bus()
+        self.localizer = Localizer(self.bus, MAX_SPEED_MPS, grid_path=grid_path)
+        self.drive = SimulatedDrive(street_grid(), loop_waypoints(), seed=2)
+        self.frame = LocalFrame(*self.drive.vehicle.origin[:2])
+
+    async def steps(self, count: int, offset_m: float = 0.0) -> None:
+        bus, drive, frame, localizer = self.bus, self.drive, self.frame, self.localizer
+        for _ in range(count):
+            step = drive.step()
+            truth = step.truth
+            bus.publish(topics.MOTOR_COMMAND, Velocity(step.speed_command_mps / MAX_SPEED_MPS, 0))
+            bus.publish(topics.ATTITUDE, Attitude(1, 0, 0, 0, 0, 0, math.degrees(truth.yaw_rad)))
+            if step.gps is not None:
+                latitude, longitude = frame.to_geo(step.gps[0] + offset_m, step.gps[1])
+                fix = GpsFix(
+                    latitude,
+                    longitude,
+                    42.0,
+                    truth.speed_mps,
+                    truth.course_deg,
+                    1,
+                    9,
+                    1.0,
+                    "",
+                    stamp=step.time,
+                )
+                bus.publish(topics.GPS_FIX, fix)
+            done = localizer.odometry.scans + 1
+            bus.publish(topics.LIDAR_SCAN, step.scan)
+            await _until(lambda: localizer.odometry.scans >= done)  # noqa: B023
+
+
+async def test_a_gps_jump_is_refused_reported_and_raises_the_90_30_warning() -> None:
+    rig = Rig()
+    localizer, drive, steps = rig.localizer, rig.drive, rig.steps
+    annunciator = Annunciator(TelemetryReceiverSection())
+    task = asyncio.create_task(localizer.run())
+    try:
+        await asyncio.sleep(0)
+        assert _localization(localizer)["localization"] == "none"  # no fix yet
+        await steps(300)
+        honest = _localization(localizer)
+        assert honest["localization"] == "gps+lidar"
+        assert honest["gps_rejected"] == 0 and honest["gps_accepted"] > 20
+        assert honest["gps_refusal"] == ""
+        assert annunciator.evaluate(Snapshot({Perception: Perception(**honest)}), 0, 0, 1) == []
+        fused = localizer.fused
+        assert fused is not None
+        truth = drive.vehicle.pose()
+        assert math.hypot(fused.x_m - truth.x_m, fused.y_m - truth.y_m) < 8.0
+
+        await steps(20, offset_m=30.0)
+        spoofed = _localization(localizer)
+        assert spoofed["gps_refusal"].startswith("jump: ")
+        assert spoofed["gps_accepted"] == honest["gps_accepted"]  # not one bad fix fused
+        (change,) = annunciator.evaluate(Snapshot({Perception: Perception(**spoofed)}), 0, 0, 2)
+        assert change.active and change.warning.code == GPS_REJECTED
+        assert str(GPS_REJECTED) == "90.30"
+        assert change.warning.message.startswith("GPS refused: jump: ")
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+
+
+async def test_the_grid_is_saved_at_stop_and_loaded_at_start_in_its_frame(tmp_path: Path) -> None:
+    path = tmp_path / "grid.npz"
+    first = Rig(path)
+    task = asyncio.create_task(first.localizer.run())
+    await asyncio.sleep(0)  # subscribed
+    await first.steps(60)
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+    saved = first.localizer.grid
+    assert saved is not None and saved.scans > 30 and path.exists()
+    assert (saved.log_odds > 2.0).sum() > 100  # walls seen: cells surely occupied
+
+    second = Rig(path)
+    task = asyncio.create_task(second.localizer.run())
+    try:
+        await _until(lambda: second.localizer.grid is not None)
+        loaded = second.localizer.grid
+        assert loaded is not None and loaded.scans == saved.scans
+        frame = second.localizer.frame
+        assert frame is not None
+        assert (frame.latitude, frame.longitude) == (saved.latitude, saved.longitude)
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+
+
+async def test_a_grid_file_that_is_not_a_grid_is_refused_and_a_new_one_begun(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "grid.npz"
+    path.write_bytes(b"garbage")
+    rig = Rig(path)
+    task = asyncio.create_task(rig.localizer.run())
+    await asyncio.sleep(0)
+    try:
+        await rig.steps(30)
+        assert "not a saved grid" in rig.localizer.grid_error
+        assert rig.localizer.grid is not None and rig.localizer.grid.scans > 0
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    assert OccupancyGrid.load(path).scans > 0  # the new grid replaced the garbage
