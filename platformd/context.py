@@ -15,7 +15,7 @@ from brasidas.admission import ServerAdmission
 from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.config import PlatformConfig
-from brasidas.messages import CommandReceived, CommandResult
+from brasidas.messages import CommandReceived, CommandResult, SessionClosed, SessionOpened
 from brasidas.telemetry_sources import TelemetrySources
 from platformd.authority import Authority
 from platformd.commands import CommandRouter, SystemCommand
@@ -124,6 +124,18 @@ class PatrolHandle(Protocol):
     @property
     def core(self) -> Patrol:
         """The patrol's state: map (and its revision), route, cursor (read only)."""
+
+    @property
+    def route(self) -> Route:
+        """The route driven now (a go-to's while driving to one point)."""
+
+    @property
+    def area(self) -> AreaMap | None:
+        """The map (boundary and keep-outs), None before one is loaded."""
+
+    @property
+    def map_revision(self) -> int:
+        """Counts the map's changes: a fence made for one revision is not another's."""
 
     async def set_waypoints(
         self, items: list[Any], laps: int | None = None, home: tuple[float, float] | None = None
@@ -236,6 +248,13 @@ class PlatformContext:
         self.commands.authorize = self.authority.authorize
         self.authority.command_name = self.commands.spec_name
         self.commands.on_answered = self._command_answered
+        self.sessions.announce = self._announce_session
+
+    def _announce_session(self, event: SessionOpened | SessionClosed) -> None:
+        if isinstance(event, SessionOpened):
+            self.bus.publish(topics.SESSION_OPENED, event)
+        else:
+            self.bus.publish(topics.SESSION_CLOSED, event)
 
     def _command_answered(self, command: SystemCommand, result: CommandResult) -> None:
         session = command.session

@@ -1,9 +1,16 @@
-"""The open station sessions: written by the session manager (platformd.sessions), read by
-every subsystem through ``ctx.sessions`` (who is calling, from where, since when)."""
+"""The open station sessions, read by every subsystem through ``ctx.sessions`` (who is calling,
+from where, since when). Sessions open and close only through :meth:`SessionTable.open` and
+:meth:`SessionTable.close`, which announce them: each session's SESSION_OPENED comes before
+its SESSION_CLOSED, and a session never opened is never announced closed. The station
+session manager (platformd.sessions) and the MAVLink endpoint's ground stations
+(platformd.mavlink.service) both go through them."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+
+from brasidas.messages import SessionClosed, SessionOpened
 
 
 @dataclass
@@ -21,12 +28,23 @@ class Session:
     (replayed, stale, held) never refreshes it."""
 
 
+class SessionAlreadyOpen(ValueError):
+    """A session id that is open already: opening it again would announce it twice."""
+
+
+def _unannounced(event: SessionOpened | SessionClosed) -> None:
+    """Without a bus (a table in a test): nobody to tell."""
+
+
 @dataclass
 class SessionTable:
     """Sessions by token, and the refused authentications."""
 
     sessions: dict[str, Session] = field(default_factory=dict)
+    """Read it freely; open and close through :meth:`open` and :meth:`close`."""
     auth_failures: int = 0
+    announce: Callable[[SessionOpened | SessionClosed], None] = _unannounced
+    """Where the openings and closings go (the platform's bus, set by PlatformContext)."""
 
     def get(self, session_id: str | None) -> Session | None:
         """The open session with this token, or None."""
@@ -34,3 +52,19 @@ class SessionTable:
 
     def __len__(self) -> int:
         return len(self.sessions)
+
+    def open(self, session: Session) -> None:
+        """Add ``session`` and announce it; raises :class:`SessionAlreadyOpen` for an id
+        that is open (its first opening stands)."""
+        if session.session_id in self.sessions:
+            raise SessionAlreadyOpen(f"session {session.session_id} is open already")
+        self.sessions[session.session_id] = session
+        self.announce(SessionOpened(session.session_id, session.station_id, session.peer_host))
+
+    def close(self, session_id: str, reason: str) -> Session | None:
+        """End the session and announce it with ``reason``; None (and nothing announced)
+        when no such session is open."""
+        session = self.sessions.pop(session_id, None)
+        if session is not None:
+            self.announce(SessionClosed(session_id, session.station_id, reason))
+        return session

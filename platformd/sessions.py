@@ -24,7 +24,7 @@ from brasidas.actor import Actor
 from brasidas.codecs.beacon import boot_proof
 from brasidas.codecs.commands import PAYLOAD_GROUPS
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError, Unauthorized
-from brasidas.messages import FailsafeStep, SessionClosed, SessionOpened
+from brasidas.messages import FailsafeStep
 from brasidas.security import accept_proof, connect_proof
 from platformd.authority import AuthorityWatch
 from platformd.context import PlatformContext
@@ -92,13 +92,9 @@ class SessionManager(Actor):
         return override.session_id if failsafe.step is FailsafeStep.HOLD else None
 
     def close(self, session_id: str, reason: str) -> None:
-        session = self.sessions.pop(session_id, None)
-        if session is None:
-            return
-        _LOGGER.info("session of %s closed (%s)", session.station_id, reason)
-        self.bus.publish(
-            topics.SESSION_CLOSED, SessionClosed(session_id, session.station_id, reason)
-        )
+        session = self.table.close(session_id, reason)
+        if session is not None:
+            _LOGGER.info("session of %s closed (%s)", session.station_id, reason)
 
     # ------------------------------------------------------------------ authorizer
 
@@ -169,13 +165,12 @@ class SessionManager(Actor):
             session_key = security.session_key(key, token, nonce, station_nonce)
         now = self._clock()
         session = Session(token, station_id, call.peer_host, session_key, now, now)
-        self.sessions[token] = session
+        self.table.open(session)
         call.session_opened()  # the connection is a station's now, no longer a stranger's
         if "ws" in call.extra:
             # A session opened over a WebSocket ends with it: the station is gone.
             call.extra.setdefault("on_close", []).append(lambda: self.connection_lost(token))
         _LOGGER.info("session opened by %s from %s", station_id, call.peer_host)
-        self.bus.publish(topics.SESSION_OPENED, SessionOpened(token, station_id, call.peer_host))
         boot = self.ctx.boot
         return {
             "session": token,

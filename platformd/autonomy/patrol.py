@@ -514,6 +514,21 @@ class PatrolActor(Actor):
         return route
 
     @property
+    def route(self) -> Route:
+        """The route driven now (a go-to's while driving to one point)."""
+        return self.core.route
+
+    @property
+    def area(self) -> AreaMap | None:
+        """The map, None before one is loaded."""
+        return self.core.area
+
+    @property
+    def map_revision(self) -> int:
+        """Counts the map's changes (a fence upload is tied to the revision it made)."""
+        return self.core.map_revision
+
+    @property
     def own_route(self) -> Route:
         """The patrol's own route: the one kept aside while driving to one point."""
         return self.core.route if self.detour is None else self._kept_route

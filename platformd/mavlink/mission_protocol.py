@@ -11,6 +11,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from brasidas.autonomy.geo import to_e7
 from platformd.mavlink import guided, missions
 from platformd.mavlink.link import NO_HOLDER, Handler, Link, LinkCore, Upload
 from platformd.mavlink.missions import FENCE, MAX_ITEMS, MISSION, RALLY, MissionItem
@@ -165,7 +166,7 @@ class MissionProtocol(LinkCore):
         if not 0 <= message.seq < upload.count or message.seq in upload.items:
             return []  # a duplicate (answering a repeated request) or out of range
         if message.get_type() == "MISSION_ITEM":
-            x, y = round(message.x * 1e7), round(message.y * 1e7)
+            x, y = to_e7(message.x), to_e7(message.y)
         else:
             x, y = message.x, message.y
         upload.asked.pop(message.seq, None)

@@ -327,7 +327,7 @@ class MavlinkService(Actor):
         """The ground station's session (opened on its first request)."""
         key = (request.peer, request.system)
         session = self.sessions.get(key)
-        if session is not None and session.session_id in self.ctx.sessions.sessions:
+        if session is not None and self.ctx.sessions.get(session.session_id) is not None:
             return session
         host, port = request.peer
         now = time.monotonic()
@@ -340,7 +340,7 @@ class MavlinkService(Actor):
             now,
         )
         self.sessions[key] = session
-        self.ctx.sessions.sessions[session.session_id] = session
+        self.ctx.sessions.open(session)  # announced: its close will be too
         _LOGGER.info("MAVLink: session of ground station %s opened", session.station_id)
         return session
 
@@ -353,11 +353,7 @@ class MavlinkService(Actor):
                 session.last_seen = now
 
     def _end_session(self, session: Session, reason: str) -> None:
-        if self.ctx.sessions.sessions.pop(session.session_id, None) is not None:
-            self.bus.publish(
-                topics.SESSION_CLOSED,
-                SessionClosed(session.session_id, session.station_id, reason),
-            )
+        self.ctx.sessions.close(session.session_id, reason)
 
     def _on_session_closed(self, event: SessionClosed) -> None:
         for key, session in list(self.sessions.items()):
@@ -531,7 +527,7 @@ class MavlinkService(Actor):
             else:
                 fence = fence_from_items(items)
                 area = await patrol.reshape_map(self._fence_map(fence))
-                self._uploaded_fence = (patrol.core.map_revision, items) if items else None
+                self._uploaded_fence = (patrol.map_revision, items) if items else None
                 text = f"fence: {len(area.keepouts)} keep-outs"
         except MissionRefused as exc:
             vehicle.answer_upload(request, exc.result, f"{what} refused: {exc}")
@@ -546,7 +542,7 @@ class MavlinkService(Actor):
         """The map's GeoJSON with the fence's boundary (if any) and keep-outs."""
         patrol = self.ctx.patrol
         assert patrol is not None
-        area = patrol.core.area
+        area = patrol.area
         if area is None:
             from brasidas.autonomy.areamap import MapError
 
@@ -598,7 +594,7 @@ class MavlinkService(Actor):
         if patrol is None:
             return []
         if mission_type == MISSION:
-            route = patrol.core.route
+            route = patrol.route
             if self._uploaded is not None and self._uploaded[0] == route:
                 return self._uploaded[1]
             if not route.waypoints:
@@ -611,9 +607,9 @@ class MavlinkService(Actor):
             )
         if mission_type == FENCE:
             uploaded = self._uploaded_fence
-            if uploaded is not None and uploaded[0] == patrol.core.map_revision:
+            if uploaded is not None and uploaded[0] == patrol.map_revision:
                 return uploaded[1]
-            area = patrol.core.area
+            area = patrol.area
             return items_from_fence(area.geojson()) if area is not None else []
         return []
 
@@ -637,7 +633,7 @@ class MavlinkService(Actor):
             state.inside_fence = self._inside_fence(pose)
 
     def _inside_fence(self, pose: PoseEstimate) -> bool | None:
-        area = self.ctx.patrol.core.area if self.ctx.patrol is not None else None
+        area = self.ctx.patrol.area if self.ctx.patrol is not None else None
         if area is None:
             return None
         from brasidas.autonomy.areamap import MapError  # loaded with the map already
@@ -670,7 +666,7 @@ class MavlinkService(Actor):
         state.waypoints = status.waypoints
         patrol = self.ctx.patrol
         uploaded = self._uploaded
-        current = patrol is not None and uploaded is not None and uploaded[0] == patrol.core.route
+        current = patrol is not None and uploaded is not None and uploaded[0] == patrol.route
         state.waypoint_seqs = self._uploaded_seqs if current else ()
         self._patrol_state = status.state
         self._update_mode()
