@@ -19,6 +19,7 @@ context.
 from __future__ import annotations
 
 import asyncio
+import enum
 import errno
 import logging
 import resource
@@ -26,6 +27,8 @@ import socket
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
+
+from brasidas.states import Transitions
 
 if TYPE_CHECKING:
     from ssl import SSLContext  # only the station's HTTPS console: the platform keeps ssl out
@@ -130,13 +133,30 @@ class RefusalTally:
         self.started = now - elapsed % self.window
 
 
+class SlotState(enum.Enum):
+    STRANGER = "stranger"
+    """No call on the connection has a session yet: capped per address and in all."""
+    SESSION = "session"
+    """A call has a session (or the listener is a trusted one): no stranger's caps."""
+    CLOSED = "closed"
+    """Released: the connection closed, or was evicted for a newcomer."""
+
+
+SLOT_TRANSITIONS = Transitions[SlotState](
+    "admission slot",
+    {
+        SlotState.STRANGER: frozenset((SlotState.SESSION, SlotState.CLOSED)),
+        SlotState.SESSION: frozenset((SlotState.CLOSED,)),
+    },
+)
+
+
 @dataclass(eq=False, slots=True)
 class Slot:
     """One admitted connection, as the policy sees it."""
 
     host: str
     opened: float
-    has_session: bool
     last_read: float
     idle_since: float
     """When the connection last had no request in progress (its start, or a request's end)."""
@@ -149,7 +169,18 @@ class Slot:
     stalled_since: float | None = None
     """Since when its unsent data has not shrunk."""
     unsent: int = 0
-    closed: bool = False
+    state: SlotState = SlotState.STRANGER
+
+    @property
+    def has_session(self) -> bool:
+        return self.state is SlotState.SESSION
+
+    @property
+    def closed(self) -> bool:
+        return self.state is SlotState.CLOSED
+
+    def to(self, state: SlotState) -> None:
+        self.state = SLOT_TRANSITIONS.check(self.state, state)
 
 
 @dataclass
@@ -222,7 +253,9 @@ class AdmissionPolicy:
                 self.release(evicted)
                 self.counters["evicted"] += 1
                 self.refusals.count(evicted.host, now)
-        slot = Slot(host, now, limits.trusted, now, now)
+        slot = Slot(
+            host, now, now, now, state=SlotState.SESSION if limits.trusted else SlotState.STRANGER
+        )
         self.slots.add(slot)
         if not slot.has_session:
             self.strangers.setdefault(host, []).append(slot)
@@ -233,14 +266,15 @@ class AdmissionPolicy:
         """The connection closed (idempotent)."""
         if slot.closed:
             return
-        slot.closed = True
+        slot.to(SlotState.CLOSED)
         self.slots.discard(slot)
         self._forget_stranger(slot)
 
     def session_opened(self, slot: Slot) -> None:
-        """A call on the connection has a session: it is no longer a stranger's."""
-        if not slot.has_session:
-            slot.has_session = True
+        """A call on the connection has a session: it is no longer a stranger's (a slot
+        released meanwhile stays closed)."""
+        if slot.state is SlotState.STRANGER:
+            slot.to(SlotState.SESSION)
             self._forget_stranger(slot)
 
     def received(self, slot: Slot, now: float) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import enum
 import logging
 import socket
 import sys
@@ -23,10 +24,39 @@ import orjson
 
 from brasidas.autonomy.planner_worker import HEADER, frame, parse_header
 from brasidas.backoff import Backoff
+from brasidas.states import Transitions
 
 _LOGGER = logging.getLogger(__name__)
 KILL_WAIT_S = 0.8
 """How long a stop waits for the killed process to be reaped."""
+
+
+class PlannerState(enum.Enum):
+    IDLE = "idle"
+    """Not started yet."""
+    STARTING = "starting"
+    """The process is being started and connected."""
+    RUNNING = "running"
+    """Connected: maps and plans go to it."""
+    LOST = "lost"
+    """It died (or could not start): another starts after the backoff."""
+    CLOSED = "closed"
+    """``run`` was cancelled: the process is killed and reaped."""
+
+
+PLANNER_TRANSITIONS = Transitions[PlannerState](
+    "planner process",
+    {
+        PlannerState.IDLE: frozenset((PlannerState.STARTING, PlannerState.CLOSED)),
+        PlannerState.STARTING: frozenset(
+            (PlannerState.RUNNING, PlannerState.LOST, PlannerState.CLOSED)
+        ),
+        PlannerState.RUNNING: frozenset((PlannerState.LOST, PlannerState.CLOSED)),
+        PlannerState.LOST: frozenset((PlannerState.STARTING, PlannerState.CLOSED)),
+        # The patrol actor restarted by its supervisor runs it again.
+        PlannerState.CLOSED: frozenset((PlannerState.STARTING,)),
+    },
+)
 
 
 @dataclass(frozen=True)
@@ -55,6 +85,10 @@ class PlannerProcess:
         """The running process's id (None while there is none)."""
         self.restarts = 0
         """Processes started after the first (each one after a death)."""
+        self.state = PlannerState.IDLE
+
+    def _to(self, state: PlannerState) -> None:
+        self.state = PLANNER_TRANSITIONS.check(self.state, state)
 
     def set_map(self, revision: int, geojson: bytes, clearance: float) -> None:
         """The map the graph is for from now on (sent at once when the process runs)."""
@@ -104,14 +138,19 @@ class PlannerProcess:
     async def run(self) -> None:
         """Keep a planner process running until cancelled (then kill it)."""
         started = 0
-        while True:
-            reason = await self._run_once()
-            started += 1
-            self.restarts = started
-            delay = self._backoff.next()
-            _LOGGER.error("patrol: %s; starting another in %.1f s", reason, delay)
-            self._on_lost(reason)
-            await asyncio.sleep(delay)
+        try:
+            while True:
+                self._to(PlannerState.STARTING)
+                reason = await self._run_once()
+                self._to(PlannerState.LOST)
+                started += 1
+                self.restarts = started
+                delay = self._backoff.next()
+                _LOGGER.error("patrol: %s; starting another in %.1f s", reason, delay)
+                self._on_lost(reason)
+                await asyncio.sleep(delay)
+        finally:
+            self._to(PlannerState.CLOSED)
 
     async def _run_once(self) -> str:
         """Start a process and serve it until it dies: why it did."""
@@ -134,6 +173,7 @@ class PlannerProcess:
         try:
             reader, writer = await asyncio.open_unix_connection(sock=ours)
             self._writer = writer
+            self._to(PlannerState.RUNNING)
             self._resent = None
             if self._map is not None:
                 latest = self._map

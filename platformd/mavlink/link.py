@@ -7,6 +7,7 @@ platformd.mavlink.telemetry; platformd.mavlink.vehicle composes them.
 
 from __future__ import annotations
 
+import enum
 import logging
 import math
 from collections.abc import Callable, Mapping
@@ -15,6 +16,7 @@ from typing import Any, ClassVar
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from brasidas.states import Transitions
 from platformd.mavlink import modes
 from platformd.mavlink.missions import MissionItem
 from platformd.mavlink.model import (
@@ -46,6 +48,30 @@ bytes it sent us in each window of this long: a spoofed source address never mak
 endpoint a reflector that answers a victim with more than the attacker spent."""
 
 
+class UploadState(enum.Enum):
+    RECEIVING = "receiving"
+    """Items are being asked for, one window at a time."""
+    AWAITING_VERDICT = "awaiting verdict"
+    """All items in (or a clear): the platform decides."""
+    ANSWERED = "answered"
+    """The platform's MISSION_ACK went out."""
+    ABANDONED = "abandoned"
+    """An item never came after :data:`~platformd.mavlink.mission_protocol.UPLOAD_RETRIES`."""
+    SUPERSEDED = "superseded"
+    """The ground station began another transfer on the link."""
+
+
+UPLOAD_TRANSITIONS = Transitions[UploadState](
+    "upload",
+    {
+        UploadState.RECEIVING: frozenset(
+            (UploadState.AWAITING_VERDICT, UploadState.ABANDONED, UploadState.SUPERSEDED)
+        ),
+        UploadState.AWAITING_VERDICT: frozenset((UploadState.ANSWERED, UploadState.SUPERSEDED)),
+    },
+)
+
+
 @dataclass
 class Upload:
     """A mission, fence or rally transfer from a ground station, item by item."""
@@ -56,11 +82,43 @@ class Upload:
     asked: dict[int, float] = field(default_factory=dict)
     """Items requested and not arrived: when each was last asked for."""
     retries: dict[int, int] = field(default_factory=dict)
-    waiting: bool = False
-    """All items in: the platform's verdict is awaited."""
+    state: UploadState = UploadState.RECEIVING
+
+    @property
+    def receiving(self) -> bool:
+        return self.state is UploadState.RECEIVING
+
+    @property
+    def waiting(self) -> bool:
+        """All items in: the platform's verdict is awaited."""
+        return self.state is UploadState.AWAITING_VERDICT
+
+    def to(self, state: UploadState) -> None:
+        self.state = UPLOAD_TRANSITIONS.check(self.state, state)
 
     def missing(self) -> list[int]:
         return [seq for seq in range(self.count) if seq not in self.items]
+
+
+class LinkState(enum.Enum):
+    CONFIGURED = "configured"
+    """An address in ``mavlink.targets``: kept for good, sent telemetry before it speaks."""
+    STRANGER = "stranger"
+    """Heard, never trusted: its source address may be anyone's, so it gets no more than
+    it gives, and it goes after ``link_timeout`` of silence or for a signed newcomer."""
+    TRUSTED = "trusted"
+    """Sent a message that could command the robot (signed, or unsigned control allowed)."""
+    FORGOTTEN = "forgotten"
+    """Out of the vehicle's table (silent, evicted, or nothing valid ever came)."""
+
+
+LINK_TRANSITIONS = Transitions[LinkState](
+    "MAVLink link",
+    {
+        LinkState.STRANGER: frozenset((LinkState.TRUSTED, LinkState.FORGOTTEN)),
+        LinkState.TRUSTED: frozenset((LinkState.FORGOTTEN,)),
+    },
+)
 
 
 @dataclass
@@ -85,12 +143,25 @@ class Link:
     """A stranger's bytes received in this window not yet answered: what may still be sent."""
     credit_since: float = -math.inf
     """When the stranger's current window began."""
+    state: LinkState = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.state = LinkState.CONFIGURED if self.configured else LinkState.STRANGER
 
     @property
     def stranger(self) -> bool:
         """Not a configured target and never trusted (signed, or unsigned control allowed):
         its source address may be anyone's, so it gets no more than it gives."""
-        return not self.configured and self.last_trusted == -math.inf
+        return self.state is LinkState.STRANGER
+
+    def to(self, state: LinkState) -> None:
+        self.state = LINK_TRANSITIONS.check(self.state, state)
+
+    def trusted(self, now: float) -> None:
+        """A message that could command the robot came: the link is no stranger's."""
+        self.last_trusted = now
+        if self.state is LinkState.STRANGER:
+            self.to(LinkState.TRUSTED)
 
     def renew_credit(self, now: float) -> None:
         if now - self.credit_since >= STRANGER_WINDOW_S:
@@ -194,16 +265,16 @@ class LinkCore:
             self.counters["received"] += 1
             link.last_heard = now
             if signed or self.allow_unsigned_control:
-                link.last_trusted = now
+                link.trusted(now)
             try:
                 requests.extend(self._handle(link, message, signed, now))
             except Exception:  # one odd message never stops the endpoint
                 self.counters["handler_errors"] += 1
                 _LOGGER.exception("MAVLink: %s from %s not handled", message.get_type(), peer)
         if not link.configured and link.last_heard == -math.inf:
-            del self.links[peer]  # nothing valid from a stranger: no state kept for it
+            self._forget(link)  # nothing valid from a stranger: no state kept for it
         elif new and link.stranger and self._strangers() > STRANGER_LINKS:
-            del self.links[peer]  # admitted for its signed flag, which did not verify
+            self._forget(link)  # admitted for its signed flag, which did not verify
             self.counters["links_refused"] += 1
         return requests
 
@@ -229,7 +300,7 @@ class LinkCore:
                 (link for link in self.links.values() if link.stranger),
                 key=lambda link: link.last_heard,
             )
-            del self.links[oldest.peer]
+            self._forget(oldest)
         return True
 
     def _verdict(self, link: Link, message: Any) -> bool | None:
@@ -320,9 +391,9 @@ class LinkCore:
         if self._boot is None:
             self._boot = now
         live: list[Link] = []
-        for peer, link in list(self.links.items()):
+        for link in list(self.links.values()):
             if not link.configured and now - link.last_heard > self.link_timeout:
-                del self.links[peer]
+                self._forget(link)
                 self.counters["links_forgotten"] += 1
                 continue
             link.renew_credit(now)
@@ -346,6 +417,10 @@ class LinkCore:
             encoder.signing.link_id = len(self.links) & 0xFF
         self.links[peer] = link
         return link
+
+    def _forget(self, link: Link) -> None:
+        del self.links[link.peer]
+        link.to(LinkState.FORGOTTEN)
 
     def broadcast(self, message: Any) -> None:
         """A message from another module (platformd.mavlink.proximity) to every link."""

@@ -13,7 +13,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from brasidas.autonomy.geo import to_e7
 from platformd.mavlink import guided, missions
-from platformd.mavlink.link import NO_HOLDER, Handler, Link, LinkCore, Upload
+from platformd.mavlink.link import NO_HOLDER, Handler, Link, LinkCore, Upload, UploadState
 from platformd.mavlink.missions import FENCE, MAX_ITEMS, MISSION, RALLY, MissionItem
 from platformd.mavlink.model import GoTo, Origin, Request, SetCurrent, Severity, UploadItems
 from platformd.mavlink.telemetry import mission_current
@@ -41,6 +41,7 @@ class MissionProtocol(LinkCore):
         if link is None:
             return
         if link.upload is not None and link.upload.waiting:
+            link.upload.to(UploadState.ANSWERED)
             link.upload = None  # not a newer upload the station started meanwhile
         link.last_ack = (request.mission_type, result)
         self._mission_ack(link, request.system, request.component, result, request.mission_type)
@@ -141,11 +142,11 @@ class MissionProtocol(LinkCore):
             return []
         if not self._may_control(signed, "upload", refuse, mavlink.MAV_MISSION_DENIED):
             return []
-        link.upload = Upload(mission_type, count)
+        upload = self._begin_upload(link, Upload(mission_type, count))
         link.upload_owner = (system, component)
         link.last_ack = None
         if count == 0:
-            link.upload.waiting = True
+            upload.to(UploadState.AWAITING_VERDICT)
             return [UploadItems(peer, system, component, signed, mission_type, ())]
         self._request_items(link, now)
         return []
@@ -158,7 +159,7 @@ class MissionProtocol(LinkCore):
         mission_type = message.mission_type
         if message.current == guided.GUIDED_ITEM and mission_type == MISSION:
             return self._on_guided_item(link, message, origin)
-        if upload is None or upload.waiting or upload.mission_type != mission_type:
+        if upload is None or not upload.receiving or upload.mission_type != mission_type:
             if link.last_ack is not None and link.last_ack[0] == mission_type:
                 # Our ACK was lost and the station repeats its last item: repeat the ACK.
                 self._mission_ack(link, system, component, link.last_ack[1], mission_type)
@@ -187,7 +188,7 @@ class MissionProtocol(LinkCore):
         if len(upload.items) < upload.count:
             self._request_items(link, now)
             return []
-        upload.waiting = True
+        upload.to(UploadState.AWAITING_VERDICT)
         items = tuple(upload.items[seq] for seq in range(upload.count))
         return [UploadItems(peer, system, component, signed, mission_type, items)]
 
@@ -223,7 +224,7 @@ class MissionProtocol(LinkCore):
             return []
         if not self._may_control(signed, "clear", refuse, mavlink.MAV_MISSION_DENIED):
             return []
-        link.upload = Upload(mission_type, 0, waiting=True)
+        self._begin_upload(link, Upload(mission_type, 0)).to(UploadState.AWAITING_VERDICT)
         return [UploadItems(peer, system, component, signed, mission_type, ())]
 
     def _on_mission_set_current(
@@ -242,6 +243,13 @@ class MissionProtocol(LinkCore):
         self, link: Link, message: Any, origin: Origin, now: float
     ) -> list[Request]:
         return []  # the end of a download: nothing kept per download
+
+    def _begin_upload(self, link: Link, upload: Upload) -> Upload:
+        """``upload`` is the link's transfer now; one under way is superseded."""
+        if link.upload is not None:
+            link.upload.to(UploadState.SUPERSEDED)
+        link.upload = upload
+        return upload
 
     def _request_items(self, link: Link, now: float) -> None:
         """Ask for missing items, up to ``upload_window`` outstanding at once; again for any
@@ -267,11 +275,12 @@ class MissionProtocol(LinkCore):
 
     def _retry_upload(self, link: Link, now: float) -> None:
         upload = link.upload
-        if upload is None or upload.waiting:
+        if upload is None or not upload.receiving:
             return
         lost = [seq for seq, retries in upload.retries.items() if retries >= UPLOAD_RETRIES]
         if lost and now - upload.asked[lost[0]] >= UPLOAD_RETRY_S:
             system, component = link.upload_owner
+            upload.to(UploadState.ABANDONED)
             link.upload = None
             self._mission_ack(
                 link,
