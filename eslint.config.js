@@ -20,6 +20,6 @@ export default [
   },
   {
     files: ["web/video-worker.js", "web/*-worker.js"],
-    languageOptions: { sourceType: "script", globals: { ...globals.worker, VideoDecoder: "readonly", EncodedVideoChunk: "readonly" } },
+    languageOptions: { sourceType: "module", globals: { ...globals.worker, VideoDecoder: "readonly", EncodedVideoChunk: "readonly" } },
   },
 ];

@@ -42,7 +42,7 @@ from brasidas.messages import (
     Velocity,
 )
 from brasidas.perception.messages import RobotScan
-from brasidas.recording import projection, schemas
+from brasidas.recording import SESSION_HEADER, projection, schemas
 from brasidas.recording.projection import HDOP_TO_SIGMA_M, StateChange
 from brasidas.recording.schemas import LOG_INFO, LOG_WARNING, ChannelSpec
 from brasidas.recording.writer import (
@@ -60,8 +60,6 @@ from platformd.recording_download import RateShare, send_file
 
 _LOGGER = logging.getLogger(__name__)
 
-SESSION_HEADER = "X-Brasidas-Session"
-"""The header a download carries its session token in."""
 REASON_MAX_CHARS = 60
 LIDAR_HZ = 2.0
 """Lidar scans recorded a second (the sensor makes 10)."""
@@ -346,7 +344,7 @@ class PlatformRecorder(Actor):
         (as every RPC), ranges honoured; a symbolic link is no recording."""
         session = self.ctx.session(request.headers.get(SESSION_HEADER))
         if session is None:
-            raise web.HTTPUnauthorized(text="a session token is needed (X-Brasidas-Session)")
+            raise web.HTTPUnauthorized(text=f"a session token is needed ({SESSION_HEADER})")
         if peer_host(request) != session.peer_host:
             raise web.HTTPUnauthorized(text="the session was opened from another host")
         path = resolve_name(self.directory, request.match_info["name"])

@@ -16,16 +16,13 @@ from urllib.parse import quote
 import aiohttp
 
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
-from brasidas.recording import NAME_PATTERN
+from brasidas.recording import NAME_PATTERN, SESSION_HEADER
 from brasidas.recording.writer import ACTIVE_SUFFIX
 from brasidas.security import state_dir
 from stationd.context import StationContext
 from stationd.replay import recording_index, recording_state
 
 _LOGGER = logging.getLogger(__name__)
-
-SESSION_HEADER = "X-Brasidas-Session"
-"""The header the platform reads the session token from (platformd.recorder)."""
 
 
 class DownloadError(Exception):

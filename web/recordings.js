@@ -6,6 +6,7 @@
 // here with WebCodecs. A view of its own: its DOM, started by the wiring (console.js).
 
 import { element, fixed } from "./common.js";
+import { codecFromSps } from "./h264.js";
 import { api } from "./station.js";
 import { state } from "./store.js";
 
@@ -273,16 +274,6 @@ function drawPlots(timeNs) {
   context.lineTo(x(timeNs), height);
   context.stroke();
   plot.dataset.cursorNs = String(timeNs);
-}
-
-function codecFromSps(bytes) {
-  for (let i = 0; i + 7 < bytes.length; i++) {
-    if (bytes[i] === 0 && bytes[i + 1] === 0 && bytes[i + 2] === 1 && (bytes[i + 3] & 0x1f) === 7) {
-      const hex = (v) => v.toString(16).padStart(2, "0");
-      return `avc1.${hex(bytes[i + 4])}${hex(bytes[i + 5])}${hex(bytes[i + 6])}`;
-    }
-  }
-  return "";
 }
 
 function bytesOf(base64) {

@@ -9,6 +9,10 @@
 // platform's wall clock; the draw time is this page's wall clock (performance.timeOrigin +
 // performance.now()) corrected by the station's clock offset the page measured. It assumes the
 // platform's and station's clocks agree (one host on loopback; NTP between hosts otherwise).
+//
+// A module worker (video.js starts it with type "module"): it imports the codec string.
+
+import { codecFromSps } from "./h264.js";
 
 const HEADER = 24;
 const LATE_MS = 150; // a delta frame that reached the station longer ago than this is skipped
@@ -25,17 +29,6 @@ let lastDrawnMs = null; // wall-clock time the last frame was drawn
 let keepAll = null;     // every [latency, capture → station], while a benchmark asks
 
 function now() { return performance.timeOrigin + performance.now(); }
-
-function codecFromSps(bytes) {
-  // Find NAL type 7 (SPS) after a start code; avc1.PPCCLL from profile, constraints, level.
-  for (let i = 0; i + 7 < bytes.length; i++) {
-    if (bytes[i] === 0 && bytes[i + 1] === 0 && bytes[i + 2] === 1 && (bytes[i + 3] & 0x1f) === 7) {
-      const hex = (v) => v.toString(16).padStart(2, "0");
-      return `avc1.${hex(bytes[i + 4])}${hex(bytes[i + 5])}${hex(bytes[i + 6])}`;
-    }
-  }
-  return "";
-}
 
 function makeDecoder() {
   if (decoder && decoder.state !== "closed") decoder.close();

@@ -125,7 +125,7 @@ export function startVideo() {
   } else if (typeof VideoDecoder === "undefined" || typeof OffscreenCanvas === "undefined") {
     showMessage("No video: this browser has no WebCodecs VideoDecoder. Use a current Chromium or Firefox.");
   } else {
-    worker = new Worker("/static/video-worker.js");
+    worker = new Worker("/static/video-worker.js", { type: "module" });
     const offscreen = canvas.transferControlToOffscreen();
     worker.postMessage({ type: "init", canvas: offscreen }, [offscreen]);
     worker.onmessage = (event) => onWorkerMessage(event.data);
