@@ -14,6 +14,7 @@ from typing import Any
 from mcap.reader import make_reader
 
 from brasidas.recording import schemas
+from brasidas.recording.writer import summary_channels
 
 TRACK_POINTS = 2000
 """The track is thinned to at most this many points (an hour of 10 Hz poses is 36 000)."""
@@ -49,15 +50,7 @@ def recording_index(path: Path) -> dict[str, Any]:
         if summary is None or summary.statistics is None:
             raise ValueError(f"{path.name} has no summary (not a finished recording)")
         stats = summary.statistics
-        channels = {
-            channel.topic: {
-                "schema": summary.schemas[channel.schema_id].name
-                if channel.schema_id in summary.schemas
-                else "",
-                "messages": stats.channel_message_counts.get(channel_id, 0),
-            }
-            for channel_id, channel in summary.channels.items()
-        }
+        channels = summary_channels(summary)
         source = schemas.POSE.topic if schemas.POSE.topic in channels else schemas.GPS.topic
         track = [
             [message.log_time, *_lat_lon(message.data)]

@@ -488,6 +488,21 @@ def recover_file(source: Path, target: Path) -> int:
     return count
 
 
+def summary_channels(summary: Any) -> dict[str, dict[str, Any]]:
+    """An MCAP summary's channels by topic: each one's schema name and message count (the
+    recordings listing and the replay index both show them)."""
+    stats = summary.statistics
+    return {
+        channel.topic: {
+            "schema": summary.schemas[channel.schema_id].name
+            if channel.schema_id in summary.schemas
+            else "",
+            "messages": stats.channel_message_counts.get(channel_id, 0) if stats else 0,
+        }
+        for channel_id, channel in summary.channels.items()
+    }
+
+
 def list_recordings(directory: Path) -> list[dict[str, Any]]:
     """Every recording in ``directory``: name, start, duration, size, channels and counts
     (finished files from their summary; the one being written by its name and size)."""
@@ -527,15 +542,7 @@ def list_recordings(directory: Path) -> list[dict[str, Any]]:
                     (stats.message_end_time - stats.message_start_time) / 1e9, 3
                 )
                 entry["messages"] = stats.message_count
-                entry["channels"] = {
-                    channel.topic: {
-                        "schema": summary.schemas[channel.schema_id].name
-                        if channel.schema_id in summary.schemas
-                        else "",
-                        "messages": stats.channel_message_counts.get(channel_id, 0),
-                    }
-                    for channel_id, channel in summary.channels.items()
-                }
+                entry["channels"] = summary_channels(summary)
         items.append(entry)
     return items
 

@@ -1,7 +1,9 @@
 """The MAVLink 2 endpoint (issue 22): the platform as a ground rover for QGroundControl,
 Mission Planner, MAVProxy and MAVSDK. ``[mavlink] enabled`` turns it on.
 
-``vehicle`` is the sans-IO protocol (pymavlink for the wire format), ``missions`` the mission
+``vehicle`` is the sans-IO protocol (pymavlink for the wire format), composed of ``link`` (the
+links, admission, signing, sending), ``telemetry`` (the encoders), ``commands`` (commands,
+modes, the joystick, parameters) and ``mission_protocol`` (transfers); ``missions`` the mission
 and fence items' wire form (their meaning is brasidas.mapfiles.mission's), ``modes`` the identity and modes, ``signing`` the key and the signature
 check, ``service`` the UDP transport and the platform's decisions.
 """

@@ -182,12 +182,19 @@ class CommandHandlers(LinkCore):
             return []
         return [SetMode(peer, system, component, signed, mode, mavlink.MAVLINK_MSG_ID_SET_MODE)]
 
+    def _steering_allowed(self, signed: bool) -> bool:
+        """The joystick and a go-to by position target have no answer: unsigned ones (unless
+        allowed) are only counted."""
+        if signed or self.allow_unsigned_control:
+            return True
+        self.counters["refused_unsigned"] += 1
+        return False
+
     def _on_manual_control(
         self, link: Link, message: Any, origin: Origin, now: float
     ) -> list[Request]:
         peer, system, component, signed = origin
-        if not (signed or self.allow_unsigned_control):
-            self.counters["refused_unsigned"] += 1
+        if not self._steering_allowed(signed):
             return []
         linear = _axis(message.x)
         angular = -_axis(message.r)  # MAVLink's r is yaw to the right; ours turns left
@@ -200,8 +207,7 @@ class CommandHandlers(LinkCore):
         peer, system, component, signed = origin
         if message.target_system not in (0, self.system_id):
             return []
-        if not (signed or self.allow_unsigned_control):
-            self.counters["refused_unsigned"] += 1
+        if not self._steering_allowed(signed):
             return []
         target = guided.position_target(message)
         if target is None:
@@ -215,8 +221,7 @@ class CommandHandlers(LinkCore):
         peer, system, component, signed = origin
         if message.target_system not in (0, self.system_id):
             return []
-        if not (signed or self.allow_unsigned_control):
-            self.counters["refused_unsigned"] += 1
+        if not self._steering_allowed(signed):
             return []
         linear, angular = manual.rc_velocity(message)
         return [ManualInput(peer, system, component, signed, linear, angular)]

@@ -127,9 +127,7 @@ class MissionProtocol(LinkCore):
         mission_type = message.mission_type
         count = message.count
 
-        def refuse(result: int, text: str) -> None:
-            self._mission_ack(link, system, component, result, mission_type)
-            self._statustext_to(link, Severity.WARNING, text)
+        refuse = self._mission_refuser(link, system, component, mission_type)
 
         if mission_type == RALLY and count == 0:
             self._mission_ack(link, system, component, mavlink.MAV_MISSION_ACCEPTED, RALLY)
@@ -215,9 +213,7 @@ class MissionProtocol(LinkCore):
         peer, system, component, signed = origin
         mission_type = message.mission_type
 
-        def refuse(result: int, text: str) -> None:
-            self._mission_ack(link, system, component, result, mission_type)
-            self._statustext_to(link, Severity.WARNING, text)
+        refuse = self._mission_refuser(link, system, component, mission_type)
 
         if mission_type not in (MISSION, FENCE):
             self._mission_ack(link, system, component, mavlink.MAV_MISSION_ACCEPTED, mission_type)
@@ -294,6 +290,17 @@ class MissionProtocol(LinkCore):
             )
             return
         self._request_items(link, now)
+
+    def _mission_refuser(
+        self, link: Link, system: int, component: int, mission_type: int
+    ) -> Callable[[int, str], None]:
+        """``refuse(result, text)``: a MISSION_ACK with ``result`` and a warning saying why."""
+
+        def refuse(result: int, text: str) -> None:
+            self._mission_ack(link, system, component, result, mission_type)
+            self._statustext_to(link, Severity.WARNING, text)
+
+        return refuse
 
     def _mission_ack(
         self, link: Link, system: int, component: int, result: int, mission_type: int
