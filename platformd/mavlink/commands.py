@@ -205,8 +205,6 @@ class CommandHandlers(LinkCore):
     ) -> list[Request]:
         """SET_POSITION_TARGET_GLOBAL_INT: a go-to (no answer but the mode and the position)."""
         peer, system, component, signed = origin
-        if message.target_system not in (0, self.system_id):
-            return []
         if not self._steering_allowed(signed):
             return []
         target = guided.position_target(message)
@@ -219,8 +217,6 @@ class CommandHandlers(LinkCore):
     ) -> list[Request]:
         """RC_CHANNELS_OVERRIDE: the joystick as ArduRover's channels (see manual.py)."""
         peer, system, component, signed = origin
-        if message.target_system not in (0, self.system_id):
-            return []
         if not self._steering_allowed(signed):
             return []
         linear, angular = manual.rc_velocity(message)
