@@ -246,6 +246,8 @@ class MavlinkVehicle:
         self.safety_request: Callable[..., list[Request]] | None = None
         """Arm, disarm, terminate (:data:`SAFETY_COMMANDS`): platformd.mavlink.arming's
         ``safety_request``, set by the service; unsupported without it."""
+        self.param_request: Callable[..., list[Request] | None] | None = None
+        """PARAM_SET of a writable parameter: platformd.mavlink.parameters' ``param_request``."""
         self.link_timeout = link_timeout
         self.upload_window = upload_window
         """Mission items requested ahead during an upload (1: strictly one at a time)."""
@@ -452,6 +454,19 @@ class MavlinkVehicle:
         if accepted:
             self.state.waypoint = missions.route_index(self.state.waypoint_seqs, request.seq)
             self._send(link, self._mission_current())
+
+    def answer_param(self, request: Request, name: str, text: str = "") -> None:
+        """PARAM_VALUE of ``name`` as it is now: with ``text`` (a refusal's reason, also sent)
+        to the asker; without (a change), to every ground station."""
+        index = self._param_index(name, -1)
+        link = self.links.get(request.peer)
+        if index is None or link is None:
+            return
+        if text:
+            self._send(link, self._param_value(index))
+            self._statustext_to(link, Severity.WARNING, text)
+        else:
+            self._broadcast(self._param_value(index))
 
     def statustext(self, severity: int, text: str) -> None:
         """A warning (or notice) for every ground station (group 90's annunciations)."""
@@ -985,6 +1000,14 @@ class MavlinkVehicle:
         if index is None:
             self._statustext_to(link, Severity.WARNING, f"no parameter {name}")
             return []
+        if self.param_request is not None:  # platformd.mavlink.parameters: the writable ones
+
+            def refuse(_result: int, text: str) -> None:
+                self.answer_param(Request(*origin), name, text)
+
+            asked = self.param_request(name, message.param_value, origin, refuse, self._may_control)
+            if asked is not None:
+                return asked
         # The unchanged value tells the client the write did not take.
         self._send(link, self._param_value(index))
         self._statustext_to(
