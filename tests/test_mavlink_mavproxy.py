@@ -223,6 +223,7 @@ async def test_mavproxy_fence_options_take_two_inclusion_fences_as_their_union(
 
         since = client.send(f"fence load {fence}")
         await client.expect("Got MISSION_ACK: TYPE_FENCE: ACCEPTED", since)
+        await client.expect("the boundary: the overlap of 2 inclusion polygons", since)
         assert not allowed(daemon, far_east) and not allowed(daemon, far_west)
 
         since = client.send("param set FENCE_OPTIONS 2")
@@ -232,6 +233,7 @@ async def test_mavproxy_fence_options_take_two_inclusion_fences_as_their_union(
 
         since = client.send(f"fence load {fence}")
         await client.expect("Got MISSION_ACK: TYPE_FENCE: ACCEPTED", since)
+        await client.expect("the boundary: the union of 2 inclusion polygons", since)
         assert allowed(daemon, far_east) and allowed(daemon, far_west)
 
         since = client.send("param set FENCE_OPTIONS 3")

@@ -469,6 +469,8 @@ class FencePlan:
 
     boundary: LatLonRing | None = None
     keepouts: tuple[LatLonRing, ...] = ()
+    inclusions: int = 0
+    """The inclusion polygons that made the boundary."""
 
 
 def fence_plan(items: Sequence[MissionItem], *, union: bool = False) -> FencePlan:
@@ -504,7 +506,7 @@ def fence_plan(items: Sequence[MissionItem], *, union: bool = False) -> FencePla
         raise MissionRefused(MissionResult.INVALID_PARAM5_X, str(exc)) from None
     # A union round a gap leaves a hole no inclusion covers: the robot keeps out of it.
     holes = [_corners(interior.coords) for interior in area.interiors]
-    return FencePlan(_corners(area.exterior.coords), (*keepouts, *holes))
+    return FencePlan(_corners(area.exterior.coords), (*keepouts, *holes), len(inclusions))
 
 
 def mission_items(

@@ -540,6 +540,9 @@ class MavlinkService(Actor):
                 area = await patrol.reshape_map(self._fence_map(fence))
                 self._uploaded_fence = (patrol.core.map_revision, items) if items else None
                 text = f"fence: {len(area.keepouts)} keep-outs"
+                if fence.inclusions > 1:
+                    how = "union" if self.parameters.fence_union else "overlap"
+                    text += f"; the boundary: the {how} of {fence.inclusions} inclusion polygons"
         except MissionRefused as exc:
             vehicle.answer_upload(request, exc.result, f"{what} refused: {exc}")
             return
