@@ -305,7 +305,7 @@ async def _foxglove_latency(key: bytes, directory: Path) -> dict[str, Any]:
             str(CLIENT / "subscribe.cjs"),
             f"ws://127.0.0.1:{live.port}",
             "300",
-            "/brasidas-1/navcam",
+            "/navcam",  # the first platform: the recordings' names
             cwd=CLIENT,
             stdout=asyncio.subprocess.PIPE,
             stderr=asyncio.subprocess.DEVNULL,

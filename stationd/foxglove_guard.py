@@ -5,7 +5,8 @@ upgrade by its headers, so it listens on an ephemeral loopback port and this TCP
 ``foxglove.host:port``: it reads the upgrade request's head (bounded in size and time), answers
 403 to a foreign ``Host`` or ``Origin`` exactly as the console's WebSocket does
 (:func:`brasidas.rpc.browser_refusal`), and otherwise passes the bytes both ways untouched
-(the handshake, subprotocols included, is the SDK's).
+(the handshake is the SDK's), but for a client that offers only the subprotocol's older name
+(:mod:`stationd.foxglove_subprotocol`: renamed both ways in the handshake's heads).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import secrets
 
 from brasidas.config import StationConfig
 from brasidas.rpc import browser_refusal
+from stationd.foxglove_subprotocol import name_legacy, offer_sdk
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -116,10 +118,14 @@ class OriginGuard:
             with contextlib.suppress(ConnectionError):
                 await writer.drain()
             return
+        head, legacy = offer_sdk(head)
         up_reader, up_writer = await asyncio.open_connection(self.upstream_host, self.upstream_port)
         self._writers.add(up_writer)
         try:
             up_writer.write(head)
+            if legacy:  # the SDK's answer names foxglove.sdk.v1: the client offered the old name
+                answer = await asyncio.wait_for(up_reader.readuntil(b"\r\n\r\n"), HEAD_TIMEOUT_S)
+                writer.write(name_legacy(answer))
             async with asyncio.TaskGroup() as group:
                 group.create_task(_pipe(reader, up_writer))
                 group.create_task(_pipe(up_reader, writer))

@@ -2,7 +2,9 @@
 (``foxglove-sdk``, subprotocol ``foxglove.sdk.v1``) on ``foxglove.host:port``.
 
 Every connected platform gets the recorder's channels (:mod:`brasidas.recording.schemas`),
-topics prefixed by its id (``/rover-1/gps``): positions, every telemetry section, the motor
+under the recordings' own names (``/gps``: one layout fits a live robot and its files) for the
+first platform, and prefixed by its id (``/rover-2/gps``) for each other connected meanwhile
+(or for all, ``foxglove.platform_prefix``): positions, every telemetry section, the motor
 command and the velocity source it came from (the motion section), state changes (failsafe,
 control, override, streams, patrol) from the station's telemetry link; the system commands
 this station sends (``/commands``); the station's notifications as ``foxglove.Log``; the area
@@ -110,6 +112,9 @@ class _PlatformChannels:
         self.map_rev: int | None = None
         self.map_data: bytes | None = None
         """The area map last published: again to each new subscriber (it changes rarely)."""
+        self.last_note: tuple[bytes, int] | None = None
+        """The last notification on ``/log`` and its time: again to each new subscriber (the
+        channel is advertised with its first message, which a client subscribing then misses)."""
         self.video_subscribers = 0
         self.video_task: asyncio.Task[None] | None = None
 
@@ -226,14 +231,17 @@ class FoxgloveLive(Actor):
 
     def _add(self, platform_id: str) -> None:
         if platform_id not in self.platforms and self._context is not None:
-            prefix = self.ctx.config.foxglove.platform_prefix
-            if not prefix and self.platforms:
-                _LOGGER.warning(
-                    "foxglove: %s not served: foxglove.platform_prefix is off and %s is",
+            # The recordings' names (``/navcam``) go to one platform; any other connected
+            # meanwhile is told apart by its id (``/rover-2/navcam``), as all are with
+            # ``foxglove.platform_prefix``.
+            taken = any(not platform.prefix for platform in self.platforms.values())
+            prefix = self.ctx.config.foxglove.platform_prefix or taken
+            if taken:
+                _LOGGER.info(
+                    "foxglove: %s served as /%s/...: the recordings' names are another's",
                     platform_id,
-                    next(iter(self.platforms)),
+                    platform_id,
                 )
-                return
             self.platforms[platform_id] = _PlatformChannels(
                 platform_id, self._context, prefix=prefix
             )
@@ -253,9 +261,9 @@ class FoxgloveLive(Actor):
         time_ns = int(note.time * 1e9)
         level = schemas.LOG_WARNING if note.active else schemas.LOG_INFO
         text = f"{note.code} {note.name}: {note.message}{'' if note.active else ' (cleared)'}"
-        platform.log(
-            schemas.LOG_CHANNEL, schemas.encode_log(time_ns, level, note.name, text), time_ns
-        )
+        data = schemas.encode_log(time_ns, level, note.name, text)
+        platform.last_note = (data, time_ns)
+        platform.log(schemas.LOG_CHANNEL, data, time_ns)
 
     def _on_command(self, sent: CommandSent) -> None:
         platform = self.platforms.get(sent.platform_id)
@@ -306,12 +314,16 @@ class FoxgloveLive(Actor):
 
     def subscribed(self, topic: str, delta: int) -> None:
         """A client subscribed to (1) or left (-1) ``topic``; the NavCam is fetched while
-        anyone watches it, and a new subscriber to the map gets the current one."""
+        anyone watches it, and a new subscriber to the map (or the log) gets the current one
+        (the last notification)."""
         for platform in self.platforms.values():
-            if topic == f"/{platform.platform_id}{schemas.MAP.topic}" and delta > 0:
+            if topic == f"{platform.prefix}{schemas.MAP.topic}" and delta > 0:
                 if platform.map_data is not None:
                     platform.log(schemas.MAP, platform.map_data, time.time_ns())
-            if topic == f"/{platform.platform_id}{schemas.NAVCAM.topic}":
+            if topic == f"{platform.prefix}{schemas.LOG_CHANNEL.topic}" and delta > 0:
+                if platform.last_note is not None:
+                    platform.log(schemas.LOG_CHANNEL, *platform.last_note)
+            if topic == f"{platform.prefix}{schemas.NAVCAM.topic}":
                 platform.video_subscribers = max(0, platform.video_subscribers + delta)
                 if platform.video_subscribers and platform.video_task is None:
                     platform.video_task = asyncio.get_running_loop().create_task(

@@ -1,23 +1,28 @@
-"""Foxglove, live (issue 23): a real client (``@foxglove/ws-protocol`` over ``ws``, Node)
-subscribes to the station's Foxglove WebSocket server over ``foxglove.sdk.v1`` and receives a
---sim platform's LocationFix and CompressedVideo messages."""
+"""Foxglove, live: a real client (``@foxglove/ws-protocol`` over ``ws``, Node) subscribes to
+the station's Foxglove WebSocket server over ``foxglove.sdk.v1`` (or only
+``foxglove.websocket.v1``) and receives a --sim platform's LocationFix and CompressedVideo
+messages, under the names the platform's own recording has."""
 
 from __future__ import annotations
 
 import asyncio
 import base64
 import json
+import os
 import shutil
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
 from conftest import quiet_platform_config, running_station, wait_until
+from mcap.reader import make_reader
 from test_station import run_cli
 
 from brasidas import topics
+from brasidas.recording import schemas as recorded
 from platformd.app import PlatformDaemon
 from stationd.foxglove_live import FoxgloveLive
+from stationd.foxglove_subprotocol import LEGACY
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 CLIENT = Path(__file__).parent / "foxglove_client"
@@ -25,9 +30,13 @@ CLIENT = Path(__file__).parent / "foxglove_client"
 NODE = shutil.which("node")
 
 
-async def subscribe(port: int, count: int, *topics: str) -> list[dict[str, Any]]:
-    """Run the Node client until it has ``count`` messages of every topic; its JSON lines."""
+async def subscribe(
+    port: int, count: int, *topics: str, offer: str | None = None
+) -> list[dict[str, Any]]:
+    """Run the Node client until it has ``count`` messages of every topic; its JSON lines
+    (``offer``: the subprotocols it offers, comma-separated; both names by default)."""
     assert NODE is not None, "no node: `make deps` installs it"
+    env = {**os.environ, "SUBPROTOCOLS": offer} if offer else None
     process = await asyncio.create_subprocess_exec(
         NODE,
         str(CLIENT / "subscribe.cjs"),
@@ -35,6 +44,7 @@ async def subscribe(port: int, count: int, *topics: str) -> list[dict[str, Any]]
         str(count),
         *topics,
         cwd=CLIENT,
+        env=env,
         stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.PIPE,
     )
@@ -52,6 +62,17 @@ async def subscribe(port: int, count: int, *topics: str) -> list[dict[str, Any]]
     return [json.loads(line) for line in out.decode().splitlines() if line.strip()]
 
 
+def topics_of(path: Path) -> dict[str, str]:
+    """A recording's topics and their schema names, as the ``mcap`` package reads them."""
+    with open(path, "rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None
+    return {
+        channel.topic: summary.schemas[channel.schema_id].name
+        for channel in summary.channels.values()
+    }
+
+
 async def test_a_foxglove_client_receives_location_fixes_and_compressed_video(
     platform_factory: Factory, fleet_key: bytes, tmp_path: Path
 ) -> None:
@@ -66,7 +87,9 @@ async def test_a_foxglove_client_receives_location_fixes_and_compressed_video(
         ),
         fleet_key,
     )
-    async with running_station(fleet_key, "foxglove.port=0") as station:
+    async with running_station(
+        fleet_key, "foxglove.port=0", "foxglove.platform_prefix=true"
+    ) as station:
         (live,) = [a for a in station.supervisor.actors if isinstance(a, FoxgloveLive)]
         await asyncio.wait_for(live.serving.wait(), 30)
         assert live.port not in (0, 8766)
@@ -98,7 +121,10 @@ async def test_every_channel_the_station_advertises_is_fed(
 ) -> None:
     """Commands the station sends, state changes, the velocities and motor commands telemetry
     shows: a real client subscribed to every channel advertised gets a message on each; a
-    channel nothing feeds (``/pose/local``) is not advertised."""
+    channel nothing feeds (``/pose/local``) is not advertised. One naming: each live topic
+    (the default, one platform) is a topic of the platform's own recording with the same
+    schema, as the ``mcap`` package reads the file ``logs ID get`` fetches, so one Foxglove
+    layout works on both."""
     platform = await platform_factory(
         quiet_platform_config(
             "platform.id=rover-fa",
@@ -106,13 +132,16 @@ async def test_every_channel_the_station_advertises_is_fed(
             "gps.enabled=true",
             "navcam.enabled=true",
             "motor.enabled=true",
+            "recorder.enabled=true",
+            f"recorder.dir={tmp_path / 'recordings'}",
+            "recorder.chunk_seconds=0.5",
             f"map.file={tmp_path / 'map.geojson'}",
             f"autonomy.route_file={tmp_path / 'route.json'}",
         ),
         fleet_key,
     )
     required = [
-        f"/rover-fa{topic}"
+        topic
         for topic in (
             "/gps",
             "/pose",
@@ -151,6 +180,14 @@ async def test_every_channel_the_station_advertises_is_fed(
             lines = await client
         finally:
             client.cancel()
+        # The platform's recording of the same minute, fetched as an operator would.
+        (active,) = (tmp_path / "recordings").glob("*.mcap.active")
+        copy = tmp_path / "now.mcap"
+        code, _, err = await run_cli(
+            station, "logs", "rover-fa", "get", active.name, "-o", str(copy)
+        )
+        assert code == 0, err
+    recorded_topics = await asyncio.to_thread(topics_of, copy)
     advertised = {line["advertised"]: line["schema"] for line in lines if "advertised" in line}
     messages: dict[str, list[dict[str, Any]]] = {}
     for line in lines:
@@ -158,7 +195,7 @@ async def test_every_channel_the_station_advertises_is_fed(
             messages.setdefault(line["topic"], []).append(line)
     assert set(required) <= set(advertised), advertised
     assert set(messages) == set(advertised), set(advertised) - set(messages)
-    assert "/rover-fa/pose/local" not in advertised  # telemetry carries no local frame
+    assert "/pose/local" not in advertised  # telemetry carries no local frame
     for topic, schema in {
         "/commands": "brasidas.Command",
         "/state": "brasidas.StateChange",
@@ -166,43 +203,62 @@ async def test_every_channel_the_station_advertises_is_fed(
         "/velocity/autonomy": "brasidas.Velocity",
         "/motor/command": "brasidas.Velocity",
     }.items():
-        assert advertised[f"/rover-fa{topic}"] == schema
-    (command,) = messages["/rover-fa/commands"]
+        assert advertised[topic] == schema
+    (command,) = messages["/commands"]
     assert command["json"]["station"] == station.ctx.config.station.id
     assert command["json"]["kind"] == "system" and command["json"]["accepted"] is True
     assert command["json"]["name"] in ("10.0", "10.6") and "session" not in command["json"]
-    (state,) = messages["/rover-fa/state"]
+    (state,) = messages["/state"]
     assert set(state["json"]) == {"what", "state", "station", "reason"}
-    (motor,) = messages["/rover-fa/motor/command"]
+    (motor,) = messages["/motor/command"]
     assert set(motor["json"]) == {"linear", "angular"}
+    # Each live topic is a recorder channel's name and schema; those this minute's file has
+    # (the ones fed while it was written) are the very same in it.
+    channels = {spec.topic: spec.schema_name for spec in recorded.all_channels()}
+    assert {topic: channels.get(topic) for topic in advertised} == advertised
+    shared = advertised.keys() & recorded_topics.keys()
+    assert {"/gps", "/pose", "/navcam", "/commands", "/state", "/motor/command"} <= shared
+    assert {topic: recorded_topics[topic] for topic in shared} == {
+        topic: advertised[topic] for topic in shared
+    }
 
 
-async def test_live_topics_can_be_named_as_recorded_so_one_layout_fits_both(
+async def test_a_second_platform_is_told_apart_by_its_id(
     platform_factory: Factory, fleet_key: bytes, tmp_path: Path
 ) -> None:
-    """``foxglove.platform_prefix = false``: ``/gps`` live, as in a recording (one robot)."""
-    from brasidas.recording import schemas as recorded
-
-    platform = await platform_factory(
-        quiet_platform_config(
-            "platform.id=rover-fy",
-            "sim.enabled=true",
-            "gps.enabled=true",
-            f"map.file={tmp_path / 'map.geojson'}",
-            f"autonomy.route_file={tmp_path / 'route.json'}",
-        ),
-        fleet_key,
-    )
-    async with running_station(
-        fleet_key, "foxglove.port=0", "foxglove.platform_prefix=false"
-    ) as station:
+    """The default naming: the first platform has the recordings' names (``/gps``), another
+    connected meanwhile is ``/rover-fz/gps``; both are served at once. The client offers only
+    ``foxglove.websocket.v1`` (``FoxgloveClient``'s own, older viewers'): it connects under
+    that name and decodes the SDK's messages."""
+    platforms = []
+    for name in ("rover-fy", "rover-fz"):
+        platforms.append(
+            await platform_factory(
+                quiet_platform_config(
+                    f"platform.id={name}",
+                    "sim.enabled=true",
+                    "gps.enabled=true",
+                    f"map.file={tmp_path / name / 'map.geojson'}",
+                    f"autonomy.route_file={tmp_path / name / 'route.json'}",
+                ),
+                fleet_key,
+            )
+        )
+    async with running_station(fleet_key, "foxglove.port=0") as station:
         (live,) = [a for a in station.supervisor.actors if isinstance(a, FoxgloveLive)]
         await asyncio.wait_for(live.serving.wait(), 30)
-        code, _, err = await run_cli(
-            station, "connect", "rover-fy", "--url", platform.ctx.signaling_url
-        )
-        assert code == 0, err
-        lines = await subscribe(live.port, 2, "/gps")
-    fixes = [line for line in lines if line.get("topic") == "/gps"]
-    assert len(fixes) == 2 and fixes[0]["schema"] == "foxglove.LocationFix"
-    assert recorded.GPS.topic == "/gps"  # the recorder's name for the same channel
+        for name, platform in zip(("rover-fy", "rover-fz"), platforms, strict=True):
+            code, _, err = await run_cli(
+                station, "connect", name, "--url", platform.ctx.signaling_url
+            )
+            assert code == 0, err
+            await wait_until(lambda name=name: name in live.platforms, 20)  # type: ignore[misc]
+        lines = await subscribe(live.port, 2, "/gps", "/rover-fz/gps", offer=LEGACY)
+    assert lines[0]["subprotocol"] == LEGACY
+    fixes = {
+        topic: [line for line in lines if line.get("topic") == topic]
+        for topic in ("/gps", "/rover-fz/gps")
+    }
+    for topic, received in fixes.items():
+        assert len(received) == 2 and received[0]["schema"] == "foxglove.LocationFix", topic
+    assert "/rover-fy/gps" not in {line.get("topic") for line in lines}

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import sys
 from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
@@ -192,3 +193,66 @@ async def test_mavproxy_controls_only_once_it_signs(
         client.send("mode AUTO")
         await client.expect("Mode AUTO", since)
         assert patrolling(daemon)
+
+
+async def test_mavproxy_fence_options_take_two_inclusion_fences_as_their_union(
+    platform_factory: Callable[..., Awaitable[PlatformDaemon]], tmp_path: Path
+) -> None:
+    """Two overlapping inclusion fences: the area where both overlap (ArduPilot's default), then
+    after ``param set FENCE_OPTIONS 2`` their union; a bit a rover cannot honour is refused;
+    the value is kept across a restart (the next upload is still a union)."""
+    fence = tmp_path / "two-fields.fence"
+    # Both hold the demo route (0..40 m east, 0..30 m north); only one holds each far point.
+    west = [at(-12, -12), at(45, -12), at(45, 42), at(-12, 42)]
+    east = [at(-5, -12), at(52, -12), at(52, 42), at(-5, 42)]
+    write_waypoints(fence, [(0, 0, 5001, 4, lat, lon) for lat, lon in west + east])
+    far_east, far_west = at(48, 15), at(-10, 15)
+
+    def allowed(daemon: PlatformDaemon, point: tuple[float, float]) -> bool:
+        assert daemon.ctx.patrol is not None
+        area = daemon.ctx.patrol.core.area
+        assert area is not None
+        return area.inside(*area.local(*point))
+
+    port = free_udp_port()
+    config = sim_rover_config(tmp_path, port, "mavlink.allow_unsigned_control=true")
+    daemon = await platform_factory(config, None)
+    async with mavproxy(port, tmp_path) as client:
+        await client.expect("Detected vehicle 1:1")
+        await client.expect("Received 1", timeout=60)
+
+        since = client.send(f"fence load {fence}")
+        await client.expect("Got MISSION_ACK: TYPE_FENCE: ACCEPTED", since)
+        await client.expect("the boundary: the overlap of 2 inclusion polygons", since)
+        assert not allowed(daemon, far_east) and not allowed(daemon, far_west)
+
+        since = client.send("param set FENCE_OPTIONS 2")
+        await client.expect("several inclusion fences: their union", since)
+        saved = tmp_path / "state" / "brasidas" / "mavlink-parameters.json"
+        assert json.loads(saved.read_text()) == {"FENCE_OPTIONS": 2}
+
+        since = client.send(f"fence load {fence}")
+        await client.expect("Got MISSION_ACK: TYPE_FENCE: ACCEPTED", since)
+        await client.expect("the boundary: the union of 2 inclusion polygons", since)
+        assert allowed(daemon, far_east) and allowed(daemon, far_west)
+
+        since = client.send("param set FENCE_OPTIONS 3")
+        await client.expect("FENCE_OPTIONS 3 refused: only bit 1", since)
+        assert json.loads(saved.read_text()) == {"FENCE_OPTIONS": 2}
+    await daemon.stop()
+
+    port = free_udp_port()
+    config = sim_rover_config(tmp_path, port, "mavlink.allow_unsigned_control=true")
+    daemon = await platform_factory(config, None)
+    async with mavproxy(port, tmp_path) as client:
+        await client.expect("Detected vehicle 1:1")
+        await client.expect("Received 1", timeout=60)
+        since = client.send("param show FENCE_OPTIONS")
+        shown = await client.expect("FENCE_OPTIONS", since)
+        assert shown.split()[-1] == "2.0"
+        # A wider eastern field than the map kept on disk has: only a union reaches it.
+        wider = [at(-5, -12), at(70, -12), at(70, 42), at(-5, 42)]
+        write_waypoints(fence, [(0, 0, 5001, 4, lat, lon) for lat, lon in west + wider])
+        since = client.send(f"fence load {fence}")
+        await client.expect("Got MISSION_ACK: TYPE_FENCE: ACCEPTED", since)
+        assert allowed(daemon, at(65, 15)) and allowed(daemon, far_west)

@@ -239,3 +239,45 @@ async def test_mavsdks_mission_plugin_keeps_every_waypoint_and_its_speed(
         assert len(route.waypoints) == 4
         # The speed set after the first waypoint is the speed of the legs after it.
         assert [w.speed for w in route.waypoints] == [None, 0.75, 0.75, 0.75]
+
+
+async def test_mavsdk_sets_fence_options_and_its_geofence_is_a_union(
+    platform_factory: Callable[..., Awaitable[PlatformDaemon]], tmp_path: Path
+) -> None:
+    """MAVSDK's Param plugin sets FENCE_OPTIONS (an INT16, C-cast), then its Geofence plugin
+    uploads two overlapping inclusion polygons: the map's boundary is their union."""
+    from mavsdk.asyncio.plugins.geofence import (
+        FenceType,
+        GeofenceAsync,
+        GeofenceData,
+        Point,
+        Polygon,
+    )
+    from mavsdk.asyncio.plugins.param import ParamAsync
+
+    port = free_udp_port()
+    daemon = await platform_factory(
+        sim_rover_config(tmp_path, port, "mavlink.allow_unsigned_control=true"), None
+    )
+    patrol = daemon.ctx.patrol
+    assert patrol is not None
+
+    def field(west: float, east: float) -> Polygon:
+        corners = [at(west, -12), at(east, -12), at(east, 42), at(west, 42)]
+        return Polygon([Point(lat, lon) for lat, lon in corners], FenceType.INCLUSION)
+
+    configuration = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+    async with Mavsdk(configuration) as mavsdk:
+        await mavsdk.add_any_connection(f"udpin://127.0.0.1:{port}")
+        system = await mavsdk.first_autopilot(timeout_s=30.0)
+        assert system is not None
+        params = ParamAsync(system)
+        await params.set_param_int("FENCE_OPTIONS", 2)
+        assert await params.get_param_int("FENCE_OPTIONS") == 2
+        await GeofenceAsync(system).upload_geofence(
+            GeofenceData([field(-12, 45), field(-5, 52)], [])
+        )
+    area = patrol.core.area
+    assert area is not None
+    for east in (-10, 48):  # each inside one field only
+        assert area.inside(*area.local(*position(east, 15)))

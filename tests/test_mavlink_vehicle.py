@@ -247,8 +247,11 @@ def test_fence_items_map_onto_boundary_and_keepouts() -> None:
     with pytest.raises(MissionRefused) as refused:
         fence_from_items(mission(*[(FENCE_INCLUSION_VERTEX, 4)] * 3))
     assert refused.value.result == mavlink.MAV_MISSION_INVALID_PARAM1
-    with pytest.raises(MissionRefused, match="second inclusion polygon"):
+    # Two triangles on opposite arcs of the circle: no common area, and no one area together.
+    with pytest.raises(MissionRefused, match="do not overlap"):
         fence_from_items(mission(*[(FENCE_INCLUSION_VERTEX, 3)] * 6))
+    with pytest.raises(MissionRefused, match="separate areas"):
+        fence_from_items(mission(*[(FENCE_INCLUSION_VERTEX, 3)] * 6), union=True)
     with pytest.raises(MissionRefused, match="inclusion circle"):
         fence_from_items(mission((5003, 10)))
 

@@ -585,6 +585,10 @@ class MavlinkSection:
     skip_unsupported: bool = False
     """Mission uploads: leave out the items a rover cannot do (each named in the upload's
     answer) instead of refusing the mission."""
+    parameters_file: str = ""
+    """The parameters ground stations set (``FENCE_OPTIONS``: 2 takes several uploaded inclusion
+    fences as their union), kept across restarts. Empty:
+    $XDG_STATE_HOME/brasidas/mavlink-parameters.json."""
 
 
 @dataclass(frozen=True)

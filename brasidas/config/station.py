@@ -208,10 +208,10 @@ class FoxgloveSection:
     """Web origins whose pages may connect besides the server's own (the console's rule: any
     other ``Origin`` is answered 403), e.g. ``["https://app.foxglove.dev"]`` for Foxglove's
     web app. Clients that send no ``Origin`` (Foxglove desktop, scripts) are not affected."""
-    platform_prefix: bool = True
-    """Topics carry the platform id (``/rover-1/navcam``: the whole fleet on one server).
-    False: a recording's names (``/navcam``), so one Foxglove layout works live and on files;
-    one platform at a time is then served (the first connected), the others are logged."""
+    platform_prefix: bool = False
+    """Every platform's topics carry its id (``/rover-1/navcam``). False: the first platform
+    connected has a recording's names (``/navcam``), so one Foxglove layout works live and on
+    files; each other platform connected meanwhile is told apart by its id."""
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,13 @@ from typing import Any
 from shapely import Polygon
 
 from brasidas.mapfiles.errors import FileRefused
-from brasidas.mapfiles.shapes import CIRCLE_VERTICES, Shape, circle, polygon_shape
+from brasidas.mapfiles.shapes import (
+    CIRCLE_VERTICES,
+    Shape,
+    circle,
+    combined_boundary,
+    polygon_shape,
+)
 
 
 class MavCmd(IntEnum):
@@ -463,15 +469,18 @@ class FencePlan:
 
     boundary: LatLonRing | None = None
     keepouts: tuple[LatLonRing, ...] = ()
+    inclusions: int = 0
+    """The inclusion polygons that made the boundary."""
 
 
-def fence_plan(items: Sequence[MissionItem]) -> FencePlan:
+def fence_plan(items: Sequence[MissionItem], *, union: bool = False) -> FencePlan:
     """A fence uploaded to the platform: :func:`fence_shapes`' checks, then the map's own rules
-    (one inclusion polygon, its boundary; keep-outs; the return point is not used: a rover holds
-    inside the boundary). MissionRefused names every item refused."""
+    (the inclusion polygons make the boundary: where they all overlap, ArduPilot's default, or
+    with ``union`` their union, its ``FENCE_OPTIONS`` bit 1; keep-outs; the return point is not
+    used: a rover holds inside the boundary). MissionRefused names every item refused."""
     shapes = fence_shapes(items)
     refused = _Refusals()
-    boundary: LatLonRing | None = None
+    inclusions: list[Shape] = []
     keepouts: list[LatLonRing] = []
     for shape in shapes:
         if shape.role == "keepout":
@@ -481,20 +490,23 @@ def fence_plan(items: Sequence[MissionItem]) -> FencePlan:
                 MissionResult.UNSUPPORTED,
                 f"{shape.label}: an inclusion circle (the boundary is a polygon)",
             )
-        elif shape.role == "inclusion" and boundary is not None:
-            refused.add(
-                MissionResult.UNSUPPORTED,
-                f"{shape.label}: a second inclusion polygon (the map has one boundary)",
-            )
         elif shape.role == "inclusion":
-            boundary = _ring(shape)
+            inclusions.append(shape)
         elif shape.ident != "fence-return":
             refused.add(
                 MissionResult.UNSUPPORTED,
                 f"{shape.label}: a rally point is not a fence item (rally points are not taken)",
             )
     refused.check()
-    return FencePlan(boundary, tuple(keepouts))
+    if not inclusions:
+        return FencePlan(None, tuple(keepouts))
+    try:
+        area = combined_boundary(inclusions, union)
+    except FileRefused as exc:
+        raise MissionRefused(MissionResult.INVALID_PARAM5_X, str(exc)) from None
+    # A union round a gap leaves a hole no inclusion covers: the robot keeps out of it.
+    holes = [_corners(interior.coords) for interior in area.interiors]
+    return FencePlan(_corners(area.exterior.coords), (*keepouts, *holes), len(inclusions))
 
 
 def mission_items(
@@ -644,7 +656,12 @@ def _ring(shape: Shape) -> LatLonRing:
     """A polygon shape's outer ring as (lat, lon), the closing corner left out."""
     geometry = shape.geometry
     assert isinstance(geometry, Polygon)  # fence polygons and circles are one ring each
-    corners = [(float(lat), float(lon)) for lon, lat in geometry.exterior.coords]
+    return _corners(geometry.exterior.coords)
+
+
+def _corners(coords: Any) -> LatLonRing:
+    """A ring's (lon, lat) coordinates as (lat, lon), the closing corner left out."""
+    corners = [(float(lat), float(lon)) for lon, lat in coords]
     return tuple(corners[:-1] if len(corners) > 1 and corners[0] == corners[-1] else corners)
 
 

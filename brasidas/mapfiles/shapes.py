@@ -79,7 +79,7 @@ class MapOptions:
     boundary_bbox: bool = False
     """The boundary is the bounding box of everything in the file (or of its stated bounds)."""
     union: bool = False
-    """Several boundary polygons make their union (ArduPilot's ``FENCE_OPTIONS`` bit 2), not
+    """Several boundary polygons make their union (ArduPilot's ``FENCE_OPTIONS`` bit 1, value 2), not
     their intersection (its default); the union must be one area."""
 
 
@@ -229,7 +229,7 @@ def assemble_map(
         raise FileRefused("give --boundary or --boundary-bbox, not both")
     if options.boundary:
         chosen = select(polygons, options.boundary, "--boundary")
-        boundary = _combined(chosen, options.union)
+        boundary = combined_boundary(chosen, options.union)
         how = " (their union)" if options.union else " (their intersection)"
         notes.append(f"boundary: {_names(chosen)}" + (how if len(chosen) > 1 else ""))
     elif options.boundary_bbox:
@@ -255,7 +255,7 @@ def assemble_map(
                 "which polygon is the boundary? say --boundary SELECTOR (a number, id, name or "
                 f"KEY=VALUE) or --boundary-bbox; the file has: {listing(shapes)}"
             )
-        boundary = _combined(chosen, options.union)
+        boundary = combined_boundary(chosen, options.union)
         if len(chosen) > 1:
             how = "union" if options.union else "intersection"
             notes.append(f"boundary: the {how} of {_names(chosen)}")
@@ -364,7 +364,7 @@ def _unique(base: str, used: set[str]) -> str:
     return candidate
 
 
-def _combined(chosen: Sequence[Shape], union: bool) -> Polygon:
+def combined_boundary(chosen: Sequence[Shape], union: bool) -> Polygon:
     """The boundary of several polygons: their intersection, or with ``union`` their union
     (one area: separate pieces are refused, naming them)."""
     if not union or len(chosen) < 2:

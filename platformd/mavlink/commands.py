@@ -41,6 +41,22 @@ class CommandHandlers(LinkCore):
     """Arm, disarm, terminate (:data:`SAFETY_COMMANDS`): platformd.mavlink.arming's
     ``safety_request``, set by the service; unsupported without it."""
 
+    param_request: Callable[..., list[Request] | None] | None = None
+    """PARAM_SET of a writable parameter: platformd.mavlink.parameters' ``param_request``."""
+
+    def answer_param(self, request: Request, name: str, text: str = "") -> None:
+        """PARAM_VALUE of ``name`` as it is now: with ``text`` (a refusal's reason, also sent)
+        to the asker; without (a change), to every ground station."""
+        index = self._param_index(name, -1)
+        link = self.links.get(request.peer)
+        if index is None or link is None:
+            return
+        if text:
+            self._send(link, self._param_value(index))
+            self._statustext_to(link, Severity.WARNING, text)
+        else:
+            self._broadcast(self._param_value(index))
+
     def _on_command(self, link: Link, message: Any, origin: Origin, now: float) -> list[Request]:
         command = message.command
         target_component = message.target_component
@@ -244,6 +260,14 @@ class CommandHandlers(LinkCore):
         if index is None:
             self._statustext_to(link, Severity.WARNING, f"no parameter {name}")
             return []
+        if self.param_request is not None:  # platformd.mavlink.parameters: the writable ones
+
+            def refuse(_result: int, text: str) -> None:
+                self.answer_param(Request(*origin), name, text)
+
+            asked = self.param_request(name, message.param_value, origin, refuse, self._may_control)
+            if asked is not None:
+                return asked
         # The unchanged value tells the client the write did not take.
         self._send(link, self._param_value(index))
         self._statustext_to(

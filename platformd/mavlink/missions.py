@@ -138,9 +138,10 @@ def route_index(waypoint_seqs: tuple[int, ...], seq: int) -> int:
     return -1
 
 
-def fence_from_items(items: list[MissionItem]) -> FencePlan:
-    """The geometry of an uploaded fence; raises :class:`MissionRefused`."""
-    return mission.fence_plan([item.read() for item in items])
+def fence_from_items(items: list[MissionItem], *, union: bool = False) -> FencePlan:
+    """The geometry of an uploaded fence (``union``: several inclusion polygons make their
+    union, FENCE_OPTIONS bit 1); raises :class:`MissionRefused`."""
+    return mission.fence_plan([item.read() for item in items], union=union)
 
 
 def items_from_route(

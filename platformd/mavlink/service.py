@@ -51,7 +51,7 @@ from brasidas.messages import (
     Velocity,
 )
 from platformd.context import PlatformContext
-from platformd.mavlink import arming
+from platformd.mavlink import arming, parameters
 from platformd.mavlink.missions import (
     FENCE,
     MISSION,
@@ -64,6 +64,7 @@ from platformd.mavlink.missions import (
     route_from_items,
 )
 from platformd.mavlink.modes import FlightMode
+from platformd.mavlink.parameters import SetParameter, WritableParameters, parameters_path
 from platformd.mavlink.signing_state import SigningStateFile, gps_timestamp, signing_state_path
 from platformd.mavlink.vehicle import (
     CameraInfo,
@@ -138,6 +139,9 @@ class MavlinkService(Actor):
         )
         self.vehicle.state.params = config_parameters(ctx.config)
         self.vehicle.safety_request = arming.safety_request
+        self.vehicle.param_request = parameters.param_request
+        self.parameters = WritableParameters(parameters_path(config.parameters_file))
+        """FENCE_OPTIONS, as ground stations set it (restored in :meth:`open`)."""
         self.vehicle.state.gps_present = ctx.config.gps.enabled
         self.transport: asyncio.DatagramTransport | None = None
         self.port = 0
@@ -188,6 +192,7 @@ class MavlinkService(Actor):
         """Bind the UDP socket (before the daemon says it is up: tests read ``port``) after
         taking the saved signing state."""
         await self._signing_state.restore()
+        await parameters.restore(self)
         loop = asyncio.get_running_loop()
         transport, _ = await loop.create_datagram_endpoint(
             lambda: _Protocol(self),
@@ -384,6 +389,8 @@ class MavlinkService(Actor):
             await arming.decide(self, request)
         elif isinstance(request, GoTo):
             await self._go_to(request, FlightMode.GUIDED)
+        elif isinstance(request, SetParameter):
+            await parameters.decide(self, request)
 
     async def _go_to(self, request: GoTo | SetMode, mode: FlightMode) -> None:
         """GUIDED's point or RTL's home through the patrol's ``go_to_point`` (the planner,
@@ -525,10 +532,13 @@ class MavlinkService(Actor):
                 self.vehicle.state.waypoint_seqs = self._uploaded_seqs
                 text = mission_summary(route, plan.notes)
             else:
-                fence = fence_from_items(items)
+                fence = fence_from_items(items, union=self.parameters.fence_union)
                 area = await patrol.reshape_map(self._fence_map(fence))
                 self._uploaded_fence = (patrol.map_revision, items) if items else None
                 text = f"fence: {len(area.keepouts)} keep-outs"
+                if fence.inclusions > 1:
+                    how = "union" if self.parameters.fence_union else "overlap"
+                    text += f"; the boundary: the {how} of {fence.inclusions} inclusion polygons"
         except MissionRefused as exc:
             vehicle.answer_upload(request, exc.result, f"{what} refused: {exc}")
             return

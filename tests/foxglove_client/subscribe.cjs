@@ -13,7 +13,12 @@ const [url, countText, ...rest] = process.argv.slice(2);
 const all = rest[0] === "--all";
 const topics = all ? rest.slice(1) : rest;
 const wanted = Number(countText);
-const ws = new WebSocket(url, [FoxgloveClient.SUPPORTED_SUBPROTOCOL, "foxglove.sdk.v1"]);
+// SUBPROTOCOLS (comma-separated) replaces the offer: "foxglove.websocket.v1" alone is what
+// FoxgloveClient and older viewers offer.
+const offer = process.env.SUBPROTOCOLS
+  ? process.env.SUBPROTOCOLS.split(",")
+  : [FoxgloveClient.SUPPORTED_SUBPROTOCOL, "foxglove.sdk.v1"];
+const ws = new WebSocket(url, offer);
 const client = new FoxgloveClient({ ws });
 const bySubscription = new Map();
 const received = new Map(topics.map((t) => [t, 0]));
