@@ -21,6 +21,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from brasidas.admission import SourceLedger
 from brasidas.messages import Attitude, ControllerStatus, GpsFix, PoseEstimate
 from platformd.mavlink import ftp, guided, manual, missions, modes, protocol_version
 from platformd.mavlink.missions import FENCE, MAX_ITEMS, MISSION, RALLY, MissionItem, command_name
@@ -43,10 +44,6 @@ MAX_LINKS = 32
 bounded table (the configured targets are always kept)."""
 STRANGER_LINKS = 16
 """Of those, at most this many strangers: a trusted ground station always finds a slot."""
-STRANGER_WINDOW_S = 10.0
-"""A stranger (an address neither in ``mavlink.targets`` nor ever trusted) is sent at most the
-bytes it sent us in each window of this long: a spoofed source address never makes the
-endpoint a reflector that answers a victim with more than the attacker spent."""
 
 
 class Severity:
@@ -203,21 +200,12 @@ class Link:
     upload_owner: tuple[int, int] = (0, 0)
     last_ack: tuple[int, int] | None = None
     """(mission_type, result) of the last upload, resent if the station repeats its last item."""
-    credit: int = 0
-    """A stranger's bytes received in this window not yet answered: what may still be sent."""
-    credit_since: float = -math.inf
-    """When the stranger's current window began."""
 
     @property
     def stranger(self) -> bool:
         """Not a configured target and never trusted (signed, or unsigned control allowed):
         its source address may be anyone's, so it gets no more than it gives."""
         return not self.configured and self.last_trusted == -math.inf
-
-    def renew_credit(self, now: float) -> None:
-        if now - self.credit_since >= STRANGER_WINDOW_S:
-            self.credit_since = now
-            self.credit = 0
 
 
 # --------------------------------------------------------------------------- the vehicle
@@ -239,8 +227,12 @@ class MavlinkVehicle:
         camera: CameraInfo | None = None,
         wall_clock: Callable[[], float] | None = None,
         mission_items: Callable[[int], list[MissionItem]] = lambda mission_type: [],
+        ledger: SourceLedger | None = None,
     ) -> None:
         self.system_id = system_id
+        self.ledger = ledger if ledger is not None else SourceLedger()
+        """Bytes sent on each source address's behalf (brasidas.admission): the platform's."""
+        self._now = 0.0
         self.key = key
         self.allow_unsigned_control = allow_unsigned_control
         self.safety_request: Callable[..., list[Request]] | None = None
@@ -295,6 +287,7 @@ class MavlinkVehicle:
         """One datagram from ``peer``: answers go to the outbox; returns what needs deciding."""
         if self._boot is None:
             self._boot = now
+        self._now = now
         link = self.links.get(peer)
         new = link is None
         if link is None:
@@ -302,8 +295,8 @@ class MavlinkVehicle:
                 self.counters["links_refused"] += 1
                 return []
             link = self._link(peer, configured=False)
-        link.renew_credit(now)
-        link.credit += len(data)
+        if link.stranger:  # its credit, one per address (brasidas.admission.SourceLedger)
+            self.ledger.received(peer[0], len(data), now)
         try:
             messages = link.decoder.parse_buffer(data) or []
         except Exception:  # pymavlink raises for a frame it cannot even delimit
@@ -469,12 +462,12 @@ class MavlinkVehicle:
         """Telemetry that is due, mission item re-requests, forgotten links."""
         if self._boot is None:
             self._boot = now
+        self._now = now
         for peer, link in list(self.links.items()):
             if not link.configured and now - link.last_heard > self.link_timeout:
                 del self.links[peer]
                 self.counters["links_forgotten"] += 1
                 continue
-            link.renew_credit(now)
             self._retry_upload(link, now)
         if self._due_now("heartbeat", self.heartbeat_hz, now):
             self._broadcast(self._heartbeat())
@@ -869,7 +862,7 @@ class MavlinkVehicle:
                 reply = self._video_stream_information()
                 # Video is megabytes for a 44-byte request from an address anyone can claim:
                 # only for a signed request or a configured target (issue 26, defect 2).
-                if signed or link.configured:
+                if self.ledger.admits_stream(peer[0], signed or link.configured):
                     requests.append(StartVideo(peer, system, component, signed))
                 else:
                     self.counters["video_refused"] += 1
@@ -1277,14 +1270,14 @@ class MavlinkVehicle:
         for message in messages:
             frames.append(message.pack(encoder))
             encoder.seq = (encoder.seq + 1) % 256
-        if link.stranger:
-            size = sum(len(frame) for frame in frames)
-            if size > link.credit:
-                encoder.seq = first_seq  # what it is sent shows no gap for what it was not
-                self.counters["stranger_frames_suppressed"] += len(frames)
-                self.counters["stranger_bytes_suppressed"] += size
-                return
-            link.credit -= size
+        size = sum(len(frame) for frame in frames)
+        if not link.stranger:
+            self.ledger.trusted_send(link.peer[0], size, "mavlink")
+        elif not self.ledger.stranger_send(link.peer[0], size, self._now):
+            encoder.seq = first_seq  # what it is sent shows no gap for what it was not
+            self.counters["stranger_frames_suppressed"] += len(frames)
+            self.counters["stranger_bytes_suppressed"] += size
+            return
         self.outbox.extend((frame, link.peer) for frame in frames)
 
     def _statustext_to(self, link: Link, severity: int, text: str) -> None:
