@@ -156,6 +156,9 @@ def _read_map(
     robot: tuple[float, float] | None,
     limit: int,
 ) -> MapImport:
+    from brasidas.mapfiles.precount import map_text
+
+    map_text(text)  # counted before the parsers and Shapely load: a refusal costs a scan
     from brasidas.mapfiles.files import MapOptions, check_map_order, read_map
 
     found = read_map(text, filename, MapOptions(*options))
@@ -192,6 +195,9 @@ def _read_route(
     robot: tuple[float, float] | None,
     limit: int,
 ) -> RouteImport:
+    from brasidas.mapfiles.precount import route_text
+
+    route_text(text)  # counted before the parsers and Shapely load: a refusal costs a scan
     from brasidas.mapfiles.files import check_route_order, read_route
 
     fence, skip_unsupported = options
