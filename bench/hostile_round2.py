@@ -9,10 +9,13 @@ loopback (no namespaces needed), after round one's.
   ``BENCH_HOSTILE_VIDEO_S`` (21) s from a stranger's address: the bytes that address receives
   (MAVLink answers and RTP on the NavCam's port) over the bytes it sent.
 - **Big files**: a station holding the override drives at 20 Hz while it imports a
-  150,001-vertex boundary and a 25,000-item ``.plan``, while another session sends the
-  boundary straight to the platform's ``load_map``, and while 16 downloads of a recording
-  run: the time to the answer, the platform's RSS growth, a probe's heartbeat p99 and the
-  deadman stops meanwhile.
+  150,001-vertex boundary and a 25,000-item ``.plan``, while the operator's command (another
+  process, through the station's local API as ``brasidas-station map``/``route`` sends it)
+  imports the boundary, the plan and a 172,000-coordinate KML ``BENCH_HOSTILE_REPEATS`` (3)
+  times each, while another session sends the boundary straight to the platform's
+  ``load_map``, and while 16 downloads of a recording run: the time to the answer, the
+  platform's and the station's RSS growth (the station runs in this process: the files' texts
+  are made before), a probe's heartbeat p99 and the deadman stops meanwhile.
 
 Only these rows: ``BENCH_HOSTILE_ONLY=round2 python -m bench hostile``.
 """
@@ -21,9 +24,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import json
 import math
 import os
+import shutil
 import socket
 import sys
 import tempfile
@@ -56,6 +61,7 @@ from mavlink_gcs import Gcs
 PASSPHRASE = "bench hostile round two"
 REPLAY_WAIT_S = float(os.environ.get("BENCH_HOSTILE_REPLAY_WAIT_S", "60"))
 VIDEO_S = float(os.environ.get("BENCH_HOSTILE_VIDEO_S", "21"))
+REPEATS = int(os.environ.get("BENCH_HOSTILE_REPEATS", "3"))
 SETTLE_S = 2.0
 """After a replay or the last request, how long answers (and RTP) may still arrive."""
 
@@ -219,6 +225,20 @@ def _boundary(vertices: int) -> dict[str, Any]:
     return {"type": "FeatureCollection", "features": [feature]}
 
 
+def _kml(coordinates: int) -> str:
+    lat, lon = 37.9415, 23.6530
+    tuples = " ".join(
+        f"{lon + 0.002 * math.cos(2 * math.pi * i / coordinates):.6f},"
+        f"{lat + 0.002 * math.sin(2 * math.pi * i / coordinates):.6f},0"
+        for i in range(coordinates)
+    )
+    return (
+        '<?xml version="1.0"?><kml xmlns="http://www.opengis.net/kml/2.2"><Document>'
+        f"<Placemark><Polygon><outerBoundaryIs><LinearRing><coordinates>{tuples}</coordinates>"
+        "</LinearRing></outerBoundaryIs></Polygon></Placemark></Document></kml>"
+    )
+
+
 def _plan(items: int) -> str:
     mission = [
         {"type": "SimpleItem", "command": 16, "frame": 3,
@@ -244,10 +264,16 @@ async def _big_files() -> dict[str, Any]:
     boundary = _boundary(150_001)
     boundary_text = json.dumps(boundary, separators=(",", ":"))
     plan_text = _plan(25_000)
+    kml_text = _kml(172_000)
     figures: dict[str, Any] = {
         "big_boundary_kib": len(boundary_text) // 1024,
         "big_plan_kib": len(plan_text) // 1024,
+        "big_kml_kib": len(kml_text) // 1024,
     }
+    scratch = Path(tempfile.mkdtemp(prefix="bench-hostile-"))
+    files = {"big.geojson": boundary_text, "big.plan": plan_text, "big.kml": kml_text}
+    for name, text in files.items():
+        await asyncio.to_thread((scratch / name).write_text, text)
     try:
         await station.start()
         api = station.ctx.api
@@ -269,6 +295,20 @@ async def _big_files() -> dict[str, Any]:
                 for row, (method, text, name) in station_import.items():
                     figures |= await _during(
                         row, process.pid, probe, _import(api, method, text, name)
+                    )
+                # The operator's command, as it sends them (another process, the local API's
+                # HTTP): the station reads the request too. Repeated: nothing may pile up.
+                commands = {
+                    "cli_boundary_150001": ("map_import", "big.geojson"),
+                    "cli_plan_25000": ("route_import", "big.plan"),
+                    "cli_kml_172000": ("map_import", "big.kml"),
+                }
+                for row, (method, name) in commands.items():
+                    figures |= await _during(
+                        row,
+                        process.pid,
+                        probe,
+                        _commands(station.api_port, method, scratch / name, REPEATS),
                     )
                 # Another session (not the probe's connection, whose messages would queue
                 # behind it) sends the boundary straight to the platform.
@@ -298,7 +338,35 @@ async def _big_files() -> dict[str, Any]:
     finally:
         await station.stop()
         await stop_process(process)
+        await asyncio.to_thread(shutil.rmtree, scratch)
     return figures
+
+
+async def _commands(api_port: int, method: str, path: Path, repeats: int) -> str:
+    """``repeats`` imports of ``path`` by the operator's command's own client, in another
+    process; the last answer."""
+    script = (
+        "import asyncio, sys\n"
+        "from brasidas.codecs.jsonrpc import RpcError\n"
+        "from brasidas.config import StationConfig, load_config\n"
+        "from stationd.api_client import api_call_async\n"
+        "config = load_config(StationConfig, None, [f'station.api_port={sys.argv[1]}'])\n"
+        "text = open(sys.argv[3]).read()\n"
+        "for _ in range(int(sys.argv[4])):\n"
+        "    try:\n"
+        "        asyncio.run(api_call_async(config, sys.argv[2], platform_id='brasidas-1',\n"
+        "                                   text=text, filename=sys.argv[3]))\n"
+        "        answer = 'accepted'\n"
+        "    except RpcError as err:\n"
+        "        answer = err.message\n"
+        "print(answer)\n"
+    )
+    process = await asyncio.create_subprocess_exec(
+        sys.executable, "-c", script, str(api_port), method, str(path), str(repeats),
+        stdout=asyncio.subprocess.PIPE,
+    )  # fmt: skip
+    out, _ = await process.communicate()
+    return f"{repeats}x: {out.decode().strip()}"
 
 
 DOWNLOAD_MB = 32
@@ -383,6 +451,8 @@ async def _during(row: str, pid: int, probe: Any, work: Any) -> dict[str, Any]:
     the deadman stops (the platform's log) meanwhile (and a second after)."""
     deadman_before = _deadman_lines()
     rss_before = rss_mb(pid)
+    gc.collect()
+    station_before = rss_mb(os.getpid())
     samples: list[float] = []
     done = asyncio.Event()
 
@@ -405,6 +475,7 @@ async def _during(row: str, pid: int, probe: Any, work: Any) -> dict[str, Any]:
         f"{row}_answer": answer[:100],
         f"{row}_refused_s": round(seconds, 3),
         f"{row}_platform_rss_growth_mb": round(rss_mb(pid) - rss_before, 1),
+        f"{row}_station_rss_growth_mb": round(rss_mb(os.getpid()) - station_before, 1),
         f"{row}_heartbeat_ms": percentiles(samples),
         f"{row}_deadman_stops": _deadman_lines() - deadman_before,
     }

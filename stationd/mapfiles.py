@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
 from brasidas.config import SignalingSection
 from brasidas.mapfiles import FileRefused
+from brasidas.mapfiles.precount import map_request_refusal, route_request_refusal
 from stationd.context import StationContext
 
 if TYPE_CHECKING:
@@ -234,3 +235,6 @@ async def async_setup(ctx: StationContext) -> None:
     api = MapFilesApi(ctx)
     for name in METHODS:
         ctx.api.add(name, getattr(api, f"api_{name}"), session_required=False)
+    # A hostile file is refused counted in the request's text: never parsed, never copied.
+    ctx.api.check_unparsed("map_import", map_request_refusal)
+    ctx.api.check_unparsed("route_import", route_request_refusal)

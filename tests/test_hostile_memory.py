@@ -10,17 +10,21 @@ import subprocess
 import sys
 import tracemalloc
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
 from test_map_limits import boundary_map, kml, plan, ring
+from test_mapfiles_cli import connected
 from test_patrol_platform import LAT, LON, Robot, robot_factory  # noqa: F401 (a fixture)
+from test_station import run_cli, station  # noqa: F401 (a fixture)
 from test_velocity import open_connection
 
 from brasidas.codecs import jsonrpc
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, Dispatcher, RpcError, request_text
 from brasidas.mapfiles.errors import FileRefused
 from stationd import mapfiles
+from stationd.daemon import StationDaemon
 
 SCAN_BOUND = 512 * 1024
 """What a refusal may allocate at its peak (the texts are 2-4 MB; a list of their matches is
@@ -122,3 +126,24 @@ async def test_a_platform_refuses_a_150001_vertex_map_unparsed(robot_factory: An
     assert robot.ctx.rpc.counters["refused_unparsed"] == 1
     assert robot.ctx.rpc.counters["parse_errors"] == 0
     assert await robot.call("get_map") == before
+
+
+async def test_the_operators_command_is_refused_before_the_station_parses_its_request(
+    station: StationDaemon,  # noqa: F811
+    platform_factory: Any,
+    fleet_key: bytes,
+    tmp_path: Path,
+) -> None:
+    """``brasidas-station map``/``route`` with each hostile file: the station's local API
+    counts it in the request's text and answers with the file's name, parsing nothing."""
+    await connected(station, platform_factory, fleet_key, tmp_path)
+    files = {
+        "big.geojson": ("map", json.dumps(boundary_map(ring(150_001))), "about 150002 vertices"),
+        "big.kml": ("map", kml(172_000), "about 172000 vertices"),
+        "big.plan": ("route", plan(25_000), "25000 mission items, more than 2000"),
+    }
+    for refused, (name, (command, text, reason)) in enumerate(files.items(), 1):
+        (tmp_path / name).write_text(text)
+        code, _, err = await run_cli(station, command, "rover-7", str(tmp_path / name))
+        assert code == 1 and f"{name}: " in err and reason in err and "(not read)" in err, err
+        assert station.ctx.api.counters["refused_unparsed"] == refused

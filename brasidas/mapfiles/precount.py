@@ -22,6 +22,9 @@ JSON_POSITION = re.compile(r"\[(?=\s*[-+0-9.])")
 KML_COORDINATES = re.compile(r"<(?:\w+:)?coordinates\b[^>]*>([^<]*)<", re.IGNORECASE)
 XML_POINT = re.compile(r"<(?:\w+:)?(?:nd|node|rtept|trkpt|wpt|gx:coord)\b", re.IGNORECASE)
 PLAN_ITEM = re.compile(r'"command"\s*:')
+ESCAPED_PLAN_ITEM = re.compile(r'\\"command\\"\s*:')
+"""A plan item's ``command`` inside a request, the file being a JSON string there."""
+FILENAME = re.compile(r'"filename"\s*:\s*"([^"\\]{0,200})"')
 TUPLE = re.compile(r"\S+")
 """A KML coordinate tuple (``lon,lat[,alt]``, separated by whitespace)."""
 AFTER_COMMA = re.compile(",")
@@ -64,6 +67,49 @@ def _count(
         total += len(pattern.findall(body, start, stop))
         start = stop
     return total
+
+
+def map_request_refusal(request: str) -> str | None:
+    """A ``map_import`` request's text, unparsed (the file inside it as a JSON string): why
+    it is refused, or None. Counted as :func:`positions_in` counts a file (a tuple or an item
+    its escaping hides is not counted: the exact limits apply once it is parsed)."""
+    count = _positions_anywhere(request)
+    if count <= MAP_MAX_VERTICES:
+        return None
+    return (
+        f"map refused: {_filename(request)}the map: about {count} vertices, more than "
+        f"{MAP_MAX_VERTICES} (not read)"
+    )
+
+
+def route_request_refusal(request: str) -> str | None:
+    """A ``route_import`` request's text, unparsed: why it is refused, or None."""
+    items = _count(ESCAPED_PLAN_ITEM, request, AFTER_COMMA)
+    if items > MAX_PLAN_ITEMS:
+        return (
+            f"waypoints refused: {_filename(request)}{items} mission items, more than "
+            f"{MAX_PLAN_ITEMS} (not read)"
+        )
+    count = _positions_anywhere(request)
+    if count <= MAP_MAX_VERTICES + MAX_PLAN_ITEMS:
+        return None
+    return (
+        f"waypoints refused: {_filename(request)}the route: about {count} waypoints, more "
+        f"than {MAP_MAX_VERTICES + MAX_PLAN_ITEMS} (not read)"
+    )
+
+
+def _positions_anywhere(text: str) -> int:
+    tuples = sum(
+        _count(TUPLE, text, AFTER_SPACE, *block.span(1)) for block in KML_COORDINATES.finditer(text)
+    )
+    return _count(JSON_POSITION, text, AFTER_COMMA) + tuples + _count(XML_POINT, text, AFTER_TAG)
+
+
+def _filename(request: str) -> str:
+    """``NAME: `` for the request's ``filename`` (the operator's command sends it last)."""
+    found = FILENAME.search(request, max(0, len(request) - 1024))
+    return f"{found[1]}: " if found is not None and found[1] else ""
 
 
 def map_text(text: str) -> str:
