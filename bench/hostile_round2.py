@@ -9,9 +9,14 @@ loopback (no namespaces needed), after round one's.
   ``BENCH_HOSTILE_VIDEO_S`` (21) s from a stranger's address: the bytes that address receives
   (MAVLink answers and RTP on the NavCam's port) over the bytes it sent.
 - **Big files**: a station holding the override drives at 20 Hz while it imports a
-  150,001-vertex boundary and a 25,000-item ``.plan``, while another session sends the
-  boundary straight to the platform's ``load_map``, and while 16 downloads of a recording
-  run: the time to the answer, the platform's RSS growth, a probe's heartbeat p99 and the
+  150,001-vertex boundary and a 25,000-item ``.plan`` one after another for
+  ``BENCH_HOSTILE_IMPORT_S`` (5) s, while the operator's command (another
+  process, through the station's local API as ``brasidas-station map``/``route`` sends it)
+  imports the boundary, the plan and a 172,000-coordinate KML ``BENCH_HOSTILE_REPEATS`` (3)
+  times each, while another session (another process) sends the boundary straight to the
+  platform's ``load_map`` as many times, and while 16 downloads of a recording run: the time to the answer, the
+  platform's and the station's RSS growth (the station runs in this process: the files' texts
+  are made before), a probe's heartbeat p99, how late the station's loop wakes and the
   deadman stops meanwhile.
 
 Only these rows: ``BENCH_HOSTILE_ONLY=round2 python -m bench hostile``.
@@ -21,9 +26,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import json
 import math
 import os
+import shutil
 import socket
 import sys
 import tempfile
@@ -56,6 +63,8 @@ from mavlink_gcs import Gcs
 PASSPHRASE = "bench hostile round two"
 REPLAY_WAIT_S = float(os.environ.get("BENCH_HOSTILE_REPLAY_WAIT_S", "60"))
 VIDEO_S = float(os.environ.get("BENCH_HOSTILE_VIDEO_S", "21"))
+REPEATS = int(os.environ.get("BENCH_HOSTILE_REPEATS", "3"))
+IMPORT_S = float(os.environ.get("BENCH_HOSTILE_IMPORT_S", "5"))
 SETTLE_S = 2.0
 """After a replay or the last request, how long answers (and RTP) may still arrive."""
 
@@ -219,6 +228,20 @@ def _boundary(vertices: int) -> dict[str, Any]:
     return {"type": "FeatureCollection", "features": [feature]}
 
 
+def _kml(coordinates: int) -> str:
+    lat, lon = 37.9415, 23.6530
+    tuples = " ".join(
+        f"{lon + 0.002 * math.cos(2 * math.pi * i / coordinates):.6f},"
+        f"{lat + 0.002 * math.sin(2 * math.pi * i / coordinates):.6f},0"
+        for i in range(coordinates)
+    )
+    return (
+        '<?xml version="1.0"?><kml xmlns="http://www.opengis.net/kml/2.2"><Document>'
+        f"<Placemark><Polygon><outerBoundaryIs><LinearRing><coordinates>{tuples}</coordinates>"
+        "</LinearRing></outerBoundaryIs></Polygon></Placemark></Document></kml>"
+    )
+
+
 def _plan(items: int) -> str:
     mission = [
         {"type": "SimpleItem", "command": 16, "frame": 3,
@@ -241,13 +264,18 @@ async def _big_files() -> dict[str, Any]:
     process = await start_platform(f"signaling.port={signaling}")
     key = security.load_or_create_key(security.default_key_path())
     station = StationDaemon(load_config(StationConfig, None, ["station.api_port=0"]), key)
-    boundary = _boundary(150_001)
-    boundary_text = json.dumps(boundary, separators=(",", ":"))
+    boundary_text = json.dumps(_boundary(150_001), separators=(",", ":"))
     plan_text = _plan(25_000)
+    kml_text = _kml(172_000)
     figures: dict[str, Any] = {
         "big_boundary_kib": len(boundary_text) // 1024,
         "big_plan_kib": len(plan_text) // 1024,
+        "big_kml_kib": len(kml_text) // 1024,
     }
+    scratch = Path(tempfile.mkdtemp(prefix="bench-hostile-"))
+    files = {"big.geojson": boundary_text, "big.plan": plan_text, "big.kml": kml_text}
+    for name, text in files.items():
+        await asyncio.to_thread((scratch / name).write_text, text)
     try:
         await station.start()
         api = station.ctx.api
@@ -270,25 +298,30 @@ async def _big_files() -> dict[str, Any]:
                     figures |= await _during(
                         row, process.pid, probe, _import(api, method, text, name)
                     )
-                # Another session (not the probe's connection, whose messages would queue
-                # behind it) sends the boundary straight to the platform.
-                other = PlatformConnection(
-                    "brasidas-1",
-                    f"http://127.0.0.1:{signaling}",
-                    station_id="bench-other",
-                    fleet_key=key,
-                    timeout=30.0,
-                )
-                await other.open()
-                try:
+                # The operator's command, as it sends them (another process, the local API's
+                # HTTP): the station reads the request too. Repeated: nothing may pile up.
+                commands = {
+                    "cli_boundary_150001": ("map_import", "big.geojson"),
+                    "cli_plan_25000": ("route_import", "big.plan"),
+                    "cli_kml_172000": ("map_import", "big.kml"),
+                }
+                for row, (method, name) in commands.items():
                     figures |= await _during(
-                        "boundary_150001_direct",
+                        row,
                         process.pid,
                         probe,
-                        _refused(other.call("load_map", map=boundary)),
+                        _commands(station.api_port, method, scratch / name, REPEATS),
                     )
-                finally:
-                    await other.close()
+                # Another session (not the probe's connection, whose messages would queue
+                # behind it), from another process as another station would (its encoding
+                # of the 3 MB map is not the driving station's), sends the boundary straight
+                # to the platform.
+                figures |= await _during(
+                    "boundary_150001_direct",
+                    process.pid,
+                    probe,
+                    _direct(signaling, scratch / "big.geojson", REPEATS),
+                )
                 figures |= await _during(
                     "downloads_16", process.pid, probe, _downloads(signaling, probe.session_id)
                 )
@@ -298,7 +331,68 @@ async def _big_files() -> dict[str, Any]:
     finally:
         await station.stop()
         await stop_process(process)
+        await asyncio.to_thread(shutil.rmtree, scratch)
     return figures
+
+
+async def _commands(api_port: int, method: str, path: Path, repeats: int) -> str:
+    """``repeats`` imports of ``path`` by the operator's command's own client, in another
+    process; the last answer."""
+    script = (
+        "import asyncio, sys\n"
+        "from brasidas.codecs.jsonrpc import RpcError\n"
+        "from brasidas.config import StationConfig, load_config\n"
+        "from stationd.api_client import api_call_async\n"
+        "config = load_config(StationConfig, None, [f'station.api_port={sys.argv[1]}'])\n"
+        "text = open(sys.argv[3]).read()\n"
+        "for _ in range(int(sys.argv[4])):\n"
+        "    try:\n"
+        "        asyncio.run(api_call_async(config, sys.argv[2], platform_id='brasidas-1',\n"
+        "                                   text=text, filename=sys.argv[3]))\n"
+        "        answer = 'accepted'\n"
+        "    except RpcError as err:\n"
+        "        answer = err.message\n"
+        "print(answer)\n"
+    )
+    process = await asyncio.create_subprocess_exec(
+        sys.executable, "-c", script, str(api_port), method, str(path), str(repeats),
+        stdout=asyncio.subprocess.PIPE,
+    )  # fmt: skip
+    out, _ = await process.communicate()
+    return f"{repeats}x: {out.decode().strip()}"
+
+
+async def _direct(signaling: int, path: Path, repeats: int) -> str:
+    """``repeats`` ``load_map`` calls with the map in ``path`` from another session in
+    another process; the last answer."""
+    process = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "bench.hostile_round2", "load_map", str(signaling), str(path),
+        str(repeats),
+        stdout=asyncio.subprocess.PIPE,
+    )  # fmt: skip
+    out, _ = await process.communicate()
+    return f"{repeats}x: {out.decode().strip()}"
+
+
+async def _load_map_for(signaling: int, path: Path, repeats: int) -> str:
+    """(The other session's process.) ``load_map`` with ``path``'s map, ``repeats`` times."""
+    key = security.load_or_create_key(security.default_key_path())
+    area = json.loads(path.read_text())  # noqa: ASYNC240 (its own process: nothing waits)
+    other = PlatformConnection(
+        "brasidas-1",
+        f"http://127.0.0.1:{signaling}",
+        station_id="bench-other",
+        fleet_key=key,
+        timeout=30.0,
+    )
+    await other.open()
+    try:
+        answer = ""
+        for _ in range(repeats):
+            answer = await _refused(other.call("load_map", map=area))
+        return answer
+    finally:
+        await other.close()
 
 
 DOWNLOAD_MB = 32
@@ -358,9 +452,17 @@ async def _drive_station(api: Any) -> None:
 
 
 async def _import(api: Any, method: str, text: str, name: str) -> str:
-    return await _refused(
-        api.call_local(method, platform_id="brasidas-1", text=text, filename=name)
-    )
+    """Imports one after another for ``BENCH_HOSTILE_IMPORT_S`` (5) s, at least ``REPEATS``
+    (a p99 of the heartbeats needs some within them); how many, and the last answer."""
+    answer = ""
+    count = 0
+    started = time.monotonic()
+    while count < REPEATS or time.monotonic() - started < IMPORT_S:
+        answer = await _refused(
+            api.call_local(method, platform_id="brasidas-1", text=text, filename=name)
+        )
+        count += 1
+    return f"{count}x: {answer}"
 
 
 async def _idle(seconds: float) -> str:
@@ -383,8 +485,18 @@ async def _during(row: str, pid: int, probe: Any, work: Any) -> dict[str, Any]:
     the deadman stops (the platform's log) meanwhile (and a second after)."""
     deadman_before = _deadman_lines()
     rss_before = rss_mb(pid)
+    gc.collect()
+    station_before = rss_mb(os.getpid())
     samples: list[float] = []
+    lags: list[float] = []
     done = asyncio.Event()
+
+    async def loop_lag() -> None:
+        """How late this loop (the driving station's) wakes from 5 ms sleeps."""
+        while not done.is_set():
+            started = time.perf_counter()
+            await asyncio.sleep(0.005)
+            lags.append((time.perf_counter() - started - 0.005) * 1000)
 
     async def heartbeats() -> None:
         while not done.is_set():
@@ -395,17 +507,21 @@ async def _during(row: str, pid: int, probe: Any, work: Any) -> dict[str, Any]:
 
     async with asyncio.TaskGroup() as group:
         beating = group.create_task(heartbeats())
+        lagging = group.create_task(loop_lag())
         started = time.perf_counter()
         answer = await work
         seconds = time.perf_counter() - started
         await asyncio.sleep(1.0)
         done.set()
         await beating
+        await lagging
     return {
         f"{row}_answer": answer[:100],
         f"{row}_refused_s": round(seconds, 3),
         f"{row}_platform_rss_growth_mb": round(rss_mb(pid) - rss_before, 1),
+        f"{row}_station_rss_growth_mb": round(rss_mb(os.getpid()) - station_before, 1),
         f"{row}_heartbeat_ms": percentiles(samples),
+        f"{row}_station_loop_lag_ms": percentiles(lags),
         f"{row}_deadman_stops": _deadman_lines() - deadman_before,
     }
 
@@ -418,6 +534,11 @@ def _deadman_lines() -> int:
 
 
 if __name__ == "__main__":
-    print(
-        asyncio.run(_download_for(sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])))
-    )
+    if sys.argv[1] == "load_map":
+        print(asyncio.run(_load_map_for(int(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4]))))
+    else:
+        print(
+            asyncio.run(
+                _download_for(sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4]))
+            )
+        )

@@ -632,3 +632,152 @@ class ServerAdmission:
             if found[1] > best[1]:
                 best = found
         return best
+
+
+# --------------------------------------------------------------------------- bytes sent out
+
+EGRESS_KINDS = ("mavlink", "rtp", "download")
+"""What the robot sends on a source's behalf: MAVLink answers and telemetry, the video a
+MAVLink request started, recording downloads."""
+STRANGER_WINDOW_S = 10.0
+"""A stranger is sent at most the bytes it sent in each window of this long (unspent credit
+goes with the window: silence earns nothing)."""
+ACTIVE_DOWNLOADER_S = 1.0
+"""A source that reserved a download chunk this recently shares the download rate."""
+MAX_SOURCES = 1024
+"""Accounts kept at once: made-up source addresses cost a bounded table (the least recently
+used account goes; a stranger's forgotten credit is credit lost, never gained)."""
+
+
+@dataclass(slots=True)
+class SourceAccount:
+    """One source address's account."""
+
+    received: int = 0
+    """A stranger's bytes received (all time): what its answers are paid with."""
+    sent: dict[str, int] = field(default_factory=lambda: dict.fromkeys(EGRESS_KINDS, 0))
+    """Bytes sent on its behalf, by kind (all time)."""
+    credit: int = 0
+    """A stranger's bytes received in this window and not yet spent on answers."""
+    window_since: float = -float("inf")
+    download_free_at: float = -float("inf")
+    """When its next download chunk may go (its share of the download rate)."""
+
+    @property
+    def total_sent(self) -> int:
+        return sum(self.sent.values())
+
+
+@dataclass
+class SourceLedger:
+    """Every byte the robot sends on a source address's behalf, through one account per
+    address, whatever the path (sans-IO: ``now`` passed in).
+
+    - A stranger (not proved the fleet or signing key, not a configured target) is paid only
+      with what it sent: over each :data:`STRANGER_WINDOW_S`, bytes out ≤ bytes in, whatever
+      it asks for (MAVLink answers, telemetry, video), so a spoofed source address never
+      turns the robot into a reflector.
+    - A stream (RTP) runs for trusted sources only: its cost is unbounded for a request of
+      44 bytes. What it sends is charged to the source all the same.
+    - Downloads (sessions only) share ``download_rate`` for all sources together, each source
+      at most an equal part of it while others download (a source's parallel downloads are
+      one source's).
+    """
+
+    download_rate: float = 0.0
+    """Bytes a second for every download together (0: unlimited)."""
+    stranger_window: float = STRANGER_WINDOW_S
+    max_sources: int = MAX_SOURCES
+    accounts: dict[str, SourceAccount] = field(default_factory=dict)
+    """By source address, least recently used first."""
+    counters: dict[str, int] = field(
+        default_factory=lambda: dict.fromkeys(
+            ("stranger_bytes_held", "streams_refused", "streams_stopped", "sources_forgotten"),
+            0,
+        )
+    )
+
+    def account(self, host: str) -> SourceAccount:
+        """``host``'s account (made, or moved to most recently used)."""
+        accounts = self.accounts
+        account = accounts.pop(host, None)
+        if account is None:
+            account = SourceAccount()
+            if len(accounts) >= self.max_sources:
+                del accounts[next(iter(accounts))]
+                self.counters["sources_forgotten"] += 1
+        accounts[host] = account
+        return account
+
+    def sent_to(self, host: str) -> dict[str, int]:
+        """Bytes sent on ``host``'s behalf by kind (zeros when it has no account)."""
+        account = self.accounts.get(host)
+        return dict(account.sent) if account is not None else dict.fromkeys(EGRESS_KINDS, 0)
+
+    def received(self, host: str, size: int, now: float) -> None:
+        """``size`` bytes came from ``host``: a stranger's credit for this window."""
+        account = self._renewed(host, now)
+        account.received += size
+        account.credit += size
+
+    def stranger_send(self, host: str, size: int, now: float, kind: str = "mavlink") -> bool:
+        """May ``size`` bytes go to the stranger ``host`` now? Charged when they may, counted
+        as held when not (all or nothing: a half answer is no answer)."""
+        account = self._renewed(host, now)
+        if size > account.credit:
+            self.counters["stranger_bytes_held"] += size
+            return False
+        account.credit -= size
+        account.sent[kind] += size
+        return True
+
+    def trusted_send(self, host: str, size: int, kind: str) -> None:
+        """``size`` bytes went to a trusted ``host`` (counted, never held)."""
+        self.account(host).sent[kind] += size
+
+    def admits_stream(self, host: str, trusted: bool) -> bool:
+        """May a stream start for ``host``? Trusted sources only (counted when refused)."""
+        self.account(host)
+        if not trusted:
+            self.counters["streams_refused"] += 1
+        return trusted
+
+    def stream_sent(self, host: str, size: int, trusted: bool, now: float) -> bool:
+        """A stream sent ``size`` more bytes to ``host``: charged; False when ``host`` is no
+        longer trusted and its credit does not cover them (the stream must stop)."""
+        if trusted:
+            self.trusted_send(host, size, "rtp")
+            return True
+        if self.stranger_send(host, size, now, "rtp"):
+            return True
+        self.account(host).sent["rtp"] += size  # sent already: counted all the same
+        self.counters["streams_stopped"] += 1
+        return False
+
+    def reserve_download(self, host: str, size: int, now: float) -> float:
+        """Seconds to wait before sending ``size`` bytes of a download to ``host``, reserved
+        (and charged) at once: the next caller waits behind them. Each source downloading
+        lately gets an equal part of the rate."""
+        account = self.account(host)
+        account.sent["download"] += size
+        rate = self.download_rate
+        if rate <= 0:
+            return 0.0
+        sharing = 1 + sum(
+            1
+            for other, peer in self.accounts.items()
+            if other != host and peer.download_free_at > now - ACTIVE_DOWNLOADER_S
+        )
+        # Each source on a timeline of its own at its part of the rate: one source's queue of
+        # parallel downloads never delays another's (all together: the rate, give or take the
+        # chunks reserved before a newcomer changed the parts).
+        start = max(now, account.download_free_at)
+        account.download_free_at = start + size * sharing / rate
+        return start - now
+
+    def _renewed(self, host: str, now: float) -> SourceAccount:
+        account = self.account(host)
+        if now - account.window_since >= self.stranger_window:
+            account.window_since = now
+            account.credit = 0
+        return account

@@ -23,3 +23,11 @@ escaped: up to twice as long) and the call around it (``map_import``, ``route_im
 
 ANSWER_MAX_BYTES = 2 * MAP_REQUEST_MAX_BYTES
 """The largest answer a station reads from a platform (``get_map`` sends the map back)."""
+
+MAP_MAX_VERTICES = 20_000
+"""A map's vertices, all polygons together: bounds the planner's build (its graph grows with
+the square of the keep-outs' corners) and the platform's memory. Counted in a file's (or a
+request's) text before it is parsed, and exactly after."""
+
+ROUTE_MAX_WAYPOINTS = 1000
+"""A route's waypoints."""

@@ -11,7 +11,7 @@ from aiohttp import web
 
 from brasidas import topics
 from brasidas.actor import Supervisor
-from brasidas.admission import ServerAdmission
+from brasidas.admission import ServerAdmission, SourceLedger
 from brasidas.bus import Bus
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.config import PlatformConfig
@@ -94,6 +94,10 @@ class MediaHandle(Protocol):
         self, name: str, host: str = "", port: int = 0, *, session_id: str | None = None
     ) -> object:
         """Start ``session_id``'s copy of a stream, sent to ``host:port``."""
+
+    def bytes_sent(self, name: str, host: str, port: int) -> int:
+        """Bytes stream ``name`` has sent to ``host:port`` since that destination was added
+        (0 when it is not one)."""
 
     def tap_navcam(self, sink: AccessUnitSink) -> Callable[[], None] | None:
         """Give ``sink`` the NavCam's encoded access units; returns how to remove it, or None
@@ -211,6 +215,9 @@ class PlatformContext:
     arming: ArmingHandle | None = None
     """Armed or not, the stop for everyone (platformd.arming)."""
     """The patrol (platformd.autonomy): its route and map, for the MAVLink endpoint."""
+    egress: SourceLedger = field(default_factory=SourceLedger)
+    """Bytes sent on each source address's behalf, every path through it: MAVLink answers,
+    the video a MAVLink request started, recording downloads (brasidas.admission)."""
     http_routes: list[web.RouteDef] = field(default_factory=list)
     """Plain HTTP routes served beside signaling's (the recorder's downloads); added before
     signaling's setup."""

@@ -401,6 +401,12 @@ class MediaService(Actor):
             return await self._record_only()
         return await stream.stop()
 
+    def bytes_sent(self, name: str, host: str, port: int) -> int:
+        """Bytes stream ``name`` sent to ``host:port`` (the MAVLink endpoint charges a ground
+        station's video to its address: brasidas.admission.SourceLedger)."""
+        stream = self.streams.get(name)
+        return stream.bytes_sent_to(host, port) if isinstance(stream, FanOutStream) else 0
+
     def tap_navcam(self, sink: AccessUnitSink) -> Callable[[], None] | None:
         """``sink`` gets each of the NavCam's encoded access units as it is sent (on the
         streaming thread); returns how to remove it, or None on a platform without a NavCam."""

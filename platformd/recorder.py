@@ -56,7 +56,7 @@ from brasidas.recording.writer import (
 from brasidas.rpc import peer_host
 from brasidas.security import state_dir
 from platformd.context import PlatformContext
-from platformd.recording_download import RateShare, send_file
+from platformd.recording_download import send_file
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -88,7 +88,7 @@ class PlatformRecorder(Actor):
         self.ctx = ctx
         self.directory = directory
         config = ctx.config.recorder
-        self.download_share = RateShare(config.download_kib_s * 1024)
+        ctx.egress.download_rate = config.download_kib_s * 1024
         self.channels = schemas.all_channels()
         self.index = _index(self.channels)
         self.writer = Recorder(
@@ -351,13 +351,19 @@ class PlatformRecorder(Actor):
         if path is None:
             raise web.HTTPNotFound(text="no such recording")
         if path.name.endswith(ACTIVE_SUFFIX):
-            return await self._snapshot_download(request, path)
-        # Every download together at recorder.download_kib_s (issue 26).
+            return await self._snapshot_download(request, path, session.peer_host)
+        # Every download together at recorder.download_kib_s, charged to the caller's address.
         return await send_file(
-            request, path, self.download_share, {"Content-Type": "application/octet-stream"}
+            request,
+            path,
+            self.ctx.egress,
+            session.peer_host,
+            {"Content-Type": "application/octet-stream"},
         )
 
-    async def _snapshot_download(self, request: web.Request, path: Path) -> web.StreamResponse:
+    async def _snapshot_download(
+        self, request: web.Request, path: Path, host: str
+    ) -> web.StreamResponse:
         """The file being written, as a complete MCAP up to its last closed chunk (summary
         and footer written): what readers open. A new copy each time: a range is of the copy it
         gets, so the station never resumes one (stationd.recordings); at the downloads' share."""
@@ -367,7 +373,8 @@ class PlatformRecorder(Actor):
             return await send_file(
                 request,
                 copy,
-                self.download_share,
+                self.ctx.egress,
+                host,
                 {"Content-Type": "application/octet-stream"},
             )
         finally:

@@ -1,10 +1,11 @@
-"""Recording downloads at a bounded rate (issue 26, defect 10): every download together gets
-``recorder.download_kib_s``, so 16 parallel downloaders cannot take the radio link (or the
-platform's CPU) from the operator's video and control.
+"""Recording downloads at a bounded rate: every download together gets
+``recorder.download_kib_s``, each source address an equal part while others download, so 16
+parallel downloaders cannot take the radio link (or the platform's CPU) from the operator's
+video and control.
 
-:class:`RateShare` is sans-IO (each chunk reserves its slot on a shared timeline, so parallel
-downloads share the rate in turn); :func:`send_file` streams one file, ranges honoured, reading
-in a worker thread.
+The rate is the platform's one account of bytes sent on a source's behalf
+(:class:`brasidas.admission.SourceLedger`: each chunk reserves its slot there);
+:func:`send_file` streams one file, ranges honoured, reading in a worker thread.
 """
 
 from __future__ import annotations
@@ -17,34 +18,20 @@ from typing import BinaryIO
 
 from aiohttp import web
 
+from brasidas.admission import SourceLedger
+
 CHUNK = 64 * 1024
 EMPTY_SUFFIX = re.compile(r"bytes\s*=\s*-0+\s*", re.IGNORECASE)
 """``Range: bytes=-0``, the last zero bytes: unsatisfiable (RFC 9110 14.1.1; aiohttp reads it
 as the whole file)."""
 
 
-class RateShare:
-    """``rate`` bytes a second for everyone together (0: unlimited)."""
-
-    def __init__(self, rate: float) -> None:
-        self.rate = rate
-        self._free_at = 0.0
-
-    def reserve(self, size: int, now: float) -> float:
-        """Seconds to wait before sending ``size`` bytes (reserved at once: the next caller
-        waits behind them)."""
-        if self.rate <= 0:
-            return 0.0
-        start = max(now, self._free_at)
-        self._free_at = start + size / self.rate
-        return start - now
-
-
 async def send_file(
-    request: web.Request, path: Path, share: RateShare, headers: dict[str, str]
+    request: web.Request, path: Path, ledger: SourceLedger, host: str, headers: dict[str, str]
 ) -> web.StreamResponse:
-    """``path`` (a regular file, checked by the caller) with ``Range`` honoured, at the share's
-    rate. A file still being written is sent up to its size when the request came."""
+    """``path`` (a regular file, checked by the caller) with ``Range`` honoured, at ``host``'s
+    share of the download rate (charged to it). A file still being written is sent up to its
+    size when the request came."""
     handle = await asyncio.to_thread(_open, path)
     try:
         size = os.fstat(handle.fileno()).st_size
@@ -63,7 +50,7 @@ async def send_file(
             data = await asyncio.to_thread(handle.read, min(CHUNK, left))
             if not data:
                 break
-            delay = share.reserve(len(data), loop.time())
+            delay = ledger.reserve_download(host, len(data), loop.time())
             if delay > 0:
                 await asyncio.sleep(delay)
             await response.write(data)

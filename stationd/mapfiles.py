@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
 from brasidas.config import SignalingSection
 from brasidas.mapfiles import FileRefused
+from brasidas.mapfiles.precount import map_request_refusal, route_request_refusal
 from stationd.context import StationContext
 
 if TYPE_CHECKING:
@@ -156,6 +157,9 @@ def _read_map(
     robot: tuple[float, float] | None,
     limit: int,
 ) -> MapImport:
+    from brasidas.mapfiles.precount import map_text
+
+    map_text(text)  # counted before the parsers and Shapely load: a refusal costs a scan
     from brasidas.mapfiles.files import MapOptions, check_map_order, read_map
 
     found = read_map(text, filename, MapOptions(*options))
@@ -192,6 +196,9 @@ def _read_route(
     robot: tuple[float, float] | None,
     limit: int,
 ) -> RouteImport:
+    from brasidas.mapfiles.precount import route_text
+
+    route_text(text)  # counted before the parsers and Shapely load: a refusal costs a scan
     from brasidas.mapfiles.files import check_route_order, read_route
 
     fence, skip_unsupported = options
@@ -228,3 +235,6 @@ async def async_setup(ctx: StationContext) -> None:
     api = MapFilesApi(ctx)
     for name in METHODS:
         ctx.api.add(name, getattr(api, f"api_{name}"), session_required=False)
+    # A hostile file is refused counted in the request's text: never parsed, never copied.
+    ctx.api.check_unparsed("map_import", map_request_refusal)
+    ctx.api.check_unparsed("route_import", route_request_refusal)

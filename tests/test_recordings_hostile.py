@@ -14,10 +14,10 @@ from conftest import quiet_platform_config, wait_until
 from test_recorder import recorder_of
 from test_velocity import open_connection
 
+from brasidas.admission import SourceLedger
 from brasidas.messages import CommandReceived
 from brasidas.recording import schemas
 from platformd.app import PlatformDaemon
-from platformd.recording_download import RateShare
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 
@@ -70,8 +70,8 @@ def test_the_commands_channel_records_the_station_never_the_token() -> None:
 
 
 def test_parallel_downloads_share_one_rate() -> None:
-    share = RateShare(1024 * 1024)  # 1 MiB/s for everyone together
-    delays = [share.reserve(64 * 1024, 10.0) for _ in range(16)]  # 16 downloaders, one chunk
-    assert delays[0] == 0 and delays[-1] == pytest.approx(15 / 16)
-    assert share.reserve(64 * 1024, 12.0) == 0  # idle since: no debt carried
-    assert RateShare(0).reserve(10**9, 0.0) == 0  # 0: no limit
+    ledger = SourceLedger(download_rate=1024 * 1024)  # 1 MiB/s for everyone together
+    delays = [ledger.reserve_download("10.0.0.1", 64 * 1024, 10.0) for _ in range(16)]
+    assert delays[0] == 0 and delays[-1] == pytest.approx(15 / 16)  # one host's 16 downloads
+    assert ledger.reserve_download("10.0.0.1", 64 * 1024, 12.0) == 0  # idle since: no debt
+    assert SourceLedger().reserve_download("10.0.0.1", 10**9, 0.0) == 0  # 0: no limit

@@ -33,13 +33,13 @@ from shapely.geometry.base import BaseGeometry
 from shapely.validation import explain_validity
 
 from brasidas.autonomy.geo import LocalFrame, centre_of
+from brasidas.limits import MAP_MAX_VERTICES
 
 MAX_EXTENT_M = 20_000.0
 """A map wider than this is refused. Within it the tangent plane's distances are exact to
 5 mm (the plane leaves the ground by 7.8 m at 10 km from its origin: heights are not used)."""
-MAX_VERTICES = 20_000
-"""All polygons together: bounds the planner's build (its graph grows with the square of the
-keep-outs' corners) and the platform's memory."""
+MAX_VERTICES = MAP_MAX_VERTICES
+"""All polygons together (:data:`brasidas.limits.MAP_MAX_VERTICES`)."""
 GRID_M = 1e-6
 """Parts of one area are joined on a micrometre grid (the two halves of an area split at the
 180° meridian meet within rounding, not exactly)."""

@@ -16,10 +16,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from brasidas.limits import ROUTE_MAX_WAYPOINTS
+
 if TYPE_CHECKING:
     from brasidas.autonomy.areamap import AreaMap
 
-MAX_WAYPOINTS = 1000
+MAX_WAYPOINTS = ROUTE_MAX_WAYPOINTS
 SAME_POINT_DEG = 1e-7
 """Waypoints closer than this (about 1 cm) are the same place."""
 

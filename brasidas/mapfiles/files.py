@@ -19,14 +19,13 @@ from typing import Any
 
 from shapely import Point, Polygon
 
-from brasidas.autonomy.areamap import MAX_VERTICES
 from brasidas.autonomy.geo import LocalFrame
 from brasidas.autonomy.route import MAX_WAYPOINTS
 from brasidas.mapfiles import qgc
 from brasidas.mapfiles.errors import MAX_FILE_BYTES, FileRefused
 from brasidas.mapfiles.geojson import geojson_shapes, is_geojson, loads
 from brasidas.mapfiles.mission import MavCmd, MissionRoute
-from brasidas.mapfiles.precount import check_positions, plan_items_in
+from brasidas.mapfiles.precount import map_text, route_text
 from brasidas.mapfiles.shapes import MapImport, MapOptions, assemble_map
 from brasidas.mapfiles.shapes import plain_json as _plain
 from brasidas.mapfiles.xmlfiles import (
@@ -51,8 +50,6 @@ __all__ = [
     "write_route",
 ]
 
-MAX_PLAN_ITEMS = 2 * MAX_WAYPOINTS
-"""Mission items a route file may hold (commands besides waypoints: speed changes, jumps)."""
 NEAR_M = 50_000.0
 """A route within this distance of the robot is where it is (when there is no map)."""
 EXPORT_FORMATS = ("plan", "waypoints")
@@ -85,8 +82,7 @@ def read_map(text: str, filename: str = "", options: MapOptions | None = None) -
     """A map file's canonical GeoJSON (format from the content), or FileRefused."""
     options = options or MapOptions()
     stem = PurePath(filename).stem if filename else ""
-    body = _body(text)
-    check_positions(body, MAX_VERTICES, "the map")
+    body = map_text(text)
     if qgc.is_wpl(body):
         return assemble_map(qgc.wpl_shapes(body), options, "QGC WPL 110 fence", name=stem)
     if body.startswith("<"):
@@ -127,12 +123,7 @@ def read_route(
 ) -> RouteImport:
     """A route file's waypoints, or FileRefused. ``fence``: a plan's exclusion fences too;
     ``skip_unsupported``: a mission's commands a rover cannot do are left out (named)."""
-    body = _body(text)
-    plan_items = plan_items_in(body) if body.startswith("{") else 0
-    if plan_items > MAX_PLAN_ITEMS:
-        raise FileRefused(f"{plan_items} mission items, more than {MAX_PLAN_ITEMS} (not read)")
-    # A plan's fence (or a KML's other shapes) may add a map's worth of vertices.
-    check_positions(body, MAX_VERTICES + MAX_PLAN_ITEMS, "the route")
+    body = route_text(text)
     if qgc.is_wpl(body):
         items = qgc.wpl_items(body)
         fences = [item for item in items[1:] if item.command >= MavCmd.NAV_FENCE_RETURN_POINT]
@@ -256,14 +247,6 @@ def check_route_order(
 
 
 # ---------------------------------------------------------------------------- helpers
-
-
-def _body(text: str) -> str:
-    if len(text) > MAX_FILE_BYTES:
-        raise FileRefused(f"the file is larger than {MAX_FILE_BYTES // (1024 * 1024)} MiB")
-    if text.startswith("PK\x03\x04"):
-        raise FileRefused("a zip archive (a KMZ?): unzip it and give the .kml inside")
-    return text.lstrip("\ufeff").strip()
 
 
 def _inside(ring: Sequence[tuple[float, float]], points: Sequence[tuple[float, float]]) -> bool:

@@ -58,6 +58,18 @@ class FanOutStream(PipelineStream, Generic[D]):
         if self._sink is not None:
             self._sink.set_property("clients", self._clients())
 
+    def bytes_sent_to(self, host: str, port: int) -> int:
+        """Bytes sent to ``host:port`` since it became a destination (``multiudpsink``'s own
+        count; 0 when it is none or the pipeline is down)."""
+        sink = self._sink
+        if sink is None:
+            return 0
+        stats = sink.emit("get-stats", host, port)
+        if stats is None:
+            return 0
+        found, value = stats.get_uint64("bytes-sent")
+        return int(value) if found else 0
+
     def _clients(self) -> str:
         return "" if self.nowhere else self.settings.clients()
 

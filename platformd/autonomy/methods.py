@@ -28,6 +28,10 @@ class PatrolMethods:
             rpc.add(name, authority.guard(name, getattr(self, name)))
         for name in ("get_map", "get_patrol"):
             rpc.add(name, getattr(self, name))
+        # A large map is counted in its text before it is parsed: a 150,001-vertex one is
+        # refused for a scan, not 20 MB of parsed lists (the limit applies exactly after).
+        rpc.check_unparsed("load_map", lambda text: _too_many_positions(text, "map refused"))
+        rpc.check_unparsed("update_map", lambda text: _too_many_positions(text, "update refused"))
 
     async def load_map(self, call: CallContext, map: Any) -> dict[str, Any]:
         """Replace the area map (GeoJSON object or text): wipes the waypoints and stops."""
@@ -128,3 +132,14 @@ class PatrolMethods:
         if self.actor.settle is not None:  # answered once the stop is on disk (issue 27)
             await self.actor.settle()
         return self.actor.report.as_dict()
+
+
+def _too_many_positions(text: str, what: str) -> str | None:
+    """(A worker thread.) A request whose text holds more positions than a map may: refused."""
+    from brasidas.autonomy.areamap import MAX_VERTICES
+    from brasidas.mapfiles.precount import positions_in
+
+    count = positions_in(text)
+    if count <= MAX_VERTICES:
+        return None
+    return f"{what}: about {count} vertices, more than {MAX_VERTICES} (not read)"

@@ -33,7 +33,11 @@ async def async_setup(ctx: PlatformContext) -> None:
         "mavlink",
         lambda: {
             name: count
-            for name, count in {**service.vehicle.counters, **service.counters}.items()
+            for name, count in {
+                **service.vehicle.counters,
+                **service.counters,
+                **ctx.egress.counters,
+            }.items()
             if count
         },
     )

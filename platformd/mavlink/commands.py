@@ -168,7 +168,7 @@ class CommandHandlers(LinkCore):
                 reply = video_stream_information(self.camera)
                 # Video is megabytes for a 44-byte request from an address anyone can claim:
                 # only for a signed request or a configured target (issue 26, defect 2).
-                if signed or link.configured:
+                if self.ledger.admits_stream(peer[0], signed or link.configured):
                     requests.append(StartVideo(peer, system, component, signed))
                 else:
                     self.counters["video_refused"] += 1

@@ -16,6 +16,7 @@ from typing import Any, ClassVar
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from brasidas.admission import SourceLedger
 from brasidas.states import Transitions
 from platformd.mavlink import modes
 from platformd.mavlink.missions import MissionItem
@@ -42,10 +43,6 @@ MAX_LINKS = 32
 bounded table (the configured targets are always kept)."""
 STRANGER_LINKS = 16
 """Of those, at most this many strangers: a trusted ground station always finds a slot."""
-STRANGER_WINDOW_S = 10.0
-"""A stranger (an address neither in ``mavlink.targets`` nor ever trusted) is sent at most the
-bytes it sent us in each window of this long: a spoofed source address never makes the
-endpoint a reflector that answers a victim with more than the attacker spent."""
 
 
 class UploadState(enum.Enum):
@@ -139,10 +136,6 @@ class Link:
     upload_owner: tuple[int, int] = (0, 0)
     last_ack: tuple[int, int] | None = None
     """(mission_type, result) of the last upload, resent if the station repeats its last item."""
-    credit: int = 0
-    """A stranger's bytes received in this window not yet answered: what may still be sent."""
-    credit_since: float = -math.inf
-    """When the stranger's current window began."""
     state: LinkState = field(init=False)
 
     def __post_init__(self) -> None:
@@ -162,11 +155,6 @@ class Link:
         self.last_trusted = now
         if self.state is LinkState.STRANGER:
             self.to(LinkState.TRUSTED)
-
-    def renew_credit(self, now: float) -> None:
-        if now - self.credit_since >= STRANGER_WINDOW_S:
-            self.credit_since = now
-            self.credit = 0
 
 
 Handler = Callable[[Any, "Link", Any, Origin, float], list[Request]]
@@ -189,8 +177,12 @@ class LinkCore:
         link_timeout: float = 10.0,
         camera: CameraInfo | None = None,
         wall_clock: Callable[[], float] | None = None,
+        ledger: SourceLedger | None = None,
     ) -> None:
         self.system_id = system_id
+        self.ledger = ledger if ledger is not None else SourceLedger()
+        """Bytes sent on each source address's behalf (brasidas.admission): the platform's."""
+        self._now = 0.0
         self.key = key
         self.allow_unsigned_control = allow_unsigned_control
         self.link_timeout = link_timeout
@@ -236,6 +228,7 @@ class LinkCore:
         """One datagram from ``peer``: answers go to the outbox; returns what needs deciding."""
         if self._boot is None:
             self._boot = now
+        self._now = now
         link = self.links.get(peer)
         new = link is None
         if link is None:
@@ -243,8 +236,8 @@ class LinkCore:
                 self.counters["links_refused"] += 1
                 return []
             link = self._link(peer, configured=False)
-        link.renew_credit(now)
-        link.credit += len(data)
+        if link.stranger:  # its credit, one per address (brasidas.admission.SourceLedger)
+            self.ledger.received(peer[0], len(data), now)
         try:
             messages = link.decoder.parse_buffer(data) or []
         except Exception:  # pymavlink raises for a frame it cannot even delimit
@@ -387,16 +380,16 @@ class LinkCore:
     # ------------------------------------------------------------------ time
 
     def _live_links(self, now: float) -> list[Link]:
-        """Forget the strangers not heard for ``link_timeout``; renew the others' credit."""
+        """Forget the strangers not heard for ``link_timeout``."""
         if self._boot is None:
             self._boot = now
+        self._now = now
         live: list[Link] = []
         for link in list(self.links.values()):
             if not link.configured and now - link.last_heard > self.link_timeout:
                 self._forget(link)
                 self.counters["links_forgotten"] += 1
                 continue
-            link.renew_credit(now)
             live.append(link)
         return live
 
@@ -447,14 +440,14 @@ class LinkCore:
         for message in messages:
             frames.append(message.pack(encoder))
             encoder.seq = (encoder.seq + 1) % 256
-        if link.stranger:
-            size = sum(len(frame) for frame in frames)
-            if size > link.credit:
-                encoder.seq = first_seq  # what it is sent shows no gap for what it was not
-                self.counters["stranger_frames_suppressed"] += len(frames)
-                self.counters["stranger_bytes_suppressed"] += size
-                return
-            link.credit -= size
+        size = sum(len(frame) for frame in frames)
+        if not link.stranger:
+            self.ledger.trusted_send(link.peer[0], size, "mavlink")
+        elif not self.ledger.stranger_send(link.peer[0], size, self._now):
+            encoder.seq = first_seq  # what it is sent shows no gap for what it was not
+            self.counters["stranger_frames_suppressed"] += len(frames)
+            self.counters["stranger_bytes_suppressed"] += size
+            return
         self.outbox.extend((frame, link.peer) for frame in frames)
 
     def _statustext_to(self, link: Link, severity: int, text: str) -> None:

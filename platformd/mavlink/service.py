@@ -84,6 +84,8 @@ from platformd.session_table import Session
 _LOGGER = logging.getLogger(__name__)
 
 TICK = 0.05
+VIDEO_CHARGE_INTERVAL = 1.0
+"""Seconds between charges of a ground station's video to its address."""
 """Seconds between the vehicle's ticks: telemetry due times and mission item re-requests."""
 FENCE_KEEPOUT_PREFIX = "fence-"
 WARNINGS_INTERVAL = 1.0
@@ -136,6 +138,7 @@ class MavlinkService(Actor):
             camera=camera,
             wall_clock=time.time,
             mission_items=self.mission_items,
+            ledger=ctx.egress,
         )
         self.vehicle.state.params = config_parameters(ctx.config)
         self.vehicle.safety_request = arming.safety_request
@@ -155,7 +158,10 @@ class MavlinkService(Actor):
         """The last accepted mission's route and items: downloads return them verbatim."""
         self._uploaded_seqs: tuple[int, ...] = ()
         """Its waypoints' item numbers (MISSION_CURRENT)."""
-        self._video_sessions: set[str] = set()
+        self._video_sessions: dict[str, tuple[Peer, int]] = {}
+        """Video a ground station's request started, by session: its requester and the bytes
+        charged to the requester's address so far (brasidas.admission.SourceLedger)."""
+        self._video_charged_at = 0.0
         self._override = OverrideState(False)
         self._patrol_state: PatrolState | None = None
         self._guided: FlightMode | None = None
@@ -265,6 +271,8 @@ class MavlinkService(Actor):
             self.vehicle.tick(loop.time())
             if proximity is not None:
                 proximity.tick(loop.time())
+            if loop.time() - self._video_charged_at >= VIDEO_CHARGE_INTERVAL:
+                self.charge_video(loop.time())
             self._flush()
             await asyncio.sleep(TICK)
 
@@ -364,7 +372,7 @@ class MavlinkService(Actor):
         for key, session in list(self.sessions.items()):
             if session.session_id == event.session_id:
                 del self.sessions[key]
-        self._video_sessions.discard(event.session_id)
+        self._video_sessions.pop(event.session_id, None)
 
     def _holder_system(self) -> int:
         """The controlling ground station's system id, 0 when a station (or nobody) holds it."""
@@ -590,11 +598,35 @@ class MavlinkService(Actor):
         session = self._session(request)
         if session.session_id in self._video_sessions:
             return
-        self._video_sessions.add(session.session_id)
+        self._video_sessions[session.session_id] = (request.peer, 0)
         # As a station's 10.1 with no host: the caller's own address, the NavCam's port.
         await media.start_stream(
             "navcam", request.peer[0], self.ctx.config.navcam.port, session_id=session.session_id
         )
+
+    def charge_video(self, now: float) -> None:
+        """The video each request started, charged to the requester's address (the one
+        account of every byte sent on its behalf); a requester no longer trusted whose
+        credit does not cover it loses its video (its session ends)."""
+        self._video_charged_at = now
+        media = self.ctx.media
+        if media is None:
+            return
+        port = self.ctx.config.navcam.port
+        for session_id, (peer, charged) in list(self._video_sessions.items()):
+            sent = media.bytes_sent("navcam", peer[0], port)
+            # A rebuilt pipeline or a re-added destination counts from 0 again.
+            fresh = sent - charged if sent >= charged else sent
+            self._video_sessions[session_id] = (peer, sent)
+            link = self.vehicle.links.get(peer)
+            trusted = link is not None and not link.stranger
+            if fresh and not self.vehicle.ledger.stream_sent(peer[0], fresh, trusted, now):
+                session = next(
+                    (s for s in self.sessions.values() if s.session_id == session_id), None
+                )
+                if session is not None:
+                    _LOGGER.warning("MAVLink: video to %s stopped: no longer trusted", peer[0])
+                    self._end_session(session, "video: the ground station is no longer trusted")
 
     # ------------------------------------------------------------------ downloads
 

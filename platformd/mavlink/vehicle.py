@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from brasidas.admission import SourceLedger
 from platformd.mavlink import commands, mission_protocol
 from platformd.mavlink.commands import CommandHandlers
 from platformd.mavlink.link import (
@@ -27,7 +28,6 @@ from platformd.mavlink.link import (
     NO_HOLDER,
     STATUSTEXT_CHUNK,
     STRANGER_LINKS,
-    STRANGER_WINDOW_S,
     Link,
     Upload,
 )
@@ -55,7 +55,6 @@ __all__ = [
     "SAFETY_COMMANDS",
     "STATUSTEXT_CHUNK",
     "STRANGER_LINKS",
-    "STRANGER_WINDOW_S",
     "UPLOAD_RETRIES",
     "UPLOAD_RETRY_S",
     "CameraInfo",
@@ -93,6 +92,7 @@ class MavlinkVehicle(CommandHandlers, MissionProtocol, TelemetrySender):
         camera: CameraInfo | None = None,
         wall_clock: Callable[[], float] | None = None,
         mission_items: Callable[[int], list[MissionItem]] = lambda mission_type: [],
+        ledger: SourceLedger | None = None,
     ) -> None:
         super().__init__(
             system_id,
@@ -102,6 +102,7 @@ class MavlinkVehicle(CommandHandlers, MissionProtocol, TelemetrySender):
             link_timeout=link_timeout,
             camera=camera,
             wall_clock=wall_clock,
+            ledger=ledger,
         )
         self._init_missions(upload_window, mission_items)
         self._init_telemetry(rates)
