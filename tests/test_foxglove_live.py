@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from conftest import quiet_platform_config, running_station, wait_until
-from test_station import run_cli
+from support.cli import run_cli
 
 from brasidas import topics
 from platformd.app import PlatformDaemon

@@ -11,7 +11,7 @@ import math
 from typing import Any
 
 import pytest
-from test_patrol_platform import LAT, LON, Robot, robot_factory  # noqa: F401 (a fixture)
+from support.patrol import LAT, LON, Robot
 
 from brasidas.autonomy import areamap
 from brasidas.autonomy.areamap import MAX_VERTICES, MapError, parse_map
@@ -151,7 +151,7 @@ def test_a_4000_digit_coordinate_is_a_refusal() -> None:
         files.read_map(boundary, "x.geojson")
 
 
-async def test_a_refused_map_changes_nothing_on_the_platform(robot_factory: Any) -> None:  # noqa: F811
+async def test_a_refused_map_changes_nothing_on_the_platform(robot_factory: Any) -> None:
     robot: Robot = await robot_factory()
     await robot.call("set_waypoints", waypoints=["sw", "se"])
     before = await robot.call("get_map")
@@ -193,7 +193,7 @@ async def test_a_sessions_heartbeat_is_answered_while_its_large_request_is_parse
     platform_factory: Any, fleet_key: bytes
 ) -> None:
     from conftest import quiet_platform_config
-    from test_velocity import open_connection
+    from support.velocity import open_connection
 
     daemon = await platform_factory(quiet_platform_config(), fleet_key)
     conn = await open_connection(daemon, fleet_key)

@@ -9,14 +9,12 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 from conftest import quiet_platform_config, wait_until
-from test_station import run_cli, station
+from support.cli import run_cli
 
 from brasidas import topics
 from brasidas.mapfiles.files import read_route
 from platformd.app import PlatformDaemon
 from stationd.daemon import StationDaemon
-
-__all__ = ["station"]  # the fixture, shared with the station's tests
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 DATA = Path(__file__).parent / "data" / "mapfiles"
