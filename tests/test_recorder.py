@@ -559,7 +559,7 @@ async def test_a_full_tmpfs_stops_recording_with_a_warning_and_teleop_carries_on
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     caplog.set_level(logging.WARNING, "brasidas.recording.writer")
-    with tiny_tmpfs(tmp_path / "disk", "400k") as disk:
+    with tiny_tmpfs(tmp_path / "disk", "120k") as disk:  # full within seconds at 30 fps
         daemon = await platform_factory(
             quiet_platform_config(
                 "platform.id=rover-full",
