@@ -11,6 +11,7 @@ runs as its own command, never inside the daemon's event loop.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import shutil
@@ -48,11 +49,12 @@ class CheckResult:
     fix: str = ""
 
 
-def run_checks(config: PlatformConfig) -> list[CheckResult]:
-    """Every check that applies to ``config``, in order."""
+def run_checks(config: PlatformConfig, *, listen_s: float = LISTEN_S) -> list[CheckResult]:
+    """Every check that applies to ``config``, in order; the GPS port is listened to for
+    ``listen_s`` at each baud."""
     checks: list[Callable[[PlatformConfig], CheckResult | None]] = [
         check_motor,
-        check_gps,
+        functools.partial(check_gps, listen_s=listen_s),
         check_imu,
         check_camera,
         check_gpio,
@@ -70,9 +72,9 @@ def run_checks(config: PlatformConfig) -> list[CheckResult]:
     return results
 
 
-def main(config: PlatformConfig, *, as_json: bool) -> int:
+def main(config: PlatformConfig, *, as_json: bool, listen_s: float = LISTEN_S) -> int:
     """Print the results (one line each, or JSON); 1 when any failed."""
-    results = run_checks(config)
+    results = run_checks(config, listen_s=listen_s)
     if as_json:
         print(json.dumps([asdict(result) for result in results], indent=2))
     else:
@@ -190,7 +192,7 @@ def _what_it_was(heard: bytes) -> str:
     return " (silent)"
 
 
-def check_gps(config: PlatformConfig) -> CheckResult | None:
+def check_gps(config: PlatformConfig, listen_s: float = LISTEN_S) -> CheckResult | None:
     gps = config.gps
     if not gps.enabled:
         return None
@@ -208,7 +210,7 @@ def check_gps(config: PlatformConfig) -> CheckResult | None:
             return CheckResult("gps", False, f"{gps.port}: {exc}", _permission_fix(exc))
         decoder = NmeaDecoder()
         try:
-            deadline = time.monotonic() + LISTEN_S
+            deadline = time.monotonic() + listen_s
             while time.monotonic() < deadline and decoder.sentences < 3:
                 decoder.feed(port.read(512))
         finally:
@@ -226,7 +228,7 @@ def check_gps(config: PlatformConfig) -> CheckResult | None:
     return CheckResult(
         "gps",
         False,
-        f"{gps.port}: no NMEA sentence in {LISTEN_S:g} s at any plausible baud",
+        f"{gps.port}: no NMEA sentence in {listen_s:g} s at any plausible baud",
         "check gps.port (the receiver's UART), its wiring (TX to RX) and its power",
     )
 

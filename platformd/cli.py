@@ -45,6 +45,13 @@ def build_parser() -> argparse.ArgumentParser:
         "check", parents=[after], help="bring-up check: devices, keys, disk, clock (exit 1: failed)"
     )
     check.add_argument("--json", action="store_true", help="the results as JSON")
+    check.add_argument(
+        "--listen",
+        type=_seconds,
+        default=None,
+        metavar="SECONDS",
+        help="how long the GPS port is listened to at each baud (default 2.5)",
+    )
     simulate = sub.add_parser(
         "simulate", parents=[after], help="run a simulated device on a pty, standalone"
     )
@@ -55,6 +62,16 @@ def build_parser() -> argparse.ArgumentParser:
         else "device to simulate",
     )
     return parser
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 < value <= 60:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds in (0, 60]")
+    return value
 
 
 def _add_options(parser: argparse.ArgumentParser, *, defaults: bool) -> None:
@@ -129,7 +146,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if command == "check":
         from platformd.check import main as check_main
 
-        return check_main(config, as_json=args.json)
+        if args.listen is None:
+            return check_main(config, as_json=args.json)
+        return check_main(config, as_json=args.json, listen_s=args.listen)
     try:
         fleet_key = load_fleet_key(config)
     except security.FleetKeyError as err:

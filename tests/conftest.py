@@ -14,10 +14,12 @@ import time
 import types
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import HealthCheck, settings
 from support import markers
+from support.browser import SharedChromium
 from support.cli import run_cli as run_cli  # re-exported: modules import helpers from here
 
 from brasidas.codecs.telemetry_schema import VelocityLink
@@ -26,7 +28,7 @@ from platformd.app import PlatformDaemon
 from platformd.context import PlatformContext
 from stationd.daemon import StationDaemon
 
-pytest_plugins = ["pytester"]
+pytest_plugins = ["pytester", "support.patrol"]  # support.patrol: the robot_factory fixture
 
 # Property tests check what a codec does, not how fast: on a loaded 2-core machine (CI, or the
 # browser tests running alongside) an example can exceed Hypothesis's 200 ms default deadline.
@@ -212,6 +214,28 @@ def free_tcp_port() -> int:
         return int(sock.getsockname()[1])
 
 
+@pytest.fixture(scope="session")
+def chromium(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SharedChromium]:
+    """The worker's one headless Chromium (tests/support/browser.py), started when first used."""
+    running = SharedChromium(tmp_path_factory.mktemp("chromium"))
+    yield running
+    running.close()
+
+
+@pytest.fixture
+async def browser(chromium: SharedChromium) -> AsyncIterator[Any]:
+    """The worker's Chromium, connected for this test: each ``new_page`` or ``new_context``
+    is a fresh context (no cookies or storage from another test), all closed after it."""
+    from playwright.async_api import async_playwright
+
+    async with async_playwright() as playwright:
+        connected = await playwright.chromium.connect_over_cdp(chromium.endpoint())
+        try:
+            yield connected
+        finally:
+            await connected.close()
+
+
 @pytest.fixture
 def fleet_key() -> bytes:
     return os.urandom(32)
@@ -290,8 +314,16 @@ async def running_station(key: bytes, *overrides: str) -> AsyncIterator[StationD
 
 
 @pytest.fixture
-async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
-    """A station on loopback (:func:`running_station`); a module that needs other settings
-    defines its own ``station``."""
-    async with running_station(fleet_key) as daemon:
+def station_settings() -> tuple[str, ...]:
+    """The ``station`` fixture's settings: a module overrides this fixture, a test
+    parametrizes it."""
+    return ()
+
+
+@pytest.fixture
+async def station(
+    fleet_key: bytes, station_settings: tuple[str, ...]
+) -> AsyncIterator[StationDaemon]:
+    """A station on loopback (:func:`running_station`) with ``station_settings``."""
+    async with running_station(fleet_key, *station_settings) as daemon:
         yield daemon

@@ -12,9 +12,6 @@ from typing import Any
 
 import pytest
 from conftest import free_tcp_port, free_udp_port, wait_until
-from test_station import station
-
-__all__ = ["station"]  # the fixture, shared with the station's tests
 
 from brasidas import security, topics
 from brasidas.bus import Bus
@@ -363,7 +360,7 @@ async def test_cli_stop_arm_and_disarm(
     station: Any, platform_factory: Any, fleet_key: bytes, tmp_path: Path
 ) -> None:
     from conftest import quiet_platform_config
-    from test_station import run_cli
+    from support.cli import run_cli
 
     platform = await platform_factory(
         quiet_platform_config(

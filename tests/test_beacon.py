@@ -15,6 +15,7 @@ import pytest
 from conftest import free_udp_port, quiet_platform_config, wait_until
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from support.beacon import beacon_config, sample
 
 from brasidas import security, topics
 from brasidas.codecs import beacon as codec
@@ -31,19 +32,6 @@ from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 KEY = bytes(range(32))
-
-
-def sample(**changes: object) -> Beacon:
-    fields: dict[str, object] = {
-        "platform_id": "brasidas-rover-12",
-        "signaling_url": "http://10.144.23.117:8765",
-        "status": StatusWord(movrd=True, main_lights=True, battery=Battery.MEDIUM, gps_fix=True),
-        "boot": 0xDEADBEEF,
-        "seq": 123456,
-        "position": (37.9415123, 23.6530456),
-    }
-    fields.update(changes)
-    return Beacon(**fields)  # type: ignore[arg-type]
 
 
 # ------------------------------------------------------------------ codec
@@ -228,16 +216,6 @@ async def collector(fleet_key: bytes) -> AsyncIterator[tuple[int, Collector]]:
     )
     yield port, protocol
     transport.close()
-
-
-def beacon_config(port: int, *extra: str) -> list[str]:
-    return [
-        "beacon.enabled=true",
-        f"beacon.port={port}",
-        'beacon.destinations=["127.0.0.1"]',
-        "beacon.listen=false",  # the collector holds the port alone
-        *extra,
-    ]
 
 
 async def test_platform_beacons_at_start_and_at_most_every_3_s(

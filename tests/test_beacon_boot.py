@@ -11,14 +11,17 @@ from pathlib import Path
 from typing import Any
 
 from conftest import free_udp_port, quiet_platform_config, running_station
-from test_beacon import Factory, beacon_config, sample
+from support.beacon import beacon_config, sample
 
 from brasidas.codecs import beacon as codec
 from brasidas.codecs.beacon import DropReason
 from brasidas.discovery import PlatformDirectory
 from brasidas.status import StatusWord
+from platformd.app import PlatformDaemon
 from platformd.boot_counter import boot_counter_path, next_boot
 from stationd.client import PlatformConnection, _announced_boot
+
+Factory = Callable[..., Awaitable[PlatformDaemon]]
 
 
 def test_beacons_of_an_earlier_boot_are_refused_even_interleaved(fleet_key: bytes) -> None:

@@ -16,7 +16,7 @@ from typing import Any
 
 from conftest import quiet_platform_config, running_station, wait_until
 from mcap.reader import make_reader
-from test_station import run_cli
+from support.cli import run_cli
 
 from brasidas import topics
 from brasidas.recording import schemas as recorded

@@ -14,11 +14,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from test_map_limits import boundary_map, kml, plan, ring
-from test_mapfiles_cli import connected
-from test_patrol_platform import LAT, LON, Robot, robot_factory  # noqa: F401 (a fixture)
-from test_station import run_cli, station  # noqa: F401 (a fixture)
-from test_velocity import open_connection
+from support.cli import run_cli
+from support.connected import connected
+from support.hostile_files import boundary_map, kml, plan, ring
+from support.patrol import LAT, LON, Robot
+from support.velocity import open_connection
 
 from brasidas.codecs import jsonrpc
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, Dispatcher, RpcError, request_text
@@ -113,7 +113,7 @@ async def test_a_large_map_request_is_refused_before_it_is_parsed(
     assert dispatcher.counters["refused_unparsed"] == 1
 
 
-async def test_a_platform_refuses_a_150001_vertex_map_unparsed(robot_factory: Any) -> None:  # noqa: F811
+async def test_a_platform_refuses_a_150001_vertex_map_unparsed(robot_factory: Any) -> None:
     """Over a station's connection, as the issue's attacker with a session sent it."""
     robot: Robot = await robot_factory()
     before = await robot.call("get_map")
@@ -129,7 +129,7 @@ async def test_a_platform_refuses_a_150001_vertex_map_unparsed(robot_factory: An
 
 
 async def test_the_operators_command_is_refused_before_the_station_parses_its_request(
-    station: StationDaemon,  # noqa: F811
+    station: StationDaemon,
     platform_factory: Any,
     fleet_key: bytes,
     tmp_path: Path,

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from conftest import free_tcp_port, free_udp_port
-from test_platform_process import _wait_for_signaling
+from support.processes import wait_for_signaling
 
 from brasidas import security
 from stationd.client import PlatformConnection
@@ -60,7 +60,7 @@ async def test_idle_connections_leave_the_station_a_way_in(tmp_path: Path) -> No
         )
     idle: list[socket.socket] = []
     try:
-        await _wait_for_signaling(port, process)
+        await wait_for_signaling(port, process)
         idle = _open_idle(port, IDLE_CONNECTIONS)
         await asyncio.sleep(1.0)  # the platform takes them in (or fails to)
         connection = PlatformConnection(

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from conftest import until_armable, wait_until
 from shapely.geometry import Polygon
-from test_patrol_platform import LAT, LON, RTK, Robot, at, config
+from support.patrol import LAT, LON, RTK, Robot, at, config
 
 from brasidas import topics
 from brasidas.bus import Bus

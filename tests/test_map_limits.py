@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import asyncio
 import json
-import math
 from typing import Any
 
 import pytest
-from test_patrol_platform import LAT, LON, Robot, robot_factory  # noqa: F401 (a fixture)
+from support.hostile_files import boundary_map, kml, plan, ring
+from support.patrol import LAT, LON, Robot
 
 from brasidas.autonomy import areamap
 from brasidas.autonomy.areamap import MAX_VERTICES, MapError, parse_map
@@ -19,28 +19,6 @@ from brasidas.codecs.jsonrpc import RpcError
 from brasidas.mapfiles import files
 from brasidas.mapfiles.errors import FileRefused
 from platformd.sim.demo_area import demo_map
-
-
-def ring(n: int, lat: float = 37.94, lon: float = 23.65, radius: float = 0.001) -> list[Any]:
-    points = [
-        [round(lon + radius * math.cos(2 * math.pi * i / n), 6),
-         round(lat + radius * math.sin(2 * math.pi * i / n), 6)]
-        for i in range(n)
-    ]  # fmt: skip
-    return [*points, points[0]]
-
-
-def boundary_map(*rings: list[Any]) -> dict[str, Any]:
-    return {
-        "type": "FeatureCollection",
-        "features": [
-            {
-                "type": "Feature",
-                "properties": {"role": "boundary"},
-                "geometry": {"type": "Polygon", "coordinates": list(rings)},
-            }
-        ],
-    }
 
 
 def holes(count: int) -> list[list[Any]]:
@@ -95,34 +73,6 @@ def nothing_parsed(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(files, "loads", parsed)
 
 
-def kml(coordinates: int) -> str:
-    text = " ".join(f"23.{i:06d},37.9,0" for i in range(coordinates))
-    return (
-        '<?xml version="1.0"?><kml xmlns="http://www.opengis.net/kml/2.2"><Document>'
-        f"<Placemark><Polygon><outerBoundaryIs><LinearRing><coordinates>{text}</coordinates>"
-        "</LinearRing></outerBoundaryIs></Polygon></Placemark></Document></kml>"
-    )
-
-
-def plan(items: int) -> str:
-    mission = [
-        {"type": "SimpleItem", "command": 16, "frame": 3,
-         "params": [0, 0, 0, None, 37.94 + i * 1e-6, 23.65, 0]}
-        for i in range(items)
-    ]  # fmt: skip
-    return json.dumps(
-        {
-            "fileType": "Plan",
-            "version": 1,
-            "groundStation": "QGroundControl",
-            "mission": {"version": 2, "items": mission, "plannedHomePosition": [37.94, 23.65, 0]},
-            "geoFence": {"version": 2, "polygons": [], "circles": []},
-            "rallyPoints": {"version": 2, "points": []},
-        },
-        separators=(",", ":"),
-    )
-
-
 @pytest.mark.usefixtures("nothing_parsed")
 def test_the_station_counts_a_files_vertices_and_items_before_parsing() -> None:
     with pytest.raises(FileRefused, match="vertices, more than"):
@@ -151,7 +101,7 @@ def test_a_4000_digit_coordinate_is_a_refusal() -> None:
         files.read_map(boundary, "x.geojson")
 
 
-async def test_a_refused_map_changes_nothing_on_the_platform(robot_factory: Any) -> None:  # noqa: F811
+async def test_a_refused_map_changes_nothing_on_the_platform(robot_factory: Any) -> None:
     robot: Robot = await robot_factory()
     await robot.call("set_waypoints", waypoints=["sw", "se"])
     before = await robot.call("get_map")
@@ -193,7 +143,7 @@ async def test_a_sessions_heartbeat_is_answered_while_its_large_request_is_parse
     platform_factory: Any, fleet_key: bytes
 ) -> None:
     from conftest import quiet_platform_config
-    from test_velocity import open_connection
+    from support.velocity import open_connection
 
     daemon = await platform_factory(quiet_platform_config(), fleet_key)
     conn = await open_connection(daemon, fleet_key)

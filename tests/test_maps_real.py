@@ -20,6 +20,7 @@ import pytest
 import shapely
 from conftest import quiet_platform_config, wait_until
 from shapely import LineString
+from support.maps import drivable_town
 
 from brasidas import topics
 from brasidas.autonomy import planner as planner_module
@@ -32,7 +33,7 @@ from brasidas.config import TelemetryReceiverSection
 from platformd import cli as platform_cli
 from platformd.autonomy.patrol import PatrolActor
 from platformd.sim.demo_area import demo_map, demo_route, offset
-from platformd.sim.town import clear_around, town_map
+from platformd.sim.town import town_map
 from stationd.telemetry import Annunciator
 
 LAT, LON = 37.9415, 23.6530
@@ -368,14 +369,6 @@ def test_the_patrol_holds_until_the_new_plan_is_ready() -> None:
     assert patrol.set_planner(changed, Planner(changed.boundary, changed.keepouts, 1.5))
     patrol.step(here, 0.1)
     assert patrol.status().state is PatrolState.PATROLLING
-
-
-def drivable_town(latitude: float, longitude: float, buildings: int) -> dict[str, Any]:
-    """A town around a position, without the buildings too near it (the robot is in a street);
-    without names (another test's)."""
-    return clear_around(
-        town_map(latitude, longitude, buildings=buildings, seed=2), latitude, longitude
-    )
 
 
 # --------------------------------------------------------------------------- 19.6: atomic

@@ -80,6 +80,9 @@ async def mavproxy(port: int, cwd: Path) -> AsyncIterator[MavProxy]:
         yield client
     finally:
         if process.returncode is None:
+            # MAVProxy's input thread outlives SIGTERM until its stdin ends.
+            assert process.stdin is not None
+            process.stdin.close()
             process.terminate()
             try:
                 await asyncio.wait_for(process.wait(), 10)
@@ -108,7 +111,14 @@ async def test_mavproxy_loads_a_mission_and_a_fence_and_starts_the_patrol(
 ) -> None:
     port = free_udp_port()
     daemon = await platform_factory(
-        sim_rover_config(tmp_path, port, "mavlink.allow_unsigned_control=true"), None
+        sim_rover_config(
+            tmp_path,
+            port,
+            "mavlink.allow_unsigned_control=true",
+            # MAVProxy prints a new mode from the heartbeat: sooner, not differently.
+            "mavlink.heartbeat_hz=5",
+        ),
+        None,
     )
     patrol = daemon.ctx.patrol
     assert patrol is not None

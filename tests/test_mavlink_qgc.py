@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 from conftest import free_udp_port, wait_until
-from mavlink_gcs import Gcs, at, qgc_connect, sim_rover_config
+from mavlink_gcs import FAST_ROVER, Gcs, at, qgc_connect, sim_rover_config
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from brasidas import topics
@@ -139,7 +139,14 @@ async def test_guided_goes_to_a_point_around_the_keepout_and_rtl_comes_home(
     to the patrol's own route, which was kept."""
     from shapely import LineString
 
-    daemon = await start(platform_factory, tmp_path, gcs, "mavlink.allow_unsigned_control=true")
+    daemon = await start(
+        platform_factory,
+        tmp_path,
+        gcs,
+        "mavlink.allow_unsigned_control=true",
+        "mavlink.status_hz=5",  # HOME_POSITION each second, not each 5 s
+        *FAST_ROVER,
+    )
     patrol = daemon.ctx.patrol
     assert patrol is not None
     await wait_until(lambda: patrol.core.area is not None and patrol.core.route.waypoints)

@@ -7,14 +7,12 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 from conftest import quiet_platform_config, wait_until
-from test_station import run_cli, station
+from support.cli import run_cli
 
 from brasidas import topics
 from platformd.app import PlatformDaemon
 from platformd.sim.demo_area import demo_map
 from stationd.daemon import StationDaemon
-
-__all__ = ["station"]  # the fixture, shared with the station's tests
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 LAT, LON = 37.9415, 23.6530
@@ -90,7 +88,7 @@ async def test_map_route_and_patrol_commands(
 async def test_a_town_of_a_thousand_buildings_loads_and_a_too_big_map_says_its_size(
     station: StationDaemon, platform_factory: Factory, fleet_key: bytes, tmp_path: Path
 ) -> None:
-    from test_maps_real import drivable_town
+    from support.maps import drivable_town
 
     from brasidas.limits import MAP_REQUEST_MAX_BYTES, STATION_API_MAX_BYTES
 

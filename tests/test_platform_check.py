@@ -14,13 +14,14 @@ import pytest
 from brasidas import security
 
 
-async def _simulator(device: str) -> tuple[asyncio.subprocess.Process, str]:
+async def _simulator(device: str, *settings: str) -> tuple[asyncio.subprocess.Process, str]:
     process = await asyncio.create_subprocess_exec(
         sys.executable,
         "-m",
         "platformd",
         "simulate",
         device,
+        *(arg for setting in settings for arg in ("--set", setting)),
         stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.DEVNULL,
     )
@@ -32,7 +33,8 @@ async def _simulator(device: str) -> tuple[asyncio.subprocess.Process, str]:
 
 @pytest.fixture
 async def ptys() -> AsyncIterator[dict[str, str]]:
-    started = [await _simulator("ax3500"), await _simulator("gps")]
+    # The receiver at 10 Hz: three sentences well within the check's shortened listen.
+    started = [await _simulator("ax3500"), await _simulator("gps", "gps.sim_rate_hz=10")]
     try:
         yield {"ax3500": started[0][1], "gps": started[1][1]}
     finally:
@@ -58,6 +60,9 @@ async def _check(tmp_path: Path, *settings: str) -> tuple[int, str]:
         "platformd",
         "check",
         "--json",
+        # The silent port is listened to at four bauds: 0.5 s each here, not 2.5.
+        "--listen",
+        "0.5",
         *args,
         stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.PIPE,
@@ -94,7 +99,7 @@ async def test_check_passes_on_the_simulators_and_names_wrong_and_missing_device
     assert code == 1
     assert not results["motor"]["ok"]
     assert "that is a GPS receiver" in results["motor"]["detail"]
-    assert not results["gps"]["ok"] and "no NMEA sentence" in results["gps"]["detail"]
+    assert not results["gps"]["ok"] and "no NMEA sentence in 0.5 s" in results["gps"]["detail"]
     assert results["gps"]["fix"]
     assert not results["imu"]["ok"] and "/dev/i2c-199 does not exist" in results["imu"]["detail"]
 

@@ -9,24 +9,12 @@ import sys
 from pathlib import Path
 
 from conftest import free_tcp_port, free_udp_port
+from support.processes import wait_for_signaling
 
 from brasidas import security
 from brasidas.rpc import RpcClient
 from platformd.sim.demo_area import demo_map
 from stationd.client import PlatformConnection
-
-
-async def _wait_for_signaling(port: int, process: asyncio.subprocess.Process) -> None:
-    async def poll() -> None:
-        while True:
-            assert process.returncode is None, "platform exited during start"
-            try:
-                with socket.create_connection(("127.0.0.1", port), timeout=0.2):
-                    return
-            except OSError:
-                await asyncio.sleep(0.05)
-
-    await asyncio.wait_for(poll(), 15)
 
 
 async def test_sim_platform_creates_key_serves_and_stops_cleanly_on_sigterm() -> None:
@@ -45,7 +33,7 @@ async def test_sim_platform_creates_key_serves_and_stops_cleanly_on_sigterm() ->
         stderr=asyncio.subprocess.PIPE,
     )
     try:
-        await _wait_for_signaling(port, process)
+        await wait_for_signaling(port, process)
         assert security.default_key_path().exists()  # --sim made one in the state dir
         async with RpcClient(f"http://127.0.0.1:{port}/rpc/ws") as client:
             assert (await client.call("challenge"))["auth"] == "hmac-sha256"
@@ -91,7 +79,7 @@ async def test_a_platform_without_a_map_loads_no_shapely_until_one_is_loaded(
     )
     maps = Path(f"/proc/{process.pid}/maps")
     try:
-        await _wait_for_signaling(port, process)
+        await wait_for_signaling(port, process)
         connection = PlatformConnection(
             "brasidas-1",
             f"http://127.0.0.1:{port}",

@@ -22,8 +22,9 @@ from conftest import free_tcp_port, free_udp_port, quiet_platform_config, wait_u
 from mcap.reader import NonSeekingReader, make_reader
 from mcap.records import Message
 from mcap.stream_reader import StreamReader
-from test_station import run_cli, station
-from test_velocity import open_connection, udp_socket
+from support.cli import run_cli
+from support.recorder import recorder_of
+from support.velocity import open_connection, udp_socket
 
 from brasidas import topics
 from brasidas.annunciator import RECORDER_STOPPED, Annunciator
@@ -41,19 +42,12 @@ from brasidas.messages import Velocity
 from brasidas.recording import schemas
 from brasidas.recording.writer import ACTIVE_SUFFIX, Quota, Recorder
 from platformd.app import PlatformDaemon
-from platformd.recorder import REASON_MAX_CHARS, PlatformRecorder
+from platformd.recorder import REASON_MAX_CHARS
 from stationd.daemon import StationDaemon
-
-__all__ = ["station"]
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 ROTATE_SECONDS = 9.0
 """The sim recording's files' length (recorder.rotate_minutes)."""
-
-
-def recorder_of(daemon: PlatformDaemon) -> PlatformRecorder:
-    (recorder,) = [a for a in daemon.supervisor.actors if isinstance(a, PlatformRecorder)]
-    return recorder
 
 
 def read_messages(path: Path) -> dict[str, list[tuple[int, dict[str, Any]]]]:
@@ -565,7 +559,7 @@ async def test_a_full_tmpfs_stops_recording_with_a_warning_and_teleop_carries_on
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     caplog.set_level(logging.WARNING, "brasidas.recording.writer")
-    with tiny_tmpfs(tmp_path / "disk", "400k") as disk:
+    with tiny_tmpfs(tmp_path / "disk", "120k") as disk:  # full within seconds at 30 fps
         daemon = await platform_factory(
             quiet_platform_config(
                 "platform.id=rover-full",

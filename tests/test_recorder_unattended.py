@@ -11,7 +11,7 @@ from pathlib import Path
 from conftest import free_udp_port, quiet_platform_config, wait_until
 from mcap.records import Channel, Message
 from mcap.stream_reader import StreamReader
-from test_velocity import open_connection
+from support.velocity import open_connection
 
 from brasidas.media.video import VideoOut
 from platformd.app import PlatformDaemon

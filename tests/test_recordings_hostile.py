@@ -11,8 +11,8 @@ from pathlib import Path
 import aiohttp
 import pytest
 from conftest import quiet_platform_config, wait_until
-from test_recorder import recorder_of
-from test_velocity import open_connection
+from support.recorder import recorder_of
+from support.velocity import open_connection
 
 from brasidas.admission import SourceLedger
 from brasidas.messages import CommandReceived

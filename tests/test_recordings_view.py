@@ -9,14 +9,13 @@ import dataclasses
 import json
 import os
 import re
-import shutil
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
 from conftest import free_udp_port, quiet_platform_config, running_station, wait_until
 from mcap.reader import make_reader
-from test_station import run_cli
+from support.cli import run_cli
 
 from brasidas import topics
 from platformd.app import PlatformDaemon
@@ -24,8 +23,6 @@ from stationd.api_client import api_call_async
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 DOCS = Path(__file__).resolve().parent.parent / "docs"
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking"]
 
 
 def finished_with_video(directory: Path) -> list[Path]:
@@ -95,9 +92,9 @@ def with_video_gap(path: Path, out: Path, fraction: float) -> int:
 
 
 async def test_seeking_shows_that_times_position_and_frame(
-    platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+    platform_factory: Factory, fleet_key: bytes, tmp_path: Path, browser: Any
 ) -> None:
-    from playwright.async_api import async_playwright, expect
+    from playwright.async_api import expect
 
     recordings = tmp_path / "recordings"
     platform = await platform_factory(
@@ -135,125 +132,117 @@ async def test_seeking_shows_that_times_position_and_frame(
         path = (await asyncio.to_thread(finished_with_video, recordings))[0]
         expected = await asyncio.to_thread(expected_at, path, 0.7)
 
-        async with async_playwright() as playwright:
-            browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-            try:
-                page = await browser.new_page()
-                errors: list[str] = []
-                page.on("pageerror", lambda error: errors.append(str(error)))
-                await page.goto(f"http://127.0.0.1:{station.api_port}/")
-                await page.locator("#recordings-toggle").click()
-                await page.locator("#rec-platform").fill("rover-rp")
-                await page.locator("#rec-list-button").click()
-                option = page.locator(f'#rec-list option[value="{path.name}"]')
-                await expect(option).to_have_count(1, timeout=15_000)
-                await page.locator("#rec-list").select_option(path.name)
-                await page.locator("#rec-open").click()
-                view = page.locator("#recordings")
-                await expect(view).to_have_attribute("data-recording", path.name, timeout=30_000)
+        page = await browser.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda error: errors.append(str(error)))
+        await page.goto(f"http://127.0.0.1:{station.api_port}/")
+        await page.locator("#recordings-toggle").click()
+        await page.locator("#rec-platform").fill("rover-rp")
+        await page.locator("#rec-list-button").click()
+        option = page.locator(f'#rec-list option[value="{path.name}"]')
+        await expect(option).to_have_count(1, timeout=15_000)
+        await page.locator("#rec-list").select_option(path.name)
+        await page.locator("#rec-open").click()
+        view = page.locator("#recordings")
+        await expect(view).to_have_attribute("data-recording", path.name, timeout=30_000)
 
-                seconds = (expected["at"] - expected["start"]) / 1e9
-                await page.evaluate(
-                    """(seconds) => {
-                        const slider = document.getElementById("rec-time");
-                        slider.value = String(seconds);
-                        slider.dispatchEvent(new Event("input"));
-                    }""",
-                    seconds,
-                )
-                pose_time, pose = expected["pose"]
+        seconds = (expected["at"] - expected["start"]) / 1e9
+        await page.evaluate(
+            """(seconds) => {
+                const slider = document.getElementById("rec-time");
+                slider.value = String(seconds);
+                slider.dispatchEvent(new Event("input"));
+            }""",
+            seconds,
+        )
+        pose_time, pose = expected["pose"]
 
-                async def shown(selector: str, attribute: str) -> float:
-                    value = await page.locator(selector).get_attribute(attribute)
-                    return float(value) if value else 0.0
+        async def shown(selector: str, attribute: str) -> float:
+            value = await page.locator(selector).get_attribute(attribute)
+            return float(value) if value else 0.0
 
-                async def in_step() -> bool:
-                    position_ns = await shown("#rec-position", "data-time-ns")
-                    frame_ns = await shown("#rec-video", "data-frame-time-ns")
-                    return (
-                        abs(position_ns - pose_time) < 2000
-                        and abs(frame_ns - expected["frame"]) < 2000
-                    )
+        async def in_step() -> bool:
+            position_ns = await shown("#rec-position", "data-time-ns")
+            frame_ns = await shown("#rec-video", "data-frame-time-ns")
+            return abs(position_ns - pose_time) < 2000 and abs(frame_ns - expected["frame"]) < 2000
 
-                deadline = asyncio.get_running_loop().time() + 20
-                while not await in_step():
-                    assert asyncio.get_running_loop().time() < deadline, (
-                        await page.locator("#rec-position").get_attribute("data-time-ns"),
-                        await page.locator("#rec-video").get_attribute("data-frame-time-ns"),
-                        pose_time,
-                        expected["frame"],
-                        await page.locator("#rec-message").text_content(),
-                    )
-                    await asyncio.sleep(0.2)
-                lat = float(await page.locator("#rec-position").get_attribute("data-lat") or 0)
-                lon = float(await page.locator("#rec-position").get_attribute("data-lon") or 0)
-                assert abs(lat - pose["latitude"]) < 1e-9 and abs(lon - pose["longitude"]) < 1e-9
-                await expect(page.locator("#rec-position")).to_contain_text(f"{lat:.6f}")
-                # The frame was drawn: the canvas holds a picture, not the empty black.
-                lit = await page.evaluate(
-                    """() => {
-                        const c = document.getElementById("rec-video");
-                        const d = c.getContext("2d").getImageData(0, 0, c.width, c.height).data;
-                        let lit = 0;
-                        for (let i = 0; i < d.length; i += 4 * 13) if (d[i] + d[i + 1] + d[i + 2] > 60) lit++;
-                        return lit;
-                    }"""
-                )
-                assert lit > 50  # the ball and the clock overlays on black
-                # The plots' cursor is at that time.
-                cursor = float(await page.locator("#rec-plot").get_attribute("data-cursor-ns") or 0)
-                assert abs(cursor - expected["at"]) < 2000
-                # The marker on the map is at that position.
-                assert await page.locator("#rec-map path.leaflet-interactive").count() >= 2
-                marker = await page.locator("#rec-map").get_attribute("data-marker")
-                assert marker is not None
-                shown_at = [float(part) for part in marker.split(",")]
-                assert abs(shown_at[0] - lat) < 1e-9 and abs(shown_at[1] - lon) < 1e-9
-                no_video = page.get_by_role("alert", name="no recorded video")
-                await expect(no_video).to_be_hidden()  # the frame of that moment
+        deadline = asyncio.get_running_loop().time() + 20
+        while not await in_step():
+            assert asyncio.get_running_loop().time() < deadline, (
+                await page.locator("#rec-position").get_attribute("data-time-ns"),
+                await page.locator("#rec-video").get_attribute("data-frame-time-ns"),
+                pose_time,
+                expected["frame"],
+                await page.locator("#rec-message").text_content(),
+            )
+            await asyncio.sleep(0.2)
+        lat = float(await page.locator("#rec-position").get_attribute("data-lat") or 0)
+        lon = float(await page.locator("#rec-position").get_attribute("data-lon") or 0)
+        assert abs(lat - pose["latitude"]) < 1e-9 and abs(lon - pose["longitude"]) < 1e-9
+        await expect(page.locator("#rec-position")).to_contain_text(f"{lat:.6f}")
+        # The frame was drawn: the canvas holds a picture, not the empty black.
+        lit = await page.evaluate(
+            """() => {
+                const c = document.getElementById("rec-video");
+                const d = c.getContext("2d").getImageData(0, 0, c.width, c.height).data;
+                let lit = 0;
+                for (let i = 0; i < d.length; i += 4 * 13) if (d[i] + d[i + 1] + d[i + 2] > 60) lit++;
+                return lit;
+            }"""
+        )
+        assert lit > 50  # the ball and the clock overlays on black
+        # The plots' cursor is at that time.
+        cursor = float(await page.locator("#rec-plot").get_attribute("data-cursor-ns") or 0)
+        assert abs(cursor - expected["at"]) < 2000
+        # The marker on the map is at that position.
+        assert await page.locator("#rec-map path.leaflet-interactive").count() >= 2
+        marker = await page.locator("#rec-map").get_attribute("data-marker")
+        assert marker is not None
+        shown_at = [float(part) for part in marker.split(",")]
+        assert abs(shown_at[0] - lat) < 1e-9 and abs(shown_at[1] - lon) < 1e-9
+        no_video = page.get_by_role("alert", name="no recorded video")
+        await expect(no_video).to_be_hidden()  # the frame of that moment
 
-                # Issue 31: seeking into a stretch without video left the previous frame up,
-                # unmarked. The picture now says it is not of this moment.
-                gap = recordings / f"gap-{path.name}"
-                await asyncio.to_thread(with_video_gap, path, gap, 0.4)
-                await page.locator("#rec-list-button").click()
-                option = page.locator(f'#rec-list option[value="{gap.name}"]')
-                await expect(option).to_have_count(1, timeout=15_000)
-                await page.locator("#rec-list").select_option(gap.name)
-                await page.locator("#rec-open").click()
-                await expect(view).to_have_attribute("data-recording", gap.name, timeout=30_000)
-                for fraction, marked in ((0.3, False), (0.95, True), (0.3, False), (0.6, True)):
-                    await page.evaluate(
-                        """(seconds) => {
-                            const slider = document.getElementById("rec-time");
-                            slider.value = String(seconds);
-                            slider.dispatchEvent(new Event("input"));
-                        }""",
-                        (expected["at"] - expected["start"]) / 1e9 / 0.7 * fraction,
-                    )
-                    if marked:
-                        await expect(no_video).to_be_visible(timeout=10_000)
-                        await expect(no_video).to_contain_text("NO VIDEO at this time")
-                    else:
-                        await expect(no_video).to_be_hidden(timeout=10_000)
+        # Issue 31: seeking into a stretch without video left the previous frame up,
+        # unmarked. The picture now says it is not of this moment.
+        gap = recordings / f"gap-{path.name}"
+        await asyncio.to_thread(with_video_gap, path, gap, 0.4)
+        await page.locator("#rec-list-button").click()
+        option = page.locator(f'#rec-list option[value="{gap.name}"]')
+        await expect(option).to_have_count(1, timeout=15_000)
+        await page.locator("#rec-list").select_option(gap.name)
+        await page.locator("#rec-open").click()
+        await expect(view).to_have_attribute("data-recording", gap.name, timeout=30_000)
+        for fraction, marked in ((0.3, False), (0.95, True), (0.3, False), (0.6, True)):
+            await page.evaluate(
+                """(seconds) => {
+                    const slider = document.getElementById("rec-time");
+                    slider.value = String(seconds);
+                    slider.dispatchEvent(new Event("input"));
+                }""",
+                (expected["at"] - expected["start"]) / 1e9 / 0.7 * fraction,
+            )
+            if marked:
+                await expect(no_video).to_be_visible(timeout=10_000)
+                await expect(no_video).to_contain_text("NO VIDEO at this time")
+            else:
+                await expect(no_video).to_be_hidden(timeout=10_000)
 
-                # The same dark theme and units as the live view, everything above the fold.
-                background = await view.evaluate("(e) => getComputedStyle(e).backgroundColor")
-                assert background == "rgb(21, 26, 32)", background
-                rows = page.locator("#rec-instruments")
-                await expect(rows).to_contain_text(re.compile(r"\d+\.\d km/h"))
-                await expect(rows).not_to_contain_text(re.compile(r"\d\.\d{4,}"))
-                for width, height in ((1366, 768), (1920, 1080)):
-                    await page.set_viewport_size({"width": width, "height": height})
-                    await page.wait_for_timeout(300)
-                    for part in ("#rec-instruments", "#rec-log", "#rec-plot", "#rec-map"):
-                        box = await page.locator(part).bounding_box()
-                        assert box is not None and box["y"] + box["height"] <= height, (part, box)
-                    if os.environ.get("BRASIDAS_SCREENSHOT") == "1":
-                        await page.screenshot(path=str(DOCS / f"recordings-{width}x{height}.png"))
-                assert not errors, errors
-            finally:
-                await browser.close()
+        # The same dark theme and units as the live view, everything above the fold.
+        background = await view.evaluate("(e) => getComputedStyle(e).backgroundColor")
+        assert background == "rgb(21, 26, 32)", background
+        rows = page.locator("#rec-instruments")
+        await expect(rows).to_contain_text(re.compile(r"\d+\.\d km/h"))
+        await expect(rows).not_to_contain_text(re.compile(r"\d\.\d{4,}"))
+        for width, height in ((1366, 768), (1920, 1080)):
+            await page.set_viewport_size({"width": width, "height": height})
+            await page.wait_for_timeout(300)
+            for part in ("#rec-instruments", "#rec-log", "#rec-plot", "#rec-map"):
+                box = await page.locator(part).bounding_box()
+                assert box is not None and box["y"] + box["height"] <= height, (part, box)
+            if os.environ.get("BRASIDAS_SCREENSHOT") == "1":
+                await page.screenshot(path=str(DOCS / f"recordings-{width}x{height}.png"))
+        assert not errors, errors
 
 
 def small_recording(path: Path, payload_bytes: int) -> None:
@@ -333,10 +322,10 @@ def fast_recording(directory: Path) -> Path | None:
 
 
 async def test_playing_at_1x_shows_every_recorded_frame(
-    platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+    platform_factory: Factory, fleet_key: bytes, tmp_path: Path, browser: Any
 ) -> None:
     """Not 4 frames a second (the timeline's ticks): every access unit recorded, at its rate."""
-    from playwright.async_api import async_playwright, expect
+    from playwright.async_api import expect
 
     recordings = tmp_path / "recordings"
     platform = await platform_factory(
@@ -371,51 +360,46 @@ async def test_playing_at_1x_shows_every_recorded_frame(
         times = await asyncio.to_thread(video_times, path)
         start = await asyncio.to_thread(summary_start, path)
 
-        async with async_playwright() as playwright:
-            browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-            try:
-                page = await browser.new_page()
-                errors: list[str] = []
-                page.on("pageerror", lambda error: errors.append(str(error)))
-                await page.goto(f"http://127.0.0.1:{station.api_port}/")
-                await page.locator("#recordings-toggle").click()
-                await page.locator("#rec-platform").fill("rover-fps")
-                await page.locator("#rec-list-button").click()
-                option = page.locator(f'#rec-list option[value="{path.name}"]')
-                await expect(option).to_have_count(1, timeout=15_000)
-                await page.locator("#rec-list").select_option(path.name)
-                await page.locator("#rec-open").click()
-                view = page.locator("#recordings")
-                await expect(view).to_have_attribute("data-recording", path.name, timeout=30_000)
-                # From a second after the first frame, at 1x.
-                await page.evaluate(
-                    """(seconds) => {
-                        const slider = document.getElementById("rec-time");
-                        slider.value = String(seconds);
-                        slider.dispatchEvent(new Event("input"));
-                    }""",
-                    (times[0] - start) / 1e9 + 1.0,
-                )
-                await page.locator("#rec-play").click()
+        page = await browser.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda error: errors.append(str(error)))
+        await page.goto(f"http://127.0.0.1:{station.api_port}/")
+        await page.locator("#recordings-toggle").click()
+        await page.locator("#rec-platform").fill("rover-fps")
+        await page.locator("#rec-list-button").click()
+        option = page.locator(f'#rec-list option[value="{path.name}"]')
+        await expect(option).to_have_count(1, timeout=15_000)
+        await page.locator("#rec-list").select_option(path.name)
+        await page.locator("#rec-open").click()
+        view = page.locator("#recordings")
+        await expect(view).to_have_attribute("data-recording", path.name, timeout=30_000)
+        # From a second after the first frame, at 1x.
+        await page.evaluate(
+            """(seconds) => {
+                const slider = document.getElementById("rec-time");
+                slider.value = String(seconds);
+                slider.dispatchEvent(new Event("input"));
+            }""",
+            (times[0] - start) / 1e9 + 1.0,
+        )
+        await page.locator("#rec-play").click()
 
-                async def sample() -> tuple[int, int]:
-                    """Frames drawn so far and the last one's time, read at one moment."""
-                    drawn, at = await page.evaluate(
-                        """() => {
-                            const c = document.getElementById("rec-video");
-                            return [c.dataset.framesDrawn || "0", c.dataset.frameTimeNs || "0"];
-                        }"""
-                    )
-                    return int(drawn), int(at)
+        async def sample() -> tuple[int, int]:
+            """Frames drawn so far and the last one's time, read at one moment."""
+            drawn, at = await page.evaluate(
+                """() => {
+                    const c = document.getElementById("rec-video");
+                    return [c.dataset.framesDrawn || "0", c.dataset.frameTimeNs || "0"];
+                }"""
+            )
+            return int(drawn), int(at)
 
-                await asyncio.sleep(1.5)  # playing steadily
-                drawn_0, at_0 = await sample()
-                await asyncio.sleep(1.5)
-                drawn_1, at_1 = await sample()
-                message = await page.locator("#rec-message").text_content()
-                assert not errors, errors
-            finally:
-                await browser.close()
+        await asyncio.sleep(1.5)  # playing steadily
+        drawn_0, at_0 = await sample()
+        await asyncio.sleep(1.5)
+        drawn_1, at_1 = await sample()
+        message = await page.locator("#rec-message").text_content()
+        assert not errors, errors
     played_s = (at_1 - at_0) / 1e9
     recorded = sum(1 for t in times if at_0 < t <= at_1)
     drawn = drawn_1 - drawn_0

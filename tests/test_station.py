@@ -8,7 +8,6 @@ from collections.abc import Awaitable, Callable
 
 import pytest
 from conftest import free_tcp_port, quiet_platform_config, wait_until
-from conftest import station as station  # re-exported: other modules import it from here
 from support.cli import run_cli
 
 from brasidas import topics

@@ -5,12 +5,12 @@ from __future__ import annotations
 import asyncio
 import functools
 import os
-import socket
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 
 from conftest import quiet_platform_config, wait_until
+from support.velocity import open_connection, udp_socket
 
 from brasidas import topics
 from brasidas.bus import Bus
@@ -21,7 +21,6 @@ from brasidas.messages import Mode, OverrideState, Velocity
 from platformd.app import PlatformDaemon
 from platformd.arbiter import STOP, MotionArbiter
 from platformd.velocity import Holder, VelocityGate, normalize_host
-from stationd.client import PlatformConnection
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 KEY = os.urandom(32)
@@ -243,20 +242,6 @@ async def test_deadman_zeroes_the_motors_until_the_next_valid_packet() -> None:
 
 
 # --------------------------------------------------------------------------- over real sockets
-
-
-async def open_connection(daemon: PlatformDaemon, key: bytes | None) -> PlatformConnection:
-    conn = PlatformConnection(
-        daemon.config.platform.id, daemon.ctx.signaling_url, station_id="st-1", fleet_key=key
-    )
-    await conn.open()
-    return conn
-
-
-def udp_socket(host: str = "127.0.0.1") -> socket.socket:
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.bind((host, 0))
-    return sock
 
 
 async def test_stream_end_to_end_with_spoofs_and_session_loss(

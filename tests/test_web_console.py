@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import re
-import shutil
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
@@ -16,7 +15,6 @@ from platformd.app import PlatformDaemon
 from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 MISSING_CHIP = "/dev/gpiochip-brasidas-console-missing"
 # Wraps every telemetry report's snapshot (answered or pushed) in proxies that record each field the page reads
 # ("gps.sats"), so the test can check the names against the schema the station serves.
@@ -45,14 +43,6 @@ JSON.parse = function (text, reviver) {
   return value;
 };
 """
-CHROMIUM_ARGS = [
-    "--no-sandbox",  # tests run as root
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--no-first-run",
-    "--disable-sync",
-]
 
 
 @pytest.fixture
@@ -62,9 +52,9 @@ async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
 
 
 async def test_console_lists_connects_and_takes_the_override(
-    station: StationDaemon, platform_factory: Factory, fleet_key: bytes
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes, browser: Any
 ) -> None:
-    from playwright.async_api import async_playwright, expect
+    from playwright.async_api import expect
 
     config = quiet_platform_config(
         "platform.id=web-rover",
@@ -82,77 +72,72 @@ async def test_console_lists_connects_and_takes_the_override(
         f"payload_camera.url=rtsp://127.0.0.1:{free_tcp_port()}/thermal",
     )
     platform = await platform_factory(config, fleet_key)
-    async with async_playwright() as playwright:
-        browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        try:
-            page = await browser.new_page()
-            await page.add_init_script(RECORD_READS)
-            errors: list[str] = []
-            page.on("pageerror", lambda error: errors.append(str(error)))
-            await page.goto(f"http://127.0.0.1:{station.api_port}/")
-            row = page.locator('#platforms tr[data-platform="web-rover"]')
-            await expect(row).to_contain_text("web-rover", timeout=10_000)
-            await row.locator("button.connect").click()
-            override = page.get_by_role("button", name="manual override")
-            await expect(override).to_have_text("override: autonomous", timeout=10_000)
-            await expect(override).to_have_attribute("aria-pressed", "false")
-            await override.click()
-            await expect(override).to_have_text("override: ENGAGED", timeout=10_000)
-            await expect(override).to_have_attribute("aria-pressed", "true")
-            await wait_until(lambda: platform.bus.last(topics.OVERRIDE_STATE).engaged)
-            await expect(page.locator("#answer")).to_contain_text("acknowledged")
-            await expect(page.locator("#driving")).to_have_text("this console is driving web-rover")
-            # Telemetry reaches the page: the computer section, and the simulated GPS fix.
-            telemetry = page.locator("dl#status")
-            await expect(telemetry).to_contain_text("free", timeout=10_000)
-            await expect(telemetry).to_contain_text("sats  hdop", timeout=10_000)
-            await expect(telemetry).to_contain_text("37.94", timeout=10_000)
-            # A light whose GPIO chip does not exist says it cannot be switched, and why.
-            lights_error = page.get_by_role("status", name="lights error")
-            await expect(lights_error).to_have_text(
-                "lights cannot be switched: positional: cannot request GPIO line "
-                f"{MISSING_CHIP}:17: no such GPIO chip (No such file or directory)",
-                timeout=10_000,
-            )
-            await expect(page.locator("#lights-pos")).to_have_attribute("data-error", "true")
-            await expect(page.locator("#lights-main")).to_have_attribute("data-error", "")
-            # The turret: where it points and its sight's stream state; then its microcontroller
-            # is unplugged: LINE DOWN and the platform's reason.
-            turret = page.get_by_label("turret", exact=True)
-            await expect(turret).to_contain_text("trigger safe", timeout=10_000)
-            await expect(turret).to_contain_text("sight payload_camera idle")
-            assert platform.ctx.sim.turret is not None
-            platform.ctx.sim.turret.close()
-            await expect(turret).to_have_attribute("data-line", "down", timeout=10_000)
-            await expect(turret).to_contain_text(
-                re.compile(r"turret:  LINE DOWN: (\S+: serial line closed|cannot open \S+)")
-            )
-            await expect(turret).to_contain_text("sight payload_camera idle")
-            await expect(turret).not_to_contain_text("trigger")
-            await override.click()
-            await wait_until(lambda: not platform.bus.last(topics.OVERRIDE_STATE).engaged)
-            await expect(page.locator("#driving")).to_have_text("not driving")
-            # The receiver falls silent: the last fix stays on screen, marked stale with its age.
-            assert platform.ctx.sim.gps is not None
-            platform.ctx.sim.gps.close()
-            gps_row = page.locator("dl#status dt:text-is('gps') + dd")
-            await expect(gps_row).to_contain_text("STALE (", timeout=15_000)
-            await expect(gps_row).to_contain_text("s old)")
-            assert errors == []
+    page = await browser.new_page()
+    await page.add_init_script(RECORD_READS)
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    await page.goto(f"http://127.0.0.1:{station.api_port}/")
+    row = page.locator('#platforms tr[data-platform="web-rover"]')
+    await expect(row).to_contain_text("web-rover", timeout=10_000)
+    await row.locator("button.connect").click()
+    override = page.get_by_role("button", name="manual override")
+    await expect(override).to_have_text("override: autonomous", timeout=10_000)
+    await expect(override).to_have_attribute("aria-pressed", "false")
+    await override.click()
+    await expect(override).to_have_text("override: ENGAGED", timeout=10_000)
+    await expect(override).to_have_attribute("aria-pressed", "true")
+    await wait_until(lambda: platform.bus.last(topics.OVERRIDE_STATE).engaged)
+    await expect(page.locator("#answer")).to_contain_text("acknowledged")
+    await expect(page.locator("#driving")).to_have_text("this console is driving web-rover")
+    # Telemetry reaches the page: the computer section, and the simulated GPS fix.
+    telemetry = page.locator("dl#status")
+    await expect(telemetry).to_contain_text("free", timeout=10_000)
+    await expect(telemetry).to_contain_text("sats  hdop", timeout=10_000)
+    await expect(telemetry).to_contain_text("37.94", timeout=10_000)
+    # A light whose GPIO chip does not exist says it cannot be switched, and why.
+    lights_error = page.get_by_role("status", name="lights error")
+    await expect(lights_error).to_have_text(
+        "lights cannot be switched: positional: cannot request GPIO line "
+        f"{MISSING_CHIP}:17: no such GPIO chip (No such file or directory)",
+        timeout=10_000,
+    )
+    await expect(page.locator("#lights-pos")).to_have_attribute("data-error", "true")
+    await expect(page.locator("#lights-main")).to_have_attribute("data-error", "")
+    # The turret: where it points and its sight's stream state; then its microcontroller
+    # is unplugged: LINE DOWN and the platform's reason.
+    turret = page.get_by_label("turret", exact=True)
+    await expect(turret).to_contain_text("trigger safe", timeout=10_000)
+    await expect(turret).to_contain_text("sight payload_camera idle")
+    assert platform.ctx.sim.turret is not None
+    platform.ctx.sim.turret.close()
+    await expect(turret).to_have_attribute("data-line", "down", timeout=10_000)
+    await expect(turret).to_contain_text(
+        re.compile(r"turret:  LINE DOWN: (\S+: serial line closed|cannot open \S+)")
+    )
+    await expect(turret).to_contain_text("sight payload_camera idle")
+    await expect(turret).not_to_contain_text("trigger")
+    await override.click()
+    await wait_until(lambda: not platform.bus.last(topics.OVERRIDE_STATE).engaged)
+    await expect(page.locator("#driving")).to_have_text("not driving")
+    # The receiver falls silent: the last fix stays on screen, marked stale with its age.
+    assert platform.ctx.sim.gps is not None
+    platform.ctx.sim.gps.close()
+    gps_row = page.locator("dl#status dt:text-is('gps') + dd")
+    await expect(gps_row).to_contain_text("STALE (", timeout=15_000)
+    await expect(gps_row).to_contain_text("s old)")
+    assert errors == []
 
-            # Every telemetry field the page read is one the schema has (a renamed field fails
-            # here, not as a "?" on the operator's screen).
-            base = f"http://127.0.0.1:{station.api_port}"
-            answer = await page.request.get(f"{base}/api/telemetry-schema.json")
-            document = await answer.json()
-            assert document == schema_document()
-            reads = set(await page.evaluate("[...window.__telemetryReads]"))
-            unknown = sorted(name for name in reads if not known(document, name))
-            assert unknown == [], f"console.js reads fields the schema does not have: {unknown}"
-            assert {"gps.sats", "gps.lat", "battery", "computer.mem_free_mb"} <= reads
-            assert {"lights.errors", "turret.streams", "turret.error"} <= reads
-        finally:
-            await browser.close()
+    # Every telemetry field the page read is one the schema has (a renamed field fails
+    # here, not as a "?" on the operator's screen).
+    base = f"http://127.0.0.1:{station.api_port}"
+    answer = await page.request.get(f"{base}/api/telemetry-schema.json")
+    document = await answer.json()
+    assert document == schema_document()
+    reads = set(await page.evaluate("[...window.__telemetryReads]"))
+    unknown = sorted(name for name in reads if not known(document, name))
+    assert unknown == [], f"console.js reads fields the schema does not have: {unknown}"
+    assert {"gps.sats", "gps.lat", "battery", "computer.mem_free_mb"} <= reads
+    assert {"lights.errors", "turret.streams", "turret.error"} <= reads
 
 
 def known(document: dict[str, Any], path: str) -> bool:

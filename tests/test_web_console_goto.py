@@ -12,19 +12,13 @@ import re
 from typing import Any
 
 import pytest
-import test_web_console_honesty as honesty
 from conftest import wait_until
 from support.cli import run_cli
-from test_web_console_honesty import console, rover
-from test_web_console_station import Factory
+from support.console import Factory, console, rover
 
 from brasidas import topics
 from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
-
-station_settings = honesty.station_settings
-station = honesty.station
-browser = honesty.browser
 
 
 async def click_map_at(page: Any, lat: float, lon: float) -> None:

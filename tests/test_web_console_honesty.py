@@ -9,87 +9,22 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import os
 import re
 import socket
 import time
-from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import running_station, wait_until
-from test_web_console_station import (
-    CHROMIUM,
-    CHROMIUM_ARGS,
-    Factory,
-    frames_decoded,
-    sim_platform,
-)
+from conftest import wait_until
+from support.console import Factory, console, frames_decoded, rover, screenshots
 
 from brasidas import topics
 from brasidas.annunciator import LINK_LOST
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.messages import StationNotification
-from platformd.app import PlatformDaemon
 from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
-
-DOCS = Path(__file__).resolve().parent.parent / "docs"
-"""Screenshots at both screen sizes, kept current in docs/ when BRASIDAS_SCREENSHOT=1."""
-
-
-async def screenshots(page: Any, name: str) -> None:
-    """The page at 1366x768 and 1920x1080: it fits without scrolling (checked always), and
-    with BRASIDAS_SCREENSHOT=1 its pictures go to docs/."""
-    for width, height in ((1366, 768), (1920, 1080)):
-        await page.set_viewport_size({"width": width, "height": height})
-        await page.wait_for_timeout(300)
-        size = await page.evaluate(
-            "[document.documentElement.scrollWidth, document.documentElement.scrollHeight]"
-        )
-        assert size[0] <= width and size[1] <= height, f"scrolls at {width}x{height}: {size}"
-        if os.environ.get("BRASIDAS_SCREENSHOT") == "1":
-            await page.screenshot(path=str(DOCS / f"{name}-{width}x{height}.png"))
-    await page.set_viewport_size({"width": 1366, "height": 768})
-
-
-@pytest.fixture
-def station_settings() -> tuple[str, ...]:
-    return ()
-
-
-@pytest.fixture
-async def station(
-    fleet_key: bytes, station_settings: tuple[str, ...]
-) -> AsyncIterator[StationDaemon]:
-    async with running_station(fleet_key, *station_settings) as daemon:
-        yield daemon
-
-
-@pytest.fixture
-async def browser() -> AsyncIterator[Any]:
-    from playwright.async_api import async_playwright
-
-    async with async_playwright() as playwright:
-        launched = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        try:
-            yield launched
-        finally:
-            await launched.close()
-
-
-async def console(browser: Any, station: StationDaemon, platform_id: str = "") -> Any:
-    page = await browser.new_page(viewport={"width": 1366, "height": 768})
-    query = f"?platform={platform_id}" if platform_id else ""
-    await page.goto(f"http://127.0.0.1:{station.api_port}/{query}")
-    return page
-
-
-async def rover(
-    factory: Factory, key: bytes, station: StationDaemon, *extra: str
-) -> PlatformDaemon:
-    return await sim_platform(factory, key, station, "web-rover", 23.6530, *extra)
 
 
 class UdpCatcher:
@@ -123,7 +58,8 @@ async def test_a_frozen_navcam_is_marked_stale_with_its_reason_and_way_back(
     (paused) and a resume button, which brings the picture back."""
     from playwright.async_api import expect
 
-    await rover(platform_factory, fleet_key, station)
+    # 60 frames are counted below: at 15 fps, not the idle 5, they take 4 s instead of 12.
+    await rover(platform_factory, fleet_key, station, "navcam.idle_framerate=15")
     page = await console(browser, station, "web-rover")
     await frames_decoded(page, at_least=10)
     stale = page.get_by_role("alert", name="video stale")

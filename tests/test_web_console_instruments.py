@@ -15,17 +15,14 @@ import time
 from typing import Any
 
 from conftest import wait_until
-from test_station import run_cli
-from test_web_console_honesty import browser, rover, screenshots, station, station_settings
-from test_web_console_station import Factory, frames_decoded, sim_platform
+from support.cli import run_cli
+from support.console import Factory, frames_decoded, rover, screenshots, sim_platform
 
 from brasidas import topics
 from brasidas.annunciator import LINK_LOST
 from brasidas.messages import StationNotification
 from platformd.app import PlatformDaemon
 from stationd.daemon import StationDaemon
-
-__all__ = ["browser", "station", "station_settings"]  # the fixtures, shared
 
 HEADING_DEG = 200.0
 """The simulated rover's compass heading at start: the page says the CLI's number."""

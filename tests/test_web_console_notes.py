@@ -5,15 +5,9 @@ from __future__ import annotations
 
 from typing import Any
 
-import test_web_console_honesty as honesty
-from test_web_console_honesty import console, rover
-from test_web_console_station import Factory, frames_decoded
+from support.console import Factory, console, frames_decoded, rover
 
 from stationd.daemon import StationDaemon
-
-station_settings = honesty.station_settings
-station = honesty.station
-browser = honesty.browser
 
 
 async def test_a_video_pause_and_its_resumption_are_noted(

@@ -8,12 +8,9 @@ import re
 from typing import Any
 
 from conftest import wait_until
-from test_web_console_honesty import browser, console, rover, station, station_settings
-from test_web_console_station import Factory, frames_decoded
+from support.console import Factory, console, frames_decoded, rover
 
 from stationd.daemon import StationDaemon
-
-__all__ = ["browser", "station", "station_settings"]  # the fixtures, shared
 
 
 async def test_stop_for_an_observer_and_a_silent_platform_greyed_with_its_age(

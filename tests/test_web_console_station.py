@@ -10,38 +10,25 @@ import asyncio
 import json
 import os
 import re
-import shutil
-from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
 import aiohttp
 import pytest
 from conftest import (
-    quiet_platform_config,
     running_station,
     velocities_accepted,
     velocities_dropped,
     wait_until,
 )
+from support.console import Factory, frames_decoded, platforms_in_view, sim_platform
 
 from brasidas import topics
 from brasidas.autonomy.geo import LocalFrame
 from brasidas.messages import FailsafeStep
-from platformd.app import PlatformDaemon
 from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
 
-Factory = Callable[..., Awaitable[PlatformDaemon]]
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--no-first-run",
-    "--disable-sync",
-    "--use-fake-device-for-media-stream",  # a beeping microphone for push-to-talk
-    "--use-fake-ui-for-media-stream",  # its permission granted
-]
 FAKE_GAMEPAD = """
 (() => {
   // A standard-mapping game controller the test moves: window.__pad.
@@ -59,57 +46,9 @@ SCREENSHOT = Path(__file__).resolve().parent.parent / "docs" / "console.png"
 
 
 @pytest.fixture
-async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
+def station_settings() -> tuple[str, ...]:
     # The CLI's drive timeout far away: only the console's own stops can stop the robot in time.
-    async with running_station(fleet_key, "teleop.drive_timeout=30") as daemon:
-        yield daemon
-
-
-async def sim_platform(
-    factory: Factory, key: bytes, station: StationDaemon, name: str, longitude: float, *extra: str
-) -> PlatformDaemon:
-    config = quiet_platform_config(
-        f"platform.id={name}",
-        "beacon.enabled=true",
-        f"beacon.port={station.config.discovery.port}",
-        'beacon.destinations=["127.0.0.1"]',
-        "beacon.listen=false",  # unicast: the station alone must hold the port
-        "beacon.max_interval=1.0",
-        "sim.enabled=true",
-        f"sim.longitude={longitude}",
-        "gps.enabled=true",
-        "gps.sim_rate_hz=10",
-        "motor.enabled=true",
-        "navcam.enabled=true",
-        "navcam.sim_pattern=smpte",
-        "navcam.sim_motion=4",
-        "audio.enabled=true",  # a test tone as the microphone
-        *extra,
-    )
-    return await factory(config, key)
-
-
-async def platforms_in_view(page: Any, timeout: float = 10.0) -> None:
-    """Every platform's marker lies inside the visible map (where it can be seen and clicked),
-    within ``timeout`` seconds."""
-    icons = page.locator("#map .platform-icon")
-
-    async def outside() -> list[str]:
-        area = await page.locator("#map").bounding_box()
-        names = []
-        for index in range(await icons.count()):
-            box = await icons.nth(index).bounding_box()
-            if box is None or not (
-                area["x"] <= box["x"] <= area["x"] + area["width"] - box["width"]
-                and area["y"] <= box["y"] <= area["y"] + area["height"] - box["height"]
-            ):
-                names.append(await icons.nth(index).text_content())
-        return names
-
-    deadline = asyncio.get_running_loop().time() + timeout
-    while missing := await outside():
-        assert asyncio.get_running_loop().time() < deadline, f"outside the map: {missing}"
-        await asyncio.sleep(0.1)
+    return ("teleop.drive_timeout=30",)
 
 
 class LinkCut:
@@ -171,20 +110,6 @@ async def wait_moved(station: StationDaemon, platform_id: str, start: tuple[floa
             return
         await asyncio.sleep(0.1)
     raise AssertionError(f"{platform_id}'s telemetry position did not change in 10 s")
-
-
-async def frames_decoded(page: Any, at_least: int, timeout: float = 15.0) -> int:
-    """Wait until the page's Worker has decoded ``at_least`` frames (counted in the Worker;
-    polled from here: the page's CSP forbids the eval that wait_for_function needs)."""
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    count = 0
-    while loop.time() < deadline:
-        count = int(await page.locator("#video").get_attribute("data-frames-decoded") or 0)
-        if count >= at_least:
-            return count
-        await asyncio.sleep(0.1)
-    raise AssertionError(f"only {count} frames decoded in {timeout} s")
 
 
 async def planned_path(station: StationDaemon, platform_id: str) -> list[tuple[float, float]]:
@@ -308,9 +233,13 @@ async def keep_out_zones_drawn_and_removed(
 
 
 async def test_operator_station_in_the_browser(
-    station: StationDaemon, platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+    station: StationDaemon,
+    platform_factory: Factory,
+    fleet_key: bytes,
+    tmp_path: Path,
+    browser: Any,
 ) -> None:
-    from playwright.async_api import async_playwright, expect
+    from playwright.async_api import expect
 
     rover = await sim_platform(platform_factory, fleet_key, station, "web-rover", 23.6530)
     other = await sim_platform(
@@ -332,297 +261,285 @@ async def test_operator_station_in_the_browser(
         assert "script-src 'self'" in policy and "unsafe-inline" not in policy
         assert "<script>" not in await response.text()  # no inline script
 
-    async with async_playwright() as playwright:
-        browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        try:
-            page = await browser.new_page(viewport={"width": 1280, "height": 860})
-            await page.add_init_script(FAKE_GAMEPAD)
-            errors: list[str] = []
-            page.on("pageerror", lambda error: errors.append(str(error)))
-            page.on(
-                "console",
-                lambda m: errors.append(m.text) if "Content Security Policy" in m.text else None,
-            )
-            await page.goto(base + "/")
+    page = await browser.new_page(viewport={"width": 1280, "height": 860})
+    await page.add_init_script(FAKE_GAMEPAD)
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    page.on(
+        "console",
+        lambda m: errors.append(m.text) if "Content Security Policy" in m.text else None,
+    )
+    await page.goto(base + "/")
 
-            # Both platforms in the list and on the map (Leaflet from Debian's package).
-            for name in ("web-rover", "rover-2"):
-                await expect(page.locator(f'#platforms tr[data-platform="{name}"]')).to_be_visible(
-                    timeout=10_000
-                )
-            await expect(page.locator("#map .platform-icon")).to_have_count(2, timeout=10_000)
-            # Both in sight: the view follows the platforms until the operator takes it (the
-            # first alone used to be centred, leaving rover-2's neighbour 130 m away off the map).
-            await platforms_in_view(page)
-            # Offline backgrounds the operator loads: a GeoJSON area, an image with its corners.
-            area = tmp_path / "area.geojson"
-            area.write_text(
-                json.dumps(
-                    {
-                        "type": "Feature",
-                        "properties": {"role": "boundary"},
-                        "geometry": {
-                            "type": "Polygon",
-                            "coordinates": [
-                                [
-                                    [23.652, 37.941],
-                                    [23.655, 37.941],
-                                    [23.655, 37.943],
-                                    [23.652, 37.941],
-                                ]
-                            ],
-                        },
-                    }
-                )
-            )
-            files = page.get_by_text("map files and background")
-            await files.click()  # folded at first
-            await page.locator("#map-geojson").set_input_files(str(area))
-            await expect(page.locator("#map path.area-background")).to_have_count(1)
-            await page.locator("#map-bounds").fill("37.940,23.651,37.943,23.656")
-            await page.locator("#map-image").set_input_files(str(SCREENSHOT))
-            await expect(page.locator("#map img.area-image")).to_have_count(1)
-            await expect(page.locator("#map path.area-background")).to_have_count(0)  # replaced
-            await page.locator("#map-clear").click()
-            await files.click()  # folded again
-            await expect(page.locator("#map img.area-image")).to_have_count(0)
+    # Both platforms in the list and on the map (Leaflet from Debian's package).
+    for name in ("web-rover", "rover-2"):
+        await expect(page.locator(f'#platforms tr[data-platform="{name}"]')).to_be_visible(
+            timeout=10_000
+        )
+    await expect(page.locator("#map .platform-icon")).to_have_count(2, timeout=10_000)
+    # Both in sight: the view follows the platforms until the operator takes it (the
+    # first alone used to be centred, leaving rover-2's neighbour 130 m away off the map).
+    await platforms_in_view(page)
+    # Offline backgrounds the operator loads: a GeoJSON area, an image with its corners.
+    area = tmp_path / "area.geojson"
+    area.write_text(
+        json.dumps(
+            {
+                "type": "Feature",
+                "properties": {"role": "boundary"},
+                "geometry": {
+                    "type": "Polygon",
+                    "coordinates": [
+                        [
+                            [23.652, 37.941],
+                            [23.655, 37.941],
+                            [23.655, 37.943],
+                            [23.652, 37.941],
+                        ]
+                    ],
+                },
+            }
+        )
+    )
+    files = page.get_by_text("map files and background")
+    await files.click()  # folded at first
+    await page.locator("#map-geojson").set_input_files(str(area))
+    await expect(page.locator("#map path.area-background")).to_have_count(1)
+    await page.locator("#map-bounds").fill("37.940,23.651,37.943,23.656")
+    await page.locator("#map-image").set_input_files(str(SCREENSHOT))
+    await expect(page.locator("#map img.area-image")).to_have_count(1)
+    await expect(page.locator("#map path.area-background")).to_have_count(0)  # replaced
+    await page.locator("#map-clear").click()
+    await files.click()  # folded again
+    await expect(page.locator("#map img.area-image")).to_have_count(0)
 
-            # Click the platform on the map: connected, and its NavCam decoded in the Worker.
-            await platforms_in_view(page)
-            await page.locator("#map .platform-icon", has_text="web-rover").click()
-            video = page.get_by_label("NavCam web-rover")
-            await expect(video).to_be_visible(timeout=10_000)
-            await frames_decoded(page, at_least=15)
-            latency = page.get_by_label("glass-to-glass latency")
-            await expect(latency).to_have_text(re.compile(r"^\d+\.\d ms$"), timeout=5_000)
-            assert float(await latency.get_attribute("data-ms") or "nan") > 0
-            assert "web-rover" in station.ctx.connections
+    # Click the platform on the map: connected, and its NavCam decoded in the Worker.
+    await platforms_in_view(page)
+    await page.locator("#map .platform-icon", has_text="web-rover").click()
+    video = page.get_by_label("NavCam web-rover")
+    await expect(video).to_be_visible(timeout=10_000)
+    await frames_decoded(page, at_least=15)
+    latency = page.get_by_label("glass-to-glass latency")
+    await expect(latency).to_have_text(re.compile(r"^\d+\.\d ms$"), timeout=5_000)
+    assert float(await latency.get_attribute("data-ms") or "nan") > 0
+    assert "web-rover" in station.ctx.connections
 
-            # Take the override: this console drives.
-            override = page.get_by_role("button", name="manual override")
-            await override.click()
-            await expect(override).to_have_attribute("aria-pressed", "true", timeout=10_000)
-            await expect(page.locator("#driving")).to_have_text("this console is driving web-rover")
-            await wait_until(lambda: rover.bus.last(topics.OVERRIDE_STATE).engaged)
-            vehicle = rover.ctx.sim.vehicle
-            assert vehicle is not None
+    # Take the override: this console drives.
+    override = page.get_by_role("button", name="manual override")
+    await override.click()
+    await expect(override).to_have_attribute("aria-pressed", "true", timeout=10_000)
+    await expect(page.locator("#driving")).to_have_text("this console is driving web-rover")
+    await wait_until(lambda: rover.bus.last(topics.OVERRIDE_STATE).engaged)
+    vehicle = rover.ctx.sim.vehicle
+    assert vehicle is not None
 
-            # Hold W: the robot moves (its position in telemetry changes); release: it stops.
-            start = await telemetry_position(station, "web-rover")
-            await page.keyboard.down("KeyW")
-            await wait_until(lambda: vehicle.command[0] > 0.3, timeout=15)
-            await wait_moved(station, "web-rover", start)
-            await page.keyboard.up("KeyW")
-            await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
+    # Hold W: the robot moves (its position in telemetry changes); release: it stops.
+    start = await telemetry_position(station, "web-rover")
+    await page.keyboard.down("KeyW")
+    await wait_until(lambda: vehicle.command[0] > 0.3, timeout=15)
+    await wait_moved(station, "web-rover", start)
+    await page.keyboard.up("KeyW")
+    await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
 
-            # Drive again, then the page loses focus: it stops without a key release.
-            await page.keyboard.down("KeyW")
-            await wait_until(lambda: vehicle.command[0] > 0.3, timeout=15)
-            await page.evaluate("window.dispatchEvent(new Event('blur'))")
-            await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
-            await page.keyboard.up("KeyW")
+    # Drive again, then the page loses focus: it stops without a key release.
+    await page.keyboard.down("KeyW")
+    await wait_until(lambda: vehicle.command[0] > 0.3, timeout=15)
+    await page.evaluate("window.dispatchEvent(new Event('blur'))")
+    await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
+    await page.keyboard.up("KeyW")
 
-            # The game controller: the stick moves the robot only while LB (enable) is held.
-            polls = await page.evaluate(
-                "window.__pad.connected = true; window.__pad.axes[1] = -1; window.__pad.polls"
-            )
-            # A move would show by now: the page has read the stick (LB up) three times, and
-            # three velocity packets have reached the platform since.
-            async with asyncio.timeout(10):  # polled from here: the CSP forbids wait_for_function
-                while await page.evaluate("window.__pad.polls") < polls + 3:
-                    await asyncio.sleep(0.02)
-            accepted = velocities_accepted(rover)
-            await wait_until(lambda: velocities_accepted(rover) >= accepted + 3, timeout=10)
-            assert vehicle.command == (0.0, 0.0), "moved without the enable button"
-            await page.evaluate("window.__pad.pressed[4] = true")
-            await wait_until(lambda: vehicle.command[0] > 0.9, timeout=15)
-            await page.evaluate("window.__pad.pressed[4] = false")
-            await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
-            await page.evaluate("window.__pad.pressed[4] = true")
-            await wait_until(lambda: vehicle.command[0] > 0.9, timeout=15)
-            await page.evaluate(  # unplugged while driving
-                "window.__pad.connected = false;"
-                "window.dispatchEvent(new Event('gamepaddisconnected'))"
-            )
-            await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
-            # A toggles the override: released, then engaged again.
-            await page.evaluate(
-                "Object.assign(window.__pad, {connected: true, axes: [0, 0, 0, 0]})"
-            )
-            await page.evaluate("window.__pad.pressed.fill(false); window.__pad.pressed[0] = true")
-            await wait_until(lambda: not rover.bus.last(topics.OVERRIDE_STATE).engaged)
-            await page.evaluate("window.__pad.pressed[0] = false")
-            await expect(override).to_have_attribute("aria-pressed", "false", timeout=10_000)
-            # Answered (no longer pending: a press meanwhile would be ignored), then engage.
-            await expect(override).to_have_text("override: autonomous", timeout=10_000)
-            await page.evaluate("window.__pad.pressed[0] = true")
-            await expect(override).to_have_attribute("aria-pressed", "true", timeout=10_000)
-            await page.evaluate("window.__pad.pressed[0] = false")
+    # The game controller: the stick moves the robot only while LB (enable) is held.
+    polls = await page.evaluate(
+        "window.__pad.connected = true; window.__pad.axes[1] = -1; window.__pad.polls"
+    )
+    # A move would show by now: the page has read the stick (LB up) three times, and
+    # three velocity packets have reached the platform since.
+    async with asyncio.timeout(10):  # polled from here: the CSP forbids wait_for_function
+        while await page.evaluate("window.__pad.polls") < polls + 3:
+            await asyncio.sleep(0.02)
+    accepted = velocities_accepted(rover)
+    await wait_until(lambda: velocities_accepted(rover) >= accepted + 3, timeout=10)
+    assert vehicle.command == (0.0, 0.0), "moved without the enable button"
+    await page.evaluate("window.__pad.pressed[4] = true")
+    await wait_until(lambda: vehicle.command[0] > 0.9, timeout=15)
+    await page.evaluate("window.__pad.pressed[4] = false")
+    await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
+    await page.evaluate("window.__pad.pressed[4] = true")
+    await wait_until(lambda: vehicle.command[0] > 0.9, timeout=15)
+    await page.evaluate(  # unplugged while driving
+        "window.__pad.connected = false;window.dispatchEvent(new Event('gamepaddisconnected'))"
+    )
+    await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
+    # A toggles the override: released, then engaged again.
+    await page.evaluate("Object.assign(window.__pad, {connected: true, axes: [0, 0, 0, 0]})")
+    await page.evaluate("window.__pad.pressed.fill(false); window.__pad.pressed[0] = true")
+    await wait_until(lambda: not rover.bus.last(topics.OVERRIDE_STATE).engaged)
+    await page.evaluate("window.__pad.pressed[0] = false")
+    await expect(override).to_have_attribute("aria-pressed", "false", timeout=10_000)
+    # Answered (no longer pending: a press meanwhile would be ignored), then engage.
+    await expect(override).to_have_text("override: autonomous", timeout=10_000)
+    await page.evaluate("window.__pad.pressed[0] = true")
+    await expect(override).to_have_attribute("aria-pressed", "true", timeout=10_000)
+    await page.evaluate("window.__pad.pressed[0] = false")
 
-            # Each stream's controls: pause the NavCam, start it again into the page.
-            navcam = page.locator('#streams tr[data-stream="navcam"]')
-            await navcam.get_by_role("button", name="pause navcam").click()
-            await expect(navcam).to_contain_text("navcam: paused", timeout=10_000)
-            decoded = await frames_decoded(page, at_least=1)
-            await navcam.get_by_role("button", name="start navcam").click()
-            await expect(navcam).to_contain_text("navcam: playing", timeout=10_000)
-            await frames_decoded(page, at_least=decoded + 10)
-            # Framerate (10.5), diagnostics (20.0), battery monitor (20.4): acknowledged.
-            answer = page.locator("#answer")
-            await page.locator("#framerate").fill("10")
-            await page.get_by_role("button", name="set").click()
-            await expect(answer).to_contain_text("NavCam framerate: acknowledged", timeout=10_000)
-            for name in ("diagnostics", "battery monitor"):
-                toggle = page.get_by_role("button", name=name)
-                pressed = await toggle.get_attribute("aria-pressed") == "true"
-                await toggle.click()
-                await expect(answer).to_contain_text(f"{name}: acknowledged", timeout=10_000)
-                await expect(toggle).to_have_attribute("aria-pressed", str(not pressed).lower())
+    # Each stream's controls: pause the NavCam, start it again into the page.
+    navcam = page.locator('#streams tr[data-stream="navcam"]')
+    await navcam.get_by_role("button", name="pause navcam").click()
+    await expect(navcam).to_contain_text("navcam: paused", timeout=10_000)
+    decoded = await frames_decoded(page, at_least=1)
+    await navcam.get_by_role("button", name="start navcam").click()
+    await expect(navcam).to_contain_text("navcam: playing", timeout=10_000)
+    await frames_decoded(page, at_least=decoded + 10)
+    # Framerate (10.5), diagnostics (20.0), battery monitor (20.4): acknowledged.
+    answer = page.locator("#answer")
+    await page.locator("#framerate").fill("10")
+    await page.get_by_role("button", name="set").click()
+    await expect(answer).to_contain_text("NavCam framerate: acknowledged", timeout=10_000)
+    for name in ("diagnostics", "battery monitor"):
+        toggle = page.get_by_role("button", name=name)
+        pressed = await toggle.get_attribute("aria-pressed") == "true"
+        await toggle.click()
+        await expect(answer).to_contain_text(f"{name}: acknowledged", timeout=10_000)
+        await expect(toggle).to_have_attribute("aria-pressed", str(not pressed).lower())
 
-            # Switch to the other platform without disconnecting the first.
-            await page.locator('#platforms tr[data-platform="rover-2"] button.connect').click()
-            await expect(page.get_by_label("NavCam rover-2")).to_be_visible(timeout=10_000)
-            await frames_decoded(page, at_least=10)
-            assert {"web-rover", "rover-2"} <= set(station.ctx.connections)
-            await expect(page.locator("#driving")).to_have_text("not driving")
-            assert other.bus.last(topics.OVERRIDE_STATE) is None or not (
-                other.bus.last(topics.OVERRIDE_STATE).engaged
-            )
+    # Switch to the other platform without disconnecting the first.
+    await page.locator('#platforms tr[data-platform="rover-2"] button.connect').click()
+    await expect(page.get_by_label("NavCam rover-2")).to_be_visible(timeout=10_000)
+    await frames_decoded(page, at_least=10)
+    assert {"web-rover", "rover-2"} <= set(station.ctx.connections)
+    await expect(page.locator("#driving")).to_have_text("not driving")
+    assert other.bus.last(topics.OVERRIDE_STATE) is None or not (
+        other.bus.last(topics.OVERRIDE_STATE).engaged
+    )
 
-            # Its patrol: the area map and route from the platform (the --sim demo field: a
-            # boundary, a shed to keep out of, a loop of five points) drawn on the map.
-            await expect(page.locator("#map path.area-boundary")).to_have_count(1, timeout=10_000)
-            await expect(page.locator("#map path.area-keepout")).to_have_count(1)
-            await expect(page.locator("#map path.route-line")).to_have_count(1)
-            shown = await station.ctx.api.call_local("map_get", platform_id="rover-2")
-            assert len(shown["route"]) == 5
-            # Start it from the panel: patrolling along a planned path, and it moves.
-            patrol_state = page.locator("#patrol-state")
-            patrol_answer = page.locator("#patrol-answer")
-            start = await telemetry_position(station, "rover-2")
-            await page.get_by_role("button", name="start patrol").click()
-            await page.get_by_label("slide to confirm start patrol").fill("100")  # issue 31
-            await expect(patrol_state).to_have_attribute("data-state", "patrolling", timeout=10_000)
-            await expect(patrol_state).to_contain_text("→ waypoint")
-            await expect(page.locator("#map path.planned-path")).to_have_count(1, timeout=10_000)
-            await wait_moved(station, "rover-2", start)
-            # Edit the route on the map: delete its closing waypoint (the fifth, over the first),
-            # then the first; send it; the platform has it.
-            await page.get_by_role("button", name="edit route").click()
-            await page.locator('#map [title="waypoint 5"]').click(button="right")
-            await expect(page.locator('#map [title="waypoint 5"]')).to_have_count(0)
-            await page.locator('#map [title="waypoint 1"]').click(button="right")
-            await expect(page.locator('#map [title="waypoint 4"]')).to_have_count(0)
-            await page.get_by_role("button", name="send route").click()
-            await expect(patrol_answer).to_contain_text("route sent: 3 waypoints", timeout=10_000)
-            sent = await station.ctx.api.call_local("patrol_get", platform_id="rover-2")
-            assert sent["waypoints"] == 3
-            routed = (await station.ctx.api.call_local("map_get", platform_id="rover-2"))["route"]
-            kept = shown["route"][1:4]
-            assert [(w["lat"], w["lon"]) for w in routed] == pytest.approx(
-                [(w["lat"], w["lon"]) for w in kept]
-            )
-            await expect(page.get_by_role("button", name="send route")).to_be_hidden()
-            await expect(patrol_state).to_contain_text("→ waypoint 1/3", timeout=10_000)
-            await expect(page.locator("#map path.planned-path")).to_have_count(1, timeout=10_000)
-            if os.environ.get("BRASIDAS_SCREENSHOT") == "1":
-                SCREENSHOT.parent.mkdir(exist_ok=True)
-                await page.screenshot(path=str(SCREENSHOT))
-            await page.screenshot(path=str(tmp_path / "console.png"))
-            # A waypoint outside the boundary (the map's far corner): refused with the reason,
-            # the platform's route unchanged, the edit still open; cancel it.
-            await page.get_by_role("button", name="edit route").click()
-            box = await page.locator("#map").bounding_box()
-            assert box is not None
-            await page.mouse.click(box["x"] + box["width"] - 6, box["y"] + box["height"] - 6)
-            await expect(page.locator('#map [title="waypoint 4"]')).to_have_count(1)
-            await page.get_by_role("button", name="send route").click()
-            await expect(patrol_answer).to_contain_text(
-                "send route: waypoints refused:", timeout=10_000
-            )
-            await expect(patrol_answer).to_contain_text("outside")
-            sent = await station.ctx.api.call_local("patrol_get", platform_id="rover-2")
-            assert sent["waypoints"] == 3
-            await page.get_by_role("button", name="cancel route edit").click()
-            await expect(page.locator('#map [title="waypoint 1"]')).to_have_count(0)
-            await keep_out_zones_drawn_and_removed(page, station, "rover-2")
-            # Another station takes control (--force): this console says so (the 90.17
-            # notification, at once or with the next heartbeat's answer), by whom, and its stop
-            # is refused, by whom said.
-            authority = page.get_by_label("command authority")
-            intruder = PlatformConnection(
-                "rover-2", other.ctx.signaling_url, station_id="intruder", fleet_key=fleet_key
-            )
-            await intruder.open()
-            try:
-                taken = await intruder.call(
-                    "issue_system_command", group=10, command=0, payload="state=True,force=yes"
-                )
-                assert taken["accepted"], taken
-                await expect(authority).to_have_attribute("data-state", "taken", timeout=20_000)
-                await expect(authority).to_contain_text("CONTROL TAKEN by station intruder")
-                # An observer's map is read-only: no drawing, no removing.
-                draw_keepout = page.get_by_role("button", name="draw keep-out")
-                await expect(draw_keepout).to_be_disabled()
-                await expect(draw_keepout).to_have_attribute("title", re.compile("intruder"))
-                await expect(
-                    page.get_by_role("button", name="remove keep-out shed")
-                ).to_be_disabled()
-                # Its patrol controls are disabled before any click (issue 20), saying why.
-                stop_patrol = page.get_by_role("button", name="stop patrol")
-                await expect(stop_patrol).to_be_disabled()
-                await expect(stop_patrol).to_have_attribute("title", re.compile("intruder"))
-                # The intruder's link goes silent (its heartbeats stop): after failsafe.hold_after
-                # (1.5 s) the platform holds, and the page shows LINK LOST.
-                assert intruder._heartbeat is not None
-                intruder._heartbeat.cancel()
-                banner = page.get_by_role("alert", name="failsafe")
-                await expect(banner).to_contain_text("LINK LOST — platform on HOLD", timeout=10_000)
-                # Take control back, confirmed in the page: this console drives, the hold ends
-                # and the intruder is told it observes.
-                await page.get_by_role("button", name="take control").click()
-                confirm = page.get_by_role("group", name="confirm takeover")
-                await expect(confirm).to_contain_text("take control from station intruder?")
-                assert other.ctx.authority.station_id == "intruder"  # nothing sent unconfirmed
-                await confirm.get_by_role("button", name="confirm take control").click()
-                await expect(page.locator("#driving")).to_have_text(
-                    "this console is driving rover-2", timeout=10_000
-                )
-                await expect(authority).to_have_attribute("data-state", "driving")
-                await expect(draw_keepout).to_be_enabled()
-                await expect(banner).to_be_hidden(timeout=10_000)
-                assert other.ctx.authority.station_id == station.config.station.id
-                answer_to_intruder = await intruder.call("heartbeat")
-                assert answer_to_intruder["control"] is False
-                assert answer_to_intruder["controller"] == station.config.station.id
-                # The speed cap for the latency this station reports, near the override.
-                cap = page.get_by_label("speed cap")
-                await expect(cap).to_have_text(re.compile(r"^cap \d+\.\d km/h \(video "))
-                assert float(await cap.get_attribute("data-kmh") or "nan") > 0
-                # Its turret (the simulated microcontroller): safe, where it points.
-                turret = page.get_by_label("turret", exact=True)
-                await expect(turret).to_contain_text("trigger safe", timeout=10_000)
-                await expect(turret).to_contain_text("azimuth")
-                await expect(turret).to_have_attribute("data-trigger", "safe")
-            finally:
-                await intruder.close()
-            await page.get_by_role("button", name="stop patrol").click()
-            await expect(patrol_state).to_have_attribute("data-state", "stopped", timeout=10_000)
+    # Its patrol: the area map and route from the platform (the --sim demo field: a
+    # boundary, a shed to keep out of, a loop of five points) drawn on the map.
+    await expect(page.locator("#map path.area-boundary")).to_have_count(1, timeout=10_000)
+    await expect(page.locator("#map path.area-keepout")).to_have_count(1)
+    await expect(page.locator("#map path.route-line")).to_have_count(1)
+    shown = await station.ctx.api.call_local("map_get", platform_id="rover-2")
+    assert len(shown["route"]) == 5
+    # Start it from the panel: patrolling along a planned path, and it moves.
+    patrol_state = page.locator("#patrol-state")
+    patrol_answer = page.locator("#patrol-answer")
+    start = await telemetry_position(station, "rover-2")
+    await page.get_by_role("button", name="start patrol").click()
+    await page.get_by_label("slide to confirm start patrol").fill("100")  # issue 31
+    await expect(patrol_state).to_have_attribute("data-state", "patrolling", timeout=10_000)
+    await expect(patrol_state).to_contain_text("→ waypoint")
+    await expect(page.locator("#map path.planned-path")).to_have_count(1, timeout=10_000)
+    await wait_moved(station, "rover-2", start)
+    # Edit the route on the map: delete its closing waypoint (the fifth, over the first),
+    # then the first; send it; the platform has it.
+    await page.get_by_role("button", name="edit route").click()
+    await page.locator('#map [title="waypoint 5"]').click(button="right")
+    await expect(page.locator('#map [title="waypoint 5"]')).to_have_count(0)
+    await page.locator('#map [title="waypoint 1"]').click(button="right")
+    await expect(page.locator('#map [title="waypoint 4"]')).to_have_count(0)
+    await page.get_by_role("button", name="send route").click()
+    await expect(patrol_answer).to_contain_text("route sent: 3 waypoints", timeout=10_000)
+    sent = await station.ctx.api.call_local("patrol_get", platform_id="rover-2")
+    assert sent["waypoints"] == 3
+    routed = (await station.ctx.api.call_local("map_get", platform_id="rover-2"))["route"]
+    kept = shown["route"][1:4]
+    assert [(w["lat"], w["lon"]) for w in routed] == pytest.approx(
+        [(w["lat"], w["lon"]) for w in kept]
+    )
+    await expect(page.get_by_role("button", name="send route")).to_be_hidden()
+    await expect(patrol_state).to_contain_text("→ waypoint 1/3", timeout=10_000)
+    await expect(page.locator("#map path.planned-path")).to_have_count(1, timeout=10_000)
+    if os.environ.get("BRASIDAS_SCREENSHOT") == "1":
+        SCREENSHOT.parent.mkdir(exist_ok=True)
+        await page.screenshot(path=str(SCREENSHOT))
+    await page.screenshot(path=str(tmp_path / "console.png"))
+    # A waypoint outside the boundary (the map's far corner): refused with the reason,
+    # the platform's route unchanged, the edit still open; cancel it.
+    await page.get_by_role("button", name="edit route").click()
+    box = await page.locator("#map").bounding_box()
+    assert box is not None
+    await page.mouse.click(box["x"] + box["width"] - 6, box["y"] + box["height"] - 6)
+    await expect(page.locator('#map [title="waypoint 4"]')).to_have_count(1)
+    await page.get_by_role("button", name="send route").click()
+    await expect(patrol_answer).to_contain_text("send route: waypoints refused:", timeout=10_000)
+    await expect(patrol_answer).to_contain_text("outside")
+    sent = await station.ctx.api.call_local("patrol_get", platform_id="rover-2")
+    assert sent["waypoints"] == 3
+    await page.get_by_role("button", name="cancel route edit").click()
+    await expect(page.locator('#map [title="waypoint 1"]')).to_have_count(0)
+    await keep_out_zones_drawn_and_removed(page, station, "rover-2")
+    # Another station takes control (--force): this console says so (the 90.17
+    # notification, at once or with the next heartbeat's answer), by whom, and its stop
+    # is refused, by whom said.
+    authority = page.get_by_label("command authority")
+    intruder = PlatformConnection(
+        "rover-2", other.ctx.signaling_url, station_id="intruder", fleet_key=fleet_key
+    )
+    await intruder.open()
+    try:
+        taken = await intruder.call(
+            "issue_system_command", group=10, command=0, payload="state=True,force=yes"
+        )
+        assert taken["accepted"], taken
+        await expect(authority).to_have_attribute("data-state", "taken", timeout=20_000)
+        await expect(authority).to_contain_text("CONTROL TAKEN by station intruder")
+        # An observer's map is read-only: no drawing, no removing.
+        draw_keepout = page.get_by_role("button", name="draw keep-out")
+        await expect(draw_keepout).to_be_disabled()
+        await expect(draw_keepout).to_have_attribute("title", re.compile("intruder"))
+        await expect(page.get_by_role("button", name="remove keep-out shed")).to_be_disabled()
+        # Its patrol controls are disabled before any click (issue 20), saying why.
+        stop_patrol = page.get_by_role("button", name="stop patrol")
+        await expect(stop_patrol).to_be_disabled()
+        await expect(stop_patrol).to_have_attribute("title", re.compile("intruder"))
+        # The intruder's link goes silent (its heartbeats stop): after failsafe.hold_after
+        # (1.5 s) the platform holds, and the page shows LINK LOST.
+        assert intruder._heartbeat is not None
+        intruder._heartbeat.cancel()
+        banner = page.get_by_role("alert", name="failsafe")
+        await expect(banner).to_contain_text("LINK LOST — platform on HOLD", timeout=10_000)
+        # Take control back, confirmed in the page: this console drives, the hold ends
+        # and the intruder is told it observes.
+        await page.get_by_role("button", name="take control").click()
+        confirm = page.get_by_role("group", name="confirm takeover")
+        await expect(confirm).to_contain_text("take control from station intruder?")
+        assert other.ctx.authority.station_id == "intruder"  # nothing sent unconfirmed
+        await confirm.get_by_role("button", name="confirm take control").click()
+        await expect(page.locator("#driving")).to_have_text(
+            "this console is driving rover-2", timeout=10_000
+        )
+        await expect(authority).to_have_attribute("data-state", "driving")
+        await expect(draw_keepout).to_be_enabled()
+        await expect(banner).to_be_hidden(timeout=10_000)
+        assert other.ctx.authority.station_id == station.config.station.id
+        answer_to_intruder = await intruder.call("heartbeat")
+        assert answer_to_intruder["control"] is False
+        assert answer_to_intruder["controller"] == station.config.station.id
+        # The speed cap for the latency this station reports, near the override.
+        cap = page.get_by_label("speed cap")
+        await expect(cap).to_have_text(re.compile(r"^cap \d+\.\d km/h \(video "))
+        assert float(await cap.get_attribute("data-kmh") or "nan") > 0
+        # Its turret (the simulated microcontroller): safe, where it points.
+        turret = page.get_by_label("turret", exact=True)
+        await expect(turret).to_contain_text("trigger safe", timeout=10_000)
+        await expect(turret).to_contain_text("azimuth")
+        await expect(turret).to_have_attribute("data-trigger", "safe")
+    finally:
+        await intruder.close()
+    await page.get_by_role("button", name="stop patrol").click()
+    await expect(patrol_state).to_have_attribute("data-state", "stopped", timeout=10_000)
 
-            # Back to the first and disconnect: it returns to Autonomous Mode.
-            await page.locator('#platforms tr[data-platform="web-rover"] button.connect').click()
-            await expect(page.locator("#disconnect")).to_be_visible(timeout=10_000)
-            await page.locator("#disconnect").click()
-            await wait_until(lambda: not rover.bus.last(topics.OVERRIDE_STATE).engaged)
-            assert rover.bus.last(topics.OVERRIDE_STATE).mode.value == "autonomous"
-            await wait_until(lambda: "web-rover" not in station.ctx.connections)
-            assert errors == []
-        finally:
-            await browser.close()
+    # Back to the first and disconnect: it returns to Autonomous Mode.
+    await page.locator('#platforms tr[data-platform="web-rover"] button.connect').click()
+    await expect(page.locator("#disconnect")).to_be_visible(timeout=10_000)
+    await page.locator("#disconnect").click()
+    await wait_until(lambda: not rover.bus.last(topics.OVERRIDE_STATE).engaged)
+    assert rover.bus.last(topics.OVERRIDE_STATE).mode.value == "autonomous"
+    await wait_until(lambda: "web-rover" not in station.ctx.connections)
+    assert errors == []
 
 
 async def test_warnings_audio_link_loss_and_a_closed_page_stops_the_robot(
-    platform_factory: Factory, fleet_key: bytes
+    platform_factory: Factory, fleet_key: bytes, browser: Any
 ) -> None:
     """A group 90 warning (low battery: the simulated pack's 24.7 V is under a 30 V limit)
     flashes until the operator acknowledges it. The platform's microphone is decoded in the
@@ -631,13 +548,12 @@ async def test_warnings_audio_link_loss_and_a_closed_page_stops_the_robot(
     the robot does not move until the operator re-engages from the page. Then the station's
     safety net: the page's socket closes while a key is held, with no JavaScript left to send
     a stop."""
-    from playwright.async_api import async_playwright, expect
+    from playwright.async_api import expect
 
     async with (
         running_station(
             fleet_key, "telemetry.battery_low_v=30", "telemetry.battery_clear_v=31"
         ) as station,
-        async_playwright() as playwright,
     ):
         rover = await sim_platform(
             platform_factory,
@@ -650,95 +566,91 @@ async def test_warnings_audio_link_loss_and_a_closed_page_stops_the_robot(
             "failsafe.release_after=60",
             "signaling.session_timeout=60",
         )
-        browser = await playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        page = await browser.new_page()
+        await page.goto(f"http://127.0.0.1:{station.api_port}/?platform=web-rover")
+        warning = page.locator("#annunciator button.warning", has_text="web-rover")
+        await expect(warning).to_have_class(re.compile("unacknowledged"), timeout=10_000)
+        await expect(warning).to_have_attribute("aria-pressed", "false")
+        await warning.click()
+        await expect(warning).to_have_attribute("aria-pressed", "true")
+        await expect(warning).not_to_have_class(re.compile("unacknowledged"))
+
+        listen = page.get_by_role("button", name="listen")
+        await listen.click()
+        await expect(listen).to_have_attribute("aria-pressed", "true")
+        await expect(listen).to_have_attribute(
+            "data-decoded", re.compile(r"^([2-9]\d|\d{3,})$"), timeout=10_000
+        )  # 20 packets of 20 ms decoded in the page
+        speaker = rover.ctx.media.streams["audio_in"]
+        await page.locator("#talk").hover()
+        await page.mouse.down()
+        await wait_until(lambda: speaker.hears_sound, timeout=10)
+        await page.mouse.up()
+        await expect(page.locator("#talk")).to_have_attribute("aria-pressed", "false")
+        await wait_until(lambda: speaker.state.value == "idle", timeout=15)
+
+        # The page's socket drops: it says so, reconnects, and the picture comes back.
+        decoded = await frames_decoded(page, at_least=1)
+        await page.evaluate("window.navcam.dropStationConnection()")
+        states: list[str] = []
+        async with asyncio.timeout(10):  # the close is seen, then the new socket opens
+            while states[-2:] != ["reconnecting", "connected"]:
+                await asyncio.sleep(0.05)
+                states = await page.evaluate("window.navcam.apiStates")
+        await expect(page.locator("#api-state")).to_have_text("station connected")
+        await frames_decoded(page, at_least=decoded + 10)
+
+        override = page.get_by_role("button", name="manual override")
+        await override.click()
+        await expect(override).to_have_attribute("aria-pressed", "true", timeout=10_000)
+        vehicle = rover.ctx.sim.vehicle
+        assert vehicle is not None
+        await page.keyboard.down("KeyW")
+        await wait_until(lambda: vehicle.command[0] > 0.3, timeout=15)
+
+        # The link is cut while driving: the motors stop (the platform's deadman), the page
+        # says LINK LOST (no telemetry), the platform holds (no heartbeat).
+        cut = LinkCut(station, "web-rover")
+        cut.cut()
         try:
-            page = await browser.new_page()
-            await page.goto(f"http://127.0.0.1:{station.api_port}/?platform=web-rover")
-            warning = page.locator("#annunciator button.warning", has_text="web-rover")
-            await expect(warning).to_have_class(re.compile("unacknowledged"), timeout=10_000)
-            await expect(warning).to_have_attribute("aria-pressed", "false")
-            await warning.click()
-            await expect(warning).to_have_attribute("aria-pressed", "true")
-            await expect(warning).not_to_have_class(re.compile("unacknowledged"))
-
-            listen = page.get_by_role("button", name="listen")
-            await listen.click()
-            await expect(listen).to_have_attribute("aria-pressed", "true")
-            await expect(listen).to_have_attribute(
-                "data-decoded", re.compile(r"^([2-9]\d|\d{3,})$"), timeout=10_000
-            )  # 20 packets of 20 ms decoded in the page
-            speaker = rover.ctx.media.streams["audio_in"]
-            await page.locator("#talk").hover()
-            await page.mouse.down()
-            await wait_until(lambda: speaker.hears_sound, timeout=10)
-            await page.mouse.up()
-            await expect(page.locator("#talk")).to_have_attribute("aria-pressed", "false")
-            await wait_until(lambda: speaker.state.value == "idle", timeout=15)
-
-            # The page's socket drops: it says so, reconnects, and the picture comes back.
-            decoded = await frames_decoded(page, at_least=1)
-            await page.evaluate("window.navcam.dropStationConnection()")
-            states: list[str] = []
-            async with asyncio.timeout(10):  # the close is seen, then the new socket opens
-                while states[-2:] != ["reconnecting", "connected"]:
-                    await asyncio.sleep(0.05)
-                    states = await page.evaluate("window.navcam.apiStates")
-            await expect(page.locator("#api-state")).to_have_text("station connected")
-            await frames_decoded(page, at_least=decoded + 10)
-
-            override = page.get_by_role("button", name="manual override")
-            await override.click()
-            await expect(override).to_have_attribute("aria-pressed", "true", timeout=10_000)
-            vehicle = rover.ctx.sim.vehicle
-            assert vehicle is not None
-            await page.keyboard.down("KeyW")
-            await wait_until(lambda: vehicle.command[0] > 0.3, timeout=15)
-
-            # The link is cut while driving: the motors stop (the platform's deadman), the page
-            # says LINK LOST (no telemetry), the platform holds (no heartbeat).
-            cut = LinkCut(station, "web-rover")
-            cut.cut()
-            try:
-                banner = page.get_by_role("alert", name="failsafe")
-                await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=15)
-                await expect(banner).to_contain_text("LINK LOST", timeout=15_000)
-                await wait_until(
-                    lambda: rover.bus.last(topics.FAILSAFE_STATE).step is FailsafeStep.HOLD,
-                    timeout=10,
-                )
-                await page.keyboard.up("KeyW")
-            finally:
-                cut.restore()
-            # The link is back: the page shows the hold and asks for a deliberate re-engage.
-            await expect(banner).to_have_attribute("data-step", "rejoin", timeout=15_000)
-            await expect(banner).to_contain_text("LINK LOST — platform on HOLD")
-            await expect(banner).to_contain_text("re-engage the override to drive")
-            await expect(override).to_have_text("override: HOLD — press to re-engage")
-            # W held again: its velocities reach the platform and are dropped (held).
-            held = velocities_dropped(rover, "held")
-            await page.keyboard.down("KeyW")
-            await wait_until(lambda: velocities_dropped(rover, "held") >= held + 10, timeout=10)
-            assert vehicle.command == (0.0, 0.0), "moved before the operator re-engaged"
+            banner = page.get_by_role("alert", name="failsafe")
+            await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=15)
+            await expect(banner).to_contain_text("LINK LOST", timeout=15_000)
+            await wait_until(
+                lambda: rover.bus.last(topics.FAILSAFE_STATE).step is FailsafeStep.HOLD,
+                timeout=10,
+            )
             await page.keyboard.up("KeyW")
-            # The operator re-engages from the page: the hold ends, and W drives again.
-            await override.click()
-            await expect(override).to_have_text("override: ENGAGED", timeout=10_000)
-            await expect(banner).to_be_hidden(timeout=10_000)
-            assert rover.bus.last(topics.FAILSAFE_STATE).step is FailsafeStep.NORMAL
-            await page.keyboard.down("KeyW")
-            await wait_until(lambda: vehicle.command[0] > 0.3, timeout=15)
-            await page.close(run_before_unload=False)
-            await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
         finally:
-            await browser.close()
+            cut.restore()
+        # The link is back: the page shows the hold and asks for a deliberate re-engage.
+        await expect(banner).to_have_attribute("data-step", "rejoin", timeout=15_000)
+        await expect(banner).to_contain_text("LINK LOST — platform on HOLD")
+        await expect(banner).to_contain_text("re-engage the override to drive")
+        await expect(override).to_have_text("override: HOLD — press to re-engage")
+        # W held again: its velocities reach the platform and are dropped (held).
+        held = velocities_dropped(rover, "held")
+        await page.keyboard.down("KeyW")
+        await wait_until(lambda: velocities_dropped(rover, "held") >= held + 10, timeout=10)
+        assert vehicle.command == (0.0, 0.0), "moved before the operator re-engaged"
+        await page.keyboard.up("KeyW")
+        # The operator re-engages from the page: the hold ends, and W drives again.
+        await override.click()
+        await expect(override).to_have_text("override: ENGAGED", timeout=10_000)
+        await expect(banner).to_be_hidden(timeout=10_000)
+        assert rover.bus.last(topics.FAILSAFE_STATE).step is FailsafeStep.NORMAL
+        await page.keyboard.down("KeyW")
+        await wait_until(lambda: vehicle.command[0] > 0.3, timeout=15)
+        await page.close(run_before_unload=False)
+        await wait_until(lambda: vehicle.command == (0.0, 0.0), timeout=2)
 
 
 async def test_a_remote_operator_needs_https_and_gets_video_over_it(
-    platform_factory: Factory, fleet_key: bytes, tmp_path: Path
+    platform_factory: Factory, fleet_key: bytes, tmp_path: Path, browser: Any
 ) -> None:
     """Plain HTTP by a host name is no secure context: the page says why there is no video.
     The HTTPS console (console.tls_cert) by a configured name decodes the NavCam."""
-    from playwright.async_api import async_playwright, expect
+    from playwright.async_api import expect
 
     cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
     openssl = await asyncio.create_subprocess_exec(
@@ -756,20 +668,10 @@ async def test_a_remote_operator_needs_https_and_gets_video_over_it(
         'console.https_names=["station.test"]',
     ) as daemon:
         await sim_platform(platform_factory, fleet_key, daemon, "web-rover", 23.6530)
-        async with async_playwright() as playwright:
-            browser = await playwright.chromium.launch(
-                executable_path=CHROMIUM,
-                args=[*CHROMIUM_ARGS, "--host-resolver-rules=MAP station.test 127.0.0.1"],
-            )
-            try:
-                context = await browser.new_context(ignore_https_errors=True)
-                page = await context.new_page()
-                await page.goto(f"http://station.test:{daemon.api_port}/")
-                await expect(page.locator("#video-message")).to_contain_text("not a secure context")
-                await page.goto(
-                    f"https://station.test:{daemon.console_https_port}/?platform=web-rover"
-                )
-                await expect(page.locator("#api-state")).to_have_text("station connected")
-                await frames_decoded(page, at_least=5)
-            finally:
-                await browser.close()
+        context = await browser.new_context(ignore_https_errors=True)
+        page = await context.new_page()
+        await page.goto(f"http://station.test:{daemon.api_port}/")
+        await expect(page.locator("#video-message")).to_contain_text("not a secure context")
+        await page.goto(f"https://station.test:{daemon.console_https_port}/?platform=web-rover")
+        await expect(page.locator("#api-state")).to_have_text("station connected")
+        await frames_decoded(page, at_least=5)

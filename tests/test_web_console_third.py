@@ -10,21 +10,14 @@ import time
 from typing import Any
 
 import pytest
-import test_web_console_honesty as honesty
 from conftest import wait_until
-from test_web_console_honesty import console, rover, screenshots
-from test_web_console_station import Factory, frames_decoded, platforms_in_view
+from support.console import Factory, console, frames_decoded, platforms_in_view, rover, screenshots
 
 from brasidas import topics
 from brasidas.annunciator import PATROL_HOLDING
 from brasidas.messages import StationNotification
 from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
-
-# The honesty tests' fixtures: a station daemon and a headless Chromium.
-station_settings = honesty.station_settings
-station = honesty.station
-browser = honesty.browser
 
 
 async def navcam(page: Any, expression: str) -> Any:

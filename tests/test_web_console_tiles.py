@@ -15,16 +15,13 @@ from typing import Any
 
 import aiohttp
 import pytest
-import test_web_console_honesty as honesty
 from aiohttp import web
 from conftest import running_station
-from test_web_console_honesty import console, rover
-from test_web_console_station import Factory
+from support.console import Factory, console, rover
 
 from stationd.daemon import StationDaemon
 
-browser = honesty.browser
-LAT, LON = 37.9415, 23.6530  # where the --sim rover starts (test_web_console_honesty.rover)
+LAT, LON = 37.9415, 23.6530  # where the --sim rover starts (support.console.rover)
 
 
 def png(rgb: tuple[int, int, int], size: int = 256) -> bytes:

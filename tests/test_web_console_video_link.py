@@ -5,24 +5,16 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from test_web_console_honesty import (  # noqa: F401  (fixtures)
-    Factory,
-    browser,
-    console,
-    frames_decoded,
-    rover,
-    station,
-    station_settings,
-)
+from support.console import Factory, console, frames_decoded, rover
 
 from stationd.daemon import StationDaemon
 
 
 async def test_the_overlay_shows_the_bitrate_and_repairs(
-    station: StationDaemon,  # noqa: F811
+    station: StationDaemon,
     platform_factory: Factory,
     fleet_key: bytes,
-    browser: Any,  # noqa: F811
+    browser: Any,
 ) -> None:
     from playwright.async_api import expect
 

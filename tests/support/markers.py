@@ -115,6 +115,8 @@ def apply(items: list[pytest.Item]) -> None:
     for item in items:
         path = Path(str(item.fspath))
         marks = module_markers(path)
+        if "browser" in getattr(item, "fixturenames", ()):  # conftest's shared Chromium
+            marks |= {"browser", "slow"}
         for name in marks:
             item.add_marker(name)
         if f"{path.name}::{getattr(item, 'originalname', item.name)}" in SLOW_TESTS:
