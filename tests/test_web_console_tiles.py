@@ -18,7 +18,7 @@ import pytest
 import test_web_console_honesty as honesty
 from aiohttp import web
 from conftest import running_station
-from test_web_console_honesty import console, rover
+from test_web_console_honesty import console, rover, screenshots
 from test_web_console_station import Factory
 
 from stationd.daemon import StationDaemon
@@ -108,6 +108,7 @@ async def test_mbtiles_are_served_and_drawn_under_the_map(
             break
         assert loop.time() < deadline, "no tile image loaded"
         await asyncio.sleep(0.2)
+    await screenshots(page, "console-tiles")
     await page.get_by_text("map files and background").click()  # folded
     await page.get_by_label("tiles", exact=True).uncheck()
     await expect(drawn).to_have_count(0)

@@ -5,9 +5,11 @@
 // header, with the other one as a picture-in-picture in its lower left, the instruments and
 // the notifications over its upper right, and the values bar over it (values.js). The
 // driving controls and the side panels (patrol, plots, platforms) fold into a drawer at the
-// right ("panels"), so nothing is below the fold. The choice is kept for the next visit.
+// right ("panels"), so nothing is below the fold. The choice is kept for the next visit. Its
+// buttons sit on the values bar, over the main view (the header has no room at 1366 px).
 
 import { $, element, keyForFocusedField } from "./common.js";
+import { addToValuesBar } from "./values.js";
 
 const STORAGE_KEY = "brasidas.layout";
 
@@ -57,7 +59,7 @@ function togglePanels() {
 }
 
 export function startLayout() {
-  $("#swap-view").after(fullButton, panelsButton);
+  addToValuesBar(fullButton, panelsButton); // the picture's own corner, as a video player's
   $("#swap-view").onclick = swap;
   fullButton.onclick = toggleFull;
   panelsButton.onclick = togglePanels;

@@ -50,6 +50,9 @@ const choose = element("button", { id: "values-choose", type: "button", "aria-ex
 const choices = element("div", { id: "values-choices", class: "values-choices", role: "dialog", "aria-label": "choose values", hidden: "" });
 bar.append(cells, choose, choices);
 
+/** Put ``nodes`` (the layout's buttons) on the bar, before "values…": always over the main view. */
+export function addToValuesBar(...nodes) { choose.before(...nodes); }
+
 /** The keys chosen (stored), in the list's order; the default on a first visit or a bad entry. */
 export function chosenValues() {
   try {
@@ -116,5 +119,7 @@ export function startValues() {
   new MutationObserver(place).observe(document.body, { attributes: true, attributeFilter: ["class"] });
   subscribe("telemetry", (platformId) => { if (platformId === state.current) render(); });
   subscribe("current", render);
-  subscribe("video", render);
+  // The decoder's figures come 10 times a second: 4 redraws a second are readable (and cheap).
+  let drawn = 0;
+  subscribe("video", () => { if (performance.now() - drawn >= 250) { drawn = performance.now(); render(); } });
 }
