@@ -60,8 +60,9 @@ async def test_the_operator_chooses_the_values_and_the_choice_is_kept(
     bar = page.get_by_role("group", name="values")
     await expect(bar).to_be_visible(timeout=10_000)
     await expect(page.locator("#video-box > #values-bar")).to_have_count(1)
-    cells = bar.locator(".values-cells")  # (the choices' boxes are labelled alike)
-    figure = lambda name: cells.get_by_label(name, exact=True)  # noqa: E731
+    keys = {"speed": "speed", "GPS sats": "sats", "battery": "volts", "link RTT": "rtt"}
+    keys |= {"glass-to-glass": "latency", "heading": "heading", "CPU temp": "cpu", "roll": "roll"}
+    figure = lambda name: bar.locator(f'[data-key="{keys[name]}"] .value-figure')  # noqa: E731
     await expect(figure("speed")).to_have_text(re.compile(r"^\d+\.\d km/h$"), timeout=10_000)
     await expect(figure("GPS sats")).to_have_text(re.compile(r"^\d+$"))
     await expect(figure("battery")).to_have_text(re.compile(r"^\d+\.\d V$"))

@@ -53,6 +53,9 @@ bar.append(cells, choose, choices);
 /** Put ``nodes`` (the layout's buttons) on the bar, before "values…": always over the main view. */
 export function addToValuesBar(...nodes) { choose.before(...nodes); }
 
+// A cell reads "speed 0.2 km/h" as it is: no aria-label of its own (the instruments' labels,
+// "heading", "battery", are the panel's).
+
 /** The keys chosen (stored), in the list's order; the default on a first visit or a bad entry. */
 export function chosenValues() {
   try {
@@ -69,7 +72,7 @@ function store(keys) {
 function build() {
   const keys = chosenValues();
   cells.replaceChildren(...VALUES.filter((v) => keys.includes(v.key)).map((v) => element("span", { class: "value", "data-key": v.key },
-    element("span", { class: "value-label" }, v.label), element("span", { class: "value-figure", "aria-label": v.label }, "—"))));
+    element("span", { class: "value-label" }, v.label), element("span", { class: "value-figure" }, "—"))));
   render();
 }
 
