@@ -86,6 +86,10 @@ async def test_the_operator_chooses_the_values_and_the_choice_is_kept(
     await expect(figure("speed")).to_have_count(0)
     await expect(figure("roll")).to_have_text("—")  # the simulator reports no attitude: no 0
     await expect(figure("battery")).to_have_text(re.compile(r"^\d+\.\d V$"), timeout=10_000)
+    # A picture that has gone has no glass-to-glass (the figure is not held).
+    await expect(figure("glass-to-glass")).to_have_text(re.compile(r"^\d+ ms$"), timeout=15_000)
+    await station.ctx.api.call_local("stream_pause", platform_id="web-rover", stream="navcam")
+    await expect(figure("glass-to-glass")).to_have_text("—", timeout=5_000)
     # Map main: the bar runs along the map's top, clear of its zoom buttons.
     await page.locator("#swap-view").click()
     await expect(page.locator("#map > #values-bar")).to_have_count(1)
@@ -155,6 +159,14 @@ async def test_the_full_view_fills_the_screen_with_the_instruments_over_it(
     assert area["width"] >= main["width"] - 2 and area["height"] >= main["height"] - 2
     inset = await box_of(page, "#video-box")
     assert inside(inset, area) and inset["width"] < area["width"] / 2
+    # The route is fitted beside the inset and the instruments, not under them.
+    instruments = await box_of(page, "#middle")
+    labels = page.locator("#map .waypoint-label")
+    assert await labels.count() >= 4
+    for index in range(await labels.count()):
+        label = await labels.nth(index).bounding_box()
+        assert label is not None and inside(label, area), (index, label)
+        assert not overlap(label, inset) and not overlap(label, instruments), (index, label)
     await screenshots(page, "console-full-map-main")
 
     await page.reload()  # the layout is kept for the next visit

@@ -62,21 +62,29 @@ export class PlatformMap {
     };
     centre.addTo(this.map);
     // Map main (layout.js): the NavCam inset sits over the map's lower left; what is fitted
-    // (the area, the route, the platforms) is fitted beside it, not under it.
+    // (the area, the route, the platforms) is fitted beside it, not under it. In the full view
+    // the instruments (and the panels drawer, when open) cover the right as well.
+    const layout = () => ["map-main", "full-bleed", "panels-open"].map((name) => document.body.classList.contains(name)).join();
     new MutationObserver(() => {
-      const inset = document.body.classList.contains("map-main");
-      if (inset === this.inset) return;
-      this.inset = inset;
+      if (layout() === this.layout) return;
+      this.layout = layout();
+      this.inset = document.body.classList.contains("map-main");
       this.refitUntil = performance.now() + REFIT_SETTLE_MS;
       requestAnimationFrame(() => this.refit());
     }).observe(document.body, { attributes: true, attributeFilter: ["class"] });
+    this.layout = layout();
     this.inset = document.body.classList.contains("map-main");
     this.map.on("zoomend moveend resize", () => this.declutterSoon());
   }
 
-  /** fitBounds' padding: room for the NavCam inset on the left in map main. */
+  /** fitBounds' padding: room for the NavCam inset on the left in map main, and in the full
+   * view for the values bar above and the instruments (and open drawer) on the right. */
   fitPadding() {
-    return this.inset ? { paddingTopLeft: [INSET_ROOM_PX, 20], paddingBottomRight: [20, 20], animate: false } : {};
+    if (!this.inset) return {};
+    if (!document.body.classList.contains("full-bleed")) return { paddingTopLeft: [INSET_ROOM_PX, 20], paddingBottomRight: [20, 20], animate: false };
+    const covered = (selector) => { const box = document.querySelector(selector)?.getBoundingClientRect(); return box?.width ? box.width + 20 : 0; };
+    const right = covered("#middle") + (document.body.classList.contains("panels-open") ? covered("#side") : 0);
+    return { paddingTopLeft: [covered("#video-box") || INSET_ROOM_PX, 60], paddingBottomRight: [Math.max(20, right), 20], animate: false };
   }
 
   /** Fit the area, the routes and the platforms again (after the layout changed). */
@@ -157,6 +165,14 @@ export class PlatformMap {
     const container = this.map.getContainer();
     const placed = [...container.querySelectorAll(".leaflet-control, .platform-icon .arrow, .values-bar, .map-flag, .leaflet-marker-icon:not(:has(.platform-icon)), .area-point")]
       .map((element) => element.getBoundingClientRect());
+    // Nor under what lies over the map (layout.js): the NavCam inset in map main, and in the
+    // full view the instruments and the open drawer.
+    const classes = document.body.classList;
+    const over = [classes.contains("map-main") && "#video-box", classes.contains("full-bleed") && "#middle", classes.contains("panels-open") && classes.contains("full-bleed") && "#side"];
+    for (const selector of over.filter(Boolean)) {
+      const box = document.querySelector(selector)?.getBoundingClientRect();
+      if (box?.width) placed.push(box);
+    }
     const free = (element) => {
       const box = element.getBoundingClientRect();
       if (!box.width) return true;

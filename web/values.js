@@ -122,7 +122,7 @@ export function startValues() {
   new MutationObserver(place).observe(document.body, { attributes: true, attributeFilter: ["class"] });
   subscribe("telemetry", (platformId) => { if (platformId === state.current) render(); });
   subscribe("current", render);
-  // The decoder's figures come 10 times a second: 4 redraws a second are readable (and cheap).
-  let drawn = 0;
-  subscribe("video", () => { if (performance.now() - drawn >= 250) { drawn = performance.now(); render(); } });
+  // The decoder's figures come 10 times a second (and stop with the picture): 4 redraws a
+  // second are readable, cheap, and never leave a figure of a picture that has gone.
+  setInterval(render, 250);
 }
