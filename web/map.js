@@ -149,7 +149,14 @@ export class PlatformMap {
       entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected, entry.labelSide));
     }
     if (this.following) this.followPlatforms();
-    this.declutterSoon();
+    // Labels are placed again only when the marker moved on screen (a report at 10 Hz of a
+    // robot at walking pace moves it less than a pixel; view changes declutter by themselves).
+    const at = this.map.latLngToContainerPoint(point);
+    if (!entry.placedAt || Math.abs(at.x - entry.placedAt.x) >= 1 || Math.abs(at.y - entry.placedAt.y) >= 1 || entry.placedLook !== look) {
+      entry.placedAt = at;
+      entry.placedLook = look;
+      this.declutterSoon();
+    }
   }
 
   /** Labels never cover each other: platform names (the shown platform's first), the area
