@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 from conftest import wait_until
 from support.cli import run_cli
-from support.console import Factory, console, rover
+from support.console import Factory, console, rover, screenshots
 
 from brasidas import topics
 from stationd.client import PlatformConnection
@@ -60,6 +60,7 @@ async def test_click_on_the_map_slide_and_the_platform_goes_there(
     slider = page.get_by_label(re.compile("^slide to go to "))
     await expect(slider).to_be_visible()
     await expect(page.locator("#map .goto-target")).to_have_count(1)
+    await screenshots(page, "console-goto")
     await slider.fill("40")  # let go half-way: nothing goes
     await page.wait_for_timeout(300)
     assert (await station.ctx.api.call_local("patrol_get", platform_id="web-rover"))[
@@ -179,3 +180,4 @@ async def test_home_is_in_telemetry_on_the_map_and_in_the_toolbar(
     await expect(home_pill).to_have_text(re.compile(r"^⌂ (2[5-9]|3[0-5]) m 2[0-4]\d°$"))
     shown_m = float(await home_pill.get_attribute("data-metres") or "nan")
     assert shown_m == pytest.approx(away, abs=2.0)
+    await screenshots(page, "console-home")

@@ -17,7 +17,7 @@ import aiohttp
 import pytest
 from aiohttp import web
 from conftest import running_station
-from support.console import Factory, console, rover
+from support.console import Factory, console, rover, screenshots
 
 from stationd.daemon import StationDaemon
 
@@ -105,6 +105,7 @@ async def test_mbtiles_are_served_and_drawn_under_the_map(
             break
         assert loop.time() < deadline, "no tile image loaded"
         await asyncio.sleep(0.2)
+    await screenshots(page, "console-tiles")
     await page.get_by_text("map files and background").click()  # folded
     await page.get_by_label("tiles", exact=True).uncheck()
     await expect(drawn).to_have_count(0)

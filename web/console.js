@@ -15,6 +15,7 @@ import { plotPoints, startPlots } from "./plots.js";
 import { startRecordings } from "./recordings.js";
 import { startSafety } from "./safety.js";
 import { startToolbar } from "./toolbar.js";
+import { startValues } from "./values.js";
 import { apiStates, api } from "./station.js";
 import { startVideo } from "./video.js";
 import { startVideoLink } from "./video-link.js";
@@ -34,6 +35,7 @@ startToolbar();
 startGoTo();
 startHome();
 startTiles();
+startValues();
 
 // What tests and benchmarks read (the page's CSP allows no eval of their own).
 window.navcam = {

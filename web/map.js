@@ -27,7 +27,7 @@ export class PlatformMap {
     }
     this.map = L.map(element, { crs: L.CRS.Simple, minZoom: -6, maxZoom: 6, zoomSnap: 0.5, attributionControl: false });
     this.map.setView([0, 0], 1);
-    new (metricGrid())({ minZoom: -6, maxZoom: 6 }).addTo(this.map);
+    new (metricGrid())({ minZoom: -6, maxZoom: 6 }).on("tileload", () => this.declutterSoon()).addTo(this.map);
     L.control.scale({ imperial: false, position: "bottomright" }).addTo(this.map); // CRS.Simple: metres
     this.area = null; // the platform's area map: under, and apart from, the operator's background
     // Until the operator takes the view (drags, scrolls, zooms) or a background is fitted, the
@@ -62,21 +62,29 @@ export class PlatformMap {
     };
     centre.addTo(this.map);
     // Map main (layout.js): the NavCam inset sits over the map's lower left; what is fitted
-    // (the area, the route, the platforms) is fitted beside it, not under it.
+    // (the area, the route, the platforms) is fitted beside it, not under it. In the full view
+    // the instruments (and the panels drawer, when open) cover the right as well.
+    const layout = () => ["map-main", "full-bleed", "panels-open"].map((name) => document.body.classList.contains(name)).join();
     new MutationObserver(() => {
-      const inset = document.body.classList.contains("map-main");
-      if (inset === this.inset) return;
-      this.inset = inset;
+      if (layout() === this.layout) return;
+      this.layout = layout();
+      this.inset = document.body.classList.contains("map-main");
       this.refitUntil = performance.now() + REFIT_SETTLE_MS;
       requestAnimationFrame(() => this.refit());
     }).observe(document.body, { attributes: true, attributeFilter: ["class"] });
+    this.layout = layout();
     this.inset = document.body.classList.contains("map-main");
     this.map.on("zoomend moveend resize", () => this.declutterSoon());
   }
 
-  /** fitBounds' padding: room for the NavCam inset on the left in map main. */
+  /** fitBounds' padding: room for the NavCam inset on the left in map main, and in the full
+   * view for the values bar above and the instruments (and open drawer) on the right. */
   fitPadding() {
-    return this.inset ? { paddingTopLeft: [INSET_ROOM_PX, 20], paddingBottomRight: [20, 20], animate: false } : {};
+    if (!this.inset) return {};
+    if (!document.body.classList.contains("full-bleed")) return { paddingTopLeft: [INSET_ROOM_PX, 20], paddingBottomRight: [20, 20], animate: false };
+    const covered = (selector) => { const box = document.querySelector(selector)?.getBoundingClientRect(); return box?.width ? box.width + 20 : 0; };
+    const right = covered("#middle") + (document.body.classList.contains("panels-open") ? covered("#side") : 0);
+    return { paddingTopLeft: [covered("#video-box") || INSET_ROOM_PX, 60], paddingBottomRight: [Math.max(20, right), 20], animate: false };
   }
 
   /** Fit the area, the routes and the platforms again (after the layout changed). */
@@ -141,18 +149,37 @@ export class PlatformMap {
       entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected, entry.labelSide));
     }
     if (this.following) this.followPlatforms();
-    this.declutterSoon();
+    // Labels are placed again only when the marker moved on screen (a report at 10 Hz of a
+    // robot at walking pace moves it less than a pixel; view changes declutter by themselves).
+    const at = this.map.latLngToContainerPoint(point);
+    if (!entry.placedAt || Math.abs(at.x - entry.placedAt.x) >= 1 || Math.abs(at.y - entry.placedAt.y) >= 1 || entry.placedLook !== look) {
+      entry.placedAt = at;
+      entry.placedLook = look;
+      this.declutterSoon();
+    }
   }
 
   /** Labels never cover each other: platform names (the shown platform's first), the area
    * map's named points (right, left, above, below), the route's waypoint numbers (left, above,
-   * below),
-   * each hidden when neither side is free, until the view gives it room. Placed by their drawn boxes, after every view change and marker move. */
+   * below), then the grid's distances (along their line), each hidden when no place is free,
+   * until the view gives it room. Placed by their drawn boxes, after every view change, marker
+   * move and new grid tile. */
   declutter() {
     this.declutterPending = false;
     if (!this.available) return;
     // Nor over the map's own controls (zoom, scale bar) or a platform's arrow.
-    const placed = [...this.map.getContainer().querySelectorAll(".leaflet-control, .platform-icon .arrow")].map((element) => element.getBoundingClientRect());
+    // Nor over the values bar, a flag, a route's or keep-out's editing markers, a named point.
+    const container = this.map.getContainer();
+    const placed = [...container.querySelectorAll(".leaflet-control, .platform-icon .arrow, .values-bar, .map-flag, .leaflet-marker-icon:not(:has(.platform-icon)), .area-point")]
+      .map((element) => element.getBoundingClientRect());
+    // Nor under what lies over the map (layout.js): the NavCam inset in map main, and in the
+    // full view the instruments and the open drawer.
+    const classes = document.body.classList;
+    const over = [classes.contains("map-main") && "#video-box", classes.contains("full-bleed") && "#middle", classes.contains("panels-open") && classes.contains("full-bleed") && "#side"];
+    for (const selector of over.filter(Boolean)) {
+      const box = document.querySelector(selector)?.getBoundingClientRect();
+      if (box?.width) placed.push(box);
+    }
     const free = (element) => {
       const box = element.getBoundingClientRect();
       if (!box.width) return true;
@@ -191,6 +218,7 @@ export class PlatformMap {
     });
     tooltips(this.area, ["right", "left", "top", "bottom"]);
     for (const { layer } of this.waypointLabels?.values() ?? []) tooltips(layer, ["left", "top", "bottom"]);
+    placeGridLabels(container, placed); // the grid's labels give way to everything else
   }
 
   /** One declutter on the next frame, however many changes came before it. */
@@ -412,29 +440,61 @@ function platformIcon(id, heading, current, connected, labelSide = "right") {
   return L.divIcon({ html: element, className: "", iconSize: [24, 24], iconAnchor: [12, 12] });
 }
 
+/** Where along its tile's edge a grid label may sit (fractions of the edge): the middle
+ * first, then a quarter either way (map.js declutter moves it off a waypoint's number). */
+const GRID_LABEL_SPOTS = [0.5, 0.25, 0.75];
+
 function metricGrid() {
-  // Each tile's border is a grid line, labelled in metres from the origin halfway along it: the
-  // bottom line's north at its middle, the left line's east at its middle. Not at the corner:
-  // the origin is where the first platform was heard, and its name is written there.
+  // Each tile's border is a grid line, labelled in metres from the origin along it: the bottom
+  // line's north, the left line's east, halfway along each at first. Not at the corner: the
+  // origin is where the first platform was heard, and its name is written there. The labels
+  // are elements (not drawn into the tile) so that declutter can keep them off the labels and
+  // markers drawn over the map.
   return L.GridLayer.extend({
     createTile(coords) {
-      const tile = document.createElement("canvas");
+      const tile = document.createElement("div");
+      tile.className = "grid-tile";
       const size = this.getTileSize();
-      tile.width = size.x;
-      tile.height = size.y;
-      const g = tile.getContext("2d");
-      g.strokeStyle = "#2c3a46";
-      g.strokeRect(0.5, 0.5, size.x, size.y);
       const metres = size.x / 2 ** coords.z;
-      g.fillStyle = "#50606e";
-      g.font = "10px sans-serif";
-      g.textAlign = "center";
       // Distances, not coordinates: "64 E" read as a longitude.
       const along = (value, ahead, behind) => (value >= 0 ? `${value} m ${ahead}` : `${-value} m ${behind}`);
-      g.fillText(along(Math.round(-(coords.y + 1) * metres), "north", "south"), size.x / 2, size.y - 4);
-      g.rotate(-Math.PI / 2);
-      g.fillText(along(Math.round(coords.x * metres), "east", "west"), -size.y / 2, 12);
+      const north = document.createElement("span");
+      north.className = "grid-label grid-north";
+      north.textContent = along(Math.round(-(coords.y + 1) * metres), "north", "south");
+      const east = document.createElement("span");
+      east.className = "grid-label grid-east";
+      east.textContent = along(Math.round(coords.x * metres), "east", "west");
+      for (const label of [north, east]) label.dataset.spot = "0.5";
+      tile.append(north, east);
       return tile;
     },
+  });
+}
+
+/** Grid labels off everything in ``placed`` (boxes): each tries its spots along its line and
+ * is hidden when none is free. Reads every box first and writes after (one layout). */
+function placeGridLabels(container, placed) {
+  const overlaps = (box) => placed.some((o) => box.left < o.right && o.left < box.right && box.top < o.bottom && o.top < box.bottom);
+  const labels = [...container.querySelectorAll(".grid-label")];
+  const measured = labels.map((label) => ({ label, box: label.getBoundingClientRect(), tile: label.parentElement.getBoundingClientRect() }));
+  const chosen = measured.map(({ label, box, tile }) => {
+    if (!box.width || !tile.width) return null;
+    const north = label.classList.contains("grid-north");
+    const from = Number(label.dataset.spot);
+    for (const spot of GRID_LABEL_SPOTS) {
+      const shift = (spot - from) * (north ? tile.width : tile.height);
+      const moved = north
+        ? { left: box.left + shift, right: box.right + shift, top: box.top, bottom: box.bottom }
+        : { left: box.left, right: box.right, top: box.top + shift, bottom: box.bottom + shift };
+      if (!overlaps(moved)) { placed.push(moved); return spot; }
+    }
+    return null;
+  });
+  measured.forEach(({ label }, index) => {
+    const spot = chosen[index];
+    label.classList.toggle("label-hidden", spot === null);
+    if (spot === null || String(spot) === label.dataset.spot) return;
+    label.dataset.spot = String(spot);
+    label.style.setProperty(label.classList.contains("grid-north") ? "left" : "top", `${spot * 100}%`);
   });
 }
