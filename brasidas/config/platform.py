@@ -396,6 +396,13 @@ class NavCamSection:
     """--sim source: a videotestsrc pattern (ball moves; smpte with sim_motion for bandwidth)."""
     sim_motion: int = setting(0, at_least(0, most=1000))
     """--sim source: videotestsrc horizontal-speed (pixels per frame); 0 for a still pattern."""
+    intra_refresh: bool = False
+    """Refresh the picture by a sweep of intra blocks each second instead of a keyframe each
+    second (x264enc): no keyframe bursts, and a lost frame heals within the sweep instead of
+    freezing to the next keyframe. Keyframes are still made on request and every 5 s."""
+    fec_max_percent: int = setting(30, at_least(0, most=100))
+    """Most forward error correction (ULPFEC) overhead on the NavCam, in percent of its
+    packets; the share follows the loss the stations report, within the bitrate. 0: none."""
 
 
 @dataclass(frozen=True)

@@ -39,13 +39,19 @@ from brasidas.media.gst import (
     set_prop,
     stamp_capture_time,
 )
-from brasidas.media.keyframes import KeyframeClock
+from brasidas.media.keyframes import (
+    KEYFRAME_INTERVAL_S,
+    REFRESH_KEYFRAME_INTERVAL_S,
+    KeyframeClock,
+)
 from brasidas.media.pipeline import PipelineStream, StreamState
 from brasidas.media.repair import (
+    FEC_PAYLOAD_TYPE,
     FeedbackSocket,
     RepairReceiver,
     add_repair_receiver,
     add_repair_sender,
+    fec_percentage,
 )
 
 ENCODERS: tuple[str, ...] = ("v4l2h264enc", "omxh264enc", "x264enc", "openh264enc")
@@ -60,6 +66,9 @@ RTP_VIDEO_CAPS = (
 TAP_QUEUE_BUFFERS = 30
 VIDEO_DSCP = 34
 """AF41, interactive video: below the velocity stream's EF on a link that honours DSCP."""
+INTRA_REFRESH_ENCODERS = ("x264enc",)
+"""Encoders whose GStreamer element exposes periodic intra refresh. (openh264enc does not;
+the Pi's v4l2h264enc and omxh264enc were not available here to verify a control.)"""
 ENCODER_GOP_S = 10
 """The encoder's own keyframe interval, a backstop only: :class:`KeyframeClock` forces the
 keyframes, at the current framerate (the encoders' own settings cannot change while running)."""
@@ -110,6 +119,18 @@ class VideoSettings(Destinations):
     """RTCP feedback, retransmission on NACK, keyframes on PLI (:mod:`brasidas.media.repair`)."""
     rtcp_port: int = 0
     """Where receivers send their RTCP feedback (0: a free port, announced as ``rtcp_port``)."""
+    intra_refresh: bool = False
+    """Periodic intra refresh instead of periodic keyframes, where the encoder has it
+    (:data:`INTRA_REFRESH_ENCODERS`): a column of intra blocks sweeps the picture once a
+    second, so no frame is a burst many times the others and a loss heals within a second
+    without a keyframe. A keyframe is still made on request (PLI, a new viewer) and every
+    :data:`~brasidas.media.keyframes.REFRESH_KEYFRAME_INTERVAL_S` (recordings, page viewers)."""
+    fec_max_percent: int = 30
+    """The most ULPFEC overhead (0 disables FEC): the share follows the reported loss
+    (:func:`~brasidas.media.repair.fec_percentage`), within the bitrate."""
+
+    def uses_intra_refresh(self, encoder_name: str) -> bool:
+        return self.intra_refresh and encoder_name in INTRA_REFRESH_ENCODERS
 
     def effective_bitrate_kbps(self) -> int:
         """Bitrate for the current framerate: 5 fps monitoring needs a sixth of 30 fps."""
@@ -128,6 +149,8 @@ class VideoOut(FanOutStream[VideoSettings]):
         self._encoder: Any = None
         self._rate_filter: Any = None
         self.keyframes = KeyframeClock(settings.framerate)
+        self.fec_percent = 0
+        """The ULPFEC overhead now (percent of the media packets)."""
         self._keyframes_lock = threading.Lock()
         """The clock is used by the streaming thread, RTCP's thread and the event loop."""
         self._forced_seqnums: collections.deque[int] = collections.deque(maxlen=8)
@@ -157,6 +180,8 @@ class VideoOut(FanOutStream[VideoSettings]):
             "rtp_caps": RTP_VIDEO_CAPS,
             "rtcp_port": self.feedback.port if self.feedback is not None else None,
             "keyframe_interval_frames": self.keyframes.interval_frames,
+            "intra_refresh": self.encoder_name != "" and s.uses_intra_refresh(self.encoder_name),
+            "fec_percent": self.fec_percent,
             "keyframes_requested": self.keyframes.counters.requested,
             "keyframe_requests_refused": self.keyframes.counters.refused,
         }
@@ -181,9 +206,22 @@ class VideoOut(FanOutStream[VideoSettings]):
             return None
         loss = self._newest_reported_loss()
         kbps = self.bitrate.update(loss, self.settings.effective_bitrate_kbps(), now)
-        if kbps is not None:
-            _set_bitrate(self._encoder, self.encoder_name, kbps)
+        fec = fec_percentage(self.bitrate.loss, self.settings.fec_max_percent)
+        fec_changed = fec != self.fec_percent
+        if fec_changed:
+            self.fec_percent = fec
+            encoder = self._rtpbin.get_by_name("fecenc")
+            if encoder is not None:
+                encoder.set_property("percentage", fec)
+        if kbps is not None or fec_changed:
+            _set_bitrate(self._encoder, self.encoder_name, self.media_bitrate_kbps())
         return kbps
+
+    def media_bitrate_kbps(self) -> int:
+        """The encoder's share of the bitrate: the FEC packets are carried within it."""
+        return max(
+            MIN_BITRATE_KBPS, round(self.current_bitrate_kbps() * 100 / (100 + self.fec_percent))
+        )
 
     def _newest_reported_loss(self) -> float | None:
         """The worst fraction lost among the receivers' reports new since the last look."""
@@ -219,7 +257,10 @@ class VideoOut(FanOutStream[VideoSettings]):
         with self._keyframes_lock:
             self.keyframes.set_framerate(fps)
         if self._encoder is not None and self._rate_filter is not None:
-            _set_bitrate(self._encoder, self.encoder_name, self.current_bitrate_kbps())
+            _set_bitrate(self._encoder, self.encoder_name, self.media_bitrate_kbps())
+            if s.uses_intra_refresh(self.encoder_name):
+                # x264 reads it when the new caps restart it: one refresh wave a second.
+                _set_keyframe_interval(self._encoder, self.encoder_name, fps)
             # New caps renegotiate downstream: the encoder restarts with the new rate.
             self._rate_filter.set_property("caps", caps(f"video/x-raw,framerate={fps}/1"))
 
@@ -244,7 +285,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         convert = make("videoconvert")
         encoder = make(encoder_name, "encoder")
         _configure_encoder(encoder, encoder_name, s)
-        _set_bitrate(encoder, encoder_name, self.current_bitrate_kbps())  # as adapted so far
+        _set_bitrate(encoder, encoder_name, self.media_bitrate_kbps())  # as adapted so far
         h264_filter = make("capsfilter", caps=caps(_h264_caps(encoder_name)))
         pay = make(
             "rtph264pay", "pay", config_interval=-1, mtu=s.mtu, pt=PAYLOAD_TYPE, aggregate_mode=0
@@ -282,19 +323,23 @@ class VideoOut(FanOutStream[VideoSettings]):
             link_all(pay, sink)
         if tap:
             self._add_tap(pipeline, tap[0])
-        self._watch_keyframes(encoder)
+        self._watch_keyframes(encoder, encoder_name)
         self.encoder_name = encoder_name
         self._encoder = encoder
         self._rate_filter = rate_filter
         return pipeline
 
-    def _watch_keyframes(self, encoder: Any) -> None:
+    def _watch_keyframes(self, encoder: Any, encoder_name: str) -> None:
         """Force the clock's keyframes into the encoder; take a receiver's requests (the
         force-key-unit events rtpbin makes of PLI/FIR, or a depayloader's) through its limit."""
         Gst = gst()
         ref = weakref.ref(self)
+        refresh = self.settings.uses_intra_refresh(encoder_name)
         with self._keyframes_lock:
             self.keyframes.restart()
+            self.keyframes.interval_s = (
+                REFRESH_KEYFRAME_INTERVAL_S if refresh else KEYFRAME_INTERVAL_S
+            )
             self.keyframes.set_framerate(self.settings.framerate)
         encoder.get_static_pad("sink").add_probe(
             Gst.PadProbeType.BUFFER, _force_keyframe_probe, ref
@@ -452,6 +497,8 @@ def _configure_encoder(encoder: Any, name: str, s: VideoSettings) -> None:
         set_prop(encoder, "threads", 1)
         set_prop(encoder, "sliced-threads", False)
         set_prop(encoder, "bitrate", kbps)
+        if s.uses_intra_refresh(name):
+            set_prop(encoder, "intra-refresh", True)
     elif name == "openh264enc":
         encoder.set_property("bitrate", kbps * 1000)
         _nick(encoder, "rate-control", "bitrate")
@@ -471,7 +518,11 @@ def _configure_encoder(encoder: Any, name: str, s: VideoSettings) -> None:
         _nick(encoder, "control-rate", "variable")
         if encoder.find_property("inline-header") is not None:
             encoder.set_property("inline-header", True)
-    _set_keyframe_interval(encoder, name, ENCODER_GOP_S * s.camera_framerate)
+    if s.uses_intra_refresh(name):
+        # With intra refresh, x264's interval is the refresh wave's length: one a second.
+        _set_keyframe_interval(encoder, name, s.framerate)
+    else:
+        _set_keyframe_interval(encoder, name, ENCODER_GOP_S * s.camera_framerate)
 
 
 def _set_bitrate(encoder: Any, name: str, kbps: int) -> None:
@@ -531,6 +582,11 @@ class VideoIn(PipelineStream):
         """Ask the sender for lost packets and keyframes (its ``rtcp_port``: set_feedback)."""
         self.repairs: RepairReceiver | None = None
         self._feedback: tuple[str, int] = ("", 0)
+        self.intra_refresh = False
+        """The sender refreshes the picture by intra blocks (its ``intra_refresh``): after a
+        loss, decode on (the damage heals within the refresh wave) instead of freezing to a
+        keyframe asked for."""
+        self._depay: Any = None
         self.host = host
         self.port = port
         self.sink_factory = sink
@@ -555,6 +611,10 @@ class VideoIn(PipelineStream):
     def destination(self) -> str:
         return f"{self.host}:{self.port}"
 
+    def on_torn_down(self) -> None:
+        super().on_torn_down()
+        self._depay = None
+
     def describe(self) -> dict[str, Any]:
         return {
             **super().describe(),
@@ -571,6 +631,13 @@ class VideoIn(PipelineStream):
         self._feedback = (host, port or 0)
         if self.repairs is not None:
             self.repairs.set_feedback(host, port or 0)
+
+    def set_intra_refresh(self, on: bool) -> None:
+        """Follow the sender's ``intra_refresh``; applied live. Event loop."""
+        self.intra_refresh = on
+        if self._depay is not None:
+            self._depay.set_property("wait-for-keyframe", not on)
+            self._depay.set_property("request-keyframe", self.repair and not on)
 
     def gap_stats(self) -> dict[str, Any]:
         """The waits between decoded frames of the recent window: percentiles, and the time
@@ -667,6 +734,8 @@ class VideoIn(PipelineStream):
             self.repairs.set_feedback(*self._feedback)
         else:
             link_all(*chain)
+        self._depay = depay
+        self.set_intra_refresh(self.intra_refresh)
         decoder.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _latency_probe, (weakref.ref(self), ntp_caps())
         )
@@ -701,6 +770,7 @@ def _bytes_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
     if stream is not None and buffer is not None:
         stream.rtp_bytes += buffer.get_size()
         header = buffer.extract_dup(0, 4)
-        if len(header) == 4 and header[1] & 0x7F == PAYLOAD_TYPE:  # not retransmissions
+        # The media and its FEC share one sequence; retransmissions have their own.
+        if len(header) == 4 and header[1] & 0x7F in (PAYLOAD_TYPE, FEC_PAYLOAD_TYPE):
             stream.count_packet(int.from_bytes(header[2:4], "big"))
     return gst().PadProbeReturn.OK
