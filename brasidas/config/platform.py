@@ -398,11 +398,15 @@ class NavCamSection:
     """--sim source: videotestsrc horizontal-speed (pixels per frame); 0 for a still pattern."""
     intra_refresh: bool = False
     """Refresh the picture by a sweep of intra blocks each second instead of a keyframe each
-    second (x264enc): no keyframe bursts, and a lost frame heals within the sweep instead of
-    freezing to the next keyframe. Keyframes are still made on request and every 5 s."""
-    fec_max_percent: int = setting(30, at_least(0, most=100))
+    second (x264enc): no keyframe bursts. Off by default: x264 answers a forced keyframe
+    (a PLI) under intra refresh with a recovery point, not an IDR, and the station's
+    receivers, which wait for an IDR after a loss, then show nothing."""
+    fec_max_percent: int = setting(0, at_least(0, most=100))
     """Most forward error correction (ULPFEC) overhead on the NavCam, in percent of its
-    packets; the share follows the loss the stations report, within the bitrate. 0: none."""
+    packets; the share follows the loss the stations report, within the bitrate. 0 (the
+    default): none. For links whose round trip is too long for retransmission: on a short
+    one, a lost FEC packet holds the complete frames behind it in the receiver's jitter
+    buffer until it is repaired (measured: glass-to-glass p99 over 300 ms at 5 % loss)."""
 
 
 @dataclass(frozen=True)

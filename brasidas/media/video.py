@@ -22,7 +22,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from brasidas.media.bitrate import BitrateController
+from brasidas.media.bitrate import CONGESTED_LOSS, BitrateController
 from brasidas.media.fanout import Destinations, FanOutStream
 from brasidas.media.gst import (
     NTP64_EXT_ID,
@@ -125,7 +125,7 @@ class VideoSettings(Destinations):
     second, so no frame is a burst many times the others and a loss heals within a second
     without a keyframe. A keyframe is still made on request (PLI, a new viewer) and every
     :data:`~brasidas.media.keyframes.REFRESH_KEYFRAME_INTERVAL_S` (recordings, page viewers)."""
-    fec_max_percent: int = 30
+    fec_max_percent: int = 0
     """The most ULPFEC overhead (0 disables FEC): the share follows the reported loss
     (:func:`~brasidas.media.repair.fec_percentage`), within the bitrate."""
 
@@ -206,7 +206,10 @@ class VideoOut(FanOutStream[VideoSettings]):
             return None
         loss = self._newest_reported_loss()
         kbps = self.bitrate.update(loss, self.settings.effective_bitrate_kbps(), now)
-        fec = fec_percentage(self.bitrate.loss, self.settings.fec_max_percent)
+        # Over capacity (the controller lowering the rate), FEC would only add to the queue
+        # that drops the packets: it is for a link's random loss.
+        congested = self.bitrate.loss > CONGESTED_LOSS
+        fec = 0 if congested else fec_percentage(self.bitrate.loss, self.settings.fec_max_percent)
         fec_changed = fec != self.fec_percent
         if fec_changed:
             self.fec_percent = fec
