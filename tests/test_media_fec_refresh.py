@@ -35,7 +35,7 @@ def test_fec_is_carried_within_the_bitrate() -> None:
 
 async def test_a_lost_packet_is_rebuilt_from_fec_without_retransmission() -> None:
     port = free_udp_port()
-    receiver = VideoIn("rx", host="127.0.0.1", port=port)
+    receiver = VideoIn("rx", host="127.0.0.1", port=port, fec=True)
     await receiver.start()
     relay = LossyRelay(("127.0.0.1", port), loss=0.05, seed=3)
     settings = VideoSettings(

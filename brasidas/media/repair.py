@@ -192,7 +192,7 @@ def _uint(structure: Any, key: str) -> int:
 
 
 def add_repair_receiver(
-    pipeline: Any, source: Any, depayloader: Any, rtp_caps: str
+    pipeline: Any, source: Any, depayloader: Any, rtp_caps: str, *, fec: bool = False
 ) -> RepairReceiver:
     """Link ``source`` (udpsrc) → rtpbin → ``depayloader`` (linked when the stream's first
     packet arrives) and an RTCP feedback sink (no destination until :meth:`set_feedback`)."""
@@ -272,8 +272,12 @@ def add_repair_receiver(
     rtpbin.connect("request-pt-map", pt_map)
     rtpbin.connect("request-aux-receiver", _aux_receiver)
     rtpbin.connect("new-jitterbuffer", new_jitterbuffer)
-    rtpbin.connect("new-storage", new_storage)
-    rtpbin.connect("request-fec-decoder", fec_decoder)
+    if fec:
+        # Only where the sender was set to send FEC: the decoder sits between the jitter
+        # buffer and the depayloader, and measured under load the keyframe request after a
+        # cut then came late or not at all.
+        rtpbin.connect("new-storage", new_storage)
+        rtpbin.connect("request-fec-decoder", fec_decoder)
     rtpbin.connect("pad-added", pad_added)
     source.set_property("caps", media_caps)
     for element in (rtpbin, feedback_sink):

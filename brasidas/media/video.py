@@ -578,10 +578,13 @@ class VideoIn(PipelineStream):
         jitter_ms: int = 0,
         window: int = 2000,
         repair: bool = True,
+        fec: bool = False,
         **kwargs: Any,
     ) -> None:
         super().__init__(name, **kwargs)
         self.repair = repair
+        self.fec = fec
+        """Rebuild lost packets from the sender's ULPFEC (``navcam.fec_max_percent``)."""
         """Ask the sender for lost packets and keyframes (its ``rtcp_port``: set_feedback)."""
         self.repairs: RepairReceiver | None = None
         self._feedback: tuple[str, int] = ("", 0)
@@ -733,7 +736,9 @@ class VideoIn(PipelineStream):
             pipeline.add(element)
         if self.repair:
             link_all(*chain[1:])
-            self.repairs = add_repair_receiver(pipeline, source, depay, RTP_VIDEO_CAPS)
+            self.repairs = add_repair_receiver(
+                pipeline, source, depay, RTP_VIDEO_CAPS, fec=self.fec
+            )
             self.repairs.set_feedback(*self._feedback)
         else:
             link_all(*chain)
