@@ -97,6 +97,10 @@ async def _view(args: argparse.Namespace, config: StationConfig) -> int:
         if isinstance(rtcp_port, int) and platform_host:
             receiver.set_feedback(platform_host, rtcp_port)  # NACKs and keyframe requests
         receiver.set_intra_refresh(answer.get("intra_refresh") is True)
+        fec = answer.get("fec_max_percent")
+        if isinstance(fec, int) and fec > 0 and not receiver.fec:
+            receiver.fec = True  # its FEC decoder is built with the pipeline
+            await receiver.restart()
         print(
             f"{args.id} {args.stream}: {answer.get('width')}x{answer.get('height')} "
             f"@{answer.get('framerate')} fps {answer.get('codec')} on UDP {receiver.port}",

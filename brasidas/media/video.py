@@ -182,6 +182,7 @@ class VideoOut(FanOutStream[VideoSettings]):
             "keyframe_interval_frames": self.keyframes.interval_frames,
             "intra_refresh": self.encoder_name != "" and s.uses_intra_refresh(self.encoder_name),
             "fec_percent": self.fec_percent,
+            "fec_max_percent": s.fec_max_percent,
             "keyframes_requested": self.keyframes.counters.requested,
             "keyframe_requests_refused": self.keyframes.counters.refused,
         }
@@ -289,7 +290,12 @@ class VideoOut(FanOutStream[VideoSettings]):
         encoder = make(encoder_name, "encoder")
         _configure_encoder(encoder, encoder_name, s)
         _set_bitrate(encoder, encoder_name, self.media_bitrate_kbps())  # as adapted so far
-        h264_filter = make("capsfilter", caps=caps(_h264_caps(encoder_name)))
+        h264_caps = _h264_caps(encoder_name)
+        if s.uses_intra_refresh(encoder_name):
+            # Byte-stream: x264 then repeats SPS/PPS at the start of every refresh wave, so a
+            # receiver that missed the first IDR (there is no other) can start within a second.
+            h264_caps += ",stream-format=byte-stream"
+        h264_filter = make("capsfilter", caps=caps(h264_caps))
         pay = make(
             "rtph264pay", "pay", config_interval=-1, mtu=s.mtu, pt=PAYLOAD_TYPE, aggregate_mode=0
         )
