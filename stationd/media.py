@@ -224,11 +224,7 @@ class StationMedia(Actor):
             receiver.set_feedback(
                 connection.platform_host, rtcp_port if isinstance(rtcp_port, int) else 0
             )
-            receiver.set_intra_refresh(started.get("intra_refresh") is True)
-            fec = started.get("fec_max_percent")
-            if isinstance(fec, int) and fec > 0 and not receiver.fec:
-                receiver.fec = True  # its FEC decoder is built with the pipeline
-                await receiver.restart()
+            await receiver.follow_sender(started)
         if isinstance(receiver, VideoIn) and stream == "navcam":
             connection.video_latency = receiver.recent_latency_ms
         return {"platform_id": platform_id, **receiver.describe()}

@@ -598,7 +598,6 @@ class VideoIn(PipelineStream):
         """The sender refreshes the picture by intra blocks (its ``intra_refresh``): after a
         loss, decode on (the damage heals within the refresh wave) instead of freezing to a
         keyframe asked for."""
-        self._depay: Any = None
         self.host = host
         self.port = port
         self.sink_factory = sink
@@ -623,10 +622,6 @@ class VideoIn(PipelineStream):
     def destination(self) -> str:
         return f"{self.host}:{self.port}"
 
-    def on_torn_down(self) -> None:
-        super().on_torn_down()
-        self._depay = None
-
     def describe(self) -> dict[str, Any]:
         return {
             **super().describe(),
@@ -644,12 +639,18 @@ class VideoIn(PipelineStream):
         if self.repairs is not None:
             self.repairs.set_feedback(host, port or 0)
 
-    def set_intra_refresh(self, on: bool) -> None:
-        """Follow the sender's ``intra_refresh``; applied live. Event loop."""
-        self.intra_refresh = on
-        if self._depay is not None:
-            self._depay.set_property("wait-for-keyframe", not on)
-            self._depay.set_property("request-keyframe", self.repair and not on)
+    async def follow_sender(self, answer: dict[str, Any]) -> None:
+        """Match the sender's ``intra_refresh`` and FEC (its ``start_stream`` answer): the
+        pipeline is rebuilt when they differ (a depayloader already waiting for a keyframe
+        keeps waiting whatever it is told, and the FEC decoder is placed at build). Loop."""
+        refresh = answer.get("intra_refresh") is True
+        fec_max = answer.get("fec_max_percent")
+        fec = self.fec or (isinstance(fec_max, int) and fec_max > 0)
+        if refresh == self.intra_refresh and fec == self.fec:
+            return
+        self.intra_refresh, self.fec = refresh, fec
+        if self.pipeline is not None:
+            await self.restart()
 
     def gap_stats(self) -> dict[str, Any]:
         """The waits between decoded frames of the recent window: percentiles, and the time
@@ -733,8 +734,6 @@ class VideoIn(PipelineStream):
         if sink.find_property("sync") is not None:
             sink.set_property("sync", False)
         depay = make("rtph264depay", "depay")
-        # After packet loss, freeze until the next keyframe instead of smearing (GOP ≤ 1 s).
-        depay.set_property("wait-for-keyframe", True)
         if decoder.find_property("output-corrupt") is not None:
             decoder.set_property("output-corrupt", False)
         chain += [depay, decoder, make("videoconvert"), sink]
@@ -748,8 +747,12 @@ class VideoIn(PipelineStream):
             self.repairs.set_feedback(*self._feedback)
         else:
             link_all(*chain)
-        self._depay = depay
-        self.set_intra_refresh(self.intra_refresh)
+        # After packet loss, freeze until the next keyframe instead of smearing (GOP ≤ 1 s).
+        # With intra refresh there is no keyframe to wait for or ask for after a loss: the
+        # damage heals within the refresh wave (and a new sweep starts on request).
+        depay.set_property("wait-for-keyframe", not self.intra_refresh)
+        if self.intra_refresh and depay.find_property("request-keyframe") is not None:
+            depay.set_property("request-keyframe", False)
         decoder.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _latency_probe, (weakref.ref(self), ntp_caps())
         )
