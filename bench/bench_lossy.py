@@ -167,6 +167,8 @@ async def _row(
         "g2g_p95_ms": _round(end.get("latency_p95_ms")),
         "kbps": round((end["rtp_bytes"] - start["rtp_bytes"]) * 8 / elapsed / 1000),
         "bitrate_set_kbps": sender.get("bitrate_kbps"),
+        "framerate_sent": sender.get("framerate_sent"),
+        "fec_percent": sender.get("fec_percent"),
         "retransmitted": sender.get("retransmitted", 0) - sender_before.get("retransmitted", 0),
         "keyframe_requests": sender.get("keyframes_requested", 0)
         - sender_before.get("keyframes_requested", 0),

@@ -22,7 +22,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from brasidas.media.bitrate import CONGESTED_LOSS, BitrateController
+from brasidas.media.bitrate import CONGESTED_LOSS, BitrateController, frame_thinning
 from brasidas.media.fanout import Destinations, FanOutStream
 from brasidas.media.gst import (
     NTP64_EXT_ID,
@@ -149,6 +149,10 @@ class VideoOut(FanOutStream[VideoSettings]):
         self._encoder: Any = None
         self._rate_filter: Any = None
         self.keyframes = KeyframeClock(settings.framerate)
+        self.thinning = 1
+        """One frame in ``thinning`` goes to the encoder (the link forced the bitrate far down:
+        :func:`~brasidas.media.bitrate.frame_thinning`); read by the streaming thread."""
+        self._frames_seen = 0
         self.fec_percent = 0
         """The ULPFEC overhead now (percent of the media packets)."""
         self._keyframes_lock = threading.Lock()
@@ -182,6 +186,7 @@ class VideoOut(FanOutStream[VideoSettings]):
             "keyframe_interval_frames": self.keyframes.interval_frames,
             "intra_refresh": self.encoder_name != "" and s.uses_intra_refresh(self.encoder_name),
             "fec_percent": self.fec_percent,
+            "framerate_sent": s.framerate // self.thinning,
             "fec_max_percent": s.fec_max_percent,
             "keyframes_requested": self.keyframes.counters.requested,
             "keyframe_requests_refused": self.keyframes.counters.refused,
@@ -217,6 +222,15 @@ class VideoOut(FanOutStream[VideoSettings]):
             encoder = self._rtpbin.get_by_name("fecenc")
             if encoder is not None:
                 encoder.set_property("percentage", fec)
+        thinning = frame_thinning(
+            self.settings.framerate,
+            self.current_bitrate_kbps(),
+            self.settings.effective_bitrate_kbps(),
+        )
+        if thinning != self.thinning:
+            self.thinning = thinning
+            with self._keyframes_lock:  # its interval counts the frames encoded
+                self.keyframes.set_framerate(max(1, self.settings.framerate // thinning))
         if kbps is not None or fec_changed:
             _set_bitrate(self._encoder, self.encoder_name, self.media_bitrate_kbps())
         return kbps
@@ -336,6 +350,9 @@ class VideoOut(FanOutStream[VideoSettings]):
         self.encoder_name = encoder_name
         self._encoder = encoder
         self._rate_filter = rate_filter
+        rate_filter.get_static_pad("src").add_probe(
+            Gst.PadProbeType.BUFFER, _thinning_probe, weakref.ref(self)
+        )
         return pipeline
 
     def _watch_keyframes(self, encoder: Any, encoder_name: str) -> None:
@@ -444,6 +461,18 @@ def _on_access_unit(appsink: Any, data: tuple[weakref.ref[VideoOut], Any]) -> An
         except Exception:
             pass  # a consumer's failure never stops the stream; it counts its own errors
     return Gst.FlowReturn.OK
+
+
+def _thinning_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
+    """Streaming thread, before the encoder: drop frames while the stream is thinned (the
+    encoder's rate control goes by timestamps: the bits go to the frames sent)."""
+    stream = ref()
+    if stream is None or stream.thinning <= 1:
+        return gst().PadProbeReturn.OK
+    stream._frames_seen += 1
+    if stream._frames_seen % stream.thinning:
+        return gst().PadProbeReturn.DROP
+    return gst().PadProbeReturn.OK
 
 
 def _force_keyframe_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
