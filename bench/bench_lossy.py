@@ -168,6 +168,7 @@ async def _row(
         "kbps": round((end["rtp_bytes"] - start["rtp_bytes"]) * 8 / elapsed / 1000),
         "bitrate_set_kbps": sender.get("bitrate_kbps"),
         "framerate_sent": sender.get("framerate_sent"),
+        "reported_jitter_ms": sender.get("reported_jitter_ms"),
         "fec_percent": sender.get("fec_percent"),
         "retransmitted": sender.get("retransmitted", 0) - sender_before.get("retransmitted", 0),
         "keyframe_requests": sender.get("keyframes_requested", 0)

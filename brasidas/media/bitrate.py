@@ -17,8 +17,9 @@ CLEAN_LOSS = 0.02
 CLIMB = 1.08
 SMOOTHING = 0.5
 """Weight of the newest report in the smoothed loss."""
-COLLAPSE_LOSS = 0.20
-"""A report losing more than this is a capacity drop, not a mesh's random loss: the bitrate
+COLLAPSE_LOSS = 0.35
+"""A report losing more than this is a capacity drop, not a mesh's random loss (a single
+report at 10 % random loss exceeded 20 % now and then, measured): the bitrate
 falls on that report, to what got through, without waiting for the smoothing (measured at
 2 Mbit/s → 500 kbit/s: smoothed alone, three steps and 1.5 s of a full queue dropping)."""
 DECREASE_GAP_S = 0.25
@@ -34,6 +35,8 @@ class BitrateController:
         self.loss = 0.0
         """Smoothed fraction lost of the worst receiver."""
         self.decreases = 0
+        self.collapsed_at: float | None = None
+        """When a report last showed a capacity drop (:data:`COLLAPSE_LOSS`)."""
         self._last_step: float | None = None
 
     def update(self, loss: float | None, ceiling_kbps: int, now: float) -> int | None:
@@ -42,6 +45,8 @@ class BitrateController:
         if loss is not None:
             self.loss = SMOOTHING * loss + (1 - SMOOTHING) * self.loss
         collapse = loss is not None and loss > COLLAPSE_LOSS
+        if collapse:
+            self.collapsed_at = now
         gap = DECREASE_GAP_S if collapse else STEP_S
         if self._last_step is not None and now - self._last_step < gap:
             return None
@@ -65,6 +70,9 @@ class BitrateController:
         return max(self.floor_kbps, round(min(self.target_kbps, float(ceiling_kbps))))
 
 
+THIN_AFTER_COLLAPSE_S = 10.0
+"""Frames are thinned only this long after a capacity drop was seen: a bitrate lowered by a
+mesh's random loss (which loss alone cannot tell apart) keeps every frame."""
 MIN_THINNED_FPS = 10
 """Thinning never sends fewer frames than this (nor thins a stream already at or below it)."""
 

@@ -22,7 +22,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from brasidas.media.bitrate import CONGESTED_LOSS, BitrateController, frame_thinning
+from brasidas.media.bitrate import (
+    CONGESTED_LOSS,
+    THIN_AFTER_COLLAPSE_S,
+    BitrateController,
+    frame_thinning,
+)
 from brasidas.media.fanout import Destinations, FanOutStream
 from brasidas.media.gst import (
     NTP64_EXT_ID,
@@ -153,6 +158,8 @@ class VideoOut(FanOutStream[VideoSettings]):
         """One frame in ``thinning`` goes to the encoder (the link forced the bitrate far down:
         :func:`~brasidas.media.bitrate.frame_thinning`); read by the streaming thread."""
         self._frames_seen = 0
+        self.reported_jitter_ms = 0.0
+        """The newest receiver report's interarrival jitter (a queue building shows here)."""
         self.fec_percent = 0
         """The ULPFEC overhead now (percent of the media packets)."""
         self._keyframes_lock = threading.Lock()
@@ -180,6 +187,7 @@ class VideoOut(FanOutStream[VideoSettings]):
             "bitrate_kbps": self.current_bitrate_kbps(),
             "bitrate_ceiling_kbps": s.effective_bitrate_kbps(),
             "reported_loss": round(self.bitrate.loss, 3),
+            "reported_jitter_ms": self.reported_jitter_ms,
             **self.retransmissions(),
             "rtp_caps": RTP_VIDEO_CAPS,
             "rtcp_port": self.feedback.port if self.feedback is not None else None,
@@ -222,10 +230,15 @@ class VideoOut(FanOutStream[VideoSettings]):
             encoder = self._rtpbin.get_by_name("fecenc")
             if encoder is not None:
                 encoder.set_property("percentage", fec)
-        thinning = frame_thinning(
-            self.settings.framerate,
-            self.current_bitrate_kbps(),
-            self.settings.effective_bitrate_kbps(),
+        collapsed = self.bitrate.collapsed_at
+        thinning = (
+            frame_thinning(
+                self.settings.framerate,
+                self.current_bitrate_kbps(),
+                self.settings.effective_bitrate_kbps(),
+            )
+            if collapsed is not None and now - collapsed < THIN_AFTER_COLLAPSE_S
+            else 1
         )
         if thinning != self.thinning:
             self.thinning = thinning
@@ -259,6 +272,8 @@ class VideoOut(FanOutStream[VideoSettings]):
             self._reports_seen[ssrc] = highest
             _, fraction = source.get_uint("rb-fractionlost")
             worst = max(worst or 0.0, fraction / 256)
+            _, jitter = source.get_uint("rb-jitter")
+            self.reported_jitter_ms = round(jitter / 90, 1)  # 90 kHz RTP clock
         return worst
 
     def request_keyframe(self) -> bool:
