@@ -143,6 +143,10 @@ async def test_the_bitrate_falls_under_a_rate_limit(watching: Fleet) -> None:
             return False
 
     await wait_for(settled, timeout=20, step=0.25)
+    # The drop showed in a report (most packets lost at once): fewer frames are sent, each
+    # with the bits a legible picture needs, before the picture freezes.
+    navcam = await _navcam(fleet)
+    assert navcam["framerate_sent"] < navcam["framerate"], navcam
     # Through the drop the picture went on (repaired, then within capacity).
     frames = (await _receiver(fleet))["frames"]
 
