@@ -23,7 +23,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from brasidas.media.bitrate import (
-    CONGESTED_LOSS,
     THIN_AFTER_COLLAPSE_S,
     BitrateController,
     frame_thinning,
@@ -220,9 +219,10 @@ class VideoOut(FanOutStream[VideoSettings]):
             return None
         loss = self._newest_reported_loss()
         kbps = self.bitrate.update(loss, self.settings.effective_bitrate_kbps(), now)
-        # Over capacity (the controller lowering the rate), FEC would only add to the queue
-        # that drops the packets: it is for a link's random loss.
-        congested = self.bitrate.loss > CONGESTED_LOSS
+        # Right after a capacity drop FEC would only add to the queue that drops the packets:
+        # it is for a link's random loss (which, by loss alone, is any loss but a collapse).
+        collapsed = self.bitrate.collapsed_at
+        congested = collapsed is not None and now - collapsed < THIN_AFTER_COLLAPSE_S
         fec = 0 if congested else fec_percentage(self.bitrate.loss, self.settings.fec_max_percent)
         fec_changed = fec != self.fec_percent
         if fec_changed:
@@ -230,14 +230,13 @@ class VideoOut(FanOutStream[VideoSettings]):
             encoder = self._rtpbin.get_by_name("fecenc")
             if encoder is not None:
                 encoder.set_property("percentage", fec)
-        collapsed = self.bitrate.collapsed_at
         thinning = (
             frame_thinning(
                 self.settings.framerate,
                 self.current_bitrate_kbps(),
                 self.settings.effective_bitrate_kbps(),
             )
-            if collapsed is not None and now - collapsed < THIN_AFTER_COLLAPSE_S
+            if congested
             else 1
         )
         if thinning != self.thinning:
