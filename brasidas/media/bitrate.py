@@ -22,6 +22,7 @@ COLLAPSE_LOSS = 0.35
 report at 10 % random loss exceeded 20 % now and then, measured): the bitrate
 falls on that report, to what got through, without waiting for the smoothing (measured at
 2 Mbit/s → 500 kbit/s: smoothed alone, three steps and 1.5 s of a full queue dropping)."""
+COLLAPSE_CONFIRM_S = 1.0
 DECREASE_GAP_S = 0.25
 """Decreases no closer than this (a report or two apart)."""
 
@@ -36,7 +37,10 @@ class BitrateController:
         """Smoothed fraction lost of the worst receiver."""
         self.decreases = 0
         self.collapsed_at: float | None = None
-        """When a report last showed a capacity drop (:data:`COLLAPSE_LOSS`)."""
+        """When a capacity drop was last confirmed: a second report within
+        :data:`COLLAPSE_CONFIRM_S` losing over :data:`COLLAPSE_LOSS` (a drop persists until
+        the rate falls; under a loaded emulator a single report spiked now and then)."""
+        self._collapse_report_at: float | None = None
         self._last_step: float | None = None
 
     def update(self, loss: float | None, ceiling_kbps: int, now: float) -> int | None:
@@ -46,7 +50,10 @@ class BitrateController:
             self.loss = SMOOTHING * loss + (1 - SMOOTHING) * self.loss
         collapse = loss is not None and loss > COLLAPSE_LOSS
         if collapse:
-            self.collapsed_at = now
+            last = self._collapse_report_at
+            if last is not None and now - last <= COLLAPSE_CONFIRM_S:
+                self.collapsed_at = now
+            self._collapse_report_at = now
         gap = DECREASE_GAP_S if collapse else STEP_S
         if self._last_step is not None and now - self._last_step < gap:
             return None
