@@ -50,7 +50,7 @@ def test_a_capacity_drop_lowers_the_bitrate_on_its_first_report() -> None:
     controller.update(0.66, 1500, 2.0)
     assert controller.effective_kbps(1500) < 500
     assert controller.collapsed_at is None  # one report: not yet a drop to thin frames for
-    controller.update(0.5, 1500, 2.3)  # the queue still overflowing: confirmed
+    controller.update(0.15, 1500, 2.3)  # the queue still overflowing: confirmed
     assert controller.collapsed_at == 2.3
     # A mesh's random loss is not a collapse, even a report at 30 %: the smoothed loss
     # decides (1500 x 0.85 x 0.95), and frames are never thinned for it.

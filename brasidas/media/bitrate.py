@@ -37,9 +37,10 @@ class BitrateController:
         """Smoothed fraction lost of the worst receiver."""
         self.decreases = 0
         self.collapsed_at: float | None = None
-        """When a capacity drop was last confirmed: a second report within
-        :data:`COLLAPSE_CONFIRM_S` losing over :data:`COLLAPSE_LOSS` (a drop persists until
-        the rate falls; under a loaded emulator a single report spiked now and then)."""
+        """When a capacity drop was last confirmed: a report losing over
+        :data:`COLLAPSE_LOSS`, then within :data:`COLLAPSE_CONFIRM_S` another losing over
+        :data:`CONGESTED_LOSS` (the queue still overflowing; under a loaded emulator a single
+        report spiked now and then)."""
         self._collapse_report_at: float | None = None
         self._last_step: float | None = None
 
@@ -49,10 +50,11 @@ class BitrateController:
         if loss is not None:
             self.loss = SMOOTHING * loss + (1 - SMOOTHING) * self.loss
         collapse = loss is not None and loss > COLLAPSE_LOSS
-        if collapse:
-            last = self._collapse_report_at
-            if last is not None and now - last <= COLLAPSE_CONFIRM_S:
+        last = self._collapse_report_at
+        if loss is not None and loss > CONGESTED_LOSS and last is not None:
+            if 0 < now - last <= COLLAPSE_CONFIRM_S:
                 self.collapsed_at = now
+        if collapse:
             self._collapse_report_at = now
         gap = DECREASE_GAP_S if collapse else STEP_S
         if self._last_step is not None and now - self._last_step < gap:
