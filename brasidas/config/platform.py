@@ -398,9 +398,9 @@ class NavCamSection:
     """--sim source: videotestsrc horizontal-speed (pixels per frame); 0 for a still pattern."""
     intra_refresh: bool = False
     """Refresh the picture by a sweep of intra blocks each second instead of a keyframe each
-    second (x264enc): no keyframe bursts. Off by default: x264 answers a forced keyframe
-    (a PLI) under intra refresh with a recovery point, not an IDR, and the station's
-    receivers, which wait for an IDR after a loss, then show nothing."""
+    second (x264enc): no keyframe bursts; a keyframe request starts a new sweep instead of an
+    IDR. The station's receive/view follow it; the console page's feed still needs IDRs, so
+    it is off by default."""
     fec_max_percent: int = setting(0, at_least(0, most=100))
     """Most forward error correction (ULPFEC) overhead on the NavCam, in percent of its
     packets; the share follows the loss the stations report, within the bitrate. 0 (the

@@ -127,8 +127,8 @@ class VideoSettings(Destinations):
     """Periodic intra refresh instead of periodic keyframes, where the encoder has it
     (:data:`INTRA_REFRESH_ENCODERS`): a column of intra blocks sweeps the picture once a
     second, so no frame is a burst many times the others and a loss heals within a second
-    without a keyframe. A keyframe is still made on request (PLI, a new viewer) and every
-    :data:`~brasidas.media.keyframes.REFRESH_KEYFRAME_INTERVAL_S` (recordings, page viewers)."""
+    without a keyframe. x264 answers a force-key-unit (PLI, the keyframe clock) with a new
+    sweep, not an IDR: receivers must decode on (:meth:`VideoIn.follow_sender`)."""
     fec_max_percent: int = 0
     """The most ULPFEC overhead (0 disables FEC): the share follows the reported loss
     (:func:`~brasidas.media.repair.fec_percentage`), within the bitrate."""
