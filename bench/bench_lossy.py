@@ -35,6 +35,8 @@ SECONDS = float(os.environ.get("BENCH_SECONDS", "60"))
 WARMUP_S = 3.0
 BURST_EVERY_S = 5.0
 CAP_DROP_AFTER_S = 5.0
+PLATFORM_SETTINGS = [word for word in os.environ.get("BENCH_PLATFORM_SET", "").split(",") if word]
+"""Extra platform settings for every row (``BENCH_PLATFORM_SET=navcam.intra_refresh=true``)."""
 
 
 @dataclass(frozen=True)
@@ -165,6 +167,9 @@ async def _row(
         "g2g_p95_ms": _round(end.get("latency_p95_ms")),
         "kbps": round((end["rtp_bytes"] - start["rtp_bytes"]) * 8 / elapsed / 1000),
         "bitrate_set_kbps": sender.get("bitrate_kbps"),
+        "framerate_sent": sender.get("framerate_sent"),
+        "reported_jitter_ms": sender.get("reported_jitter_ms"),
+        "fec_percent": sender.get("fec_percent"),
         "retransmitted": sender.get("retransmitted", 0) - sender_before.get("retransmitted", 0),
         "keyframe_requests": sender.get("keyframes_requested", 0)
         - sender_before.get("keyframes_requested", 0),
@@ -204,6 +209,7 @@ async def run() -> dict[str, Any]:
                     f"navcam.idle_framerate={fps}",
                     "navcam.sim_pattern=smpte",
                     "navcam.sim_motion=4",
+                    *PLATFORM_SETTINGS,
                 )
             station = fleet.station(station_host, "lossy-station")
             await fleet.wait_listening(station, "127.0.0.1", 8780, timeout=40)

@@ -224,6 +224,7 @@ class StationMedia(Actor):
             receiver.set_feedback(
                 connection.platform_host, rtcp_port if isinstance(rtcp_port, int) else 0
             )
+            await receiver.follow_sender(started)
         if isinstance(receiver, VideoIn) and stream == "navcam":
             connection.video_latency = receiver.recent_latency_ms
         return {"platform_id": platform_id, **receiver.describe()}

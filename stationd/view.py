@@ -96,6 +96,7 @@ async def _view(args: argparse.Namespace, config: StationConfig) -> int:
         rtcp_port = answer.get("rtcp_port")
         if isinstance(rtcp_port, int) and platform_host:
             receiver.set_feedback(platform_host, rtcp_port)  # NACKs and keyframe requests
+        await receiver.follow_sender(answer)
         print(
             f"{args.id} {args.stream}: {answer.get('width')}x{answer.get('height')} "
             f"@{answer.get('framerate')} fps {answer.get('codec')} on UDP {receiver.port}",

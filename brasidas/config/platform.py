@@ -396,6 +396,17 @@ class NavCamSection:
     """--sim source: a videotestsrc pattern (ball moves; smpte with sim_motion for bandwidth)."""
     sim_motion: int = setting(0, at_least(0, most=1000))
     """--sim source: videotestsrc horizontal-speed (pixels per frame); 0 for a still pattern."""
+    intra_refresh: bool = False
+    """Refresh the picture by a sweep of intra blocks each second instead of a keyframe each
+    second (x264enc): no keyframe bursts; a keyframe request starts a new sweep instead of an
+    IDR. The station's receive/view follow it; the console page's feed still needs IDRs, so
+    it is off by default."""
+    fec_max_percent: int = setting(0, at_least(0, most=100))
+    """Most forward error correction (ULPFEC) overhead on the NavCam, in percent of its
+    packets; the share follows the loss the stations report, within the bitrate. 0 (the
+    default): none. For links whose round trip is too long for retransmission: on a short
+    one, a lost FEC packet holds the complete frames behind it in the receiver's jitter
+    buffer until it is repaired (measured: glass-to-glass p99 over 300 ms at 5 % loss)."""
 
 
 @dataclass(frozen=True)

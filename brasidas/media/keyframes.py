@@ -16,6 +16,10 @@ from dataclasses import dataclass
 
 KEYFRAME_INTERVAL_S = 1.0
 """Periodic keyframes: a new viewer starts within a second, a lost repair heals within one."""
+REFRESH_KEYFRAME_INTERVAL_S = 5.0
+"""The clock's interval under intra refresh: x264 then answers a forced key unit with a new
+refresh sweep (not an IDR), which it makes every second anyway; kept for encoders that would
+make an IDR of it."""
 MIN_REQUEST_GAP_S = 0.25
 """Keyframes on request no closer than this (a keyframe is 5-10 times a delta frame)."""
 

@@ -27,6 +27,8 @@ def navcam_settings(navcam: NavCamSection, *, sim: bool) -> VideoSettings:
         motion=navcam.sim_motion,
         encoder=navcam.encoder,
         port=navcam.port,
+        intra_refresh=navcam.intra_refresh,
+        fec_max_percent=navcam.fec_max_percent,
     )
 
 

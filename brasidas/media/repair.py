@@ -48,6 +48,17 @@ FEEDBACK_BYTES_PER_S = 64000.0
 regular interval, and the default budget (5 % of a guessed 64 kbit/s) spaces those ~50 ms
 apart: half the losses then missed their frame. Measured on loopback at 5 % loss: 16 kB/s
 repaired 93 % of frames, 64 kB/s all of them (RTT 6 ms)."""
+FEC_PAYLOAD_TYPE = 100
+"""ULPFEC (RFC 5109) packets, in the media stream's own sequence (same SSRC and port)."""
+FEC_RTX_PAYLOAD_TYPE = 101
+"""Retransmissions of FEC packets: one lost and never repaired reads as a lost frame."""
+_RTX_PT_MAP = (
+    f"application/x-rtp-pt-map,96=(uint){RTX_PAYLOAD_TYPE},"
+    f"{FEC_PAYLOAD_TYPE}=(uint){FEC_RTX_PAYLOAD_TYPE}"
+)
+FEC_STORAGE_MS = REPAIR_LATENCY_MS + 100
+"""How long the receiver keeps packets to rebuild a lost one from (past the repair wait)."""
+FEC_CAPS = "application/x-rtp,media=video,clock-rate=90000,encoding-name=ULPFEC"
 FEEDBACK_CAPS = (
     "rtcp-fb-nack=(boolean)true,rtcp-fb-nack-pli=(boolean)true,rtcp-fb-ccm-fir=(boolean)true"
 )
@@ -79,6 +90,7 @@ def add_repair_sender(
     ``feedback``. Returns the rtpbin. The elements must already be in ``pipeline``."""
     rtpbin = make("rtpbin", "rtpbin", rtp_profile="avpf")
     rtpbin.connect("request-aux-sender", _aux_sender)
+    rtpbin.connect("request-fec-encoder", _fec_encoder)
     # The reports go nowhere: the receivers need none to ask (NACK, PLI), and sending them
     # would need a second port at each station.
     reports = make("fakesink", "rtcp_reports", sync=False, async_=False)
@@ -93,15 +105,27 @@ def add_repair_sender(
     return rtpbin
 
 
+def _fec_encoder(rtpbin: Any, session: int) -> Any:
+    # Off (0 %) until the receivers report loss: the share follows the link (VideoOut).
+    return make("rtpulpfecenc", "fecenc", pt=FEC_PAYLOAD_TYPE, percentage=0, multipacket=True)
+
+
+def fec_percentage(loss: float, most: int) -> int:
+    """The FEC overhead for a link losing ``loss`` (0-1): none on a clean link, then about
+    three times the loss (one XOR packet rebuilds one loss in its group, so the groups must
+    be short enough to hold at most one loss most of the time), at most ``most``."""
+    if loss < 0.01 or most <= 0:
+        return 0
+    return min(most, max(5, round(300 * loss / 5) * 5))
+
+
 def _aux_sender(rtpbin: Any, session: int) -> Any:
     Gst = gst()
     bin_ = Gst.Bin.new(f"rtx_send_{session}")
     rtx = make(
         "rtprtxsend",
         "rtxsend",
-        payload_type_map=Gst.Structure.new_from_string(
-            f"application/x-rtp-pt-map,96=(uint){RTX_PAYLOAD_TYPE}"
-        ),
+        payload_type_map=Gst.Structure.new_from_string(_RTX_PT_MAP),
         max_size_time=RTX_HISTORY_MS,
         max_size_packets=0,
     )
@@ -124,6 +148,8 @@ class RepairCounters:
     rtt_ms: float | None = None
     keyframe_requests: int = 0
     """Losses the depayloader answered by asking the sender for a keyframe."""
+    fec_recovered: int = 0
+    """Packets rebuilt from the ULPFEC packets, without a retransmission."""
 
 
 @dataclass
@@ -133,6 +159,7 @@ class RepairReceiver:
     rtpbin: Any
     feedback_sink: Any
     jitterbuffers: list[Any] = field(default_factory=list)
+    fec_decoders: list[Any] = field(default_factory=list)
     keyframe_requests: int = 0
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -144,6 +171,9 @@ class RepairReceiver:
         counters = RepairCounters(keyframe_requests=self.keyframe_requests)
         with self._lock:
             buffers = list(self.jitterbuffers)
+            decoders = list(self.fec_decoders)
+        for decoder in decoders:
+            counters.fec_recovered += int(decoder.get_property("recovered"))
         for jitterbuffer in buffers:
             stats = jitterbuffer.get_property("stats")
             counters.lost += _uint(stats, "num-lost")
@@ -162,7 +192,7 @@ def _uint(structure: Any, key: str) -> int:
 
 
 def add_repair_receiver(
-    pipeline: Any, source: Any, depayloader: Any, rtp_caps: str
+    pipeline: Any, source: Any, depayloader: Any, rtp_caps: str, *, fec: bool = False
 ) -> RepairReceiver:
     """Link ``source`` (udpsrc) → rtpbin → ``depayloader`` (linked when the stream's first
     packet arrives) and an RTCP feedback sink (no destination until :meth:`set_feedback`)."""
@@ -186,8 +216,30 @@ def add_repair_receiver(
         f"payload={RTX_PAYLOAD_TYPE},apt=96"
     )
 
+    fec_caps = caps(f"{FEC_CAPS},payload={FEC_PAYLOAD_TYPE}")
+    fec_rtx_caps = caps(
+        f"application/x-rtp,media=video,clock-rate=90000,encoding-name=RTX,"
+        f"payload={FEC_RTX_PAYLOAD_TYPE},apt={FEC_PAYLOAD_TYPE}"
+    )
+
     def pt_map(_bin: Any, _session: int, pt: int) -> Any:
+        if pt == FEC_PAYLOAD_TYPE:
+            return fec_caps
+        if pt == FEC_RTX_PAYLOAD_TYPE:
+            return fec_rtx_caps
         return rtx_caps if pt == RTX_PAYLOAD_TYPE else media_caps
+
+    def fec_decoder(bin_: Any, session: int) -> Any:
+        # After the jitter buffer: a packet it gives up on is rebuilt, if it can be, from the
+        # FEC packets the storage (before the buffer) kept. The FEC packets stop here.
+        decoder = make("rtpulpfecdec", pt=FEC_PAYLOAD_TYPE)
+        decoder.set_property("storage", bin_.emit("get-internal-storage", session))
+        with receiver._lock:
+            receiver.fec_decoders.append(decoder)
+        return decoder
+
+    def new_storage(_bin: Any, storage: Any, _session: int) -> None:
+        storage.set_property("size-time", FEC_STORAGE_MS * 1_000_000)
 
     def new_jitterbuffer(_bin: Any, jitterbuffer: Any, _session: int, _ssrc: int) -> None:
         # Ask for a missing packet at once (a reordered one costs a NACK, a wait costs a frame).
@@ -202,6 +254,14 @@ def add_repair_receiver(
     def pad_added(_bin: Any, pad: Any) -> None:
         if not pad.get_name().startswith("recv_rtp_src_"):
             return
+        if pad.get_name().endswith(f"_{FEC_PAYLOAD_TYPE}"):
+            # The FEC packets, kept by the storage for the decoder: nothing more to do with
+            # them (unlinked, their flow error would stop the stream).
+            sink = make("fakesink", sync=False, async_=False)
+            pipeline.add(sink)
+            sink.sync_state_with_parent()
+            pad.link(sink.get_static_pad("sink"))
+            return
         # A new SSRC is the sender rebuilt (a camera came back): follow it, drop the old.
         sink = depayloader.get_static_pad("sink")
         old = sink.get_peer()
@@ -212,6 +272,12 @@ def add_repair_receiver(
     rtpbin.connect("request-pt-map", pt_map)
     rtpbin.connect("request-aux-receiver", _aux_receiver)
     rtpbin.connect("new-jitterbuffer", new_jitterbuffer)
+    if fec:
+        # Only where the sender was set to send FEC: the decoder sits between the jitter
+        # buffer and the depayloader, and measured under load the keyframe request after a
+        # cut then came late or not at all.
+        rtpbin.connect("new-storage", new_storage)
+        rtpbin.connect("request-fec-decoder", fec_decoder)
     rtpbin.connect("pad-added", pad_added)
     source.set_property("caps", media_caps)
     for element in (rtpbin, feedback_sink):
@@ -243,9 +309,7 @@ def _aux_receiver(rtpbin: Any, session: int) -> Any:
     # Mapped the same way as the sender's: original payload type → retransmission's.
     rtx = make(
         "rtprtxreceive",
-        payload_type_map=Gst.Structure.new_from_string(
-            f"application/x-rtp-pt-map,96=(uint){RTX_PAYLOAD_TYPE}"
-        ),
+        payload_type_map=Gst.Structure.new_from_string(_RTX_PT_MAP),
     )
     bin_.add(rtx)
     bin_.add_pad(Gst.GhostPad.new(f"src_{session}", rtx.get_static_pad("src")))

@@ -22,7 +22,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from brasidas.media.bitrate import BitrateController
+from brasidas.media.bitrate import (
+    THIN_AFTER_COLLAPSE_S,
+    BitrateController,
+    frame_thinning,
+)
 from brasidas.media.fanout import Destinations, FanOutStream
 from brasidas.media.gst import (
     NTP64_EXT_ID,
@@ -39,13 +43,19 @@ from brasidas.media.gst import (
     set_prop,
     stamp_capture_time,
 )
-from brasidas.media.keyframes import KeyframeClock
+from brasidas.media.keyframes import (
+    KEYFRAME_INTERVAL_S,
+    REFRESH_KEYFRAME_INTERVAL_S,
+    KeyframeClock,
+)
 from brasidas.media.pipeline import PipelineStream, StreamState
 from brasidas.media.repair import (
+    FEC_PAYLOAD_TYPE,
     FeedbackSocket,
     RepairReceiver,
     add_repair_receiver,
     add_repair_sender,
+    fec_percentage,
 )
 
 ENCODERS: tuple[str, ...] = ("v4l2h264enc", "omxh264enc", "x264enc", "openh264enc")
@@ -60,6 +70,9 @@ RTP_VIDEO_CAPS = (
 TAP_QUEUE_BUFFERS = 30
 VIDEO_DSCP = 34
 """AF41, interactive video: below the velocity stream's EF on a link that honours DSCP."""
+INTRA_REFRESH_ENCODERS = ("x264enc",)
+"""Encoders whose GStreamer element exposes periodic intra refresh. (openh264enc does not;
+the Pi's v4l2h264enc and omxh264enc were not available here to verify a control.)"""
 ENCODER_GOP_S = 10
 """The encoder's own keyframe interval, a backstop only: :class:`KeyframeClock` forces the
 keyframes, at the current framerate (the encoders' own settings cannot change while running)."""
@@ -110,6 +123,18 @@ class VideoSettings(Destinations):
     """RTCP feedback, retransmission on NACK, keyframes on PLI (:mod:`brasidas.media.repair`)."""
     rtcp_port: int = 0
     """Where receivers send their RTCP feedback (0: a free port, announced as ``rtcp_port``)."""
+    intra_refresh: bool = False
+    """Periodic intra refresh instead of periodic keyframes, where the encoder has it
+    (:data:`INTRA_REFRESH_ENCODERS`): a column of intra blocks sweeps the picture once a
+    second, so no frame is a burst many times the others and a loss heals within a second
+    without a keyframe. x264 answers a force-key-unit (PLI, the keyframe clock) with a new
+    sweep, not an IDR: receivers must decode on (:meth:`VideoIn.follow_sender`)."""
+    fec_max_percent: int = 0
+    """The most ULPFEC overhead (0 disables FEC): the share follows the reported loss
+    (:func:`~brasidas.media.repair.fec_percentage`), within the bitrate."""
+
+    def uses_intra_refresh(self, encoder_name: str) -> bool:
+        return self.intra_refresh and encoder_name in INTRA_REFRESH_ENCODERS
 
     def effective_bitrate_kbps(self) -> int:
         """Bitrate for the current framerate: 5 fps monitoring needs a sixth of 30 fps."""
@@ -128,6 +153,14 @@ class VideoOut(FanOutStream[VideoSettings]):
         self._encoder: Any = None
         self._rate_filter: Any = None
         self.keyframes = KeyframeClock(settings.framerate)
+        self.thinning = 1
+        """One frame in ``thinning`` goes to the encoder (the link forced the bitrate far down:
+        :func:`~brasidas.media.bitrate.frame_thinning`); read by the streaming thread."""
+        self._frames_seen = 0
+        self.reported_jitter_ms = 0.0
+        """The newest receiver report's interarrival jitter (a queue building shows here)."""
+        self.fec_percent = 0
+        """The ULPFEC overhead now (percent of the media packets)."""
         self._keyframes_lock = threading.Lock()
         """The clock is used by the streaming thread, RTCP's thread and the event loop."""
         self._forced_seqnums: collections.deque[int] = collections.deque(maxlen=8)
@@ -153,10 +186,15 @@ class VideoOut(FanOutStream[VideoSettings]):
             "bitrate_kbps": self.current_bitrate_kbps(),
             "bitrate_ceiling_kbps": s.effective_bitrate_kbps(),
             "reported_loss": round(self.bitrate.loss, 3),
+            "reported_jitter_ms": self.reported_jitter_ms,
             **self.retransmissions(),
             "rtp_caps": RTP_VIDEO_CAPS,
             "rtcp_port": self.feedback.port if self.feedback is not None else None,
             "keyframe_interval_frames": self.keyframes.interval_frames,
+            "intra_refresh": self.encoder_name != "" and s.uses_intra_refresh(self.encoder_name),
+            "fec_percent": self.fec_percent,
+            "framerate_sent": s.framerate // self.thinning,
+            "fec_max_percent": s.fec_max_percent,
             "keyframes_requested": self.keyframes.counters.requested,
             "keyframe_requests_refused": self.keyframes.counters.refused,
         }
@@ -181,9 +219,39 @@ class VideoOut(FanOutStream[VideoSettings]):
             return None
         loss = self._newest_reported_loss()
         kbps = self.bitrate.update(loss, self.settings.effective_bitrate_kbps(), now)
-        if kbps is not None:
-            _set_bitrate(self._encoder, self.encoder_name, kbps)
+        # Right after a capacity drop FEC would only add to the queue that drops the packets:
+        # it is for a link's random loss (which, by loss alone, is any loss but a collapse).
+        collapsed = self.bitrate.collapsed_at
+        congested = collapsed is not None and now - collapsed < THIN_AFTER_COLLAPSE_S
+        fec = 0 if congested else fec_percentage(self.bitrate.loss, self.settings.fec_max_percent)
+        fec_changed = fec != self.fec_percent
+        if fec_changed:
+            self.fec_percent = fec
+            encoder = self._rtpbin.get_by_name("fecenc")
+            if encoder is not None:
+                encoder.set_property("percentage", fec)
+        thinning = (
+            frame_thinning(
+                self.settings.framerate,
+                self.current_bitrate_kbps(),
+                self.settings.effective_bitrate_kbps(),
+            )
+            if congested
+            else 1
+        )
+        if thinning != self.thinning:
+            self.thinning = thinning
+            with self._keyframes_lock:  # its interval counts the frames encoded
+                self.keyframes.set_framerate(max(1, self.settings.framerate // thinning))
+        if kbps is not None or fec_changed:
+            _set_bitrate(self._encoder, self.encoder_name, self.media_bitrate_kbps())
         return kbps
+
+    def media_bitrate_kbps(self) -> int:
+        """The encoder's share of the bitrate: the FEC packets are carried within it."""
+        return max(
+            MIN_BITRATE_KBPS, round(self.current_bitrate_kbps() * 100 / (100 + self.fec_percent))
+        )
 
     def _newest_reported_loss(self) -> float | None:
         """The worst fraction lost among the receivers' reports new since the last look."""
@@ -203,6 +271,8 @@ class VideoOut(FanOutStream[VideoSettings]):
             self._reports_seen[ssrc] = highest
             _, fraction = source.get_uint("rb-fractionlost")
             worst = max(worst or 0.0, fraction / 256)
+            _, jitter = source.get_uint("rb-jitter")
+            self.reported_jitter_ms = round(jitter / 90, 1)  # 90 kHz RTP clock
         return worst
 
     def request_keyframe(self) -> bool:
@@ -219,7 +289,10 @@ class VideoOut(FanOutStream[VideoSettings]):
         with self._keyframes_lock:
             self.keyframes.set_framerate(fps)
         if self._encoder is not None and self._rate_filter is not None:
-            _set_bitrate(self._encoder, self.encoder_name, self.current_bitrate_kbps())
+            _set_bitrate(self._encoder, self.encoder_name, self.media_bitrate_kbps())
+            if s.uses_intra_refresh(self.encoder_name):
+                # x264 reads it when the new caps restart it: one refresh wave a second.
+                _set_keyframe_interval(self._encoder, self.encoder_name, fps)
             # New caps renegotiate downstream: the encoder restarts with the new rate.
             self._rate_filter.set_property("caps", caps(f"video/x-raw,framerate={fps}/1"))
 
@@ -244,8 +317,13 @@ class VideoOut(FanOutStream[VideoSettings]):
         convert = make("videoconvert")
         encoder = make(encoder_name, "encoder")
         _configure_encoder(encoder, encoder_name, s)
-        _set_bitrate(encoder, encoder_name, self.current_bitrate_kbps())  # as adapted so far
-        h264_filter = make("capsfilter", caps=caps(_h264_caps(encoder_name)))
+        _set_bitrate(encoder, encoder_name, self.media_bitrate_kbps())  # as adapted so far
+        h264_caps = _h264_caps(encoder_name)
+        if s.uses_intra_refresh(encoder_name):
+            # Byte-stream: x264 then repeats SPS/PPS at the start of every refresh wave, so a
+            # receiver that missed the first IDR (there is no other) can start within a second.
+            h264_caps += ",stream-format=byte-stream"
+        h264_filter = make("capsfilter", caps=caps(h264_caps))
         pay = make(
             "rtph264pay", "pay", config_interval=-1, mtu=s.mtu, pt=PAYLOAD_TYPE, aggregate_mode=0
         )
@@ -282,19 +360,26 @@ class VideoOut(FanOutStream[VideoSettings]):
             link_all(pay, sink)
         if tap:
             self._add_tap(pipeline, tap[0])
-        self._watch_keyframes(encoder)
+        self._watch_keyframes(encoder, encoder_name)
         self.encoder_name = encoder_name
         self._encoder = encoder
         self._rate_filter = rate_filter
+        rate_filter.get_static_pad("src").add_probe(
+            Gst.PadProbeType.BUFFER, _thinning_probe, weakref.ref(self)
+        )
         return pipeline
 
-    def _watch_keyframes(self, encoder: Any) -> None:
+    def _watch_keyframes(self, encoder: Any, encoder_name: str) -> None:
         """Force the clock's keyframes into the encoder; take a receiver's requests (the
         force-key-unit events rtpbin makes of PLI/FIR, or a depayloader's) through its limit."""
         Gst = gst()
         ref = weakref.ref(self)
+        refresh = self.settings.uses_intra_refresh(encoder_name)
         with self._keyframes_lock:
             self.keyframes.restart()
+            self.keyframes.interval_s = (
+                REFRESH_KEYFRAME_INTERVAL_S if refresh else KEYFRAME_INTERVAL_S
+            )
             self.keyframes.set_framerate(self.settings.framerate)
         encoder.get_static_pad("sink").add_probe(
             Gst.PadProbeType.BUFFER, _force_keyframe_probe, ref
@@ -392,6 +477,18 @@ def _on_access_unit(appsink: Any, data: tuple[weakref.ref[VideoOut], Any]) -> An
     return Gst.FlowReturn.OK
 
 
+def _thinning_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
+    """Streaming thread, before the encoder: drop frames while the stream is thinned (the
+    encoder's rate control goes by timestamps: the bits go to the frames sent)."""
+    stream = ref()
+    if stream is None or stream.thinning <= 1:
+        return gst().PadProbeReturn.OK
+    stream._frames_seen += 1
+    if stream._frames_seen % stream.thinning:
+        return gst().PadProbeReturn.DROP
+    return gst().PadProbeReturn.OK
+
+
 def _force_keyframe_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
     """Streaming thread, before a raw frame enters the encoder: force it to a keyframe when
     the clock says so (the encoder applies a pending force-key-unit to its next frame). The
@@ -452,6 +549,8 @@ def _configure_encoder(encoder: Any, name: str, s: VideoSettings) -> None:
         set_prop(encoder, "threads", 1)
         set_prop(encoder, "sliced-threads", False)
         set_prop(encoder, "bitrate", kbps)
+        if s.uses_intra_refresh(name):
+            set_prop(encoder, "intra-refresh", True)
     elif name == "openh264enc":
         encoder.set_property("bitrate", kbps * 1000)
         _nick(encoder, "rate-control", "bitrate")
@@ -471,7 +570,11 @@ def _configure_encoder(encoder: Any, name: str, s: VideoSettings) -> None:
         _nick(encoder, "control-rate", "variable")
         if encoder.find_property("inline-header") is not None:
             encoder.set_property("inline-header", True)
-    _set_keyframe_interval(encoder, name, ENCODER_GOP_S * s.camera_framerate)
+    if s.uses_intra_refresh(name):
+        # With intra refresh, x264's interval is the refresh wave's length: one a second.
+        _set_keyframe_interval(encoder, name, s.framerate)
+    else:
+        _set_keyframe_interval(encoder, name, ENCODER_GOP_S * s.camera_framerate)
 
 
 def _set_bitrate(encoder: Any, name: str, kbps: int) -> None:
@@ -524,13 +627,20 @@ class VideoIn(PipelineStream):
         jitter_ms: int = 0,
         window: int = 2000,
         repair: bool = True,
+        fec: bool = False,
         **kwargs: Any,
     ) -> None:
         super().__init__(name, **kwargs)
         self.repair = repair
+        self.fec = fec
+        """Rebuild lost packets from the sender's ULPFEC (``navcam.fec_max_percent``)."""
         """Ask the sender for lost packets and keyframes (its ``rtcp_port``: set_feedback)."""
         self.repairs: RepairReceiver | None = None
         self._feedback: tuple[str, int] = ("", 0)
+        self.intra_refresh = False
+        """The sender refreshes the picture by intra blocks (its ``intra_refresh``): after a
+        loss, decode on (the damage heals within the refresh wave) instead of freezing to a
+        keyframe asked for."""
         self.host = host
         self.port = port
         self.sink_factory = sink
@@ -571,6 +681,19 @@ class VideoIn(PipelineStream):
         self._feedback = (host, port or 0)
         if self.repairs is not None:
             self.repairs.set_feedback(host, port or 0)
+
+    async def follow_sender(self, answer: dict[str, Any]) -> None:
+        """Match the sender's ``intra_refresh`` and FEC (its ``start_stream`` answer): the
+        pipeline is rebuilt when they differ (a depayloader already waiting for a keyframe
+        keeps waiting whatever it is told, and the FEC decoder is placed at build). Loop."""
+        refresh = answer.get("intra_refresh") is True
+        fec_max = answer.get("fec_max_percent")
+        fec = self.fec or (isinstance(fec_max, int) and fec_max > 0)
+        if refresh == self.intra_refresh and fec == self.fec:
+            return
+        self.intra_refresh, self.fec = refresh, fec
+        if self.pipeline is not None:
+            await self.restart()
 
     def gap_stats(self) -> dict[str, Any]:
         """The waits between decoded frames of the recent window: percentiles, and the time
@@ -654,8 +777,6 @@ class VideoIn(PipelineStream):
         if sink.find_property("sync") is not None:
             sink.set_property("sync", False)
         depay = make("rtph264depay", "depay")
-        # After packet loss, freeze until the next keyframe instead of smearing (GOP ≤ 1 s).
-        depay.set_property("wait-for-keyframe", True)
         if decoder.find_property("output-corrupt") is not None:
             decoder.set_property("output-corrupt", False)
         chain += [depay, decoder, make("videoconvert"), sink]
@@ -663,10 +784,18 @@ class VideoIn(PipelineStream):
             pipeline.add(element)
         if self.repair:
             link_all(*chain[1:])
-            self.repairs = add_repair_receiver(pipeline, source, depay, RTP_VIDEO_CAPS)
+            self.repairs = add_repair_receiver(
+                pipeline, source, depay, RTP_VIDEO_CAPS, fec=self.fec
+            )
             self.repairs.set_feedback(*self._feedback)
         else:
             link_all(*chain)
+        # After packet loss, freeze until the next keyframe instead of smearing (GOP ≤ 1 s).
+        # With intra refresh there is no keyframe to wait for or ask for after a loss: the
+        # damage heals within the refresh wave (and a new sweep starts on request).
+        depay.set_property("wait-for-keyframe", not self.intra_refresh)
+        if self.intra_refresh and depay.find_property("request-keyframe") is not None:
+            depay.set_property("request-keyframe", False)
         decoder.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _latency_probe, (weakref.ref(self), ntp_caps())
         )
@@ -701,6 +830,7 @@ def _bytes_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
     if stream is not None and buffer is not None:
         stream.rtp_bytes += buffer.get_size()
         header = buffer.extract_dup(0, 4)
-        if len(header) == 4 and header[1] & 0x7F == PAYLOAD_TYPE:  # not retransmissions
+        # The media and its FEC share one sequence; retransmissions have their own.
+        if len(header) == 4 and header[1] & 0x7F in (PAYLOAD_TYPE, FEC_PAYLOAD_TYPE):
             stream.count_packet(int.from_bytes(header[2:4], "big"))
     return gst().PadProbeReturn.OK
