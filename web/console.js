@@ -11,6 +11,7 @@ import { startLayout } from "./layout.js";
 import { startMapFiles } from "./mapfiles.js";
 import { startNotifications } from "./notifications.js";
 import { startPatrol } from "./patrol.js";
+import { startPerception } from "./perception.js";
 import { plotPoints, startPlots } from "./plots.js";
 import { startRecordings } from "./recordings.js";
 import { startSafety } from "./safety.js";
@@ -34,6 +35,7 @@ startToolbar();
 startGoTo();
 startHome();
 startTiles();
+startPerception();
 
 // What tests and benchmarks read (the page's CSP allows no eval of their own).
 window.navcam = {
