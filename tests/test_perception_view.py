@@ -5,6 +5,7 @@ daemon: the ``lidar_view`` section, ``get_grid`` and the recorder's ``/grid`` an
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import math
 import zlib
@@ -14,7 +15,7 @@ from typing import Any
 import numpy as np
 import orjson
 import pytest
-from conftest import until_armable, wait_until
+from conftest import running_station, until_armable, wait_until
 from test_lidar import clearance, obstacles_file, robot_factory
 from test_patrol_platform import LAT, LON, RTK, Robot, at
 
@@ -165,6 +166,15 @@ async def test_through_the_daemon_the_scan_grid_and_fused_pose_are_shown_and_rec
     await wait_until(post_in_scan, 20)
     await wait_until(lambda: (v := view()) is not None and v.fused_lat is not None, 30)
     await wait_until(lambda: (v := view()) is not None and v.grid_rev > 0, 30)
+
+    def past_it() -> bool:  # and the grid made again since: it holds the post's scans
+        pose = robot.vehicle.pose()
+        return robot.local(pose.latitude, pose.longitude)[0] > post[0] + 2
+
+    await wait_until(past_it, 40)
+    rev = view()
+    assert rev is not None
+    await wait_until(lambda: (v := view()) is not None and v.grid_rev > rev.grid_rev, 15)
     grid = grid_from_json(await robot.call("get_grid"))
     frame = LocalFrame(grid.latitude, grid.longitude)
     x, y = frame.to_local(*LocalFrame(LAT, LON).to_geo(post[0], post[1] - post[2]))
@@ -177,9 +187,11 @@ async def test_through_the_daemon_the_scan_grid_and_fused_pose_are_shown_and_rec
         and math.dist(
             (grid.x_m + (c + 0.5) * grid.cell_m, grid.y_m + (r + 0.5) * grid.cell_m), (x, y)
         )
-        < 0.6
+        < 1.5
     ]
-    assert near and max(near) >= 65, near  # the post's near face is an obstacle in the grid
+    # The post is an obstacle in the grid where it is, give or take the fused pose's error
+    # (the grid is drawn at the fused pose, not the simulator's truth).
+    assert near and max(near) >= 65, near
     fused = robot.ctx.bus.last(topics.FUSED_POSE)
     assert fused is not None
     await robot.daemon.stop()
@@ -194,3 +206,53 @@ async def test_through_the_daemon_the_scan_grid_and_fused_pose_are_shown_and_rec
                 counts[channel.topic] = counts.get(channel.topic, 0) + 1
     assert counts.get("/grid", 0) >= 1 and counts.get("/pose/fused", 0) >= 1, counts
     assert counts.get("/pose/fused/local", 0) >= 1 and counts.get("/lidar/scan", 0) >= 1
+
+
+async def test_a_foxglove_client_gets_the_scan_the_grid_and_the_fused_pose(
+    platform_factory: Any, fleet_key: bytes, tmp_path: Path
+) -> None:
+    """Foxglove live (a real ``@foxglove/ws-protocol`` client): the platform's scan, occupancy
+    grid and fused pose, from its telemetry and ``get_grid``, while it drives past a post."""
+    from test_foxglove_live import subscribe
+    from test_patrol_platform import config
+    from test_station import run_cli
+
+    from stationd.foxglove_live import FoxgloveLive
+
+    post = (10.0, 3.0, 0.4)
+    platform = await platform_factory(
+        config(
+            tmp_path,
+            "platform.id=rover-lv",
+            *RTK,
+            "lidar.enabled=true",
+            f"lidar.grid_file={tmp_path / 'grid.npz'}",
+            f"sim.obstacles_file={obstacles_file(tmp_path, post)}",
+        ),
+        fleet_key,
+    )
+    await platform.ctx.rpc.call_local("set_waypoints", waypoints=[at(0, 0), at(40, 0)])
+    await until_armable(platform.ctx)
+    await platform.ctx.rpc.call_local("patrol_start")
+    async with running_station(fleet_key, "foxglove.port=0") as station:
+        (live,) = [a for a in station.supervisor.actors if isinstance(a, FoxgloveLive)]
+        await asyncio.wait_for(live.serving.wait(), 30)
+        code, _, err = await run_cli(
+            station, "connect", "rover-lv", "--url", platform.ctx.signaling_url
+        )
+        assert code == 0, err
+        wanted = ("/rover-lv/lidar/scan", "/rover-lv/pose/fused", "/rover-lv/grid")
+        lines = await subscribe(live.port, 1, *wanted)
+    messages = {line["topic"]: line for line in lines if "topic" in line}
+    assert set(messages) == set(wanted), lines
+    scan = messages["/rover-lv/lidar/scan"]
+    assert scan["schema"] == "foxglove.LaserScan" and len(scan["json"]["ranges"]) == 72
+    assert any(r > 0 for r in scan["json"]["ranges"])
+    fused = messages["/rover-lv/pose/fused"]["json"]
+    assert abs(fused["latitude"] - LAT) < 0.001 and abs(fused["longitude"] - LON) < 0.001
+    grid = messages["/rover-lv/grid"]
+    assert grid["schema"] == "foxglove.Grid" and grid["json"]["frame_id"] == "grid"
+    assert grid["json"]["fields"] == [{"name": "occupancy", "offset": 0, "type": 1}]
+    assert grid["json"]["column_count"] > 10 and grid["json"]["cell_size"]["x"] >= 0.1
+    # (The client keeps the first 48 bytes of the cells; the cells are checked in full above.)
+    assert grid["bytes"] > grid["json"]["column_count"] * 10
