@@ -92,7 +92,7 @@ def test_a_logged_scan_becomes_a_revolution_of_ld19_frames() -> None:
     assert at(270.0) == pytest.approx(2.0, abs=0.002)  # left = 270° clockwise
     assert at(90.0) == pytest.approx(1.25, abs=0.002)
     assert at(180.0) == 0.0 and at(45.0) == 0.0  # behind; 20 m (45° right) beyond reach
-    assert len(angles) == replay.points == 444
+    assert len(angles) == replay.points == 360  # 1° readings: 1° apart, all round
 
 
 def test_the_pipeline_on_a_simulated_log_uses_its_odometry_as_the_prior() -> None:

@@ -2,8 +2,9 @@
 sample logs made from the simulator for the tests and the benchmark.
 
 :class:`CarmenReplay` (sans-IO) turns each logged scan into one revolution of the configured
-model's frames (LD19: 450 points, 12 a frame, angles clockwise from the sensor's zero), each
-of its points the log's reading in that direction (none where the log's field of view does
+model's frames (12 points a frame, angles clockwise from the sensor's zero, at the log's
+angular resolution: 360 points for 1° readings), each of its points the log's reading in that
+direction (none where the log's field of view does
 not reach, beyond the model's range or the log's maximum), and gives the log's odometry
 between two scans as the motion prior (forward speed, turn rate), as the commanded speed and
 the gyro are on the robot. ``brasidas-platform simulate lidar --carmen FILE`` writes the frames
@@ -62,10 +63,19 @@ class CarmenReplay:
         self.log = log
         self.config = config
         self.model = MODELS[config.model]
-        points = round(self.model.points_per_s / self.model.rate_hz)
-        self.points = points - points % POINTS_PER_FRAME
-        self.step_deg = 360.0 / self.points
         self.speed_dps = round(360.0 * self.model.rate_hz)
+        self.points = 0
+        """Points in the last revolution made: the log's angular resolution over 360° (the
+        sensor's own density varies with its speed, so the frames may carry the log's
+        directions exactly rather than resampled)."""
+
+    def grid(self, scan: CarmenScan) -> tuple[int, float]:
+        """Points a revolution for ``scan`` (a whole number of frames) and their spacing (°)."""
+        angles = np.sort(np.asarray(scan.angles_rad))
+        spacing = math.degrees(float(np.median(np.diff(angles)))) if len(angles) > 1 else 1.0
+        points = max(POINTS_PER_FRAME, round(360.0 / max(0.05, spacing)))
+        points += -points % POINTS_PER_FRAME
+        return points, 360.0 / points
 
     def ranges(self, scan: CarmenScan) -> np.ndarray:
         """The revolution's ranges (m; 0: none), point k at k·step clockwise from the zero."""
@@ -73,7 +83,8 @@ class CarmenReplay:
         ranges = np.asarray(scan.ranges_m)
         order = np.argsort(angles)
         angles, ranges = angles[order], ranges[order]
-        sensor = np.arange(self.points) * self.step_deg
+        points, step_deg = self.grid(scan)
+        sensor = np.arange(points) * step_deg
         # The sensor's zero is turned yaw_deg from forward; its angles grow clockwise.
         ccw = np.radians(self.config.yaw_deg - sensor)
         ccw = (ccw + math.pi) % (2 * math.pi) - math.pi
@@ -90,11 +101,12 @@ class CarmenReplay:
     def revolution(self, scan: CarmenScan, now: float) -> bytes:
         """The frames of one revolution showing ``scan``, stamped ``now`` (s)."""
         ranges_mm = np.round(self.ranges(scan) * 1000).astype(int)
+        self.points, step_deg = self.grid(scan)
         frames = []
         for first in range(0, self.points, POINTS_PER_FRAME):
             chunk = ranges_mm[first : first + POINTS_PER_FRAME]
-            start = first * self.step_deg
-            end = (first + POINTS_PER_FRAME - 1) * self.step_deg
+            start = first * step_deg
+            end = (first + POINTS_PER_FRAME - 1) * step_deg
             intensities = [200 if r > 0 else 0 for r in chunk]
             frames.append(
                 encode_frame(
