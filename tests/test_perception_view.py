@@ -256,3 +256,48 @@ async def test_a_foxglove_client_gets_the_scan_the_grid_and_the_fused_pose(
     assert grid["json"]["column_count"] > 10 and grid["json"]["cell_size"]["x"] >= 0.1
     # (The client keeps the first 48 bytes of the cells; the cells are checked in full above.)
     assert grid["bytes"] > grid["json"]["column_count"] * 10
+
+
+def test_a_planner_change_geos_cannot_make_falls_back_to_a_full_build(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The town bench's stuck patrol: after many lidar keep-outs came and went, GEOS could not
+    difference the free space ("Ring edge missing") and every later map revision failed, the
+    patrol holding. The worker builds the graph again from the map instead."""
+    import socket
+    import threading
+
+    import shapely.errors
+
+    from brasidas.autonomy.areamap import parse_map
+    from brasidas.autonomy.planner import Planner
+    from brasidas.autonomy.planner_worker import _Worker
+    from platformd.sim.demo_area import demo_map, offset
+
+    area = parse_map(demo_map(LAT, LON))
+    ring = [list(reversed(offset(LAT, LON, x, y))) for x, y in ((5, 5), (6, 5), (6, 6), (5, 5))]
+    post = {
+        "type": "Feature",
+        "id": "lidar:1",
+        "properties": {"role": "keepout", "source": "lidar"},
+        "geometry": {"type": "Polygon", "coordinates": [ring]},
+    }
+    changed = area.with_keepouts([post])
+    left, right = socket.socketpair()
+    try:
+        worker = _Worker(left)
+        worker.area = area
+        worker.planner = Planner(area.boundary, area.keepouts, 2.0)
+
+        def broken(*_args: Any, **_kwargs: Any) -> Any:
+            raise shapely.errors.GEOSException("TopologyException: Ring edge missing at 19.5 4.1")
+
+        monkeypatch.setattr(Planner, "changed", broken)
+        planner, incremental = worker._planner_for(changed, 2.0, threading.Event())
+        assert not incremental  # built again from the map, with the post in it
+        start = area.frame.to_local(*offset(LAT, LON, 0.0, 0.0))
+        corner = area.frame.to_local(*offset(LAT, LON, 40.0, 30.0))
+        assert len(planner.plan(start, corner).points) >= 2
+    finally:
+        left.close()
+        right.close()
