@@ -6,8 +6,8 @@ rover) among 25 unmapped obstacles (posts 0.2-0.5 m, seeded, some on the loop, a
 light of a bright day (``sim.lux`` 60,000). Against the simulator's truth, sampled every
 50 ms:
 
-- **collisions**: the vehicle's centre nearer an obstacle's edge than the body's half-width
-  (:data:`BODY_RADIUS_M`); pedestrians counted apart, and only while the vehicle moves
+- **collisions**: contacts, the vehicle's centre coming nearer an obstacle's edge than the
+  body's half-width (:data:`BODY_RADIUS_M`), each counted once; pedestrians counted apart, and only while the vehicle moves
   (one walking into a standing robot is not the robot's doing);
 - **laps completed**: laps finished within :data:`LAP_TIMEOUT_S` each, of those attempted;
   a lap that times out is counted stuck, with the patrol's state and reason;
@@ -148,7 +148,7 @@ async def run() -> dict[str, Any]:
         await ctx.rpc.call_local("patrol_start")
         posts_xy = np.array([(x, y, r) for x, y, r in posts])
         previous: tuple[float, float] | None = None
-        was_stopped = False
+        was_stopped = was_touching = False
         lap_started = time.monotonic()
         last_lap = 0
         while laps_done + len(stuck) < LAPS:
@@ -162,7 +162,9 @@ async def run() -> dict[str, Any]:
             edges = np.hypot(posts_xy[:, 0] - x, posts_xy[:, 1] - y) - posts_xy[:, 2]
             nearest_post = float(edges.min())
             min_clearance = min(min_clearance, nearest_post)
-            collisions += nearest_post < BODY_RADIUS_M
+            touching = nearest_post < BODY_RADIUS_M
+            collisions += touching and not was_touching  # each contact once, not each sample
+            was_touching = touching
             people = world.pedestrians_at(time.monotonic())
             nearest_person = (
                 float((np.hypot(people[:, 0] - x, people[:, 1] - y) - people[:, 2]).min())
