@@ -103,6 +103,26 @@ def _segment_distance(x: float, y: float, segments: np.ndarray) -> float:
     return float(np.min(np.hypot(x0 + t * dx - x, y0 + t * dy - y)))
 
 
+def _contact(pose: Any, x: float, y: float, post: np.ndarray, ctx: Any) -> str:
+    """What a contact looked like: the post's bearing from the vehicle's heading, its speed,
+    the lidar's limits and why, the patrol's state (for finding the cause)."""
+    bearing = math.degrees(math.atan2(post[1] - y, post[0] - x) - pose.yaw_rad)
+    bearing = (bearing + 180.0) % 360.0 - 180.0
+    proximity = ctx.bus.last(topics.PROXIMITY)
+    status = ctx.bus.last(topics.PATROL_STATUS)
+    limits = (
+        f"limits {proximity.forward_limit:.2f}/{proximity.reverse_limit:.2f} "
+        f"'{proximity.reason}' nearest {proximity.nearest_m}"
+        if proximity is not None
+        else "no lidar limits"
+    )
+    return (
+        f"post r={post[2]:.2f} at {bearing:+.0f}° (counter-clockwise from ahead), "
+        f"speed {pose.speed_mps:+.2f} m/s; {limits}; "
+        f"patrol {status.state.value if status else '?'}"
+    )
+
+
 async def run() -> dict[str, Any]:
     from platformd.app import PlatformDaemon
 
@@ -133,6 +153,7 @@ async def run() -> dict[str, Any]:
     driven = 0.0
     laps_done = 0
     stuck: list[str] = []
+    contacts: list[str] = []
     lap_times: list[float] = []
     try:
         ctx = daemon.ctx
@@ -163,7 +184,10 @@ async def run() -> dict[str, Any]:
             nearest_post = float(edges.min())
             min_clearance = min(min_clearance, nearest_post)
             touching = nearest_post < BODY_RADIUS_M
-            collisions += touching and not was_touching  # each contact once, not each sample
+            if touching and not was_touching:  # each contact once, not each sample
+                collisions += 1
+                if len(contacts) < 5:
+                    contacts.append(_contact(pose, x, y, posts_xy[int(edges.argmin())], ctx))
             was_touching = touching
             people = world.pedestrians_at(time.monotonic())
             nearest_person = (
@@ -211,6 +235,7 @@ async def run() -> dict[str, Any]:
         "town_lidar_driven_km": round(km, 3),
         "town_lidar_lap_s_median": round(float(np.median(lap_times)), 1) if lap_times else None,
         "town_lidar_stuck": stuck[:5],
+        "town_lidar_contacts": contacts,
         "town_lidar_obstacles": OBSTACLES,
         "town_lidar_pedestrians": PEDESTRIANS,
         "town_lidar_lux": LUX,
