@@ -260,7 +260,10 @@ def _localization(model: str = "ld19", *, spoofing: bool = True) -> dict[str, An
 
 
 async def run() -> dict[str, Any]:
+    from bench.perception_carmen import carmen_rows
+
     localization = await asyncio.to_thread(_localization)
+    localization |= await asyncio.to_thread(carmen_rows)
     localization |= await asyncio.to_thread(_localization, "stl27l", spoofing=False)
     rig = Rig(seed=1)
     load = os.getloadavg()
@@ -292,6 +295,6 @@ async def run() -> dict[str, Any]:
         "cpu_reader_and_analysis_pct_of_core": round(100 * pipeline / wall, 1),
         "cpu_per_scan_ms": round(1000 * pipeline / max(1, scans), 2),
         "loadavg_1m": round(load[0], 2),
-        "not_measured": "town laps, CARMEN replay (issue 30 note)",
+        "not_measured": "town laps: make bench town",
     }
     return figures | localization

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from brasidas.bus import Topic
 from brasidas.messages import (
     ArmingState,
@@ -36,7 +38,10 @@ from brasidas.messages import (
     Velocity,
     VelocityLinkStats,
 )
-from brasidas.perception.messages import Proximity, RobotScan
+from brasidas.perception.messages import FusedPosition, Proximity, RobotScan
+
+if TYPE_CHECKING:  # numpy: not for every importer of the topics
+    from brasidas.perception.view import GridImage
 
 # Signaling
 SESSION_OPENED: Topic[SessionOpened] = Topic("session_opened")
@@ -129,3 +134,7 @@ LIDAR_SCAN: Topic[RobotScan] = Topic("lidar_scan", retain=True)
 """Each lidar revolution in the robot's frame, with its obstacles (platformd.lidar)."""
 PROXIMITY: Topic[Proximity] = Topic("proximity", retain=True)
 """Speed limits for what the lidar sees (platformd.lidar); the motion arbiter applies them."""
+FUSED_POSE: Topic[FusedPosition] = Topic("fused_pose", retain=True)
+"""The lidar localization's fused pose, at most 5 a second (platformd.perception_view)."""
+OCCUPANCY_GRID: Topic[GridImage] = Topic("occupancy_grid", retain=True)
+"""The occupancy grid as a small image, every few seconds while it changes (likewise)."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import functools
 import importlib
 import logging
 import signal
@@ -60,6 +61,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="device to simulate: " + ", ".join(sorted(SIMULATORS))
         if SIMULATORS
         else "device to simulate",
+    )
+    simulate.add_argument(
+        "--carmen",
+        metavar="FILE",
+        help="lidar: replay a CARMEN log's scans (FLASER, ROBOTLASER1) instead of the world",
     )
     return parser
 
@@ -197,6 +203,13 @@ def _simulate(args: argparse.Namespace, config: PlatformConfig) -> int:
         return 2
     module_name, _, function_name = target.partition(":")
     serve = getattr(importlib.import_module(module_name), function_name)
+    if getattr(args, "carmen", None):
+        if args.device != "lidar":
+            print("brasidas-platform: --carmen is for the lidar", file=sys.stderr)
+            return 2
+        from platformd.sim.carmen import serve_log
+
+        serve = functools.partial(lambda log, c: serve_log(log, c.lidar), args.carmen)
 
     async def runner() -> None:
         stop = stop_on_signals()

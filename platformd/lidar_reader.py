@@ -292,6 +292,9 @@ async def async_setup(ctx: PlatformContext) -> None:
         )
         ctx.telemetry.add_counters("localization", reader.localizer.counters)
         ctx.supervisor.start(reader.localizer)
+    from platformd import perception_view  # the scan, grid and fused pose shown
+
+    perception_view.start(ctx, reader)
     if config.map_obstacles:
         from platformd import obstacle_zones  # the patrol's temporary keep-outs
 

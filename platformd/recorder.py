@@ -20,7 +20,7 @@ import logging
 import secrets
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from aiohttp import web
 
@@ -41,7 +41,7 @@ from brasidas.messages import (
     StreamStatus,
     Velocity,
 )
-from brasidas.perception.messages import RobotScan
+from brasidas.perception.messages import FusedPosition, RobotScan
 from brasidas.recording import SESSION_HEADER, projection, schemas
 from brasidas.recording.projection import HDOP_TO_SIGMA_M, StateChange
 from brasidas.recording.schemas import LOG_INFO, LOG_WARNING, ChannelSpec
@@ -57,6 +57,9 @@ from brasidas.rpc import peer_host
 from brasidas.security import state_dir
 from platformd.context import PlatformContext
 from platformd.recording_download import send_file
+
+if TYPE_CHECKING:
+    from brasidas.perception.view import GridImage
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -107,6 +110,7 @@ class PlatformRecorder(Actor):
         self._path: tuple[tuple[float, float], ...] | None = None
         self._patrol_state = ""
         self._scan_at = -1e9
+        self._fused_at = -1e9
         self._map_task: asyncio.Task[None] | None = None
 
     # ------------------------------------------------------------------ lifecycle
@@ -182,6 +186,8 @@ class PlatformRecorder(Actor):
         self.subscribe(topics.SESSION_CLOSED, self._on_session_closed)
         self.subscribe(topics.PATROL_STATUS, self._on_patrol)
         self.subscribe(topics.LIDAR_SCAN, self._on_scan)
+        self.subscribe(topics.FUSED_POSE, self._on_fused_pose)
+        self.subscribe(topics.OCCUPANCY_GRID, self._on_grid)
 
     def _velocity(self, spec: ChannelSpec) -> Any:
         def record(message: Velocity) -> None:
@@ -235,6 +241,29 @@ class PlatformRecorder(Actor):
             scan,
             lambda s: schemas.encode_laser_scan(now, s.bearings_deg, s.ranges_m),
         )
+
+    def _on_fused_pose(self, pose: FusedPosition) -> None:
+        """The lidar localization's pose, at most ``LIDAR_HZ`` a second: on the globe, and in
+        the grid's frame (where ``/grid`` is drawn)."""
+        if pose.time - self._fused_at < 1.0 / LIDAR_HZ:
+            return
+        self._fused_at = pose.time
+        now = time.time_ns()
+        self._submit(
+            schemas.FUSED_POSE,
+            pose,
+            lambda p: schemas.encode_location(now, p.latitude, p.longitude, None, p.sigma_m),
+        )
+        self._submit(
+            schemas.FUSED_POSE_LOCAL,
+            pose,
+            lambda p: schemas.encode_pose(now, p.x_m, p.y_m, p.yaw_rad, schemas.GRID_FRAME),
+        )
+
+    def _on_grid(self, image: GridImage) -> None:
+        """The occupancy grid as ``foxglove.Grid``, as often as the platform remakes it."""
+        now = time.time_ns()
+        self._submit(schemas.OCCUPANCY_GRID, image, lambda i: projection.grid_message(i, now).data)
 
     def _on_command(self, message: CommandReceived) -> None:
         self._submit(schemas.COMMANDS, message, schemas.encode_command)

@@ -31,6 +31,7 @@ SUBSYSTEMS: tuple[str, ...] = (
     "stationd.patrol",
     "stationd.arming",
     "stationd.mapfiles",
+    "stationd.perception",
     "stationd.recordings",
     "stationd.console",
     "stationd.foxglove_live",  # after the console: it shares its video feeds

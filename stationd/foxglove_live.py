@@ -8,7 +8,9 @@ first platform, and prefixed by its id (``/rover-2/gps``) for each other connect
 command and the velocity source it came from (the motion section), state changes (failsafe,
 control, override, streams, patrol) from the station's telemetry link; the system commands
 this station sends (``/commands``); the station's notifications as ``foxglove.Log``; the area
-map and the planned route as ``foxglove.GeoJSON``; and the NavCam as
+map and the planned route as ``foxglove.GeoJSON``; the lidar's scan (``/lidar/scan``, in 5°
+sectors), fused pose (``/pose/fused``) and occupancy grid (``/grid``, fetched when its
+revision moves); and the NavCam as
 ``foxglove.CompressedVideo`` while a client subscribes to it (the console's shared feed, no
 re-encoding). ``/pose/local`` is not served: telemetry carries no local frame. Read-only: the
 server advertises no client publishing, services or parameters; control goes through the
@@ -34,8 +36,9 @@ from foxglove.websocket import ChannelView, Client, ServerListener
 from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.codecs.jsonrpc import RpcError
-from brasidas.codecs.telemetry_schema import Autonomy, Section, Snapshot
+from brasidas.codecs.telemetry_schema import Autonomy, LidarView, Section, Snapshot
 from brasidas.messages import CommandSent, PlatformLink, StationNotification, TelemetrySnapshot
+from brasidas.perception.view import GridRefused, grid_from_json
 from brasidas.recording import projection, schemas
 from brasidas.recording.projection import StateChange
 from brasidas.recording.schemas import ChannelSpec
@@ -110,6 +113,7 @@ class _PlatformChannels:
         :data:`REPUBLISH_NS` unchanged, so a client that subscribes later gets it too."""
         self.states: dict[str, StateChange] = {}
         self.map_rev: int | None = None
+        self.grid_rev = 0
         self.map_data: bytes | None = None
         """The area map last published: again to each new subscriber (it changes rarely)."""
         self.last_note: tuple[bytes, int] | None = None
@@ -302,6 +306,10 @@ class FoxgloveLive(Actor):
         if autonomy is not None and autonomy.map_rev != platform.map_rev:
             platform.map_rev = autonomy.map_rev
             await self._map(platform)
+        view = snapshot.get(LidarView)
+        if view is not None and view.grid_rev and view.grid_rev != platform.grid_rev:
+            platform.grid_rev = view.grid_rev
+            await self._grid(platform)
 
     async def _map(self, platform: _PlatformChannels) -> None:
         with contextlib.suppress(RpcError, ConnectionError, TimeoutError):
@@ -309,6 +317,16 @@ class FoxgloveLive(Actor):
             if isinstance(answer, dict) and answer.get("map") is not None:
                 platform.map_data = schemas.encode_geojson(answer["map"])
                 platform.log(schemas.MAP, platform.map_data, time.time_ns())
+
+    async def _grid(self, platform: _PlatformChannels) -> None:
+        """The occupancy grid (``/grid``, foxglove.Grid), fetched when its revision moves."""
+        with contextlib.suppress(RpcError, ConnectionError, TimeoutError, GridRefused):
+            answer = await self.ctx.api.call_local(
+                "perception_grid", platform_id=platform.platform_id
+            )
+            if isinstance(answer, dict) and answer.get("rev"):
+                message = projection.grid_message(grid_from_json(answer), time.time_ns())
+                platform.log(message.spec, message.data, message.time_ns)
 
     # ------------------------------------------------------------------ video (loop)
 

@@ -7,9 +7,6 @@ from __future__ import annotations
 
 import asyncio
 import base64
-import json
-import os
-import shutil
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -17,6 +14,7 @@ from typing import Any
 from conftest import quiet_platform_config, running_station, wait_until
 from mcap.reader import make_reader
 from support.cli import run_cli
+from support.foxglove import subscribe
 
 from brasidas import topics
 from brasidas.recording import schemas as recorded
@@ -25,41 +23,6 @@ from stationd.foxglove_live import FoxgloveLive
 from stationd.foxglove_subprotocol import LEGACY
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
-CLIENT = Path(__file__).parent / "foxglove_client"
-"""The client script; its packages are the repository's (package.json, ``make deps``)."""
-NODE = shutil.which("node")
-
-
-async def subscribe(
-    port: int, count: int, *topics: str, offer: str | None = None
-) -> list[dict[str, Any]]:
-    """Run the Node client until it has ``count`` messages of every topic; its JSON lines
-    (``offer``: the subprotocols it offers, comma-separated; both names by default)."""
-    assert NODE is not None, "no node: `make deps` installs it"
-    env = {**os.environ, "SUBPROTOCOLS": offer} if offer else None
-    process = await asyncio.create_subprocess_exec(
-        NODE,
-        str(CLIENT / "subscribe.cjs"),
-        f"ws://127.0.0.1:{port}",
-        str(count),
-        *topics,
-        cwd=CLIENT,
-        env=env,
-        stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.PIPE,
-    )
-    try:
-        out, err = await asyncio.wait_for(process.communicate(), 60)
-    except TimeoutError:
-        process.terminate()  # the client says what it still misses
-        _out, err = await process.communicate()
-        raise AssertionError(f"the client timed out: {err.decode()[-1500:]}") from None
-    finally:
-        if process.returncode is None:
-            process.kill()
-            await process.wait()
-    assert process.returncode == 0, err.decode()
-    return [json.loads(line) for line in out.decode().splitlines() if line.strip()]
 
 
 def topics_of(path: Path) -> dict[str, str]:

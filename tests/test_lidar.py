@@ -4,9 +4,7 @@ collision prevention through the running --sim daemon (patrol and hand driving).
 from __future__ import annotations
 
 import asyncio
-import json
 import math
-from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +12,8 @@ import numpy as np
 import pytest
 from conftest import until_armable, wait_until
 from shapely.geometry import Polygon
-from support.patrol import LAT, LON, RTK, Robot, at, config
+from support.lidar import clearance, obstacles_file
+from support.patrol import RTK, Robot, at
 
 from brasidas import topics
 from brasidas.bus import Bus
@@ -24,11 +23,9 @@ from brasidas.config.lidar import LidarSection
 from brasidas.messages import Velocity
 from brasidas.perception.messages import Proximity
 from brasidas.perception.proximity import Geometry, proximity, to_robot
-from platformd.app import PlatformDaemon
 from platformd.lidar_reader import LidarReader
 from platformd.mode import ModeArbiter
 from platformd.session_table import Session
-from platformd.sim.demo_area import offset
 from platformd.sim.lidar import LidarSimulator, LidarWorld, ScanGenerator
 from platformd.sim.vehicle import VehicleModel
 
@@ -115,47 +112,6 @@ async def test_simulator_bytes_through_the_reader_on_a_pty() -> None:
     # 2.5 m ahead at 1 m/s top speed: not limited.
     assert last.forward_limit == 1.0
     assert reader.last is not None and len(reader.last.obstacles) == 1
-
-
-@pytest.fixture
-async def robot_factory(tmp_path: Path) -> AsyncIterator[Callable[..., Awaitable[Robot]]]:
-    """--sim platforms as test_patrol_platform's (an 18 km/h rover), stopped after the test."""
-    started: list[tuple[PlatformDaemon, Robot]] = []
-
-    async def start(*overrides: str) -> Robot:
-        daemon = PlatformDaemon(config(tmp_path, *overrides), None)
-        await daemon.start()
-        robot = Robot(daemon)
-        started.append((daemon, robot))
-        await wait_until(lambda: daemon.ctx.bus.last(topics.POSE) is not None, 10)
-        return robot
-
-    yield start
-    for daemon, robot in started:
-        robot.close()
-        await daemon.stop()
-
-
-def obstacles_file(tmp_path: Path, *discs: tuple[float, float, float]) -> str:
-    features = []
-    for east, north, radius in discs:
-        lat, lon = offset(LAT, LON, east, north)
-        features.append(
-            {
-                "type": "Feature",
-                "properties": {"radius_m": radius},
-                "geometry": {"type": "Point", "coordinates": [lon, lat]},
-            }
-        )
-    path = tmp_path / "obstacles.geojson"
-    path.write_text(json.dumps({"type": "FeatureCollection", "features": features}))
-    return str(path)
-
-
-def clearance(robot: Robot, east: float, north: float, radius: float) -> float:
-    """From the true vehicle's centre to the obstacle's edge."""
-    pose = robot.vehicle.pose()
-    return math.dist(robot.local(pose.latitude, pose.longitude), (east, north)) - radius
 
 
 async def test_patrol_stops_for_an_obstacle_the_map_does_not_have(

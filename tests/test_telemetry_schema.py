@@ -27,6 +27,7 @@ from brasidas.codecs.telemetry_schema import (
     Gps,
     GpsReader,
     Imu,
+    LidarView,
     Lights,
     Link,
     Motion,
@@ -89,6 +90,7 @@ FULL: dict[type[Section], SectionValue] = {
     # No lidar fitted (the default): the full snapshot is within 7 bytes of one datagram
     # already; a lidar's section round-trips in tests/test_lidar.py.
     Perception: None,
+    LidarView: None,  # likewise: tests/test_perception_view.py
     Diagnostics: None,
 }  # fmt: skip
 

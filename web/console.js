@@ -11,6 +11,7 @@ import { startLayout } from "./layout.js";
 import { startMapFiles } from "./mapfiles.js";
 import { startNotifications } from "./notifications.js";
 import { startPatrol } from "./patrol.js";
+import { startPerception } from "./perception.js";
 import { plotPoints, startPlots } from "./plots.js";
 import { startRecordings } from "./recordings.js";
 import { startSafety } from "./safety.js";
@@ -36,6 +37,7 @@ startGoTo();
 startHome();
 startTiles();
 startValues();
+startPerception();
 
 // What tests and benchmarks read (the page's CSP allows no eval of their own).
 window.navcam = {

@@ -289,7 +289,8 @@ export class PlatformMap {
       style: (feature) => {
         const role = feature?.properties?.role ?? "";
         const keepout = role === "keepout";
-        return { color: keepout ? "#d66a6a" : "#7aa2d6", weight: keepout ? 2 : 1, fillOpacity: keepout ? 0.3 : 0.15, className: className(role) };
+        const seen = keepout && feature?.properties?.source === "lidar"; // lidar:N, temporary
+        return { color: seen ? "#ffb347" : keepout ? "#d66a6a" : "#7aa2d6", weight: keepout ? 2 : 1, fillOpacity: keepout ? 0.3 : 0.15, className: `${className(role)}${seen ? " area-lidar" : ""}` };
       },
       onEachFeature: (feature, layer) => {
         if (feature?.properties?.role === "keepout" && feature.id != null) layer.bindTooltip(`keep-out ${feature.id}`);

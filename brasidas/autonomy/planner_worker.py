@@ -174,6 +174,7 @@ class _Worker:
         """The last graph changed by the keep-outs added and removed, when it is the same
         boundary and clearance and a few changes; else a new graph."""
         import shapely
+        import shapely.errors
 
         from brasidas.autonomy.planner import Planner
 
@@ -193,7 +194,13 @@ class _Worker:
             removed = [key for key in before.keepouts if key not in kept]
             added = {key: zone for key, zone in area.keepouts.items() if key not in kept}
             if len(removed) + len(added) <= INCREMENTAL_MOST:
-                return planner.changed(added, removed, cancelled), True
+                try:
+                    return planner.changed(added, removed, cancelled), True
+                except shapely.errors.GEOSException:
+                    # Cut and reopened many times (the lidar's keep-outs coming and going),
+                    # the free space can gather slivers GEOS cannot difference ("Ring edge
+                    # missing"): build it again from the map (the answer says not incremental).
+                    pass
         return Planner(area.boundary, area.keepouts, clearance, cancelled), False
 
     def _plan(self, header: dict[str, Any]) -> None:

@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
-SCHEMA_VERSION = 14
+SCHEMA_VERSION = 15
 """Version of the schema (and the datagram layout); the first byte of every datagram.
 4: the failsafe, speed_cap and turret sections, the velocity link's ``held`` drops.
 5: the lights' ``errors`` (GPIO lines), the turret's ``streams``.
@@ -35,7 +35,8 @@ SCHEMA_VERSION = 14
 11: the arming section (armed, pre-arm reasons, autostart countdown, last stop; issue 27).
 12: the perception section (the lidar: scan rate, nearest obstacle, speed limit and why).
 13: the autonomy section's ``home`` (the route's home, else the first fix; issue 31).
-14: perception's localization (source, uncertainty) and GPS gate (accepted, refused, why)."""
+14: perception's localization (source, uncertainty) and GPS gate (accepted, refused, why).
+15: the lidar_view section (the scan in 5° sectors, the fused pose, the grid's revision)."""
 ERROR_KEY = "!"
 """A section's wire map holding only this key is that section's error."""
 STALE_PERIODS = 3.0
@@ -502,6 +503,30 @@ class Perception(Section):
     )
 
 
+@dataclass(frozen=True)
+class LidarView(Section):
+    """What the operator is shown of the lidar (:mod:`brasidas.perception.view`): the latest
+    scan, coarse, the fused pose, and the occupancy grid's revision (the grid itself is asked
+    for with ``get_grid``: too large for a datagram)."""
+
+    NAME = "lidar_view"
+    WIRE = "lv"
+    ranges_dm: tuple[int, ...] = field(
+        default=(),
+        metadata=wire(
+            "r", doc="nearest return in each 5° sector clockwise from forward, dm; 0 none"
+        ),
+    )
+    fused_lat: float | None = field(default=None, metadata=wire("la", unit="°", doc="fused pose"))
+    fused_lon: float | None = field(default=None, metadata=wire("lo", unit="°"))
+    fused_heading_deg: float | None = field(
+        default=None, metadata=wire("hd", unit="°", doc="fused heading, clockwise from north")
+    )
+    grid_rev: int = field(
+        default=0, metadata=wire("g", doc="the occupancy grid's revision (0: none yet)")
+    )
+
+
 SECTIONS: tuple[type[Section], ...] = (
     Override,
     Lights,
@@ -526,6 +551,7 @@ SECTIONS: tuple[type[Section], ...] = (
     Admission,
     RecorderStatus,
     Perception,
+    LidarView,
     Diagnostics,
 )
 """Every top-level section, in snapshot order."""

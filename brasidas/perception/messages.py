@@ -47,3 +47,21 @@ class Proximity:
     """Its bearing, clockwise from the robot's forward axis."""
     reason: str
     """Why the limit is what it is ("" when the way is clear)."""
+
+
+@dataclass(frozen=True)
+class FusedPosition:
+    """The lidar localization's fused pose on the globe (platformd.perception_view)."""
+
+    time: float
+    latitude: float
+    longitude: float
+    heading_deg: float
+    """Clockwise from north."""
+    x_m: float
+    """In the localizer's local frame (east, north of its anchor), as recorded."""
+    y_m: float
+    yaw_rad: float
+    """Counter-clockwise from east."""
+    sigma_m: float
+    source: str

@@ -5,7 +5,8 @@ things the same way.
 :func:`channel_messages` takes the snapshot published before and the one now (the typed
 :class:`~brasidas.codecs.telemetry_schema.Snapshot`, the one read model) and returns what to
 log: each changed section on its telemetry channel, the well-known channels it feeds
-(positions, the motor command and its source, the route) and the ``/state`` changes it shows.
+(positions, the motor command and its source, the route, the lidar's
+scan and fused pose) and the ``/state`` changes it shows.
 No I/O, no clock: the time is a parameter.
 """
 
@@ -13,11 +14,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from brasidas.codecs.telemetry_schema import (
     Autonomy,
     Failsafe,
     Gps,
+    LidarView,
     Motion,
     Override,
     Pose,
@@ -28,6 +31,9 @@ from brasidas.codecs.telemetry_schema import (
 )
 from brasidas.recording import schemas
 from brasidas.recording.schemas import ChannelSpec
+
+if TYPE_CHECKING:  # numpy: not for every reader of the projection
+    from brasidas.perception.view import GridImage
 
 HDOP_TO_SIGMA_M = 2.5
 """A fix's position uncertainty (1 sigma, m) per unit of HDOP (the recorder's and Foxglove's)."""
@@ -96,7 +102,25 @@ def derived_messages(value: Section, time_ns: int) -> list[ChannelMessage]:
     elif isinstance(value, Autonomy):
         path = [(float(p[0]), float(p[1])) for p in value.path if len(p) >= 2]
         return [ChannelMessage(schemas.ROUTE, schemas.encode_path(path), time_ns)]
+    elif isinstance(value, LidarView):
+        out = []
+        if value.ranges_dm:
+            scan = schemas.encode_sector_scan(time_ns, value.ranges_dm)
+            out.append(ChannelMessage(schemas.LIDAR_SCAN, scan, time_ns))
+        if value.fused_lat is not None and value.fused_lon is not None:
+            fix = schemas.encode_location(time_ns, value.fused_lat, value.fused_lon, None, None)
+            out.append(ChannelMessage(schemas.FUSED_POSE, fix, time_ns))
+        return out
     return []
+
+
+def grid_message(image: GridImage, time_ns: int) -> ChannelMessage:
+    """The occupancy grid on ``/grid`` (foxglove.Grid), as the recorder and Foxglove live
+    publish it."""
+    data = schemas.encode_grid(
+        time_ns, image.x_m, image.y_m, image.cell_m, image.columns, image.cells
+    )
+    return ChannelMessage(schemas.OCCUPANCY_GRID, data, time_ns)
 
 
 def state_changes(value: Section) -> list[StateChange]:

@@ -139,6 +139,36 @@ LASER_SCAN = _object(
     },
 )
 
+GRID = _object(
+    "foxglove.Grid",
+    {
+        "timestamp": _TIME,
+        "frame_id": {"type": "string"},
+        "pose": _object("foxglove.Pose", {"position": _VECTOR3, "orientation": _QUATERNION}),
+        "column_count": {"type": "integer", "minimum": 0},
+        "cell_size": _object(
+            "foxglove.Vector2", {"x": {"type": "number"}, "y": {"type": "number"}}
+        ),
+        "row_stride": {"type": "integer", "minimum": 0},
+        "cell_stride": {"type": "integer", "minimum": 0},
+        "fields": {
+            "type": "array",
+            "items": _object(
+                "foxglove.PackedElementField",
+                {
+                    "name": {"type": "string"},
+                    "offset": {"type": "integer", "minimum": 0},
+                    "type": {"type": "integer", "description": "1 UINT8"},
+                },
+            ),
+        },
+        "data": {"type": "string", "contentEncoding": "base64"},
+    },
+)
+GRID_FRAME = "grid"
+"""The frame of the occupancy grid and the fused pose: the lidar localization's (x east,
+y north, metres from the grid's anchor; not ``local``, the GPS+IMU localization's)."""
+
 LOG_DEBUG, LOG_INFO, LOG_WARNING, LOG_ERROR = 1, 2, 3, 4
 
 
@@ -191,6 +221,9 @@ AUTONOMY_VELOCITY = ChannelSpec("/velocity/autonomy", "brasidas.Velocity", VELOC
 MOTOR_COMMAND = ChannelSpec("/motor/command", "brasidas.Velocity", VELOCITY)
 STATE = ChannelSpec("/state", "brasidas.StateChange", STATE_CHANGE)
 LIDAR_SCAN = ChannelSpec("/lidar/scan", "foxglove.LaserScan", LASER_SCAN)
+OCCUPANCY_GRID = ChannelSpec("/grid", "foxglove.Grid", GRID)
+FUSED_POSE = ChannelSpec("/pose/fused", "foxglove.LocationFix", LOCATION_FIX)
+FUSED_POSE_LOCAL = ChannelSpec("/pose/fused/local", "foxglove.PoseInFrame", POSE_IN_FRAME)
 TELEMETRY: dict[type[Section], ChannelSpec] = {
     cls: ChannelSpec(f"/telemetry/{cls.NAME}", f"brasidas.telemetry.{cls.__name__}", {})
     for cls in SECTIONS
@@ -221,6 +254,9 @@ def all_channels() -> list[ChannelSpec]:
         AUTONOMY_VELOCITY,
         MOTOR_COMMAND,
         LIDAR_SCAN,
+        OCCUPANCY_GRID,
+        FUSED_POSE,
+        FUSED_POSE_LOCAL,
         *(telemetry_channel(cls) for cls in SECTIONS),
     ]
 
@@ -250,13 +286,15 @@ def encode_location(
     )
 
 
-def encode_pose(time_ns: int, x_m: float, y_m: float, yaw_rad: float) -> bytes:
+def encode_pose(
+    time_ns: int, x_m: float, y_m: float, yaw_rad: float, frame_id: str = "local"
+) -> bytes:
     """foxglove.PoseInFrame in the localization's local frame (x east, y north, yaw about z)."""
     half = yaw_rad / 2
     return orjson.dumps(
         {
             "timestamp": stamp(time_ns),
-            "frame_id": "local",
+            "frame_id": frame_id,
             "pose": {
                 "position": {"x": x_m, "y": y_m, "z": 0.0},
                 "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(half), "w": math.cos(half)},
@@ -287,6 +325,56 @@ def encode_laser_scan(
             "end_angle": math.radians(359.0),
             "ranges": ranges,
             "intensities": [],
+        }
+    )
+
+
+def encode_sector_scan(time_ns: int, ranges_dm: Sequence[int]) -> bytes:
+    """foxglove.LaserScan from the telemetry's sectors (:mod:`brasidas.perception.view`: the
+    nearest return of each sector clockwise from forward, dm): the same channel as the
+    recorder's full scan, one range a sector counter-clockwise from forward."""
+    count = len(ranges_dm)
+    ranges = [ranges_dm[(count - k) % count] / 10 for k in range(count)] if count else []
+    return orjson.dumps(
+        {
+            "timestamp": stamp(time_ns),
+            "frame_id": "base_link",
+            "pose": {
+                "position": {"x": 0.0, "y": 0.0, "z": 0.0},
+                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+            },
+            "start_angle": 0.0,
+            "end_angle": 2 * math.pi * (count - 1) / count if count else 0.0,
+            "ranges": ranges,
+            "intensities": [],
+        }
+    )
+
+
+def encode_grid(
+    time_ns: int,
+    x_m: float,
+    y_m: float,
+    cell_m: float,
+    columns: int,
+    cells: bytes,
+) -> bytes:
+    """foxglove.Grid in :data:`GRID_FRAME`: one UINT8 ``occupancy`` a cell (percent, 255 never
+    seen), row 0 the southernmost, its corner at (``x_m``, ``y_m``)."""
+    return orjson.dumps(
+        {
+            "timestamp": stamp(time_ns),
+            "frame_id": GRID_FRAME,
+            "pose": {
+                "position": {"x": x_m, "y": y_m, "z": 0.0},
+                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+            },
+            "column_count": columns,
+            "cell_size": {"x": cell_m, "y": cell_m},
+            "row_stride": columns,
+            "cell_stride": 1,
+            "fields": [{"name": "occupancy", "offset": 0, "type": 1}],
+            "data": base64.b64encode(cells).decode("ascii"),
         }
     )
 
