@@ -111,9 +111,10 @@ async def test_a_loss_beyond_repair_asks_the_encoder_for_a_keyframe(watching: Fl
 
     await wait_for(flowing, timeout=40, step=0.5)
     asked = (await _navcam(fleet))["keyframes_requested"]
-    # A cut longer than the repair budget: those frames are gone, the depayloader asks.
+    # A cut longer than the repair budget: those frames are gone, the depayloader asks. Five
+    # budgets long, so that a loaded machine's late scheduling cannot stretch the budget over it.
     relay.cut()
-    await asyncio.sleep(REPAIR_LATENCY_MS / 1000 * 2)
+    await asyncio.sleep(REPAIR_LATENCY_MS / 1000 * 5)
     relay.restore()
     frames = (await _receiver(fleet))["frames"]
 
