@@ -17,7 +17,7 @@ was being made: the next period makes it again.
 from __future__ import annotations
 
 import asyncio
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from brasidas import topics
 from brasidas.actor import Actor
@@ -25,12 +25,20 @@ from brasidas.bus import Bus
 from brasidas.clock import Clock, sleep
 from brasidas.codecs.jsonrpc import CallContext
 from brasidas.codecs.telemetry_schema import LidarView
-from brasidas.perception.messages import FusedPosition
+from brasidas.perception.messages import FusedPosition, RobotScan
 from brasidas.perception.view import GridImage, grid_image, heading_deg, sector_ranges
 
 if TYPE_CHECKING:
     from platformd.context import PlatformContext
-    from platformd.lidar_reader import LidarReader
+    from platformd.lidar_localization import Localizer
+
+
+class LidarReader(Protocol):
+    """What the view reads of platformd.lidar_reader's reader (which starts the view)."""
+
+    clock: Clock
+    last: RobotScan | None
+    localizer: Localizer | None
 
 POSE_PERIOD_S = 0.2
 GRID_PERIOD_S = 5.0
