@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import quiet_platform_config, wait_until
+from conftest import quiet_platform_config, until_armable, wait_until
 
 from brasidas import topics
 from brasidas.config import PlatformConfig
@@ -91,6 +91,8 @@ class Robot:
         return report
 
     async def call(self, method: str, **params: Any) -> Any:
+        if method == "patrol_start":  # a pilot starts once the pre-arm checks pass (it arms)
+            await until_armable(self.ctx)
         return await self.ctx.rpc.call_local(method, **params)
 
     def close(self) -> None:
