@@ -40,6 +40,7 @@ class LidarReader(Protocol):
     last: RobotScan | None
     localizer: Localizer | None
 
+
 POSE_PERIOD_S = 0.2
 GRID_PERIOD_S = 5.0
 SCAN_SHOWN_S = 1.0
