@@ -11,7 +11,7 @@ times a heartbeat every 50 ms. Three attacks, one after the other:
 - 5,000 idle connections from the attacker: the time a station takes to connect meanwhile,
   the platform alive, its open descriptors against the limit;
 - 1,000 connections sending half a request's headers: how many the platform closed, and
-  when the last was closed (``signaling.header_timeout`` 5 s).
+  when the last was closed (``admission.header_timeout`` 5 s).
 
 Then issue 26's rows on loopback (:mod:`bench.hostile_round2`: replays, spoofed video, big
 files); only those: ``BENCH_HOSTILE_ONLY=round2``.

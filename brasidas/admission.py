@@ -25,9 +25,10 @@ import logging
 import resource
 import socket
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
+from brasidas.config.admission import AdmissionSection, StrangerAdmissionSection
 from brasidas.states import Transitions
 
 if TYPE_CHECKING:
@@ -86,6 +87,32 @@ class AdmissionLimits:
     stranger_bytes_per_s: int = 16384
     """What all of one address's strangers may send, on average (a burst of twice as much)."""
     trusted: bool = False
+
+
+def admission_limits(section: AdmissionSection) -> AdmissionLimits:
+    """The limits of a daemon's ``[admission]`` section. A server without sessions (the
+    station's local API: only the section's common keys) treats every connection as trusted."""
+    common = AdmissionLimits(
+        max_connections=section.max_connections,
+        max_strangers=section.max_connections,
+        max_strangers_per_host=section.max_connections,
+        header_timeout=section.header_timeout,
+        body_timeout=section.body_timeout,
+        idle_timeout=section.idle_timeout,
+        write_timeout=section.write_timeout,
+        max_unsent_bytes=section.max_unsent_bytes,
+        reserved_fds=section.reserved_fds,
+        trusted=True,
+    )
+    if not isinstance(section, StrangerAdmissionSection):
+        return common
+    return replace(
+        common,
+        max_strangers=section.max_strangers,
+        max_strangers_per_host=section.max_strangers_per_host,
+        stranger_bytes_per_s=section.stranger_bytes_per_s,
+        trusted=False,
+    )
 
 
 def fd_limit() -> int:

@@ -38,7 +38,27 @@ def configuration_page() -> str:
         + "## Station (`brasidas-station --config FILE`)\n\n"
         + "```toml\n"
         + dump_toml(StationConfig()).rstrip()
-        + "\n```\n"
+        + "\n```\n\n"
+        + _renamed_keys()
+    )
+
+
+def _renamed_keys() -> str:
+    """The old names still read (as the new ones, with a warning at start-up)."""
+    rows = [
+        f"| `{daemon}` | `{old}` | `{new}` |"
+        for daemon, config in (("platform", PlatformConfig), ("station", StationConfig))
+        for old, new in config.RENAMED.items()
+    ]
+    return (
+        "## Renamed keys\n\n"
+        + "A file (or `--set`) that gives a key by its old name is read as if it gave the new "
+        + "one; the daemon says so in one line at start-up, and `brasidas-platform config` "
+        + "prints that line above the configuration. Giving both names in one file is an "
+        + "error.\n\n"
+        + "| daemon | old name | now |\n|---|---|---|\n"
+        + "\n".join(rows)
+        + "\n"
     )
 
 

@@ -117,11 +117,14 @@ def _add_options(parser: argparse.ArgumentParser, *, defaults: bool) -> None:
     )
 
 
-def load_platform_config(args: argparse.Namespace) -> PlatformConfig:
-    """The config file, ``--set`` overrides, then ``--sim`` and ``--insecure``; validated."""
+def load_platform_config(
+    args: argparse.Namespace, notices: list[str] | None = None
+) -> PlatformConfig:
+    """The config file, ``--set`` overrides, then ``--sim`` and ``--insecure``; validated.
+    Keys given by an old name are logged and appended to ``notices``."""
     flags = {"sim.enabled=true": args.sim, "security.insecure=true": args.insecure}
     overrides = [*args.overrides, *(item for item, given in flags.items() if given)]
-    return load_config(PlatformConfig, args.config, overrides)
+    return load_config(PlatformConfig, args.config, overrides, notices)
 
 
 def load_fleet_key(config: PlatformConfig) -> bytes | None:
@@ -138,14 +141,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     setup_logging(args.verbose, args.log_level)
+    notices: list[str] = []
     try:
-        config = load_platform_config(args)
+        config = load_platform_config(args, notices)
     except ConfigError as err:
         print(f"brasidas-platform: {err}", file=sys.stderr)
         return 2
     command = args.command or "run"
     if command == "config":
-        sys.stdout.write(dump_toml(config))
+        sys.stdout.write("".join(f"# {notice}\n" for notice in notices) + dump_toml(config))
         return 0
     if command == "simulate":
         return _simulate(args, config)

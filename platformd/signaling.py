@@ -14,7 +14,7 @@ from typing import Any
 
 from aiohttp import web
 
-from brasidas.admission import COUNTERS, REFUSAL_WINDOW, AdmissionLimits, ServerAdmission
+from brasidas.admission import COUNTERS, REFUSAL_WINDOW, ServerAdmission, admission_limits
 from brasidas.codecs.commands import MAIN_LIGHTS, MANUAL_OVERRIDE, POSITIONAL_LIGHTS, CommandCode
 from brasidas.codecs.jsonrpc import (
     CONTROL_REFUSED,
@@ -24,7 +24,6 @@ from brasidas.codecs.jsonrpc import (
     RpcError,
 )
 from brasidas.codecs.telemetry_schema import SCHEMA_VERSION, Admission, snapshot_to_json
-from brasidas.config import SignalingSection
 from brasidas.rpc import ADMISSION, add_rpc_routes, serve_app
 from platformd.context import PlatformContext
 from platformd.sessions import platform_parameters, velocity_endpoint
@@ -106,22 +105,6 @@ def admission_section(admission: ServerAdmission, rpc_counters: dict[str, int]) 
     )
 
 
-def admission_limits(config: SignalingSection) -> AdmissionLimits:
-    """Who signaling holds connections for, and how long (``signaling.*``)."""
-    return AdmissionLimits(
-        max_connections=config.max_connections,
-        max_strangers=config.max_strangers,
-        max_strangers_per_host=config.max_strangers_per_host,
-        header_timeout=config.header_timeout,
-        body_timeout=config.body_timeout,
-        idle_timeout=config.idle_timeout,
-        write_timeout=config.write_timeout,
-        max_unsent_bytes=config.max_unsent_bytes,
-        reserved_fds=config.reserved_fds,
-        stranger_bytes_per_s=config.stranger_bytes_per_s,
-    )
-
-
 async def async_setup(ctx: PlatformContext) -> None:
     signaling = Signaling(ctx)
     for name in (
@@ -135,7 +118,7 @@ async def async_setup(ctx: PlatformContext) -> None:
     ):
         ctx.rpc.add(name, getattr(signaling, name))
     config = ctx.config.signaling
-    ctx.rpc.max_batch = config.max_batch
+    ctx.rpc.max_batch = ctx.config.admission.max_batch
     ctx.rpc.max_answer_bytes = config.max_answer_bytes
     app = web.Application(client_max_size=config.max_request_bytes)
     add_rpc_routes(app, ctx.rpc, "/rpc", config.max_request_bytes)
@@ -147,7 +130,7 @@ async def async_setup(ctx: PlatformContext) -> None:
         supervisor=ctx.supervisor,
         bus=ctx.bus,
         name="signaling",
-        limits=admission_limits(config),
+        limits=admission_limits(ctx.config.admission),
     )
     ctx.signaling_admission = admission = app[ADMISSION]
     ctx.telemetry.register(Admission, lambda: admission_section(admission, ctx.rpc.counters))

@@ -10,10 +10,10 @@ from pathlib import Path
 from aiohttp import web
 
 from brasidas.actor import Daemon
-from brasidas.admission import AdmissionLimits, ServerAdmission
+from brasidas.admission import ServerAdmission, admission_limits
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.codecs.telemetry_schema import schema_document
-from brasidas.config import ConfigError, ConsoleSection, StationConfig, StationSection
+from brasidas.config import ConfigError, ConsoleSection, StationConfig
 from brasidas.limits import STATION_API_MAX_BYTES
 from brasidas.rpc import ADMISSION, add_rpc_routes, serve_app_sites
 from stationd.context import StationContext
@@ -67,7 +67,7 @@ class StationDaemon(Daemon):
             config=config,
             bus=self.bus,
             supervisor=self.supervisor,
-            api=Dispatcher(max_batch=config.station.api_max_batch),
+            api=Dispatcher(max_batch=config.admission.max_batch),
             fleet_key=fleet_key,
         )
         self.app = web.Application(client_max_size=API_MAX_BYTES)
@@ -106,7 +106,7 @@ class StationDaemon(Daemon):
             bus=self.bus,
             name="api",
             tls_sites=tls_sites,
-            limits=api_admission_limits(station),
+            limits=admission_limits(self.config.admission),
         )
         self.api_port = port
         self.api_admission = self.app[ADMISSION]
@@ -116,23 +116,6 @@ class StationDaemon(Daemon):
             self.console_https_port = tls_ports[0]
             names = ", ".join(console.https_names) or "no host names (console.https_names)"
             _LOGGER.info("console over HTTPS on port %d for %s", tls_ports[0], names)
-
-
-def api_admission_limits(station: StationSection) -> AdmissionLimits:
-    """What the local API holds connections for (``station.api_*``): it has no sessions and
-    answers its own host only, so no connection is a stranger's."""
-    return AdmissionLimits(
-        max_connections=station.api_max_connections,
-        max_strangers=station.api_max_connections,
-        max_strangers_per_host=station.api_max_connections,
-        header_timeout=station.api_header_timeout,
-        body_timeout=station.api_body_timeout,
-        idle_timeout=station.api_idle_timeout,
-        write_timeout=station.api_write_timeout,
-        max_unsent_bytes=station.api_max_unsent_bytes,
-        reserved_fds=station.api_reserved_fds,
-        trusted=True,
-    )
 
 
 def tls_context(console: ConsoleSection) -> ssl.SSLContext:

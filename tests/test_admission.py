@@ -181,11 +181,11 @@ def test_a_strangers_address_has_a_byte_budget() -> None:
 
 
 def test_the_caps_are_validated_at_the_door() -> None:
-    with pytest.raises(ConfigError, match=r"signaling\.max_strangers: must be >= "):
-        load_config(PlatformConfig, None, ["signaling.max_strangers_per_host=100"])
-    with pytest.raises(ConfigError, match=r"signaling\.max_connections: must be >= "):
-        load_config(PlatformConfig, None, ["signaling.max_strangers=1000"])
-    with pytest.raises(ConfigError, match=r"signaling\.header_timeout"):
-        load_config(PlatformConfig, None, ["signaling.header_timeout=0"])
-    with pytest.raises(ConfigError, match=r"station\.api_max_batch"):
-        load_config(StationConfig, None, ["station.api_max_batch=0"])
+    with pytest.raises(ConfigError, match=r"admission\.max_strangers: must be >= "):
+        load_config(PlatformConfig, None, ["admission.max_strangers_per_host=100"])
+    with pytest.raises(ConfigError, match=r"admission\.max_connections: must be >= "):
+        load_config(PlatformConfig, None, ["admission.max_strangers=1000"])
+    with pytest.raises(ConfigError, match=r"admission\.header_timeout"):
+        load_config(PlatformConfig, None, ["admission.header_timeout=0"])
+    with pytest.raises(ConfigError, match=r"admission\.max_batch"):
+        load_config(StationConfig, None, ["admission.max_batch=0"])

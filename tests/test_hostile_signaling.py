@@ -241,7 +241,7 @@ async def test_a_websocket_that_never_reads_is_closed(
     """Defect 3: WebSockets that never read grew the platform by 2.7 MB each, for good. A
     station's (a stranger's is not even read past its byte budget)."""
     # The write timeout scaled down from 10 s: what is tested is that it is applied.
-    config = quiet_platform_config("signaling.write_timeout=2")
+    config = quiet_platform_config("admission.write_timeout=2")
     daemon = await platform_factory(config, None)  # connect needs no proof
     sock = await websocket_handshake(signaling_address(daemon), "/rpc/ws")
     try:
@@ -287,7 +287,7 @@ async def test_unknown_platform_ids_cost_the_station_nothing(station: StationDae
 
 
 async def test_a_local_websocket_that_never_reads_is_closed(fleet_key: bytes) -> None:
-    async with running_station(fleet_key, "station.api_write_timeout=2") as station:
+    async with running_station(fleet_key, "admission.write_timeout=2") as station:
         sock = await websocket_handshake(("127.0.0.1", station.api_port), "/api/rpc/ws")
         try:
             flood = ws_frame(encode_request("connections", None, 1).decode())
@@ -328,7 +328,7 @@ async def test_a_station_behind_the_address_of_a_stranger_at_its_cap_still_conne
     strangers from the same address, or filling the platform's whole stranger pool, never
     close it."""
     daemon = await platform_factory(
-        quiet_platform_config("signaling.max_strangers=16", "signaling.heartbeat_interval=0.2"),
+        quiet_platform_config("admission.max_strangers=16", "signaling.heartbeat_interval=0.2"),
         fleet_key,
     )
     admission = daemon.ctx.signaling_admission

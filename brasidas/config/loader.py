@@ -5,7 +5,9 @@ constraints next to it with :func:`setting` (``rate_hz: float = setting(100.0, p
 its documentation as the string literal after it; a section declares constraints between its
 keys in ``RULES``. :func:`load_config` builds the schema from defaults, a TOML file and
 ``SECTION.KEY=VALUE`` overrides, checks every key's type and constraints, and raises
-:class:`ConfigError` naming the first bad key (``imu.rate_hz: must be > 0, not 0``).
+:class:`ConfigError` naming the first bad key (``imu.rate_hz: must be > 0, not 0``). A key
+that moved is declared in the schema's ``RENAMED`` (``{"old.key": "new.key"}``): its old name
+is still read, as the new one, with a one-line warning (:func:`renamed_notice`).
 :func:`dump_toml` prints a config with each key's documentation and constraints as comments.
 """
 
@@ -16,6 +18,7 @@ import difflib
 import inspect
 import ipaddress
 import itertools
+import logging
 import math
 import os
 import tomllib
@@ -31,6 +34,7 @@ from brasidas.files import FileReadError, read_regular_file
 C = TypeVar("C")
 T = TypeVar("T")
 
+_LOGGER = logging.getLogger(__name__)
 _CHECKS = "brasidas.checks"
 MAX_CONFIG_BYTES = 1024 * 1024
 """A config file is a few kilobytes; a larger one is refused, not read."""
@@ -202,12 +206,19 @@ def ordered(low: str, high: str, *, strict: bool = True) -> Rule:
 # --------------------------------------------------------------------------- loading
 
 
-def load_config(cls: type[C], path: str | Path | None = None, overrides: Iterable[str] = ()) -> C:
+def load_config(
+    cls: type[C],
+    path: str | Path | None = None,
+    overrides: Iterable[str] = (),
+    notices: list[str] | None = None,
+) -> C:
     """Build ``cls`` from defaults, then the TOML file at ``path``, then ``overrides``.
 
-    Each override is ``SECTION.KEY=VALUE``, VALUE a TOML value or a bare string.
+    Each override is ``SECTION.KEY=VALUE``, VALUE a TOML value or a bare string. A renamed
+    key given by its old name is logged as a warning and appended to ``notices``.
     """
     values: dict[str, dict[str, tuple[Any, str]]] = {}
+    found: list[str] = []
     if path is not None:
         source = str(path)
         if not os.path.lexists(path):
@@ -227,10 +238,50 @@ def load_config(cls: type[C], path: str | Path | None = None, overrides: Iterabl
             data = tomllib.loads(text)
         except tomllib.TOMLDecodeError as err:
             raise ConfigError("", f"invalid TOML: {err}", source) from None
-        _collect(cls, data, source, values)
+        _collect(cls, _renamed(cls, data, source, found), source, values)
     for item in overrides:
-        _collect(cls, _parse_override(item), "", values)
-    return _build(cls, values)
+        _collect(cls, _renamed(cls, _parse_override(item), "", found), "", values)
+    config = _build(cls, values)
+    for notice in found:
+        _LOGGER.warning("%s", notice)
+    if notices is not None:
+        notices.extend(found)
+    return config
+
+
+def renamed_notice(old: str, new: str, source: str) -> str:
+    """The one line said when a key is given by its old name."""
+    where = f" in {source}" if source else " on the command line"
+    return f"deprecated key {old}{where}: it is now {new} (read as such); rename it"
+
+
+def _renamed(cls: type, data: dict[str, Any], source: str, found: list[str]) -> dict[str, Any]:
+    """``data`` with the keys of the schema's ``RENAMED`` under their new names; a key given
+    by both names in one place is an error (which one was meant?)."""
+    renamed: Mapping[str, str] = getattr(cls, "RENAMED", {})
+    if not renamed:
+        return data
+    result = {
+        name: dict(table) if isinstance(table, dict) else table for name, table in data.items()
+    }
+    for name, table in data.items():
+        if not isinstance(table, dict):
+            continue
+        for key in table:
+            new = renamed.get(f"{name}.{key}")
+            if new is None:
+                continue
+            new_section, _, new_key = new.partition(".")
+            target = result.setdefault(new_section, {})
+            if not isinstance(target, dict):
+                continue  # "must be a table" is said by _collect
+            if new_key in target:
+                raise ConfigError(
+                    f"{name}.{key}", f"renamed {new}, which is also set: keep only {new}", source
+                )
+            target[new_key] = result[name].pop(key)
+            found.append(renamed_notice(f"{name}.{key}", new, source))
+    return result
 
 
 def _parse_override(item: str) -> dict[str, Any]:
@@ -267,7 +318,9 @@ def _build(cls: type[C], values: dict[str, dict[str, tuple[Any, str]]], base: C 
     for item in dataclasses.fields(cls):  # type: ignore[arg-type]
         section_type = _section_type(cls, item.name)
         hints = typing.get_type_hints(section_type)
-        current = getattr(base, item.name) if base is not None else section_type()
+        current = (
+            getattr(base, item.name) if base is not None else _default_section(item, section_type)
+        )
         given = values.get(item.name, {})
         changes = {
             key: _coerce(value, hints[key], f"{item.name}.{key}", source)
@@ -324,6 +377,16 @@ def _validate_section(name: str, section: Any, sources: Mapping[str, str]) -> No
 def _describe(rule: Rule, name: str, section: Any) -> str:
     keys = {item.name: getattr(section, item.name) for item in dataclasses.fields(section)}
     return rule.rule.format(section=name, **keys)
+
+
+def _default_section(item: dataclasses.Field[Any], section_type: type) -> Any:
+    """A section's defaults: its field's (a daemon may set other defaults for the keys of a
+    section it shares), else the section type's own."""
+    if item.default_factory is not dataclasses.MISSING:
+        return item.default_factory()
+    if item.default is not dataclasses.MISSING:
+        return item.default
+    return section_type()
 
 
 def _section_type(cls: type, name: str) -> type:
@@ -396,7 +459,16 @@ def _toml_value(value: Any) -> str:
 
 
 def _field_docs(cls: type) -> dict[str, str]:
-    """Attribute docstrings (the string literal after a field), read from the source."""
+    """Attribute docstrings (the string literal after a field), read from the source of the
+    class and of the classes it extends."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if dataclasses.is_dataclass(klass):
+            docs.update(_own_field_docs(klass))
+    return docs
+
+
+def _own_field_docs(cls: type) -> dict[str, str]:
     import ast
     import textwrap
 

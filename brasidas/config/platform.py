@@ -10,6 +10,7 @@ import ipaddress
 from dataclasses import dataclass, field
 from typing import ClassVar
 
+from brasidas.config.admission import PLATFORM_RENAMED, StrangerAdmissionSection
 from brasidas.config.lidar import LidarSection
 from brasidas.config.loader import (
     Check,
@@ -124,10 +125,7 @@ class SecuritySection:
 
 @dataclass(frozen=True)
 class SignalingSection:
-    RULES: ClassVar[tuple[Rule, ...]] = (
-        ordered("max_strangers_per_host", "max_strangers", strict=False),
-        ordered("max_strangers", "max_connections", strict=False),
-    )
+    """The signaling server; which connections it holds, and how long, is ``[admission]``."""
 
     host: str = setting("127.0.0.1", ip_address)
     """Address the signaling server listens on (0.0.0.0: every interface)."""
@@ -146,36 +144,6 @@ class SignalingSection:
     fit (``brasidas.limits.MAP_REQUEST_MAX_BYTES``, what stations send at most)."""
     command_timeout: float = setting(3.0, above(0, most=60))
     """How long a system command may take to be answered by its actor."""
-    # Admission (issue 19): a host without the fleet key gets bounded work. A connection
-    # without a session is a stranger's.
-    max_connections: int = setting(512, at_least(8, most=65536))
-    """Connections held at once, at most (below the open-file limit less ``reserved_fds``);
-    past it new ones are closed at once."""
-    max_strangers: int = setting(64, at_least(1, most=65536))
-    """Connections without a session held at once; past it a new one evicts the oldest
-    stranger's of the address that holds the most."""
-    max_strangers_per_host: int = setting(8, at_least(1, most=65536))
-    """Connections without a session from one address; past it new ones are closed at once."""
-    header_timeout: float = setting(5.0, above(0, most=300))
-    """A request's headers must arrive within this (s) of their first byte."""
-    body_timeout: float = setting(5.0, above(0, most=300))
-    """A request's body must arrive within this (s) of its headers."""
-    idle_timeout: float = setting(15.0, above(0, most=3600))
-    """A connection idle between requests, or a stranger's WebSocket silent, this long (s)
-    is closed."""
-    write_timeout: float = setting(10.0, above(0, most=3600))
-    """A connection whose unsent data has not shrunk for this long (s) is closed."""
-    max_unsent_bytes: int = setting(1 << 20, at_least(65536, most=1 << 28))
-    """A connection with more unsent data than this is closed (a reader that does not read)."""
-    reserved_fds: int = setting(128, at_least(16, most=65536))
-    """File descriptors kept from connections for the daemon's own files, pipelines and
-    serial lines."""
-    stranger_bytes_per_s: int = setting(16384, at_least(1024, most=1 << 30))
-    """What one address's connections without a session may send, on average (bytes/s, a
-    burst of twice as much): past it they are not read for a while. A station's handshake
-    needs under 2 KiB."""
-    max_batch: int = setting(100, at_least(1, most=10000))
-    """Requests in a batch, at most: a longer one is answered with one error."""
     max_answer_bytes: int = setting(ANSWER_MAX_BYTES, at_least(65536, most=1 << 26))
     """An answer longer than this is replaced by an error (``get_map`` sends a map of up to
     ``max_request_bytes`` back: ``brasidas.limits.ANSWER_MAX_BYTES``)."""
@@ -663,10 +631,12 @@ class PlatformConfig:
             "an obstacle the robot stopped for would vanish into its own body's blind zone",
         ),
     )
+    RENAMED: ClassVar[dict[str, str]] = PLATFORM_RENAMED
 
     platform: PlatformSection = field(default_factory=PlatformSection)
     security: SecuritySection = field(default_factory=SecuritySection)
     signaling: SignalingSection = field(default_factory=SignalingSection)
+    admission: StrangerAdmissionSection = field(default_factory=StrangerAdmissionSection)
     beacon: BeaconSection = field(default_factory=BeaconSection)
     motor: MotorSection = field(default_factory=MotorSection)
     velocity: VelocitySection = field(default_factory=VelocitySection)

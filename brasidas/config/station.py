@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar
 
+from brasidas.config.admission import STATION_RENAMED, AdmissionSection, station_admission
 from brasidas.config.loader import (
     Check,
     Rule,
@@ -32,30 +33,11 @@ station_id = Check(
 class StationSection:
     id: str = setting("station-1", station_id)
     api_host: str = setting("127.0.0.1", ip_address)
-    """The station daemon's local API (CLI and browser console). Loopback only by default."""
+    """The station daemon's local API (CLI and browser console). Loopback only by default;
+    which connections it holds, and how long, is ``[admission]``."""
     api_port: int = setting(8780, bind_port)
     connect_timeout: float = setting(3.0, above(0, most=300))
     """How long a command waits for the platform's acknowledgement."""
-    # The local API's admission (issue 19): it has no sessions (it answers its own host
-    # only), so every connection is held to these, none to a stranger's caps.
-    api_max_connections: int = setting(256, at_least(8, most=65536))
-    """Local API connections held at once, at most (below the open-file limit less
-    ``api_reserved_fds``); past it new ones are closed at once."""
-    api_header_timeout: float = setting(5.0, above(0, most=300))
-    """A local API request's headers must arrive within this (s) of their first byte."""
-    api_body_timeout: float = setting(5.0, above(0, most=300))
-    """A local API request's body must arrive within this (s) of its headers."""
-    api_idle_timeout: float = setting(60.0, above(0, most=3600))
-    """A local API connection idle this long (s) between requests is closed."""
-    api_write_timeout: float = setting(10.0, above(0, most=3600))
-    """A local API connection whose unsent data has not shrunk for this long (s) is closed."""
-    api_max_unsent_bytes: int = setting(4 << 20, at_least(65536, most=1 << 28))
-    """A local API connection with more unsent data than this is closed (video frames
-    included)."""
-    api_reserved_fds: int = setting(128, at_least(16, most=65536))
-    """File descriptors kept from local API connections for the daemon's own use."""
-    api_max_batch: int = setting(100, at_least(1, most=10000))
-    """Requests in a local API batch, at most: a longer one is answered with one error."""
 
 
 @dataclass(frozen=True)
@@ -225,7 +207,10 @@ class ReplaySection:
 
 @dataclass(frozen=True)
 class StationConfig:
+    RENAMED: ClassVar[dict[str, str]] = STATION_RENAMED
+
     station: StationSection = field(default_factory=StationSection)
+    admission: AdmissionSection = field(default_factory=station_admission)
     security: SecuritySection = field(default_factory=SecuritySection)
     discovery: DiscoverySection = field(default_factory=DiscoverySection)
     telemetry: TelemetryReceiverSection = field(default_factory=TelemetryReceiverSection)
