@@ -356,3 +356,47 @@ def test_a_first_item_in_a_relative_frame_is_a_waypoint_not_home() -> None:
     assert len(plan.waypoints) == 4 and plan.home is None
     assert plan.seqs == [0, 1, 2, 3]
     assert route_index(tuple(plan.seqs), 0) == 0
+
+
+def test_a_clear_is_an_empty_upload_with_the_same_refusals() -> None:
+    """MISSION_CLEAR_ALL and MISSION_COUNT start an upload by one path: unsigned, both are
+    refused alike; signed, a clear asks the platform's verdict on no items at once."""
+    vehicle = MavlinkVehicle(1, key=KEY, targets=(GCS,))
+    unsigned, signed = Station(), Station(KEY)
+    clear = mavlink.MAVLink_mission_clear_all_message(1, 1, mavlink.MAV_MISSION_TYPE_FENCE)
+    count = mavlink.MAVLink_mission_count_message(1, 1, 2, mavlink.MAV_MISSION_TYPE_MISSION)
+    for message, what in ((clear, "clear"), (count, "upload")):
+        assert vehicle.feed(unsigned.frame(message), GCS, 0.0) == []
+        answers = unsigned.read(vehicle)
+        acks = [m.type for m in answers if m.get_type() == "MISSION_ACK"]
+        assert acks == [mavlink.MAV_MISSION_DENIED]
+        assert any(
+            m.get_type() == "STATUSTEXT" and m.text.startswith(f"{what} refused: unsigned")
+            for m in answers
+        )
+    [request] = vehicle.feed(signed.frame(clear), GCS, 0.1)
+    assert isinstance(request, UploadItems) and request.signed
+    assert (request.mission_type, request.items) == (mavlink.MAV_MISSION_TYPE_FENCE, ())
+    rally = mavlink.MAVLink_mission_clear_all_message(1, 1, mavlink.MAV_MISSION_TYPE_RALLY)
+    assert vehicle.feed(signed.frame(rally), GCS, 0.2) == []
+    assert [m.type for m in signed.read(vehicle) if m.get_type() == "MISSION_ACK"] == [
+        mavlink.MAV_MISSION_ACCEPTED
+    ]
+
+
+def test_a_guided_item_without_a_position_is_denied_with_the_reason() -> None:
+    vehicle = MavlinkVehicle(1, allow_unsigned_control=True)
+    station = Station()
+    mission_frame = mavlink.MAV_FRAME_MISSION  # no latitude, longitude
+    guided = mavlink.MAVLink_mission_item_int_message(
+        1, 1, 0, mission_frame, 16, 2, 1, 0, 0, 0, 0, 0, 0, 0, 0
+    )
+    assert vehicle.feed(station.frame(guided), GCS, 0.0) == []
+    answers = station.read(vehicle)
+    assert [m.type for m in answers if m.get_type() == "MISSION_ACK"] == [
+        mavlink.MAV_MISSION_DENIED
+    ]
+    assert any(
+        m.get_type() == "STATUSTEXT" and m.text == "go to: no latitude, longitude in a global frame"
+        for m in answers
+    )

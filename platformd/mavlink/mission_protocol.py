@@ -123,12 +123,9 @@ class MissionProtocol(LinkCore):
     def _on_mission_count(
         self, link: Link, message: Any, origin: Origin, now: float
     ) -> list[Request]:
-        peer, system, component, signed = origin
-        mission_type = message.mission_type
-        count = message.count
-
+        _peer, system, component, _signed = origin
+        mission_type, count = message.mission_type, message.count
         refuse = self._mission_refuser(link, system, component, mission_type)
-
         if mission_type == RALLY and count == 0:
             self._mission_ack(link, system, component, mavlink.MAV_MISSION_ACCEPTED, RALLY)
             return []
@@ -138,16 +135,7 @@ class MissionProtocol(LinkCore):
         if count > MAX_ITEMS:
             refuse(mavlink.MAV_MISSION_NO_SPACE, f"{count} items: at most {MAX_ITEMS}")
             return []
-        if not self._may_control(signed, "upload", refuse, mavlink.MAV_MISSION_DENIED):
-            return []
-        upload = self._begin_upload(link, Upload(mission_type, count))
-        link.upload_owner = (system, component)
-        link.last_ack = None
-        if count == 0:
-            upload.to(UploadState.AWAITING_VERDICT)
-            return [UploadItems(peer, system, component, signed, mission_type, ())]
-        self._request_items(link, now)
-        return []
+        return self._upload(link, origin, mission_type, count, "upload", now)
 
     def _on_mission_item(
         self, link: Link, message: Any, origin: Origin, now: float
@@ -194,14 +182,10 @@ class MissionProtocol(LinkCore):
         """A mission item with ``current`` 2 (MAVProxy's ``guided LAT LON``, ArduPilot's
         guided waypoint): a go-to; MISSION_ACK says whether it was taken."""
         peer, system, component, signed = origin
-
-        def refuse(result: int, text: str) -> None:
-            self._mission_ack(link, system, component, mavlink.MAV_MISSION_DENIED, MISSION)
-            self._statustext_to(link, Severity.WARNING, text)
-
+        refuse = self._mission_refuser(link, system, component, MISSION)
         target = guided.item_target(message)
         if target is None:
-            refuse(0, "go to: no latitude, longitude in a global frame")
+            refuse(mavlink.MAV_MISSION_DENIED, "go to: no latitude, longitude in a global frame")
             return []
         if not self._may_control(signed, "go to", refuse, mavlink.MAV_MISSION_DENIED):
             return []
@@ -210,17 +194,29 @@ class MissionProtocol(LinkCore):
     def _on_mission_clear_all(
         self, link: Link, message: Any, origin: Origin, now: float
     ) -> list[Request]:
-        peer, system, component, signed = origin
+        _peer, system, component, _signed = origin
         mission_type = message.mission_type
-
-        refuse = self._mission_refuser(link, system, component, mission_type)
-
         if mission_type not in (MISSION, FENCE):
             self._mission_ack(link, system, component, mavlink.MAV_MISSION_ACCEPTED, mission_type)
             return []
-        if not self._may_control(signed, "clear", refuse, mavlink.MAV_MISSION_DENIED):
+        return self._upload(link, origin, mission_type, 0, "clear", now)
+
+    def _upload(
+        self, link: Link, origin: Origin, mission_type: int, count: int, what: str, now: float
+    ) -> list[Request]:
+        """An upload of ``count`` items (none: a clear) from a sender that may control: the
+        first items asked for, or, with none to ask, the platform's verdict."""
+        peer, system, component, signed = origin
+        refuse = self._mission_refuser(link, system, component, mission_type)
+        if not self._may_control(signed, what, refuse, mavlink.MAV_MISSION_DENIED):
             return []
-        self._begin_upload(link, Upload(mission_type, 0)).to(UploadState.AWAITING_VERDICT)
+        upload = self._begin_upload(link, Upload(mission_type, count))
+        link.upload_owner = (system, component)
+        link.last_ack = None  # a new transfer: the last one's ACK is no longer repeated
+        if count:
+            self._request_items(link, now)
+            return []
+        upload.to(UploadState.AWAITING_VERDICT)
         return [UploadItems(peer, system, component, signed, mission_type, ())]
 
     def _on_mission_set_current(
