@@ -16,7 +16,6 @@ import logging
 from typing import Any
 
 import serial
-import serial_asyncio
 
 from brasidas import topics
 from brasidas.actor import Actor
@@ -27,7 +26,7 @@ from brasidas.codecs.nmea import EpochAssembler, NmeaDecoder
 from brasidas.config import GpsSection
 from brasidas.messages import GpsFix, GpsFixLost, GpsStats, Position
 from platformd.context import PlatformContext, SerialDevice
-from platformd.serial_port import OPEN_ERRORS, PortError, PortOpener
+from platformd.serial_port import PortOpener, read_line_forever
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -71,43 +70,23 @@ class GpsReader(Actor):
     # ------------------------------------------------------------------ serial line
 
     async def _connect_loop(self) -> None:
-        backoff = Backoff(BACKOFF_INITIAL, BACKOFF_MAX)
-        failures = 0
-        while True:
-            port = self.config.port
-            try:
-                device = await self.opener.open()
-            except PortError as err:
-                failures += 1
-                self._port_down(str(err), log=failures == 1)
-                await sleep(self.clock, backoff.next())
-                continue
-            try:
-                reader, writer = _streams(device)
-            except OPEN_ERRORS as err:
-                device.close()
-                failures += 1
-                self._port_down(f"cannot set up {port}: {err}", log=failures == 1)
-                await sleep(self.clock, backoff.next())
-                continue
-            _LOGGER.info("GPS reading %s at %d baud", port, self.config.baudrate)
-            self.connected = True
-            self.error = ""
-            self.decoder.reset()
-            # What the line buffered before we opened it is stale (seconds-old epochs).
-            device.reset_input_buffer()
-            self._publish_stats()
-            try:
-                await self._read(reader)
-                reason = f"{port} closed"
-            except OSError as err:
-                reason = f"{port} lost: {err}"
-            finally:
-                writer.close()
-            failures = 1  # a port that just went away: report once, then retry quietly
-            self._port_down(reason, log=True)
-            backoff.reset()
-            await sleep(self.clock, backoff.next())
+        await read_line_forever(
+            self.opener,
+            self.clock,
+            Backoff(BACKOFF_INITIAL, BACKOFF_MAX),
+            opened=self._port_up,
+            read=self._read,
+            down=lambda reason, log: self._port_down(reason, log=log),
+        )
+
+    def _port_up(self, device: serial.Serial) -> None:
+        _LOGGER.info("GPS reading %s at %d baud", self.config.port, self.config.baudrate)
+        self.connected = True
+        self.error = ""
+        self.decoder.reset()
+        # What the line buffered before we opened it is stale (seconds-old epochs).
+        device.reset_input_buffer()
+        self._publish_stats()
 
     async def _read(self, reader: asyncio.StreamReader) -> None:
         """Until EOF (returns) or a read error (raises OSError)."""
@@ -220,12 +199,3 @@ async def async_setup(ctx: PlatformContext) -> None:
     reader = GpsReader(ctx.bus, section)
     ctx.capabilities.register("gps", lambda: capabilities(section))
     ctx.supervisor.start(reader)
-
-
-def _streams(device: serial.Serial) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
-    """A reader and writer over a port already open (from :class:`PortOpener`)."""
-    loop = asyncio.get_running_loop()
-    reader = asyncio.StreamReader(loop=loop)
-    protocol = asyncio.StreamReaderProtocol(reader, loop=loop)
-    transport = serial_asyncio.SerialTransport(loop, protocol, device)
-    return reader, asyncio.StreamWriter(transport, protocol, reader, loop)

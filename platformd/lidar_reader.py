@@ -22,11 +22,13 @@ import math
 from pathlib import Path
 from typing import Any
 
+import serial
+
 from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.backoff import Backoff
 from brasidas.bus import Bus
-from brasidas.clock import Clock, LoopClock, sleep, timeout_at
+from brasidas.clock import Clock, LoopClock, timeout_at
 from brasidas.codecs.ldlidar import LidarDecoder, LidarScan, ScanAssembler
 from brasidas.codecs.telemetry_schema import Perception
 from brasidas.config.lidar import LidarSection
@@ -34,10 +36,9 @@ from brasidas.perception.messages import Proximity, RobotScan
 from brasidas.perception.proximity import Geometry, proximity, silent, to_robot
 from brasidas.security import state_dir
 from platformd.context import PlatformContext, SerialDevice
-from platformd.gps import _streams
 from platformd.lidar_localization import Localizer
 from platformd.lidar_models import baudrate_of
-from platformd.serial_port import OPEN_ERRORS, PortError, PortOpener
+from platformd.serial_port import PortOpener, read_line_forever
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -94,38 +95,20 @@ class LidarReader(Actor):
     # ------------------------------------------------------------------ serial line
 
     async def _connect_loop(self) -> None:
-        backoff = Backoff(BACKOFF_INITIAL, BACKOFF_MAX)
-        failures = 0
-        while True:
-            port = self.config.port
-            try:
-                device = await self.opener.open()
-                reader, writer = _streams(device)
-            except PortError as err:
-                failures += 1
-                self._port_down(str(err), log=failures == 1)
-                await sleep(self.clock, backoff.next())
-                continue
-            except OPEN_ERRORS as err:
-                failures += 1
-                self._port_down(f"cannot set up {port}: {err}", log=failures == 1)
-                await sleep(self.clock, backoff.next())
-                continue
-            _LOGGER.info("lidar (%s) reading %s", self.config.model, port)
-            self.connected = True
-            self.error = ""
-            self.decoder.reset()
-            try:
-                await self._read(reader)
-                reason = f"{port} closed"
-            except OSError as err:
-                reason = f"{port} lost: {err}"
-            finally:
-                writer.close()
-            failures = 1
-            self._port_down(reason, log=True)
-            backoff.reset()
-            await sleep(self.clock, backoff.next())
+        await read_line_forever(
+            self.opener,
+            self.clock,
+            Backoff(BACKOFF_INITIAL, BACKOFF_MAX),
+            opened=self._port_up,
+            read=self._read,
+            down=lambda reason, log: self._port_down(reason, log=log),
+        )
+
+    def _port_up(self, device: serial.Serial) -> None:
+        _LOGGER.info("lidar (%s) reading %s", self.config.model, self.config.port)
+        self.connected = True
+        self.error = ""
+        self.decoder.reset()
 
     async def _read(self, reader: asyncio.StreamReader) -> None:
         while True:

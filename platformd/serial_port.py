@@ -2,6 +2,8 @@
 
 An open can hang in a USB adapter's driver (the call blocks in the kernel): it runs in a
 daemon thread of its own, and the caller waits at most a few seconds for it.
+:func:`read_line_forever` is the receive-only sensors' loop (GPS, lidar): open, read until
+the line closes or fails, back off, open again.
 """
 
 from __future__ import annotations
@@ -10,9 +12,14 @@ import asyncio
 import logging
 import os
 import termios
+from collections.abc import Awaitable, Callable
+from typing import NoReturn
 
 import serial
+import serial_asyncio
 
+from brasidas.backoff import Backoff
+from brasidas.clock import Clock, sleep
 from brasidas.threads import in_daemon_thread
 from platformd.context import SerialDevice
 
@@ -65,6 +72,60 @@ class PortOpener:
         attempt, self._attempt = self._attempt, None
         if attempt is not None:
             attempt.add_done_callback(_close_unused)
+
+
+async def read_line_forever(
+    opener: PortOpener,
+    clock: Clock,
+    backoff: Backoff,
+    *,
+    opened: Callable[[serial.Serial], None],
+    read: Callable[[asyncio.StreamReader], Awaitable[None]],
+    down: Callable[[str, bool], None],
+) -> NoReturn:
+    """Open the line, call ``opened(device)``, then ``read(reader)`` until it returns (the
+    line closed) or raises OSError (lost); after a backoff, again. ``down(reason, log)`` each
+    time the line cannot be opened or is gone; ``log``: the first of a row of failures to
+    open, and every loss (a port that just went away: reported once, then retried quietly)."""
+    port = opener.device.path
+    failures = 0
+    while True:
+        try:
+            device = await opener.open()
+        except PortError as err:
+            failures += 1
+            down(str(err), failures == 1)
+            await sleep(clock, backoff.next())
+            continue
+        try:
+            reader, writer = streams(device)
+        except OPEN_ERRORS as err:
+            device.close()
+            failures += 1
+            down(f"cannot set up {port}: {err}", failures == 1)
+            await sleep(clock, backoff.next())
+            continue
+        opened(device)
+        try:
+            await read(reader)
+            reason = f"{port} closed"
+        except OSError as err:
+            reason = f"{port} lost: {err}"
+        finally:
+            writer.close()
+        failures = 1
+        down(reason, True)
+        backoff.reset()
+        await sleep(clock, backoff.next())
+
+
+def streams(device: serial.Serial) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+    """A reader and writer over a port already open (from :class:`PortOpener`)."""
+    loop = asyncio.get_running_loop()
+    reader = asyncio.StreamReader(loop=loop)
+    protocol = asyncio.StreamReaderProtocol(reader, loop=loop)
+    transport = serial_asyncio.SerialTransport(loop, protocol, device)
+    return reader, asyncio.StreamWriter(transport, protocol, reader, loop)
 
 
 def open_port(device: SerialDevice) -> serial.Serial:
