@@ -20,14 +20,11 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import contextlib
 import itertools
 import math
-import os
 import random
 import sys
 import time
-import tty
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +36,7 @@ from brasidas.codecs.ldlidar import POINTS_PER_FRAME, encode_frame
 from brasidas.config.lidar import LidarSection
 from brasidas.perception.odometry import Pose2D
 from platformd.lidar_models import MODELS
+from platformd.sim.pty_line import PtyLine
 
 YAW_BIAS_RAD_S = 0.01
 """The sample log's odometry turns this much more than the robot did (a wheel a bit small)."""
@@ -203,12 +201,9 @@ async def serve_log(path: str, config: LidarSection) -> None:
     at the end (scans, lines skipped and dropped)."""
     log = await asyncio.to_thread(load, path)
     replay = CarmenReplay(log, config)
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    os.set_blocking(master, False)
-    overruns = 0
+    line = PtyLine("carmen replay")
     try:
-        sys.stdout.write(os.ttyname(slave) + "\n")
+        sys.stdout.write(line.path + "\n")
         sys.stdout.flush()
         for number, why in log.malformed[:5]:
             print(f"carmen: line {number} dropped: {why}", file=sys.stderr)
@@ -218,20 +213,15 @@ async def serve_log(path: str, config: LidarSection) -> None:
                 gap = min(MAX_GAP_S, max(MIN_GAP_S, scan.time - previous))
                 await asyncio.sleep(gap)
             previous = scan.time
-            try:
-                os.write(master, replay.revolution(scan, time.monotonic()))
-            except BlockingIOError:
-                overruns += 1  # nobody reads: lost, as on a UART
+            line.write(replay.revolution(scan, time.monotonic()))
         print(
             f"carmen: {len(log.scans)} scans replayed from {path}; "
             f"{len(log.malformed)} lines dropped, skipped {log.skipped or 'none'}; "
-            f"{overruns} revolutions not read",
+            f"{line.overruns} revolutions not read",
             file=sys.stderr,
         )
     finally:
-        for fd in (master, slave):
-            with contextlib.suppress(OSError):
-                os.close(fd)
+        line.close()
 
 
 # --------------------------------------------------------------------------- the pipeline

@@ -29,14 +29,11 @@ epoch is dropped (counted in ``overruns``), as bytes sent to an unplugged cable 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import datetime as dt
 import logging
 import math
-import os
 import random
 import sys
-import tty
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -44,6 +41,7 @@ from brasidas.actor import Actor, Supervisor
 from brasidas.bus import Bus
 from brasidas.codecs.nmea import sentence
 from brasidas.config import GpsSection, PlatformConfig
+from platformd.sim.pty_line import PtyLine
 from platformd.sim.vehicle import EARTH_RADIUS_M, Pose, VehicleModel, vehicle_for
 
 _LOGGER = logging.getLogger(__name__)
@@ -182,13 +180,9 @@ class GpsSimulator(Actor):
         self.rate_hz = min(10.0, max(1.0, rate_hz))
         self.generator = generator or NmeaGenerator()
         self._utcnow = utcnow
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)
-        os.set_blocking(self._master, False)
-        self.path = os.ttyname(self._slave)
+        self.line = PtyLine("simulated GPS")
+        self.path = self.line.path
         self.epochs = 0
-        self.overruns = 0
-        self._closed = False
 
     async def run(self) -> None:
         try:
@@ -213,25 +207,17 @@ class GpsSimulator(Actor):
             self.epochs += 1
             self._write(self.generator.epoch(self.vehicle.pose(), utc))
 
+    @property
+    def overruns(self) -> int:
+        """Writes nobody read (the bytes were lost)."""
+        return self.line.overruns
+
     def _write(self, data: bytes) -> None:
-        if self._closed:
-            return
-        try:
-            os.write(self._master, data)
-        except BlockingIOError:
-            self.overruns += 1  # nobody reads the line: the bytes are lost, as on a UART
-        except OSError as err:
-            self.overruns += 1
-            _LOGGER.debug("simulated GPS write failed: %s", err)
+        self.line.write(data)
 
     def close(self) -> None:
         """Close the pty (idempotent)."""
-        if self._closed:
-            return
-        self._closed = True
-        for fd in (self._master, self._slave):
-            with contextlib.suppress(OSError):
-                os.close(fd)
+        self.line.close()
 
 
 def _ddmm(degrees: float, width: int, decimals: int) -> str:

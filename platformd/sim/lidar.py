@@ -24,16 +24,13 @@ the reach (by up to 40 %) and thins the far returns, as users report outdoors.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import itertools
 import json
 import logging
 import math
-import os
 import random
 import sys
 import time
-import tty
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -49,6 +46,7 @@ from brasidas.codecs.ldlidar import POINTS_PER_FRAME, encode_frame
 from brasidas.config import PlatformConfig
 from brasidas.config.lidar import LidarSection
 from platformd.lidar_models import MODELS, TEMPORARY_KEEPOUT_PREFIX
+from platformd.sim.pty_line import PtyLine
 from platformd.sim.vehicle import Pose, VehicleModel, vehicle_for
 
 if TYPE_CHECKING:
@@ -314,12 +312,8 @@ class LidarSimulator(Actor):
         self.world_source = world
         """Asked every tick for a changed world (the area map's); None: the world stays."""
         self._clock = clock
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)
-        os.set_blocking(self._master, False)
-        self.path = os.ttyname(self._slave)
-        self.overruns = 0
-        self._closed = False
+        self.line = PtyLine("simulated lidar")
+        self.path = self.line.path
 
     async def run(self) -> None:
         try:
@@ -356,24 +350,17 @@ class LidarSimulator(Actor):
             return pose.x_m, pose.y_m
         return self.origin.to_local(pose.latitude, pose.longitude)
 
+    @property
+    def overruns(self) -> int:
+        """Writes nobody read (the bytes were lost)."""
+        return self.line.overruns
+
     def _write(self, data: bytes) -> None:
-        if self._closed or not data:
-            return
-        try:
-            os.write(self._master, data)
-        except BlockingIOError:
-            self.overruns += 1  # nobody reads: lost, as on a UART
-        except OSError as err:
-            self.overruns += 1
-            _LOGGER.debug("simulated lidar write failed: %s", err)
+        self.line.write(data)
 
     def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        for fd in (self._master, self._slave):
-            with contextlib.suppress(OSError):
-                os.close(fd)
+        """Close the pty (idempotent)."""
+        self.line.close()
 
 
 class MapWorld:
