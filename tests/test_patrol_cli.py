@@ -6,8 +6,8 @@ import json
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 
-from conftest import quiet_platform_config, wait_until
 from support.cli import run_cli
+from support.connected import connected
 
 from brasidas import topics
 from platformd.app import PlatformDaemon
@@ -21,20 +21,7 @@ LAT, LON = 37.9415, 23.6530
 async def test_map_route_and_patrol_commands(
     station: StationDaemon, platform_factory: Factory, fleet_key: bytes, tmp_path: Path
 ) -> None:
-    platform = await platform_factory(
-        quiet_platform_config(
-            "platform.id=rover-5",
-            "sim.enabled=true",
-            "gps.enabled=true",
-            "gps.sim_rate_hz=5",
-            f"map.file={tmp_path / 'map.geojson'}",
-            f"autonomy.route_file={tmp_path / 'route.json'}",
-        ),
-        fleet_key,
-    )
-    await wait_until(lambda: platform.bus.last(topics.POSE) is not None, 10)
-    code, _, _ = await run_cli(station, "connect", "rover-5", "--url", platform.ctx.signaling_url)
-    assert code == 0
+    await connected(station, platform_factory, fleet_key, tmp_path, platform_id="rover-5")
 
     good = tmp_path / "field.geojson"
     good.write_text(json.dumps(demo_map(LAT, LON)))
@@ -92,22 +79,11 @@ async def test_a_town_of_a_thousand_buildings_loads_and_a_too_big_map_says_its_s
 
     from brasidas.limits import MAP_REQUEST_MAX_BYTES, STATION_API_MAX_BYTES
 
-    platform = await platform_factory(
-        quiet_platform_config(
-            "platform.id=rover-6",
-            "sim.enabled=true",
-            "gps.enabled=true",
-            "gps.sim_rate_hz=5",
-            f"map.file={tmp_path / 'map.geojson'}",
-            f"autonomy.route_file={tmp_path / 'route.json'}",
-        ),
-        fleet_key,
+    platform = await connected(
+        station, platform_factory, fleet_key, tmp_path, platform_id="rover-6"
     )
-    await wait_until(lambda: platform.bus.last(topics.POSE) is not None, 10)
     pose = platform.bus.last(topics.POSE)
     assert pose is not None
-    code, _, _ = await run_cli(station, "connect", "rover-6", "--url", platform.ctx.signaling_url)
-    assert code == 0
     town = drivable_town(pose.latitude, pose.longitude, buildings=1000)
     text = json.dumps(town)
     assert len(text) > 250_000  # the maps: 266 KB and up failed with a 413
