@@ -82,7 +82,7 @@ async def start_simulators(ctx: PlatformContext) -> SimulatedDevices:
         from platformd.sim import lidar as lidar_sim
 
         def area() -> AreaMap | None:  # the patrol's map, once autonomy has set up
-            return ctx.patrol.core.area if ctx.patrol is not None else None
+            return ctx.patrol.area if ctx.patrol is not None else None
 
         lidar = lidar_sim.start_simulator(ctx.bus, ctx.supervisor, config, vehicle, area)
     return SimulatedDevices(vehicle, ax3500, gpio, gps, chip, i2c_bus, turret, lidar)

@@ -382,10 +382,10 @@ class ArmingActor(Actor):
         ):
             return  # not the controller's (or control has passed to someone since)
         patrol = self.ctx.patrol
-        if patrol is None or patrol.core.state.value in ("idle", "stopped"):
+        if patrol is None or patrol.state.value in ("idle", "stopped"):
             return  # nothing started: nothing to hold
         self._notice(NOTICE_CRITICAL, f"ground station lost ({event.station_id}): patrol holds")
-        patrol.core.stop()
+        patrol.stop_patrol(operator=False)
         self._remember_soon(LastWord("hold", f"{event.station_id} lost", self._wall()))
         self.last_stop = _stop_text(self.last_word) if self.last_word else ""
 

@@ -3,7 +3,7 @@ router, sessions, capabilities."""
 
 from __future__ import annotations
 
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     from brasidas.autonomy.patrol import Patrol
     from brasidas.autonomy.route import Route
     from brasidas.media.video import AccessUnitSink
+    from brasidas.messages import PatrolState
 
 
 @dataclass(frozen=True)
@@ -127,7 +128,12 @@ class PatrolHandle(Protocol):
 
     @property
     def core(self) -> Patrol:
-        """The patrol's state: map (and its revision), route, cursor (read only)."""
+        """The patrol's own state, for tests to look into: subsystems read the accessors
+        below and change it through the methods (tests/test_ports.py checks)."""
+
+    @property
+    def state(self) -> PatrolState:
+        """Idle, patrolling, holding, stopped, ..."""
 
     @property
     def route(self) -> Route:
@@ -169,7 +175,14 @@ class PatrolHandle(Protocol):
     def start_patrol(self) -> None:
         """Start patrolling the route; raises RouteError."""
 
-    def stop_patrol(self) -> None: ...
+    def stop_patrol(self, *, operator: bool = True) -> None:
+        """Stop now; ``operator`` False: a failsafe's stop, not kept as the last word."""
+
+    async def update_map(
+        self, add: Sequence[Mapping[str, Any]], remove: list[str], *, store: bool = True
+    ) -> AreaMap:
+        """Add or remove keep-outs (``store=False``: not written to ``map.file``); raises
+        MapError."""
 
     def go_to_waypoint(self, index: int) -> None:
         """Head for waypoint ``index`` (from 0) next; raises RouteError."""

@@ -95,7 +95,7 @@ class ObstacleZones(Actor):
             self._wake.clear()
             scan, pose = self._scan, self.bus.last(topics.POSE)
             patrol = self.ctx.patrol
-            area = patrol.core.area if patrol is not None else None
+            area = patrol.area if patrol is not None else None
             if scan is None or pose is None or area is None or patrol is None:
                 continue
             changes = await asyncio.to_thread(self.track, scan, pose, area, self._clock())
@@ -158,13 +158,13 @@ class ObstacleZones(Actor):
 
     async def _apply(self, changes: ZoneChanges) -> None:
         patrol = self.ctx.patrol
-        update = getattr(patrol, "update_map", None)
-        if update is None:
+        if patrol is None:
             return
-        present = set(patrol.core.area.keepouts) if patrol and patrol.core.area else set()
+        area = patrol.area
+        present = set(area.keepouts) if area is not None else set()
         remove = [zone for zone in changes.remove if zone in present]
         try:
-            await update(changes.add, remove, store=False)
+            await patrol.update_map(changes.add, remove, store=False)
         except ValueError as err:  # MapError: e.g. the robot is inside one (it moved)
             self.failures += 1
             _LOGGER.warning("obstacle keep-outs not applied: %s", err)

@@ -7,8 +7,9 @@ session manager (platformd.sessions) and the MAVLink endpoint's ground stations
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 
 from brasidas.messages import SessionClosed, SessionOpened
 
@@ -40,31 +41,36 @@ def _unannounced(event: SessionOpened | SessionClosed) -> None:
 class SessionTable:
     """Sessions by token, and the refused authentications."""
 
-    sessions: dict[str, Session] = field(default_factory=dict)
-    """Read it freely; open and close through :meth:`open` and :meth:`close`."""
     auth_failures: int = 0
     announce: Callable[[SessionOpened | SessionClosed], None] = _unannounced
     """Where the openings and closings go (the platform's bus, set by PlatformContext)."""
+    _open: dict[str, Session] = field(default_factory=dict)
+
+    @property
+    def sessions(self) -> Mapping[str, Session]:
+        """The open sessions by token, read-only: they open and close through :meth:`open`
+        and :meth:`close` (which announce them)."""
+        return MappingProxyType(self._open)
 
     def get(self, session_id: str | None) -> Session | None:
         """The open session with this token, or None."""
-        return self.sessions.get(session_id) if session_id is not None else None
+        return self._open.get(session_id) if session_id is not None else None
 
     def __len__(self) -> int:
-        return len(self.sessions)
+        return len(self._open)
 
     def open(self, session: Session) -> None:
         """Add ``session`` and announce it; raises :class:`SessionAlreadyOpen` for an id
         that is open (its first opening stands)."""
-        if session.session_id in self.sessions:
+        if session.session_id in self._open:
             raise SessionAlreadyOpen(f"session {session.session_id} is open already")
-        self.sessions[session.session_id] = session
+        self._open[session.session_id] = session
         self.announce(SessionOpened(session.session_id, session.station_id, session.peer_host))
 
     def close(self, session_id: str, reason: str) -> Session | None:
         """End the session and announce it with ``reason``; None (and nothing announced)
         when no such session is open."""
-        session = self.sessions.pop(session_id, None)
+        session = self._open.pop(session_id, None)
         if session is not None:
             self.announce(SessionClosed(session_id, session.station_id, reason))
         return session

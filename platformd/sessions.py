@@ -47,7 +47,6 @@ class SessionManager(Actor):
         self.ctx = ctx
         self._clock = clock
         self.table = ctx.sessions
-        self.sessions: dict[str, Session] = ctx.sessions.sessions
         self._challenges: OrderedDict[str, float] = OrderedDict()
 
     # ------------------------------------------------------------------ lifecycle
@@ -58,14 +57,14 @@ class SessionManager(Actor):
             self.expire()
 
     async def async_stop(self) -> None:
-        for session_id in list(self.sessions):
+        for session_id in list(self.table.sessions):
             self.close(session_id, "shutdown")
 
     def expire(self) -> None:
         now = self._clock()
         timeout = self.ctx.config.signaling.session_timeout
         ladder_holds = self._ladder_holds()
-        for session in list(self.sessions.values()):
+        for session in list(self.table.sessions.values()):
             if now - session.last_seen > timeout:
                 if session.session_id == ladder_holds:
                     continue  # the failsafe ladder decides (its release step), not the timeout
@@ -101,7 +100,7 @@ class SessionManager(Actor):
     def authorize(self, call: CallContext, params: dict[str, Any]) -> None:
         """Check and strip the ``session`` token; sets ``call.session``."""
         token = params.pop("session", None)
-        session = self.sessions.get(token) if isinstance(token, str) else None
+        session = self.table.get(token) if isinstance(token, str) else None
         # A token is good only from the host that connected: one captured on the mesh and
         # replayed from elsewhere is refused (a TCP peer address cannot be spoofed blind).
         if session is None or (call.peer_host and call.peer_host != session.peer_host):

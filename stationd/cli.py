@@ -61,7 +61,8 @@ def _check_ack(answer: Any) -> int:
     return 0 if isinstance(answer, dict) and answer.get("accepted") else 1
 
 
-def _describe_connection(summary: dict[str, Any]) -> str:
+def describe_connection(summary: dict[str, Any]) -> str:
+    """What `connect` prints: the platform, its limits, velocity, telemetry and streams."""
     params = summary.get("parameters", {})
     caps = summary.get("capabilities", {})
     lines = [
@@ -103,7 +104,7 @@ def _describe_connection(summary: dict[str, Any]) -> str:
 
 def cmd_connect(args: argparse.Namespace, config: StationConfig) -> int:
     summary = api_call(config, "connect", platform_id=args.id, url=args.url or "")
-    _print(args, summary, _describe_connection)
+    _print(args, summary, describe_connection)
     return 0
 
 
@@ -131,7 +132,7 @@ def cmd_status(args: argparse.Namespace, config: StationConfig) -> int:
         rtt = s.get("round_trip_ms")
         return "\n".join(
             [
-                _describe_connection(s),
+                describe_connection(s),
                 f"mode       {override.mode if override is not None else '?'}",
                 f"round trip {rtt:.2f} ms" if rtt is not None else "round trip -",
                 "",

@@ -21,7 +21,7 @@ from brasidas.actor import stop_on_signals
 from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import StationConfig, load_config
 from stationd.api_client import CliError, api_call_async
-from stationd.cli import _describe_connection
+from stationd.cli import describe_connection
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -98,7 +98,7 @@ async def run(args: argparse.Namespace) -> int:
         print(f"Starting a simulated platform and a station (logs in {log_dir}) ...", flush=True)
         summary = await _discover_and_connect(config, args, processes)
         print(f"\nDiscovered and connected in {time.monotonic() - started:.1f} s:\n")
-        print(_describe_connection(summary))
+        print(describe_connection(summary))
         print(_ground_station_line(args), flush=True)
         if args.once:
             return 0

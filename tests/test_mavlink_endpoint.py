@@ -268,12 +268,12 @@ async def test_an_observer_ground_station_is_refused_with_the_holders_id(
     # A station takes control back with --force (MOVRD state=on,force=1).
     now = time.monotonic()
     station = Session("station-session", "station-1", "127.0.0.1", None, now, now)
-    daemon.ctx.sessions.sessions[station.session_id] = station
+    daemon.ctx.sessions.open(station)
     result = await daemon.ctx.commands.dispatch(MANUAL_OVERRIDE, "state=on,force=1", station)
     assert result.accepted
     ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 10)
     assert ack.result == mavlink.MAV_RESULT_DENIED and ack.result_param2 == 0
-    daemon.ctx.sessions.sessions.pop(station.session_id)
+    daemon.ctx.sessions.close(station.session_id, "test over")
 
 
 async def test_set_current_chooses_the_patrols_next_waypoint_for_the_holder_only(

@@ -132,10 +132,7 @@ class Endpoint:
         self.vehicle = vehicle
         self.parameters = WritableParameters(path)
 
-    def _session(self, request: Any) -> Any:
-        raise AssertionError("not used")
-
-    def _refused(self, request: Any, what: str) -> str | None:
+    def refused(self, request: Any, what: str) -> str | None:
         return None
 
 

@@ -100,12 +100,12 @@ def test_a_ground_stations_session_opens_announced_before_it_closes() -> None:
     log = bus_log(ctx)
     service = MavlinkService(ctx, None)  # not bound: only its session bookkeeping is used
     request = SetMode(("192.0.2.9", 14550), 250, 190, False, FlightMode.HOLD, 176)
-    gcs = service._session(request)
-    assert service._session(request) is gcs  # one session per ground station
+    gcs = service.session_for(request)
+    assert service.session_for(request) is gcs  # one session per ground station
     assert ctx.sessions.get(gcs.session_id) is gcs
     # Ended by the platform (a timeout): the service forgets it, the next request reopens.
     ctx.sessions.close(gcs.session_id, "timeout")
-    again = service._session(request)
+    again = service.session_for(request)
     assert again is not gcs
     service.close()
     service.close()  # idempotent: nothing announced twice

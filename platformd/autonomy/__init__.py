@@ -92,7 +92,7 @@ def _autonomy(patrol: PatrolActor, home: Home) -> Autonomy:
         path=tuple(
             (round(lat, 7), round(lon, 7)) for lat, lon in report.path[:TELEMETRY_PATH_POINTS]
         ),
-        map_rev=patrol.core.map_revision,
+        map_rev=patrol.map_revision,
         map_error=patrol.map_error,
         home=() if where is None else (round(where[0], 7), round(where[1], 7)),
     )

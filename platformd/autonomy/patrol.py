@@ -24,7 +24,7 @@ import math
 import secrets
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -410,7 +410,7 @@ class PatrolActor(Actor):
         return [note]
 
     async def update_map(
-        self, add: list[Mapping[str, Any]], remove: list[str], *, store: bool = True
+        self, add: Sequence[Mapping[str, Any]], remove: list[str], *, store: bool = True
     ) -> AreaMap:
         """Add or remove keep-out zones; the route stays; the patrol holds until the path is
         replanned. Geometry and the file in a worker thread; ``store=False``: not written to
@@ -468,7 +468,7 @@ class PatrolActor(Actor):
     def _changed_map(
         self,
         base: AreaMap,
-        add: list[Mapping[str, Any]],
+        add: Sequence[Mapping[str, Any]],
         remove: list[str],
         position: tuple[float, float] | None,
         store: bool = True,
@@ -529,6 +529,10 @@ class PatrolActor(Actor):
         return self.core.map_revision
 
     @property
+    def state(self) -> PatrolState:
+        return self.core.state
+
+    @property
     def own_route(self) -> Route:
         """The patrol's own route: the one kept aside while driving to one point."""
         return self.core.route if self.detour is None else self._kept_route
@@ -572,10 +576,12 @@ class PatrolActor(Actor):
         self.core.start()
         self.tick()
 
-    def stop_patrol(self) -> None:
+    def stop_patrol(self, *, operator: bool = True) -> None:
+        """Stop now; ``operator``: an operator's stop, kept as the last word (``on_stop``);
+        else a failsafe's (a lost ground station's hold), whose caller keeps its own."""
         self.core.stop()
         self.tick()
-        if self.on_stop is not None:
+        if operator and self.on_stop is not None:
             self.on_stop()
 
     def go_to_waypoint(self, index: int) -> None:

@@ -33,11 +33,11 @@ class Endpoint(Protocol):
     vehicle: MavlinkVehicle
     prearm_said: tuple[str, ...]
 
-    def _session(self, request: Request) -> Session: ...
+    def session_for(self, request: Request) -> Session: ...
 
-    def _holder_system(self) -> int: ...
+    def holder_system(self) -> int: ...
 
-    def _flush(self) -> None: ...
+    def flush(self) -> None: ...
 
 
 FORCE_DISARM_MAGIC = 21196.0
@@ -84,7 +84,7 @@ async def decide(service: Endpoint, request: SafetyCommand) -> None:
     if arming is None:
         vehicle.answer_command(request, mavlink.MAV_RESULT_UNSUPPORTED, "no arming here")
         return
-    session = service._session(request)
+    session = service.session_for(request)
     if request.action == "arm":
         refusal = service.ctx.authority.refusal(session, "arm")
         if refusal is None:
@@ -98,7 +98,7 @@ async def decide(service: Endpoint, request: SafetyCommand) -> None:
                 result,
                 refusal,
                 command=request.command,
-                holder_system=service._holder_system(),
+                holder_system=service.holder_system(),
             )
             return
         vehicle.answer_command(request, mavlink.MAV_RESULT_ACCEPTED, command=request.command)
@@ -112,7 +112,7 @@ async def hold_for_anyone(service: Endpoint, request: Any) -> bool:
     a station observer's; False when the sender holds (or may claim) control."""
     arming = service.ctx.arming
     authority = service.ctx.authority
-    session = service._session(request)
+    session = service.session_for(request)
     if arming is None or authority.controller is None or authority.holds(session):
         return False
     await arming.stop(session, "hold")
@@ -132,7 +132,7 @@ def follow(service: Endpoint) -> Callable[[], None]:
 
     def on_notice(notice: SafetyNotice) -> None:
         service.vehicle.statustext(notice.severity, notice.text)
-        service._flush()
+        service.flush()
 
     removers = (
         service.bus.subscribe(topics.ARMING_STATE, on_arming),

@@ -28,7 +28,6 @@ from brasidas.autonomy.route import write_atomically
 from brasidas.files import FileReadError, read_regular_file
 from brasidas.security import state_dir
 from platformd.mavlink.vehicle import MavlinkVehicle, Request, Severity
-from platformd.session_table import Session
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -138,9 +137,7 @@ class Endpoint(Protocol):
     vehicle: MavlinkVehicle
     parameters: WritableParameters
 
-    def _session(self, request: Request) -> Session: ...
-
-    def _refused(self, request: Request, what: str) -> str | None: ...
+    def refused(self, request: Request, what: str) -> str | None: ...
 
 
 async def restore(endpoint: Endpoint) -> None:
@@ -162,7 +159,7 @@ async def decide(endpoint: Endpoint, request: SetParameter) -> None:
     vehicle = endpoint.vehicle
     parameters = endpoint.parameters
     name, value = request.name, request.value
-    reason = endpoint._refused(request, f"PARAM_SET {name}") or refusal(name, value)
+    reason = endpoint.refused(request, f"PARAM_SET {name}") or refusal(name, value)
     if reason is None and value != parameters.values[name]:
         old = parameters.values[name]
         parameters.values[name] = value

@@ -273,7 +273,7 @@ class MavlinkService(Actor):
                 proximity.tick(loop.time())
             if loop.time() - self._video_charged_at >= VIDEO_CHARGE_INTERVAL:
                 self.charge_video(loop.time())
-            self._flush()
+            self.flush()
             await asyncio.sleep(TICK)
 
     async def _annunciate_forever(self) -> None:
@@ -293,7 +293,7 @@ class MavlinkService(Actor):
                 self.vehicle.statustext(severity, f"{warning.code} {warning.message}")
             else:
                 self.vehicle.statustext(Severity.INFO, f"{warning.code} cleared: {warning.message}")
-        self._flush()
+        self.flush()
 
     async def _decide_forever(self) -> None:
         while True:
@@ -302,7 +302,7 @@ class MavlinkService(Actor):
                 await self._decide(request)
             except Exception:
                 _LOGGER.exception("MAVLink: %s failed", type(request).__name__)
-            self._flush()
+            self.flush()
 
     # ------------------------------------------------------------------ datagrams
 
@@ -321,9 +321,10 @@ class MavlinkService(Actor):
                 _LOGGER.warning("MAVLink: request dropped (%s): too many waiting", request)
             else:
                 self._requests.put_nowait(request)
-        self._flush()
+        self.flush()
 
-    def _flush(self) -> None:
+    def flush(self) -> None:
+        """Send what the vehicle has queued (answers, STATUSTEXT) now."""
         transport = self.transport
         datagrams = self.vehicle.take()
         if transport is None:
@@ -336,7 +337,7 @@ class MavlinkService(Actor):
 
     # ------------------------------------------------------------------ ground station sessions
 
-    def _session(self, request: Request) -> Session:
+    def session_for(self, request: Request) -> Session:
         """The ground station's session (opened on its first request)."""
         key = (request.peer, request.system)
         session = self.sessions.get(key)
@@ -374,7 +375,7 @@ class MavlinkService(Actor):
                 del self.sessions[key]
         self._video_sessions.pop(event.session_id, None)
 
-    def _holder_system(self) -> int:
+    def holder_system(self) -> int:
         """The controlling ground station's system id, 0 when a station (or nobody) holds it."""
         controller = self.ctx.authority.controller
         for (_peer, system), session in self.sessions.items():
@@ -405,10 +406,10 @@ class MavlinkService(Actor):
         around keep-outs; stops there), for the control holder only."""
         vehicle = self.vehicle
         what = "go to" if mode is FlightMode.GUIDED else "RTL"
-        refusal = self._refused(request, what)
+        refusal = self.refused(request, what)
         if refusal is not None:
             vehicle.answer_command(
-                request, mavlink.MAV_RESULT_DENIED, refusal, holder_system=self._holder_system()
+                request, mavlink.MAV_RESULT_DENIED, refusal, holder_system=self.holder_system()
             )
             return
         patrol = self.ctx.patrol
@@ -427,7 +428,7 @@ class MavlinkService(Actor):
         except RouteError as exc:
             vehicle.answer_command(request, mavlink.MAV_RESULT_FAILED, f"{what} refused: {exc}")
             return
-        session = self._session(request)
+        session = self.session_for(request)
         if self._override.engaged and self._override.session_id == session.session_id:
             await self.ctx.commands.dispatch(MANUAL_OVERRIDE, "off", session)
         self._guided = mode
@@ -436,11 +437,12 @@ class MavlinkService(Actor):
         if request.command is not None:
             vehicle.answer_command(request, mavlink.MAV_RESULT_ACCEPTED)
 
-    def _refused(self, request: Request, what: str) -> str | None:
-        return self.ctx.authority.refusal(self._session(request), what)
+    def refused(self, request: Request, what: str) -> str | None:
+        """Why the sender may not do ``what`` (the authority's refusal), or None."""
+        return self.ctx.authority.refusal(self.session_for(request), what)
 
     async def _set_mode(self, request: SetMode) -> None:
-        session = self._session(request)
+        session = self.session_for(request)
         vehicle = self.vehicle
         if request.mode is FlightMode.MANUAL:
             result = await self.ctx.commands.dispatch(MANUAL_OVERRIDE, "on", session)
@@ -449,7 +451,7 @@ class MavlinkService(Actor):
                     request,
                     mavlink.MAV_RESULT_DENIED,
                     result.reason,
-                    holder_system=self._holder_system(),
+                    holder_system=self.holder_system(),
                 )
                 return
             vehicle.answer_command(request, mavlink.MAV_RESULT_ACCEPTED)
@@ -459,10 +461,10 @@ class MavlinkService(Actor):
         if request.mode is FlightMode.RTL:
             await self._go_to(request, FlightMode.RTL)
             return
-        refusal = self._refused(request, f"mode {request.mode.name}")
+        refusal = self.refused(request, f"mode {request.mode.name}")
         if refusal is not None:
             vehicle.answer_command(
-                request, mavlink.MAV_RESULT_DENIED, refusal, holder_system=self._holder_system()
+                request, mavlink.MAV_RESULT_DENIED, refusal, holder_system=self.holder_system()
             )
             return
         self._guided = FlightMode.GUIDED if request.mode is FlightMode.GUIDED else None
@@ -486,10 +488,10 @@ class MavlinkService(Actor):
         """The patrol's next waypoint: mission item ``seq`` is route index ``seq - 1`` (item 0
         is home), through the patrol's own ``go_to_waypoint``, for the control holder only."""
         vehicle = self.vehicle
-        refusal = self._refused(request, "set current waypoint")
+        refusal = self.refused(request, "set current waypoint")
         if refusal is not None:
             vehicle.answer_set_current(
-                request, mavlink.MAV_RESULT_DENIED, refusal, holder_system=self._holder_system()
+                request, mavlink.MAV_RESULT_DENIED, refusal, holder_system=self.holder_system()
             )
             return
         patrol = self.ctx.patrol
@@ -522,7 +524,7 @@ class MavlinkService(Actor):
     async def _upload(self, request: UploadItems) -> None:
         vehicle = self.vehicle
         what = "mission upload" if request.mission_type == MISSION else "fence upload"
-        refusal = self._refused(request, what)
+        refusal = self.refused(request, what)
         if refusal is not None:
             vehicle.answer_upload(request, mavlink.MAV_MISSION_DENIED, refusal)
             return
@@ -595,7 +597,7 @@ class MavlinkService(Actor):
         media = self.ctx.media
         if media is None or media.navcam is None:
             return
-        session = self._session(request)
+        session = self.session_for(request)
         if session.session_id in self._video_sessions:
             return
         self._video_sessions[session.session_id] = (request.peer, 0)
