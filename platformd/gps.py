@@ -19,7 +19,6 @@ import serial
 
 from brasidas import topics
 from brasidas.actor import Actor
-from brasidas.backoff import Backoff
 from brasidas.bus import Bus
 from brasidas.clock import Clock, LoopClock, sleep, timeout_at
 from brasidas.codecs.nmea import EpochAssembler, NmeaDecoder
@@ -30,8 +29,6 @@ from platformd.serial_port import PortOpener, read_line_forever
 
 _LOGGER = logging.getLogger(__name__)
 
-BACKOFF_INITIAL = 0.2
-BACKOFF_MAX = 5.0
 STATS_INTERVAL = 1.0
 READ_SIZE = 4096
 
@@ -63,23 +60,13 @@ class GpsReader(Actor):
         try:
             async with asyncio.TaskGroup() as group:
                 group.create_task(self._stats_loop(), name="gps:stats")
-                await self._connect_loop()
+                await read_line_forever(self)
         finally:
             self.opener.close()
 
     # ------------------------------------------------------------------ serial line
 
-    async def _connect_loop(self) -> None:
-        await read_line_forever(
-            self.opener,
-            self.clock,
-            Backoff(BACKOFF_INITIAL, BACKOFF_MAX),
-            opened=self._port_up,
-            read=self._read,
-            down=lambda reason, log: self._port_down(reason, log=log),
-        )
-
-    def _port_up(self, device: serial.Serial) -> None:
+    def line_opened(self, device: serial.Serial) -> None:
         _LOGGER.info("GPS reading %s at %d baud", self.config.port, self.config.baudrate)
         self.connected = True
         self.error = ""
@@ -88,7 +75,7 @@ class GpsReader(Actor):
         device.reset_input_buffer()
         self._publish_stats()
 
-    async def _read(self, reader: asyncio.StreamReader) -> None:
+    async def read_line(self, reader: asyncio.StreamReader) -> None:
         """Until EOF (returns) or a read error (raises OSError)."""
         while True:
             try:
@@ -147,7 +134,7 @@ class GpsReader(Actor):
         last = self.last_fix.time if self.last_fix is not None else None
         self.bus.publish(topics.GPS_FIX_LOST, GpsFixLost(reason, last))
 
-    def _port_down(self, reason: str, *, log: bool) -> None:
+    def line_down(self, reason: str, *, log: bool) -> None:
         self.connected = False
         self.error = reason
         if log:

@@ -26,7 +26,6 @@ import serial
 
 from brasidas import topics
 from brasidas.actor import Actor
-from brasidas.backoff import Backoff
 from brasidas.bus import Bus
 from brasidas.clock import Clock, LoopClock, timeout_at
 from brasidas.codecs.ldlidar import LidarDecoder, LidarScan, ScanAssembler
@@ -42,8 +41,6 @@ from platformd.serial_port import PortOpener, read_line_forever
 
 _LOGGER = logging.getLogger(__name__)
 
-BACKOFF_INITIAL = 0.2
-BACKOFF_MAX = 5.0
 READ_SIZE = 4096
 
 
@@ -87,30 +84,20 @@ class LidarReader(Actor):
         try:
             async with asyncio.TaskGroup() as group:
                 group.create_task(self._analyse_loop(), name="lidar:analyse")
-                await self._connect_loop()
+                await read_line_forever(self)
         finally:
             self.opener.close()
             self._worker.shutdown(wait=False, cancel_futures=True)
 
     # ------------------------------------------------------------------ serial line
 
-    async def _connect_loop(self) -> None:
-        await read_line_forever(
-            self.opener,
-            self.clock,
-            Backoff(BACKOFF_INITIAL, BACKOFF_MAX),
-            opened=self._port_up,
-            read=self._read,
-            down=lambda reason, log: self._port_down(reason, log=log),
-        )
-
-    def _port_up(self, device: serial.Serial) -> None:
+    def line_opened(self, device: serial.Serial) -> None:
         _LOGGER.info("lidar (%s) reading %s", self.config.model, self.config.port)
         self.connected = True
         self.error = ""
         self.decoder.reset()
 
-    async def _read(self, reader: asyncio.StreamReader) -> None:
+    async def read_line(self, reader: asyncio.StreamReader) -> None:
         while True:
             try:
                 async with timeout_at(self.clock, self._deadline()):
@@ -147,7 +134,7 @@ class LidarReader(Actor):
             self._last_scan_at = None
             self._blind(f"no lidar scan for {self.config.scan_timeout_s:g} s")
 
-    def _port_down(self, reason: str, *, log: bool) -> None:
+    def line_down(self, reason: str, *, log: bool) -> None:
         self.connected = False
         self.error = reason
         (_LOGGER.warning if log else _LOGGER.debug)("lidar: %s; retrying", reason)

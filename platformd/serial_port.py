@@ -12,8 +12,7 @@ import asyncio
 import logging
 import os
 import termios
-from collections.abc import Awaitable, Callable
-from typing import NoReturn
+from typing import NoReturn, Protocol
 
 import serial
 import serial_asyncio
@@ -29,6 +28,9 @@ OPEN_TIMEOUT = 5.0
 """Longest wait for the port to open before the attempt is reported as hung."""
 OPEN_ERRORS = (serial.SerialException, OSError, ValueError, termios.error)
 """What opening a port raises: missing device, busy, refused settings (a pty and 7E1)."""
+READ_BACKOFF_INITIAL = 0.2
+READ_BACKOFF_MAX = 5.0
+"""Seconds before a sensor's line is opened again (doubling; reset once it was open)."""
 
 
 class PortError(Exception):
@@ -74,49 +76,58 @@ class PortOpener:
             attempt.add_done_callback(_close_unused)
 
 
-async def read_line_forever(
-    opener: PortOpener,
-    clock: Clock,
-    backoff: Backoff,
-    *,
-    opened: Callable[[serial.Serial], None],
-    read: Callable[[asyncio.StreamReader], Awaitable[None]],
-    down: Callable[[str, bool], None],
-) -> NoReturn:
-    """Open the line, call ``opened(device)``, then ``read(reader)`` until it returns (the
-    line closed) or raises OSError (lost); after a backoff, again. ``down(reason, log)`` each
-    time the line cannot be opened or is gone; ``log``: the first of a row of failures to
-    open, and every loss (a port that just went away: reported once, then retried quietly)."""
-    port = opener.device.path
+class LineReader(Protocol):
+    """A sensor that only listens on its line (the GPS, the lidar), as
+    :func:`read_line_forever` drives it."""
+
+    opener: PortOpener
+    clock: Clock
+
+    def line_opened(self, device: serial.Serial) -> None:
+        """The line is open (``device``): reset what the last one left."""
+
+    async def read_line(self, reader: asyncio.StreamReader) -> None:
+        """Until the line closes (returns) or fails (raises OSError)."""
+
+    def line_down(self, reason: str, *, log: bool) -> None:
+        """The line cannot be opened, or is gone; ``log``: say so as a warning."""
+
+
+async def read_line_forever(sensor: LineReader) -> NoReturn:
+    """Open the sensor's line, read it until it closes or fails, and again after a backoff.
+    ``line_down``'s ``log`` is set for the first of a row of failures to open and for every
+    loss (a port that just went away: reported once, then retried quietly)."""
+    backoff = Backoff(READ_BACKOFF_INITIAL, READ_BACKOFF_MAX)
+    port = sensor.opener.device.path
     failures = 0
     while True:
         try:
-            device = await opener.open()
+            device = await sensor.opener.open()
         except PortError as err:
             failures += 1
-            down(str(err), failures == 1)
-            await sleep(clock, backoff.next())
+            sensor.line_down(str(err), log=failures == 1)
+            await sleep(sensor.clock, backoff.next())
             continue
         try:
             reader, writer = streams(device)
         except OPEN_ERRORS as err:
             device.close()
             failures += 1
-            down(f"cannot set up {port}: {err}", failures == 1)
-            await sleep(clock, backoff.next())
+            sensor.line_down(f"cannot set up {port}: {err}", log=failures == 1)
+            await sleep(sensor.clock, backoff.next())
             continue
-        opened(device)
+        sensor.line_opened(device)
         try:
-            await read(reader)
+            await sensor.read_line(reader)
             reason = f"{port} closed"
         except OSError as err:
             reason = f"{port} lost: {err}"
         finally:
             writer.close()
         failures = 1
-        down(reason, True)
+        sensor.line_down(reason, log=True)
         backoff.reset()
-        await sleep(clock, backoff.next())
+        await sleep(sensor.clock, backoff.next())
 
 
 def streams(device: serial.Serial) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:

@@ -313,20 +313,7 @@ def encode_laser_scan(
         if distance > 0:
             ccw = round(-bearing) % 360
             ranges[ccw] = distance if ranges[ccw] == 0 else min(ranges[ccw], distance)
-    return orjson.dumps(
-        {
-            "timestamp": stamp(time_ns),
-            "frame_id": "base_link",
-            "pose": {
-                "position": {"x": 0.0, "y": 0.0, "z": 0.0},
-                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
-            },
-            "start_angle": 0.0,
-            "end_angle": math.radians(359.0),
-            "ranges": ranges,
-            "intensities": [],
-        }
-    )
+    return _laser_scan(time_ns, ranges, math.radians(359.0))
 
 
 def encode_sector_scan(time_ns: int, ranges_dm: Sequence[int]) -> bytes:
@@ -335,6 +322,12 @@ def encode_sector_scan(time_ns: int, ranges_dm: Sequence[int]) -> bytes:
     recorder's full scan, one range a sector counter-clockwise from forward."""
     count = len(ranges_dm)
     ranges = [ranges_dm[(count - k) % count] / 10 for k in range(count)] if count else []
+    return _laser_scan(time_ns, ranges, 2 * math.pi * (count - 1) / count if count else 0.0)
+
+
+def _laser_scan(time_ns: int, ranges: list[float], end_angle: float) -> bytes:
+    """foxglove.LaserScan in ``base_link``, ``ranges`` evenly counter-clockwise from forward
+    to ``end_angle`` (radians)."""
     return orjson.dumps(
         {
             "timestamp": stamp(time_ns),
@@ -344,7 +337,7 @@ def encode_sector_scan(time_ns: int, ranges_dm: Sequence[int]) -> bytes:
                 "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
             },
             "start_angle": 0.0,
-            "end_angle": 2 * math.pi * (count - 1) / count if count else 0.0,
+            "end_angle": end_angle,
             "ranges": ranges,
             "intensities": [],
         }

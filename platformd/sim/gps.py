@@ -23,7 +23,7 @@ receiver) or ``RTK``, a corrected receiver of the u-blox ZED-F9P class, for what
 achieves when the receiver allows it (``bench_patrol``); the sentences stay the NEO-6M's.
 
 The UART of a receiver never blocks: when nobody reads the pty and its buffer is full, the
-epoch is dropped (counted in ``overruns``), as bytes sent to an unplugged cable are lost.
+epoch is dropped (counted in ``line.overruns``), as bytes sent to an unplugged cable are lost.
 """
 
 from __future__ import annotations
@@ -195,7 +195,7 @@ class GpsSimulator(Actor):
 
     async def _serve(self) -> None:
         period = 1.0 / self.rate_hz
-        self._write(self.generator.banner())
+        self.line.write(self.generator.banner())
         # Epochs on the UTC grid, like a receiver's (hhmmss.00 at 1 Hz, .10 .20 at 10 Hz).
         while True:
             now = self._utcnow().timestamp()
@@ -205,15 +205,7 @@ class GpsSimulator(Actor):
             utc = dt.datetime.fromtimestamp(centis // 100, dt.UTC)
             utc = utc.replace(microsecond=(centis % 100) * 10_000)
             self.epochs += 1
-            self._write(self.generator.epoch(self.vehicle.pose(), utc))
-
-    @property
-    def overruns(self) -> int:
-        """Writes nobody read (the bytes were lost)."""
-        return self.line.overruns
-
-    def _write(self, data: bytes) -> None:
-        self.line.write(data)
+            self.line.write(self.generator.epoch(self.vehicle.pose(), utc))
 
     def close(self) -> None:
         """Close the pty (idempotent)."""

@@ -343,20 +343,12 @@ class LidarSimulator(Actor):
                 self.generator.frame(pose, started + (sent + i) * period, x, y) for i in range(due)
             )
             sent += due
-            self._write(batch)
+            self.line.write(batch)
 
     def _position(self, pose: Pose) -> tuple[float, float]:
         if self.origin is None:
             return pose.x_m, pose.y_m
         return self.origin.to_local(pose.latitude, pose.longitude)
-
-    @property
-    def overruns(self) -> int:
-        """Writes nobody read (the bytes were lost)."""
-        return self.line.overruns
-
-    def _write(self, data: bytes) -> None:
-        self.line.write(data)
 
     def close(self) -> None:
         """Close the pty (idempotent)."""
