@@ -5,13 +5,13 @@ from __future__ import annotations
 import asyncio
 import json
 import signal
-import sys
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import free_tcp_port, free_udp_port, wait_until
+from conftest import free_tcp_port, wait_until
+from support.processes import sim_platform
 
 from brasidas import security, topics
 from brasidas.bus import Bus
@@ -131,15 +131,9 @@ class Platform:
             f"arming.state_file={self.tmp_path / 'last_word.json'}",
             "arming.countdown_s=1",
             f"recorder.dir={self.tmp_path / 'recordings'}",
-            f"signaling.port={self.port}",
-            f"beacon.port={free_udp_port()}",
-            f"velocity.port={free_udp_port()}",
         ]
-        args = [arg for setting in settings for arg in ("--set", setting)]
         with self.log.open("ab") as log:
-            self.process = await asyncio.create_subprocess_exec(
-                sys.executable, "-m", "platformd", "--sim", *args, stderr=log
-            )
+            self.process, _port = await sim_platform(*settings, port=self.port, stderr=log)
 
     async def connect(self, station_id: str) -> PlatformConnection:
         async def attempt() -> PlatformConnection:

@@ -10,11 +10,9 @@ import os
 import resource
 import signal
 import socket
-import sys
 from pathlib import Path
 
-from conftest import free_tcp_port, free_udp_port
-from support.processes import wait_for_signaling
+from support.processes import sim_platform, wait_for_signaling
 
 from brasidas import security
 from stationd.client import PlatformConnection
@@ -41,23 +39,9 @@ def _open_idle(port: int, count: int) -> list[socket.socket]:
 
 
 async def test_idle_connections_leave_the_station_a_way_in(tmp_path: Path) -> None:
-    port = free_tcp_port()
     log_path = tmp_path / "platform.log"
     with log_path.open("wb") as log:
-        process = await asyncio.create_subprocess_exec(
-            sys.executable,
-            "-m",
-            "platformd",
-            "--sim",
-            "--set",
-            f"signaling.port={port}",
-            "--set",
-            f"beacon.port={free_udp_port()}",
-            "--set",
-            f"velocity.port={free_udp_port()}",
-            stderr=log,
-            preexec_fn=_lower_fd_limit,
-        )
+        process, port = await sim_platform(stderr=log, preexec_fn=_lower_fd_limit)
     idle: list[socket.socket] = []
     try:
         await wait_for_signaling(port, process)

@@ -8,8 +8,8 @@ import socket
 import sys
 from pathlib import Path
 
-from conftest import free_tcp_port, free_udp_port
-from support.processes import wait_for_signaling
+from conftest import free_udp_port
+from support.processes import sim_platform, wait_for_signaling
 
 from brasidas import security
 from brasidas.rpc import RpcClient
@@ -18,20 +18,7 @@ from stationd.client import PlatformConnection
 
 
 async def test_sim_platform_creates_key_serves_and_stops_cleanly_on_sigterm() -> None:
-    port = free_tcp_port()
-    process = await asyncio.create_subprocess_exec(
-        sys.executable,
-        "-m",
-        "platformd",
-        "--sim",
-        "--set",
-        f"signaling.port={port}",
-        "--set",
-        f"beacon.port={free_udp_port()}",
-        "--set",
-        f"velocity.port={free_udp_port()}",
-        stderr=asyncio.subprocess.PIPE,
-    )
+    process, port = await sim_platform(stderr=asyncio.subprocess.PIPE)
     try:
         await wait_for_signaling(port, process)
         assert security.default_key_path().exists()  # --sim made one in the state dir
@@ -59,22 +46,9 @@ HEAVY = ("numpy", "shapely", "libgeos", "openblas")
 async def test_a_platform_without_a_map_loads_no_shapely_until_one_is_loaded(
     tmp_path: Path,
 ) -> None:
-    port = free_tcp_port()
-    process = await asyncio.create_subprocess_exec(
-        sys.executable,
-        "-m",
-        "platformd",
-        "--sim",
-        "--set",
+    process, port = await sim_platform(
         "sim.demo_map=false",
-        "--set",
         f"map.file={tmp_path / 'none' / 'map.geojson'}",
-        "--set",
-        f"signaling.port={port}",
-        "--set",
-        f"beacon.port={free_udp_port()}",
-        "--set",
-        f"velocity.port={free_udp_port()}",
         stderr=asyncio.subprocess.DEVNULL,
     )
     maps = Path(f"/proc/{process.pid}/maps")

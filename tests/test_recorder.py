@@ -11,18 +11,18 @@ import logging
 import os
 import signal
 import subprocess
-import sys
 import time
 from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import free_tcp_port, free_udp_port, quiet_platform_config, wait_until
+from conftest import free_udp_port, quiet_platform_config, wait_until
 from mcap.reader import NonSeekingReader, make_reader
 from mcap.records import Message
 from mcap.stream_reader import StreamReader
 from support.cli import run_cli
+from support.processes import sim_platform
 from support.recorder import recorder_of
 from support.velocity import open_connection, udp_socket
 
@@ -257,45 +257,16 @@ async def test_a_sim_recording_is_listed_downloaded_and_reads_back(
     assert not error and frames >= len(video) - 2, (frames, len(video), error)
 
 
-async def _wait_for_signaling(port: int) -> None:
-    async def up() -> bool:
-        try:
-            _reader, writer = await asyncio.open_connection("127.0.0.1", port)
-        except OSError:
-            return False
-        writer.close()
-        return True
-
-    deadline = time.monotonic() + 60
-    while not await up():
-        assert time.monotonic() < deadline, "the platform never served signaling"
-        await asyncio.sleep(0.1)
-
-
 async def test_kill_9_loses_at_most_the_open_chunk_and_the_next_start_recovers(
     platform_factory: Factory, tmp_path: Path
 ) -> None:
     recordings = tmp_path / "recordings"
-    process = await asyncio.create_subprocess_exec(
-        sys.executable,
-        "-m",
-        "platformd",
-        "--sim",
-        "--set",
-        f"signaling.port={free_tcp_port()}",
-        "--set",
+    process, _port = await sim_platform(
         "beacon.enabled=false",
-        "--set",
-        f"velocity.port={free_udp_port()}",
-        "--set",
         "audio.enabled=false",
-        "--set",
         f"recorder.dir={recordings}",
-        "--set",
         "recorder.telemetry_hz=10",
-        "--set",
         f"map.file={tmp_path / 'map.geojson'}",
-        "--set",
         f"autonomy.route_file={tmp_path / 'route.json'}",
         stderr=asyncio.subprocess.DEVNULL,
     )
