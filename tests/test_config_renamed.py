@@ -119,8 +119,8 @@ def test_the_new_names_give_no_notice_and_old_ones_on_the_command_line_do() -> N
     notices: list[str] = []
     config = load_config(PlatformConfig, None, ["admission.max_strangers=16"], notices)
     assert config.admission.max_strangers == 16 and notices == []
-    config = load_config(StationConfig, None, ["station.api_write_timeout=2"], notices)
-    assert config.admission.write_timeout == 2.0
+    station = load_config(StationConfig, None, ["station.api_write_timeout=2"], notices)
+    assert station.admission.write_timeout == 2.0
     assert notices == [
         "deprecated key station.api_write_timeout on the command line: it is now "
         "admission.write_timeout (read as such); rename it"
