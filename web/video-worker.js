@@ -26,7 +26,7 @@ const recent = [];      // latencies of the last ~300 live frames
 const drawnTimes = [];  // draw times of the last second
 const lastSecond = [];  // [drawn, latency] of the live frames of the last second
 let lastDrawnMs = null; // wall-clock time the last frame was drawn
-let keepAll = null;     // every [latency, capture → station], while a benchmark asks
+let keepAll = null;     // every frame's stage times (see ``stages``), while a benchmark asks
 
 function now() { return performance.timeOrigin + performance.now(); }
 
@@ -43,7 +43,9 @@ function reset() {
 }
 
 function draw(frame) {
+  const decodedMs = now();
   const info = inFlight.get(frame.timestamp);
+  if (info) info.decodedMs = decodedMs;
   inFlight.delete(frame.timestamp);
   if (canvas.width !== frame.displayWidth || canvas.height !== frame.displayHeight) {
     canvas.width = frame.displayWidth;
@@ -63,11 +65,26 @@ function draw(frame) {
     recent.push(latency);
     lastSecond.push([drawn, latency]);
     if (recent.length > 300) recent.shift();
-    if (keepAll) keepAll.push([latency, stats.lastNetworkMs]);
+    if (keepAll) keepAll.push(stages(info, latency, drawn));
   }
 }
 
-function onFrame(buffer) {
+/** One frame's way, in ms (a benchmark's breakdown of glass-to-glass): capture → station
+ * (platform encode and send, the station's receive), station → page (the station's relay,
+ * the WebSocket, the page's main thread), page → worker, decode, draw. */
+function stages(info, latency, drawn) {
+  return {
+    total: latency,
+    network: info.arrivalMs - info.captureMs,
+    relay: info.pageMs + clockOffsetMs - info.arrivalMs,
+    handoff: info.workerMs - info.pageMs,
+    decode: info.decodedMs - info.workerMs,
+    draw: drawn - info.decodedMs,
+  };
+}
+
+function onFrame(buffer, pageMs) {
+  const workerMs = now();
   const view = new DataView(buffer);
   if (buffer.byteLength <= HEADER || view.getUint8(0) !== 1) return;
   const flags = view.getUint8(1), number = view.getUint16(2), seq = view.getUint32(4);
@@ -94,7 +111,7 @@ function onFrame(buffer) {
     stats.dropped += 1;
     return;
   }
-  inFlight.set(seq, { captureMs, arrivalMs, replayed });
+  inFlight.set(seq, { captureMs, arrivalMs, replayed, pageMs: pageMs ?? workerMs, workerMs });
   try {
     decoder.decode(new EncodedVideoChunk({ type: key ? "key" : "delta", timestamp: seq, data }));
   } catch (e) {
@@ -138,7 +155,7 @@ function report() {
 
 self.onmessage = (event) => {
   const message = event.data;
-  if (message.type === "frame") onFrame(message.buffer);
+  if (message.type === "frame") onFrame(message.buffer, message.pageMs);
   else if (message.type === "init") {
     canvas = message.canvas;
     context = canvas.getContext("2d", { alpha: false });

@@ -130,7 +130,7 @@ export function startVideo() {
     worker.postMessage({ type: "init", canvas: offscreen }, [offscreen]);
     worker.onmessage = (event) => onWorkerMessage(event.data);
   }
-  onBinary(1, (buffer) => worker?.postMessage({ type: "frame", buffer }, [buffer]));
+  onBinary(1, (buffer) => worker?.postMessage({ type: "frame", buffer, pageMs: wallNow() }, [buffer]));
   subscribe("clock", () => worker?.postMessage({ type: "clock", offsetMs: state.clockOffsetMs }));
   subscribe("shown", (platformId) => watch(platformId));
   subscribe("current", () => {
