@@ -167,6 +167,7 @@ async def _glass_to_glass(page: Any) -> dict[str, Any]:
     await page.click("#panels")
     await page.click("#full-view")
     frames = (await page.evaluate("window.navcam.dump()"))["latencies"]
+    relayed = await page.evaluate("window.navcam.relayed()") or {}
     await page.evaluate("window.navcam.keepLatencies(false)")
     latencies = [float(frame["total"]) for frame in frames]
     network = [float(frame["network"]) for frame in frames]
@@ -183,6 +184,12 @@ async def _glass_to_glass(page: Any) -> dict[str, Any]:
         "station_to_drawn_p95_ms": _quantile(page_part, 0.95),
         "glass_to_glass_stages_p50_p95_ms": _stages(frames),
         "glass_to_glass_target_p95_ms": 12,
+        # The relay's share in the station: arrival → written to the page's socket (the
+        # station's last 300 frames; the rest of "relay" is the socket and the browser).
+        "station_arrival_to_written_p50_p95_ms": [
+            relayed.get("relay_p50_ms"),
+            relayed.get("relay_p95_ms"),
+        ],
         "page_main_thread_ms_per_s_every_panel_open": main_thread["TaskDuration"],
         "page_main_thread_parts_ms_per_s": {
             "script": main_thread["ScriptDuration"],

@@ -21,7 +21,7 @@ let canvas = null, context = null, decoder = null;
 let codec = "", waitingForKey = true, lastSeq = -1, feed = -1;
 let clockOffsetMs = 0;
 const inFlight = new Map();
-const stats = { firstDrawMs: 0, late: 0, lastNetworkMs: null, received: 0, decoded: 0, dropped: 0, errors: 0, replayed: 0, gaps: 0, lastLatencyMs: null };
+const stats = { ownSocket: 0, firstDrawMs: 0, late: 0, lastNetworkMs: null, received: 0, decoded: 0, dropped: 0, errors: 0, replayed: 0, gaps: 0, lastLatencyMs: null };
 const recent = [];      // latencies of the last ~300 live frames
 const drawnTimes = [];  // draw times of the last second
 const lastSecond = [];  // [drawn, latency] of the live frames of the last second
@@ -121,6 +121,33 @@ function onFrame(buffer, pageMs) {
   }
 }
 
+// The worker's own socket to the station (``console_media``): once it brings a frame, the
+// frames the page's main thread forwards (its socket's, sent before the switch) are ignored.
+let socket = null;
+let socketCarries = false;
+
+function openSocket(url, session, token) {
+  if (socket) { socket.onclose = null; socket.close(); }
+  socketCarries = false;
+  const ws = new WebSocket(url);
+  ws.binaryType = "arraybuffer";
+  ws.onopen = () => ws.send(JSON.stringify({ jsonrpc: "2.0", id: 1, method: "console_media", params: { session, token } }));
+  ws.onmessage = (event) => {
+    if (typeof event.data === "string") {
+      const answer = JSON.parse(event.data);
+      if (answer.error) post({ type: "error", message: `video socket: ${answer.error.message}` });
+      return;
+    }
+    if (new Uint8Array(event.data, 0, 1)[0] !== 1) return;
+    socketCarries = true;
+    stats.ownSocket += 1;
+    onFrame(event.data, now());
+  };
+  // The page's socket carries the frames again (the station sends there without this one).
+  ws.onclose = () => { if (socket === ws) { socket = null; socketCarries = false; } };
+  socket = ws;
+}
+
 function percentile(values, p) {
   if (!values.length) return null;
   const sorted = [...values].sort((a, b) => a - b);
@@ -155,7 +182,8 @@ function report() {
 
 self.onmessage = (event) => {
   const message = event.data;
-  if (message.type === "frame") onFrame(message.buffer, message.pageMs);
+  if (message.type === "frame") { if (!socketCarries) onFrame(message.buffer, message.pageMs); }
+  else if (message.type === "socket") openSocket(message.url, message.session, message.token);
   else if (message.type === "init") {
     canvas = message.canvas;
     context = canvas.getContext("2d", { alpha: false });
