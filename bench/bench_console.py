@@ -42,10 +42,12 @@ def _quantile(values: list[float], q: float) -> float:
     return round(ordered[min(len(ordered) - 1, int(q * len(ordered)))], 2)
 
 
-STAGES = ("network", "relay", "handoff", "decode", "draw")
+STAGES = ("network", "relay", "handoff", "decode", "draw", "present")
 """A frame's way (web/video-worker.js ``stages``): capture → station (the platform's encode and
-send, the station's receive and depayload), station → page (the station's relay, the WebSocket,
-the page's main thread), page → worker, decode, draw."""
+send, the station's receive and depayload), station → page (the station's relay, the WebSocket;
+the page's main thread until the video worker's own socket carries the frames), page → worker,
+decode, draw; then, not part of glass-to-glass, drawn → the worker's next display frame (when
+the compositor takes the canvas)."""
 
 
 def _stages(frames: list[dict[str, float]]) -> dict[str, list[float]]:

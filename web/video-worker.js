@@ -65,13 +65,20 @@ function draw(frame) {
     recent.push(latency);
     lastSecond.push([drawn, latency]);
     if (recent.length > 300) recent.shift();
-    if (keepAll) keepAll.push(stages(info, latency, drawn));
+    if (keepAll) {
+      // Not part of glass-to-glass: from the draw to the worker's next display frame, when the
+      // compositor takes the canvas (the display's own wait, as for any page).
+      const entry = stages(info, latency, drawn);
+      keepAll.push(entry);
+      self.requestAnimationFrame?.(() => { entry.present = now() - drawn; });
+    }
   }
 }
 
 /** One frame's way, in ms (a benchmark's breakdown of glass-to-glass): capture → station
  * (platform encode and send, the station's receive), station → page (the station's relay,
- * the WebSocket, the page's main thread), page → worker, decode, draw. */
+ * the WebSocket; the page's main thread too until the worker's own socket carries the frames),
+ * page → worker (0 on the worker's socket), decode, draw. */
 function stages(info, latency, drawn) {
   return {
     total: latency,
