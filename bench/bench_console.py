@@ -7,7 +7,11 @@ frame → STALE shown (the stream paused on the platform, the mark timed in the 
 A ``--sim`` platform (640x480 at 30 fps, x264, moving SMPTE bars) and a station daemon run as
 processes; Debian's Chromium (headless, software decoding) opens the console with
 ``?platform=ID``. Latency is capture stamp (platform wall clock) → frame drawn on the page's
-canvas (page wall clock, corrected by the station's clock offset): one host, one clock.
+canvas (page wall clock, corrected by the station's clock offset): one host, one clock. Each
+frame's stages are timed too (``glass_to_glass_stages_p50_p95_ms``: capture → station, station →
+page, page → worker, decode, draw; and, outside the total, drawn → next display frame), with
+the station's own share of the relay. ``--rows g2g`` measures only glass-to-glass (two windows
+of ``--seconds N``, 10 by default): ``python -m bench console --rows g2g --seconds 20``.
 """
 
 from __future__ import annotations
