@@ -142,7 +142,10 @@ function openSocket(url, session, token) {
   ws.onmessage = (event) => {
     if (typeof event.data === "string") {
       const answer = JSON.parse(event.data);
-      if (answer.error) post({ type: "error", message: `video socket: ${answer.error.message}` });
+      if (answer.error) { // an older station: the page's socket keeps carrying the frames
+        post({ type: "error", message: `video socket: ${answer.error.message}` });
+        ws.close();
+      }
       return;
     }
     if (new Uint8Array(event.data, 0, 1)[0] !== 1) return;
