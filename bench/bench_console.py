@@ -7,7 +7,11 @@ frame → STALE shown (the stream paused on the platform, the mark timed in the 
 A ``--sim`` platform (640x480 at 30 fps, x264, moving SMPTE bars) and a station daemon run as
 processes; Debian's Chromium (headless, software decoding) opens the console with
 ``?platform=ID``. Latency is capture stamp (platform wall clock) → frame drawn on the page's
-canvas (page wall clock, corrected by the station's clock offset): one host, one clock.
+canvas (page wall clock, corrected by the station's clock offset): one host, one clock. Each
+frame's stages are timed too (``glass_to_glass_stages_p50_p95_ms``: capture → station, station →
+page, page → worker, decode, draw; and, outside the total, drawn → next display frame), with
+the station's own share of the relay. ``--rows g2g`` measures only glass-to-glass (two windows
+of ``--seconds N``, 10 by default): ``python -m bench console --rows g2g --seconds 20``.
 """
 
 from __future__ import annotations
@@ -29,13 +33,34 @@ PLATFORM_ID = "bench-console"
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 SHORT = os.environ.get("BRASIDAS_BENCH_SHORT") == "1"
 """A short run (a loaded shared machine): 4 s windows and 6 stale rounds a rate."""
-WINDOW_S = 4.0 if SHORT else 10.0
+ROWS = {row for row in os.environ.get("BENCH_ROWS", "").split(",") if row}
+G2G_ONLY = ROWS == {"g2g"}
+"""``--rows g2g``: only glass-to-glass and its stages (a quicker check of that figure)."""
+WINDOW_S = float(os.environ.get("BENCH_SECONDS") or (4.0 if SHORT else 10.0))
+"""Each measuring window (``--seconds N``); glass-to-glass is measured over two of them."""
 STALE_ROUNDS = 6 if SHORT else 12
 
 
 def _quantile(values: list[float], q: float) -> float:
     ordered = sorted(values)
     return round(ordered[min(len(ordered) - 1, int(q * len(ordered)))], 2)
+
+
+STAGES = ("network", "relay", "handoff", "decode", "draw", "present")
+"""A frame's way (web/video-worker.js ``stages``): capture → station (the platform's encode and
+send, the station's receive and depayload), station → page (the station's relay, the WebSocket;
+the page's main thread until the video worker's own socket carries the frames), page → worker,
+decode, draw; then, not part of glass-to-glass, drawn → the worker's next display frame (when
+the compositor takes the canvas)."""
+
+
+def _stages(frames: list[dict[str, float]]) -> dict[str, list[float]]:
+    """Each stage's [p50, p95] (ms) over ``frames``; the p95s do not add up to the total's."""
+    return {
+        stage: [_quantile(values, 0.5), _quantile(values, 0.95)]
+        for stage in STAGES
+        if (values := [float(frame[stage]) for frame in frames if frame.get(stage) is not None])
+    }
 
 
 async def _start_station(api_port: int, discovery_port: int) -> asyncio.subprocess.Process:
@@ -135,6 +160,113 @@ async def _stale_delays(
     return delays
 
 
+async def _glass_to_glass(page: Any) -> dict[str, Any]:
+    """Glass-to-glass and its stages over two windows, every panel open: the normal layout, then
+    the full view with its drawer open; the page's main-thread time in each."""
+    await page.evaluate("window.navcam.keepLatencies(true)")
+    main_thread = await _main_thread_ms_per_s(page, WINDOW_S - 0.5)
+    # The full view with its panels drawer open: the same page, other layout.
+    await page.click("#full-view")
+    await page.click("#panels")
+    await asyncio.sleep(1.0)
+    main_thread_full = await _main_thread_ms_per_s(page, WINDOW_S - 0.5)
+    await page.click("#panels")
+    await page.click("#full-view")
+    frames = (await page.evaluate("window.navcam.dump()"))["latencies"]
+    relayed = await page.evaluate("window.navcam.relayed()") or {}
+    await page.evaluate("window.navcam.keepLatencies(false)")
+    latencies = [float(frame["total"]) for frame in frames]
+    network = [float(frame["network"]) for frame in frames]
+    page_part = [float(frame["total"]) - float(frame["network"]) for frame in frames]
+    return {
+        "glass_to_glass_p50_ms": _quantile(latencies, 0.5),
+        "glass_to_glass_p95_ms": _quantile(latencies, 0.95),
+        "glass_to_glass_max_ms": round(max(latencies), 2),
+        "glass_to_glass_frames": len(latencies),
+        "capture_to_station_p50_ms": _quantile(network, 0.5),
+        "capture_to_station_p95_ms": _quantile(network, 0.95),
+        # The rest: the station's relay, the page's receive, decode and draw.
+        "station_to_drawn_p50_ms": _quantile(page_part, 0.5),
+        "station_to_drawn_p95_ms": _quantile(page_part, 0.95),
+        "glass_to_glass_stages_p50_p95_ms": _stages(frames),
+        "glass_to_glass_target_p95_ms": 12,
+        # The relay's share in the station: arrival → written to the page's socket (the
+        # station's last 300 frames; the rest of "relay" is the socket and the browser).
+        "station_arrival_to_written_p50_p95_ms": [
+            relayed.get("relay_p50_ms"),
+            relayed.get("relay_p95_ms"),
+        ],
+        "page_main_thread_ms_per_s_every_panel_open": main_thread["TaskDuration"],
+        "page_main_thread_parts_ms_per_s": {
+            "script": main_thread["ScriptDuration"],
+            "layout": main_thread["LayoutDuration"],
+            "style": main_thread["RecalcStyleDuration"],
+        },
+        "page_main_thread_ms_per_s_full_view_panels_open": main_thread_full["TaskDuration"],
+        "page_main_thread_parts_ms_per_s_full_view": {
+            "script": main_thread_full["ScriptDuration"],
+            "layout": main_thread_full["LayoutDuration"],
+            "style": main_thread_full["RecalcStyleDuration"],
+        },
+    }
+
+
+async def _stale_and_pages(
+    browser: Any, first: Any, base: str, url: str, station_pid: int
+) -> dict[str, Any]:
+    """The microphone's latency, STALE at 30 and 5 fps, a second and third page (first frame
+    with the platform already streaming, the station's CPU with 3 pages)."""
+    await first.click("#listen")  # the platform's microphone, decoded in the page
+    audio_ms: list[float] = []
+    for _ in range(30):
+        await asyncio.sleep(0.2)
+        figure = (await first.evaluate("window.navcam.audio()"))["latencyMs"]
+        if figure is not None:
+            audio_ms.append(float(figure))
+    async with aiohttp.ClientSession() as http:
+        stale_ms = await _stale_delays(first, http, base, STALE_ROUNDS)
+        # Every patrol streams at 5 fps: the mark must follow that interval too.
+        await _set_framerate(http, base, 5)
+        await asyncio.sleep(3.0)
+        stale_5fps_ms = await _stale_delays(first, http, base, STALE_ROUNDS)
+        fps_after = (await first.evaluate("window.navcam.stats()") or {}).get("fps")
+        await _set_framerate(http, base, 30)
+        await asyncio.sleep(2.0)
+    second, warm_ms = await _open_page(browser, url)  # the platform streams
+    marks = await second.evaluate("window.navcam.marks()")
+    third, _ = await _open_page(browser, url)
+    await asyncio.sleep(2.0)
+    three_cpu = await _cpu_window(station_pid, WINDOW_S)
+    stats = await third.evaluate("window.navcam.stats()")
+    for page in (second, third):
+        await page.close()
+    return {
+        "audio_arrival_to_output_p50_ms": _quantile(audio_ms, 0.5) if audio_ms else None,
+        "last_frame_to_stale_p50_ms": _quantile(stale_ms, 0.5) if stale_ms else None,
+        "last_frame_to_stale_p95_ms": _quantile(stale_ms, 0.95) if stale_ms else None,
+        "last_frame_to_stale_rounds": len(stale_ms),
+        "last_frame_to_stale_target_p95_ms": 500,
+        "last_frame_to_stale_5fps_p50_ms": _quantile(stale_5fps_ms, 0.5) if stale_5fps_ms else None,
+        "last_frame_to_stale_5fps_p95_ms": _quantile(stale_5fps_ms, 0.95)
+        if stale_5fps_ms
+        else None,
+        "last_frame_to_stale_5fps_rounds": len(stale_5fps_ms),
+        "fps_during_5fps_rounds": fps_after,
+        "station_cpu_pct_one_core_3_pages": three_cpu,
+        "station_cpu_target_pct": "1 page < 10, 3 pages < 15",
+        "page_open_to_first_frame_ms_streaming": round(warm_ms, 1),
+        "first_frame_target_ms": 1000,
+        "first_frame_steps_ms": {k: round(float(v), 1) for k, v in marks.items()},
+        "third_page_fps": stats.get("fps"),
+    }
+
+
+async def _set_framerate(http: aiohttp.ClientSession, base: str, fps: int) -> None:
+    await _rpc(
+        http, base, "command", platform_id=PLATFORM_ID, group=10, command=5, payload=f"navcam={fps}"
+    )
+
+
 async def run() -> dict[str, Any]:
     from playwright.async_api import async_playwright
 
@@ -153,6 +285,7 @@ async def run() -> dict[str, Any]:
         "audio.enabled=true",
     )
     station: asyncio.subprocess.Process | None = None
+    figures: dict[str, Any] = {}
     try:
         await wait_ready(signaling_port)
         station = await _start_station(api_port, discovery_port)
@@ -167,7 +300,8 @@ async def run() -> dict[str, Any]:
                     if any(p["id"] == PLATFORM_ID for p in (await response.json())["result"]):
                         break
                 await asyncio.sleep(0.1)
-        idle_cpu = await _cpu_window(station.pid, 5.0)
+        if not G2G_ONLY:
+            figures["station_cpu_pct_one_core_no_page"] = await _cpu_window(station.pid, 5.0)
         url = f"{base}/?platform={PLATFORM_ID}"
         async with async_playwright() as playwright:
             browser = await playwright.chromium.launch(
@@ -175,63 +309,15 @@ async def run() -> dict[str, Any]:
             )
             try:
                 first, cold_ms = await _open_page(browser, url)  # starts the feed
+                figures["page_open_to_first_frame_ms_cold_feed"] = round(cold_ms, 1)
                 await _open_every_panel(first)
                 await asyncio.sleep(2.0)
-                await first.evaluate("window.navcam.keepLatencies(true)")
                 one_cpu_task = asyncio.ensure_future(_cpu_window(station.pid, WINDOW_S))
-                main_thread = await _main_thread_ms_per_s(first, WINDOW_S - 0.5)
-                one_cpu = await one_cpu_task
-                # The full view with its panels drawer open: the same page, other layout.
-                await first.click("#full-view")
-                await first.click("#panels")
-                await asyncio.sleep(1.0)
-                main_thread_full = await _main_thread_ms_per_s(first, WINDOW_S - 0.5)
-                await first.click("#panels")
-                await first.click("#full-view")
-                dump = await first.evaluate("window.navcam.dump()")
-                latencies = [float(total) for total, _ in dump["latencies"]]
-                network = [float(part) for _, part in dump["latencies"]]
-                page_part = [float(total) - float(part) for total, part in dump["latencies"]]
-                await first.click("#listen")  # the platform's microphone, decoded in the page
-                audio_ms: list[float] = []
-                for _ in range(30):
-                    await asyncio.sleep(0.2)
-                    figure = (await first.evaluate("window.navcam.audio()"))["latencyMs"]
-                    if figure is not None:
-                        audio_ms.append(float(figure))
-                async with aiohttp.ClientSession() as http:
-                    stale_ms = await _stale_delays(first, http, base, STALE_ROUNDS)
-                    # Every patrol streams at 5 fps: the mark must follow that interval too.
-                    await _rpc(
-                        http,
-                        base,
-                        "command",
-                        platform_id=PLATFORM_ID,
-                        group=10,
-                        command=5,
-                        payload="navcam=5",
-                    )
-                    await asyncio.sleep(3.0)
-                    stale_5fps_ms = await _stale_delays(first, http, base, STALE_ROUNDS)
-                    fps_after = (await first.evaluate("window.navcam.stats()") or {}).get("fps")
-                    await _rpc(
-                        http,
-                        base,
-                        "command",
-                        platform_id=PLATFORM_ID,
-                        group=10,
-                        command=5,
-                        payload="navcam=30",
-                    )
-                    await asyncio.sleep(2.0)
-                second, warm_ms = await _open_page(browser, url)  # the platform streams
-                marks = await second.evaluate("window.navcam.marks()")
-                third, _ = await _open_page(browser, url)
-                await asyncio.sleep(2.0)
-                three_cpu = await _cpu_window(station.pid, WINDOW_S)
-                stats = await third.evaluate("window.navcam.stats()")
-                for page in (first, second, third):
-                    await page.close()
+                figures.update(await _glass_to_glass(first))
+                figures["station_cpu_pct_one_core_1_page"] = await one_cpu_task
+                if not G2G_ONLY:
+                    figures.update(await _stale_and_pages(browser, first, base, url, station.pid))
+                await first.close()
             finally:
                 await browser.close()
     finally:
@@ -240,49 +326,6 @@ async def run() -> dict[str, Any]:
                 process.terminate()
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(process.wait(), 10)
-    return {
-        "glass_to_glass_p50_ms": _quantile(latencies, 0.5),
-        "glass_to_glass_p95_ms": _quantile(latencies, 0.95),
-        "glass_to_glass_max_ms": round(max(latencies), 2),
-        "glass_to_glass_frames": len(latencies),
-        "capture_to_station_p50_ms": _quantile(network, 0.5),
-        "capture_to_station_p95_ms": _quantile(network, 0.95),
-        # The rest: the station's relay, the page's receive, decode and draw.
-        "station_to_drawn_p50_ms": _quantile(page_part, 0.5),
-        "station_to_drawn_p95_ms": _quantile(page_part, 0.95),
-        "glass_to_glass_target_p95_ms": 12,
-        "audio_arrival_to_output_p50_ms": _quantile(audio_ms, 0.5) if audio_ms else None,
-        "last_frame_to_stale_p50_ms": _quantile(stale_ms, 0.5) if stale_ms else None,
-        "last_frame_to_stale_p95_ms": _quantile(stale_ms, 0.95) if stale_ms else None,
-        "last_frame_to_stale_rounds": len(stale_ms),
-        "last_frame_to_stale_target_p95_ms": 500,
-        "last_frame_to_stale_5fps_p50_ms": _quantile(stale_5fps_ms, 0.5) if stale_5fps_ms else None,
-        "last_frame_to_stale_5fps_p95_ms": _quantile(stale_5fps_ms, 0.95)
-        if stale_5fps_ms
-        else None,
-        "last_frame_to_stale_5fps_rounds": len(stale_5fps_ms),
-        "fps_during_5fps_rounds": fps_after,
-        "page_main_thread_ms_per_s_every_panel_open": main_thread["TaskDuration"],
-        "page_main_thread_parts_ms_per_s": {
-            "script": main_thread["ScriptDuration"],
-            "layout": main_thread["LayoutDuration"],
-            "style": main_thread["RecalcStyleDuration"],
-        },
-        "page_main_thread_ms_per_s_full_view_panels_open": main_thread_full["TaskDuration"],
-        "page_main_thread_parts_ms_per_s_full_view": {
-            "script": main_thread_full["ScriptDuration"],
-            "layout": main_thread_full["LayoutDuration"],
-            "style": main_thread_full["RecalcStyleDuration"],
-        },
-        "station_cpu_pct_one_core_no_page": idle_cpu,
-        "station_cpu_pct_one_core_1_page": one_cpu,
-        "station_cpu_pct_one_core_3_pages": three_cpu,
-        "station_cpu_target_pct": "1 page < 10, 3 pages < 15",
-        "page_open_to_first_frame_ms_streaming": round(warm_ms, 1),
-        "page_open_to_first_frame_ms_cold_feed": round(cold_ms, 1),
-        "first_frame_target_ms": 1000,
-        "first_frame_steps_ms": {k: round(float(v), 1) for k, v in marks.items()},
-        "load_average_1min": os.getloadavg()[0],
-        "third_page_fps": stats.get("fps"),
-        "cpus": os.cpu_count(),
-    }
+    figures["load_average_1min"] = os.getloadavg()[0]
+    figures["cpus"] = os.cpu_count()
+    return figures

@@ -87,8 +87,13 @@ def add_rpc_routes(
     *,
     local_hosts: frozenset[str] | None = None,
     stranger_max_bytes: int = STRANGER_MAX_BYTES,
+    compress: bool = True,
 ) -> None:
     """Serve ``dispatcher`` at ``path`` (POST) and ``path/ws`` (WebSocket).
+
+    ``compress=False`` refuses the WebSocket's per-message deflate: a socket that carries
+    media (the console's NavCam) would otherwise deflate every access unit (incompressible;
+    aiohttp does it in a thread pool past 16 kB) on the way out and inflate it in the page.
 
     ``local_hosts`` makes the routes refuse (403) what a web page elsewhere could send through
     the operator's browser: a request whose ``Host`` is not one of these names (DNS
@@ -147,7 +152,7 @@ def add_rpc_routes(
     async def websocket(request: web.Request) -> web.StreamResponse:
         if (refusal := refused(request)) is not None:
             return refusal
-        ws = web.WebSocketResponse(max_msg_size=max_bytes, heartbeat=None)
+        ws = web.WebSocketResponse(max_msg_size=max_bytes, heartbeat=None, compress=compress)
         await ws.prepare(request)
         ctx = CallContext(peer_host=peer_host(request), transport="ws")
         ctx.extra["ws"] = ws

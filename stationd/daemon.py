@@ -93,7 +93,15 @@ class StationDaemon(Daemon):
         local_hosts = frozenset(
             {"127.0.0.1", "localhost", "[::1]", self.config.station.api_host, *console.https_names}
         )
-        add_rpc_routes(self.app, self.ctx.api, "/api/rpc", API_MAX_BYTES, local_hosts=local_hosts)
+        # Uncompressed: the console's socket carries the NavCam (see add_rpc_routes).
+        add_rpc_routes(
+            self.app,
+            self.ctx.api,
+            "/api/rpc",
+            API_MAX_BYTES,
+            local_hosts=local_hosts,
+            compress=False,
+        )
         self.app.router.add_get("/api/telemetry-schema.json", _telemetry_schema)
         _add_console_routes(self.app)
         add_tile_routes(self.app, console)

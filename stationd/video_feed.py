@@ -129,6 +129,8 @@ class Viewer:
         self.skipped = 0
         """Frames dropped because this viewer fell behind."""
         self.cutbacks = 0
+        self.relay_ms: collections.deque[float] = collections.deque(maxlen=300)
+        """Arrival at the station → written to the page's socket, of the last live messages."""
         self._ready = asyncio.Event()
 
     def offer(self, seq: int, unit: AccessUnit) -> None:
@@ -169,12 +171,21 @@ class Viewer:
         self.sent += 1
         return self.queue.popleft()
 
-    def stats(self) -> dict[str, int]:
+    def written(self, message: bytes, now_ms: float) -> None:
+        """``message`` was written to the page's socket at ``now_ms`` (Unix ms)."""
+        _, flags, _, _, _, arrival_ms = HEADER.unpack_from(message)
+        if not flags & FLAG_REPLAYED:
+            self.relay_ms.append(now_ms - arrival_ms)
+
+    def stats(self) -> dict[str, Any]:
+        relay = sorted(self.relay_ms)
         return {
             "sent": self.sent,
             "queued": len(self.queue),
             "skipped": self.skipped,
             "cutbacks": self.cutbacks,
+            "relay_p50_ms": round(relay[len(relay) // 2], 2) if relay else None,
+            "relay_p95_ms": round(relay[int(len(relay) * 0.95)], 2) if relay else None,
         }
 
 
@@ -224,9 +235,13 @@ class FanOut:
         for viewer in self.viewers:
             viewer.offer(seq, unit)
 
+    def rewind(self, viewer: Viewer) -> None:
+        """Queue the current GOP for ``viewer`` again (in place of what it had queued)."""
+        viewer.replay(self.gop if len(self.gop) < self.gop_max else [])
+
     def add(self, viewer: Viewer) -> Callable[[], None]:
         """Start ``viewer`` with the current GOP; returns the way to remove it."""
-        viewer.replay(self.gop if len(self.gop) < self.gop_max else [])
+        self.rewind(viewer)
         self.viewers.add(viewer)
         return lambda: self.viewers.discard(viewer)
 
@@ -485,4 +500,6 @@ class Feed:
 async def pump(viewer: Viewer, send: Callable[[bytes], Awaitable[None]]) -> None:
     """Send ``viewer``'s messages as they come, until cancelled or ``send`` fails."""
     while True:
-        await send(await viewer.next())
+        message = await viewer.next()
+        await send(message)
+        viewer.written(message, time.time_ns() / 1e6)

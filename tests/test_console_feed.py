@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 from collections.abc import Awaitable, Callable
 from typing import Any
@@ -154,3 +155,66 @@ async def test_access_units_reach_a_websocket_viewer_with_capture_times(
             while await call("video_feeds"):
                 await asyncio.sleep(0.2)
         assert navcam()["state"] == "playing"
+
+
+async def test_the_page_worker_s_own_socket_carries_the_navcam_once_it_proves_the_token(
+    station: StationDaemon,
+    platform_factory: Factory,
+    fleet_key: bytes,
+) -> None:
+    """The page's video worker opens a socket of its own (``console_media``): the NavCam's
+    access units go there, from a keyframe, and no longer to the page's socket; a wrong token
+    is refused; when the worker's socket closes the page's socket carries them again."""
+    platform = await platform_factory(
+        quiet_platform_config("platform.id=media-rover", "sim.enabled=true", "navcam.enabled=true"),
+        fleet_key,
+    )
+    api = f"http://127.0.0.1:{station.api_port}/api/rpc/ws"
+    async with aiohttp.ClientSession() as http, http.ws_connect(api) as page:
+        hello = await _call(page, "console_subscribe")
+        await _call(page, "connect", platform_id="media-rover", url=platform.ctx.signaling_url)
+        watching = await _call(page, "video_watch", platform_id="media-rover")
+        assert (await _frames(page, 3))[0]["feed"] == watching["feed"]
+
+        async with http.ws_connect(api) as worker:
+            refused = await _call(
+                worker, "console_media", session=hello["session"], token="not-the-token"
+            )
+            assert refused["error"]["message"].startswith("no such console session")
+            answer = await _call(
+                worker, "console_media", session=hello["session"], token=hello["media_token"]
+            )
+            assert answer["result"] is True
+            frames = await _frames(worker, 8)
+            assert frames[0]["keyframe"] and frames[0]["feed"] == watching["feed"]
+            live = [f["seq"] for f in frames if not f["replayed"]]
+            assert live, "live frames follow the GOP"
+            # The page's socket gets none of them: only what was sent before the switch.
+            late = await _frames(page, 100, within=1.0)
+            assert all(f["seq"] < live[0] for f in late), (late, live)
+        # The worker's socket closed: the page's own carries the NavCam again.
+        assert len(await _frames(page, 3)) == 3
+
+
+async def _call(ws: aiohttp.ClientWebSocketResponse, method: str, **params: Any) -> Any:
+    """A JSON-RPC call on ``ws``: its whole answer (result or error)."""
+    await ws.send_str(json.dumps({"jsonrpc": "2.0", "id": 7, "method": method, "params": params}))
+    while True:
+        message = await ws.receive(timeout=10)
+        if message.type is aiohttp.WSMsgType.TEXT and json.loads(message.data).get("id") == 7:
+            answer: dict[str, Any] = json.loads(message.data)
+            return answer if method == "console_media" else answer["result"]
+
+
+async def _frames(
+    ws: aiohttp.ClientWebSocketResponse, count: int, within: float = 15.0
+) -> list[dict[str, Any]]:
+    """Up to ``count`` NavCam frames arriving on ``ws`` within ``within`` s (pushes skipped)."""
+    frames: list[dict[str, Any]] = []
+    with contextlib.suppress(TimeoutError):
+        async with asyncio.timeout(within):
+            while len(frames) < count:
+                message = await ws.receive()
+                if message.type is aiohttp.WSMsgType.BINARY:
+                    frames.append(decode_header(message.data))
+    return frames

@@ -13,7 +13,8 @@ const binary = new Map(); // message type → handler(buffer)
 export function onBinary(type, handler) { binary.set(type, handler); }
 
 export const apiStates = [];
-export const api = new StationApi(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/rpc/ws`, {
+export const apiUrl = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/rpc/ws`;
+export const api = new StationApi(apiUrl, {
   onState: (text) => {
     apiStates.push(text);
     setPill("#api-state", text === "connected" ? "station connected" : `station ${text}…`, text === "connected" ? "ok" : "bad");
@@ -28,6 +29,7 @@ async function hello() {
   performance.mark("station-open");
   const answer = await api.call("console_subscribe");
   state.session = answer.session;
+  state.mediaToken = answer.media_token; // the video worker's own socket proves it (video.js)
   state.stationId = answer.station_id;
   notify("session");
   // The picture first: the clock offset (ten round trips) is measured once it is asked for.

@@ -21,12 +21,12 @@ let canvas = null, context = null, decoder = null;
 let codec = "", waitingForKey = true, lastSeq = -1, feed = -1;
 let clockOffsetMs = 0;
 const inFlight = new Map();
-const stats = { firstDrawMs: 0, late: 0, lastNetworkMs: null, received: 0, decoded: 0, dropped: 0, errors: 0, replayed: 0, gaps: 0, lastLatencyMs: null };
+const stats = { ownSocket: 0, firstDrawMs: 0, late: 0, lastNetworkMs: null, received: 0, decoded: 0, dropped: 0, errors: 0, replayed: 0, gaps: 0, lastLatencyMs: null };
 const recent = [];      // latencies of the last ~300 live frames
 const drawnTimes = [];  // draw times of the last second
 const lastSecond = [];  // [drawn, latency] of the live frames of the last second
 let lastDrawnMs = null; // wall-clock time the last frame was drawn
-let keepAll = null;     // every [latency, capture → station], while a benchmark asks
+let keepAll = null;     // every frame's stage times (see ``stages``), while a benchmark asks
 
 function now() { return performance.timeOrigin + performance.now(); }
 
@@ -43,7 +43,9 @@ function reset() {
 }
 
 function draw(frame) {
+  const decodedMs = now();
   const info = inFlight.get(frame.timestamp);
+  if (info) info.decodedMs = decodedMs;
   inFlight.delete(frame.timestamp);
   if (canvas.width !== frame.displayWidth || canvas.height !== frame.displayHeight) {
     canvas.width = frame.displayWidth;
@@ -63,11 +65,33 @@ function draw(frame) {
     recent.push(latency);
     lastSecond.push([drawn, latency]);
     if (recent.length > 300) recent.shift();
-    if (keepAll) keepAll.push([latency, stats.lastNetworkMs]);
+    if (keepAll) {
+      // Not part of glass-to-glass: from the draw to the worker's next display frame, when the
+      // compositor takes the canvas (the display's own wait, as for any page).
+      const entry = stages(info, latency, drawn);
+      keepAll.push(entry);
+      self.requestAnimationFrame?.(() => { entry.present = now() - drawn; });
+    }
   }
 }
 
-function onFrame(buffer) {
+/** One frame's way, in ms (a benchmark's breakdown of glass-to-glass): capture → station
+ * (platform encode and send, the station's receive), station → page (the station's relay,
+ * the WebSocket; the page's main thread too until the worker's own socket carries the frames),
+ * page → worker (0 on the worker's socket), decode, draw. */
+function stages(info, latency, drawn) {
+  return {
+    total: latency,
+    network: info.arrivalMs - info.captureMs,
+    relay: info.pageMs + clockOffsetMs - info.arrivalMs,
+    handoff: info.workerMs - info.pageMs,
+    decode: info.decodedMs - info.workerMs,
+    draw: drawn - info.decodedMs,
+  };
+}
+
+function onFrame(buffer, pageMs) {
+  const workerMs = now();
   const view = new DataView(buffer);
   if (buffer.byteLength <= HEADER || view.getUint8(0) !== 1) return;
   const flags = view.getUint8(1), number = view.getUint16(2), seq = view.getUint32(4);
@@ -94,7 +118,7 @@ function onFrame(buffer) {
     stats.dropped += 1;
     return;
   }
-  inFlight.set(seq, { captureMs, arrivalMs, replayed });
+  inFlight.set(seq, { captureMs, arrivalMs, replayed, pageMs: pageMs ?? workerMs, workerMs });
   try {
     decoder.decode(new EncodedVideoChunk({ type: key ? "key" : "delta", timestamp: seq, data }));
   } catch (e) {
@@ -102,6 +126,36 @@ function onFrame(buffer) {
     post({ type: "error", message: String(e) });
     reset();
   }
+}
+
+// The worker's own socket to the station (``console_media``): once it brings a frame, the
+// frames the page's main thread forwards (its socket's, sent before the switch) are ignored.
+let socket = null;
+let socketCarries = false;
+
+function openSocket(url, session, token) {
+  if (socket) { socket.onclose = null; socket.close(); }
+  socketCarries = false;
+  const ws = new WebSocket(url);
+  ws.binaryType = "arraybuffer";
+  ws.onopen = () => ws.send(JSON.stringify({ jsonrpc: "2.0", id: 1, method: "console_media", params: { session, token } }));
+  ws.onmessage = (event) => {
+    if (typeof event.data === "string") {
+      const answer = JSON.parse(event.data);
+      if (answer.error) { // an older station: the page's socket keeps carrying the frames
+        post({ type: "error", message: `video socket: ${answer.error.message}` });
+        ws.close();
+      }
+      return;
+    }
+    if (new Uint8Array(event.data, 0, 1)[0] !== 1) return;
+    socketCarries = true;
+    stats.ownSocket += 1;
+    onFrame(event.data, now());
+  };
+  // The page's socket carries the frames again (the station sends there without this one).
+  ws.onclose = () => { if (socket === ws) { socket = null; socketCarries = false; } };
+  socket = ws;
 }
 
 function percentile(values, p) {
@@ -138,7 +192,8 @@ function report() {
 
 self.onmessage = (event) => {
   const message = event.data;
-  if (message.type === "frame") onFrame(message.buffer);
+  if (message.type === "frame") { if (!socketCarries) onFrame(message.buffer, message.pageMs); }
+  else if (message.type === "socket") openSocket(message.url, message.session, message.token);
   else if (message.type === "init") {
     canvas = message.canvas;
     context = canvas.getContext("2d", { alpha: false });

@@ -7,7 +7,7 @@
 // platform's speed cap.
 
 import { $, put } from "./common.js";
-import { api, onBinary } from "./station.js";
+import { api, apiUrl, onBinary } from "./station.js";
 import { notify, state, subscribe } from "./store.js";
 
 const STALE_MIN_MS = 250;
@@ -130,7 +130,10 @@ export function startVideo() {
     worker.postMessage({ type: "init", canvas: offscreen }, [offscreen]);
     worker.onmessage = (event) => onWorkerMessage(event.data);
   }
-  onBinary(1, (buffer) => worker?.postMessage({ type: "frame", buffer }, [buffer]));
+  onBinary(1, (buffer) => worker?.postMessage({ type: "frame", buffer, pageMs: wallNow() }, [buffer]));
+  // The worker opens a socket of its own to the station for the NavCam (the frames then skip
+  // this thread, busy with layout and paint); until it carries them they come through here.
+  subscribe("session", () => worker?.postMessage({ type: "socket", url: apiUrl, session: state.session, token: state.mediaToken }));
   subscribe("clock", () => worker?.postMessage({ type: "clock", offsetMs: state.clockOffsetMs }));
   subscribe("shown", (platformId) => watch(platformId));
   subscribe("current", () => {
@@ -145,6 +148,7 @@ export function startVideo() {
   setInterval(reportLatency, 1000);
   return {
     stats: () => state.video,
+    relayed: () => state.videoState?.viewer ?? null, // the station's side of this page's feed
     staleMarks: () => staleMarks.slice(),
     staleLimitMs: () => staleLimitMs(state.video?.frameIntervalMs),
     keepLatencies: (on) => worker?.postMessage({ type: "keep", on }),

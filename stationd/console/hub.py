@@ -132,6 +132,7 @@ class ConsoleHub(ConsoleMedia, ConsoleDrive, Actor):
             "station_id": self.ctx.config.station.id,
             "time_ms": time.time_ns() / 1e6,
             "drive_timeout_s": self.ctx.config.console.drive_timeout,
+            "media_token": session.media_token,
         }
 
     def api_console_focus(self, call: CallContext, platform_id: str) -> bool:
@@ -160,6 +161,12 @@ class ConsoleHub(ConsoleMedia, ConsoleDrive, Actor):
             self._release_when_gone(session, platform_id)
         for task in list(session.tasks):
             task.cancel("console closed")
+        if session.media_ws is not None and self._group is not None:
+            # The page's video worker's socket goes with the page's own.
+            self._group.create_task(
+                session.media_ws.close(), name=f"console:{session.number}:media"
+            )
+            session.media_ws = None
 
     async def _send(self, session: ConsoleSession, method: str, params: Any) -> None:
         text = json.dumps({"jsonrpc": "2.0", "method": method, "params": params}, allow_nan=False)
@@ -223,6 +230,7 @@ async def async_setup(ctx: StationContext) -> None:
     hub = ConsoleHub(ctx)
     for name in (
         "console_subscribe",
+        "console_media",
         "console_focus",
         "station_time",
         "video_watch",

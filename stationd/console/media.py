@@ -8,15 +8,26 @@ import contextlib
 import itertools
 import logging
 import math
+import secrets
 import time
 from collections.abc import Callable
 from typing import Any
+
+from aiohttp import web
 
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
 from brasidas.media.pipeline import StreamState
 from stationd.console.session import ConsoleParts, ConsoleSession, Watch
 from stationd.media import free_udp_port, receive_host
-from stationd.video_feed import FRAME_TYPE_TALK, HEADER, Feed, OpusSender, Viewer, pump
+from stationd.video_feed import (
+    FRAME_TYPE_TALK,
+    FRAME_TYPE_VIDEO,
+    HEADER,
+    Feed,
+    OpusSender,
+    Viewer,
+    pump,
+)
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -87,9 +98,40 @@ class ConsoleMedia(ConsoleParts):
         self._unwatched_since.pop((platform_id, stream), None)
         return watch
 
+    def api_console_media(self, call: CallContext, session: int, token: str) -> bool:
+        """This WebSocket (the page's video worker's own) carries session ``session``'s NavCam
+        from now on, its current GOP first: the access units no longer wait for the page's
+        main thread. ``token`` is the ``media_token`` ``console_subscribe`` answered."""
+        ws = call.extra.get("ws")
+        if not isinstance(ws, web.WebSocketResponse):
+            raise RpcError(INVALID_PARAMS, "console_media needs the WebSocket transport")
+        owner = self.sessions.get(session)
+        if owner is None or not secrets.compare_digest(owner.media_token, token):
+            raise RpcError(INVALID_PARAMS, "no such console session (or the wrong token)")
+        owner.media_ws = ws
+        call.extra.setdefault("on_close", []).append(lambda: self._media_closed(owner, ws))
+        watch = owner.watches.get("video")
+        if watch is not None:  # what was queued for the other socket: from a keyframe again
+            watch.feed.fanout.rewind(watch.viewer)
+        return True
+
+    def _media_closed(self, session: ConsoleSession, ws: web.WebSocketResponse) -> None:
+        if session.media_ws is ws:
+            session.media_ws = None
+
     async def _pump(self, session: ConsoleSession, viewer: Viewer) -> None:
+        async def send(message: bytes) -> None:
+            media = session.media_ws if viewer.kind == FRAME_TYPE_VIDEO else None
+            if media is not None and not media.closed:
+                try:
+                    await media.send_bytes(message)
+                    return
+                except ConnectionError:
+                    self._media_closed(session, media)
+            await session.ws.send_bytes(message)
+
         with contextlib.suppress(ConnectionError, RuntimeError):
-            await pump(viewer, session.ws.send_bytes)
+            await pump(viewer, send)
 
     def _unwatch(self, session: ConsoleSession, kind: str) -> bool:
         watch = session.watches.pop(kind, None)

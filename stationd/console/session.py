@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import secrets
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -58,6 +59,10 @@ class ConsoleSession:
     drive_stops: dict[str, asyncio.TimerHandle] = field(default_factory=dict)
     """By platform id: when this page's last drive input lapses."""
     closed: bool = False
+    media_ws: web.WebSocketResponse | None = None
+    """The page's video worker's own socket, once it proved ``media_token``: the NavCam's
+    access units go there, past the page's main thread (busy with layout and paint)."""
+    media_token: str = field(default_factory=lambda: secrets.token_urlsafe(18))
 
 
 class ConsoleParts:
