@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
-from brasidas.media.bitrate import STEP_S, BitrateController, frame_thinning
+from brasidas.media.bitrate import (
+    STEP_S,
+    TRANSPORT_POLL_S,
+    TRANSPORT_WINDOW_S,
+    BitrateController,
+    TransportReport,
+    frame_thinning,
+)
 
 
 def _steps(controller: BitrateController, loss: float | None, count: int, start: float) -> float:
@@ -66,3 +73,83 @@ def test_a_bitrate_forced_far_down_sends_fewer_frames_within_bounds() -> None:
     assert frame_thinning(30, 300, 1500) == 3  # under a quarter: 10 fps, the least
     assert frame_thinning(20, 150, 1000) == 2  # never below 10 fps
     assert frame_thinning(5, 150, 250) == 1  # monitoring rate: never thinned
+
+
+def _window(sent: float, received: float, growth_ms: float) -> TransportReport:
+    """A transport-feedback window whose delay grew ``growth_ms`` across it."""
+    packets = sent * 1000 * TRANSPORT_WINDOW_S / (8 * 1200)
+    return TransportReport(sent, received, delay_trend_ms=growth_ms / packets)
+
+
+def test_a_queue_building_cuts_the_bitrate_to_under_what_arrived_at_once() -> None:
+    controller = BitrateController(1500, 150)
+    now = 0.0
+    for _ in range(10):  # a clean link: no queue, nothing to cut
+        assert controller.on_transport(_window(1500, 1490, 3.0), 1500, now) is None
+        now += TRANSPORT_POLL_S
+    # 2 Mbit/s → 500 kbit/s: the windows after the drop, as measured (+56, then +133 ms).
+    controller.on_transport(_window(1620, 1190, 56.0), 1500, now)
+    kbps = controller.on_transport(_window(1530, 730, 133.0), 1500, now + 0.1)
+    assert kbps is not None and kbps <= 0.85 * 730 + 1
+    kbps = controller.on_transport(_window(2400, 450, 400.0), 1500, now + 0.2)
+    assert kbps is not None and kbps < 500  # under the new capacity within 0.3 s
+    assert controller.overuses >= 1
+    assert controller.retransmissions_paused(now + 0.3)  # the queue drops them anyway
+    assert not controller.retransmissions_paused(now + 1.0)
+    # Receiver reports counting the drop's losses afterwards do not cut it a second time, and
+    # the bitrate does not climb back into the queue while it drains.
+    held = controller.effective_kbps(1500)
+    for step in range(1, 15):
+        growth = -40.0 if step < 4 else 0.0  # the queue drains (-84, -48, -34 ms measured)
+        at = now + 0.2 + step * 0.1
+        controller.on_transport(_window(held, held, growth), 1500, at)
+        assert controller.update(0.5, 1500, at) is None
+    assert controller.effective_kbps(1500) == held
+
+
+def test_random_loss_without_a_queue_never_lowers_the_bitrate() -> None:
+    controller = BitrateController(1500, 150)
+    now = 0.0
+    for step in range(100):
+        # 10 % lost at random, the delay flat but jittery (±20 ms a window, as measured).
+        growth = 20.0 if step % 2 else -20.0
+        controller.on_transport(_window(1500, 1350, growth), 1500, now)
+        controller.update(0.40 if step % 7 == 0 else 0.10, 1500, now)  # a report spikes
+        now += TRANSPORT_POLL_S
+    assert controller.effective_kbps(1500) == 1500
+    assert controller.overuses == 0 and controller.collapsed_at is None
+
+
+def test_a_cut_link_a_restarting_receiver_or_a_paused_forwarder_is_not_a_capacity() -> None:
+    controller = BitrateController(1500, 150)
+    # A forwarder paused 100 ms (a loaded machine) then caught up: the delay grew, but the
+    # link delivered what was sent.
+    for step in range(5):
+        assert controller.on_transport(_window(1500, 1400, 100.0), 1500, step * 0.1) is None
+    # A window where nothing arrived (the delta of deltas is meaningless: -50 ms measured).
+    assert controller.on_transport(TransportReport(1500, 0.0, -50.0), 1500, 0.6) is None
+    assert controller.on_transport(TransportReport(1500, 0.0, 50.0), 1500, 0.7) is None
+    assert controller.effective_kbps(1500) == 1500
+
+
+def test_after_a_cut_the_bitrate_climbs_back_on_a_lossy_but_unqueued_link() -> None:
+    controller = BitrateController(1500, 150)
+    controller.on_transport(_window(1500, 700, 60.0), 1500, 0.0)
+    low = controller.effective_kbps(1500)
+    now = 0.1
+    for _ in range(200):  # 20 s of a link losing 10 % at random, no queue
+        controller.on_transport(_window(low, low * 0.9, 0.0), 1500, now)
+        controller.update(0.10, 1500, now)
+        now += TRANSPORT_POLL_S
+    assert controller.effective_kbps(1500) == 1500
+
+
+def test_without_transport_feedback_the_reported_loss_still_decides() -> None:
+    controller = BitrateController(1500, 150)
+    _steps(controller, 0.66, 4, 0.0)
+    assert controller.effective_kbps(1500) < 500
+    # Transport feedback that stopped a while ago no longer silences the reports.
+    controller = BitrateController(1500, 150)
+    controller.on_transport(_window(1500, 1500, 0.0), 1500, 0.0)
+    _steps(controller, 0.66, 4, 0.0 + 1.0 + STEP_S)
+    assert controller.effective_kbps(1500) < 500
