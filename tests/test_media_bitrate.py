@@ -132,14 +132,23 @@ def test_a_cut_link_a_restarting_receiver_or_a_paused_forwarder_is_not_a_capacit
     assert controller.effective_kbps(1500) == 1500
 
 
-def test_after_a_cut_the_bitrate_climbs_back_on_a_lossy_but_unqueued_link() -> None:
+def test_after_a_wrong_cut_the_bitrate_climbs_back_on_a_lossy_but_unqueued_link() -> None:
     controller = BitrateController(1500, 150)
-    controller.on_transport(_window(1500, 700, 60.0), 1500, 0.0)
+    # A forwarder's long pause read as a queue that delivered 1100 of 1500 kbit/s.
+    controller.on_transport(_window(1500, 1100, 60.0), 1500, 0.0)
     low = controller.effective_kbps(1500)
+    assert low < 1000
     now = 0.1
-    for _ in range(200):  # 20 s of a link losing 10 % at random, no queue
+    for _ in range(50):  # 5 s of a link losing 10 % at random, no queue
         controller.on_transport(_window(low, low * 0.9, 0.0), 1500, now)
         controller.update(0.10, 1500, now)
+        now += TRANSPORT_POLL_S
+    # Back to under what it delivered (random loss alone cannot tell a full queue's).
+    assert controller.effective_kbps(1500) >= 0.9 * 1100 - 1
+    # A clean link: the rest of the way.
+    for _ in range(200):
+        controller.on_transport(_window(low, low, 0.0), 1500, now)
+        controller.update(0.0, 1500, now)
         now += TRANSPORT_POLL_S
     assert controller.effective_kbps(1500) == 1500
 
@@ -153,3 +162,25 @@ def test_without_transport_feedback_the_reported_loss_still_decides() -> None:
     controller.on_transport(_window(1500, 1500, 0.0), 1500, 0.0)
     _steps(controller, 0.66, 4, 0.0 + 1.0 + STEP_S)
     assert controller.effective_kbps(1500) < 500
+
+
+def test_after_a_capacity_drop_the_bitrate_stays_under_it_and_climbs_only_on_a_clean_link() -> None:
+    controller = BitrateController(1500, 150)
+    now = 0.0
+    for received in (1190.0, 730.0, 450.0):  # the drop to 500 kbit/s, as measured
+        controller.on_transport(_window(1600, received, 120.0), 1500, now)
+        now += TRANSPORT_POLL_S
+    assert controller.capacity_kbps == 450.0  # what it delivered, by the newest window
+    for _ in range(60):  # 6 s: no queue, no loss
+        controller.on_transport(_window(400, 400, 0.0), 1500, now)
+        controller.update(0.0, 1500, now)
+        now += TRANSPORT_POLL_S
+    # It climbed, but not back into the queue it just left.
+    assert 0.85 * 450 < controller.effective_kbps(1500) <= 0.9 * 450
+    # Behind a full queue the delay stops growing but the loss shows: no climbing on it.
+    held = controller.target_kbps
+    for _ in range(150):  # 15 s, past the capacity's memory
+        controller.on_transport(_window(held, held * 0.93, 0.0), 1500, now)
+        controller.update(0.07, 1500, now)
+        now += TRANSPORT_POLL_S
+    assert controller.target_kbps == held

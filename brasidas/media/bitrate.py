@@ -76,6 +76,10 @@ forwarder's 50 ms pause ~0.86)."""
 MOST_CUT = 0.5
 """One cut lowers the bitrate to no less than this share (a window's received rate can read
 low; the next window cuts again if the queue still grows)."""
+CAPACITY_MEMORY_S = 10.0
+"""After the link was over its capacity, the bitrate climbs to no more than
+:data:`CLIMB_UNDER` of what it delivered then, this long."""
+CLIMB_UNDER = 0.9
 CLEAN_QUEUE_MS = 5.0
 """Under this estimated queue the bitrate may climb (whatever the random loss)."""
 QUEUE_LEAK = 0.9
@@ -115,6 +119,8 @@ class BitrateController:
         self.overuses = 0
         self.queue_ms = 0.0
         """The link's queue as the delay's growth estimates it (ms of waiting)."""
+        self.capacity_kbps = 0.0
+        """What the link delivered when last over its capacity."""
 
     def on_transport(self, report: TransportReport, ceiling_kbps: int, now: float) -> int | None:
         """A window of transport-wide feedback at ``now``: over capacity, the target falls to
@@ -137,6 +143,7 @@ class BitrateController:
             or delivered >= OVERUSE_DELIVERED
         ):
             return None
+        self.capacity_kbps = report.received_kbps
         self.overused_at = now
         self.overuses += 1
         if report.received_kbps < report.sent_kbps * COLLAPSE_DELIVERED:
@@ -188,16 +195,33 @@ class BitrateController:
         elif loss is not None and self._clean(now) and not self._holding(now):
             # Up to the ceiling; a target above it (a lower framerate's) is kept for later.
             raised = max(self.target_kbps * CLIMB, self.target_kbps + 10)
-            self.target_kbps = max(self.target_kbps, min(raised, float(ceiling_kbps)))
+            limit = self._climb_limit(float(ceiling_kbps), now)
+            self.target_kbps = max(self.target_kbps, min(raised, limit))
         after = self.effective_kbps(ceiling_kbps)
         return after if after != before else None
 
     def _clean(self, now: float) -> bool:
-        """Room to climb: no queue in the delay (random loss does not count), or without
-        transport feedback, hardly any loss reported."""
-        if self._transport_fresh(now):
-            return self.queue_ms < CLEAN_QUEUE_MS
-        return self.loss < CLEAN_LOSS
+        """Room to climb: hardly any loss reported and, with transport feedback, no queue in
+        the delay. Under random loss, back up to the capacity a wrong cut measured (a full
+        queue's loss looks the same, and its delay stops growing once it overflows)."""
+        if not self._transport_fresh(now):
+            return self.loss < CLEAN_LOSS
+        if self.queue_ms >= CLEAN_QUEUE_MS:
+            return False
+        return self.loss < CLEAN_LOSS or self.target_kbps < self._remembered_capacity(now)
+
+    def _climb_limit(self, ceiling: float, now: float) -> float:
+        """The ceiling, or for a while after the link was over its capacity, under what it
+        delivered then: no probing straight back into the queue."""
+        remembered = self._remembered_capacity(now)
+        return min(ceiling, remembered) if remembered > 0 else ceiling
+
+    def _remembered_capacity(self, now: float) -> float:
+        """Under what the link last delivered over its capacity, for a while; else 0."""
+        at = self.overused_at
+        if at is None or now - at >= CAPACITY_MEMORY_S:
+            return 0.0
+        return CLIMB_UNDER * self.capacity_kbps
 
     def _transport_fresh(self, now: float) -> bool:
         at = self.transport_at

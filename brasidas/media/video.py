@@ -181,6 +181,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         self._reports_seen: dict[int, int] = {}
         self.retransmit = True
         self.retransmissions_dropped = 0
+        self._dropped_seen = 0
         """False while the link's queue overflows: retransmissions are dropped (read by the
         streaming thread)."""
         self.transport: TransportReport | None = None
@@ -243,7 +244,14 @@ class VideoOut(FanOutStream[VideoSettings]):
         fell = self.bitrate.on_transport(transport, ceiling, now) if transport else None
         loss = self._newest_reported_loss()
         kbps = self.bitrate.update(loss, ceiling, now) or fell
-        self.retransmit = not self.bitrate.retransmissions_paused(now)
+        retransmit = not self.bitrate.retransmissions_paused(now)
+        if retransmit and not self.retransmit and self.retransmissions_dropped > self._dropped_seen:
+            # The queue drained: what it dropped was not sent again, so the receivers wait
+            # for a keyframe; make it now, on the empty link, not after their timeout.
+            self.request_keyframe()
+        if not retransmit and self.retransmit:
+            self._dropped_seen = self.retransmissions_dropped
+        self.retransmit = retransmit
         # Right after a capacity drop FEC would only add to the queue that drops the packets:
         # it is for a link's random loss (which, by loss alone, is any loss but a collapse).
         collapsed = self.bitrate.collapsed_at
