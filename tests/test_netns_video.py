@@ -5,6 +5,7 @@ The platform runs ``--sim`` (a moving test picture), the station receives with `
 from __future__ import annotations
 
 import asyncio
+import contextlib
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
@@ -175,4 +176,22 @@ async def test_the_bitrate_falls_under_a_rate_limit(watching: Fleet) -> None:
     async def flowing() -> bool:
         return (await _receiver(fleet))["frames"] > frames + 20
 
+    await wait_for(flowing, timeout=20, step=0.5)
+    # Too few bits for the whole picture: the platform sends half its width and height, and
+    # the station decodes on at the new size (a new SPS with the keyframe).
+    navcam = await _navcam(fleet)
+    assert navcam["sent_size"] == [320, 240], navcam
+
+    async def at_size(size: list[int]) -> bool:
+        with contextlib.suppress(RpcFailed):
+            return (await _receiver(fleet))["size"] == size
+        return False
+
+    await wait_for(lambda: at_size([320, 240]), timeout=20, step=0.5)
+    frames = (await _receiver(fleet))["frames"]
+    await wait_for(flowing, timeout=20, step=0.5)
+    # The link recovers: the bitrate climbs back and the full picture returns.
+    fleet.net.impair("rover", up=Profile(), down=Profile())
+    await wait_for(lambda: at_size([640, 480]), timeout=60, step=0.5)
+    frames = (await _receiver(fleet))["frames"]
     await wait_for(flowing, timeout=20, step=0.5)

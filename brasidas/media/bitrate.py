@@ -73,6 +73,8 @@ OVERUSE_DELIVERED = 0.75
 """A queue over capacity delivers less than this share of what was sent (measured at the
 drop to 500 kbit/s: 0.73, 0.48, 0.24 in the windows after it; at 10 % random loss ~0.9; a
 forwarder's 50 ms pause ~0.86)."""
+OVERUSE_READS = 2
+"""Consecutive windows that must show the overuse (0.1 s apart)."""
 MOST_CUT = 0.5
 """One cut lowers the bitrate to no less than this share (a window's received rate can read
 low; the next window cuts again if the queue still grows)."""
@@ -121,6 +123,7 @@ class BitrateController:
         """The link's queue as the delay's growth estimates it (ms of waiting)."""
         self.capacity_kbps = 0.0
         """What the link delivered when last over its capacity."""
+        self._overuse_streak = 0
 
     def on_transport(self, report: TransportReport, ceiling_kbps: int, now: float) -> int | None:
         """A window of transport-wide feedback at ``now``: over capacity, the target falls to
@@ -142,6 +145,12 @@ class BitrateController:
             or self.queue_ms <= OVERUSE_QUEUE_MS
             or delivered >= OVERUSE_DELIVERED
         ):
+            self._overuse_streak = 0
+            return None
+        # Two reads running: a forwarder's pause shows in one, then its backlog arrives at
+        # once (the delay falls); a queue over capacity goes on growing.
+        self._overuse_streak += 1
+        if self._overuse_streak < OVERUSE_READS:
             return None
         self.capacity_kbps = report.received_kbps
         self.overused_at = now
@@ -258,3 +267,42 @@ def frame_thinning(framerate: int, bitrate_kbps: int, ceiling_kbps: int) -> int:
     share = bitrate_kbps / ceiling_kbps
     wanted = 1 if share >= 0.5 else 2 if share >= 0.25 else 3
     return max(1, min(wanted, framerate // MIN_THINNED_FPS))
+
+
+LOWER_RESOLUTION_BELOW_BPP = 0.05
+"""Below this many bits per pixel the full picture smears and its frames grow large for the
+bitrate: half the width and height (a quarter of the pixels) at the same bitrate stays sharp."""
+FULL_RESOLUTION_ABOVE_BPP = 0.08
+"""Back to the full picture above this (hysteresis: the two never alternate on one bitrate)."""
+RESOLUTION_HOLD_S = 5.0
+"""A size is kept at least this long: each change costs a keyframe."""
+
+
+@dataclass
+class ResolutionChoice:
+    """Whether the NavCam sends its full picture or half its width and height (sans-IO)."""
+
+    halved: bool = False
+    changed_at: float | None = None
+
+    def update(self, kbps: int, width: int, height: int, fps: float, now: float) -> bool:
+        """The bitrate the encoder gets at ``now``: True when the size changed."""
+        if self.changed_at is not None and now - self.changed_at < RESOLUTION_HOLD_S:
+            return False
+        bpp_full = kbps * 1000 / max(1.0, width * height * fps)
+        wanted = (
+            bpp_full < FULL_RESOLUTION_ABOVE_BPP
+            if self.halved
+            else bpp_full < LOWER_RESOLUTION_BELOW_BPP
+        )
+        if wanted == self.halved:
+            return False
+        self.halved = wanted
+        self.changed_at = now
+        return True
+
+    def size(self, width: int, height: int) -> tuple[int, int]:
+        """The picture sent (even sizes: H.264's 4:2:0 chroma)."""
+        if not self.halved:
+            return width, height
+        return width // 4 * 2, height // 4 * 2

@@ -25,6 +25,7 @@ from typing import Any
 from brasidas.media.bitrate import (
     THIN_AFTER_COLLAPSE_S,
     BitrateController,
+    ResolutionChoice,
     TransportReport,
     frame_thinning,
 )
@@ -179,6 +180,9 @@ class VideoOut(FanOutStream[VideoSettings]):
         self.bitrate = BitrateController(settings.effective_bitrate_kbps(), MIN_BITRATE_KBPS)
         self._rtpbin: Any = None
         self._reports_seen: dict[int, int] = {}
+        self.resolution = ResolutionChoice()
+        """Half the picture's width and height while the bitrate is too low for all of it."""
+        self._scale_filter: Any = None
         self.retransmit = True
         self.retransmissions_dropped = 0
         self._dropped_seen = 0
@@ -198,6 +202,7 @@ class VideoOut(FanOutStream[VideoSettings]):
             **super().describe(),
             "width": s.width,
             "height": s.height,
+            "sent_size": list(self.resolution.size(s.width, s.height)),
             "framerate": s.framerate,
             "codec": "H264",
             "encoder": self.encoder_name or None,
@@ -278,7 +283,21 @@ class VideoOut(FanOutStream[VideoSettings]):
                 self.keyframes.set_framerate(max(1, self.settings.framerate // thinning))
         if kbps is not None or fec_changed:
             _set_bitrate(self._encoder, self.encoder_name, self.media_bitrate_kbps())
+        self._follow_resolution(now)
         return kbps
+
+    def _follow_resolution(self, now: float) -> None:
+        """Halve the picture's size when the bitrate cannot carry all of it, and back (the
+        encoder restarts on the new size with a keyframe and its new SPS; decoders follow)."""
+        s = self.settings
+        # At the full framerate's bits per pixel, before any thinning: fewer frames and fewer
+        # pixels both, on a link that forced the bitrate that far down.
+        if self._scale_filter is None or not self.resolution.update(
+            self.current_bitrate_kbps(), s.width, s.height, s.framerate, now
+        ):
+            return
+        width, height = self.resolution.size(s.width, s.height)
+        self._scale_filter.set_property("caps", caps(f"video/x-raw,width={width},height={height}"))
 
     def media_bitrate_kbps(self) -> int:
         """The encoder's share of the bitrate: the FEC packets are carried within it."""
@@ -368,6 +387,9 @@ class VideoOut(FanOutStream[VideoSettings]):
             ]
         rate = make("videorate", drop_only=True)
         rate_filter = make("capsfilter", caps=caps(f"video/x-raw,framerate={s.framerate}/1"))
+        width, height = self.resolution.size(s.width, s.height)
+        scale = make("videoscale")
+        scale_filter = make("capsfilter", caps=caps(f"video/x-raw,width={width},height={height}"))
         convert = make("videoconvert")
         encoder = make(encoder_name, "encoder")
         _configure_encoder(encoder, encoder_name, s)
@@ -400,6 +422,8 @@ class VideoOut(FanOutStream[VideoSettings]):
             *overlays,
             rate,
             rate_filter,
+            scale,
+            scale_filter,
             convert,
             encoder,
             h264_filter,
@@ -427,6 +451,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         self.encoder_name = encoder_name
         self._encoder = encoder
         self._rate_filter = rate_filter
+        self._scale_filter = scale_filter
         rate_filter.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _thinning_probe, weakref.ref(self)
         )
@@ -461,6 +486,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         super().on_torn_down()
         self._encoder = None
         self._rate_filter = None
+        self._scale_filter = None
         self._rtpbin = None
         self._reports_seen.clear()
         self._transport_seen = None
@@ -742,6 +768,8 @@ class VideoIn(PipelineStream):
         """The longest wait between two decoded frames (a loss freezes to the next keyframe)."""
         self.gaps_ms: collections.deque[float] = collections.deque(maxlen=window)
         """Recent waits between two decoded frames (ms), appended on the streaming thread."""
+        self.size: tuple[int, int] | None = None
+        """The decoded picture's width and height (the sender may halve it on a slow link)."""
 
     def destination(self) -> str:
         return f"{self.host}:{self.port}"
@@ -753,6 +781,7 @@ class VideoIn(PipelineStream):
             "rtp_packets": self.rtp_packets,
             "rtp_lost": self.rtp_lost,
             "longest_freeze_ms": round(self.longest_freeze_ms, 1),
+            "size": list(self.size) if self.size is not None else None,
             **self.gap_stats(),
             **self.repair_stats(),
         }
@@ -880,6 +909,9 @@ class VideoIn(PipelineStream):
         decoder.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _latency_probe, (weakref.ref(self), ntp_caps())
         )
+        decoder.get_static_pad("src").add_probe(
+            Gst.PadProbeType.EVENT_DOWNSTREAM, _size_probe, weakref.ref(self)
+        )
         source.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _bytes_probe, weakref.ref(self)
         )
@@ -902,6 +934,20 @@ def _latency_probe(pad: Any, info: Any, data: tuple[weakref.ref[VideoIn], Any]) 
             stream.last_latency_ms = age
             stream.latencies.append(age)
     return gst().PadProbeReturn.OK
+
+
+def _size_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
+    """Streaming thread: the decoder's output caps give the picture's size."""
+    Gst = gst()
+    stream = ref()
+    event = info.get_event()
+    if stream is not None and event is not None and event.type == Gst.EventType.CAPS:
+        structure = event.parse_caps().get_structure(0)
+        ok_w, width = structure.get_int("width")
+        ok_h, height = structure.get_int("height")
+        if ok_w and ok_h:
+            stream.size = (width, height)
+    return Gst.PadProbeReturn.OK
 
 
 def _bytes_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
