@@ -177,10 +177,15 @@ async def test_the_bitrate_falls_under_a_rate_limit(watching: Fleet) -> None:
         return (await _receiver(fleet))["frames"] > frames + 20
 
     await wait_for(flowing, timeout=20, step=0.5)
+
     # Too few bits for the whole picture: the platform sends half its width and height, and
     # the station decodes on at the new size (a new SPS with the keyframe).
-    navcam = await _navcam(fleet)
-    assert navcam["sent_size"] == [320, 240], navcam
+    async def halved() -> bool:
+        with contextlib.suppress(RpcFailed):
+            return (await _navcam(fleet))["sent_size"] == [320, 240]
+        return False
+
+    await wait_for(halved, timeout=20, step=0.5)
 
     async def at_size(size: list[int]) -> bool:
         with contextlib.suppress(RpcFailed):

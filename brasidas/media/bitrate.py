@@ -240,6 +240,10 @@ class BitrateController:
         at = self.overused_at
         return at is not None and now - at < HOLD_AFTER_OVERUSE_S
 
+    def settling(self, now: float) -> bool:
+        """The link was over its capacity moments ago (its queue may still be draining)."""
+        return self._holding(now)
+
     def retransmissions_paused(self, now: float) -> bool:
         """While a queue overflows, retransmitting what it dropped only feeds it (measured at
         the 500 kbit/s drop: 2-3 Mbit/s sent for a second, most of it retransmissions)."""

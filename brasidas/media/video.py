@@ -290,9 +290,13 @@ class VideoOut(FanOutStream[VideoSettings]):
         """Halve the picture's size when the bitrate cannot carry all of it, and back (the
         encoder restarts on the new size with a keyframe and its new SPS; decoders follow)."""
         s = self.settings
+        if self._scale_filter is None or self.bitrate.settling(now):
+            # Not while a queue drains after a cut: the new size costs a keyframe, and the
+            # receivers are waiting for one already (measured: a freeze at the drop twice as long).
+            return
         # At the full framerate's bits per pixel, before any thinning: fewer frames and fewer
         # pixels both, on a link that forced the bitrate that far down.
-        if self._scale_filter is None or not self.resolution.update(
+        if not self.resolution.update(
             self.current_bitrate_kbps(), s.width, s.height, s.framerate, now
         ):
             return
