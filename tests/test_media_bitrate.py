@@ -97,6 +97,9 @@ def test_a_queue_building_cuts_the_bitrate_to_under_what_arrived_at_once() -> No
     assert controller.overuses >= 1
     assert controller.retransmissions_paused(now + 0.3)  # the queue drops them anyway
     assert not controller.retransmissions_paused(now + 1.0)
+    # Or as soon as a window shows the queue draining.
+    controller.on_transport(_window(400, 450, -30.0), 1500, now + 0.3)
+    assert not controller.retransmissions_paused(now + 0.35)
     # Receiver reports counting the drop's losses afterwards do not cut it a second time, and
     # the bitrate does not climb back into the queue while it drains.
     held = controller.effective_kbps(1500)

@@ -92,7 +92,8 @@ TRANSPORT_FRESH_S = 1.0
 """Transport feedback this recent decides decreases (receivers without it: the loss does)."""
 RTX_PAUSE_S = 0.3
 """Retransmissions stop this long after the last window that saw the queue building (one
-window: the queue has drained by then, at the cut bitrate)."""
+window: the queue has drained by then, at the cut bitrate), or until a window shows it
+draining (then a keyframe goes out on the emptying link)."""
 HOLD_AFTER_OVERUSE_S = 2.0
 """No climbing for this long after an overuse: the queue first drains, the receiver reports
 catch up."""
@@ -124,6 +125,7 @@ class BitrateController:
         self.capacity_kbps = 0.0
         """What the link delivered when last over its capacity."""
         self._overuse_streak = 0
+        self._draining = False
 
     def on_transport(self, report: TransportReport, ceiling_kbps: int, now: float) -> int | None:
         """A window of transport-wide feedback at ``now``: over capacity, the target falls to
@@ -133,6 +135,7 @@ class BitrateController:
         new_share = 1.0 if last is None else min(1.0, (now - last) / TRANSPORT_WINDOW_S)
         self.transport_at = now
         growth = report.queue_growth_ms * new_share
+        self._draining = growth < 0
         self.queue_ms = max(0.0, self.queue_ms * QUEUE_LEAK + growth)
         # A window that received nothing is a cut link or a restarting receiver: no capacity.
         # A queue already draining (the cut came through) is not cut again. A link that
@@ -248,7 +251,7 @@ class BitrateController:
         """While a queue overflows, retransmitting what it dropped only feeds it (measured at
         the 500 kbit/s drop: 2-3 Mbit/s sent for a second, most of it retransmissions)."""
         at = self.overused_at
-        return at is not None and now - at < RTX_PAUSE_S
+        return at is not None and now - at < RTX_PAUSE_S and not self._draining
 
     def effective_kbps(self, ceiling_kbps: int) -> int:
         """What the encoder is set to: the target within the framerate's ceiling."""
