@@ -170,6 +170,9 @@ async def _row(
         "framerate_sent": sender.get("framerate_sent"),
         "reported_jitter_ms": sender.get("reported_jitter_ms"),
         "fec_percent": sender.get("fec_percent"),
+        "overuses": sender.get("overuses", 0) - sender_before.get("overuses", 0),
+        "retransmissions_dropped": sender.get("retransmissions_dropped", 0)
+        - sender_before.get("retransmissions_dropped", 0),
         "retransmitted": sender.get("retransmitted", 0) - sender_before.get("retransmitted", 0),
         "keyframe_requests": sender.get("keyframes_requested", 0)
         - sender_before.get("keyframes_requested", 0),

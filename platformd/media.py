@@ -55,7 +55,7 @@ from brasidas.codecs.commands import (
 )
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
 from brasidas.media.audio import AudioIn, AudioOut, AudioSettings
-from brasidas.media.bitrate import STEP_S as BITRATE_STEP_S
+from brasidas.media.bitrate import TRANSPORT_POLL_S
 from brasidas.media.fanout import FanOutStream
 from brasidas.media.navcam import FrameratePolicy, navcam_settings, parse_framerate
 from brasidas.media.pipeline import PipelineStream, StreamState
@@ -169,7 +169,7 @@ class MediaService(Actor):
     async def _adapt_bitrate(self, navcam: VideoOut) -> None:
         """The NavCam's bitrate follows the receivers' reports (brasidas.media.bitrate)."""
         while True:
-            await asyncio.sleep(BITRATE_STEP_S / 2)
+            await asyncio.sleep(TRANSPORT_POLL_S)
             kbps = navcam.adapt_bitrate(time.monotonic())
             if kbps is not None:
                 _LOGGER.debug(

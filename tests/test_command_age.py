@@ -50,6 +50,25 @@ def test_the_offset_is_the_quickest_round_trips_and_within_half_of_it() -> None:
     assert best is not None and best.round_trip == pytest.approx(0.1)
 
 
+def test_a_queue_on_the_way_back_only_does_not_skew_the_offset_for_minutes() -> None:
+    offset = ClockOffset()
+    # True offset -10 s; a clean 2 ms round trip, then every answer held 200 ms in a queue
+    # platform → station (the video filling the link), one a second for three minutes.
+    offset.add(sent=100.0, platform=90.001, received=100.002)
+    for i in range(1, 180):
+        offset.add(sent=100.0 + i, platform=90.0 + i + 0.001, received=100.0 + i + 0.202)
+    best = offset.best
+    assert best is not None
+    # Its skew (half the queue, 100 ms) would age every fresh command by 100 ms.
+    assert abs(best.offset + 10.0) < 0.002
+    assert best.error_bound(280.0) < 0.1
+    # Long enough, the clocks' possible drift outweighs the quick sample's precision.
+    for i in range(180, 600):
+        offset.add(sent=100.0 + i, platform=90.0 + i + 0.001, received=100.0 + i + 0.202)
+    best = offset.best
+    assert best is not None and best.round_trip == pytest.approx(0.202)
+
+
 @pytest.fixture
 async def driving(
     platform_factory: Factory, fleet_key: bytes

@@ -2,7 +2,15 @@
 
 from __future__ import annotations
 
-from brasidas.media.bitrate import STEP_S, BitrateController, frame_thinning
+from brasidas.media.bitrate import (
+    STEP_S,
+    TRANSPORT_POLL_S,
+    TRANSPORT_WINDOW_S,
+    BitrateController,
+    ResolutionChoice,
+    TransportReport,
+    frame_thinning,
+)
 
 
 def _steps(controller: BitrateController, loss: float | None, count: int, start: float) -> float:
@@ -66,3 +74,136 @@ def test_a_bitrate_forced_far_down_sends_fewer_frames_within_bounds() -> None:
     assert frame_thinning(30, 300, 1500) == 3  # under a quarter: 10 fps, the least
     assert frame_thinning(20, 150, 1000) == 2  # never below 10 fps
     assert frame_thinning(5, 150, 250) == 1  # monitoring rate: never thinned
+
+
+def _window(sent: float, received: float, growth_ms: float) -> TransportReport:
+    """A transport-feedback window whose delay grew ``growth_ms`` across it."""
+    packets = sent * 1000 * TRANSPORT_WINDOW_S / (8 * 1200)
+    return TransportReport(sent, received, delay_trend_ms=growth_ms / packets)
+
+
+def test_a_queue_building_cuts_the_bitrate_to_under_what_arrived_at_once() -> None:
+    controller = BitrateController(1500, 150)
+    now = 0.0
+    for _ in range(10):  # a clean link: no queue, nothing to cut
+        assert controller.on_transport(_window(1500, 1490, 3.0), 1500, now) is None
+        now += TRANSPORT_POLL_S
+    # 2 Mbit/s → 500 kbit/s: the windows after the drop, as measured (+56, +105, +256 ms).
+    controller.on_transport(_window(1470, 977, 56.0), 1500, now)
+    kbps = controller.on_transport(_window(1870, 640, 105.0), 1500, now + 0.1)
+    assert kbps == 750  # toward 0.85 x what arrived, halved at most a step
+    kbps = controller.on_transport(_window(2080, 357, 256.0), 1500, now + 0.2)
+    assert kbps is not None and kbps < 500  # under the new capacity within 0.3 s
+    assert controller.overuses >= 1
+    assert controller.retransmissions_paused(now + 0.3)  # the queue drops them anyway
+    assert not controller.retransmissions_paused(now + 1.0)
+    # Or as soon as a window shows the queue draining.
+    controller.on_transport(_window(400, 450, -30.0), 1500, now + 0.3)
+    assert not controller.retransmissions_paused(now + 0.35)
+    # Receiver reports counting the drop's losses afterwards do not cut it a second time, and
+    # the bitrate does not climb back into the queue while it drains.
+    held = controller.effective_kbps(1500)
+    for step in range(1, 15):
+        growth = -40.0 if step < 4 else 0.0  # the queue drains (-84, -48, -34 ms measured)
+        at = now + 0.2 + step * 0.1
+        controller.on_transport(_window(held, held, growth), 1500, at)
+        assert controller.update(0.5, 1500, at) is None
+    assert controller.effective_kbps(1500) == held
+
+
+def test_random_loss_without_a_queue_never_lowers_the_bitrate() -> None:
+    controller = BitrateController(1500, 150)
+    now = 0.0
+    for step in range(100):
+        # 10 % lost at random, the delay flat but jittery (±20 ms a window, as measured).
+        growth = 20.0 if step % 2 else -20.0
+        controller.on_transport(_window(1500, 1350, growth), 1500, now)
+        controller.update(0.40 if step % 7 == 0 else 0.10, 1500, now)  # a report spikes
+        now += TRANSPORT_POLL_S
+    assert controller.effective_kbps(1500) == 1500
+    assert controller.overuses == 0 and controller.collapsed_at is None
+
+
+def test_a_cut_link_a_restarting_receiver_or_a_paused_forwarder_is_not_a_capacity() -> None:
+    controller = BitrateController(1500, 150)
+    # A forwarder paused 100 ms (a loaded machine) then caught up: the delay grew, but the
+    # link delivered what was sent.
+    for step in range(5):
+        assert controller.on_transport(_window(1500, 1400, 100.0), 1500, step * 0.1) is None
+    # ... or paused once, then its backlog arrived at once: one window, then a falling delay.
+    assert controller.on_transport(_window(1500, 1000, 100.0), 1500, 0.6) is None
+    assert controller.on_transport(_window(1500, 1600, -90.0), 1500, 0.7) is None
+    # A window where nothing arrived (the delta of deltas is meaningless: -50 ms measured).
+    assert controller.on_transport(TransportReport(1500, 0.0, -50.0), 1500, 0.8) is None
+    assert controller.on_transport(TransportReport(1500, 0.0, 50.0), 1500, 0.9) is None
+    assert controller.effective_kbps(1500) == 1500
+
+
+def test_after_a_wrong_cut_the_bitrate_climbs_back_on_a_lossy_but_unqueued_link() -> None:
+    controller = BitrateController(1500, 150)
+    # A forwarder's long pause read as a queue that delivered 1100 of 1500 kbit/s.
+    controller.on_transport(_window(1500, 1100, 60.0), 1500, 0.0)
+    controller.on_transport(_window(1500, 1100, 60.0), 1500, 0.1)
+    low = controller.effective_kbps(1500)
+    assert low < 1000
+    now = 0.2
+    for _ in range(50):  # 5 s of a link losing 10 % at random, no queue
+        controller.on_transport(_window(low, low * 0.9, 0.0), 1500, now)
+        controller.update(0.10, 1500, now)
+        now += TRANSPORT_POLL_S
+    # Back to under what it delivered (random loss alone cannot tell a full queue's).
+    assert controller.effective_kbps(1500) >= 0.9 * 1100 - 1
+    # A clean link: the rest of the way.
+    for _ in range(200):
+        controller.on_transport(_window(low, low, 0.0), 1500, now)
+        controller.update(0.0, 1500, now)
+        now += TRANSPORT_POLL_S
+    assert controller.effective_kbps(1500) == 1500
+
+
+def test_without_transport_feedback_the_reported_loss_still_decides() -> None:
+    controller = BitrateController(1500, 150)
+    _steps(controller, 0.66, 4, 0.0)
+    assert controller.effective_kbps(1500) < 500
+    # Transport feedback that stopped a while ago no longer silences the reports.
+    controller = BitrateController(1500, 150)
+    controller.on_transport(_window(1500, 1500, 0.0), 1500, 0.0)
+    _steps(controller, 0.66, 4, 0.0 + 1.0 + STEP_S)
+    assert controller.effective_kbps(1500) < 500
+
+
+def test_after_a_capacity_drop_the_bitrate_stays_under_it_and_climbs_only_on_a_clean_link() -> None:
+    controller = BitrateController(1500, 150)
+    now = 0.0
+    for received in (977.0, 640.0, 450.0):  # the drop to 500 kbit/s, as measured
+        controller.on_transport(_window(1600, received, 120.0), 1500, now)
+        now += TRANSPORT_POLL_S
+    assert controller.capacity_kbps == 450.0  # what it delivered, by the newest window
+    for _ in range(60):  # 6 s: no queue, no loss
+        controller.on_transport(_window(400, 400, 0.0), 1500, now)
+        controller.update(0.0, 1500, now)
+        now += TRANSPORT_POLL_S
+    # It climbed, but not back into the queue it just left.
+    assert 0.85 * 450 < controller.effective_kbps(1500) <= 0.9 * 450
+    # Behind a full queue the delay stops growing but the loss shows: no climbing on it.
+    held = controller.target_kbps
+    for _ in range(150):  # 15 s, past the capacity's memory
+        controller.on_transport(_window(held, held * 0.93, 0.0), 1500, now)
+        controller.update(0.07, 1500, now)
+        now += TRANSPORT_POLL_S
+    assert controller.target_kbps == held
+
+
+def test_the_picture_is_halved_below_its_bits_and_restored_above_with_hysteresis() -> None:
+    choice = ResolutionChoice()
+    assert choice.size(640, 480) == (640, 480)
+    assert not choice.update(1500, 640, 480, 30, 0.0)  # 0.16 bits a pixel
+    assert choice.update(400, 640, 480, 30, 1.0)  # 0.043: smeared, large frames
+    assert choice.size(640, 480) == (320, 240)
+    # Held a while (each change costs a keyframe), and not restored just above the limit.
+    assert not choice.update(1500, 640, 480, 30, 2.0)
+    assert not choice.update(600, 640, 480, 30, 10.0)  # 0.065: between the two limits
+    assert choice.update(800, 640, 480, 30, 11.0)  # 0.087
+    assert choice.size(640, 480) == (640, 480)
+    # 5 fps needs a sixth of the bits for the same picture.
+    assert not ResolutionChoice().update(250, 640, 480, 5, 0.0)

@@ -418,3 +418,40 @@ def _rpc_calls(segments: list[Datagram]) -> list[bytes]:
             if isinstance(message, dict) and "session" in (message.get("params") or {}):
                 calls.append(text)
     return calls
+
+
+async def test_a_queue_on_the_way_back_only_does_not_age_fresh_commands(
+    session: tuple[Fleet, Capture], controller: ControllerThread
+) -> None:
+    fleet, _ = session
+    station = _station(fleet)
+    await wait_for(lambda: _engage(fleet), 10, step=0.2)
+
+    async def keep_driving() -> None:
+        while True:
+            with contextlib.suppress(RpcFailed):
+                await fleet.api(station, "teleop_set", platform_id=ROVER, linear=0.1, angular=0.0)
+            await asyncio.sleep(0.05)
+
+    async def aged() -> bool:
+        return (await _velocity_link(fleet)).get("age_ms") is not None
+
+    ages: list[float] = []
+    async with asyncio.TaskGroup() as group:
+        driver = group.create_task(keep_driving(), name="drive")
+        await wait_for(aged, 10, step=0.2)
+        # Only platform → station queues, 200 ms (its video filling the radio link), for
+        # longer than the station once kept its heartbeats' clock samples (8, one a second):
+        # each heartbeat's answer then came 200 ms late, the clock offset was skewed by half
+        # of it, and every fresh command was aged ~100 ms on arrival.
+        fleet.net.impair("rover", up=Profile(delay=0.2))
+        deadline = time.monotonic() + 12
+        while time.monotonic() < deadline:
+            link = await _velocity_link(fleet)
+            age = link.get("age_ms")
+            if isinstance(age, int | float):
+                ages.append(float(age))
+            await asyncio.sleep(0.5)
+        driver.cancel()
+    # The commands go station → platform on a clean link: they arrive in well under 50 ms.
+    assert len(ages) >= 6 and max(ages[-6:]) < 50, ages

@@ -7,9 +7,19 @@ full queue drops the excess) and the bitrate falls to what got through, less 5 %
 :data:`CLEAN_LOSS` it climbs back by :data:`CLIMB` a step toward the configured ceiling; in
 between (a mesh's routine random loss, which retransmission repairs) it holds. Never below
 ``floor_kbps``, never above the ceiling the framerate allows.
+
+Delay-based, as the delay half: the sender's rtpsession reads the receivers' transport-wide
+feedback (TWCC: each packet's arrival time) into a :class:`TransportReport` per feedback
+window: what was sent and what arrived in it, and how the one-way delay grew. A queue
+building (the delay growing packet after packet) or a link delivering far less than was sent
+is over its capacity: the bitrate falls at once to under what arrived, a round trip after the
+queue started, where a receiver report counting the loss comes a second or two later.
+Random loss neither grows the delay nor takes a quarter of the packets, so it never cuts.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 STEP_S = 0.5
 CONGESTED_LOSS = 0.10
@@ -23,8 +33,70 @@ report at 10 % random loss exceeded 20 % now and then, measured): the bitrate
 falls on that report, to what got through, without waiting for the smoothing (measured at
 2 Mbit/s → 500 kbit/s: smoothed alone, three steps and 1.5 s of a full queue dropping)."""
 COLLAPSE_CONFIRM_S = 1.0
+COLLAPSE_DELIVERED = 1 - COLLAPSE_LOSS
+"""The same in transport feedback: a window delivering less than this share of what was sent."""
 DECREASE_GAP_S = 0.25
 """Decreases no closer than this (a report or two apart)."""
+
+
+@dataclass(frozen=True)
+class TransportReport:
+    """One window of transport-wide feedback (GStreamer rtpsession's ``twcc-stats``: the
+    packets sent in the last :data:`TRANSPORT_WINDOW_S` whose fate the receiver reported)."""
+
+    sent_kbps: float
+    received_kbps: float
+    """What arrived in the window, at the receiver's pace: a full link's capacity."""
+    delay_trend_ms: float
+    """Mean change of the one-way delay from one packet to the next (delta of deltas): > 0
+    while a queue builds, about 0 on a link that keeps up, whatever it loses at random."""
+    packet_bytes: int = 1200
+    """The packets' usual size (the payloader's MTU), to count the window's packets."""
+
+    @property
+    def queue_growth_ms(self) -> float:
+        """How much the one-way delay grew across the window (the trend times its packets)."""
+        packets = self.sent_kbps * 1000 * TRANSPORT_WINDOW_S / (8 * self.packet_bytes)
+        return self.delay_trend_ms * packets
+
+
+TRANSPORT_WINDOW_S = 0.3
+"""rtpsession's TWCC statistics window."""
+TRANSPORT_POLL_S = 0.1
+"""How often the sender looks at the feedback (each new window is read once)."""
+OVERUSE_QUEUE_MS = 20.0
+"""A queue this long (estimated from the delay's growth, window after window) is a link over
+its capacity: a keyframe's burst drains within a window, a mesh's random loss and jitter do
+not grow it, a link a few percent over its capacity grows it steadily (measured windows on
+a clean 2 Mbit/s link: within ±20 ms each; at a drop to 500 kbit/s: +56, then +133 ms)."""
+OVERUSE_DELIVERED = 0.75
+"""A queue over capacity delivers less than this share of what was sent (measured at the
+drop to 500 kbit/s: 0.73, 0.48, 0.24 in the windows after it; at 10 % random loss ~0.9; a
+forwarder's 50 ms pause ~0.86)."""
+OVERUSE_READS = 2
+"""Consecutive windows that must show the overuse (0.1 s apart)."""
+MOST_CUT = 0.5
+"""One cut lowers the bitrate to no less than this share (a window's received rate can read
+low; the next window cuts again if the queue still grows)."""
+CAPACITY_MEMORY_S = 10.0
+"""After the link was over its capacity, the bitrate climbs to no more than
+:data:`CLIMB_UNDER` of what it delivered then, this long."""
+CLIMB_UNDER = 0.9
+CLEAN_QUEUE_MS = 5.0
+"""Under this estimated queue the bitrate may climb (whatever the random loss)."""
+QUEUE_LEAK = 0.9
+"""The estimate fades by this at each window read, so that measurement errors do not add up."""
+OVERUSE_BACKOFF = 0.85
+"""Over capacity, the bitrate falls to this share of what arrived: the queue drains."""
+TRANSPORT_FRESH_S = 1.0
+"""Transport feedback this recent decides decreases (receivers without it: the loss does)."""
+RTX_PAUSE_S = 0.3
+"""Retransmissions stop this long after the last window that saw the queue building (one
+window: the queue has drained by then, at the cut bitrate), or until a window shows it
+draining (then a keyframe goes out on the emptying link)."""
+HOLD_AFTER_OVERUSE_S = 2.0
+"""No climbing for this long after an overuse: the queue first drains, the receiver reports
+catch up."""
 
 
 class BitrateController:
@@ -43,15 +115,80 @@ class BitrateController:
         report spiked now and then)."""
         self._collapse_report_at: float | None = None
         self._last_step: float | None = None
+        self.overused_at: float | None = None
+        """When transport feedback last showed the link over its capacity."""
+        self.transport_at: float | None = None
+        """When transport feedback last came: while it comes, it alone lowers the bitrate."""
+        self.overuses = 0
+        self.queue_ms = 0.0
+        """The link's queue as the delay's growth estimates it (ms of waiting)."""
+        self.capacity_kbps = 0.0
+        """What the link delivered when last over its capacity."""
+        self._overuse_streak = 0
+        self._draining = False
+
+    def on_transport(self, report: TransportReport, ceiling_kbps: int, now: float) -> int | None:
+        """A window of transport-wide feedback at ``now``: over capacity, the target falls to
+        under what arrived (at once: no smoothing, no step); the new bitrate, else None."""
+        # Windows overlap: each read adds the part of its growth that is new since the last.
+        last = self.transport_at
+        new_share = 1.0 if last is None else min(1.0, (now - last) / TRANSPORT_WINDOW_S)
+        self.transport_at = now
+        growth = report.queue_growth_ms * new_share
+        self._draining = growth < 0
+        self.queue_ms = max(0.0, self.queue_ms * QUEUE_LEAK + growth)
+        # A window that received nothing is a cut link or a restarting receiver: no capacity.
+        # A queue already draining (the cut came through) is not cut again. A link that
+        # delivers what was sent is keeping up: a delay that grew there was a forwarder's
+        # pause (a loaded machine's), not a capacity.
+        delivered = report.received_kbps / report.sent_kbps if report.sent_kbps > 0 else 1.0
+        if (
+            report.received_kbps <= 0
+            or growth <= 0
+            or self.queue_ms <= OVERUSE_QUEUE_MS
+            or delivered >= OVERUSE_DELIVERED
+        ):
+            self._overuse_streak = 0
+            return None
+        # Two reads running: a forwarder's pause shows in one, then its backlog arrives at
+        # once (the delay falls); a queue over capacity goes on growing.
+        self._overuse_streak += 1
+        if self._overuse_streak < OVERUSE_READS:
+            return None
+        self.capacity_kbps = report.received_kbps
+        self.overused_at = now
+        self.overuses += 1
+        if report.received_kbps < report.sent_kbps * COLLAPSE_DELIVERED:
+            # Most of it dropped: a capacity drop, as a receiver report losing > 35 % says.
+            seen = self._collapse_report_at
+            if seen is not None and 0 < now - seen <= COLLAPSE_CONFIRM_S:
+                self.collapsed_at = now
+            self._collapse_report_at = now
+        before = self.effective_kbps(ceiling_kbps)
+        current = min(self.target_kbps, float(ceiling_kbps))
+        lowered = max(report.received_kbps * OVERUSE_BACKOFF, current * MOST_CUT)
+        if lowered >= current:
+            return None  # already under what the link carries
+        self.target_kbps = max(float(self.floor_kbps), lowered)
+        self.decreases += 1
+        self._last_step = now
+        after = self.effective_kbps(ceiling_kbps)
+        return after if after != before else None
 
     def update(self, loss: float | None, ceiling_kbps: int, now: float) -> int | None:
         """A report's fraction lost (None: no receiver reported) at ``now``; the new
         target when it changed, else None."""
         if loss is not None:
             self.loss = SMOOTHING * loss + (1 - SMOOTHING) * self.loss
-        collapse = loss is not None and loss > COLLAPSE_LOSS
+        loss_decides = True
+        if self._transport_fresh(now):
+            # The delay tells a full queue from a mesh's random loss, which loss alone cannot
+            # (at 10 % random loss, reports over 35 % came now and then): the transport
+            # feedback alone lowers the bitrate; these reports may still raise it.
+            loss_decides = False
+        collapse = loss_decides and loss is not None and loss > COLLAPSE_LOSS
         last = self._collapse_report_at
-        if loss is not None and loss > CONGESTED_LOSS and last is not None:
+        if loss_decides and loss is not None and loss > CONGESTED_LOSS and last is not None:
             if 0 < now - last <= COLLAPSE_CONFIRM_S:
                 self.collapsed_at = now
         if collapse:
@@ -61,18 +198,60 @@ class BitrateController:
             return None
         self._last_step = now
         before = self.effective_kbps(ceiling_kbps)
-        if loss is not None and (collapse or self.loss > CONGESTED_LOSS):
+        if loss_decides and loss is not None and (collapse or self.loss > CONGESTED_LOSS):
             # What got through: over capacity, the loss is the excess (a full queue drops it).
             worst = max(loss, self.loss) if collapse else self.loss
             lowered = min(self.target_kbps, float(ceiling_kbps)) * (1 - worst) * 0.95
             self.target_kbps = max(float(self.floor_kbps), lowered)
             self.decreases += 1
-        elif loss is not None and self.loss < CLEAN_LOSS:
+        elif loss is not None and self._clean(now) and not self._holding(now):
             # Up to the ceiling; a target above it (a lower framerate's) is kept for later.
             raised = max(self.target_kbps * CLIMB, self.target_kbps + 10)
-            self.target_kbps = max(self.target_kbps, min(raised, float(ceiling_kbps)))
+            limit = self._climb_limit(float(ceiling_kbps), now)
+            self.target_kbps = max(self.target_kbps, min(raised, limit))
         after = self.effective_kbps(ceiling_kbps)
         return after if after != before else None
+
+    def _clean(self, now: float) -> bool:
+        """Room to climb: hardly any loss reported and, with transport feedback, no queue in
+        the delay. Under random loss, back up to the capacity a wrong cut measured (a full
+        queue's loss looks the same, and its delay stops growing once it overflows)."""
+        if not self._transport_fresh(now):
+            return self.loss < CLEAN_LOSS
+        if self.queue_ms >= CLEAN_QUEUE_MS:
+            return False
+        return self.loss < CLEAN_LOSS or self.target_kbps < self._remembered_capacity(now)
+
+    def _climb_limit(self, ceiling: float, now: float) -> float:
+        """The ceiling, or for a while after the link was over its capacity, under what it
+        delivered then: no probing straight back into the queue."""
+        remembered = self._remembered_capacity(now)
+        return min(ceiling, remembered) if remembered > 0 else ceiling
+
+    def _remembered_capacity(self, now: float) -> float:
+        """Under what the link last delivered over its capacity, for a while; else 0."""
+        at = self.overused_at
+        if at is None or now - at >= CAPACITY_MEMORY_S:
+            return 0.0
+        return CLIMB_UNDER * self.capacity_kbps
+
+    def _transport_fresh(self, now: float) -> bool:
+        at = self.transport_at
+        return at is not None and now - at < TRANSPORT_FRESH_S
+
+    def _holding(self, now: float) -> bool:
+        at = self.overused_at
+        return at is not None and now - at < HOLD_AFTER_OVERUSE_S
+
+    def settling(self, now: float) -> bool:
+        """The link was over its capacity moments ago (its queue may still be draining)."""
+        return self._holding(now)
+
+    def retransmissions_paused(self, now: float) -> bool:
+        """While a queue overflows, retransmitting what it dropped only feeds it (measured at
+        the 500 kbit/s drop: 2-3 Mbit/s sent for a second, most of it retransmissions)."""
+        at = self.overused_at
+        return at is not None and now - at < RTX_PAUSE_S and not self._draining
 
     def effective_kbps(self, ceiling_kbps: int) -> int:
         """What the encoder is set to: the target within the framerate's ceiling."""
@@ -95,3 +274,42 @@ def frame_thinning(framerate: int, bitrate_kbps: int, ceiling_kbps: int) -> int:
     share = bitrate_kbps / ceiling_kbps
     wanted = 1 if share >= 0.5 else 2 if share >= 0.25 else 3
     return max(1, min(wanted, framerate // MIN_THINNED_FPS))
+
+
+LOWER_RESOLUTION_BELOW_BPP = 0.05
+"""Below this many bits per pixel the full picture smears and its frames grow large for the
+bitrate: half the width and height (a quarter of the pixels) at the same bitrate stays sharp."""
+FULL_RESOLUTION_ABOVE_BPP = 0.08
+"""Back to the full picture above this (hysteresis: the two never alternate on one bitrate)."""
+RESOLUTION_HOLD_S = 5.0
+"""A size is kept at least this long: each change costs a keyframe."""
+
+
+@dataclass
+class ResolutionChoice:
+    """Whether the NavCam sends its full picture or half its width and height (sans-IO)."""
+
+    halved: bool = False
+    changed_at: float | None = None
+
+    def update(self, kbps: int, width: int, height: int, fps: float, now: float) -> bool:
+        """The bitrate the encoder gets at ``now``: True when the size changed."""
+        if self.changed_at is not None and now - self.changed_at < RESOLUTION_HOLD_S:
+            return False
+        bpp_full = kbps * 1000 / max(1.0, width * height * fps)
+        wanted = (
+            bpp_full < FULL_RESOLUTION_ABOVE_BPP
+            if self.halved
+            else bpp_full < LOWER_RESOLUTION_BELOW_BPP
+        )
+        if wanted == self.halved:
+            return False
+        self.halved = wanted
+        self.changed_at = now
+        return True
+
+    def size(self, width: int, height: int) -> tuple[int, int]:
+        """The picture sent (even sizes: H.264's 4:2:0 chroma)."""
+        if not self.halved:
+            return width, height
+        return width // 4 * 2, height // 4 * 2

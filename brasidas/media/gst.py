@@ -17,6 +17,10 @@ NTP64_URI = "urn:ietf:params:rtp-hdrext:ntp-64"
 """RFC 6051 64-bit NTP header extension (capture time of each frame)."""
 NTP64_EXT_ID = 1
 """The one-byte header extension id used for NTP-64 (``extmap-1`` in caps and SDP)."""
+TWCC_URI = "http://www.ietf.org/id/draft-holmer-rmcat-transport-wide-cc-extensions-01"
+"""Transport-wide sequence numbers: the receiver's rtpsession reports each packet's arrival
+time (RTCP transport-cc feedback), the sender's reads a queue building from them."""
+TWCC_EXT_ID = 2
 
 # Debian package holding each element we may ask for, for the error message.
 PACKAGES: dict[str, str] = {

@@ -25,6 +25,8 @@ from typing import Any
 from brasidas.media.bitrate import (
     THIN_AFTER_COLLAPSE_S,
     BitrateController,
+    ResolutionChoice,
+    TransportReport,
     frame_thinning,
 )
 from brasidas.media.fanout import Destinations, FanOutStream
@@ -32,6 +34,8 @@ from brasidas.media.gst import (
     NTP64_EXT_ID,
     NTP64_URI,
     NTP_UNIX_OFFSET_NS,
+    TWCC_EXT_ID,
+    TWCC_URI,
     MediaError,
     caps,
     capture_age_ms,
@@ -51,6 +55,8 @@ from brasidas.media.keyframes import (
 from brasidas.media.pipeline import PipelineStream, StreamState
 from brasidas.media.repair import (
     FEC_PAYLOAD_TYPE,
+    FEC_RTX_PAYLOAD_TYPE,
+    RTX_PAYLOAD_TYPE,
     FeedbackSocket,
     RepairReceiver,
     add_repair_receiver,
@@ -64,7 +70,8 @@ PAYLOAD_TYPE = 96
 MIN_BITRATE_KBPS = 150
 RTP_VIDEO_CAPS = (
     "application/x-rtp,media=video,clock-rate=90000,encoding-name=H264,"
-    f"payload={PAYLOAD_TYPE},extmap-{NTP64_EXT_ID}=(string){NTP64_URI}"
+    f"payload={PAYLOAD_TYPE},extmap-{NTP64_EXT_ID}=(string){NTP64_URI},"
+    f"extmap-{TWCC_EXT_ID}=(string){TWCC_URI}"
 )
 """What a receiver must tell ``udpsrc``: plain RTP carries no SDP."""
 TAP_QUEUE_BUFFERS = 30
@@ -73,6 +80,10 @@ VIDEO_DSCP = 34
 INTRA_REFRESH_ENCODERS = ("x264enc",)
 """Encoders whose GStreamer element exposes periodic intra refresh. (openh264enc does not;
 the Pi's v4l2h264enc and omxh264enc were not available here to verify a control.)"""
+X264_VBV_MS = 200
+"""x264's rate-control buffer: how far one frame may exceed the bitrate's share (measured at
+a 2 Mbit/s → 500 kbit/s drop: with 600 ms, the keyframe after it was lost to the link's
+queue and the picture froze 0.8-1.1 s; with 200 ms, 0.5-0.6 s)."""
 ENCODER_GOP_S = 10
 """The encoder's own keyframe interval, a backstop only: :class:`KeyframeClock` forces the
 keyframes, at the current framerate (the encoders' own settings cannot change while running)."""
@@ -169,6 +180,17 @@ class VideoOut(FanOutStream[VideoSettings]):
         self.bitrate = BitrateController(settings.effective_bitrate_kbps(), MIN_BITRATE_KBPS)
         self._rtpbin: Any = None
         self._reports_seen: dict[int, int] = {}
+        self.resolution = ResolutionChoice()
+        """Half the picture's width and height while the bitrate is too low for all of it."""
+        self._scale_filter: Any = None
+        self.retransmit = True
+        self.retransmissions_dropped = 0
+        self._dropped_seen = 0
+        """False while the link's queue overflows: retransmissions are dropped (read by the
+        streaming thread)."""
+        self.transport: TransportReport | None = None
+        """The newest window of transport-wide feedback (what arrived, the delay's trend)."""
+        self._transport_seen: Any = None
         """Each receiver's highest sequence number in its last report used (new ones only)."""
         self.access_unit_sinks: list[AccessUnitSink] = []
         """Who gets the encoded stream (the recorder): a tee after the encoder feeds them,
@@ -180,6 +202,7 @@ class VideoOut(FanOutStream[VideoSettings]):
             **super().describe(),
             "width": s.width,
             "height": s.height,
+            "sent_size": list(self.resolution.size(s.width, s.height)),
             "framerate": s.framerate,
             "codec": "H264",
             "encoder": self.encoder_name or None,
@@ -187,6 +210,10 @@ class VideoOut(FanOutStream[VideoSettings]):
             "bitrate_ceiling_kbps": s.effective_bitrate_kbps(),
             "reported_loss": round(self.bitrate.loss, 3),
             "reported_jitter_ms": self.reported_jitter_ms,
+            "transport": vars(self.transport) if self.transport is not None else None,
+            "overuses": self.bitrate.overuses,
+            "queue_ms": round(self.bitrate.queue_ms, 1),
+            "retransmissions_dropped": self.retransmissions_dropped,
             **self.retransmissions(),
             "rtp_caps": RTP_VIDEO_CAPS,
             "rtcp_port": self.feedback.port if self.feedback is not None else None,
@@ -217,8 +244,19 @@ class VideoOut(FanOutStream[VideoSettings]):
         reports (:class:`BitrateController`); the new bitrate when it changed."""
         if self._rtpbin is None or self._encoder is None:
             return None
+        ceiling = self.settings.effective_bitrate_kbps()
+        transport = self._newest_transport_report()
+        fell = self.bitrate.on_transport(transport, ceiling, now) if transport else None
         loss = self._newest_reported_loss()
-        kbps = self.bitrate.update(loss, self.settings.effective_bitrate_kbps(), now)
+        kbps = self.bitrate.update(loss, ceiling, now) or fell
+        retransmit = not self.bitrate.retransmissions_paused(now)
+        if retransmit and not self.retransmit and self.retransmissions_dropped > self._dropped_seen:
+            # The queue drained: what it dropped was not sent again, so the receivers wait
+            # for a keyframe; make it now, on the empty link, not after their timeout.
+            self.request_keyframe()
+        if not retransmit and self.retransmit:
+            self._dropped_seen = self.retransmissions_dropped
+        self.retransmit = retransmit
         # Right after a capacity drop FEC would only add to the queue that drops the packets:
         # it is for a link's random loss (which, by loss alone, is any loss but a collapse).
         collapsed = self.bitrate.collapsed_at
@@ -245,13 +283,52 @@ class VideoOut(FanOutStream[VideoSettings]):
                 self.keyframes.set_framerate(max(1, self.settings.framerate // thinning))
         if kbps is not None or fec_changed:
             _set_bitrate(self._encoder, self.encoder_name, self.media_bitrate_kbps())
+        self._follow_resolution(now)
         return kbps
+
+    def _follow_resolution(self, now: float) -> None:
+        """Halve the picture's size when the bitrate cannot carry all of it, and back (the
+        encoder restarts on the new size with a keyframe and its new SPS; decoders follow)."""
+        s = self.settings
+        if self._scale_filter is None or self.bitrate.settling(now):
+            # Not while a queue drains after a cut: the new size costs a keyframe, and the
+            # receivers are waiting for one already (measured: a freeze at the drop twice as long).
+            return
+        # At the full framerate's bits per pixel, before any thinning: fewer frames and fewer
+        # pixels both, on a link that forced the bitrate that far down.
+        if not self.resolution.update(
+            self.current_bitrate_kbps(), s.width, s.height, s.framerate, now
+        ):
+            return
+        width, height = self.resolution.size(s.width, s.height)
+        self._scale_filter.set_property("caps", caps(f"video/x-raw,width={width},height={height}"))
 
     def media_bitrate_kbps(self) -> int:
         """The encoder's share of the bitrate: the FEC packets are carried within it."""
         return max(
             MIN_BITRATE_KBPS, round(self.current_bitrate_kbps() * 100 / (100 + self.fec_percent))
         )
+
+    def _newest_transport_report(self) -> TransportReport | None:
+        """The sender's rtpsession's newest transport-wide feedback window, if new."""
+        session = self._rtpbin.emit("get-session", 0)
+        stats = session.get_property("twcc-stats") if session is not None else None
+        if stats is None or not stats.has_field("bitrate-recv"):
+            return None
+        _, sent = stats.get_uint("bitrate-sent")
+        _, received = stats.get_uint("bitrate-recv")
+        _, trend_ns = stats.get_int64("avg-delta-of-delta")
+        seen = (sent, received, trend_ns)
+        if seen == self._transport_seen or not sent:
+            return None
+        self._transport_seen = seen
+        self.transport = TransportReport(
+            sent_kbps=round(sent / 1000, 1),
+            received_kbps=round(received / 1000, 1),
+            delay_trend_ms=round(trend_ns / 1e6, 3),
+            packet_bytes=self.settings.mtu,
+        )
+        return self.transport
 
     def _newest_reported_loss(self) -> float | None:
         """The worst fraction lost among the receivers' reports new since the last look."""
@@ -314,6 +391,9 @@ class VideoOut(FanOutStream[VideoSettings]):
             ]
         rate = make("videorate", drop_only=True)
         rate_filter = make("capsfilter", caps=caps(f"video/x-raw,framerate={s.framerate}/1"))
+        width, height = self.resolution.size(s.width, s.height)
+        scale = make("videoscale")
+        scale_filter = make("capsfilter", caps=caps(f"video/x-raw,width={width},height={height}"))
         convert = make("videoconvert")
         encoder = make(encoder_name, "encoder")
         _configure_encoder(encoder, encoder_name, s)
@@ -330,6 +410,10 @@ class VideoOut(FanOutStream[VideoSettings]):
         extension = make("rtphdrextntp64", every_packet=True)
         extension.set_id(NTP64_EXT_ID)
         pay.emit("add-extension", extension)
+        if s.repair:
+            transport_wide = make("rtphdrexttwcc")
+            transport_wide.set_id(TWCC_EXT_ID)
+            pay.emit("add-extension", transport_wide)
         sink = self.make_sink()
         tap: list[Any] = []
         if self.access_unit_sinks:
@@ -342,6 +426,8 @@ class VideoOut(FanOutStream[VideoSettings]):
             *overlays,
             rate,
             rate_filter,
+            scale,
+            scale_filter,
             convert,
             encoder,
             h264_filter,
@@ -356,6 +442,11 @@ class VideoOut(FanOutStream[VideoSettings]):
                 # Bound once and kept across rebuilds: receivers were told this port.
                 self.feedback = FeedbackSocket(port=s.rtcp_port)
             self._rtpbin = add_repair_sender(pipeline, pay, sink, self.feedback)
+            rtx = pipeline.get_by_name("rtxsend")
+            if rtx is not None:
+                rtx.get_static_pad("src").add_probe(
+                    Gst.PadProbeType.BUFFER, _retransmission_probe, weakref.ref(self)
+                )
         else:
             link_all(pay, sink)
         if tap:
@@ -364,6 +455,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         self.encoder_name = encoder_name
         self._encoder = encoder
         self._rate_filter = rate_filter
+        self._scale_filter = scale_filter
         rate_filter.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _thinning_probe, weakref.ref(self)
         )
@@ -398,8 +490,10 @@ class VideoOut(FanOutStream[VideoSettings]):
         super().on_torn_down()
         self._encoder = None
         self._rate_filter = None
+        self._scale_filter = None
         self._rtpbin = None
         self._reports_seen.clear()
+        self._transport_seen = None
         if self.wanted is StreamState.IDLE and self.feedback is not None:
             self.feedback.close()
             self.feedback = None
@@ -489,6 +583,20 @@ def _thinning_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
     return gst().PadProbeReturn.OK
 
 
+def _retransmission_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
+    """Streaming thread, after the retransmitter: drop its packets while the stream says so
+    (a link over its capacity drops them anyway, and they delay its recovery)."""
+    stream = ref()
+    if stream is None or stream.retransmit:
+        return gst().PadProbeReturn.OK
+    buffer = info.get_buffer()
+    header = buffer.extract_dup(0, 2) if buffer is not None else b""
+    if len(header) == 2 and header[1] & 0x7F in (RTX_PAYLOAD_TYPE, FEC_RTX_PAYLOAD_TYPE):
+        stream.retransmissions_dropped += 1
+        return gst().PadProbeReturn.DROP
+    return gst().PadProbeReturn.OK
+
+
 def _force_keyframe_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
     """Streaming thread, before a raw frame enters the encoder: force it to a keyframe when
     the clock says so (the encoder applies a pending force-key-unit to its next frame). The
@@ -549,6 +657,9 @@ def _configure_encoder(encoder: Any, name: str, s: VideoSettings) -> None:
         set_prop(encoder, "threads", 1)
         set_prop(encoder, "sliced-threads", False)
         set_prop(encoder, "bitrate", kbps)
+        # A keyframe at most ~this much of the bitrate: x264's default (600 ms) let one
+        # keyframe overflow a capacity-limited link's queue right after the bitrate fell.
+        set_prop(encoder, "vbv-buf-capacity", X264_VBV_MS)
         if s.uses_intra_refresh(name):
             set_prop(encoder, "intra-refresh", True)
     elif name == "openh264enc":
@@ -661,6 +772,8 @@ class VideoIn(PipelineStream):
         """The longest wait between two decoded frames (a loss freezes to the next keyframe)."""
         self.gaps_ms: collections.deque[float] = collections.deque(maxlen=window)
         """Recent waits between two decoded frames (ms), appended on the streaming thread."""
+        self.size: tuple[int, int] | None = None
+        """The decoded picture's width and height (the sender may halve it on a slow link)."""
 
     def destination(self) -> str:
         return f"{self.host}:{self.port}"
@@ -672,6 +785,7 @@ class VideoIn(PipelineStream):
             "rtp_packets": self.rtp_packets,
             "rtp_lost": self.rtp_lost,
             "longest_freeze_ms": round(self.longest_freeze_ms, 1),
+            "size": list(self.size) if self.size is not None else None,
             **self.gap_stats(),
             **self.repair_stats(),
         }
@@ -799,6 +913,9 @@ class VideoIn(PipelineStream):
         decoder.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _latency_probe, (weakref.ref(self), ntp_caps())
         )
+        decoder.get_static_pad("src").add_probe(
+            Gst.PadProbeType.EVENT_DOWNSTREAM, _size_probe, weakref.ref(self)
+        )
         source.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _bytes_probe, weakref.ref(self)
         )
@@ -821,6 +938,20 @@ def _latency_probe(pad: Any, info: Any, data: tuple[weakref.ref[VideoIn], Any]) 
             stream.last_latency_ms = age
             stream.latencies.append(age)
     return gst().PadProbeReturn.OK
+
+
+def _size_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
+    """Streaming thread: the decoder's output caps give the picture's size."""
+    Gst = gst()
+    stream = ref()
+    event = info.get_event()
+    if stream is not None and event is not None and event.type == Gst.EventType.CAPS:
+        structure = event.parse_caps().get_structure(0)
+        ok_w, width = structure.get_int("width")
+        ok_h, height = structure.get_int("height")
+        if ok_w and ok_h:
+            stream.size = (width, height)
+    return Gst.PadProbeReturn.OK
 
 
 def _bytes_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
