@@ -196,7 +196,7 @@ class VideoOut(FanOutStream[VideoSettings]):
             "framerate_sent": s.framerate // self.thinning,
             "fec_max_percent": s.fec_max_percent,
             "keyframes_requested": self.keyframes.counters.requested,
-            "keyframe_requests_refused": self.keyframes.counters.refused,
+            "keyframe_requests_deferred": self.keyframes.counters.deferred,
         }
 
     def current_bitrate_kbps(self) -> int:
@@ -275,10 +275,10 @@ class VideoOut(FanOutStream[VideoSettings]):
             self.reported_jitter_ms = round(jitter / 90, 1)  # 90 kHz RTP clock
         return worst
 
-    def request_keyframe(self) -> bool:
-        """Make the next frame a keyframe (rate-limited); any thread. False when refused."""
+    def request_keyframe(self) -> None:
+        """Make the next frame a keyframe (rate-limited: deferred, never dropped); any thread."""
         with self._keyframes_lock:
-            return self.keyframes.request(time.monotonic())
+            self.keyframes.request(time.monotonic())
 
     def set_framerate(self, fps: int) -> None:
         """Change the sent framerate; applied live (keyframe interval follows). Event loop."""
