@@ -22,11 +22,14 @@ import os
 import socket
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from brasidas.media.gst import caps, gst, make
 
+MEDIA_PAYLOAD_TYPE = 96
+"""The H.264 packets' payload type (the sender's ``rtph264pay pt``)."""
 RTX_PAYLOAD_TYPE = 97
 """RFC 4588 retransmissions of payload type 96, sent on the stream's own port."""
 RTX_HISTORY_MS = 1000
@@ -113,6 +116,65 @@ def add_repair_sender(
     _link(rtpbin, "send_rtcp_src_0", reports, "sink")
     _link(rtcp_in, "src", rtpbin, "recv_rtcp_sink_0")
     return rtpbin
+
+
+TAIL_COPY_MAX_FPS = 10
+"""At this framerate or below each frame's last packet is sent twice (:class:`TailCopies`)."""
+
+
+class TailCopies:
+    """Each frame's last packet (RTP marker) sent a second time, as is, while the framerate is
+    at most :data:`TAIL_COPY_MAX_FPS`. A receiver sees a packet missing only when a later one
+    arrives: a frame's last packet lost at 5 fps showed only with the next frame, 200 ms on,
+    and the frame came a frame late (gap p95 400 ms at 10 % loss). The copy costs a packet a
+    frame (about a tenth of a 5 fps stream); a receiver's jitter buffer drops it as a
+    duplicate when the first arrived. (As a retransmission it would not do: a jitter buffer
+    drops a retransmission it did not ask for.) Sent through the stream's own UDP socket:
+    from another port, the receiver's RTP session takes it for an SSRC collision and drops it.
+    One per pipeline (its sink's socket); ``sent`` carries over."""
+
+    def __init__(self, sent: int = 0) -> None:
+        self.sock: socket.socket | None = None
+        self.sent = sent
+
+    def attach(self, rtpbin: Any, sink: Any, wanted: Callable[[], bool]) -> None:
+        """Copy the marker packets leaving ``rtpbin`` to ``sink``'s clients while ``wanted()``
+        (the stream's framerate is at most :data:`TAIL_COPY_MAX_FPS`)."""
+        pad = rtpbin.get_static_pad("send_rtp_src_0")
+        pad.add_probe(gst().PadProbeType.BUFFER, _copy_tail, (self, sink, wanted))
+
+    def send(self, packet: bytes, sink: Any) -> None:
+        """Streaming thread: ``packet`` to each of ``sink``'s clients, from its socket."""
+        if self.sock is None:
+            used = sink.get_property("used-socket")
+            if used is None:
+                return
+            self.sock = socket.socket(fileno=os.dup(used.get_fd()))  # non-blocking (GLib's)
+        for client in str(sink.get_property("clients") or "").split(","):
+            host, _, port = client.rpartition(":")
+            if host and port.isdigit():
+                try:
+                    self.sock.sendto(packet, (host, int(port)))
+                    self.sent += 1
+                except OSError:
+                    pass  # a full buffer or an unreachable station: it was only a copy
+
+    def close(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
+
+
+def _copy_tail(pad: Any, info: Any, data: tuple[TailCopies, Any, Callable[[], bool]]) -> Any:
+    """Streaming thread: a marker packet of the media (not a retransmission) is sent again."""
+    copies, sink, wanted = data
+    buffer = info.get_buffer()
+    if buffer is None or not wanted():
+        return gst().PadProbeReturn.OK
+    header = buffer.extract_dup(0, 2)
+    if len(header) == 2 and header[1] == 0x80 | MEDIA_PAYLOAD_TYPE:
+        copies.send(buffer.extract_dup(0, buffer.get_size()), sink)
+    return gst().PadProbeReturn.OK
 
 
 def _fec_encoder(rtpbin: Any, session: int) -> Any:

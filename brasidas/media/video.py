@@ -20,6 +20,7 @@ import time
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 from brasidas.media.bitrate import (
@@ -51,8 +52,10 @@ from brasidas.media.keyframes import (
 from brasidas.media.pipeline import PipelineStream, StreamState
 from brasidas.media.repair import (
     FEC_PAYLOAD_TYPE,
+    TAIL_COPY_MAX_FPS,
     FeedbackSocket,
     RepairReceiver,
+    TailCopies,
     add_repair_receiver,
     add_repair_sender,
     fec_percentage,
@@ -166,6 +169,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         self._forced_seqnums: collections.deque[int] = collections.deque(maxlen=8)
         """Our own force-key-unit events, told apart from a receiver's request (PLI/FIR)."""
         self.feedback: FeedbackSocket | None = None
+        self._tail_copies: TailCopies | None = None
         self.bitrate = BitrateController(settings.effective_bitrate_kbps(), MIN_BITRATE_KBPS)
         self._rtpbin: Any = None
         self._reports_seen: dict[int, int] = {}
@@ -195,9 +199,14 @@ class VideoOut(FanOutStream[VideoSettings]):
             "fec_percent": self.fec_percent,
             "framerate_sent": s.framerate // self.thinning,
             "fec_max_percent": s.fec_max_percent,
+            "tail_copies": self.tail_copies_sent(),
             "keyframes_requested": self.keyframes.counters.requested,
             "keyframe_requests_deferred": self.keyframes.counters.deferred,
         }
+
+    def tail_copies_sent(self) -> int:
+        """Frames' last packets sent twice (a low framerate's: :class:`TailCopies`)."""
+        return self._tail_copies.sent if self._tail_copies is not None else 0
 
     def current_bitrate_kbps(self) -> int:
         return self.bitrate.effective_kbps(self.settings.effective_bitrate_kbps())
@@ -356,6 +365,8 @@ class VideoOut(FanOutStream[VideoSettings]):
                 # Bound once and kept across rebuilds: receivers were told this port.
                 self.feedback = FeedbackSocket(port=s.rtcp_port)
             self._rtpbin = add_repair_sender(pipeline, pay, sink, self.feedback)
+            self._tail_copies = TailCopies(self.tail_copies_sent())
+            self._tail_copies.attach(self._rtpbin, sink, partial(_copy_tails, weakref.ref(self)))
         else:
             link_all(pay, sink)
         if tap:
@@ -403,6 +414,8 @@ class VideoOut(FanOutStream[VideoSettings]):
         if self.wanted is StreamState.IDLE and self.feedback is not None:
             self.feedback.close()
             self.feedback = None
+        if self._tail_copies is not None:
+            self._tail_copies.close()
 
     def _add_tap(self, pipeline: Any, tee: Any) -> None:
         """tee → leaky queue → h264parse (SPS/PPS on every keyframe, Annex B, whole access
@@ -475,6 +488,12 @@ def _on_access_unit(appsink: Any, data: tuple[weakref.ref[VideoOut], Any]) -> An
         except Exception:
             pass  # a consumer's failure never stops the stream; it counts its own errors
     return Gst.FlowReturn.OK
+
+
+def _copy_tails(ref: weakref.ref[VideoOut]) -> bool:
+    """Any thread: send each frame's last packet twice (few frames a second, far apart)?"""
+    stream = ref()
+    return stream is not None and stream.settings.framerate // stream.thinning <= TAIL_COPY_MAX_FPS
 
 
 def _thinning_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
