@@ -50,8 +50,6 @@ RTX_RETRY_FIRST_MS = 40
 RTX_RETRY_MIN_MS = REPAIR_LATENCY_MS // (RTX_MAX_RETRIES + 1)
 """The tries spread over the budget: packed closer (15 ms measured), a loaded machine's
 stall of 50-100 ms used them all up at once, and 30 fps at 10 % loss lost packets for good."""
-RTX_RETRY_MAX_MS = REPAIR_LATENCY_MS // 3
-"""At most a third of the budget: at least three tries before a frame is given up."""
 RTX_RETRY_EVERY_S = 0.5
 """How often the wait is set again from the measured round trip."""
 FEEDBACK_INTERVAL_NS = 20_000_000
@@ -381,7 +379,9 @@ def rtx_retry_ms(rtt_ms: float | None) -> int:
     try fails 19 % of the time)."""
     if rtt_ms is None or rtt_ms <= 0:
         return RTX_RETRY_FIRST_MS
-    return max(RTX_RETRY_MIN_MS, min(RTX_RETRY_MAX_MS, round(1.5 * rtt_ms)))
+    # Never sooner, however few tries fit: behind a full queue (round trips of 300 ms and
+    # more) a try before the first copy could come only adds to the queue.
+    return max(RTX_RETRY_MIN_MS, round(1.5 * rtt_ms))
 
 
 def _follow_round_trip(pad: Any, info: Any, next_at: list[float]) -> Any:

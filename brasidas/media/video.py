@@ -493,7 +493,8 @@ def _on_access_unit(appsink: Any, data: tuple[weakref.ref[VideoOut], Any]) -> An
 def _copy_tails(ref: weakref.ref[VideoOut]) -> bool:
     """Any thread: send each frame's last packet twice (few frames a second, far apart)?"""
     stream = ref()
-    return stream is not None and stream.settings.framerate // stream.thinning <= TAIL_COPY_MAX_FPS
+    # The framerate asked for, not the one thinned for a full link: a copy would add to it.
+    return stream is not None and stream.settings.framerate <= TAIL_COPY_MAX_FPS
 
 
 def _thinning_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
