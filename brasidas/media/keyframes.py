@@ -7,7 +7,9 @@ interval is set long, and :class:`KeyframeClock` asks for a keyframe (a force-ke
 which every encoder understands) every ``interval_s`` of frames at the *current* framerate,
 and at once when a receiver reports a loss (RTCP PLI/FIR), no more often than
 ``min_request_gap_s`` so a burst of requests from a lossy link cannot turn every frame into a
-keyframe.
+keyframe. A request that comes sooner is deferred to the end of that gap, never dropped: it
+may come from a receiver that lost the keyframe just made (the one a cut swallowed), and
+dropped, it left that receiver frozen to the next periodic keyframe, a second later.
 """
 
 from __future__ import annotations
@@ -29,8 +31,9 @@ class KeyframeCounters:
     periodic: int = 0
     requested: int = 0
     """Requests (PLI/FIR, a new viewer) answered by a keyframe."""
-    refused: int = 0
-    """Requests dropped by the rate limit (a keyframe had just been made)."""
+    deferred: int = 0
+    """Requests answered only at the end of the rate limit's gap (a keyframe had just been
+    made)."""
 
 
 class KeyframeClock:
@@ -62,24 +65,28 @@ class KeyframeClock:
         """The interval in frames follows the framerate (5 fps: every 5th frame)."""
         self.interval_frames = max(1, round(framerate * self.interval_s))
 
-    def request(self, now: float) -> bool:
-        """A receiver asks for a keyframe; False when refused (one was made just now)."""
+    def request(self, now: float) -> None:
+        """A receiver asks for a keyframe: the next frame is one, or the first frame
+        ``min_request_gap_s`` after the last keyframe forced."""
         if self._pending:
-            return True
-        if self._last_forced is not None and now - self._last_forced < self.min_request_gap_s:
-            self.counters.refused += 1
-            return False
+            return
         self._pending = True
         self.counters.requested += 1
-        return True
+        if not self._gap_over(now):
+            self.counters.deferred += 1
+
+    def _gap_over(self, now: float) -> bool:
+        last = self._last_forced
+        return last is None or now - last >= self.min_request_gap_s
 
     def on_frame(self, now: float) -> bool:
         """A raw frame goes into the encoder: True when it must be encoded as a keyframe."""
         self._since_keyframe += 1
         periodic = self._since_keyframe >= self.interval_frames
-        if not (periodic or self._pending or self._last_forced is None):
+        asked = self._pending and self._gap_over(now)
+        if not (periodic or asked or self._last_forced is None):
             return False
-        if periodic and not self._pending and self._last_forced is not None:
+        if periodic and not asked and self._last_forced is not None:
             self.counters.periodic += 1
         self._pending = False
         self._since_keyframe = 0

@@ -20,6 +20,7 @@ import time
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 from brasidas.media.bitrate import (
@@ -57,8 +58,10 @@ from brasidas.media.repair import (
     FEC_PAYLOAD_TYPE,
     FEC_RTX_PAYLOAD_TYPE,
     RTX_PAYLOAD_TYPE,
+    TAIL_COPY_MAX_FPS,
     FeedbackSocket,
     RepairReceiver,
+    TailCopies,
     add_repair_receiver,
     add_repair_sender,
     fec_percentage,
@@ -177,6 +180,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         self._forced_seqnums: collections.deque[int] = collections.deque(maxlen=8)
         """Our own force-key-unit events, told apart from a receiver's request (PLI/FIR)."""
         self.feedback: FeedbackSocket | None = None
+        self._tail_copies: TailCopies | None = None
         self.bitrate = BitrateController(settings.effective_bitrate_kbps(), MIN_BITRATE_KBPS)
         self._rtpbin: Any = None
         self._reports_seen: dict[int, int] = {}
@@ -222,9 +226,14 @@ class VideoOut(FanOutStream[VideoSettings]):
             "fec_percent": self.fec_percent,
             "framerate_sent": s.framerate // self.thinning,
             "fec_max_percent": s.fec_max_percent,
+            "tail_copies": self.tail_copies_sent(),
             "keyframes_requested": self.keyframes.counters.requested,
-            "keyframe_requests_refused": self.keyframes.counters.refused,
+            "keyframe_requests_deferred": self.keyframes.counters.deferred,
         }
+
+    def tail_copies_sent(self) -> int:
+        """Frames' last packets sent twice (a low framerate's: :class:`TailCopies`)."""
+        return self._tail_copies.sent if self._tail_copies is not None else 0
 
     def current_bitrate_kbps(self) -> int:
         return self.bitrate.effective_kbps(self.settings.effective_bitrate_kbps())
@@ -352,10 +361,10 @@ class VideoOut(FanOutStream[VideoSettings]):
             self.reported_jitter_ms = round(jitter / 90, 1)  # 90 kHz RTP clock
         return worst
 
-    def request_keyframe(self) -> bool:
-        """Make the next frame a keyframe (rate-limited); any thread. False when refused."""
+    def request_keyframe(self) -> None:
+        """Make the next frame a keyframe (rate-limited: deferred, never dropped); any thread."""
         with self._keyframes_lock:
-            return self.keyframes.request(time.monotonic())
+            self.keyframes.request(time.monotonic())
 
     def set_framerate(self, fps: int) -> None:
         """Change the sent framerate; applied live (keyframe interval follows). Event loop."""
@@ -447,6 +456,8 @@ class VideoOut(FanOutStream[VideoSettings]):
                 rtx.get_static_pad("src").add_probe(
                     Gst.PadProbeType.BUFFER, _retransmission_probe, weakref.ref(self)
                 )
+            self._tail_copies = TailCopies(self.tail_copies_sent())
+            self._tail_copies.attach(self._rtpbin, sink, partial(_copy_tails, weakref.ref(self)))
         else:
             link_all(pay, sink)
         if tap:
@@ -497,6 +508,8 @@ class VideoOut(FanOutStream[VideoSettings]):
         if self.wanted is StreamState.IDLE and self.feedback is not None:
             self.feedback.close()
             self.feedback = None
+        if self._tail_copies is not None:
+            self._tail_copies.close()
 
     def _add_tap(self, pipeline: Any, tee: Any) -> None:
         """tee → leaky queue → h264parse (SPS/PPS on every keyframe, Annex B, whole access
@@ -569,6 +582,13 @@ def _on_access_unit(appsink: Any, data: tuple[weakref.ref[VideoOut], Any]) -> An
         except Exception:
             pass  # a consumer's failure never stops the stream; it counts its own errors
     return Gst.FlowReturn.OK
+
+
+def _copy_tails(ref: weakref.ref[VideoOut]) -> bool:
+    """Any thread: send each frame's last packet twice (few frames a second, far apart)?"""
+    stream = ref()
+    # The framerate asked for, not the one thinned for a full link: a copy would add to it.
+    return stream is not None and stream.settings.framerate <= TAIL_COPY_MAX_FPS
 
 
 def _thinning_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
