@@ -30,8 +30,10 @@ from brasidas.clock import Clock, LoopClock, sleep, timeout_at
 from brasidas.codecs.ldlidar import LidarDecoder, LidarScan, ScanAssembler
 from brasidas.codecs.telemetry_schema import Perception
 from brasidas.config.lidar import LidarSection
+from brasidas.messages import PoseEstimate
 from brasidas.perception.messages import Proximity, RobotScan
 from brasidas.perception.proximity import Geometry, proximity, silent, to_robot
+from brasidas.perception.view import PlanePose, pose_at, reframe
 from brasidas.security import state_dir
 from platformd.context import PlatformContext, SerialDevice
 from platformd.gps import _streams
@@ -80,14 +82,19 @@ class LidarReader(Actor):
         self._worker = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="lidar")
         self.localizer: Localizer | None = None
         """The odometry and GPS gate, when ``lidar.odometry``: its figures join the section."""
+        self._poses: collections.deque[tuple[float, PlanePose]] = collections.deque(maxlen=64)
+        self.scan_pose: PlanePose | None = None
+        """The robot's pose (``POSE``) in the middle of the last scan's revolution."""
 
     async def run(self) -> None:
         self.bus.publish(topics.PROXIMITY, self.proximity)  # stopped until the first scan
+        unsubscribe = self.bus.subscribe(topics.POSE, self._on_pose)
         try:
             async with asyncio.TaskGroup() as group:
                 group.create_task(self._analyse_loop(), name="lidar:analyse")
                 await self._connect_loop()
         finally:
+            unsubscribe()
             self.opener.close()
             self._worker.shutdown(wait=False, cancel_futures=True)
 
@@ -195,6 +202,7 @@ class LidarReader(Actor):
             if self._last_scan_at is None:
                 continue  # went blind while the worker ran: the stop stands
             self.last = robot
+            self.scan_pose = pose_at(self._poses, (scan.started + scan.ended) / 2)
             self.bus.publish(topics.LIDAR_SCAN, robot)
             if _stopped(limits) != _stopped(self.proximity):  # not every slowing: the log
                 log = _LOGGER.warning if _stopped(limits) else _LOGGER.info
@@ -205,6 +213,21 @@ class LidarReader(Actor):
     def _analyse(self, scan: LidarScan) -> tuple[RobotScan, Proximity]:
         robot = to_robot(scan, self.geometry)
         return robot, proximity(robot, self.geometry, self.proximity)
+
+    def _on_pose(self, pose: PoseEstimate) -> None:
+        if pose.heading_known:
+            self._poses.append((pose.time, (pose.x_m, pose.y_m, pose.yaw_rad)))
+        else:
+            self._poses.clear()  # a yaw that is a guess places nothing
+
+    def as_shown(self, bearing_deg: float, range_m: float) -> tuple[float, float]:
+        """A point of the last scan around the robot's latest pose, the one telemetry shows
+        it with: the robot moved and turned since the scan (by the pose's own estimate)."""
+        latest = self.bus.last(topics.POSE)
+        then = self.scan_pose
+        if then is None or latest is None or not latest.heading_known:
+            return bearing_deg, range_m
+        return reframe(bearing_deg, range_m, then, (latest.x_m, latest.y_m, latest.yaw_rad))
 
     def scan_hz(self) -> float:
         """Revolutions in the last second."""
@@ -217,10 +240,10 @@ class LidarReader(Actor):
         obstacles: list[tuple[float, ...]] = []
         if scan is not None and self._last_scan_at is not None:
             for o in scan.obstacles:
-                bearing = math.degrees(math.atan2(-o.y_m, o.x_m)) % 360.0
-                obstacles.append(
-                    (round(bearing, 1), round(math.hypot(o.x_m, o.y_m), 2), o.radius_m)
+                bearing, distance = self.as_shown(
+                    math.degrees(math.atan2(-o.y_m, o.x_m)) % 360.0, math.hypot(o.x_m, o.y_m)
                 )
+                obstacles.append((round(bearing, 1), round(distance, 2), o.radius_m))
             obstacles = sorted(obstacles, key=lambda o: o[1])[:12]
         return Perception(
             connected=self.connected,
