@@ -30,9 +30,9 @@ from brasidas.clock import Clock, LoopClock, sleep, timeout_at
 from brasidas.codecs.ldlidar import LidarDecoder, LidarScan, ScanAssembler
 from brasidas.codecs.telemetry_schema import Perception
 from brasidas.config.lidar import LidarSection
-from brasidas.messages import PoseEstimate
+from brasidas.messages import Mode, PoseEstimate
 from brasidas.perception.messages import Proximity, RobotScan
-from brasidas.perception.proximity import Geometry, proximity, silent, to_robot
+from brasidas.perception.proximity import Geometry, forward_for, proximity, silent, to_robot
 from brasidas.perception.view import PlanePose, pose_at, reframe
 from brasidas.security import state_dir
 from platformd.context import PlatformContext, SerialDevice
@@ -229,6 +229,14 @@ class LidarReader(Actor):
             return bearing_deg, range_m
         return reframe(bearing_deg, range_m, then, (latest.x_m, latest.y_m, latest.yaw_rad))
 
+    def _asked(self) -> tuple[float, float]:
+        """The motion asked of the motors now (the hand or the patrol's), before the limits:
+        the arc whose limit and reason are shown."""
+        state = self.bus.last(topics.MOTION_STATE)
+        teleop = state is not None and state.mode is Mode.TELEOP
+        asked = self.bus.last(topics.TELEOP_VELOCITY if teleop else topics.CMD_VEL)
+        return (asked.linear, asked.angular) if asked is not None else (0.0, 0.0)
+
     def scan_hz(self) -> float:
         """Revolutions in the last second."""
         now = self.clock.time()
@@ -245,15 +253,16 @@ class LidarReader(Actor):
                 )
                 obstacles.append((round(bearing, 1), round(distance, 2), o.radius_m))
             obstacles = sorted(obstacles, key=lambda o: o[1])[:12]
+        forward, reason = forward_for(limits, *self._asked())
         return Perception(
             connected=self.connected,
             scan_hz=self.scan_hz(),
             points_used=scan.points_used if scan is not None else 0,
             nearest_m=limits.nearest_m,
             nearest_bearing_deg=limits.nearest_bearing_deg,
-            forward_limit=round(limits.forward_limit, 3),
+            forward_limit=round(forward, 3),
             reverse_limit=round(limits.reverse_limit, 3),
-            reason=limits.reason,
+            reason=reason,
             obstacles=tuple(obstacles),
             crc_errors=self.decoder.crc_errors,
             **_localization(self.localizer),
@@ -302,7 +311,10 @@ async def async_setup(ctx: PlatformContext) -> None:
     simulator = ctx.sim.lidar
     section = dataclasses.replace(config, port=simulator.path) if simulator else config
     geometry = Geometry(
-        section, ctx.config.safety.braking_mps2, ctx.config.platform.max_speed_kmh / 3.6
+        section,
+        ctx.config.safety.braking_mps2,
+        ctx.config.platform.max_speed_kmh / 3.6,
+        math.radians(ctx.config.autonomy.full_turn_rate_dps),
     )
     reader = LidarReader(ctx.bus, section, geometry)
     ctx.capabilities.register("lidar", lambda: capabilities(section))

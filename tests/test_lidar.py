@@ -22,7 +22,7 @@ from brasidas.codecs.telemetry_schema import Perception, section_from_wire, sect
 from brasidas.config.lidar import LidarSection
 from brasidas.messages import Velocity
 from brasidas.perception.messages import Proximity
-from brasidas.perception.proximity import Geometry, proximity, to_robot
+from brasidas.perception.proximity import Geometry, forward_for, proximity, to_robot
 from platformd.lidar_reader import LidarReader
 from platformd.mode import ModeArbiter
 from platformd.session_table import Session
@@ -76,6 +76,21 @@ def test_a_single_noisy_return_the_body_and_masked_sectors_never_stop_it() -> No
     assert limits(wall(0, 0.4)).forward_limit == 0.0
     # Beside the corridor (a wall 2 m to the left) does not stop forward driving.
     assert limits(wall(270, 2.0, 60)).forward_limit == 1.0
+
+
+def test_the_corridor_follows_the_turn() -> None:
+    """A post the robot turns towards is in its way before it is ahead: a left turn at half
+    speed (radius 5 m / (2 x 1.5 rad/s) = 1.67 m) meets a post 60° round it, 1.67 m away at
+    30° left, which the straight corridor (0.35 m either side) does not hold."""
+    post = wall(330, 1.67, 10)
+    seen = limits(post)
+    assert seen.forward_limit == 1.0  # straight ahead: clear
+    limit, why = forward_for(seen, 0.5, 1.0)
+    assert limit < 0.5 * seen.forward_limit and why.endswith("m in the turn left"), (limit, why)
+    assert forward_for(seen, 0.5, -1.0) == (1.0, "")  # turning away: clear
+    assert forward_for(seen, 0.0, 1.0)[0] == 1.0  # turning on the spot: never limited
+    # Between two arcs' ratios: the lower of their limits.
+    assert forward_for(seen, 0.5, 0.75)[0] <= forward_for(seen, 0.5, 0.5)[0]
 
 
 def test_mount_and_yaw_put_points_in_the_robots_frame() -> None:

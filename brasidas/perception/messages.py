@@ -47,6 +47,10 @@ class Proximity:
     """Its bearing, clockwise from the robot's forward axis."""
     reason: str
     """Why the limit is what it is ("" when the way is clear)."""
+    turns: tuple[tuple[float, float, str], ...] = ()
+    """Forward limits along arcs: (turn ratio, limit, reason) where the ratio is the command's
+    angular over its linear (both fractions of full scale; positive: left), the corridor
+    following the arc the robot drives (:func:`brasidas.perception.proximity.forward_for`)."""
 
 
 @dataclass(frozen=True)
