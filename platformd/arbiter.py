@@ -37,7 +37,7 @@ from brasidas.messages import (
     Velocity,
 )
 from brasidas.perception.messages import Proximity
-from brasidas.perception.proximity import forward_for
+from brasidas.perception.proximity import limit_for
 from platformd.context import PlatformContext
 
 _LOGGER = logging.getLogger(__name__)
@@ -175,11 +175,9 @@ class MotionArbiter(Actor):
         limits = self.proximity
         if limits is None:
             return velocity
-        forward, _why = forward_for(limits, velocity.linear, velocity.angular)
+        forward, _why = limit_for(limits, velocity.linear, velocity.angular)
         if velocity.linear > forward:
-            # Slower at the same turn rate is a tighter arc: its corridor counts too.
-            tighter, _why = forward_for(limits, forward, velocity.angular)
-            return Velocity(min(forward, tighter), velocity.angular)
+            return Velocity(forward, velocity.angular)
         if -velocity.linear > limits.reverse_limit:
             return Velocity(-limits.reverse_limit, velocity.angular)
         return velocity

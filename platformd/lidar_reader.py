@@ -17,6 +17,7 @@ import asyncio
 import collections
 import concurrent.futures
 import dataclasses
+import functools
 import logging
 import math
 from pathlib import Path
@@ -30,9 +31,9 @@ from brasidas.clock import Clock, LoopClock, sleep, timeout_at
 from brasidas.codecs.ldlidar import LidarDecoder, LidarScan, ScanAssembler
 from brasidas.codecs.telemetry_schema import Perception
 from brasidas.config.lidar import LidarSection
-from brasidas.messages import Mode, PoseEstimate
+from brasidas.messages import Mode, PoseEstimate, Velocity
 from brasidas.perception.messages import Proximity, RobotScan
-from brasidas.perception.proximity import Geometry, forward_for, proximity, silent, to_robot
+from brasidas.perception.proximity import Geometry, limit_for, proximity, silent, to_robot
 from brasidas.perception.view import PlanePose, pose_at, reframe
 from brasidas.security import state_dir
 from platformd.context import PlatformContext, SerialDevice
@@ -83,18 +84,27 @@ class LidarReader(Actor):
         self.localizer: Localizer | None = None
         """The odometry and GPS gate, when ``lidar.odometry``: its figures join the section."""
         self._poses: collections.deque[tuple[float, PlanePose]] = collections.deque(maxlen=64)
+        self._asks: dict[Mode, Velocity] = {}
+        """The last motion asked of the motors by each mode's source (not retained topics)."""
         self.scan_pose: PlanePose | None = None
         """The robot's pose (``POSE``) in the middle of the last scan's revolution."""
 
     async def run(self) -> None:
         self.bus.publish(topics.PROXIMITY, self.proximity)  # stopped until the first scan
-        unsubscribe = self.bus.subscribe(topics.POSE, self._on_pose)
+        unsubscribes = [
+            self.bus.subscribe(topics.POSE, self._on_pose),
+            self.bus.subscribe(topics.CMD_VEL, functools.partial(self._on_ask, Mode.AUTONOMOUS)),
+            self.bus.subscribe(
+                topics.TELEOP_VELOCITY, functools.partial(self._on_ask, Mode.TELEOP)
+            ),
+        ]
         try:
             async with asyncio.TaskGroup() as group:
                 group.create_task(self._analyse_loop(), name="lidar:analyse")
                 await self._connect_loop()
         finally:
-            unsubscribe()
+            for unsubscribe in unsubscribes:
+                unsubscribe()
             self.opener.close()
             self._worker.shutdown(wait=False, cancel_futures=True)
 
@@ -229,12 +239,14 @@ class LidarReader(Actor):
             return bearing_deg, range_m
         return reframe(bearing_deg, range_m, then, (latest.x_m, latest.y_m, latest.yaw_rad))
 
+    def _on_ask(self, mode: Mode, velocity: Velocity) -> None:
+        self._asks[mode] = velocity
+
     def _asked(self) -> tuple[float, float]:
         """The motion asked of the motors now (the hand or the patrol's), before the limits:
         the arc whose limit and reason are shown."""
         state = self.bus.last(topics.MOTION_STATE)
-        teleop = state is not None and state.mode is Mode.TELEOP
-        asked = self.bus.last(topics.TELEOP_VELOCITY if teleop else topics.CMD_VEL)
+        asked = self._asks.get(state.mode if state is not None else Mode.AUTONOMOUS)
         return (asked.linear, asked.angular) if asked is not None else (0.0, 0.0)
 
     def scan_hz(self) -> float:
@@ -253,7 +265,7 @@ class LidarReader(Actor):
                 )
                 obstacles.append((round(bearing, 1), round(distance, 2), o.radius_m))
             obstacles = sorted(obstacles, key=lambda o: o[1])[:12]
-        forward, reason = forward_for(limits, *self._asked())
+        forward, reason = limit_for(limits, *self._asked())
         return Perception(
             connected=self.connected,
             scan_hz=self.scan_hz(),

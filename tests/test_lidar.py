@@ -208,6 +208,40 @@ async def test_hand_driving_is_slowed_then_stopped_short_of_an_obstacle(
     assert mode.request(False, operator).accepted
 
 
+async def test_hand_driving_in_a_turn_slows_for_a_post_on_its_arc(
+    robot_factory: Any, tmp_path: Path
+) -> None:
+    """Full ahead and full left (4.8 m/s, 1.5 rad/s: a 3.2 m circle round (-3.2, 0)): a post
+    120° round it is never in the straight corridor until too late (it was hit, 0.02 m), but
+    it is on the arc the command drives: the robot slows for it, and slower at the same turn
+    rate it turns tighter, inside it."""
+    post = (-4.8, 2.77, 0.4)
+    robot: Robot = await robot_factory(
+        "lidar.enabled=true",
+        "autonomy.autostart=false",
+        "safety.stop_distance_m=4",  # a speed cap near top speed: 4.8 m/s
+        f"sim.obstacles_file={obstacles_file(tmp_path, post)}",
+    )
+    bus = robot.ctx.bus
+    await wait_until(lambda: bus.last(topics.LIDAR_SCAN) is not None, 5)
+    mode = next(a for a in robot.daemon.supervisor.actors if isinstance(a, ModeArbiter))
+    operator = Session("operator", "station-1", "127.0.0.1", None, 0.0, 0.0)
+    assert mode.request(True, operator).accepted
+    closest: list[float] = []
+    robot.watchers.append(lambda _pose, _truth: closest.append(clearance(robot, *post)))
+    reasons: set[str] = set()
+    for _ in range(40):  # 4 s: round the circle past the post
+        bus.publish(topics.TELEOP_VELOCITY, Velocity(1.0, 1.0))
+        await asyncio.sleep(0.1)
+        section = robot.ctx.telemetry.build_one(Perception)
+        assert isinstance(section, Perception)
+        reasons.add(section.reason)
+    assert min(closest) >= 0.3, min(closest)
+    # Why it slowed, on the console: the obstacle in the turn.
+    assert any("in the turn left" in reason for reason in reasons), reasons
+    assert mode.request(False, operator).accepted
+
+
 def test_world_polygons_block_rays() -> None:
     square = Polygon([(2, -1), (4, -1), (4, 1), (2, 1)])
     world = LidarWorld([(square, 0.5)], [])
