@@ -8,16 +8,19 @@ light of a bright day (``sim.lux`` 60,000). Against the simulator's truth, sampl
 50 ms:
 
 - **collisions**: contacts, the vehicle's centre coming nearer an obstacle's edge than the
-  body's half-width (:data:`BODY_RADIUS_M`), each counted once; pedestrians counted apart, and only while the vehicle moves
-  (one walking into a standing robot is not the robot's doing);
+  body's half-width (:data:`BODY_RADIUS_M`), each counted once; pedestrians counted apart,
+  each contact once and split by whose doing it was: the robot's when it was moving towards
+  the person (its velocity closing the gap at over :data:`MOVING_MPS`), else the person's
+  (one walking into a standing or receding robot);
 - **laps completed**: laps finished within :data:`LAP_TIMEOUT_S` each, of those attempted;
   a lap that times out is counted stuck, with the patrol's state and reason;
 - **false stops per km**: the lidar's forward limit dropping to zero while nothing real (a
   post, a pedestrian, a wall of the map) is within :data:`FALSE_STOP_M` of the vehicle;
 - the minimum clearance to an obstacle's edge, the distance driven.
 
-``BENCH_TOWN_LAPS`` (default 50) laps; ``BENCH_TOWN_SEED``. Real time: a lap takes about
-half a minute.
+``--laps N`` (``BENCH_LAPS``, or ``BENCH_TOWN_LAPS``; default 50) laps; ``BENCH_TOWN_SEED``;
+``BENCH_TOWN_KMH`` the patrol's speed (default the platform's). Real time: a lap takes
+about 70 s at 6 km/h.
 """
 
 from __future__ import annotations
@@ -39,7 +42,8 @@ from brasidas.config import PlatformConfig, load_config
 from brasidas.messages import PatrolState
 from platformd.sim.demo_area import LOOP, offset
 
-LAPS = int(os.environ.get("BENCH_TOWN_LAPS", "50"))
+LAPS = int(os.environ.get("BENCH_LAPS") or os.environ.get("BENCH_TOWN_LAPS") or "50")
+KMH = os.environ.get("BENCH_TOWN_KMH", "")
 SEED = int(os.environ.get("BENCH_TOWN_SEED", "1"))
 OBSTACLES = 25
 PEDESTRIANS = 5
@@ -47,6 +51,8 @@ LUX = 60_000.0
 BODY_RADIUS_M = 0.3
 """Half the rover's width (an assumption: the simulated vehicle has no footprint)."""
 FALSE_STOP_M = 1.5
+MOVING_MPS = 0.1
+"""The robot closing on a person faster than this is moving into them."""
 LAP_TIMEOUT_S = 240.0
 START = (37.9415, 23.6530)
 SHED = (15.0, 10.0, 25.0, 20.0)
@@ -142,12 +148,15 @@ async def run() -> dict[str, Any]:
             f"sim.obstacles_file={_obstacles_file(folder, posts)}",
             f"sim.pedestrians={PEDESTRIANS}", f"sim.lux={LUX}", f"sim.seed={SEED}",
             f"map.file={folder / 'map.geojson'}", f"autonomy.route_file={folder / 'route.json'}",
+            *([f"platform.max_speed_kmh={KMH}", f"autonomy.cruise_speed_kmh={KMH}"] if KMH else []),
         ],
     )  # fmt: skip
     daemon = PlatformDaemon(config, None)
     await daemon.start()
     load_start = os.getloadavg()
-    collisions = pedestrian_contacts = false_stops = stops = 0
+    collisions = false_stops = stops = 0
+    robot_into_person = person_into_robot = 0
+    was_near_person = False
     min_clearance = math.inf
     driven = 0.0
     laps_done = 0
@@ -189,13 +198,24 @@ async def run() -> dict[str, Any]:
                     contacts.append(_contact(pose, x, y, posts_xy[int(edges.argmin())], ctx))
             was_touching = touching
             people = world.pedestrians_at(time.monotonic())
-            nearest_person = (
-                float((np.hypot(people[:, 0] - x, people[:, 1] - y) - people[:, 2]).min())
-                if len(people)
-                else math.inf
-            )
-            moving = abs(pose.speed_mps) > 0.1
-            pedestrian_contacts += moving and nearest_person < BODY_RADIUS_M
+            gaps = np.hypot(people[:, 0] - x, people[:, 1] - y) - people[:, 2]
+            nearest_person = float(gaps.min()) if len(people) else math.inf
+            near_person = nearest_person < BODY_RADIUS_M
+            if near_person and not was_near_person:  # each contact once
+                person = people[int(gaps.argmin())]
+                towards = math.atan2(person[1] - y, person[0] - x)
+                closing = pose.speed_mps * math.cos(towards - pose.yaw_rad)
+                if closing > MOVING_MPS:
+                    robot_into_person += 1
+                    if len(contacts) < 5:
+                        contacts.append(
+                            f"person at {math.degrees(towards - pose.yaw_rad):+.0f}°, robot "
+                            f"closing at {closing:.2f} m/s: "
+                            + _contact(pose, x, y, np.array([*person[:2], person[2]]), ctx)
+                        )
+                else:
+                    person_into_robot += 1
+            was_near_person = near_person
             proximity = ctx.bus.last(topics.PROXIMITY)
             stopped = proximity is not None and proximity.forward_limit == 0.0
             status = ctx.bus.last(topics.PATROL_STATUS)
@@ -226,7 +246,8 @@ async def run() -> dict[str, Any]:
         "town_lidar_laps_attempted": attempted,
         "town_lidar_laps_completed_pct": round(100 * laps_done / max(1, attempted), 1),
         "town_lidar_collisions": int(collisions),
-        "town_lidar_pedestrian_contacts_while_moving": int(pedestrian_contacts),
+        "town_lidar_pedestrian_contacts_robot_moving_into": robot_into_person,
+        "town_lidar_pedestrian_contacts_walked_into_robot": person_into_robot,
         "town_lidar_min_clearance_to_post_edge_m": round(min_clearance, 2),
         "town_lidar_stops": stops,
         "town_lidar_false_stops": false_stops,
