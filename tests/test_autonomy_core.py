@@ -15,7 +15,7 @@ from shapely import LineString, box
 from brasidas.autonomy.areamap import MapError, parse_map
 from brasidas.autonomy.follower import FollowerParameters, PurePursuit
 from brasidas.autonomy.geo import LocalFrame
-from brasidas.autonomy.localization import FilterParameters, PoseFilter
+from brasidas.autonomy.localization import Estimate, FilterParameters, PoseFilter
 from brasidas.autonomy.patrol import Patrol, PatrolParameters
 from brasidas.autonomy.planner import Planner, Unreachable, cross_track
 from brasidas.autonomy.route import (
@@ -319,6 +319,39 @@ def test_patrol_states_map_reload_override_and_stale_fix() -> None:
     assert run.tick().command.linear == 0
     assert p.status().waypoints == 0 and p.status().state is PatrolState.STOPPED
     assert p.status().reason == "map loaded: waypoints cleared"
+
+
+@pytest.mark.parametrize(("zone", "drives"), [("lidar:7", True), ("pond", False)])
+def test_a_lost_heading_is_found_beside_what_the_lidar_saw_not_beside_the_maps_keepouts(
+    zone: str, drives: bool
+) -> None:
+    """Without a heading the robot drives straight for one and needs room all round: a
+    keep-out of the map's within the room holds it (the lidar may not see it: a pond), one
+    the lidar made of what it saw does not (the lidar stops it short of that: a robot that
+    lost its heading standing at a lidar stop is always beside one)."""
+    area = parse_map(demo())
+    corners = [offset(LAT, LON, e, n) for e, n in ((1.2, -0.5), (2.2, -0.5), (2.2, 0.5))]
+    ring = [[lon, lat] for lat, lon in [*corners, offset(LAT, LON, 1.2, 0.5), corners[0]]]
+    feature = {
+        "type": "Feature",
+        "id": zone,
+        "properties": {"role": "keepout"},
+        "geometry": {"type": "Polygon", "coordinates": [ring]},
+    }
+    p = patrol()
+    p.set_map(area.with_keepouts(add=[feature]))
+    p.set_route(parse_waypoints(demo_route(), area.points))
+    p.start()
+    x, y = area.local(LAT, LON)
+    lost = Estimate(0.0, x, y, 0.0, 0.0, 0.1, math.pi)
+    assert not lost.heading_known
+    command = p.step(lost, 0.1)
+    if drives:
+        assert command.linear > 0, p.status()
+        assert p.status().reason == "finding the heading (driving straight)"
+    else:
+        assert command.linear == 0 and p.status().state is PatrolState.HOLDING
+        assert "heading unknown and no 3 m of room" in p.status().reason
 
 
 def test_closed_route_driven_twice_passes_every_waypoint_and_avoids_the_keepout() -> None:

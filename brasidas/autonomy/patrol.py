@@ -420,9 +420,13 @@ class Patrol:
         from shapely import Point
 
         assert self.area is not None
-        # The heading is unknown, so "ahead" is unknown: need room all round.
+        # The heading is unknown, so "ahead" is unknown: need room all round. Obstacles the
+        # lidar saw do not count: it stops the robot short of them (a robot that lost its
+        # heading standing at a lidar stop is among them).
         room = Point(here).buffer(self.p.align_room_m, quad_segs=4)
-        blocked = not self.area.boundary.contains(room) or self.area.meets_keepout(room)
+        blocked = not self.area.boundary.contains(room) or self.area.meets_keepout(
+            room, seen_too=False
+        )
         if blocked:
             return self._settle(
                 PatrolState.HOLDING,

@@ -4,6 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+SEEN_KEEPOUT_PREFIX = "lidar:"
+"""The ids of the keep-outs the platform makes of obstacles its lidar saw (temporary, never
+stored in the map file)."""
+
 
 @dataclass(frozen=True)
 class Obstacle:
