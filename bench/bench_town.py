@@ -13,7 +13,9 @@ light of a bright day (``sim.lux`` 60,000). Against the simulator's truth, sampl
   the person (its velocity closing the gap at over :data:`MOVING_MPS`), else the person's
   (one walking into a standing or receding robot);
 - **laps completed**: laps finished within :data:`LAP_TIMEOUT_S` each, of those attempted;
-  a lap that times out is counted stuck, with the patrol's state and reason;
+  a lap that times out is counted stuck, with the patrol's state and reason; laps in which
+  the patrol skipped a waypoint (an obstacle's keep-out over it, or no path to it) are
+  counted apart: completed, but not clean;
 - **false stops per km**: the lidar's forward limit dropping to zero while nothing real (a
   post, a pedestrian, a wall of the map) is within :data:`FALSE_STOP_M` of the vehicle;
 - the minimum clearance to an obstacle's edge, the distance driven.
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import math
 import os
 import random
@@ -130,6 +133,17 @@ def _contact(pose: Any, x: float, y: float, post: np.ndarray, ctx: Any) -> str:
     )
 
 
+class _Skips(logging.Handler):
+    """Counts the patrol's "waypoint … skipped" warnings."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.count = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.count += "skipped" in record.getMessage()
+
+
 async def run() -> dict[str, Any]:
     from platformd.app import PlatformDaemon
 
@@ -151,8 +165,12 @@ async def run() -> dict[str, Any]:
             *([f"platform.max_speed_kmh={KMH}", f"autonomy.cruise_speed_kmh={KMH}"] if KMH else []),
         ],
     )  # fmt: skip
+    skips = _Skips()
+    logging.getLogger("platformd.autonomy.patrol").addHandler(skips)
     daemon = PlatformDaemon(config, None)
     await daemon.start()
+    clean_laps = 0
+    skips_at_lap_start = 0
     load_start = os.getloadavg()
     collisions = false_stops = stops = 0
     robot_into_person = person_into_robot = 0
@@ -230,6 +248,8 @@ async def run() -> dict[str, Any]:
             now = time.monotonic()
             if lap > last_lap:
                 laps_done += lap - last_lap
+                clean_laps += skips.count == skips_at_lap_start
+                skips_at_lap_start = skips.count
                 last_lap = lap
                 lap_times.append(now - lap_started)
                 lap_started = now
@@ -237,14 +257,18 @@ async def run() -> dict[str, Any]:
                 reason = f"{status.state.value}: {status.reason}" if status else "no status"
                 stuck.append(reason)
                 lap_started = now
+                skips_at_lap_start = skips.count
     finally:
         await daemon.stop()
+        logging.getLogger("platformd.autonomy.patrol").removeHandler(skips)
     attempted = laps_done + len(stuck)
     km = driven / 1000
     load_end = os.getloadavg()
     return {
         "town_lidar_laps_attempted": attempted,
         "town_lidar_laps_completed_pct": round(100 * laps_done / max(1, attempted), 1),
+        "town_lidar_laps_clean": clean_laps,
+        "town_lidar_waypoints_skipped": skips.count,
         "town_lidar_collisions": int(collisions),
         "town_lidar_pedestrian_contacts_robot_moving_into": robot_into_person,
         "town_lidar_pedestrian_contacts_walked_into_robot": person_into_robot,
