@@ -320,7 +320,7 @@ async def async_setup(ctx: PlatformContext) -> None:
     config = ctx.config.lidar
     if not config.enabled:
         return
-    simulator = ctx.sim.lidar
+    simulator = ctx.sim.lidar or ctx.sim.lidar_replay
     section = dataclasses.replace(config, port=simulator.path) if simulator else config
     geometry = Geometry(
         section,

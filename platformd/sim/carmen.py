@@ -22,6 +22,7 @@ import asyncio
 import collections
 import contextlib
 import itertools
+import logging
 import math
 import os
 import random
@@ -34,6 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
+from brasidas.actor import Actor, wait_forever
+from brasidas.bus import Bus
 from brasidas.codecs.carmen import CarmenLog, CarmenScan, format_flaser, format_odom, parse
 from brasidas.codecs.ldlidar import POINTS_PER_FRAME, encode_frame
 from brasidas.config.lidar import LidarSection
@@ -42,6 +45,8 @@ from platformd.lidar_models import MODELS
 
 YAW_BIAS_RAD_S = 0.01
 """The sample log's odometry turns this much more than the robot did (a wheel a bit small)."""
+_LOGGER = logging.getLogger(__name__)
+
 MIN_GAP_S, MAX_GAP_S = 0.02, 1.0
 """The pace between two scans on the pty: the log's, within these (a pause in a log is not
 a lidar gone silent; a burst is not faster than the line)."""
@@ -197,31 +202,41 @@ def sample_log(seconds: float = 60.0, *, seed: int = 1, speed_mps: float = 1.0) 
 # --------------------------------------------------------------------------- the pty
 
 
+async def replay_to(master: int, replay: CarmenReplay) -> int:
+    """Every scan of the log as a revolution written to the pty's ``master`` at the log's pace
+    (gaps clamped to :data:`MIN_GAP_S`..:data:`MAX_GAP_S`); the revolutions nobody read."""
+    overruns = 0
+    previous: float | None = None
+    for scan, _prior in replay.priors():
+        if previous is not None:
+            await asyncio.sleep(min(MAX_GAP_S, max(MIN_GAP_S, scan.time - previous)))
+        previous = scan.time
+        try:
+            os.write(master, replay.revolution(scan, time.monotonic()))
+        except BlockingIOError:
+            overruns += 1  # nobody reads: lost, as on a UART
+    return overruns
+
+
+def _open_pty() -> tuple[int, int]:
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+    return master, slave
+
+
 async def serve_log(path: str, config: LidarSection) -> None:
     """``brasidas-platform simulate lidar --carmen FILE``: the pty's path on stdout's first
     line, then every scan of the log as a revolution at the log's pace; a summary on stderr
     at the end (scans, lines skipped and dropped)."""
     log = await asyncio.to_thread(load, path)
-    replay = CarmenReplay(log, config)
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    os.set_blocking(master, False)
-    overruns = 0
+    master, slave = _open_pty()
     try:
         sys.stdout.write(os.ttyname(slave) + "\n")
         sys.stdout.flush()
         for number, why in log.malformed[:5]:
             print(f"carmen: line {number} dropped: {why}", file=sys.stderr)
-        previous: float | None = None
-        for scan, _prior in replay.priors():
-            if previous is not None:
-                gap = min(MAX_GAP_S, max(MIN_GAP_S, scan.time - previous))
-                await asyncio.sleep(gap)
-            previous = scan.time
-            try:
-                os.write(master, replay.revolution(scan, time.monotonic()))
-            except BlockingIOError:
-                overruns += 1  # nobody reads: lost, as on a UART
+        overruns = await replay_to(master, CarmenReplay(log, config))
         print(
             f"carmen: {len(log.scans)} scans replayed from {path}; "
             f"{len(log.malformed)} lines dropped, skipped {log.skipped or 'none'}; "
@@ -232,6 +247,45 @@ async def serve_log(path: str, config: LidarSection) -> None:
         for fd in (master, slave):
             with contextlib.suppress(OSError):
                 os.close(fd)
+
+
+class CarmenSimulator(Actor):
+    """In ``--sim`` with ``sim.carmen_file``: the vehicle's lidar replays a recorded CARMEN log
+    on its pty (the same wire bytes as :func:`serve_log`), once; then it is silent, and the
+    platform stops for a blind lidar. The simulated vehicle's motion does not move the scans
+    (they are the log's), and the log's odometry is not the localizer's prior here."""
+
+    name = "sim:lidar"
+
+    def __init__(self, bus: Bus, path: str, config: LidarSection) -> None:
+        super().__init__(bus)
+        self.file = path
+        self.config = config
+        self._master, self._slave = _open_pty()
+        self.path = os.ttyname(self._slave)
+        self.scans = 0
+        """Scans in the log (once loaded)."""
+        self.overruns = 0
+
+    async def run(self) -> None:
+        try:
+            log = await asyncio.to_thread(load, self.file)
+            self.scans = len(log.scans)
+            for number, why in log.malformed[:5]:
+                _LOGGER.warning("carmen: %s line %d dropped: %s", self.file, number, why)
+            _LOGGER.info("lidar replaying %s: %d scans", self.file, self.scans)
+            self.overruns = await replay_to(self._master, CarmenReplay(log, self.config))
+            _LOGGER.warning(
+                "carmen: %d scans of %s replayed (%d not read): the lidar is silent now",
+                self.scans,
+                self.file,
+                self.overruns,
+            )
+            await wait_forever()
+        finally:
+            for fd in (self._master, self._slave):
+                with contextlib.suppress(OSError):
+                    os.close(fd)
 
 
 # --------------------------------------------------------------------------- the pipeline
