@@ -16,8 +16,9 @@ light of a bright day (``sim.lux`` 60,000). Against the simulator's truth, sampl
   a lap that times out is counted stuck, with the patrol's state and reason; laps in which
   the patrol skipped a waypoint (an obstacle's keep-out over it, or no path to it) are
   counted apart: completed, but not clean;
-- **false stops per km**: the lidar's forward limit dropping to zero while nothing real (a
-  post, a pedestrian, a wall of the map) is within :data:`FALSE_STOP_M` of the vehicle;
+- **false stops per km**: the lidar's forward limit for the patrol's ask (along its arc)
+  dropping to zero while nothing real (a post, a pedestrian, a wall of the map) is within
+  :data:`FALSE_STOP_M` of the vehicle;
 - the minimum clearance to an obstacle's edge, the distance driven.
 
 ``--laps N`` (``BENCH_LAPS``, or ``BENCH_TOWN_LAPS``; default 50) laps; ``BENCH_TOWN_SEED``;
@@ -42,7 +43,8 @@ import numpy as np
 
 from brasidas import topics
 from brasidas.config import PlatformConfig, load_config
-from brasidas.messages import PatrolState
+from brasidas.messages import PatrolState, Velocity
+from brasidas.perception.proximity import limit_for
 from platformd.sim.demo_area import LOOP, offset
 
 LAPS = int(os.environ.get("BENCH_LAPS") or os.environ.get("BENCH_TOWN_LAPS") or "50")
@@ -191,6 +193,13 @@ async def run() -> dict[str, Any]:
             if not arming.reasons():
                 break
             await asyncio.sleep(0.2)
+        asked = (0.0, 0.0)
+
+        def on_cmd_vel(velocity: Velocity) -> None:
+            nonlocal asked
+            asked = (velocity.linear, velocity.angular)
+
+        ctx.bus.subscribe(topics.CMD_VEL, on_cmd_vel)
         await ctx.rpc.call_local("set_waypoints", waypoints=["sw", "se", "ne", "nw", "sw"])
         await ctx.rpc.call_local("patrol_start")
         posts_xy = np.array([(x, y, r) for x, y, r in posts])
@@ -235,7 +244,8 @@ async def run() -> dict[str, Any]:
                     person_into_robot += 1
             was_near_person = near_person
             proximity = ctx.bus.last(topics.PROXIMITY)
-            stopped = proximity is not None and proximity.forward_limit == 0.0
+            # The limit the arbiter applies to the patrol's ask (along its arc, if it turns).
+            stopped = proximity is not None and limit_for(proximity, *asked)[0] == 0.0
             status = ctx.bus.last(topics.PATROL_STATUS)
             patrolling = status is not None and status.state == PatrolState.PATROLLING
             if stopped and not was_stopped and patrolling:
