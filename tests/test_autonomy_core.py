@@ -349,6 +349,13 @@ def test_a_lost_heading_is_found_beside_what_the_lidar_saw_not_beside_the_maps_k
     if drives:
         assert command.linear > 0, p.status()
         assert p.status().reason == "finding the heading (driving straight)"
+        # The lidar stops it ahead (the post it lost its heading at): it backs away for one.
+        p.blocked = (True, False)
+        assert p.step(lost, 0.1).linear < 0
+        assert p.status().reason == "finding the heading (backing away)"
+        p.blocked = (True, True)  # boxed in: it holds, saying why
+        assert p.step(lost, 0.1).linear == 0 and p.status().state is PatrolState.HOLDING
+        assert p.status().reason == "heading unknown and obstacles ahead and behind"
     else:
         assert command.linear == 0 and p.status().state is PatrolState.HOLDING
         assert "heading unknown and no 3 m of room" in p.status().reason

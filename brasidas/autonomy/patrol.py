@@ -91,6 +91,9 @@ class Patrol:
         self._running = False
         """The operator wants it to patrol (start), as against stop."""
         self._override = False
+        self.blocked: tuple[bool, bool] = (False, False)
+        """The lidar stops the robot (ahead, behind): set by the platform before each step.
+        Finding a lost heading then backs away instead of asking for what it cannot have."""
         self._planner: Planner | None = None
         self._follower = PurePursuit(parameters.follower)
         self._path: Path | None = None
@@ -432,6 +435,14 @@ class Patrol:
                 PatrolState.HOLDING,
                 f"heading unknown and no {self.p.align_room_m:g} m of room to drive for one",
             )
+        ahead, behind = self.blocked
+        if ahead and behind:
+            return self._settle(
+                PatrolState.HOLDING, "heading unknown and obstacles ahead and behind"
+            )
+        if ahead:  # a course over ground reversing gives the heading as well
+            self._settle(PatrolState.PATROLLING, "finding the heading (backing away)")
+            return Command(-self.p.align_speed, 0.0)
         self._settle(PatrolState.PATROLLING, "finding the heading (driving straight)")
         return Command(self.p.align_speed, 0.0)
 
