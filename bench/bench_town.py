@@ -182,6 +182,7 @@ async def run() -> dict[str, Any]:
     laps_done = 0
     stuck: list[str] = []
     contacts: list[str] = []
+    false_stop_notes: list[str] = []
     lap_times: list[float] = []
     try:
         ctx = daemon.ctx
@@ -253,6 +254,13 @@ async def run() -> dict[str, Any]:
                 wall = _segment_distance(x, y, world.segments[:, :4])
                 if min(nearest_post, nearest_person, wall) > FALSE_STOP_M:
                     false_stops += 1
+                    if len(false_stop_notes) < 5 and proximity is not None:
+                        why = limit_for(proximity, *asked)[1]
+                        false_stop_notes.append(
+                            f"'{why}' asked {asked[0]:+.2f}/{asked[1]:+.2f}; nearest post "
+                            f"{nearest_post:.1f} m, person {nearest_person:.1f} m, "
+                            f"wall {wall:.1f} m; speed {pose.speed_mps:+.2f} m/s"
+                        )
             was_stopped = stopped
             lap = status.lap if status is not None else 0
             now = time.monotonic()
@@ -290,6 +298,7 @@ async def run() -> dict[str, Any]:
         "town_lidar_lap_s_median": round(float(np.median(lap_times)), 1) if lap_times else None,
         "town_lidar_stuck": stuck[:5],
         "town_lidar_contacts": contacts,
+        "town_lidar_false_stop_notes": false_stop_notes,
         "town_lidar_obstacles": OBSTACLES,
         "town_lidar_pedestrians": PEDESTRIANS,
         "town_lidar_lux": LUX,
