@@ -18,7 +18,8 @@ light of a bright day (``sim.lux`` 60,000). Against the simulator's truth, sampl
   counted apart: completed, but not clean;
 - **false stops per km**: the lidar's forward limit for the patrol's ask (along its arc)
   dropping to zero while nothing real (a post, a pedestrian, a wall of the map) is within
-  :data:`FALSE_STOP_M` of the vehicle;
+  :data:`FALSE_STOP_M` of the vehicle (stops for a silent lidar, the simulator or the
+  reader stalled on a loaded machine, are counted apart);
 - the minimum clearance to an obstacle's edge, the distance driven.
 
 ``--laps N`` (``BENCH_LAPS``, or ``BENCH_TOWN_LAPS``; default 50) laps; ``BENCH_TOWN_SEED``;
@@ -174,7 +175,7 @@ async def run() -> dict[str, Any]:
     clean_laps = 0
     skips_at_lap_start = 0
     load_start = os.getloadavg()
-    collisions = false_stops = stops = 0
+    collisions = false_stops = stops = blind_stops = 0
     robot_into_person = person_into_robot = 0
     was_near_person = False
     min_clearance = math.inf
@@ -252,7 +253,10 @@ async def run() -> dict[str, Any]:
             if stopped and not was_stopped and patrolling:
                 stops += 1
                 wall = _segment_distance(x, y, world.segments[:, :4])
-                if min(nearest_post, nearest_person, wall) > FALSE_STOP_M:
+                blind = proximity is not None and "no lidar scan" in proximity.reason
+                if blind:  # the simulator or the reader stalled (a loaded machine): apart
+                    blind_stops += 1
+                elif min(nearest_post, nearest_person, wall) > FALSE_STOP_M:
                     false_stops += 1
                     if len(false_stop_notes) < 5 and proximity is not None:
                         why = limit_for(proximity, *asked)[1]
@@ -293,6 +297,7 @@ async def run() -> dict[str, Any]:
         "town_lidar_min_clearance_to_post_edge_m": round(min_clearance, 2),
         "town_lidar_stops": stops,
         "town_lidar_false_stops": false_stops,
+        "town_lidar_blind_stops": blind_stops,
         "town_lidar_false_stops_per_km": round(false_stops / km, 2) if km > 0 else None,
         "town_lidar_driven_km": round(km, 3),
         "town_lidar_lap_s_median": round(float(np.median(lap_times)), 1) if lap_times else None,
