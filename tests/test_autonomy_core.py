@@ -439,6 +439,55 @@ def test_unreachable_waypoint_is_skipped_with_a_notification() -> None:
     assert "clearance" in next(e.message for e in p.events if e.kind == "skipped")
 
 
+@pytest.mark.parametrize(("prefix", "holds"), [("lidar:", True), ("pond", False)])
+def test_waypoints_cut_off_by_seen_obstacles_hold_until_they_go(prefix: str, holds: bool) -> None:
+    """Every waypoint unreachable: with keep-outs the lidar made in the way (a person, a car)
+    the patrol holds, saying why, and goes on once they are gone; with the map's own it
+    stops, as before (nothing will change)."""
+    area = parse_map(demo())
+    features = []
+    for k, name in enumerate(("se", "ne")):
+        lat, lon = area.points[name]
+        south_west, north_east = offset(lat, lon, -0.5, -0.5), offset(lat, lon, 0.5, 0.5)
+        corners = [
+            (south_west[1], south_west[0]),
+            (north_east[1], south_west[0]),
+            (north_east[1], north_east[0]),
+            (south_west[1], north_east[0]),
+        ]
+        features.append(
+            {
+                "type": "Feature",
+                "id": f"{prefix}{k}",
+                "properties": {"role": "keepout"},
+                "geometry": {
+                    "type": "Polygon",
+                    "coordinates": [[*map(list, corners), list(corners[0])]],
+                },
+            }
+        )
+    p = patrol()
+    p.set_map(area)
+    p.set_route(parse_waypoints(["se", "ne"], area.points))
+    p.update_map(area.with_keepouts(add=features))
+    p.start()
+    run = KinematicRun(p, area, start=(LAT, LON))
+    for _ in range(20):
+        run.tick()
+    skipped = [e for e in p.events if e.kind == "skipped"]
+    assert len(skipped) == 2, p.events  # each once: no re-trying every step
+    if not holds:
+        assert p.status().state is PatrolState.STOPPED
+        assert p.status().reason == "no waypoint can be reached"
+        return
+    assert p.status().state is PatrolState.HOLDING and "lidar sees" in p.status().reason
+    assert run.tick().command.linear == 0
+    p.update_map(area)  # they are gone
+    for _ in range(40):
+        run.tick()
+    assert p.status().state is PatrolState.PATROLLING, p.status()
+
+
 def test_a_new_route_goes_on_toward_the_target_not_back_to_the_first() -> None:
     """Issue 20: a route edited while patrolling keeps the waypoint being driven to, or the
     next one the old route had that the new one keeps; a loop stays closed."""

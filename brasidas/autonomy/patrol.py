@@ -19,6 +19,7 @@ from brasidas.autonomy.follower import FollowerParameters, PurePursuit
 from brasidas.autonomy.localization import Estimate
 from brasidas.autonomy.route import Cursor, Route, RouteError
 from brasidas.messages import PatrolState, PatrolStatus
+from brasidas.perception.messages import SEEN_KEEPOUT_PREFIX
 
 if TYPE_CHECKING:
     from brasidas.autonomy.areamap import AreaMap
@@ -66,6 +67,7 @@ class PlanRequest:
 
 
 BUILDING = "the map changed: waiting for the new plan (being built)"
+SEEN_IN_THE_WAY = "no waypoint can be reached past the obstacles the lidar sees: waiting for them"
 
 
 @dataclass(frozen=True)
@@ -91,6 +93,8 @@ class Patrol:
         self._running = False
         """The operator wants it to patrol (start), as against stop."""
         self._override = False
+        self._unreachable_revision: int | None = None
+        """Every waypoint was unreachable past seen obstacles at this map revision: held."""
         self.blocked: tuple[bool, bool] = (False, False)
         """The lidar stops the robot (ahead, behind): set by the platform before each step.
         Finding a lost heading then backs away instead of asking for what it cannot have."""
@@ -206,9 +210,8 @@ class Patrol:
             self._path = None
             self._skips += 1
             if self._skips >= self.route.stops:
-                self._running = False
                 self._skips = 0
-                self._settle(PatrolState.STOPPED, "no waypoint can be reached")
+                self._none_reachable()
             return True
         from brasidas.autonomy.planner import Path
 
@@ -241,6 +244,7 @@ class Patrol:
         """New waypoints, on the fly: the patrol goes on toward the waypoint it was heading for
         when the new route keeps it, else the next kept one of the old route (a loop goes on,
         it does not restart from the first waypoint)."""
+        self._unreachable_revision = None  # other waypoints: tried again
         lap = self.cursor.lap
         old = self.route.waypoints[: self.route.stops]
         start = self.cursor.index if self.cursor.index < len(old) else 0
@@ -272,6 +276,7 @@ class Patrol:
         self._needs_plan = True
         self._forget_plans()
         self._skips = 0
+        self._unreachable_revision = None
 
     def stop(self, reason: str = "stopped by the operator") -> None:
         self._running = False
@@ -318,6 +323,8 @@ class Patrol:
             self._waiting = None  # replanned from where the robot is when it may go on
             return self._settle(PatrolState.HOLDING, hold)
         assert estimate is not None
+        if self._unreachable_revision == self.map_revision:
+            return self._settle(PatrolState.HOLDING, SEEN_IN_THE_WAY)
         here = (estimate.x, estimate.y)
         if not estimate.heading_known:
             return self._align(here)
@@ -354,6 +361,15 @@ class Patrol:
                 continue
             self._settle(PatrolState.PATROLLING, "")
             return Command(steering.linear, steering.angular)
+        return self._none_reachable()
+
+    def _none_reachable(self) -> Command:
+        """Every waypoint skipped: stopped, unless obstacles the lidar saw are in the way,
+        which move or go (a person, a parked car): then held until the map changes."""
+        area = self.area
+        if area is not None and any(k.startswith(SEEN_KEEPOUT_PREFIX) for k in area.keepouts):
+            self._unreachable_revision = self.map_revision
+            return self._settle(PatrolState.HOLDING, SEEN_IN_THE_WAY)
         self._running = False
         return self._settle(PatrolState.STOPPED, "no waypoint can be reached")
 
