@@ -47,12 +47,13 @@ def main(argv: list[str]) -> int:
 
 
 def _options(argv: list[str]) -> list[str]:
-    """``--seconds N`` and ``--rows a,b`` for the benchmarks that read them (BENCH_SECONDS,
-    BENCH_ROWS: bench_lossy); the rest are benchmark names."""
+    """``--seconds N``, ``--rows a,b`` and ``--laps N`` for the benchmarks that read them
+    (BENCH_SECONDS, BENCH_ROWS: bench_lossy; BENCH_LAPS: bench_town); the rest are benchmark
+    names."""
     names: list[str] = []
     words = iter(argv)
     for word in words:
-        if word in ("--seconds", "--rows"):
+        if word in ("--seconds", "--rows", "--laps"):
             os.environ[f"BENCH_{word[2:].upper()}"] = next(words, "")
         else:
             names.append(word)

@@ -8,22 +8,30 @@ light of a bright day (``sim.lux`` 60,000). Against the simulator's truth, sampl
 50 ms:
 
 - **collisions**: contacts, the vehicle's centre coming nearer an obstacle's edge than the
-  body's half-width (:data:`BODY_RADIUS_M`), each counted once; pedestrians counted apart, and only while the vehicle moves
-  (one walking into a standing robot is not the robot's doing);
+  body's half-width (:data:`BODY_RADIUS_M`), each counted once; pedestrians counted apart,
+  each contact once and split by whose doing it was: the robot's when it was moving towards
+  the person (its velocity closing the gap at over :data:`MOVING_MPS`), else the person's
+  (one walking into a standing or receding robot);
 - **laps completed**: laps finished within :data:`LAP_TIMEOUT_S` each, of those attempted;
-  a lap that times out is counted stuck, with the patrol's state and reason;
-- **false stops per km**: the lidar's forward limit dropping to zero while nothing real (a
-  post, a pedestrian, a wall of the map) is within :data:`FALSE_STOP_M` of the vehicle;
+  a lap that times out is counted stuck, with the patrol's state and reason; laps in which
+  the patrol skipped a waypoint (an obstacle's keep-out over it, or no path to it) are
+  counted apart: completed, but not clean;
+- **false stops per km**: the lidar's forward limit for the patrol's ask (along its arc)
+  dropping to zero while nothing real (a post, a pedestrian, a wall of the map) is within
+  :data:`FALSE_STOP_M` of the vehicle (stops for a silent lidar, the simulator or the
+  reader stalled on a loaded machine, are counted apart);
 - the minimum clearance to an obstacle's edge, the distance driven.
 
-``BENCH_TOWN_LAPS`` (default 50) laps; ``BENCH_TOWN_SEED``. Real time: a lap takes about
-half a minute.
+``--laps N`` (``BENCH_LAPS``, or ``BENCH_TOWN_LAPS``; default 50) laps; ``BENCH_TOWN_SEED``;
+``BENCH_TOWN_KMH`` the patrol's speed (default the platform's). Real time: a lap takes
+about 70 s at 6 km/h.
 """
 
 from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import math
 import os
 import random
@@ -36,10 +44,12 @@ import numpy as np
 
 from brasidas import topics
 from brasidas.config import PlatformConfig, load_config
-from brasidas.messages import PatrolState
+from brasidas.messages import PatrolState, Velocity
+from brasidas.perception.proximity import limit_for
 from platformd.sim.demo_area import LOOP, offset
 
-LAPS = int(os.environ.get("BENCH_TOWN_LAPS", "50"))
+LAPS = int(os.environ.get("BENCH_LAPS") or os.environ.get("BENCH_TOWN_LAPS") or "50")
+KMH = os.environ.get("BENCH_TOWN_KMH", "")
 SEED = int(os.environ.get("BENCH_TOWN_SEED", "1"))
 OBSTACLES = 25
 PEDESTRIANS = 5
@@ -47,6 +57,8 @@ LUX = 60_000.0
 BODY_RADIUS_M = 0.3
 """Half the rover's width (an assumption: the simulated vehicle has no footprint)."""
 FALSE_STOP_M = 1.5
+MOVING_MPS = 0.1
+"""The robot closing on a person faster than this is moving into them."""
 LAP_TIMEOUT_S = 240.0
 START = (37.9415, 23.6530)
 SHED = (15.0, 10.0, 25.0, 20.0)
@@ -124,6 +136,17 @@ def _contact(pose: Any, x: float, y: float, post: np.ndarray, ctx: Any) -> str:
     )
 
 
+class _Skips(logging.Handler):
+    """Counts the patrol's "waypoint … skipped" warnings."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.count = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.count += "skipped" in record.getMessage()
+
+
 async def run() -> dict[str, Any]:
     from platformd.app import PlatformDaemon
 
@@ -142,17 +165,25 @@ async def run() -> dict[str, Any]:
             f"sim.obstacles_file={_obstacles_file(folder, posts)}",
             f"sim.pedestrians={PEDESTRIANS}", f"sim.lux={LUX}", f"sim.seed={SEED}",
             f"map.file={folder / 'map.geojson'}", f"autonomy.route_file={folder / 'route.json'}",
+            *([f"platform.max_speed_kmh={KMH}", f"autonomy.cruise_speed_kmh={KMH}"] if KMH else []),
         ],
     )  # fmt: skip
+    skips = _Skips()
+    logging.getLogger("platformd.autonomy.patrol").addHandler(skips)
     daemon = PlatformDaemon(config, None)
     await daemon.start()
+    clean_laps = 0
+    skips_at_lap_start = 0
     load_start = os.getloadavg()
-    collisions = pedestrian_contacts = false_stops = stops = 0
+    collisions = false_stops = stops = blind_stops = 0
+    robot_into_person = person_into_robot = 0
+    was_near_person = False
     min_clearance = math.inf
     driven = 0.0
     laps_done = 0
     stuck: list[str] = []
     contacts: list[str] = []
+    false_stop_notes: list[str] = []
     lap_times: list[float] = []
     try:
         ctx = daemon.ctx
@@ -164,6 +195,13 @@ async def run() -> dict[str, Any]:
             if not arming.reasons():
                 break
             await asyncio.sleep(0.2)
+        asked = (0.0, 0.0)
+
+        def on_cmd_vel(velocity: Velocity) -> None:
+            nonlocal asked
+            asked = (velocity.linear, velocity.angular)
+
+        ctx.bus.subscribe(topics.CMD_VEL, on_cmd_vel)
         await ctx.rpc.call_local("set_waypoints", waypoints=["sw", "se", "ne", "nw", "sw"])
         await ctx.rpc.call_local("patrol_start")
         posts_xy = np.array([(x, y, r) for x, y, r in posts])
@@ -189,27 +227,51 @@ async def run() -> dict[str, Any]:
                     contacts.append(_contact(pose, x, y, posts_xy[int(edges.argmin())], ctx))
             was_touching = touching
             people = world.pedestrians_at(time.monotonic())
-            nearest_person = (
-                float((np.hypot(people[:, 0] - x, people[:, 1] - y) - people[:, 2]).min())
-                if len(people)
-                else math.inf
-            )
-            moving = abs(pose.speed_mps) > 0.1
-            pedestrian_contacts += moving and nearest_person < BODY_RADIUS_M
+            gaps = np.hypot(people[:, 0] - x, people[:, 1] - y) - people[:, 2]
+            nearest_person = float(gaps.min()) if len(people) else math.inf
+            near_person = nearest_person < BODY_RADIUS_M
+            if near_person and not was_near_person:  # each contact once
+                person = people[int(gaps.argmin())]
+                towards = math.atan2(person[1] - y, person[0] - x)
+                closing = pose.speed_mps * math.cos(towards - pose.yaw_rad)
+                if closing > MOVING_MPS:
+                    robot_into_person += 1
+                    if len(contacts) < 5:
+                        contacts.append(
+                            f"person at {math.degrees(towards - pose.yaw_rad):+.0f}°, robot "
+                            f"closing at {closing:.2f} m/s: "
+                            + _contact(pose, x, y, np.array([*person[:2], person[2]]), ctx)
+                        )
+                else:
+                    person_into_robot += 1
+            was_near_person = near_person
             proximity = ctx.bus.last(topics.PROXIMITY)
-            stopped = proximity is not None and proximity.forward_limit == 0.0
+            # The limit the arbiter applies to the patrol's ask (along its arc, if it turns).
+            stopped = proximity is not None and limit_for(proximity, *asked)[0] == 0.0
             status = ctx.bus.last(topics.PATROL_STATUS)
             patrolling = status is not None and status.state == PatrolState.PATROLLING
             if stopped and not was_stopped and patrolling:
                 stops += 1
                 wall = _segment_distance(x, y, world.segments[:, :4])
-                if min(nearest_post, nearest_person, wall) > FALSE_STOP_M:
+                blind = proximity is not None and "no lidar scan" in proximity.reason
+                if blind:  # the simulator or the reader stalled (a loaded machine): apart
+                    blind_stops += 1
+                elif min(nearest_post, nearest_person, wall) > FALSE_STOP_M:
                     false_stops += 1
+                    if len(false_stop_notes) < 5 and proximity is not None:
+                        why = limit_for(proximity, *asked)[1]
+                        false_stop_notes.append(
+                            f"'{why}' asked {asked[0]:+.2f}/{asked[1]:+.2f}; nearest post "
+                            f"{nearest_post:.1f} m, person {nearest_person:.1f} m, "
+                            f"wall {wall:.1f} m; speed {pose.speed_mps:+.2f} m/s"
+                        )
             was_stopped = stopped
             lap = status.lap if status is not None else 0
             now = time.monotonic()
             if lap > last_lap:
                 laps_done += lap - last_lap
+                clean_laps += skips.count == skips_at_lap_start
+                skips_at_lap_start = skips.count
                 last_lap = lap
                 lap_times.append(now - lap_started)
                 lap_started = now
@@ -217,24 +279,31 @@ async def run() -> dict[str, Any]:
                 reason = f"{status.state.value}: {status.reason}" if status else "no status"
                 stuck.append(reason)
                 lap_started = now
+                skips_at_lap_start = skips.count
     finally:
         await daemon.stop()
+        logging.getLogger("platformd.autonomy.patrol").removeHandler(skips)
     attempted = laps_done + len(stuck)
     km = driven / 1000
     load_end = os.getloadavg()
     return {
         "town_lidar_laps_attempted": attempted,
         "town_lidar_laps_completed_pct": round(100 * laps_done / max(1, attempted), 1),
+        "town_lidar_laps_clean": clean_laps,
+        "town_lidar_waypoints_skipped": skips.count,
         "town_lidar_collisions": int(collisions),
-        "town_lidar_pedestrian_contacts_while_moving": int(pedestrian_contacts),
+        "town_lidar_pedestrian_contacts_robot_moving_into": robot_into_person,
+        "town_lidar_pedestrian_contacts_walked_into_robot": person_into_robot,
         "town_lidar_min_clearance_to_post_edge_m": round(min_clearance, 2),
         "town_lidar_stops": stops,
         "town_lidar_false_stops": false_stops,
+        "town_lidar_blind_stops": blind_stops,
         "town_lidar_false_stops_per_km": round(false_stops / km, 2) if km > 0 else None,
         "town_lidar_driven_km": round(km, 3),
         "town_lidar_lap_s_median": round(float(np.median(lap_times)), 1) if lap_times else None,
         "town_lidar_stuck": stuck[:5],
         "town_lidar_contacts": contacts,
+        "town_lidar_false_stop_notes": false_stop_notes,
         "town_lidar_obstacles": OBSTACLES,
         "town_lidar_pedestrians": PEDESTRIANS,
         "town_lidar_lux": LUX,

@@ -77,15 +77,20 @@ async def start_simulators(ctx: PlatformContext) -> SimulatedDevices:
     turret = None
     if "turret" in config.payload.enabled:
         turret = turret_sim.start_simulator(ctx.bus, ctx.supervisor, config.payload)
-    lidar = None
-    if config.lidar.enabled:
+    lidar = lidar_replay = None
+    if config.lidar.enabled and config.sim.carmen_file:
+        from platformd.sim.carmen import CarmenSimulator
+
+        lidar_replay = CarmenSimulator(ctx.bus, config.sim.carmen_file, config.lidar)
+        ctx.supervisor.start(lidar_replay)
+    elif config.lidar.enabled:
         from platformd.sim import lidar as lidar_sim
 
         def area() -> AreaMap | None:  # the patrol's map, once autonomy has set up
             return ctx.patrol.area if ctx.patrol is not None else None
 
         lidar = lidar_sim.start_simulator(ctx.bus, ctx.supervisor, config, vehicle, area)
-    return SimulatedDevices(vehicle, ax3500, gpio, gps, chip, i2c_bus, turret, lidar)
+    return SimulatedDevices(vehicle, ax3500, gpio, gps, chip, i2c_bus, turret, lidar, lidar_replay)
 
 
 class PlatformDaemon(Daemon):

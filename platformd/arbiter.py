@@ -7,7 +7,8 @@ other's mode. The switch happens inside the ``OVERRIDE_STATE`` delivery, which i
 so by the time the mode arbiter answers an engage request the motors already obey the stream.
 
 Proximity (issue 30): in every mode, the linear speed is clamped to the lidar's limits for
-what it sees ahead and behind (``PROXIMITY``, platformd.lidar), down to zero with the reason.
+what it sees ahead, along the arc the command turns, and behind (``PROXIMITY``,
+platformd.lidar), down to zero with the reason.
 
 Deadman: in teleop, when no valid velocity has arrived for ``velocity.deadman`` seconds, the
 command becomes zero until the next valid packet.
@@ -36,6 +37,7 @@ from brasidas.messages import (
     Velocity,
 )
 from brasidas.perception.messages import Proximity
+from brasidas.perception.proximity import limit_for
 from platformd.context import PlatformContext
 
 _LOGGER = logging.getLogger(__name__)
@@ -173,8 +175,9 @@ class MotionArbiter(Actor):
         limits = self.proximity
         if limits is None:
             return velocity
-        if velocity.linear > limits.forward_limit:
-            return Velocity(limits.forward_limit, velocity.angular)
+        forward, _why = limit_for(limits, velocity.linear, velocity.angular)
+        if velocity.linear > forward:
+            return Velocity(forward, velocity.angular)
         if -velocity.linear > limits.reverse_limit:
             return Velocity(-limits.reverse_limit, velocity.angular)
         return velocity

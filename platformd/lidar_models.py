@@ -7,8 +7,9 @@ from dataclasses import dataclass
 
 from brasidas.codecs.ldlidar import POINTS_PER_FRAME
 from brasidas.config.lidar import LidarSection
+from brasidas.perception.messages import SEEN_KEEPOUT_PREFIX
 
-TEMPORARY_KEEPOUT_PREFIX = "lidar:"
+TEMPORARY_KEEPOUT_PREFIX = SEEN_KEEPOUT_PREFIX
 """Keep-outs the platform made from what it saw: not part of the simulated world."""
 
 

@@ -17,6 +17,7 @@ import asyncio
 import collections
 import concurrent.futures
 import dataclasses
+import functools
 import logging
 import math
 from pathlib import Path
@@ -31,8 +32,10 @@ from brasidas.clock import Clock, LoopClock, timeout_at
 from brasidas.codecs.ldlidar import LidarDecoder, LidarScan, ScanAssembler
 from brasidas.codecs.telemetry_schema import Perception
 from brasidas.config.lidar import LidarSection
+from brasidas.messages import Mode, PoseEstimate, Velocity
 from brasidas.perception.messages import Proximity, RobotScan
-from brasidas.perception.proximity import Geometry, proximity, silent, to_robot
+from brasidas.perception.proximity import Geometry, limit_for, proximity, silent, to_robot
+from brasidas.perception.view import PlanePose, pose_at, reframe
 from brasidas.security import state_dir
 from platformd.context import PlatformContext, SerialDevice
 from platformd.lidar_localization import Localizer
@@ -78,14 +81,28 @@ class LidarReader(Actor):
         self._worker = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="lidar")
         self.localizer: Localizer | None = None
         """The odometry and GPS gate, when ``lidar.odometry``: its figures join the section."""
+        self._poses: collections.deque[tuple[float, PlanePose]] = collections.deque(maxlen=64)
+        self._asks: dict[Mode, Velocity] = {}
+        """The last motion asked of the motors by each mode's source (not retained topics)."""
+        self.scan_pose: PlanePose | None = None
+        """The robot's pose (``POSE``) in the middle of the last scan's revolution."""
 
     async def run(self) -> None:
         self.bus.publish(topics.PROXIMITY, self.proximity)  # stopped until the first scan
+        unsubscribes = [
+            self.bus.subscribe(topics.POSE, self._on_pose),
+            self.bus.subscribe(topics.CMD_VEL, functools.partial(self._on_ask, Mode.AUTONOMOUS)),
+            self.bus.subscribe(
+                topics.TELEOP_VELOCITY, functools.partial(self._on_ask, Mode.TELEOP)
+            ),
+        ]
         try:
             async with asyncio.TaskGroup() as group:
                 group.create_task(self._analyse_loop(), name="lidar:analyse")
                 await read_line_forever(self)
         finally:
+            for unsubscribe in unsubscribes:
+                unsubscribe()
             self.opener.close()
             self._worker.shutdown(wait=False, cancel_futures=True)
 
@@ -165,6 +182,7 @@ class LidarReader(Actor):
             if self._last_scan_at is None:
                 continue  # went blind while the worker ran: the stop stands
             self.last = robot
+            self.scan_pose = pose_at(self._poses, (scan.started + scan.ended) / 2)
             self.bus.publish(topics.LIDAR_SCAN, robot)
             if _stopped(limits) != _stopped(self.proximity):  # not every slowing: the log
                 log = _LOGGER.warning if _stopped(limits) else _LOGGER.info
@@ -175,6 +193,31 @@ class LidarReader(Actor):
     def _analyse(self, scan: LidarScan) -> tuple[RobotScan, Proximity]:
         robot = to_robot(scan, self.geometry)
         return robot, proximity(robot, self.geometry, self.proximity)
+
+    def _on_pose(self, pose: PoseEstimate) -> None:
+        if pose.heading_known:
+            self._poses.append((pose.time, (pose.x_m, pose.y_m, pose.yaw_rad)))
+        else:
+            self._poses.clear()  # a yaw that is a guess places nothing
+
+    def as_shown(self, bearing_deg: float, range_m: float) -> tuple[float, float]:
+        """A point of the last scan around the robot's latest pose, the one telemetry shows
+        it with: the robot moved and turned since the scan (by the pose's own estimate)."""
+        latest = self.bus.last(topics.POSE)
+        then = self.scan_pose
+        if then is None or latest is None or not latest.heading_known:
+            return bearing_deg, range_m
+        return reframe(bearing_deg, range_m, then, (latest.x_m, latest.y_m, latest.yaw_rad))
+
+    def _on_ask(self, mode: Mode, velocity: Velocity) -> None:
+        self._asks[mode] = velocity
+
+    def _asked(self) -> tuple[float, float]:
+        """The motion asked of the motors now (the hand or the patrol's), before the limits:
+        the arc whose limit and reason are shown."""
+        state = self.bus.last(topics.MOTION_STATE)
+        asked = self._asks.get(state.mode if state is not None else Mode.AUTONOMOUS)
+        return (asked.linear, asked.angular) if asked is not None else (0.0, 0.0)
 
     def scan_hz(self) -> float:
         """Revolutions in the last second."""
@@ -187,20 +230,21 @@ class LidarReader(Actor):
         obstacles: list[tuple[float, ...]] = []
         if scan is not None and self._last_scan_at is not None:
             for o in scan.obstacles:
-                bearing = math.degrees(math.atan2(-o.y_m, o.x_m)) % 360.0
-                obstacles.append(
-                    (round(bearing, 1), round(math.hypot(o.x_m, o.y_m), 2), o.radius_m)
+                bearing, distance = self.as_shown(
+                    math.degrees(math.atan2(-o.y_m, o.x_m)) % 360.0, math.hypot(o.x_m, o.y_m)
                 )
+                obstacles.append((round(bearing, 1), round(distance, 2), o.radius_m))
             obstacles = sorted(obstacles, key=lambda o: o[1])[:12]
+        forward, reason = limit_for(limits, *self._asked())
         return Perception(
             connected=self.connected,
             scan_hz=self.scan_hz(),
             points_used=scan.points_used if scan is not None else 0,
             nearest_m=limits.nearest_m,
             nearest_bearing_deg=limits.nearest_bearing_deg,
-            forward_limit=round(limits.forward_limit, 3),
+            forward_limit=round(forward, 3),
             reverse_limit=round(limits.reverse_limit, 3),
-            reason=limits.reason,
+            reason=reason,
             obstacles=tuple(obstacles),
             crc_errors=self.decoder.crc_errors,
             **_localization(self.localizer),
@@ -246,10 +290,13 @@ async def async_setup(ctx: PlatformContext) -> None:
     config = ctx.config.lidar
     if not config.enabled:
         return
-    simulator = ctx.sim.lidar
+    simulator = ctx.sim.lidar or ctx.sim.lidar_replay
     section = dataclasses.replace(config, port=simulator.path) if simulator else config
     geometry = Geometry(
-        section, ctx.config.safety.braking_mps2, ctx.config.platform.max_speed_kmh / 3.6
+        section,
+        ctx.config.safety.braking_mps2,
+        ctx.config.platform.max_speed_kmh / 3.6,
+        math.radians(ctx.config.autonomy.full_turn_rate_dps),
     )
     reader = LidarReader(ctx.bus, section, geometry)
     ctx.capabilities.register("lidar", lambda: capabilities(section))

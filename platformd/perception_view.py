@@ -26,7 +26,13 @@ from brasidas.clock import Clock, sleep
 from brasidas.codecs.jsonrpc import CallContext
 from brasidas.codecs.telemetry_schema import LidarView
 from brasidas.perception.messages import FusedPosition, RobotScan
-from brasidas.perception.view import GridImage, grid_image, heading_deg, sector_ranges
+from brasidas.perception.view import (
+    GridImage,
+    grid_image,
+    heading_deg,
+    sector_points,
+    sector_ranges,
+)
 
 if TYPE_CHECKING:
     from platformd.context import PlatformContext
@@ -39,6 +45,8 @@ class LidarReader(Protocol):
     clock: Clock
     last: RobotScan | None
     localizer: Localizer | None
+
+    def as_shown(self, bearing_deg: float, range_m: float) -> tuple[float, float]: ...
 
 
 POSE_PERIOD_S = 0.2
@@ -121,8 +129,18 @@ class PerceptionView(Actor):
         scan = self.reader.last
         fresh = scan is not None and self.clock.time() - scan.time <= SCAN_SHOWN_S
         position = self.position
+        ranges: tuple[int, ...] = ()
+        if fresh and scan is not None:
+            # Around the pose shown with it (the robot moved since): the sectors, moved.
+            shown = [
+                self.reader.as_shown(bearing, distance)
+                for bearing, distance in sector_points(
+                    sector_ranges(scan.bearings_deg, scan.ranges_m)
+                )
+            ]
+            ranges = sector_ranges([b for b, _ in shown], [d for _, d in shown])
         return LidarView(
-            ranges_dm=sector_ranges(scan.bearings_deg, scan.ranges_m) if fresh and scan else (),
+            ranges_dm=ranges,
             fused_lat=round(position.latitude, 8) if position else None,
             fused_lon=round(position.longitude, 8) if position else None,
             fused_heading_deg=round(position.heading_deg, 1) if position else None,

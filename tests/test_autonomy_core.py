@@ -15,7 +15,7 @@ from shapely import LineString, box
 from brasidas.autonomy.areamap import MapError, parse_map
 from brasidas.autonomy.follower import FollowerParameters, PurePursuit
 from brasidas.autonomy.geo import LocalFrame
-from brasidas.autonomy.localization import FilterParameters, PoseFilter
+from brasidas.autonomy.localization import Estimate, FilterParameters, PoseFilter
 from brasidas.autonomy.patrol import Patrol, PatrolParameters
 from brasidas.autonomy.planner import Planner, Unreachable, cross_track
 from brasidas.autonomy.route import (
@@ -321,6 +321,46 @@ def test_patrol_states_map_reload_override_and_stale_fix() -> None:
     assert p.status().reason == "map loaded: waypoints cleared"
 
 
+@pytest.mark.parametrize(("zone", "drives"), [("lidar:7", True), ("pond", False)])
+def test_a_lost_heading_is_found_beside_what_the_lidar_saw_not_beside_the_maps_keepouts(
+    zone: str, drives: bool
+) -> None:
+    """Without a heading the robot drives straight for one and needs room all round: a
+    keep-out of the map's within the room holds it (the lidar may not see it: a pond), one
+    the lidar made of what it saw does not (the lidar stops it short of that: a robot that
+    lost its heading standing at a lidar stop is always beside one)."""
+    area = parse_map(demo())
+    corners = [offset(LAT, LON, e, n) for e, n in ((1.2, -0.5), (2.2, -0.5), (2.2, 0.5))]
+    ring = [[lon, lat] for lat, lon in [*corners, offset(LAT, LON, 1.2, 0.5), corners[0]]]
+    feature = {
+        "type": "Feature",
+        "id": zone,
+        "properties": {"role": "keepout"},
+        "geometry": {"type": "Polygon", "coordinates": [ring]},
+    }
+    p = patrol()
+    p.set_map(area.with_keepouts(add=[feature]))
+    p.set_route(parse_waypoints(demo_route(), area.points))
+    p.start()
+    x, y = area.local(LAT, LON)
+    lost = Estimate(0.0, x, y, 0.0, 0.0, 0.1, math.pi)
+    assert not lost.heading_known
+    command = p.step(lost, 0.1)
+    if drives:
+        assert command.linear > 0, p.status()
+        assert p.status().reason == "finding the heading (driving straight)"
+        # The lidar stops it ahead (the post it lost its heading at): it backs away for one.
+        p.blocked = (True, False)
+        assert p.step(lost, 0.1).linear < 0
+        assert p.status().reason == "finding the heading (backing away)"
+        p.blocked = (True, True)  # boxed in: it holds, saying why
+        assert p.step(lost, 0.1).linear == 0 and p.status().state is PatrolState.HOLDING
+        assert p.status().reason == "heading unknown and obstacles ahead and behind"
+    else:
+        assert command.linear == 0 and p.status().state is PatrolState.HOLDING
+        assert "heading unknown and no 3 m of room" in p.status().reason
+
+
 def test_closed_route_driven_twice_passes_every_waypoint_and_avoids_the_keepout() -> None:
     """By its own pose the robot passes within 1 m of each waypoint, each lap, and its true
     position within 2 m of each as the receiver sees it (the truth plus the receiver's error).
@@ -397,6 +437,55 @@ def test_unreachable_waypoint_is_skipped_with_a_notification() -> None:
     kinds = [(e.kind, e.waypoint) for e in p.events]
     assert ("arrived", 0) in kinds and ("skipped", 1) in kinds
     assert "clearance" in next(e.message for e in p.events if e.kind == "skipped")
+
+
+@pytest.mark.parametrize(("prefix", "holds"), [("lidar:", True), ("pond", False)])
+def test_waypoints_cut_off_by_seen_obstacles_hold_until_they_go(prefix: str, holds: bool) -> None:
+    """Every waypoint unreachable: with keep-outs the lidar made in the way (a person, a car)
+    the patrol holds, saying why, and goes on once they are gone; with the map's own it
+    stops, as before (nothing will change)."""
+    area = parse_map(demo())
+    features = []
+    for k, name in enumerate(("se", "ne")):
+        lat, lon = area.points[name]
+        south_west, north_east = offset(lat, lon, -0.5, -0.5), offset(lat, lon, 0.5, 0.5)
+        corners = [
+            (south_west[1], south_west[0]),
+            (north_east[1], south_west[0]),
+            (north_east[1], north_east[0]),
+            (south_west[1], north_east[0]),
+        ]
+        features.append(
+            {
+                "type": "Feature",
+                "id": f"{prefix}{k}",
+                "properties": {"role": "keepout"},
+                "geometry": {
+                    "type": "Polygon",
+                    "coordinates": [[*map(list, corners), list(corners[0])]],
+                },
+            }
+        )
+    p = patrol()
+    p.set_map(area)
+    p.set_route(parse_waypoints(["se", "ne"], area.points))
+    p.update_map(area.with_keepouts(add=features))
+    p.start()
+    run = KinematicRun(p, area, start=(LAT, LON))
+    for _ in range(20):
+        run.tick()
+    skipped = [e for e in p.events if e.kind == "skipped"]
+    assert len(skipped) == 2, p.events  # each once: no re-trying every step
+    if not holds:
+        assert p.status().state is PatrolState.STOPPED
+        assert p.status().reason == "no waypoint can be reached"
+        return
+    assert p.status().state is PatrolState.HOLDING and "lidar sees" in p.status().reason
+    assert run.tick().command.linear == 0
+    p.update_map(area)  # they are gone
+    for _ in range(40):
+        run.tick()
+    assert p.status().state is PatrolState.PATROLLING, p.status()
 
 
 def test_a_new_route_goes_on_toward_the_target_not_back_to_the_first() -> None:

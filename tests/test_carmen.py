@@ -12,10 +12,13 @@ import os
 import re
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
+from conftest import wait_until
 
+from brasidas import topics
 from brasidas.codecs.carmen import flaser_angles, format_flaser, format_odom, parse
 from brasidas.codecs.ldlidar import LidarDecoder, ScanAssembler
 from brasidas.config.lidar import LidarSection
@@ -176,3 +179,35 @@ async def test_simulate_lidar_carmen_replays_a_log_on_a_pty(tmp_path: Path) -> N
     assert lost <= 2, text
     assert f"{scans} scans replayed" in text and "1 lines dropped" in text, text
     assert "dropped: FLASER" in text
+
+
+async def test_the_sim_vehicles_lidar_replays_a_carmen_log_through_the_daemon(
+    robot_factory: Any, tmp_path: Path
+) -> None:
+    """``sim.carmen_file``: the --sim vehicle's lidar replays the log, not the simulated
+    world (empty here): a post 0.45 m ahead in every logged scan stops the robot, seen by the
+    real reader; after the log's last scan the lidar is silent and the robot stays stopped."""
+    angles = flaser_angles(181)
+    post = [0.45 if abs(a) < math.radians(4) else 30.0 for a in angles]  # 30 m: no return
+    lines = [format_flaser(post, (0, 0, 0), (0, 0, 0), 1000.0 + 0.1 * k) for k in range(30)]
+    path = tmp_path / "post.log"
+    path.write_text("\n".join(lines) + "\n")
+    robot = await robot_factory(
+        "lidar.enabled=true", "autonomy.autostart=false", f"sim.carmen_file={path}"
+    )
+    bus = robot.ctx.bus
+
+    def stopped(reason: str) -> bool:
+        limits = bus.last(topics.PROXIMITY)
+        return limits is not None and limits.reason.startswith(reason)
+
+    await wait_until(lambda: stopped("stopped: obstacle"), 10)
+    scan = bus.last(topics.LIDAR_SCAN)
+    assert scan is not None and len(scan.obstacles) == 1
+    (seen,) = scan.obstacles
+    ahead = LidarSection().mount_x_m + 0.45  # the sensor sits forward of the robot's centre
+    assert abs(seen.x_m - ahead) < 0.05 and abs(seen.y_m) < 0.05
+    replay = robot.ctx.sim.lidar_replay
+    assert replay is not None and robot.ctx.sim.lidar is None and replay.scans == 30
+    # The log is over (3 s): the lidar goes silent and the robot is held for it.
+    await wait_until(lambda: stopped("stopped: no lidar scan"), 10)

@@ -22,7 +22,7 @@ from brasidas.codecs.telemetry_schema import Perception, section_from_wire, sect
 from brasidas.config.lidar import LidarSection
 from brasidas.messages import Velocity
 from brasidas.perception.messages import Proximity
-from brasidas.perception.proximity import Geometry, proximity, to_robot
+from brasidas.perception.proximity import Geometry, forward_for, proximity, to_robot
 from platformd.lidar_reader import LidarReader
 from platformd.mode import ModeArbiter
 from platformd.session_table import Session
@@ -76,6 +76,21 @@ def test_a_single_noisy_return_the_body_and_masked_sectors_never_stop_it() -> No
     assert limits(wall(0, 0.4)).forward_limit == 0.0
     # Beside the corridor (a wall 2 m to the left) does not stop forward driving.
     assert limits(wall(270, 2.0, 60)).forward_limit == 1.0
+
+
+def test_the_corridor_follows_the_turn() -> None:
+    """A post the robot turns towards is in its way before it is ahead: a left turn at half
+    speed (radius 5 m / (2 x 1.5 rad/s) = 1.67 m) meets a post 60° round it, 1.67 m away at
+    30° left, which the straight corridor (0.35 m either side) does not hold."""
+    post = wall(330, 1.67, 10)
+    seen = limits(post)
+    assert seen.forward_limit == 1.0  # straight ahead: clear
+    limit, why = forward_for(seen, 0.5, 1.0)
+    assert limit < 0.5 * seen.forward_limit and why.endswith("m in the turn left"), (limit, why)
+    assert forward_for(seen, 0.5, -1.0) == (1.0, "")  # turning away: clear
+    assert forward_for(seen, 0.0, 1.0)[0] == 1.0  # turning on the spot: never limited
+    # Between two arcs' ratios: the lower of their limits.
+    assert forward_for(seen, 0.5, 0.75)[0] <= forward_for(seen, 0.5, 0.5)[0]
 
 
 def test_mount_and_yaw_put_points_in_the_robots_frame() -> None:
@@ -190,6 +205,40 @@ async def test_hand_driving_is_slowed_then_stopped_short_of_an_obstacle(
     # Backing away is allowed.
     bus.publish(topics.TELEOP_VELOCITY, Velocity(-0.3, 0.0))
     assert commands[-1] == -0.3
+    assert mode.request(False, operator).accepted
+
+
+async def test_hand_driving_in_a_turn_slows_for_a_post_on_its_arc(
+    robot_factory: Any, tmp_path: Path
+) -> None:
+    """Full ahead and full left (4.8 m/s, 1.5 rad/s: a 3.2 m circle round (-3.2, 0)): a post
+    120° round it is never in the straight corridor until too late (it was hit, 0.02 m), but
+    it is on the arc the command drives: the robot slows for it, and slower at the same turn
+    rate it turns tighter, inside it."""
+    post = (-4.8, 2.77, 0.4)
+    robot: Robot = await robot_factory(
+        "lidar.enabled=true",
+        "autonomy.autostart=false",
+        "safety.stop_distance_m=4",  # a speed cap near top speed: 4.8 m/s
+        f"sim.obstacles_file={obstacles_file(tmp_path, post)}",
+    )
+    bus = robot.ctx.bus
+    await wait_until(lambda: bus.last(topics.LIDAR_SCAN) is not None, 5)
+    mode = next(a for a in robot.daemon.supervisor.actors if isinstance(a, ModeArbiter))
+    operator = Session("operator", "station-1", "127.0.0.1", None, 0.0, 0.0)
+    assert mode.request(True, operator).accepted
+    closest: list[float] = []
+    robot.watchers.append(lambda _pose, _truth: closest.append(clearance(robot, *post)))
+    reasons: set[str] = set()
+    for _ in range(40):  # 4 s: round the circle past the post
+        bus.publish(topics.TELEOP_VELOCITY, Velocity(1.0, 1.0))
+        await asyncio.sleep(0.1)
+        section = robot.ctx.telemetry.build_one(Perception)
+        assert isinstance(section, Perception)
+        reasons.add(section.reason)
+    assert min(closest) >= 0.3, min(closest)
+    # Why it slowed, on the console: the obstacle in the turn.
+    assert any("in the turn left" in reason for reason in reasons), reasons
     assert mode.request(False, operator).accepted
 
 

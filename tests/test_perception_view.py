@@ -32,6 +32,8 @@ from brasidas.perception.view import (
     GridRefused,
     grid_from_json,
     grid_image,
+    pose_at,
+    reframe,
     sector_points,
     sector_ranges,
 )
@@ -66,6 +68,26 @@ def grid_with_post(size: int = 600) -> tuple[np.ndarray, tuple[float, float]]:
     log_odds[100:500, 100:500] = -2.0  # seen free
     log_odds[321, 457] = 3.0  # a post (row = north, column = east)
     return log_odds, (-30.0, -20.0)
+
+
+def test_a_scan_is_shown_around_the_pose_it_is_shown_with() -> None:
+    """A turning robot's scan, taken a moment before the pose telemetry carries with it,
+    moved into that pose: a post 10 m east seen facing north-east, shown from the pose
+    0.1 s later (turned 6° further, 0.1 m on) is still 10 m east of where it was seen."""
+    then = (0.0, 0.0, math.radians(45.0))  # yaw counter-clockwise from east
+    now = (0.1, 0.0, math.radians(39.0))
+    bearing, distance = reframe(45.0, 10.0, then, now)  # 45° right of forward: due east
+    assert abs(bearing - 39.0) < 1e-9 and abs(distance - 9.9) < 1e-9
+    # The pose in the middle of a scan: between the samples, the short way round the wrap.
+    history = [(1.0, (0.0, 0.0, math.radians(350.0))), (1.2, (2.0, 0.0, math.radians(10.0)))]
+    x, y, yaw = pose_at(history, 1.1) or (0, 0, 0)
+    assert math.dist((x, y), (1.0, 0.0)) < 1e-9 and abs(math.remainder(yaw, math.tau)) < 1e-9
+    # After the last pose: carried on at its rate, a quarter of a second at most.
+    x, _, _ = pose_at(history, 1.3) or (0, 0, 0)
+    assert abs(x - 3.0) < 1e-9
+    x, _, _ = pose_at(history, 5.0) or (0, 0, 0)
+    assert abs(x - 4.5) < 1e-9
+    assert pose_at([], 1.0) is None
 
 
 def test_grid_image_crops_reduces_and_keeps_an_obstacle_in_its_block() -> None:

@@ -89,6 +89,20 @@ def test_large_snapshot_is_split_by_section_and_merges_back() -> None:
     assert decoder.last_seq == len(datagrams) and encoder.trimmed == 0
 
 
+def test_a_split_keeps_the_pose_with_the_scan_drawn_around_it() -> None:
+    """The scan's obstacles are relative to the robot: a split snapshot carries them in the
+    datagram of the pose they are drawn around (one lost or late cannot pair them wrong)."""
+    big = {f"section{i}": {"values": list(range(i * 40, i * 40 + 60))} for i in range(12)}
+    lidar = {"pos": {"values": list(range(90))}, "per": {"o": [[1.0, 2.0, 0.3]] * 12}}
+    lidar["lv"] = {"r": list(range(72))}
+    for order in (big | lidar, lidar | big):
+        datagrams = TelemetryEncoder("rover-1", KEY).encode(order, 5.0)
+        decoder = TelemetryDecoder("rover-1", KEY)
+        carrying = [set(f.sections) for d in datagrams for f in decoder.feed(d)]
+        assert len(carrying) > 1
+        assert any({"pos", "per", "lv"} <= keys for keys in carrying), carrying
+
+
 def test_section_too_large_alone_is_trimmed_not_dropped() -> None:
     sections = {"huge": {"blob": "x" * 5000}, "small": {"ok": 1}}
     encoder = TelemetryEncoder("rover-1", KEY)

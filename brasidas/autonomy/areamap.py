@@ -34,6 +34,7 @@ from shapely.validation import explain_validity
 
 from brasidas.autonomy.geo import LocalFrame, centre_of
 from brasidas.limits import MAP_MAX_VERTICES
+from brasidas.perception.messages import SEEN_KEEPOUT_PREFIX
 
 MAX_EXTENT_M = 20_000.0
 """A map wider than this is refused. Within it the tangent plane's distances are exact to
@@ -96,10 +97,14 @@ class AreaMap:
         hits = tree.query(Point(x, y), predicate="intersects")
         return ids[int(min(hits))] if len(hits) else None
 
-    def meets_keepout(self, geometry: BaseGeometry) -> bool:
-        """Some keep-out zone touches ``geometry``."""
-        tree, _ = self.keepout_index()
-        return bool(len(tree.query(geometry, predicate="intersects")))
+    def meets_keepout(self, geometry: BaseGeometry, *, seen_too: bool = True) -> bool:
+        """Some keep-out zone touches ``geometry``; ``seen_too=False``: of the map's own,
+        not the obstacles the lidar saw (:data:`SEEN_KEEPOUT_PREFIX`), which it guards."""
+        tree, ids = self.keepout_index()
+        hits = tree.query(geometry, predicate="intersects")
+        if seen_too:
+            return bool(len(hits))
+        return any(not ids[int(i)].startswith(SEEN_KEEPOUT_PREFIX) for i in hits)
 
     def keepout_index(self) -> tuple[STRtree, tuple[str, ...]]:
         """The keep-outs' spatial index and their ids in its order (built on first use: call

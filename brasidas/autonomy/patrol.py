@@ -19,6 +19,7 @@ from brasidas.autonomy.follower import FollowerParameters, PurePursuit
 from brasidas.autonomy.localization import Estimate
 from brasidas.autonomy.route import Cursor, Route, RouteError
 from brasidas.messages import PatrolState, PatrolStatus
+from brasidas.perception.messages import SEEN_KEEPOUT_PREFIX
 
 if TYPE_CHECKING:
     from brasidas.autonomy.areamap import AreaMap
@@ -66,6 +67,7 @@ class PlanRequest:
 
 
 BUILDING = "the map changed: waiting for the new plan (being built)"
+SEEN_IN_THE_WAY = "no waypoint can be reached past the obstacles the lidar sees: waiting for them"
 
 
 @dataclass(frozen=True)
@@ -91,6 +93,11 @@ class Patrol:
         self._running = False
         """The operator wants it to patrol (start), as against stop."""
         self._override = False
+        self._unreachable_revision: int | None = None
+        """Every waypoint was unreachable past seen obstacles at this map revision: held."""
+        self.blocked: tuple[bool, bool] = (False, False)
+        """The lidar stops the robot (ahead, behind): set by the platform before each step.
+        Finding a lost heading then backs away instead of asking for what it cannot have."""
         self._planner: Planner | None = None
         self._follower = PurePursuit(parameters.follower)
         self._path: Path | None = None
@@ -203,9 +210,8 @@ class Patrol:
             self._path = None
             self._skips += 1
             if self._skips >= self.route.stops:
-                self._running = False
                 self._skips = 0
-                self._settle(PatrolState.STOPPED, "no waypoint can be reached")
+                self._none_reachable()
             return True
         from brasidas.autonomy.planner import Path
 
@@ -238,6 +244,7 @@ class Patrol:
         """New waypoints, on the fly: the patrol goes on toward the waypoint it was heading for
         when the new route keeps it, else the next kept one of the old route (a loop goes on,
         it does not restart from the first waypoint)."""
+        self._unreachable_revision = None  # other waypoints: tried again
         lap = self.cursor.lap
         old = self.route.waypoints[: self.route.stops]
         start = self.cursor.index if self.cursor.index < len(old) else 0
@@ -269,6 +276,7 @@ class Patrol:
         self._needs_plan = True
         self._forget_plans()
         self._skips = 0
+        self._unreachable_revision = None
 
     def stop(self, reason: str = "stopped by the operator") -> None:
         self._running = False
@@ -315,6 +323,8 @@ class Patrol:
             self._waiting = None  # replanned from where the robot is when it may go on
             return self._settle(PatrolState.HOLDING, hold)
         assert estimate is not None
+        if self._unreachable_revision == self.map_revision:
+            return self._settle(PatrolState.HOLDING, SEEN_IN_THE_WAY)
         here = (estimate.x, estimate.y)
         if not estimate.heading_known:
             return self._align(here)
@@ -351,6 +361,15 @@ class Patrol:
                 continue
             self._settle(PatrolState.PATROLLING, "")
             return Command(steering.linear, steering.angular)
+        return self._none_reachable()
+
+    def _none_reachable(self) -> Command:
+        """Every waypoint skipped: stopped, unless obstacles the lidar saw are in the way,
+        which move or go (a person, a parked car): then held until the map changes."""
+        area = self.area
+        if area is not None and any(k.startswith(SEEN_KEEPOUT_PREFIX) for k in area.keepouts):
+            self._unreachable_revision = self.map_revision
+            return self._settle(PatrolState.HOLDING, SEEN_IN_THE_WAY)
         self._running = False
         return self._settle(PatrolState.STOPPED, "no waypoint can be reached")
 
@@ -420,14 +439,26 @@ class Patrol:
         from shapely import Point
 
         assert self.area is not None
-        # The heading is unknown, so "ahead" is unknown: need room all round.
+        # The heading is unknown, so "ahead" is unknown: need room all round. Obstacles the
+        # lidar saw do not count: it stops the robot short of them (a robot that lost its
+        # heading standing at a lidar stop is among them).
         room = Point(here).buffer(self.p.align_room_m, quad_segs=4)
-        blocked = not self.area.boundary.contains(room) or self.area.meets_keepout(room)
+        blocked = not self.area.boundary.contains(room) or self.area.meets_keepout(
+            room, seen_too=False
+        )
         if blocked:
             return self._settle(
                 PatrolState.HOLDING,
                 f"heading unknown and no {self.p.align_room_m:g} m of room to drive for one",
             )
+        ahead, behind = self.blocked
+        if ahead and behind:
+            return self._settle(
+                PatrolState.HOLDING, "heading unknown and obstacles ahead and behind"
+            )
+        if ahead:  # a course over ground reversing gives the heading as well
+            self._settle(PatrolState.PATROLLING, "finding the heading (backing away)")
+            return Command(-self.p.align_speed, 0.0)
         self._settle(PatrolState.PATROLLING, "finding the heading (driving straight)")
         return Command(self.p.align_speed, 0.0)
 

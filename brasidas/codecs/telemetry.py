@@ -19,13 +19,14 @@ numbers, so replayed and reordered-late datagrams are refused and counted.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import msgpack
 
 from brasidas import security
-from brasidas.codecs.telemetry_schema import ERROR_KEY, SCHEMA_VERSION
+from brasidas.codecs.telemetry_schema import ERROR_KEY, SCHEMA_VERSION, TOGETHER
 
 VERSION = SCHEMA_VERSION
 """The first byte: the telemetry schema's version (:mod:`brasidas.codecs.telemetry_schema`)."""
@@ -98,21 +99,20 @@ class TelemetryEncoder:
         if len(packed) <= self._budget:
             return [self._seal(packed)]
         sizes = {name: len(_packb({name: value})) for name, value in sections.items()}
-        groups: list[dict[str, Any]] = []
-        current: dict[str, Any] = {}
-        # First-fit in decreasing size keeps the datagram count low.
-        for name in sorted(sections, key=lambda n: -sizes[n]):
-            value = sections[name]
-            if not self._fits({name: value}):
+        for name in sections:
+            if not self._fits({name: sections[name]}):
                 self.trimmed += 1
-                value = {ERROR_KEY: f"trimmed: {sizes[name]} bytes do not fit a datagram"}
+                sections[name] = {ERROR_KEY: f"trimmed: {sizes[name]} bytes do not fit a datagram"}
+        units = _units(sections, self._fits)
+        groups: list[dict[str, Any]] = []
+        # First-fit in decreasing size keeps the datagram count low.
+        for unit in sorted(units, key=lambda u: -sum(sizes[n] for n in u)):
             for group in groups:
-                if self._fits({**group, name: value}):
-                    group[name] = value
+                if self._fits({**group, **unit}):
+                    group.update(unit)
                     break
             else:
-                current = {name: value}
-                groups.append(current)
+                groups.append(dict(unit))
         return [self._seal(self._pack(group, timestamp, self.seq)) for group in groups]
 
     def _fits(self, sections: dict[str, Any]) -> bool:
@@ -129,6 +129,22 @@ class TelemetryEncoder:
         if self.key is None:
             return body
         return body + security.tag(self.key, TAG_DOMAIN, body, length=TAG_LENGTH)
+
+
+def _units(
+    sections: dict[str, Any], fits: Callable[[dict[str, Any]], bool]
+) -> list[dict[str, Any]]:
+    """The sections in the pieces a split keeps whole: each of :data:`TOGETHER` present
+    (when it fits one datagram), every other section alone."""
+    units: list[dict[str, Any]] = []
+    placed: set[str] = set()
+    for names in TOGETHER:
+        unit = {name: sections[name] for name in names if name in sections}
+        if len(unit) > 1 and fits(unit):
+            units.append(unit)
+            placed.update(unit)
+    units.extend({name: value} for name, value in sections.items() if name not in placed)
+    return units
 
 
 class TelemetryDecoder:

@@ -527,6 +527,11 @@ class LidarView(Section):
     )
 
 
+TOGETHER: tuple[frozenset[str], ...] = (frozenset({Pose.WIRE, Perception.WIRE, LidarView.WIRE}),)
+"""Wire keys a split snapshot keeps in one datagram: the scan and its obstacles are relative
+to the robot, drawn around the pose; a pose from another datagram (lost, or not yet come)
+would place them wrong (the station merges datagrams section by section)."""
+
 SECTIONS: tuple[type[Section], ...] = (
     Override,
     Lights,

@@ -435,6 +435,10 @@ class SimSection:
     obstacles_file: str = ""
     """Obstacles the map does not have, known to the simulated lidar only (issue 30): GeoJSON
     polygons, and Points with a ``radius_m`` property; ``"material": "glass"`` is not seen."""
+    carmen_file: str = ""
+    """A recorded 2-D scan log in CARMEN format (FLASER, ROBOTLASER1 lines) the simulated
+    lidar replays once at the log's pace instead of seeing the simulated world (then it is
+    silent: the platform stops for a blind lidar). The log's odometry is not used here."""
     pedestrians: int = setting(0, at_least(0, most=100))
     """People (0.3 m discs) walking back and forth at 1.2 m/s near the start, for the lidar."""
     lux: float = setting(0.0, at_least(0, most=150000))

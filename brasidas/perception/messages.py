@@ -4,6 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+SEEN_KEEPOUT_PREFIX = "lidar:"
+"""The ids of the keep-outs the platform makes of obstacles its lidar saw (temporary, never
+stored in the map file)."""
+
 
 @dataclass(frozen=True)
 class Obstacle:
@@ -47,6 +51,10 @@ class Proximity:
     """Its bearing, clockwise from the robot's forward axis."""
     reason: str
     """Why the limit is what it is ("" when the way is clear)."""
+    turns: tuple[tuple[float, float, str], ...] = ()
+    """Forward limits along arcs: (turn ratio, limit, reason) where the ratio is the command's
+    angular over its linear (both fractions of full scale; positive: left), the corridor
+    following the arc the robot drives (:func:`brasidas.perception.proximity.forward_for`)."""
 
 
 @dataclass(frozen=True)

@@ -7,11 +7,13 @@ returns from the robot's own body (closer than ``lidar.body_radius_m`` to the se
 so a single stray return never stops the robot.
 
 The robot may go forward at the speed that still stops ``lidar.clearance_m`` short of the
-nearest obstacle in its corridor (``lidar.half_width_m`` either side of its axis), after the
-dead time ``lidar.reaction_s`` and braking at ``safety.braking_mps2``: a robot (autonomous or
-hand-driven) is slowed as it closes in and stopped at the clearance. Reversing likewise for
-what is behind. Turning on the spot is never limited (a skid-steer robot turns inside its
-footprint).
+nearest obstacle in its corridor (``lidar.half_width_m`` either side of the way it goes),
+after the dead time ``lidar.reaction_s`` and braking at ``safety.braking_mps2``: a robot
+(autonomous or hand-driven) is slowed as it closes in and stopped at the clearance. The
+corridor follows the arc the command drives, not only straight ahead: a post the robot turns
+towards is in its way before it is ahead (limits for :data:`TURN_RATIOS`, the motion arbiter
+takes the one of its command). Reversing likewise, straight, for what is behind. Turning on
+the spot is never limited (a skid-steer robot turns inside its footprint).
 """
 
 from __future__ import annotations
@@ -31,6 +33,11 @@ BLIND_MARGIN_M = 0.1
 """An obstacle last seen within the body radius plus this, then not at all, holds the stop."""
 STOP_BELOW = 0.02
 """A limit under this fraction of top speed is a stop (the motors would not turn anyway)."""
+TURN_RATIOS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+"""Angular over linear command (fractions of full scale) of the arcs limits are made for,
+each way; a command between two takes the lower of their limits."""
+MAX_ARC_RAD = math.pi
+"""How far round an arc the corridor goes (further, the robot has turned back)."""
 
 
 @dataclass(frozen=True)
@@ -40,6 +47,8 @@ class Geometry:
     lidar: LidarSection
     braking_mps2: float
     max_speed_mps: float
+    full_turn_rps: float = math.radians(86.0)
+    """The turn rate at angular = 1 (``autonomy.full_turn_rate_dps``)."""
 
     @property
     def sectors(self) -> list[tuple[float, float]]:
@@ -131,6 +140,15 @@ def proximity(scan: RobotScan, geometry: Geometry, previous: Proximity | None = 
     forward, forward_why = _limit(forward_free, "ahead", geometry)
     reverse, reverse_why = _limit(reverse_free, "behind", geometry)
     reason = forward_why or reverse_why
+    turns: list[tuple[float, float, str]] = []
+    held_turns = {ratio: (limit, why) for ratio, limit, why in previous.turns} if previous else {}
+    for ratio in (*TURN_RATIOS, *(-r for r in TURN_RATIOS)):
+        free = _arc_free(x[used], y[used], ratio, geometry)
+        if free is None and ratio in held_turns and held_turns[ratio][0] == 0.0:
+            turns.append((ratio, *held_turns[ratio]))  # into the blind zone: the stop stands
+            continue
+        side = "left" if ratio > 0 else "right"
+        turns.append((ratio, *_limit(free, f"in the turn {side}", geometry)))
     return Proximity(
         time=scan.time,
         forward_limit=forward,
@@ -140,7 +158,51 @@ def proximity(scan: RobotScan, geometry: Geometry, previous: Proximity | None = 
         nearest_m=nearest,
         nearest_bearing_deg=nearest_bearing,
         reason=reason,
+        turns=tuple(turns),
     )
+
+
+def _arc_free(x: np.ndarray, y: np.ndarray, ratio: float, geometry: Geometry) -> float | None:
+    """Free distance along the arc of a command turning ``ratio`` (angular over linear, full
+    scale fractions) within the corridor either side of it; None when nothing is in it."""
+    lidar = geometry.lidar
+    radius = geometry.max_speed_mps / (abs(ratio) * geometry.full_turn_rps)
+    side = y if ratio > 0 else -y  # a right turn is the left one mirrored
+    # Around the turn's centre (0, radius): the angle swept from the robot to each point.
+    swept = np.arctan2(x, radius - side) % (2 * math.pi)
+    inside = (np.abs(np.hypot(x, side - radius) - radius) <= lidar.half_width_m) & (
+        swept <= MAX_ARC_RAD
+    )
+    if not inside.any():
+        return None
+    return float((radius * swept[inside]).min()) - abs(lidar.mount_x_m)
+
+
+def forward_for(limits: Proximity, linear: float, angular: float) -> tuple[float, str]:
+    """The forward limit and its reason for a command: straight ahead's, or along its arc
+    (the lower of the two arcs around its turn ratio, or of straight and the first)."""
+    if linear <= 0 or not limits.turns:
+        return limits.forward_limit, limits.reason if limits.forward_limit < 1.0 else ""
+    ratio = angular / linear
+    side = [t for t in limits.turns if (t[0] > 0) == (ratio > 0)]
+    side.sort(key=lambda t: abs(t[0]))
+    candidates = [(0.0, limits.forward_limit, limits.reason), *side]
+    magnitude = abs(ratio)
+    below = max((t for t in candidates if abs(t[0]) <= magnitude), key=lambda t: abs(t[0]))
+    above = [t for t in candidates if abs(t[0]) >= magnitude]
+    chosen = [below, *(above[:1] if above else [])]
+    worst = min(chosen, key=lambda t: t[1])
+    return worst[1], worst[2]
+
+
+def limit_for(limits: Proximity, linear: float, angular: float) -> tuple[float, str]:
+    """What the motion arbiter lets a command do forward, and why: the limit along its arc,
+    and along the tighter arc it drives once slowed to that (the same turn rate, slower)."""
+    forward, why = forward_for(limits, linear, angular)
+    if linear <= forward:
+        return forward, why
+    tighter, tighter_why = forward_for(limits, forward, angular)
+    return (tighter, tighter_why) if tighter < forward else (forward, why)
 
 
 def _limit(free_m: float | None, where: str, geometry: Geometry) -> tuple[float, str]:

@@ -13,9 +13,10 @@ space) and hands it out on request, a revision in telemetry saying when there is
 from __future__ import annotations
 
 import base64
+import itertools
 import math
 import zlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -60,6 +61,52 @@ def sector_points(ranges_dm: Sequence[int]) -> list[tuple[float, float]]:
 def heading_deg(yaw_rad: float) -> float:
     """A yaw counter-clockwise from east (the local frame's) as a heading clockwise from north."""
     return (90.0 - math.degrees(yaw_rad)) % 360.0
+
+
+PlanePose = tuple[float, float, float]
+"""(x east m, y north m, yaw rad counter-clockwise from east) in the localization's frame."""
+
+
+def pose_at(history: Iterable[tuple[float, PlanePose]], time: float) -> PlanePose | None:
+    """The pose at ``time`` from (time, pose) samples in time order: interpolated between
+    the two around it (yaw the short way round), extrapolated a little after the last, the
+    first before them, None without samples."""
+    samples = list(history)
+    if not samples:
+        return None
+    if time <= samples[0][0]:
+        return samples[0][1]
+    pairs = list(itertools.pairwise(samples))
+    for (t0, a), (t1, b) in pairs:
+        if t0 <= time <= t1:
+            return _between(t0, a, t1, b, time)
+    if pairs:  # after the last: carried on at the last two's rates, briefly
+        (t0, a), (t1, b) = pairs[-1]
+        return _between(t0, a, t1, b, min(time, t1 + MAX_EXTRAPOLATION_S))
+    return samples[-1][1]
+
+
+MAX_EXTRAPOLATION_S = 0.25
+"""A scan newer than the last pose is placed where that pose was heading, this far at most."""
+
+
+def _between(t0: float, a: PlanePose, t1: float, b: PlanePose, time: float) -> PlanePose:
+    f = (time - t0) / (t1 - t0) if t1 > t0 else 1.0
+    turn = math.remainder(b[2] - a[2], math.tau)
+    return (a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), a[2] + f * turn)
+
+
+def reframe(
+    bearing_deg: float, range_m: float, then: PlanePose, now: PlanePose
+) -> tuple[float, float]:
+    """A point seen at ``bearing_deg`` (clockwise from forward) and ``range_m`` from the
+    robot at pose ``then``, as seen from pose ``now``: where a scan taken a moment ago lies
+    around the pose shown with it (a turning robot's scan is otherwise drawn rotated)."""
+    world = then[2] - math.radians(bearing_deg)
+    x = then[0] + range_m * math.cos(world) - now[0]
+    y = then[1] + range_m * math.sin(world) - now[1]
+    bearing = (math.degrees(now[2] - math.atan2(y, x))) % 360.0
+    return bearing, math.hypot(x, y)
 
 
 @dataclass(frozen=True)

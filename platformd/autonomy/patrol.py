@@ -293,6 +293,10 @@ class PatrolActor(Actor):
     def tick(self) -> None:
         """Step the patrol with the latest pose and publish the command while it drives."""
         estimate, fix_age = self._estimate()
+        limits = self.bus.last(topics.PROXIMITY)
+        self.core.blocked = (
+            (limits.forward_limit == 0.0, limits.reverse_limit == 0.0) if limits else (False, False)
+        )
         command = self.core.step(estimate, fix_age)
         if self.core.state is PatrolState.PATROLLING:
             self.bus.publish(topics.CMD_VEL, Velocity(command.linear, command.angular))

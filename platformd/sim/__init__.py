@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:  # the simulators import the context, which holds this
     from brasidas.drivers.mpu6050 import BusFactory
     from platformd.sim.ax3500 import Ax3500Simulator
+    from platformd.sim.carmen import CarmenSimulator
     from platformd.sim.gpio import SimulatedGpio
     from platformd.sim.gps import GpsSimulator
     from platformd.sim.lidar import LidarSimulator
@@ -41,3 +42,5 @@ class SimulatedDevices:
     """The turret's microcontroller, on a pty (``payload.enabled`` names the turret)."""
     lidar: LidarSimulator | None = None
     """The 2-D lidar on the vehicle, on a pty (``lidar.enabled``)."""
+    lidar_replay: CarmenSimulator | None = None
+    """The lidar replaying ``sim.carmen_file`` instead (then ``lidar`` is None)."""

@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import itertools
+import logging
 import math
 import random
 import sys
@@ -31,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from brasidas.actor import Actor, wait_forever
+from brasidas.bus import Bus
 from brasidas.codecs.carmen import CarmenLog, CarmenScan, format_flaser, format_odom, parse
 from brasidas.codecs.ldlidar import POINTS_PER_FRAME, encode_frame
 from brasidas.config.lidar import LidarSection
@@ -40,6 +43,8 @@ from platformd.sim.pty_line import PtyLine
 
 YAW_BIAS_RAD_S = 0.01
 """The sample log's odometry turns this much more than the robot did (a wheel a bit small)."""
+_LOGGER = logging.getLogger(__name__)
+
 MIN_GAP_S, MAX_GAP_S = 0.02, 1.0
 """The pace between two scans on the pty: the log's, within these (a pause in a log is not
 a lidar gone silent; a burst is not faster than the line)."""
@@ -195,25 +200,30 @@ def sample_log(seconds: float = 60.0, *, seed: int = 1, speed_mps: float = 1.0) 
 # --------------------------------------------------------------------------- the pty
 
 
+async def replay_to(line: PtyLine, replay: CarmenReplay) -> None:
+    """Every scan of the log as a revolution written to ``line`` at the log's pace (gaps
+    clamped to :data:`MIN_GAP_S`..:data:`MAX_GAP_S`); revolutions nobody read are counted in
+    the line's ``overruns``."""
+    previous: float | None = None
+    for scan, _prior in replay.priors():
+        if previous is not None:
+            await asyncio.sleep(min(MAX_GAP_S, max(MIN_GAP_S, scan.time - previous)))
+        previous = scan.time
+        line.write(replay.revolution(scan, time.monotonic()))
+
+
 async def serve_log(path: str, config: LidarSection) -> None:
     """``brasidas-platform simulate lidar --carmen FILE``: the pty's path on stdout's first
     line, then every scan of the log as a revolution at the log's pace; a summary on stderr
     at the end (scans, lines skipped and dropped)."""
     log = await asyncio.to_thread(load, path)
-    replay = CarmenReplay(log, config)
     line = PtyLine("carmen replay")
     try:
         sys.stdout.write(line.path + "\n")
         sys.stdout.flush()
         for number, why in log.malformed[:5]:
             print(f"carmen: line {number} dropped: {why}", file=sys.stderr)
-        previous: float | None = None
-        for scan, _prior in replay.priors():
-            if previous is not None:
-                gap = min(MAX_GAP_S, max(MIN_GAP_S, scan.time - previous))
-                await asyncio.sleep(gap)
-            previous = scan.time
-            line.write(replay.revolution(scan, time.monotonic()))
+        await replay_to(line, CarmenReplay(log, config))
         print(
             f"carmen: {len(log.scans)} scans replayed from {path}; "
             f"{len(log.malformed)} lines dropped, skipped {log.skipped or 'none'}; "
@@ -222,6 +232,42 @@ async def serve_log(path: str, config: LidarSection) -> None:
         )
     finally:
         line.close()
+
+
+class CarmenSimulator(Actor):
+    """In ``--sim`` with ``sim.carmen_file``: the vehicle's lidar replays a recorded CARMEN log
+    on its pty (the same wire bytes as :func:`serve_log`), once; then it is silent, and the
+    platform stops for a blind lidar. The simulated vehicle's motion does not move the scans
+    (they are the log's), and the log's odometry is not the localizer's prior here."""
+
+    name = "sim:lidar"
+
+    def __init__(self, bus: Bus, path: str, config: LidarSection) -> None:
+        super().__init__(bus)
+        self.file = path
+        self.config = config
+        self.line = PtyLine("simulated lidar (CARMEN replay)")
+        self.path = self.line.path
+        self.scans = 0
+        """Scans in the log (once loaded)."""
+
+    async def run(self) -> None:
+        try:
+            log = await asyncio.to_thread(load, self.file)
+            self.scans = len(log.scans)
+            for number, why in log.malformed[:5]:
+                _LOGGER.warning("carmen: %s line %d dropped: %s", self.file, number, why)
+            _LOGGER.info("lidar replaying %s: %d scans", self.file, self.scans)
+            await replay_to(self.line, CarmenReplay(log, self.config))
+            _LOGGER.warning(
+                "carmen: %d scans of %s replayed (%d not read): the lidar is silent now",
+                self.scans,
+                self.file,
+                self.line.overruns,
+            )
+            await wait_forever()
+        finally:
+            self.line.close()
 
 
 # --------------------------------------------------------------------------- the pipeline
