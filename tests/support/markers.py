@@ -6,17 +6,18 @@
 seconds of real time); ``make test-quick`` runs the rest. A test may also carry a marker
 itself. A module found by what it imports marks its new tests too (no list to keep current).
 
-Under pytest-xdist (``--dist loadgroup``) the browser tests run one after another on one
-worker (one Chromium at a time: several at once on two cores starve each other's page timing);
-a test that uses a fixture wider than one test (a module's network or rig) runs in its
-module's group, on one worker, so the rig is built once; every other test goes to whichever
-worker is free. The markers are registered
-in pyproject.toml.
+Under pytest-xdist (``--dist loadgroup``) the browser tests run in :data:`BROWSER_LANES`
+groups, each one test after another on one worker (so at most that many Chromiums draw at once:
+four at once on two cores starved each other's page timing, while one lane alone was the
+whole run's longest queue); a test that uses a fixture wider than one test (a module's network
+or rig) runs in its module's group, on one worker, so the rig is built once; every other test
+goes to whichever worker is free. The markers are registered in pyproject.toml.
 """
 
 from __future__ import annotations
 
 import functools
+import zlib
 from pathlib import Path
 
 import pytest
@@ -83,6 +84,10 @@ SLOW_TESTS = frozenset(
 )
 """Single tests of seconds each (file::name, parameters aside) in otherwise quick modules."""
 
+BROWSER_LANES = 2
+"""Browser tests that may run at once (on as many workers). A test's lane follows from its
+name alone, so a new test moves no other test to another lane."""
+
 SHARED_SCOPES = frozenset({"module", "package", "class"})
 
 
@@ -124,10 +129,15 @@ def apply(items: list[pytest.Item]) -> None:
         if item.get_closest_marker("xdist_group") is not None:
             continue
         if "browser" in marks:
-            item.add_marker(pytest.mark.xdist_group("browser"))
+            item.add_marker(pytest.mark.xdist_group(browser_lane(path.name, item.name)))
         elif shares_a_rig(item):
             item.add_marker(pytest.mark.xdist_group(path.stem))
     items.sort(key=_start_order)
+
+
+def browser_lane(module: str, test: str) -> str:
+    """The xdist group of the browser test ``module::test``: one of :data:`BROWSER_LANES`."""
+    return f"browser{zlib.crc32(f'{module}::{test}'.encode()) % BROWSER_LANES}"
 
 
 def _start_order(item: pytest.Item) -> int:
