@@ -6,17 +6,18 @@
 seconds of real time); ``make test-quick`` runs the rest. A test may also carry a marker
 itself. A module found by what it imports marks its new tests too (no list to keep current).
 
-Under pytest-xdist (``--dist loadgroup``) the browser tests run one after another on one
-worker (one Chromium at a time: several at once on two cores starve each other's page timing);
-a test that uses a fixture wider than one test (a module's network or rig) runs in its
-module's group, on one worker, so the rig is built once; every other test goes to whichever
-worker is free. The markers are registered
-in pyproject.toml.
+Under pytest-xdist (``--dist loadgroup``) the browser tests run in :data:`BROWSER_LANES`
+groups, each one test after another on one worker (so at most that many Chromiums draw at once:
+four at once on two cores starved each other's page timing, while one lane alone was the
+whole run's longest queue); a test that uses a fixture wider than one test (a module's network
+or rig) runs in its module's group, on one worker, so the rig is built once; every other test
+goes to whichever worker is free. The markers are registered in pyproject.toml.
 """
 
 from __future__ import annotations
 
 import functools
+import zlib
 from pathlib import Path
 
 import pytest
@@ -56,32 +57,48 @@ SLOW_TESTS = frozenset(
         "test_autonomy_core.py::test_rtk_receiver_patrol_stays_within_half_a_metre_of_the_path",
         "test_ax3500_sim.py::test_simulate_ax3500_standalone",
         "test_beacon.py::test_station_discovers_connects_by_id_and_forgets_a_silent_platform",
-        "test_console_feed.py::test_access_units_reach_a_websocket_viewer_with_capture_times",
-        "test_console_package.py::test_the_wheel_holds_every_console_file",
+        "test_carmen.py::test_simulate_lidar_carmen_replays_a_log_on_a_pty",
         "test_config.py::test_platform_daemon_refuses_a_bad_value_before_starting_anything",
         "test_config.py::test_station_daemon_refuses_a_bad_value_before_starting_anything",
         "test_config_files.py::test_a_fifo_or_device_as_config_is_refused_at_once",
-        "test_config_files.py::test_the_speed_cap_stops_within_the_distance_for_any_accepted_safety_config",
         "test_config_files.py::test_any_value_for_any_key_is_a_valid_config_or_one_config_error",
+        "test_config_files.py::test_the_speed_cap_stops_within_the_distance_for_any_accepted_safety_config",
+        "test_console_feed.py::test_access_units_reach_a_websocket_viewer_with_capture_times",
+        "test_console_package.py::test_the_wheel_holds_every_console_file",
         "test_discovery_multicast.py::test_platforms_list_each_other_but_not_themselves",
         "test_gps.py::test_decoder_survives_any_bytes",
         "test_gps.py::test_valid_checksums_with_garbage_fields_never_raise",
-        "test_hostile_signaling.py::test_a_websocket_that_never_reads_is_closed",
         "test_hostile_signaling.py::test_a_local_websocket_that_never_reads_is_closed",
         "test_hostile_signaling.py::test_a_strangers_flood_at_full_rate_is_read_at_its_budget",
+        "test_hostile_signaling.py::test_a_websocket_that_never_reads_is_closed",
         "test_hostile_signaling.py::test_half_sent_headers_are_closed_within_the_header_timeout",
         "test_hostile_signaling.py::test_idle_strangers_are_capped_and_a_station_still_connects",
         "test_imu.py::test_actor_turn_through_emulated_chip",
+        "test_lidar.py::test_an_obstacle_becomes_a_keepout_the_patrol_plans_around_then_leaves",
+        "test_lidar.py::test_hand_driving_is_slowed_then_stopped_short_of_an_obstacle",
+        "test_lidar.py::test_patrol_stops_for_an_obstacle_the_map_does_not_have",
+        "test_lidar_localization.py::test_a_gps_jump_is_refused_reported_and_raises_the_90_30_warning",
         "test_mapfiles_cli.py::test_big_files_up_to_the_limit_pass_the_station_and_bigger_are_refused",
         "test_mavlink_endpoint.py::test_a_ground_station_sees_a_rover_with_telemetry",
+        "test_mavlink_endpoint.py::test_modes_start_and_stop_the_patrol",
+        "test_media_audio_loss.py::test_lost_audio_packets_are_rebuilt_or_concealed",
+        "test_media_fec_refresh.py::test_intra_refresh_has_no_keyframe_bursts",
+        "test_media_keyframes.py::test_keyframe_interval_follows_live_framerate_changes",
+        "test_platform_check.py::test_check_passes_on_the_simulators_and_names_wrong_and_missing_devices",
         "test_sdnotify.py::test_platform_process_says_ready_then_stopping_on_sigterm",
         "test_sim_gps.py::test_simulate_vehicle_standalone_moves_what_the_gps_reports",
+        "test_source_ledger.py::test_every_path_is_charged_to_its_source_on_a_running_platform",
         "test_status_view.py::test_status_says_stale_when_the_gps_falls_silent",
         "test_telemetry_codec.py::test_any_snapshot_round_trips_within_the_size_limit",
         "test_teleop.py::test_drive_command_through_a_pty",
     }
 )
-"""Single tests of seconds each (file::name, parameters aside) in otherwise quick modules."""
+"""Single tests of seconds each (3 s or more in a 2-worker ``--durations=0`` run; file::name,
+parameters aside) in otherwise quick modules."""
+
+BROWSER_LANES = 2
+"""Browser tests that may run at once (on as many workers). A test's lane follows from its
+name alone, so a new test moves no other test to another lane."""
 
 SHARED_SCOPES = frozenset({"module", "package", "class"})
 
@@ -124,10 +141,15 @@ def apply(items: list[pytest.Item]) -> None:
         if item.get_closest_marker("xdist_group") is not None:
             continue
         if "browser" in marks:
-            item.add_marker(pytest.mark.xdist_group("browser"))
+            item.add_marker(pytest.mark.xdist_group(browser_lane(path.name, item.name)))
         elif shares_a_rig(item):
             item.add_marker(pytest.mark.xdist_group(path.stem))
     items.sort(key=_start_order)
+
+
+def browser_lane(module: str, test: str) -> str:
+    """The xdist group of the browser test ``module::test``: one of :data:`BROWSER_LANES`."""
+    return f"browser{zlib.crc32(f'{module}::{test}'.encode()) % BROWSER_LANES}"
 
 
 def _start_order(item: pytest.Item) -> int:
