@@ -45,8 +45,9 @@ from brasidas.bus import Bus
 from brasidas.config.lidar import LidarSection
 from brasidas.messages import Velocity
 from brasidas.perception.fusion import PoseFusion
+from brasidas.perception.map_match import MapMatcher, wall_points
 from brasidas.perception.messages import RobotScan
-from brasidas.perception.odometry import LidarOdometry, scan_points
+from brasidas.perception.odometry import LidarOdometry, Pose2D, scan_points
 from brasidas.perception.proximity import Geometry
 from platformd.arbiter import MotionArbiter
 from platformd.lidar_reader import LidarReader
@@ -56,6 +57,8 @@ from platformd.sim.vehicle import VehicleModel
 
 TRIALS = int(os.environ.get("BENCH_PERCEPTION_TRIALS", "50"))
 WARMUP_S = float(os.environ.get("BENCH_PERCEPTION_WARMUP_S", "300"))
+MAP_EVERY = 5
+"""Scans between matches to the map (2 Hz at the LD19's 10 Hz): platformd.lidar_localization's."""
 SPEED_MPS = 1.0
 MAX_SPEED_MPS = 6.0 / 3.6
 
@@ -183,7 +186,10 @@ def _cast_cost_s(rig: Rig, frames: int = 2000) -> float:
 
 def _localization(model: str = "ld19", *, spoofing: bool = True) -> dict[str, Any]:
     """The localization rows (see the module's docstring); synchronous, simulated time."""
-    drive = SimulatedDrive(street_grid(), loop_waypoints(), model=model, seed=1)
+    world = street_grid()
+    drive = SimulatedDrive(world, loop_waypoints(), model=model, seed=1)
+    # The area map's buildings are the world's (a surveyed map): the scans are matched to them.
+    matcher = MapMatcher(wall_points(world.segments[:, :4].reshape(-1, 2, 2)))
     odometry = LidarOdometry()
     fusion = PoseFusion()
     fusion.heading_rad = 0.0  # the simulated vehicle starts facing east
@@ -199,6 +205,7 @@ def _localization(model: str = "ld19", *, spoofing: bool = True) -> dict[str, An
             ("drag", 40.0, lambda t: (0.5 * t, 0.0)),
         ]
     cpu: list[float] = []
+    map_cpu: list[float] = []
     sources: dict[str, int] = {}
     errors: dict[str, list[float]] = {}
     gps_errors: list[float] = []
@@ -217,6 +224,14 @@ def _localization(model: str = "ld19", *, spoofing: bool = True) -> dict[str, An
             cpu.append(time.process_time() - began)
             sources[result.source] = sources.get(result.source, 0) + 1
             fusion.predict(result.delta, result.source, step.time)
+            if fusion.started and len(cpu) % MAP_EVERY == 0:
+                began = time.process_time()
+                guess = Pose2D(*(float(v) for v in fusion.state))
+                match = matcher.match(points, guess)
+                map_cpu.append(time.process_time() - began)
+                if not isinstance(match, str):
+                    x, y, yaw = match.pose.x_m, match.pose.y_m, match.pose.yaw_rad
+                    fusion.map_fix(x, y, yaw, match.covariance, step.time)
             truth = step.truth
             if step.gps is not None and name != "outage":
                 gx, gy = step.gps
@@ -242,6 +257,9 @@ def _localization(model: str = "ld19", *, spoofing: bool = True) -> dict[str, An
             100 * sources.get("prior", 0) / max(1, sum(sources.values())), 1
         ),
         f"{model}_odometry_cpu_ms_per_scan": percentiles([1000 * c for c in cpu]),
+        f"{model}_map_match_cpu_ms": percentiles([1000 * c for c in map_cpu]),
+        f"{model}_map_matches_fused": fusion.map_accepted,
+        f"{model}_map_matches_refused": matcher.refused + fusion.map_refused,
     }
     if spoofing:
         outage = errors["outage"]

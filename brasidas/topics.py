@@ -36,7 +36,7 @@ from brasidas.messages import (
     Velocity,
     VelocityLinkStats,
 )
-from brasidas.perception.messages import Proximity, RobotScan
+from brasidas.perception.messages import LidarPose, Proximity, RobotScan
 
 # Signaling
 SESSION_OPENED: Topic[SessionOpened] = Topic("session_opened")
@@ -129,3 +129,9 @@ LIDAR_SCAN: Topic[RobotScan] = Topic("lidar_scan", retain=True)
 """Each lidar revolution in the robot's frame, with its obstacles (platformd.lidar)."""
 PROXIMITY: Topic[Proximity] = Topic("proximity", retain=True)
 """Speed limits for what the lidar sees (platformd.lidar); the motion arbiter applies them."""
+LIDAR_POSE: Topic[LidarPose] = Topic("lidar_pose", retain=True)
+"""The lidar localization's fused pose, after each scan (platformd.lidar_localization): what
+``POSE`` rests on while it registers (platformd.autonomy.localization)."""
+GPS_ACCEPTED: Topic[GpsFix] = Topic("gps_accepted")
+"""Each fix the lidar localization's gate did not refuse (all of them before it starts): the
+only fixes the GPS+IMU filter follows while ``lidar.odometry`` is on."""

@@ -63,8 +63,10 @@ class FusedPose:
     sigma_m: float
     """Position uncertainty: the square root of the larger eigenvalue of its covariance."""
     source: str
-    """What it rests on: "gps+lidar", "lidar" (no GPS lately), "prior" (odometry from the
-    commanded speed only), or "none" (not started: no fix yet)."""
+    """What it rests on: "map+lidar" (the scans fit the area map's walls lately), "gps+lidar",
+    "lidar" (neither lately), "prior" (odometry from the commanded speed only), or "none" (not
+    started: no fix yet)."""
+    sigma_yaw_rad: float = 0.0
 
 
 class PoseFusion:
@@ -109,6 +111,11 @@ class PoseFusion:
         self.last_source = "none"
         self.accepted = 0
         self.rejected = 0
+        self.map_gate_chi2 = 16.3
+        """Three degrees of freedom at 0.999."""
+        self.last_map_at: float | None = None
+        self.map_accepted = 0
+        self.map_refused = 0
         self.last_rejection = ""
 
     # ------------------------------------------------------------------ odometry
@@ -213,6 +220,32 @@ class PoseFusion:
         self.last_rejection = reason
         return GpsVerdict(False, reason, distance)
 
+    # ------------------------------------------------------------------ the map
+
+    def map_fix(
+        self, x_m: float, y_m: float, yaw_rad: float, covariance: NDArray[np.float64], now: float
+    ) -> bool:
+        """Where a scan fits the area map's walls (an absolute pose, ``covariance`` 3x3):
+        fused unless it fails the chi-square gate against the prediction (a wrong match)."""
+        if not self.started:
+            return False
+        self.time = now
+        innovation = np.array((x_m, y_m, yaw_rad)) - self.state
+        innovation[2] = wrap(float(innovation[2]))
+        s = self.cov + covariance
+        d2 = float(innovation @ np.linalg.solve(s, innovation))
+        if d2 > self.map_gate_chi2:
+            self.map_refused += 1
+            return False
+        k = self.cov @ np.linalg.inv(s)
+        self.state = self.state + k @ innovation
+        self.state[2] = wrap(float(self.state[2]))
+        self.cov = (np.eye(3) - k) @ self.cov
+        self.cov = (self.cov + self.cov.T) / 2
+        self.last_map_at = now
+        self.map_accepted += 1
+        return True
+
     # ------------------------------------------------------------------ the estimate
 
     def pose(self) -> FusedPose:
@@ -222,8 +255,11 @@ class PoseFusion:
             source = "none"
         elif self.last_source != "lidar":
             source = "prior"
+        elif self.last_map_at is not None and self.time - self.last_map_at <= self.gps_fresh:
+            source = "map+lidar"
         elif self.last_gps_at is not None and self.time - self.last_gps_at <= self.gps_fresh:
             source = "gps+lidar"
         else:
             source = "lidar"
-        return FusedPose(self.time, x, y, yaw, sigma, source)
+        sigma_yaw = math.sqrt(max(0.0, float(self.cov[2, 2])))
+        return FusedPose(self.time, x, y, yaw, sigma, source, sigma_yaw)
