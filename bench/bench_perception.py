@@ -45,13 +45,13 @@ from brasidas.bus import Bus
 from brasidas.config.lidar import LidarSection
 from brasidas.messages import Velocity
 from brasidas.perception.fusion import PoseFusion
-from brasidas.perception.map_match import MapMatcher, wall_points
+from brasidas.perception.map_match import MapMatcher
 from brasidas.perception.messages import RobotScan
 from brasidas.perception.odometry import LidarOdometry, Pose2D, scan_points
 from brasidas.perception.proximity import Geometry
 from platformd.arbiter import MotionArbiter
 from platformd.lidar_reader import LidarReader
-from platformd.sim.drive import SimulatedDrive, loop_waypoints, street_grid
+from platformd.sim.drive import SimulatedDrive, loop_waypoints, street_buildings, street_grid
 from platformd.sim.lidar import LidarSimulator, LidarWorld, ScanGenerator
 from platformd.sim.vehicle import VehicleModel
 
@@ -189,7 +189,7 @@ def _localization(model: str = "ld19", *, spoofing: bool = True) -> dict[str, An
     world = street_grid()
     drive = SimulatedDrive(world, loop_waypoints(), model=model, seed=1)
     # The area map's buildings are the world's (a surveyed map): the scans are matched to them.
-    matcher = MapMatcher(wall_points(world.segments[:, :4].reshape(-1, 2, 2)))
+    matcher = MapMatcher([np.asarray(b.exterior.coords) for b in street_buildings()])
     odometry = LidarOdometry()
     fusion = PoseFusion()
     fusion.heading_rad = 0.0  # the simulated vehicle starts facing east

@@ -46,7 +46,7 @@ from brasidas.clock import Clock, LoopClock
 from brasidas.messages import Attitude, GpsFix, Velocity
 from brasidas.perception.fusion import FusedPose, GpsVerdict, PoseFusion
 from brasidas.perception.grid import GridError, OccupancyGrid
-from brasidas.perception.map_match import MapMatcher, wall_points
+from brasidas.perception.map_match import MapMatcher
 from brasidas.perception.messages import LidarPose, RobotScan
 from brasidas.perception.odometry import (
     LidarOdometry,
@@ -64,11 +64,15 @@ HEADING_SPEED_MPS = 0.5
 NO_GYRO_YAW_SLACK_RAD = math.radians(15.0)
 """Without an IMU the prior does not know the turn: let the registration find it."""
 GRID_SAVE_S = 30.0
-IMU_JUMP_RAD_S = math.radians(240.0)
+IMU_JUMP_RAD_S = math.radians(150.0)
 """A yaw change between scans faster than any rover turns: the IMU's filter was reset (it
 starts again from yaw 0 after a reconnect or its gyro calibration), not a turn."""
 MAP_EVERY = 5
 """Scans between matches to the area map (2 Hz for a 10 Hz lidar)."""
+MAP_SEARCH_SIGMA_M = 0.5
+"""Above this position uncertainty the match to the map searches around the estimate."""
+MAP_DOUBT_AFTER = 3
+"""Fits to the map refused in a row after which the fusion's certainty is doubted."""
 
 
 class Localizer(Actor):
@@ -89,6 +93,8 @@ class Localizer(Actor):
         self._area = area or (lambda: None)
         self._area_seen: object = None
         self.matcher: MapMatcher | None = None
+        self._map_disagreements = 0
+        self._map_doubted = False
         self.map_refusal = ""
         """Why the last scan did not fit the area map ("" when it did, or no map)."""
         self.measured_at: float | None = None
@@ -246,7 +252,7 @@ class Localizer(Actor):
                     rings.append(
                         np.array([frame.to_local(*area.frame.to_geo(x, y)) for x, y in coords])
                     )
-        self.matcher = MapMatcher(wall_points(rings)) if rings else None
+        self.matcher = MapMatcher(rings) if rings else None
         self.map_refusal = ""
         _LOGGER.info(
             "localization: %s",
@@ -258,18 +264,36 @@ class Localizer(Actor):
     def _match_map(self, points: NDArray[np.float64]) -> None:
         if self.matcher is None:
             return
-        guess = Pose2D(*(float(v) for v in self.fusion.state))
-        match = self.matcher.match(points, guess)
+        fusion = self.fusion
+        guess = Pose2D(*(float(v) for v in fusion.state))
+        uncertain = fusion.pose().sigma_m > MAP_SEARCH_SIGMA_M or self._map_doubted
+        match = self.matcher.match(points, guess, search=uncertain)
         if isinstance(match, str):
             self.map_refusal = match
+            if "from the estimate" in match:  # a fit, but too far from the estimate
+                self._disagreed()
             return
         pose = match.pose
         now = self.fusion.time
         if self.fusion.map_fix(pose.x_m, pose.y_m, pose.yaw_rad, match.covariance, now):
             self.map_refusal = ""
             self.measured_at = now
+            self._map_disagreements = 0
+            self._map_doubted = False
         else:
-            self.map_refusal = "the map's fit disagrees with the odometry"
+            self.map_refusal = "the map's fit disagrees with the estimate"
+            self._disagreed()
+
+    def _disagreed(self) -> None:
+        """The map fits, but not where the fusion is sure the robot is: after a few in a row
+        the fusion is doubted (widened) and the map searched around it, so a filter sure of a
+        wrong heading (an IMU reset taken for a turn, a bad start) does not lock the map out."""
+        self._map_disagreements += 1
+        if self._map_disagreements >= MAP_DOUBT_AFTER:
+            self._map_disagreements = 0
+            self._map_doubted = True
+            self.fusion.doubt(1.0, math.radians(10.0))
+            _LOGGER.info("localization: the map disagreed %d times: searching", MAP_DOUBT_AFTER)
 
     def _map(self, now: float, points: NDArray[np.float64]) -> None:
         fused, frame = self.fused, self.frame

@@ -246,6 +246,12 @@ class PoseFusion:
         self.map_accepted += 1
         return True
 
+    def doubt(self, sigma_m: float, sigma_yaw_rad: float) -> None:
+        """Widen the pose's uncertainty to at least these: the map refused in a row means the
+        filter is sure of a wrong pose (it locks out what would correct it)."""
+        self.cov[:2, :2] += np.eye(2) * sigma_m**2
+        self.cov[2, 2] += sigma_yaw_rad**2
+
     # ------------------------------------------------------------------ the estimate
 
     def pose(self) -> FusedPose:
