@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from shapely.geometry import MultiPolygon
 
 from brasidas import topics
 from brasidas.actor import Actor
@@ -242,12 +243,13 @@ class Localizer(Actor):
         """(Worker thread.) Match the scans to ``area``'s keep-outs from now on."""
         frame = self.frame
         assert frame is not None
-        rings = []
+        rings: list[NDArray[np.float64]] = []
         if area is not None:
             for zone_id, keepout in area.keepouts.items():
                 if zone_id.startswith(TEMPORARY_KEEPOUT_PREFIX):
                     continue  # the lidar's own obstacles, not the map's walls
-                for polygon in getattr(keepout, "geoms", (keepout,)):
+                parts = keepout.geoms if isinstance(keepout, MultiPolygon) else (keepout,)
+                for polygon in parts:
                     coords = polygon.exterior.coords
                     rings.append(
                         np.array([frame.to_local(*area.frame.to_geo(x, y)) for x, y in coords])
