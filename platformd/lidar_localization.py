@@ -258,7 +258,7 @@ class Localizer(Actor):
         self.map_refusal = ""
         _LOGGER.info(
             "localization: %s",
-            f"matching scans to {len(rings)} walls of the area map"
+            f"matching scans to the outlines of the area map's keep-outs ({len(rings)})"
             if rings
             else "no walls in the area map to match scans to",
         )
