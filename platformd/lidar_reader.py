@@ -288,6 +288,7 @@ async def async_setup(ctx: PlatformContext) -> None:
     ctx.telemetry.register(Perception, reader.section)
     ctx.supervisor.start(reader)
     if config.odometry:
+
         def area() -> AreaMap | None:  # the patrol's map, once autonomy has set up
             return ctx.patrol.core.area if ctx.patrol is not None else None
 
