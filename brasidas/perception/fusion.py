@@ -42,6 +42,8 @@ PRIOR_NOISE = (0.10, 0.05, 0.02)
 TURN_NOISE = 0.02
 """Sigma of yaw per radian turned."""
 FLOOR_NOISE = (0.002, 0.002, 0.0005)
+DRAG_PRIOR_SHARE = 0.2
+"""Above this share of the drag window's distance on the motion prior, no drag is judged."""
 """Per step, even standing still."""
 
 
@@ -100,10 +102,13 @@ class PoseFusion:
         """Where the odometry alone has carried the robot (world frame): the drag test's
         reference, untouched by GPS corrections."""
         self.travelled_m = 0.0
-        self._history: collections.deque[tuple[float, float, float, float, float, float]] = (
+        self.dead_reckoned_m = 0.0
+        """Of it, on the motion prior (the scans did not register): not evidence of a drag."""
+        self._history: collections.deque[tuple[float, float, float, float, float, float, float]] = (
             collections.deque()
         )
-        """(time, gps x, gps y, odometer x, odometer y, travelled) of recent fixes."""
+        """(time, gps x, gps y, odometer x, odometer y, travelled, dead reckoned) of recent
+        fixes."""
         self.suspect = ""
         """"jump" or "drag": GPS is refused until it agrees again ("" when trusted)."""
         self._agreeing = 0
@@ -131,6 +136,8 @@ class PoseFusion:
         self.odometer += world
         distance = math.hypot(dx, dy)
         self.travelled_m += distance
+        if source != "lidar":
+            self.dead_reckoned_m += distance
         if not self.started:
             return
         self.state[:2] += world
@@ -194,7 +201,10 @@ class PoseFusion:
             history.popleft()
         if not history or now - history[0][0] < 0.7 * self.drag_window:
             return ""
-        t0, gx, gy, ox, oy, travelled = history[0]
+        t0, gx, gy, ox, oy, travelled, reckoned = history[0]
+        moved = self.travelled_m - travelled
+        if moved > 0 and (self.dead_reckoned_m - reckoned) > DRAG_PRIOR_SHARE * moved:
+            return ""  # the odometry was mostly the commanded speed: it cannot judge the GPS
         gps_moved = np.array((x_m - gx, y_m - gy))
         odometry_moved = self.odometer - (ox, oy)
         apart = float(np.hypot(*(gps_moved - odometry_moved)))
@@ -205,7 +215,9 @@ class PoseFusion:
 
     def _remember(self, now: float, x_m: float, y_m: float) -> None:
         ox, oy = self.odometer
-        self._history.append((now, x_m, y_m, float(ox), float(oy), self.travelled_m))
+        self._history.append(
+            (now, x_m, y_m, float(ox), float(oy), self.travelled_m, self.dead_reckoned_m)
+        )
 
     def _accept(self, now: float, distance: float) -> GpsVerdict:
         self.accepted += 1
