@@ -11,8 +11,13 @@ enough (0.5 m/s) to give a course: a heading the platform can trust without a co
 The scans also build an occupancy grid (:mod:`brasidas.perception.grid`) at the fused pose
 (not while dead reckoning), saved every ``GRID_SAVE_S`` and at stop to ``lidar.grid_file``
 and loaded at start: its anchor becomes the local frame, so the robot's pose and the grid
-it keeps stay in one frame across restarts (R-12). The area map is not involved: reloading
-it (R-5.3.2) leaves the localization as it was.
+it keeps stay in one frame across restarts (R-12).
+
+Every ``MAP_EVERY`` scans the scan is also registered to the area map's keep-outs (buildings,
+walls: :mod:`brasidas.perception.map_match`) from the fused pose, an absolute measurement that
+makes the GPS's slow bias observable. Reloading the area map (R-5.3.2) only changes what the
+scans are matched to: the fused pose carries on, so the robot stays localized; the new walls
+are taken from the next scan.
 
 What it says: the ``perception`` telemetry's localization source and uncertainty, GPS fixes
 accepted and refused, and why GPS is refused now (the annunciator's group 90 warning
@@ -26,20 +31,24 @@ import collections
 import concurrent.futures
 import logging
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from shapely.geometry import MultiPolygon
 
 from brasidas import topics
 from brasidas.actor import Actor
+from brasidas.autonomy.areamap import AreaMap
 from brasidas.autonomy.geo import LocalFrame
 from brasidas.bus import Bus
 from brasidas.clock import Clock, LoopClock
 from brasidas.messages import Attitude, GpsFix, Velocity
 from brasidas.perception.fusion import FusedPose, GpsVerdict, PoseFusion
 from brasidas.perception.grid import GridError, OccupancyGrid
-from brasidas.perception.messages import RobotScan
+from brasidas.perception.map_match import MapMatcher
+from brasidas.perception.messages import LidarPose, RobotScan
 from brasidas.perception.odometry import (
     LidarOdometry,
     OdometryStep,
@@ -47,6 +56,7 @@ from brasidas.perception.odometry import (
     scan_points,
     wrap,
 )
+from platformd.lidar_models import TEMPORARY_KEEPOUT_PREFIX
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -55,6 +65,15 @@ HEADING_SPEED_MPS = 0.5
 NO_GYRO_YAW_SLACK_RAD = math.radians(15.0)
 """Without an IMU the prior does not know the turn: let the registration find it."""
 GRID_SAVE_S = 30.0
+IMU_JUMP_RAD_S = math.radians(150.0)
+"""A yaw change between scans faster than any rover turns: the IMU's filter was reset (it
+starts again from yaw 0 after a reconnect or its gyro calibration), not a turn."""
+MAP_EVERY = 5
+"""Scans between matches to the area map (2 Hz for a 10 Hz lidar)."""
+MAP_SEARCH_SIGMA_M = 0.5
+"""Above this position uncertainty the match to the map searches around the estimate."""
+MAP_DOUBT_AFTER = 3
+"""Fits to the map refused in a row after which the fusion's certainty is doubted."""
 
 
 class Localizer(Actor):
@@ -69,8 +88,18 @@ class Localizer(Actor):
         *,
         grid_path: Path | None = None,
         clock: Clock | None = None,
+        area: Callable[[], AreaMap | None] | None = None,
     ) -> None:
         super().__init__(bus)
+        self._area = area or (lambda: None)
+        self._area_seen: object = None
+        self.matcher: MapMatcher | None = None
+        self._map_disagreements = 0
+        self._map_doubted = False
+        self.map_refusal = ""
+        """Why the last scan did not fit the area map ("" when it did, or no map)."""
+        self.measured_at: float | None = None
+        """When the pose last rested on a measurement: a registered scan or an accepted fix."""
         self.grid_path = grid_path
         self.grid: OccupancyGrid | None = None
         self.grid_error = ""
@@ -90,6 +119,7 @@ class Localizer(Actor):
         self._yaw: tuple[float, float] | None = None
         """The IMU's latest yaw (rad) and its time."""
         self._yaw_at_scan: float | None = None
+        self.imu_jumps = 0
         self._scan: RobotScan | None = None
         self._fixes: collections.deque[GpsFix] = collections.deque(maxlen=8)
         self._wake = asyncio.Event()
@@ -110,14 +140,40 @@ class Localizer(Actor):
                 self._fixes.clear()
                 scan, self._scan = self._scan, None
                 yaw_rate = self._yaw_rate(scan)
-                await loop.run_in_executor(
+                area = self._area()
+                if area is not self._area_seen and self.frame is not None:
+                    self._area_seen = area
+                    await loop.run_in_executor(self._worker, self.set_area, area)
+                accepted = await loop.run_in_executor(
                     self._worker, self.process, scan, fixes, self._speed, yaw_rate
                 )
+                self._publish(accepted)
         finally:
             try:
                 await loop.run_in_executor(self._worker, self.save_grid)
             finally:
                 self._worker.shutdown(wait=False, cancel_futures=True)
+
+    def _publish(self, accepted: list[GpsFix]) -> None:
+        for fix in accepted:
+            self.bus.publish(topics.GPS_ACCEPTED, fix)
+        fused, frame = self.fused, self.frame
+        if fused is None or frame is None:
+            return
+        latitude, longitude = frame.to_geo(fused.x_m, fused.y_m)
+        self.bus.publish(
+            topics.LIDAR_POSE,
+            LidarPose(
+                fused.time,
+                latitude,
+                longitude,
+                fused.yaw_rad,
+                fused.sigma_m,
+                fused.sigma_yaw_rad,
+                fused.source,
+                self.measured_at,
+            ),
+        )
 
     def _on_scan(self, scan: RobotScan) -> None:
         self._scan = scan
@@ -142,7 +198,15 @@ class Localizer(Actor):
         last = self.last
         if previous is None or last is None or scan.time <= last.time:
             return 0.0
-        return wrap(yaw - previous) / (scan.time - last.time)
+        rate = wrap(yaw - previous) / (scan.time - last.time)
+        if abs(rate) > IMU_JUMP_RAD_S:
+            self.imu_jumps += 1
+            _LOGGER.info(
+                "IMU yaw jumped %.0f° between scans (its filter restarted): the scans find the turn",
+                math.degrees(wrap(yaw - previous)),
+            )
+            return None
+        return rate
 
     # ------------------------------------------------------------------ worker thread
 
@@ -152,10 +216,10 @@ class Localizer(Actor):
         fixes: list[GpsFix],
         speed_mps: float,
         yaw_rate: float | None,
-    ) -> None:
-        """(Worker thread.) The fixes through the gate, then the scan through the odometry."""
-        for fix in fixes:
-            self._gps(fix)
+    ) -> list[GpsFix]:
+        """(Worker thread.) The fixes through the gate, then the scan through the odometry;
+        the fixes the gate did not refuse."""
+        accepted = [fix for fix in fixes if self._gps(fix)]
         points: NDArray[np.float64] = np.empty((0, 2))
         if scan is not None:
             self.odometry.yaw_slack_rad = None if yaw_rate is not None else NO_GYRO_YAW_SLACK_RAD
@@ -166,9 +230,72 @@ class Localizer(Actor):
                 _LOGGER.info("lidar odometry on the motion prior: %s", step.reason)
             self.last = step
             self.fusion.predict(step.delta, step.source, scan.time)
+            if step.source == "lidar" and self.fusion.started:
+                self.measured_at = scan.time
+            if self.fusion.started and self.odometry.scans % MAP_EVERY == 0:
+                self._match_map(points)
         self.fused = self.fusion.pose() if self.fusion.started else None
         if scan is not None and self.fused is not None and self.fused.source != "prior":
             self._map(scan.time, points)
+        return accepted
+
+    def set_area(self, area: AreaMap | None) -> None:
+        """(Worker thread.) Match the scans to ``area``'s keep-outs from now on."""
+        frame = self.frame
+        assert frame is not None
+        rings: list[NDArray[np.float64]] = []
+        if area is not None:
+            for zone_id, keepout in area.keepouts.items():
+                if zone_id.startswith(TEMPORARY_KEEPOUT_PREFIX):
+                    continue  # the lidar's own obstacles, not the map's walls
+                parts = keepout.geoms if isinstance(keepout, MultiPolygon) else (keepout,)
+                for polygon in parts:
+                    coords = polygon.exterior.coords
+                    rings.append(
+                        np.array([frame.to_local(*area.frame.to_geo(x, y)) for x, y in coords])
+                    )
+        self.matcher = MapMatcher(rings) if rings else None
+        self.map_refusal = ""
+        _LOGGER.info(
+            "localization: %s",
+            f"matching scans to the outlines of the area map's keep-outs ({len(rings)})"
+            if rings
+            else "no walls in the area map to match scans to",
+        )
+
+    def _match_map(self, points: NDArray[np.float64]) -> None:
+        if self.matcher is None:
+            return
+        fusion = self.fusion
+        guess = Pose2D(*(float(v) for v in fusion.state))
+        uncertain = fusion.pose().sigma_m > MAP_SEARCH_SIGMA_M or self._map_doubted
+        match = self.matcher.match(points, guess, search=uncertain)
+        if isinstance(match, str):
+            self.map_refusal = match
+            if "from the estimate" in match:  # a fit, but too far from the estimate
+                self._disagreed()
+            return
+        pose = match.pose
+        now = self.fusion.time
+        if self.fusion.map_fix(pose.x_m, pose.y_m, pose.yaw_rad, match.covariance, now):
+            self.map_refusal = ""
+            self.measured_at = now
+            self._map_disagreements = 0
+            self._map_doubted = False
+        else:
+            self.map_refusal = "the map's fit disagrees with the estimate"
+            self._disagreed()
+
+    def _disagreed(self) -> None:
+        """The map fits, but not where the fusion is sure the robot is: after a few in a row
+        the fusion is doubted (widened) and the map searched around it, so a filter sure of a
+        wrong heading (an IMU reset taken for a turn, a bad start) does not lock the map out."""
+        self._map_disagreements += 1
+        if self._map_disagreements >= MAP_DOUBT_AFTER:
+            self._map_disagreements = 0
+            self._map_doubted = True
+            self.fusion.doubt(1.0, math.radians(10.0))
+            _LOGGER.info("localization: the map disagreed %d times: searching", MAP_DOUBT_AFTER)
 
     def _map(self, now: float, points: NDArray[np.float64]) -> None:
         fused, frame = self.fused, self.frame
@@ -223,16 +350,20 @@ class Localizer(Actor):
             return
         self._grid_dirty = False
 
-    def _gps(self, fix: GpsFix) -> None:
+    def _gps(self, fix: GpsFix) -> bool:
+        """The fix through the gate: False when refused (before the fusion starts there is
+        nothing to check it against, and it passes)."""
         if self.frame is None:
             self.frame = LocalFrame(fix.latitude, fix.longitude)
         if not self.fusion.started:
             speed, course = fix.speed_mps, fix.course_deg
             if speed is None or course is None or speed < HEADING_SPEED_MPS:
-                return  # no heading yet: the fusion waits for the robot to move
+                return True  # no heading yet: the fusion waits for the robot to move
             self.fusion.heading_rad = math.radians(90.0 - course)
         x, y = self.frame.to_local(fix.latitude, fix.longitude)
         verdict: GpsVerdict = self.fusion.gps(x, y, fix.stamp)
+        if verdict.accepted:
+            self.measured_at = fix.stamp
         refusal = "" if verdict.accepted else verdict.reason
         if bool(refusal) != bool(self.gps_refusal):
             if refusal:
@@ -240,6 +371,7 @@ class Localizer(Actor):
             else:
                 _LOGGER.info("GPS agrees with the odometry again: fixes accepted")
         self.gps_refusal = refusal
+        return verdict.accepted
 
     def counters(self) -> dict[str, int]:
         return {
@@ -248,4 +380,6 @@ class Localizer(Actor):
             "partial": self.odometry.partial,
             "gps_accepted": self.fusion.accepted,
             "gps_rejected": self.fusion.rejected,
+            "map_matches": self.fusion.map_accepted,
+            "map_refused": self.fusion.map_refused + (self.matcher.refused if self.matcher else 0),
         }

@@ -24,6 +24,7 @@ from typing import Any
 
 from brasidas import topics
 from brasidas.actor import Actor
+from brasidas.autonomy.areamap import AreaMap
 from brasidas.backoff import Backoff
 from brasidas.bus import Bus
 from brasidas.clock import Clock, LoopClock, sleep, timeout_at
@@ -287,8 +288,15 @@ async def async_setup(ctx: PlatformContext) -> None:
     ctx.telemetry.register(Perception, reader.section)
     ctx.supervisor.start(reader)
     if config.odometry:
+
+        def area() -> AreaMap | None:  # the patrol's map, once autonomy has set up
+            return ctx.patrol.core.area if ctx.patrol is not None else None
+
         reader.localizer = Localizer(
-            ctx.bus, ctx.config.platform.max_speed_kmh / 3.6, grid_path=grid_path(config)
+            ctx.bus,
+            ctx.config.platform.max_speed_kmh / 3.6,
+            grid_path=grid_path(config),
+            area=area,
         )
         ctx.telemetry.add_counters("localization", reader.localizer.counters)
         ctx.supervisor.start(reader.localizer)

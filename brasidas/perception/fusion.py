@@ -42,6 +42,8 @@ PRIOR_NOISE = (0.10, 0.05, 0.02)
 TURN_NOISE = 0.02
 """Sigma of yaw per radian turned."""
 FLOOR_NOISE = (0.002, 0.002, 0.0005)
+DRAG_PRIOR_SHARE = 0.2
+"""Above this share of the drag window's distance on the motion prior, no drag is judged."""
 """Per step, even standing still."""
 
 
@@ -63,8 +65,10 @@ class FusedPose:
     sigma_m: float
     """Position uncertainty: the square root of the larger eigenvalue of its covariance."""
     source: str
-    """What it rests on: "gps+lidar", "lidar" (no GPS lately), "prior" (odometry from the
-    commanded speed only), or "none" (not started: no fix yet)."""
+    """What it rests on: "map+lidar" (the scans fit the area map's walls lately), "gps+lidar",
+    "lidar" (neither lately), "prior" (odometry from the commanded speed only), or "none" (not
+    started: no fix yet)."""
+    sigma_yaw_rad: float = 0.0
 
 
 class PoseFusion:
@@ -98,10 +102,13 @@ class PoseFusion:
         """Where the odometry alone has carried the robot (world frame): the drag test's
         reference, untouched by GPS corrections."""
         self.travelled_m = 0.0
-        self._history: collections.deque[tuple[float, float, float, float, float, float]] = (
+        self.dead_reckoned_m = 0.0
+        """Of it, on the motion prior (the scans did not register): not evidence of a drag."""
+        self._history: collections.deque[tuple[float, float, float, float, float, float, float]] = (
             collections.deque()
         )
-        """(time, gps x, gps y, odometer x, odometer y, travelled) of recent fixes."""
+        """(time, gps x, gps y, odometer x, odometer y, travelled, dead reckoned) of recent
+        fixes."""
         self.suspect = ""
         """"jump" or "drag": GPS is refused until it agrees again ("" when trusted)."""
         self._agreeing = 0
@@ -109,6 +116,11 @@ class PoseFusion:
         self.last_source = "none"
         self.accepted = 0
         self.rejected = 0
+        self.map_gate_chi2 = 16.3
+        """Three degrees of freedom at 0.999."""
+        self.last_map_at: float | None = None
+        self.map_accepted = 0
+        self.map_refused = 0
         self.last_rejection = ""
 
     # ------------------------------------------------------------------ odometry
@@ -124,6 +136,8 @@ class PoseFusion:
         self.odometer += world
         distance = math.hypot(dx, dy)
         self.travelled_m += distance
+        if source != "lidar":
+            self.dead_reckoned_m += distance
         if not self.started:
             return
         self.state[:2] += world
@@ -187,7 +201,10 @@ class PoseFusion:
             history.popleft()
         if not history or now - history[0][0] < 0.7 * self.drag_window:
             return ""
-        t0, gx, gy, ox, oy, travelled = history[0]
+        t0, gx, gy, ox, oy, travelled, reckoned = history[0]
+        moved = self.travelled_m - travelled
+        if moved > 0 and (self.dead_reckoned_m - reckoned) > DRAG_PRIOR_SHARE * moved:
+            return ""  # the odometry was mostly the commanded speed: it cannot judge the GPS
         gps_moved = np.array((x_m - gx, y_m - gy))
         odometry_moved = self.odometer - (ox, oy)
         apart = float(np.hypot(*(gps_moved - odometry_moved)))
@@ -198,7 +215,9 @@ class PoseFusion:
 
     def _remember(self, now: float, x_m: float, y_m: float) -> None:
         ox, oy = self.odometer
-        self._history.append((now, x_m, y_m, float(ox), float(oy), self.travelled_m))
+        self._history.append(
+            (now, x_m, y_m, float(ox), float(oy), self.travelled_m, self.dead_reckoned_m)
+        )
 
     def _accept(self, now: float, distance: float) -> GpsVerdict:
         self.accepted += 1
@@ -213,6 +232,38 @@ class PoseFusion:
         self.last_rejection = reason
         return GpsVerdict(False, reason, distance)
 
+    # ------------------------------------------------------------------ the map
+
+    def map_fix(
+        self, x_m: float, y_m: float, yaw_rad: float, covariance: NDArray[np.float64], now: float
+    ) -> bool:
+        """Where a scan fits the area map's walls (an absolute pose, ``covariance`` 3x3):
+        fused unless it fails the chi-square gate against the prediction (a wrong match)."""
+        if not self.started:
+            return False
+        self.time = now
+        innovation = np.array((x_m, y_m, yaw_rad)) - self.state
+        innovation[2] = wrap(float(innovation[2]))
+        s = self.cov + covariance
+        d2 = float(innovation @ np.linalg.solve(s, innovation))
+        if d2 > self.map_gate_chi2:
+            self.map_refused += 1
+            return False
+        k = self.cov @ np.linalg.inv(s)
+        self.state = self.state + k @ innovation
+        self.state[2] = wrap(float(self.state[2]))
+        self.cov = (np.eye(3) - k) @ self.cov
+        self.cov = (self.cov + self.cov.T) / 2
+        self.last_map_at = now
+        self.map_accepted += 1
+        return True
+
+    def doubt(self, sigma_m: float, sigma_yaw_rad: float) -> None:
+        """Widen the pose's uncertainty to at least these: the map refused in a row means the
+        filter is sure of a wrong pose (it locks out what would correct it)."""
+        self.cov[:2, :2] += np.eye(2) * sigma_m**2
+        self.cov[2, 2] += sigma_yaw_rad**2
+
     # ------------------------------------------------------------------ the estimate
 
     def pose(self) -> FusedPose:
@@ -222,8 +273,11 @@ class PoseFusion:
             source = "none"
         elif self.last_source != "lidar":
             source = "prior"
+        elif self.last_map_at is not None and self.time - self.last_map_at <= self.gps_fresh:
+            source = "map+lidar"
         elif self.last_gps_at is not None and self.time - self.last_gps_at <= self.gps_fresh:
             source = "gps+lidar"
         else:
             source = "lidar"
-        return FusedPose(self.time, x, y, yaw, sigma, source)
+        sigma_yaw = math.sqrt(max(0.0, float(self.cov[2, 2])))
+        return FusedPose(self.time, x, y, yaw, sigma, source, sigma_yaw)

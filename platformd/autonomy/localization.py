@@ -2,7 +2,14 @@
 
 It owns a :class:`~brasidas.autonomy.localization.PoseFilter` in a local frame centred on the
 first fix and publishes the pose ``autonomy.rate_hz`` times a second. It is the only
-publisher of ``POSE``: a SLAM actor would take its place without the patrol noticing.
+publisher of ``POSE``.
+
+With the lidar's localization on (``lidar.odometry``, ``lidar_localized``) the pose is the
+lidar localization's (``LIDAR_POSE``: scan registration fused with the GPS fixes its gate
+accepted, and the area map's walls) while it registers scans, carried forward to now; the
+GPS+IMU filter stands in when it does not (no pose yet, scans on the motion prior, lidar
+silent), and it too follows only the fixes the gate accepted (``GPS_ACCEPTED``): a fix
+refused as a jump or a drag is never followed, by either.
 """
 
 from __future__ import annotations
@@ -18,8 +25,13 @@ from brasidas.autonomy.geo import LocalFrame, heading_to_yaw
 from brasidas.autonomy.localization import FilterParameters, PoseFilter
 from brasidas.bus import Bus
 from brasidas.messages import Attitude, GpsFix, MotionState, PoseEstimate
+from brasidas.perception.messages import LidarPose
 
 _LOGGER = logging.getLogger(__name__)
+
+LIDAR_POSE_AHEAD_S = 0.5
+"""A lidar pose is carried forward at most this far (five scans): a lidar that stalls has its
+motors held (platformd.lidar), and its pose's growing fix age holds the patrol."""
 
 
 class Localization(Actor):
@@ -32,8 +44,11 @@ class Localization(Actor):
         *,
         rate_hz: float,
         clock: Callable[[], float] | None = None,
+        lidar_localized: bool = False,
     ) -> None:
         super().__init__(bus)
+        self.lidar_localized = lidar_localized
+        self._lidar: LidarPose | None = None
         self.filter = PoseFilter(parameters)
         self.period = 1.0 / rate_hz
         self._clock = clock
@@ -51,15 +66,24 @@ class Localization(Actor):
 
     def start(self) -> None:
         """Subscribe to the sensors (retained values arrive at once)."""
-        self.subscribe(topics.GPS_FIX, self._on_fix)
+        if self.lidar_localized:
+            self.subscribe(topics.GPS_ACCEPTED, self._on_fix)
+            self.subscribe(topics.LIDAR_POSE, self._on_lidar)
+        else:
+            self.subscribe(topics.GPS_FIX, self._on_fix)
         self.subscribe(topics.ATTITUDE, self._on_attitude)
         self.subscribe(topics.MOTION_STATE, self._on_motion)
 
     def publish(self) -> PoseEstimate | None:
         """Publish the pose now (none before the first fix)."""
-        if self.frame is None or not self.filter.initialized:
+        if self.frame is None:
             return None
         now = self._now()
+        lidar = self._lidar
+        if lidar is not None and lidar.measured_at is not None:
+            return self._publish_lidar(now, self.frame, lidar)
+        if not self.filter.initialized:
+            return None
         estimate = self.filter.estimate(now)
         latitude, longitude = self.frame.to_geo(estimate.x, estimate.y)
         pose = PoseEstimate(
@@ -78,6 +102,38 @@ class Localization(Actor):
         )
         self.bus.publish(topics.POSE, pose)
         return pose
+
+    def _publish_lidar(self, now: float, frame: LocalFrame, lidar: LidarPose) -> PoseEstimate:
+        """The lidar pose carried forward to ``now`` at the filter's speed."""
+        assert lidar.measured_at is not None
+        speed = self.filter.estimate(now).speed if self.filter.initialized else 0.0
+        ahead = speed * min(LIDAR_POSE_AHEAD_S, max(0.0, now - lidar.time))
+        x, y = frame.to_local(lidar.latitude, lidar.longitude)
+        x += ahead * math.cos(lidar.yaw_rad)
+        y += ahead * math.sin(lidar.yaw_rad)
+        latitude, longitude = frame.to_geo(x, y)
+        pose = PoseEstimate(
+            time=now,
+            latitude=latitude,
+            longitude=longitude,
+            x_m=x,
+            y_m=y,
+            origin=(frame.latitude, frame.longitude),
+            yaw_rad=lidar.yaw_rad,
+            speed_mps=speed,
+            sigma_xy_m=lidar.sigma_m,
+            sigma_heading_deg=math.degrees(lidar.sigma_yaw_rad),
+            heading_known=True,
+            fix_age_s=now - lidar.measured_at,
+            source=lidar.source,
+        )
+        self.bus.publish(topics.POSE, pose)
+        return pose
+
+    def _on_lidar(self, pose: LidarPose) -> None:
+        self._lidar = pose
+        if self.frame is None:
+            self.frame = LocalFrame(pose.latitude, pose.longitude)
 
     def _now(self) -> float:
         assert self._clock is not None
