@@ -89,8 +89,12 @@ class Localizer(Actor):
         grid_path: Path | None = None,
         clock: Clock | None = None,
         area: Callable[[], AreaMap | None] | None = None,
+        max_yaw_rate_rad_s: float = 0.0,
     ) -> None:
         super().__init__(bus)
+        self.max_yaw_rate = max_yaw_rate_rad_s
+        """The turn rate of a full ``angular`` command: without an IMU, the prior's turn."""
+        self._turn = 0.0
         self._area = area or (lambda: None)
         self._area_seen: object = None
         self.matcher: MapMatcher | None = None
@@ -145,7 +149,7 @@ class Localizer(Actor):
                     self._area_seen = area
                     await loop.run_in_executor(self._worker, self.set_area, area)
                 accepted = await loop.run_in_executor(
-                    self._worker, self.process, scan, fixes, self._speed, yaw_rate
+                    self._worker, self.process, scan, fixes, self._speed, yaw_rate, self._turn
                 )
                 self._publish(accepted)
         finally:
@@ -185,6 +189,7 @@ class Localizer(Actor):
 
     def _on_command(self, velocity: Velocity) -> None:
         self._speed = velocity.linear * self.max_speed
+        self._turn = velocity.angular * self.max_yaw_rate
 
     def _on_attitude(self, attitude: Attitude) -> None:
         self._yaw = (math.radians(attitude.yaw_deg), attitude.stamp)
@@ -216,14 +221,19 @@ class Localizer(Actor):
         fixes: list[GpsFix],
         speed_mps: float,
         yaw_rate: float | None,
+        commanded_turn: float = 0.0,
     ) -> list[GpsFix]:
         """(Worker thread.) The fixes through the gate, then the scan through the odometry;
-        the fixes the gate did not refuse."""
+        the fixes the gate did not refuse. Without the IMU's ``yaw_rate`` the turn is the
+        commanded one (``commanded_turn``, rad/s): taken as none, a robot that turned would
+        keep its old heading wherever the scans do not register (an open field), the fused
+        pose would drive off the way it no longer faces, and honest fixes, even RTK ones, be
+        refused as a jump."""
         accepted = [fix for fix in fixes if self._gps(fix)]
         points: NDArray[np.float64] = np.empty((0, 2))
         if scan is not None:
             self.odometry.yaw_slack_rad = None if yaw_rate is not None else NO_GYRO_YAW_SLACK_RAD
-            rate = yaw_rate or 0.0
+            rate = yaw_rate if yaw_rate is not None else commanded_turn
             points = scan_points(scan, speed_mps, rate)
             step = self.odometry.update(points, scan.time, speed_mps, rate)
             if step.source != "lidar" and (self.last is None or self.last.source == "lidar"):

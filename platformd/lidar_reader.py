@@ -297,6 +297,7 @@ async def async_setup(ctx: PlatformContext) -> None:
             ctx.config.platform.max_speed_kmh / 3.6,
             grid_path=grid_path(config),
             area=area,
+            max_yaw_rate_rad_s=math.radians(ctx.config.autonomy.full_turn_rate_dps),
         )
         ctx.telemetry.add_counters("localization", reader.localizer.counters)
         ctx.supervisor.start(reader.localizer)
