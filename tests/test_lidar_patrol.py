@@ -15,8 +15,7 @@ import math
 from typing import Any
 
 from conftest import until_armable, wait_until
-from test_patrol_platform import LAT, LON, Robot, at
-from test_patrol_platform import robot_factory as robot_factory  # the fixture
+from support.patrol import LAT, LON, Robot, at
 
 from brasidas import topics
 from brasidas.messages import GpsFix, PoseEstimate
