@@ -62,6 +62,16 @@ _LOGGER = logging.getLogger(__name__)
 
 HEADING_SPEED_MPS = 0.5
 """A fix moving at least this fast gives a course good enough to start from."""
+DRIVE_LAG_S = 0.25
+"""The open-loop drive's response to a command (first order): the motion prior's speed and
+turn follow the command with this lag, not at once (the robot accelerating from a stop to 5 m/s
+covers a metre less than its command in its first second)."""
+DRIVE_SPEED_DOUBT = 0.5
+"""The prior's speed error, as a share of the gap between the command and the modelled speed
+(a chassis's lag is not known exactly: load, slope, battery)."""
+DOPPLER_FRESH_S = 0.5
+"""An accepted fix's speed over ground (Doppler, ~0.05 m/s) newer than this resets the
+modelled speed."""
 NO_GYRO_YAW_SLACK_RAD = math.radians(15.0)
 """Without an IMU the prior does not know the turn: let the registration find it."""
 GRID_SAVE_S = 30.0
@@ -90,11 +100,19 @@ class Localizer(Actor):
         clock: Clock | None = None,
         area: Callable[[], AreaMap | None] | None = None,
         max_yaw_rate_rad_s: float = 0.0,
+        gps_sigma_m: float = 2.1,
     ) -> None:
         super().__init__(bus)
+        self.gps_sigma = gps_sigma_m
+        """The receiver's absolute error at HDOP 1 (``autonomy.gps_sigma_m``)."""
         self.max_yaw_rate = max_yaw_rate_rad_s
         """The turn rate of a full ``angular`` command: without an IMU, the prior's turn."""
         self._turn = 0.0
+        self._command = (0.0, 0.0)
+        """The last MOTOR_COMMAND: linear m/s, angular rad/s."""
+        self.drive = (0.0, 0.0)
+        """(Worker thread.) The modelled speed (m/s) and turn (rad/s) the drive has reached."""
+        self._drive_at: float | None = None
         self._area = area or (lambda: None)
         self._area_seen: object = None
         self.matcher: MapMatcher | None = None
@@ -113,7 +131,7 @@ class Localizer(Actor):
         self.max_speed = max_speed_mps
         self.clock: Clock = clock or LoopClock()
         self.odometry = LidarOdometry()
-        self.fusion = PoseFusion()
+        self.fusion = PoseFusion(gps_sigma_m=gps_sigma_m)
         self.frame: LocalFrame | None = None
         self.last: OdometryStep | None = None
         self.fused: FusedPose | None = None
@@ -223,31 +241,50 @@ class Localizer(Actor):
         yaw_rate: float | None,
         commanded_turn: float = 0.0,
     ) -> list[GpsFix]:
-        """(Worker thread.) The fixes through the gate, then the scan through the odometry;
-        the fixes the gate did not refuse. Without the IMU's ``yaw_rate`` the turn is the
-        commanded one (``commanded_turn``, rad/s): taken as none, a robot that turned would
-        keep its old heading wherever the scans do not register (an open field), the fused
-        pose would drive off the way it no longer faces, and honest fixes, even RTK ones, be
-        refused as a jump."""
-        accepted = [fix for fix in fixes if self._gps(fix)]
+        """(Worker thread.) The scan through the odometry, then the fixes through the gate
+        (compared with where the step put the robot at each fix's time); the fixes the gate
+        did not refuse. ``speed_mps`` and ``commanded_turn`` are the command: the prior
+        follows them with the drive's lag (:data:`DRIVE_LAG_S`), its speed reset by the
+        fixes' Doppler. Without the IMU's ``yaw_rate`` the turn is the commanded one: taken
+        as none, a robot that turned would keep its old heading wherever the scans do not
+        register (an open field), the fused pose would drive off the way it no longer faces,
+        and honest fixes, even RTK ones, be refused as a jump."""
         points: NDArray[np.float64] = np.empty((0, 2))
         if scan is not None:
+            speed, turn, doubt = self._drive_to(scan.time, speed_mps, commanded_turn)
             self.odometry.yaw_slack_rad = None if yaw_rate is not None else NO_GYRO_YAW_SLACK_RAD
-            rate = yaw_rate if yaw_rate is not None else commanded_turn
-            points = scan_points(scan, speed_mps, rate)
-            step = self.odometry.update(points, scan.time, speed_mps, rate)
+            rate = yaw_rate if yaw_rate is not None else turn
+            points = scan_points(scan, speed, rate)
+            step = self.odometry.update(points, scan.time, speed, rate)
             if step.source != "lidar" and (self.last is None or self.last.source == "lidar"):
                 _LOGGER.info("lidar odometry on the motion prior: %s", step.reason)
             self.last = step
-            self.fusion.predict(step.delta, step.source, scan.time)
+            prior_doubt = doubt if step.source != "lidar" else 0.0
+            self.fusion.predict(step.delta, step.source, scan.time, prior_doubt)
             if step.source == "lidar" and self.fusion.started:
                 self.measured_at = scan.time
             if self.fusion.started and self.odometry.scans % MAP_EVERY == 0:
                 self._match_map(points)
+        accepted = [fix for fix in fixes if self._gps(fix)]
         self.fused = self.fusion.pose() if self.fusion.started else None
         if scan is not None and self.fused is not None and self.fused.source != "prior":
             self._map(scan.time, points)
         return accepted
+
+    def _drive_to(
+        self, now: float, speed_mps: float, turn_rad_s: float
+    ) -> tuple[float, float, float]:
+        """The modelled drive carried to ``now`` towards the command: the speed and turn it
+        reached (mean over the interval) and how wrong that speed may be (m/s)."""
+        speed, turn = self.drive
+        dt = 0.0 if self._drive_at is None else max(0.0, now - self._drive_at)
+        self._drive_at = now
+        blend = 1.0 - math.exp(-dt / DRIVE_LAG_S)
+        new_speed = speed + (speed_mps - speed) * blend
+        new_turn = turn + (turn_rad_s - turn) * blend
+        self.drive = (new_speed, new_turn)
+        doubt = DRIVE_SPEED_DOUBT * abs(speed_mps - (speed + new_speed) / 2)
+        return (speed + new_speed) / 2, (turn + new_turn) / 2, doubt
 
     def set_area(self, area: AreaMap | None) -> None:
         """(Worker thread.) Match the scans to ``area``'s keep-outs from now on."""
@@ -360,6 +397,10 @@ class Localizer(Actor):
             return
         self._grid_dirty = False
 
+    def fix_sigma(self, fix: GpsFix) -> float:
+        """A fix's error per axis: the receiver's, ``gps_sigma_m`` times its HDOP."""
+        return self.gps_sigma * max(1.0, fix.hdop or 1.0)
+
     def _gps(self, fix: GpsFix) -> bool:
         """The fix through the gate: False when refused (before the fusion starts there is
         nothing to check it against, and it passes)."""
@@ -371,9 +412,15 @@ class Localizer(Actor):
                 return True  # no heading yet: the fusion waits for the robot to move
             self.fusion.heading_rad = math.radians(90.0 - course)
         x, y = self.frame.to_local(fix.latitude, fix.longitude)
-        verdict: GpsVerdict = self.fusion.gps(x, y, fix.stamp)
+        verdict: GpsVerdict = self.fusion.gps(x, y, fix.stamp, self.fix_sigma(fix))
         if verdict.accepted:
             self.measured_at = fix.stamp
+            if fix.speed_mps is not None and self.fusion.time - fix.stamp <= DOPPLER_FRESH_S:
+                # Over ground, unsigned: the drive's sign (a robot reversing reports its speed)
+                sign = (
+                    -1.0 if self.drive[0] < 0 or (self.drive[0] == 0 and self._speed < 0) else 1.0
+                )
+                self.drive = (sign * fix.speed_mps, self.drive[1])
         refusal = "" if verdict.accepted else verdict.reason
         if bool(refusal) != bool(self.gps_refusal):
             if refusal:

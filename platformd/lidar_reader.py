@@ -298,6 +298,7 @@ async def async_setup(ctx: PlatformContext) -> None:
             grid_path=grid_path(config),
             area=area,
             max_yaw_rate_rad_s=math.radians(ctx.config.autonomy.full_turn_rate_dps),
+            gps_sigma_m=ctx.config.autonomy.gps_sigma_m,
         )
         ctx.telemetry.add_counters("localization", reader.localizer.counters)
         ctx.supervisor.start(reader.localizer)

@@ -19,9 +19,13 @@ A GPS fix is never followed when it disagrees with the odometry-propagated pose:
   drift stays well under the threshold;
 - after either, fixes are refused until ``clear_fixes`` in a row pass both tests again.
 
-The NEO-6M's error is slow (correlated over minutes), so it is given a wider sigma than its
-data sheet's (``gps_sigma_m``): averaging many correlated fixes must not make the filter
-overconfident.
+Each fix is weighted by the receiver's accuracy: ``gps_sigma_m`` (the configured absolute
+error at HDOP 1, ``autonomy.gps_sigma_m``: 2.1 m for a NEO-6M, 0.02 m for RTK) times the
+fix's HDOP, plus how far the robot moves in the time between the fix and the filter's last
+step. Its absolute error, not its fix-to-fix jitter: the error wanders over minutes, so the
+walls of the area map, when they fit, must win over it. Weighted by a fixed, NEO-6M-sized
+sigma instead, an RTK fix barely moved a dead-reckoned pose, which drifted a metre sideways
+of the truth in an open field (nothing for the scans to register).
 """
 
 from __future__ import annotations
@@ -42,9 +46,17 @@ PRIOR_NOISE = (0.10, 0.05, 0.02)
 TURN_NOISE = 0.02
 """Sigma of yaw per radian turned."""
 FLOOR_NOISE = (0.002, 0.002, 0.0005)
+"""Per step, even standing still."""
+JUMP_FLOOR_M = 1.0
+"""A fix this close to the estimate is never a jump: against an RTK fix's centimetres the
+odometry's own error (a scan registered to a single post) would fail the chi-square test, and
+an honest fix refused is one the pose no longer follows. A spoofer pulling by less than this
+at a time is a drag, which the drag test catches."""
+MAX_AHEAD_S = 0.2
+"""A fix newer than the last odometry step is compared with the estimate carried at most this
+far ahead along that step (the scans stalled: beyond it, it is compared with the last step)."""
 DRAG_PRIOR_SHARE = 0.2
 """Above this share of the drag window's distance on the motion prior, no drag is judged."""
-"""Per step, even standing still."""
 
 
 @dataclass(frozen=True)
@@ -122,17 +134,25 @@ class PoseFusion:
         self.map_accepted = 0
         self.map_refused = 0
         self.last_rejection = ""
+        self._step: tuple[float, float, NDArray[np.float64]] = (0.0, 0.0, np.zeros(2))
+        """The last odometry step: its end time, length (s) and motion (world frame)."""
+        self._step_at: float | None = None
 
     # ------------------------------------------------------------------ odometry
 
-    def predict(self, delta: Pose2D, source: str, now: float) -> None:
-        """The robot moved ``delta`` (its own frame at the previous step)."""
+    def predict(self, delta: Pose2D, source: str, now: float, speed_sigma_mps: float = 0.0) -> None:
+        """The robot moved ``delta`` (its own frame at the previous step). ``speed_sigma_mps``:
+        how wrong the speed it was reckoned on may be (an open-loop drive's lag behind its
+        command), on top of the per-metre noise."""
+        dt = 0.0 if self._step_at is None else max(0.0, now - self._step_at)
+        self._step_at = now
         self.time = now
         self.last_source = source
         yaw = float(self.state[2])
         c, s = math.cos(yaw), math.sin(yaw)
         dx, dy = delta.x_m, delta.y_m
         world = np.array((c * dx - s * dy, s * dx + c * dy))
+        self._step = (now, dt, world)
         self.odometer += world
         distance = math.hypot(dx, dy)
         self.travelled_m += distance
@@ -147,7 +167,7 @@ class PoseFusion:
         along, across, turn = LIDAR_NOISE if source == "lidar" else PRIOR_NOISE
         sigmas = np.array(
             (
-                along * distance + FLOOR_NOISE[0],
+                along * distance + FLOOR_NOISE[0] + speed_sigma_mps * dt,
                 across * distance + FLOOR_NOISE[1],
                 turn * distance + TURN_NOISE * abs(delta.yaw_rad) + FLOOR_NOISE[2],
             )
@@ -156,19 +176,22 @@ class PoseFusion:
 
     # ------------------------------------------------------------------ GPS
 
-    def gps(self, x_m: float, y_m: float, now: float) -> GpsVerdict:
-        """A fix in the local frame: accepted (and fused) or refused, with the reason."""
-        self.time = now
+    def gps(self, x_m: float, y_m: float, now: float, sigma_m: float | None = None) -> GpsVerdict:
+        """A fix in the local frame: accepted (and fused) or refused, with the reason.
+        ``sigma_m``: its error per axis (None: ``gps_sigma_m``)."""
+        sigma = self.gps_sigma if sigma_m is None else sigma_m
         if not self.started:
-            self._start(x_m, y_m)
+            self.time = now
+            self._start(x_m, y_m, sigma)
             self._remember(now, x_m, y_m)
             return self._accept(now, 0.0)
-        innovation = np.array((x_m, y_m)) - self.state[:2]
-        s = self.cov[:2, :2] + np.eye(2) * self.gps_sigma**2
+        innovation = np.array((x_m, y_m)) - self.position_at(now)
+        self.time = max(self.time, now)
+        s = self.cov[:2, :2] + np.eye(2) * sigma**2
         d2 = float(innovation @ np.linalg.solve(s, innovation))
         distance = float(np.hypot(*innovation))
         reason = ""
-        if d2 > self.gate_chi2:
+        if d2 > self.gate_chi2 and distance > JUMP_FLOOR_M:
             reason = f"jump: {distance:.1f} m from where the odometry puts the robot"
         drag = self._drag(now, x_m, y_m)
         self._remember(now, x_m, y_m)
@@ -188,11 +211,22 @@ class PoseFusion:
         self.cov = (np.eye(3) - k[:, :2] @ np.eye(2, 3)) @ self.cov
         return self._accept(now, distance)
 
-    def _start(self, x_m: float, y_m: float) -> None:
+    def position_at(self, when: float) -> NDArray[np.float64]:
+        """The estimate's position moved to ``when`` along the last odometry step: a fix
+        taken inside that step is compared with where the robot was then, not where the step
+        ended (at 5 m/s a scan period is half a metre: added on top of a fix that already
+        holds it, the step ran the estimate ahead of the robot)."""
+        step_end, dt, world = self._step
+        if dt <= 0.0:
+            return self.state[:2].copy()
+        shift = max(-dt, min(MAX_AHEAD_S, when - step_end))
+        return self.state[:2] + world * (shift / dt)
+
+    def _start(self, x_m: float, y_m: float, sigma_m: float) -> None:
         yaw = self.heading_rad if self.heading_rad is not None else 0.0
         yaw_sigma = math.radians(10.0) if self.heading_rad is not None else math.pi
         self.state = np.array((x_m, y_m, yaw))
-        self.cov = np.diag((self.gps_sigma**2, self.gps_sigma**2, yaw_sigma**2))
+        self.cov = np.diag((sigma_m**2, sigma_m**2, yaw_sigma**2))
         self.started = True
 
     def _drag(self, now: float, x_m: float, y_m: float) -> str:
