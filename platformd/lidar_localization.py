@@ -15,7 +15,10 @@ it keeps stay in one frame across restarts (R-12).
 
 Every ``MAP_EVERY`` scans the scan is also registered to the area map's keep-outs (buildings,
 walls: :mod:`brasidas.perception.map_match`) from the fused pose, an absolute measurement that
-makes the GPS's slow bias observable. Reloading the area map (R-5.3.2) only changes what the
+makes the GPS's slow bias observable. That registration runs in a process of its own
+(:mod:`platformd.map_match_process`: small_gicp holds the GIL for the whole of a call, and a
+search or a town's walls take hundreds of milliseconds); its answer arrives with a later scan
+and is carried forward by the motion since. Reloading the area map (R-5.3.2) only changes what the
 scans are matched to: the fused pose carries on, so the robot stays localized; the new walls
 are taken from the next scan.
 
@@ -47,7 +50,7 @@ from brasidas.clock import Clock, LoopClock
 from brasidas.messages import Attitude, GpsFix, Velocity
 from brasidas.perception.fusion import FusedPose, GpsVerdict, PoseFusion
 from brasidas.perception.grid import GridError, OccupancyGrid
-from brasidas.perception.map_match import MapMatcher
+from brasidas.perception.map_match import MapMatch
 from brasidas.perception.messages import LidarPose, RobotScan
 from brasidas.perception.odometry import (
     LidarOdometry,
@@ -57,11 +60,17 @@ from brasidas.perception.odometry import (
     wrap,
 )
 from platformd.lidar_models import TEMPORARY_KEEPOUT_PREFIX
+from platformd.map_match_process import MapMatchProcess, Pending
 
 _LOGGER = logging.getLogger(__name__)
 
 HEADING_SPEED_MPS = 0.5
 """A fix moving at least this fast gives a course good enough to start from."""
+FIX_EARLY_S = 0.02
+"""A fix up to this much newer than the scan is taken with it (the filter carries the pose
+forward to it along the scan's step)."""
+FIX_HOLD_S = 0.3
+"""Without scans, a fix waits this long for one before it is taken against the last pose."""
 DRIVE_LAG_S = 0.25
 """The open-loop drive's response to a command (first order): the motion prior's speed and
 turn follow the command with this lag, not at once (the robot accelerating from a stop to 5 m/s
@@ -115,7 +124,14 @@ class Localizer(Actor):
         self._drive_at: float | None = None
         self._area = area or (lambda: None)
         self._area_seen: object = None
-        self.matcher: MapMatcher | None = None
+        self.maps = MapMatchProcess()
+        """The area map's walls and the matches to them, in a process of their own."""
+        self.has_walls = False
+        self.walls_set = 0
+        """How many times the walls were set (a map loaded or reloaded)."""
+        self.map_answers = 0
+        """Matches answered (fits and refusals) against the current walls."""
+        self.map_refusals = 0
         self._map_disagreements = 0
         self._map_doubted = False
         self.map_refusal = ""
@@ -158,9 +174,8 @@ class Localizer(Actor):
             while True:
                 await self._wake.wait()
                 self._wake.clear()
-                fixes = list(self._fixes)
-                self._fixes.clear()
                 scan, self._scan = self._scan, None
+                fixes = self._due_fixes(scan)
                 yaw_rate = self._yaw_rate(scan)
                 area = self._area()
                 if area is not self._area_seen and self.frame is not None:
@@ -175,6 +190,7 @@ class Localizer(Actor):
                 await loop.run_in_executor(self._worker, self.save_grid)
             finally:
                 self._worker.shutdown(wait=False, cancel_futures=True)
+                self.maps.close()
 
     def _publish(self, accepted: list[GpsFix]) -> None:
         for fix in accepted:
@@ -196,6 +212,18 @@ class Localizer(Actor):
                 self.measured_at,
             ),
         )
+
+    def _due_fixes(self, scan: RobotScan | None) -> list[GpsFix]:
+        """The fixes the filter can take now: those taken up to the scan it is about to
+        process. A newer fix waits for its scan: on a loaded machine the scans are processed
+        late, and a fix compared with a pose half a second old is "off" by half a second of
+        driving (2.5 m at 5 m/s), refused as a jump, and the pose left to the prior. Without
+        scans for :data:`FIX_HOLD_S` (the lidar stalled) they are taken as they are."""
+        horizon = scan.time + FIX_EARLY_S if scan is not None else self.clock.time() - FIX_HOLD_S
+        due: list[GpsFix] = []
+        while self._fixes and self._fixes[0].stamp <= horizon:
+            due.append(self._fixes.popleft())
+        return due
 
     def _on_scan(self, scan: RobotScan) -> None:
         self._scan = scan
@@ -263,6 +291,7 @@ class Localizer(Actor):
             self.fusion.predict(step.delta, step.source, scan.time, prior_doubt)
             if step.source == "lidar" and self.fusion.started:
                 self.measured_at = scan.time
+            self._collect_map_match()
             if self.fusion.started and self.odometry.scans % MAP_EVERY == 0:
                 self._match_map(points)
         accepted = [fix for fix in fixes if self._gps(fix)]
@@ -301,7 +330,10 @@ class Localizer(Actor):
                     rings.append(
                         np.array([frame.to_local(*area.frame.to_geo(x, y)) for x, y in coords])
                     )
-        self.matcher = MapMatcher(rings) if rings else None
+        self.has_walls = bool(rings)
+        self.maps.set_walls(rings)
+        self.walls_set += 1
+        self.map_answers = 0
         self.map_refusal = ""
         _LOGGER.info(
             "localization: %s",
@@ -311,18 +343,34 @@ class Localizer(Actor):
         )
 
     def _match_map(self, points: NDArray[np.float64]) -> None:
-        if self.matcher is None:
+        """Ask the matching process where this scan fits the walls (the answer comes with a
+        later scan: :meth:`_collect_map_match`)."""
+        if not self.has_walls:
             return
         fusion = self.fusion
         guess = Pose2D(*(float(v) for v in fusion.state))
         uncertain = fusion.pose().sigma_m > MAP_SEARCH_SIGMA_M or self._map_doubted
-        match = self.matcher.match(points, guess, search=uncertain)
+        self.maps.submit(points, guess, fusion.time, uncertain)
+
+    def _collect_map_match(self) -> None:
+        done = self.maps.collect()
+        if done is None:
+            return
+        pending, match = done
+        self.map_answers += 1
         if isinstance(match, str):
+            self.map_refusals += 1
             self.map_refusal = match
             if "from the estimate" in match:  # a fit, but too far from the estimate
                 self._disagreed()
             return
-        pose = match.pose
+        self._fuse_map_match(pending, match)
+
+    def _fuse_map_match(self, pending: Pending, match: MapMatch) -> None:
+        """The fit of a scan a few scans ago, carried forward by the odometry's motion since
+        (the fused pose then, ``pending.start``, to the fused pose now)."""
+        now_pose = Pose2D(*(float(v) for v in self.fusion.state))
+        pose = match.pose.compose(pending.start.between(now_pose))
         now = self.fusion.time
         if self.fusion.map_fix(pose.x_m, pose.y_m, pose.yaw_rad, match.covariance, now):
             self.map_refusal = ""
@@ -438,5 +486,5 @@ class Localizer(Actor):
             "gps_accepted": self.fusion.accepted,
             "gps_rejected": self.fusion.rejected,
             "map_matches": self.fusion.map_accepted,
-            "map_refused": self.fusion.map_refused + (self.matcher.refused if self.matcher else 0),
+            "map_refused": self.fusion.map_refused + self.map_refusals,
         }

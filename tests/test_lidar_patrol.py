@@ -132,17 +132,16 @@ async def test_reloading_the_map_mid_patrol_keeps_the_robot_localized(robot_fact
     not where the robot is: the pose carries on, and the next scans fit the new map."""
     robot: Robot = await robot_factory(*LIDAR)
     localizer = await start_on_the_street(robot)
-    before = localizer.matcher
+    before = localizer.walls_set
     reloaded_at = len(robot.poses)
     changed = street_map()
     changed["name"] = "street, resurveyed"
     await robot.call("load_map", map=changed)
     assert robot.status.state == "stopped"  # a reload clears the route (the operator's rule)
-    await wait_until(lambda: localizer.matcher is not before, 5)
+    await wait_until(lambda: localizer.walls_set > before, 5)
     swapped_at = len(robot.poses)
-    matcher = localizer.matcher
-    assert matcher is not None  # the scans are matched to the new map's keep-outs
-    await wait_until(lambda: matcher.matches + matcher.refused >= 3, 10)
+    assert localizer.has_walls  # the scans are matched to the new map's keep-outs
+    await wait_until(lambda: localizer.map_answers >= 3, 10)
     await wait_until(lambda: len(robot.poses) > reloaded_at + 30, 10)
     around = robot.poses[reloaded_at - 10 :]
     errors = [
