@@ -26,6 +26,12 @@ motor controller in the loop: its 10 Hz refresh would add up to 100 ms, a fixed 
   building 0.36 m from where it stands (a survey's error: the fused error follows the map's).
   The other rows' map is the simulated world itself, exact.
 
+- **loop heartbeat** (:func:`_loop_heartbeat`, real time): how late a 10 ms sleep of the
+  event loop wakes while the localizer runs on the street drive's scans and fixes (its
+  odometry in its thread, the map matching in its process), against the loop alone and
+  against the same map matching in a thread of the loop's process (small_gicp holds the GIL
+  for the whole of a call). ``BENCH_PERCEPTION_HEARTBEAT_S`` (default 60).
+
 Seeded (``sim.seed``); ``BENCH_PERCEPTION_TRIALS`` (default 50) pop-ups. Figures not reached
 (the town's 50 laps, a replayed CARMEN log) are listed under ``not_measured``.
 """
@@ -33,6 +39,7 @@ Seeded (``sim.seed``); ``BENCH_PERCEPTION_TRIALS`` (default 50) pop-ups. Figures
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import math
 import os
 import random
@@ -54,12 +61,15 @@ from brasidas.perception.odometry import LidarOdometry, Pose2D, scan_points
 from brasidas.perception.proximity import Geometry
 from platformd.arbiter import MotionArbiter
 from platformd.lidar_reader import LidarReader
+from platformd.sim.drive import MAX_SPEED_MPS as DRIVE_MAX_SPEED_MPS
 from platformd.sim.drive import SimulatedDrive, loop_waypoints, street_buildings, street_grid
 from platformd.sim.lidar import LidarSimulator, LidarWorld, ScanGenerator
 from platformd.sim.vehicle import VehicleModel
 
 TRIALS = int(os.environ.get("BENCH_PERCEPTION_TRIALS", "50"))
 WARMUP_S = float(os.environ.get("BENCH_PERCEPTION_WARMUP_S", "300"))
+HEARTBEAT_S = float(os.environ.get("BENCH_PERCEPTION_HEARTBEAT_S", "60"))
+"""How long the loop's heartbeat is measured with the localizer running."""
 MAP_EVERY = 5
 """Scans between matches to the map (2 Hz at the LD19's 10 Hz): platformd.lidar_localization's."""
 SPEED_MPS = 1.0
@@ -288,9 +298,117 @@ def _localization(
     return figures
 
 
+async def _loop_heartbeat(seconds: float = HEARTBEAT_S) -> dict[str, Any]:
+    """The event loop's heartbeat (a 10 ms sleep's lateness) while the localizer (real
+    actor, its worker thread and its map-matching process) takes the street drive's scans
+    and fixes in real time, matching them to the street's buildings; and, for comparison,
+    while the same matches run in a thread of this process (as they did)."""
+    from brasidas.autonomy.geo import LocalFrame
+    from brasidas.messages import Attitude, GpsFix
+    from platformd.lidar_localization import Localizer
+
+    bus = Bus()
+    localizer = Localizer(bus, DRIVE_MAX_SPEED_MPS, gps_sigma_m=2.1)
+    drive = SimulatedDrive(street_grid(), loop_waypoints(), seed=3)
+    frame = LocalFrame(*drive.vehicle.origin[:2])
+    rings = [np.asarray(b.exterior.coords) for b in street_buildings()]
+    lags: list[float] = []
+    done = asyncio.Event()
+
+    async def heartbeat() -> None:
+        while not done.is_set():
+            began = time.perf_counter()
+            await asyncio.sleep(0.01)
+            lags.append(1000 * (time.perf_counter() - began - 0.01))
+
+    async def feed() -> None:
+        localizer.frame = frame
+        localizer.set_walls(rings)  # before its worker starts: no other thread uses it yet
+        offset = time.monotonic() - drive.now
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            step = drive.step()
+            stamp = step.time + offset
+            truth = step.truth
+            bus.publish(
+                topics.MOTOR_COMMAND, Velocity(step.speed_command_mps / localizer.max_speed, 0)
+            )
+            bus.publish(topics.ATTITUDE, Attitude(1, 0, 0, 0, 0, 0, math.degrees(truth.yaw_rad)))
+            if step.gps is not None:
+                lat, lon = frame.to_geo(*step.gps)
+                bus.publish(
+                    topics.GPS_FIX,
+                    GpsFix(
+                        lat,
+                        lon,
+                        42.0,
+                        truth.speed_mps,
+                        truth.course_deg,
+                        1,
+                        9,
+                        1.0,
+                        "",
+                        stamp=stamp,
+                    ),
+                )
+            bus.publish(topics.LIDAR_SCAN, dataclasses.replace(step.scan, time=stamp))
+            await asyncio.sleep(max(0.0, stamp + 0.1 - time.monotonic()))
+        done.set()
+
+    # The loop with nothing else to do (the machine's own load): the baseline.
+    idle = asyncio.create_task(heartbeat())
+    await asyncio.sleep(min(10.0, seconds / 3))
+    done.set()
+    await idle
+    idle_lags = sorted(lags)
+    lags.clear()
+    done.clear()
+    async with asyncio.TaskGroup() as group:
+        actor = group.create_task(localizer.run())
+        group.create_task(heartbeat())
+        await feed()
+        actor.cancel()
+    process_lags = sorted(lags)
+    answers = localizer.map_answers
+    # The same kind of matching in a thread of this process: each search's GIL is the loop's.
+    matcher = MapMatcher(rings)
+    scans = [drive.step() for _ in range(int(10 * seconds))][::MAP_EVERY]
+    lags.clear()
+    done.clear()
+
+    def match_all() -> None:
+        for step in scans:
+            t = step.truth
+            points = scan_points(step.scan, step.speed_command_mps, step.gyro_rad_s)
+            matcher.match(points, Pose2D(t.x_m + 0.5, t.y_m - 0.3, t.yaw_rad), search=True)
+        done.set()
+
+    async with asyncio.TaskGroup() as group:
+        group.create_task(heartbeat())
+        await asyncio.to_thread(match_all)
+    thread_lags = sorted(lags)
+
+    def p99(values: list[float]) -> float:
+        return round(values[min(len(values) - 1, int(0.99 * len(values)))], 1) if values else 0.0
+
+    return {
+        "loop_heartbeat_lag_p99_ms_idle": p99(idle_lags),
+        "loop_heartbeat_lag_p99_ms": p99(process_lags),
+        "loop_heartbeat_lag_max_ms": round(process_lags[-1], 1) if process_lags else 0.0,
+        "loop_heartbeat_map_answers": answers,
+        "loop_heartbeat_seconds": seconds,
+        "loop_heartbeat_lag_p99_ms_matching_in_a_thread": p99(thread_lags),
+        "loop_heartbeat_lag_max_ms_matching_in_a_thread": round(thread_lags[-1], 1)
+        if thread_lags
+        else 0.0,
+        "loop_heartbeat_loadavg_1m": round(os.getloadavg()[0], 2),
+    }
+
+
 async def run() -> dict[str, Any]:
     from bench.perception_carmen import carmen_rows
 
+    heartbeat = await _loop_heartbeat()
     localization = await asyncio.to_thread(_localization)
     localization |= await asyncio.to_thread(carmen_rows)
     localization |= await asyncio.to_thread(_localization, "stl27l", spoofing=False)
@@ -329,4 +447,4 @@ async def run() -> dict[str, Any]:
         "loadavg_1m": round(load[0], 2),
         "not_measured": "town laps: make bench town",
     }
-    return figures | localization
+    return figures | localization | heartbeat

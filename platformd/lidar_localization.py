@@ -132,6 +132,7 @@ class Localizer(Actor):
         self.map_answers = 0
         """Matches answered (fits and refusals) against the current walls."""
         self.map_refusals = 0
+        self._rings: list[NDArray[np.float64]] = []
         self._map_disagreements = 0
         self._map_doubted = False
         self.map_refusal = ""
@@ -330,17 +331,24 @@ class Localizer(Actor):
                     rings.append(
                         np.array([frame.to_local(*area.frame.to_geo(x, y)) for x, y in coords])
                     )
-        self.has_walls = bool(rings)
-        self.maps.set_walls(rings)
-        self.walls_set += 1
-        self.map_answers = 0
-        self.map_refusal = ""
+        if _same_rings(rings, self._rings):
+            return  # only the lidar's own keep-outs changed: the walls stay, and the match
+        self.set_walls(rings)
         _LOGGER.info(
             "localization: %s",
             f"matching scans to the outlines of the area map's keep-outs ({len(rings)})"
             if rings
             else "no walls in the area map to match scans to",
         )
+
+    def set_walls(self, rings: list[NDArray[np.float64]]) -> None:
+        """(Worker thread.) Match the scans to these outlines (the local frame's metres)."""
+        self._rings = rings
+        self.has_walls = bool(rings)
+        self.maps.set_walls(rings)
+        self.walls_set += 1
+        self.map_answers = 0
+        self.map_refusal = ""
 
     def _match_map(self, points: NDArray[np.float64]) -> None:
         """Ask the matching process where this scan fits the walls (the answer comes with a
@@ -488,3 +496,7 @@ class Localizer(Actor):
             "map_matches": self.fusion.map_accepted,
             "map_refused": self.fusion.map_refused + self.map_refusals,
         }
+
+
+def _same_rings(a: list[NDArray[np.float64]], b: list[NDArray[np.float64]]) -> bool:
+    return len(a) == len(b) and all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))

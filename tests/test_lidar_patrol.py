@@ -136,6 +136,8 @@ async def test_reloading_the_map_mid_patrol_keeps_the_robot_localized(robot_fact
     reloaded_at = len(robot.poses)
     changed = street_map()
     changed["name"] = "street, resurveyed"
+    moved = changed["features"][-1]["geometry"]  # the survey put one building 0.2 m north
+    moved["coordinates"] = [[[lon, lat + 0.2 / 110_574.0] for lon, lat in moved["coordinates"][0]]]
     await robot.call("load_map", map=changed)
     assert robot.status.state == "stopped"  # a reload clears the route (the operator's rule)
     await wait_until(lambda: localizer.walls_set > before, 5)
