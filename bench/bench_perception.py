@@ -53,6 +53,7 @@ from bench.support import percentiles
 from brasidas import topics
 from brasidas.bus import Bus
 from brasidas.config.lidar import LidarSection
+from brasidas.config.platform import AutonomySection
 from brasidas.messages import Velocity
 from brasidas.perception.fusion import PoseFusion
 from brasidas.perception.map_match import MapMatcher
@@ -211,7 +212,7 @@ def _localization(
     # The area map's buildings are the world's (a surveyed map): the scans are matched to them.
     matcher = MapMatcher([np.asarray(b.exterior.coords) + map_shift_m for b in street_buildings()])
     odometry = LidarOdometry()
-    fusion = PoseFusion()
+    fusion = PoseFusion(gps_sigma_m=AutonomySection().gps_sigma_m)  # the platform's default
     fusion.heading_rad = 0.0  # the simulated vehicle starts facing east
     phases: list[tuple[str, float, Callable[[float], tuple[float, float]] | None]] = [
         ("warmup", WARMUP_S, None)
