@@ -334,7 +334,8 @@ async def _loop_heartbeat(seconds: float = HEARTBEAT_S) -> dict[str, Any]:
             bus.publish(
                 topics.MOTOR_COMMAND, Velocity(step.speed_command_mps / localizer.max_speed, 0)
             )
-            bus.publish(topics.ATTITUDE, Attitude(1, 0, 0, 0, 0, 0, math.degrees(truth.yaw_rad)))
+            yaw = math.degrees(truth.yaw_rad)
+            bus.publish(topics.ATTITUDE, Attitude(1, 0, 0, 0, 0, 0, yaw, stamp=stamp))
             if step.gps is not None:
                 lat, lon = frame.to_geo(*step.gps)
                 bus.publish(

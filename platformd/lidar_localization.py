@@ -30,6 +30,7 @@ accepted and refused, and why GPS is refused now (the annunciator's group 90 war
 from __future__ import annotations
 
 import asyncio
+import bisect
 import collections
 import concurrent.futures
 import logging
@@ -84,6 +85,8 @@ modelled speed."""
 NO_GYRO_YAW_SLACK_RAD = math.radians(15.0)
 """Without an IMU the prior does not know the turn: let the registration find it."""
 GRID_SAVE_S = 30.0
+IMU_STALE_S = 0.5
+"""An IMU silent this long is taken as absent: the prior turns by the command."""
 IMU_JUMP_RAD_S = math.radians(150.0)
 """A yaw change between scans faster than any rover turns: the IMU's filter was reset (it
 starts again from yaw 0 after a reconnect or its gyro calibration), not a turn."""
@@ -155,10 +158,14 @@ class Localizer(Actor):
         self.gps_refusal = ""
         """Why GPS is refused now ("" when trusted, or no fix yet)."""
         self._speed = 0.0
-        self._yaw: tuple[float, float] | None = None
+        self._imu: collections.deque[tuple[float, float, float]] = collections.deque(maxlen=256)
+        """The IMU's recent yaws: (stamp, raw yaw, continuous yaw: unwrapped, resets taken
+        out), to read its yaw at each scan's time."""
         """The IMU's latest yaw (rad) and its time."""
         self._yaw_at_scan: float | None = None
         self.imu_jumps = 0
+        self.scans_done = 0
+        """Scans processed, with the fixes due with them, and published."""
         self._scan: RobotScan | None = None
         self._fixes: collections.deque[GpsFix] = collections.deque(maxlen=8)
         self._wake = asyncio.Event()
@@ -186,6 +193,7 @@ class Localizer(Actor):
                     self._worker, self.process, scan, fixes, self._speed, yaw_rate, self._turn
                 )
                 self._publish(accepted)
+                self.scans_done = self.odometry.scans
         finally:
             try:
                 await loop.run_in_executor(self._worker, self.save_grid)
@@ -239,26 +247,55 @@ class Localizer(Actor):
         self._turn = velocity.angular * self.max_yaw_rate
 
     def _on_attitude(self, attitude: Attitude) -> None:
-        self._yaw = (math.radians(attitude.yaw_deg), attitude.stamp)
+        raw, stamp = math.radians(attitude.yaw_deg), attitude.stamp
+        if not self._imu:
+            self._imu.append((stamp, raw, raw))
+            return
+        last_stamp, last_raw, continuous = self._imu[-1]
+        if stamp <= last_stamp:
+            return
+        turn = wrap(raw - last_raw)
+        if abs(turn) / (stamp - last_stamp) > IMU_JUMP_RAD_S:
+            self.imu_jumps += 1
+            _LOGGER.info(
+                "IMU yaw jumped %.0f° (its filter restarted): not taken as a turn",
+                math.degrees(turn),
+            )
+            turn = 0.0
+            if len(self._imu) >= 2:  # the turn goes on at the rate it had
+                before_stamp, _raw, before = self._imu[-2]
+                turn = (continuous - before) / (last_stamp - before_stamp) * (stamp - last_stamp)
+        self._imu.append((stamp, raw, continuous + turn))
+
+    def _imu_yaw_at(self, when: float) -> float | None:
+        """The IMU's continuous yaw at ``when``, between the samples around it; None when its
+        latest sample is older than :data:`IMU_STALE_S` (no IMU, or it stopped)."""
+        samples = self._imu
+        if not samples or when - samples[-1][0] > IMU_STALE_S:
+            return None
+        if when >= samples[-1][0]:
+            return samples[-1][2]
+        if when <= samples[0][0]:
+            return samples[0][2]
+        stamps = [sample[0] for sample in samples]
+        i = bisect.bisect_right(stamps, when)
+        (t0, _r0, y0), (t1, _r1, y1) = samples[i - 1], samples[i]
+        return y0 + (y1 - y0) * (when - t0) / (t1 - t0)
 
     def _yaw_rate(self, scan: RobotScan | None) -> float | None:
-        """The IMU's mean yaw rate since the previous scan (None: no IMU)."""
-        if scan is None or self._yaw is None:
+        """The IMU's mean yaw rate between the previous scan's time and this one's (None: no
+        IMU). Read at the scans' own times, not when they are processed: on a loaded machine
+        they are processed late and in bursts, and the turn would go to the wrong scan."""
+        if scan is None:
             return None
-        yaw = self._yaw[0]
+        yaw = self._imu_yaw_at(scan.time)
         previous, self._yaw_at_scan = self._yaw_at_scan, yaw
+        if yaw is None:
+            return None
         last = self.last
         if previous is None or last is None or scan.time <= last.time:
             return 0.0
-        rate = wrap(yaw - previous) / (scan.time - last.time)
-        if abs(rate) > IMU_JUMP_RAD_S:
-            self.imu_jumps += 1
-            _LOGGER.info(
-                "IMU yaw jumped %.0f° between scans (its filter restarted): the scans find the turn",
-                math.degrees(wrap(yaw - previous)),
-            )
-            return None
-        return rate
+        return (yaw - previous) / (scan.time - last.time)
 
     # ------------------------------------------------------------------ worker thread
 

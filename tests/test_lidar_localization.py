@@ -45,7 +45,10 @@ class Rig:
             step = drive.step()
             truth = step.truth
             bus.publish(topics.MOTOR_COMMAND, Velocity(step.speed_command_mps / MAX_SPEED_MPS, 0))
-            bus.publish(topics.ATTITUDE, Attitude(1, 0, 0, 0, 0, 0, math.degrees(truth.yaw_rad)))
+            bus.publish(
+                topics.ATTITUDE,
+                Attitude(1, 0, 0, 0, 0, 0, math.degrees(truth.yaw_rad), stamp=step.time),
+            )
             if step.gps is not None:
                 latitude, longitude = frame.to_geo(step.gps[0] + offset_m, step.gps[1])
                 fix = GpsFix(
@@ -63,7 +66,7 @@ class Rig:
                 bus.publish(topics.GPS_FIX, fix)
             done = localizer.odometry.scans + 1
             bus.publish(topics.LIDAR_SCAN, step.scan)
-            await _until(lambda: localizer.odometry.scans >= done)  # noqa: B023
+            await _until(lambda: localizer.scans_done >= done)  # noqa: B023
 
 
 async def test_a_gps_jump_is_refused_reported_and_raises_the_90_30_warning() -> None:
@@ -188,3 +191,25 @@ def test_an_open_field_dash_and_stop_on_rtk_fixes_keeps_the_pose_on_the_robot() 
             errors.append(math.hypot(fused.x_m - x, fused.y_m - y))
     assert not refused, refused
     assert len(errors) > 40 and max(errors) < 0.15, max(errors)
+
+
+def test_the_imu_turn_is_read_at_each_scans_time_and_a_reset_is_not_a_turn() -> None:
+    """On a loaded machine the scans are processed late and in bursts: the IMU's turn is read
+    at each scan's own time (between its samples), not at the moment it is processed, so
+    each scan gets its share; a yaw that leaps (the IMU's filter restarted) is not a turn."""
+    localizer = Localizer(Bus(), 5.0)
+    empty = RobotScan(0.0, (), (), 0, ())
+    for i in range(41):  # 2 s at 20 Hz turning left at 0.5 rad/s, a restart to 0 at 1.02 s
+        t = 10.0 + i * 0.05
+        yaw = 0.5 * (t - 10.0) - (0.51 if t > 11.02 else 0.0)
+        localizer._on_attitude(Attitude(1, 0, 0, 0, 0, 0, math.degrees(yaw), stamp=t))
+    rates = []
+    for k in range(1, 20):  # all processed after the IMU's samples arrived
+        scan = dataclasses.replace(empty, time=10.0 + k * 0.1)
+        rate = localizer._yaw_rate(scan)
+        rates.append(rate)
+        localizer.process(scan, [], 0.0, rate)
+    assert localizer.imu_jumps == 1
+    assert all(r is not None and abs(r - 0.5) < 0.01 for r in rates[1:]), rates
+    # The IMU goes silent: no turn is read from its last yaw (the command's is used).
+    assert localizer._yaw_rate(dataclasses.replace(empty, time=13.0)) is None
