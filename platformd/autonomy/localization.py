@@ -15,6 +15,8 @@ refused as a jump or a drag is never followed, by either.
 from __future__ import annotations
 
 import asyncio
+import bisect
+import collections
 import logging
 import math
 from collections.abc import Callable
@@ -26,12 +28,17 @@ from brasidas.autonomy.localization import FilterParameters, PoseFilter
 from brasidas.bus import Bus
 from brasidas.messages import Attitude, GpsFix, MotionState, PoseEstimate
 from brasidas.perception.messages import LidarPose
+from brasidas.perception.odometry import wrap
 
 _LOGGER = logging.getLogger(__name__)
 
 LIDAR_POSE_AHEAD_S = 0.5
 """A lidar pose is carried forward at most this far (five scans): a lidar that stalls has its
 motors held (platformd.lidar), and its pose's growing fix age holds the patrol."""
+IMU_HISTORY = 200
+"""The IMU's recent yaws kept to turn a late lidar pose by (seconds of them at its rate)."""
+IMU_JUMP_RAD_S = math.radians(150.0)
+"""A yaw change faster than any rover turns: the IMU's filter restarted, not a turn."""
 
 
 class Localization(Actor):
@@ -49,6 +56,8 @@ class Localization(Actor):
         super().__init__(bus)
         self.lidar_localized = lidar_localized
         self._lidar: LidarPose | None = None
+        self._imu: collections.deque[tuple[float, float]] = collections.deque(maxlen=IMU_HISTORY)
+        """(time, yaw) of the IMU's recent attitudes, on this actor's clock."""
         self.filter = PoseFilter(parameters)
         self.period = 1.0 / rate_hz
         self._clock = clock
@@ -104,13 +113,19 @@ class Localization(Actor):
         return pose
 
     def _publish_lidar(self, now: float, frame: LocalFrame, lidar: LidarPose) -> PoseEstimate:
-        """The lidar pose carried forward to ``now`` at the filter's speed."""
+        """The lidar pose carried forward to ``now``: along its heading at the filter's speed,
+        turned by what the IMU turned since. The lidar pose is the scan's, late by the scan's
+        registration (and more on a loaded machine: a map search); a patrol steering on a
+        heading that lags the turn overshoots, and weaves, into what the lidar stops it for."""
         assert lidar.measured_at is not None
         speed = self.filter.estimate(now).speed if self.filter.initialized else 0.0
-        ahead = speed * min(LIDAR_POSE_AHEAD_S, max(0.0, now - lidar.time))
+        until = min(now, lidar.time + LIDAR_POSE_AHEAD_S)
+        ahead = speed * max(0.0, until - lidar.time)
+        turn = self._imu_turn(lidar.time, until)
+        yaw = wrap(lidar.yaw_rad + turn)
         x, y = frame.to_local(lidar.latitude, lidar.longitude)
-        x += ahead * math.cos(lidar.yaw_rad)
-        y += ahead * math.sin(lidar.yaw_rad)
+        x += ahead * math.cos(lidar.yaw_rad + turn / 2)
+        y += ahead * math.sin(lidar.yaw_rad + turn / 2)
         latitude, longitude = frame.to_geo(x, y)
         pose = PoseEstimate(
             time=now,
@@ -119,7 +134,7 @@ class Localization(Actor):
             x_m=x,
             y_m=y,
             origin=(frame.latitude, frame.longitude),
-            yaw_rad=lidar.yaw_rad,
+            yaw_rad=yaw,
             speed_mps=speed,
             sigma_xy_m=lidar.sigma_m,
             sigma_heading_deg=math.degrees(lidar.sigma_yaw_rad),
@@ -151,7 +166,25 @@ class Localization(Actor):
         self.fixes += 1
 
     def _on_attitude(self, attitude: Attitude) -> None:
-        self.filter.imu_yaw(self._now(), math.radians(attitude.yaw_deg))
+        now, yaw = self._now(), math.radians(attitude.yaw_deg)
+        self.filter.imu_yaw(now, yaw)
+        self._imu.append((now, yaw))
+
+    def _imu_turn(self, start: float, end: float) -> float:
+        """What the IMU turned from ``start`` to ``end`` (0 without one, or across a restart
+        of its filter)."""
+        imu = self._imu
+        if end <= start or len(imu) < 2 or imu[0][0] > start:
+            return 0.0
+        times = [t for t, _ in imu]
+
+        def yaw_at(t: float) -> float:
+            return imu[max(0, bisect.bisect_right(times, t) - 1)][1]
+
+        turn = wrap(yaw_at(end) - yaw_at(start))
+        if abs(turn) > IMU_JUMP_RAD_S * (end - start) + math.radians(5.0):
+            return 0.0
+        return turn
 
     def _on_motion(self, state: MotionState) -> None:
         self.filter.command(self._now(), state.command.linear, state.command.angular)
