@@ -94,7 +94,11 @@ class MapMatchProcess:
         if self._walls.exception() is not None:
             self._restart(f"{self._walls.exception()}")
             return False
-        future = self._ensure().submit(_match, points_xy, start, search)
+        try:
+            future = self._ensure().submit(_match, points_xy, start, search)
+        except BrokenProcessPool as err:  # it died while idle
+            self._restart(str(err) or type(err).__name__)
+            return False
         self.pending = Pending(future, start, now)
         return True
 
