@@ -94,6 +94,9 @@ MAP_EVERY = 5
 """Scans between matches to the area map (2 Hz for a 10 Hz lidar)."""
 MAP_SEARCH_SIGMA_M = 0.5
 """Above this position uncertainty the match to the map searches around the estimate."""
+MAP_ANSWER_LATE_S = 1.0
+"""A map match answered later than this after its scan (a starved machine) is not fused: the
+odometry that carries it forward to now has drifted as much as it would correct."""
 MAP_DOUBT_AFTER = 3
 """Fits to the map refused in a row after which the fusion's certainty is doubted."""
 
@@ -403,6 +406,8 @@ class Localizer(Actor):
             return
         pending, match = done
         self.map_answers += 1
+        if self.fusion.time - pending.time > MAP_ANSWER_LATE_S:
+            match = f"the map's answer came {self.fusion.time - pending.time:.1f} s late"
         if isinstance(match, str):
             self.map_refusals += 1
             self.map_refusal = match

@@ -4,8 +4,9 @@ small_gicp holds the GIL for the whole of each call: building the map's walls (h
 milliseconds for a town), and a search around an uncertain pose (45 registrations, a quarter of
 a second). In a thread of the platform's process that stalls its event loop (the robot's
 control) for as long. Here the walls and the matches live in a child process (started with
-``forkserver``, so a daemon's threads are not forked, and below the platform's priority); the
-localizer's thread sends a scan and gets the match back later without holding the GIL.
+``forkserver``, so a daemon's threads are not forked; at the platform's own priority, unlike
+the planner's: on a loaded machine a localization starved of its map is a robot that drifts);
+the localizer's thread sends a scan and gets the match back later without holding the GIL.
 
 Matches are asynchronous: :meth:`MapMatchProcess.submit` starts one (at most one in flight;
 a scan arriving while one runs is not matched), :meth:`MapMatchProcess.collect` returns it
@@ -19,7 +20,6 @@ from __future__ import annotations
 import concurrent.futures
 import logging
 import multiprocessing
-import os
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
@@ -31,15 +31,8 @@ from brasidas.perception.odometry import Pose2D
 
 _LOGGER = logging.getLogger(__name__)
 
-NICENESS = 5
-"""Below the platform, as the planner's process: on a busy CPU the control loop runs first."""
-
 _matcher: MapMatcher | None = None
 """(Child process.) The walls of the latest map."""
-
-
-def _start_child() -> None:
-    os.nice(NICENESS)
 
 
 def _set_walls(rings: list[NDArray[np.float64]]) -> int:
@@ -118,9 +111,7 @@ class MapMatchProcess:
         if self._pool is None:
             context = multiprocessing.get_context("forkserver")
             context.set_forkserver_preload(["platformd.map_match_process"])
-            self._pool = concurrent.futures.ProcessPoolExecutor(
-                1, mp_context=context, initializer=_start_child
-            )
+            self._pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=context)
         return self._pool
 
     def _restart(self, why: str) -> None:
