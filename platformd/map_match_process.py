@@ -20,6 +20,7 @@ from __future__ import annotations
 import concurrent.futures
 import logging
 import multiprocessing
+import signal
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
@@ -33,6 +34,12 @@ _LOGGER = logging.getLogger(__name__)
 
 _matcher: MapMatcher | None = None
 """(Child process.) The walls of the latest map."""
+
+
+def _start_child() -> None:
+    # Ctrl-C in the terminal reaches the whole process group: the platform stops this process
+    # itself (at its shutdown), which a KeyboardInterrupt traceback here would only clutter.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _set_walls(rings: list[NDArray[np.float64]]) -> int:
@@ -111,7 +118,9 @@ class MapMatchProcess:
         if self._pool is None:
             context = multiprocessing.get_context("forkserver")
             context.set_forkserver_preload(["platformd.map_match_process"])
-            self._pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=context)
+            self._pool = concurrent.futures.ProcessPoolExecutor(
+                1, mp_context=context, initializer=_start_child
+            )
         return self._pool
 
     def _restart(self, why: str) -> None:
