@@ -56,6 +56,10 @@ LIDAR = (
     "lidar.map_obstacles=false",
     "autonomy.cruise_speed_kmh=7",
     "autonomy.lookahead_m=2",
+    # The street is 14 m wide: at the default 4.5 m a NEO-6M start 2.5 m off sideways (before
+    # the lidar's fusion starts, on the GPS+IMU pose) puts the robot inside the buildings'
+    # margin, and the patrol holds before it ever drives.
+    "autonomy.clearance_m=2",
     "sim.heading_deg=90",  # facing along the street
 )
 
