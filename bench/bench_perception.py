@@ -15,13 +15,22 @@ motor controller in the loop: its 10 Hz refresh would add up to 100 ms, a fixed 
 
 - **localization** (:func:`_localization`, simulated time on a stepped clock, no I/O): the
   simulated LD19's real frames through the decoder and :func:`to_robot`, the small_gicp lidar
-  odometry and the GPS-gated fusion, against the simulator's ground truth with the GPS
+  odometry, the scans matched to the area map's buildings twice a second and the GPS-gated
+  fusion, against the simulator's ground truth with the GPS
   simulator's NEO-6M error process, one drive round a street grid in phases: a warm-up with
   GPS (fused vs GPS-only error), a 60 s GPS outage at 1 m/s (error at its end), honest GPS
   again, a 30 m spoofed jump (fixes until the first rejection), honest again, a 0.5 m/s
   spoofed drag (seconds to detection; how far the estimate was pulled); the odometry's CPU per
-  scan. ``BENCH_PERCEPTION_WARMUP_S`` (default 300) sets the warm-up; the STL-27L row drives
-  the warm-up only.
+  scan and per map match. ``BENCH_PERCEPTION_WARMUP_S`` (default 300) sets the warm-up; the
+  STL-27L row drives the warm-up only, and so does ``ld19_map_off_0.36m``, whose map has every
+  building 0.36 m from where it stands (a survey's error: the fused error follows the map's).
+  The other rows' map is the simulated world itself, exact.
+
+- **loop heartbeat** (:func:`_loop_heartbeat`, real time): how late a 10 ms sleep of the
+  event loop wakes while the localizer runs on the street drive's scans and fixes (its
+  odometry in its thread, the map matching in its process), against the loop alone and
+  against the same map matching in a thread of the loop's process (small_gicp holds the GIL
+  for the whole of a call). ``BENCH_PERCEPTION_HEARTBEAT_S`` (default 60).
 
 Seeded (``sim.seed``); ``BENCH_PERCEPTION_TRIALS`` (default 50) pop-ups. Figures not reached
 (the town's 50 laps, a replayed CARMEN log) are listed under ``not_measured``.
@@ -30,6 +39,7 @@ Seeded (``sim.seed``); ``BENCH_PERCEPTION_TRIALS`` (default 50) pop-ups. Figures
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import math
 import os
 import random
@@ -43,19 +53,26 @@ from bench.support import percentiles
 from brasidas import topics
 from brasidas.bus import Bus
 from brasidas.config.lidar import LidarSection
+from brasidas.config.platform import AutonomySection
 from brasidas.messages import Velocity
 from brasidas.perception.fusion import PoseFusion
+from brasidas.perception.map_match import MapMatcher
 from brasidas.perception.messages import RobotScan
-from brasidas.perception.odometry import LidarOdometry, scan_points
+from brasidas.perception.odometry import LidarOdometry, Pose2D, scan_points
 from brasidas.perception.proximity import Geometry
 from platformd.arbiter import MotionArbiter
 from platformd.lidar_reader import LidarReader
-from platformd.sim.drive import SimulatedDrive, loop_waypoints, street_grid
+from platformd.sim.drive import MAX_SPEED_MPS as DRIVE_MAX_SPEED_MPS
+from platformd.sim.drive import SimulatedDrive, loop_waypoints, street_buildings, street_grid
 from platformd.sim.lidar import LidarSimulator, LidarWorld, ScanGenerator
 from platformd.sim.vehicle import VehicleModel
 
 TRIALS = int(os.environ.get("BENCH_PERCEPTION_TRIALS", "50"))
 WARMUP_S = float(os.environ.get("BENCH_PERCEPTION_WARMUP_S", "300"))
+HEARTBEAT_S = float(os.environ.get("BENCH_PERCEPTION_HEARTBEAT_S", "60"))
+"""How long the loop's heartbeat is measured with the localizer running."""
+MAP_EVERY = 5
+"""Scans between matches to the map (2 Hz at the LD19's 10 Hz): platformd.lidar_localization's."""
 SPEED_MPS = 1.0
 MAX_SPEED_MPS = 6.0 / 3.6
 
@@ -181,11 +198,21 @@ def _cast_cost_s(rig: Rig, frames: int = 2000) -> float:
     return (time.process_time() - started) / frames
 
 
-def _localization(model: str = "ld19", *, spoofing: bool = True) -> dict[str, Any]:
-    """The localization rows (see the module's docstring); synchronous, simulated time."""
-    drive = SimulatedDrive(street_grid(), loop_waypoints(), model=model, seed=1)
+def _localization(
+    model: str = "ld19",
+    *,
+    spoofing: bool = True,
+    map_shift_m: tuple[float, float] = (0.0, 0.0),
+    label: str = "",
+) -> dict[str, Any]:
+    """The localization rows (see the module's docstring); synchronous, simulated time.
+    ``map_shift_m`` misplaces the map's buildings (a survey's error) against the world."""
+    world = street_grid()
+    drive = SimulatedDrive(world, loop_waypoints(), model=model, seed=1)
+    # The area map's buildings are the world's (a surveyed map): the scans are matched to them.
+    matcher = MapMatcher([np.asarray(b.exterior.coords) + map_shift_m for b in street_buildings()])
     odometry = LidarOdometry()
-    fusion = PoseFusion()
+    fusion = PoseFusion(gps_sigma_m=AutonomySection().gps_sigma_m)  # the platform's default
     fusion.heading_rad = 0.0  # the simulated vehicle starts facing east
     phases: list[tuple[str, float, Callable[[float], tuple[float, float]] | None]] = [
         ("warmup", WARMUP_S, None)
@@ -199,6 +226,7 @@ def _localization(model: str = "ld19", *, spoofing: bool = True) -> dict[str, An
             ("drag", 40.0, lambda t: (0.5 * t, 0.0)),
         ]
     cpu: list[float] = []
+    map_cpu: list[float] = []
     sources: dict[str, int] = {}
     errors: dict[str, list[float]] = {}
     gps_errors: list[float] = []
@@ -217,6 +245,14 @@ def _localization(model: str = "ld19", *, spoofing: bool = True) -> dict[str, An
             cpu.append(time.process_time() - began)
             sources[result.source] = sources.get(result.source, 0) + 1
             fusion.predict(result.delta, result.source, step.time)
+            if fusion.started and len(cpu) % MAP_EVERY == 0:
+                began = time.process_time()
+                guess = Pose2D(*(float(v) for v in fusion.state))
+                match = matcher.match(points, guess)
+                map_cpu.append(time.process_time() - began)
+                if not isinstance(match, str):
+                    x, y, yaw = match.pose.x_m, match.pose.y_m, match.pose.yaw_rad
+                    fusion.map_fix(x, y, yaw, match.covariance, step.time)
             truth = step.truth
             if step.gps is not None and name != "outage":
                 gx, gy = step.gps
@@ -234,6 +270,7 @@ def _localization(model: str = "ld19", *, spoofing: bool = True) -> dict[str, An
             pose = fusion.pose()
             if fusion.started and step.time > 10.0:
                 errors[name].append(math.hypot(pose.x_m - truth.x_m, pose.y_m - truth.y_m))
+    model = label or model
     figures: dict[str, Any] = {
         f"{model}_warmup_s": WARMUP_S,
         f"{model}_gps_only_error_mean_m": round(float(np.mean(gps_errors)), 2),
@@ -242,6 +279,9 @@ def _localization(model: str = "ld19", *, spoofing: bool = True) -> dict[str, An
             100 * sources.get("prior", 0) / max(1, sum(sources.values())), 1
         ),
         f"{model}_odometry_cpu_ms_per_scan": percentiles([1000 * c for c in cpu]),
+        f"{model}_map_match_cpu_ms": percentiles([1000 * c for c in map_cpu]),
+        f"{model}_map_matches_fused": fusion.map_accepted,
+        f"{model}_map_matches_refused": matcher.refused + fusion.map_refused,
     }
     if spoofing:
         outage = errors["outage"]
@@ -259,12 +299,124 @@ def _localization(model: str = "ld19", *, spoofing: bool = True) -> dict[str, An
     return figures
 
 
+async def _loop_heartbeat(seconds: float = HEARTBEAT_S) -> dict[str, Any]:
+    """The event loop's heartbeat (a 10 ms sleep's lateness) while the localizer (real
+    actor, its worker thread and its map-matching process) takes the street drive's scans
+    and fixes in real time, matching them to the street's buildings; and, for comparison,
+    while the same matches run in a thread of this process (as they did)."""
+    from brasidas.autonomy.geo import LocalFrame
+    from brasidas.messages import Attitude, GpsFix
+    from platformd.lidar_localization import Localizer
+
+    bus = Bus()
+    localizer = Localizer(bus, DRIVE_MAX_SPEED_MPS, gps_sigma_m=2.1)
+    drive = SimulatedDrive(street_grid(), loop_waypoints(), seed=3)
+    frame = LocalFrame(*drive.vehicle.origin[:2])
+    rings = [np.asarray(b.exterior.coords) for b in street_buildings()]
+    lags: list[float] = []
+    done = asyncio.Event()
+
+    async def heartbeat() -> None:
+        while not done.is_set():
+            began = time.perf_counter()
+            await asyncio.sleep(0.01)
+            lags.append(1000 * (time.perf_counter() - began - 0.01))
+
+    async def feed() -> None:
+        localizer.frame = frame
+        localizer.set_walls(rings)  # before its worker starts: no other thread uses it yet
+        offset = time.monotonic() - drive.now
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            step = drive.step()
+            stamp = step.time + offset
+            truth = step.truth
+            bus.publish(
+                topics.MOTOR_COMMAND, Velocity(step.speed_command_mps / localizer.max_speed, 0)
+            )
+            yaw = math.degrees(truth.yaw_rad)
+            bus.publish(topics.ATTITUDE, Attitude(1, 0, 0, 0, 0, 0, yaw, stamp=stamp))
+            if step.gps is not None:
+                lat, lon = frame.to_geo(*step.gps)
+                bus.publish(
+                    topics.GPS_FIX,
+                    GpsFix(
+                        lat,
+                        lon,
+                        42.0,
+                        truth.speed_mps,
+                        truth.course_deg,
+                        1,
+                        9,
+                        1.0,
+                        "",
+                        stamp=stamp,
+                    ),
+                )
+            bus.publish(topics.LIDAR_SCAN, dataclasses.replace(step.scan, time=stamp))
+            await asyncio.sleep(max(0.0, stamp + 0.1 - time.monotonic()))
+        done.set()
+
+    # The loop with nothing else to do (the machine's own load): the baseline.
+    idle = asyncio.create_task(heartbeat())
+    await asyncio.sleep(min(10.0, seconds / 3))
+    done.set()
+    await idle
+    idle_lags = sorted(lags)
+    lags.clear()
+    done.clear()
+    async with asyncio.TaskGroup() as group:
+        actor = group.create_task(localizer.run())
+        group.create_task(heartbeat())
+        await feed()
+        actor.cancel()
+    process_lags = sorted(lags)
+    answers = localizer.map_answers
+    # The same kind of matching in a thread of this process: each search's GIL is the loop's.
+    matcher = MapMatcher(rings)
+    scans = [drive.step() for _ in range(int(10 * seconds))][::MAP_EVERY]
+    lags.clear()
+    done.clear()
+
+    def match_all() -> None:
+        for step in scans:
+            t = step.truth
+            points = scan_points(step.scan, step.speed_command_mps, step.gyro_rad_s)
+            matcher.match(points, Pose2D(t.x_m + 0.5, t.y_m - 0.3, t.yaw_rad), search=True)
+        done.set()
+
+    async with asyncio.TaskGroup() as group:
+        group.create_task(heartbeat())
+        await asyncio.to_thread(match_all)
+    thread_lags = sorted(lags)
+
+    def p99(values: list[float]) -> float:
+        return round(values[min(len(values) - 1, int(0.99 * len(values)))], 1) if values else 0.0
+
+    return {
+        "loop_heartbeat_lag_p99_ms_idle": p99(idle_lags),
+        "loop_heartbeat_lag_p99_ms": p99(process_lags),
+        "loop_heartbeat_lag_max_ms": round(process_lags[-1], 1) if process_lags else 0.0,
+        "loop_heartbeat_map_answers": answers,
+        "loop_heartbeat_seconds": seconds,
+        "loop_heartbeat_lag_p99_ms_matching_in_a_thread": p99(thread_lags),
+        "loop_heartbeat_lag_max_ms_matching_in_a_thread": round(thread_lags[-1], 1)
+        if thread_lags
+        else 0.0,
+        "loop_heartbeat_loadavg_1m": round(os.getloadavg()[0], 2),
+    }
+
+
 async def run() -> dict[str, Any]:
     from bench.perception_carmen import carmen_rows
 
+    heartbeat = await _loop_heartbeat()
     localization = await asyncio.to_thread(_localization)
     localization |= await asyncio.to_thread(carmen_rows)
     localization |= await asyncio.to_thread(_localization, "stl27l", spoofing=False)
+    localization |= await asyncio.to_thread(
+        _localization, spoofing=False, map_shift_m=(0.3, -0.2), label="ld19_map_off_0.36m"
+    )
     rig = Rig(seed=1)
     load = os.getloadavg()
     async with asyncio.TaskGroup() as group:
@@ -297,4 +449,4 @@ async def run() -> dict[str, Any]:
         "loadavg_1m": round(load[0], 2),
         "not_measured": "town laps: make bench town",
     }
-    return figures | localization
+    return figures | localization | heartbeat

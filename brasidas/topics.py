@@ -38,7 +38,7 @@ from brasidas.messages import (
     Velocity,
     VelocityLinkStats,
 )
-from brasidas.perception.messages import FusedPosition, Proximity, RobotScan
+from brasidas.perception.messages import FusedPosition, LidarPose, Proximity, RobotScan
 
 if TYPE_CHECKING:  # numpy: not for every importer of the topics
     from brasidas.perception.view import GridImage
@@ -138,3 +138,9 @@ FUSED_POSE: Topic[FusedPosition] = Topic("fused_pose", retain=True)
 """The lidar localization's fused pose, at most 5 a second (platformd.perception_view)."""
 OCCUPANCY_GRID: Topic[GridImage] = Topic("occupancy_grid", retain=True)
 """The occupancy grid as a small image, every few seconds while it changes (likewise)."""
+LIDAR_POSE: Topic[LidarPose] = Topic("lidar_pose", retain=True)
+"""The lidar localization's fused pose, after each scan (platformd.lidar_localization): what
+``POSE`` rests on while it registers (platformd.autonomy.localization)."""
+GPS_ACCEPTED: Topic[GpsFix] = Topic("gps_accepted")
+"""Each fix the lidar localization's gate did not refuse (all of them before it starts): the
+only fixes the GPS+IMU filter follows while ``lidar.odometry`` is on."""

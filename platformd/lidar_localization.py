@@ -11,8 +11,16 @@ enough (0.5 m/s) to give a course: a heading the platform can trust without a co
 The scans also build an occupancy grid (:mod:`brasidas.perception.grid`) at the fused pose
 (not while dead reckoning), saved every ``GRID_SAVE_S`` and at stop to ``lidar.grid_file``
 and loaded at start: its anchor becomes the local frame, so the robot's pose and the grid
-it keeps stay in one frame across restarts (R-12). The area map is not involved: reloading
-it (R-5.3.2) leaves the localization as it was.
+it keeps stay in one frame across restarts (R-12).
+
+Every ``MAP_EVERY`` scans the scan is also registered to the area map's keep-outs (buildings,
+walls: :mod:`brasidas.perception.map_match`) from the fused pose, an absolute measurement that
+makes the GPS's slow bias observable. That registration runs in a process of its own
+(:mod:`platformd.map_match_process`: small_gicp holds the GIL for the whole of a call, and a
+search or a town's walls take hundreds of milliseconds); its answer arrives with a later scan
+and is carried forward by the motion since. Reloading the area map (R-5.3.2) only changes what the
+scans are matched to: the fused pose carries on, so the robot stays localized; the new walls
+are taken from the next scan.
 
 What it says: the ``perception`` telemetry's localization source and uncertainty, GPS fixes
 accepted and refused, and why GPS is refused now (the annunciator's group 90 warning
@@ -22,24 +30,29 @@ accepted and refused, and why GPS is refused now (the annunciator's group 90 war
 from __future__ import annotations
 
 import asyncio
+import bisect
 import collections
 import concurrent.futures
 import logging
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from shapely.geometry import MultiPolygon
 
 from brasidas import topics
 from brasidas.actor import Actor
+from brasidas.autonomy.areamap import AreaMap
 from brasidas.autonomy.geo import LocalFrame
 from brasidas.bus import Bus
 from brasidas.clock import Clock, LoopClock
 from brasidas.messages import Attitude, GpsFix, Velocity
 from brasidas.perception.fusion import FusedPose, GpsVerdict, PoseFusion
 from brasidas.perception.grid import GridError, OccupancyGrid
-from brasidas.perception.messages import RobotScan
+from brasidas.perception.map_match import MapMatch
+from brasidas.perception.messages import LidarPose, RobotScan
 from brasidas.perception.odometry import (
     LidarOdometry,
     OdometryStep,
@@ -47,14 +60,45 @@ from brasidas.perception.odometry import (
     scan_points,
     wrap,
 )
+from platformd.lidar_models import TEMPORARY_KEEPOUT_PREFIX
+from platformd.map_match_process import MapMatchProcess, Pending
 
 _LOGGER = logging.getLogger(__name__)
 
 HEADING_SPEED_MPS = 0.5
 """A fix moving at least this fast gives a course good enough to start from."""
+FIX_EARLY_S = 0.02
+"""A fix up to this much newer than the scan is taken with it (the filter carries the pose
+forward to it along the scan's step)."""
+FIX_HOLD_S = 0.3
+"""Without scans, a fix waits this long for one before it is taken against the last pose."""
+DRIVE_LAG_S = 0.25
+"""The open-loop drive's response to a command (first order): the motion prior's speed and
+turn follow the command with this lag, not at once (the robot accelerating from a stop to 5 m/s
+covers a metre less than its command in its first second)."""
+DRIVE_SPEED_DOUBT = 0.5
+"""The prior's speed error, as a share of the gap between the command and the modelled speed
+(a chassis's lag is not known exactly: load, slope, battery)."""
+DOPPLER_FRESH_S = 0.5
+"""An accepted fix's speed over ground (Doppler, ~0.05 m/s) newer than this resets the
+modelled speed."""
 NO_GYRO_YAW_SLACK_RAD = math.radians(15.0)
 """Without an IMU the prior does not know the turn: let the registration find it."""
 GRID_SAVE_S = 30.0
+IMU_STALE_S = 0.5
+"""An IMU silent this long is taken as absent: the prior turns by the command."""
+IMU_JUMP_RAD_S = math.radians(150.0)
+"""A yaw change between scans faster than any rover turns: the IMU's filter was reset (it
+starts again from yaw 0 after a reconnect or its gyro calibration), not a turn."""
+MAP_EVERY = 5
+"""Scans between matches to the area map (2 Hz for a 10 Hz lidar)."""
+MAP_SEARCH_SIGMA_M = 0.5
+"""Above this position uncertainty the match to the map searches around the estimate."""
+MAP_ANSWER_LATE_S = 1.0
+"""A map match answered later than this after its scan (a starved machine) is not fused: the
+odometry that carries it forward to now has drifted as much as it would correct."""
+MAP_DOUBT_AFTER = 3
+"""Fits to the map refused in a row after which the fusion's certainty is doubted."""
 
 
 class Localizer(Actor):
@@ -69,8 +113,38 @@ class Localizer(Actor):
         *,
         grid_path: Path | None = None,
         clock: Clock | None = None,
+        area: Callable[[], AreaMap | None] | None = None,
+        max_yaw_rate_rad_s: float = 0.0,
+        gps_sigma_m: float = 2.1,
     ) -> None:
         super().__init__(bus)
+        self.gps_sigma = gps_sigma_m
+        """The receiver's absolute error at HDOP 1 (``autonomy.gps_sigma_m``)."""
+        self.max_yaw_rate = max_yaw_rate_rad_s
+        """The turn rate of a full ``angular`` command: without an IMU, the prior's turn."""
+        self._turn = 0.0
+        self._command = (0.0, 0.0)
+        """The last MOTOR_COMMAND: linear m/s, angular rad/s."""
+        self.drive = (0.0, 0.0)
+        """(Worker thread.) The modelled speed (m/s) and turn (rad/s) the drive has reached."""
+        self._drive_at: float | None = None
+        self._area = area or (lambda: None)
+        self._area_seen: object = None
+        self.maps = MapMatchProcess()
+        """The area map's walls and the matches to them, in a process of their own."""
+        self.has_walls = False
+        self.walls_set = 0
+        """How many times the walls were set (a map loaded or reloaded)."""
+        self.map_answers = 0
+        """Matches answered (fits and refusals) against the current walls."""
+        self.map_refusals = 0
+        self._rings: list[NDArray[np.float64]] = []
+        self._map_disagreements = 0
+        self._map_doubted = False
+        self.map_refusal = ""
+        """Why the last scan did not fit the area map ("" when it did, or no map)."""
+        self.measured_at: float | None = None
+        """When the pose last rested on a measurement: a registered scan or an accepted fix."""
         self.grid_path = grid_path
         self.grid: OccupancyGrid | None = None
         self.grid_error = ""
@@ -80,16 +154,21 @@ class Localizer(Actor):
         self.max_speed = max_speed_mps
         self.clock: Clock = clock or LoopClock()
         self.odometry = LidarOdometry()
-        self.fusion = PoseFusion()
+        self.fusion = PoseFusion(gps_sigma_m=gps_sigma_m)
         self.frame: LocalFrame | None = None
         self.last: OdometryStep | None = None
         self.fused: FusedPose | None = None
         self.gps_refusal = ""
         """Why GPS is refused now ("" when trusted, or no fix yet)."""
         self._speed = 0.0
-        self._yaw: tuple[float, float] | None = None
+        self._imu: collections.deque[tuple[float, float, float]] = collections.deque(maxlen=256)
+        """The IMU's recent yaws: (stamp, raw yaw, continuous yaw: unwrapped, resets taken
+        out), to read its yaw at each scan's time."""
         """The IMU's latest yaw (rad) and its time."""
         self._yaw_at_scan: float | None = None
+        self.imu_jumps = 0
+        self.scans_done = 0
+        """Scans processed, with the fixes due with them, and published."""
         self._scan: RobotScan | None = None
         self._fixes: collections.deque[GpsFix] = collections.deque(maxlen=8)
         self._wake = asyncio.Event()
@@ -106,18 +185,57 @@ class Localizer(Actor):
             while True:
                 await self._wake.wait()
                 self._wake.clear()
-                fixes = list(self._fixes)
-                self._fixes.clear()
                 scan, self._scan = self._scan, None
+                fixes = self._due_fixes(scan)
                 yaw_rate = self._yaw_rate(scan)
-                await loop.run_in_executor(
-                    self._worker, self.process, scan, fixes, self._speed, yaw_rate
+                area = self._area()
+                if area is not self._area_seen and self.frame is not None:
+                    self._area_seen = area
+                    await loop.run_in_executor(self._worker, self.set_area, area)
+                accepted = await loop.run_in_executor(
+                    self._worker, self.process, scan, fixes, self._speed, yaw_rate, self._turn
                 )
+                self._publish(accepted)
+                self.scans_done = self.odometry.scans
         finally:
             try:
                 await loop.run_in_executor(self._worker, self.save_grid)
             finally:
                 self._worker.shutdown(wait=False, cancel_futures=True)
+                self.maps.close()
+
+    def _publish(self, accepted: list[GpsFix]) -> None:
+        for fix in accepted:
+            self.bus.publish(topics.GPS_ACCEPTED, fix)
+        fused, frame = self.fused, self.frame
+        if fused is None or frame is None:
+            return
+        latitude, longitude = frame.to_geo(fused.x_m, fused.y_m)
+        self.bus.publish(
+            topics.LIDAR_POSE,
+            LidarPose(
+                fused.time,
+                latitude,
+                longitude,
+                fused.yaw_rad,
+                fused.sigma_m,
+                fused.sigma_yaw_rad,
+                fused.source,
+                self.measured_at,
+            ),
+        )
+
+    def _due_fixes(self, scan: RobotScan | None) -> list[GpsFix]:
+        """The fixes the filter can take now: those taken up to the scan it is about to
+        process. A newer fix waits for its scan: on a loaded machine the scans are processed
+        late, and a fix compared with a pose half a second old is "off" by half a second of
+        driving (2.5 m at 5 m/s), refused as a jump, and the pose left to the prior. Without
+        scans for :data:`FIX_HOLD_S` (the lidar stalled) they are taken as they are."""
+        horizon = scan.time + FIX_EARLY_S if scan is not None else self.clock.time() - FIX_HOLD_S
+        due: list[GpsFix] = []
+        while self._fixes and self._fixes[0].stamp <= horizon:
+            due.append(self._fixes.popleft())
+        return due
 
     def _on_scan(self, scan: RobotScan) -> None:
         self._scan = scan
@@ -129,20 +247,58 @@ class Localizer(Actor):
 
     def _on_command(self, velocity: Velocity) -> None:
         self._speed = velocity.linear * self.max_speed
+        self._turn = velocity.angular * self.max_yaw_rate
 
     def _on_attitude(self, attitude: Attitude) -> None:
-        self._yaw = (math.radians(attitude.yaw_deg), attitude.stamp)
+        raw, stamp = math.radians(attitude.yaw_deg), attitude.stamp
+        if not self._imu:
+            self._imu.append((stamp, raw, raw))
+            return
+        last_stamp, last_raw, continuous = self._imu[-1]
+        if stamp <= last_stamp:
+            return
+        turn = wrap(raw - last_raw)
+        if abs(turn) / (stamp - last_stamp) > IMU_JUMP_RAD_S:
+            self.imu_jumps += 1
+            _LOGGER.info(
+                "IMU yaw jumped %.0f° (its filter restarted): not taken as a turn",
+                math.degrees(turn),
+            )
+            turn = 0.0
+            if len(self._imu) >= 2:  # the turn goes on at the rate it had
+                before_stamp, _raw, before = self._imu[-2]
+                turn = (continuous - before) / (last_stamp - before_stamp) * (stamp - last_stamp)
+        self._imu.append((stamp, raw, continuous + turn))
+
+    def _imu_yaw_at(self, when: float) -> float | None:
+        """The IMU's continuous yaw at ``when``, between the samples around it; None when its
+        latest sample is older than :data:`IMU_STALE_S` (no IMU, or it stopped)."""
+        samples = self._imu
+        if not samples or when - samples[-1][0] > IMU_STALE_S:
+            return None
+        if when >= samples[-1][0]:
+            return samples[-1][2]
+        if when <= samples[0][0]:
+            return samples[0][2]
+        stamps = [sample[0] for sample in samples]
+        i = bisect.bisect_right(stamps, when)
+        (t0, _r0, y0), (t1, _r1, y1) = samples[i - 1], samples[i]
+        return y0 + (y1 - y0) * (when - t0) / (t1 - t0)
 
     def _yaw_rate(self, scan: RobotScan | None) -> float | None:
-        """The IMU's mean yaw rate since the previous scan (None: no IMU)."""
-        if scan is None or self._yaw is None:
+        """The IMU's mean yaw rate between the previous scan's time and this one's (None: no
+        IMU). Read at the scans' own times, not when they are processed: on a loaded machine
+        they are processed late and in bursts, and the turn would go to the wrong scan."""
+        if scan is None:
             return None
-        yaw = self._yaw[0]
+        yaw = self._imu_yaw_at(scan.time)
         previous, self._yaw_at_scan = self._yaw_at_scan, yaw
+        if yaw is None:
+            return None
         last = self.last
         if previous is None or last is None or scan.time <= last.time:
             return 0.0
-        return wrap(yaw - previous) / (scan.time - last.time)
+        return (yaw - previous) / (scan.time - last.time)
 
     # ------------------------------------------------------------------ worker thread
 
@@ -152,23 +308,139 @@ class Localizer(Actor):
         fixes: list[GpsFix],
         speed_mps: float,
         yaw_rate: float | None,
-    ) -> None:
-        """(Worker thread.) The fixes through the gate, then the scan through the odometry."""
-        for fix in fixes:
-            self._gps(fix)
+        commanded_turn: float = 0.0,
+    ) -> list[GpsFix]:
+        """(Worker thread.) The scan through the odometry, then the fixes through the gate
+        (compared with where the step put the robot at each fix's time); the fixes the gate
+        did not refuse. ``speed_mps`` and ``commanded_turn`` are the command: the prior
+        follows them with the drive's lag (:data:`DRIVE_LAG_S`), its speed reset by the
+        fixes' Doppler. Without the IMU's ``yaw_rate`` the turn is the commanded one: taken
+        as none, a robot that turned would keep its old heading wherever the scans do not
+        register (an open field), the fused pose would drive off the way it no longer faces,
+        and honest fixes, even RTK ones, be refused as a jump."""
         points: NDArray[np.float64] = np.empty((0, 2))
         if scan is not None:
+            speed, turn, doubt = self._drive_to(scan.time, speed_mps, commanded_turn)
             self.odometry.yaw_slack_rad = None if yaw_rate is not None else NO_GYRO_YAW_SLACK_RAD
-            rate = yaw_rate or 0.0
-            points = scan_points(scan, speed_mps, rate)
-            step = self.odometry.update(points, scan.time, speed_mps, rate)
+            rate = yaw_rate if yaw_rate is not None else turn
+            points = scan_points(scan, speed, rate)
+            step = self.odometry.update(points, scan.time, speed, rate)
             if step.source != "lidar" and (self.last is None or self.last.source == "lidar"):
                 _LOGGER.info("lidar odometry on the motion prior: %s", step.reason)
             self.last = step
-            self.fusion.predict(step.delta, step.source, scan.time)
+            prior_doubt = doubt if step.source != "lidar" else 0.0
+            self.fusion.predict(step.delta, step.source, scan.time, prior_doubt)
+            if step.source == "lidar" and self.fusion.started:
+                self.measured_at = scan.time
+            self._collect_map_match()
+            if self.fusion.started and self.odometry.scans % MAP_EVERY == 0:
+                self._match_map(points)
+        accepted = [fix for fix in fixes if self._gps(fix)]
         self.fused = self.fusion.pose() if self.fusion.started else None
         if scan is not None and self.fused is not None and self.fused.source != "prior":
             self._map(scan.time, points)
+        return accepted
+
+    def _drive_to(
+        self, now: float, speed_mps: float, turn_rad_s: float
+    ) -> tuple[float, float, float]:
+        """The modelled drive carried to ``now`` towards the command: the speed and turn it
+        reached (mean over the interval) and how wrong that speed may be (m/s)."""
+        speed, turn = self.drive
+        dt = 0.0 if self._drive_at is None else max(0.0, now - self._drive_at)
+        self._drive_at = now
+        blend = 1.0 - math.exp(-dt / DRIVE_LAG_S)
+        new_speed = speed + (speed_mps - speed) * blend
+        new_turn = turn + (turn_rad_s - turn) * blend
+        self.drive = (new_speed, new_turn)
+        doubt = DRIVE_SPEED_DOUBT * abs(speed_mps - (speed + new_speed) / 2)
+        return (speed + new_speed) / 2, (turn + new_turn) / 2, doubt
+
+    def set_area(self, area: AreaMap | None) -> None:
+        """(Worker thread.) Match the scans to ``area``'s keep-outs from now on."""
+        frame = self.frame
+        assert frame is not None
+        rings: list[NDArray[np.float64]] = []
+        if area is not None:
+            for zone_id, keepout in area.keepouts.items():
+                if zone_id.startswith(TEMPORARY_KEEPOUT_PREFIX):
+                    continue  # the lidar's own obstacles, not the map's walls
+                parts = keepout.geoms if isinstance(keepout, MultiPolygon) else (keepout,)
+                for polygon in parts:
+                    coords = polygon.exterior.coords
+                    rings.append(
+                        np.array([frame.to_local(*area.frame.to_geo(x, y)) for x, y in coords])
+                    )
+        if _same_rings(rings, self._rings):
+            return  # only the lidar's own keep-outs changed: the walls stay, and the match
+        self.set_walls(rings)
+        _LOGGER.info(
+            "localization: %s",
+            f"matching scans to the outlines of the area map's keep-outs ({len(rings)})"
+            if rings
+            else "no walls in the area map to match scans to",
+        )
+
+    def set_walls(self, rings: list[NDArray[np.float64]]) -> None:
+        """(Worker thread.) Match the scans to these outlines (the local frame's metres)."""
+        self._rings = rings
+        self.has_walls = bool(rings)
+        self.maps.set_walls(rings)
+        self.walls_set += 1
+        self.map_answers = 0
+        self.map_refusal = ""
+
+    def _match_map(self, points: NDArray[np.float64]) -> None:
+        """Ask the matching process where this scan fits the walls (the answer comes with a
+        later scan: :meth:`_collect_map_match`)."""
+        if not self.has_walls:
+            return
+        fusion = self.fusion
+        guess = Pose2D(*(float(v) for v in fusion.state))
+        uncertain = fusion.pose().sigma_m > MAP_SEARCH_SIGMA_M or self._map_doubted
+        self.maps.submit(points, guess, fusion.time, uncertain)
+
+    def _collect_map_match(self) -> None:
+        done = self.maps.collect()
+        if done is None:
+            return
+        pending, match = done
+        self.map_answers += 1
+        if self.fusion.time - pending.time > MAP_ANSWER_LATE_S:
+            match = f"the map's answer came {self.fusion.time - pending.time:.1f} s late"
+        if isinstance(match, str):
+            self.map_refusals += 1
+            self.map_refusal = match
+            if "from the estimate" in match:  # a fit, but too far from the estimate
+                self._disagreed()
+            return
+        self._fuse_map_match(pending, match)
+
+    def _fuse_map_match(self, pending: Pending, match: MapMatch) -> None:
+        """The fit of a scan a few scans ago, carried forward by the odometry's motion since
+        (the fused pose then, ``pending.start``, to the fused pose now)."""
+        now_pose = Pose2D(*(float(v) for v in self.fusion.state))
+        pose = match.pose.compose(pending.start.between(now_pose))
+        now = self.fusion.time
+        if self.fusion.map_fix(pose.x_m, pose.y_m, pose.yaw_rad, match.covariance, now):
+            self.map_refusal = ""
+            self.measured_at = now
+            self._map_disagreements = 0
+            self._map_doubted = False
+        else:
+            self.map_refusal = "the map's fit disagrees with the estimate"
+            self._disagreed()
+
+    def _disagreed(self) -> None:
+        """The map fits, but not where the fusion is sure the robot is: after a few in a row
+        the fusion is doubted (widened) and the map searched around it, so a filter sure of a
+        wrong heading (an IMU reset taken for a turn, a bad start) does not lock the map out."""
+        self._map_disagreements += 1
+        if self._map_disagreements >= MAP_DOUBT_AFTER:
+            self._map_disagreements = 0
+            self._map_doubted = True
+            self.fusion.doubt(1.0, math.radians(10.0))
+            _LOGGER.info("localization: the map disagreed %d times: searching", MAP_DOUBT_AFTER)
 
     def _map(self, now: float, points: NDArray[np.float64]) -> None:
         fused, frame = self.fused, self.frame
@@ -223,16 +495,30 @@ class Localizer(Actor):
             return
         self._grid_dirty = False
 
-    def _gps(self, fix: GpsFix) -> None:
+    def fix_sigma(self, fix: GpsFix) -> float:
+        """A fix's error per axis: the receiver's, ``gps_sigma_m`` times its HDOP."""
+        return self.gps_sigma * max(1.0, fix.hdop or 1.0)
+
+    def _gps(self, fix: GpsFix) -> bool:
+        """The fix through the gate: False when refused (before the fusion starts there is
+        nothing to check it against, and it passes)."""
         if self.frame is None:
             self.frame = LocalFrame(fix.latitude, fix.longitude)
         if not self.fusion.started:
             speed, course = fix.speed_mps, fix.course_deg
             if speed is None or course is None or speed < HEADING_SPEED_MPS:
-                return  # no heading yet: the fusion waits for the robot to move
+                return True  # no heading yet: the fusion waits for the robot to move
             self.fusion.heading_rad = math.radians(90.0 - course)
         x, y = self.frame.to_local(fix.latitude, fix.longitude)
-        verdict: GpsVerdict = self.fusion.gps(x, y, fix.stamp)
+        verdict: GpsVerdict = self.fusion.gps(x, y, fix.stamp, self.fix_sigma(fix))
+        if verdict.accepted:
+            self.measured_at = fix.stamp
+            if fix.speed_mps is not None and self.fusion.time - fix.stamp <= DOPPLER_FRESH_S:
+                # Over ground, unsigned: the drive's sign (a robot reversing reports its speed)
+                sign = (
+                    -1.0 if self.drive[0] < 0 or (self.drive[0] == 0 and self._speed < 0) else 1.0
+                )
+                self.drive = (sign * fix.speed_mps, self.drive[1])
         refusal = "" if verdict.accepted else verdict.reason
         if bool(refusal) != bool(self.gps_refusal):
             if refusal:
@@ -240,6 +526,7 @@ class Localizer(Actor):
             else:
                 _LOGGER.info("GPS agrees with the odometry again: fixes accepted")
         self.gps_refusal = refusal
+        return verdict.accepted
 
     def counters(self) -> dict[str, int]:
         return {
@@ -248,4 +535,10 @@ class Localizer(Actor):
             "partial": self.odometry.partial,
             "gps_accepted": self.fusion.accepted,
             "gps_rejected": self.fusion.rejected,
+            "map_matches": self.fusion.map_accepted,
+            "map_refused": self.fusion.map_refused + self.map_refusals,
         }
+
+
+def _same_rings(a: list[NDArray[np.float64]], b: list[NDArray[np.float64]]) -> bool:
+    return len(a) == len(b) and all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))

@@ -27,6 +27,7 @@ import serial
 
 from brasidas import topics
 from brasidas.actor import Actor
+from brasidas.autonomy.areamap import AreaMap
 from brasidas.bus import Bus
 from brasidas.clock import Clock, LoopClock, timeout_at
 from brasidas.codecs.ldlidar import LidarDecoder, LidarScan, ScanAssembler
@@ -304,8 +305,17 @@ async def async_setup(ctx: PlatformContext) -> None:
     ctx.telemetry.register(Perception, reader.section)
     ctx.supervisor.start(reader)
     if config.odometry:
+
+        def area() -> AreaMap | None:  # the patrol's map, once autonomy has set up
+            return ctx.patrol.core.area if ctx.patrol is not None else None
+
         reader.localizer = Localizer(
-            ctx.bus, ctx.config.platform.max_speed_kmh / 3.6, grid_path=grid_path(config)
+            ctx.bus,
+            ctx.config.platform.max_speed_kmh / 3.6,
+            grid_path=grid_path(config),
+            area=area,
+            max_yaw_rate_rad_s=math.radians(ctx.config.autonomy.full_turn_rate_dps),
+            gps_sigma_m=ctx.config.autonomy.gps_sigma_m,
         )
         ctx.telemetry.add_counters("localization", reader.localizer.counters)
         ctx.supervisor.start(reader.localizer)

@@ -19,9 +19,13 @@ A GPS fix is never followed when it disagrees with the odometry-propagated pose:
   drift stays well under the threshold;
 - after either, fixes are refused until ``clear_fixes`` in a row pass both tests again.
 
-The NEO-6M's error is slow (correlated over minutes), so it is given a wider sigma than its
-data sheet's (``gps_sigma_m``): averaging many correlated fixes must not make the filter
-overconfident.
+Each fix is weighted by the receiver's accuracy: ``gps_sigma_m`` (the configured absolute
+error at HDOP 1, ``autonomy.gps_sigma_m``: 2.1 m for a NEO-6M, 0.02 m for RTK) times the
+fix's HDOP, plus how far the robot moves in the time between the fix and the filter's last
+step. Its absolute error, not its fix-to-fix jitter: the error wanders over minutes, so the
+walls of the area map, when they fit, must win over it. Weighted by a fixed, NEO-6M-sized
+sigma instead, an RTK fix barely moved a dead-reckoned pose, which drifted a metre sideways
+of the truth in an open field (nothing for the scans to register).
 """
 
 from __future__ import annotations
@@ -43,6 +47,16 @@ TURN_NOISE = 0.02
 """Sigma of yaw per radian turned."""
 FLOOR_NOISE = (0.002, 0.002, 0.0005)
 """Per step, even standing still."""
+JUMP_FLOOR_M = 1.0
+"""A fix this close to the estimate is never a jump: against an RTK fix's centimetres the
+odometry's own error (a scan registered to a single post) would fail the chi-square test, and
+an honest fix refused is one the pose no longer follows. A spoofer pulling by less than this
+at a time is a drag, which the drag test catches."""
+MAX_AHEAD_S = 0.2
+"""A fix newer than the last odometry step is compared with the estimate carried at most this
+far ahead along that step (the scans stalled: beyond it, it is compared with the last step)."""
+DRAG_PRIOR_SHARE = 0.2
+"""Above this share of the drag window's distance on the motion prior, no drag is judged."""
 
 
 @dataclass(frozen=True)
@@ -63,8 +77,10 @@ class FusedPose:
     sigma_m: float
     """Position uncertainty: the square root of the larger eigenvalue of its covariance."""
     source: str
-    """What it rests on: "gps+lidar", "lidar" (no GPS lately), "prior" (odometry from the
-    commanded speed only), or "none" (not started: no fix yet)."""
+    """What it rests on: "map+lidar" (the scans fit the area map's walls lately), "gps+lidar",
+    "lidar" (neither lately), "prior" (odometry from the commanded speed only), or "none" (not
+    started: no fix yet)."""
+    sigma_yaw_rad: float = 0.0
 
 
 class PoseFusion:
@@ -98,10 +114,13 @@ class PoseFusion:
         """Where the odometry alone has carried the robot (world frame): the drag test's
         reference, untouched by GPS corrections."""
         self.travelled_m = 0.0
-        self._history: collections.deque[tuple[float, float, float, float, float, float]] = (
+        self.dead_reckoned_m = 0.0
+        """Of it, on the motion prior (the scans did not register): not evidence of a drag."""
+        self._history: collections.deque[tuple[float, float, float, float, float, float, float]] = (
             collections.deque()
         )
-        """(time, gps x, gps y, odometer x, odometer y, travelled) of recent fixes."""
+        """(time, gps x, gps y, odometer x, odometer y, travelled, dead reckoned) of recent
+        fixes."""
         self.suspect = ""
         """"jump" or "drag": GPS is refused until it agrees again ("" when trusted)."""
         self._agreeing = 0
@@ -109,21 +128,36 @@ class PoseFusion:
         self.last_source = "none"
         self.accepted = 0
         self.rejected = 0
+        self.map_gate_chi2 = 16.3
+        """Three degrees of freedom at 0.999."""
+        self.last_map_at: float | None = None
+        self.map_accepted = 0
+        self.map_refused = 0
         self.last_rejection = ""
+        self._step: tuple[float, float, NDArray[np.float64]] = (0.0, 0.0, np.zeros(2))
+        """The last odometry step: its end time, length (s) and motion (world frame)."""
+        self._step_at: float | None = None
 
     # ------------------------------------------------------------------ odometry
 
-    def predict(self, delta: Pose2D, source: str, now: float) -> None:
-        """The robot moved ``delta`` (its own frame at the previous step)."""
+    def predict(self, delta: Pose2D, source: str, now: float, speed_sigma_mps: float = 0.0) -> None:
+        """The robot moved ``delta`` (its own frame at the previous step). ``speed_sigma_mps``:
+        how wrong the speed it was reckoned on may be (an open-loop drive's lag behind its
+        command), on top of the per-metre noise."""
+        dt = 0.0 if self._step_at is None else max(0.0, now - self._step_at)
+        self._step_at = now
         self.time = now
         self.last_source = source
         yaw = float(self.state[2])
         c, s = math.cos(yaw), math.sin(yaw)
         dx, dy = delta.x_m, delta.y_m
         world = np.array((c * dx - s * dy, s * dx + c * dy))
+        self._step = (now, dt, world)
         self.odometer += world
         distance = math.hypot(dx, dy)
         self.travelled_m += distance
+        if source != "lidar":
+            self.dead_reckoned_m += distance
         if not self.started:
             return
         self.state[:2] += world
@@ -133,7 +167,7 @@ class PoseFusion:
         along, across, turn = LIDAR_NOISE if source == "lidar" else PRIOR_NOISE
         sigmas = np.array(
             (
-                along * distance + FLOOR_NOISE[0],
+                along * distance + FLOOR_NOISE[0] + speed_sigma_mps * dt,
                 across * distance + FLOOR_NOISE[1],
                 turn * distance + TURN_NOISE * abs(delta.yaw_rad) + FLOOR_NOISE[2],
             )
@@ -142,19 +176,22 @@ class PoseFusion:
 
     # ------------------------------------------------------------------ GPS
 
-    def gps(self, x_m: float, y_m: float, now: float) -> GpsVerdict:
-        """A fix in the local frame: accepted (and fused) or refused, with the reason."""
-        self.time = now
+    def gps(self, x_m: float, y_m: float, now: float, sigma_m: float | None = None) -> GpsVerdict:
+        """A fix in the local frame: accepted (and fused) or refused, with the reason.
+        ``sigma_m``: its error per axis (None: ``gps_sigma_m``)."""
+        sigma = self.gps_sigma if sigma_m is None else sigma_m
         if not self.started:
-            self._start(x_m, y_m)
+            self.time = now
+            self._start(x_m, y_m, sigma)
             self._remember(now, x_m, y_m)
             return self._accept(now, 0.0)
-        innovation = np.array((x_m, y_m)) - self.state[:2]
-        s = self.cov[:2, :2] + np.eye(2) * self.gps_sigma**2
+        innovation = np.array((x_m, y_m)) - self.position_at(now)
+        self.time = max(self.time, now)
+        s = self.cov[:2, :2] + np.eye(2) * sigma**2
         d2 = float(innovation @ np.linalg.solve(s, innovation))
         distance = float(np.hypot(*innovation))
         reason = ""
-        if d2 > self.gate_chi2:
+        if d2 > self.gate_chi2 and distance > JUMP_FLOOR_M:
             reason = f"jump: {distance:.1f} m from where the odometry puts the robot"
         drag = self._drag(now, x_m, y_m)
         self._remember(now, x_m, y_m)
@@ -174,11 +211,22 @@ class PoseFusion:
         self.cov = (np.eye(3) - k[:, :2] @ np.eye(2, 3)) @ self.cov
         return self._accept(now, distance)
 
-    def _start(self, x_m: float, y_m: float) -> None:
+    def position_at(self, when: float) -> NDArray[np.float64]:
+        """The estimate's position moved to ``when`` along the last odometry step: a fix
+        taken inside that step is compared with where the robot was then, not where the step
+        ended (at 5 m/s a scan period is half a metre: added on top of a fix that already
+        holds it, the step ran the estimate ahead of the robot)."""
+        step_end, dt, world = self._step
+        if dt <= 0.0:
+            return self.state[:2].copy()
+        shift = max(-dt, min(MAX_AHEAD_S, when - step_end))
+        return self.state[:2] + world * (shift / dt)
+
+    def _start(self, x_m: float, y_m: float, sigma_m: float) -> None:
         yaw = self.heading_rad if self.heading_rad is not None else 0.0
         yaw_sigma = math.radians(10.0) if self.heading_rad is not None else math.pi
         self.state = np.array((x_m, y_m, yaw))
-        self.cov = np.diag((self.gps_sigma**2, self.gps_sigma**2, yaw_sigma**2))
+        self.cov = np.diag((sigma_m**2, sigma_m**2, yaw_sigma**2))
         self.started = True
 
     def _drag(self, now: float, x_m: float, y_m: float) -> str:
@@ -187,7 +235,10 @@ class PoseFusion:
             history.popleft()
         if not history or now - history[0][0] < 0.7 * self.drag_window:
             return ""
-        t0, gx, gy, ox, oy, travelled = history[0]
+        t0, gx, gy, ox, oy, travelled, reckoned = history[0]
+        moved = self.travelled_m - travelled
+        if moved > 0 and (self.dead_reckoned_m - reckoned) > DRAG_PRIOR_SHARE * moved:
+            return ""  # the odometry was mostly the commanded speed: it cannot judge the GPS
         gps_moved = np.array((x_m - gx, y_m - gy))
         odometry_moved = self.odometer - (ox, oy)
         apart = float(np.hypot(*(gps_moved - odometry_moved)))
@@ -198,7 +249,9 @@ class PoseFusion:
 
     def _remember(self, now: float, x_m: float, y_m: float) -> None:
         ox, oy = self.odometer
-        self._history.append((now, x_m, y_m, float(ox), float(oy), self.travelled_m))
+        self._history.append(
+            (now, x_m, y_m, float(ox), float(oy), self.travelled_m, self.dead_reckoned_m)
+        )
 
     def _accept(self, now: float, distance: float) -> GpsVerdict:
         self.accepted += 1
@@ -213,6 +266,38 @@ class PoseFusion:
         self.last_rejection = reason
         return GpsVerdict(False, reason, distance)
 
+    # ------------------------------------------------------------------ the map
+
+    def map_fix(
+        self, x_m: float, y_m: float, yaw_rad: float, covariance: NDArray[np.float64], now: float
+    ) -> bool:
+        """Where a scan fits the area map's walls (an absolute pose, ``covariance`` 3x3):
+        fused unless it fails the chi-square gate against the prediction (a wrong match)."""
+        if not self.started:
+            return False
+        self.time = now
+        innovation = np.array((x_m, y_m, yaw_rad)) - self.state
+        innovation[2] = wrap(float(innovation[2]))
+        s = self.cov + covariance
+        d2 = float(innovation @ np.linalg.solve(s, innovation))
+        if d2 > self.map_gate_chi2:
+            self.map_refused += 1
+            return False
+        k = self.cov @ np.linalg.inv(s)
+        self.state = self.state + k @ innovation
+        self.state[2] = wrap(float(self.state[2]))
+        self.cov = (np.eye(3) - k) @ self.cov
+        self.cov = (self.cov + self.cov.T) / 2
+        self.last_map_at = now
+        self.map_accepted += 1
+        return True
+
+    def doubt(self, sigma_m: float, sigma_yaw_rad: float) -> None:
+        """Widen the pose's uncertainty to at least these: the map refused in a row means the
+        filter is sure of a wrong pose (it locks out what would correct it)."""
+        self.cov[:2, :2] += np.eye(2) * sigma_m**2
+        self.cov[2, 2] += sigma_yaw_rad**2
+
     # ------------------------------------------------------------------ the estimate
 
     def pose(self) -> FusedPose:
@@ -222,8 +307,11 @@ class PoseFusion:
             source = "none"
         elif self.last_source != "lidar":
             source = "prior"
+        elif self.last_map_at is not None and self.time - self.last_map_at <= self.gps_fresh:
+            source = "map+lidar"
         elif self.last_gps_at is not None and self.time - self.last_gps_at <= self.gps_fresh:
             source = "gps+lidar"
         else:
             source = "lidar"
-        return FusedPose(self.time, x, y, yaw, sigma, source)
+        sigma_yaw = math.sqrt(max(0.0, float(self.cov[2, 2])))
+        return FusedPose(self.time, x, y, yaw, sigma, source, sigma_yaw)

@@ -73,3 +73,22 @@ class FusedPosition:
     """Counter-clockwise from east."""
     sigma_m: float
     source: str
+
+
+@dataclass(frozen=True)
+class LidarPose:
+    """The lidar localization's fused pose (odometry, the map, gated GPS), in geo terms."""
+
+    time: float
+    """The scan (or fix) it is for (the platform's monotonic clock)."""
+    latitude: float
+    longitude: float
+    yaw_rad: float
+    """Counter-clockwise from east."""
+    sigma_m: float
+    sigma_yaw_rad: float
+    source: str
+    """"map+lidar", "gps+lidar", "lidar", "prior" or "none" (``FusedPose.source``)."""
+    measured_at: float | None
+    """When it last rested on a measurement (a registered scan, a map match or an accepted
+    fix): dead reckoning since then is the commanded speed's and the gyro's."""

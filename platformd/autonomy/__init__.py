@@ -34,6 +34,7 @@ async def async_setup(ctx: PlatformContext) -> None:
             gps_jitter_m=config.gps_jitter_m,
         ),
         rate_hz=config.rate_hz,
+        lidar_localized=ctx.config.lidar.enabled and ctx.config.lidar.odometry,
     )
     parameters = PatrolParameters(
         follower=FollowerParameters(

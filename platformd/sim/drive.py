@@ -17,7 +17,7 @@ import random
 from dataclasses import dataclass
 
 import numpy as np
-from shapely.geometry import box
+from shapely.geometry import Polygon, box
 
 from brasidas.codecs.ldlidar import LidarDecoder, ScanAssembler
 from brasidas.config.lidar import LidarSection
@@ -31,14 +31,22 @@ MAX_SPEED_MPS = 6.0 / 3.6
 EPOCH = dt.datetime(2026, 1, 1, tzinfo=dt.UTC)
 
 
-def street_grid(blocks: int = 4, pitch_m: float = 20.0, building_m: float = 12.0) -> LidarWorld:
+def street_buildings(
+    blocks: int = 4, pitch_m: float = 20.0, building_m: float = 12.0
+) -> list[Polygon]:
     """Square buildings on a grid, streets between them; the origin is at a crossing."""
-    polygons = []
     half = building_m / 2
-    for i in range(-blocks, blocks):
-        for j in range(-blocks, blocks):
-            cx, cy = (i + 0.5) * pitch_m, (j + 0.5) * pitch_m
-            polygons.append((box(cx - half, cy - half, cx + half, cy + half), 0.6))
+    centres = [
+        ((i + 0.5) * pitch_m, (j + 0.5) * pitch_m)
+        for i in range(-blocks, blocks)
+        for j in range(-blocks, blocks)
+    ]
+    return [box(cx - half, cy - half, cx + half, cy + half) for cx, cy in centres]
+
+
+def street_grid(blocks: int = 4, pitch_m: float = 20.0, building_m: float = 12.0) -> LidarWorld:
+    """:func:`street_buildings`, and a post at the kerb of each block."""
+    polygons = [(b, 0.6) for b in street_buildings(blocks, pitch_m, building_m)]
     posts = [(4.0 + 20.0 * k, 2.5, 0.15, 0.5) for k in range(-blocks, blocks)]
     return LidarWorld(polygons, posts)
 
