@@ -55,25 +55,33 @@ def test_strangers_are_capped_per_host_and_the_busiest_host_gives_way() -> None:
     )
     first, _ = policy.admit("10.0.0.9", 0.0)
     second, _ = policy.admit("10.0.0.9", 0.1)
-    assert first is not None and second is not None
+    assert first is not None
+    assert second is not None
     # The host's cap: a newcomer is refused while the host's oldest is younger than a second,
     assert policy.admit("10.0.0.9", 0.2) == (None, None)
     assert policy.counters["refused_host"] == 1
     # then the oldest gives way (a station may be behind the same address: NAT).
     third, evicted = policy.admit("10.0.0.9", 1.0)
-    assert third is not None and evicted is first and first.closed
-    assert policy.counters["evicted_host"] == 1 and policy.strangers["10.0.0.9"] == [second, third]
+    assert third is not None
+    assert evicted is first
+    assert first.closed
+    assert policy.counters["evicted_host"] == 1
+    assert policy.strangers["10.0.0.9"] == [second, third]
     policy.admit("10.0.0.8", 1.1)
     policy.admit("10.0.0.7", 1.2)
     station, evicted = policy.admit("10.0.0.1", 1.3)  # the total cap: the busiest host yields
-    assert station is not None and evicted is second and second.closed
+    assert station is not None
+    assert evicted is second
+    assert second.closed
     assert policy.stranger_count == 4
     policy.session_opened(station)  # a station's now: no longer counted, never evicted
-    assert policy.stranger_count == 3 and station in policy.slots
+    assert policy.stranger_count == 3
+    assert station in policy.slots
     for step in range(10):
         policy.admit("10.0.0.1", 2.0 + step)
         policy.admit("10.0.0.5", 2.5 + step)
-    assert not station.closed and station in policy.slots
+    assert not station.closed
+    assert station in policy.slots
 
 
 def test_capacity_keeps_descriptors_in_reserve() -> None:
@@ -98,7 +106,10 @@ def test_header_idle_and_write_timeouts_by_the_clock() -> None:
     partial, _ = policy.admit("10.0.0.8", 0.0)
     quiet_ws, _ = policy.admit("10.0.0.7", 0.0)
     reader, _ = policy.admit("10.0.0.6", 0.0)
-    assert silent and partial and quiet_ws and reader
+    assert silent
+    assert partial
+    assert quiet_ws
+    assert reader
     policy.received(partial, 1.0)  # half a request line, then nothing
     policy.received(quiet_ws, 0.5)
     policy.request_started(quiet_ws)  # a WebSocket without a session
@@ -118,7 +129,8 @@ def test_header_idle_and_write_timeouts_by_the_clock() -> None:
     assert due(15.6) == {silent, quiet_ws}
     assert due(16.0) == {reader}  # 10 s since its backlog was first seen, never shrinking
     assert policy.counters["header_timeouts"] == 1
-    assert policy.counters["idle_timeouts"] == 2 and policy.counters["slow_readers"] == 1
+    assert policy.counters["idle_timeouts"] == 2
+    assert policy.counters["slow_readers"] == 1
 
 
 def test_too_much_unsent_data_closes_at_once() -> None:
@@ -170,7 +182,9 @@ def test_a_strangers_address_has_a_byte_budget() -> None:
     first, _ = policy.admit("10.0.0.9", 0.0)
     second, _ = policy.admit("10.0.0.9", 0.0)
     other, _ = policy.admit("10.0.0.8", 0.0)
-    assert first and second and other
+    assert first
+    assert second
+    assert other
     assert policy.charge(first, 1500, 0.0) == 0.0  # a burst of twice the rate
     assert policy.charge(second, 1000, 0.0) == pytest.approx(0.5)  # the address's, shared
     assert policy.charge(other, 1000, 0.0) == 0.0

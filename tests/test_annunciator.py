@@ -66,23 +66,28 @@ def test_healthy_snapshot_raises_nothing() -> None:
 def test_low_battery_raises_names_the_voltage_and_clears_with_hysteresis() -> None:
     annunciator = Annunciator(CONFIG)
     (change,) = annunciator.evaluate(with_(Battery, Battery(22.6, "low")), 0, 0, 1.0)
-    assert change.active and change.warning.code == LOW_BATTERY
-    assert change.warning.message == "low battery (22.6 V)" and change.warning.since == 1.0
+    assert change.active
+    assert change.warning.code == LOW_BATTERY
+    assert change.warning.message == "low battery (22.6 V)"
+    assert change.warning.since == 1.0
     # Recovering a little (under battery_clear_v) keeps the warning up: no flapping.
     assert annunciator.evaluate(with_(Battery, Battery(23.2, "medium")), 0, 0, 2) == []
     assert names(annunciator) == {"low_battery"}
     (change,) = annunciator.evaluate(with_(Battery, Battery(23.5, "medium")), 0, 0, 3)
-    assert not change.active and change.warning.name == "low_battery"
+    assert not change.active
+    assert change.warning.name == "low_battery"
     # The platform's own LOW level raises it even without a voltage.
     (change,) = annunciator.evaluate(with_(Battery, Battery(None, "low")), 0, 0, 4)
-    assert change.active and change.warning.message == "low battery"
+    assert change.active
+    assert change.warning.message == "low battery"
 
 
 def test_controller_over_temperature_raises_and_clears_below_the_clear_threshold() -> None:
     annunciator = Annunciator(CONFIG)
     hot = Controller(True, (41.0, 72.4), (8.0, 9.0))
     (change,) = annunciator.evaluate(with_(Controller, hot), 0, 0, 1)
-    assert change.active and change.warning.code == CONTROLLER_OVER_TEMPERATURE
+    assert change.active
+    assert change.warning.code == CONTROLLER_OVER_TEMPERATURE
     assert change.warning.message == "controller over temperature (72 °C)"
     warm = dataclasses.replace(hot, temps_c=(41.0, 67.0))
     assert annunciator.evaluate(with_(Controller, warm), 0, 0, 2) == []
@@ -94,14 +99,16 @@ def test_controller_over_temperature_raises_and_clears_below_the_clear_threshold
 def test_gps_fix_lost_raises_and_clears() -> None:
     annunciator = Annunciator(CONFIG)
     (change,) = annunciator.evaluate(with_(Gps, Gps(fix=False, lost_for_s=3.0)), 0, 0, 1)
-    assert change.active and change.warning.code == GPS_FIX_LOST
+    assert change.active
+    assert change.warning.code == GPS_FIX_LOST
     assert change.warning.message == "GPS fix lost (3 s ago)"
     # The figure changes: same warning, no new notification.
     assert annunciator.evaluate(with_(Gps, Gps(fix=False, lost_for_s=9.0)), 0, 0, 2) == []
     assert annunciator.active["gps_fix_lost"].message == "GPS fix lost (9 s ago)"
     assert annunciator.active["gps_fix_lost"].since == 1
     (change,) = annunciator.evaluate(HEALTHY, 0, 0, 3)
-    assert not change.active and change.warning.name == "gps_fix_lost"
+    assert not change.active
+    assert change.warning.name == "gps_fix_lost"
     # A platform without a GPS (section null) is not "fix lost".
     assert annunciator.evaluate(with_(Gps, None), 0, 0, 4) == []
 
@@ -109,12 +116,14 @@ def test_gps_fix_lost_raises_and_clears() -> None:
 def test_link_degraded_by_silence_or_loss() -> None:
     annunciator = Annunciator(CONFIG)
     (change,) = annunciator.evaluate(HEALTHY, 0.0, silence=1.2, now=5)
-    assert change.active and change.warning.code == LINK_DEGRADED
+    assert change.active
+    assert change.warning.code == LINK_DEGRADED
     assert change.warning.message == "link degraded: telemetry silent for 1.2 s"
     (change,) = annunciator.evaluate(HEALTHY, 0.0, silence=0.1, now=6)
     assert not change.active
     (change,) = annunciator.evaluate(HEALTHY, 25.0, silence=0.1, now=7)
-    assert change.active and "25% of telemetry lost" in change.warning.message
+    assert change.active
+    assert "25% of telemetry lost" in change.warning.message
     assert annunciator.evaluate(HEALTHY, 10.0, silence=0.1, now=8)[0].active is False
 
 
@@ -180,7 +189,8 @@ def test_link_announces_raise_and_clear_with_group_90_notifications() -> None:
     assert link.decoder.rejected["forged"] == 1
     report = link.report()
     assert [w["name"] for w in report["warnings"]] == ["low_battery"]
-    assert report["link"]["received"] == 2 and report["link"]["rejected_total"] == 1
+    assert report["link"]["received"] == 2
+    assert report["link"]["rejected_total"] == 1
     link.close()
     assert (notes[-1].name, notes[-1].active) == ("low_battery", False)
     assert notes[-1].as_dict()["code"] == "90.10"
@@ -200,11 +210,13 @@ def test_a_stale_reading_raises_a_warning_until_a_fresh_one_arrives() -> None:
     annunciator = Annunciator(CONFIG)
     stale = Attitude(roll=1.0, pitch=0.0, yaw=0.0, age_ms=2500, stale=True)
     (change,) = annunciator.evaluate(with_(Attitude, stale), 0, 0, 1)
-    assert change.active and change.warning.code == SENSOR_STALE
+    assert change.active
+    assert change.warning.code == SENSOR_STALE
     assert change.warning.message == "attitude stale (2 s old)"
     fresh = dataclasses.replace(stale, age_ms=40, stale=False)
     (change,) = annunciator.evaluate(with_(Attitude, fresh), 0, 0, 2)
-    assert not change.active and change.warning.name == "sensor_stale:attitude"
+    assert not change.active
+    assert change.warning.name == "sensor_stale:attitude"
 
 
 def test_a_platform_on_another_schema_is_named_not_shown_as_blanks() -> None:
@@ -228,18 +240,21 @@ def test_a_holding_patrol_raises_with_its_reason_and_clears() -> None:
     annunciator = Annunciator(CONFIG)
     holding = Autonomy(state="holding", reason="GPS fix lost or stale (2.4 s old)")
     (change,) = annunciator.evaluate(with_(Autonomy, holding), 0.0, 0.1, now=1.0)
-    assert change.active and change.warning.code == PATROL_HOLDING
+    assert change.active
+    assert change.warning.code == PATROL_HOLDING
     assert change.warning.message == "patrol holding: GPS fix lost or stale (2.4 s old)"
     patrolling = Autonomy(state="patrolling")
     (change,) = annunciator.evaluate(with_(Autonomy, patrolling), 0.0, 0.1, now=2.0)
-    assert not change.active and names(annunciator) == set()
+    assert not change.active
+    assert names(annunciator) == set()
 
 
 def test_failsafe_hold_raises_link_lost_until_the_operator_re_engages() -> None:
     annunciator = Annunciator(CONFIG)
     held = Failsafe("hold", "no heartbeat from st-1 for 1.5 s: holding", "st-1")
     (change,) = annunciator.evaluate(with_(Failsafe, held), 0, 0, 1.0)
-    assert change.active and change.warning.code == LINK_LOST
+    assert change.active
+    assert change.warning.code == LINK_LOST
     assert change.warning.message.startswith("LINK LOST: platform hold")
     assert annunciator.evaluate(with_(Failsafe, Failsafe("normal", "", "st-1")), 0, 0, 2) == [
         dataclasses.replace(change, active=False)
@@ -252,10 +267,12 @@ def test_connections_refused_at_a_high_rate_raise_90_24_and_clear() -> None:
     assert annunciator.evaluate(with_(Admission, few), 0.0, 0.1, now=0.0) == []
     many = Admission({"evicted_host": 340}, 8, "10.0.0.9", 340, 10.0)
     (change,) = annunciator.evaluate(with_(Admission, many), 0.0, 0.1, now=1.0)
-    assert change.active and change.warning.code == CONNECTIONS_REFUSED
+    assert change.active
+    assert change.warning.code == CONNECTIONS_REFUSED
     assert str(CONNECTIONS_REFUSED) == "90.24"
     assert change.warning.message == "connections refused from 10.0.0.9: 340 in 10 s"
     # The window moved on: the counters since start stay, the warning clears.
     quiet = Admission({"evicted_host": 340}, 0, "", 0, 0.0)
     (cleared,) = annunciator.evaluate(with_(Admission, quiet), 0.0, 0.1, now=12.0)
-    assert not cleared.active and names(annunciator) == set()
+    assert not cleared.active
+    assert names(annunciator) == set()

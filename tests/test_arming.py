@@ -104,7 +104,8 @@ def test_disarmed_nothing_but_zero_reaches_the_motors() -> None:
     bus.publish(topics.TELEOP_VELOCITY, Velocity(1.0, 0.0))
     bus.publish(topics.OVERRIDE_STATE, OverrideState(False))
     bus.publish(topics.CMD_VEL, Velocity(0.3, 0.0))
-    assert commands and all(c == Velocity(0.0, 0.0) for c in commands)
+    assert commands
+    assert all(c == Velocity(0.0, 0.0) for c in commands)
 
     bus.publish(topics.ARMING_STATE, ArmingState(True, "armed by alpha"))
     bus.publish(topics.CMD_VEL, Velocity(0.3, 0.0))
@@ -138,7 +139,8 @@ class Platform:
     async def connect(self, station_id: str) -> PlatformConnection:
         async def attempt() -> PlatformConnection:
             while True:
-                assert self.process is not None and self.process.returncode is None
+                assert self.process is not None
+                assert self.process.returncode is None
                 if not security.default_key_path().exists():  # --sim makes it at start
                     await asyncio.sleep(0.1)
                     continue
@@ -208,9 +210,11 @@ async def test_kill_9_after_a_stop_stays_stopped_and_after_a_start_resumes_throu
         with pytest.raises(RpcError, match="refused: control held by station alpha"):
             await observer.call("arm")
         answer = await observer.call("stop")
-        assert answer["armed"] is False and answer["last_stop"].startswith("stop by observer")
+        assert answer["armed"] is False
+        assert answer["last_stop"].startswith("stop by observer")
         word = json.loads((platform.tmp_path / "last_word.json").read_text())
-        assert word["word"] == "stop" and word["by"] == "observer"
+        assert word["word"] == "stop"
+        assert word["by"] == "observer"
         assert (await operator.call("get_patrol"))["state"] == "stopped"
     finally:
         await operator.close()
@@ -224,7 +228,8 @@ async def test_kill_9_after_a_stop_stays_stopped_and_after_a_start_resumes_throu
         await _poll(watcher, "get_arming", lambda a: a["ready"], 20)
         await asyncio.sleep(0)
         arming = await watcher.call("get_arming")
-        assert arming["armed"] is False and arming["countdown_s"] is None
+        assert arming["armed"] is False
+        assert arming["countdown_s"] is None
         assert arming["last_stop"].startswith("stop by observer")
         assert (await watcher.call("get_patrol"))["state"] != "patrolling"
         # The operator starts it again: that is the new last word.
@@ -319,10 +324,13 @@ async def test_a_signed_non_controlling_ground_station_stops_and_an_unsigned_one
         assert ack.result == mavlink.MAV_RESULT_ACCEPTED
         assert not arming.armed
         motion = daemon.bus.last(topics.MOTION_STATE)
-        assert motion is not None and motion.command == Velocity(0.0, 0.0)
+        assert motion is not None
+        assert motion.command == Velocity(0.0, 0.0)
         status = daemon.bus.last(topics.PATROL_STATUS)
-        assert status is not None and status.state.value == "stopped"
-        assert arming.last_word is not None and arming.last_word.word == "hold"
+        assert status is not None
+        assert status.state.value == "stopped"
+        assert arming.last_word is not None
+        assert arming.last_word.word == "hold"
         assert arming.last_word.by == f"gcs254@127.0.0.1:{other.port}"
         await holder.expect(
             "HEARTBEAT",
@@ -332,12 +340,15 @@ async def test_a_signed_non_controlling_ground_station_stops_and_an_unsigned_one
         )
         # Re-arming needs control: the other ground station is refused with the holder's id.
         ack = await other.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
-        assert ack.result == mavlink.MAV_RESULT_DENIED and ack.result_param2 == 255
+        assert ack.result == mavlink.MAV_RESULT_DENIED
+        assert ack.result_param2 == 255
         ack = await holder.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
-        assert ack.result == mavlink.MAV_RESULT_ACCEPTED and arming.armed
+        assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+        assert arming.armed
         since = holder.mark()
         ack = await other.command(mavlink.MAV_CMD_DO_FLIGHTTERMINATION, 1)
-        assert ack.result == mavlink.MAV_RESULT_ACCEPTED and not arming.armed
+        assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+        assert not arming.armed
         await holder.expect_text(lambda t: "terminate (forced) by gcs254" in t, since)
         ack = await holder.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)
         assert ack.result == mavlink.MAV_RESULT_ACCEPTED
@@ -368,15 +379,20 @@ async def test_cli_stop_arm_and_disarm(
     code, _, _ = await run_cli(station, "connect", "rover-7", "--url", platform.ctx.signaling_url)
     assert code == 0
     code, out, err = await run_cli(station, "arm", "rover-7")
-    assert code != 0 and "PreArm: motor controller not answering" in err
+    assert code != 0
+    assert "PreArm: motor controller not answering" in err
     code, out, _ = await run_cli(station, "stop", "rover-7")
     station_id = station.ctx.config.station.id
-    assert code == 0 and "disarmed" in out and f"last stop: stop by {station_id}" in out
+    assert code == 0
+    assert "disarmed" in out
+    assert f"last stop: stop by {station_id}" in out
     code, out, _ = await run_cli(station, "status", "rover-7")
     (line,) = [line for line in out.splitlines() if line.startswith("arming")]
-    assert "disarmed" in line and "PreArm: motor controller not answering" in line
+    assert "disarmed" in line
+    assert "PreArm: motor controller not answering" in line
     code, out, _ = await run_cli(station, "disarm", "rover-7", "--force", "--json")
-    assert code == 0 and json.loads(out)["armed"] is False
+    assert code == 0
+    assert json.loads(out)["armed"] is False
     word = json.loads((tmp_path / "last_word.json").read_text())
     assert word == {"word": "disarm", "by": station_id, "at": word["at"]}
 
@@ -406,7 +422,8 @@ async def test_gcs_loss_in_auto_holds_when_configured(
         ack = await gcs.command(mavlink.MAV_CMD_MISSION_START)
         assert ack.result == mavlink.MAV_RESULT_ACCEPTED
         status = daemon.bus.last(topics.PATROL_STATUS)
-        assert status is not None and status.state.value in ("patrolling", "holding")
+        assert status is not None
+        assert status.state.value in ("patrolling", "holding")
         # The ground station falls silent: its session times out, the patrol holds.
         await wait_until(
             lambda: (
@@ -415,7 +432,8 @@ async def test_gcs_loss_in_auto_holds_when_configured(
             ),
             10,
         )
-        assert arming.last_word is not None and arming.last_word.word == "hold"
+        assert arming.last_word is not None
+        assert arming.last_word.word == "hold"
         assert arming.last_word.by == f"gcs255@127.0.0.1:{gcs.port} lost"
     finally:
         gcs.close()

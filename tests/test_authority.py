@@ -100,7 +100,8 @@ async def test_observer_is_refused_control_and_keeps_its_own_video(
             assert "control held by station alpha" in refused["reason"]
         with pytest.raises(RpcError) as info:
             await b.call("pause_stream", name="navcam")
-        assert info.value.code == CONTROL_REFUSED and "alpha" in info.value.message
+        assert info.value.code == CONTROL_REFUSED
+        assert "alpha" in info.value.message
         assert await b.call("set_lights", which="main", on=True) == {
             "accepted": False,
             "reason": "main lights refused: control held by station alpha",
@@ -117,7 +118,8 @@ async def test_observer_is_refused_control_and_keeps_its_own_video(
 
         # Takeover: the override moves to bravo, alpha is told at its next heartbeat.
         heartbeat = await a.call("heartbeat")
-        assert heartbeat["control"] is True and heartbeat["controller"] == "alpha"
+        assert heartbeat["control"] is True
+        assert heartbeat["controller"] == "alpha"
         await wait_until(lambda: a.control)  # its heartbeats say it holds control
         taken = await command(b, 10, 0, "state=True,force=yes")
         assert taken["accepted"], taken
@@ -126,7 +128,8 @@ async def test_observer_is_refused_control_and_keeps_its_own_video(
             OverrideState(True, b.session_id, "bravo"),
         ]
         await wait_until(lambda: lost == ["bravo"])
-        assert a.control is False and a.controller == "bravo"
+        assert a.control is False
+        assert a.controller == "bravo"
         refused = await command(a, 10, 6, "ON")
         assert "control held by station bravo" in refused["reason"]
         assert daemon.ctx.authority.counters["takeovers"] == 1
@@ -221,7 +224,8 @@ async def test_a_refused_override_and_a_timed_out_command_answer_different_codes
         assert await holder.call("set_manual_override", engaged=True) is True
         with pytest.raises(RpcError) as refused:
             await observer.call("set_manual_override", engaged=True)
-        assert refused.value.code == CONTROL_REFUSED and "alpha" in refused.value.message
+        assert refused.value.code == CONTROL_REFUSED
+        assert "alpha" in refused.value.message
         with pytest.raises(RpcError) as timed_out:
             await holder.call("issue_system_command", group=40, command=1, payload="")
         assert timed_out.value.code == TIMEOUT

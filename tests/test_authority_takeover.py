@@ -48,7 +48,8 @@ async def test_the_previous_holder_is_told_of_a_forced_takeover_at_once(
                 "link"
             ]["received"]:
                 await asyncio.sleep(0.02)
-        assert links[0].control and not links[1].control
+        assert links[0].control
+        assert not links[1].control
         # bravo takes control with --force.
         forced = time.monotonic()
         answer = await bravo.ctx.api.call_local(
@@ -59,9 +60,11 @@ async def test_the_previous_holder_is_told_of_a_forced_takeover_at_once(
         at, note = next((at, n) for at, n in notes if n.code == CONTROL_TAKEN)
         assert note.message == f"control of {platform_id} taken by station bravo"
         assert at - forced < 2.5  # long before alpha's next heartbeat (30 s) or snapshot (5 s)
-        assert not links[0].control and links[0].controller == "bravo"
+        assert not links[0].control
+        assert links[0].controller == "bravo"
         assert not links[0].manual_override  # its stream of $PVEL stops
-        assert daemon.ctx.authority.station_id == "bravo" and links[1].control
+        assert daemon.ctx.authority.station_id == "bravo"
+        assert links[1].control
 
 
 def _taken(notes: list[tuple[float, StationNotification]]) -> bool:

@@ -62,7 +62,9 @@ async def test_each_automation_switches_off_and_on_with_its_state_in_telemetry(
         await ctx.rpc.call_local("patrol_start")  # the --sim demo map and loop
         assert (await send(PATROL, "False")).accepted
         patrol = ctx.bus.last(topics.PATROL_STATUS)
-        assert patrol is not None and patrol.state == "stopped" and not patrol.enabled
+        assert patrol is not None
+        assert patrol.state == "stopped"
+        assert not patrol.enabled
         assert patrol.reason == "patrol switched off"
         try:
             await ctx.rpc.call_local("patrol_start")
@@ -75,12 +77,14 @@ async def test_each_automation_switches_off_and_on_with_its_state_in_telemetry(
 
         # 10.9: with the automatic switch off the NavCam keeps its rate under the override.
         media = next(a for a in daemon.supervisor.actors if isinstance(a, MediaService))
-        assert media.navcam is not None and media.navcam.settings.framerate == 5
+        assert media.navcam is not None
+        assert media.navcam.settings.framerate == 5
         assert (await send(AUTO_FRAMERATE, "off")).accepted
         ctx.bus.publish(topics.OVERRIDE_STATE, OverrideState(True, "s", "station"))
         assert media.navcam.settings.framerate == 5
         answer = await send(AUTO_FRAMERATE, "on")
-        assert answer.accepted and answer.result == {"auto_framerate": True, "navcam_fps": 30}
+        assert answer.accepted
+        assert answer.result == {"auto_framerate": True, "navcam_fps": 30}
         assert media.navcam.settings.framerate == 30
         ctx.bus.publish(topics.OVERRIDE_STATE, OverrideState(False))
         assert media.navcam.settings.framerate == 5

@@ -56,7 +56,8 @@ def test_local_frame_round_trip_and_scale() -> None:
     assert 110.9 < y < 111.1  # a thousandth of a degree of latitude, ~111 m
     assert 87.5 < x < 88.3  # of longitude at 38°: 111 km x cos(lat)
     lat, lon = frame.to_geo(x, y)
-    assert abs(lat - (LAT + 0.001)) < 1e-9 and abs(lon - (LON + 0.001)) < 1e-9
+    assert abs(lat - (LAT + 0.001)) < 1e-9
+    assert abs(lon - (LON + 0.001)) < 1e-9
 
 
 # --------------------------------------------------------------------------- map
@@ -64,7 +65,8 @@ def test_local_frame_round_trip_and_scale() -> None:
 
 def test_map_parses_boundary_keepouts_and_points() -> None:
     area = parse_map(json.dumps(demo()))
-    assert set(area.keepouts) == {"shed"} and set(area.points) == set(LOOP)
+    assert set(area.keepouts) == {"shed"}
+    assert set(area.points) == set(LOOP)
     assert 2900 < area.boundary.area < 3100  # 60 m x 50 m
     shed = area.local(*offset(LAT, LON, 20, 15))
     assert area.keepout_at(*shed) == "shed"
@@ -141,7 +143,8 @@ def test_keepouts_added_and_removed_without_reload() -> None:
 
 def test_closed_route_loops_and_open_route_reverses() -> None:
     closed = parse_waypoints(["1,1", "1,2", "2,2", "1,1"])
-    assert closed.closed and closed.stops == 3
+    assert closed.closed
+    assert closed.stops == 3
     cursor, seen = Cursor(), []
     for _ in range(7):
         cursor = cursor.advance(closed)
@@ -160,9 +163,11 @@ def test_closed_route_loops_and_open_route_reverses() -> None:
 def test_waypoints_from_names_text_and_geojson() -> None:
     area = parse_map(demo())
     route = parse_waypoints(demo_route(), area.points)
-    assert route.closed and [w.name for w in route.waypoints] == ["sw", "se", "ne", "nw", "sw"]
+    assert route.closed
+    assert [w.name for w in route.waypoints] == ["sw", "se", "ne", "nw", "sw"]
     text = parse_route_file("# patrol\n37.9415,23.653\nne\n", area.points)
-    assert text.waypoints[1].name == "ne" and text.waypoints[0].latitude == 37.9415
+    assert text.waypoints[1].name == "ne"
+    assert text.waypoints[0].latitude == 37.9415
     line = {"type": "LineString", "coordinates": [[23.653, 37.9415], [23.6531, 37.9416]]}
     assert len(parse_route_file(json.dumps(line)).waypoints) == 2
     assert parse_route_file(json.dumps([{"name": "se"}]), area.points).waypoints[0].name == "se"
@@ -252,7 +257,8 @@ def test_filter_finds_the_heading_by_driving_and_dead_reckons_between_fixes() ->
             yaw,
         )
     estimate = f.estimate(3.0)
-    assert estimate.heading_known and abs(estimate.yaw - yaw) < math.radians(3)
+    assert estimate.heading_known
+    assert abs(estimate.yaw - yaw) < math.radians(3)
     assert abs(estimate.speed - SPEED) < 0.1
     ahead = f.estimate(4.0)  # a second without fixes: dead reckoned, less certain
     assert abs(math.hypot(ahead.x, ahead.y) - math.hypot(estimate.x, estimate.y) - SPEED) < 0.2
@@ -281,9 +287,12 @@ def test_pure_pursuit_turns_on_the_spot_then_steers_and_arrives() -> None:
     )
     follower.set_path([(0, 0), (10, 0)])
     behind = follower.step(0, 0, math.pi)
-    assert behind.linear == 0 and abs(behind.angular) == 0.5
+    assert behind.linear == 0
+    assert abs(behind.angular) == 0.5
     left = follower.step(0, -1, 0.0)  # right of the path: steer left
-    assert left.linear > 0 and left.angular > 0 and left.cross_track_m == pytest.approx(1.0)
+    assert left.linear > 0
+    assert left.angular > 0
+    assert left.cross_track_m == pytest.approx(1.0)
     assert follower.step(9.5, 0.0, 0.0).arrived
 
 
@@ -292,7 +301,8 @@ def test_pure_pursuit_turns_on_the_spot_then_steers_and_arrives() -> None:
 
 def test_patrol_states_map_reload_override_and_stale_fix() -> None:
     p = patrol()
-    assert p.step(None, None) == (p.step(None, None)) and p.status().state is PatrolState.IDLE
+    assert p.step(None, None) == (p.step(None, None))
+    assert p.status().state is PatrolState.IDLE
     area = parse_map(demo())
     p.set_map(area)
     p.set_route(parse_waypoints(demo_route(), area.points))
@@ -302,14 +312,16 @@ def test_patrol_states_map_reload_override_and_stale_fix() -> None:
         run.tick()
     assert p.status().state is PatrolState.PATROLLING
     p.set_override(True)
-    assert run.tick().command.linear == 0 and p.status().state is PatrolState.SUSPENDED
+    assert run.tick().command.linear == 0
+    assert p.status().state is PatrolState.SUSPENDED
     p.set_override(False)
     run.tick()
     assert p.status().state is PatrolState.PATROLLING
     run.gps_on = False
     for _ in range(25):
         run.tick()
-    assert p.status().state is PatrolState.HOLDING and "GPS fix" in p.status().reason
+    assert p.status().state is PatrolState.HOLDING
+    assert "GPS fix" in p.status().reason
     assert run.tick().command.linear == 0
     run.gps_on = True
     for _ in range(5):
@@ -317,7 +329,8 @@ def test_patrol_states_map_reload_override_and_stale_fix() -> None:
     assert p.status().state is PatrolState.PATROLLING
     p.set_map(area)  # a reload wipes the waypoints and stops
     assert run.tick().command.linear == 0
-    assert p.status().waypoints == 0 and p.status().state is PatrolState.STOPPED
+    assert p.status().waypoints == 0
+    assert p.status().state is PatrolState.STOPPED
     assert p.status().reason == "map loaded: waypoints cleared"
 
 
@@ -354,10 +367,12 @@ def test_a_lost_heading_is_found_beside_what_the_lidar_saw_not_beside_the_maps_k
         assert p.step(lost, 0.1).linear < 0
         assert p.status().reason == "finding the heading (backing away)"
         p.blocked = (True, True)  # boxed in: it holds, saying why
-        assert p.step(lost, 0.1).linear == 0 and p.status().state is PatrolState.HOLDING
+        assert p.step(lost, 0.1).linear == 0
+        assert p.status().state is PatrolState.HOLDING
         assert p.status().reason == "heading unknown and obstacles ahead and behind"
     else:
-        assert command.linear == 0 and p.status().state is PatrolState.HOLDING
+        assert command.linear == 0
+        assert p.status().state is PatrolState.HOLDING
         assert "heading unknown and no 3 m of room" in p.status().reason
 
 
@@ -419,7 +434,8 @@ def test_rtk_receiver_patrol_stays_within_half_a_metre_of_the_path() -> None:
         under_way = tick.estimate is not None and abs(tick.command.linear) > 0.5
         if p.status().state is PatrolState.PATROLLING and p.planned_path and under_way:
             errors.append(cross_track(p.planned_path, tick.truth_xy))
-    assert p.cursor.lap == 1 and len(errors) > 500
+    assert p.cursor.lap == 1
+    assert len(errors) > 500
     assert sum(errors) / len(errors) < 0.5, max(errors)
     assert max(errors) < 1.5  # the clearance (1.5 m here) holds
 
@@ -435,7 +451,8 @@ def test_unreachable_waypoint_is_skipped_with_a_notification() -> None:
     while p.cursor.index != 2 and run.now < 120:
         run.tick()
     kinds = [(e.kind, e.waypoint) for e in p.events]
-    assert ("arrived", 0) in kinds and ("skipped", 1) in kinds
+    assert ("arrived", 0) in kinds
+    assert ("skipped", 1) in kinds
     assert "clearance" in next(e.message for e in p.events if e.kind == "skipped")
 
 
@@ -480,7 +497,8 @@ def test_waypoints_cut_off_by_seen_obstacles_hold_until_they_go(prefix: str, hol
         assert p.status().state is PatrolState.STOPPED
         assert p.status().reason == "no waypoint can be reached"
         return
-    assert p.status().state is PatrolState.HOLDING and "lidar sees" in p.status().reason
+    assert p.status().state is PatrolState.HOLDING
+    assert "lidar sees" in p.status().reason
     assert run.tick().command.linear == 0
     p.update_map(area)  # they are gone
     for _ in range(40):
@@ -532,8 +550,10 @@ def test_a_missions_laps_end_the_patrol_and_its_leg_speeds_are_driven() -> None:
         command = run.tick().command
         if p.cursor.index in fastest and command is not None:
             fastest[p.cursor.index] = max(fastest[p.cursor.index], command.linear * SPEED)
-    assert p.state is PatrolState.STOPPED and p.reason.startswith("mission complete")
-    assert p.cursor.lap == 1 and p.cursor.index == 0
+    assert p.state is PatrolState.STOPPED
+    assert p.reason.startswith("mission complete")
+    assert p.cursor.lap == 1
+    assert p.cursor.index == 0
     assert fastest[1] <= 0.5 + 1e-6  # the slow leg
     assert fastest[0] > 1.0  # 99 m/s asked, the top speed driven
     assert fastest[0] <= SPEED + 1e-6

@@ -80,10 +80,13 @@ def test_any_velocity_maps_to_valid_commands(
     ):
         assert abs(level) <= min(scale, max(0.0, min(1.0, limit))) * 127 + 0.5
     first, second = mapping.commands(linear, angular)
-    assert first.text[:2] in ("!A", "!a") and second.text[:2] in ("!B", "!b")
+    assert first.text[:2] in ("!A", "!a")
+    assert second.text[:2] in ("!B", "!b")
     for command in (first, second):
         digits = command.text[2:]
-        assert len(digits) == 2 and digits == digits.upper() and int(digits, 16) <= 0x7F
+        assert len(digits) == 2
+        assert digits == digits.upper()
+        assert int(digits, 16) <= 0x7F
 
 
 @given(linear=st.floats(min_value=-1.0, max_value=1.0), angular=st.floats(-1.0, 1.0))
@@ -101,9 +104,11 @@ def test_unit_conversions_follow_the_manual() -> None:
     assert ax3500.battery_raw(24.0) == 0x70  # "24 V ≈ 0x70"
     assert ax3500.battery_volts(0x70) == pytest.approx(24.06, abs=0.01)
     assert ax3500.internal_volts(ax3500.internal_raw(12.0)) == pytest.approx(12.0, abs=0.1)
-    assert ax3500.motor_amps(0x14) == 10.0 and ax3500.amps_raw(10.0) == 0x14
+    assert ax3500.motor_amps(0x14) == 10.0
+    assert ax3500.amps_raw(10.0) == 0x14
     assert ax3500.heatsink_celsius(153) == 25.0  # "25 °C ≈ 153"
-    assert ax3500.heatsink_celsius(255) == -40.0 and ax3500.heatsink_celsius(0) == 150.0
+    assert ax3500.heatsink_celsius(255) == -40.0
+    assert ax3500.heatsink_celsius(0) == 150.0
     assert 25.0 < ax3500.heatsink_celsius(150) < 30.0
 
 
@@ -141,7 +146,10 @@ def test_parser_never_fails_and_yields_printable_lines(chunks: list[bytes]) -> N
     parser = LineParser()
     for chunk in chunks:
         for line in parser.feed(chunk):
-            assert line and "W" not in line and line.isprintable() and len(line) <= 64
+            assert line
+            assert "W" not in line
+            assert line.isprintable()
+            assert len(line) <= 64
 
 
 @given(st.binary(max_size=60), st.integers(1, 10))
@@ -167,27 +175,36 @@ def _run(command: ax3500.Command, wire: bytes) -> tuple[ax3500.Reply | None, Exc
 
 def test_exchange_runtime_ack_and_nak() -> None:
     reply, _ = _run(ax3500.motor(1, 16), b"!A10\r+\r")
-    assert reply is not None and reply.status is Status.ACK and reply.ok
+    assert reply is not None
+    assert reply.status is Status.ACK
+    assert reply.ok
     reply, _ = _run(ax3500.motor(1, 16), b"!A10\r-\r")
-    assert reply is not None and reply.status is Status.NAK and not reply.ok
+    assert reply is not None
+    assert reply.status is Status.NAK
+    assert not reply.ok
 
 
 def test_exchange_skips_what_came_before_its_echo() -> None:
     # A late answer to a timed-out command, a banner and a config read's extra line.
     reply, exchange = _run(ax3500.motor(2, -1), b"+\rOK\r00\r!b01\r+\r")
-    assert reply is not None and reply.status is Status.ACK
+    assert reply is not None
+    assert reply.status is Status.ACK
     assert exchange.stray == ["+", "OK", "00"]
 
 
 def test_exchange_query_values_in_either_case() -> None:
     reply, _ = _run(ax3500.query("m"), b"?m\r9a\rA0\r")
-    assert reply is not None and reply.values == (0x9A, 0xA0)
+    assert reply is not None
+    assert reply.values == (0x9A, 0xA0)
     reply, _ = _run(ax3500.query("t"), b"?t\r-\r")
-    assert reply is not None and reply.status is Status.NAK
+    assert reply is not None
+    assert reply.status is Status.NAK
     reply, _ = _run(ax3500.config_read(0), b"^00\r02\r")
-    assert reply is not None and reply.values == (2,)
+    assert reply is not None
+    assert reply.values == (2,)
     reply, _ = _run(ax3500.reset(), b"%rrrrrr\r")
-    assert reply is not None and reply.status is Status.ECHOED
+    assert reply is not None
+    assert reply.status is Status.ECHOED
 
 
 def test_incomplete_answer_is_no_reply() -> None:
@@ -240,7 +257,8 @@ def test_a_motor_command_round_trips_through_the_controller(
     assert device.channels[channel - 1] == level
     # ... and the controller reports the power it applies.
     reply = _exchange(device, ax3500.query("v"), chunk, b"")
-    assert reply.status is Status.VALUES and reply.values[channel - 1] == abs(level)
+    assert reply.status is Status.VALUES
+    assert reply.values[channel - 1] == abs(level)
 
 
 @given(st.integers(0, 255), st.integers(0, 255), st.integers(1, 8), st.booleans())
@@ -249,4 +267,5 @@ def test_a_config_write_reads_back(parameter: int, value: int, chunk: int, lower
     device.power_up(0.0)
     assert _exchange(device, ax3500.config_write(parameter, value), chunk, b"").ok
     reply = _exchange(device, ax3500.config_read(parameter), chunk, b"")
-    assert reply.status is Status.VALUES and reply.values == (value,)
+    assert reply.status is Status.VALUES
+    assert reply.values == (value,)

@@ -45,7 +45,8 @@ def test_refusals() -> None:
     device = powered()
     for bad in (b"!a5\r", b"!A80\r", b"!AZZ\r", b"?t\r", b"!X\r", b"hello\r", b"^1 2\r"):
         assert device.feed(bad, 0.1).endswith(b"-\r"), bad
-    assert device.errors == 7 and device.channels == (0, 0)
+    assert device.errors == 7
+    assert device.channels == (0, 0)
     assert device.feed(b"A" * 40 + b"\r", 0.1).endswith(b"-\r")  # overlong
     device.fail_next = 1
     assert device.feed(b"!A10\r", 0.1) == b"!A10\r-\r"
@@ -59,11 +60,13 @@ def test_config_write_takes_effect_at_reset() -> None:
     assert device.mixed  # not before the reset
     assert device.feed(b"!A10\r", 0.0) == b"!A10\r+\r"
     assert device.feed(b"%rrrrrr\r!A10\r", 1.0) == b"%rrrrrr\r"  # the rest is lost
-    assert device.channels == (0, 0) and device.deadline() == 1.5
+    assert device.channels == (0, 0)
+    assert device.deadline() == 1.5
     assert device.feed(b"?e\r", 1.2) == b""  # restarting: deaf
     assert device.tick(1.4) == b""
     assert device.tick(1.5) == b"\rRoboteq v1.9b AX3500\rOK\r"
-    assert not device.mixed and device.resets == 1
+    assert not device.mixed
+    assert device.resets == 1
 
 
 def test_extra_line_after_a_config_read_is_an_option() -> None:
@@ -76,18 +79,24 @@ def test_watchdog_stops_the_motors_and_says_w_once_a_second() -> None:
     device.feed(b"!A7F\r", 0.0)
     assert device.deadline() == 1.0
     assert device.tick(1.0) == b""  # not *more* than 1 s yet
-    assert device.tick(1.01) == b"W" and device.channels == (0, 0)
-    assert device.deadline() == 2.01 and device.tick(1.5) == b""
-    assert device.tick(2.01) == b"W" and device.w_sent == 2 and device.watchdog_trips == 1
+    assert device.tick(1.01) == b"W"
+    assert device.channels == (0, 0)
+    assert device.deadline() == 2.01
+    assert device.tick(1.5) == b""
+    assert device.tick(2.01) == b"W"
+    assert device.w_sent == 2
+    assert device.watchdog_trips == 1
     device.feed(b"\r", 2.5)  # any character resets it
-    assert device.tick(3.0) == b"" and device.deadline() == 3.5
+    assert device.tick(3.0) == b""
+    assert device.deadline() == 3.5
 
 
 def test_no_watchdog_in_plain_rs232_mode() -> None:
     options = SimOptions()
     options.parameters[ax3500.PARAM_INPUT_MODE] = ax3500.INPUT_MODE_RS232
     device = powered(options)
-    assert device.deadline() is None and device.tick(100.0) == b""
+    assert device.deadline() is None
+    assert device.tick(100.0) == b""
 
 
 def test_rc_mode_streams_until_ten_carriage_returns() -> None:
@@ -98,7 +107,8 @@ def test_rc_mode_streams_until_ten_carriage_returns() -> None:
     assert device.tick(0.1).startswith(b":")
     assert device.feed(b"?e", 0.15) == b""  # no echo, no answer
     assert device.feed(b"\r" * 9, 0.2) == b""
-    assert device.feed(b"\r", 0.2) == b"OK\r" and device.mode == "rs232"
+    assert device.feed(b"\r", 0.2) == b"OK\r"
+    assert device.mode == "rs232"
     assert device.feed(b"?v\r", 0.3) == b"?v\r00\r00\r"
 
 
@@ -148,12 +158,14 @@ async def test_pty_round_trip_and_watchdog_at_line_speed(tmp_path: Path) -> None
             await read_until(reader, b"\r")
             # Silence for more than a second: the motors stop and the W comes.
             assert await read_until(reader, b"W", timeout=3) == b"W"
-            assert sim.device.channels == (0, 0) and vehicle.command == (0.0, 0.0)
+            assert sim.device.channels == (0, 0)
+            assert vehicle.command == (0.0, 0.0)
         finally:
             writer.close()
         # Unplugged: the path is gone. Replugged: same path, a fresh controller.
         sim.unplug()
-        assert not os.access(sim.path, os.F_OK) and not sim.plugged
+        assert not os.access(sim.path, os.F_OK)
+        assert not sim.plugged
         sim.replug()
         reader, writer = await serial_asyncio.open_serial_connection(url=sim.path, baudrate=9600)
         try:
@@ -207,7 +219,9 @@ async def test_platform_sim_gives_the_driver_its_pty(platform_factory, fleet_key
     assert sim is not None
     # The driver opens the simulator's pty 8N1; the configuration is left as it was given.
     assert daemon.ctx.motor_serial == SerialDevice(sim.path, 9600, 8, "N", 1)
-    assert daemon.config == config and config.motor.port == MotorSection().port
+    assert daemon.config == config
+    assert config.motor.port == MotorSection().port
     await wait_until(lambda: getattr(daemon.bus.last(CONTROLLER_STATUS), "connected", False))
     # A --sim platform keeps no test record: it grew for as long as the platform ran.
-    assert sim.device.received == [] and not sim.device.received_bytes
+    assert sim.device.received == []
+    assert not sim.device.received_bytes

@@ -175,9 +175,12 @@ def test_directory_stamps_with_its_own_clock_and_expires_after_4_s() -> None:
     assert directory.receive(codec.encode(sample(seq=2), KEY), "10.0.0.5") is not None
     clock.now += 3.9
     [entry] = directory.entries()
-    assert entry["id"] == "brasidas-rover-12" and entry["address"] == "10.0.0.5"
-    assert entry["age_s"] == pytest.approx(3.9) and entry["beacons"] == 2
-    assert entry["status"]["movrd"] is True and entry["status"]["battery"] == "medium"
+    assert entry["id"] == "brasidas-rover-12"
+    assert entry["address"] == "10.0.0.5"
+    assert entry["age_s"] == pytest.approx(3.9)
+    assert entry["beacons"] == 2
+    assert entry["status"]["movrd"] is True
+    assert entry["status"]["battery"] == "medium"
     clock.now += 0.2
     assert directory.entries() == []
 
@@ -188,7 +191,8 @@ def test_directory_counts_what_it_drops() -> None:
     for datagram in (b"\xff\x00garbage", codec.encode(sample(seq=2), None), good, good):
         directory.receive(datagram, "127.0.0.1")
     stats = directory.stats()
-    assert stats["accepted"] == 1 and stats["received"] == 4
+    assert stats["accepted"] == 1
+    assert stats["received"] == 4
     assert stats["dropped"]["malformed"] == 1
     assert stats["dropped"]["unsigned"] == 1
     assert stats["dropped"]["replay"] == 1
@@ -227,9 +231,11 @@ async def test_platform_beacons_at_start_and_at_most_every_3_s(
     t0, first = await asyncio.wait_for(protocol.beacons.get(), 5)
     assert first.platform_id == config.platform.id
     assert first.signaling_url == platform.ctx.signaling_url
-    assert first.position is None and first.status.movrd is False
+    assert first.position is None
+    assert first.status.movrd is False
     t1, second = await asyncio.wait_for(protocol.beacons.get(), 5)
-    assert second.seq == first.seq + 1 and second.boot == first.boot
+    assert second.seq == first.seq + 1
+    assert second.boot == first.boot
     assert t1 - t0 >= 0.55  # the 0.6 s floor, less timer slack
 
 
@@ -248,7 +254,8 @@ async def test_a_status_change_or_a_move_beacons_at_once_but_not_faster_than_0_6
         # The session bit and the override flip at once; one beacon carries both, at the floor.
         await connection.call("set_manual_override", engaged=True)
         t1, changed = await asyncio.wait_for(protocol.beacons.get(), 5)
-        assert changed.status.movrd and changed.status.session
+        assert changed.status.movrd
+        assert changed.status.session
         assert 0.55 <= t1 - t0 < 10
         # A move under the threshold sends nothing; one of 1 m or more does.
         lat, lon = 37.9, 23.6
@@ -382,7 +389,8 @@ async def test_list_command_prints_the_platforms_heard(platform_factory: Factory
     code = await asyncio.to_thread(run)
     assert code == 0, out.getvalue()
     [entry] = json.loads(out.getvalue())
-    assert entry["id"] == "rover-9" and entry["url"] == platform.ctx.signaling_url
+    assert entry["id"] == "rover-9"
+    assert entry["url"] == platform.ctx.signaling_url
 
 
 async def test_sim_platform_beacon_carries_battery_controller_gps_and_position(
@@ -436,5 +444,6 @@ def test_a_changed_signed_beacon_is_refused_and_counted(
     directory = PlatformDirectory(KEY, 4.0)
     directory.receive(bad, "127.0.0.1")
     stats = directory.stats()
-    assert stats["received"] == 1 and stats["accepted"] == 0
+    assert stats["received"] == 1
+    assert stats["accepted"] == 0
     assert sum(stats["dropped"].values()) == 1

@@ -78,7 +78,8 @@ async def test_supervisor_restarts_crashed_actor_and_removes_its_subscriptions(
         await asyncio.wait_for(actor.done.wait(), 5)
     assert actor.runs == 4
     assert supervisor.restarts["crashy"] == 3
-    assert "crash 1" in caplog.text and "Traceback" in caplog.text
+    assert "crash 1" in caplog.text
+    assert "Traceback" in caplog.text
     assert bus.subscriber_count(NUMBERS) == 1  # only the live run's subscription
     await supervisor.stop()
     assert bus.subscriber_count(NUMBERS) == 0

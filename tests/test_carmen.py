@@ -50,21 +50,26 @@ def test_the_reader_takes_flaser_robotlaser_and_odom_and_drops_bad_lines() -> No
         "ODOM 1 2 three 0 0 0 1.0 host 1.0",
     ]
     log = parse(lines)
-    assert len(log.scans) == 2 and len(log.odometry) == 1
+    assert len(log.scans) == 2
+    assert len(log.odometry) == 1
     assert log.skipped == {"PARAM": 1}
     assert [number for number, _ in log.malformed] == [6, 7, 8, 9]
-    assert "too few" in log.malformed[0][1] and "not finite" in log.malformed[1][1]
+    assert "too few" in log.malformed[0][1]
+    assert "not finite" in log.malformed[1][1]
     flaser, robot = log.scans
-    assert flaser.time == pytest.approx(10.05) and flaser.pose == (1.0, 2.0, 0.1)
+    assert flaser.time == pytest.approx(10.05)
+    assert flaser.pose == (1.0, 2.0, 0.1)
     assert flaser.odometry == (1.1, 2.1, 0.2)
-    assert flaser.angles_rad[90] == pytest.approx(0.0) and flaser.ranges_m[90] == 3.5
+    assert flaser.angles_rad[90] == pytest.approx(0.0)
+    assert flaser.ranges_m[90] == 3.5
     assert flaser.angles_rad[0] == pytest.approx(-math.pi / 2)
-    assert robot.max_range_m == 40.0 and robot.ranges_m == (2.0, 50.0, 3.0)
+    assert robot.max_range_m == 40.0
+    assert robot.ranges_m == (2.0, 50.0, 3.0)
     assert robot.angles_rad == pytest.approx((-1.5708, 0.0, 1.5708))
-    assert robot.odometry == (1.0, 2.0, 0.5) and robot.time == pytest.approx(1000.6)
-    assert len(flaser_angles(180)) == 180 and flaser_angles(361)[1] == pytest.approx(
-        -math.pi / 2 + math.radians(0.5)
-    )
+    assert robot.odometry == (1.0, 2.0, 0.5)
+    assert robot.time == pytest.approx(1000.6)
+    assert len(flaser_angles(180)) == 180
+    assert flaser_angles(361)[1] == pytest.approx(-math.pi / 2 + math.radians(0.5))
 
 
 def test_a_logged_scan_becomes_a_revolution_of_ld19_frames() -> None:
@@ -82,7 +87,8 @@ def test_a_logged_scan_becomes_a_revolution_of_ld19_frames() -> None:
             done = assembler.feed(frame)
             if done is not None:
                 revolutions.append(done)
-    assert decoder.crc_errors == 0 and len(revolutions) == 1
+    assert decoder.crc_errors == 0
+    assert len(revolutions) == 1
     (scan,) = revolutions
     angles = np.asarray(scan.angles_deg)
     distances = np.asarray(scan.ranges_m)
@@ -94,7 +100,8 @@ def test_a_logged_scan_becomes_a_revolution_of_ld19_frames() -> None:
     assert at(0.0) == pytest.approx(3.5, abs=0.002)
     assert at(270.0) == pytest.approx(2.0, abs=0.002)  # left = 270° clockwise
     assert at(90.0) == pytest.approx(1.25, abs=0.002)
-    assert at(180.0) == 0.0 and at(45.0) == 0.0  # behind; 20 m (45° right) beyond reach
+    assert at(180.0) == 0.0
+    assert at(45.0) == 0.0  # behind; 20 m (45° right) beyond reach
     assert len(angles) == replay.points == 360  # 1° readings: 1° apart, all round
 
 
@@ -104,7 +111,8 @@ def test_the_pipeline_on_a_simulated_log_uses_its_odometry_as_the_prior() -> Non
     odometry, and most scans register (the others show fewer than the odometry's 60 returns:
     a FLASER is a half circle of 181 readings, and the LD19 sees 12 m of it)."""
     log = parse(sample_log(30.0))
-    assert len(log.scans) >= 290 and not log.malformed
+    assert len(log.scans) >= 290
+    assert not log.malformed
     out = odometry_over_log(log)
     assert len(out) == len(log.scans) - 1  # the last revolution waits for a next one
     registered = sum(1 for _, _, source in out if source == "lidar")
@@ -114,7 +122,8 @@ def test_the_pipeline_on_a_simulated_log_uses_its_odometry_as_the_prior() -> Non
     lidar = relative_translation_error(truth, estimate)
     wheels = relative_translation_error(truth, [scan.odometry for scan, _, _ in out])
     assert len(lidar) > 200
-    assert float(np.mean(lidar)) < 0.03 and float(np.mean(lidar)) < float(np.mean(wheels))
+    assert float(np.mean(lidar)) < 0.03
+    assert float(np.mean(lidar)) < float(np.mean(wheels))
 
 
 async def test_simulate_lidar_carmen_replays_a_log_on_a_pty(tmp_path: Path) -> None:
@@ -175,9 +184,11 @@ async def test_simulate_lidar_carmen_replays_a_log_on_a_pty(tmp_path: Path) -> N
     text = err.decode()
     lost = int(re.search(r"(\d+) revolutions not read", text).group(1))  # type: ignore[union-attr]
     # The last revolution waits for a next one; the first may go by before the pty is opened.
-    assert decoder.crc_errors == 0 and scans - 2 - lost <= revolutions <= scans - 1, text
+    assert decoder.crc_errors == 0, text
+    assert scans - 2 - lost <= revolutions <= scans - 1, text
     assert lost <= 2, text
-    assert f"{scans} scans replayed" in text and "1 lines dropped" in text, text
+    assert f"{scans} scans replayed" in text, text
+    assert "1 lines dropped" in text, text
     assert "dropped: FLASER" in text
 
 
@@ -203,11 +214,15 @@ async def test_the_sim_vehicles_lidar_replays_a_carmen_log_through_the_daemon(
 
     await wait_until(lambda: stopped("stopped: obstacle"), 10)
     scan = bus.last(topics.LIDAR_SCAN)
-    assert scan is not None and len(scan.obstacles) == 1
+    assert scan is not None
+    assert len(scan.obstacles) == 1
     (seen,) = scan.obstacles
     ahead = LidarSection().mount_x_m + 0.45  # the sensor sits forward of the robot's centre
-    assert abs(seen.x_m - ahead) < 0.05 and abs(seen.y_m) < 0.05
+    assert abs(seen.x_m - ahead) < 0.05
+    assert abs(seen.y_m) < 0.05
     replay = robot.ctx.sim.lidar_replay
-    assert replay is not None and robot.ctx.sim.lidar is None and replay.scans == 30
+    assert replay is not None
+    assert robot.ctx.sim.lidar is None
+    assert replay.scans == 30
     # The log is over (3 s): the lidar goes silent and the robot is held for it.
     await wait_until(lambda: stopped("stopped: no lidar scan"), 10)

@@ -8,12 +8,15 @@ from stationd.cli import build_parser, parse_args
 def test_station_options_before_and_after_the_command_name() -> None:
     parser = build_parser()
     before = parser.parse_args(["--set", "station.api_port=1", "--json", "status", "rover"])
-    assert before.overrides == ["station.api_port=1"] and before.json is True
+    assert before.overrides == ["station.api_port=1"]
+    assert before.json is True
     after = parser.parse_args(["status", "rover", "--set", "station.api_port=2", "--json"])
-    assert after.command_overrides == ["station.api_port=2"] and after.json is True
+    assert after.command_overrides == ["station.api_port=2"]
+    assert after.json is True
     both = parser.parse_args(["--set", "a.b=1", "list", "--set", "c.d=2"])
     assert (both.overrides, both.command_overrides) == (["a.b=1"], ["c.d=2"])
-    assert both.json is False and both.config is None
+    assert both.json is False
+    assert both.config is None
 
 
 def test_southern_and_western_coordinates_are_waypoints_not_options() -> None:

@@ -18,7 +18,8 @@ async def test_manual_clock_runs_due_timers_in_order_at_their_time() -> None:
     cancelled.cancel()
     clock.call_at(12.0, lambda: fired.append(("later", clock.time())))
     clock.advance(1.0)
-    assert fired == [("a", 10.2), ("b", 10.5)] and clock.time() == 11.0
+    assert fired == [("a", 10.2), ("b", 10.5)]
+    assert clock.time() == 11.0
     clock.call_at(5.0, lambda: fired.append(("past", clock.time())))  # due: soon, not inline
     assert fired[-1][0] == "b"
     await asyncio.sleep(0)

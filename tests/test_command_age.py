@@ -37,17 +37,20 @@ def test_the_offset_is_the_quickest_round_trips_and_within_half_of_it() -> None:
     offset.add(sent=100.0, platform=90.010, received=100.020)
     offset.add(sent=101.0, platform=91.010, received=101.320)
     best = offset.best
-    assert best is not None and best.offset == pytest.approx(-10.0)
+    assert best is not None
+    assert best.offset == pytest.approx(-10.0)
     assert best.round_trip == pytest.approx(0.02)
     offset.add(sent=102.0, platform=92.0015, received=102.002)
     best = offset.best
-    assert best is not None and best.round_trip == pytest.approx(0.002)
+    assert best is not None
+    assert best.round_trip == pytest.approx(0.002)
     assert abs(best.offset + 10.0) <= best.round_trip / 2
     # Old samples leave: only the last ``keep`` count.
     for i in range(4):
         offset.add(sent=200.0 + i, platform=190.05 + i, received=200.1 + i)
     best = offset.best
-    assert best is not None and best.round_trip == pytest.approx(0.1)
+    assert best is not None
+    assert best.round_trip == pytest.approx(0.1)
 
 
 def test_a_queue_on_the_way_back_only_does_not_skew_the_offset_for_minutes() -> None:
@@ -66,7 +69,8 @@ def test_a_queue_on_the_way_back_only_does_not_skew_the_offset_for_minutes() -> 
     for i in range(180, 600):
         offset.add(sent=100.0 + i, platform=90.0 + i + 0.001, received=100.0 + i + 0.202)
     best = offset.best
-    assert best is not None and best.round_trip == pytest.approx(0.202)
+    assert best is not None
+    assert best.round_trip == pytest.approx(0.202)
 
 
 @pytest.fixture
@@ -114,14 +118,16 @@ async def test_a_delayed_packet_is_aged_by_the_platform_across_offset_clocks(
 ) -> None:
     daemon, conn = driving
     best = conn.clock_offset.best
-    assert best is not None and abs(best.offset + STATION_AHEAD) <= best.round_trip / 2 + 0.001
+    assert best is not None
+    assert abs(best.offset + STATION_AHEAD) <= best.round_trip / 2 + 0.001
     encoder = pvel.PvelEncoder(key=conn.session_key, session_id=conn.session_id)
     target = ("127.0.0.1", daemon.ctx.velocity_port)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.sendto(encoder.encode(0.1, 0.0, conn.platform_time_ms()), target)
         await wait_until(lambda: command_age(daemon) is not None)
         age = command_age(daemon)
-        assert age is not None and age.last_ms < 200  # loopback: at once (but a loaded machine)
+        assert age is not None
+        assert age.last_ms < 200  # loopback: at once (but a loaded machine)
         # A packet held back 250 ms on its way (a congested link) arrives 250 ms old.
         held = encoder.encode(0.1, 0.0, conn.platform_time_ms())
         await asyncio.sleep(0.25)
@@ -130,7 +136,8 @@ async def test_a_delayed_packet_is_aged_by_the_platform_across_offset_clocks(
         age = command_age(daemon)
         # (Not 5000 s: the clocks' offset is accounted for, within half the quickest round
         # trip; transit on a loaded loopback adds milliseconds, seldom more.)
-        assert age is not None and 250 - error_ms(conn) <= age.last_ms < 1000
+        assert age is not None
+        assert 250 - error_ms(conn) <= age.last_ms < 1000
         assert age.max_ms == age.last_ms
         report = await conn.call("get_telemetry_report")
         assert report["velocity_link"]["age_ms"] == pytest.approx(age.last_ms, abs=0.1)
@@ -159,7 +166,9 @@ async def test_the_cap_follows_the_command_age_and_the_motors_never_exceed_it(
         sock.sendto(encoder.encode(1.0, 0.0, sent(0)), target)
         await wait_until(lambda: bool(commands) and commands[-1].linear > 0)
         fresh = daemon.bus.last(topics.SPEED_CAP)
-        assert fresh is not None and fresh.command_ms is not None and fresh.command_ms < 200
+        assert fresh is not None
+        assert fresh.command_ms is not None
+        assert fresh.command_ms < 200
         assert "command age" in fresh.reason
         # Packets 300 ms old (a lag): the cap drops at once, before the packet moves anything.
         before = len(commands)
@@ -172,12 +181,14 @@ async def test_the_cap_follows_the_command_age_and_the_motors_never_exceed_it(
             )
         )
         lagging = daemon.bus.last(topics.SPEED_CAP)
-        assert lagging is not None and lagging.command_ms is not None
+        assert lagging is not None
+        assert lagging.command_ms is not None
         expected = compute_cap(safety, max_kmh, 50.0, lagging.command_ms)
         assert lagging.cap_kmh == pytest.approx(expected.cap_kmh)
         assert lagging.cap_kmh < fresh.cap_kmh
         moved = [c for c in commands[before:] if c.linear > 0]  # (then the deadman's zeros)
-        assert moved and moved[0].linear == pytest.approx(lagging.fraction)
+        assert moved
+        assert moved[0].linear == pytest.approx(lagging.fraction)
 
         # Fresh packets again: once the old one leaves the window (1 s) the cap rises back.
         async def stream() -> None:

@@ -39,7 +39,8 @@ async def test_the_owner_answers_with_the_command_and_its_session() -> None:
     assert await router.dispatch(MAIN_LIGHTS, "ON", SESSION) == CommandResult(True, result=1)
     assert seen == [SystemCommand(MAIN_LIGHTS, "ON", SESSION)]
     assert seen[0].session_id == "token-1"
-    assert router.owner(MAIN_LIGHTS) == "lights" and router.codes() == [MAIN_LIGHTS]
+    assert router.owner(MAIN_LIGHTS) == "lights"
+    assert router.codes() == [MAIN_LIGHTS]
 
 
 async def test_a_second_owner_is_refused_at_registration_and_nothing_of_it_is_kept() -> None:
@@ -63,10 +64,8 @@ async def test_unregistering_frees_the_code_and_touches_nobody_else() -> None:
     unregister = router.register("motor", {MAIN_LIGHTS: answering(CommandResult(True))})
     unregister()
     answer = await router.dispatch(MAIN_LIGHTS, "ON", None)
-    assert (
-        not answer.accepted
-        and answer.reason == "10.6 (main lights) is not available on this platform"
-    )
+    assert not answer.accepted
+    assert answer.reason == "10.6 (main lights) is not available on this platform"
     router.register("gpio", {MAIN_LIGHTS: answering(CommandResult(True, result="gpio"))})
     unregister()  # twice, after someone else took the code: harmless
     assert (await router.dispatch(MAIN_LIGHTS, "ON", None)).result == "gpio"
@@ -75,13 +74,17 @@ async def test_unregistering_frees_the_code_and_touches_nobody_else() -> None:
 async def test_every_code_is_answered() -> None:
     router = CommandRouter(timeout=1.0)
     answer = await router.dispatch(CommandCode(91, 0), "", SESSION)
-    assert not answer.accepted and "station-only" in answer.reason
+    assert not answer.accepted
+    assert "station-only" in answer.reason
     with pytest.raises(RpcError) as err:
         await router.dispatch(CommandCode(42, 1), "", SESSION)
-    assert err.value.code == INVALID_PARAMS and "unknown command code 42.1" in err.value.message
+    assert err.value.code == INVALID_PARAMS
+    assert "unknown command code 42.1" in err.value.message
     answer = await router.dispatch(CommandCode(104, 2), "", SESSION)
-    assert not answer.accepted and "payload group 104" in answer.reason
-    assert router.counters["unknown"] == 1 and router.counters["unavailable"] == 1
+    assert not answer.accepted
+    assert "payload group 104" in answer.reason
+    assert router.counters["unknown"] == 1
+    assert router.counters["unavailable"] == 1
 
 
 async def test_payload_groups_100_to_110_are_registrable() -> None:
@@ -117,7 +120,8 @@ async def test_a_failing_owner_is_an_answer_not_a_crash() -> None:
 
     router.register("broken", {MAIN_LIGHTS: broken})
     answer = await router.dispatch(MAIN_LIGHTS, "ON", SESSION)
-    assert not answer.accepted and "failed in broken" in answer.reason
+    assert not answer.accepted
+    assert "failed in broken" in answer.reason
     assert router.counters["failures"] == 1
 
 
@@ -137,7 +141,8 @@ async def test_authority_is_asked_first_with_the_calling_session() -> None:
     router.register("mode", {MANUAL_OVERRIDE: answering(CommandResult(True), seen)})
     answer = await router.dispatch(MANUAL_OVERRIDE, "ON", SESSION)
     assert answer == CommandResult(False, "observer: control is held by holder (10.0)")
-    assert asked == [SystemCommand(MANUAL_OVERRIDE, "ON", SESSION)] and seen == []
+    assert asked == [SystemCommand(MANUAL_OVERRIDE, "ON", SESSION)]
+    assert seen == []
     holder = Session("token-2", "holder", "127.0.0.1", None, 0.0, 0.0)
     assert (await router.dispatch(MANUAL_OVERRIDE, "ON", holder)).accepted
     assert [command.session for command in seen] == [holder]

@@ -181,7 +181,8 @@ def test_overrides_parse_toml_values_or_bare_strings() -> None:
         ],
     )
     assert config.signaling.port == 9000
-    assert config.telemetry.rate_hz == 2.0 and isinstance(config.telemetry.rate_hz, float)
+    assert config.telemetry.rate_hz == 2.0
+    assert isinstance(config.telemetry.rate_hz, float)
     assert config.platform.id == "bare-word"
     assert config.security.insecure is True
     with pytest.raises(ConfigError, match="expected SECTION.KEY=VALUE"):
@@ -210,7 +211,8 @@ def test_a_loaded_config_is_frozen() -> None:
 def test_sim_and_insecure_flags_are_applied_while_loading() -> None:
     args = platform_cli.build_parser().parse_args(["--sim", "--insecure"])
     config = platform_cli.load_platform_config(args)
-    assert config.sim.enabled and config.security.insecure
+    assert config.sim.enabled
+    assert config.security.insecure
 
 
 # --------------------------------------------------------------------------- the CLIs

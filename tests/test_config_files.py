@@ -123,7 +123,8 @@ def test_any_key_file_content_is_a_key_or_one_clear_error(
     try:
         key = security.load_key(path)
     except security.FleetKeyError as err:
-        assert str(err).startswith(f"{path}: ") and "\n" not in str(err)
+        assert str(err).startswith(f"{path}: ")
+        assert "\n" not in str(err)
     else:
         assert len(key) >= 16
 
@@ -161,7 +162,8 @@ def test_a_fifo_or_device_as_config_is_refused_at_once(tmp_path: Path) -> None:
         except subprocess.TimeoutExpired:
             pytest.fail(f"the platform hung on {path} as config")
         assert done.returncode == 2, done.stderr[-2000:]
-        assert "config is not a regular file" in done.stderr and "Traceback" not in done.stderr
+        assert "config is not a regular file" in done.stderr
+        assert "Traceback" not in done.stderr
 
 
 @settings(max_examples=60, deadline=None)
@@ -235,7 +237,8 @@ def assert_cap_stops_within_the_distance(config: PlatformConfig) -> None:
     """The cap without a latency report is a finite speed the robot stops from in time."""
     safety: SafetySection = config.safety
     cap = compute_cap(safety, config.platform.max_speed_kmh, None, None)
-    assert math.isfinite(cap.cap_kmh) and 0 <= cap.cap_kmh <= config.platform.max_speed_kmh
+    assert math.isfinite(cap.cap_kmh)
+    assert 0 <= cap.cap_kmh <= config.platform.max_speed_kmh
     speed = cap.cap_kmh / 3.6
     dead = safety.reaction_s + safety.worst_latency_ms / 1000
     stopping = dead * speed + speed * speed / (2 * safety.braking_mps2)
@@ -252,7 +255,8 @@ def test_a_platform_id_a_beacon_cannot_carry_is_refused_at_the_door(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
     code, err = platform_main(capsys, "--set", f"platform.id={'r' * 3000}", "config")
-    assert code == 2 and len(err) == 1
+    assert code == 2
+    assert len(err) == 1
     assert err[0].startswith("brasidas-platform: platform.id: must be 1-32 bytes of printable text")
     for bad in ("rover\n1", "rover\x1b[2J", "é" * 17):
         with pytest.raises(ConfigError, match="platform.id"):

@@ -50,7 +50,8 @@ api_max_batch = 50
 def test_both_daemons_share_one_admission_section() -> None:
     platform, station = PlatformConfig().admission, StationConfig().admission
     assert type(station) is AdmissionSection
-    assert isinstance(platform, AdmissionSection) and isinstance(platform, StrangerAdmissionSection)
+    assert isinstance(platform, AdmissionSection)
+    assert isinstance(platform, StrangerAdmissionSection)
     common = {item.name for item in dataclasses.fields(AdmissionSection)}
     assert common <= {item.name for item in dataclasses.fields(platform)}
     # The station keeps its own defaults for the shared keys.
@@ -59,7 +60,8 @@ def test_both_daemons_share_one_admission_section() -> None:
     assert (platform.max_connections, platform.idle_timeout) == (512, 15.0)
     assert platform.max_unsent_bytes == 1 << 20
     # A server without sessions trusts every connection; signaling holds strangers to caps.
-    assert admission_limits(station).trusted and not admission_limits(platform).trusted
+    assert admission_limits(station).trusted
+    assert not admission_limits(platform).trusted
     assert admission_limits(platform).max_strangers_per_host == 8
 
 
@@ -112,13 +114,15 @@ def test_an_old_station_file_reads_as_the_new_keys(tmp_path: Path) -> None:
     )
     assert config.station.id == "base"
     assert len(notices) == 8
-    assert "station.api_idle_timeout" in notices[3] and "admission.idle_timeout" in notices[3]
+    assert "station.api_idle_timeout" in notices[3]
+    assert "admission.idle_timeout" in notices[3]
 
 
 def test_the_new_names_give_no_notice_and_old_ones_on_the_command_line_do() -> None:
     notices: list[str] = []
     config = load_config(PlatformConfig, None, ["admission.max_strangers=16"], notices)
-    assert config.admission.max_strangers == 16 and notices == []
+    assert config.admission.max_strangers == 16
+    assert notices == []
     station = load_config(StationConfig, None, ["station.api_write_timeout=2"], notices)
     assert station.admission.write_timeout == 2.0
     assert notices == [

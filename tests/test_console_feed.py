@@ -59,7 +59,8 @@ def test_nothing_before_the_first_keyframe_and_a_gap_freezes_until_the_next() ->
     assert [m["keyframe"] for m in drain(viewer)] == [True, False]
     fanout.feed(unit(True))
     assert [m["keyframe"] for m in drain(viewer)] == [True]
-    assert fanout.gaps == 1 and fanout.held == 3
+    assert fanout.gaps == 1
+    assert fanout.held == 3
 
 
 def test_a_viewer_that_falls_behind_skips_to_the_next_keyframe() -> None:
@@ -73,12 +74,14 @@ def test_a_viewer_that_falls_behind_skips_to_the_next_keyframe() -> None:
         fanout.feed(unit(False))
         drain(fast)  # keeps up
     # slow: replayed key (allowance 1) + 3 live fit; the 4th live unit overflows.
-    assert slow.cutbacks == 1 and slow.waiting_for_key
+    assert slow.cutbacks == 1
+    assert slow.waiting_for_key
     assert len(slow.queue) == 0
     fanout.feed(unit(True))
     fanout.feed(unit(False))
     assert [m["keyframe"] for m in drain(slow)] == [True, False]
-    assert fast.cutbacks == 0 and fast.skipped == 0
+    assert fast.cutbacks == 0
+    assert fast.skipped == 0
 
 
 async def test_access_units_reach_a_websocket_viewer_with_capture_times(
@@ -129,14 +132,16 @@ async def test_access_units_reach_a_websocket_viewer_with_capture_times(
         assert frames[0]["keyframe"], "the first frame a viewer gets is a keyframe"
         assert all(f["feed"] == watching["feed"] for f in frames)
         seqs = [f["seq"] for f in frames]
-        assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+        assert seqs == sorted(seqs)
+        assert len(set(seqs)) == len(seqs)
         # The platform stamped every frame; on loopback one clock: a few ms old on arrival.
         for f in frames:
             assert f["capture_ms"] > 0
             assert -5 < f["arrival_ms"] - f["capture_ms"] < 2000
         assert {"platforms", "connections"} <= pushed
         feeds = await call("video_feeds")
-        assert feeds[0]["viewers"] == 1 and feeds[0]["units"] >= 8
+        assert feeds[0]["viewers"] == 1
+        assert feeds[0]["units"] >= 8
 
         # Nobody watches: the feed lingers, then stops, and so does the platform's NavCam.
         media = platform.ctx.media
@@ -186,7 +191,8 @@ async def test_the_page_worker_s_own_socket_carries_the_navcam_once_it_proves_th
             )
             assert answer["result"] is True
             frames = await _frames(worker, 8)
-            assert frames[0]["keyframe"] and frames[0]["feed"] == watching["feed"]
+            assert frames[0]["keyframe"]
+            assert frames[0]["feed"] == watching["feed"]
             live = [f["seq"] for f in frames if not f["replayed"]]
             assert live, "live frames follow the GOP"
             # The page's socket gets none of them: only what was sent before the switch.

@@ -20,9 +20,11 @@ def test_logs_wraps_a_recordings_channels_under_it() -> None:
         }
     )
     lines = text.splitlines()
-    assert lines[1].startswith("a.mcap") and lines[1].endswith("32 channels")
+    assert lines[1].startswith("a.mcap")
+    assert lines[1].endswith("32 channels")
     wrapped = lines[2:]
-    assert len(wrapped) > 3 and all(len(line) <= 100 for line in wrapped)
+    assert len(wrapped) > 3
+    assert all(len(line) <= 100 for line in wrapped)
     assert all(line.startswith("    ") for line in wrapped)
     assert sum(line.count("/telemetry/") for line in wrapped) == 32
 

@@ -35,7 +35,8 @@ async def test_demo_discovers_and_connects_then_stops_both_daemons() -> None:
     text = out.decode()
     assert process.returncode == 0, err.decode()
     assert "discovered platform 'demo-rover' from its beacon" in text
-    assert "platform   demo-rover" in text and "session" in text
+    assert "platform   demo-rover" in text
+    assert "session" in text
     assert "Ground control station: open QGroundControl" in text
 
 

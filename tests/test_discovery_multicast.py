@@ -63,10 +63,12 @@ async def test_platforms_list_each_other_but_not_themselves(platform_factory: Fa
         if await both_listed():
             break
         await asyncio.sleep(0.05)
-    assert await ids(one) == ["m-2"] and await ids(two) == ["m-1"]
+    assert await ids(one) == ["m-2"]
+    assert await ids(two) == ["m-1"]
     # The same list rides in telemetry.
     section = one.ctx.telemetry.build_one(Platforms)
-    assert isinstance(section, Platforms) and list(section.age_s) == ["m-2"]
+    assert isinstance(section, Platforms)
+    assert list(section.age_s) == ["m-2"]
     # One stops: the other drops it after the expiry (4 s).
     await two.stop()
     await wait_until(lambda: one.ctx.telemetry.build_one(Platforms) == Platforms({}), timeout=8)

@@ -83,7 +83,8 @@ async def test_stop_then_hold_then_release_and_no_old_command_after_the_link_ret
         zero_at = next(at for at, step in events if step == "zero")
         hold_at = next(at for at, step in events if step == "hold")
         last_call = daemon.ctx.sessions.sessions[conn.session_id].last_seen
-        assert cut < zero_at < hold_at and hold_at - last_call >= 0.4
+        assert cut < zero_at < hold_at
+        assert hold_at - last_call >= 0.4
         assert commands[-1] == STOP
         # The link comes back with a burst of velocities sent during the loss: none moves it.
         await conn.call("heartbeat")
@@ -110,7 +111,8 @@ async def test_stop_then_hold_then_release_and_no_old_command_after_the_link_ret
         assert released_at - daemon.ctx.sessions.sessions[conn.session_id].last_seen >= 1.2
         assert daemon.bus.last(topics.OVERRIDE_STATE) == OverrideState(False)
         motion = daemon.bus.last(topics.MOTION_STATE)
-        assert motion is not None and motion.mode is Mode.AUTONOMOUS
+        assert motion is not None
+        assert motion.mode is Mode.AUTONOMOUS
         report = await conn.call("get_telemetry_report")
         assert report["failsafe"]["step"] == "released"
         assert "no heartbeat from st-1" in report["failsafe"]["reason"]
@@ -140,11 +142,14 @@ async def test_action_hold_keeps_holding_past_release_after(
         ladder.tick(seen + 50.0)
         assert ladder.state.step is FailsafeStep.HOLD
         motion = daemon.bus.last(topics.MOTION_STATE)
-        assert motion is not None and motion.command == STOP and motion.mode is Mode.TELEOP
+        assert motion is not None
+        assert motion.command == STOP
+        assert motion.mode is Mode.TELEOP
         ladder.tick(seen + 1000.0)
         assert ladder.state.step is FailsafeStep.HOLD
         override = daemon.bus.last(topics.OVERRIDE_STATE)
-        assert override is not None and override.engaged  # still held, not released
+        assert override is not None
+        assert override.engaged  # still held, not released
     finally:
         await conn.close()
 
@@ -194,7 +199,9 @@ async def test_with_action_hold_the_silent_holder_keeps_its_session_and_re_engag
         await wait_until(lambda: time.monotonic() - opened.last_seen > 1.5)
         assert conn.session_id in daemon.ctx.sessions.sessions
         override = daemon.bus.last(topics.OVERRIDE_STATE)
-        assert override is not None and override.engaged and override.station_id == "st-1"
+        assert override is not None
+        assert override.engaged
+        assert override.station_id == "st-1"
         assert daemon.bus.last(topics.FAILSAFE_STATE).step is FailsafeStep.HOLD  # type: ignore[union-attr]
         # The link returns: the same session, and the operator re-engages deliberately.
         await conn.call("heartbeat")
@@ -258,7 +265,8 @@ async def test_replayed_velocity_never_holds_off_the_ladder(
         )
         assert commands[-1] == STOP
         failsafe = daemon.bus.last(topics.FAILSAFE_STATE)
-        assert failsafe is not None and failsafe.step is FailsafeStep.HOLD
+        assert failsafe is not None
+        assert failsafe.step is FailsafeStep.HOLD
     finally:
         sock.close()
         await conn.close()

@@ -66,13 +66,16 @@ async def test_a_foxglove_client_receives_location_fixes_and_compressed_video(
     messages = [line for line in lines if "topic" in line]
     fixes = [m for m in messages if m["topic"] == "/rover-fx/gps"]
     video = [m for m in messages if m["topic"] == "/rover-fx/navcam"]
-    assert len(fixes) == 3 and len(video) == 3
+    assert len(fixes) == 3
+    assert len(video) == 3
     for fix in fixes:
-        assert fix["schema"] == "foxglove.LocationFix" and fix["encoding"] == "json"
+        assert fix["schema"] == "foxglove.LocationFix"
+        assert fix["encoding"] == "json"
         assert abs(fix["json"]["latitude"] - 37.9415) < 0.01
         assert abs(fix["json"]["longitude"] - 23.6530) < 0.01
     for frame in video:
-        assert frame["schema"] == "foxglove.CompressedVideo" and frame["json"]["format"] == "h264"
+        assert frame["schema"] == "foxglove.CompressedVideo"
+        assert frame["json"]["format"] == "h264"
         assert base64.b64decode(frame["json"]["data"][:8]).startswith(b"\x00\x00")
     # The first frame a client gets is a keyframe with its SPS (NAL type 7) in front.
     first = base64.b64decode(video[0]["json"]["data"][:16])
@@ -169,8 +172,10 @@ async def test_every_channel_the_station_advertises_is_fed(
         assert advertised[topic] == schema
     (command,) = messages["/commands"]
     assert command["json"]["station"] == station.ctx.config.station.id
-    assert command["json"]["kind"] == "system" and command["json"]["accepted"] is True
-    assert command["json"]["name"] in ("10.0", "10.6") and "session" not in command["json"]
+    assert command["json"]["kind"] == "system"
+    assert command["json"]["accepted"] is True
+    assert command["json"]["name"] in ("10.0", "10.6")
+    assert "session" not in command["json"]
     (state,) = messages["/state"]
     assert set(state["json"]) == {"what", "state", "station", "reason"}
     (motor,) = messages["/motor/command"]
@@ -223,5 +228,6 @@ async def test_a_second_platform_is_told_apart_by_its_id(
         for topic in ("/gps", "/rover-fz/gps")
     }
     for topic, received in fixes.items():
-        assert len(received) == 2 and received[0]["schema"] == "foxglove.LocationFix", topic
+        assert len(received) == 2, topic
+        assert received[0]["schema"] == "foxglove.LocationFix", topic
     assert "/rover-fy/gps" not in {line.get("topic") for line in lines}

@@ -40,13 +40,15 @@ async def test_foreign_origin_and_host_are_refused_like_the_consoles(fleet_key: 
             rebinding = {"Host": f"evil.example:{live.port}"}
             assert (await upgrade_status(url, rebinding))[0] == 403, url
         status, protocol = await upgrade_status(foxglove, {})
-        assert status == 101 and protocol.startswith("foxglove.")
+        assert status == 101
+        assert protocol.startswith("foxglove.")
         own = {"Origin": f"http://127.0.0.1:{live.port}"}
         assert (await upgrade_status(foxglove, own))[0] == 101
         # Only the older name offered: accepted under it (the SDK alone answers 400).
         assert await upgrade_status(foxglove, {}, (LEGACY,)) == (101, LEGACY)
         assert await upgrade_status(foxglove, {}, (SDK,)) == (101, SDK)
-        assert live.guard is not None and live.guard.refused == 2
+        assert live.guard is not None
+        assert live.guard.refused == 2
         # The SDK's own server is not on 127.0.0.1, where a page could scan for its port.
         assert live.guard.upstream_host.startswith("127.")
         assert live.guard.upstream_host != "127.0.0.1"
@@ -78,7 +80,8 @@ def test_only_a_client_offering_just_the_older_name_is_renamed() -> None:
         b"sec-websocket-protocol: x.v2, foxglove.websocket.v1\r\n\r\n"
     )
     renamed, legacy = offer_sdk(request)
-    assert legacy and b"sec-websocket-protocol: x.v2, foxglove.sdk.v1\r\n" in renamed
+    assert legacy
+    assert b"sec-websocket-protocol: x.v2, foxglove.sdk.v1\r\n" in renamed
     assert renamed.endswith(b"\r\n\r\n")
     both = (
         b"GET / HTTP/1.1\r\nSec-WebSocket-Protocol: foxglove.websocket.v1, foxglove.sdk.v1\r\n\r\n"

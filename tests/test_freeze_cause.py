@@ -28,7 +28,8 @@ def test_a_loss_beyond_repair_is_named_and_a_quiet_link_is_not() -> None:
     # A packet given up on: the depayloader drops its frame, the picture waits for a keyframe.
     repairs.now = RepairCounters(lost=3, repaired=14)
     reason = feed.loss_reason()
-    assert reason.startswith("packet loss on the link") and "3 packets lost, 2 repaired" in reason
+    assert reason.startswith("packet loss on the link")
+    assert "3 packets lost, 2 repaired" in reason
     assert feed.loss_reason() == ""  # nothing new since
 
     # A gap the fan-out saw (deltas held back until the next keyframe) is loss too.

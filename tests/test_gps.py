@@ -185,7 +185,8 @@ async def test_garbage_dropped_and_counted(pty: Pty) -> None:
     fix = seen.fixes[0]
     assert fix.latitude == pytest.approx(37.9415)
     assert fix.longitude == pytest.approx(23.653)
-    assert fix.satellites == 9 and fix.course_deg == pytest.approx(45.0)
+    assert fix.satellites == 9
+    assert fix.course_deg == pytest.approx(45.0)
 
 
 async def test_no_fix_sentences_report_fix_lost(pty: Pty) -> None:
@@ -278,7 +279,8 @@ def test_decoder_survives_any_bytes(chunks: list[bytes]) -> None:
         for parsed in decoder.feed(chunk):
             assembler.feed(parsed, 0.0)
     assembler.poll(1.0)
-    assert decoder.sentences >= 0 and all(count >= 0 for count in decoder.dropped.values())
+    assert decoder.sentences >= 0
+    assert all(count >= 0 for count in decoder.dropped.values())
 
 
 _FIELD = st.text(alphabet="0123456789.,-+NSEWAVMKTxyz ", max_size=14)
@@ -314,7 +316,8 @@ async def test_a_second_reader_cannot_share_the_port(pty: Pty) -> None:
         await wait_until(lambda: first.connected)
         async with running(second):
             await wait_until(lambda: second.error != "")
-            assert not second.connected and "lock" in second.error
+            assert not second.connected
+            assert "lock" in second.error
 
 
 def test_fix_is_published_once_rmc_and_gga_arrive_not_at_the_end_of_the_cycle() -> None:

@@ -108,7 +108,8 @@ async def test_a_large_map_request_is_refused_before_it_is_parsed(
     incoming = await dispatcher.parse_off_loop(text)
     assert incoming.parse_error is not None
     answer = json.loads(incoming.parse_error)
-    assert answer["id"] == 41 and answer["error"]["code"] == INVALID_PARAMS
+    assert answer["id"] == 41
+    assert answer["error"]["code"] == INVALID_PARAMS
     assert answer["error"]["message"] == "refused"
     assert dispatcher.counters["refused_unparsed"] == 1
 
@@ -145,5 +146,8 @@ async def test_the_operators_command_is_refused_before_the_station_parses_its_re
     for refused, (name, (command, text, reason)) in enumerate(files.items(), 1):
         (tmp_path / name).write_text(text)
         code, _, err = await run_cli(station, command, "rover-7", str(tmp_path / name))
-        assert code == 1 and f"{name}: " in err and reason in err and "(not read)" in err, err
+        assert code == 1, err
+        assert f"{name}: " in err, err
+        assert reason in err, err
+        assert "(not read)" in err, err
         assert station.ctx.api.counters["refused_unparsed"] == refused

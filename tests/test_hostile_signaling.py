@@ -77,11 +77,13 @@ async def test_a_strangers_batch_flood_is_one_short_error(
     small = b"[" + b",".join([b"{}"] * 500) + b"]"
     status, body = await post(url, small)
     answer = json.loads(body)
-    assert isinstance(answer, dict) and answer["error"]["code"] == -32600
+    assert isinstance(answer, dict)
+    assert answer["error"]["code"] == -32600
     challenge = {"jsonrpc": "2.0", "method": "challenge"}
     batch = [{**challenge, "id": 1}, {**challenge, "id": 2}]
     status, body = await post(url, json.dumps(batch).encode())  # what needs no session: served
-    assert status == 200 and [item["id"] for item in json.loads(body)] == [1, 2]
+    assert status == 200
+    assert [item["id"] for item in json.loads(body)] == [1, 2]
     heartbeats = [
         {"jsonrpc": "2.0", "id": n, "method": "heartbeat", "params": {"session": "x"}}
         for n in range(3)
@@ -104,7 +106,8 @@ async def test_a_batch_is_capped_even_for_a_session(platform_factory: Factory) -
         assert len(json.loads((await ws.receive(timeout=10)).data)) == 100
         await ws.send_str(json.dumps([{**heartbeat, "id": n} for n in range(101)]))
         answer = json.loads((await ws.receive(timeout=10)).data)
-        assert answer["error"]["code"] == -32600 and "at most 100" in answer["error"]["message"]
+        assert answer["error"]["code"] == -32600
+        assert "at most 100" in answer["error"]["message"]
 
 
 @pytest.mark.parametrize("field", ["station_id", "station_nonce", "proof"])
@@ -145,7 +148,8 @@ async def test_half_sent_headers_are_closed_within_the_header_timeout(
         for sock in partial_headers + partial_bodies:
             sock.close()
     closed = counters(daemon)
-    assert closed["header_timeouts"] == 4 and closed["body_timeouts"] == 4
+    assert closed["header_timeouts"] == 4
+    assert closed["body_timeouts"] == 4
 
 
 async def ends_within(sock: socket.socket, timeout: float) -> bool:
@@ -267,7 +271,8 @@ async def test_the_local_api_answers_a_batch_flood_with_one_error(
 ) -> None:
     _, body = await post(station_rpc(station), FLOOD)
     answer = json.loads(body)
-    assert isinstance(answer, dict) and answer["error"]["code"] == -32600, len(body)
+    assert isinstance(answer, dict), len(body)
+    assert answer["error"]["code"] == -32600, len(body)
 
 
 async def test_unknown_platform_ids_cost_the_station_nothing(station: StationDaemon) -> None:
@@ -282,7 +287,8 @@ async def test_unknown_platform_ids_cost_the_station_nothing(station: StationDae
     huge = "x" * 30_000
     _, body = await post(url, encode_request("status", [huge], 99))
     error = json.loads(body)["error"]
-    assert error["code"] == -32602 and "longer than 64" in error["message"]
+    assert error["code"] == -32602
+    assert "longer than 64" in error["message"]
     assert manager._connecting == {}
 
 

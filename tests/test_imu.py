@@ -53,7 +53,9 @@ def test_madgwick_static_level_stays_level() -> None:
     for _ in range(500):
         fusion.update((0.0, 0.0, 0.0), (0.0, 0.0, G), 0.01)
     roll, pitch, yaw = euler_deg(fusion.q)
-    assert abs(roll) < 0.01 and abs(pitch) < 0.01 and abs(yaw) < 0.01
+    assert abs(roll) < 0.01
+    assert abs(pitch) < 0.01
+    assert abs(yaw) < 0.01
 
 
 def test_madgwick_converges_to_gravity_from_a_wrong_start() -> None:
@@ -62,7 +64,8 @@ def test_madgwick_converges_to_gravity_from_a_wrong_start() -> None:
     for _ in range(2000):
         fusion.update((0.0, 0.0, 0.0), (0.0, 0.0, G), 0.01)
     roll, pitch, _ = euler_deg(fusion.q)
-    assert abs(roll) < 0.5 and abs(pitch) < 0.5
+    assert abs(roll) < 0.5
+    assert abs(pitch) < 0.5
 
 
 def test_madgwick_first_sample_sets_tilt() -> None:
@@ -118,7 +121,8 @@ def test_driver_reads_si_units_through_the_chip() -> None:
     chip = Mpu6050(lambda at: spin)
     driver = Mpu6050Driver(EmulatedI2CBus({0x68: chip}), 0x68, 4, 500)
     driver.init(100.0)
-    assert chip.registers[GYRO_CONFIG] == 1 << 3 and chip.registers[ACCEL_CONFIG] == 1 << 3
+    assert chip.registers[GYRO_CONFIG] == 1 << 3
+    assert chip.registers[ACCEL_CONFIG] == 1 << 3
     sample = driver.read()
     assert sample.accel_mps2 == pytest.approx((0.5, -0.25, G), abs=0.005)
     assert math.degrees(sample.gyro_rad_s[2]) == pytest.approx(100.0, abs=0.02)
@@ -228,7 +232,8 @@ def test_fifo_fills_at_the_sample_rate_and_pops_on_read() -> None:
     bus.write_byte_data(0x68, USER_CTRL, 0x44)
     assert fifo_count(bus) > 0
     bus.write_byte_data(0x68, USER_CTRL, 0x04)
-    assert fifo_count(bus) == 0 and bus.read_byte_data(0x68, USER_CTRL) == 0
+    assert fifo_count(bus) == 0
+    assert bus.read_byte_data(0x68, USER_CTRL) == 0
     now[0] += 1.0  # disabled: nothing queued
     assert fifo_count(bus) == 0
     bus.write_byte_data(0x68, PWR_MGMT_1, 0x40)  # asleep: nothing queued either
@@ -242,7 +247,8 @@ def test_fifo_overflow_drops_the_oldest_bytes_and_flags() -> None:
     chip, bus = fifo_chip(now, Ramp())
     bus.write_byte_data(0x68, INT_ENABLE, 0x10)
     now[0] += 0.85  # 85 records: 1020 bytes, still whole
-    assert fifo_count(bus) == 1020 and bus.read_byte_data(0x68, INT_STATUS) == 0
+    assert fifo_count(bus) == 1020
+    assert bus.read_byte_data(0x68, INT_STATUS) == 0
     now[0] += 0.02  # two more: 1044 bytes offered, the oldest 20 go
     assert fifo_count(bus) == 1024
     assert bus.read_byte_data(0x68, INT_STATUS) & 0x10
@@ -252,7 +258,8 @@ def test_fifo_overflow_drops_the_oldest_bytes_and_flags() -> None:
     assert struct.unpack(">h", data[2:4])[0] == 20 * 131
     assert struct.unpack(">6h", data[4:16])[5] == 30 * 131  # record 3 whole after it
     now[0] += 100.0  # a long stall: the newest 1024 bytes only, computed without 10^4 records
-    assert fifo_count(bus) == 1024 and bus.read_byte_data(0x68, INT_STATUS) & 0x10
+    assert fifo_count(bus) == 1024
+    assert bus.read_byte_data(0x68, INT_STATUS) & 0x10
     assert chip.overflows == 2
     bus.write_byte_data(0x68, USER_CTRL, 0x04)
     bus.write_byte_data(0x68, USER_CTRL, 0x40)
@@ -266,10 +273,12 @@ def test_driver_fifo_mode_through_the_chip() -> None:
     driver = Mpu6050Driver(EmulatedI2CBus({0x68: chip}), 0x68, 4, 500)
     driver.init(100.0)
     driver.fifo_start()
-    assert chip.registers[FIFO_EN] == 0x78 and chip.registers[USER_CTRL] == 0x40
+    assert chip.registers[FIFO_EN] == 0x78
+    assert chip.registers[USER_CTRL] == 0x40
     now[0] += 0.1001
     count, flagged = driver.fifo_count()
-    assert (count, flagged) == (120, False) and not fifo_overflowed(count, flagged)
+    assert (count, flagged) == (120, False)
+    assert not fifo_overflowed(count, flagged)
     samples = driver.convert_fifo(1.0, driver.fifo_read(count // 12), 30.0)
     assert [s.time for s in samples] == pytest.approx([1.0 + k / 100 for k in range(10)])
     assert samples[3].accel_mps2 == pytest.approx((0.5, -0.25, G), abs=0.005)
@@ -279,8 +288,10 @@ def test_driver_fifo_mode_through_the_chip() -> None:
     assert fifo_overflowed(*driver.fifo_count())
     driver.fifo_start()
     assert driver.fifo_count() == (0, False)
-    assert fifo_overflowed(1020, False) is False and fifo_overflowed(1021, False) is True
-    assert fifo_overflowed(1024, False) is True and fifo_overflowed(0, True) is True
+    assert fifo_overflowed(1020, False) is False
+    assert fifo_overflowed(1021, False) is True
+    assert fifo_overflowed(1024, False) is True
+    assert fifo_overflowed(0, True) is True
 
 
 def test_sample_clock_evenly_spaced_and_kept_near_the_host() -> None:
@@ -363,11 +374,13 @@ async def test_sampler_thread_failure_is_reported_and_sampling_restarts(fifo: bo
         # Reported as an IMU error on IMU_STATUS: not a frozen attitude that looks healthy.
         await wait_until(lambda: any("RuntimeError" in s.error for s in seen.statuses))
         failed = next(s for s in seen.statuses if "RuntimeError" in s.error)
-        assert not failed.ok and "emulated chip fault" in failed.error
+        assert not failed.ok
+        assert "emulated chip fault" in failed.error
         # The actor restarts the sampler (with backoff) and the attitude flows again.
         count = reader.samples
         await wait_until(lambda: reader.samples > count + 20)
-        assert reader.status().ok and reader.error == ""
+        assert reader.status().ok
+        assert reader.error == ""
 
 
 @pytest.mark.parametrize("fifo", [True, False], ids=["fifo", "burst"])
@@ -386,9 +399,13 @@ async def test_actor_turn_through_emulated_chip(fifo: bool) -> None:
         await wait_until(lambda: len(seen.attitudes) > count)
         await wait_until(lambda: bool(seen.statuses) and seen.statuses[-1].samples > 100)
     assert seen.attitudes[-1].yaw_deg == pytest.approx(90.0, abs=2.0)
-    assert abs(seen.attitudes[-1].roll_deg) < 1.0 and abs(seen.attitudes[-1].pitch_deg) < 1.0
+    assert abs(seen.attitudes[-1].roll_deg) < 1.0
+    assert abs(seen.attitudes[-1].pitch_deg) < 1.0
     status = seen.statuses[-1]
-    assert status.ok and status.error == "" and status.read_errors == 0 and status.calibrated
+    assert status.ok
+    assert status.error == ""
+    assert status.read_errors == 0
+    assert status.calibrated
     assert math.degrees(reader.gyro_bias.offset[2]) == pytest.approx(1.5, abs=0.05)
     assert status.temperature_c == pytest.approx(28.0, abs=0.01)
     # About 10 Hz of attitude for about 100 Hz of samples, not one per sample.
@@ -411,11 +428,14 @@ async def test_fifo_overflow_is_detected_counted_and_recovered() -> None:
         await wait_until(lambda: seen.statuses[-1].fifo_overflows >= 1, 5.0)
         elapsed = time.monotonic() - started
     assert chip.overflows >= 1
-    assert reader.fifo_overflows == 1 and reader.read_errors == 0
+    assert reader.fifo_overflows == 1
+    assert reader.read_errors == 0
     # What overflowed was dropped, not read: real time's samples plus at most one full FIFO.
     assert reader.samples - before < 100 * elapsed + 100
-    assert seen.statuses[-1].ok and seen.statuses[-1].fifo_overflows == 1
-    assert abs(seen.attitudes[-1].roll_deg) < 1.0 and abs(seen.attitudes[-1].pitch_deg) < 1.0
+    assert seen.statuses[-1].ok
+    assert seen.statuses[-1].fifo_overflows == 1
+    assert abs(seen.attitudes[-1].roll_deg) < 1.0
+    assert abs(seen.attitudes[-1].pitch_deg) < 1.0
 
 
 async def test_wrong_who_am_i_is_an_error_then_recovers() -> None:
@@ -473,7 +493,8 @@ async def test_sim_platform_publishes_attitude(
 ) -> None:
     config = quiet_platform_config("sim.enabled=true", "imu.enabled=true")
     daemon = await platform_factory(config, fleet_key)
-    assert daemon.ctx.sim.i2c_bus is not None and daemon.ctx.sim.mpu6050 is not None
+    assert daemon.ctx.sim.i2c_bus is not None
+    assert daemon.ctx.sim.mpu6050 is not None
     await wait_until(lambda: daemon.bus.last(topics.ATTITUDE) is not None, 10.0)
 
     def attitude() -> AttitudeSection:
@@ -483,13 +504,20 @@ async def test_sim_platform_publishes_attitude(
 
     await wait_until(lambda: attitude().imu is not None and attitude().imu.temp_c is not None, 5.0)
     section = attitude()
-    assert section.roll is not None and abs(section.roll) < 2.0
-    assert section.pitch is not None and abs(section.pitch) < 2.0
-    assert section.q is not None and len(section.q) == 4
-    assert section.age_ms is not None and not section.stale
+    assert section.roll is not None
+    assert abs(section.roll) < 2.0
+    assert section.pitch is not None
+    assert abs(section.pitch) < 2.0
+    assert section.q is not None
+    assert len(section.q) == 4
+    assert section.age_ms is not None
+    assert not section.stale
     imu = section.imu
-    assert imu is not None and imu.ok is True and imu.error == ""
-    assert imu.temp_c is not None and 20.0 < imu.temp_c < 40.0
+    assert imu is not None
+    assert imu.ok is True
+    assert imu.error == ""
+    assert imu.temp_c is not None
+    assert 20.0 < imu.temp_c < 40.0
 
 
 def test_gyro_offset_from_a_still_window_only() -> None:
@@ -497,17 +525,21 @@ def test_gyro_offset_from_a_still_window_only() -> None:
     bias = GyroBias(100)
     moving = [(0.0, 0.0, offset + math.radians(10) * math.sin(k / 5)) for k in range(100)]
     assert not any(bias.add(g) for g in moving)  # a wobble: not still, measured later
-    assert bias.attempts == 1 and not bias.done
+    assert bias.attempts == 1
+    assert not bias.done
     turning = [(0.0, 0.0, math.radians(30.0))] * 100  # steady, but far above any offset
     assert not any(bias.add(g) for g in turning)
     still = [(0.001 * (k % 3), 0.0, offset) for k in range(100)]
     assert [bias.add(g) for g in still][-1] is True
-    assert bias.measured and bias.offset[2] == pytest.approx(offset)
+    assert bias.measured
+    assert bias.offset[2] == pytest.approx(offset)
     assert bias.correct((0.0, 0.0, offset)) == pytest.approx((-0.001, 0.0, 0.0), abs=0.001)
 
 
 def test_gyro_offset_gives_up_when_never_still() -> None:
     bias = GyroBias(10, max_attempts=3)
     results = [bias.add((0.0, 0.0, 0.1 * (k % 2))) for k in range(30)]
-    assert results[-1] is True and bias.done and not bias.measured
+    assert results[-1] is True
+    assert bias.done
+    assert not bias.measured
     assert bias.offset == (0.0, 0.0, 0.0)

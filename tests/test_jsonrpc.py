@@ -163,7 +163,8 @@ async def test_counters_count_bad_input(dispatcher: Dispatcher) -> None:
 
 async def test_nesting_deeper_than_the_parser_is_a_parse_error(dispatcher: Dispatcher) -> None:
     answer = await ask(dispatcher, b"[" * 100_000)
-    assert answer["error"]["code"] == -32700 and answer["id"] is None
+    assert answer["error"]["code"] == -32700
+    assert answer["id"] is None
     assert dispatcher.counters["parse_errors"] == 1
 
 
@@ -286,4 +287,5 @@ async def test_the_specifications_batch_of_numbers_gets_an_error_each_before_a_s
     refused = json.loads(
         await dispatcher.answer(dispatcher.parse(mixed), CallContext(stranger=True)) or "null"
     )
-    assert isinstance(refused, dict) and refused["error"]["code"] == -32600
+    assert isinstance(refused, dict)
+    assert refused["error"]["code"] == -32600

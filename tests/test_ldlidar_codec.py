@@ -41,12 +41,15 @@ def test_decodes_a_frame_from_the_specification() -> None:
     decoder = LidarDecoder()
     (frame,) = list(decoder.feed(frame_bytes, now=5.0))
     assert frame.speed_dps == 3600
-    assert frame.start_deg == 10.0 and frame.end_deg == 21.0
+    assert frame.start_deg == 10.0
+    assert frame.end_deg == 21.0
     assert frame.distances_mm == tuple(distances)
     assert frame.intensities == tuple(200 + i for i in range(12))
-    assert frame.timestamp_ms == 29999 and frame.received == 5.0
+    assert frame.timestamp_ms == 29999
+    assert frame.received == 5.0
     angles = frame.angles_deg()
-    assert angles[0] == 10.0 and abs(angles[-1] - 21.0) < 1e-9
+    assert angles[0] == 10.0
+    assert abs(angles[-1] - 21.0) < 1e-9
     assert abs(angles[1] - 11.0) < 1e-9
     assert encode_frame(3600, 10.0, 21.0, distances, list(range(200, 212)), 29999) == frame_bytes
 
@@ -78,7 +81,8 @@ def test_frames_split_across_reads() -> None:
     decoder = LidarDecoder()
     frames = [f for i in range(0, len(stream), 5) for f in decoder.feed(stream[i : i + 5], 0.0)]
     assert [f.distances_mm[0] for f in frames] == [1, 2, 3, 4]
-    assert decoder.crc_errors == 0 and decoder.resync_bytes == 0
+    assert decoder.crc_errors == 0
+    assert decoder.resync_bytes == 0
 
 
 def test_assembler_cuts_a_scan_where_the_angle_wraps() -> None:

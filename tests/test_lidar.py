@@ -53,16 +53,21 @@ def limits(points: dict[float, float], geometry: Geometry = GEOMETRY) -> Proximi
 
 def test_an_obstacle_ahead_slows_then_stops() -> None:
     far, near, close = limits(wall(0, 8.0)), limits(wall(0, 2.0)), limits(wall(0, 0.4))
-    assert far.forward_limit == 1.0 and far.reason == ""
-    assert 0 < near.forward_limit < 1.0 and near.reason.startswith("slowed")
-    assert close.forward_limit == 0.0 and close.reason == "stopped: obstacle 0.4 m ahead"
+    assert far.forward_limit == 1.0
+    assert far.reason == ""
+    assert 0 < near.forward_limit < 1.0
+    assert near.reason.startswith("slowed")
+    assert close.forward_limit == 0.0
+    assert close.reason == "stopped: obstacle 0.4 m ahead"
     assert close.reverse_limit == 1.0  # backing away is allowed
-    assert close.nearest_bearing_deg is not None and close.nearest_bearing_deg < 4.0
+    assert close.nearest_bearing_deg is not None
+    assert close.nearest_bearing_deg < 4.0
 
 
 def test_behind_limits_reversing_only() -> None:
     result = limits(wall(180, 0.4))
-    assert result.forward_limit == 1.0 and result.reverse_limit == 0.0
+    assert result.forward_limit == 1.0
+    assert result.reverse_limit == 0.0
     assert result.reason == "stopped: obstacle 0.4 m behind"
 
 
@@ -86,7 +91,8 @@ def test_the_corridor_follows_the_turn() -> None:
     seen = limits(post)
     assert seen.forward_limit == 1.0  # straight ahead: clear
     limit, why = forward_for(seen, 0.5, 1.0)
-    assert limit < 0.5 * seen.forward_limit and why.endswith("m in the turn left"), (limit, why)
+    assert limit < 0.5 * seen.forward_limit, (limit, why)
+    assert why.endswith("m in the turn left"), (limit, why)
     assert forward_for(seen, 0.5, -1.0) == (1.0, "")  # turning away: clear
     assert forward_for(seen, 0.0, 1.0)[0] == 1.0  # turning on the spot: never limited
     # Between two arcs' ratios: the lower of their limits.
@@ -120,13 +126,16 @@ async def test_simulator_bytes_through_the_reader_on_a_pty() -> None:
     assert reader.decoder.crc_errors == 0
     assert reader.decoder.frames >= 5 * 37
     last = seen[-1]
-    assert last.nearest_m is not None and abs(last.nearest_m - 2.5) < 0.06
+    assert last.nearest_m is not None
+    assert abs(last.nearest_m - 2.5) < 0.06
     assert last.nearest_bearing_deg is not None
     assert min(last.nearest_bearing_deg, 360 - last.nearest_bearing_deg) < 3.0
-    assert last.forward_free_m is not None and abs(last.forward_free_m - 2.5) < 0.06
+    assert last.forward_free_m is not None
+    assert abs(last.forward_free_m - 2.5) < 0.06
     # 2.5 m ahead at 1 m/s top speed: not limited.
     assert last.forward_limit == 1.0
-    assert reader.last is not None and len(reader.last.obstacles) == 1
+    assert reader.last is not None
+    assert len(reader.last.obstacles) == 1
 
 
 async def test_patrol_stops_for_an_obstacle_the_map_does_not_have(
@@ -156,7 +165,8 @@ async def test_patrol_stops_for_an_obstacle_the_map_does_not_have(
 
     await wait_until(stopped_for_it, 20)
     motion = robot.ctx.bus.last(topics.MOTION_STATE)
-    assert motion is not None and motion.command.linear == 0.0
+    assert motion is not None
+    assert motion.command.linear == 0.0
     assert min(closest) >= 0.3, min(closest)
     assert clearance(robot, *post) >= 0.3
     await asyncio.sleep(0.5)  # the patrol keeps asking; the robot stays put
@@ -190,7 +200,8 @@ async def test_hand_driving_is_slowed_then_stopped_short_of_an_obstacle(
     assert any(0.0 < c < 0.8 * cap.fraction for c in commands)
     assert commands[-1] == 0.0
     limits = bus.last(topics.PROXIMITY)
-    assert limits is not None and limits.reason.startswith("stopped: obstacle")
+    assert limits is not None
+    assert limits.reason.startswith("stopped: obstacle")
     assert abs(robot.vehicle.pose().speed_mps) < 0.02
     assert start - clearance(robot, *post) > 5.0  # it did drive most of the way
     assert clearance(robot, *post) >= 0.3
@@ -198,9 +209,12 @@ async def test_hand_driving_is_slowed_then_stopped_short_of_an_obstacle(
     section = robot.ctx.telemetry.build_one(Perception)
     assert isinstance(section, Perception)
     section = section_from_wire(Perception, section_to_wire(section))
-    assert section.connected and section.scan_hz >= 5
-    assert section.forward_limit == 0.0 and section.reason.startswith("stopped: obstacle")
-    assert section.nearest_m is not None and section.nearest_m < 1.2
+    assert section.connected
+    assert section.scan_hz >= 5
+    assert section.forward_limit == 0.0
+    assert section.reason.startswith("stopped: obstacle")
+    assert section.nearest_m is not None
+    assert section.nearest_m < 1.2
     assert any(min(b, 360 - b) < 10 and d < 1.5 for b, d, _r in section.obstacles)
     # Backing away is allowed.
     bus.publish(topics.TELEOP_VELOCITY, Velocity(-0.3, 0.0))
@@ -246,7 +260,8 @@ def test_world_polygons_block_rays() -> None:
     square = Polygon([(2, -1), (4, -1), (4, 1), (2, 1)])
     world = LidarWorld([(square, 0.5)], [])
     ranges, _ = LidarWorld.cast(0.0, 0.0, np.array([0.0, math.pi]), *world.near(0, 0, 12))
-    assert abs(ranges[0] - 2.0) < 1e-9 and math.isinf(ranges[1])
+    assert abs(ranges[0] - 2.0) < 1e-9
+    assert math.isinf(ranges[1])
 
 
 @pytest.mark.parametrize("lux", [0.0, 100_000.0])
@@ -263,7 +278,8 @@ def test_sunlight_shortens_and_thins_returns(lux: float) -> None:
     if lux == 0:
         assert seen > 100
     else:
-        assert generator.reach_m < 8.0 and seen < 60
+        assert generator.reach_m < 8.0
+        assert seen < 60
 
 
 def test_an_obstacle_that_vanishes_close_up_keeps_the_stop() -> None:
@@ -271,7 +287,8 @@ def test_an_obstacle_that_vanishes_close_up_keeps_the_stop() -> None:
     assert stopped.forward_limit == 0.0
     geometry = GEOMETRY
     gone = proximity(to_robot(scan_of({}), geometry), geometry, stopped)
-    assert gone.forward_limit == 0.0 and gone.reason.startswith("stopped: obstacle")
+    assert gone.forward_limit == 0.0
+    assert gone.reason.startswith("stopped: obstacle")
     # One seen farther away does not hold anything when it disappears (taken away).
     far = limits(wall(0, 0.35))
     assert far.forward_limit == 0.0
@@ -324,11 +341,13 @@ def test_laser_scan_for_the_recorder_is_counter_clockwise_in_the_robots_frame() 
     message = orjson.loads(
         encode_laser_scan(1_500_000_000, (0.0, 90.0, 90.4, 200.0), (1.0, 2.0, 1.5, 0.0))
     )
-    assert message["frame_id"] == "base_link" and message["timestamp"] == {
+    assert message["frame_id"] == "base_link"
+    assert message["timestamp"] == {
         "sec": 1,
         "nsec": 500_000_000,
     }
     ranges = message["ranges"]
-    assert len(ranges) == 360 and ranges[0] == 1.0
+    assert len(ranges) == 360
+    assert ranges[0] == 1.0
     assert ranges[270] == 1.5  # 90 degrees clockwise (right) is 270 counter-clockwise: nearest kept
     assert ranges[160] == 0.0  # no return

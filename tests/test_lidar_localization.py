@@ -80,7 +80,8 @@ async def test_a_gps_jump_is_refused_reported_and_raises_the_90_30_warning() -> 
         await steps(300)
         honest = _localization(localizer)
         assert honest["localization"] == "gps+lidar"
-        assert honest["gps_rejected"] == 0 and honest["gps_accepted"] > 20
+        assert honest["gps_rejected"] == 0
+        assert honest["gps_accepted"] > 20
         assert honest["gps_refusal"] == ""
         assert annunciator.evaluate(Snapshot({Perception: Perception(**honest)}), 0, 0, 1) == []
         fused = localizer.fused
@@ -93,7 +94,8 @@ async def test_a_gps_jump_is_refused_reported_and_raises_the_90_30_warning() -> 
         assert spoofed["gps_refusal"].startswith("jump: ")
         assert spoofed["gps_accepted"] == honest["gps_accepted"]  # not one bad fix fused
         (change,) = annunciator.evaluate(Snapshot({Perception: Perception(**spoofed)}), 0, 0, 2)
-        assert change.active and change.warning.code == GPS_REJECTED
+        assert change.active
+        assert change.warning.code == GPS_REJECTED
         assert str(GPS_REJECTED) == "90.30"
         assert change.warning.message.startswith("GPS refused: jump: ")
     finally:
@@ -110,7 +112,9 @@ async def test_the_grid_is_saved_at_stop_and_loaded_at_start_in_its_frame(tmp_pa
     task.cancel()
     await asyncio.gather(task, return_exceptions=True)
     saved = first.localizer.grid
-    assert saved is not None and saved.scans > 30 and path.exists()
+    assert saved is not None
+    assert saved.scans > 30
+    assert path.exists()
     assert (saved.log_odds > 2.0).sum() > 100  # walls seen: cells surely occupied
 
     second = Rig(path)
@@ -118,7 +122,8 @@ async def test_the_grid_is_saved_at_stop_and_loaded_at_start_in_its_frame(tmp_pa
     try:
         await _until(lambda: second.localizer.grid is not None)
         loaded = second.localizer.grid
-        assert loaded is not None and loaded.scans == saved.scans
+        assert loaded is not None
+        assert loaded.scans == saved.scans
         frame = second.localizer.frame
         assert frame is not None
         assert (frame.latitude, frame.longitude) == (saved.latitude, saved.longitude)
@@ -138,7 +143,8 @@ async def test_a_grid_file_that_is_not_a_grid_is_refused_and_a_new_one_begun(
     try:
         await rig.steps(30)
         assert "not a saved grid" in rig.localizer.grid_error
-        assert rig.localizer.grid is not None and rig.localizer.grid.scans > 0
+        assert rig.localizer.grid is not None
+        assert rig.localizer.grid.scans > 0
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
@@ -190,7 +196,8 @@ def test_an_open_field_dash_and_stop_on_rtk_fixes_keeps_the_pose_on_the_robot() 
             x, y = frame.to_local(truth.latitude, truth.longitude)
             errors.append(math.hypot(fused.x_m - x, fused.y_m - y))
     assert not refused, refused
-    assert len(errors) > 40 and max(errors) < 0.15, max(errors)
+    assert len(errors) > 40, max(errors)
+    assert max(errors) < 0.15, max(errors)
 
 
 def test_the_imu_turn_is_read_at_each_scans_time_and_a_reset_is_not_a_turn() -> None:

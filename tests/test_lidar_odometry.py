@@ -49,7 +49,8 @@ def test_too_few_returns_fall_back_to_the_prior_and_say_so() -> None:
     assert step.source == "prior"
     assert "10 returns" in step.reason
     expected = prior_motion(1.0, 0.2, 0.5)
-    assert math.isclose(step.pose.x_m, expected.x_m) and math.isclose(step.pose.y_m, expected.y_m)
+    assert math.isclose(step.pose.x_m, expected.x_m)
+    assert math.isclose(step.pose.y_m, expected.y_m)
     assert math.isclose(step.pose.yaw_rad, 0.1)
 
 
@@ -60,7 +61,8 @@ def test_a_corridor_is_degenerate_the_prior_stands_in_along_it() -> None:
     poses = _run(drive, odometry, 150)
     drive_step = odometry.update(scan_points(drive.step().scan), drive.now, 1.0, 0.0)
     assert drive_step.source == "lidar"
-    assert "degenerate" in drive_step.reason and "prior used along 0°" in drive_step.reason
+    assert "degenerate" in drive_step.reason
+    assert "prior used along 0°" in drive_step.reason
     estimate, truth = poses[-1]
     # Across the corridor the walls hold it; along it, dead reckoning (the commanded speed).
     assert abs(estimate.y_m - truth.y_m) < 0.1

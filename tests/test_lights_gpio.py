@@ -64,9 +64,11 @@ def test_simulated_chip_raises_what_libgpiod_raises() -> None:
     with pytest.raises(TypeError):
         request.set_value(17, 1)  # type: ignore[arg-type]  # Value, not an int
     request.set_value(17, Value.ACTIVE)
-    assert request.get_value(17) is Value.ACTIVE and gpio.holder(SIM_CHIP, 17) == "first"
+    assert request.get_value(17) is Value.ACTIVE
+    assert gpio.holder(SIM_CHIP, 17) == "first"
     request.release()
-    assert not request and gpio.holder(SIM_CHIP, 17) is None
+    assert not request
+    assert gpio.holder(SIM_CHIP, 17) is None
     with pytest.raises(gpiod.RequestReleasedError):
         request.set_value(17, Value.INACTIVE)
 
@@ -105,7 +107,8 @@ def test_sysfs_and_malformed_gpio_outputs_are_refused_at_load(value: str) -> Non
         load_config(PlatformConfig, None, [f"motor.positional_lights_output={value}"])
     message = str(info.value)
     assert message.startswith("motor.positional_lights_output: must be ")
-    assert '"gpio:CHIP:LINE"' in message and value in message
+    assert '"gpio:CHIP:LINE"' in message
+    assert value in message
 
 
 # --------------------------------------------------------------------------- a whole platform
@@ -133,7 +136,8 @@ async def test_sim_positional_lights_on_a_gpio_line_requested_once_and_off_at_sh
         quiet_platform_config("sim.enabled=true", "motor.enabled=true"), fleet_key
     )
     gpio = daemon.ctx.sim.gpio
-    assert gpio is not None and daemon.ctx.positional_lights_output == f"gpio:{SIM_CHIP}:17"
+    assert gpio is not None
+    assert daemon.ctx.positional_lights_output == f"gpio:{SIM_CHIP}:17"
     # Requested at start, as an output driven low, by the platform.
     await wait_until(lambda: gpio.holder(SIM_CHIP, 17) == CONSUMER)
     assert gpio.chips[SIM_CHIP].line(17).direction is Direction.OUTPUT
@@ -155,7 +159,8 @@ async def test_sim_positional_lights_on_a_gpio_line_requested_once_and_off_at_sh
     assert threading.get_ident() not in {thread for _, thread in gpio.calls}
     await daemon.stop()
     # Shutdown: the lit line is driven low (the safe state) and released.
-    assert gpio.value(SIM_CHIP, 17) is Value.INACTIVE and gpio.holder(SIM_CHIP, 17) is None
+    assert gpio.value(SIM_CHIP, 17) is Value.INACTIVE
+    assert gpio.holder(SIM_CHIP, 17) is None
     assert gpio.calls[-1][0] == "release"
 
 
@@ -190,7 +195,8 @@ async def test_a_busy_line_is_reported_and_refused_then_taken_once_free(
         assert gpio.holder(SIM_CHIP, 18) == "other"  # never taken from its holder
         squatter.release()
         assert (await lights_command(conn, MAIN_LIGHTS.command, "ON"))["accepted"]
-        assert gpio.value(SIM_CHIP, 18) is Value.ACTIVE and gpio.holder(SIM_CHIP, 18) == CONSUMER
+        assert gpio.value(SIM_CHIP, 18) is Value.ACTIVE
+        assert gpio.holder(SIM_CHIP, 18) == CONSUMER
         assert daemon.bus.last(topics.LIGHTS_STATE) == LightsState(main=True, errors={})
     finally:
         await conn.close()
@@ -217,12 +223,14 @@ async def test_a_missing_chip_leaves_the_platform_running_with_the_reason(
         report = await conn.call("get_telemetry_report")
         assert report["lights"]["errors"]["positional"].startswith(missing)
         refused = await lights_command(conn, POSITIONAL_LIGHTS.command, "ON")
-        assert refused["accepted"] is False and missing in str(refused["reason"])
+        assert refused["accepted"] is False
+        assert missing in str(refused["reason"])
         # The rest of the platform goes on: the controller's main lights still switch.
         await wait_until(
             lambda: getattr(daemon.bus.last(topics.CONTROLLER_STATUS), "connected", False)
         )
         assert (await lights_command(conn, MAIN_LIGHTS.command, "ON"))["accepted"]
-        assert daemon.ctx.sim.ax3500 is not None and daemon.ctx.sim.ax3500.device.outputs["C"]
+        assert daemon.ctx.sim.ax3500 is not None
+        assert daemon.ctx.sim.ax3500.device.outputs["C"]
     finally:
         await conn.close()

@@ -52,7 +52,8 @@ def test_any_peer_text_is_one_line_and_printable_text_unchanged(text: str) -> No
     for fmt in (formatter, JournalFormatter("%(name)s: %(message)s")):
         line = fmt.format(record(text))
         assert len(line.splitlines()) == 1
-        assert "\x1b" not in line and "\r" not in line
+        assert "\x1b" not in line
+        assert "\r" not in line
     if text.isprintable():
         assert escape_control(text) == text
 
@@ -74,7 +75,8 @@ def test_a_traceback_keeps_its_lines() -> None:
         entry = record("st\n1")
         entry.exc_info = sys.exc_info()
     text = daemon_formatter().format(entry)
-    assert "st\\n1" in text.splitlines()[0] and "ValueError: boom" in text
+    assert "st\\n1" in text.splitlines()[0]
+    assert "ValueError: boom" in text
 
 
 @pytest.mark.parametrize("station_id", ["st-1\nforged", "st\x1b[2J", "st\u2028x", "\x00"])

@@ -116,7 +116,8 @@ def test_a_big_control_request_is_recorded_cut_not_serialized_whole() -> None:
     big = boundary_map(ring(150_001))
     cut = _shortened({"map": big})
     coordinates = cut["map"]["features"][0]["geometry"]["coordinates"][0]
-    assert len(coordinates) == ITEMS_KEPT + 1 and coordinates[-1] == "... 149938 more"
+    assert len(coordinates) == ITEMS_KEPT + 1
+    assert coordinates[-1] == "... 149938 more"
     assert big["features"][0]["geometry"]["coordinates"][0][0] == coordinates[0]
 
 
@@ -136,7 +137,8 @@ async def test_a_large_request_is_parsed_off_the_loop_to_the_same_answer() -> No
     assert off_loop.message == dispatcher.parse(text).message == big
     for bad in (text.replace("23.65", "NaN", 1), "[" * 200_000 + " " * LARGE_MESSAGE_BYTES):
         refused = await dispatcher.parse_off_loop(bad)
-        assert refused.message is None and refused.parse_error is not None
+        assert refused.message is None
+        assert refused.parse_error is not None
 
 
 async def test_a_sessions_heartbeat_is_answered_while_its_large_request_is_parsed(
@@ -173,6 +175,8 @@ def test_file_text_keeps_the_c_parser_and_a_maps_numbers_go_off_the_loop() -> No
     lines = [f'  <node id="{i}" lat="37.94{i:05d}" lon="23.65{i:05d}"/>' for i in range(20_000)]
     text = "<osm>\n" + "\n".join(lines) + "\n</osm>\n"
     file_import = json.dumps({"method": "map_import", "params": {"text": text}})
-    assert escape_heavy(file_import) and escape_heavy(file_import.encode())
+    assert escape_heavy(file_import)
+    assert escape_heavy(file_import.encode())
     map_load = json.dumps({"method": "load_map", "params": {"map": boundary_map(ring(20_000))}})
-    assert not escape_heavy(map_load) and not escape_heavy(map_load.encode())
+    assert not escape_heavy(map_load)
+    assert not escape_heavy(map_load.encode())

@@ -48,7 +48,8 @@ def test_a_scan_fits_the_walls_in_the_child_and_a_killed_child_is_restarted() ->
         assert not maps.submit(points, start, 0.0, False)  # one at a time
         fit = _answer(maps)
         assert isinstance(fit, MapMatch), fit
-        assert abs(fit.pose.x_m - truth.x_m) < 0.15 and abs(fit.pose.y_m - truth.y_m) < 0.15
+        assert abs(fit.pose.x_m - truth.x_m) < 0.15
+        assert abs(fit.pose.y_m - truth.y_m) < 0.15
         # The child dies (killed, out of memory): noticed, restarted with the same walls.
         pool = maps._pool
         assert pool is not None

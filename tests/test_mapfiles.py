@@ -80,7 +80,8 @@ def test_every_sample_map_loads_as_a_valid_canonical_map() -> None:
 
 def test_a_bare_geometry_a_single_feature_and_a_multipolygon_area() -> None:
     bare = read_map(json.dumps(polygon(FIELD)))
-    assert bare.format == "GeoJSON" and "the file's only polygon" in bare.notes[0]
+    assert bare.format == "GeoJSON"
+    assert "the file's only polygon" in bare.notes[0]
     single = read_map(json.dumps(feature(polygon(FIELD), name="yard")))
     assert parse_map(single.geojson).boundary.area == pytest.approx(11708, rel=0.01)
     one_part = {"type": "MultiPolygon", "coordinates": [[FIELD]]}
@@ -113,7 +114,8 @@ def test_selectors_by_number_id_name_and_property_and_refusals_naming_the_featur
     text = (DATA / "plain.geojson").read_text()
     with pytest.raises(FileRefused) as refused:
         read_map(text)
-    assert "0: polygon yard" in str(refused.value) and "1: polygon barn" in str(refused.value)
+    assert "0: polygon yard" in str(refused.value)
+    assert "1: polygon barn" in str(refused.value)
     with pytest.raises(FileRefused, match="feature 1 \\('barn'\\): polygons without a role"):
         read_map(text, options=MapOptions(boundary="yard"))
     for boundary, keepouts in [
@@ -291,10 +293,12 @@ def test_many_buildings_generated_load_within_the_map_limits() -> None:
 
 def test_mission_routes_home_jumps_and_refused_commands() -> None:
     plan = read_route((DATA / "field.plan").read_text())
-    assert plan.home == (37.9415, 23.653) and len(plan.waypoints) == 5
+    assert plan.home == (37.9415, 23.653)
+    assert len(plan.waypoints) == 5
     assert parse_waypoints(plan.waypoints).closed
     waypoints = read_route((DATA / "mission.waypoints").read_text())
-    assert waypoints.home == (37.9415, 23.653) and not parse_waypoints(waypoints.waypoints).closed
+    assert waypoints.home == (37.9415, 23.653)
+    assert not parse_waypoints(waypoints.waypoints).closed
     # A last waypoint equal to the first closes it too.
     closed = wpl(
         HOME,
@@ -328,7 +332,8 @@ def test_mission_routes_home_jumps_and_refused_commands() -> None:
     survey["mission"]["items"].insert(1, {"type": "ComplexItem", "complexItemType": "survey"})
     with pytest.raises(FileRefused, match="mission item 1: a 'survey' pattern"):
         read_route(json.dumps(survey))
-    assert command_name(22) == "MAV_CMD_NAV_TAKEOFF (22)" and command_name(31999) == "MAV_CMD 31999"
+    assert command_name(22) == "MAV_CMD_NAV_TAKEOFF (22)"
+    assert command_name(31999) == "MAV_CMD 31999"
     # Refusals name commands as pymavlink does, not by number alone.
     assert command_name(211) == "MAV_CMD_DO_GRIPPER (211)"
     assert command_name(92) == "MAV_CMD_NAV_GUIDED_ENABLE (92)"
@@ -343,13 +348,15 @@ def test_route_text_and_json_forms() -> None:
     lists = read_route(
         '[[37.9414, 23.6526, 4], {"lat": 37.9419, "lon": 23.6534, "name": "x"}, "ne"]'
     )
-    assert lists.waypoints[1] == {"lat": 37.9419, "lon": 23.6534, "name": "x"} and lists.notes
+    assert lists.waypoints[1] == {"lat": 37.9419, "lon": 23.6534, "name": "x"}
+    assert lists.notes
     line = read_route(
         json.dumps(
             {"type": "LineString", "coordinates": [[23.6526, 37.9414, 5], [23.6534, 37.9414]]}
         )
     )
-    assert line.format == "GeoJSON" and line.waypoints[0] == {"lat": 37.9414, "lon": 23.6526}
+    assert line.format == "GeoJSON"
+    assert line.waypoints[0] == {"lat": 37.9414, "lon": 23.6526}
     for bad, why in [
         ("37.9,23.6,1,2", "line 1: 4 numbers"),
         ("[[37.9, 23.6], [Infinity, 1]]", "Infinity is not a number JSON allows"),
@@ -387,7 +394,8 @@ def test_routes_written_back_read_the_same() -> None:
     for fmt in ("plan", "waypoints"):
         text = write_route(fmt, route, ROBOT, area)
         again = read_route(text, fence=fmt == "plan")
-        assert again.waypoints == route and again.home == ROBOT
+        assert again.waypoints == route
+        assert again.home == ROBOT
         assert parse_waypoints(again.waypoints).closed
     plan = json.loads(write_route("plan", route, None, area))
     assert plan["mission"]["plannedHomePosition"][:2] == [route[0]["lat"], route[0]["lon"]]
@@ -420,13 +428,17 @@ def test_mission_items_are_the_one_mapping_both_ways() -> None:
 
     route = [(37.9414, 23.6526), (37.9414, 23.6534), (37.9419, 23.6534), (37.9414, 23.6526)]
     items = mission_items(route, ROBOT)
-    assert items[0].frame == MavFrame.GLOBAL and items[1].frame == MavFrame.GLOBAL_RELATIVE_ALT
+    assert items[0].frame == MavFrame.GLOBAL
+    assert items[1].frame == MavFrame.GLOBAL_RELATIVE_ALT
     # A closed route: its waypoints, then a jump back to the first (item 1).
     assert [item.command for item in items] == [MavCmd.NAV_WAYPOINT] * 4 + [MavCmd.DO_JUMP]
     again = route_from_items(items, home_first=True, jump_target=lambda item: 1)
-    assert again.home == ROBOT and again.waypoints == route and again.closed
+    assert again.home == ROBOT
+    assert again.waypoints == route
+    assert again.closed
     kml = read_route((DATA / "field.kml").read_text(), "field.kml")
-    assert kml.format == "KML" and len(kml.waypoints) == 3
+    assert kml.format == "KML"
+    assert len(kml.waypoints) == 3
 
 
 def test_a_route_is_not_taken_for_an_old_fence_file_and_home_alone_is_no_mission() -> None:
@@ -496,7 +508,8 @@ def test_a_map_as_fence_items_reads_back_as_the_same_map() -> None:
     area = read_map((DATA / "field.kml").read_text(), "field.kml", MapOptions("field", "barn"))
     items = fence_items(area.geojson)
     assert [item.command for item in items].count(MavCmd.NAV_FENCE_POLYGON_VERTEX_INCLUSION) == 4
-    assert items[0].params[0] == 4 and items[-1].command == MavCmd.NAV_RALLY_POINT
+    assert items[0].params[0] == 4
+    assert items[-1].command == MavCmd.NAV_RALLY_POINT
     again = assemble_map(fence_shapes(items), MapOptions(), "fence items")
     before, after = parse_map(area.geojson), parse_map(again.geojson)
     assert after.boundary.equals_exact(before.boundary, 1e-6)
@@ -622,7 +635,8 @@ def test_a_map_across_the_antimeridian_loads_at_the_station_as_on_the_platform()
             [round(lon - 360 if lon > 180 else lon, 7), round(lat0 + 0.001 * math.sin(angle), 7)]
         )
     ring.append(ring[0])
-    assert any(lon < 0 for lon, _ in ring) and any(lon > 0 for lon, _ in ring)
+    assert any(lon < 0 for lon, _ in ring)
+    assert any(lon > 0 for lon, _ in ring)
     geojson = {
         "type": "FeatureCollection",
         "features": [
@@ -699,7 +713,8 @@ def test_qgcs_older_mission_and_item_layouts_are_read() -> None:
         "version": "1.0",
     }
     found = read_route(json.dumps(old), "old.mission")
-    assert found.format == "QGC mission (old)" and found.home == (37.9415, 23.653)
+    assert found.format == "QGC mission (old)"
+    assert found.home == (37.9415, 23.653)
     assert [(w["lat"], w["lon"]) for w in found.waypoints] == [*corners, corners[0]]
     # A .plan whose SimpleItems use the older layout, with a command a rover cannot do.
     plan = json.loads((DATA / "field.plan").read_text())
@@ -728,7 +743,9 @@ def test_a_named_point_far_outside_the_boundary_is_said() -> None:
     )
     found = read_map(json.dumps(data), options=MapOptions(boundary="yard", keepouts="rest"))
     (note,) = [n for n in found.notes if "far outside the boundary" in n]
-    assert "'typo' 7" in note and "km out" in note and "gate" not in note
+    assert "'typo' 7" in note
+    assert "km out" in note
+    assert "gate" not in note
 
 
 def test_several_inclusion_fences_as_their_union_when_asked() -> None:

@@ -30,7 +30,8 @@ async def test_a_nan_in_a_route_file_is_refused_without_a_traceback(
     ]:
         (tmp_path / name).write_text(text)
         code, out, err = await run_cli(station, "route", "rover-7", str(tmp_path / name))
-        assert code == 1 and why in err, (name, out, err)
+        assert code == 1, (name, out, err)
+        assert why in err, (name, out, err)
         assert "Traceback" not in err
 
 
@@ -49,7 +50,8 @@ async def test_mission_files_in_and_out(
         "barn",
     )
     assert code == 0, err
-    assert "map 'field' loaded (KML)" in out and "1 keep-out zones, 1 named points" in out
+    assert "map 'field' loaded (KML)" in out
+    assert "1 keep-out zones, 1 named points" in out
     assert "note: 1 LineStrings not used" in out
 
     # A QGC plan: home is not a waypoint, the DO_JUMP back to the first closes the route; with
@@ -59,7 +61,8 @@ async def test_mission_files_in_and_out(
     )
     assert code == 0, err
     answer = json.loads(out)
-    assert answer["closed"] is True and len(answer["waypoints"]) == 5
+    assert answer["closed"] is True
+    assert len(answer["waypoints"]) == 5
     assert answer["keepouts_added"] == ["fence-2", "fence-circle-1"]
     assert any(
         "planned home 37.9415000, 23.6530000 is not a waypoint" in n for n in answer["notes"]
@@ -73,38 +76,45 @@ async def test_mission_files_in_and_out(
     # Row 0 of a .waypoints file is home; three rows after it are an open route.
     code, out, err = await run_cli(station, "route", "rover-7", str(DATA / "mission.waypoints"))
     assert code == 0, err
-    assert "3 waypoints set from QGC WPL 110 (open" in out and "is home" in out
+    assert "3 waypoints set from QGC WPL 110 (open" in out
+    assert "is home" in out
     assert "note: altitudes ignored" in out
 
     # Commands we cannot fly: refused, each named, the route unchanged.
     code, _, err = await run_cli(station, "route", "rover-7", str(DATA / "takeoff.waypoints"))
     assert code == 1
-    assert "MAV_CMD_NAV_TAKEOFF (22)" in err and "MAV_CMD_DO_SET_SERVO (183)" in err
+    assert "MAV_CMD_NAV_TAKEOFF (22)" in err
+    assert "MAV_CMD_DO_SET_SERVO (183)" in err
     area = await station.ctx.api.call_local("map_get", platform_id="rover-7")
     assert len(area["route"]) == 3
 
     # Text lines with tabs, spaces, an altitude, a [lat, lon, alt] list.
     code, out, err = await run_cli(station, "route", "rover-7", str(DATA / "route.txt"))
-    assert code == 0 and "4 waypoints set from text" in out, err
+    assert code == 0, err
+    assert "4 waypoints set from text" in out, err
 
     # Written back: .plan and .waypoints read again as the same route.
     for name in ("out.plan", "out.waypoints"):
         code, out, err = await run_cli(
             station, "route", "rover-7", "--export", str(tmp_path / name)
         )
-        assert code == 0 and "4 waypoints written" in out, err
+        assert code == 0, err
+        assert "4 waypoints written" in out, err
         again = read_route((tmp_path / name).read_text(), name)
         assert again.waypoints == read_route((DATA / "route.txt").read_text()).waypoints
         code, out, err = await run_cli(station, "route", "rover-7", str(tmp_path / name))
-        assert code == 0 and "4 waypoints set" in out, err
+        assert code == 0, err
+        assert "4 waypoints set" in out, err
     plan = json.loads((tmp_path / "out.plan").read_text())
-    assert plan["fileType"] == "Plan" and plan["mission"]["vehicleType"] == 10
+    assert plan["fileType"] == "Plan"
+    assert plan["mission"]["vehicleType"] == 10
     assert [p["inclusion"] for p in plan["geoFence"]["polygons"]] == [True, False, False, False]
 
     # Longitude first: refused as swapped, against the map's boundary.
     (tmp_path / "swapped.txt").write_text("23.6526,37.9414\n23.6534,37.9414\n")
     code, _, err = await run_cli(station, "route", "rover-7", str(tmp_path / "swapped.txt"))
-    assert code == 1 and "latitude and longitude look swapped" in err
+    assert code == 1
+    assert "latitude and longitude look swapped" in err
 
 
 async def test_map_formats_through_the_cli(
@@ -116,22 +126,33 @@ async def test_map_formats_through_the_cli(
         return await run_cli(station, "map", "rover-7", *argv)
 
     code, out, err = await load(str(DATA / "field.plan"))
-    assert code == 0 and "(QGC plan)" in out and "2 keep-out zones, 1 named points" in out, err
+    assert code == 0, err
+    assert "(QGC plan)" in out, err
+    assert "2 keep-out zones, 1 named points" in out, err
     code, out, err = await load(str(DATA / "fence.waypoints"))
-    assert code == 0 and "(QGC WPL 110 fence)" in out and "2 keep-out zones" in out, err
+    assert code == 0, err
+    assert "(QGC WPL 110 fence)" in out, err
+    assert "2 keep-out zones" in out, err
     code, out, err = await load(str(DATA / "old.fen"))
-    assert code == 0 and "(ArduPilot fence/rally)" in out and "1 named points" in out, err
+    assert code == 0, err
+    assert "(ArduPilot fence/rally)" in out, err
+    assert "1 named points" in out, err
     code, out, err = await load(str(DATA / "buildings.osm"), "--boundary-bbox")
-    assert code == 0 and "(OpenStreetMap XML)" in out and "2 keep-out zones" in out, err
+    assert code == 0, err
+    assert "(OpenStreetMap XML)" in out, err
+    assert "2 keep-out zones" in out, err
     assert "note: 1 open ways" in out
 
     # Polygons without roles: the operator says which is which, else it is refused naming them.
     code, _, err = await load(str(DATA / "plain.geojson"))
-    assert code == 1 and "which polygon is the boundary?" in err and "0: polygon yard" in err
+    assert code == 1
+    assert "which polygon is the boundary?" in err
+    assert "0: polygon yard" in err
     code, out, err = await load(
         str(DATA / "plain.geojson"), "--boundary", "landuse=farmyard", "--keepouts", "building=*"
     )
-    assert code == 0 and "1 keep-out zones, 1 named points" in out, err
+    assert code == 0, err
+    assert "1 keep-out zones, 1 named points" in out, err
 
     # [lat, lon] where GeoJSON has [lon, lat]: the robot is inside only swapped: refused.
     swapped = json.loads((DATA / "plain.geojson").read_text())
@@ -143,14 +164,16 @@ async def test_map_formats_through_the_cli(
     code, _, err = await load(
         str(tmp_path / "swapped.geojson"), "--boundary", "yard", "--keepouts", "none"
     )
-    assert code == 1 and "latitude and longitude look swapped" in err
+    assert code == 1
+    assert "latitude and longitude look swapped" in err
 
     # Hostile XML: an entity declaration is refused before anything is expanded.
     (tmp_path / "laughs.kml").write_text(
         '<?xml version="1.0"?><!DOCTYPE kml [<!ENTITY a "aaaaaaaaaa">]><kml>&a;</kml>'
     )
     code, _, err = await load(str(tmp_path / "laughs.kml"))
-    assert code == 1 and "entities are refused" in err
+    assert code == 1
+    assert "entities are refused" in err
 
 
 async def test_big_files_up_to_the_limit_pass_the_station_and_bigger_are_refused(
@@ -163,17 +186,22 @@ async def test_big_files_up_to_the_limit_pass_the_station_and_bigger_are_refused
     big = tmp_path / "big.plan"  # 3 MiB of line breaks: 6 MiB as the JSON string the API carries
     big.write_text(plan.replace('"version": 1,', '"version": 1,' + "\n" * (3 * 1024 * 1024), 1))
     code, out, err = await run_cli(station, "route", "rover-7", str(big))
-    assert code == 0 and "5 waypoints set from QGC plan (closed" in out, err
+    assert code == 0, err
+    assert "5 waypoints set from QGC plan (closed" in out, err
     huge = tmp_path / "huge.plan"
     huge.write_text(plan + " " * (4 * 1024 * 1024))
     code, _, err = await run_cli(station, "route", "rover-7", str(huge))
-    assert code == 1 and "huge.plan: " in err and "over the limit of 4194304 bytes" in err
+    assert code == 1
+    assert "huge.plan: " in err
+    assert "over the limit of 4194304 bytes" in err
     (tmp_path / "latin1.txt").write_bytes("37.9414,23.6526 # caf\xe9\n".encode("latin-1"))
     code, _, err = await run_cli(station, "route", "rover-7", str(tmp_path / "latin1.txt"))
-    assert code == 1 and "not UTF-8 text" in err
+    assert code == 1
+    assert "not UTF-8 text" in err
     (tmp_path / "field.kmz").write_bytes(b"PK\x03\x04" + bytes(range(256)))
     code, _, err = await run_cli(station, "map", "rover-7", str(tmp_path / "field.kmz"))
-    assert code == 1 and "field.kmz: a zip archive (a KMZ?)" in err
+    assert code == 1
+    assert "field.kmz: a zip archive (a KMZ?)" in err
 
 
 async def test_a_fence_route_refused_leaves_no_keepouts_behind(
@@ -198,7 +226,8 @@ async def test_a_fence_route_refused_leaves_no_keepouts_behind(
     code, _, err = await run_cli(
         station, "route", "rover-7", str(tmp_path / "into.plan"), "--fence"
     )
-    assert code == 1 and "keep-out zone 'fence-circle-1'" in err, err
+    assert code == 1, err
+    assert "keep-out zone 'fence-circle-1'" in err, err
     area = await station.ctx.api.call_local("map_get", platform_id="rover-7")
     assert [
         f.get("id") for f in area["map"]["features"] if f["properties"].get("role") == "keepout"
@@ -233,9 +262,11 @@ async def test_a_map_bigger_than_the_platform_takes_is_refused_at_the_station(
     code, _, err = await run_cli(
         station, "map", "rover-7", str(tmp_path / "village.json"), "--boundary-bbox"
     )
-    assert code == 1 and "more than the platform takes in one request (64 KiB" in err, err
+    assert code == 1, err
+    assert "more than the platform takes in one request (64 KiB" in err, err
     (tmp_path / "hamlet.json").write_text(village(100))
     code, out, err = await run_cli(
         station, "map", "rover-7", str(tmp_path / "hamlet.json"), "--boundary-bbox"
     )
-    assert code == 0 and "100 keep-out zones" in out, err
+    assert code == 0, err
+    assert "100 keep-out zones" in out, err

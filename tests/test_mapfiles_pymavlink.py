@@ -91,12 +91,14 @@ async def test_pymavlink_reads_our_files_and_we_read_its_files(tmp_path: Path) -
     ]
     # Our hand-written samples parse there too: 1 return point, 4+4 polygon vertices, a circle.
     assert seen["fence"] == [[5000, 0.0]] + [[5001, 4.0]] * 4 + [[5002, 4.0]] * 4 + [[5004, 6.0]]
-    assert seen["old_fence"] == 6 and seen["rally"] == 2
+    assert seen["old_fence"] == 6
+    assert seen["rally"] == 2
 
     # Theirs, as we see it: home left out, the DO_JUMP to 1 closes the route.
     theirs = read_route(await asyncio.to_thread((tmp_path / "theirs.waypoints").read_text))
     assert theirs.home == (37.9415, 23.653)
-    assert parse_waypoints(theirs.waypoints).closed and len(theirs.waypoints) == 4
+    assert parse_waypoints(theirs.waypoints).closed
+    assert len(theirs.waypoints) == 4
     fence_text = await asyncio.to_thread((tmp_path / "theirs.fen").read_text)
     rally_text = await asyncio.to_thread((tmp_path / "theirs.rally").read_text)
     area = parse_map(read_map(fence_text + rally_text).geojson)

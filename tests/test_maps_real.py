@@ -74,7 +74,8 @@ def test_an_area_across_the_180th_meridian_has_a_continuous_frame() -> None:
     area = parse_map(collection(feature("boundary", "Polygon", [fiji_ring()])))
     moved = parse_map(collection(feature("boundary", "Polygon", [fiji_ring(-0.2)])))
     origin_lat, origin_lon = area.summary()["origin"]
-    assert abs(origin_lat + 16.49) < 0.001 and abs(abs(origin_lon) - 180.0) < 0.001
+    assert abs(origin_lat + 16.49) < 0.001
+    assert abs(abs(origin_lon) - 180.0) < 0.001
     assert area.boundary.area == pytest.approx(4300 * 2200, rel=1e-3)
     assert area.boundary.area == pytest.approx(moved.boundary.area, rel=1e-4)
     # A waypoint 332 m due north of the robot is 332 m away, due north: east is east.
@@ -174,16 +175,19 @@ def test_a_point_in_a_hole_is_measured_to_the_hole() -> None:
 def test_repeated_names_get_unique_ids_and_say_so() -> None:
     data = town_map(LAT, LON, buildings=300, seed=3)
     names = [f["properties"].get("name") for f in data["features"][1:]]
-    assert names.count(" ") > 1 and names.count("Garage") > 1
+    assert names.count(" ") > 1
+    assert names.count("Garage") > 1
     area = parse_map(data)
     assert len(area.keepouts) == 300
-    assert "Garage (2)" in area.keepouts and " " not in area.keepouts
+    assert "Garage (2)" in area.keepouts
+    assert " " not in area.keepouts
     assert any("repeat a name" in note and "'Garage'" in note for note in area.notes)
     assert area.summary()["notes"] == list(area.notes)
     # An explicit id used twice is still a mistake, and an update's repeated name is renamed.
     zone = next(f for f in data["features"] if f["properties"].get("name") == "Garage")
     more = area.with_keepouts(add=[copy.deepcopy(zone)])
-    assert len(more.keepouts) == 301 and more.notes
+    assert len(more.keepouts) == 301
+    assert more.notes
     with pytest.raises(MapError, match="exists already"):
         more.with_keepouts(add=[zone | {"id": "Garage (2)"}])
 
@@ -200,13 +204,15 @@ async def test_a_map_refused_at_start_is_a_warning_not_only_a_log_line(
     (tmp_path / "map.geojson").write_text(json.dumps(bad))
     daemon = await platform_factory(quiet_platform_config(*files(tmp_path)), None)
     section = daemon.ctx.telemetry.build_one(Autonomy)
-    assert isinstance(section, Autonomy) and section.reason == "no map"
+    assert isinstance(section, Autonomy)
+    assert section.reason == "no map"
     assert "keep-out id 'shed' used twice" in getattr(section, "map_error", "")
     from brasidas.annunciator import MAP_REFUSED
 
     annunciator = Annunciator(TelemetryReceiverSection())
     (change,) = annunciator.evaluate(Snapshot({Autonomy: section}), 0.0, None, now=1.0)
-    assert change.active and change.warning.code == MAP_REFUSED
+    assert change.active
+    assert change.warning.code == MAP_REFUSED
     assert "used twice" in change.warning.message
 
 
@@ -431,7 +437,8 @@ async def test_a_new_map_stops_the_build_of_the_one_it_replaces(
     await daemon.ctx.rpc.call_local("load_map", map=town_map(LAT, LON, buildings=1000, seed=6))
     await daemon.ctx.rpc.call_local("load_map", map=demo_map(LAT, LON))
     await wait_until(lambda: patrol.planner_ready, 60)
-    assert patrol.core.area is not None and patrol.core.area.name == "demo field"
+    assert patrol.core.area is not None
+    assert patrol.core.area.name == "demo field"
     await wait_until(lambda: "dropped: a new map came" in caplog.text, 30)
 
 
@@ -470,20 +477,24 @@ def test_remote_planning_holds_until_the_answer_and_drops_one_for_an_old_map() -
     assert not patrol.set_plan(asked.revision, asked.id, [asked.start, asked.goal])
     assert patrol.stale_plans == 1
     patrol.step(here, 0.1)
-    assert patrol.status().state is PatrolState.HOLDING and not patrol.planned_path
+    assert patrol.status().state is PatrolState.HOLDING
+    assert not patrol.planned_path
     assert not patrol.planner_ready(asked.revision)  # a graph of the old map: not ready
     assert patrol.planner_ready(patrol.map_revision)
     patrol.step(here, 0.1)
     (again,) = patrol.plan_requests
-    assert again.revision == patrol.map_revision and again.id != asked.id
+    assert again.revision == patrol.map_revision
+    assert again.id != asked.id
     patrol.plan_requests.clear()
     assert patrol.set_plan(again.revision, again.id, [again.start, again.goal])
     # With a path, the next leg is asked ahead (from the target to the one after).
     (then,) = patrol.plan_requests
     patrol.plan_requests.clear()
-    assert then.origin == again.waypoint and then.start == again.goal
+    assert then.origin == again.waypoint
+    assert then.start == again.goal
     patrol.step(here, 0.1)  # at the first waypoint (where it starts): holds for that leg
-    assert patrol.events[-1].kind == "arrived" and not patrol.plan_requests  # not asked again
+    assert patrol.events[-1].kind == "arrived"
+    assert not patrol.plan_requests  # not asked again
     assert patrol.reason.startswith("planning the path to")
     assert patrol.set_plan(then.revision, then.id, [then.start, then.goal])
     (after,) = patrol.plan_requests  # and the one after that, ahead
@@ -498,7 +509,8 @@ def test_remote_planning_holds_until_the_answer_and_drops_one_for_an_old_map() -
     patrol.step(there, 0.1)
     assert patrol.events[-1].kind == "arrived"
     assert patrol.status().state is PatrolState.PATROLLING, patrol.reason
-    assert patrol.planned_path[0] == after.start and len(patrol.plan_requests) == 1
+    assert patrol.planned_path[0] == after.start
+    assert len(patrol.plan_requests) == 1
     # The target changed under a request (a ground station's MISSION_SET_CURRENT sets the
     # cursor): its answer, a path to the old target, is dropped and the new one asked.
     from brasidas.autonomy.route import Cursor
@@ -513,7 +525,8 @@ def test_remote_planning_holds_until_the_answer_and_drops_one_for_an_old_map() -
     patrol.plan_requests.clear()
     patrol.step(there, 0.1)
     (new,) = patrol.plan_requests
-    assert new.waypoint == patrol.cursor.index and patrol.reason.startswith("planning the path")
+    assert new.waypoint == patrol.cursor.index
+    assert patrol.reason.startswith("planning the path")
     # The planner process dies: hold, saying why, until it has the graph again.
     patrol.planner_lost("the planner process stopped (exit code -9)")
     patrol.step(here, 0.1)
@@ -583,7 +596,8 @@ async def test_the_planner_process_answers_edits_plans_and_asks_for_a_map_it_lac
         stale = await asyncio.wait_for(answer(), 60)
         assert (stale["op"], stale["id"]) == ("stale", 3), stale
         path = await asyncio.wait_for(answer(), 60)
-        assert path["op"] == "path" and path["id"] == 4, path
+        assert path["op"] == "path", path
+        assert path["id"] == 4, path
         assert not LineString(path["points"]).intersects(
             parse_map(area.with_keepouts(add=[rock]).geojson()).keepouts["rock"]
         )

@@ -77,9 +77,11 @@ async def test_a_ground_station_sees_a_rover_with_telemetry(
     assert heartbeat.custom_mode == 4  # HOLD: the demo route never starts itself
     assert heartbeat.get_srcSystem() == 1
     position = await gcs.expect("GLOBAL_POSITION_INT")
-    assert abs(position.lat / 1e7 - LAT) < 1e-3 and abs(position.lon / 1e7 - LON) < 1e-3
+    assert abs(position.lat / 1e7 - LAT) < 1e-3
+    assert abs(position.lon / 1e7 - LON) < 1e-3
     gps = await gcs.expect("GPS_RAW_INT", lambda m: m.fix_type >= 3)
-    assert gps.satellites_visible > 0 and gps.eph < 65535
+    assert gps.satellites_visible > 0
+    assert gps.eph < 65535
     await gcs.expect("ATTITUDE")
     await gcs.expect("VFR_HUD")
     status = await gcs.expect("SYS_STATUS", lambda m: m.voltage_battery != 65535)
@@ -125,7 +127,8 @@ async def test_parameters_are_listed_read_only_and_ftp_is_refused_cleanly(
     since = gcs.mark()
     gcs.send(mavlink.MAVLink_param_request_read_message(1, 1, b"MAVL_SYSTEM_ID", -1))
     by_name = await gcs.expect("PARAM_VALUE", since=since)
-    assert by_name.param_id == "MAVL_SYSTEM_ID" and by_name.param_value == 1
+    assert by_name.param_id == "MAVL_SYSTEM_ID"
+    assert by_name.param_value == 1
     gcs.send(mavlink.MAVLink_param_request_read_message(1, 1, b"", by_name.param_index))
     by_index = await gcs.expect("PARAM_VALUE", lambda m: m is not by_name, since=since)
     assert by_index.param_id == "MAVL_SYSTEM_ID"
@@ -133,7 +136,8 @@ async def test_parameters_are_listed_read_only_and_ftp_is_refused_cleanly(
     since = gcs.mark()
     gcs.send(mavlink.MAVLink_param_set_message(1, 1, b"MAVL_SYSTEM_ID", 7, 6))
     unchanged = await gcs.expect("PARAM_VALUE", since=since)
-    assert unchanged.param_id == "MAVL_SYSTEM_ID" and unchanged.param_value == 1
+    assert unchanged.param_id == "MAVL_SYSTEM_ID"
+    assert unchanged.param_value == 1
     await gcs.expect("STATUSTEXT", lambda m: "read-only" in m.text, since=since)
 
     since = gcs.mark()
@@ -144,7 +148,9 @@ async def test_parameters_are_listed_read_only_and_ftp_is_refused_cleanly(
     nak = await gcs.expect("FILE_TRANSFER_PROTOCOL", since=since)
     payload = bytes(nak.payload)
     assert int.from_bytes(payload[0:2], "little") == 42
-    assert payload[3] == 129 and payload[5] == 4 and payload[12] == 10  # FileNotFound
+    assert payload[3] == 129
+    assert payload[5] == 4
+    assert payload[12] == 10  # FileNotFound
 
 
 async def test_a_mission_becomes_the_route_and_downloads_back(
@@ -163,7 +169,8 @@ async def test_a_mission_becomes_the_route_and_downloads_back(
     ack = await gcs.upload(items)
     assert ack.type == mavlink.MAV_MISSION_ACCEPTED
     route = daemon.ctx.patrol.core.route  # type: ignore[union-attr]
-    assert route.closed and route.stops == 4
+    assert route.closed
+    assert route.stops == 4
     assert (route.waypoints[1].latitude, route.waypoints[1].longitude) == pytest.approx(
         corners[1], abs=1e-7
     )
@@ -199,7 +206,8 @@ async def test_modes_start_and_stop_the_patrol(
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED
     await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1 and m.custom_mode == 10)
     status = daemon.bus.last(topics.PATROL_STATUS)
-    assert status is not None and status.state is PatrolState.PATROLLING
+    assert status is not None
+    assert status.state is PatrolState.PATROLLING
     ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 4)
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED
     await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1 and m.custom_mode == 4)
@@ -224,9 +232,11 @@ async def test_a_fence_reshapes_the_map_and_downloads_back(
         fence_item(7, FENCE_EXCLUSION_CIRCLE, 3.0, *at(20, 15)),
     ]
     ack = await gcs.upload(items, mission_type=1)
-    assert ack.type == mavlink.MAV_MISSION_ACCEPTED and ack.mission_type == 1
+    assert ack.type == mavlink.MAV_MISSION_ACCEPTED
+    assert ack.mission_type == 1
     area = patrol.core.area
-    assert area is not None and sorted(area.keepouts) == ["fence-1", "fence-2"]
+    assert area is not None
+    assert sorted(area.keepouts) == ["fence-1", "fence-2"]
     assert area.boundary.area == pytest.approx(64 * 54, rel=0.02)
     back = await gcs.download(mission_type=1)
     assert [(m.command, m.param1, m.x, m.y) for m in back] == [
@@ -272,7 +282,8 @@ async def test_an_observer_ground_station_is_refused_with_the_holders_id(
     result = await daemon.ctx.commands.dispatch(MANUAL_OVERRIDE, "state=on,force=1", station)
     assert result.accepted
     ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 10)
-    assert ack.result == mavlink.MAV_RESULT_DENIED and ack.result_param2 == 0
+    assert ack.result == mavlink.MAV_RESULT_DENIED
+    assert ack.result_param2 == 0
     daemon.ctx.sessions.close(station.session_id, "test over")
 
 
@@ -281,7 +292,8 @@ async def test_set_current_chooses_the_patrols_next_waypoint_for_the_holder_only
 ) -> None:
     daemon = await connected(platform_factory, tmp_path, gcs, "mavlink.allow_unsigned_control=true")
     patrol = daemon.ctx.patrol
-    assert patrol is not None and patrol.core.route.stops == 4  # the demo loop
+    assert patrol is not None
+    assert patrol.core.route.stops == 4  # the demo loop
 
     def waypoint_reported() -> int | None:
         status = daemon.bus.last(topics.PATROL_STATUS)
@@ -291,7 +303,8 @@ async def test_set_current_chooses_the_patrols_next_waypoint_for_the_holder_only
     since = gcs.mark()
     gcs.send(mavlink.MAVLink_mission_set_current_message(1, 1, 3))
     await gcs.expect("MISSION_CURRENT", lambda m: m.seq == 3, since=since)
-    assert patrol.core.cursor.index == 2 and waypoint_reported() == 2
+    assert patrol.core.cursor.index == 2
+    assert waypoint_reported() == 2
     # None such, or home: refused with the reason, the target unchanged.
     for seq, reason in ((9, "no waypoint 9: the route has 4"), (0, "item 0 is home")):
         since = gcs.mark()
@@ -301,7 +314,8 @@ async def test_set_current_chooses_the_patrols_next_waypoint_for_the_holder_only
     assert patrol.core.cursor.index == 2
     # By command (DO_SET_MISSION_CURRENT): a COMMAND_ACK.
     ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MISSION_CURRENT, 2)
-    assert ack.result == mavlink.MAV_RESULT_ACCEPTED and patrol.core.cursor.index == 1
+    assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+    assert patrol.core.cursor.index == 1
     ack = await gcs.command(mavlink.MAV_CMD_DO_SET_MISSION_CURRENT, 7)
     assert ack.result == mavlink.MAV_RESULT_FAILED
 
@@ -311,7 +325,8 @@ async def test_set_current_chooses_the_patrols_next_waypoint_for_the_holder_only
         other.vehicle = gcs.vehicle
         since = other.mark()
         ack = await other.command(mavlink.MAV_CMD_DO_SET_MISSION_CURRENT, 4)
-        assert ack.result == mavlink.MAV_RESULT_DENIED and ack.result_param2 == 255
+        assert ack.result == mavlink.MAV_RESULT_DENIED
+        assert ack.result_param2 == 255
         since = other.mark()
         other.send(mavlink.MAVLink_mission_set_current_message(1, 1, 4))
         holder = f"gcs255@127.0.0.1:{gcs.port}"
@@ -325,7 +340,8 @@ async def test_set_current_chooses_the_patrols_next_waypoint_for_the_holder_only
     ack = await gcs.command(mavlink.MAV_CMD_MISSION_START)
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED
     status = daemon.bus.last(topics.PATROL_STATUS)
-    assert status is not None and status.waypoint == 1
+    assert status is not None
+    assert status.waypoint == 1
 
 
 async def test_manual_control_drives_through_the_deadman(
@@ -350,7 +366,8 @@ async def test_manual_control_drives_through_the_deadman(
     await wait_until(lambda: Velocity(0.0, 0.0) in commands[moving:])
     assert daemon.ctx.telemetry.counters["arbiter"]()["deadman_trips"] > trips
     motion = daemon.bus.last(topics.MOTION_STATE)
-    assert motion is not None and motion.deadman
+    assert motion is not None
+    assert motion.deadman
 
 
 async def test_signing_control_needs_a_signed_link_and_replays_are_refused(
@@ -392,7 +409,8 @@ async def test_signing_control_needs_a_signed_link_and_replays_are_refused(
     gcs.send_raw(gcs.frames[-2])  # the signed MISSION_START
     await wait_until(lambda: counters().get("replayed", 0) > replayed)
     status = daemon.bus.last(topics.PATROL_STATUS)
-    assert status is not None and status.state is not PatrolState.PATROLLING
+    assert status is not None
+    assert status.state is not PatrolState.PATROLLING
     assert not [m for m in gcs.received[since:] if m.get_type() == "COMMAND_ACK"]
 
 
@@ -424,7 +442,8 @@ async def test_a_stranger_gets_no_more_bytes_than_it_sends(
             await gcs.expect("HEARTBEAT", lambda m: m.get_srcComponent() == 1)
         assert 0 < stranger.bytes_received <= sent
         denied = [m for m in stranger.received if m.get_type() == "COMMAND_ACK"]
-        assert denied and all(m.result == mavlink.MAV_RESULT_DENIED for m in denied)
+        assert denied
+        assert all(m.result == mavlink.MAV_RESULT_DENIED for m in denied)
         assert counters().get("stranger_bytes_suppressed", 0) > sent - stranger.bytes_received
     finally:
         stranger.close()
@@ -543,7 +562,8 @@ async def test_a_silent_ground_station_in_manual_trips_the_failsafe_ladder(
     text = await gcs.expect_text(lambda t: t.startswith("90.18 LINK LOST"), since, timeout=20)
     assert "hold" in text
     failsafe = daemon.bus.last(topics.FAILSAFE_STATE)
-    assert failsafe is not None and failsafe.step is FailsafeStep.HOLD
+    assert failsafe is not None
+    assert failsafe.step is FailsafeStep.HOLD
     severities = {
         m.severity
         for m in gcs.received[since:]

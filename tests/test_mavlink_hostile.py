@@ -68,7 +68,8 @@ def test_a_spoofed_unsigned_video_request_starts_no_video() -> None:
     assert rover.counters["video_refused"] == 5
     # Signed, or from a configured target: the video starts.
     [signed] = rover.feed(frame(VIDEO_REQUEST, signed=True), ("192.0.2.20", 14550), 30.0)
-    assert isinstance(signed, StartVideo) and signed.signed
+    assert isinstance(signed, StartVideo)
+    assert signed.signed
     [target] = rover.feed(request, TARGET, 31.0)
     assert isinstance(target, StartVideo)
 
@@ -87,7 +88,8 @@ def test_strangers_cannot_fill_the_table_against_a_signed_ground_station() -> No
     )
     gcs = ("192.0.2.30", 14550)
     [request] = rover.feed(frame(hold, signed=True, system=255), gcs, 1.5)
-    assert isinstance(request, SetMode) and request.signed
+    assert isinstance(request, SetMode)
+    assert request.signed
     assert gcs in rover.links
 
 

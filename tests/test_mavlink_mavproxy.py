@@ -143,7 +143,8 @@ async def test_mavproxy_loads_a_mission_and_a_fence_and_starts_the_patrol(
         since = client.send(f"wp load {mission}")
         await client.expect("Sent all 6 waypoints", since)
         await client.expect("Got MISSION_ACK: TYPE_MISSION: ACCEPTED", since)
-        assert patrol.core.route.closed and patrol.core.route.stops == 4
+        assert patrol.core.route.closed
+        assert patrol.core.route.stops == 4
 
         since = client.send("wp list")
         await client.expect("Requesting 6 waypoints", since)
@@ -152,7 +153,8 @@ async def test_mavproxy_loads_a_mission_and_a_fence_and_starts_the_patrol(
         since = client.send(f"fence load {fence}")
         await client.expect("Got MISSION_ACK: TYPE_FENCE: ACCEPTED", since)
         area = patrol.core.area
-        assert area is not None and list(area.keepouts) == ["fence-1"]
+        assert area is not None
+        assert list(area.keepouts) == ["fence-1"]
 
         since = client.send("mode AUTO")
         await client.expect("Mode AUTO", since)
@@ -164,7 +166,8 @@ async def test_mavproxy_loads_a_mission_and_a_fence_and_starts_the_patrol(
         await client.expect("Mode GUIDED", since)
         assert patrol.detour == "guided"
         (target,) = patrol.core.route.waypoints
-        assert abs(target.latitude - goal[0]) < 1e-6 and abs(target.longitude - goal[1]) < 1e-6
+        assert abs(target.latitude - goal[0]) < 1e-6
+        assert abs(target.longitude - goal[1]) < 1e-6
         since = client.send("mode RTL")
         await client.expect("Mode RTL", since)
         assert patrol.detour == "home"
@@ -234,7 +237,8 @@ async def test_mavproxy_fence_options_take_two_inclusion_fences_as_their_union(
         since = client.send(f"fence load {fence}")
         await client.expect("Got MISSION_ACK: TYPE_FENCE: ACCEPTED", since)
         await client.expect("the boundary: the overlap of 2 inclusion polygons", since)
-        assert not allowed(daemon, far_east) and not allowed(daemon, far_west)
+        assert not allowed(daemon, far_east)
+        assert not allowed(daemon, far_west)
 
         since = client.send("param set FENCE_OPTIONS 2")
         await client.expect("several inclusion fences: their union", since)
@@ -244,7 +248,8 @@ async def test_mavproxy_fence_options_take_two_inclusion_fences_as_their_union(
         since = client.send(f"fence load {fence}")
         await client.expect("Got MISSION_ACK: TYPE_FENCE: ACCEPTED", since)
         await client.expect("the boundary: the union of 2 inclusion polygons", since)
-        assert allowed(daemon, far_east) and allowed(daemon, far_west)
+        assert allowed(daemon, far_east)
+        assert allowed(daemon, far_west)
 
         since = client.send("param set FENCE_OPTIONS 3")
         await client.expect("FENCE_OPTIONS 3 refused: only bit 1", since)
@@ -265,4 +270,5 @@ async def test_mavproxy_fence_options_take_two_inclusion_fences_as_their_union(
         write_waypoints(fence, [(0, 0, 5001, 4, lat, lon) for lat, lon in west + wider])
         since = client.send(f"fence load {fence}")
         await client.expect("Got MISSION_ACK: TYPE_FENCE: ACCEPTED", since)
-        assert allowed(daemon, at(65, 15)) and allowed(daemon, far_west)
+        assert allowed(daemon, at(65, 15))
+        assert allowed(daemon, far_west)

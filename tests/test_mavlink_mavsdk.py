@@ -111,7 +111,8 @@ async def test_mavsdk_uploads_a_qgc_plan_downloads_it_and_starts_the_mission(
         await missions.upload_geofence(imported.geofence_items)
         assert patrol.core.route.stops == 4
         area = patrol.core.area
-        assert area is not None and sorted(area.keepouts) == ["fence-1", "fence-2"]
+        assert area is not None
+        assert sorted(area.keepouts) == ["fence-1", "fence-2"]
 
         assert raw(await missions.download_mission()) == raw(imported.mission_items)
         assert raw(await missions.download_geofence()) == raw(imported.geofence_items)
@@ -165,7 +166,8 @@ async def test_mavsdk_health_all_ok_is_true_exactly_when_arming_would_pass(
         await action.arm()
         await action.kill()  # force-disarm (21196)
         await wait_until(lambda: not arming.armed)
-        assert arming.last_word is not None and arming.last_word.word == "disarm"
+        assert arming.last_word is not None
+        assert arming.last_word.word == "disarm"
 
         # The receiver goes silent: not armable, and the reason in a STATUSTEXT.
         texts: list[str] = []

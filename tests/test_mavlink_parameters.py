@@ -56,19 +56,22 @@ def test_two_inclusion_fences_make_their_overlap_or_with_the_option_their_union(
     west, east = (0, 0, 4, 3), (2, 0, 6, 3)
     overlap = fence_from_items(squares(west, east))
     union = fence_from_items(squares(west, east), union=True)
-    assert overlap.boundary is not None and union.boundary is not None
+    assert overlap.boundary is not None
+    assert union.boundary is not None
     assert area(overlap.boundary).bounds == pytest.approx((20.002, 10.0, 20.004, 10.003))
     assert area(union.boundary).bounds == pytest.approx((20.0, 10.0, 20.006, 10.003))
     # Four strips round a yard: the union is a frame, the yard inside stays out of bounds.
     frame = fence_from_items(
         squares((0, 0, 6, 1), (5, 0, 6, 6), (0, 5, 6, 6), (0, 0, 1, 6)), union=True
     )
-    assert frame.boundary is not None and len(frame.keepouts) == 1
+    assert frame.boundary is not None
+    assert len(frame.keepouts) == 1
     assert area(frame.keepouts[0]).contains(Point(20.003, 10.003))
 
 
 def test_only_bit_1_is_taken() -> None:
-    assert refusal(FENCE_OPTIONS, 2.0) is None and refusal(FENCE_OPTIONS, 0.0) is None
+    assert refusal(FENCE_OPTIONS, 2.0) is None
+    assert refusal(FENCE_OPTIONS, 0.0) is None
     assert "only bit 1" in (refusal(FENCE_OPTIONS, 1.0) or "")
     assert "only bit 1" in (refusal(FENCE_OPTIONS, 6.0) or "")
     assert "whole number" in (refusal(FENCE_OPTIONS, 2.5) or "")
@@ -104,7 +107,8 @@ def test_pymavlink_param_set_from_a_trusted_link_asks_the_platform() -> None:
     vehicle, station, parser = parameter_vehicle(allow_unsigned_control=True)
     frame = mavlink.MAVLink_param_set_message(1, 1, b"FENCE_OPTIONS", 2.0, 4).pack(station)
     [request] = vehicle.feed(bytes(frame), GCS, 0.0)
-    assert isinstance(request, SetParameter) and request.value == 2.0
+    assert isinstance(request, SetParameter)
+    assert request.value == 2.0
     # Not writable: answered at once with its unchanged value.
     frame = mavlink.MAVLink_param_set_message(1, 1, b"MOTOR_BAUD", 1.0, 6).pack(station)
     assert vehicle.feed(bytes(frame), GCS, 0.0) == []

@@ -20,7 +20,8 @@ def test_sectors_hold_the_nearest_return_clockwise_from_forward() -> None:
     (decoded,) = [mavlink.MAVLink(None).parse_char(wire)]
     assert decoded.get_type() == "OBSTACLE_DISTANCE"
     assert decoded.frame == mavlink.MAV_FRAME_BODY_FRD
-    assert decoded.increment == 5 and decoded.max_distance == 1200
+    assert decoded.increment == 5
+    assert decoded.max_distance == 1200
     assert decoded.distances[0] == 62
     assert decoded.distances[18] == 300  # 90 degrees clockwise
     assert decoded.distances[36] == 1201  # nothing behind: max_distance + 1

@@ -54,7 +54,9 @@ async def test_qgroundcontrols_connect_runs_through_without_a_timeout(
     assert got["PROTOCOL_VERSION"].version == got["PROTOCOL_VERSION"].max_version == 200
     assert got["transfers"] == (0, 1, 2)
     # MAVFTP: a NAK of OpenFileRO with FileNotFound, QGC's cue to use PARAM_REQUEST_LIST.
-    assert got["ftp"][3] == 129 and got["ftp"][5] == 4 and got["ftp"][12] == 10
+    assert got["ftp"][3] == 129
+    assert got["ftp"][5] == 4
+    assert got["ftp"][12] == 10
     # Not "official": QGC compares an official version with the latest stable ArduPilot.
     version = got["AUTOPILOT_VERSION"].flight_sw_version
     assert version & 0xFF != mavlink.FIRMWARE_VERSION_TYPE_OFFICIAL
@@ -212,4 +214,5 @@ async def test_guided_goes_to_a_point_around_the_keepout_and_rtl_comes_home(
     )
     ack = await gcs.expect("COMMAND_ACK", since=since)
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED
-    assert patrol.core.route == route and patrol.detour is None
+    assert patrol.core.route == route
+    assert patrol.detour is None

@@ -122,7 +122,8 @@ def test_a_capture_after_a_restart_is_refused_and_the_real_station_goes_on(
     wall.now += 1.0
     restarted = MavlinkVehicle(1, key=KEY, wall_clock=wall)
     saved = load_state(path)
-    assert saved is not None and saved.clean
+    assert saved is not None
+    assert saved.clean
     assert restarted.signatures is not None
     restarted.signatures.restore(saved)
     assert replay(restarted, capture, ("192.0.2.66", 40004), 0.0) == []
@@ -149,7 +150,8 @@ def test_after_a_crash_frames_newer_than_the_last_save_are_refused_too(tmp_path:
     assert len(replay(vehicle, capture, GCS, 1.0)) == 5
     restarted = MavlinkVehicle(1, key=KEY, wall_clock=wall)
     saved = load_state(path)
-    assert saved is not None and not saved.clean
+    assert saved is not None
+    assert not saved.clean
     assert restarted.signatures is not None
     restarted.signatures.restore(saved)
     assert replay(restarted, capture, ("192.0.2.66", 40006), 0.0) == []

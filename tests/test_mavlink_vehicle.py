@@ -78,7 +78,8 @@ def test_an_upload_asks_again_for_a_lost_item_then_gives_up() -> None:
     station = Station()
     vehicle.feed(station.frame(mavlink.MAVLink_mission_count_message(1, 1, 3, 0)), GCS, 0.0)
     [request] = station.read(vehicle)
-    assert request.get_type() == "MISSION_REQUEST_INT" and request.seq == 0
+    assert request.get_type() == "MISSION_REQUEST_INT"
+    assert request.seq == 0
     vehicle.feed(station.frame(item(0, 1.0, 2.0)), GCS, 0.1)
     assert [m.seq for m in station.read(vehicle)] == [1]
     # Item 1 is lost: asked for again once the retry time has passed, not before.
@@ -89,7 +90,8 @@ def test_an_upload_asks_again_for_a_lost_item_then_gives_up() -> None:
     vehicle.feed(station.frame(item(1, 1.0, 2.1)), GCS, 0.5)
     requests = vehicle.feed(station.frame(item(2, 1.1, 2.1)), GCS, 0.6)
     [upload] = requests
-    assert isinstance(upload, UploadItems) and [i.seq for i in upload.items] == [0, 1, 2]
+    assert isinstance(upload, UploadItems)
+    assert [i.seq for i in upload.items] == [0, 1, 2]
     vehicle.answer_upload(upload, mavlink.MAV_MISSION_ACCEPTED)
     acks = [m for m in station.read(vehicle) if m.get_type() == "MISSION_ACK"]
     assert [a.type for a in acks] == [mavlink.MAV_MISSION_ACCEPTED]
@@ -173,14 +175,17 @@ def test_control_from_an_unsigned_link_is_refused_and_the_joystick_ignored() -> 
     # Nobody sets the key over the air.
     setup = mavlink.MAVLink_setup_signing_message(1, 1, [7] * 32, 0)
     assert vehicle.feed(station.frame(setup), GCS, 0.15) == []
-    assert vehicle.key == KEY and vehicle.counters["setup_signing_refused"] == 1
+    assert vehicle.key == KEY
+    assert vehicle.counters["setup_signing_refused"] == 1
     assert any("SETUP_SIGNING refused" in m.text for m in station.read(vehicle))
 
     signed = Station(KEY)
     [request] = vehicle.feed(signed.frame(set_auto), GCS, 0.2)
-    assert isinstance(request, SetMode) and request.signed
+    assert isinstance(request, SetMode)
+    assert request.signed
     [manual] = vehicle.feed(signed.frame(joystick), GCS, 0.3)
-    assert isinstance(manual, ManualInput) and manual.linear == 1.0
+    assert isinstance(manual, ManualInput)
+    assert manual.linear == 1.0
 
 
 def test_a_forged_future_timestamp_does_not_lock_out_the_real_station() -> None:
@@ -219,7 +224,8 @@ def mission(*rows: tuple[int, int]) -> list[MissionItem]:
 
 def test_mission_items_map_onto_routes() -> None:
     plan = route_from_items(mission((16, 0), (16, 0), (16, 0), (16, 0), (177, 1)))
-    assert len(plan.waypoints) == 4 and plan.waypoints[0] == plan.waypoints[-1]
+    assert len(plan.waypoints) == 4
+    assert plan.waypoints[0] == plan.waypoints[-1]
     assert plan.home == (1.0, 2.0)
     open_route = route_from_items(mission((16, 0), (16, 0), (16, 0)))
     assert len(open_route.waypoints) == 2
@@ -242,8 +248,10 @@ def test_mission_items_map_onto_routes() -> None:
 def test_fence_items_map_onto_boundary_and_keepouts() -> None:
     rows = [(FENCE_INCLUSION_VERTEX, 4)] * 4 + [(FENCE_EXCLUSION_CIRCLE, 5)]
     fence = fence_from_items(mission(*rows))
-    assert fence.boundary is not None and len(fence.boundary) == 4
-    assert len(fence.keepouts) == 1 and len(fence.keepouts[0]) == 32
+    assert fence.boundary is not None
+    assert len(fence.boundary) == 4
+    assert len(fence.keepouts) == 1
+    assert len(fence.keepouts[0]) == 32
     with pytest.raises(MissionRefused) as refused:
         fence_from_items(mission(*[(FENCE_INCLUSION_VERTEX, 4)] * 3))
     assert refused.value.result == mavlink.MAV_MISSION_INVALID_PARAM1
@@ -298,7 +306,8 @@ def test_a_stranger_gets_no_more_bytes_than_it_sends() -> None:
     signed, station = Station(KEY), ("192.0.2.8", 14550)
     vehicle.feed(signed.frame(mavlink.MAVLink_param_request_list_message(1, 1)), station, now)
     values = [d for d, p in vehicle.take() if p == station]
-    assert len(values) == 60 and sum(map(len, values)) > 10 * len(signed.frame(asks[1]))
+    assert len(values) == 60
+    assert sum(map(len, values)) > 10 * len(signed.frame(asks[1]))
 
 
 def test_set_current_needs_control_like_any_change() -> None:
@@ -312,12 +321,16 @@ def test_set_current_needs_control_like_any_change() -> None:
     texts = [m.text for m in unsigned.read(vehicle) if m.get_type() == "STATUSTEXT"]
     assert texts[0].startswith("set current refused: unsigned link")
     [request] = vehicle.feed(signed.frame(by_message), GCS, 0.1)
-    assert isinstance(request, SetCurrent) and request.seq == 2 and request.command is None
+    assert isinstance(request, SetCurrent)
+    assert request.seq == 2
+    assert request.command is None
     vehicle.answer_set_current(request, mavlink.MAV_RESULT_ACCEPTED)
     [current] = [m for m in unsigned.read(vehicle) if m.get_type() == "MISSION_CURRENT"]
-    assert current.seq == 2 and vehicle.state.waypoint == 1
+    assert current.seq == 2
+    assert vehicle.state.waypoint == 1
     [request] = vehicle.feed(signed.frame(by_command), GCS, 0.2)
-    assert isinstance(request, SetCurrent) and (request.seq, request.command) == (3, 224)
+    assert isinstance(request, SetCurrent)
+    assert (request.seq, request.command) == (3, 224)
 
 
 def test_speed_return_to_launch_and_jump_counts_map_onto_the_route() -> None:
@@ -328,14 +341,17 @@ def test_speed_return_to_launch_and_jump_counts_map_onto_the_route() -> None:
     items[2] = dataclasses.replace(items[2], param2=1.5)
     plan = route_from_items(items)
     assert plan.home == (1.0, 2.0)
-    assert plan.waypoints[-1] == plan.home and len(plan.waypoints) == 4  # home appended
-    assert plan.speeds == [None, 1.5, 1.5, 1.5] and plan.laps == 1
+    assert plan.waypoints[-1] == plan.home
+    assert len(plan.waypoints) == 4  # home appended
+    assert plan.speeds == [None, 1.5, 1.5, 1.5]
+    assert plan.laps == 1
     assert plan.seqs == [1, 3, 4, 5]
     # A jump to the first waypoint repeated twice: three laps.
     items = mission((16, 0), (16, 0), (16, 0), (16, 0), (177, 1))
     items[4] = dataclasses.replace(items[4], param2=2)
     looped = route_from_items(items)
-    assert looped.laps == 3 and looped.closed
+    assert looped.laps == 3
+    assert looped.closed
     forever = mission((16, 0), (16, 0), (16, 0), (16, 0), (177, 1))
     forever[4] = dataclasses.replace(forever[4], param2=-1)
     assert route_from_items(forever).laps is None
@@ -353,7 +369,8 @@ def test_a_first_item_in_a_relative_frame_is_a_waypoint_not_home() -> None:
     items = mission((16, 0), (16, 0), (16, 0), (16, 0))
     items[0] = dataclasses.replace(items[0], frame=mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)
     plan = route_from_items(items)
-    assert len(plan.waypoints) == 4 and plan.home is None
+    assert len(plan.waypoints) == 4
+    assert plan.home is None
     assert plan.seqs == [0, 1, 2, 3]
     assert route_index(tuple(plan.seqs), 0) == 0
 
@@ -375,7 +392,8 @@ def test_a_clear_is_an_empty_upload_with_the_same_refusals() -> None:
             for m in answers
         )
     [request] = vehicle.feed(signed.frame(clear), GCS, 0.1)
-    assert isinstance(request, UploadItems) and request.signed
+    assert isinstance(request, UploadItems)
+    assert request.signed
     assert (request.mission_type, request.items) == (mavlink.MAV_MISSION_TYPE_FENCE, ())
     rally = mavlink.MAVLink_mission_clear_all_message(1, 1, mavlink.MAV_MISSION_TYPE_RALLY)
     assert vehicle.feed(signed.frame(rally), GCS, 0.2) == []

@@ -68,17 +68,18 @@ async def test_navcam_streams_only_when_asked_and_carries_capture_time(
     try:
         navcam = conn.capabilities["nav_camera"]
         assert (navcam["width"], navcam["height"], navcam["codec"]) == (640, 480, "H264")
-        assert navcam["state"] == "idle" and navcam["destination"] is None
+        assert navcam["state"] == "idle"
+        assert navcam["destination"] is None
         assert [s["name"] for s in conn.capabilities["streams"]] == ["navcam"]
         assert await frames_in(receiver, 0.3) == 0  # nothing until a station asks
 
         answer = await command(conn, 1, "host=127.0.0.1")
         assert answer["accepted"], answer
         await wait_until(lambda: receiver.stamped >= 3, timeout=8)
-        assert receiver.latencies and all(-50 < ms < 1000 for ms in receiver.latencies)
-        assert states[-1].state == "playing" and states[-1].destination.endswith(
-            f":{receiver.port}"
-        )
+        assert receiver.latencies
+        assert all(-50 < ms < 1000 for ms in receiver.latencies)
+        assert states[-1].state == "playing"
+        assert states[-1].destination.endswith(f":{receiver.port}")
         params = await conn.call("get_nav_camera_parameters")
         assert params["framerate"] == 5  # manual override disengaged (seed §3.2)
         assert params["destination"] == f"127.0.0.1:{receiver.port}"
@@ -96,9 +97,11 @@ async def test_navcam_streams_only_when_asked_and_carries_capture_time(
             ("", "navcam=15"),
         ):
             answer = await command(conn, 5, payload)
-            assert not answer["accepted"] and reason in answer["reason"], (payload, answer)
+            assert not answer["accepted"], (payload, answer)
+            assert reason in answer["reason"], (payload, answer)
         answer = await command(conn, 5, "navcam=15")
-        assert answer["accepted"] and answer["result"] == {"navcam": 15}
+        assert answer["accepted"]
+        assert answer["result"] == {"navcam": 15}
 
         assert (await command(conn, 3))["accepted"]  # pause all
         await asyncio.sleep(0.2)
@@ -122,12 +125,14 @@ async def test_per_stream_methods_and_bad_names(
     try:
         with pytest.raises(RpcError) as info:
             await conn.call("start_stream", name="rearcam")
-        assert info.value.code == INVALID_PARAMS and "no stream named" in info.value.message
+        assert info.value.code == INVALID_PARAMS
+        assert "no stream named" in info.value.message
         with pytest.raises(RpcError, match="not an IP address"):
             await conn.call("start_stream", name="navcam", host="bad host!")
         started = await conn.call("start_stream", name="navcam", port=receiver.port)
         # No host given: the stream goes to the caller's own address.
-        assert started["state"] == "playing" and started["host"] == "127.0.0.1"
+        assert started["state"] == "playing"
+        assert started["host"] == "127.0.0.1"
         await wait_until(lambda: receiver.frames > 0, timeout=8)
         assert (await conn.call("pause_stream", name="navcam"))["state"] == "paused"
         listed = await conn.call("list_streams")
@@ -165,7 +170,8 @@ async def test_missing_camera_fails_with_reason_and_is_retried(
         assert (await command(conn, 2))["accepted"]
         retries = stream.retries
         await asyncio.sleep(0.3)
-        assert stream.retries == retries and stream.state is StreamState.IDLE
+        assert stream.retries == retries
+        assert stream.state is StreamState.IDLE
     finally:
         await conn.close()
 
@@ -217,7 +223,8 @@ async def test_camera_lost_mid_stream_fails_and_comes_back(receiver: VideoIn) ->
         try:
             assert await stream.start() is StreamState.PLAYING
             await wait_until(lambda: stream.retries >= 1, timeout=8)
-            assert reasons and "end of stream" in reasons[0]
+            assert reasons
+            assert "end of stream" in reasons[0]
             frames = receiver.frames
             await wait_until(lambda: receiver.frames > frames, timeout=8)  # rebuilt, flowing
         finally:
@@ -302,7 +309,8 @@ async def test_a_state_change_that_never_returns_is_abandoned_not_waited_for() -
     stream = _StuckStream()
     assert await stream.start() is StreamState.PLAYING
     await asyncio.wait_for(stream.stop(), 5)  # not forever
-    assert stream.state is StreamState.IDLE and stream.abandoned == 1
+    assert stream.state is StreamState.IDLE
+    assert stream.abandoned == 1
     assert not stream.fake.bus_touched_after_null
     (stuck,) = [t for t in threading.enumerate() if t.name == "gst-state:stuck"]
     assert stuck.daemon  # the process can still exit

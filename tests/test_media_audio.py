@@ -52,7 +52,8 @@ async def test_two_way_audio_is_heard_at_both_ends(
     conn = await open_session(daemon, fleet_key)
     try:
         streams = {s["name"]: s for s in conn.capabilities["streams"]}
-        assert streams["audio_out"]["codec"] == "OPUS" and streams["audio_in"]["state"] == "idle"
+        assert streams["audio_out"]["codec"] == "OPUS"
+        assert streams["audio_in"]["state"] == "idle"
         assert await speaker.start() is StreamState.PLAYING
         assert await frames_after(speaker, 0.3) == 0  # the platform sends only when asked
         started = await conn.call("start_stream", name="audio_out")
@@ -60,7 +61,8 @@ async def test_two_way_audio_is_heard_at_both_ends(
         await wait_until(lambda: speaker.hears_sound, timeout=8)  # platform mic -> station
 
         listening = await conn.call("start_stream", name="audio_in")
-        assert listening["state"] == "playing" and listening["port"] == platform_port
+        assert listening["state"] == "playing"
+        assert listening["port"] == platform_port
         assert await microphone.start() is StreamState.PLAYING
         platform_speaker = daemon.ctx.media.streams["audio_in"]
         await wait_until(lambda: platform_speaker.hears_sound, timeout=8)  # station -> platform
@@ -144,7 +146,8 @@ async def test_payload_camera_is_forwarded_without_reencoding(
     try:
         await receiver.start()
         started = await conn.call("start_stream", name="payload_camera")
-        assert started["state"] == "playing" and started["source"] == rtsp_camera.url
+        assert started["state"] == "playing"
+        assert started["source"] == rtsp_camera.url
         await wait_until(lambda: receiver.frames >= 5, timeout=8)
         forward = daemon.ctx.media.streams["payload_camera"]
         klasses = element_classes(forward.pipeline)
@@ -181,7 +184,8 @@ async def test_offline_camera_fails_with_its_url_and_recovers_when_it_appears() 
             await receiver.start()
             await forward.start()
             await wait_until(lambda: forward.state is StreamState.FAILED, timeout=8)
-            assert url in forward.reason and "Could not open" in forward.reason
+            assert url in forward.reason
+            assert "Could not open" in forward.reason
             await wait_until(lambda: forward.retries >= 1, timeout=8)
             camera = RtspServer(port)  # the camera comes online: the next retry gets it
             await wait_until(lambda: receiver.frames >= 3, timeout=9)
@@ -293,14 +297,16 @@ async def test_two_stations_each_get_the_microphone_and_the_payload_camera(
         for name in ("audio_out", "payload_camera"):
             with pytest.raises(RpcError) as info:
                 await bravo.call("pause_stream", name=name)
-            assert info.value.code == CONTROL_REFUSED and "alpha" in info.value.message
+            assert info.value.code == CONTROL_REFUSED
+            assert "alpha" in info.value.message
         # ...and its stop ends its own copy only.
         for name in ("audio_out", "payload_camera"):
             assert (await bravo.call("stop_stream", name=name))["state"] == "playing"
         await asyncio.gather(more_audio(ears[0]), more_frames(eyes[0]))  # alpha's go on
         heard, seen = ears[1].buffers, eyes[1].frames
         await asyncio.gather(more_audio(ears[0], 25), more_frames(eyes[0], 8))
-        assert ears[1].buffers - heard <= 3 and eyes[1].frames - seen <= 1  # in flight only
+        assert ears[1].buffers - heard <= 3
+        assert eyes[1].frames - seen <= 1  # in flight only
 
         # The controller's session ending leaves the observer's copies running.
         await bravo.call("start_stream", name="audio_out", port=ears[1].port)

@@ -93,7 +93,8 @@ def test_a_queue_building_cuts_the_bitrate_to_under_what_arrived_at_once() -> No
     kbps = controller.on_transport(_window(1870, 640, 105.0), 1500, now + 0.1)
     assert kbps == 750  # toward 0.85 x what arrived, halved at most a step
     kbps = controller.on_transport(_window(2080, 357, 256.0), 1500, now + 0.2)
-    assert kbps is not None and kbps < 500  # under the new capacity within 0.3 s
+    assert kbps is not None
+    assert kbps < 500  # under the new capacity within 0.3 s
     assert controller.overuses >= 1
     assert controller.retransmissions_paused(now + 0.3)  # the queue drops them anyway
     assert not controller.retransmissions_paused(now + 1.0)
@@ -121,7 +122,8 @@ def test_random_loss_without_a_queue_never_lowers_the_bitrate() -> None:
         controller.update(0.40 if step % 7 == 0 else 0.10, 1500, now)  # a report spikes
         now += TRANSPORT_POLL_S
     assert controller.effective_kbps(1500) == 1500
-    assert controller.overuses == 0 and controller.collapsed_at is None
+    assert controller.overuses == 0
+    assert controller.collapsed_at is None
 
 
 def test_a_cut_link_a_restarting_receiver_or_a_paused_forwarder_is_not_a_capacity() -> None:

@@ -75,7 +75,8 @@ async def test_only_control_resumes_a_paused_stream(
         started = await observer.call("start_stream", name="navcam")
         assert started["state"] == "paused"
         answer = await observer.call("issue_system_command", group=10, command=1, payload="")
-        assert answer["accepted"] and answer["result"] == {"navcam": "paused"}
+        assert answer["accepted"]
+        assert answer["result"] == {"navcam": "paused"}
         assert await received_in(video_socket, 1.5) == 0
         assert "navcam" in daemon.ctx.media.paused  # type: ignore[union-attr]
         # The holder resumes.
@@ -91,10 +92,10 @@ def test_configured_destinations_are_addresses_or_networks() -> None:
         PlatformConfig, None, ['security.stream_destinations=["198.51.100.7", "239.1.0.0/16"]']
     )
     allowed = config.security.stream_destinations
-    assert in_destinations("198.51.100.7", allowed) and in_destinations("239.1.2.3", allowed)
-    assert not in_destinations("198.51.100.8", allowed) and not in_destinations(
-        "rover.local", allowed
-    )
+    assert in_destinations("198.51.100.7", allowed)
+    assert in_destinations("239.1.2.3", allowed)
+    assert not in_destinations("198.51.100.8", allowed)
+    assert not in_destinations("rover.local", allowed)
     with pytest.raises(ConfigError, match="security.stream_destinations"):
         load_config(PlatformConfig, None, ['security.stream_destinations=["not an address"]'])
 

@@ -32,7 +32,8 @@ def test_the_interval_follows_the_framerate_and_requests_are_rate_limited() -> N
     assert not clock.on_frame(5.7)
     assert clock.on_frame(5.76)
     assert not clock.on_frame(5.9)
-    assert clock.counters.requested == 2 and clock.counters.deferred == 1
+    assert clock.counters.requested == 2
+    assert clock.counters.deferred == 1
 
 
 class _KeyframeLog:

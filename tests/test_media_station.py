@@ -69,7 +69,8 @@ async def test_daemon_receiver_reports_latency_and_stops_with_the_platform(
 
     await asyncio.wait_for(_until_latency(stats), 10)
     streams = await station.ctx.api.call_local("streams", platform_id="rover-v")
-    assert streams[0]["state"] == "playing" and streams[0]["host"] == "127.0.0.1"
+    assert streams[0]["state"] == "playing"
+    assert streams[0]["host"] == "127.0.0.1"
     assert await station.ctx.api.call_local("stop_receive", platform_id="rover-v")
     nav = platform.ctx.media.nav_camera
     await wait_until(lambda: nav()["state"] == "idle")
@@ -94,15 +95,18 @@ async def test_view_command_receives_and_stops_the_stream(
     )
     assert code == 0, err
     lines = out.strip().splitlines()
-    assert "640x480" in lines[0] and "H264" in lines[0]
+    assert "640x480" in lines[0]
+    assert "H264" in lines[0]
     last = json.loads(lines[-1])
-    assert last["frames"] > 0 and last["latency_ms"] is not None
+    assert last["frames"] > 0
+    assert last["latency_ms"] is not None
     assert platform.ctx.media.nav_camera()["state"] == "idle"  # stopped on exit
 
     code, out, err = await run_cli(
         station, "view", "rover-v", "nosuchstream", "--url", url, "--sink", "fakesink"
     )
-    assert code == 1 and "no stream named 'nosuchstream'" in err
+    assert code == 1
+    assert "no stream named 'nosuchstream'" in err
 
 
 async def test_view_without_a_display_says_so(
@@ -111,7 +115,9 @@ async def test_view_without_a_display_says_so(
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     code, _, err = await run_cli(station, "view", "rover-v")
-    assert code == 1 and "no display" in err and "--sdp" in err
+    assert code == 1
+    assert "no display" in err
+    assert "--sdp" in err
 
 
 async def test_stock_gst_launch_receiver_decodes_the_navcam(
@@ -142,7 +148,8 @@ async def test_sdp_file_plays_in_a_stock_sdp_receiver(
 ) -> None:
     port = free_udp_port()
     text = sdp_text(port, listen_host="127.0.0.1", platform_host="127.0.0.1")
-    assert f"m=video {port} RTP/AVP 96" in text and "a=rtpmap:96 H264/90000" in text
+    assert f"m=video {port} RTP/AVP 96" in text
+    assert "a=rtpmap:96 H264/90000" in text
     sdp = tmp_path / "navcam.sdp"
     sdp.write_text(text)
     platform = await sim_platform(platform_factory, fleet_key, f"navcam.port={port}")
@@ -183,7 +190,8 @@ async def test_station_hears_the_platform_and_talks_back(
     api = station.ctx.api
     await api.call_local("connect", platform_id="rover-v", url=platform.ctx.signaling_url)
     heard = await api.call_local("receive", platform_id="rover-v", stream="audio_out")
-    assert heard["state"] == "playing" and heard["codec"] == "OPUS"
+    assert heard["state"] == "playing"
+    assert heard["codec"] == "OPUS"
 
     async def peak(name: str) -> int:
         for entry in await api.call_local("receivers"):
@@ -236,7 +244,9 @@ async def test_audio_command_hears_the_platform_talks_back_and_stops_both(
         code, out, err = await asyncio.wait_for(cli_run, 30)
     assert code == 0, err
     levels = [json.loads(line) for line in out.strip().splitlines()[2:]]
-    assert levels and levels[-1]["buffers"] > 0 and levels[-1]["peak"] > 1000
+    assert levels
+    assert levels[-1]["buffers"] > 0
+    assert levels[-1]["peak"] > 1000
     # Ended: both directions stopped, on the platform and in the station daemon.
     assert "may still run" not in err
     await wait_until(lambda: streams["audio_in"].state.value == "idle", timeout=15)
@@ -260,16 +270,21 @@ async def test_stream_command_lists_starts_pauses_and_stops_one_stream(
     )
     assert code == 0, err
     started = json.loads(out)
-    assert started["state"] == "playing" and started["destination"] == f"127.0.0.1:{port}"
+    assert started["state"] == "playing"
+    assert started["destination"] == f"127.0.0.1:{port}"
     nav = platform.ctx.media.nav_camera
     code, out, err = await run_cli(station, "stream", "rover-v", "navcam", "pause")
-    assert code == 0 and "paused" in out, err
+    assert code == 0, err
+    assert "paused" in out, err
     assert nav()["state"] == "paused"
     code, out, err = await run_cli(station, "stream", "rover-v", "navcam", "stop")
-    assert code == 0 and "idle" in out, err
+    assert code == 0, err
+    assert "idle" in out, err
     assert nav()["state"] == "idle"
 
     code, out, err = await run_cli(station, "stream", "rover-v", "nosuch", "start")
-    assert code == 1 and "nosuch" in err
+    assert code == 1
+    assert "nosuch" in err
     code, out, err = await run_cli(station, "stream", "rover-v", "navcam")
-    assert code == 1 and "start, pause or stop" in err
+    assert code == 1
+    assert "start, pause or stop" in err

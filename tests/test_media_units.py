@@ -34,7 +34,9 @@ def test_configured_rates_are_clamped_to_the_camera() -> None:
 def test_navcam_settings_from_config() -> None:
     settings = navcam_settings(NavCamSection(format="mjpeg", encoder="x264enc"), sim=True)
     assert (settings.width, settings.height, settings.camera_framerate) == (640, 480, 30)
-    assert settings.framerate == 5 and settings.test_source and settings.source_format == "mjpeg"
+    assert settings.framerate == 5
+    assert settings.test_source
+    assert settings.source_format == "mjpeg"
 
 
 def test_bitrate_scales_with_the_framerate() -> None:
@@ -75,9 +77,12 @@ def test_check_host() -> None:
 def test_sdp_describes_the_stream() -> None:
     text = sdp_text(5600, listen_host="127.0.0.1", name="rover nav", platform_host="10.0.0.9")
     lines = text.split("\r\n")
-    assert lines[0] == "v=0" and text.endswith("\r\n")
-    assert "c=IN IP4 127.0.0.1" in lines and "m=video 5600 RTP/AVP 96" in lines
-    assert "a=rtpmap:96 H264/90000" in lines and "o=- 0 0 IN IP4 10.0.0.9" in lines
+    assert lines[0] == "v=0"
+    assert text.endswith("\r\n")
+    assert "c=IN IP4 127.0.0.1" in lines
+    assert "m=video 5600 RTP/AVP 96" in lines
+    assert "a=rtpmap:96 H264/90000" in lines
+    assert "o=- 0 0 IN IP4 10.0.0.9" in lines
     assert "a=extmap:1 urn:ietf:params:rtp-hdrext:ntp-64" in lines
     assert "c=IN IP6 ::1" in sdp_text(5600, listen_host="::1")
 

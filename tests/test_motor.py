@@ -125,7 +125,8 @@ async def test_refused_command_is_resent_once_then_reported(tmp_path: Path) -> N
         ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.25, 0.0))
         await wait_until(lambda: sim.device.channels == (32, 0))
         assert since(sim, mark)[:2] == ["!A20", "!A20"]
-        assert driver.counters["rejected"] == 1 and driver.counters["resent"] == 1
+        assert driver.counters["rejected"] == 1
+        assert driver.counters["resent"] == 1
         # Refused twice: reported, the driver carries on, and the refresh gets it through.
         sim.device.fail_next = 2
         ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.5, 0.0))
@@ -154,15 +155,18 @@ async def test_ten_seconds_at_zero_without_one_watchdog_w(tmp_path: Path) -> Non
             async with asyncio.timeout(5.0):
                 while not (len(sim.device.received) > mark and driver.sent == [0, 0]):
                     await asyncio.sleep(0.0005)
-        assert sim.device.w_sent == 0 and sim.device.watchdog_trips == 0
-        assert driver.counters["watchdog_w"] == 0 and driver.counters["unanswered"] == 0
+        assert sim.device.w_sent == 0
+        assert sim.device.watchdog_trips == 0
+        assert driver.counters["watchdog_w"] == 0
+        assert driver.counters["unanswered"] == 0
         # 10 Hz refresh, both channels: about 200 commands, never fewer than the 2 Hz minimum.
         assert sim.device.received.count("!A00") >= 20
         # Telemetry carries the state; the counters go with diagnostics (20.0), the port with
         # the capabilities: a 5 Hz datagram has no room for what does not change.
         assert ctx.telemetry.build_one(Motor) == Motor(True, (0, 0), (0, 0), "")
         counters = ctx.telemetry.counters["motor"]()
-        assert counters["watchdog_w"] == 0 and counters["velocity_commands"] >= 20
+        assert counters["watchdog_w"] == 0
+        assert counters["velocity_commands"] >= 20
         assert ctx.capabilities.describe()["motor"]["port"] == driver.config.port
 
 
@@ -174,7 +178,8 @@ async def test_latest_wins_no_backlog(tmp_path: Path) -> None:
             ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(step / 100, 0.0))
         await wait_until(lambda: sim.device.channels == (127, 0))
         sent = [line for line in since(sim, mark) if line[:2] in ("!A", "!a")]
-        assert sent[-1] == "!A7F" and len(sent) <= 3, sent
+        assert sent[-1] == "!A7F", sent
+        assert len(sent) <= 3, sent
 
 
 async def test_watchdog_w_is_stripped_and_both_channels_resent(tmp_path: Path) -> None:
@@ -186,7 +191,8 @@ async def test_watchdog_w_is_stripped_and_both_channels_resent(tmp_path: Path) -
         sim.inject(b"W")  # as if the watchdog had tripped (say, the host stalled)
         sim.device.stop_motors()
         await wait_until(lambda: sim.device.channels == (64, 64))
-        assert driver.counters["watchdog_w"] >= 1 and status(ctx).connected  # type: ignore[union-attr]
+        assert driver.counters["watchdog_w"] >= 1
+        assert status(ctx).connected  # type: ignore[union-attr]
 
 
 async def test_garbage_from_the_controller_is_dropped(tmp_path: Path) -> None:
@@ -241,7 +247,9 @@ async def test_rc_mode_and_wrong_motor_mode_are_fixed_at_bring_up(tmp_path: Path
     overrides = ("motor.reply_timeout=0.2", "motor.configure_mode=true")
     async with driven(tmp_path, *overrides, options=options) as (ctx, sim):
         await connected(ctx)
-        assert sim.device.resets == 1 and sim.device.mixed and sim.device.watchdog
+        assert sim.device.resets == 1
+        assert sim.device.mixed
+        assert sim.device.watchdog
         assert sim.device.parameters[ax3500.PARAM_MOTOR_MODE] == 1
         ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.5, 0.0))
         await wait_until(lambda: sim.device.channels == (64, 0))
@@ -252,7 +260,8 @@ async def test_wrong_mode_refused_when_not_allowed_to_configure(tmp_path: Path) 
     options.parameters[ax3500.PARAM_MOTOR_MODE] = 0x00
     async with driven(tmp_path, "motor.configure_mode=false", options=options) as (ctx, sim):
         await wait_until(lambda: "needs motor mode 01" in getattr(status(ctx), "error", ""))
-        assert not status(ctx).connected and sim.device.resets == 0  # type: ignore[union-attr]
+        assert not status(ctx).connected
+        assert sim.device.resets == 0  # type: ignore[union-attr]
 
 
 async def test_shutdown_commands_zero_first(tmp_path: Path) -> None:
@@ -273,21 +282,26 @@ async def test_lights_and_battery_monitor_commands(tmp_path: Path) -> None:
         ctx.bus.subscribe(topics.LIGHTS_STATE, lights.append)
         await connected(ctx)
         result = await ctx.commands.dispatch(MAIN_LIGHTS, "ON", None)
-        assert result.accepted and sim.device.outputs["C"] and lights[-1] == LightsState(True)
+        assert result.accepted
+        assert sim.device.outputs["C"]
+        assert lights[-1] == LightsState(True)
         result = await ctx.commands.dispatch(POSITIONAL_LIGHTS, "ON", None)
-        assert result.accepted and gpio.value("/dev/gpiochip0", 17) is Value.ACTIVE
+        assert result.accepted
+        assert gpio.value("/dev/gpiochip0", 17) is Value.ACTIVE
         assert lights[-1] == LightsState(True, True)
         result = await ctx.commands.dispatch(MAIN_LIGHTS, "maybe", None)
         assert not result.accepted
         result = await ctx.commands.dispatch(MAIN_LIGHTS, "OFF", None)
-        assert result.accepted and not sim.device.outputs["C"]
+        assert result.accepted
+        assert not sim.device.outputs["C"]
         # A controller restart switches its outputs off: the driver puts the lights back.
         await ctx.commands.dispatch(MAIN_LIGHTS, "ON", None)
         sim.device.outputs["C"] = False
         sim.inject(b"\rOK\r")
         await wait_until(lambda: sim.device.outputs["C"])
         result = await ctx.commands.dispatch(BATTERY_MONITOR, "OFF", None)
-        assert result.accepted and not status(ctx).battery_monitor  # type: ignore[union-attr]
+        assert result.accepted
+        assert not status(ctx).battery_monitor  # type: ignore[union-attr]
         # While the controller is away, its output cannot switch; the GPIO still can.
         sim.unplug()
         await wait_until(lambda: not status(ctx).connected)  # type: ignore[union-attr]
@@ -300,7 +314,8 @@ async def test_positional_lights_not_fitted(tmp_path: Path) -> None:
     async with driven(tmp_path) as (ctx, _sim):
         await connected(ctx)
         result = await ctx.commands.dispatch(POSITIONAL_LIGHTS, "ON", None)
-        assert not result.accepted and "positional_lights_output" in result.reason
+        assert not result.accepted
+        assert "positional_lights_output" in result.reason
 
 
 async def test_status_polls_reach_telemetry_names(tmp_path: Path) -> None:
@@ -310,10 +325,14 @@ async def test_status_polls_reach_telemetry_names(tmp_path: Path) -> None:
         ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.5, 0.0))
         await wait_until(lambda: (s := status(ctx)) is not None and s.motor_amps is not None)
         report = status(ctx)
-        assert report is not None and 23.0 < report.battery_volts < 25.0  # type: ignore[operator]
-        assert report.heatsink_c is not None and 20.0 < report.heatsink_c[0] < 60.0
-        assert report.internal_volts is not None and 11.5 < report.internal_volts < 13.0
-        assert report.motor_amps is not None and report.motor_amps[0] > 1.0
+        assert report is not None
+        assert 23.0 < report.battery_volts < 25.0  # type: ignore[operator]
+        assert report.heatsink_c is not None
+        assert 20.0 < report.heatsink_c[0] < 60.0
+        assert report.internal_volts is not None
+        assert 11.5 < report.internal_volts < 13.0
+        assert report.motor_amps is not None
+        assert report.motor_amps[0] > 1.0
 
 
 # --------------------------------------------------------------------------- end to end, --sim
@@ -325,7 +344,8 @@ def sim_config(*overrides: str) -> PlatformConfig:
 
 def simulated(ctx: PlatformContext) -> tuple[Ax3500Simulator, VehicleModel]:
     """The platform's simulated controller and the vehicle it drives."""
-    assert ctx.sim.ax3500 is not None and ctx.sim.vehicle is not None
+    assert ctx.sim.ax3500 is not None
+    assert ctx.sim.vehicle is not None
     return ctx.sim.ax3500, ctx.sim.vehicle
 
 
@@ -378,14 +398,17 @@ async def test_sim_platform_teleop_override_and_deadman(
         await wait_until(lambda: sim.device.channels == (38, 0))
         # Lights through the common protocol, into the simulated controller.
         answer = await conn.call("set_lights", which="main", on=True)
-        assert answer["accepted"] and sim.device.outputs["C"]
+        assert answer["accepted"]
+        assert sim.device.outputs["C"]
         telemetry = await conn.call("get_telemetry_report")
-        assert telemetry["controller"]["connected"] and telemetry["lights"]["main"]
+        assert telemetry["controller"]["connected"]
+        assert telemetry["lights"]["main"]
     finally:
         sock.close()
         await conn.close()
     await daemon.stop()
-    assert sim.device.channels == (0, 0) and sim.device.received[-2:] == ["!A00", "!B00"]
+    assert sim.device.channels == (0, 0)
+    assert sim.device.received[-2:] == ["!A00", "!B00"]
     assert not sim.plugged  # the simulator closed after the driver
 
 
@@ -397,7 +420,8 @@ async def test_rc_mode_left_by_carriage_returns_drives_without_configuring(
     overrides = ("motor.configure_mode=false", "motor.reply_timeout=0.2")
     async with driven(tmp_path, *overrides, options=options) as (ctx, sim):
         await connected(ctx)
-        assert sim.device.resets == 0 and sim.device.mode == "rs232"
+        assert sim.device.resets == 0
+        assert sim.device.mode == "rs232"
         ctx.bus.publish(topics.MOTOR_COMMAND, Velocity(0.5, 0.0))
         await wait_until(lambda: sim.device.channels == (64, 0))
 

@@ -212,7 +212,8 @@ async def test_an_observer_cannot_point_a_stream_at_others(
     )
     assert after > 0  # the shared sink never failed
     assert "caller's own address" in str(refused.value.error.get("message"))
-    assert command["accepted"] is False and "caller's own address" in command["reason"]
+    assert command["accepted"] is False
+    assert "caller's own address" in command["reason"]
 
 
 SINK_PROBE = """

@@ -17,7 +17,9 @@ from brasidas.netem.netns import clean_stale
 def test_without_root_the_reason_is_plain(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(os, "geteuid", lambda: 1000)
     reason = netns.unavailable_reason()
-    assert reason is not None and "root" in reason and "CAP_NET_ADMIN" in reason
+    assert reason is not None
+    assert "root" in reason
+    assert "CAP_NET_ADMIN" in reason
 
 
 CRASHING_RUN = """

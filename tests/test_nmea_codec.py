@@ -52,14 +52,21 @@ def test_an_encoded_epoch_decodes_to_the_same_fix(
     data = epoch_bytes(lat, lon, alt, knots, utc) + epoch_bytes(lat, lon, alt, knots, second)
     fixes = [fix for msg in decoder.feed(data) for fix in assembler.feed(msg, 0.0)]
     fixes += assembler.poll(10.0)
-    assert len(fixes) == 2 and all(fix is not None for fix in fixes)
-    assert decoder.dropped == dict.fromkeys(decoder.dropped, 0) and decoder.sentences == 4
+    assert len(fixes) == 2
+    assert all(fix is not None for fix in fixes)
+    assert decoder.dropped == dict.fromkeys(decoder.dropped, 0)
+    assert decoder.sentences == 4
     for fix, when in zip(fixes, (utc, second), strict=True):
         assert fix is not None
-        assert abs(fix.latitude - lat) < 1e-6 and abs(fix.longitude - lon) < 1e-6
-        assert fix.altitude_m is not None and abs(fix.altitude_m - alt) <= 0.05 + 1e-9
-        assert fix.speed_mps is not None and abs(fix.speed_mps - knots * 1852 / 3600) < 1e-3
-        assert fix.quality == 1 and fix.satellites == 9 and fix.hdop == 0.95
+        assert abs(fix.latitude - lat) < 1e-6
+        assert abs(fix.longitude - lon) < 1e-6
+        assert fix.altitude_m is not None
+        assert abs(fix.altitude_m - alt) <= 0.05 + 1e-9
+        assert fix.speed_mps is not None
+        assert abs(fix.speed_mps - knots * 1852 / 3600) < 1e-3
+        assert fix.quality == 1
+        assert fix.satellites == 9
+        assert fix.hdop == 0.95
         assert fix.time.startswith(when.strftime("%Y-%m-%dT%H:%M:%S"))
 
 
@@ -71,7 +78,8 @@ def test_arbitrary_bytes_never_raise_and_every_line_is_accounted_for(chunks: lis
         for msg in decoder.feed(chunk):
             assembler.feed(msg, 0.0)  # whatever the decoder lets through, the assembler takes
     assembler.poll(10.0)
-    assert decoder.sentences >= 0 and all(count >= 0 for count in decoder.dropped.values())
+    assert decoder.sentences >= 0
+    assert all(count >= 0 for count in decoder.dropped.values())
     assert sum(decoder.by_type.values()) == decoder.sentences
 
 
@@ -94,7 +102,8 @@ def test_a_corrupted_byte_is_dropped_and_counted_or_harmless(
     dropped = sum(decoder.dropped.values())
     if out:
         # Only a change the checksum cannot see may pass: the hex digits' letter case.
-        assert len(out) == 1 and str(out[0]) == str(clean[0])
+        assert len(out) == 1
+        assert str(out[0]) == str(clean[0])
         assert mutated[index : index + 1].lower() == line[index : index + 1].lower()
     else:
         assert dropped >= 1 or decoder.sentences == 1  # counted either way
@@ -111,4 +120,5 @@ def test_chunking_does_not_change_what_is_decoded(noise: bytes, size: int) -> No
         str(msg) for i in range(0, len(stream), size) for msg in chunked.feed(stream[i : i + size])
     ]
     assert got == expected
-    assert chunked.sentences == whole.sentences and chunked.by_type == whole.by_type
+    assert chunked.sentences == whole.sentences
+    assert chunked.by_type == whole.by_type

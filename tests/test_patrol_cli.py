@@ -26,37 +26,51 @@ async def test_map_route_and_patrol_commands(
     good = tmp_path / "field.geojson"
     good.write_text(json.dumps(demo_map(LAT, LON)))
     code, out, _ = await run_cli(station, "map", "rover-5", str(good))
-    assert code == 0 and "map 'demo field' loaded" in out and "1 keep-out zones" in out
+    assert code == 0
+    assert "map 'demo field' loaded" in out
+    assert "1 keep-out zones" in out
 
     bad = demo_map(LAT, LON)
     ring = bad["features"][1]["geometry"]["coordinates"][0]
     ring[1], ring[2] = ring[2], ring[1]
     (tmp_path / "bad.geojson").write_text(json.dumps(bad))
     code, out, err = await run_cli(station, "map", "rover-5", str(tmp_path / "bad.geojson"))
-    assert code == 1 and "map refused" in err and "self-intersection" in err
+    assert code == 1
+    assert "map refused" in err
+    assert "self-intersection" in err
     far = tmp_path / "far.geojson"
     far.write_text(json.dumps(demo_map(LAT + 0.01, LON)))
     code, _, err = await run_cli(station, "map", "rover-5", str(far))
-    assert code == 1 and "outside the map's boundary" in err
+    assert code == 1
+    assert "outside the map's boundary" in err
 
     code, out, _ = await run_cli(station, "route", "rover-5", "sw", "se", "ne", "sw")
-    assert code == 0 and "4 waypoints set (closed, loops)" in out
+    assert code == 0
+    assert "4 waypoints set (closed, loops)" in out
     route_file = tmp_path / "route.txt"
     route_file.write_text(f"# out and back\n{LAT},{LON}\nne\n")
     code, out, _ = await run_cli(station, "route", "rover-5", str(route_file), "--json")
     answer = json.loads(out)
-    assert code == 0 and answer["closed"] is False and answer["waypoints"][1]["name"] == "ne"
+    assert code == 0
+    assert answer["closed"] is False
+    assert answer["waypoints"][1]["name"] == "ne"
     code, _, err = await run_cli(station, "route", "rover-5", "sw", "91,0")
-    assert code == 1 and "waypoint 2: 91.0, 0.0 is not a latitude" in err
+    assert code == 1
+    assert "waypoint 2: 91.0, 0.0 is not a latitude" in err
 
     code, out, _ = await run_cli(station, "patrol", "rover-5", "--json")
     state = json.loads(out)
-    assert code == 0 and {"state", "waypoint", "distance_m", "lap", "reason"} <= set(state)
-    assert state["state"] == "stopped" and state["waypoints"] == 2
+    assert code == 0
+    assert {"state", "waypoint", "distance_m", "lap", "reason"} <= set(state)
+    assert state["state"] == "stopped"
+    assert state["waypoints"] == 2
     code, out, _ = await run_cli(station, "patrol", "rover-5", "start")
-    assert code == 0 and out.split()[1] in ("patrolling", "holding")
+    assert code == 0
+    assert out.split()[1] in ("patrolling", "holding")
     code, out, _ = await run_cli(station, "patrol", "rover-5", "stop")
-    assert code == 0 and "state      stopped" in out and "stopped by the operator" in out
+    assert code == 0
+    assert "state      stopped" in out
+    assert "stopped by the operator" in out
 
     # ...and `status` shows the patrol, the pose and the automations (telemetry).
     async def shown() -> str:
@@ -68,8 +82,10 @@ async def test_map_route_and_patrol_commands(
         text = await shown()
         if "stopped by the operator" in text:
             break
-    assert "autonomy   stopped  waypoint 1/2" in text and "(stopped by the operator)" in text
-    assert "pose       37.94" in text and "patrol on" in text
+    assert "autonomy   stopped  waypoint 1/2" in text
+    assert "(stopped by the operator)" in text
+    assert "pose       37.94" in text
+    assert "patrol on" in text
 
 
 async def test_a_town_of_a_thousand_buildings_loads_and_a_too_big_map_says_its_size(

@@ -121,20 +121,23 @@ async def test_override_gps_loss_and_map_reload(robot_factory: Any) -> None:
     published = len(robot.cmd_vel)
     bus.publish(topics.TELEOP_VELOCITY, Velocity(0.0, 0.6))
     motion = bus.last(topics.MOTION_STATE)
-    assert motion is not None and motion.command == Velocity(0.0, 0.6)
+    assert motion is not None
+    assert motion.command == Velocity(0.0, 0.6)
     for _ in range(5):  # the operator turns the robot for half a second
         await asyncio.sleep(0.1)
         bus.publish(topics.TELEOP_VELOCITY, Velocity(0.0, 0.6))
     assert len(robot.cmd_vel) == published
     assert mode.request(False, operator).accepted
     # Replanned in the planner process: the patrol holds (saying so) until the path comes.
-    assert robot.status.state == "holding" and robot.status.waypoint == 1
+    assert robot.status.state == "holding"
+    assert robot.status.waypoint == 1
     assert robot.status.reason.startswith("planning the path to waypoint")
     await wait_for_state(robot, "patrolling", 10)
     await wait_until(lambda: len(robot.cmd_vel) > published + 5, 5)
     path = robot.status.path  # replanned from where the operator left it
     here = robot.ctx.bus.last(topics.POSE)
-    assert here is not None and path
+    assert here is not None
+    assert path
     assert math.dist(robot.local(*path[0]), robot.local(here.latitude, here.longitude)) < 3.0
 
     # The GPS goes silent: hold (motors to zero) and say why; it comes back: go on.
@@ -151,7 +154,8 @@ async def test_override_gps_loss_and_map_reload(robot_factory: Any) -> None:
 
     # A map reload wipes the waypoints and stops the robot.
     await robot.call("load_map", map=demo_map(LAT, LON))
-    assert robot.status.state == "stopped" and robot.status.waypoints == 0
+    assert robot.status.state == "stopped"
+    assert robot.status.waypoints == 0
     assert robot.status.reason == "map loaded: waypoints cleared"
     assert robot.cmd_vel[-1] == Velocity(0.0, 0.0)
     await wait_until(lambda: abs(robot.vehicle.pose().speed_mps) < 0.05, 5)
@@ -195,7 +199,8 @@ async def test_invalid_maps_and_waypoints_are_refused_and_a_restart_keeps_the_ro
     await robot.daemon.stop()
     again: Robot = await robot_factory("arming.countdown_s=0")
     stored = await again.call("get_map")
-    assert stored["route"] == route["waypoints"] and stored["closed"]
+    assert stored["route"] == route["waypoints"]
+    assert stored["closed"]
     # Autostart resumes it once the pre-arm checks pass (issue 27: no operator said stop).
     await wait_for_state(again, "patrolling", 20)
     assert again.status.waypoints == 4
@@ -234,7 +239,8 @@ async def test_the_planner_process_dying_holds_the_patrol_which_says_why_and_rec
     await robot.call("patrol_start")
     await wait_for_state(robot, "patrolling", 30)
     first = patrol.planner.pid
-    assert first is not None and first != os.getpid()
+    assert first is not None
+    assert first != os.getpid()
     os.kill(first, signal.SIGKILL)
     # The patrol holds, motors at zero, and says why; no plan is asked of a dead process.
     await wait_until(lambda: "planner process stopped" in robot.status.reason, 10)
@@ -286,7 +292,8 @@ async def test_daemon_stop_during_a_build_leaves_no_planner_process(
                         here.latitude, here.longitude)  # fmt: skip
     await robot.call("load_map", map=town)
     pid = patrol.planner.pid
-    assert pid is not None and alive(pid)
+    assert pid is not None
+    assert alive(pid)
     assert not patrol.planner_ready  # building (a thousand buildings: seconds)
     loop = asyncio.get_running_loop()
     started = loop.time()

@@ -47,7 +47,8 @@ def test_sectors_keep_the_nearest_return_clockwise_from_forward() -> None:
     assert len(ranges) == 72
     assert ranges[0] == 15  # 358°, 0° and 1° are the forward sector: the nearest, in dm
     assert ranges[18] == 40  # 90°; the 92.4° one had no return
-    assert ranges[36] == 120 and ranges[54] == 3
+    assert ranges[36] == 120
+    assert ranges[54] == 3
     assert sum(1 for r in ranges if r) == 4
     assert sector_points(ranges)[1] == (90.0, 4.0)
 
@@ -56,7 +57,8 @@ def test_the_sector_scan_for_foxglove_is_counter_clockwise() -> None:
     ranges = [0] * 72
     ranges[0], ranges[18] = 20, 35  # ahead 2 m, 90° clockwise (right) 3.5 m
     message = orjson.loads(schemas.encode_sector_scan(2_000_000_000, ranges))
-    assert message["frame_id"] == "base_link" and len(message["ranges"]) == 72
+    assert message["frame_id"] == "base_link"
+    assert len(message["ranges"]) == 72
     assert message["ranges"][0] == 2.0
     assert message["ranges"][54] == 3.5  # right is 270° counter-clockwise
     assert math.isclose(message["end_angle"], math.radians(355))
@@ -77,11 +79,13 @@ def test_a_scan_is_shown_around_the_pose_it_is_shown_with() -> None:
     then = (0.0, 0.0, math.radians(45.0))  # yaw counter-clockwise from east
     now = (0.1, 0.0, math.radians(39.0))
     bearing, distance = reframe(45.0, 10.0, then, now)  # 45° right of forward: due east
-    assert abs(bearing - 39.0) < 1e-9 and abs(distance - 9.9) < 1e-9
+    assert abs(bearing - 39.0) < 1e-9
+    assert abs(distance - 9.9) < 1e-9
     # The pose in the middle of a scan: between the samples, the short way round the wrap.
     history = [(1.0, (0.0, 0.0, math.radians(350.0))), (1.2, (2.0, 0.0, math.radians(10.0)))]
     x, y, yaw = pose_at(history, 1.1) or (0, 0, 0)
-    assert math.dist((x, y), (1.0, 0.0)) < 1e-9 and abs(math.remainder(yaw, math.tau)) < 1e-9
+    assert math.dist((x, y), (1.0, 0.0)) < 1e-9
+    assert abs(math.remainder(yaw, math.tau)) < 1e-9
     # After the last pose: carried on at its rate, a quarter of a second at most.
     x, _, _ = pose_at(history, 1.3) or (0, 0, 0)
     assert abs(x - 3.0) < 1e-9
@@ -117,7 +121,8 @@ def test_grid_json_round_trip_and_garbage_refused() -> None:
     image = grid_image(LAT, LON, origin, 0.1, log_odds, scans=3)
     assert image is not None
     answer = orjson.loads(orjson.dumps(image.to_json(rev=4)))
-    assert answer["rev"] == 4 and grid_from_json(answer) == image
+    assert answer["rev"] == 4
+    assert grid_from_json(answer) == image
     bomb = dict(answer, cells=base64.b64encode(zlib.compress(b"\0" * 10_000_000)).decode())
     for bad in (
         dict(answer, columns=100_000, rows=100_000),
@@ -146,8 +151,10 @@ def test_the_projection_puts_the_scan_and_fused_pose_on_their_channels() -> None
     image = grid_image(LAT, LON, origin, 0.1, log_odds, scans=3)
     assert image is not None
     grid = orjson.loads(projection.grid_message(image, 7).data)
-    assert grid["frame_id"] == schemas.GRID_FRAME and grid["column_count"] == image.columns
-    assert grid["row_stride"] == image.columns and grid["cell_stride"] == 1
+    assert grid["frame_id"] == schemas.GRID_FRAME
+    assert grid["column_count"] == image.columns
+    assert grid["row_stride"] == image.columns
+    assert grid["cell_stride"] == 1
     assert base64.b64decode(grid["data"]) == image.cells
     assert grid["pose"]["position"]["x"] == image.x_m
     assert UNKNOWN not in image.cells[: image.columns]  # the crop starts at what was seen
@@ -211,7 +218,8 @@ async def test_through_the_daemon_the_scan_grid_and_fused_pose_are_shown_and_rec
     ]
     # The post is an obstacle in the grid where it is, give or take the fused pose's error
     # (the grid is drawn at the fused pose, not the simulator's truth).
-    assert near and max(near) >= 65, near
+    assert near, near
+    assert max(near) >= 65, near
     fused = robot.ctx.bus.last(topics.FUSED_POSE)
     assert fused is not None
     await robot.daemon.stop()
@@ -224,8 +232,10 @@ async def test_through_the_daemon_the_scan_grid_and_fused_pose_are_shown_and_rec
         with path.open("rb") as handle:
             for _schema, channel, _message in make_reader(handle).iter_messages():
                 counts[channel.topic] = counts.get(channel.topic, 0) + 1
-    assert counts.get("/grid", 0) >= 1 and counts.get("/pose/fused", 0) >= 1, counts
-    assert counts.get("/pose/fused/local", 0) >= 1 and counts.get("/lidar/scan", 0) >= 1
+    assert counts.get("/grid", 0) >= 1, counts
+    assert counts.get("/pose/fused", 0) >= 1, counts
+    assert counts.get("/pose/fused/local", 0) >= 1
+    assert counts.get("/lidar/scan", 0) >= 1
 
 
 async def test_a_foxglove_client_gets_the_scan_the_grid_and_the_fused_pose(
@@ -266,14 +276,18 @@ async def test_a_foxglove_client_gets_the_scan_the_grid_and_the_fused_pose(
     messages = {line["topic"]: line for line in lines if "topic" in line}
     assert set(messages) == set(wanted), lines
     scan = messages["/lidar/scan"]
-    assert scan["schema"] == "foxglove.LaserScan" and len(scan["json"]["ranges"]) == 72
+    assert scan["schema"] == "foxglove.LaserScan"
+    assert len(scan["json"]["ranges"]) == 72
     assert any(r > 0 for r in scan["json"]["ranges"])
     fused = messages["/pose/fused"]["json"]
-    assert abs(fused["latitude"] - LAT) < 0.001 and abs(fused["longitude"] - LON) < 0.001
+    assert abs(fused["latitude"] - LAT) < 0.001
+    assert abs(fused["longitude"] - LON) < 0.001
     grid = messages["/grid"]
-    assert grid["schema"] == "foxglove.Grid" and grid["json"]["frame_id"] == "grid"
+    assert grid["schema"] == "foxglove.Grid"
+    assert grid["json"]["frame_id"] == "grid"
     assert grid["json"]["fields"] == [{"name": "occupancy", "offset": 0, "type": 1}]
-    assert grid["json"]["column_count"] > 10 and grid["json"]["cell_size"]["x"] >= 0.1
+    assert grid["json"]["column_count"] > 10
+    assert grid["json"]["cell_size"]["x"] >= 0.1
     # (The client keeps the first 48 bytes of the cells; the cells are checked in full above.)
     assert grid["bytes"] > grid["json"]["column_count"] * 10
 

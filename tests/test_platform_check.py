@@ -82,9 +82,13 @@ async def test_check_passes_on_the_simulators_and_names_wrong_and_missing_device
     )
     results = {result["name"]: result for result in json.loads(out)}
     assert code == 0, results
-    assert results["motor"]["ok"] and "AX3500 answers" in results["motor"]["detail"]
-    assert results["gps"]["ok"] and "NMEA" in results["gps"]["detail"]
-    assert results["fleet key"]["ok"] and results["clock"]["ok"] and results["disk"]["ok"]
+    assert results["motor"]["ok"]
+    assert "AX3500 answers" in results["motor"]["detail"]
+    assert results["gps"]["ok"]
+    assert "NMEA" in results["gps"]["detail"]
+    assert results["fleet key"]["ok"]
+    assert results["clock"]["ok"]
+    assert results["disk"]["ok"]
     assert results["last word"]["detail"] == "none: nothing starts by itself"
 
     # The ports swapped: the motor port speaks NMEA, the GPS port says nothing by itself.
@@ -99,9 +103,11 @@ async def test_check_passes_on_the_simulators_and_names_wrong_and_missing_device
     assert code == 1
     assert not results["motor"]["ok"]
     assert "that is a GPS receiver" in results["motor"]["detail"]
-    assert not results["gps"]["ok"] and "no NMEA sentence in 0.5 s" in results["gps"]["detail"]
+    assert not results["gps"]["ok"]
+    assert "no NMEA sentence in 0.5 s" in results["gps"]["detail"]
     assert results["gps"]["fix"]
-    assert not results["imu"]["ok"] and "/dev/i2c-199 does not exist" in results["imu"]["detail"]
+    assert not results["imu"]["ok"]
+    assert "/dev/i2c-199 does not exist" in results["imu"]["detail"]
 
     # A port that does not exist, and a key others may read.
     security.default_key_path().chmod(0o644)
@@ -110,4 +116,5 @@ async def test_check_passes_on_the_simulators_and_names_wrong_and_missing_device
     assert code == 1
     assert results["motor"]["detail"].endswith("ttyUSB9 does not exist")
     assert "motor.port" in results["motor"]["fix"]
-    assert not results["fleet key"]["ok"] and "permissions" in results["fleet key"]["detail"]
+    assert not results["fleet key"]["ok"]
+    assert "permissions" in results["fleet key"]["detail"]

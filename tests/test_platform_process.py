@@ -26,7 +26,8 @@ async def test_sim_platform_creates_key_serves_and_stops_cleanly_on_sigterm() ->
             assert (await client.call("challenge"))["auth"] == "hmac-sha256"
         # The entry point keeps Python's ssl module (and OpenSSL's libssl) out: ~4 MB of RSS.
         maps = await asyncio.to_thread(Path(f"/proc/{process.pid}/maps").read_text)
-        assert "libssl" not in maps and "_ssl." not in maps
+        assert "libssl" not in maps
+        assert "_ssl." not in maps
         process.send_signal(signal.SIGTERM)
         assert await asyncio.wait_for(process.wait(), 10) == 0
         assert process.stderr is not None
@@ -69,7 +70,8 @@ async def test_a_platform_without_a_map_loads_no_shapely_until_one_is_loaded(
             assert answer["map"]["name"] == "demo field"
             assert (await connection.call("get_map"))["map"]["name"] == "demo field"
             text = (await asyncio.to_thread(maps.read_text)).lower()
-            assert "shapely" in text and "numpy" in text  # the test sees them when they are there
+            assert "shapely" in text
+            assert "numpy" in text  # the test sees them when they are there
         finally:
             await connection.close()
     finally:

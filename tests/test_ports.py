@@ -79,9 +79,11 @@ def test_the_session_table_is_read_only_but_through_open_and_close() -> None:
     session = Session("token-1", "station-1", "127.0.0.1", None, 0.0, 0.0)
     with pytest.raises(TypeError):
         table.sessions["token-1"] = session  # type: ignore[index]
-    assert announced == [] and len(table) == 0
+    assert announced == []
+    assert len(table) == 0
     table.open(session)
-    assert table.sessions == {"token-1": session} and table.get("token-1") is session
+    assert table.sessions == {"token-1": session}
+    assert table.get("token-1") is session
     assert table.close("token-1", "timeout") is session
     assert [type(event) for event in announced] == [SessionOpened, SessionClosed]
     assert dict(table.sessions) == {}

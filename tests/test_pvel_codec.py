@@ -36,7 +36,8 @@ def test_tagged_sentence_has_sixteen_hex_digits_before_the_checksum() -> None:
     body = datagram[1 : datagram.index(b"*")].decode()
     fields = body.split(",")
     assert fields[:4] == ["PVEL", "42", "0.10000", "0.20000"]
-    assert len(fields[4]) == 16 and fields[4] == fields[4].upper()
+    assert len(fields[4]) == 16
+    assert fields[4] == fields[4].upper()
     sentence = pvel.decode(datagram)
     assert isinstance(sentence, PvelSentence)
     assert pvel.verify_tag(sentence, KEY, "s1")
@@ -46,7 +47,8 @@ def test_tagged_sentence_has_sixteen_hex_digits_before_the_checksum() -> None:
 
 def test_untagged_sentence_never_verifies() -> None:
     sentence = pvel.decode(pvel.encode(1, 0, 0))
-    assert isinstance(sentence, PvelSentence) and sentence.tag is None
+    assert isinstance(sentence, PvelSentence)
+    assert sentence.tag is None
     assert not pvel.verify_tag(sentence, KEY, "s1")
 
 
@@ -54,7 +56,8 @@ def test_tag_covers_the_values() -> None:
     datagram = pvel.encode(5, 0.1, 0.2, key=KEY, session_id="s")
     forged_body = datagram[1 : datagram.index(b"*")].replace(b"0.10000", b"0.90000")
     sentence = pvel.decode(b"$" + forged_body + f"*{pvel.checksum(forged_body):02X}".encode())
-    assert isinstance(sentence, PvelSentence) and sentence.x == 0.9
+    assert isinstance(sentence, PvelSentence)
+    assert sentence.x == 0.9
     assert not pvel.verify_tag(sentence, KEY, "s")
 
 
@@ -105,14 +108,17 @@ def test_exact_bytes_of_a_stamped_sentence_and_its_age() -> None:
     datagram = pvel.encode(1, 0.5, -0.25, sent_ms=3 * pvel.SENT_MODULUS + 42)
     assert datagram == nmea("PVEL,1,0.50000,-0.25000,42")
     sentence = pvel.decode(datagram)
-    assert isinstance(sentence, PvelSentence) and sentence.sent_ms == 42
+    assert isinstance(sentence, PvelSentence)
+    assert sentence.sent_ms == 42
     assert pvel.age_ms(sentence, 3 * pvel.SENT_MODULUS + 42 + 150.5) == 150.5
     # Across the wrap: sent just before it, received just after.
     late = pvel.decode(pvel.encode(2, 0, 0, sent_ms=pvel.SENT_MODULUS - 10))
-    assert isinstance(late, PvelSentence) and pvel.age_ms(late, 5 * pvel.SENT_MODULUS + 20) == 30
+    assert isinstance(late, PvelSentence)
+    assert pvel.age_ms(late, 5 * pvel.SENT_MODULUS + 20) == 30
     # An older sender's sentence has no send time, hence no known age.
     old = pvel.decode(pvel.encode(3, 0.1, 0.1))
-    assert isinstance(old, PvelSentence) and old.sent_ms is None
+    assert isinstance(old, PvelSentence)
+    assert old.sent_ms is None
     assert pvel.age_ms(old, 1000.0) is None
 
 
@@ -120,7 +126,8 @@ def test_tag_covers_the_send_time() -> None:
     datagram = pvel.encode(5, 0.1, 0.2, key=KEY, session_id="s", sent_ms=1000)
     body = datagram[1 : datagram.index(b"*")]
     sentence = pvel.decode(datagram)
-    assert isinstance(sentence, PvelSentence) and pvel.verify_tag(sentence, KEY, "s")
+    assert isinstance(sentence, PvelSentence)
+    assert pvel.verify_tag(sentence, KEY, "s")
     # An old packet made to look fresh, or its time stripped: neither verifies.
     for forged in (body.replace(b",1000,", b",9000,"), body.replace(b",1000,", b",")):
         result = pvel.decode(b"$" + forged + f"*{pvel.checksum(forged):02X}".encode())
@@ -141,7 +148,8 @@ def test_round_trip(count: int, x: float, z: float, tagged: bool, sent: int | No
     sentence = pvel.decode(datagram)
     assert isinstance(sentence, PvelSentence)
     assert sentence.count == count
-    assert abs(sentence.x - x) <= 5e-6 and abs(sentence.z - z) <= 5e-6
+    assert abs(sentence.x - x) <= 5e-6
+    assert abs(sentence.z - z) <= 5e-6
     assert sentence.sent_ms == (None if sent is None else sent % pvel.SENT_MODULUS)
     assert pvel.verify_tag(sentence, KEY, "s") is tagged
 
@@ -160,7 +168,8 @@ def test_age_is_exact_for_any_clock_and_any_age_within_half_the_wrap(now: int, a
 def test_arbitrary_bytes_never_raise(data: bytes) -> None:
     result = pvel.decode(data)
     if isinstance(result, PvelSentence):
-        assert -1 <= result.x <= 1 and -1 <= result.z <= 1
+        assert -1 <= result.x <= 1
+        assert -1 <= result.z <= 1
 
 
 @given(

@@ -156,13 +156,17 @@ async def test_a_sim_recording_is_listed_downloaded_and_reads_back(
             break
         assert time.monotonic() - started < ROTATE_SECONDS + 30, listing
         await asyncio.sleep(0.5)
-    assert listing["recording"] is True and listing["counters"]["dropped"] == 0
+    assert listing["recording"] is True
+    assert listing["counters"]["dropped"] == 0
     first = finished[0]
     # Rotated after its configured length, not early (a keyframe may end it a little later).
-    assert first["duration_s"] > ROTATE_SECONDS - 2 and first["size"] > 10_000, first
+    assert first["duration_s"] > ROTATE_SECONDS - 2, first
+    assert first["size"] > 10_000, first
     assert first["channels"]["/navcam"]["schema"] == "foxglove.CompressedVideo"
     code, out, _ = await run_cli(station, "logs", "rover-23")
-    assert code == 0 and first["name"] in out and "/navcam" in out
+    assert code == 0
+    assert first["name"] in out
+    assert "/navcam" in out
 
     target = tmp_path / "download.mcap"
     code, out, err = await run_cli(
@@ -196,10 +200,12 @@ async def test_a_sim_recording_is_listed_downloaded_and_reads_back(
     )
     assert code == 0, err
     live = await asyncio.to_thread(summary_of, partial)
-    assert live is not None and live.statistics is not None
+    assert live is not None
+    assert live.statistics is not None
     assert live.statistics.message_count > 0
     seeking = await asyncio.to_thread(read_messages, partial)
-    assert seeking["/navcam"] and seeking["/gps"]
+    assert seeking["/navcam"]
+    assert seeking["/gps"]
 
     def streamed_count() -> int:
         with open(partial, "rb") as stream:
@@ -254,7 +260,8 @@ async def test_a_sim_recording_is_listed_downloaded_and_reads_back(
     elementary = tmp_path / "navcam.h264"
     elementary.write_bytes(b"".join(video))
     frames, error = await asyncio.to_thread(decode_h264, elementary)
-    assert not error and frames >= len(video) - 2, (frames, len(video), error)
+    assert not error, (frames, len(video), error)
+    assert frames >= len(video) - 2, (frames, len(video), error)
 
 
 async def test_kill_9_loses_at_most_the_open_chunk_and_the_next_start_recovers(
@@ -294,7 +301,8 @@ async def test_kill_9_loses_at_most_the_open_chunk_and_the_next_start_recovers(
     await wait_until(lambda: recovered.exists() and not active.exists(), 30)
     await wait_until(lambda: recorder_of(platform).writer.stats.recovered == 1)
     summary = await asyncio.to_thread(summary_of, recovered)
-    assert summary is not None and summary.statistics is not None
+    assert summary is not None
+    assert summary.statistics is not None
     assert summary.statistics.message_count == len(messages)
 
 
@@ -333,10 +341,12 @@ async def test_a_small_quota_rotates_and_deletes_the_oldest_first(
     deleted = sorted(
         r.getMessage().split()[2] for r in caplog.records if "(quota)" in r.getMessage()
     )
-    assert kept and len(deleted) == recorder.stats.deleted >= 2
+    assert kept
+    assert len(deleted) == recorder.stats.deleted >= 2
     assert deleted[-1] < kept[0], (deleted, kept)  # the oldest went first
     assert sum(files.values()) <= 250_000 + 260_000
-    assert recorder.stats.dropped == 0 and not recorder.stats.reason
+    assert recorder.stats.dropped == 0
+    assert not recorder.stats.reason
 
 
 async def test_video_waits_for_a_keyframe_in_every_file(tmp_path: Path) -> None:
@@ -389,7 +399,8 @@ async def test_a_full_disk_stops_recording_with_a_warning_and_teleop_carries_on(
         sock.sendto(encoder.encode(0.4, 0.1), (info["host"], info["port"]))
         await wait_until(lambda: bool(motors) and motors[-1] == Velocity(0.4, 0.1))
         listing = await conn.call("list_recordings")
-        assert listing["recording"] is False and "disk full" in listing["reason"]
+        assert listing["recording"] is False
+        assert "disk full" in listing["reason"]
         assert listing["counters"]["not_recording"] > 0
         await station_sees_the_recorder_stopped(station, daemon, "disk full", "DISK FULL")
     finally:
@@ -424,7 +435,8 @@ async def test_a_quota_below_the_current_size_stops_deletes_the_oldest_and_resum
     finally:
         await asyncio.to_thread(recorder.stop)
     level, text = events[0]
-    assert level == schemas.LOG_WARNING and text.startswith("recording stopped: quota reached")
+    assert level == schemas.LOG_WARNING
+    assert text.startswith("recording stopped: quota reached")
     assert events[1] == (schemas.LOG_INFO, "recording resumed")
 
 
@@ -467,7 +479,8 @@ async def test_downloads_need_a_session_and_a_plain_recording_name(
             async with http.get(
                 f"{url}/{name}", headers={**good, "Range": "bytes=0-7"}
             ) as response:
-                assert response.status == 206 and await response.read() == b"\x89MCAP0\r\n"
+                assert response.status == 206
+                assert await response.read() == b"\x89MCAP0\r\n"
     finally:
         await conn.close()
 
@@ -560,7 +573,8 @@ async def test_a_full_tmpfs_stops_recording_with_a_warning_and_teleop_carries_on
             sock.sendto(encoder.encode(0.4, 0.1), (info["host"], info["port"]))
             await wait_until(lambda: bool(motors) and motors[-1] == Velocity(0.4, 0.1))
             listing = await conn.call("list_recordings")
-            assert listing["recording"] is False and "write failed" in listing["reason"]
+            assert listing["recording"] is False
+            assert "write failed" in listing["reason"]
             assert (await conn.call("get_nav_camera_parameters"))["state"] == "playing"
             # The operator sees it: a station warning (90.23) in status and the notifications
             # the console shows, from the recorder's telemetry section.
@@ -589,14 +603,17 @@ async def station_sees_the_recorder_stopped(
 
     notes = await asyncio.wait_for(warned(), 20)
     (note,) = [n for n in notes if n["code"] == str(RECORDER_STOPPED)]
-    assert note["platform_id"] == platform_id and why in note["message"], note
+    assert note["platform_id"] == platform_id, note
+    assert why in note["message"], note
     code, out, err = await run_cli(station, "status", platform_id)
     assert code == 0, err
     assert f"RECORDER STOPPED: {shown}" in out, out
-    assert f"recorder   STOPPED: {shown.lower()}" in out and "not recorded" in out, out
+    assert f"recorder   STOPPED: {shown.lower()}" in out, out
+    assert "not recorded" in out, out
     code, out, _ = await run_cli(station, "status", platform_id, "--json")
     section = json.loads(out)["telemetry"]["snapshot"]["recorder"]
-    assert section["recording"] is False and why in section["reason"]
+    assert section["recording"] is False
+    assert why in section["reason"]
     assert section["not_recorded"] > 0
 
 
@@ -607,10 +624,12 @@ def test_a_stopped_recorder_is_a_station_warning_until_it_records_again() -> Non
     assert annunciator.evaluate(Snapshot({RecorderStatus: idle}), 0, None, 2) == []
     stopped = RecorderStatus(False, "quota reached: 2.0 GiB of 2.0 GiB", 0, 12)
     (change,) = annunciator.evaluate(Snapshot({RecorderStatus: stopped}), 0, None, 3)
-    assert change.active and change.warning.code == RECORDER_STOPPED
+    assert change.active
+    assert change.warning.code == RECORDER_STOPPED
     assert change.warning.message == "recorder stopped: quota reached: 2.0 GiB of 2.0 GiB"
     (change,) = annunciator.evaluate(Snapshot({RecorderStatus: RecorderStatus(True)}), 0, None, 4)
-    assert not change.active and change.warning.code == RECORDER_STOPPED
+    assert not change.active
+    assert change.warning.code == RECORDER_STOPPED
 
 
 def test_a_stopped_recorder_with_its_longest_reason_reaches_the_station_whole() -> None:
@@ -626,4 +645,5 @@ def test_a_stopped_recorder_with_its_longest_reason_reaches_the_station_whole() 
         assert len(datagram) < MAX_DATAGRAM
         sections.update(decoder.decode(datagram).sections)
     decoded, unknown = snapshot_from_wire(sections)
-    assert unknown == [] and decoded.get(RecorderStatus) == longest
+    assert unknown == []
+    assert decoded.get(RecorderStatus) == longest

@@ -47,14 +47,16 @@ async def test_an_unwatched_platform_records_its_camera(
         fleet_key,
     )
     media = daemon.ctx.media
-    assert media is not None and isinstance(media.navcam, VideoOut)
+    assert media is not None
+    assert isinstance(media.navcam, VideoOut)
     navcam = media.navcam
     frames = _Frames()
     await wait_until(lambda: navcam.state.value == "playing", timeout=20)
     navcam.access_unit_sinks.append(frames)
     await wait_until(lambda: frames.count >= 20, timeout=20)
     described = navcam.describe()
-    assert described["destinations"] == [] and described["framerate"] == 10
+    assert described["destinations"] == []
+    assert described["framerate"] == 10
 
     # A station watches: the same pipeline, at the mode's rate, to the station's port ...
     conn = await open_connection(daemon, fleet_key)
@@ -66,7 +68,8 @@ async def test_an_unwatched_platform_records_its_camera(
         assert described["framerate"] == 5
         # ... and when it stops watching, the recorder's own copy goes on.
         await conn.call("stop_stream", name="navcam")
-        assert navcam.state.value == "playing" and navcam.describe()["destinations"] == []
+        assert navcam.state.value == "playing"
+        assert navcam.describe()["destinations"] == []
         assert navcam.describe()["framerate"] == 10
     finally:
         await conn.close()

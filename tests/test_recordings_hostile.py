@@ -72,6 +72,7 @@ def test_the_commands_channel_records_the_station_never_the_token() -> None:
 def test_parallel_downloads_share_one_rate() -> None:
     ledger = SourceLedger(download_rate=1024 * 1024)  # 1 MiB/s for everyone together
     delays = [ledger.reserve_download("10.0.0.1", 64 * 1024, 10.0) for _ in range(16)]
-    assert delays[0] == 0 and delays[-1] == pytest.approx(15 / 16)  # one host's 16 downloads
+    assert delays[0] == 0
+    assert delays[-1] == pytest.approx(15 / 16)  # one host's 16 downloads
     assert ledger.reserve_download("10.0.0.1", 64 * 1024, 12.0) == 0  # idle since: no debt
     assert SourceLedger().reserve_download("10.0.0.1", 10**9, 0.0) == 0  # 0: no limit

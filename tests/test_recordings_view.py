@@ -50,7 +50,8 @@ def expected_at(path: Path, fraction: float) -> dict[str, Any]:
                 pose = (message.log_time, json.loads(message.data))
             elif channel.topic == "/navcam":
                 frame = message.log_time
-    assert pose is not None and frame is not None
+    assert pose is not None
+    assert frame is not None
     return {"at": at, "start": stats.message_start_time, "pose": pose, "frame": frame}
 
 
@@ -178,7 +179,8 @@ async def test_seeking_shows_that_times_position_and_frame(
             await asyncio.sleep(0.2)
         lat = float(await page.locator("#rec-position").get_attribute("data-lat") or 0)
         lon = float(await page.locator("#rec-position").get_attribute("data-lon") or 0)
-        assert abs(lat - pose["latitude"]) < 1e-9 and abs(lon - pose["longitude"]) < 1e-9
+        assert abs(lat - pose["latitude"]) < 1e-9
+        assert abs(lon - pose["longitude"]) < 1e-9
         await expect(page.locator("#rec-position")).to_contain_text(f"{lat:.6f}")
         # The frame was drawn: the canvas holds a picture, not the empty black.
         lit = await page.evaluate(
@@ -199,7 +201,8 @@ async def test_seeking_shows_that_times_position_and_frame(
         marker = await page.locator("#rec-map").get_attribute("data-marker")
         assert marker is not None
         shown_at = [float(part) for part in marker.split(",")]
-        assert abs(shown_at[0] - lat) < 1e-9 and abs(shown_at[1] - lon) < 1e-9
+        assert abs(shown_at[0] - lat) < 1e-9
+        assert abs(shown_at[1] - lon) < 1e-9
         no_video = page.get_by_role("alert", name="no recorded video")
         await expect(no_video).to_be_hidden()  # the frame of that moment
 
@@ -239,7 +242,8 @@ async def test_seeking_shows_that_times_position_and_frame(
             await page.wait_for_timeout(300)
             for part in ("#rec-instruments", "#rec-log", "#rec-plot", "#rec-map"):
                 box = await page.locator(part).bounding_box()
-                assert box is not None and box["y"] + box["height"] <= height, (part, box)
+                assert box is not None, (part, box)
+                assert box["y"] + box["height"] <= height, (part, box)
             if os.environ.get("BRASIDAS_SCREENSHOT") == "1":
                 await page.screenshot(path=str(DOCS / f"recordings-{width}x{height}.png"))
         assert not errors, errors

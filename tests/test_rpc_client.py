@@ -113,7 +113,8 @@ async def test_a_malformed_answer_fails_its_call_and_the_reader_goes_on(
     async with RpcClient(server.url + "/ws", timeout=10) as client:
         with pytest.raises(RpcError) as failed:
             await client.call("first")
-        assert failed.value.code == INTERNAL_ERROR and "malformed" in failed.value.message
+        assert failed.value.code == INTERNAL_ERROR
+        assert "malformed" in failed.value.message
         assert await client.call("second") == "fine"  # the reader task is still alive
         assert client.bad_answers == 1
 
@@ -159,7 +160,8 @@ async def test_a_call_without_answer_times_out_and_the_next_one_is_answered(
         slow = asyncio.ensure_future(client.call("long", timeout=30))
         with pytest.raises(RpcError) as failed:  # a shorter limit after a longer one
             await client.call("short", timeout=0.2)
-        assert failed.value.code == TIMEOUT and "short within 0.2 s" in failed.value.message
+        assert failed.value.code == TIMEOUT
+        assert "short within 0.2 s" in failed.value.message
         assert not slow.done()
         assert await client.call("third") == "fine"
         slow.cancel()

@@ -193,19 +193,18 @@ def check_answer(answer: Any, count: int | None, request: Any) -> None:
     """One valid JSON-RPC answer (or a batch of ``count``) to ``request``."""
     items = answer if isinstance(answer, list) else [answer]
     if isinstance(request, list) and request:
-        assert isinstance(answer, list) and len(items) == count, (request, answer)
+        assert isinstance(answer, list), (request, answer)
+        assert len(items) == count, (request, answer)
     else:
         assert isinstance(answer, dict), (request, answer)
     for item in items:
         assert item["jsonrpc"] == "2.0", item
         assert ("result" in item) != ("error" in item), item
-        assert isinstance(item["id"], str | int | float | None) and not isinstance(
-            item["id"], bool
-        ), item
+        assert isinstance(item["id"], str | int | float | None), item
+        assert not isinstance(item["id"], bool), item
         if "error" in item:
-            assert type(item["error"]["code"]) is int and isinstance(
-                item["error"]["message"], str
-            ), item
+            assert type(item["error"]["code"]) is int, item
+            assert isinstance(item["error"]["message"], str), item
     if isinstance(request, dict) and isinstance(request.get("id"), str | int):
         if not isinstance(request.get("id"), bool):
             assert answer["id"] in (request["id"], None), (request, answer)
@@ -266,7 +265,8 @@ async def test_any_request_over_http_is_answered(platform: PlatformDaemon, reque
         body = await response.read()
     request, count = expected_answers(raw, stranger=True)
     if count is None:
-        assert response.status == 204 and not body, (request, body)
+        assert response.status == 204, (request, body)
+        assert not body, (request, body)
         return
     assert response.status in (200, 401), (request, response.status)
     check_answer(strict_json(body), count, request)

@@ -132,14 +132,17 @@ async def test_malformed_requests_are_answered_and_the_session_survives(
         for method in ("[1]", '{"a":1}', "null", "1.5"):
             raw = f'{{"jsonrpc":"2.0","method":{method},"id":1}}'
             answer = await ask(ws, raw)
-            assert answer["id"] == 1 and answer["error"]["code"] == -32600, raw
+            assert answer["id"] == 1, raw
+            assert answer["error"]["code"] == -32600, raw
         # A non-finite id was echoed as Infinity, which is not JSON.
         for raw_id in ("1e999", "-1e999"):
             raw = f'{{"jsonrpc":"2.0","method":"heartbeat","id":{raw_id}}}'
             answer = await ask(ws, raw)
-            assert answer["id"] is None and answer["error"]["code"] == -32600, raw
+            assert answer["id"] is None, raw
+            assert answer["error"]["code"] == -32600, raw
         answer = await ask(ws, '{"jsonrpc":"2.0","method":"heartbeat","id":NaN}')
-        assert answer["id"] is None and answer["error"]["code"] == -32700
+        assert answer["id"] is None
+        assert answer["error"]["code"] == -32700
         heartbeat = {"jsonrpc": "2.0", "id": 2, "method": "heartbeat", "params": {"session": token}}
         assert "manual_override" in (await ask(ws, json.dumps(heartbeat)))["result"]
         assert not ws.closed
@@ -152,7 +155,8 @@ async def test_a_result_json_cannot_hold_is_an_internal_error_not_invalid_json(
     url, _ = served
     async with aiohttp.ClientSession() as session, session.ws_connect(url) as ws:
         answer = await ask(ws, encode_request("reading", None, 5).decode())
-        assert answer["id"] == 5 and answer["error"]["code"] == -32603
+        assert answer["id"] == 5
+        assert answer["error"]["code"] == -32603
         assert "not valid JSON" in answer["error"]["message"]
         batch = [
             {"jsonrpc": "2.0", "id": 6, "method": "reading"},

@@ -39,7 +39,8 @@ async def receive(sock: socket.socket, timeout: float = 5.0) -> str:
 
 def test_without_notify_socket_nothing_is_sent() -> None:
     notifier = Notifier({})
-    assert not notifier.enabled and notifier.watchdog_interval is None
+    assert not notifier.enabled
+    assert notifier.watchdog_interval is None
     assert notifier.ready() is False
 
 
@@ -72,7 +73,8 @@ async def test_platform_says_ready_pings_the_watchdog_and_says_stopping(
         await daemon.start()
         messages = [await receive(sock) for _ in range(3)]
         ready = [m for m in messages if m.startswith("READY=1")]
-        assert ready and daemon.ctx.signaling_url in ready[0]
+        assert ready
+        assert daemon.ctx.signaling_url in ready[0]
         assert messages.count("WATCHDOG=1") >= 2  # pinged every 0.1 s
         await daemon.stop()
         seen = []

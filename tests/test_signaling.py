@@ -51,7 +51,8 @@ async def test_connect_returns_parameters_and_capabilities(
         assert conn.parameters["id"] == "rover-9"
         assert conn.parameters["limits"]["max_speed_kmh"] == 6.0
         assert {"streams", "velocity", "telemetry", "payload_groups"} <= set(conn.capabilities)
-        assert conn.session_key is not None and len(conn.session_key) == 32
+        assert conn.session_key is not None
+        assert len(conn.session_key) == 32
         server_session = daemon.ctx.sessions.sessions[conn.session_id]
         assert server_session.session_key == conn.session_key  # derived on both ends, never sent
         assert (await conn.call("heartbeat"))["manual_override"] is False
@@ -122,21 +123,26 @@ async def test_http_post_errors(platform_factory: Factory, fleet_key: bytes) -> 
     status, body = await post(
         daemon, b'{"jsonrpc":"2.0","id":1,"method":"get_platform_parameters"}'
     )
-    assert status == 401 and body["error"]["code"] == -32001
+    assert status == 401
+    assert body["error"]["code"] == -32001
     status, body = await post(daemon, b"{garbage")
-    assert status == 200 and body["error"]["code"] == -32700
+    assert status == 200
+    assert body["error"]["code"] == -32700
     status, body = await post(
         daemon,
         b'{"jsonrpc":"2.0","id":1,"method":"x","params":"' + b"a" * STRANGER_MAX_BYTES + b'"}',
     )  # before a session, a stranger's limit; with one, signaling.max_request_bytes
-    assert status == 413 and f"the limit is {STRANGER_MAX_BYTES} bytes" in body["error"]["message"]
+    assert status == 413
+    assert f"the limit is {STRANGER_MAX_BYTES} bytes" in body["error"]["message"]
     status, body = await post(daemon, b'{"jsonrpc":"2.0","method":"challenge"}')
     assert status == 204
     # Still serving after all that.
     status, body = await post(daemon, b'{"jsonrpc":"2.0","id":2,"method":"challenge"}')
-    assert status == 200 and body["result"]["platform_id"] == "brasidas-1"
+    assert status == 200
+    assert body["result"]["platform_id"] == "brasidas-1"
     counters = daemon.ctx.rpc.counters
-    assert counters["unauthorized"] == 1 and counters["parse_errors"] == 1
+    assert counters["unauthorized"] == 1
+    assert counters["parse_errors"] == 1
 
 
 async def test_oversize_websocket_message_is_refused(
@@ -191,21 +197,26 @@ async def test_system_commands_reach_their_owner_and_answer(
     try:
         answer = await conn.call("issue_system_command", group=10, command=6, payload="ON")
         assert answer == {"accepted": True, "reason": "", "result": {"main": "ON"}}
-        assert seen[0].session_id == conn.session_id and seen[0].session.station_id == "st-1"
+        assert seen[0].session_id == conn.session_id
+        assert seen[0].session.station_id == "st-1"
         assert conn.capabilities["payload_groups"] == [105]
         assert (await conn.call("set_lights", which="main", on=False))["result"] == {"main": "OFF"}
         answer = await conn.call("issue_system_command", group=105, command=2, payload="x")
         assert answer == {"accepted": True, "reason": "", "result": {"fired": "x"}}
         unregister()
         answer = await conn.call("issue_system_command", group=10, command=6, payload="ON")
-        assert answer["accepted"] is False and "not available" in answer["reason"]
+        assert answer["accepted"] is False
+        assert "not available" in answer["reason"]
         answer = await conn.call("issue_system_command", group=105, command=3, payload="")
-        assert answer["accepted"] is False and "not available" in answer["reason"]
+        assert answer["accepted"] is False
+        assert "not available" in answer["reason"]
         answer = await conn.call("issue_system_command", group=91, command=0, payload="")
-        assert answer["accepted"] is False and "station-only" in answer["reason"]
+        assert answer["accepted"] is False
+        assert "station-only" in answer["reason"]
         with pytest.raises(RpcError) as err:
             await conn.call("issue_system_command", group=42, command=1, payload="")
-        assert err.value.code == -32602 and "unknown command code 42.1" in err.value.message
+        assert err.value.code == -32602
+        assert "unknown command code 42.1" in err.value.message
         with pytest.raises(RpcError) as err:
             await conn.call("issue_system_command", group="10", command=6)
         assert err.value.code == -32602
@@ -273,7 +284,8 @@ async def test_authority_is_asked_for_every_way_a_command_comes_in(
         assert answer == {"accepted": False, "reason": "held by holder", "result": None}
         with pytest.raises(RpcError) as refusal:
             await observer.call("set_manual_override", engaged=True)
-        assert refusal.value.code == CONTROL_REFUSED and "held by holder" in str(refusal.value)
+        assert refusal.value.code == CONTROL_REFUSED
+        assert "held by holder" in str(refusal.value)
         assert (await observer.call("set_lights", which="main", on=True))["accepted"] is False
         assert daemon.bus.last(topics.OVERRIDE_STATE).engaged is False
         assert await holder.call("set_manual_override", engaged=True) is True
@@ -307,7 +319,8 @@ async def test_slow_owner_times_out_with_a_reason(
     await conn.open()
     try:
         answer = await conn.call("issue_system_command", group=20, command=4, payload="True")
-        assert answer["accepted"] is False and "not answered by sleepy in 0.2 s" in answer["reason"]
+        assert answer["accepted"] is False
+        assert "not answered by sleepy in 0.2 s" in answer["reason"]
     finally:
         await conn.close()
 

@@ -63,18 +63,22 @@ def test_every_sentence_parses_with_a_valid_checksum() -> None:
         fixes += assembler.feed(parsed, 0.0)
     fixes += assembler.poll(1.0)
     assert decoder.dropped == {"checksum": 0, "malformed": 0, "unknown": 0, "noise": 0}
-    assert len(fixes) == 600 and all(fix is not None for fix in fixes)
+    assert len(fixes) == 600
+    assert all(fix is not None for fix in fixes)
     errors = []
     for fix, pose in zip(fixes, poses, strict=True):
         assert fix is not None
         errors.append(metres_between(pose.latitude, pose.longitude, fix.latitude, fix.longitude))
         assert 8 <= (fix.satellites or 0) <= 10
-        assert fix.hdop is not None and 0.7 <= fix.hdop <= 1.4
+        assert fix.hdop is not None
+        assert 0.7 <= fix.hdop <= 1.4
     # The NEO-6M's error: metres (2.5 m CEP), wandering slowly, never a jump between epochs.
-    assert 0.3 < sum(errors) / len(errors) < 8.0 and max(errors) < 9.0
+    assert 0.3 < sum(errors) / len(errors) < 8.0
+    assert max(errors) < 9.0
     assert max(abs(a - b) for a, b in itertools.pairwise(errors)) < 0.2
     moving = fixes[-1]
-    assert moving is not None and moving.speed_mps is not None
+    assert moving is not None
+    assert moving.speed_mps is not None
     # Doppler speed: 0.1 m/s (the data sheet's velocity accuracy), whatever the position error.
     assert moving.speed_mps == pytest.approx(abs(poses[-1].speed_mps), abs=0.2)
     assert moving.time.startswith("2026-11-24T00:00:49.90")
@@ -95,8 +99,10 @@ def test_rtk_profile_decodes_to_centimetres_of_the_truth() -> None:
         for fix in fixes
         if fix is not None
     ]
-    assert len(errors) >= 59 and decoder.dropped["malformed"] == 0
-    assert max(errors) < 0.15 and sum(errors) / len(errors) < 0.06
+    assert len(errors) >= 59
+    assert decoder.dropped["malformed"] == 0
+    assert max(errors) < 0.15
+    assert sum(errors) / len(errors) < 0.06
 
 
 async def test_real_reader_in_sim_platform(
@@ -113,27 +119,32 @@ async def test_real_reader_in_sim_platform(
     daemon = await platform_factory(config, fleet_key)
     fixes: list[GpsFix] = []
     daemon.bus.subscribe(topics.GPS_FIX, fixes.append)
-    assert daemon.ctx.sim.gps is not None and daemon.ctx.gps_port == daemon.ctx.sim.gps.path
+    assert daemon.ctx.sim.gps is not None
+    assert daemon.ctx.gps_port == daemon.ctx.sim.gps.path
     await wait_until(lambda: len(fixes) >= 5, timeout=10.0)
     for fix in fixes:
         assert metres_between(44.0689, -121.3143, fix.latitude, fix.longitude) < 10.0
-        assert fix.quality == 1 and fix.altitude_m is not None
+        assert fix.quality == 1
+        assert fix.altitude_m is not None
     position = daemon.bus.last(topics.POSITION)
-    assert position is not None and abs(position.latitude - 44.0689) < 1e-4
+    assert position is not None
+    assert abs(position.latitude - 44.0689) < 1e-4
 
     def gps() -> Gps:
         section = daemon.ctx.telemetry.build_one(Gps)
         assert isinstance(section, Gps)
         return section
 
-    assert gps().fix is True and gps().age_ms is not None
+    assert gps().fix is True
+    assert gps().age_ms is not None
 
     def stats() -> GpsReader:
         return gps().stats or GpsReader()
 
     await wait_until(lambda: stats().fixes >= 5, 5.0)
     assert stats().connected is True
-    assert stats().sentences >= 20 and stats().dropped == {}
+    assert stats().sentences >= 20
+    assert stats().dropped == {}
     assert gps().lat == pytest.approx(44.0689, abs=1e-4)
 
 
@@ -182,7 +193,8 @@ async def test_simulate_gps_standalone_prints_a_pty_that_yields_nmea() -> None:
         await asyncio.wait_for(process.wait(), 10.0)
     assert b"$GPTXT,01,01,02,u-blox ag - www.u-blox.com*50" in received
     lines = [line for line in received.split(b"\r\n") if line.startswith(b"$GPRMC")]
-    assert lines and pynmea2.parse(lines[0].decode(), check=True).status == "A"
+    assert lines
+    assert pynmea2.parse(lines[0].decode(), check=True).status == "A"
     assert process.returncode == 0
 
 
@@ -196,7 +208,8 @@ async def test_sim_platform_reads_an_explicit_gps_port_instead(
             "sim.enabled=true", "gps.enabled=true", f"gps.port={os.ttyname(slave)}"
         )
         daemon = await platform_factory(config, fleet_key)
-        assert daemon.ctx.sim.gps is None and daemon.ctx.gps_port == os.ttyname(slave)
+        assert daemon.ctx.sim.gps is None
+        assert daemon.ctx.gps_port == os.ttyname(slave)
         fixes: list[GpsFix] = []
         daemon.bus.subscribe(topics.GPS_FIX, fixes.append)
 
@@ -229,7 +242,9 @@ async def test_simulate_vehicle_standalone_moves_what_the_gps_reports() -> None:
         assert process.stdout is not None
         motor = (await asyncio.wait_for(process.stdout.readline(), 15)).decode().strip()
         gps = (await asyncio.wait_for(process.stdout.readline(), 15)).decode().strip()
-        assert motor.startswith("/dev/pts/") and gps.startswith("/dev/pts/") and motor != gps
+        assert motor.startswith("/dev/pts/")
+        assert gps.startswith("/dev/pts/")
+        assert motor != gps
         _, controller = await serial_asyncio.open_serial_connection(url=motor, baudrate=9600)
         receiver, receiver_writer = await serial_asyncio.open_serial_connection(
             url=gps, baudrate=9600

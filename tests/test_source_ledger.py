@@ -50,14 +50,16 @@ def test_a_stranger_is_paid_only_with_what_it_sent_whatever_the_path() -> None:
     assert ledger.stream_sent("192.0.2.9", 10**6, True, 5.0)
     assert not ledger.stream_sent("192.0.2.9", 10**6, False, 6.0)
     assert ledger.sent_to("192.0.2.9")["rtp"] == 2 * 10**6
-    assert ledger.counters["streams_refused"] == 1 and ledger.counters["streams_stopped"] == 1
+    assert ledger.counters["streams_refused"] == 1
+    assert ledger.counters["streams_stopped"] == 1
 
 
 def test_the_table_of_sources_is_bounded() -> None:
     ledger = SourceLedger(max_sources=8)
     for n in range(100):  # a flood of made-up source addresses
         ledger.received(f"10.0.{n}.1", 1000, 0.0)
-    assert len(ledger.accounts) == 8 and ledger.counters["sources_forgotten"] == 92
+    assert len(ledger.accounts) == 8
+    assert ledger.counters["sources_forgotten"] == 92
     # The forgotten ones lost their credit (never gained any).
     assert not ledger.stranger_send("10.0.0.1", 1, 0.0)
 
@@ -77,7 +79,8 @@ def test_each_source_gets_its_part_of_the_download_rate() -> None:
         if now + delay <= 10.0:
             sent[host] += CHUNK
     assert sent["A"] + sent["B"] <= rate * 10 + 17 * CHUNK  # give or take what was in flight
-    assert sent["B"] >= 0.45 * rate * 10 and sent["A"] >= 0.45 * rate * 10
+    assert sent["B"] >= 0.45 * rate * 10
+    assert sent["A"] >= 0.45 * rate * 10
     assert ledger.sent_to("B")["download"] >= sent["B"]
 
 
@@ -114,7 +117,8 @@ def test_one_source_mixing_mavlink_video_and_downloads_stays_within_one_budget()
     sent = ledger.sent_to(source[0])
     assert sent["mavlink"] == wire  # nothing reached the wire past the account
     assert 0 < wire <= received
-    assert sent["rtp"] == 0 and ledger.counters["streams_refused"] == 200 // 3 + 1
+    assert sent["rtp"] == 0
+    assert ledger.counters["streams_refused"] == 200 // 3 + 1
     # Downloads (a session's) at the address's share: the whole rate here, no more.
     assert sent["download"] <= 64 * 1024 * now + CHUNK
     assert sent["mavlink"] + sent["rtp"] + sent["download"] <= received + 64 * 1024 * now + CHUNK
@@ -230,7 +234,8 @@ async def test_every_path_is_charged_to_its_source_on_a_running_platform(
         assert 0 < stranger.bytes_received <= sent
         assert sum(account.values()) <= sent + rate_kib * 1024 * elapsed + CHUNK
         counters = daemon.ctx.telemetry.counters["mavlink"]()
-        assert counters["streams_refused"] >= 1 and counters["video_refused"] >= 1
+        assert counters["streams_refused"] >= 1
+        assert counters["video_refused"] >= 1
     finally:
         stranger.close()
         video.close()

@@ -26,8 +26,10 @@ def test_the_seeds_budget_is_the_derivation() -> None:
     speed = stopping_speed(safety.stop_distance_m, 0.25, 0.150, safety.braking_mps2)
     assert 5.9 < speed * 3.6 < 6.1
     fast, slow = compute_cap(safety, 6.0, 50, 0), compute_cap(safety, 6.0, 400, 0)
-    assert fast.cap_kmh > slow.cap_kmh and fast.cap_kmh == 6.0  # the platform's own limit
-    assert slow.cap_kmh < 5.0 and "stops within 1 m" in slow.reason
+    assert fast.cap_kmh > slow.cap_kmh
+    assert fast.cap_kmh == 6.0  # the platform's own limit
+    assert slow.cap_kmh < 5.0
+    assert "stops within 1 m" in slow.reason
     unknown = compute_cap(safety, 6.0, None, None)
     assert unknown.cap_kmh == compute_cap(safety, 6.0, safety.worst_latency_ms, 0).cap_kmh
     assert unknown.reason.startswith("no latency report")
@@ -61,7 +63,8 @@ async def test_motors_follow_the_reported_latency_and_never_exceed_the_cap(
         assert fast_cap > slow["cap_kmh"]
         await conn.call("report_latency", video_ms=400.0, command_ms=0.0)
         cap = daemon.bus.last(topics.SPEED_CAP)
-        assert cap is not None and cap.video_ms == 400.0
+        assert cap is not None
+        assert cap.video_ms == 400.0
         fraction = cap.fraction
         assert abs(fraction * daemon.config.platform.max_speed_kmh - slow["cap_kmh"]) < 0.01
         sock.sendto(encoder.encode(1.0, 0.5), target)
@@ -96,11 +99,14 @@ async def test_the_holders_station_reports_its_video_latency_with_each_heartbeat
     try:
         await asyncio.sleep(0.3)  # heartbeats without the override report nothing
         cap = daemon.bus.last(topics.SPEED_CAP)
-        assert cap is not None and cap.video_ms is None
+        assert cap is not None
+        assert cap.video_ms is None
         assert await conn.call("set_manual_override", engaged=True) is True
         await wait_until(lambda: _video_ms(daemon) == 300.0)
         cap = daemon.bus.last(topics.SPEED_CAP)
-        assert cap is not None and cap.command_ms is not None and cap.cap_kmh < 6.0
+        assert cap is not None
+        assert cap.command_ms is not None
+        assert cap.cap_kmh < 6.0
     finally:
         await conn.close()
 

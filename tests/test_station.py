@@ -28,7 +28,9 @@ async def test_connect_movrd_lights_and_commands_through_the_daemon(
 
     code, out, _ = await run_cli(station, "connect", "rover-3", "--url", url)
     assert code == 0
-    assert "rover-3" in out and "velocity" in out and "override   disengaged" in out
+    assert "rover-3" in out
+    assert "velocity" in out
+    assert "override   disengaged" in out
 
     code, out, _ = await run_cli(station, "movrd", "rover-3", "on")
     assert (code, out.strip()) == (0, 'acknowledged {"engaged": true}')
@@ -37,18 +39,19 @@ async def test_connect_movrd_lights_and_commands_through_the_daemon(
     code, out, _ = await run_cli(station, "lights", "rover-3", "main", "on", "--json")
     answer = json.loads(out)
     # No motor controller on this test platform: rejected, with the reason, and exit 1.
-    assert code == 1 and answer["accepted"] is False and "main lights" in answer["reason"]
+    assert code == 1
+    assert answer["accepted"] is False
+    assert "main lights" in answer["reason"]
 
     code, _, err = await run_cli(station, "cmd", "rover-3", "42", "7")
-    assert code == 1 and "unknown command code 42.7" in err
+    assert code == 1
+    assert "unknown command code 42.7" in err
 
     code, out, _ = await run_cli(station, "status", "rover-3", "--json")
     status = json.loads(out)
-    assert (
-        code == 0
-        and status["report"]["override"]["mode"] == "teleop"
-        and status["connected"] is True
-    )
+    assert code == 0
+    assert status["report"]["override"]["mode"] == "teleop"
+    assert status["connected"] is True
 
     code, out, _ = await run_cli(station, "disconnect", "rover-3")
     assert code == 0
@@ -92,19 +95,23 @@ async def test_platform_going_away_is_noticed(
     assert opened == [PlatformLink("brasidas-1", session_id)]
     await platform.stop()
     await wait_until(lambda: [link.platform_id for link in lost] == ["brasidas-1"])
-    assert lost[0].session_id == session_id and lost[0].reason
+    assert lost[0].session_id == session_id
+    assert lost[0].reason
     assert station.ctx.connections == {}
     code, _, err = await run_cli(station, "movrd", "brasidas-1", "on")
-    assert code == 1 and "brasidas-1" in err
+    assert code == 1
+    assert "brasidas-1" in err
 
 
 async def test_unknown_platform_and_absent_daemon_give_clear_errors(station: StationDaemon) -> None:
     code, _, err = await run_cli(station, "movrd", "ghost", "on")
-    assert code == 1 and "ghost" in err
+    assert code == 1
+    assert "ghost" in err
     code, _, err = await run_cli(
         station, "connect", "ghost", "--url", f"http://127.0.0.1:{free_tcp_port()}"
     )
-    assert code == 1 and "cannot connect" in err
+    assert code == 1
+    assert "cannot connect" in err
 
     def absent() -> int:
         return cli.main(["status", "x", "--set", f"station.api_port={free_tcp_port()}"])

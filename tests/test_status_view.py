@@ -78,7 +78,8 @@ def test_render_shows_every_section_and_names_the_warnings() -> None:
     assert "battery    22.6 V  low" in text
     assert "heatsink 35/38 °C  motors 1.0/1.5 A" in text
     assert "37.983810, 23.727539  9 sats  hdop 0.9" in text
-    assert "loss 2.0%" in text and "rejected 1 (forged 1)" in text
+    assert "loss 2.0%" in text
+    assert "rejected 1 (forged 1)" in text
     assert "accepted 120  dropped 2 (stale 2)" in text
     assert "streams    navcam failed" in text
     assert "lights     main ON  positional off  (positional: cannot request GPIO line" in text
@@ -95,18 +96,21 @@ def test_render_every_field_the_schema_has() -> None:
     """Every field of the sections the view shows is read from the schema's dataclasses: a
     report built from the schema renders without a blank where a value was sent."""
     text = "\n".join(render(REPORT, color=False, now=0))
-    assert " ? " not in text and "None" not in text
+    assert " ? " not in text
+    assert "None" not in text
 
 
 def test_another_schema_version_is_named_not_shown_as_blanks() -> None:
     text = "\n".join(render({**REPORT, "schema": SCHEMA_VERSION + 1}, color=False, now=0))
-    assert f"telemetry schema v{SCHEMA_VERSION + 1}" in text and f"reads v{SCHEMA_VERSION}" in text
+    assert f"telemetry schema v{SCHEMA_VERSION + 1}" in text
+    assert f"reads v{SCHEMA_VERSION}" in text
     assert "battery" not in text
 
 
 def test_frame_redraws_in_place_and_clips_to_the_terminal() -> None:
     drawn = frame(["\x1b[32m" + "x" * 50 + "\x1b[0m", "short"], width=10)
-    assert drawn.startswith(HOME) and drawn.endswith("\x1b[J")
+    assert drawn.startswith(HOME)
+    assert drawn.endswith("\x1b[J")
     assert "\x1b[32m" + "x" * 10 + "\x1b[0m\x1b[K\n" in drawn
 
 
@@ -120,8 +124,10 @@ async def test_status_prints_connection_and_telemetry(
     assert code == 0
     code, out, err = await run_cli(station, "status", "rover-4")
     assert code == 0, err
-    assert "session" in out and "mode       autonomous" in out
-    assert "lights     main off  positional ON" in out and "WARNINGS   none" in out
+    assert "session" in out
+    assert "mode       autonomous" in out
+    assert "lights     main off  positional ON" in out
+    assert "WARNINGS   none" in out
     code, out, _ = await run_cli(station, "status", "rover-4", "--json")
     status = json.loads(out)
     assert status["telemetry"]["snapshot"]["lights"] == {
@@ -143,7 +149,8 @@ async def test_status_watch_redraws_in_place(
         station, "status", "rover-5", "--watch", "--interval", "0.05", "--frames", "3"
     )
     assert code == 0, err
-    assert out.count(HOME) == 3 and out.count("rover-5   AUTONOMOUS") == 3
+    assert out.count(HOME) == 3
+    assert out.count("rover-5   AUTONOMOUS") == 3
     assert out.endswith("\x1b[?25h")  # the cursor is given back
 
 
@@ -159,7 +166,8 @@ async def test_status_watch_without_a_daemon_is_a_clear_error(station: StationDa
         return code, err.getvalue()
 
     code, err = await asyncio.to_thread(absent)
-    assert code == 1 and "not running" in err
+    assert code == 1
+    assert "not running" in err
 
 
 async def test_status_says_stale_when_the_gps_falls_silent(
@@ -192,7 +200,8 @@ async def test_status_says_stale_when_the_gps_falls_silent(
         code, out, err = await run_cli(station, "status", "rover-6")
         assert code == 0, err
         (gps,) = [line for line in out.splitlines() if line.startswith("gps ")]
-        assert "37.94" in gps and "STALE" not in gps  # fresh: the last epoch just arrived
+        assert "37.94" in gps
+        assert "STALE" not in gps  # fresh: the last epoch just arrived
 
         async def gps_line() -> str:
             code, out, err = await run_cli(station, "status", "rover-6")
@@ -204,10 +213,12 @@ async def test_status_says_stale_when_the_gps_falls_silent(
         while "STALE" not in (line := await gps_line()):
             assert asyncio.get_running_loop().time() < deadline, line
             await asyncio.sleep(0.5)
-        assert "37.94" in line and "s old)" in line  # the last fix, with its age
+        assert "37.94" in line
+        assert "s old)" in line  # the last fix, with its age
         code, out, _ = await run_cli(station, "status", "rover-6", "--json")
         gps_section = json.loads(out)["telemetry"]["snapshot"]["gps"]
-        assert gps_section["stale"] is True and gps_section["age_ms"] >= 3000
+        assert gps_section["stale"] is True
+        assert gps_section["age_ms"] >= 3000
     finally:
         os.close(master)
         os.close(slave)

@@ -79,7 +79,9 @@ def test_sections_follow_the_bus() -> None:
     bus.subscribe(topics.PLATFORM_HEALTH, health.append)
 
     empty = aggregator.snapshot()
-    assert empty[Battery] is None and empty[Gps] is None and empty[Controller] is None
+    assert empty[Battery] is None
+    assert empty[Gps] is None
+    assert empty[Controller] is None
     assert empty[Override] == Override("autonomous", False, None)
     assert empty[Streams] == Streams({})
 
@@ -95,17 +97,24 @@ def test_sections_follow_the_bus() -> None:
     assert snap[Controller] == Controller(
         True, (41.3, 39.0), (3.0, 2.5), 12.25, age_ms=250, stale=False
     )
-    assert health[-1].battery is Level.LOW and health[-1].controller and not health[-1].fault
+    assert health[-1].battery is Level.LOW
+    assert health[-1].controller
+    assert not health[-1].fault
 
     bus.publish(topics.GPS_FIX, FIX)
     gps = aggregator.snapshot()[Gps]
-    assert isinstance(gps, Gps) and gps.fix is True and gps.lat == 37.9838096 and gps.sats == 9
+    assert isinstance(gps, Gps)
+    assert gps.fix is True
+    assert gps.lat == 37.9838096
+    assert gps.sats == 9
     assert health[-1].gps_fix is True
     bus.publish(topics.GPS_FIX_LOST, GpsFixLost("receiver silent"))
     clock.now += 4
     gps = aggregator.snapshot()[Gps]
     assert isinstance(gps, Gps)
-    assert gps.fix is False and gps.lost_for_s == 4.0 and gps.lat == 37.9838096
+    assert gps.fix is False
+    assert gps.lost_for_s == 4.0
+    assert gps.lat == 37.9838096
     assert health[-1].gps_fix is False
 
     # Streams the media service has but that never changed state are listed as they are.
@@ -119,9 +128,11 @@ def test_sections_follow_the_bus() -> None:
     assert health[-1].streaming is True
     bus.publish(topics.STREAM_STATES, StreamStatus("navcam", "video_out", "failed", "no camera"))
     assert aggregator.snapshot()[Streams] == Streams({"navcam": "failed", "audio_out": "idle"})
-    assert health[-1].fault and health[-1].faults == ("stream:navcam",)
+    assert health[-1].fault
+    assert health[-1].faults == ("stream:navcam",)
     bus.publish(topics.CONTROLLER_STATUS, controller(False, None))
-    assert health[-1].faults == ("controller", "stream:navcam") and not health[-1].controller
+    assert health[-1].faults == ("controller", "stream:navcam")
+    assert not health[-1].controller
     assert health[-1].battery is Level.UNKNOWN
     # Only changes are published.
     count = len(health)
@@ -140,16 +151,23 @@ def test_readings_carry_their_age_and_turn_stale_after_a_few_periods() -> None:
     )
     clock.now += 1.4
     battery = aggregator.battery_section()
-    assert battery is not None and battery.age_ms == 1400 and not battery.stale
+    assert battery is not None
+    assert battery.age_ms == 1400
+    assert not battery.stale
     clock.now += 0.2
     battery = aggregator.battery_section()
-    assert battery is not None and battery.age_ms == 1600 and battery.stale
+    assert battery is not None
+    assert battery.age_ms == 1600
+    assert battery.stale
     ctl = aggregator.controller_section()
-    assert ctl is not None and ctl.stale
+    assert ctl is not None
+    assert ctl.stale
     # A status without readings (not polled yet) has no age and is not stale.
     bus.publish(topics.CONTROLLER_STATUS, ControllerStatus(False, stamp=clock.now - 60))
     ctl = aggregator.controller_section()
-    assert ctl is not None and ctl.age_ms is None and not ctl.stale
+    assert ctl is not None
+    assert ctl.age_ms is None
+    assert not ctl.stale
 
 
 def test_battery_levels_follow_the_configured_thresholds() -> None:
@@ -170,7 +188,8 @@ def test_diagnostics_section_only_when_switched_on() -> None:
     aggregator.diagnostics = True
     diagnostics = aggregator.snapshot()[Diagnostics]
     assert isinstance(diagnostics, Diagnostics)
-    assert diagnostics.telemetry["snapshots"] == 2 and diagnostics.actor_restarts == {}
+    assert diagnostics.telemetry["snapshots"] == 2
+    assert diagnostics.actor_restarts == {}
 
 
 def test_a_failing_section_is_that_sections_error_and_the_rest_goes_on(
@@ -191,10 +210,12 @@ def test_a_failing_section_is_that_sections_error_and_the_rest_goes_on(
     # Counted every time, logged once (with the traceback).
     assert aggregator.ctx.telemetry.errors == {"computer": 3}
     logged = [r for r in caplog.records if "section computer failed" in r.getMessage()]
-    assert len(logged) == 1 and logged[0].exc_info is not None
+    assert len(logged) == 1
+    assert logged[0].exc_info is not None
     aggregator.diagnostics = True
     diagnostics = aggregator.snapshot()[Diagnostics]
-    assert isinstance(diagnostics, Diagnostics) and diagnostics.section_errors == {"computer": 4}
+    assert isinstance(diagnostics, Diagnostics)
+    assert diagnostics.section_errors == {"computer": 4}
 
 
 def test_one_source_per_section() -> None:
@@ -208,12 +229,15 @@ def test_battery_level_follows_the_monitor_flag() -> None:
     aggregator.subscribe_reports()
     bus.publish(topics.CONTROLLER_STATUS, controller(True, 22.0, monitor=True))
     battery = aggregator.battery_section()
-    assert battery is not None and (battery.volts, battery.level) == (22.0, "low")
+    assert battery is not None
+    assert (battery.volts, battery.level) == (22.0, "low")
     bus.publish(topics.CONTROLLER_STATUS, controller(True, 22.0, monitor=False))
     battery = aggregator.battery_section()
-    assert battery is not None and (battery.level, battery.monitor) == (None, False)
+    assert battery is not None
+    assert (battery.level, battery.monitor) == (None, False)
     health = bus.last(topics.PLATFORM_HEALTH)
-    assert health is not None and health.battery is Level.UNKNOWN
+    assert health is not None
+    assert health.battery is Level.UNKNOWN
 
 
 def test_cpu_temperature_prefers_the_cpu_zone(tmp_path: Path) -> None:
@@ -233,8 +257,10 @@ def test_system_info_reads_meminfo(tmp_path: Path) -> None:
     meminfo = tmp_path / "meminfo"
     meminfo.write_text("MemTotal:  2048000 kB\nMemFree: 100 kB\nMemAvailable:   1024000 kB\n")
     info = system_info(tmp_path, meminfo)
-    assert info["mem_free_mb"] == 1000.0 and info["mem_total_mb"] == 2000.0
-    assert info["cpu_temp_c"] is None and len(info["load"]) == 3
+    assert info["mem_free_mb"] == 1000.0
+    assert info["mem_total_mb"] == 2000.0
+    assert info["cpu_temp_c"] is None
+    assert len(info["load"]) == 3
     assert system_info(tmp_path, tmp_path / "none")["mem_free_mb"] is None
 
 

@@ -56,12 +56,14 @@ def test_round_trip_in_one_datagram() -> None:
     decoder = TelemetryDecoder("rover-1", KEY)
     (datagram,) = encoder.encode(SNAPSHOT, 1_700_000_000.25)
     assert len(datagram) < MAX_DATAGRAM
-    assert datagram[0] == VERSION and datagram[1] == FLAG_AUTHENTICATED
+    assert datagram[0] == VERSION
+    assert datagram[1] == FLAG_AUTHENTICATED
     (frame,) = decoder.feed(datagram)
     assert frame.sections == SNAPSHOT
     assert (frame.platform_id, frame.seq, frame.timestamp) == ("rover-1", 1, 1_700_000_000.25)
     assert frame.size == len(datagram)
-    assert decoder.accepted == 1 and sum(decoder.rejected.values()) == 0
+    assert decoder.accepted == 1
+    assert sum(decoder.rejected.values()) == 0
 
 
 def test_insecure_stream_has_no_tag() -> None:
@@ -71,7 +73,8 @@ def test_insecure_stream_has_no_tag() -> None:
     assert frame.sections == SNAPSHOT
     # A station holding a session key refuses an unauthenticated stream.
     decoder = TelemetryDecoder("rover-1", KEY)
-    assert decoder.feed(datagram) == [] and decoder.rejected["unauthenticated"] == 1
+    assert decoder.feed(datagram) == []
+    assert decoder.rejected["unauthenticated"] == 1
 
 
 def test_large_snapshot_is_split_by_section_and_merges_back() -> None:
@@ -86,7 +89,8 @@ def test_large_snapshot_is_split_by_section_and_merges_back() -> None:
         (frame,) = decoder.feed(datagram)
         merged.update(frame.sections)
     assert merged == big
-    assert decoder.last_seq == len(datagrams) and encoder.trimmed == 0
+    assert decoder.last_seq == len(datagrams)
+    assert encoder.trimmed == 0
 
 
 def test_a_split_keeps_the_pose_with_the_scan_drawn_around_it() -> None:
@@ -144,7 +148,8 @@ def test_replayed_and_old_sequence_numbers_are_refused() -> None:
     assert decoder.feed(second) != []
     assert decoder.feed(second) == []  # replay
     assert decoder.feed(first) == []  # older than the last accepted
-    assert decoder.rejected["replayed"] == 2 and decoder.accepted == 1
+    assert decoder.rejected["replayed"] == 2
+    assert decoder.accepted == 1
 
 
 def test_truncated_wrong_version_and_wrong_platform() -> None:
@@ -247,7 +252,9 @@ def test_a_changed_byte_in_an_authenticated_datagram_is_refused_and_counted(
     changed[position] ^= flip
     decoder = TelemetryDecoder("rover-1", KEY)
     assert decoder.feed(bytes(changed)) == []
-    assert decoder.accepted == 0 and sum(decoder.rejected.values()) == 1
+    assert decoder.accepted == 0
+    assert sum(decoder.rejected.values()) == 1
     # Cut short anywhere: refused and counted too.
     cut = data.draw(st.integers(0, len(datagram) - 1), label="cut")
-    assert decoder.feed(datagram[:cut]) == [] and sum(decoder.rejected.values()) == 2
+    assert decoder.feed(datagram[:cut]) == []
+    assert sum(decoder.rejected.values()) == 2

@@ -99,11 +99,14 @@ def test_every_section_survives_the_wire_and_the_api() -> None:
     assert set(FULL) == set(SECTIONS)
     wire = snapshot_to_wire(FULL)
     decoded, unknown = snapshot_from_wire(wire)
-    assert unknown == [] and dict(decoded.sections) == FULL
+    assert unknown == []
+    assert dict(decoded.sections) == FULL
     assert dict(snapshot_from_json(snapshot_to_json(FULL)).sections) == FULL
     # Long names for the API, compact keys on the wire.
-    assert snapshot_to_json(FULL)["gps"]["sats"] == 9 and wire["gps"]["n"] == 9
-    assert decoded.get(Gps) == FULL[Gps] and decoded.get(Diagnostics) is None
+    assert snapshot_to_json(FULL)["gps"]["sats"] == 9
+    assert wire["gps"]["n"] == 9
+    assert decoded.get(Gps) == FULL[Gps]
+    assert decoded.get(Diagnostics) is None
 
 
 def test_defaults_are_left_out_on_the_wire() -> None:
@@ -116,7 +119,8 @@ def test_wire_and_section_keys_are_unique() -> None:
     assert len(BY_WIRE) == len(SECTIONS) == len(BY_NAME)
     for cls in SECTIONS:
         keys = [f.metadata["wire"] for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
-        assert len(keys) == len(set(keys)) and "!" not in keys, cls.NAME
+        assert len(keys) == len(set(keys)), cls.NAME
+        assert "!" not in keys, cls.NAME
 
 
 def test_a_malformed_or_failed_section_is_that_sections_error_only() -> None:
@@ -127,7 +131,8 @@ def test_a_malformed_or_failed_section_is_that_sections_error_only() -> None:
     decoded, unknown = snapshot_from_wire(wire)
     assert unknown == ["future"]
     assert decoded.error(Battery) == "malformed: battery.volts: expected float, got str"
-    assert decoded.error(Computer) == "OSError: no /proc" and decoded.get(Computer) is None
+    assert decoded.error(Computer) == "OSError: no /proc"
+    assert decoded.get(Computer) is None
     assert decoded.get(Gps) == FULL[Gps]
     assert snapshot_to_json(decoded.sections)["computer"] == {"error": "OSError: no /proc"}
 
@@ -145,21 +150,25 @@ def test_the_document_describes_every_field() -> None:
     document = schema_document()
     assert document["version"] == SCHEMA_VERSION
     gps = document["sections"]["gps"]
-    assert gps["wire"] == "gps" and gps["fields"]["sats"] == {"wire": "n", "type": "int | null"}
+    assert gps["wire"] == "gps"
+    assert gps["fields"]["sats"] == {"wire": "n", "type": "int | null"}
     assert gps["fields"]["stats"]["fields"]["fixes"]["type"] == "int"
     assert document["sections"]["streams"]["fields"]["states"]["type"] == "map[str]"
     assert document["sections"]["battery"]["fields"]["volts"]["unit"] == "V"
 
 
 def test_stale_after_a_few_periods_never_sooner_than_a_second() -> None:
-    assert stale_after(1.0) == 3.0 and stale_after(10.0) == 1.0 and stale_after(0.0) is None
+    assert stale_after(1.0) == 3.0
+    assert stale_after(10.0) == 1.0
+    assert stale_after(0.0) is None
 
 
 def test_another_schema_version_is_refused_and_named() -> None:
     datagram = bytearray(TelemetryEncoder("r", None).encode({"li": {"m": True}}, 0.0)[0])
     datagram[0] = SCHEMA_VERSION - 1
     decoder = TelemetryDecoder("r", None)
-    assert decoder.feed(bytes(datagram)) == [] and decoder.rejected["version"] == 1
+    assert decoder.feed(bytes(datagram)) == []
+    assert decoder.rejected["version"] == 1
     assert decoder.foreign_version == SCHEMA_VERSION - 1
 
 
@@ -189,7 +198,8 @@ def test_the_largest_admission_section_fits_one_datagram_untrimmed() -> None:
     worst = Admission(counters, 2**31, "ffff:ffff:ffff:ffff:ffff:ffff:255.255.255.255", 2**63, 10.0)
     encoder = TelemetryEncoder("x" * 32, bytes(32))
     (datagram,) = encoder.encode(snapshot_to_wire({Admission: worst}), 1.0)
-    assert len(datagram) < MAX_DATAGRAM // 3 and encoder.trimmed == 0
+    assert len(datagram) < MAX_DATAGRAM // 3
+    assert encoder.trimmed == 0
     decoder = TelemetryDecoder("x" * 32, bytes(32))
     (frame,) = decoder.feed(datagram)
     decoded, _ = snapshot_from_wire(frame.sections)

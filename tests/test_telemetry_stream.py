@@ -65,9 +65,11 @@ async def test_station_receives_verified_telemetry_and_refuses_forgeries(
     assert report["schema"] == SCHEMA_VERSION
     assert snapshot["override"] == {"mode": "autonomous", "engaged": False, "station": None}
     assert snapshot["lights"] == {"main": True, "positional": False, "errors": {}}
-    assert snapshot["computer"]["mem_free_mb"] > 0 and len(snapshot["computer"]["load"]) == 3
+    assert snapshot["computer"]["mem_free_mb"] > 0
+    assert len(snapshot["computer"]["load"]) == 3
     assert snapshot["diagnostics"] is None
-    assert report["link"]["loss_pct"] == 0.0 and report["link"]["rejected_total"] == 0
+    assert report["link"]["loss_pct"] == 0.0
+    assert report["link"]["rejected_total"] == 0
     assert report["link"]["max_datagram"] < MAX_DATAGRAM
     # get_telemetry_report over signaling carries the same sections.
     connection = station.ctx.connections["rover-7"]
@@ -141,7 +143,8 @@ async def test_station_notices_silence_asks_again_and_the_warning_clears(
         await wait_until(lambda: any(n.name == "link_degraded" and not n.active for n in notes))
         assert session_id in agg.sender.streams
         link = _link(station, "brasidas-1")
-        assert link.decoder.rejected["replayed"] == 0 and link.stats.loss_pct == 0.0
+        assert link.decoder.rejected["replayed"] == 0
+        assert link.stats.loss_pct == 0.0
         listing = await station.ctx.api.call_local("telemetry_notifications", limit=10)
         assert [(n["name"], n["active"]) for n in listing][-2:] == [
             ("link_degraded", True),
@@ -212,7 +215,8 @@ async def test_request_telemetry_refuses_third_hosts_and_bad_params(
                 await connection.call("request_telemetry", **params)
             assert info.value.code == INVALID_PARAMS, params
         answer = await connection.call("request_telemetry", port=9, host="127.0.0.2")
-        assert answer["host"] == "127.0.0.2" and answer["auth"] == "hmac-sha256-128"
+        assert answer["host"] == "127.0.0.2"
+        assert answer["auth"] == "hmac-sha256-128"
         assert answer["rate_hz"] == 5.0
         assert connection.capabilities["telemetry"]["push"] is True
         assert await connection.call("stop_telemetry") is True
@@ -234,7 +238,8 @@ async def test_diagnostics_command_adds_the_section_and_health_is_published(
         report = await connection.call("get_telemetry_report")
         assert report["schema"] == SCHEMA_VERSION
         diagnostics = report["diagnostics"]
-        assert diagnostics["rpc"]["calls"] >= 2 and "actor_restarts" in diagnostics
+        assert diagnostics["rpc"]["calls"] >= 2
+        assert "actor_restarts" in diagnostics
         answer = await connection.call("issue_system_command", group=20, command=0, payload="x")
         assert answer["accepted"] is False
         await connection.call("issue_system_command", group=20, command=0, payload="OFF")
@@ -243,7 +248,9 @@ async def test_diagnostics_command_adds_the_section_and_health_is_published(
         await connection.close()
     health = platform.bus.last(topics.PLATFORM_HEALTH)
     assert isinstance(health, PlatformHealth)
-    assert health.battery is Battery.UNKNOWN and not health.gps_fix and not health.fault
+    assert health.battery is Battery.UNKNOWN
+    assert not health.gps_fix
+    assert not health.fault
 
 
 def _link(station: StationDaemon, platform_id: str):  # type: ignore[no-untyped-def]
@@ -315,7 +322,8 @@ async def test_a_silent_sessions_stream_pauses_and_resumes_with_its_next_call(
             drain()
             paused = _paused(daemon)
             await wait_until(lambda: _paused(daemon) >= paused + 5)
-            assert drain() == 0 and connection.session_id in daemon.ctx.sessions.sessions
+            assert drain() == 0
+            assert connection.session_id in daemon.ctx.sessions.sessions
             # A call (the link is back): the same stream resumes by itself.
             await connection.call("heartbeat")
             received = 0

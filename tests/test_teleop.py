@@ -173,7 +173,8 @@ async def test_joystick_reader_reads_events_and_survives_unplugging(
             os.close(fd)
         fds.clear()
         await wait_until(lambda: not reader.connected.is_set())
-        assert reader.velocity() is None and reader.disconnects == 1
+        assert reader.velocity() is None
+        assert reader.disconnects == 1
 
         master, slave = open_pty()
         fds += [master, slave]
@@ -263,7 +264,8 @@ async def test_station_streams_only_while_it_holds_the_override(
     await wait_until(lambda: "brasidas-1" in teleop.senders)
     sender = teleop.senders["brasidas-1"]
     await wait_until(lambda: sender.ticks >= 3)
-    assert sender.sent == 0 and link().accepted == 0  # not engaged: nothing on the wire
+    assert sender.sent == 0
+    assert link().accepted == 0  # not engaged: nothing on the wire
 
     answer = await api.call_local("movrd", platform_id="brasidas-1", engaged=True)
     assert answer["accepted"] is True
@@ -273,7 +275,8 @@ async def test_station_streams_only_while_it_holds_the_override(
     assert platform.ctx.telemetry.build_one(Motion).deadman is False
 
     status = await api.call_local("teleop_set", platform_id="brasidas-1", linear=0.5, angular=-0.2)
-    assert status["engaged"] is True and status["target"][1] == platform.ctx.velocity_port
+    assert status["engaged"] is True
+    assert status["target"][1] == platform.ctx.velocity_port
     await wait_until(lambda: last_motor() == Velocity(0.5, -0.2))
 
     # The drive client goes quiet: zeros, still streamed (not the platform's deadman).
@@ -281,10 +284,12 @@ async def test_station_streams_only_while_it_holds_the_override(
     accepted = link().accepted
     await wait_until(lambda: link().accepted >= accepted + 5)
     assert platform.ctx.telemetry.build_one(Motion).deadman is False
-    assert link().dropped["bad_tag"] == 0 and link().dropped["not_holder"] == 0
+    assert link().dropped["bad_tag"] == 0
+    assert link().dropped["not_holder"] == 0
 
     report = await api.call_local("teleop_status", platform_id="brasidas-1")
-    assert report["platform"]["mode"] == "teleop" and report["source"] == "drive timeout"
+    assert report["platform"]["mode"] == "teleop"
+    assert report["source"] == "drive timeout"
 
     with pytest.raises(Exception, match=r"\[-1, 1\]"):
         await api.call_local("teleop_set", platform_id="brasidas-1", linear=1.5, angular=0.0)
@@ -313,7 +318,8 @@ async def test_another_station_is_not_told_it_holds_the_override(
     await other.open()
     try:
         beat = await other.call("heartbeat")
-        assert beat["manual_override"] is False and beat["override_engaged"] is True
+        assert beat["manual_override"] is False
+        assert beat["override_engaged"] is True
         mine = station.ctx.connections["brasidas-1"]
         assert (await mine.call("heartbeat"))["manual_override"] is True
     finally:
@@ -349,7 +355,8 @@ async def test_joystick_drives_the_platform_this_station_engaged(
         )
     )
     status = await api.call_local("teleop_status", platform_id="brasidas-1")
-    assert status["source"] == "joystick" and status["joystick"]["connected"] is True
+    assert status["source"] == "joystick"
+    assert status["joystick"]["connected"] is True
 
     os.write(fds[0], button(BUTTON_LB, False))  # let go of the enable button: stop
     await wait_until(lambda: last_motor() == STOP)

@@ -52,12 +52,14 @@ async def test_the_station_reconnects_by_itself_and_never_re_engages(
         new = st.ctx.connections[platform_id]
         await wait_until(lambda: platform_id in st.ctx.teleop.senders)  # type: ignore[union-attr]
         status = await api.call_local("teleop_status", platform_id=platform_id)
-        assert status["engaged"] is False and status["streaming"] is False
+        assert status["engaged"] is False
+        assert status["streaming"] is False
         # Nothing moves: no override, not one $PVEL accepted, even with a drive input alive.
         await api.call_local("teleop_set", platform_id=platform_id, linear=0.5, angular=0.0)
         await new.heartbeat()
         override = second.bus.last(topics.OVERRIDE_STATE)
-        assert override is not None and not override.engaged
+        assert override is not None
+        assert not override.engaged
         assert second.ctx.authority.station_id is None
         assert not new.manual_override
         # The operator re-engages deliberately: it drives again.
@@ -119,14 +121,17 @@ async def test_a_station_back_on_a_new_session_takes_its_control_back_another_ca
         # alpha on its new session re-engages, no --force needed: its old override goes.
         assert await back.call("set_manual_override", engaged=True) is True
         override = daemon.bus.last(topics.OVERRIDE_STATE)
-        assert override is not None and override.engaged
+        assert override is not None
+        assert override.engaged
         assert override.session_id == back.session_id
         assert daemon.ctx.authority.counters["reclaims"] == 1
         # The override went from the old session to the new one; never to Autonomous Mode
         # meanwhile but for the instant of the handover inside the reclaim itself.
-        assert overrides[-2:] == [False, True] and overrides.count(False) == 1
+        assert overrides[-2:] == [False, True]
+        assert overrides.count(False) == 1
         failsafe = daemon.bus.last(topics.FAILSAFE_STATE)
-        assert failsafe is not None and failsafe.step.value == "normal"
+        assert failsafe is not None
+        assert failsafe.step.value == "normal"
     finally:
         for conn in (lost, back, other):
             await conn.close()

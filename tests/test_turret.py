@@ -35,7 +35,8 @@ def test_lines_round_trip_and_bad_checksums_are_dropped_and_counted() -> None:
     ]
     assert decoder.dropped[Drop.BAD_CHECKSUM] == 1
     device = TurretDevice()
-    assert device.feed(bad, now=0.0) == b"" and device.log == []  # never acted on
+    assert device.feed(bad, now=0.0) == b""
+    assert device.log == []  # never acted on
 
 
 @pytest.fixture
@@ -97,7 +98,8 @@ async def test_lost_and_corrupted_acknowledgements_are_resent_and_acted_on_once(
     simulator.corrupt_next = 1  # the acknowledgement arrives with a bad checksum
     await driver.send("FIRE")
     assert simulator.device.log == ["AIM,10.0,5.0", "FIRE"]  # each acted on once
-    assert driver.counters["resent"] == 2 and driver.decoder.dropped[Drop.BAD_CHECKSUM] == 1
+    assert driver.counters["resent"] == 2
+    assert driver.decoder.dropped[Drop.BAD_CHECKSUM] == 1
     assert driver.state == (10.0, 5.0, True)
     with pytest.raises(TurretError, match="out of range"):
         await driver.send("AIM", 500.0, 0.0)
@@ -114,7 +116,8 @@ async def test_the_microcontroller_watchdog_releases_the_trigger_when_the_driver
     assert simulator.device.trigger
     # The driver goes silent (no pings): the microcontroller lets go by itself, and says so.
     await wait_until(lambda: driver.counters["watchdog"] == 1)
-    assert simulator.device.trigger is False and simulator.device.log[-1] == "WATCHDOG"
+    assert simulator.device.trigger is False
+    assert simulator.device.log[-1] == "WATCHDOG"
 
 
 async def station(daemon: PlatformDaemon, key: bytes, name: str) -> PlatformConnection:
@@ -159,7 +162,8 @@ async def test_engagement_only_from_the_override_holder_under_override(
         # Autonomous Mode: aiming is allowed to the controller, the trigger is not.
         assert (await command(a, 0, "az=20,el=5"))["accepted"]
         refused = await command(a, 1)
-        assert not refused["accepted"] and refused["reason"] == (
+        assert not refused["accepted"]
+        assert refused["reason"] == (
             "turret fire (100.1) refused: engagement only under manual override (Autonomous Mode)"
         )
         # Under alpha's override: bravo (an observer) can neither aim nor fire.
@@ -168,7 +172,8 @@ async def test_engagement_only_from_the_override_holder_under_override(
             answer = await command(b, code, "az=1,el=1")
             assert "control held by station alpha" in answer["reason"]
         accepted = await command(a, 1)
-        assert accepted["accepted"] and accepted["result"]["trigger"] is True
+        assert accepted["accepted"]
+        assert accepted["result"]["trigger"] is True
         assert device.trigger
         # Releasing the override makes the turret safe at once.
         assert (await a.call("set_manual_override", engaged=False)) is True
@@ -183,8 +188,10 @@ async def test_engagement_only_from_the_override_holder_under_override(
         assert "failsafe hold" in refused["reason"]
         assert daemon.ctx.authority.counters["engagement_refused"] == 2
         report = (await a.call("get_telemetry_report"))["turret"]
-        assert report["connected"] and report["trigger"] is False
-        assert report["counters"]["safe"] >= 2 and report["azimuth"] == 20.0
+        assert report["connected"]
+        assert report["trigger"] is False
+        assert report["counters"]["safe"] >= 2
+        assert report["azimuth"] == 20.0
         # The microcontroller never saw a refused command: two FIREs, both accepted ones.
         assert [entry for entry in device.log if entry == "FIRE"] == ["FIRE", "FIRE"]
         assert device.log[0] == "AIM,20.0,5.0"
@@ -229,7 +236,8 @@ async def test_the_turret_registers_the_thermal_camera_as_its_stream(
         assert "payload_camera" in [s["name"] for s in a.capabilities["streams"]]
         # A platform without the payload lists none, its camera staying a plain stream;
         # one whose turret has no camera lists the turret without a stream.
-        assert b.capabilities["payloads"] == [] and b.capabilities["payload_groups"] == []
+        assert b.capabilities["payloads"] == []
+        assert b.capabilities["payload_groups"] == []
         assert "payload_camera" in [s["name"] for s in b.capabilities["streams"]]
         assert c.capabilities["payloads"] == [{**turret_entry, "streams": []}]
         # Telemetry: the turret's section carries its stream's state, live.
@@ -270,9 +278,11 @@ async def test_a_missing_or_vanished_line_is_reported_and_reopened(
         payload = next(a for a in daemon.ctx.supervisor.actors if a.name == "turret")
         await wait_until(lambda: "No such file" in getattr(payload, "error", ""))
         report = await turret_report()
-        assert not report["connected"] and report["error"].startswith(f"cannot open {link}")
+        assert not report["connected"]
+        assert report["error"].startswith(f"cannot open {link}")
         refused = await command(conn, 0, "az=10,el=0")
-        assert not refused["accepted"] and refused["reason"].startswith("turret line not open")
+        assert not refused["accepted"]
+        assert refused["reason"].startswith("turret line not open")
         # The microcontroller is plugged in: the line opens on the next retry.
         for round_ in range(2):
             simulators.append(TurretSimulator())

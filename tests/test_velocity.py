@@ -37,7 +37,8 @@ def tagged(count: int, x: float = 0.1, z: float = 0.2, key: bytes = KEY, sid: st
 def test_nothing_moves_without_an_override_holder() -> None:
     gate = VelocityGate(require_tag=True)
     assert gate.admit(tagged(1), "127.0.0.1") is DropReason.NOT_ENGAGED
-    assert gate.stats().dropped["not_engaged"] == 1 and gate.accepted == 0
+    assert gate.stats().dropped["not_engaged"] == 1
+    assert gate.accepted == 0
 
 
 def test_holder_host_tag_and_order() -> None:
@@ -55,7 +56,8 @@ def test_holder_host_tag_and_order() -> None:
     assert gate.admit(b"$PVEL,7,0.1,0.2*00", "127.0.0.1") is DropReason.BAD_CHECKSUM
     assert gate.admit(b"hello", "127.0.0.1") is DropReason.MALFORMED
     stats = gate.stats()
-    assert stats.accepted == 2 and stats.last_count == 6
+    assert stats.accepted == 2
+    assert stats.last_count == 6
     assert stats.dropped == {
         "malformed": 1,
         "bad_checksum": 1,
@@ -91,10 +93,14 @@ def test_packets_are_aged_and_stale_ones_dropped_counted_and_spent() -> None:
     untimed = pvel.encode(5, 0.1, 0.2, key=KEY, session_id="s1")
     assert isinstance(gate.admit(untimed, "127.0.0.1", now), PvelSentence)
     age = gate.command_age(now + 0.5)
-    assert age is not None and age.max_ms == 120 and age.last_ms == 0 and age.samples == 2
+    assert age is not None
+    assert age.max_ms == 120
+    assert age.last_ms == 0
+    assert age.samples == 2
     assert gate.command_age(now + 1.01) is None  # the window is a second
     stats = gate.stats(now)
-    assert stats.dropped["stale"] == 2 and stats.accepted == 3
+    assert stats.dropped["stale"] == 2
+    assert stats.accepted == 3
 
 
 def test_a_session_key_is_required_whenever_the_platform_has_a_fleet_key() -> None:
@@ -191,7 +197,8 @@ async def test_autonomous_mode_obeys_cmd_vel_and_ignores_the_stream() -> None:
     bus.publish(topics.OVERRIDE_STATE, OverrideState(False))
     log = motor_log(bus)
     async with arbiter_on(bus, timers) as arbiter:
-        assert arbiter.mode is Mode.AUTONOMOUS and log == [STOP]
+        assert arbiter.mode is Mode.AUTONOMOUS
+        assert log == [STOP]
         bus.publish(topics.CMD_VEL, Velocity(0.4, 0.1))
         bus.publish(topics.TELEOP_VELOCITY, Velocity(1.0, 1.0))
         assert log == [STOP, Velocity(0.4, 0.1)]
@@ -204,12 +211,14 @@ async def test_teleop_obeys_the_stream_and_ignores_cmd_vel() -> None:
         bus.publish(topics.CMD_VEL, Velocity(0.4, 0.0))
         bus.publish(topics.OVERRIDE_STATE, OverrideState(True, "s1", "st"))
         # The switch itself commands zero, inside the delivery of the override state.
-        assert arbiter.mode is Mode.TELEOP and log[-1] == STOP
+        assert arbiter.mode is Mode.TELEOP
+        assert log[-1] == STOP
         bus.publish(topics.CMD_VEL, Velocity(0.9, 0.0))
         bus.publish(topics.TELEOP_VELOCITY, Velocity(-0.5, 0.25))
         assert log == [STOP, Velocity(0.4, 0.0), STOP, Velocity(-0.5, 0.25)]
         bus.publish(topics.OVERRIDE_STATE, OverrideState(False))
-        assert arbiter.mode is Mode.AUTONOMOUS and log[-1] == STOP
+        assert arbiter.mode is Mode.AUTONOMOUS
+        assert log[-1] == STOP
         bus.publish(topics.TELEOP_VELOCITY, Velocity(-0.5, 0.25))
         assert log[-1] == STOP
 
@@ -223,18 +232,25 @@ async def test_deadman_zeroes_the_motors_until_the_next_valid_packet() -> None:
         for _ in range(10):  # a healthy 20 Hz stream for half a second
             bus.publish(topics.TELEOP_VELOCITY, Velocity(0.6, 0.0))
             timers.advance(0.05)
-        assert not arbiter.deadman_tripped and log[-1] == Velocity(0.6, 0.0)
+        assert not arbiter.deadman_tripped
+        assert log[-1] == Velocity(0.6, 0.0)
         timers.advance(0.24)  # 0.29 s of silence: still driving
-        assert log[-1] == Velocity(0.6, 0.0) and arbiter.deadman_trips == 0
+        assert log[-1] == Velocity(0.6, 0.0)
+        assert arbiter.deadman_trips == 0
         timers.advance(0.02)  # 0.31 s
-        assert log[-1] == STOP and arbiter.deadman_tripped and arbiter.deadman_trips == 1
+        assert log[-1] == STOP
+        assert arbiter.deadman_tripped
+        assert arbiter.deadman_trips == 1
         timers.advance(5.0)
-        assert log[-1] == STOP and arbiter.deadman_trips == 1
+        assert log[-1] == STOP
+        assert arbiter.deadman_trips == 1
         bus.publish(topics.TELEOP_VELOCITY, Velocity(0.2, 0.1))
-        assert log[-1] == Velocity(0.2, 0.1) and not arbiter.deadman_tripped
+        assert log[-1] == Velocity(0.2, 0.1)
+        assert not arbiter.deadman_tripped
         assert bus.last(topics.MOTION_STATE) == arbiter.snapshot()
         timers.advance(0.31)
-        assert log[-1] == STOP and arbiter.deadman_trips == 2
+        assert log[-1] == STOP
+        assert arbiter.deadman_trips == 2
         # The timer does not outlive teleop.
         bus.publish(topics.TELEOP_VELOCITY, Velocity(0.2, 0.1))
         bus.publish(topics.OVERRIDE_STATE, OverrideState(False))
@@ -254,7 +270,8 @@ async def test_stream_end_to_end_with_spoofs_and_session_loss(
     good, spoof = udp_socket("127.0.0.1"), udp_socket("127.0.0.2")
     try:
         info = await conn.call("get_velocity_connection_info")
-        assert info["auth"] == "hmac-sha256-64" and info["port"] == daemon.ctx.velocity_port
+        assert info["auth"] == "hmac-sha256-64"
+        assert info["port"] == daemon.ctx.velocity_port
         assert conn.capabilities["velocity"]["tag_bytes"] == 8
         target = (info["host"], info["port"])
         encoder = pvel.PvelEncoder(key=conn.session_key, session_id=conn.session_id)
@@ -271,7 +288,8 @@ async def test_stream_end_to_end_with_spoofs_and_session_loss(
         assert commands[-1] == Velocity(0.3, 0.0)
         assert await conn.call("set_manual_override", engaged=True) is True
         motion = functools.partial(daemon.ctx.telemetry.build_one, Motion)
-        assert motion().mode == "teleop" and commands[-1] == STOP
+        assert motion().mode == "teleop"
+        assert commands[-1] == STOP
 
         good.sendto(encoder.encode(0.5, -0.25), target)
         await wait_until(lambda: commands[-1] == Velocity(0.5, -0.25))
@@ -300,13 +318,15 @@ async def test_stream_end_to_end_with_spoofs_and_session_loss(
                 and stats().dropped["bad_checksum"] == 1
             )
         )
-        assert commands[-1] == Velocity(1.0, 1.0) and stats().accepted == 2
+        assert commands[-1] == Velocity(1.0, 1.0)
+        assert stats().accepted == 2
 
         # The counters reach the bus for telemetry.
         receiver = next(a for a in daemon.ctx.supervisor.actors if a.name == "velocity")
         receiver.publish_stats()  # type: ignore[attr-defined]
         published = bus.last(topics.VELOCITY_LINK_STATS)
-        assert published is not None and published.accepted == 2
+        assert published is not None
+        assert published.accepted == 2
 
         # The session ends: back to Autonomous Mode with the motors at zero.
         await conn.close()

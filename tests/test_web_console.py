@@ -163,7 +163,11 @@ def known(document: dict[str, Any], path: str) -> bool:
 
 def test_the_field_check_catches_a_renamed_field() -> None:
     document = schema_document()
-    assert known(document, "gps.sats") and known(document, "streams.states.navcam")
-    assert known(document, "attitude.imu.temp_c") and known(document, "computer.error")
-    assert not known(document, "gps.satellites") and not known(document, "gps.stats.port")
-    assert known(document, "autonomy.reason") and not known(document, "autonomy.target")
+    assert known(document, "gps.sats")
+    assert known(document, "streams.states.navcam")
+    assert known(document, "attitude.imu.temp_c")
+    assert known(document, "computer.error")
+    assert not known(document, "gps.satellites")
+    assert not known(document, "gps.stats.port")
+    assert known(document, "autonomy.reason")
+    assert not known(document, "autonomy.target")

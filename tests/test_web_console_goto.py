@@ -71,11 +71,13 @@ async def test_click_on_the_map_slide_and_the_platform_goes_there(
     await expect(answer).to_contain_text("going to", timeout=10_000)
     await expect(page.locator("#map .goto-target")).to_have_count(0)
     report = await station.ctx.api.call_local("patrol_get", platform_id="web-rover")
-    assert report["state"] == "patrolling" and report["waypoints"] == 1, report
+    assert report["state"] == "patrolling", report
+    assert report["waypoints"] == 1, report
     going = await station.ctx.api.call_local("map_get", platform_id="web-rover")
     (target,) = going["route"]
     assert metres((target["lat"], target["lon"]), ne) < 1.0  # where the click was
-    assert platform.ctx.patrol is not None and platform.ctx.patrol.detour == "go to"
+    assert platform.ctx.patrol is not None
+    assert platform.ctx.patrol.detour == "go to"
     await expect(page.locator("#patrol-state")).to_have_attribute(
         "data-state", "patrolling", timeout=10_000
     )
@@ -120,12 +122,16 @@ async def test_the_goto_command_drives_there_and_says_why_not(
     lat, lon = shown["route"][1]["lat"], shown["route"][1]["lon"]
     code, out, err = await run_cli(station, "goto", "web-rover", f"{lat},{lon}")
     assert code == 0, err
-    assert out.startswith(f"going to {lat:.7f}, {lon:.7f}") and "waypoint   1 of 1" in out, out
-    assert platform.ctx.patrol is not None and platform.ctx.patrol.detour == "go to"
+    assert out.startswith(f"going to {lat:.7f}, {lon:.7f}"), out
+    assert "waypoint   1 of 1" in out, out
+    assert platform.ctx.patrol is not None
+    assert platform.ctx.patrol.detour == "go to"
     code, out, err = await run_cli(station, "goto", "web-rover", f"{lat + 0.01},{lon}")
-    assert code != 0 and "go to refused" in err, (out, err)
+    assert code != 0, (out, err)
+    assert "go to refused" in err, (out, err)
     code, out, err = await run_cli(station, "goto", "web-rover", "north")
-    assert code != 0 and "LAT,LON" in err, (out, err)
+    assert code != 0, (out, err)
+    assert "LAT,LON" in err, (out, err)
     # patrol start goes back to the route
     code, out, err = await run_cli(station, "patrol", "web-rover", "start")
     assert code == 0, err
@@ -176,7 +182,8 @@ async def test_home_is_in_telemetry_on_the_map_and_in_the_toolbar(
         await asyncio.sleep(0.1)
     here = (snapshot["pose"]["lat"], snapshot["pose"]["lon"])
     away, towards = metres(here, home), bearing(here, home)
-    assert 25 < away < 35 and 200 < towards < 250, (away, towards)
+    assert 25 < away < 35, (away, towards)
+    assert 200 < towards < 250, (away, towards)
     await expect(home_pill).to_have_text(re.compile(r"^⌂ (2[5-9]|3[0-5]) m 2[0-4]\d°$"))
     shown_m = float(await home_pill.get_attribute("data-metres") or "nan")
     assert shown_m == pytest.approx(away, abs=2.0)

@@ -253,7 +253,8 @@ async def test_a_route_edit_keeps_the_loop_and_counts_from_one(
     page = await console(browser, station, "web-rover")
     await expect(page.locator("#map path.route-line")).to_have_count(1, timeout=15_000)
     shown = (await station.ctx.api.call_local("map_get", platform_id="web-rover"))["route"]
-    assert len(shown) == 5 and shown[0] == shown[-1]  # a loop of four points
+    assert len(shown) == 5
+    assert shown[0] == shown[-1]  # a loop of four points
     await page.get_by_role("button", name="edit route").click()
     # A point halfway between the first two, inside the field.
     lat, lon = (shown[0]["lat"] + shown[1]["lat"]) / 2, (shown[0]["lon"] + shown[1]["lon"]) / 2
@@ -372,7 +373,8 @@ async def test_page_latency_reports_and_stream_copies_are_checked(
         good = '{"platform_id":"web-rover","p95_ms":9.5}'
         assert (await call(30, "console_latency", good))["result"] is True
         connection = station.ctx.connections["web-rover"]
-        assert connection.video_latency is not None and connection.video_latency() == 9.5
+        assert connection.video_latency is not None
+        assert connection.video_latency() == 9.5
 
     catchers = [UdpCatcher() for _ in range(5)]
     try:

@@ -174,7 +174,8 @@ async def test_instruments_plots_map_notifications_and_answers(
     # Heading once known: the CLI's number (clockwise from north: the rover heads 200°, not
     # -110° nor 250°) on the readout and on the needle.
     cli = await cli_heading(station)
-    assert cli is not None and abs(cli - HEADING_DEG) <= 20, cli
+    assert cli is not None, cli
+    assert abs(cli - HEADING_DEG) <= 20, cli
     near = "|".join(f"{(cli + d) % 360:03d}" for d in (-1, 0, 1))
     await expect(heading).to_have_text(re.compile(rf"^({near})°$"))
     needle = await page.locator("#compass-needle").get_attribute("transform")
@@ -221,7 +222,8 @@ async def test_instruments_plots_map_notifications_and_answers(
     await expect(page.locator("#map .area-point-name")).to_have_count(4, timeout=15_000)
     await expect(page.locator("#map .waypoint-label")).to_have_count(4)  # the demo loop's
     shown = await labels_apart(page)
-    assert {"web-rover", "web-rover-2"} <= set(shown) and len(shown) >= 7, shown  # of 10
+    assert {"web-rover", "web-rover-2"} <= set(shown), shown
+    assert len(shown) >= 7, shown  # of 10
     # Two rovers and the demo field, the heading known: fits both screens (and is
     # docs/console-fleet-*.png).
     await screenshots(page, "console-fleet")
@@ -283,7 +285,8 @@ async def test_instruments_plots_map_notifications_and_answers(
         await page.clock.fast_forward(60_000)
     await expect(battery).to_have_text(re.compile(r"≈\d+ min left"), timeout=5_000)
     left = re.search(r"≈(\d+) min left", await battery.text_content() or "")
-    assert left and 8 <= int(left.group(1)) <= 14, await battery.text_content()
+    assert left, await battery.text_content()
+    assert 8 <= int(left.group(1)) <= 14, await battery.text_content()
 
     # Notifications: a burst is one line counted, a cleared one says so, both kept by the
     # station across a reload, with 24-hour times.

@@ -70,7 +70,8 @@ async def test_console_imports_and_exports_map_and_route_files(
     )
     await expect(answer).to_contain_text("planned home")
     area = await station.ctx.api.call_local("map_get", platform_id="file-rover")
-    assert len(area["route"]) == 5 and area["closed"] is True
+    assert len(area["route"]) == 5
+    assert area["closed"] is True
     await expect(page.locator("#map path.route-line")).to_have_count(1, timeout=10_000)
 
     # Commands a ground robot cannot fly: refused, named; the route stays.

@@ -63,7 +63,8 @@ async def test_the_map_shows_the_scan_the_obstacle_and_the_grid(
     ring = await page.locator("#map path.lidar-obstacle").first.bounding_box()
     mapbox = await page.locator("#map").bounding_box()
     where = await page.evaluate(f"window.navcam.mapPixel({post[0]}, {post[1]})")
-    assert ring is not None and mapbox is not None
+    assert ring is not None
+    assert mapbox is not None
     centre = (
         ring["x"] + ring["width"] / 2 - mapbox["x"],
         ring["y"] + ring["height"] / 2 - mapbox["y"],

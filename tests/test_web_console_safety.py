@@ -55,7 +55,8 @@ async def test_stop_for_an_observer_and_a_silent_platform_greyed_with_its_age(
     assert arming is not None
     await page.get_by_role("button", name="emergency stop").click()
     await wait_until(lambda: arming.last_word is not None and arming.last_word.word == "stop")
-    assert arming.last_word is not None and arming.last_word.by == station.ctx.config.station.id
+    assert arming.last_word is not None
+    assert arming.last_word.by == station.ctx.config.station.id
     await expect(page.locator("#answer")).to_contain_text("STOP: web-rover stopped")
 
 

@@ -117,7 +117,8 @@ async def test_a_ticked_checkbox_or_the_fps_box_keep_no_drive_keys(
     assert await labels.count() >= 4
     for index in range(await labels.count()):
         label = await labels.nth(index).bounding_box()
-        assert inset is not None and label is not None
+        assert inset is not None
+        assert label is not None
         apart = (
             label["x"] > inset["x"] + inset["width"]
             or label["x"] + label["width"] < inset["x"]
@@ -146,9 +147,11 @@ async def test_a_ticked_checkbox_or_the_fps_box_keep_no_drive_keys(
         await page.wait_for_timeout(300)
         for plot in await page.locator("#plots .plot canvas").all():
             size = await plot.bounding_box()
-            assert size is not None and size["height"] >= 90, size
+            assert size is not None, size
+            assert size["height"] >= 90, size
         table = await page.locator("#platforms").bounding_box()
-        assert table is not None and table["y"] + table["height"] <= height, (width, table)
+        assert table is not None, (width, table)
+        assert table["y"] + table["height"] <= height, (width, table)
     await screenshots(page, "console-plots")
 
 
@@ -289,7 +292,8 @@ async def test_the_toolbar_shows_mode_arm_state_and_readiness(
     await slider.fill("40")  # let go half-way: nothing
     await page.wait_for_timeout(300)
     arming = platform.ctx.arming
-    assert arming is not None and not arming.armed  # let go half-way: nothing
+    assert arming is not None
+    assert not arming.armed  # let go half-way: nothing
     await wait_until(lambda: arming.reasons() == (), 30)  # the real checks pass too
     await slider.fill("100")
     await expect(page.locator("#answer")).to_contain_text("arm: acknowledged", timeout=10_000)

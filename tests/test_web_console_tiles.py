@@ -87,7 +87,8 @@ async def test_mbtiles_are_served_and_drawn_under_the_map(
     (z, x, y), data = next(iter(tiles.items()))
     async with aiohttp.ClientSession() as http:
         async with http.get(f"{base}/tiles/{z}/{x}/{y}") as response:  # XYZ row, not TMS
-            assert response.status == 200 and response.content_type == "image/png"
+            assert response.status == 200
+            assert response.content_type == "image/png"
             assert await response.read() == data
         async with http.get(f"{base}/tiles/{z}/{x + 5}/{y}") as response:
             assert response.status == 404
@@ -142,7 +143,8 @@ async def test_a_tile_urls_tiles_are_kept_and_served_offline(
             url = f"http://127.0.0.1:{station.api_port}/tiles/16/100/200"
             for _ in range(2):
                 async with http.get(url) as response:
-                    assert response.status == 200 and await response.read() == tile
+                    assert response.status == 200
+                    assert await response.read() == tile
             assert served == ["/16/100/200.png"]  # the second from the station's copy
             assert (tmp_path / "cache" / "16" / "100" / "200").read_bytes() == tile
             async with http.get(f"http://127.0.0.1:{station.api_port}/tiles/9/1/1") as response:
@@ -154,7 +156,8 @@ async def test_a_tile_urls_tiles_are_kept_and_served_offline(
         ):
             url = f"http://127.0.0.1:{station.api_port}/tiles/16/100/200"
             async with http.get(url) as response:
-                assert response.status == 200 and await response.read() == tile
+                assert response.status == 200
+                assert await response.read() == tile
             async with http.get(url.replace("/200", "/201")) as response:
                 assert response.status == 502
     finally:
