@@ -45,7 +45,7 @@ import numpy as np
 from brasidas import topics
 from brasidas.config import PlatformConfig, load_config
 from brasidas.messages import PatrolState, Velocity
-from brasidas.perception.proximity import limit_for
+from brasidas.perception.limits import limit_for
 from platformd.sim.demo_area import LOOP, offset
 
 LAPS = int(os.environ.get("BENCH_LAPS") or os.environ.get("BENCH_TOWN_LAPS") or "50")

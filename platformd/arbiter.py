@@ -36,8 +36,8 @@ from brasidas.messages import (
     SpeedCap,
     Velocity,
 )
+from brasidas.perception.limits import limit_for
 from brasidas.perception.messages import Proximity
-from brasidas.perception.proximity import limit_for
 from platformd.context import PlatformContext
 
 _LOGGER = logging.getLogger(__name__)

@@ -45,7 +45,7 @@ from shapely.geometry import MultiPolygon
 from brasidas import topics
 from brasidas.actor import Actor
 from brasidas.autonomy.areamap import AreaMap
-from brasidas.autonomy.geo import LocalFrame
+from brasidas.autonomy.geo import LocalFrame, wrap
 from brasidas.bus import Bus
 from brasidas.clock import Clock, LoopClock
 from brasidas.messages import Attitude, GpsFix, Velocity
@@ -58,7 +58,6 @@ from brasidas.perception.odometry import (
     OdometryStep,
     Pose2D,
     scan_points,
-    wrap,
 )
 from platformd.lidar_models import TEMPORARY_KEEPOUT_PREFIX
 from platformd.map_match_process import MapMatchProcess, Pending

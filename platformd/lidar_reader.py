@@ -34,8 +34,9 @@ from brasidas.codecs.ldlidar import LidarDecoder, LidarScan, ScanAssembler
 from brasidas.codecs.telemetry_schema import Perception
 from brasidas.config.lidar import LidarSection
 from brasidas.messages import Mode, PoseEstimate, Velocity
+from brasidas.perception.limits import limit_for
 from brasidas.perception.messages import Proximity, RobotScan
-from brasidas.perception.proximity import Geometry, limit_for, proximity, silent, to_robot
+from brasidas.perception.proximity import Geometry, proximity, silent, to_robot
 from brasidas.perception.view import PlanePose, pose_at, reframe
 from brasidas.security import state_dir
 from platformd.context import PlatformContext, SerialDevice
@@ -307,7 +308,7 @@ async def async_setup(ctx: PlatformContext) -> None:
     if config.odometry:
 
         def area() -> AreaMap | None:  # the patrol's map, once autonomy has set up
-            return ctx.patrol.core.area if ctx.patrol is not None else None
+            return ctx.patrol.area if ctx.patrol is not None else None
 
         reader.localizer = Localizer(
             ctx.bus,

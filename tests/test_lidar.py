@@ -21,8 +21,9 @@ from brasidas.codecs.ldlidar import LidarScan
 from brasidas.codecs.telemetry_schema import Perception, section_from_wire, section_to_wire
 from brasidas.config.lidar import LidarSection
 from brasidas.messages import Velocity
+from brasidas.perception.limits import forward_for
 from brasidas.perception.messages import Proximity
-from brasidas.perception.proximity import Geometry, forward_for, proximity, to_robot
+from brasidas.perception.proximity import Geometry, proximity, to_robot
 from platformd.lidar_reader import LidarReader
 from platformd.mode import ModeArbiter
 from platformd.session_table import Session

@@ -200,7 +200,7 @@ async def test_every_path_is_charged_to_its_source_on_a_running_platform(
         # MAVLink requests and a download at once.
         token = "t" * 32
         now = time.monotonic()
-        daemon.ctx.sessions.sessions[token] = Session(token, "st-3", STRANGER, None, now, now)
+        daemon.ctx.sessions.open(Session(token, "st-3", STRANGER, None, now, now))
         assert daemon.ctx.mavlink_port
         stranger.vehicle = ("127.0.0.1", daemon.ctx.mavlink_port)
         url = f"{daemon.ctx.signaling_url}/recordings/2020-01-01T00-00-00Z.mcap"

@@ -37,7 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from brasidas.perception.odometry import Pose2D, wrap
+from brasidas.autonomy.geo import wrap
+from brasidas.perception.odometry import Pose2D
 
 LIDAR_NOISE = (0.02, 0.01, 0.003)
 """Odometry from registration: sigma along and across per metre, and of yaw per metre (rad)."""

@@ -54,7 +54,7 @@ class Proximity:
     turns: tuple[tuple[float, float, str], ...] = ()
     """Forward limits along arcs: (turn ratio, limit, reason) where the ratio is the command's
     angular over its linear (both fractions of full scale; positive: left), the corridor
-    following the arc the robot drives (:func:`brasidas.perception.proximity.forward_for`)."""
+    following the arc the robot drives (:func:`brasidas.perception.limits.forward_for`)."""
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ import numpy as np
 import small_gicp
 from numpy.typing import NDArray
 
+from brasidas.autonomy.geo import wrap
 from brasidas.perception.messages import RobotScan
 
 LAYERS_M = (-0.2, 0.0, 0.2)
@@ -92,10 +93,6 @@ class Pose2D:
 
 
 IDENTITY = Pose2D(0.0, 0.0, 0.0)
-
-
-def wrap(angle: float) -> float:
-    return math.atan2(math.sin(angle), math.cos(angle))
 
 
 def prior_motion(speed_mps: float, yaw_rate_rad_s: float, dt_s: float) -> Pose2D:

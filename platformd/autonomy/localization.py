@@ -23,12 +23,11 @@ from collections.abc import Callable
 
 from brasidas import topics
 from brasidas.actor import Actor
-from brasidas.autonomy.geo import LocalFrame, heading_to_yaw
+from brasidas.autonomy.geo import LocalFrame, heading_to_yaw, wrap
 from brasidas.autonomy.localization import FilterParameters, PoseFilter
 from brasidas.bus import Bus
 from brasidas.messages import Attitude, GpsFix, MotionState, PoseEstimate
 from brasidas.perception.messages import LidarPose
-from brasidas.perception.odometry import wrap
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -36,7 +35,11 @@ LIDAR_POSE_AHEAD_S = 0.5
 """A lidar pose is carried forward at most this far (five scans): a lidar that stalls has its
 motors held (platformd.lidar), and its pose's growing fix age holds the patrol."""
 IMU_HISTORY = 200
-"""The IMU's recent yaws kept to turn a late lidar pose by (seconds of them at its rate)."""
+"""The IMU's recent yaws kept to turn a late lidar pose by, at most this many ..."""
+IMU_HISTORY_S = 5.0
+"""... and none older than this: a scan is registered well within it even on a loaded machine,
+and a history bounded in time stops growing within seconds at any IMU rate (at 5 Hz, 200
+samples would keep growing for 40 s, which reads as a leak)."""
 IMU_JUMP_RAD_S = math.radians(150.0)
 """A yaw change faster than any rover turns: the IMU's filter restarted, not a turn."""
 
@@ -168,7 +171,10 @@ class Localization(Actor):
     def _on_attitude(self, attitude: Attitude) -> None:
         now, yaw = self._now(), math.radians(attitude.yaw_deg)
         self.filter.imu_yaw(now, yaw)
-        self._imu.append((now, yaw))
+        imu = self._imu
+        imu.append((now, yaw))
+        while imu[0][0] < now - IMU_HISTORY_S:
+            imu.popleft()
 
     def _imu_turn(self, start: float, end: float) -> float:
         """What the IMU turned from ``start`` to ``end`` (0 without one, or across a restart
