@@ -288,6 +288,10 @@ class _StuckPipeline:
     def set_sync_handler(self, *args: object) -> None:
         pass
 
+    def iterate_sources(self) -> object:
+        self._empty = gst().Bin.new("empty")  # no sources: an iterator that ends at once
+        return self._empty.iterate_sources()
+
     def set_state(self, state: object) -> object:
         Gst = gst()
         if state == Gst.State.NULL:

@@ -264,6 +264,13 @@ class PipelineStream:
         bus = pipeline.get_bus()
         loop = asyncio.get_running_loop()
         bus.set_sync_handler(_sync_handler, (weakref.ref(self), loop, self._generation))
+        # A source's end of stream is the stream's: the pipeline posts EOS only once every sink
+        # has it, and a sink fed from elsewhere (rtpbin's RTCP, a tee's other branch) may never.
+        Gst = gst()
+        data = (weakref.ref(self), loop, self._generation)
+        for source in _iterate(pipeline.iterate_sources()):
+            for pad in source.srcpads:
+                pad.add_probe(Gst.PadProbeType.EVENT_DOWNSTREAM, _source_eos_probe, data)
         self.pipeline = pipeline
         self.on_built(pipeline)
 
@@ -327,6 +334,34 @@ class PipelineStream:
 
     def on_element_message(self, kind: str, text: str) -> None:
         """Other forwarded messages (``kind`` is the structure name); override as needed."""
+
+
+def _iterate(iterator: Any) -> list[Any]:
+    """The items of a GstIterator (bins are not changed while it is read)."""
+    Gst = gst()
+    items: list[Any] = []
+    while True:
+        result, item = iterator.next()
+        if result == Gst.IteratorResult.OK:
+            items.append(item)
+        elif result == Gst.IteratorResult.RESYNC:
+            iterator.resync()
+            items.clear()
+        else:
+            return items
+
+
+def _source_eos_probe(pad: Any, info: Any, data: tuple[Any, ...]) -> Any:
+    """GStreamer thread: a source's EOS event, told to the loop as the bus's EOS would be."""
+    Gst = gst()
+    event = info.get_event()
+    if event is not None and event.type == Gst.EventType.EOS:
+        ref, loop, generation = data
+        stream = ref()
+        if stream is not None:
+            with contextlib.suppress(RuntimeError):  # loop closed: nobody to tell
+                loop.call_soon_threadsafe(stream._on_message, generation, "eos", "", "")
+    return Gst.PadProbeReturn.OK
 
 
 def _sync_handler(bus: Any, message: Any, data: tuple[Any, ...]) -> Any:
