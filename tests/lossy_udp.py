@@ -33,11 +33,15 @@ class LossyRelay:
                 continue
             except OSError:
                 return
-            if self._random.random() < self.loss:
+            if self.lost(data):
                 self.dropped += 1
                 continue
             self.forwarded += 1
             self.sock.sendto(data, self.to)
+
+    def lost(self, data: bytes) -> bool:
+        """Whether this datagram is lost on the way (a seeded share of them)."""
+        return self._random.random() < self.loss
 
     def close(self) -> None:
         self._running = False

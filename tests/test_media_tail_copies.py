@@ -4,51 +4,30 @@ the copy its frame came a frame late."""
 
 from __future__ import annotations
 
-import socket
 import statistics
-import threading
 
 from conftest import free_udp_port, wait_until
+from lossy_udp import LossyRelay
 
 from brasidas.media.video import PAYLOAD_TYPE, VideoIn, VideoOut, VideoSettings
 
 
-class _FirstTailLost:
+class _FirstTailLost(LossyRelay):
     """A loopback UDP relay that loses the first copy of every frame's last packet (RTP
     marker set): the worst case of a lossy link, made certain."""
 
     def __init__(self, to: tuple[str, int]) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.1)
-        self.port: int = self.sock.getsockname()[1]
-        self.to = to
-        self.dropped = 0
-        self._seen: set[int] = set()
-        self._running = True
-        self._thread = threading.Thread(target=self._run, name="tail-loss", daemon=True)
-        self._thread.start()
+        self._seen: set[int] = set()  # before the relay's thread starts
+        super().__init__(to, loss=0.0)
 
-    def _run(self) -> None:
-        while self._running:
-            try:
-                data, _ = self.sock.recvfrom(65536)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            if len(data) >= 4 and data[1] == 0x80 | PAYLOAD_TYPE:
-                seq = int.from_bytes(data[2:4], "big")
-                if seq not in self._seen:
-                    self._seen.add(seq)
-                    self.dropped += 1
-                    continue
-            self.sock.sendto(data, self.to)
-
-    def close(self) -> None:
-        self._running = False
-        self._thread.join(2)
-        self.sock.close()
+    def lost(self, data: bytes) -> bool:
+        if len(data) < 4 or data[1] != 0x80 | PAYLOAD_TYPE:
+            return False
+        seq = int.from_bytes(data[2:4], "big")
+        if seq in self._seen:
+            return False
+        self._seen.add(seq)
+        return True
 
 
 async def test_at_5_fps_a_frame_whose_last_packet_is_lost_still_comes_on_time() -> None:
