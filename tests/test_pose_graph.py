@@ -5,10 +5,6 @@ from __future__ import annotations
 
 import math
 
-import pytest
-
-pytest.importorskip("gtsam")  # pip install --no-deps gtsam==4.3.0 (make deps)
-
 from brasidas.perception.odometry import LidarOdometry, Pose2D, scan_points
 from brasidas.perception.pose_graph import PoseGraph
 from platformd.sim.drive import SimulatedDrive, loop_waypoints, street_grid
