@@ -96,7 +96,7 @@ SLOW_TESTS = frozenset(
 """Single tests of seconds each (3 s or more in a 2-worker ``--durations=0`` run; file::name,
 parameters aside) in otherwise quick modules."""
 
-BROWSER_LANES = 2
+BROWSER_LANES = 1
 """Browser tests that may run at once (on as many workers). A test's lane follows from its
 name alone, so a new test moves no other test to another lane."""
 
