@@ -185,11 +185,18 @@ export class PlatformMap {
       if (!box.width) return true;
       return !placed.some((o) => box.left < o.right && o.left < box.right && box.top < o.bottom && o.top < box.bottom);
     };
-    const place = (element, sides) => {
+    // `keep`: the shown platform's own name is never hidden; with no side clear of the map's
+    // furniture (zoomed far out, every marker on one spot) it takes its first side anyway.
+    const place = (element, sides, keep = false) => {
       element.classList.remove("label-hidden");
       for (const side of sides) {
         side();
         if (free(element)) { placed.push(element.getBoundingClientRect()); return; }
+      }
+      if (keep && sides.length) {
+        sides[0]();
+        placed.push(element.getBoundingClientRect());
+        return;
       }
       element.classList.add("label-hidden");
     };
@@ -203,7 +210,7 @@ export class PlatformMap {
       };
       // The side it has first (a label that jumps at every move is hard to follow).
       const sides = [entry.labelSide ?? "right", ...LABEL_SIDES.filter((name) => name !== (entry.labelSide ?? "right"))];
-      place(label, sides.map(side));
+      place(label, sides.map(side), entry.current);
     }
     const tooltips = (group, directions) => group?.eachLayer((layer) => {
       const tooltip = layer.getTooltip?.();
