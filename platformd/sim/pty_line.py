@@ -14,6 +14,7 @@ import tty
 _LOGGER = logging.getLogger(__name__)
 DRAIN_TIMEOUT_S = 2.0
 DRAIN_POLL_S = 0.02
+DRAIN_SETTLE_S = 0.1
 
 
 class PtyLine:
@@ -44,7 +45,10 @@ class PtyLine:
     async def drained(self, timeout: float = DRAIN_TIMEOUT_S) -> None:
         """Until the driver has read what was written (at most ``timeout``): closing drops
         what is still queued for it, which a driver slowed by a busy CPU had not read yet."""
-        # Polled: the kernel tells no one when the other end reads.
+        # What was just written reaches the other end's queue through the kernel's work
+        # queue, not at once (~1 ms, more on a busy CPU): counted from there. Then polled:
+        # the kernel tells no one when the other end reads.
+        await asyncio.sleep(DRAIN_SETTLE_S)
         for _ in range(max(1, round(timeout / DRAIN_POLL_S))):
             if self.closed or not self.queued():
                 return
