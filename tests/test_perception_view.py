@@ -252,6 +252,7 @@ async def test_a_foxglove_client_gets_the_scan_the_grid_and_the_fused_pose(
     from support.foxglove import subscribe
     from support.patrol import config
 
+    from platformd.perception_view import PerceptionView
     from stationd.foxglove_live import FoxgloveLive
 
     post = (10.0, 3.0, 0.4)
@@ -279,6 +280,14 @@ async def test_a_foxglove_client_gets_the_scan_the_grid_and_the_fused_pose(
         assert code == 0, err
         wanted = ("/lidar/scan", "/pose/fused", "/grid")
         lines = await subscribe(live.port, 1, *wanted)
+        # A client subscribing later gets the grid last published, though no new one comes
+        # (the channel was advertised with the first grid, which a subscriber then missed).
+        (view,) = [a for a in platform.supervisor.actors if isinstance(a, PerceptionView)]
+        view.grid_period_s = 3600.0
+        rev = view.grid_rev
+        later = await subscribe(live.port, 1, "/grid")
+        assert view.grid_rev == rev
+        assert [line["topic"] for line in later if "topic" in line] == ["/grid"], later
     messages = {line["topic"]: line for line in lines if "topic" in line}
     assert set(messages) == set(wanted), lines
     scan = messages["/lidar/scan"]
