@@ -55,6 +55,15 @@ class Samples:
     raw: list[dict[str, Any]] = field(default_factory=list)
     process: asyncio.subprocess.Process | None = None
     dumped: asyncio.Queue[str] = field(default_factory=asyncio.Queue)
+    tracing: asyncio.Event = field(default_factory=asyncio.Event)
+
+    async def trace(self, timeout: float = 30.0) -> None:
+        """Have the platform start tracemalloc now (``trace_when_told``)."""
+        assert self.process is not None and self.process.stdin is not None
+        self.process.stdin.write(b"trace\n")
+        await self.process.stdin.drain()
+        async with asyncio.timeout(timeout):
+            await self.tracing.wait()
 
     async def snapshot(self, path: str, timeout: float = 60.0) -> str:
         """Have the platform dump a tracemalloc snapshot (needs ``frames`` > 0)."""
@@ -119,9 +128,11 @@ async def busy_platform(
     collect: bool = False,
     mallocstats: bool = False,
     trace_from: float = 0.0,
+    trace_when_told: bool = False,
     env: dict[str, str] | None = None,
 ) -> AsyncIterator[Samples]:
-    """A ``--sim`` platform made busy by a station; yields its memory samples as they come."""
+    """A ``--sim`` platform made busy by a station; yields its memory samples as they come
+    (``trace_when_told``: tracemalloc starts at :meth:`Samples.trace`, not with the process)."""
     signaling = free_port()
     args = [
         sys.executable, "-m", "bench.memory_probe",
@@ -137,6 +148,8 @@ async def busy_platform(
         args.append("--mallocstats")
     if trace_from:
         args.append(f"--trace-from={trace_from}")
+    if trace_when_told:
+        args.append("--trace-when-told")
     args += ["--", "--sim"]
     for item in (
         f"signaling.port={signaling}",
@@ -165,6 +178,8 @@ async def busy_platform(
                 continue  # not the probe's (a library printing)
             if "snapshot" in line:
                 samples.dumped.put_nowait(line["snapshot"])
+            elif "tracing" in line:
+                samples.tracing.set()
             else:
                 samples.raw.append(line)
                 samples.lines.append((line["t"], line["rss_kb"], line.get("traced", 0)))

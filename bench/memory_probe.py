@@ -14,7 +14,8 @@ from growth: it returns malloc's free pages to the system).
 With ``--report``, that file is rewritten at each line with the allocation sites that grew the
 most since the first line after ``--baseline`` seconds (tracemalloc snapshots compared).
 A line ``snapshot PATH`` on stdin dumps a tracemalloc snapshot there, then prints
-``{"snapshot": PATH}``.
+``{"snapshot": PATH}``; with ``--trace-when-told`` tracemalloc starts at a line ``trace``
+(then prints ``{"tracing": true}``): the start-up runs at full speed and is not traced.
 """
 
 from __future__ import annotations
@@ -174,7 +175,7 @@ def _report(args: argparse.Namespace) -> None:
     while True:
         time.sleep(args.interval)
         if args.frames and not tracemalloc.is_tracing():
-            if time.monotonic() - started >= args.trace_from:
+            if not args.trace_when_told and time.monotonic() - started >= args.trace_from:
                 tracemalloc.start(args.frames)
             continue
         collected: dict[str, object] = {}
@@ -219,9 +220,13 @@ def _report(args: argparse.Namespace) -> None:
         Path(args.report).write_text("\n".join(text) + "\n")
 
 
-def _commands() -> None:
+def _commands(frames: int) -> None:
     for line in sys.stdin:
         command, _, path = line.strip().partition(" ")
+        if command == "trace" and frames:
+            if not tracemalloc.is_tracing():
+                tracemalloc.start(frames)
+            _say({"tracing": True})
         if command == "snapshot" and path and tracemalloc.is_tracing():
             gc.collect()  # what is only waiting for the cycle collector is not growth
             tracemalloc.take_snapshot().dump(path)
@@ -245,15 +250,22 @@ def main() -> int:
         help="start tracemalloc this many seconds in (a fast start; only what is allocated "
         "after is traced)",
     )
+    parser.add_argument(
+        "--trace-when-told",
+        action="store_true",
+        help="start tracemalloc at a 'trace' line on stdin (after the start-up)",
+    )
     parser.add_argument("--baseline", type=float, default=60.0, help="seconds of warm-up")
     args, platform_args = parser.parse_known_args()
     if platform_args[:1] == ["--"]:
         platform_args = platform_args[1:]
-    if args.frames and not args.trace_from:
+    if args.frames and not args.trace_from and not args.trace_when_told:
         tracemalloc.start(args.frames)
     sys.argv = ["brasidas-platform", *platform_args]
     threading.Thread(target=_report, args=(args,), name="memory-probe", daemon=True).start()
-    threading.Thread(target=_commands, name="memory-probe-commands", daemon=True).start()
+    threading.Thread(
+        target=_commands, args=(args.frames,), name="memory-probe-commands", daemon=True
+    ).start()
     from platformd.__main__ import run
 
     return run()

@@ -3,7 +3,7 @@ fused pose and the occupancy grid on the bus, and the ``get_grid`` signaling met
 
 Every snapshot carries the latest scan in 5° sectors and the fused pose on the globe
 (:mod:`brasidas.perception.view`); the grid is too large for a datagram, so every
-:data:`GRID_PERIOD_S` while it grows it is reduced to a small image (in a thread: numpy work),
+``lidar.grid_period_s`` while it grows it is reduced to a small image (in a thread: numpy work),
 published on ``OCCUPANCY_GRID`` (the recorder writes it as ``foxglove.Grid``) and its revision
 goes in the section; the station asks for it with ``get_grid`` when the revision moves. The
 fused pose goes on ``FUSED_POSE`` (the recorder's ``/pose/fused``) at most
@@ -50,7 +50,6 @@ class LidarReader(Protocol):
 
 
 POSE_PERIOD_S = 0.2
-GRID_PERIOD_S = 5.0
 SCAN_SHOWN_S = 1.0
 """A scan older than this is not shown (the lidar went silent)."""
 
@@ -60,14 +59,21 @@ class PerceptionView(Actor):
 
     name = "perception_view"
 
-    def __init__(self, bus: Bus, reader: LidarReader, clock: Clock | None = None) -> None:
+    def __init__(
+        self,
+        bus: Bus,
+        reader: LidarReader,
+        clock: Clock | None = None,
+        grid_period_s: float = 5.0,
+    ) -> None:
         super().__init__(bus)
         self.reader = reader
         self.clock: Clock = clock or reader.clock
+        self.grid_period_s = grid_period_s
         self.grid_rev = 0
         self.grid: GridImage | None = None
         self._grid_scans = -1
-        self._grid_at = -GRID_PERIOD_S
+        self._grid_at = -grid_period_s
         self._pose_time: float | None = None
         self.position: FusedPosition | None = None
 
@@ -75,7 +81,7 @@ class PerceptionView(Actor):
         while True:
             self.publish_pose()
             now = self.clock.time()
-            if now - self._grid_at >= GRID_PERIOD_S:
+            if now - self._grid_at >= self.grid_period_s:
                 self._grid_at = now
                 await self.refresh_grid()
             await sleep(self.clock, POSE_PERIOD_S)
@@ -155,7 +161,7 @@ class PerceptionView(Actor):
 
 
 def start(ctx: PlatformContext, reader: LidarReader) -> PerceptionView:
-    view = PerceptionView(ctx.bus, reader)
+    view = PerceptionView(ctx.bus, reader, grid_period_s=ctx.config.lidar.grid_period_s)
     ctx.telemetry.register(LidarView, view.section)
     ctx.rpc.add("get_grid", view.get_grid)
     ctx.supervisor.start(view)

@@ -114,6 +114,9 @@ class _PlatformChannels:
         self.states: dict[str, StateChange] = {}
         self.map_rev: int | None = None
         self.grid_rev = 0
+        self.grid_data: bytes | None = None
+        """The occupancy grid last published: again to each new subscriber (a robot that
+        stopped, or sees nothing to match, draws no new one)."""
         self.map_data: bytes | None = None
         """The area map last published: again to each new subscriber (it changes rarely)."""
         self.last_note: tuple[bytes, int] | None = None
@@ -326,18 +329,23 @@ class FoxgloveLive(Actor):
             )
             if isinstance(answer, dict) and answer.get("rev"):
                 message = projection.grid_message(grid_from_json(answer), time.time_ns())
+                platform.grid_data = message.data
                 platform.log(message.spec, message.data, message.time_ns)
 
     # ------------------------------------------------------------------ video (loop)
 
     def subscribed(self, topic: str, delta: int) -> None:
         """A client subscribed to (1) or left (-1) ``topic``; the NavCam is fetched while
-        anyone watches it, and a new subscriber to the map (or the log) gets the current one
-        (the last notification)."""
+        anyone watches it, and a new subscriber to the map, the grid (or the log) gets the
+        current one (the last notification): each is advertised with its first message, which
+        a client subscribing then misses."""
         for platform in self.platforms.values():
             if topic == f"{platform.prefix}{schemas.MAP.topic}" and delta > 0:
                 if platform.map_data is not None:
                     platform.log(schemas.MAP, platform.map_data, time.time_ns())
+            if topic == f"{platform.prefix}{schemas.OCCUPANCY_GRID.topic}" and delta > 0:
+                if platform.grid_data is not None:
+                    platform.log(schemas.OCCUPANCY_GRID, platform.grid_data, time.time_ns())
             if topic == f"{platform.prefix}{schemas.LOG_CHANNEL.topic}" and delta > 0:
                 if platform.last_note is not None:
                     platform.log(schemas.LOG_CHANNEL, *platform.last_note)

@@ -231,7 +231,11 @@ async def test_vanished_port_is_retried_and_a_new_one_works(tmp_path: Path) -> N
             await first.write(epoch(0))
             await wait_until(lambda: reader.decoder.sentences == 2)
             await advancing(clock, lambda: len(seen.fixes) == 1)
-            first.close()  # the USB adapter is pulled
+            # The USB adapter is pulled: its tty goes and udev removes the by-id link. (A link
+            # left to the closed /dev/pts/N was opened again when another test's new pty took
+            # that number, on a busy machine: reconnected to someone else's device.)
+            first.close()
+            link.unlink()
             await wait_until(lambda: not reader.connected)
             await wait_until(lambda: len(seen.lost) == 1)
             assert str(link) in seen.lost[0].reason
@@ -240,7 +244,6 @@ async def test_vanished_port_is_retried_and_a_new_one_works(tmp_path: Path) -> N
             gone_at = clock.time()
             await advancing(clock, lambda: clock.time() > gone_at + 5)  # reopen attempts fail
             assert not reader.connected
-            link.unlink()
             link.symlink_to(second.path)  # plugged in again, as another tty
             await advancing(clock, lambda: reader.connected)
             await second.write(epoch(1))

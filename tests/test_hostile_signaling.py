@@ -131,7 +131,9 @@ async def test_half_sent_headers_are_closed_within_the_header_timeout(
     platform_factory: Factory, fleet_key: bytes
 ) -> None:
     """Defect 2: partial headers or bodies stayed open indefinitely."""
-    daemon = await platform_factory(quiet_platform_config(), fleet_key)  # 5 s each
+    # Scaled down from 5 s each: what is tested is that they are applied.
+    config = quiet_platform_config("admission.header_timeout=1", "admission.body_timeout=1")
+    daemon = await platform_factory(config, fleet_key)
     address = signaling_address(daemon)
     partial_headers = [stranger_socket(address) for _ in range(4)]
     partial_bodies = [stranger_socket(address, "127.0.0.3") for _ in range(4)]

@@ -131,7 +131,12 @@ def test_driver_reads_si_units_through_the_chip() -> None:
 
 class Turntable:
     """Still for ``delay`` s after the first read, then yaws at ``rate`` deg/s (CCW) for
-    ``total`` degrees; the chip's gyro reads ``bias`` deg/s more on each axis."""
+    ``total`` degrees; the chip's gyro reads ``bias`` deg/s more on each axis.
+
+    ``averaged``: the gyro reads the mean rate since the previous read, so the yaw summed over
+    the reads is the turn whenever they come. Read at real times (burst mode), an instantaneous
+    step of 45 °/s is missed or doubled for as long as a read is late at either edge: a
+    starved CPU's late reads made a 5° error (a timing effect, not the fusion under test)."""
 
     def __init__(
         self,
@@ -140,10 +145,23 @@ class Turntable:
         clock: Callable[[], float],
         delay: float = 0.0,
         bias: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        averaged: bool = False,
     ) -> None:
         self.rate, self.total, self.clock, self.delay = rate, total, clock, delay
         self.bias = tuple(math.radians(b) for b in bias)
+        self.averaged = averaged
         self.start: float | None = None
+        self._previous: float | None = None
+
+    def turn_in(self, seconds: float) -> None:
+        """Start the turn ``seconds`` from now (set ``delay=math.inf`` to wait for this)."""
+        assert self.start is not None, "not read yet"
+        self.delay = self.clock() - self.start + seconds
+
+    def _turned(self, at: float) -> float:
+        """Degrees turned by ``at``."""
+        assert self.start is not None
+        return min(self.total, max(0.0, (at - self.start - self.delay) * self.rate))
 
     def done(self) -> bool:
         return (
@@ -154,9 +172,13 @@ class Turntable:
     def __call__(self, now: float) -> Motion:
         if self.start is None:
             self.start = now
-        elapsed = now - self.start - self.delay
-        turning = 0.0 <= elapsed and elapsed * self.rate < self.total
-        rate = math.radians(self.rate) if turning else 0.0
+        previous, self._previous = self._previous, now
+        if self.averaged and previous is not None and now > previous:
+            rate = math.radians((self._turned(now) - self._turned(previous)) / (now - previous))
+        else:
+            elapsed = now - self.start - self.delay
+            turning = 0.0 <= elapsed and elapsed * self.rate < self.total
+            rate = math.radians(self.rate) if turning else 0.0
         bx, by, bz = self.bias
         return Motion((0.0, 0.0, G), (bx, by, bz + rate), 28.0)
 
@@ -388,12 +410,18 @@ async def test_actor_turn_through_emulated_chip(fifo: bool) -> None:
     bus = Bus()
     seen = Recorder(bus)
     # A chip with a real-looking zero-rate offset: uncorrected, it alone would add ~5 deg.
-    table = Turntable(45.0, 90.0, time.monotonic, delay=1.5, bias=(0.5, -0.8, 1.5))
+    # Still until the offset is measured (a condition: on a starved CPU the 100 samples of
+    # calibrate_s take longer than any fixed delay), then a 2 s turn.
+    table = Turntable(
+        45.0, 90.0, time.monotonic, delay=math.inf, bias=(0.5, -0.8, 1.5), averaged=True
+    )
     chip = Mpu6050(table)
     config = ImuSection(fifo=fifo)
     reader = ImuReader(bus, config, lambda number: EmulatedI2CBus({0x68: chip}))
     async with running(reader):
-        await wait_until(lambda: table.done(), 15.0)  # still 1.5 s, then a 2 s turn
+        await wait_until(lambda: reader.gyro_bias.measured, 15.0)
+        table.turn_in(0.3)
+        await wait_until(lambda: table.done(), 15.0)
         await asyncio.sleep(0.2)
         count = len(seen.attitudes)
         await wait_until(lambda: len(seen.attitudes) > count)

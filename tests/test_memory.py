@@ -26,7 +26,12 @@ happens to grow three times in a row (file objects' buffers) ~1-3 KB."""
 async def test_busy_platform_allocations_do_not_grow(tmp_path: Path) -> None:
     # The recorder's open file keeps its chunk index (one entry a chunk, a chunk a second) until
     # it rotates: bounded by design, checked on its own (tests/test_recorder.py), off here.
-    async with busy_platform(frames=1, interval=60.0, extra=("recorder.enabled=false",)) as probe:
+    # Traced from the moment it is busy: a leak is what is allocated after, and the start-up
+    # (imports, set-up) ran ~3x slower traced, and made every snapshot larger to dump.
+    async with busy_platform(
+        frames=1, interval=60.0, extra=("recorder.enabled=false",), trace_when_told=True
+    ) as probe:
+        await probe.trace()
         await asyncio.sleep(WARMUP_S)  # sessions, streams and caches settle
         paths = []
         for index in range(SNAPSHOTS):

@@ -46,7 +46,7 @@ from platformd.recorder import REASON_MAX_CHARS
 from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
-ROTATE_SECONDS = 9.0
+ROTATE_SECONDS = 5.0
 """The sim recording's files' length (recorder.rotate_minutes)."""
 
 

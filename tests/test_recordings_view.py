@@ -106,7 +106,7 @@ async def test_seeking_shows_that_times_position_and_frame(
             "navcam.enabled=true",
             "recorder.enabled=true",
             f"recorder.dir={recordings}",
-            "recorder.rotate_minutes=0.15",
+            "recorder.rotate_minutes=0.1",  # 6 s files: the first, finished, is the one seen
             f"map.file={tmp_path / 'map.geojson'}",
             f"autonomy.route_file={tmp_path / 'route.json'}",
         ),
@@ -209,14 +209,15 @@ async def test_seeking_shows_that_times_position_and_frame(
         # Issue 31: seeking into a stretch without video left the previous frame up,
         # unmarked. The picture now says it is not of this moment.
         gap = recordings / f"gap-{path.name}"
-        await asyncio.to_thread(with_video_gap, path, gap, 0.4)
+        await asyncio.to_thread(with_video_gap, path, gap, 0.3)
         await page.locator("#rec-list-button").click()
         option = page.locator(f'#rec-list option[value="{gap.name}"]')
         await expect(option).to_have_count(1, timeout=15_000)
         await page.locator("#rec-list").select_option(gap.name)
         await page.locator("#rec-open").click()
         await expect(view).to_have_attribute("data-recording", gap.name, timeout=30_000)
-        for fraction, marked in ((0.3, False), (0.95, True), (0.3, False), (0.6, True)):
+        # Before the video stops and 1.8 s or more after it (NO_VIDEO_AFTER_NS is 1 s).
+        for fraction, marked in ((0.2, False), (0.95, True), (0.2, False), (0.6, True)):
             await page.evaluate(
                 """(seconds) => {
                     const slider = document.getElementById("rec-time");

@@ -133,17 +133,20 @@ async def test_the_pages_latency_reaches_the_speed_cap(
     await expect(page.locator("#side > #map")).to_have_count(1)
     await expect(page.locator("#video-box")).to_have_css("position", "relative")
     await page.keyboard.up("KeyW")
-    # The measured age, below the assumption (a heartbeat may catch a stall on a loaded
-    # machine: the picture's age counts then, issue 28).
-    await wait_until(lambda: 0 < (cap_video_ms() or 0) < 400, timeout=10)
+    # The measured glass-to-glass, not the assumption (None). How low it is, is the bench's
+    # (`make bench console`): on a starved CPU it passed 400 ms and this test failed.
+    await wait_until(lambda: (cap_video_ms() or 0) > 0, timeout=10)
+    playing_ms = cap_video_ms() or 0.0
     readout = page.get_by_label("speed cap", exact=True)
     reason = page.get_by_label("why this cap")  # in plain sight, not a tooltip
     await expect(readout).to_contain_text(re.compile(r"video \d+ ms"), timeout=5_000)
     await expect(reason).not_to_contain_text("no latency report")
     # The picture freezes (paused): its age is the latency now (issue 28), past the 400 ms
-    # assumption within a second or two of heartbeats, and the cap falls below its worst case.
+    # assumption and what was measured while it played within a second or two of heartbeats,
+    # and the cap falls below its worst case.
     await station.ctx.api.call_local("stream_pause", platform_id="web-rover", stream="navcam")
-    await wait_until(lambda: (cap_video_ms() or 0) > 400, timeout=10)
+    frozen_past = max(400.0, playing_ms + 500.0)
+    await wait_until(lambda: (cap_video_ms() or 0) > frozen_past, timeout=10)
     await expect(readout).to_contain_text(re.compile(r"video \d{3,} ms"), timeout=5_000)
 
 

@@ -41,6 +41,7 @@ async def test_the_map_shows_the_scan_the_obstacle_and_the_grid(
         station,
         "lidar.enabled=true",
         f"lidar.grid_file={tmp_path / 'grid.npz'}",
+        "lidar.grid_period_s=1",  # drawn every second: the map's grid is not waited 5 s for
         f"sim.obstacles_file={obstacles_file(tmp_path, POST)}",
         "sim.gps_receiver=rtk",
         "autonomy.gps_sigma_m=0.02",

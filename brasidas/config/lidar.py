@@ -68,6 +68,9 @@ class LidarSection:
     grid_file: str = ""
     """The occupancy grid the odometry builds, kept across restarts (R-12). Empty:
     $XDG_STATE_HOME/brasidas/grid.npz."""
+    grid_period_s: float = setting(5.0, at_least(0.2, most=60))
+    """How often the grid, while it grows, is drawn again for the stations, the console's map
+    and the recording (an image of the whole grid, made in a thread)."""
     map_obstacles: bool = True
     """Obstacles seen become temporary keep-outs of the patrol's map, which re-plans around
     them (false: the robot only stops for them)."""

@@ -224,6 +224,7 @@ async def serve_log(path: str, config: LidarSection) -> None:
         for number, why in log.malformed[:5]:
             print(f"carmen: line {number} dropped: {why}", file=sys.stderr)
         await replay_to(line, CarmenReplay(log, config))
+        await line.drained()  # the last revolutions read before the line closes
         print(
             f"carmen: {len(log.scans)} scans replayed from {path}; "
             f"{len(log.malformed)} lines dropped, skipped {log.skipped or 'none'}; "
