@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import statistics
 import sys
 import tempfile
 import time
@@ -117,12 +118,18 @@ async def _row(
                 deadman["was"] = tripped
             await asyncio.sleep(0.1)
 
+    recoveries: list[float] = []
+
     async def bursts() -> None:
         while True:
             await asyncio.sleep(BURST_EVERY_S)
             relay.cut()
             await asyncio.sleep(row.burst_s)
             relay.restore()
+            restored = time.monotonic()
+            back = await _picture_back(fleet, station, platform_id, restored, 1000 / row.fps)
+            if back is not None:
+                recoveries.append(back)
 
     async def capacity_drop() -> None:
         assert row.cap_kbps is not None
@@ -136,15 +143,20 @@ async def _row(
         # A fresh receiver for the window: its gaps and latencies leave out the warm-up and
         # the framerate switch (the first frame after it needs a keyframe: a request).
         await fleet.api(station, "receive", platform_id=platform_id, stream="navcam")
+        asked = time.monotonic()
+        # The window starts at the fresh receiver's first frame (its start-up, the wait for a
+        # first keyframe, is no loss on the link: reported on its own as first_frame_ms).
+        await wait_for(lambda: _showing(fleet, station, platform_id), 10, step=0.02)
+        first_frame_ms = (time.monotonic() - asked) * 1000
         tasks.append(group.create_task(watch_deadman()))
-        start = await _receiver(fleet, station, platform_id)
+        sender_start, start = await _snapshot(fleet, station, platform_id)
         started = time.monotonic()
         if row.burst_s:
             tasks.append(group.create_task(bursts()))
         if row.cap_kbps:
             tasks.append(group.create_task(capacity_drop()))
         await asyncio.sleep(seconds)
-        end = await _receiver(fleet, station, platform_id)
+        sender_end, end = await _snapshot(fleet, station, platform_id)
         elapsed = time.monotonic() - started
         for task in tasks:
             task.cancel()
@@ -154,15 +166,26 @@ async def _row(
     with contextlib.suppress(RpcFailed):
         await fleet.api(station, "movrd", platform_id=platform_id, engaged=False)
     frames = end["frames"] - start["frames"]
+    encoded = sender_end.get("frames_encoded", 0) - sender_start.get("frames_encoded", 0)
     gaps = end.get("gap_ms") or {}
     repair = end.get("repair") or {}
     return {
-        "shown_pct": round(100 * frames / (row.fps * elapsed), 1),
+        # Of the frames the encoder made in the window (its own counter): a frame the link
+        # lost for good, or the station's receiver, is missing here; one the camera never
+        # made (its real rate, the thinning under a capacity drop) is not.
+        "shown_pct": round(100 * frames / encoded, 1) if encoded > 0 else None,
+        "frames_shown": frames,
+        "frames_encoded": encoded,
+        # The encoder's frames against the nominal rate: the camera and the thinning.
+        "encoded_pct": round(100 * encoded / (row.fps * elapsed), 1),
+        "first_frame_ms": round(first_frame_ms),
         "frozen_pct": end.get("frozen_pct"),
         "gap_p50_ms": gaps.get("p50"),
         "gap_p95_ms": gaps.get("p95"),
         "gap_p99_ms": gaps.get("p99"),
         "gap_max_ms": gaps.get("max"),
+        # What the gaps exceed the frame interval by: the part a viewer sees as a stall.
+        "gap_p99_over_interval_ms": _over(gaps.get("p99"), 1000 / row.fps),
         "g2g_p50_ms": _round(end.get("latency_p50_ms")),
         "g2g_p95_ms": _round(end.get("latency_p95_ms")),
         "kbps": round((end["rtp_bytes"] - start["rtp_bytes"]) * 8 / elapsed / 1000),
@@ -178,9 +201,76 @@ async def _row(
         - sender_before.get("keyframes_requested", 0),
         "lost_unrepaired": repair.get("lost"),
         "deadman_stops": deadman["stops"],
+        **_recovery(recoveries, row),
         "seconds": round(elapsed, 1),
         "loadavg": round(os.getloadavg()[0], 2),
     }
+
+
+async def _showing(fleet: Fleet, station: Daemon, platform_id: str) -> bool:
+    with contextlib.suppress(RpcFailed, StopIteration):
+        return int((await _receiver(fleet, station, platform_id)).get("frames") or 0) > 0
+    return False
+
+
+SNAPSHOT_SKEW_S = 0.1
+"""The longest the sender's answer may take for its frame count to pair with the receiver's
+(a list_streams crosses the lossy link: a TCP retransmission can hold it 200 ms+)."""
+
+
+async def _snapshot(
+    fleet: Fleet, station: Daemon, platform_id: str
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The sender's navcam and the station's receiver, asked at once; again while the
+    sender's answer was slow, so both counts are of the same moment within ~SNAPSHOT_SKEW_S."""
+    for _ in range(9):
+        asked = time.monotonic()
+        with contextlib.suppress(RpcFailed):
+            sender, receiver = await asyncio.gather(
+                _navcam(fleet, station, platform_id), _receiver(fleet, station, platform_id)
+            )
+            if time.monotonic() - asked <= SNAPSHOT_SKEW_S:
+                return sender, receiver
+    sender, receiver = await asyncio.gather(
+        _navcam(fleet, station, platform_id), _receiver(fleet, station, platform_id)
+    )
+    return sender, receiver
+
+
+async def _picture_back(
+    fleet: Fleet, station: Daemon, platform_id: str, restored: float, interval_ms: float
+) -> float | None:
+    """After a blackout ends at ``restored`` (time.monotonic()): how long until the station
+    decoded a frame captured then or later (less a frame interval: the one being made as the
+    link came back), in ms; None if not within 2 s."""
+    while time.monotonic() - restored < 2.0:
+        await asyncio.sleep(0.01)
+        with contextlib.suppress(RpcFailed):
+            receiver = await _receiver(fleet, station, platform_id)
+            shown_at = receiver.get("last_frame_monotonic")
+            age = receiver.get("latency_ms")
+            if isinstance(shown_at, float) and isinstance(age, int | float):
+                captured = shown_at - age / 1000
+                if captured >= restored - interval_ms / 1000:
+                    return (shown_at - restored) * 1000
+    return None
+
+
+def _recovery(recoveries: list[float], row: Row) -> dict[str, Any]:
+    """After each blackout: the picture's return, worst and median (bursts rows only)."""
+    if not row.burst_s:
+        return {}
+    if not recoveries:
+        return {"blackouts": 0}
+    return {
+        "blackouts": len(recoveries),
+        "recovery_p50_ms": round(statistics.median(recoveries), 1),
+        "recovery_max_ms": round(max(recoveries), 1),
+    }
+
+
+def _over(gap: Any, interval_ms: float) -> float | None:
+    return round(float(gap) - interval_ms, 1) if isinstance(gap, int | float) else None
 
 
 def _round(value: Any) -> float | None:
