@@ -26,8 +26,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from brasidas.config.platform import PlatformSection, SafetySection
 from brasidas.netem.core import Profile
 from brasidas.netem.netns import Host, TestNetwork, unavailable_reason
+from platformd.speedcap import compute_cap
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from netns import Daemon, Fleet, RpcFailed, wait_for
@@ -99,7 +101,13 @@ async def _row(
     fleet.net.impair(host.name, down=first, up=first)
     sender_before = await _navcam(fleet, station, platform_id)
     await fleet.api(station, "receive", platform_id=platform_id, stream="navcam")
-    deadman = {"stops": 0, "was": False}
+    # The platform's own count of deadman trips (the diagnostics section's arbiter counter):
+    # a trip lasts only until the next command, shorter than telemetry's sampling.
+    await fleet.api(station, "command", platform_id=platform_id, group=20, command=0, payload="ON")
+    deadman = {"stops": 0, "in_blackouts": 0, "was": False, "trips": -1}
+    recoveries: list[float] = []
+    cut_until = [0.0]
+    """While a blackout is on, time.monotonic() when its effect on commands is over."""
 
     async def drive() -> None:
         while True:
@@ -113,17 +121,27 @@ async def _row(
         while True:
             with contextlib.suppress(RpcFailed):
                 report = await fleet.api(station, "get_telemetry", platform_id=platform_id)
-                tripped = bool(((report.get("snapshot") or {}).get("motion") or {}).get("deadman"))
-                deadman["stops"] += tripped and not deadman["was"]
-                deadman["was"] = tripped
+                snapshot = report.get("snapshot") or {}
+                trips = _deadman_trips(snapshot)
+                if trips is not None:
+                    new = trips - deadman["trips"] if deadman["trips"] >= 0 else 0
+                    deadman["trips"] = trips
+                else:  # no diagnostics: the flag, as sampled
+                    tripped = bool((snapshot.get("motion") or {}).get("deadman"))
+                    new = int(tripped and not deadman["was"])
+                    deadman["was"] = tripped
+                deadman["stops"] += new
+                # The link cut longer than the deadman (0.3 s): the velocity stream stopped,
+                # and stopping is the deadman's job; not video's doing.
+                if time.monotonic() < cut_until[0]:
+                    deadman["in_blackouts"] += new
             await asyncio.sleep(0.1)
-
-    recoveries: list[float] = []
 
     async def bursts() -> None:
         while True:
             await asyncio.sleep(BURST_EVERY_S)
             relay.cut()
+            cut_until[0] = time.monotonic() + row.burst_s + BLACKOUT_TRIP_WINDOW_S
             await asyncio.sleep(row.burst_s)
             relay.restore()
             restored = time.monotonic()
@@ -161,6 +179,7 @@ async def _row(
         for task in tasks:
             task.cancel()
     relay.clear()
+    frozen_cap_ms = await _cap_after_freeze(fleet, station, platform_id)
     sender = await _navcam(fleet, station, platform_id)
     await fleet.api(station, "stop_receive", platform_id=platform_id, stream="navcam")
     with contextlib.suppress(RpcFailed):
@@ -201,10 +220,48 @@ async def _row(
         - sender_before.get("keyframes_requested", 0),
         "lost_unrepaired": repair.get("lost"),
         "deadman_stops": deadman["stops"],
+        "deadman_stops_in_blackouts": deadman["in_blackouts"],
+        "cap_worst_after_freeze_ms": frozen_cap_ms,
         **_recovery(recoveries, row),
         "seconds": round(elapsed, 1),
         "loadavg": round(os.getloadavg()[0], 2),
     }
+
+
+BLACKOUT_TRIP_WINDOW_S = 1.0
+"""After a blackout, how long a deadman trip seen in telemetry is put down to it (the
+telemetry that shows it crosses the link that was cut)."""
+
+
+def _deadman_trips(snapshot: dict[str, Any]) -> int | None:
+    subsystems = (snapshot.get("diagnostics") or {}).get("subsystems") or {}
+    trips = (subsystems.get("arbiter") or {}).get("deadman_trips")
+    return trips if isinstance(trips, int) else None
+
+
+async def _cap_after_freeze(fleet: Fleet, station: Daemon, platform_id: str) -> float | None:
+    """Freeze the picture (the stream paused, the link clean, the override still held): ms
+    until the platform's speed cap is at the worst case's speed (no latency report), or None
+    if not within 3 s. Measured from the pause's answer (the picture's last frame is at most a
+    frame older)."""
+    worst = compute_cap(SafetySection(), PlatformSection().max_speed_kmh, None, None).cap_kmh
+    try:
+        await fleet.api(station, "stream_pause", platform_id=platform_id, stream="navcam")
+    except RpcFailed:
+        return None
+    paused = time.monotonic()
+    try:
+        while time.monotonic() - paused < 3.0:
+            with contextlib.suppress(RpcFailed):
+                report = await fleet.api(station, "get_telemetry", platform_id=platform_id)
+                cap = ((report.get("snapshot") or {}).get("speed_cap") or {}).get("cap_kmh")
+                if isinstance(cap, int | float) and cap <= worst + 0.01:
+                    return round((time.monotonic() - paused) * 1000)
+            await asyncio.sleep(0.02)
+        return None
+    finally:
+        with contextlib.suppress(RpcFailed):
+            await fleet.api(station, "stream_start", platform_id=platform_id, stream="navcam")
 
 
 async def _showing(fleet: Fleet, station: Daemon, platform_id: str) -> bool:
