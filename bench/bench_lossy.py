@@ -168,6 +168,7 @@ async def _row(
         first_frame_ms = (time.monotonic() - asked) * 1000
         tasks.append(group.create_task(watch_deadman()))
         sender_start, start = await _snapshot(fleet, station, platform_id)
+        relay.stats()  # its kernel drop count restarts here
         started = time.monotonic()
         if row.burst_s:
             tasks.append(group.create_task(bursts()))
@@ -176,6 +177,7 @@ async def _row(
         await asyncio.sleep(seconds)
         sender_end, end = await _snapshot(fleet, station, platform_id)
         elapsed = time.monotonic() - started
+        link = relay.stats()
         for task in tasks:
             task.cancel()
     relay.clear()
@@ -219,6 +221,13 @@ async def _row(
         "keyframe_requests": sender.get("keyframes_requested", 0)
         - sender_before.get("keyframes_requested", 0),
         "lost_unrepaired": repair.get("lost"),
+        # Where frames go on a perfect link under load: packets the receiver's jitter buffer
+        # had to give up as too late (a frame that cannot arrive in time is dropped), packets
+        # the emulator's sockets dropped (the kernel, its thread starved), sequence gaps seen
+        # at the station's socket.
+        "late_dropped": repair.get("late"),
+        "link_socket_drops": link.get("socket_drops"),
+        "rtp_gaps_at_receiver": end.get("rtp_lost", 0) - start.get("rtp_lost", 0),
         "deadman_stops": deadman["stops"],
         "deadman_stops_in_blackouts": deadman["in_blackouts"],
         "cap_worst_after_freeze_ms": frozen_cap_ms,
