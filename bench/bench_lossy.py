@@ -109,12 +109,20 @@ async def _row(
     cut_until = [0.0]
     """While a blackout is on, time.monotonic() when its effect on commands is over."""
 
+    sent = {"last": 0.0, "gap_max": 0.0, "window": False}
+
     async def drive() -> None:
         while True:
             with contextlib.suppress(RpcFailed):  # a lost answer: the next one goes on
                 await fleet.api(
                     station, "teleop_set", platform_id=platform_id, linear=0.2, angular=0.0
                 )
+                # The driver's own pauses (this process or the station's loop starved): a
+                # deadman stop after one of 0.3 s or more is the load's, not the link's.
+                now = time.monotonic()
+                if sent["window"] and sent["last"]:
+                    sent["gap_max"] = max(sent["gap_max"], now - sent["last"])
+                sent["last"] = now
             await asyncio.sleep(0.05)
 
     async def watch_deadman() -> None:
@@ -169,6 +177,7 @@ async def _row(
         tasks.append(group.create_task(watch_deadman()))
         sender_start, start = await _snapshot(fleet, station, platform_id)
         relay.stats()  # its kernel drop count restarts here
+        sent["window"] = True
         started = time.monotonic()
         if row.burst_s:
             tasks.append(group.create_task(bursts()))
@@ -230,6 +239,7 @@ async def _row(
         "rtp_gaps_at_receiver": end.get("rtp_lost", 0) - start.get("rtp_lost", 0),
         "deadman_stops": deadman["stops"],
         "deadman_stops_in_blackouts": deadman["in_blackouts"],
+        "teleop_set_gap_max_ms": round(sent["gap_max"] * 1000),
         "cap_worst_after_freeze_ms": frozen_cap_ms,
         **_recovery(recoveries, row),
         "seconds": round(elapsed, 1),
