@@ -237,6 +237,9 @@ async def _row(
         "late_dropped": repair.get("late"),
         "link_socket_drops": link.get("socket_drops"),
         "rtp_gaps_at_receiver": end.get("rtp_lost", 0) - start.get("rtp_lost", 0),
+        # Access units the depayloader made (less: dropped before the decoder, waiting for a
+        # keyframe; more than shown: the decoder dropped them).
+        "frames_depayloaded": end.get("frames_depayloaded", 0) - start.get("frames_depayloaded", 0),
         "deadman_stops": deadman["stops"],
         "deadman_stops_in_blackouts": deadman["in_blackouts"],
         "teleop_set_gap_max_ms": round(sent["gap_max"] * 1000),

@@ -84,7 +84,9 @@ async def test_navcam_streams_only_when_asked_and_carries_capture_time(
         decoded = receiver.frames  # before the sender's count: every one of these was encoded
         streams = {s["name"]: s for s in await conn.call("list_streams")}
         assert streams["navcam"]["frames_encoded"] >= decoded >= 3
-        shown_at = receiver.describe()["last_frame_monotonic"]
+        described = receiver.describe()
+        assert described["frames_depayloaded"] >= described["frames"] > 0
+        shown_at = described["last_frame_monotonic"]
         assert 0 <= time.monotonic() - shown_at < 2
         assert states[-1].state == "playing"
         assert states[-1].destination.endswith(f":{receiver.port}")

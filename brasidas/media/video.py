@@ -792,6 +792,9 @@ class VideoIn(PipelineStream):
         self.jitter_ms = jitter_ms
         self.frames = 0
         self.stamped = 0
+        self.frames_depayloaded = 0
+        """Access units out of the depayloader, to the decoder (frames is what it decoded):
+        where a frame went that every packet of reached the station."""
         self.rtp_bytes = 0
         """RTP bytes received (headers included, UDP/IP not), for the bitrate."""
         self.latencies: collections.deque[float] = collections.deque(maxlen=window)
@@ -819,6 +822,7 @@ class VideoIn(PipelineStream):
             "rtp_packets": self.rtp_packets,
             "rtp_lost": self.rtp_lost,
             "longest_freeze_ms": round(self.longest_freeze_ms, 1),
+            "frames_depayloaded": self.frames_depayloaded,
             # time.monotonic() of the newest frame (one clock for every process on the host:
             # the bench times the picture's return after a blackout by it).
             "last_frame_monotonic": self.last_frame_at,
@@ -956,6 +960,9 @@ class VideoIn(PipelineStream):
         source.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _bytes_probe, weakref.ref(self)
         )
+        depay.get_static_pad("src").add_probe(
+            Gst.PadProbeType.BUFFER, _depayloaded_probe, weakref.ref(self)
+        )
         return pipeline
 
 
@@ -974,6 +981,14 @@ def _latency_probe(pad: Any, info: Any, data: tuple[weakref.ref[VideoIn], Any]) 
             stream.stamped += 1
             stream.last_latency_ms = age
             stream.latencies.append(age)
+    return gst().PadProbeReturn.OK
+
+
+def _depayloaded_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
+    """Streaming thread: one access unit to the decoder."""
+    stream = ref()
+    if stream is not None:
+        stream.frames_depayloaded += 1
     return gst().PadProbeReturn.OK
 
 
