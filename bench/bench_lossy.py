@@ -229,6 +229,8 @@ async def _row(
         "retransmitted": sender.get("retransmitted", 0) - sender_before.get("retransmitted", 0),
         "keyframe_requests": sender.get("keyframes_requested", 0)
         - sender_before.get("keyframes_requested", 0),
+        "keyframe_requests_deferred": sender.get("keyframe_requests_deferred", 0)
+        - sender_before.get("keyframe_requests_deferred", 0),
         "lost_unrepaired": repair.get("lost"),
         # Where frames go on a perfect link under load: packets the receiver's jitter buffer
         # had to give up as too late (a frame that cannot arrive in time is dropped), packets
