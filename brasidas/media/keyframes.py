@@ -12,9 +12,9 @@ to the end of that gap, never dropped: it may come from a receiver that lost the
 made (the one a cut swallowed), and dropped, it left that receiver frozen to the next periodic
 keyframe, a second later. A periodic keyframe does not hold a request back: after a blackout
 the one made during it was lost with it, and waiting out its gap kept the picture frozen up to
-250 ms longer (measured: 3 of 8 requests after blackouts deferred, the picture back 137-152
-ms after the link in those, 30-107 ms in the others). At most one periodic keyframe a second
-more.
+250 ms longer (measured: after 3 of 6 blackouts the request was deferred, and the picture
+came back 107-152 ms after the link; about 30 ms after the others). At most one periodic
+keyframe a second more.
 """
 
 from __future__ import annotations
