@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import statistics
 import sys
 import tempfile
 import time
@@ -25,8 +26,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from brasidas.config.platform import PlatformSection, SafetySection
 from brasidas.netem.core import Profile
 from brasidas.netem.netns import Host, TestNetwork, unavailable_reason
+from platformd.speedcap import compute_cap
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from netns import Daemon, Fleet, RpcFailed, wait_for
@@ -98,7 +101,15 @@ async def _row(
     fleet.net.impair(host.name, down=first, up=first)
     sender_before = await _navcam(fleet, station, platform_id)
     await fleet.api(station, "receive", platform_id=platform_id, stream="navcam")
-    deadman = {"stops": 0, "was": False}
+    # The platform's own count of deadman trips (the diagnostics section's arbiter counter):
+    # a trip lasts only until the next command, shorter than telemetry's sampling.
+    await fleet.api(station, "command", platform_id=platform_id, group=20, command=0, payload="ON")
+    deadman = {"stops": 0, "in_blackouts": 0, "was": False, "trips": -1}
+    recoveries: list[float] = []
+    cut_until = [0.0]
+    """While a blackout is on, time.monotonic() when its effect on commands is over."""
+
+    sent = {"last": 0.0, "gap_max": 0.0, "window": False}
 
     async def drive() -> None:
         while True:
@@ -106,23 +117,45 @@ async def _row(
                 await fleet.api(
                     station, "teleop_set", platform_id=platform_id, linear=0.2, angular=0.0
                 )
+                # The driver's own pauses (this process or the station's loop starved): a
+                # deadman stop after one of 0.3 s or more is the load's, not the link's.
+                now = time.monotonic()
+                if sent["window"] and sent["last"]:
+                    sent["gap_max"] = max(sent["gap_max"], now - sent["last"])
+                sent["last"] = now
             await asyncio.sleep(0.05)
 
     async def watch_deadman() -> None:
         while True:
             with contextlib.suppress(RpcFailed):
                 report = await fleet.api(station, "get_telemetry", platform_id=platform_id)
-                tripped = bool(((report.get("snapshot") or {}).get("motion") or {}).get("deadman"))
-                deadman["stops"] += tripped and not deadman["was"]
-                deadman["was"] = tripped
+                snapshot = report.get("snapshot") or {}
+                trips = _deadman_trips(snapshot)
+                if trips is not None:
+                    new = trips - deadman["trips"] if deadman["trips"] >= 0 else 0
+                    deadman["trips"] = trips
+                else:  # no diagnostics: the flag, as sampled
+                    tripped = bool((snapshot.get("motion") or {}).get("deadman"))
+                    new = int(tripped and not deadman["was"])
+                    deadman["was"] = tripped
+                deadman["stops"] += new
+                # The link cut longer than the deadman (0.3 s): the velocity stream stopped,
+                # and stopping is the deadman's job; not video's doing.
+                if time.monotonic() < cut_until[0]:
+                    deadman["in_blackouts"] += new
             await asyncio.sleep(0.1)
 
     async def bursts() -> None:
         while True:
             await asyncio.sleep(BURST_EVERY_S)
             relay.cut()
+            cut_until[0] = time.monotonic() + row.burst_s + BLACKOUT_TRIP_WINDOW_S
             await asyncio.sleep(row.burst_s)
             relay.restore()
+            restored = time.monotonic()
+            back = await _picture_back(fleet, station, platform_id, restored, 1000 / row.fps)
+            if back is not None:
+                recoveries.append(back)
 
     async def capacity_drop() -> None:
         assert row.cap_kbps is not None
@@ -136,33 +169,53 @@ async def _row(
         # A fresh receiver for the window: its gaps and latencies leave out the warm-up and
         # the framerate switch (the first frame after it needs a keyframe: a request).
         await fleet.api(station, "receive", platform_id=platform_id, stream="navcam")
+        asked = time.monotonic()
+        # The window starts at the fresh receiver's first frame (its start-up, the wait for a
+        # first keyframe, is no loss on the link: reported on its own as first_frame_ms).
+        await wait_for(lambda: _showing(fleet, station, platform_id), 10, step=0.02)
+        first_frame_ms = (time.monotonic() - asked) * 1000
         tasks.append(group.create_task(watch_deadman()))
-        start = await _receiver(fleet, station, platform_id)
+        sender_start, start = await _snapshot(fleet, station, platform_id)
+        relay.stats()  # its kernel drop count restarts here
+        sent["window"] = True
         started = time.monotonic()
         if row.burst_s:
             tasks.append(group.create_task(bursts()))
         if row.cap_kbps:
             tasks.append(group.create_task(capacity_drop()))
         await asyncio.sleep(seconds)
-        end = await _receiver(fleet, station, platform_id)
+        sender_end, end = await _snapshot(fleet, station, platform_id)
         elapsed = time.monotonic() - started
+        link = relay.stats()
         for task in tasks:
             task.cancel()
     relay.clear()
+    frozen_cap_ms = await _cap_after_freeze(fleet, station, platform_id)
     sender = await _navcam(fleet, station, platform_id)
     await fleet.api(station, "stop_receive", platform_id=platform_id, stream="navcam")
     with contextlib.suppress(RpcFailed):
         await fleet.api(station, "movrd", platform_id=platform_id, engaged=False)
     frames = end["frames"] - start["frames"]
+    encoded = sender_end.get("frames_encoded", 0) - sender_start.get("frames_encoded", 0)
     gaps = end.get("gap_ms") or {}
     repair = end.get("repair") or {}
     return {
-        "shown_pct": round(100 * frames / (row.fps * elapsed), 1),
+        # Of the frames the encoder made in the window (its own counter): a frame the link
+        # lost for good, or the station's receiver, is missing here; one the camera never
+        # made (its real rate, the thinning under a capacity drop) is not.
+        "shown_pct": round(100 * frames / encoded, 1) if encoded > 0 else None,
+        "frames_shown": frames,
+        "frames_encoded": encoded,
+        # The encoder's frames against the nominal rate: the camera and the thinning.
+        "encoded_pct": round(100 * encoded / (row.fps * elapsed), 1),
+        "first_frame_ms": round(first_frame_ms),
         "frozen_pct": end.get("frozen_pct"),
         "gap_p50_ms": gaps.get("p50"),
         "gap_p95_ms": gaps.get("p95"),
         "gap_p99_ms": gaps.get("p99"),
         "gap_max_ms": gaps.get("max"),
+        # What the gaps exceed the frame interval by: the part a viewer sees as a stall.
+        "gap_p99_over_interval_ms": _over(gaps.get("p99"), 1000 / row.fps),
         "g2g_p50_ms": _round(end.get("latency_p50_ms")),
         "g2g_p95_ms": _round(end.get("latency_p95_ms")),
         "kbps": round((end["rtp_bytes"] - start["rtp_bytes"]) * 8 / elapsed / 1000),
@@ -176,11 +229,129 @@ async def _row(
         "retransmitted": sender.get("retransmitted", 0) - sender_before.get("retransmitted", 0),
         "keyframe_requests": sender.get("keyframes_requested", 0)
         - sender_before.get("keyframes_requested", 0),
+        "keyframe_requests_deferred": sender.get("keyframe_requests_deferred", 0)
+        - sender_before.get("keyframe_requests_deferred", 0),
         "lost_unrepaired": repair.get("lost"),
+        # Where frames go on a perfect link under load: packets the receiver's jitter buffer
+        # had to give up as too late (a frame that cannot arrive in time is dropped), packets
+        # the emulator's sockets dropped (the kernel, its thread starved), sequence gaps seen
+        # at the station's socket.
+        "late_dropped": repair.get("late"),
+        "link_socket_drops": link.get("socket_drops"),
+        "rtp_gaps_at_receiver": end.get("rtp_lost", 0) - start.get("rtp_lost", 0),
+        # Access units the depayloader made (less: dropped before the decoder, waiting for a
+        # keyframe; more than shown: the decoder dropped them).
+        "frames_depayloaded": end.get("frames_depayloaded", 0) - start.get("frames_depayloaded", 0),
         "deadman_stops": deadman["stops"],
+        "deadman_stops_in_blackouts": deadman["in_blackouts"],
+        "teleop_set_gap_max_ms": round(sent["gap_max"] * 1000),
+        "cap_worst_after_freeze_ms": frozen_cap_ms,
+        **_recovery(recoveries, row),
         "seconds": round(elapsed, 1),
         "loadavg": round(os.getloadavg()[0], 2),
     }
+
+
+BLACKOUT_TRIP_WINDOW_S = 1.0
+"""After a blackout, how long a deadman trip seen in telemetry is put down to it (the
+telemetry that shows it crosses the link that was cut)."""
+
+
+def _deadman_trips(snapshot: dict[str, Any]) -> int | None:
+    subsystems = (snapshot.get("diagnostics") or {}).get("subsystems") or {}
+    trips = (subsystems.get("arbiter") or {}).get("deadman_trips")
+    return trips if isinstance(trips, int) else None
+
+
+async def _cap_after_freeze(fleet: Fleet, station: Daemon, platform_id: str) -> float | None:
+    """Freeze the picture (the stream paused, the link clean, the override still held): ms
+    until the platform's speed cap is at the worst case's speed (no latency report), or None
+    if not within 3 s. Measured from the pause's answer (the picture's last frame is at most a
+    frame older)."""
+    worst = compute_cap(SafetySection(), PlatformSection().max_speed_kmh, None, None).cap_kmh
+    try:
+        await fleet.api(station, "stream_pause", platform_id=platform_id, stream="navcam")
+    except RpcFailed:
+        return None
+    paused = time.monotonic()
+    try:
+        while time.monotonic() - paused < 3.0:
+            with contextlib.suppress(RpcFailed):
+                report = await fleet.api(station, "get_telemetry", platform_id=platform_id)
+                cap = ((report.get("snapshot") or {}).get("speed_cap") or {}).get("cap_kmh")
+                if isinstance(cap, int | float) and cap <= worst + 0.01:
+                    return round((time.monotonic() - paused) * 1000)
+            await asyncio.sleep(0.02)
+        return None
+    finally:
+        with contextlib.suppress(RpcFailed):
+            await fleet.api(station, "stream_start", platform_id=platform_id, stream="navcam")
+
+
+async def _showing(fleet: Fleet, station: Daemon, platform_id: str) -> bool:
+    with contextlib.suppress(RpcFailed, StopIteration):
+        return int((await _receiver(fleet, station, platform_id)).get("frames") or 0) > 0
+    return False
+
+
+SNAPSHOT_SKEW_S = 0.1
+"""The longest the sender's answer may take for its frame count to pair with the receiver's
+(a list_streams crosses the lossy link: a TCP retransmission can hold it 200 ms+)."""
+
+
+async def _snapshot(
+    fleet: Fleet, station: Daemon, platform_id: str
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The sender's navcam and the station's receiver, asked at once; again while the
+    sender's answer was slow, so both counts are of the same moment within ~SNAPSHOT_SKEW_S."""
+    for _ in range(9):
+        asked = time.monotonic()
+        with contextlib.suppress(RpcFailed):
+            sender, receiver = await asyncio.gather(
+                _navcam(fleet, station, platform_id), _receiver(fleet, station, platform_id)
+            )
+            if time.monotonic() - asked <= SNAPSHOT_SKEW_S:
+                return sender, receiver
+    sender, receiver = await asyncio.gather(
+        _navcam(fleet, station, platform_id), _receiver(fleet, station, platform_id)
+    )
+    return sender, receiver
+
+
+async def _picture_back(
+    fleet: Fleet, station: Daemon, platform_id: str, restored: float, interval_ms: float
+) -> float | None:
+    """After a blackout ends at ``restored`` (time.monotonic()): how long until the station
+    decoded a frame captured then or later (less a frame interval: the one being made as the
+    link came back), in ms; None if not within 2 s."""
+    while time.monotonic() - restored < 2.0:
+        await asyncio.sleep(0.01)
+        with contextlib.suppress(RpcFailed):
+            receiver = await _receiver(fleet, station, platform_id)
+            shown_at = receiver.get("last_frame_monotonic")
+            age = receiver.get("latency_ms")
+            if isinstance(shown_at, float) and isinstance(age, int | float):
+                captured = shown_at - age / 1000
+                if captured >= restored - interval_ms / 1000:
+                    return (shown_at - restored) * 1000
+    return None
+
+
+def _recovery(recoveries: list[float], row: Row) -> dict[str, Any]:
+    """After each blackout: the picture's return, worst and median (bursts rows only)."""
+    if not row.burst_s:
+        return {}
+    if not recoveries:
+        return {"blackouts": 0}
+    return {
+        "blackouts": len(recoveries),
+        "recovery_p50_ms": round(statistics.median(recoveries), 1),
+        "recovery_max_ms": round(max(recoveries), 1),
+    }
+
+
+def _over(gap: Any, interval_ms: float) -> float | None:
+    return round(float(gap) - interval_ms, 1) if isinstance(gap, int | float) else None
 
 
 def _round(value: Any) -> float | None:

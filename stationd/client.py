@@ -52,6 +52,11 @@ CLOCK_DRIFT = 500e-6
 crystal's tens of ppm. A quick round trip a minute old is still within 30 ms."""
 CLOCK_SAMPLES = 256
 """Heartbeats kept for the offset (four minutes at the default second)."""
+FREEZE_CHECK_S = 0.1
+"""How often the picture's age is looked at between heartbeats (it costs no traffic)."""
+FREEZE_REPORT_MS = 100.0
+"""Report the picture's age before the next heartbeat once it grew this much since the last
+report (a freeze; the picture's return waits for the heartbeat: raising the cap can)."""
 
 
 class ClockOffset:
@@ -128,6 +133,8 @@ class PlatformConnection:
         self.video_latency: Callable[[], float | None] | None = None
         """The NavCam's measured glass-to-glass latency (ms) now, set by stationd.media: while
         this station holds the override, each heartbeat reports it (the platform's speed cap)."""
+        self._reported_video_ms = math.inf
+        """The video latency last reported (inf: none yet, nothing to report early)."""
         self.closed = asyncio.Event()
         self.close_reason = ""
         self._client = RpcClient(self.signaling_url + "/rpc/ws", timeout=timeout)
@@ -204,7 +211,7 @@ class PlatformConnection:
         misses = 0
         delay = 0.0  # the first at once: the clock offset is known before the first packet
         while True:
-            await asyncio.sleep(delay)
+            await self._wait_reporting_freezes(delay)
             delay = interval
             try:
                 await self.heartbeat()
@@ -239,10 +246,26 @@ class PlatformConnection:
         self.manual_override = bool(answer.get("manual_override"))
         self._update_control(answer)
 
+    async def _wait_reporting_freezes(self, delay: float) -> None:
+        """Wait ``delay`` (till the next heartbeat), reporting the picture's age at once when
+        it grew FREEZE_REPORT_MS past the last report: a picture freezing between heartbeats
+        (1 s apart) would leave the cap up to a second too high; this way it falls within
+        about FREEZE_CHECK_S of the age that calls for it."""
+        loop = asyncio.get_running_loop()
+        until = loop.time() + delay
+        while (left := until - loop.time()) > 0:
+            await asyncio.sleep(min(left, FREEZE_CHECK_S))
+            if not self.manual_override or self.video_latency is None:
+                continue
+            video = self.video_latency()
+            if video is not None and video >= self._reported_video_ms + FREEZE_REPORT_MS:
+                await self._report_latency()
+
     async def _report_latency(self) -> None:
         video = self.video_latency() if self.video_latency is not None else None
         if not self.manual_override or video is None or self.round_trip_ms is None:
             return
+        self._reported_video_ms = video
         with contextlib.suppress(RpcError):  # a platform without a speed cap
             await self.call("report_latency", video_ms=video, command_ms=self.round_trip_ms / 2)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
@@ -78,6 +79,15 @@ async def test_navcam_streams_only_when_asked_and_carries_capture_time(
         await wait_until(lambda: receiver.stamped >= 3, timeout=8)
         assert receiver.latencies
         assert all(-50 < ms < 1000 for ms in receiver.latencies)
+        # The sender counts what its encoder made (what a receiver's frames count against),
+        # the receiver when its newest frame came (one clock for every process on the host).
+        decoded = receiver.frames  # before the sender's count: every one of these was encoded
+        streams = {s["name"]: s for s in await conn.call("list_streams")}
+        assert streams["navcam"]["frames_encoded"] >= decoded >= 3
+        described = receiver.describe()
+        assert described["frames_depayloaded"] >= described["frames"] > 0
+        shown_at = described["last_frame_monotonic"]
+        assert 0 <= time.monotonic() - shown_at < 2
         assert states[-1].state == "playing"
         assert states[-1].destination.endswith(f":{receiver.port}")
         params = await conn.call("get_nav_camera_parameters")

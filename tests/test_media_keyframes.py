@@ -36,6 +36,23 @@ def test_the_interval_follows_the_framerate_and_requests_are_rate_limited() -> N
     assert clock.counters.deferred == 1
 
 
+def test_a_periodic_keyframe_does_not_hold_a_request_back() -> None:
+    """After a blackout the periodic keyframe made during it was lost with it: the receiver's
+    request is answered on the next frame, not 250 ms after that keyframe."""
+    clock = KeyframeClock(30, min_request_gap_s=0.25)
+    assert clock.on_frame(0.0)
+    periodic = [i for i in range(1, 31) if clock.on_frame(i / 30)]
+    assert periodic == [30]  # at 1.0 s, into the blackout
+    clock.request(1.1)  # the link is back: the receiver asks
+    assert clock.on_frame(1.1 + 1 / 30)
+    assert clock.counters.deferred == 0
+    # Requests still count against each other: the next one within 250 ms waits.
+    clock.request(1.2)
+    assert not clock.on_frame(1.2)
+    assert clock.on_frame(1.14 + 0.25)
+    assert clock.counters.deferred == 1
+
+
 class _KeyframeLog:
     """The encoded stream as sent: one flag per access unit, True for keyframes."""
 

@@ -114,3 +114,35 @@ async def test_the_holders_station_reports_its_video_latency_with_each_heartbeat
 def _video_ms(daemon: PlatformDaemon) -> float | None:
     cap = daemon.bus.last(topics.SPEED_CAP)
     return cap.video_ms if cap is not None else None
+
+
+async def test_a_picture_freezing_between_heartbeats_is_reported_before_the_next(
+    platform_factory: Factory, fleet_key: bytes
+) -> None:
+    """Heartbeats 3 s apart: the frozen picture's age reaches the cap within a second."""
+    daemon = await platform_factory(
+        quiet_platform_config("signaling.heartbeat_interval=3"), fleet_key
+    )
+    conn = PlatformConnection(
+        daemon.config.platform.id, daemon.ctx.signaling_url, station_id="st-1", fleet_key=fleet_key
+    )
+    picture_age = [20.0]
+    conn.video_latency = lambda: picture_age[0]
+    await conn.open()
+    try:
+        assert await conn.call("set_manual_override", engaged=True) is True
+        await wait_until(lambda: _video_ms(daemon) == 20.0, timeout=5)  # a heartbeat's report
+        picture_age[0] = 600.0  # the picture froze just after that heartbeat
+        frozen_at = asyncio.get_running_loop().time()
+        await wait_until(lambda: (_video_ms(daemon) or 0) >= 600.0, timeout=1.0)
+        assert asyncio.get_running_loop().time() - frozen_at < 1.0
+        cap = daemon.bus.last(topics.SPEED_CAP)
+        assert cap is not None
+        config = daemon.config
+        worst = compute_cap(config.safety, config.platform.max_speed_kmh, None, None)
+        assert cap.cap_kmh <= worst.cap_kmh  # the worst case's speed, or slower
+        picture_age[0] = 650.0  # still frozen, only 50 ms older: no report before its heartbeat
+        await asyncio.sleep(0.3)
+        assert _video_ms(daemon) == 600.0
+    finally:
+        await conn.close()

@@ -171,6 +171,10 @@ class VideoOut(FanOutStream[VideoSettings]):
         """One frame in ``thinning`` goes to the encoder (the link forced the bitrate far down:
         :func:`~brasidas.media.bitrate.frame_thinning`); read by the streaming thread."""
         self._frames_seen = 0
+        self.frames_encoded = 0
+        """Frames out of the encoder since the stream was made (a receiver's frames shown
+        count against these: not against the nominal framerate, which the camera, the
+        thinning and a restart all stray from); read by the streaming thread."""
         self.reported_jitter_ms = 0.0
         """The newest receiver report's interarrival jitter (a queue building shows here)."""
         self.fec_percent = 0
@@ -225,6 +229,7 @@ class VideoOut(FanOutStream[VideoSettings]):
             "intra_refresh": self.encoder_name != "" and s.uses_intra_refresh(self.encoder_name),
             "fec_percent": self.fec_percent,
             "framerate_sent": s.framerate // self.thinning,
+            "frames_encoded": self.frames_encoded,
             "fec_max_percent": s.fec_max_percent,
             "tail_copies": self.tail_copies_sent(),
             "keyframes_requested": self.keyframes.counters.requested,
@@ -490,6 +495,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         encoder.get_static_pad("src").add_probe(
             Gst.PadProbeType.EVENT_UPSTREAM, _keyframe_request_probe, ref
         )
+        encoder.get_static_pad("src").add_probe(Gst.PadProbeType.BUFFER, _encoded_probe, ref)
 
     def make_sink(self) -> Any:
         # AF41: a Wi-Fi (WMM) link queues video behind teleop's EF and telemetry, never ahead.
@@ -630,6 +636,14 @@ def _force_keyframe_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> An
             event = _force_key_unit_event()
             stream._forced_seqnums.append(event.get_seqnum())
             encoder.send_event(event)
+    return gst().PadProbeReturn.OK
+
+
+def _encoded_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
+    """Streaming thread: one access unit out of the encoder."""
+    stream = ref()
+    if stream is not None:
+        stream.frames_encoded += 1
     return gst().PadProbeReturn.OK
 
 
@@ -778,6 +792,9 @@ class VideoIn(PipelineStream):
         self.jitter_ms = jitter_ms
         self.frames = 0
         self.stamped = 0
+        self.frames_depayloaded = 0
+        """Access units out of the depayloader, to the decoder (frames is what it decoded):
+        where a frame went that every packet of reached the station."""
         self.rtp_bytes = 0
         """RTP bytes received (headers included, UDP/IP not), for the bitrate."""
         self.latencies: collections.deque[float] = collections.deque(maxlen=window)
@@ -805,6 +822,10 @@ class VideoIn(PipelineStream):
             "rtp_packets": self.rtp_packets,
             "rtp_lost": self.rtp_lost,
             "longest_freeze_ms": round(self.longest_freeze_ms, 1),
+            "frames_depayloaded": self.frames_depayloaded,
+            # time.monotonic() of the newest frame (one clock for every process on the host:
+            # the bench times the picture's return after a blackout by it).
+            "last_frame_monotonic": self.last_frame_at,
             "size": list(self.size) if self.size is not None else None,
             **self.gap_stats(),
             **self.repair_stats(),
@@ -939,6 +960,9 @@ class VideoIn(PipelineStream):
         source.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _bytes_probe, weakref.ref(self)
         )
+        depay.get_static_pad("src").add_probe(
+            Gst.PadProbeType.BUFFER, _depayloaded_probe, weakref.ref(self)
+        )
         return pipeline
 
 
@@ -957,6 +981,14 @@ def _latency_probe(pad: Any, info: Any, data: tuple[weakref.ref[VideoIn], Any]) 
             stream.stamped += 1
             stream.last_latency_ms = age
             stream.latencies.append(age)
+    return gst().PadProbeReturn.OK
+
+
+def _depayloaded_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
+    """Streaming thread: one access unit to the decoder."""
+    stream = ref()
+    if stream is not None:
+        stream.frames_depayloaded += 1
     return gst().PadProbeReturn.OK
 
 
