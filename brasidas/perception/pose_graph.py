@@ -1,17 +1,30 @@
 """A pose graph over keyframes, smoothed by GTSAM's iSAM2, with loop closure (pure; one thread).
 
 Nodes are keyframes every ``KEYFRAME_M`` (or ``KEYFRAME_RAD``); odometry between them is a
-between-factor whose noise grows with the step; absolute measurements (an accepted GPS fix, a
-match to the area map) are priors on the newest node. When a keyframe comes back within
-``LOOP_RADIUS_M`` of one at least ``LOOP_MIN_GAP`` keyframes older, its scan is registered to
-that keyframe's scan (small_gicp GICP from the graph's relative estimate); a fit with most points
-matched closes the loop with a tight between-factor, and iSAM2 spreads the correction over the
-whole path since. Not yet wired to the platform: :mod:`brasidas.perception.fusion`'s filter is.
+between-factor whose noise grows with the step; absolute measurements (the fused pose while
+GPS or the area map's walls hold it) are priors on the newest node. When a keyframe comes back
+within ``LOOP_RADIUS_M`` of one at least ``LOOP_MIN_GAP`` keyframes older (or of a keyframe of
+a map loaded from a previous run), its scan is registered to that keyframe's scan (small_gicp
+GICP from the graph's relative estimate); a fit with most points matched closes the loop with a
+tight between-factor, and iSAM2 spreads the correction over the whole path since.
+
+Bounded: each keyframe keeps its scan as 2-D points thinned to ``DOWNSAMPLE_M`` (a few kB; the
+3-D cloud GICP needs is built when a closure is tried), and past ``MAX_KEYFRAMES`` the graph is
+compacted to its newest half, chained by their smoothed relative poses. Saved with the
+occupancy grid (:func:`save_keyframes`) so a restarted robot closes loops against its old map.
+
+The platform's localizer (:mod:`platformd.lidar_localization`) runs it in its worker thread;
+the grid is rebuilt from the keyframes at their smoothed poses after a loop closes.
 """
 
 from __future__ import annotations
 
 import math
+import os
+import time
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
 
 import gtsam
 import numpy as np
@@ -28,7 +41,25 @@ LOOP_INLIERS = 0.8
 LOOP_TRIES = 3
 LOOP_CORRESPONDENCE_M = 2.0
 LOOP_SIGMAS = (0.05, 0.05, math.radians(0.5))
+LOOP_MIN_POINTS = 60
+"""A keyframe with fewer returns (an open field) is not registered for a loop closure."""
 DOWNSAMPLE_M = 0.1
+MAX_KEYFRAMES = 2000
+"""2 km of path at a keyframe a metre: ~10 MB of scans; past it the oldest half is let go."""
+LOADED_SIGMAS = (0.02, 0.02, math.radians(0.2))
+"""A keyframe of a map loaded from disk: held where it was (the map's frame is its poses)."""
+CHAIN_SIGMAS = (0.02, 0.02, math.radians(0.2))
+"""Between compacted keyframes: their smoothed relative poses, held as they are."""
+KEYFRAMES_FORMAT = 1
+
+
+@dataclass(frozen=True)
+class Closure:
+    """A loop closed at keyframe ``k`` against keyframe ``j``; the most any keyframe moved."""
+
+    j: int
+    k: int
+    moved_m: float
 
 
 def _pose(p: Pose2D) -> gtsam.Pose2:
@@ -42,16 +73,41 @@ def _of(p: gtsam.Pose2) -> Pose2D:
 class PoseGraph:
     """Odometry steps, priors and scans in; the smoothed newest pose out."""
 
-    def __init__(self, start: Pose2D, sigmas: tuple[float, float, float]) -> None:
+    def __init__(
+        self,
+        start: Pose2D,
+        sigmas: tuple[float, float, float],
+        *,
+        loaded: list[tuple[Pose2D, NDArray[np.float32]]] | None = None,
+    ) -> None:
+        """``loaded``: keyframes of a map from a previous run (fixed where they were); the
+        robot starts at ``start`` with ``sigmas`` among them."""
         self.isam = gtsam.ISAM2()
-        self.poses: list[Pose2D] = [start]
-        self.scans: list[small_gicp.PointCloud | None] = [None]
+        self.poses: list[Pose2D] = []
+        self.points: list[NDArray[np.float32]] = []
         self.pending = Pose2D(0.0, 0.0, 0.0)
         self.pending_var = np.zeros(3)
         self.closures = 0
+        self.last_closure: Closure | None = None
+        self.compactions = 0
+        self.keyframe_cpu_s: list[float] = []
+        """Thread CPU time of each keyframe added (closure search and smoothing), the latest
+        ``MAX_KEYFRAMES``."""
+        self.first_live = 0
+        """Keyframes before this index were loaded from disk (any gap closes a loop)."""
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        graph.add(gtsam.PriorFactorPose2(0, _pose(start), _noise(sigmas)))
-        values.insert(0, _pose(start))
+        for pose, points in loaded or []:
+            i = len(self.poses)
+            graph.add(gtsam.PriorFactorPose2(i, _pose(pose), _noise(LOADED_SIGMAS)))
+            values.insert(i, _pose(pose))
+            self.poses.append(pose)
+            self.points.append(points)
+        self.first_live = len(self.poses)
+        k = len(self.poses)
+        graph.add(gtsam.PriorFactorPose2(k, _pose(start), _noise(sigmas)))
+        values.insert(k, _pose(start))
+        self.poses.append(start)
+        self.points.append(np.empty((0, 2), dtype=np.float32))
         self.isam.update(graph, values)
 
     @property
@@ -61,13 +117,17 @@ class PoseGraph:
 
     def odometry(
         self, delta: Pose2D, sigmas: tuple[float, float, float], points_xy: NDArray[np.float64]
-    ) -> None:
-        """The robot moved ``delta`` (its own frame), with that step's noise; its scan."""
+    ) -> Closure | None:
+        """The robot moved ``delta`` (its own frame), with that step's noise; its scan (robot
+        frame). The loop this step closed, if any."""
         self.pending = self.pending.compose(delta)
         self.pending_var += np.square(sigmas)
         moved = math.hypot(self.pending.x_m, self.pending.y_m)
         if moved < KEYFRAME_M and abs(self.pending.yaw_rad) < KEYFRAME_RAD:
-            return
+            return None
+        started = time.thread_time()
+        if len(self.poses) >= MAX_KEYFRAMES:
+            self._compact()
         k = len(self.poses)
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         noise = gtsam.noiseModel.Diagonal.Variances(self.pending_var)
@@ -75,15 +135,24 @@ class PoseGraph:
         guess = self.poses[-1].compose(self.pending)
         values.insert(k, _pose(guess))
         self.poses.append(guess)
-        cloud, _ = small_gicp.preprocess_points(_extrude(points_xy), DOWNSAMPLE_M)
-        self.scans.append(cloud)
+        thinned = _thin(points_xy)
+        self.points.append(thinned)
         self.pending, self.pending_var = Pose2D(0.0, 0.0, 0.0), np.zeros(3)
-        closure = self._closure(k, cloud)
-        if closure is not None:
-            j, relative = closure
+        found = self._closure(k, thinned)
+        closure = None
+        if found is not None:
+            j, relative = found
             graph.add(gtsam.BetweenFactorPose2(j, k, _pose(relative), _noise(LOOP_SIGMAS)))
             self.closures += 1
+        before = self.poses
         self._update(graph, values)
+        if found is not None:
+            shift = max(math.dist(_xy(a), _xy(b)) for a, b in zip(before, self.poses, strict=True))
+            closure = Closure(found[0], k, shift)
+            self.last_closure = closure
+        self.keyframe_cpu_s.append(time.thread_time() - started)
+        del self.keyframe_cpu_s[:-MAX_KEYFRAMES]
+        return closure
 
     def prior(self, pose: Pose2D, sigmas: tuple[float, float, float]) -> None:
         """An absolute measurement of the newest keyframe (a GPS fix: a wide yaw sigma)."""
@@ -91,19 +160,28 @@ class PoseGraph:
         graph.add(gtsam.PriorFactorPose2(len(self.poses) - 1, _pose(pose), _noise(sigmas)))
         self._update(graph, gtsam.Values())
 
-    def _closure(self, k: int, cloud: small_gicp.PointCloud) -> tuple[int, Pose2D] | None:
+    def keyframes(self) -> list[tuple[Pose2D, NDArray[np.float32]]]:
+        """Each keyframe's smoothed pose and scan (robot frame), oldest first."""
+        return [(p, s) for p, s in zip(self.poses, self.points, strict=True) if len(s)]
+
+    def _closure(self, k: int, thinned: NDArray[np.float32]) -> tuple[int, Pose2D] | None:
         """The spatially nearest old keyframe whose scan this one's fits, if any."""
+        if len(thinned) < LOOP_MIN_POINTS:
+            return None
         here = self.poses[k]
         old = [
             (math.hypot(p.x_m - here.x_m, p.y_m - here.y_m), j)
-            for j, p in enumerate(self.poses[: max(0, k - LOOP_MIN_GAP)])
-            if self.scans[j] is not None
+            for j, p in enumerate(self.poses[: max(self.first_live, k - LOOP_MIN_GAP)])
+            if len(self.points[j]) >= LOOP_MIN_POINTS
         ]
-        for distance, j in sorted(old)[:LOOP_TRIES]:
+        old.sort()
+        if not old or old[0][0] > LOOP_RADIUS_M:
+            return None
+        cloud = _cloud(thinned)
+        for distance, j in old[:LOOP_TRIES]:
             if distance > LOOP_RADIUS_M:
                 break
-            scan = self.scans[j]
-            assert scan is not None
+            scan = _cloud(self.points[j])
             guess = self.poses[j].between(here)
             result = small_gicp.align(
                 scan,
@@ -121,11 +199,104 @@ class PoseGraph:
         estimate = self.isam.calculateEstimate()
         self.poses = [_of(estimate.atPose2(i)) for i in range(len(self.poses))]
 
+    def _compact(self) -> None:
+        """Let the oldest half go: a new graph of the newest half, the first held where it is
+        and each chained to the next by their smoothed relative pose."""
+        keep = len(self.poses) // 2
+        poses, points = self.poses[-keep:], self.points[-keep:]
+        self.isam = gtsam.ISAM2()
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        graph.add(gtsam.PriorFactorPose2(0, _pose(poses[0]), _noise(CHAIN_SIGMAS)))
+        values.insert(0, _pose(poses[0]))
+        for i in range(1, keep):
+            between = poses[i - 1].between(poses[i])
+            graph.add(gtsam.BetweenFactorPose2(i - 1, i, _pose(between), _noise(CHAIN_SIGMAS)))
+            values.insert(i, _pose(poses[i]))
+        self.isam.update(graph, values)
+        self.poses, self.points = list(poses), list(points)
+        self.first_live = 0
+        self.compactions += 1
+
+
+def save_keyframes(path: Path, keyframes: list[tuple[Pose2D, NDArray[np.float32]]]) -> None:
+    """Atomically, as a NumPy ``.npz`` (no pickles): poses, and the scans end to end."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(path.name + ".partial.npz")
+    poses = np.array([(p.x_m, p.y_m, p.yaw_rad) for p, _ in keyframes], dtype=float)
+    counts = np.array([len(s) for _, s in keyframes], dtype=np.int64)
+    points = (
+        np.vstack([s for _, s in keyframes]).astype(np.float32)
+        if keyframes
+        else np.empty((0, 2), dtype=np.float32)
+    )
+    np.savez_compressed(
+        partial,
+        format=np.array(KEYFRAMES_FORMAT),
+        poses=poses.reshape(-1, 3),
+        counts=counts,
+        points=points,
+    )
+    os.replace(partial, path)
+
+
+class KeyframesError(Exception):
+    """A file that is not keyframes this version can read."""
+
+
+def load_keyframes(path: Path) -> list[tuple[Pose2D, NDArray[np.float32]]]:
+    """The keyframes saved at ``path`` (the newest ``MAX_KEYFRAMES // 2``);
+    :class:`KeyframesError` saying why when it is not such a file."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if int(data["format"]) != KEYFRAMES_FORMAT:
+                raise KeyframesError(f"{path}: keyframes format {int(data['format'])}")
+            poses = np.asarray(data["poses"], dtype=float)
+            counts = np.asarray(data["counts"], dtype=np.int64)
+            points = np.asarray(data["points"], dtype=np.float32)
+    except KeyframesError:
+        raise
+    except (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile) as err:
+        raise KeyframesError(f"{path}: not saved keyframes ({err})") from None
+    if (
+        poses.ndim != 2
+        or poses.shape[1:] != (3,)
+        or counts.shape != (len(poses),)
+        or points.ndim != 2
+        or points.shape[1:] != (2,)
+        or (counts < 0).any()
+        or int(counts.sum()) != len(points)
+        or not (np.isfinite(poses).all() and np.isfinite(points).all())
+    ):
+        raise KeyframesError(f"{path}: keyframes of inconsistent shapes refused")
+    ends = np.cumsum(counts)
+    starts = ends - counts
+    keyframes = [
+        (Pose2D(float(x), float(y), float(yaw)), points[a:b])
+        for (x, y, yaw), a, b in zip(poses, starts, ends, strict=True)
+    ]
+    return keyframes[-(MAX_KEYFRAMES // 2) :]
+
 
 def _noise(sigmas: tuple[float, float, float]) -> gtsam.noiseModel.Base:
     return gtsam.noiseModel.Diagonal.Sigmas(np.array(sigmas, dtype=float))
 
 
-def _extrude(points_xy: NDArray[np.float64]) -> NDArray[np.float64]:
+def _xy(p: Pose2D) -> tuple[float, float]:
+    return (p.x_m, p.y_m)
+
+
+def _thin(points_xy: NDArray[np.float64]) -> NDArray[np.float32]:
+    """One point per ``DOWNSAMPLE_M`` cell (the first seen)."""
+    if not len(points_xy):
+        return np.empty((0, 2), dtype=np.float32)
+    cells = np.floor(np.asarray(points_xy) / DOWNSAMPLE_M).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    return np.asarray(points_xy, dtype=np.float32)[np.sort(first)]
+
+
+def _cloud(points_xy: NDArray[np.float32]) -> small_gicp.PointCloud:
     n = len(points_xy)
-    return np.vstack([np.column_stack((points_xy, np.full(n, z))) for z in LAYERS_M])
+    xy = np.asarray(points_xy, dtype=np.float64)
+    extruded = np.vstack([np.column_stack((xy, np.full(n, z))) for z in LAYERS_M])
+    cloud, _ = small_gicp.preprocess_points(extruded, DOWNSAMPLE_M)
+    return cloud
