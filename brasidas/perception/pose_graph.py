@@ -3,7 +3,7 @@
 Nodes are keyframes every ``KEYFRAME_M`` (or ``KEYFRAME_RAD``); odometry between them is a
 between-factor whose noise grows with the step; absolute measurements (the fused pose while
 GPS or the area map's walls hold it) are priors on the newest node. When a keyframe comes back
-within ``LOOP_RADIUS_M`` of one at least ``LOOP_MIN_GAP`` keyframes older (or of a keyframe of
+within ``LOOP_RADIUS_M`` of one at least ``LOOP_MIN_PATH_M`` of path before it (or of a keyframe of
 a map loaded from a previous run), its scan is registered to that keyframe's scan (small_gicp
 GICP from the graph's relative estimate); a fit with most points matched closes the loop with a
 tight between-factor, and iSAM2 spreads the correction over the whole path since.
@@ -36,8 +36,14 @@ from brasidas.perception.odometry import LAYERS_M, Pose2D
 KEYFRAME_M = 1.0
 KEYFRAME_RAD = math.radians(15.0)
 LOOP_RADIUS_M = 4.0
-LOOP_MIN_GAP = 30
+LOOP_MIN_PATH_M = 15.0
+"""Keyframes nearer than this along the path are the odometry's business, not a loop."""
 LOOP_INLIERS = 0.8
+LOOP_FIT_M = 0.2
+LOOP_FIT_SHARE = 0.7
+"""Of the registered scan's points, the share that must lie this close to the old scan's (the
+registration's own inlier count, at its wide correspondence distance, accepts a near miss in
+a room whose walls look alike from a metre away)."""
 LOOP_TRIES = 3
 LOOP_CORRESPONDENCE_M = 2.0
 LOOP_SIGMAS = (0.05, 0.05, math.radians(0.5))
@@ -85,6 +91,8 @@ class PoseGraph:
         self.isam = gtsam.ISAM2()
         self.poses: list[Pose2D] = []
         self.points: list[NDArray[np.float32]] = []
+        self.path_m: list[float] = []
+        """Each keyframe's distance along the path driven (odometry)."""
         self.pending = Pose2D(0.0, 0.0, 0.0)
         self.pending_var = np.zeros(3)
         self.closures = 0
@@ -102,12 +110,15 @@ class PoseGraph:
             values.insert(i, _pose(pose))
             self.poses.append(pose)
             self.points.append(points)
+            self.path_m.append(0.0)
         self.first_live = len(self.poses)
         k = len(self.poses)
         graph.add(gtsam.PriorFactorPose2(k, _pose(start), _noise(sigmas)))
         values.insert(k, _pose(start))
         self.poses.append(start)
         self.points.append(np.empty((0, 2), dtype=np.float32))
+        self.path_m.append(0.0)
+        self._pending_path = 0.0
         self.isam.update(graph, values)
 
     @property
@@ -122,6 +133,7 @@ class PoseGraph:
         frame). The loop this step closed, if any."""
         self.pending = self.pending.compose(delta)
         self.pending_var += np.square(sigmas)
+        self._pending_path += math.hypot(delta.x_m, delta.y_m)
         moved = math.hypot(self.pending.x_m, self.pending.y_m)
         if moved < KEYFRAME_M and abs(self.pending.yaw_rad) < KEYFRAME_RAD:
             return None
@@ -137,7 +149,9 @@ class PoseGraph:
         self.poses.append(guess)
         thinned = _thin(points_xy)
         self.points.append(thinned)
+        self.path_m.append(self.path_m[-1] + self._pending_path)
         self.pending, self.pending_var = Pose2D(0.0, 0.0, 0.0), np.zeros(3)
+        self._pending_path = 0.0
         found = self._closure(k, thinned)
         closure = None
         if found is not None:
@@ -168,11 +182,12 @@ class PoseGraph:
         """The spatially nearest old keyframe whose scan this one's fits, if any."""
         if len(thinned) < LOOP_MIN_POINTS:
             return None
-        here = self.poses[k]
+        here, travelled = self.poses[k], self.path_m[k]
         old = [
             (math.hypot(p.x_m - here.x_m, p.y_m - here.y_m), j)
-            for j, p in enumerate(self.poses[: max(self.first_live, k - LOOP_MIN_GAP)])
+            for j, p in enumerate(self.poses[:k])
             if len(self.points[j]) >= LOOP_MIN_POINTS
+            and (j < self.first_live or travelled - self.path_m[j] >= LOOP_MIN_PATH_M)
         ]
         old.sort()
         if not old or old[0][0] > LOOP_RADIUS_M:
@@ -190,8 +205,11 @@ class PoseGraph:
                 guess.matrix(),
                 max_correspondence_distance=LOOP_CORRESPONDENCE_M,
             )
-            if result.converged and result.num_inliers >= LOOP_INLIERS * cloud.size():
-                return j, Pose2D.of_matrix(np.asarray(result.T_target_source))
+            if not (result.converged and result.num_inliers >= LOOP_INLIERS * cloud.size()):
+                continue
+            relative = Pose2D.of_matrix(np.asarray(result.T_target_source))
+            if _fit_share(self.points[j], thinned, relative) >= LOOP_FIT_SHARE:
+                return j, relative
         return None
 
     def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
@@ -214,6 +232,7 @@ class PoseGraph:
             values.insert(i, _pose(poses[i]))
         self.isam.update(graph, values)
         self.poses, self.points = list(poses), list(points)
+        self.path_m = self.path_m[-keep:]
         self.first_live = 0
         self.compactions += 1
 
@@ -292,6 +311,19 @@ def _thin(points_xy: NDArray[np.float64]) -> NDArray[np.float32]:
     cells = np.floor(np.asarray(points_xy) / DOWNSAMPLE_M).astype(np.int64)
     _, first = np.unique(cells, axis=0, return_index=True)
     return np.asarray(points_xy, dtype=np.float32)[np.sort(first)]
+
+
+def _fit_share(target: NDArray[np.float32], source: NDArray[np.float32], relative: Pose2D) -> float:
+    """The share of ``source``'s points, moved by ``relative`` into ``target``'s frame, within
+    ``LOOP_FIT_M`` of one of ``target``'s."""
+    c, s = math.cos(relative.yaw_rad), math.sin(relative.yaw_rad)
+    x, y = source[:, 0].astype(float), source[:, 1].astype(float)
+    moved = np.column_stack((relative.x_m + c * x - s * y, relative.y_m + s * x + c * y))
+    gaps = np.full(len(moved), np.inf)
+    for chunk in np.array_split(np.asarray(target, dtype=float), max(1, len(target) // 256)):
+        d = np.hypot(moved[:, None, 0] - chunk[None, :, 0], moved[:, None, 1] - chunk[None, :, 1])
+        gaps = np.minimum(gaps, d.min(axis=1))
+    return float(np.mean(gaps <= LOOP_FIT_M))
 
 
 def _cloud(points_xy: NDArray[np.float32]) -> small_gicp.PointCloud:
