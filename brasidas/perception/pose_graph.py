@@ -31,7 +31,7 @@ import numpy as np
 import small_gicp
 from numpy.typing import NDArray
 
-from brasidas.perception.odometry import LAYERS_M, Pose2D
+from brasidas.perception.odometry import DEGENERATE_RATIO, LAYERS_M, Pose2D
 
 KEYFRAME_M = 1.0
 KEYFRAME_RAD = math.radians(15.0)
@@ -47,6 +47,11 @@ a room whose walls look alike from a metre away)."""
 LOOP_TRIES = 3
 LOOP_CORRESPONDENCE_M = 2.0
 LOOP_SIGMAS = (0.05, 0.05, math.radians(0.5))
+DRIFT_PER_M = (0.05, 0.05, 0.02)
+"""Between keyframes, on top of the steps' own noise: the odometry's drift (m per metre along
+and across, rad per metre), which grows with the distance, not with its square root as the
+steps' independent noise does. Without it a loop of a few dozen keyframes was held as sure as a
+closure, and closing it took out only half the drift."""
 LOOP_MIN_POINTS = 60
 """A keyframe with fewer returns (an open field) is not registered for a loop closure."""
 DOWNSAMPLE_M = 0.1
@@ -57,6 +62,9 @@ LOADED_SIGMAS = (0.02, 0.02, math.radians(0.2))
 CHAIN_SIGMAS = (0.02, 0.02, math.radians(0.2))
 """Between compacted keyframes: their smoothed relative poses, held as they are."""
 KEYFRAMES_FORMAT = 1
+CLOSURE_ITERATIONS = 4
+"""iSAM2 takes one Gauss-Newton step an update: a closure that turns the loop by degrees needs
+a few (after one, a 1 m drift was only a third taken out)."""
 
 
 @dataclass(frozen=True)
@@ -88,7 +96,7 @@ class PoseGraph:
     ) -> None:
         """``loaded``: keyframes of a map from a previous run (fixed where they were); the
         robot starts at ``start`` with ``sigmas`` among them."""
-        self.isam = gtsam.ISAM2()
+        self.isam = _isam()
         self.poses: list[Pose2D] = []
         self.points: list[NDArray[np.float32]] = []
         self.path_m: list[float] = []
@@ -142,7 +150,8 @@ class PoseGraph:
             self._compact()
         k = len(self.poses)
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        noise = gtsam.noiseModel.Diagonal.Variances(self.pending_var)
+        drift = np.array(DRIFT_PER_M) * self._pending_path
+        noise = gtsam.noiseModel.Diagonal.Variances(self.pending_var + np.square(drift))
         graph.add(gtsam.BetweenFactorPose2(k - 1, k, _pose(self.pending), noise))
         guess = self.poses[-1].compose(self.pending)
         values.insert(k, _pose(guess))
@@ -159,7 +168,7 @@ class PoseGraph:
             graph.add(gtsam.BetweenFactorPose2(j, k, _pose(relative), _noise(LOOP_SIGMAS)))
             self.closures += 1
         before = self.poses
-        self._update(graph, values)
+        self._update(graph, values, CLOSURE_ITERATIONS if found is not None else 0)
         if found is not None:
             shift = max(math.dist(_xy(a), _xy(b)) for a, b in zip(before, self.poses, strict=True))
             closure = Closure(found[0], k, shift)
@@ -207,13 +216,22 @@ class PoseGraph:
             )
             if not (result.converged and result.num_inliers >= LOOP_INLIERS * cloud.size()):
                 continue
+            # Along a street or a corridor the scans look alike metres apart: such a fit
+            # would close the loop in the wrong place (seen: 6.4 m off along a street).
+            eigen = np.linalg.eigvalsh(np.asarray(result.H)[3:5, 3:5])
+            if eigen[-1] <= 0 or eigen[0] < DEGENERATE_RATIO * eigen[-1]:
+                continue
             relative = Pose2D.of_matrix(np.asarray(result.T_target_source))
             if _fit_share(self.points[j], thinned, relative) >= LOOP_FIT_SHARE:
                 return j, relative
         return None
 
-    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+    def _update(
+        self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, iterations: int = 0
+    ) -> None:
         self.isam.update(graph, values)
+        for _ in range(iterations):
+            self.isam.update()
         estimate = self.isam.calculateEstimate()
         self.poses = [_of(estimate.atPose2(i)) for i in range(len(self.poses))]
 
@@ -222,7 +240,7 @@ class PoseGraph:
         and each chained to the next by their smoothed relative pose."""
         keep = len(self.poses) // 2
         poses, points = self.poses[-keep:], self.points[-keep:]
-        self.isam = gtsam.ISAM2()
+        self.isam = _isam()
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         graph.add(gtsam.PriorFactorPose2(0, _pose(poses[0]), _noise(CHAIN_SIGMAS)))
         values.insert(0, _pose(poses[0]))
@@ -294,6 +312,12 @@ def load_keyframes(path: Path) -> list[tuple[Pose2D, NDArray[np.float32]]]:
         for (x, y, yaw), a, b in zip(poses, starts, ends, strict=True)
     ]
     return keyframes[-(MAX_KEYFRAMES // 2) :]
+
+
+def _isam() -> gtsam.ISAM2:
+    params = gtsam.ISAM2Params()
+    params.relinearizeSkip = 1  # relinearize at every update (a closure moves the linearization)
+    return gtsam.ISAM2(params)
 
 
 def _noise(sigmas: tuple[float, float, float]) -> gtsam.noiseModel.Base:
