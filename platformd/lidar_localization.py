@@ -49,6 +49,7 @@ import collections
 import concurrent.futures
 import logging
 import math
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -175,6 +176,8 @@ class Localizer(Actor):
         """The grid being rebuilt after a loop closure, and the keyframes it was given."""
         self._rebuild_again = False
         self.grid_rebuilds = 0
+        self.rebuild_cpu_s = 0.0
+        """The last grid rebuild's thread CPU time."""
         self.map_frame = False
         """Started without GPS, in the map's own frame."""
         self.geo_anchored = False
@@ -490,8 +493,17 @@ class Localizer(Actor):
             return
         keyframes = graph.keyframes()
         base = self._grid_base or OccupancyGrid(frame.latitude, frame.longitude)
-        future = self._rebuilder.submit(base.rebuilt, keyframes)
+        future = self._rebuilder.submit(self._rebuilt, base, keyframes)
         self._rebuild = (future, len(graph.poses))
+
+    def _rebuilt(
+        self, base: OccupancyGrid, keyframes: list[tuple[Pose2D, NDArray[np.float32]]]
+    ) -> OccupancyGrid:
+        """(Grid thread.)"""
+        started = time.thread_time()
+        grid = base.rebuilt(keyframes)
+        self.rebuild_cpu_s = time.thread_time() - started
+        return grid
 
     def _swap_rebuilt_grid(self) -> None:
         """(Worker thread.) A finished rebuild becomes the grid: the keyframes added since it
