@@ -548,7 +548,9 @@ class Localizer(Actor):
         frame = self.frame
         assert frame is not None
         rings: list[NDArray[np.float64]] = []
-        if area is not None:
+        # In a map frame of its own (no GPS ever) the area map's latitudes and longitudes are
+        # nowhere in particular: its walls would pull the pose to a wrong place.
+        if area is not None and self.geo_anchored:
             for zone_id, keepout in area.keepouts.items():
                 if zone_id.startswith(TEMPORARY_KEEPOUT_PREFIX):
                     continue  # the lidar's own obstacles, not the map's walls
