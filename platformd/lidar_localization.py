@@ -417,8 +417,10 @@ class Localizer(Actor):
         frame, at the saved pose (a loaded grid) or the origin of a new map."""
         if self._first_scan_at is None:
             self._first_scan_at = now
-        if self.fusion.started or self._fix_seen or self.gps_wait is None:
+        if self.fusion.started or self.gps_wait is None:
             return
+        if self._fix_seen and self.geo_anchored:
+            return  # GPS is here (a map of the robot's own frame waits for no fix)
         if now - self._first_scan_at < self.gps_wait:
             return
         saved = self.grid.pose if self.grid is not None else None
@@ -493,6 +495,7 @@ class Localizer(Actor):
             return
         keyframes = graph.keyframes()
         base = self._grid_base or OccupancyGrid(frame.latitude, frame.longitude)
+        base.geo = self.geo_anchored
         future = self._rebuilder.submit(self._rebuilt, base, keyframes)
         self._rebuild = (future, len(graph.poses))
 
@@ -637,6 +640,7 @@ class Localizer(Actor):
             return
         if self.grid is None:
             self.grid = OccupancyGrid(frame.latitude, frame.longitude)
+            self.grid.geo = self.geo_anchored
         try:
             self.grid.integrate(Pose2D(fused.x_m, fused.y_m, fused.yaw_rad), points)
         except GridError as err:
@@ -664,7 +668,7 @@ class Localizer(Actor):
             return
         self.grid = grid
         self.frame = LocalFrame(grid.latitude, grid.longitude)
-        self.geo_anchored = True
+        self.geo_anchored = grid.geo
         try:
             self._loaded_keyframes = load_keyframes(keyframes_path(path))
         except FileNotFoundError:

@@ -205,6 +205,7 @@ async def test_without_gps_a_driven_loop_closes_and_the_saved_map_loads_at_the_n
     grid_file = tmp_path / "grid.npz"
     saved = OccupancyGrid.load(grid_file)
     assert saved.pose is not None
+    assert not saved.geo
     assert len(load_keyframes(keyframes_path(grid_file))) >= keyframes - 2
 
     # The next start, where it stopped: the saved map is its frame, its saved pose the start.
@@ -212,7 +213,7 @@ async def test_without_gps_a_driven_loop_closes_and_the_saved_map_loads_at_the_n
     try:
         localizer = localizer_of(daemon)
         await wait_until(lambda: localizer.fused is not None, 10)
-        assert localizer.map_frame and localizer.geo_anchored
+        assert localizer.map_frame and not localizer.geo_anchored  # still its own frame
         # It starts where it stopped in the saved map's frame: off the truth as it was then.
         assert abs(error_m(localizer, robot) - error) < 0.1
         await wait_until(lambda: localizer.graph is not None, 5)

@@ -53,6 +53,9 @@ class OccupancyGrid:
         self.scans = 0
         self.pose: Pose2D | None = None
         """Where the robot was when the grid was saved (None: not known)."""
+        self.geo = True
+        """The anchor is a GPS position (False: a map frame of the robot's own, never tied to
+        latitude and longitude: GPS fixes are not positions in it)."""
 
     def rebuilt(self, keyframes: list[tuple[Pose2D, NDArray[np.float32]]]) -> OccupancyGrid:
         """A copy of this grid with ``keyframes``' scans integrated at their poses (on an
@@ -62,6 +65,7 @@ class OccupancyGrid:
         grid.log_odds = self.log_odds.copy()
         grid.scans = self.scans
         grid.pose = self.pose
+        grid.geo = self.geo
         for pose, points in keyframes:
             grid.integrate(pose, np.asarray(points, dtype=float))
         return grid
@@ -134,6 +138,7 @@ class OccupancyGrid:
             origin=self.origin,
             log_odds=self.log_odds,
             scans=np.array(self.scans),
+            geo=np.array(self.geo),
             pose=np.array(
                 (self.pose.x_m, self.pose.y_m, self.pose.yaw_rad) if self.pose else (np.nan,) * 3
             ),
@@ -153,6 +158,7 @@ class OccupancyGrid:
                 log_odds = np.asarray(data["log_odds"], dtype=np.float32)
                 grid.scans = int(data["scans"])
                 pose = np.asarray(data["pose"], dtype=float) if "pose" in data else None
+                grid.geo = bool(data["geo"]) if "geo" in data else True
         except GridError:
             raise
         except (
