@@ -32,6 +32,9 @@ motor controller in the loop: its 10 Hz refresh would add up to 100 ms, a fixed 
   against the same map matching in a thread of the loop's process (small_gicp holds the GIL
   for the whole of a call). ``BENCH_PERCEPTION_HEARTBEAT_S`` (default 60).
 
+- **GPS-less loop** (:mod:`bench.perception_slam`): SLAM in the map's own frame, the end
+  error with loop closure and without, CPU per keyframe.
+
 Seeded (``sim.seed``); ``BENCH_PERCEPTION_TRIALS`` (default 50) pop-ups. Figures not reached
 (the town's 50 laps, a replayed CARMEN log) are listed under ``not_measured``.
 """
@@ -409,10 +412,12 @@ async def _loop_heartbeat(seconds: float = HEARTBEAT_S) -> dict[str, Any]:
 
 async def run() -> dict[str, Any]:
     from bench.perception_carmen import carmen_rows
+    from bench.perception_slam import slam_rows
 
     heartbeat = await _loop_heartbeat()
     localization = await asyncio.to_thread(_localization)
     localization |= await asyncio.to_thread(carmen_rows)
+    localization |= await asyncio.to_thread(slam_rows)
     localization |= await asyncio.to_thread(_localization, "stl27l", spoofing=False)
     localization |= await asyncio.to_thread(
         _localization, spoofing=False, map_shift_m=(0.3, -0.2), label="ld19_map_off_0.36m"

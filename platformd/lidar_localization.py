@@ -22,6 +22,20 @@ and is carried forward by the motion since. Reloading the area map (R-5.3.2) onl
 scans are matched to: the fused pose carries on, so the robot stays localized; the new walls
 are taken from the next scan.
 
+Without GPS (indoors, under trees, a receiver disabled: ``gps_wait_s`` after the first scan
+with no fix at all) the fusion starts in the map's own frame: at the robot's saved pose when a
+grid was loaded (its anchor is the frame), else at the origin of a new map, facing east (its
+anchor is the area map's origin, or 0, 0: a frame of its own, so the GPS fixes that come later
+are not mixed into it). Every scan's step also goes into a pose graph
+(:mod:`brasidas.perception.pose_graph`: keyframes a metre apart, loop closure by registering a
+keyframe's scan to an earlier one's, iSAM2) in the same worker thread; the fused pose while GPS
+or the area map's walls hold it is a prior on each keyframe. When a loop closes and neither
+holds the pose, the graph's smoothed pose replaces the fused one (the drift since the place was
+last seen taken out), and the grid is rebuilt from the keyframes at their smoothed poses in a
+thread of its own, then swapped in. The keyframes are saved next to the grid
+(``grid.keyframes.npz``) and loaded with it: a restarted robot closes loops against its old
+map.
+
 What it says: the ``perception`` telemetry's localization source and uncertainty, GPS fixes
 accepted and refused, and why GPS is refused now (the annunciator's group 90 warning
 ``GPS_REJECTED``, which the MAVLink endpoint sends as STATUSTEXT).
@@ -35,6 +49,7 @@ import collections
 import concurrent.futures
 import logging
 import math
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -49,7 +64,15 @@ from brasidas.autonomy.geo import LocalFrame, wrap
 from brasidas.bus import Bus
 from brasidas.clock import Clock, LoopClock
 from brasidas.messages import Attitude, GpsFix, Velocity
-from brasidas.perception.fusion import FusedPose, GpsVerdict, PoseFusion
+from brasidas.perception.fusion import (
+    FLOOR_NOISE,
+    LIDAR_NOISE,
+    PRIOR_NOISE,
+    TURN_NOISE,
+    FusedPose,
+    GpsVerdict,
+    PoseFusion,
+)
 from brasidas.perception.grid import GridError, OccupancyGrid
 from brasidas.perception.map_match import MapMatch
 from brasidas.perception.messages import LidarPose, RobotScan
@@ -58,6 +81,12 @@ from brasidas.perception.odometry import (
     OdometryStep,
     Pose2D,
     scan_points,
+)
+from brasidas.perception.pose_graph import (
+    KeyframesError,
+    PoseGraph,
+    load_keyframes,
+    save_keyframes,
 )
 from platformd.lidar_models import TEMPORARY_KEEPOUT_PREFIX
 from platformd.map_match_process import MapMatchProcess, Pending
@@ -98,6 +127,17 @@ MAP_ANSWER_LATE_S = 1.0
 odometry that carries it forward to now has drifted as much as it would correct."""
 MAP_DOUBT_AFTER = 3
 """Fits to the map refused in a row after which the fusion's certainty is doubted."""
+GPS_WAIT_S = 30.0
+"""With a GPS receiver configured: scans for this long without a single fix (indoors, under
+trees) and the robot localizes in its map's own frame."""
+SAVED_POSE_SIGMAS = (0.3, math.radians(5.0))
+"""Starting at the saved pose: the robot may have been pushed a little while off (the first
+keyframes close loops against the loaded ones and pin it)."""
+REBUILD_SHIFT_M = 0.1
+"""A loop closure that moved no keyframe by a grid cell leaves the grid as it is (going round
+a known place closes a loop at every keyframe)."""
+GRAPH_START_SIGMAS = (0.01, 0.01, 0.001)
+"""The first node of a graph begun with the fusion: the frame is where it starts."""
 
 
 class Localizer(Actor):
@@ -115,8 +155,35 @@ class Localizer(Actor):
         area: Callable[[], AreaMap | None] | None = None,
         max_yaw_rate_rad_s: float = 0.0,
         gps_sigma_m: float = 2.1,
+        gps_wait_s: float | None = None,
+        loop_closure: bool = True,
     ) -> None:
+        """``gps_wait_s``: scans without a fix after which the robot localizes in its map's
+        own frame (0: at once, no GPS; None: never, it waits for GPS)."""
         super().__init__(bus)
+        self.gps_wait = gps_wait_s
+        self.loop_closure = loop_closure
+        self.graph: PoseGraph | None = None
+        """The keyframes and their loop closures (worker thread; None before the fusion
+        starts, or with ``loop_closure`` off)."""
+        self.loop_corrections: list[float] = []
+        """How far each loop closure moved the fused pose (m), the latest 100."""
+        self._loaded_keyframes: list[tuple[Pose2D, NDArray[np.float32]]] = []
+        self._grid_base: OccupancyGrid | None = None
+        """A loaded grid without keyframes (an older file): rebuilds start from it."""
+        self._rebuilder = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="grid")
+        self._rebuild: tuple[concurrent.futures.Future[OccupancyGrid], int] | None = None
+        """The grid being rebuilt after a loop closure, and the keyframes it was given."""
+        self._rebuild_again = False
+        self.grid_rebuilds = 0
+        self.rebuild_cpu_s = 0.0
+        """The last grid rebuild's thread CPU time."""
+        self.map_frame = False
+        """Started without GPS, in the map's own frame."""
+        self.geo_anchored = False
+        """The local frame's anchor is a GPS position (a fix, or a grid saved under GPS)."""
+        self._fix_seen = False
+        self._first_scan_at: float | None = None
         self.gps_sigma = gps_sigma_m
         """The receiver's absolute error at HDOP 1 (``autonomy.gps_sigma_m``)."""
         self.max_yaw_rate = max_yaw_rate_rad_s
@@ -201,6 +268,7 @@ class Localizer(Actor):
                 await loop.run_in_executor(self._worker, self.save_grid)
             finally:
                 self._worker.shutdown(wait=False, cancel_futures=True)
+                self._rebuilder.shutdown(wait=False, cancel_futures=True)
                 self.maps.close()
 
     def _publish(self, accepted: list[GpsFix]) -> None:
@@ -241,6 +309,7 @@ class Localizer(Actor):
         self._wake.set()
 
     def _on_fix(self, fix: GpsFix) -> None:
+        self._fix_seen = True
         self._fixes.append(fix)
         self._wake.set()
 
@@ -319,6 +388,7 @@ class Localizer(Actor):
         and honest fixes, even RTK ones, be refused as a jump."""
         points: NDArray[np.float64] = np.empty((0, 2))
         if scan is not None:
+            self._maybe_start_without_gps(scan.time)
             speed, turn, doubt = self._drive_to(scan.time, speed_mps, commanded_turn)
             self.odometry.yaw_slack_rad = None if yaw_rate is not None else NO_GYRO_YAW_SLACK_RAD
             rate = yaw_rate if yaw_rate is not None else turn
@@ -335,10 +405,131 @@ class Localizer(Actor):
             if self.fusion.started and self.odometry.scans % MAP_EVERY == 0:
                 self._match_map(points)
         accepted = [fix for fix in fixes if self._gps(fix)]
+        if scan is not None and self.fusion.started and self.loop_closure:
+            self._keyframe(self.last, points)
         self.fused = self.fusion.pose() if self.fusion.started else None
         if scan is not None and self.fused is not None and self.fused.source != "prior":
             self._map(scan.time, points)
         return accepted
+
+    def _maybe_start_without_gps(self, now: float) -> None:
+        """(Worker thread.) No fix at all for ``gps_wait_s`` of scans: start in the map's own
+        frame, at the saved pose (a loaded grid) or the origin of a new map."""
+        if self._first_scan_at is None:
+            self._first_scan_at = now
+        if self.fusion.started or self.gps_wait is None:
+            return
+        if self._fix_seen and self.geo_anchored:
+            return  # GPS is here (a map of the robot's own frame waits for no fix)
+        if now - self._first_scan_at < self.gps_wait:
+            return
+        saved = self.grid.pose if self.grid is not None else None
+        if self.frame is None:
+            area = self._area()
+            anchor = (area.frame.latitude, area.frame.longitude) if area is not None else (0, 0)
+            self.frame = LocalFrame(*anchor)
+        if saved is not None:
+            self.fusion.start_at(saved, *SAVED_POSE_SIGMAS, now)
+        else:
+            self.fusion.start_at(Pose2D(0.0, 0.0, 0.0), 0.0, 0.0, now)
+        self.map_frame = True
+        _LOGGER.info(
+            "localization: no GPS: in the map's own frame, %s",
+            f"from the saved pose ({saved.x_m:.1f}, {saved.y_m:.1f}) m"
+            if saved is not None
+            else "a new map from here",
+        )
+
+    def _keyframe(self, step: OdometryStep | None, points: NDArray[np.float64]) -> None:
+        """(Worker thread.) The scan's step into the pose graph; a loop it closes corrects the
+        fused pose (unless GPS or the map's walls hold it) and has the grid rebuilt."""
+        self._swap_rebuilt_grid()
+        if step is None:
+            return
+        fused = self.fusion.pose()
+        here = Pose2D(fused.x_m, fused.y_m, fused.yaw_rad)
+        if self.graph is None:
+            loaded = self._loaded_keyframes if self.geo_anchored or self.map_frame else []
+            self._loaded_keyframes = []
+            self.graph = PoseGraph(here, GRAPH_START_SIGMAS, loaded=loaded)
+            return
+        graph = self.graph
+        delta = step.delta
+        distance = math.hypot(delta.x_m, delta.y_m)
+        along, across, turn = LIDAR_NOISE if step.source == "lidar" else PRIOR_NOISE
+        sigmas = (
+            along * distance + FLOOR_NOISE[0],
+            across * distance + FLOOR_NOISE[1],
+            turn * distance + TURN_NOISE * abs(delta.yaw_rad) + FLOOR_NOISE[2],
+        )
+        keyframes = len(graph.poses)
+        closure = graph.odometry(delta, sigmas, points)
+        held = fused.source in ("gps+lidar", "map+lidar")
+        if len(graph.poses) > keyframes and held:
+            sigma = max(fused.sigma_m, 0.05)
+            graph.prior(here, (sigma, sigma, max(fused.sigma_yaw_rad, math.radians(1.0))))
+        if closure is None:
+            return
+        if not held:
+            corrected = graph.pose
+            self.loop_corrections.append(math.dist((here.x_m, here.y_m), _xy(corrected)))
+            del self.loop_corrections[:-100]
+            self.fusion.moved_to(corrected)
+            _LOGGER.info(
+                "localization: loop closed (keyframe %d on %d): pose moved %.2f m",
+                closure.k,
+                closure.j,
+                self.loop_corrections[-1],
+            )
+        if closure.moved_m >= REBUILD_SHIFT_M:
+            self._start_rebuild()
+
+    def _start_rebuild(self) -> None:
+        """(Worker thread.) Rebuild the grid from the keyframes at their smoothed poses, in
+        the grid's own thread (a town's keyframes take a second or more)."""
+        graph, frame = self.graph, self.frame
+        if graph is None or frame is None:
+            return
+        if self._rebuild is not None:
+            self._rebuild_again = True
+            return
+        keyframes = graph.keyframes()
+        base = self._grid_base or OccupancyGrid(frame.latitude, frame.longitude)
+        base.geo = self.geo_anchored
+        future = self._rebuilder.submit(self._rebuilt, base, keyframes)
+        self._rebuild = (future, len(graph.poses))
+
+    def _rebuilt(
+        self, base: OccupancyGrid, keyframes: list[tuple[Pose2D, NDArray[np.float32]]]
+    ) -> OccupancyGrid:
+        """(Grid thread.)"""
+        started = time.thread_time()
+        grid = base.rebuilt(keyframes)
+        self.rebuild_cpu_s = time.thread_time() - started
+        return grid
+
+    def _swap_rebuilt_grid(self) -> None:
+        """(Worker thread.) A finished rebuild becomes the grid: the keyframes added since it
+        started are integrated on top."""
+        if self._rebuild is None or not self._rebuild[0].done():
+            return
+        (future, counted), self._rebuild = self._rebuild, None
+        try:
+            grid = future.result()
+        except GridError as err:
+            self.grid_error = str(err)
+            return
+        graph = self.graph
+        if graph is not None:
+            for pose, points in graph.keyframes()[counted:]:
+                grid.integrate(pose, np.asarray(points, dtype=float))
+        grid.scans = max(grid.scans, (self.grid.scans if self.grid else 0)) + 1
+        self.grid = grid
+        self.grid_rebuilds += 1
+        self._grid_dirty = True
+        if self._rebuild_again:
+            self._rebuild_again = False
+            self._start_rebuild()
 
     def _drive_to(
         self, now: float, speed_mps: float, turn_rad_s: float
@@ -360,7 +551,9 @@ class Localizer(Actor):
         frame = self.frame
         assert frame is not None
         rings: list[NDArray[np.float64]] = []
-        if area is not None:
+        # In a map frame of its own (no GPS ever) the area map's latitudes and longitudes are
+        # nowhere in particular: its walls would pull the pose to a wrong place.
+        if area is not None and self.geo_anchored:
             for zone_id, keepout in area.keepouts.items():
                 if zone_id.startswith(TEMPORARY_KEEPOUT_PREFIX):
                     continue  # the lidar's own obstacles, not the map's walls
@@ -447,6 +640,7 @@ class Localizer(Actor):
             return
         if self.grid is None:
             self.grid = OccupancyGrid(frame.latitude, frame.longitude)
+            self.grid.geo = self.geo_anchored
         try:
             self.grid.integrate(Pose2D(fused.x_m, fused.y_m, fused.yaw_rad), points)
         except GridError as err:
@@ -474,6 +668,14 @@ class Localizer(Actor):
             return
         self.grid = grid
         self.frame = LocalFrame(grid.latitude, grid.longitude)
+        self.geo_anchored = grid.geo
+        try:
+            self._loaded_keyframes = load_keyframes(keyframes_path(path))
+        except FileNotFoundError:
+            self._grid_base = grid
+        except KeyframesError as err:
+            _LOGGER.warning("keyframes refused (loops close on the new ones only): %s", err)
+            self._grid_base = grid
         rows, cols = grid.log_odds.shape
         _LOGGER.info(
             "occupancy grid loaded from %s: %d scans, %.0f x %.0f m",
@@ -487,8 +689,13 @@ class Localizer(Actor):
         """(Worker thread.) Write the grid if it changed since it was last written."""
         if self.grid is None or self.grid_path is None or not self._grid_dirty:
             return
+        fused = self.fused
+        if fused is not None:
+            self.grid.pose = Pose2D(fused.x_m, fused.y_m, fused.yaw_rad)
         try:
             self.grid.save(self.grid_path)
+            if self.graph is not None:
+                save_keyframes(keyframes_path(self.grid_path), self.graph.keyframes())
         except OSError as err:
             _LOGGER.warning("occupancy grid not saved to %s: %s", self.grid_path, err)
             return
@@ -503,6 +710,9 @@ class Localizer(Actor):
         nothing to check it against, and it passes)."""
         if self.frame is None:
             self.frame = LocalFrame(fix.latitude, fix.longitude)
+            self.geo_anchored = True
+        if not self.geo_anchored:
+            return False  # a map frame of its own: a fix is not a position in it
         if not self.fusion.started:
             speed, course = fix.speed_mps, fix.course_deg
             if speed is None or course is None or speed < HEADING_SPEED_MPS:
@@ -536,7 +746,19 @@ class Localizer(Actor):
             "gps_rejected": self.fusion.rejected,
             "map_matches": self.fusion.map_accepted,
             "map_refused": self.fusion.map_refused + self.map_refusals,
+            "keyframes": len(self.graph.poses) if self.graph is not None else 0,
+            "loop_closures": self.graph.closures if self.graph is not None else 0,
+            "grid_rebuilds": self.grid_rebuilds,
         }
+
+
+def keyframes_path(grid_path: Path) -> Path:
+    """The pose graph's keyframes, saved next to the grid."""
+    return grid_path.with_name(grid_path.stem + ".keyframes.npz")
+
+
+def _xy(pose: Pose2D) -> tuple[float, float]:
+    return (pose.x_m, pose.y_m)
 
 
 def _same_rings(a: list[NDArray[np.float64]], b: list[NDArray[np.float64]]) -> bool:

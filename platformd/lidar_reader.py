@@ -40,7 +40,7 @@ from brasidas.perception.proximity import Geometry, proximity, silent, to_robot
 from brasidas.perception.view import PlanePose, pose_at, reframe
 from brasidas.security import state_dir
 from platformd.context import PlatformContext, SerialDevice
-from platformd.lidar_localization import Localizer
+from platformd.lidar_localization import GPS_WAIT_S, Localizer
 from platformd.lidar_models import baudrate_of
 from platformd.serial_port import PortOpener, read_line_forever
 
@@ -317,6 +317,7 @@ async def async_setup(ctx: PlatformContext) -> None:
             area=area,
             max_yaw_rate_rad_s=math.radians(ctx.config.autonomy.full_turn_rate_dps),
             gps_sigma_m=ctx.config.autonomy.gps_sigma_m,
+            gps_wait_s=GPS_WAIT_S if ctx.config.gps.enabled else 0.0,
         )
         ctx.telemetry.add_counters("localization", reader.localizer.counters)
         ctx.supervisor.start(reader.localizer)

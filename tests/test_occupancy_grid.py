@@ -55,3 +55,18 @@ def test_a_file_that_is_not_a_grid_is_refused_with_the_reason(
     path.write_bytes(content)
     with pytest.raises(GridError, match="not a saved grid"):
         OccupancyGrid.load(path)
+
+
+def test_the_robots_pose_is_saved_with_the_grid_and_a_rebuild_keeps_it(tmp_path: Path) -> None:
+    grid = OccupancyGrid(37.9, 23.6)
+    grid.integrate(Pose2D(0.0, 0.0, 0.0), WALL)
+    path = tmp_path / "grid.npz"
+    grid.save(path)
+    assert OccupancyGrid.load(path).pose is None  # not known: a robot with GPS finds itself
+    grid.pose = Pose2D(1.5, -2.0, 0.3)
+    rebuilt = grid.rebuilt([(Pose2D(0.0, 0.0, math.pi / 2), WALL.astype(np.float32))])
+    assert rebuilt.pose == grid.pose
+    assert rebuilt.occupied(0.0, 5.02) > 0.6  # the keyframe's wall, north
+    assert rebuilt.occupied(5.02, 0.0) > 0.6  # and the grid's own, east
+    rebuilt.save(path)
+    assert OccupancyGrid.load(path).pose == Pose2D(1.5, -2.0, 0.3)

@@ -223,6 +223,19 @@ class PoseFusion:
         shift = max(-dt, min(MAX_AHEAD_S, when - step_end))
         return self.state[:2] + world * (shift / dt)
 
+    def start_at(self, pose: Pose2D, sigma_m: float, sigma_yaw_rad: float, now: float) -> None:
+        """Start without GPS: at ``pose`` in the map's own frame (the robot's saved pose, or
+        the origin of a new map)."""
+        self.state = np.array((pose.x_m, pose.y_m, pose.yaw_rad))
+        self.cov = np.diag((sigma_m**2, sigma_m**2, sigma_yaw_rad**2))
+        self.time = now
+        self.started = True
+
+    def moved_to(self, pose: Pose2D) -> None:
+        """The pose graph closed a loop: its smoothed pose replaces the estimate (the
+        covariance stays: the closure fixes the path's shape, not the frame's anchor)."""
+        self.state = np.array((pose.x_m, pose.y_m, pose.yaw_rad))
+
     def _start(self, x_m: float, y_m: float, sigma_m: float) -> None:
         yaw = self.heading_rad if self.heading_rad is not None else 0.0
         yaw_sigma = math.radians(10.0) if self.heading_rad is not None else math.pi

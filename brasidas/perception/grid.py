@@ -7,8 +7,10 @@ forgotten again after a few passes). The grid is in the localizer's geo-anchored
 the robot goes. Saved as a NumPy ``.npz`` (no pickles) with its anchor, written atomically;
 loaded at start, a file that is not a grid is refused with the reason and a new grid begun.
 
-Not here (yet): loop closure. The poses are the fusion's, so the grid is as straight as the
-odometry between GPS corrections.
+Scans are integrated at the fused pose as they come; when the pose graph
+(:mod:`brasidas.perception.pose_graph`) closes a loop the grid is rebuilt from its keyframes at
+their smoothed poses (:meth:`OccupancyGrid.rebuilt`). The robot's last pose is saved with the
+grid, so a robot without GPS starts where it stopped, in the map's own frame.
 """
 
 from __future__ import annotations
@@ -49,6 +51,24 @@ class OccupancyGrid:
         """The world position (east, north) of cell [0, 0]'s corner."""
         self.log_odds: NDArray[np.float32] = np.zeros((0, 0), dtype=np.float32)
         self.scans = 0
+        self.pose: Pose2D | None = None
+        """Where the robot was when the grid was saved (None: not known)."""
+        self.geo = True
+        """The anchor is a GPS position (False: a map frame of the robot's own, never tied to
+        latitude and longitude: GPS fixes are not positions in it)."""
+
+    def rebuilt(self, keyframes: list[tuple[Pose2D, NDArray[np.float32]]]) -> OccupancyGrid:
+        """A copy of this grid with ``keyframes``' scans integrated at their poses (on an
+        empty grid: the map as a corrected path saw it)."""
+        grid = OccupancyGrid(self.latitude, self.longitude, self.resolution, self.max_range)
+        grid.origin = self.origin.copy()
+        grid.log_odds = self.log_odds.copy()
+        grid.scans = self.scans
+        grid.pose = self.pose
+        grid.geo = self.geo
+        for pose, points in keyframes:
+            grid.integrate(pose, np.asarray(points, dtype=float))
+        return grid
 
     def integrate(self, pose: Pose2D, points_xy: NDArray[np.float64]) -> None:
         """One scan (robot frame) taken at ``pose`` (east, north, yaw)."""
@@ -118,6 +138,10 @@ class OccupancyGrid:
             origin=self.origin,
             log_odds=self.log_odds,
             scans=np.array(self.scans),
+            geo=np.array(self.geo),
+            pose=np.array(
+                (self.pose.x_m, self.pose.y_m, self.pose.yaw_rad) if self.pose else (np.nan,) * 3
+            ),
         )
         os.replace(partial, path)
 
@@ -133,6 +157,8 @@ class OccupancyGrid:
                 grid.origin = np.asarray(data["origin"], dtype=float).reshape(2)
                 log_odds = np.asarray(data["log_odds"], dtype=np.float32)
                 grid.scans = int(data["scans"])
+                pose = np.asarray(data["pose"], dtype=float) if "pose" in data else None
+                grid.geo = bool(data["geo"]) if "geo" in data else True
         except GridError:
             raise
         except (
@@ -150,4 +176,6 @@ class OccupancyGrid:
         if not (-90 <= latitude <= 90 and -180 <= longitude <= 180):
             raise GridError(f"{path}: anchor {latitude}, {longitude} is not on Earth")
         grid.log_odds = np.clip(np.nan_to_num(log_odds), -CLAMP, CLAMP)
+        if pose is not None and pose.shape == (3,) and np.isfinite(pose).all():
+            grid.pose = Pose2D(float(pose[0]), float(pose[1]), float(pose[2]))
         return grid
