@@ -21,7 +21,7 @@ let canvas = null, context = null, decoder = null;
 let codec = "", waitingForKey = true, lastSeq = -1, feed = -1;
 let clockOffsetMs = 0;
 const inFlight = new Map();
-const stats = { ownSocket: 0, firstDrawMs: 0, late: 0, lastNetworkMs: null, received: 0, decoded: 0, dropped: 0, errors: 0, replayed: 0, gaps: 0, lastLatencyMs: null };
+const stats = { ownSocket: 0, copied: 0, firstDrawMs: 0, late: 0, lastNetworkMs: null, received: 0, decoded: 0, dropped: 0, errors: 0, replayed: 0, gaps: 0, lastLatencyMs: null };
 const recent = [];      // latencies of the last ~300 live frames
 const drawnTimes = [];  // draw times of the last second
 const lastSecond = [];  // [drawn, latency] of the live frames of the last second
@@ -31,8 +31,9 @@ let keepAll = null;     // every frame's stage times (see ``stages``), while a b
 function now() { return performance.timeOrigin + performance.now(); }
 
 function makeDecoder() {
+  epoch += 1;
   if (decoder && decoder.state !== "closed") decoder.close();
-  decoder = new VideoDecoder({ output: draw, error: (e) => { stats.errors += 1; post({ type: "error", message: String(e) }); reset(); } });
+  decoder = new VideoDecoder({ output: onDecoded, error: (e) => { stats.errors += 1; post({ type: "error", message: String(e) }); reset(); } });
   if (codec) decoder.configure({ codec, optimizeForLatency: true });
 }
 
@@ -42,8 +43,40 @@ function reset() {
   try { makeDecoder(); } catch (e) { post({ type: "error", message: String(e) }); }
 }
 
-function draw(frame) {
-  const decodedMs = now();
+// The decoder's output, drawn in order: a draw that waits on the frame's pixels (below) never
+// lets a later frame overtake it.
+let drawing = Promise.resolve();
+let epoch = 0; // a clear or a new decoder: a frame still being converted is not drawn
+function onDecoded(frame) {
+  const decodedMs = now(), of = epoch;
+  drawing = drawing.then(() => (of === epoch ? draw(frame, decodedMs, of) : frame.close())).catch((e) => { stats.errors += 1; post({ type: "error", message: String(e) }); });
+}
+
+// The frame's pixels converted to RGBA by the browser (VideoFrame.copyTo with a format: one
+// YUV → RGB pass) and written to the canvas as they are: ~1 ms at 640×480 on a software
+// canvas where drawImage(frame) takes ~2 (it converts into an image of its own, then draws
+// that). The same pixels either way; a browser without the conversion gets drawImage.
+let rgbaCopy = true;
+let image = null; // reused, one frame's RGBA
+async function paint(frame, of) {
+  const width = frame.displayWidth, height = frame.displayHeight;
+  if (rgbaCopy && frame.visibleRect?.width === width && frame.visibleRect?.height === height) {
+    if (!image || image.width !== width || image.height !== height) image = new ImageData(width, height);
+    try {
+      await frame.copyTo(image.data, { format: "RGBA", colorSpace: "srgb" });
+      if (of !== epoch) return false;
+      context.putImageData(image, 0, 0);
+      stats.copied += 1;
+      return true;
+    } catch {
+      rgbaCopy = false;
+    }
+  }
+  context.drawImage(frame, 0, 0);
+  return true;
+}
+
+async function draw(frame, decodedMs, of) {
   const info = inFlight.get(frame.timestamp);
   if (info) info.decodedMs = decodedMs;
   inFlight.delete(frame.timestamp);
@@ -51,8 +84,9 @@ function draw(frame) {
     canvas.width = frame.displayWidth;
     canvas.height = frame.displayHeight;
   }
-  context.drawImage(frame, 0, 0);
-  frame.close();
+  let drew = false;
+  try { drew = await paint(frame, of); } finally { frame.close(); }
+  if (!drew) return;
   const drawn = now();
   if (!stats.firstDrawMs) stats.firstDrawMs = drawn;
   stats.decoded += 1;
@@ -87,6 +121,8 @@ function stages(info, latency, drawn) {
     handoff: info.workerMs - info.pageMs,
     decode: info.decodedMs - info.workerMs,
     draw: drawn - info.decodedMs,
+    key: info.key,
+    bytes: info.bytes,
   };
 }
 
@@ -118,7 +154,7 @@ function onFrame(buffer, pageMs) {
     stats.dropped += 1;
     return;
   }
-  inFlight.set(seq, { captureMs, arrivalMs, replayed, pageMs: pageMs ?? workerMs, workerMs });
+  inFlight.set(seq, { captureMs, arrivalMs, replayed, key, bytes: data.byteLength, pageMs: pageMs ?? workerMs, workerMs });
   try {
     decoder.decode(new EncodedVideoChunk({ type: key ? "key" : "delta", timestamp: seq, data }));
   } catch (e) {
@@ -205,6 +241,7 @@ self.onmessage = (event) => {
     for (const name of Object.keys(stats)) stats[name] = name.startsWith("last") ? null : 0;
     if (decoder && decoder.state !== "closed") decoder.close();
     decoder = null;
+    epoch += 1;
     if (context) { context.fillStyle = "#000"; context.fillRect(0, 0, canvas.width, canvas.height); }
   } else if (message.type === "keep") { keepAll = message.on ? [] : null; }
   else if (message.type === "dump") { post({ type: "dump", latencies: keepAll ? [...keepAll] : [], stats: { ...stats } }); }

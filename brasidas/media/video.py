@@ -399,9 +399,11 @@ class VideoOut(FanOutStream[VideoSettings]):
         stamp.connect("handoff", stamp_capture_time, ntp_caps())
         overlays: list[Any] = []
         if s.test_source:
+            # The wall clock on the test picture: redrawn once a second. (A running time
+            # redrawn every frame, after the capture stamp, cost 0.5 ms a frame at the median
+            # and up to 9 under load: transport latency that a real camera does not have.)
             overlays = [
-                make("clockoverlay", time_format="%H:%M:%S", halignment="left", valignment="top"),
-                make("timeoverlay", halignment="right", valignment="top"),
+                make("clockoverlay", time_format="%H:%M:%S", halignment="left", valignment="top")
             ]
         rate = make("videorate", drop_only=True)
         rate_filter = make("capsfilter", caps=caps(f"video/x-raw,framerate={s.framerate}/1"))
