@@ -46,8 +46,10 @@ from platformd.recorder import REASON_MAX_CHARS
 from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
-ROTATE_SECONDS = 5.0
-"""The sim recording's files' length (recorder.rotate_minutes)."""
+ROTATE_SECONDS = 9.0
+"""The sim recording's files' length (recorder.rotate_minutes). Not shorter: on a starved CPU
+the station's commands take seconds, the NavCam runs at its idle 5 fps until the override is
+engaged, and a 5 s first file held 23 frames (30 asserted)."""
 
 
 def read_messages(path: Path) -> dict[str, list[tuple[int, dict[str, Any]]]]:
