@@ -51,6 +51,14 @@ def test_a_periodic_keyframe_does_not_hold_a_request_back() -> None:
     assert not clock.on_frame(1.2)
     assert clock.on_frame(1.14 + 0.25)
     assert clock.counters.deferred == 1
+    # On a congested link the periodic keyframe is queued, not lost: a request soon after it
+    # waits the gap out, as two keyframes 250 ms apart at most would refill the queue.
+    clock.congested = True
+    periodic = [i for i in range(1, 31) if clock.on_frame(1.39 + i / 30)]
+    assert periodic == [30]  # at 2.39 s
+    clock.request(2.45)
+    assert not clock.on_frame(2.45)
+    assert clock.on_frame(2.39 + 0.26)
 
 
 class _KeyframeLog:

@@ -61,6 +61,10 @@ class KeyframeClock:
         self._last_forced: float | None = None
         self._last_requested: float | None = None
         """When the last keyframe made on request was (the rate limit counts from it)."""
+        self.congested = False
+        """The link's queue overflowed lately (the sender's bitrate collapsed): a periodic
+        keyframe is then likely queued, not lost, and a request soon after it stale, so the
+        limit counts from every keyframe (two within 250 ms would refill the queue)."""
 
     def restart(self) -> None:
         """A new encoder: its first frame is a keyframe; the counters go on."""
@@ -84,7 +88,7 @@ class KeyframeClock:
             self.counters.deferred += 1
 
     def _gap_over(self, now: float) -> bool:
-        last = self._last_requested
+        last = self._last_forced if self.congested else self._last_requested
         return last is None or now - last >= self.min_request_gap_s
 
     def on_frame(self, now: float) -> bool:

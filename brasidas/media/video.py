@@ -295,6 +295,8 @@ class VideoOut(FanOutStream[VideoSettings]):
             self.thinning = thinning
             with self._keyframes_lock:  # its interval counts the frames encoded
                 self.keyframes.set_framerate(max(1, self.settings.framerate // thinning))
+        with self._keyframes_lock:  # a periodic keyframe is queued, not lost, while congested
+            self.keyframes.congested = congested
         if kbps is not None or fec_changed:
             _set_bitrate(self._encoder, self.encoder_name, self.media_bitrate_kbps())
         self._follow_resolution(now)
