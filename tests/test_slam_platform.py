@@ -193,6 +193,7 @@ async def test_without_gps_a_driven_loop_closes_and_the_saved_map_loads_at_the_n
         closed_errors = [error for closed, error in log.errors if closed > 0]
         assert open_error > 0.5, open_error
         assert closed_errors[-1] < min(0.3, open_error / 3), (open_error, closed_errors)
+        assert localizer.grid_rebuilds >= 1  # the grid, redrawn from the corrected keyframes
         stopped_at = truth(robot)
         fused = localizer.fused
         assert fused is not None
