@@ -136,6 +136,8 @@ keyframes close loops against the loaded ones and pin it)."""
 REBUILD_SHIFT_M = 0.1
 """A loop closure that moved no keyframe by a grid cell leaves the grid as it is (going round
 a known place closes a loop at every keyframe)."""
+REBUILD_EVERY_S = 10.0
+"""At most one grid rebuild this often (200 keyframes take ~0.3 s of CPU to rebuild)."""
 GRAPH_START_SIGMAS = (0.01, 0.01, 0.001)
 """The first node of a graph begun with the fusion: the frame is where it starts."""
 
@@ -174,7 +176,9 @@ class Localizer(Actor):
         self._rebuilder = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="grid")
         self._rebuild: tuple[concurrent.futures.Future[OccupancyGrid], int] | None = None
         """The grid being rebuilt after a loop closure, and the keyframes it was given."""
-        self._rebuild_again = False
+        self._rebuild_due = False
+        """A closure moved the keyframes since the last rebuild began."""
+        self._rebuild_at: float | None = None
         self.grid_rebuilds = 0
         self.rebuild_cpu_s = 0.0
         """The last grid rebuild's thread CPU time."""
@@ -444,6 +448,8 @@ class Localizer(Actor):
         """(Worker thread.) The scan's step into the pose graph; a loop it closes corrects the
         fused pose (unless GPS or the map's walls hold it) and has the grid rebuilt."""
         self._swap_rebuilt_grid()
+        if self._rebuild_due:
+            self._start_rebuild()
         if step is None:
             return
         fused = self.fusion.pose()
@@ -482,6 +488,7 @@ class Localizer(Actor):
                 self.loop_corrections[-1],
             )
         if closure.moved_m >= REBUILD_SHIFT_M:
+            self._rebuild_due = True
             self._start_rebuild()
 
     def _start_rebuild(self) -> None:
@@ -490,9 +497,13 @@ class Localizer(Actor):
         graph, frame = self.graph, self.frame
         if graph is None or frame is None:
             return
-        if self._rebuild is not None:
-            self._rebuild_again = True
-            return
+        now = self.fusion.time
+        if self._rebuild is not None or (
+            self._rebuild_at is not None and now - self._rebuild_at < REBUILD_EVERY_S
+        ):
+            return  # after the one under way, or in a while
+        self._rebuild_due = False
+        self._rebuild_at = now
         keyframes = graph.keyframes()
         base = self._grid_base or OccupancyGrid(frame.latitude, frame.longitude)
         base.geo = self.geo_anchored
@@ -527,9 +538,6 @@ class Localizer(Actor):
         self.grid = grid
         self.grid_rebuilds += 1
         self._grid_dirty = True
-        if self._rebuild_again:
-            self._rebuild_again = False
-            self._start_rebuild()
 
     def _drive_to(
         self, now: float, speed_mps: float, turn_rad_s: float
