@@ -66,6 +66,15 @@ async def test_at_30_fps_no_copies_are_sent() -> None:
         await wait_until(lambda: receiver.frames >= 30, timeout=20)
         # The next frame is 33 ms away: a lost last packet shows soon enough.
         assert sender.describe()["tail_copies"] == 0
+        # Live changes of the framerate take the copies on and off (the copying is on the
+        # pad only while wanted: at 30 fps every packet would take the GIL for nothing).
+        sender.set_framerate(5)
+        await wait_until(lambda: sender.describe()["tail_copies"] >= 3, timeout=20)
+        sender.set_framerate(30)
+        copied = sender.describe()["tail_copies"]
+        frames = receiver.frames
+        await wait_until(lambda: receiver.frames >= frames + 30, timeout=20)
+        assert sender.describe()["tail_copies"] == copied
     finally:
         await sender.stop()
         await receiver.stop()

@@ -134,12 +134,31 @@ class TailCopies:
     def __init__(self, sent: int = 0) -> None:
         self.sock: socket.socket | None = None
         self.sent = sent
+        self._probe: tuple[Any, int] | None = None
+        self._follow: Callable[[], None] = lambda: None
 
     def attach(self, rtpbin: Any, sink: Any, wanted: Callable[[], bool]) -> None:
         """Copy the marker packets leaving ``rtpbin`` to ``sink``'s clients while ``wanted()``
-        (the stream's framerate is at most :data:`TAIL_COPY_MAX_FPS`)."""
+        (the stream's framerate is at most :data:`TAIL_COPY_MAX_FPS`); call :meth:`follow`
+        when that may have changed."""
         pad = rtpbin.get_static_pad("send_rtp_src_0")
-        pad.add_probe(gst().PadProbeType.BUFFER, _copy_tail, (self, sink, wanted))
+
+        def follow() -> None:
+            # The probe is on the pad only while copies are wanted: at 30 fps every packet
+            # would otherwise take the GIL on the streaming thread for nothing.
+            if wanted() and self._probe is None:
+                probe = pad.add_probe(gst().PadProbeType.BUFFER, _copy_tail, (self, sink, wanted))
+                self._probe = (pad, probe)
+            elif not wanted() and self._probe is not None:
+                self._probe[0].remove_probe(self._probe[1])
+                self._probe = None
+
+        self._follow = follow
+        follow()
+
+    def follow(self) -> None:
+        """Event loop: add or remove the copying as the stream's framerate now asks."""
+        self._follow()
 
     def send(self, packet: bytes, sink: Any) -> None:
         """Streaming thread: ``packet`` to each of ``sink``'s clients, from its socket."""
@@ -158,6 +177,8 @@ class TailCopies:
                     pass  # a full buffer or an unreachable station: it was only a copy
 
     def close(self) -> None:
+        self._probe = None
+        self._follow = lambda: None
         if self.sock is not None:
             self.sock.close()
             self.sock = None

@@ -187,6 +187,8 @@ class VideoOut(FanOutStream[VideoSettings]):
         self._tail_copies: TailCopies | None = None
         self.bitrate = BitrateController(settings.effective_bitrate_kbps(), MIN_BITRATE_KBPS)
         self._rtpbin: Any = None
+        self._rtx_pad: Any = None
+        self._rtx_probe: int | None = None
         self._reports_seen: dict[int, int] = {}
         self.resolution = ResolutionChoice()
         """Half the picture's width and height while the bitrate is too low for all of it."""
@@ -271,6 +273,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         if not retransmit and self.retransmit:
             self._dropped_seen = self.retransmissions_dropped
         self.retransmit = retransmit
+        self._drop_retransmissions(not retransmit)
         # Right after a capacity drop FEC would only add to the queue that drops the packets:
         # it is for a link's random loss (which, by loss alone, is any loss but a collapse).
         collapsed = self.bitrate.collapsed_at
@@ -368,6 +371,18 @@ class VideoOut(FanOutStream[VideoSettings]):
             self.reported_jitter_ms = round(jitter / 90, 1)  # 90 kHz RTP clock
         return worst
 
+    def _drop_retransmissions(self, drop: bool) -> None:
+        """Event loop: the probe that drops retransmissions is on the retransmitter's pad only
+        while they are dropped (every packet passes there: a probe that only looked would
+        take the GIL on the streaming thread for each, a tail on the frames' latency)."""
+        if drop and self._rtx_probe is None and self._rtx_pad is not None:
+            self._rtx_probe = self._rtx_pad.add_probe(
+                gst().PadProbeType.BUFFER, _retransmission_probe, weakref.ref(self)
+            )
+        elif not drop and self._rtx_probe is not None and self._rtx_pad is not None:
+            self._rtx_pad.remove_probe(self._rtx_probe)
+            self._rtx_probe = None
+
     def request_keyframe(self) -> None:
         """Make the next frame a keyframe (rate-limited: deferred, never dropped); any thread."""
         with self._keyframes_lock:
@@ -381,6 +396,8 @@ class VideoOut(FanOutStream[VideoSettings]):
         s.framerate = fps
         with self._keyframes_lock:
             self.keyframes.set_framerate(fps)
+        if self._tail_copies is not None:
+            self._tail_copies.follow()
         if self._encoder is not None and self._rate_filter is not None:
             _set_bitrate(self._encoder, self.encoder_name, self.media_bitrate_kbps())
             if s.uses_intra_refresh(self.encoder_name):
@@ -461,10 +478,9 @@ class VideoOut(FanOutStream[VideoSettings]):
                 self.feedback = FeedbackSocket(port=s.rtcp_port)
             self._rtpbin = add_repair_sender(pipeline, pay, sink, self.feedback)
             rtx = pipeline.get_by_name("rtxsend")
-            if rtx is not None:
-                rtx.get_static_pad("src").add_probe(
-                    Gst.PadProbeType.BUFFER, _retransmission_probe, weakref.ref(self)
-                )
+            self._rtx_pad = rtx.get_static_pad("src") if rtx is not None else None
+            self._rtx_probe = None
+            self._drop_retransmissions(not self.retransmit)
             self._tail_copies = TailCopies(self.tail_copies_sent())
             self._tail_copies.attach(self._rtpbin, sink, partial(_copy_tails, weakref.ref(self)))
         else:
@@ -513,6 +529,8 @@ class VideoOut(FanOutStream[VideoSettings]):
         self._rate_filter = None
         self._scale_filter = None
         self._rtpbin = None
+        self._rtx_pad = None
+        self._rtx_probe = None
         self._reports_seen.clear()
         self._transport_seen = None
         if self.wanted is StreamState.IDLE and self.feedback is not None:
