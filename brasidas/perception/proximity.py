@@ -109,12 +109,20 @@ def to_robot(scan: LidarScan, geometry: Geometry) -> RobotScan:
     )
 
 
-def proximity(scan: RobotScan, geometry: Geometry, previous: Proximity | None = None) -> Proximity:
+def proximity(
+    scan: RobotScan,
+    geometry: Geometry,
+    previous: Proximity | None = None,
+    extra_dead_s: float = 0.0,
+) -> Proximity:
     """The speed limits for the obstacles of ``scan`` (only clustered returns count).
 
     An obstacle the robot stopped for that is no longer seen at all (it went into the
-    sensor's blind zone, or the returns dropped out) still holds the stop: ``previous``."""
+    sensor's blind zone, or the returns dropped out) still holds the stop: ``previous``.
+    ``extra_dead_s``: measured lateness of the limits beyond ``lidar.reaction_s``
+    (:mod:`brasidas.perception.latency`), added to the dead time."""
     lidar = geometry.lidar
+    dead_s = lidar.reaction_s + extra_dead_s
     ranges = np.asarray(scan.ranges_m, dtype=float)
     bearings = np.radians(np.asarray(scan.bearings_deg, dtype=float))
     used = ranges > 0
@@ -137,8 +145,8 @@ def proximity(scan: RobotScan, geometry: Geometry, previous: Proximity | None = 
         forward_free = previous.forward_free_m
     if reverse_free is None and previous and (previous.reverse_free_m or held) < held:
         reverse_free = previous.reverse_free_m
-    forward, forward_why = _limit(forward_free, "ahead", geometry)
-    reverse, reverse_why = _limit(reverse_free, "behind", geometry)
+    forward, forward_why = _limit(forward_free, "ahead", geometry, dead_s)
+    reverse, reverse_why = _limit(reverse_free, "behind", geometry, dead_s)
     reason = forward_why or reverse_why
     turns: list[tuple[float, float, str]] = []
     held_turns = {ratio: (limit, why) for ratio, limit, why in previous.turns} if previous else {}
@@ -148,7 +156,7 @@ def proximity(scan: RobotScan, geometry: Geometry, previous: Proximity | None = 
             turns.append((ratio, *held_turns[ratio]))  # into the blind zone: the stop stands
             continue
         side = "left" if ratio > 0 else "right"
-        turns.append((ratio, *_limit(free, f"in the turn {side}", geometry)))
+        turns.append((ratio, *_limit(free, f"in the turn {side}", geometry, dead_s)))
     return Proximity(
         time=scan.time,
         forward_limit=forward,
@@ -178,11 +186,12 @@ def _arc_free(x: np.ndarray, y: np.ndarray, ratio: float, geometry: Geometry) ->
     return float((radius * swept[inside]).min()) - abs(lidar.mount_x_m)
 
 
-def _limit(free_m: float | None, where: str, geometry: Geometry) -> tuple[float, str]:
+def _limit(
+    free_m: float | None, where: str, geometry: Geometry, dead_s: float
+) -> tuple[float, str]:
     if free_m is None:
         return 1.0, ""
-    lidar = geometry.lidar
-    speed = stopping_speed(free_m - lidar.clearance_m, lidar.reaction_s, geometry.braking_mps2)
+    speed = stopping_speed(free_m - geometry.lidar.clearance_m, dead_s, geometry.braking_mps2)
     fraction = min(1.0, speed / geometry.max_speed_mps)
     if fraction < STOP_BELOW:
         return 0.0, f"stopped: obstacle {free_m:.1f} m {where}"

@@ -1,0 +1,59 @@
+"""How late the lidar's speed limits reach the motors, measured, so the stop allows for it.
+
+A limit computed from a scan stays in force until the next scan's limit replaces it: the robot
+drives on it from the moment that scan was taken until the next limit is published. On a quiet
+machine that is a revolution and the analysis (~0.11 s at 10 Hz), which ``lidar.reaction_s``
+already allows for. On a starved CPU the loop stalls for hundreds of milliseconds (every
+process on the machine waits its turn), the next limit comes that much later, and the robot
+covers speed x stall more than the stopping distance assumed: at the end of an approach it
+went 0.35 m past its clearance. So each published limit measures the time since the previous
+scan ended; the largest of the last ``WINDOW_S`` beyond the nominal is added to the dead time
+the next limits are computed with (a slower approach while the machine is busy, the usual one
+once it has been quiet for the window). Pure: times come in as parameters.
+"""
+
+from __future__ import annotations
+
+import collections
+
+WINDOW_S = 10.0
+"""How long a measured stall keeps counting: stalls come in bursts while the machine is busy."""
+ANALYSIS_S = 0.05
+"""The analysis and delivery a quiet machine needs, on top of a revolution."""
+
+
+class UpdateLatency:
+    """The extra dead time (seconds) the stopping distance must allow for, from the measured
+    gaps between a scan's end and the next limit's publication."""
+
+    def __init__(self, scan_period_s: float, cap_s: float) -> None:
+        self.nominal_s = scan_period_s + ANALYSIS_S
+        """What ``lidar.reaction_s`` already covers: a revolution and the analysis."""
+        self.cap_s = cap_s
+        """Longer than this without a scan, the lidar counts as lost and the robot stops."""
+        self._samples: collections.deque[tuple[float, float]] = collections.deque()
+        self._last_scan_end: float | None = None
+        self.worst_s = 0.0
+        """The largest gap measured (since start): the counters show it."""
+
+    def extra(self, now: float) -> float:
+        """The dead time to add for limits published at ``now``: the worst recent gap beyond
+        the nominal, and at least how late this update already is."""
+        while self._samples and now - self._samples[0][0] > WINDOW_S:
+            self._samples.popleft()
+        worst = max((gap for _at, gap in self._samples), default=0.0)
+        if self._last_scan_end is not None:
+            worst = max(worst, now - self._last_scan_end)
+        return min(self.cap_s, max(0.0, worst - self.nominal_s))
+
+    def published(self, now: float, scan_end: float) -> None:
+        """Limits computed from the scan that ended at ``scan_end`` were published at ``now``."""
+        if self._last_scan_end is not None:
+            gap = now - self._last_scan_end
+            self._samples.append((now, gap))
+            self.worst_s = max(self.worst_s, gap)
+        self._last_scan_end = scan_end
+
+    def reset(self) -> None:
+        """The lidar went blind (stopped): the next scan starts afresh."""
+        self._last_scan_end = None
