@@ -38,14 +38,14 @@ from brasidas.codecs.ldlidar import LidarDecoder, LidarScan, ScanAssembler
 from brasidas.codecs.telemetry_schema import Perception
 from brasidas.config.lidar import LidarSection
 from brasidas.messages import Mode, PoseEstimate, Velocity
-from brasidas.perception.latency import UpdateLatency
+from brasidas.perception.latency import DriveSpeed, UpdateLatency
 from brasidas.perception.limits import limit_for
 from brasidas.perception.messages import Proximity, RobotScan
 from brasidas.perception.proximity import Geometry, proximity, silent, to_robot
 from brasidas.perception.view import PlanePose, pose_at, reframe
 from brasidas.security import state_dir
 from platformd.context import PlatformContext, SerialDevice
-from platformd.lidar_localization import Localizer
+from platformd.lidar_localization import DRIVE_LAG_S, Localizer
 from platformd.lidar_models import MODELS, baudrate_of
 from platformd.serial_port import PortOpener, read_line_forever
 
@@ -98,11 +98,14 @@ class LidarReader(Actor):
         """How late limits reach the arbiter: the dead time the next ones allow for."""
         self.extra_dead_s = 0.0
         """The extra dead time the last limits were computed with."""
+        self.drive = DriveSpeed(DRIVE_LAG_S)
+        """The speed the drive has reached, from ``MOTOR_COMMAND``: the limits judge it."""
 
     async def run(self) -> None:
         self.bus.publish(topics.PROXIMITY, self.proximity)  # stopped until the first scan
         unsubscribes = [
             self.bus.subscribe(topics.POSE, self._on_pose),
+            self.bus.subscribe(topics.MOTOR_COMMAND, self._on_motor_command),
             self.bus.subscribe(topics.CMD_VEL, functools.partial(self._on_ask, Mode.AUTONOMOUS)),
             self.bus.subscribe(
                 topics.TELEOP_VELOCITY, functools.partial(self._on_ask, Mode.TELEOP)
@@ -192,8 +195,11 @@ class LidarReader(Actor):
             scan, self._pending = self._pending, None
             if scan is None:
                 continue
-            extra = self.latency.extra(self.clock.time())
-            robot, limits = await loop.run_in_executor(self._worker, self._analyse, scan, extra)
+            now = self.clock.time()
+            extra, speed = self.latency.extra(now), self.drive.at(now)
+            robot, limits = await loop.run_in_executor(
+                self._worker, self._analyse, scan, extra, speed
+            )
             if self._last_scan_at is None:
                 continue  # went blind while the worker ran: the stop stands
             self.latency.published(self.clock.time(), scan.ended)
@@ -207,9 +213,11 @@ class LidarReader(Actor):
             self.proximity = limits
             self.bus.publish(topics.PROXIMITY, limits)
 
-    def _analyse(self, scan: LidarScan, extra_dead_s: float) -> tuple[RobotScan, Proximity]:
+    def _analyse(
+        self, scan: LidarScan, extra_dead_s: float, speed_mps: float
+    ) -> tuple[RobotScan, Proximity]:
         robot = to_robot(scan, self.geometry)
-        return robot, proximity(robot, self.geometry, self.proximity, extra_dead_s)
+        return robot, proximity(robot, self.geometry, self.proximity, extra_dead_s, speed_mps)
 
     def _on_pose(self, pose: PoseEstimate) -> None:
         if pose.heading_known:
@@ -225,6 +233,9 @@ class LidarReader(Actor):
         if then is None or latest is None or not latest.heading_known:
             return bearing_deg, range_m
         return reframe(bearing_deg, range_m, then, (latest.x_m, latest.y_m, latest.yaw_rad))
+
+    def _on_motor_command(self, velocity: Velocity) -> None:
+        self.drive.commanded(self.clock.time(), velocity.linear * self.geometry.max_speed_mps)
 
     def _on_ask(self, mode: Mode, velocity: Velocity) -> None:
         self._asks[mode] = velocity

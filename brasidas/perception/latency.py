@@ -15,6 +15,7 @@ once it has been quiet for the window). Pure: times come in as parameters.
 from __future__ import annotations
 
 import collections
+import math
 
 WINDOW_S = 10.0
 """How long a measured stall keeps counting: stalls come in bursts while the machine is busy."""
@@ -57,3 +58,29 @@ class UpdateLatency:
     def reset(self) -> None:
         """The lidar went blind (stopped): the next scan starts afresh."""
         self._last_scan_end = None
+
+
+class DriveSpeed:
+    """The speed the drive has reached (m/s, forward positive), modelled from the commands:
+    an open-loop drive follows its command with a first-order lag, so while limits come down
+    during an approach the robot goes faster than the last one (about twice as fast at the
+    end of a stop at a 0.25 s lag and 0.5 s dead time): the limits judge that speed."""
+
+    def __init__(self, lag_s: float) -> None:
+        self.lag_s = lag_s
+        self._at: float | None = None
+        self._speed = 0.0
+        self._command = 0.0
+
+    def commanded(self, now: float, speed_mps: float) -> None:
+        """The motors were commanded ``speed_mps`` at ``now``."""
+        self._speed = self.at(now)
+        self._at = now
+        self._command = speed_mps
+
+    def at(self, now: float) -> float:
+        """The modelled speed at ``now``."""
+        if self._at is None:
+            return 0.0
+        blend = 1.0 - math.exp(-max(0.0, now - self._at) / self.lag_s)
+        return self._speed + (self._command - self._speed) * blend
