@@ -146,7 +146,7 @@ async def _until(predicate: Any, timeout: float) -> bool:
     return True
 
 
-async def _trials(rig: Rig, rng: random.Random) -> dict[str, Any]:
+async def _trials(rig: Rig, rng: random.Random, spread_s: float = 0.1) -> dict[str, Any]:
     from_appearance: list[float] = []
     from_scan: list[float] = []
     missed = 0
@@ -154,7 +154,8 @@ async def _trials(rig: Rig, rng: random.Random) -> dict[str, Any]:
         await rig.back_off()
         rig.drive()
         await _until(lambda: rig.vehicle.pose().speed_mps > 0.95 * SPEED_MPS, 3)
-        await asyncio.sleep(rng.uniform(0.0, 0.1))  # anywhere in the revolution
+        # Anywhere in the revolution (and in the starved loop's cycle: not in step with it).
+        await asyncio.sleep(rng.uniform(0.0, spread_s))
         rig.zero_at = None
         seen_before = len(rig.scans)
         appeared = time.monotonic()
@@ -224,7 +225,7 @@ async def _starved(rig: Rig) -> dict[str, Any]:
             starving = group.create_task(_starve(STALL_S))
             try:
                 load = os.getloadavg()[0]
-                trials = await _trials(rig, random.Random(2))
+                trials = await _trials(rig, random.Random(2), STALL_EVERY_S)
                 approach = await _approach(rig)
             finally:
                 starving.cancel()
@@ -237,6 +238,7 @@ async def _starved(rig: Rig) -> dict[str, Any]:
         "stall_ms": round(STALL_S * 1000),
         "stall_every_s": STALL_EVERY_S,
         "busy_processes": BUSY_PROCESSES,
+        "worst_update_gap_ms_stalled": round(rig.reader.latency.worst_s * 1000),
         "extra_dead_ms_stalled": round(rig.reader.extra_dead_s * 1000),
         "loadavg_1m_stalled": round(max(load, os.getloadavg()[0]), 2),
     }

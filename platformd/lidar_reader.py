@@ -38,7 +38,7 @@ from brasidas.codecs.ldlidar import LidarDecoder, LidarScan, ScanAssembler
 from brasidas.codecs.telemetry_schema import Perception
 from brasidas.config.lidar import LidarSection
 from brasidas.messages import Mode, PoseEstimate, Velocity
-from brasidas.perception.latency import DriveSpeed, UpdateLatency
+from brasidas.perception.latency import MAX_EXTRA_S, DriveSpeed, UpdateLatency
 from brasidas.perception.limits import limit_for
 from brasidas.perception.messages import Proximity, RobotScan
 from brasidas.perception.proximity import Geometry, proximity, silent, to_robot
@@ -94,7 +94,7 @@ class LidarReader(Actor):
         """The last motion asked of the motors by each mode's source (not retained topics)."""
         self.scan_pose: PlanePose | None = None
         """The robot's pose (``POSE``) in the middle of the last scan's revolution."""
-        self.latency = UpdateLatency(1.0 / MODELS[config.model].rate_hz, config.scan_timeout_s)
+        self.latency = UpdateLatency(1.0 / MODELS[config.model].rate_hz, MAX_EXTRA_S)
         """How late limits reach the arbiter: the dead time the next ones allow for."""
         self.extra_dead_s = 0.0
         """The extra dead time the last limits were computed with."""

@@ -22,7 +22,7 @@ from brasidas.codecs.ldlidar import LidarScan
 from brasidas.codecs.telemetry_schema import Perception, section_from_wire, section_to_wire
 from brasidas.config.lidar import LidarSection
 from brasidas.messages import Velocity
-from brasidas.perception.latency import DriveSpeed, UpdateLatency
+from brasidas.perception.latency import MAX_EXTRA_S, DriveSpeed, UpdateLatency
 from brasidas.perception.limits import forward_for
 from brasidas.perception.messages import Proximity
 from brasidas.perception.proximity import STOP_BELOW, Geometry, proximity, to_robot
@@ -114,7 +114,7 @@ def approach(
     geometry = Geometry(LidarSection(), braking_mps2=4.2, max_speed_mps=5.0)
     now = 0.0
     vehicle = VehicleModel(clock=lambda: now, max_speed_mps=5.0, time_constant_s=0.25)
-    latency = UpdateLatency(0.1, LidarSection().scan_timeout_s)
+    latency = UpdateLatency(0.1, MAX_EXTRA_S)
     drive = DriveSpeed(DRIVE_LAG_S)
     previous: Proximity | None = None
     closest = wall_m = 13.0
@@ -188,7 +188,7 @@ def test_update_latency_allows_for_recent_stalls_then_forgets_them() -> None:
     now += 0.4
     assert latency.extra(now + 0.1) == pytest.approx(0.26)  # 0.41 gap - 0.15 nominal
     assert latency.extra(now + 0.6) == pytest.approx(0.45)  # this update is late already
-    assert latency.extra(now + 5.0) == 0.5  # capped: beyond, the lidar counts as lost
+    assert latency.extra(now + 5.0) == 0.5  # capped
     for _ in range(110):  # quiet for the window: forgotten
         now += 0.1
         latency.published(now + 0.01, now)

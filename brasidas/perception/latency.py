@@ -21,6 +21,8 @@ WINDOW_S = 10.0
 """How long a measured stall keeps counting: stalls come in bursts while the machine is busy."""
 ANALYSIS_S = 0.05
 """The analysis and delivery a quiet machine needs, on top of a revolution."""
+MAX_EXTRA_S = 1.0
+"""The most added: by then the robot only crawls near anything (1 m/s within 2.5 m)."""
 
 
 class UpdateLatency:
@@ -31,7 +33,7 @@ class UpdateLatency:
         self.nominal_s = scan_period_s + ANALYSIS_S
         """What ``lidar.reaction_s`` already covers: a revolution and the analysis."""
         self.cap_s = cap_s
-        """Longer than this without a scan, the lidar counts as lost and the robot stops."""
+        """The most added (:data:`MAX_EXTRA_S`)."""
         self._samples: collections.deque[tuple[float, float]] = collections.deque()
         self._last_scan_end: float | None = None
         self.worst_s = 0.0
