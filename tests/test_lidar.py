@@ -23,7 +23,7 @@ from brasidas.codecs.telemetry_schema import Perception, section_from_wire, sect
 from brasidas.config.lidar import LidarSection
 from brasidas.messages import Velocity
 from brasidas.perception.latency import MAX_EXTRA_S, DriveSpeed, UpdateLatency
-from brasidas.perception.limits import forward_for
+from brasidas.perception.limits import forward_for, limit_for
 from brasidas.perception.messages import Proximity
 from brasidas.perception.proximity import STOP_BELOW, Geometry, proximity, to_robot
 from platformd.lidar_localization import DRIVE_LAG_S
@@ -270,6 +270,49 @@ async def test_patrol_stops_for_an_obstacle_the_map_does_not_have(
     assert clearance(robot, *post) >= 0.3
     await asyncio.sleep(0.5)  # the patrol keeps asking; the robot stays put
     assert abs(robot.vehicle.pose().speed_mps) < 0.02
+
+
+async def test_patrol_stops_in_a_turn_for_an_obstacle_round_the_corner(
+    robot_factory: Any, tmp_path: Path
+) -> None:
+    """The patrol turns left at a corner at speed (pure pursuit cuts it on an arc) towards a
+    post on the next leg, hidden from the first: it is on the arc before it is ahead. The
+    robot stops short of it, through the daemon."""
+    post = (12.0, 4.5, 0.4)
+    robot: Robot = await robot_factory(
+        *RTK,
+        "lidar.enabled=true",
+        "lidar.map_obstacles=false",  # stop only
+        f"sim.obstacles_file={obstacles_file(tmp_path, post)}",
+    )
+    closest: list[float] = []
+    robot.watchers.append(lambda _pose, _truth: closest.append(clearance(robot, *post)))
+    await robot.call("set_waypoints", waypoints=[at(0, 0), at(12, 0), at(12, 12)])
+    await until_armable(robot.ctx)
+    await robot.call("patrol_start")
+    await wait_until(lambda: robot.vehicle.pose().speed_mps > 2.0, 20)
+
+    def why() -> str:  # the limit along the arc the patrol asks for, and its reason
+        limits = robot.ctx.bus.last(topics.PROXIMITY)
+        if limits is None or not robot.cmd_vel:
+            return ""
+        return limit_for(limits, robot.cmd_vel[-1].linear, robot.cmd_vel[-1].angular)[1]
+
+    reasons: set[str] = set()
+    robot.watchers.append(lambda _pose, _truth: reasons.add(why()))
+    await wait_until(
+        lambda: (
+            why().startswith("stopped: obstacle") and abs(robot.vehicle.pose().speed_mps) < 0.02
+        ),
+        25,
+    )
+    assert min(closest) >= 0.3, min(closest)
+    assert any("in the turn" in reason for reason in reasons), reasons
+    heading = robot.vehicle.pose().heading_deg  # it had turned from east towards north
+    assert heading < 60.0 or heading > 330.0, heading
+    await asyncio.sleep(0.5)  # the patrol keeps asking; the robot stays put
+    assert abs(robot.vehicle.pose().speed_mps) < 0.02
+    assert clearance(robot, *post) >= 0.3
 
 
 async def test_hand_driving_is_slowed_then_stopped_short_of_an_obstacle(
