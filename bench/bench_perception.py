@@ -10,6 +10,10 @@ motor controller in the loop: its 10 Hz refresh would add up to 100 ms, a fixed 
   from the end of the first scan that shows it (the issue's "from the scan that shows it").
 - **approach**: the vehicle drives at 1 m/s toward a post 4 m ahead and must stop by itself;
   the clearance left (sensor to the post's edge; ``lidar.clearance_m`` 0.4 m).
+- **starved**: both again while the loop is starved: it gets no CPU for
+  ``BENCH_PERCEPTION_STALL_MS`` (default 300) every 0.5 s, as a process waits its turn on an
+  overloaded machine (the vehicle model goes on moving in real time, as the motors would);
+  ``BENCH_PERCEPTION_LOAD=N`` also runs N busy processes beside it. The ``_stalled`` rows.
 - **CPU**: the reader's and analysis's process CPU per scan (the simulator's own casting is
   measured apart and subtracted).
 
@@ -35,7 +39,8 @@ motor controller in the loop: its 10 Hz refresh would add up to 100 ms, a fixed 
 - **GPS-less loop** (:mod:`bench.perception_slam`): SLAM in the map's own frame, the end
   error with loop closure and without, CPU per keyframe.
 
-Seeded (``sim.seed``); ``BENCH_PERCEPTION_TRIALS`` (default 50) pop-ups. Figures not reached
+Seeded (``sim.seed``); ``BENCH_PERCEPTION_TRIALS`` (default 50) pop-ups. ``--rows`` picks
+among ``stop`` (pop-up, approach, starved, CPU), ``localization`` and ``heartbeat``. Figures not reached
 (the town's 50 laps, a replayed CARMEN log) are listed under ``not_measured``.
 """
 
@@ -46,6 +51,7 @@ import dataclasses
 import math
 import os
 import random
+import sys
 import time
 from collections.abc import Callable
 from typing import Any
@@ -72,6 +78,9 @@ from platformd.sim.vehicle import VehicleModel
 
 TRIALS = int(os.environ.get("BENCH_PERCEPTION_TRIALS", "50"))
 WARMUP_S = float(os.environ.get("BENCH_PERCEPTION_WARMUP_S", "300"))
+STALL_S = float(os.environ.get("BENCH_PERCEPTION_STALL_MS", "300")) / 1000.0
+STALL_EVERY_S = 0.5
+BUSY_PROCESSES = int(os.environ.get("BENCH_PERCEPTION_LOAD", "0"))
 HEARTBEAT_S = float(os.environ.get("BENCH_PERCEPTION_HEARTBEAT_S", "60"))
 """How long the loop's heartbeat is measured with the localizer running."""
 MAP_EVERY = 5
@@ -140,7 +149,7 @@ async def _until(predicate: Any, timeout: float) -> bool:
     return True
 
 
-async def _trials(rig: Rig, rng: random.Random) -> dict[str, Any]:
+async def _trials(rig: Rig, rng: random.Random, spread_s: float = 0.1) -> dict[str, Any]:
     from_appearance: list[float] = []
     from_scan: list[float] = []
     missed = 0
@@ -148,7 +157,8 @@ async def _trials(rig: Rig, rng: random.Random) -> dict[str, Any]:
         await rig.back_off()
         rig.drive()
         await _until(lambda: rig.vehicle.pose().speed_mps > 0.95 * SPEED_MPS, 3)
-        await asyncio.sleep(rng.uniform(0.0, 0.1))  # anywhere in the revolution
+        # Anywhere in the revolution (and in the starved loop's cycle: not in step with it).
+        await asyncio.sleep(rng.uniform(0.0, spread_s))
         rig.zero_at = None
         seen_before = len(rig.scans)
         appeared = time.monotonic()
@@ -189,6 +199,51 @@ async def _approach(rig: Rig, runs: int = 5) -> dict[str, Any]:
         "approach_runs": runs,
         "approach_clearance_m_min": round(min(clearances), 3),
         "approach_clearance_m_mean": round(sum(clearances) / len(clearances), 3),
+    }
+
+
+async def _starve(stall_s: float) -> None:
+    """Take the loop's CPU away for ``stall_s`` every :data:`STALL_EVERY_S`: a blocking sleep
+    on purpose (nothing on the loop runs, as on a machine with more work than cores)."""
+    while True:
+        await asyncio.sleep(STALL_EVERY_S - stall_s)
+        _hog(stall_s)
+
+
+def _hog(seconds: float) -> None:
+    """Hold the loop (and its thread) for ``seconds``."""
+    time.sleep(seconds)
+
+
+async def _starved(rig: Rig) -> dict[str, Any]:
+    """The pop-ups and the approach again on a starved loop; the busy processes beside it."""
+    busy = [
+        await asyncio.create_subprocess_exec(
+            sys.executable, "-c", "while True: pass", stdin=asyncio.subprocess.DEVNULL
+        )
+        for _ in range(BUSY_PROCESSES)
+    ]
+    try:
+        async with asyncio.TaskGroup() as group:
+            starving = group.create_task(_starve(STALL_S))
+            try:
+                load = os.getloadavg()[0]
+                trials = await _trials(rig, random.Random(2), STALL_EVERY_S)
+                approach = await _approach(rig)
+            finally:
+                starving.cancel()
+    finally:
+        for process in busy:
+            process.kill()
+            await process.wait()
+    figures = {f"{key}_stalled": value for key, value in (trials | approach).items()}
+    return figures | {
+        "stall_ms": round(STALL_S * 1000),
+        "stall_every_s": STALL_EVERY_S,
+        "busy_processes": BUSY_PROCESSES,
+        "worst_update_gap_ms_stalled": round(rig.reader.latency.worst_s * 1000),
+        "extra_dead_ms_stalled": round(rig.reader.extra_dead_s * 1000),
+        "loadavg_1m_stalled": round(max(load, os.getloadavg()[0]), 2),
     }
 
 
@@ -414,14 +469,21 @@ async def run() -> dict[str, Any]:
     from bench.perception_carmen import carmen_rows
     from bench.perception_slam import slam_rows
 
-    heartbeat = await _loop_heartbeat()
-    localization = await asyncio.to_thread(_localization)
-    localization |= await asyncio.to_thread(carmen_rows)
-    localization |= await asyncio.to_thread(slam_rows)
-    localization |= await asyncio.to_thread(_localization, "stl27l", spoofing=False)
-    localization |= await asyncio.to_thread(
-        _localization, spoofing=False, map_shift_m=(0.3, -0.2), label="ld19_map_off_0.36m"
-    )
+    rows = [r for r in os.environ.get("BENCH_ROWS", "").split(",") if r]
+    heartbeat: dict[str, Any] = {}
+    localization: dict[str, Any] = {}
+    if not rows or "heartbeat" in rows:
+        heartbeat = await _loop_heartbeat()
+    if not rows or "localization" in rows:
+        localization = await asyncio.to_thread(_localization)
+        localization |= await asyncio.to_thread(carmen_rows)
+        localization |= await asyncio.to_thread(slam_rows)
+        localization |= await asyncio.to_thread(_localization, "stl27l", spoofing=False)
+        localization |= await asyncio.to_thread(
+            _localization, spoofing=False, map_shift_m=(0.3, -0.2), label="ld19_map_off_0.36m"
+        )
+    if rows and "stop" not in rows:
+        return localization | heartbeat
     rig = Rig(seed=1)
     load = os.getloadavg()
     async with asyncio.TaskGroup() as group:
@@ -440,6 +502,7 @@ async def run() -> dict[str, Any]:
             wall = time.monotonic() - wall0
             scans = rig.reader.scans - scans0
             frames = rig.simulator.generator.frames - frames0
+            figures |= await _starved(rig)
         finally:
             for task in tasks:
                 task.cancel()

@@ -5,7 +5,11 @@ the bytes to the sans-IO :mod:`brasidas.codecs.ldlidar` decoder and scan assembl
 loop: a few hundred small frames a second). Each revolution is turned into the robot's frame
 and its obstacles and speed limits computed in the lidar's own worker thread
 (:mod:`brasidas.perception.proximity`), then published: ``LIDAR_SCAN`` and ``PROXIMITY``, which
-the motion arbiter applies to every motor command in every mode. When scans stop for
+the motion arbiter applies to every motor command in every mode. Each limit allows for how late limits
+have recently reached the arbiter (:mod:`brasidas.perception.latency`): on a starved CPU the
+robot approaches more slowly, so a stall does not eat its clearance. Bytes are read in large
+gulps, so a backlog on the line yields its newest revolution at once, never a queue of old
+ones. When scans stop for
 ``lidar.scan_timeout_s`` (port gone, sensor stalled) the limits become a stop: a robot that
 cannot see does not drive. A port that is missing or vanishes is reported and reopened with
 capped backoff, as the GPS's is.
@@ -34,19 +38,21 @@ from brasidas.codecs.ldlidar import LidarDecoder, LidarScan, ScanAssembler
 from brasidas.codecs.telemetry_schema import Perception
 from brasidas.config.lidar import LidarSection
 from brasidas.messages import Mode, PoseEstimate, Velocity
+from brasidas.perception.latency import MAX_EXTRA_S, DriveSpeed, UpdateLatency
 from brasidas.perception.limits import limit_for
 from brasidas.perception.messages import Proximity, RobotScan
 from brasidas.perception.proximity import Geometry, proximity, silent, to_robot
 from brasidas.perception.view import PlanePose, pose_at, reframe
 from brasidas.security import state_dir
 from platformd.context import PlatformContext, SerialDevice
-from platformd.lidar_localization import GPS_WAIT_S, Localizer
-from platformd.lidar_models import baudrate_of
+from platformd.lidar_localization import DRIVE_LAG_S, GPS_WAIT_S, Localizer
+from platformd.lidar_models import MODELS, baudrate_of
 from platformd.serial_port import PortOpener, read_line_forever
 
 _LOGGER = logging.getLogger(__name__)
 
-READ_SIZE = 4096
+READ_SIZE = 65536
+"""A whole backlog at once (a second of STL-27L is 36 kB): only its newest scan is judged."""
 
 
 class LidarReader(Actor):
@@ -88,11 +94,18 @@ class LidarReader(Actor):
         """The last motion asked of the motors by each mode's source (not retained topics)."""
         self.scan_pose: PlanePose | None = None
         """The robot's pose (``POSE``) in the middle of the last scan's revolution."""
+        self.latency = UpdateLatency(1.0 / MODELS[config.model].rate_hz, MAX_EXTRA_S)
+        """How late limits reach the arbiter: the dead time the next ones allow for."""
+        self.extra_dead_s = 0.0
+        """The extra dead time the last limits were computed with."""
+        self.drive = DriveSpeed(DRIVE_LAG_S)
+        """The speed the drive has reached, from ``MOTOR_COMMAND``: the limits judge it."""
 
     async def run(self) -> None:
         self.bus.publish(topics.PROXIMITY, self.proximity)  # stopped until the first scan
         unsubscribes = [
             self.bus.subscribe(topics.POSE, self._on_pose),
+            self.bus.subscribe(topics.MOTOR_COMMAND, self._on_motor_command),
             self.bus.subscribe(topics.CMD_VEL, functools.partial(self._on_ask, Mode.AUTONOMOUS)),
             self.bus.subscribe(
                 topics.TELEOP_VELOCITY, functools.partial(self._on_ask, Mode.TELEOP)
@@ -151,6 +164,7 @@ class LidarReader(Actor):
         last = self._last_scan_at
         if last is not None and self.clock.time() - last >= self.config.scan_timeout_s:
             self._last_scan_at = None
+            self.latency.reset()
             self._blind(f"no lidar scan for {self.config.scan_timeout_s:g} s")
 
     def line_down(self, reason: str, *, log: bool) -> None:
@@ -159,6 +173,7 @@ class LidarReader(Actor):
         (_LOGGER.warning if log else _LOGGER.debug)("lidar: %s; retrying", reason)
         self._last_scan_at = None
         self._blind(reason)
+        self.latency.reset()
 
     def _blind(self, reason: str) -> None:
         if self.proximity.forward_limit == 0 and self.proximity.reverse_limit == 0:
@@ -180,9 +195,15 @@ class LidarReader(Actor):
             scan, self._pending = self._pending, None
             if scan is None:
                 continue
-            robot, limits = await loop.run_in_executor(self._worker, self._analyse, scan)
+            now = self.clock.time()
+            extra, speed = self.latency.extra(now), self.drive.at(now)
+            robot, limits = await loop.run_in_executor(
+                self._worker, self._analyse, scan, extra, speed
+            )
             if self._last_scan_at is None:
                 continue  # went blind while the worker ran: the stop stands
+            self.latency.published(self.clock.time(), scan.ended)
+            self.extra_dead_s = extra
             self.last = robot
             self.scan_pose = pose_at(self._poses, (scan.started + scan.ended) / 2)
             self.bus.publish(topics.LIDAR_SCAN, robot)
@@ -192,9 +213,11 @@ class LidarReader(Actor):
             self.proximity = limits
             self.bus.publish(topics.PROXIMITY, limits)
 
-    def _analyse(self, scan: LidarScan) -> tuple[RobotScan, Proximity]:
+    def _analyse(
+        self, scan: LidarScan, extra_dead_s: float, speed_mps: float
+    ) -> tuple[RobotScan, Proximity]:
         robot = to_robot(scan, self.geometry)
-        return robot, proximity(robot, self.geometry, self.proximity)
+        return robot, proximity(robot, self.geometry, self.proximity, extra_dead_s, speed_mps)
 
     def _on_pose(self, pose: PoseEstimate) -> None:
         if pose.heading_known:
@@ -210,6 +233,9 @@ class LidarReader(Actor):
         if then is None or latest is None or not latest.heading_known:
             return bearing_deg, range_m
         return reframe(bearing_deg, range_m, then, (latest.x_m, latest.y_m, latest.yaw_rad))
+
+    def _on_motor_command(self, velocity: Velocity) -> None:
+        self.drive.commanded(self.clock.time(), velocity.linear * self.geometry.max_speed_mps)
 
     def _on_ask(self, mode: Mode, velocity: Velocity) -> None:
         self._asks[mode] = velocity
@@ -259,6 +285,8 @@ class LidarReader(Actor):
             "frames": self.decoder.frames,
             "crc_errors": self.decoder.crc_errors,
             "resync_bytes": self.decoder.resync_bytes,
+            "extra_dead_ms": round(self.extra_dead_s * 1000),
+            "worst_update_gap_ms": round(self.latency.worst_s * 1000),
         }
 
 

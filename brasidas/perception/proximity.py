@@ -9,7 +9,10 @@ so a single stray return never stops the robot.
 The robot may go forward at the speed that still stops ``lidar.clearance_m`` short of the
 nearest obstacle in its corridor (``lidar.half_width_m`` either side of the way it goes),
 after the dead time ``lidar.reaction_s`` and braking at ``safety.braking_mps2``: a robot
-(autonomous or hand-driven) is slowed as it closes in and stopped at the clearance. The
+(autonomous or hand-driven) is slowed as it closes in and stopped at the clearance; one still
+going faster than that (the drive lags its command) brakes at once (its motors commanded to
+a crawl, :data:`STOP_BELOW` of top speed, until it is down to the limit), and the dead time
+grows by how late limits have lately reached the motors (a starved CPU). The
 corridor follows the arc the command drives, not only straight ahead: a post the robot turns
 towards is in its way before it is ahead (limits for :data:`TURN_RATIOS`, the motion arbiter
 takes the one of its command). Reversing likewise, straight, for what is behind. Turning on
@@ -109,12 +112,23 @@ def to_robot(scan: LidarScan, geometry: Geometry) -> RobotScan:
     )
 
 
-def proximity(scan: RobotScan, geometry: Geometry, previous: Proximity | None = None) -> Proximity:
+def proximity(
+    scan: RobotScan,
+    geometry: Geometry,
+    previous: Proximity | None = None,
+    extra_dead_s: float = 0.0,
+    speed_mps: float = 0.0,
+) -> Proximity:
     """The speed limits for the obstacles of ``scan`` (only clustered returns count).
 
     An obstacle the robot stopped for that is no longer seen at all (it went into the
-    sensor's blind zone, or the returns dropped out) still holds the stop: ``previous``."""
+    sensor's blind zone, or the returns dropped out) still holds the stop: ``previous``.
+    ``extra_dead_s``: measured lateness of the limits beyond ``lidar.reaction_s``
+    (:mod:`brasidas.perception.latency`), added to the dead time. ``speed_mps``: the speed the
+    drive has reached (forward positive; it lags the command): going faster than an obstacle
+    allows brakes (a crawl commanded), not only caps the speed."""
     lidar = geometry.lidar
+    dead_s = lidar.reaction_s + extra_dead_s
     ranges = np.asarray(scan.ranges_m, dtype=float)
     bearings = np.radians(np.asarray(scan.bearings_deg, dtype=float))
     used = ranges > 0
@@ -137,8 +151,8 @@ def proximity(scan: RobotScan, geometry: Geometry, previous: Proximity | None = 
         forward_free = previous.forward_free_m
     if reverse_free is None and previous and (previous.reverse_free_m or held) < held:
         reverse_free = previous.reverse_free_m
-    forward, forward_why = _limit(forward_free, "ahead", geometry)
-    reverse, reverse_why = _limit(reverse_free, "behind", geometry)
+    forward, forward_why = _limit(forward_free, "ahead", geometry, dead_s, speed_mps)
+    reverse, reverse_why = _limit(reverse_free, "behind", geometry, dead_s, -speed_mps)
     reason = forward_why or reverse_why
     turns: list[tuple[float, float, str]] = []
     held_turns = {ratio: (limit, why) for ratio, limit, why in previous.turns} if previous else {}
@@ -148,7 +162,7 @@ def proximity(scan: RobotScan, geometry: Geometry, previous: Proximity | None = 
             turns.append((ratio, *held_turns[ratio]))  # into the blind zone: the stop stands
             continue
         side = "left" if ratio > 0 else "right"
-        turns.append((ratio, *_limit(free, f"in the turn {side}", geometry)))
+        turns.append((ratio, *_limit(free, f"in the turn {side}", geometry, dead_s, speed_mps)))
     return Proximity(
         time=scan.time,
         forward_limit=forward,
@@ -178,14 +192,17 @@ def _arc_free(x: np.ndarray, y: np.ndarray, ratio: float, geometry: Geometry) ->
     return float((radius * swept[inside]).min()) - abs(lidar.mount_x_m)
 
 
-def _limit(free_m: float | None, where: str, geometry: Geometry) -> tuple[float, str]:
+def _limit(
+    free_m: float | None, where: str, geometry: Geometry, dead_s: float, moving_mps: float
+) -> tuple[float, str]:
     if free_m is None:
         return 1.0, ""
-    lidar = geometry.lidar
-    speed = stopping_speed(free_m - lidar.clearance_m, lidar.reaction_s, geometry.braking_mps2)
+    speed = stopping_speed(free_m - geometry.lidar.clearance_m, dead_s, geometry.braking_mps2)
     fraction = min(1.0, speed / geometry.max_speed_mps)
     if fraction < STOP_BELOW:
         return 0.0, f"stopped: obstacle {free_m:.1f} m {where}"
+    if moving_mps > speed:  # the drive lags: brake hard, not only cap (not a stop: it crawls)
+        return STOP_BELOW, f"braking: obstacle {free_m:.1f} m {where}"
     if fraction < 1.0:
         return fraction, f"slowed to {speed:.1f} m/s: obstacle {free_m:.1f} m {where}"
     return 1.0, ""
