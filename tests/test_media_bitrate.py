@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 from brasidas.media.bitrate import (
+    DRAIN_PAUSE_S,
+    PACER_BACKLOG_S,
     STEP_S,
     TRANSPORT_POLL_S,
     TRANSPORT_WINDOW_S,
     BitrateController,
+    FrameBudget,
     ResolutionChoice,
     TransportReport,
     frame_thinning,
@@ -91,16 +94,17 @@ def test_a_queue_building_cuts_the_bitrate_to_under_what_arrived_at_once() -> No
     # 2 Mbit/s → 500 kbit/s: the windows after the drop, as measured (+56, +105, +256 ms).
     controller.on_transport(_window(1470, 977, 56.0), 1500, now)
     kbps = controller.on_transport(_window(1870, 640, 105.0), 1500, now + 0.1)
-    assert kbps == 750  # toward 0.85 x what arrived, halved at most a step
+    # The first window still counts what arrived before the drop: far below what arrived,
+    # and no frame while the queue drains (the sender pauses).
+    assert kbps == 450
+    assert controller.paused_at == now + 0.1
+    assert controller.retransmissions_paused(now + 0.1 + DRAIN_PAUSE_S / 2)
     kbps = controller.on_transport(_window(2080, 357, 256.0), 1500, now + 0.2)
     assert kbps is not None
-    assert kbps < 500  # under the new capacity within 0.3 s
+    assert kbps < 450  # under what the link carries (the lagging window goes on cutting)
     assert controller.overuses >= 1
-    assert controller.retransmissions_paused(now + 0.3)  # the queue drops them anyway
-    assert not controller.retransmissions_paused(now + 1.0)
-    # Or as soon as a window shows the queue draining.
-    controller.on_transport(_window(400, 450, -30.0), 1500, now + 0.3)
-    assert not controller.retransmissions_paused(now + 0.35)
+    # After the pause, packets are sent again (those from before it: the sender's filter).
+    assert not controller.retransmissions_paused(now + 0.15 + DRAIN_PAUSE_S)
     # Receiver reports counting the drop's losses afterwards do not cut it a second time, and
     # the bitrate does not climb back into the queue while it drains.
     held = controller.effective_kbps(1500)
@@ -209,3 +213,83 @@ def test_the_picture_is_halved_below_its_bits_and_restored_above_with_hysteresis
     assert choice.size(640, 480) == (640, 480)
     # 5 fps needs a sixth of the bits for the same picture.
     assert not ResolutionChoice().update(250, 640, 480, 5, 0.0)
+
+
+def test_a_capacity_drop_confirmed_by_a_report_losing_most_packets_pauses_at_the_first_window() -> (
+    None
+):
+    controller = BitrateController(1500, 150)
+    # The first window after a drop to 500 kbit/s (measured: +15 ms, 72 % delivered) and the
+    # receiver report just before it losing 46 %: the queue overflows, cut and pause at once.
+    controller.note_loss(0.46, 0.19)
+    assert controller.on_transport(_window(1460, 1050, 15.0), 1500, 0.2) is not None
+    assert controller.paused_at == 0.2
+    # The next windows still show the overflow (they reach back 300 ms): no second pause.
+    controller.on_transport(_window(1820, 450, 60.0), 1500, 0.3)
+    controller.on_transport(_window(1800, 400, 60.0), 1500, 0.4)
+    assert controller.paused_at == 0.2
+    assert controller.effective_kbps(1500) < 500
+    # A second overuse a while later is a new drop: a new pause.
+    controller.note_loss(0.5, 2.0)
+    controller.on_transport(_window(450, 200, 40.0), 1500, 2.0)
+    assert controller.paused_at == 2.0
+
+
+def test_without_a_lossy_report_one_window_is_not_enough_and_random_loss_never_pauses() -> None:
+    controller = BitrateController(1500, 150)
+    # A forwarder's pause: the delay grew in one window, no report counted a loss.
+    controller.note_loss(0.0, 0.19)
+    assert controller.on_transport(_window(1500, 1000, 40.0), 1500, 0.2) is None
+    assert controller.paused_at is None
+    # A report of a stale loss (older than a window) does not confirm either.
+    controller = BitrateController(1500, 150)
+    controller.note_loss(0.6, 0.0)
+    assert controller.on_transport(_window(1500, 1000, 40.0), 1500, 0.5) is None
+    # 10 % random loss with spiking reports: no queue, so no pause (nor cut).
+    controller = BitrateController(1500, 150)
+    now = 0.0
+    for step in range(100):
+        controller.note_loss(0.40 if step % 7 == 0 else 0.10, now)
+        controller.on_transport(_window(1500, 1350, 20.0 if step % 2 else -20.0), 1500, now)
+        now += TRANSPORT_POLL_S
+    assert controller.paused_at is None
+    assert controller.effective_kbps(1500) == 1500
+
+
+def test_the_frame_budget_skips_frames_while_a_pause_lasts_and_then_holds_the_bitrate() -> None:
+    budget = FrameBudget(1500)
+    now = 0.0
+    # A link that keeps up: 6 kB frames at 1.5 Mbit/s, a 10 kB keyframe each second: never skipped.
+    for frame in range(90):
+        assert budget.admit(now)
+        budget.on_encoded(10_000 if frame % 30 == 0 else 6000, now)
+        now += 1 / 30
+    assert budget.skipped == 0
+    # The link over its capacity: nothing is encoded while its queue drains (what was
+    # encoded before, counted at the lowered bitrate, does not hold the frames after it)...
+    budget.on_encoded(60_000, now)
+    budget.set_rate(400, now)
+    budget.pause(DRAIN_PAUSE_S, now)
+    start = now
+    admitted = []
+    for _ in range(60):  # 2 s of frames from the camera
+        if budget.admit(now):
+            admitted.append(now)
+            # ... then the encoder's frames stay large for a while after the cut (6 kB).
+            budget.on_encoded(6000, now)
+        now += 1 / 30
+    assert admitted[0] >= start + DRAIN_PAUSE_S
+    assert admitted[0] < start + DRAIN_PAUSE_S + 0.05  # the first frame after it goes
+    # What was encoded over the 2 s stays within the target (400 kbit/s) plus the allowance.
+    sent_bits = 6000 * 8 * len(admitted)
+    assert sent_bits <= 400_000 * (now - start) + 400_000 * PACER_BACKLOG_S + 6000 * 8
+    assert budget.skipped > 0
+
+
+def test_the_frame_budget_never_skips_away_from_a_capacity_drop() -> None:
+    # 5 fps: a keyframe's burst is many times the bitrate's share of a frame interval; with
+    # no link over its capacity lately, the next frame still goes.
+    budget = FrameBudget(250)
+    budget.on_encoded(20_000, 0.0)
+    assert budget.admit(0.2)
+    assert budget.skipped == 0

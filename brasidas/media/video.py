@@ -24,8 +24,11 @@ from functools import partial
 from typing import Any
 
 from brasidas.media.bitrate import (
+    DRAIN_PAUSE_S,
+    STALE_RETRANSMISSION_S,
     THIN_AFTER_COLLAPSE_S,
     BitrateController,
+    FrameBudget,
     ResolutionChoice,
     TransportReport,
     frame_thinning,
@@ -171,6 +174,16 @@ class VideoOut(FanOutStream[VideoSettings]):
         """One frame in ``thinning`` goes to the encoder (the link forced the bitrate far down:
         :func:`~brasidas.media.bitrate.frame_thinning`); read by the streaming thread."""
         self._frames_seen = 0
+        self.budget = FrameBudget(settings.effective_bitrate_kbps())
+        """Frames are skipped, not encoded, while the encoded ones would queue (under the
+        keyframes' lock: the streaming thread and the event loop)."""
+        self.keyframe_after_pause = False
+        self.stale_before = 0
+        """Packets sent before the pause (sequence numbers before this) are not sent again
+        until ``stale_until``: the picture restarts at the keyframe after it, and their
+        retransmissions would queue ahead of it (read by the streaming thread)."""
+        self.stale_until = 0.0
+        """The first frame after the pause is a keyframe (under the keyframes' lock)."""
         self.reported_jitter_ms = 0.0
         """The newest receiver report's interarrival jitter (a queue building shows here)."""
         self.fec_percent = 0
@@ -254,9 +267,21 @@ class VideoOut(FanOutStream[VideoSettings]):
         if self._rtpbin is None or self._encoder is None:
             return None
         ceiling = self.settings.effective_bitrate_kbps()
-        transport = self._newest_transport_report()
-        fell = self.bitrate.on_transport(transport, ceiling, now) if transport else None
         loss = self._newest_reported_loss()
+        self.bitrate.note_loss(loss, now)
+        transport = self._newest_transport_report()
+        paused_at = self.bitrate.paused_at
+        fell = self.bitrate.on_transport(transport, ceiling, now) if transport else None
+        if self.bitrate.paused_at != paused_at:
+            # The queue overflows: no frame until it drained, then a keyframe (the frames
+            # sent meanwhile lost packets: the receivers wait for one).
+            with self._keyframes_lock:
+                self.keyframe_after_pause = True
+                self.budget.pause(DRAIN_PAUSE_S, now)
+            pay = self.pipeline.get_by_name("pay") if self.pipeline is not None else None
+            if pay is not None:
+                self.stale_before = (int(pay.get_property("seqnum")) + 1) & 0xFFFF
+                self.stale_until = now + STALE_RETRANSMISSION_S
         kbps = self.bitrate.update(loss, ceiling, now) or fell
         retransmit = not self.bitrate.retransmissions_paused(now)
         if retransmit and not self.retransmit and self.retransmissions_dropped > self._dropped_seen:
@@ -292,6 +317,8 @@ class VideoOut(FanOutStream[VideoSettings]):
                 self.keyframes.set_framerate(max(1, self.settings.framerate // thinning))
         if kbps is not None or fec_changed:
             _set_bitrate(self._encoder, self.encoder_name, self.media_bitrate_kbps())
+        with self._keyframes_lock:
+            self.budget.set_rate(self.current_bitrate_kbps(), now)
         self._follow_resolution(now)
         return kbps
 
@@ -490,6 +517,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         encoder.get_static_pad("src").add_probe(
             Gst.PadProbeType.EVENT_UPSTREAM, _keyframe_request_probe, ref
         )
+        encoder.get_static_pad("src").add_probe(Gst.PadProbeType.BUFFER, _encoded_probe, ref)
 
     def make_sink(self) -> Any:
         # AF41: a Wi-Fi (WMM) link queues video behind teleop's EF and telemetry, never ahead.
@@ -595,7 +623,13 @@ def _thinning_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
     """Streaming thread, before the encoder: drop frames while the stream is thinned (the
     encoder's rate control goes by timestamps: the bits go to the frames sent)."""
     stream = ref()
-    if stream is None or stream.thinning <= 1:
+    if stream is None:
+        return gst().PadProbeReturn.OK
+    with stream._keyframes_lock:
+        admitted = stream.budget.admit(time.monotonic())
+    if not admitted:
+        return gst().PadProbeReturn.DROP
+    if stream.thinning <= 1:
         return gst().PadProbeReturn.OK
     stream._frames_seen += 1
     if stream._frames_seen % stream.thinning:
@@ -607,14 +641,35 @@ def _retransmission_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> An
     """Streaming thread, after the retransmitter: drop its packets while the stream says so
     (a link over its capacity drops them anyway, and they delay its recovery)."""
     stream = ref()
-    if stream is None or stream.retransmit:
+    if stream is None:
+        return gst().PadProbeReturn.OK
+    stale = stream.stale_until > time.monotonic()
+    if stream.retransmit and not stale:
         return gst().PadProbeReturn.OK
     buffer = info.get_buffer()
-    header = buffer.extract_dup(0, 2) if buffer is not None else b""
-    if len(header) == 2 and header[1] & 0x7F in (RTX_PAYLOAD_TYPE, FEC_RTX_PAYLOAD_TYPE):
-        stream.retransmissions_dropped += 1
-        return gst().PadProbeReturn.DROP
-    return gst().PadProbeReturn.OK
+    header = buffer.extract_dup(0, RTX_HEADER_READ) if buffer is not None else b""
+    if len(header) < 2 or header[1] & 0x7F not in (RTX_PAYLOAD_TYPE, FEC_RTX_PAYLOAD_TYPE):
+        return gst().PadProbeReturn.OK
+    if stream.retransmit and not _sent_before(header, stream.stale_before):
+        return gst().PadProbeReturn.OK
+    stream.retransmissions_dropped += 1
+    return gst().PadProbeReturn.DROP
+
+
+RTX_HEADER_READ = 64
+"""Bytes of a retransmission read for its original sequence number (header, extensions)."""
+
+
+def _sent_before(rtx_header: bytes, first_fresh: int) -> bool:
+    """Whether a retransmission's original packet (its sequence number opens the payload,
+    RFC 4588) came before ``first_fresh`` (16-bit sequence arithmetic)."""
+    start = 12 + (rtx_header[0] & 0x0F) * 4
+    if rtx_header[0] & 0x10 and len(rtx_header) >= start + 4:  # header extensions
+        start += 4 + 4 * int.from_bytes(rtx_header[start + 2 : start + 4], "big")
+    if len(rtx_header) < start + 2:
+        return False  # not read here: counted as fresh
+    original = int.from_bytes(rtx_header[start : start + 2], "big")
+    return 0 < (first_fresh - original) & 0xFFFF < 0x8000
 
 
 def _force_keyframe_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
@@ -625,11 +680,22 @@ def _force_keyframe_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> An
     encoder = pad.get_parent_element()
     if stream is not None and encoder is not None:
         with stream._keyframes_lock:
-            force = stream.keyframes.on_frame(time.monotonic())
+            force = stream.keyframes.on_frame(time.monotonic(), stream.keyframe_after_pause)
+            stream.keyframe_after_pause = False
         if force:
             event = _force_key_unit_event()
             stream._forced_seqnums.append(event.get_seqnum())
             encoder.send_event(event)
+    return gst().PadProbeReturn.OK
+
+
+def _encoded_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
+    """Streaming thread: each encoded frame's size joins the sender's queue estimate."""
+    stream = ref()
+    buffer = info.get_buffer()
+    if stream is not None and buffer is not None:
+        with stream._keyframes_lock:
+            stream.budget.on_encoded(buffer.get_size(), time.monotonic())
     return gst().PadProbeReturn.OK
 
 
