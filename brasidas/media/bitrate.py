@@ -62,8 +62,9 @@ class TransportReport:
 
 TRANSPORT_WINDOW_S = 0.3
 """rtpsession's TWCC statistics window."""
-TRANSPORT_POLL_S = 0.1
-"""How often the sender looks at the feedback (each new window is read once)."""
+TRANSPORT_POLL_S = 0.05
+"""How often the sender looks at the feedback (each new window is read once; receivers send
+it every ~30 ms: 0.1 s added 50 ms on average to seeing a capacity drop)."""
 OVERUSE_QUEUE_MS = 20.0
 """A queue this long (estimated from the delay's growth, window after window) is a link over
 its capacity: a keyframe's burst drains within a window, a mesh's random loss and jitter do
@@ -74,8 +75,11 @@ OVERUSE_DELIVERED = 0.75
 drop to 500 kbit/s: 0.73, 0.48, 0.24 in the windows after it; at 10 % random loss ~0.9; a
 forwarder's 50 ms pause ~0.86)."""
 OVERUSE_READS = 2
-"""Consecutive windows that must show the overuse (0.1 s apart); one when a receiver report
-just before it lost over :data:`COLLAPSE_LOSS` (a forwarder's pause loses nothing)."""
+"""Consecutive windows that must show the overuse, :data:`OVERUSE_SPAN_S` apart or more; one
+when a receiver report just before it lost over :data:`COLLAPSE_LOSS` (a forwarder's pause
+loses nothing)."""
+OVERUSE_SPAN_S = 0.09
+"""(Two reads 0.1 s apart, as before the sender read every 50 ms; less a timer's jitter.)"""
 CONFIRMED_QUEUE_SHARE = 0.5
 """With such a report, a queue estimated at this share of :data:`OVERUSE_QUEUE_MS` is enough."""
 MOST_CUT = 0.5
@@ -145,9 +149,11 @@ class BitrateController:
         self.capacity_kbps = 0.0
         """What the link delivered when last over its capacity."""
         self._overuse_streak = 0
+        self._streak_at = 0.0
         self._draining = False
         self.paused_at: float | None = None
         """When the encoder's frames were last paused for a queue to drain."""
+        self.pauses = 0
         self.report_loss = 0.0
         """The newest receiver report's fraction lost (unsmoothed), see :meth:`note_loss`."""
         self._report_loss_at: float | None = None
@@ -194,11 +200,15 @@ class BitrateController:
         # once (the delay falls); a queue over capacity goes on growing. Or one, when a
         # receiver report also counts most packets lost (a pause loses none: the relay buffers).
         self._overuse_streak += 1
-        if self._overuse_streak < OVERUSE_READS and not confirmed:
+        if self._overuse_streak == 1:
+            self._streak_at = now
+        spanned = now - self._streak_at >= OVERUSE_SPAN_S
+        if not confirmed and (self._overuse_streak < OVERUSE_READS or not spanned):
             return None
         pausing = self.paused_at is None or now - self.paused_at >= PAUSE_AGAIN_AFTER_S
         if pausing:
             self.paused_at = now
+            self.pauses += 1
         self.capacity_kbps = report.received_kbps
         self.overused_at = now
         self.overuses += 1
