@@ -329,9 +329,12 @@ class VideoOut(FanOutStream[VideoSettings]):
         """Halve the picture's size when the bitrate cannot carry all of it, and back (the
         encoder restarts on the new size with a keyframe and its new SPS; decoders follow)."""
         s = self.settings
-        if self._scale_filter is None or self.bitrate.settling(now):
+        paused = self.budget.paused_until > now
+        if self._scale_filter is None or (self.bitrate.settling(now) and not paused):
             # Not while a queue drains after a cut: the new size costs a keyframe, and the
-            # receivers are waiting for one already (measured: a freeze at the drop twice as long).
+            # receivers are waiting for one already (measured: a freeze at the drop twice as
+            # long). But during the pause: the keyframe after it is made at the new size (a
+            # quarter of the pixels: a third of the bytes to cross the slow link).
             return
         # At the full framerate's bits per pixel, before any thinning: fewer frames and fewer
         # pixels both, on a link that forced the bitrate that far down.
