@@ -298,3 +298,22 @@ def test_the_frame_budget_never_skips_away_from_a_capacity_drop() -> None:
     budget.on_encoded(20_000, 0.0)
     assert budget.admit(0.2)
     assert budget.skipped == 0
+
+
+def test_a_retransmission_from_before_the_pause_is_told_from_one_after_it() -> None:
+    from brasidas.media.video import _sent_before
+
+    def rtx(original: int, extension_words: int) -> bytes:
+        # RTP header (with or without the one-byte header extensions the sender adds), then
+        # the original sequence number (RFC 4588).
+        first = 0x90 if extension_words else 0x80
+        header = bytes([first, 97, 0, 1]) + bytes(8)
+        if extension_words:
+            header += b"\xbe\xde" + extension_words.to_bytes(2, "big") + bytes(4 * extension_words)
+        return header + original.to_bytes(2, "big") + b"payload"
+
+    for words in (0, 3):
+        assert _sent_before(rtx(1000, words), 1001)
+        assert not _sent_before(rtx(1001, words), 1001)  # the keyframe's own: sent again
+        assert _sent_before(rtx(65530, words), 5)  # across the sequence's wrap
+        assert not _sent_before(rtx(7, words), 5)
