@@ -317,3 +317,26 @@ def test_a_retransmission_from_before_the_pause_is_told_from_one_after_it() -> N
         assert not _sent_before(rtx(1001, words), 1001)  # the keyframe's own: sent again
         assert _sent_before(rtx(65530, words), 5)  # across the sequence's wrap
         assert not _sent_before(rtx(7, words), 5)
+
+
+def test_a_lossy_report_just_after_a_window_that_showed_the_queue_confirms_it_at_once() -> None:
+    # As measured: a window at +0.14 s showed a 32 ms queue delivering 67 % (one read: not
+    # yet enough), the receiver report 20 ms later lost 71 %, the next window came 45 ms on.
+    controller = BitrateController(1500, 150)
+    assert controller.on_transport(_window(1460, 975, 45.0), 1500, 0.14) is None
+    assert controller.confirm_pending(1500, 0.15) is None  # no lossy report yet
+    controller.note_loss(0.71, 0.165)
+    assert controller.confirm_pending(1500, 0.165) == 450
+    assert controller.paused_at == 0.165
+    assert controller.confirm_pending(1500, 0.17) is None  # once
+    # A lossy report long after the window (0.1 s or more) confirms nothing.
+    controller = BitrateController(1500, 150)
+    controller.on_transport(_window(1460, 975, 45.0), 1500, 0.14)
+    controller.note_loss(0.71, 0.3)
+    assert controller.confirm_pending(1500, 0.3) is None
+    # Nor a report with a mesh's random loss.
+    controller = BitrateController(1500, 150)
+    controller.on_transport(_window(1460, 975, 45.0), 1500, 0.14)
+    controller.note_loss(0.2, 0.16)
+    assert controller.confirm_pending(1500, 0.16) is None
+    assert controller.paused_at is None

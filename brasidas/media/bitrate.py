@@ -80,6 +80,8 @@ when a receiver report just before it lost over :data:`COLLAPSE_LOSS` (a forward
 loses nothing)."""
 OVERUSE_SPAN_S = 0.09
 """(Two reads 0.1 s apart, as before the sender read every 50 ms; less a timer's jitter.)"""
+CANDIDATE_S = 0.1
+"""A window read this recently is confirmed by a lossy receiver report coming after it."""
 CONFIRMED_QUEUE_SHARE = 0.5
 """With such a report, a queue estimated at this share of :data:`OVERUSE_QUEUE_MS` is enough."""
 MOST_CUT = 0.5
@@ -150,6 +152,8 @@ class BitrateController:
         """What the link delivered when last over its capacity."""
         self._overuse_streak = 0
         self._streak_at = 0.0
+        self._candidate: tuple[TransportReport, float] | None = None
+        """The newest window that showed an overuse not yet confirmed (one read), and when."""
         self._draining = False
         self.paused_at: float | None = None
         """When the encoder's frames were last paused for a queue to drain."""
@@ -195,6 +199,7 @@ class BitrateController:
             or delivered >= OVERUSE_DELIVERED
         ):
             self._overuse_streak = 0
+            self._candidate = None
             return None
         # Two reads running: a forwarder's pause shows in one, then its backlog arrives at
         # once (the delay falls); a queue over capacity goes on growing. Or one, when a
@@ -204,7 +209,25 @@ class BitrateController:
             self._streak_at = now
         spanned = now - self._streak_at >= OVERUSE_SPAN_S
         if not confirmed and (self._overuse_streak < OVERUSE_READS or not spanned):
+            self._candidate = (report, now)
             return None
+        return self._overuse(report, ceiling_kbps, now)
+
+    def confirm_pending(self, ceiling_kbps: int, now: float) -> int | None:
+        """No new window, but a receiver report losing most packets just came: a window read
+        moments ago that showed the queue (one read, not yet two) is confirmed by it now
+        (measured: such a report 20 ms after the window, the next window 45 ms later)."""
+        candidate = self._candidate
+        if candidate is None or not self._loss_confirms(now):
+            return None
+        report, at = candidate
+        if now - at > CANDIDATE_S:
+            return None
+        return self._overuse(report, ceiling_kbps, now)
+
+    def _overuse(self, report: TransportReport, ceiling_kbps: int, now: float) -> int | None:
+        """The link is over its capacity: pause (the first time), cut under what arrived."""
+        self._candidate = None
         pausing = self.paused_at is None or now - self.paused_at >= PAUSE_AGAIN_AFTER_S
         if pausing:
             self.paused_at = now
