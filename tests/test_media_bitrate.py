@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import itertools
+import random
+
 from brasidas.media.bitrate import (
     DRAIN_PAUSE_S,
     PACER_BACKLOG_S,
     STEP_S,
-    TRANSPORT_POLL_S,
     TRANSPORT_WINDOW_S,
     BitrateController,
     FrameBudget,
@@ -18,6 +20,16 @@ from brasidas.media.bitrate import (
 READ_S = 0.1
 """The measured windows below were read this far apart (the sender reads every 50 ms: each
 read then adds half as much of a window's growth)."""
+
+
+_SEQUENCES = itertools.count(1000, 1000)
+
+
+def _report_loss(controller: BitrateController, share: float, at: float, packets: int = 20) -> None:
+    """Receiver reports at ``at`` and 40 ms before: ``share`` of ``packets`` lost between."""
+    base = next(_SEQUENCES)
+    controller.note_report(1, base, 0, at - 0.04)
+    controller.note_report(1, base + packets, round(packets * share), at)
 
 
 def _steps(controller: BitrateController, loss: float | None, count: int, start: float) -> float:
@@ -225,7 +237,7 @@ def test_a_capacity_drop_confirmed_by_a_report_losing_most_packets_pauses_at_the
     controller = BitrateController(1500, 150)
     # The first window after a drop to 500 kbit/s (measured: +15 ms, 72 % delivered) and the
     # receiver report just before it losing 46 %: the queue overflows, cut and pause at once.
-    controller.note_loss(0.46, 0.19)
+    _report_loss(controller, 0.46, 0.19)
     assert controller.on_transport(_window(1460, 1050, 15.0), 1500, 0.2) is not None
     assert controller.paused_at == 0.2
     # The next windows still show the overflow (they reach back 300 ms): no second pause.
@@ -234,7 +246,7 @@ def test_a_capacity_drop_confirmed_by_a_report_losing_most_packets_pauses_at_the
     assert controller.paused_at == 0.2
     assert controller.effective_kbps(1500) < 500
     # A second overuse a while later is a new drop: a new pause.
-    controller.note_loss(0.5, 2.0)
+    _report_loss(controller, 0.5, 2.0)
     controller.on_transport(_window(450, 200, 40.0), 1500, 2.0)
     assert controller.paused_at == 2.0
 
@@ -242,23 +254,38 @@ def test_a_capacity_drop_confirmed_by_a_report_losing_most_packets_pauses_at_the
 def test_without_a_lossy_report_one_window_is_not_enough_and_random_loss_never_pauses() -> None:
     controller = BitrateController(1500, 150)
     # A forwarder's pause: the delay grew in one window, no report counted a loss.
-    controller.note_loss(0.0, 0.19)
+    _report_loss(controller, 0.0, 0.19)
     assert controller.on_transport(_window(1500, 1000, 40.0), 1500, 0.2) is None
     assert controller.paused_at is None
     # A report of a stale loss (older than a window) does not confirm either.
     controller = BitrateController(1500, 150)
-    controller.note_loss(0.6, 0.0)
+    _report_loss(controller, 0.6, 0.0)
     assert controller.on_transport(_window(1500, 1000, 40.0), 1500, 0.5) is None
     # 10 % random loss with spiking reports, read as often as the sender does: no queue, so
     # no pause (nor cut).
+    # Reports every 20 ms of 3 packets each (30 fps); at 5 fps of one packet or none, a lost
+    # one reading 100 %: the share counts only over 10 packets or more.
+    for packets_per_report in (3, 1):
+        controller = BitrateController(1500, 150)
+        rng = random.Random(7)
+        highest = lost = 0
+        now = 0.0
+        for step in range(600):
+            highest += packets_per_report
+            lost += sum(rng.random() < 0.1 for _ in range(packets_per_report))
+            controller.note_report(1, highest, lost, now)
+            if step % 2:
+                growth = 20.0 if step % 4 == 1 else -20.0
+                controller.on_transport(_window(1500, 1350, growth), 1500, now)
+                controller.confirm_pending(1500, now)
+            now += 0.02
+        assert controller.paused_at is None
+        assert controller.effective_kbps(1500) == 1500
+    # Every packet of several reports lost, but 7 packets in all: not enough to confirm.
     controller = BitrateController(1500, 150)
-    now = 0.0
-    for step in range(200):
-        controller.note_loss(0.40 if step % 7 == 0 else 0.10, now)
-        controller.on_transport(_window(1500, 1350, 20.0 if step % 2 else -20.0), 1500, now)
-        now += TRANSPORT_POLL_S
-    assert controller.paused_at is None
-    assert controller.effective_kbps(1500) == 1500
+    for step in range(8):
+        controller.note_report(1, step, step, step * 0.02)
+    assert not controller.on_transport(_window(1460, 975, 15.0), 1500, 0.16)
 
 
 def test_the_frame_budget_skips_frames_while_a_pause_lasts_and_then_holds_the_bitrate() -> None:
@@ -325,18 +352,18 @@ def test_a_lossy_report_just_after_a_window_that_showed_the_queue_confirms_it_at
     controller = BitrateController(1500, 150)
     assert controller.on_transport(_window(1460, 975, 45.0), 1500, 0.14) is None
     assert controller.confirm_pending(1500, 0.15) is None  # no lossy report yet
-    controller.note_loss(0.71, 0.165)
+    _report_loss(controller, 0.71, 0.165)
     assert controller.confirm_pending(1500, 0.165) == 450
     assert controller.paused_at == 0.165
     assert controller.confirm_pending(1500, 0.17) is None  # once
     # A lossy report long after the window (0.1 s or more) confirms nothing.
     controller = BitrateController(1500, 150)
     controller.on_transport(_window(1460, 975, 45.0), 1500, 0.14)
-    controller.note_loss(0.71, 0.3)
+    _report_loss(controller, 0.71, 0.3)
     assert controller.confirm_pending(1500, 0.3) is None
     # Nor a report with a mesh's random loss.
     controller = BitrateController(1500, 150)
     controller.on_transport(_window(1460, 975, 45.0), 1500, 0.14)
-    controller.note_loss(0.2, 0.16)
+    _report_loss(controller, 0.2, 0.16)
     assert controller.confirm_pending(1500, 0.16) is None
     assert controller.paused_at is None

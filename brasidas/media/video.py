@@ -278,8 +278,7 @@ class VideoOut(FanOutStream[VideoSettings]):
 
     def _adapt_bitrate(self, now: float) -> int | None:
         ceiling = self.settings.effective_bitrate_kbps()
-        loss = self._newest_reported_loss()
-        self.bitrate.note_loss(loss, now)
+        loss = self._newest_reported_loss(now)
         transport = self._newest_transport_report()
         paused_at = self.bitrate.paused_at
         if transport is not None:
@@ -383,7 +382,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         )
         return self.transport
 
-    def _newest_reported_loss(self) -> float | None:
+    def _newest_reported_loss(self, now: float) -> float | None:
         """The worst fraction lost among the receivers' reports new since the last look."""
         session = self._rtpbin.emit("get-internal-session", 0)
         stats = session.get_property("stats") if session is not None else None
@@ -399,6 +398,8 @@ class VideoOut(FanOutStream[VideoSettings]):
             if self._reports_seen.get(ssrc) == highest:
                 continue
             self._reports_seen[ssrc] = highest
+            _, lost = source.get_int("rb-packetslost")
+            self.bitrate.note_report(ssrc, highest, lost, now)
             _, fraction = source.get_uint("rb-fractionlost")
             worst = max(worst or 0.0, fraction / 256)
             _, jitter = source.get_uint("rb-jitter")
