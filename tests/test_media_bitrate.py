@@ -109,6 +109,7 @@ def test_a_queue_building_cuts_the_bitrate_to_under_what_arrived_at_once() -> No
         now += READ_S
     # 2 Mbit/s → 500 kbit/s: the windows after the drop, as measured (+56, +105, +256 ms).
     controller.on_transport(_window(1470, 977, 56.0), 1500, now)
+    _report_loss(controller, 0.5, now + 0.09)  # the receivers count half the packets lost
     kbps = controller.on_transport(_window(1870, 640, 105.0), 1500, now + 0.1)
     # The first window still counts what arrived before the drop: far below what arrived,
     # and no frame while the queue drains (the sender pauses).
@@ -367,3 +368,13 @@ def test_a_lossy_report_just_after_a_window_that_showed_the_queue_confirms_it_at
     _report_loss(controller, 0.2, 0.16)
     assert controller.confirm_pending(1500, 0.16) is None
     assert controller.paused_at is None
+
+
+def test_an_overuse_no_receiver_report_confirms_pauses_but_cuts_only_to_what_arrived() -> None:
+    # Two windows of a growing queue without loss counted (a loaded forwarder's stall, or a
+    # 5 fps stream's reports too few packets to count): the pause costs a frame or two, a
+    # cut to 0.3x would cost seconds of a crushed bitrate.
+    controller = BitrateController(1500, 150)
+    controller.on_transport(_window(1500, 1000, 60.0), 1500, 0.0)
+    assert controller.on_transport(_window(1500, 1000, 60.0), 1500, 0.1) == 850
+    assert controller.paused_at == 0.1

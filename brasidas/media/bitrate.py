@@ -119,7 +119,7 @@ overflowing queue loses packets and breaks the picture until a keyframe, so none
 until the queue has drained (a link's 100 ms of queue at the new capacity, and the
 feedback's lag); then a keyframe at the lowered bitrate crosses an empty link."""
 PAUSE_CUT = 0.3
-"""At the pause the bitrate falls to at most this share (a radio's capacity drop is a change
+"""At the pause confirmed by lossy receiver reports the bitrate falls to at most this share (a radio's capacity drop is a change
 of modulation, 2-4 times: the emulator's 2 Mbit/s → 500 kbit/s is 4)."""
 STALE_RETRANSMISSION_S = 1.0
 """For this long after the pause, packets sent before it are not sent again (the receivers
@@ -231,7 +231,7 @@ class BitrateController:
         if not confirmed and (self._overuse_streak < OVERUSE_READS or not spanned):
             self._candidate = (report, now)
             return None
-        return self._overuse(report, ceiling_kbps, now)
+        return self._overuse(report, ceiling_kbps, now, confirmed=confirmed)
 
     def confirm_pending(self, ceiling_kbps: int, now: float) -> int | None:
         """No new window, but a receiver report losing most packets just came: a window read
@@ -243,9 +243,11 @@ class BitrateController:
         report, at = candidate
         if now - at > CANDIDATE_S:
             return None
-        return self._overuse(report, ceiling_kbps, now)
+        return self._overuse(report, ceiling_kbps, now, confirmed=True)
 
-    def _overuse(self, report: TransportReport, ceiling_kbps: int, now: float) -> int | None:
+    def _overuse(
+        self, report: TransportReport, ceiling_kbps: int, now: float, *, confirmed: bool
+    ) -> int | None:
         """The link is over its capacity: pause (the first time), cut under what arrived."""
         self._candidate = None
         pausing = self.paused_at is None or now - self.paused_at >= PAUSE_AGAIN_AFTER_S
@@ -264,10 +266,12 @@ class BitrateController:
         before = self.effective_kbps(ceiling_kbps)
         current = min(self.target_kbps, float(ceiling_kbps))
         lowered = max(report.received_kbps * OVERUSE_BACKOFF, current * MOST_CUT)
-        if pausing:
+        if pausing and confirmed:
             # The first window reads what arrived before the drop too (measured: 1050 kbit/s
             # "received" at a drop to 500): resumed at that, the frames after the pause
             # overflowed the queue again. The lagging windows after it cut on from there.
+            # Only when the receivers' reports count the loss too: a loaded forwarder's
+            # stall read twice (no loss) would cost seconds of a crushed bitrate.
             lowered = min(lowered, current * PAUSE_CUT)
         if lowered >= current:
             return None  # already under what the link carries
