@@ -78,8 +78,10 @@ OVERUSE_READS = 2
 """Consecutive windows that must show the overuse, :data:`OVERUSE_SPAN_S` apart or more; one
 when a receiver report just before it lost over :data:`COLLAPSE_LOSS` (a forwarder's pause
 loses nothing)."""
-OVERUSE_SPAN_S = 0.09
-"""(Two reads 0.1 s apart, as before the sender read every 50 ms; less a timer's jitter.)"""
+OVERUSE_SPAN_S = 0.06
+"""(A forwarder's stall shows in the windows of its feedback; its backlog, arriving at once,
+in the next feedback, ~30 ms later. Read 0.1 s apart at each feedback, a drop waited ~90 ms
+more, measured: 0.24 → 0.33 s.)"""
 CONFIRM_PACKETS = 10
 """Receiver reports confirm an overuse only over this many packets or more (at 10 % random
 loss 4 or more of 10 are lost about once in 80)..."""
@@ -113,11 +115,13 @@ draining (then a keyframe goes out on the emptying link)."""
 HOLD_AFTER_OVERUSE_S = 2.0
 """No climbing for this long after an overuse: the queue first drains, the receiver reports
 catch up."""
-DRAIN_PAUSE_S = 0.15
+DRAIN_PAUSE_S = 0.1
 """At the first overuse the encoder gets no frames for this long: every frame sent into an
 overflowing queue loses packets and breaks the picture until a keyframe, so none is sent
-until the queue has drained (a link's 100 ms of queue at the new capacity, and the
-feedback's lag); then a keyframe at the lowered bitrate crosses an empty link."""
+until the queue has drained (the emulator's 100 ms of queue at the new capacity; the next
+camera frame and the encoder's restart at the smaller size add 30-60 ms: measured 0.16 s
+from the pause to the keyframe, 0.19-0.23 s with a 150 ms pause); then a keyframe at the
+lowered bitrate crosses an empty link (a packet of it lost is sent again)."""
 PAUSE_CUT = 0.3
 """At the pause confirmed by lossy receiver reports the bitrate falls to at most this share (a radio's capacity drop is a change
 of modulation, 2-4 times: the emulator's 2 Mbit/s → 500 kbit/s is 4)."""
