@@ -14,6 +14,18 @@ from brasidas.media.keyframes import KeyframeClock
 from brasidas.media.video import VideoOut, VideoSettings
 
 
+def test_the_first_frame_after_a_drain_pause_is_a_keyframe_whatever_the_gap() -> None:
+    clock = KeyframeClock(30, min_request_gap_s=0.25)
+    assert clock.on_frame(0.0)
+    assert not clock.on_frame(0.1)
+    # 0.1 s after the last keyframe a request waits out the gap; a resume does not.
+    clock.request(0.1)
+    assert not clock.on_frame(0.15)
+    assert clock.on_frame(0.2, resume=True)
+    assert clock.counters.resumed == 1
+    assert not clock.on_frame(0.24)  # the pending request was answered by it
+
+
 def test_the_interval_follows_the_framerate_and_requests_are_rate_limited() -> None:
     clock = KeyframeClock(30, min_request_gap_s=0.25)
     assert clock.on_frame(0.0)  # the first frame starts the stream

@@ -180,8 +180,21 @@ async def test_the_bitrate_falls_under_a_rate_limit(watching: Fleet) -> None:
     # the capacity, and fewer frames are sent, each with the bits a legible picture needs.
     await wait_for(settled, timeout=20, step=0.25)
     # The queue building behind the limit was seen in the delay (before any receiver report
-    # counted its losses) and the bitrate cut to under what arrived.
+    # counted its losses) and the bitrate cut to under what arrived. No frame went into the
+    # overflowing queue while it drained; the picture restarted at a keyframe made after.
     assert (await _navcam(fleet))["overuses"] >= 1
+
+    async def restarted() -> bool:
+        with contextlib.suppress(RpcFailed):
+            navcam = await _navcam(fleet)
+            return bool(
+                navcam["drain_pauses"] >= 1
+                and navcam["frames_skipped"] >= 1
+                and navcam["keyframes_after_pause"] >= 1
+            )
+        return False
+
+    await wait_for(restarted, timeout=10, step=0.25)
     # Through the drop the picture went on (repaired, then within capacity).
     frames = (await _receiver(fleet))["frames"]
 

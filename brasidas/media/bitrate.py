@@ -62,8 +62,9 @@ class TransportReport:
 
 TRANSPORT_WINDOW_S = 0.3
 """rtpsession's TWCC statistics window."""
-TRANSPORT_POLL_S = 0.1
-"""How often the sender looks at the feedback (each new window is read once)."""
+TRANSPORT_POLL_S = 0.05
+"""How often the sender looks at the feedback (each new window is read once; receivers send
+it every ~30 ms: 0.1 s added 50 ms on average to seeing a capacity drop)."""
 OVERUSE_QUEUE_MS = 20.0
 """A queue this long (estimated from the delay's growth, window after window) is a link over
 its capacity: a keyframe's burst drains within a window, a mesh's random loss and jitter do
@@ -74,7 +75,22 @@ OVERUSE_DELIVERED = 0.75
 drop to 500 kbit/s: 0.73, 0.48, 0.24 in the windows after it; at 10 % random loss ~0.9; a
 forwarder's 50 ms pause ~0.86)."""
 OVERUSE_READS = 2
-"""Consecutive windows that must show the overuse (0.1 s apart)."""
+"""Consecutive windows that must show the overuse, :data:`OVERUSE_SPAN_S` apart or more; one
+when a receiver report just before it lost over :data:`COLLAPSE_LOSS` (a forwarder's pause
+loses nothing)."""
+OVERUSE_SPAN_S = 0.06
+"""(A forwarder's stall shows in the windows of its feedback; its backlog, arriving at once,
+in the next feedback, ~30 ms later. Read 0.1 s apart at each feedback, a drop waited ~90 ms
+more, measured: 0.24 → 0.33 s.)"""
+CONFIRM_PACKETS = 10
+"""Receiver reports confirm an overuse only over this many packets or more (at 10 % random
+loss 4 or more of 10 are lost about once in 80)..."""
+CONFIRM_SPAN_S = 0.15
+"""... reported within this long."""
+CANDIDATE_S = 0.1
+"""A window read this recently is confirmed by a lossy receiver report coming after it."""
+CONFIRMED_QUEUE_SHARE = 0.5
+"""With such a report, a queue estimated at this share of :data:`OVERUSE_QUEUE_MS` is enough."""
 MOST_CUT = 0.5
 """One cut lowers the bitrate to no less than this share (a window's received rate can read
 low; the next window cuts again if the queue still grows)."""
@@ -82,6 +98,8 @@ CAPACITY_MEMORY_S = 10.0
 """After the link was over its capacity, the bitrate climbs to no more than
 :data:`CLIMB_UNDER` of what it delivered then, this long."""
 CLIMB_UNDER = 0.9
+CLIMB_TO_CAPACITY = 1.25
+"""The climb a step while under :data:`CLIMB_UNDER` of that capacity."""
 CLEAN_QUEUE_MS = 5.0
 """Under this estimated queue the bitrate may climb (whatever the random loss)."""
 QUEUE_LEAK = 0.9
@@ -97,6 +115,23 @@ draining (then a keyframe goes out on the emptying link)."""
 HOLD_AFTER_OVERUSE_S = 2.0
 """No climbing for this long after an overuse: the queue first drains, the receiver reports
 catch up."""
+DRAIN_PAUSE_S = 0.1
+"""At the first overuse the encoder gets no frames for this long: every frame sent into an
+overflowing queue loses packets and breaks the picture until a keyframe, so none is sent
+until the queue has drained (the emulator's 100 ms of queue at the new capacity; the next
+camera frame and the encoder's restart at the smaller size add 30-60 ms: measured 0.16 s
+from the pause to the keyframe, 0.19-0.23 s with a 150 ms pause); then a keyframe at the
+lowered bitrate crosses an empty link (a packet of it lost is sent again)."""
+PAUSE_CUT = 0.3
+"""At the pause confirmed by lossy receiver reports the bitrate falls to at most this share (a radio's capacity drop is a change
+of modulation, 2-4 times: the emulator's 2 Mbit/s → 500 kbit/s is 4)."""
+STALE_RETRANSMISSION_S = 1.0
+"""For this long after the pause, packets sent before it are not sent again (the receivers
+ask for them for their 200 ms repair budget: the picture restarts at the keyframe after the
+pause, and their retransmissions would queue ahead of it on the drained link)."""
+PAUSE_AGAIN_AFTER_S = 1.0
+"""One pause an overuse: the feedback windows (300 ms) go on showing the overflow after the
+pause began, and would keep it going."""
 
 
 class BitrateController:
@@ -125,7 +160,42 @@ class BitrateController:
         self.capacity_kbps = 0.0
         """What the link delivered when last over its capacity."""
         self._overuse_streak = 0
+        self._streak_at = 0.0
+        self._candidate: tuple[TransportReport, float] | None = None
+        """The newest window that showed an overuse not yet confirmed (one read), and when."""
         self._draining = False
+        self.paused_at: float | None = None
+        """When the encoder's frames were last paused for a queue to drain."""
+        self.pauses = 0
+        self.report_loss = 0.0
+        """The share lost over the newest reports that confirmed an overuse
+        (:meth:`note_report`)."""
+        self._report_loss_at: float | None = None
+        self._reports: dict[int, list[tuple[float, int, int]]] = {}
+
+    def note_report(self, receiver: int, highest_seq: int, lost: int, now: float) -> None:
+        """A receiver report's cumulative counts (its extended highest sequence number and
+        packets lost), before the transport window is read: reports losing most of their
+        last :data:`CONFIRM_PACKETS` packets or more confirm a growing queue at once. One
+        report may cover a single packet (they come every ~20 ms; at 5 fps 26 packets a
+        second: 100 % of one lost packet is a mesh's routine)."""
+        reports = self._reports.setdefault(receiver, [])
+        reports.append((now, highest_seq, lost))
+        del reports[: max(0, len(reports) - 16)]
+        for at, highest, lost_then in reversed(reports[:-1]):
+            expected = highest_seq - highest
+            if now - at > CONFIRM_SPAN_S or expected <= 0:
+                break
+            if expected >= CONFIRM_PACKETS:
+                share = (lost - lost_then) / expected
+                if share > COLLAPSE_LOSS:
+                    self.report_loss = share
+                    self._report_loss_at = now
+                return
+
+    def _loss_confirms(self, now: float) -> bool:
+        at = self._report_loss_at
+        return at is not None and now - at < TRANSPORT_WINDOW_S
 
     def on_transport(self, report: TransportReport, ceiling_kbps: int, now: float) -> int | None:
         """A window of transport-wide feedback at ``now``: over capacity, the target falls to
@@ -142,19 +212,52 @@ class BitrateController:
         # delivers what was sent is keeping up: a delay that grew there was a forwarder's
         # pause (a loaded machine's), not a capacity.
         delivered = report.received_kbps / report.sent_kbps if report.sent_kbps > 0 else 1.0
+        # A report losing most packets confirms a shorter queue (the estimate lags the real
+        # queue by a window: measured 15-20 ms when it had overflowed for 0.15 s already).
+        confirmed = self._loss_confirms(now)
+        least_queue = OVERUSE_QUEUE_MS * (CONFIRMED_QUEUE_SHARE if confirmed else 1.0)
         if (
             report.received_kbps <= 0
             or growth <= 0
-            or self.queue_ms <= OVERUSE_QUEUE_MS
+            or self.queue_ms <= least_queue
             or delivered >= OVERUSE_DELIVERED
         ):
             self._overuse_streak = 0
+            self._candidate = None
             return None
         # Two reads running: a forwarder's pause shows in one, then its backlog arrives at
-        # once (the delay falls); a queue over capacity goes on growing.
+        # once (the delay falls); a queue over capacity goes on growing. Or one, when a
+        # receiver report also counts most packets lost (a pause loses none: the relay buffers).
         self._overuse_streak += 1
-        if self._overuse_streak < OVERUSE_READS:
+        if self._overuse_streak == 1:
+            self._streak_at = now
+        spanned = now - self._streak_at >= OVERUSE_SPAN_S
+        if not confirmed and (self._overuse_streak < OVERUSE_READS or not spanned):
+            self._candidate = (report, now)
             return None
+        return self._overuse(report, ceiling_kbps, now, confirmed=confirmed)
+
+    def confirm_pending(self, ceiling_kbps: int, now: float) -> int | None:
+        """No new window, but a receiver report losing most packets just came: a window read
+        moments ago that showed the queue (one read, not yet two) is confirmed by it now
+        (measured: such a report 20 ms after the window, the next window 45 ms later)."""
+        candidate = self._candidate
+        if candidate is None or not self._loss_confirms(now):
+            return None
+        report, at = candidate
+        if now - at > CANDIDATE_S:
+            return None
+        return self._overuse(report, ceiling_kbps, now, confirmed=True)
+
+    def _overuse(
+        self, report: TransportReport, ceiling_kbps: int, now: float, *, confirmed: bool
+    ) -> int | None:
+        """The link is over its capacity: pause (the first time), cut under what arrived."""
+        self._candidate = None
+        pausing = self.paused_at is None or now - self.paused_at >= PAUSE_AGAIN_AFTER_S
+        if pausing:
+            self.paused_at = now
+            self.pauses += 1
         self.capacity_kbps = report.received_kbps
         self.overused_at = now
         self.overuses += 1
@@ -167,6 +270,13 @@ class BitrateController:
         before = self.effective_kbps(ceiling_kbps)
         current = min(self.target_kbps, float(ceiling_kbps))
         lowered = max(report.received_kbps * OVERUSE_BACKOFF, current * MOST_CUT)
+        if pausing and confirmed:
+            # The first window reads what arrived before the drop too (measured: 1050 kbit/s
+            # "received" at a drop to 500): resumed at that, the frames after the pause
+            # overflowed the queue again. The lagging windows after it cut on from there.
+            # Only when the receivers' reports count the loss too: a loaded forwarder's
+            # stall read twice (no loss) would cost seconds of a crushed bitrate.
+            lowered = min(lowered, current * PAUSE_CUT)
         if lowered >= current:
             return None  # already under what the link carries
         self.target_kbps = max(float(self.floor_kbps), lowered)
@@ -206,7 +316,12 @@ class BitrateController:
             self.decreases += 1
         elif loss is not None and self._clean(now) and not self._holding(now):
             # Up to the ceiling; a target above it (a lower framerate's) is kept for later.
-            raised = max(self.target_kbps * CLIMB, self.target_kbps + 10)
+            # Under what the link delivered when last over its capacity (a pause's deep cut
+            # went further): back there sooner.
+            climb = (
+                CLIMB_TO_CAPACITY if self.target_kbps < self._remembered_capacity(now) else CLIMB
+            )
+            raised = max(self.target_kbps * climb, self.target_kbps + 10)
             limit = self._climb_limit(float(ceiling_kbps), now)
             self.target_kbps = max(self.target_kbps, min(raised, limit))
         after = self.effective_kbps(ceiling_kbps)
@@ -250,12 +365,81 @@ class BitrateController:
     def retransmissions_paused(self, now: float) -> bool:
         """While a queue overflows, retransmitting what it dropped only feeds it (measured at
         the 500 kbit/s drop: 2-3 Mbit/s sent for a second, most of it retransmissions)."""
+        paused = self.paused_at
+        if paused is not None and now - paused < PAUSE_AGAIN_AFTER_S:
+            # The link drains while no frame is sent; after the pause only the packets sent
+            # before it are not sent again (the sender's stale filter): a packet of the
+            # keyframe after it, lost, is worth a retransmission.
+            return now - paused < DRAIN_PAUSE_S
         at = self.overused_at
         return at is not None and now - at < RTX_PAUSE_S and not self._draining
 
     def effective_kbps(self, ceiling_kbps: int) -> int:
         """What the encoder is set to: the target within the framerate's ceiling."""
         return max(self.floor_kbps, round(min(self.target_kbps, float(ceiling_kbps))))
+
+
+PACER_BACKLOG_S = 0.08
+"""A raw frame is skipped (never encoded) while what was encoded before it would still take
+longer than this to leave at the target bitrate: the encoder's own rate control follows a
+lowered bitrate only over several frames (measured: 6 kB frames for 0.1-0.2 s after a cut
+to a third), and every frame sent meanwhile into a full link's queue loses packets. Above a
+keyframe and a frame (a 1.5 Mbit/s keyframe is ~55 ms of it), so a link that keeps up never
+skips one."""
+
+
+class FrameBudget:
+    """The sender's view of its own queue (sans-IO): the bits encoded, leaving at the target
+    bitrate. A frame is encoded only while that queue is short, so the bitrate is held at
+    once, whatever the encoder's rate control does, and frames never pile up on a link."""
+
+    def __init__(self, kbps: float) -> None:
+        self.kbps = kbps
+        self.backlog_bits = 0.0
+        self.skipped = 0
+        """Frames not encoded because the queue was long (or paused for the link's to drain)."""
+        self.paused_until = 0.0
+        self.enforced_until = 0.0
+        """Frames are skipped only until this: for a while after the link was over its
+        capacity (elsewhere a keyframe's burst at 5 fps would cost the next frame)."""
+        self._at: float | None = None
+
+    def _drain(self, now: float) -> None:
+        if self._at is not None and now > self._at:
+            self.backlog_bits = max(0.0, self.backlog_bits - (now - self._at) * self.kbps * 1000)
+        self._at = now if self._at is None else max(self._at, now)
+
+    def set_rate(self, kbps: float, now: float) -> None:
+        self._drain(now)
+        self.kbps = max(1.0, kbps)
+
+    def backlog_s(self, now: float) -> float:
+        self._drain(now)
+        return self.backlog_bits / (self.kbps * 1000)
+
+    def admit(self, now: float) -> bool:
+        """A raw frame at ``now``: True to encode it, False to skip it."""
+        if now < self.paused_until:
+            self.skipped += 1
+            return False
+        if self.backlog_s(now) <= PACER_BACKLOG_S or now >= self.enforced_until:
+            return True
+        self.skipped += 1
+        return False
+
+    def on_encoded(self, size_bytes: int, now: float) -> None:
+        self._drain(now)
+        self.backlog_bits += size_bytes * 8
+
+    def pause(self, seconds: float, now: float) -> None:
+        """Encode nothing for ``seconds`` (a link's queue drains first), then hold the
+        bitrate for :data:`CAPACITY_MEMORY_S`."""
+        self._drain(now)
+        self.enforced_until = now + CAPACITY_MEMORY_S
+        self.paused_until = now + seconds
+        # What was encoded before is through or lost by the pause's end: counted at the
+        # lowered bitrate it would hold the frames after it back for seconds.
+        self.backlog_bits = 0.0
 
 
 THIN_AFTER_COLLAPSE_S = 10.0

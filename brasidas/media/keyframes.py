@@ -39,6 +39,8 @@ class KeyframeCounters:
     deferred: int = 0
     """Requests answered only at the end of the rate limit's gap (a keyframe had just been
     made)."""
+    resumed: int = 0
+    """Keyframes after the sender paused for a link's queue to drain."""
 
 
 class KeyframeClock:
@@ -91,14 +93,18 @@ class KeyframeClock:
         last = self._last_forced if self.congested else self._last_requested
         return last is None or now - last >= self.min_request_gap_s
 
-    def on_frame(self, now: float) -> bool:
-        """A raw frame goes into the encoder: True when it must be encoded as a keyframe."""
+    def on_frame(self, now: float, resume: bool = False) -> bool:
+        """A raw frame goes into the encoder: True when it must be encoded as a keyframe.
+        ``resume``: the first frame after the sender paused for a link's queue to drain (a
+        keyframe whatever the gap: those before it were lost to the queue)."""
         self._since_keyframe += 1
         periodic = self._since_keyframe >= self.interval_frames
         asked = self._pending and self._gap_over(now)
-        if not (periodic or asked or self._last_forced is None):
+        if resume:
+            self.counters.resumed += 1
+        elif not (periodic or asked or self._last_forced is None):
             return False
-        if periodic and not asked and self._last_forced is not None:
+        if periodic and not asked and not resume and self._last_forced is not None:
             self.counters.periodic += 1
         if asked:
             self._last_requested = now

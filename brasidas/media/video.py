@@ -24,8 +24,11 @@ from functools import partial
 from typing import Any
 
 from brasidas.media.bitrate import (
+    DRAIN_PAUSE_S,
+    STALE_RETRANSMISSION_S,
     THIN_AFTER_COLLAPSE_S,
     BitrateController,
+    FrameBudget,
     ResolutionChoice,
     TransportReport,
     frame_thinning,
@@ -175,6 +178,18 @@ class VideoOut(FanOutStream[VideoSettings]):
         """Frames out of the encoder since the stream was made (a receiver's frames shown
         count against these: not against the nominal framerate, which the camera, the
         thinning and a restart all stray from); read by the streaming thread."""
+        self.budget = FrameBudget(settings.effective_bitrate_kbps())
+        """Frames are skipped, not encoded, while the encoded ones would queue (under the
+        keyframes' lock: the streaming thread and the event loop)."""
+        self.keyframe_after_pause = False
+        self._adapt_lock = threading.Lock()
+        """The bitrate adapts on the event loop and on RTCP's thread."""
+        self.stale_before = 0
+        """Packets sent before the pause (sequence numbers before this) are not sent again
+        until ``stale_until``: the picture restarts at the keyframe after it, and their
+        retransmissions would queue ahead of it (read by the streaming thread)."""
+        self.stale_until = 0.0
+        """The first frame after the pause is a keyframe (under the keyframes' lock)."""
         self.reported_jitter_ms = 0.0
         """The newest receiver report's interarrival jitter (a queue building shows here)."""
         self.fec_percent = 0
@@ -224,6 +239,9 @@ class VideoOut(FanOutStream[VideoSettings]):
             "overuses": self.bitrate.overuses,
             "queue_ms": round(self.bitrate.queue_ms, 1),
             "retransmissions_dropped": self.retransmissions_dropped,
+            "drain_pauses": self.bitrate.pauses,
+            "frames_skipped": self.budget.skipped,
+            "keyframes_after_pause": self.keyframes.counters.resumed,
             **self.retransmissions(),
             "rtp_caps": RTP_VIDEO_CAPS,
             "rtcp_port": self.feedback.port if self.feedback is not None else None,
@@ -256,14 +274,34 @@ class VideoOut(FanOutStream[VideoSettings]):
         }
 
     def adapt_bitrate(self, now: float) -> int | None:
-        """Event loop, a few times a second: the encoder's bitrate from the receivers' newest
-        reports (:class:`BitrateController`); the new bitrate when it changed."""
-        if self._rtpbin is None or self._encoder is None:
-            return None
+        """The encoder's bitrate from the receivers' newest reports
+        (:class:`BitrateController`); the new bitrate when it changed. The event loop calls it
+        every :data:`~brasidas.media.bitrate.TRANSPORT_POLL_S`, RTCP's thread at each transport
+        feedback (a capacity drop seen without waiting for the loop)."""
+        with self._adapt_lock:
+            if self._rtpbin is None or self._encoder is None:
+                return None
+            return self._adapt_bitrate(now)
+
+    def _adapt_bitrate(self, now: float) -> int | None:
         ceiling = self.settings.effective_bitrate_kbps()
+        loss = self._newest_reported_loss(now)
         transport = self._newest_transport_report()
-        fell = self.bitrate.on_transport(transport, ceiling, now) if transport else None
-        loss = self._newest_reported_loss()
+        paused_at = self.bitrate.paused_at
+        if transport is not None:
+            fell = self.bitrate.on_transport(transport, ceiling, now)
+        else:
+            fell = self.bitrate.confirm_pending(ceiling, now)
+        if self.bitrate.paused_at != paused_at:
+            # The queue overflows: no frame until it drained, then a keyframe (the frames
+            # sent meanwhile lost packets: the receivers wait for one).
+            with self._keyframes_lock:
+                self.keyframe_after_pause = True
+                self.budget.pause(DRAIN_PAUSE_S, now)
+            pay = self.pipeline.get_by_name("pay") if self.pipeline is not None else None
+            if pay is not None:
+                self.stale_before = (int(pay.get_property("seqnum")) + 1) & 0xFFFF
+                self.stale_until = now + STALE_RETRANSMISSION_S
         kbps = self.bitrate.update(loss, ceiling, now) or fell
         retransmit = not self.bitrate.retransmissions_paused(now)
         if retransmit and not self.retransmit and self.retransmissions_dropped > self._dropped_seen:
@@ -273,7 +311,8 @@ class VideoOut(FanOutStream[VideoSettings]):
         if not retransmit and self.retransmit:
             self._dropped_seen = self.retransmissions_dropped
         self.retransmit = retransmit
-        self._drop_retransmissions(not retransmit)
+        # The probe also drops the retransmissions of what was sent before a drain pause.
+        self._drop_retransmissions(not retransmit or now < self.stale_until)
         # Right after a capacity drop FEC would only add to the queue that drops the packets:
         # it is for a link's random loss (which, by loss alone, is any loss but a collapse).
         collapsed = self.bitrate.collapsed_at
@@ -302,6 +341,8 @@ class VideoOut(FanOutStream[VideoSettings]):
             self.keyframes.congested = congested
         if kbps is not None or fec_changed:
             _set_bitrate(self._encoder, self.encoder_name, self.media_bitrate_kbps())
+        with self._keyframes_lock:
+            self.budget.set_rate(self.current_bitrate_kbps(), now)
         self._follow_resolution(now)
         return kbps
 
@@ -309,9 +350,12 @@ class VideoOut(FanOutStream[VideoSettings]):
         """Halve the picture's size when the bitrate cannot carry all of it, and back (the
         encoder restarts on the new size with a keyframe and its new SPS; decoders follow)."""
         s = self.settings
-        if self._scale_filter is None or self.bitrate.settling(now):
+        paused = self.budget.paused_until > now
+        if self._scale_filter is None or (self.bitrate.settling(now) and not paused):
             # Not while a queue drains after a cut: the new size costs a keyframe, and the
-            # receivers are waiting for one already (measured: a freeze at the drop twice as long).
+            # receivers are waiting for one already (measured: a freeze at the drop twice as
+            # long). But during the pause: the keyframe after it is made at the new size (a
+            # quarter of the pixels: a third of the bytes to cross the slow link).
             return
         # At the full framerate's bits per pixel, before any thinning: fewer frames and fewer
         # pixels both, on a link that forced the bitrate that far down.
@@ -349,7 +393,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         )
         return self.transport
 
-    def _newest_reported_loss(self) -> float | None:
+    def _newest_reported_loss(self, now: float) -> float | None:
         """The worst fraction lost among the receivers' reports new since the last look."""
         session = self._rtpbin.emit("get-internal-session", 0)
         stats = session.get_property("stats") if session is not None else None
@@ -365,6 +409,8 @@ class VideoOut(FanOutStream[VideoSettings]):
             if self._reports_seen.get(ssrc) == highest:
                 continue
             self._reports_seen[ssrc] = highest
+            _, lost = source.get_int("rb-packetslost")
+            self.bitrate.note_report(ssrc, highest, lost, now)
             _, fraction = source.get_uint("rb-fractionlost")
             worst = max(worst or 0.0, fraction / 256)
             _, jitter = source.get_uint("rb-jitter")
@@ -372,9 +418,10 @@ class VideoOut(FanOutStream[VideoSettings]):
         return worst
 
     def _drop_retransmissions(self, drop: bool) -> None:
-        """Event loop: the probe that drops retransmissions is on the retransmitter's pad only
-        while they are dropped (every packet passes there: a probe that only looked would
-        take the GIL on the streaming thread for each, a tail on the frames' latency)."""
+        """The bitrate's adaptation (event loop or RTCP's thread, under its lock): the probe that
+        drops retransmissions is on the retransmitter's pad only while any are dropped (every
+        packet passes there: a probe that only looked would take the GIL on the streaming
+        thread for each, a tail on the frames' latency)."""
         if drop and self._rtx_probe is None and self._rtx_pad is not None:
             self._rtx_probe = self._rtx_pad.add_probe(
                 gst().PadProbeType.BUFFER, _retransmission_probe, weakref.ref(self)
@@ -477,6 +524,9 @@ class VideoOut(FanOutStream[VideoSettings]):
                 # Bound once and kept across rebuilds: receivers were told this port.
                 self.feedback = FeedbackSocket(port=s.rtcp_port)
             self._rtpbin = add_repair_sender(pipeline, pay, sink, self.feedback)
+            session = self._rtpbin.emit("get-session", 0)
+            if session is not None and session.find_property("twcc-stats") is not None:
+                session.connect("notify::twcc-stats", _on_transport_feedback, weakref.ref(self))
             rtx = pipeline.get_by_name("rtxsend")
             self._rtx_pad = rtx.get_static_pad("src") if rtx is not None else None
             self._rtx_probe = None
@@ -528,7 +578,8 @@ class VideoOut(FanOutStream[VideoSettings]):
         self._encoder = None
         self._rate_filter = None
         self._scale_filter = None
-        self._rtpbin = None
+        with self._adapt_lock:
+            self._rtpbin = None
         self._rtx_pad = None
         self._rtx_probe = None
         self._reports_seen.clear()
@@ -623,7 +674,13 @@ def _thinning_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
     """Streaming thread, before the encoder: drop frames while the stream is thinned (the
     encoder's rate control goes by timestamps: the bits go to the frames sent)."""
     stream = ref()
-    if stream is None or stream.thinning <= 1:
+    if stream is None:
+        return gst().PadProbeReturn.OK
+    with stream._keyframes_lock:
+        admitted = stream.budget.admit(time.monotonic())
+    if not admitted:
+        return gst().PadProbeReturn.DROP
+    if stream.thinning <= 1:
         return gst().PadProbeReturn.OK
     stream._frames_seen += 1
     if stream._frames_seen % stream.thinning:
@@ -635,14 +692,35 @@ def _retransmission_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> An
     """Streaming thread, after the retransmitter: drop its packets while the stream says so
     (a link over its capacity drops them anyway, and they delay its recovery)."""
     stream = ref()
-    if stream is None or stream.retransmit:
+    if stream is None:
+        return gst().PadProbeReturn.OK
+    stale = stream.stale_until > time.monotonic()
+    if stream.retransmit and not stale:
         return gst().PadProbeReturn.OK
     buffer = info.get_buffer()
-    header = buffer.extract_dup(0, 2) if buffer is not None else b""
-    if len(header) == 2 and header[1] & 0x7F in (RTX_PAYLOAD_TYPE, FEC_RTX_PAYLOAD_TYPE):
-        stream.retransmissions_dropped += 1
-        return gst().PadProbeReturn.DROP
-    return gst().PadProbeReturn.OK
+    header = buffer.extract_dup(0, RTX_HEADER_READ) if buffer is not None else b""
+    if len(header) < 2 or header[1] & 0x7F not in (RTX_PAYLOAD_TYPE, FEC_RTX_PAYLOAD_TYPE):
+        return gst().PadProbeReturn.OK
+    if stream.retransmit and not _sent_before(header, stream.stale_before):
+        return gst().PadProbeReturn.OK
+    stream.retransmissions_dropped += 1
+    return gst().PadProbeReturn.DROP
+
+
+RTX_HEADER_READ = 64
+"""Bytes of a retransmission read for its original sequence number (header, extensions)."""
+
+
+def _sent_before(rtx_header: bytes, first_fresh: int) -> bool:
+    """Whether a retransmission's original packet (its sequence number opens the payload,
+    RFC 4588) came before ``first_fresh`` (16-bit sequence arithmetic)."""
+    start = 12 + (rtx_header[0] & 0x0F) * 4
+    if rtx_header[0] & 0x10 and len(rtx_header) >= start + 4:  # header extensions
+        start += 4 + 4 * int.from_bytes(rtx_header[start + 2 : start + 4], "big")
+    if len(rtx_header) < start + 2:
+        return False  # not read here: counted as fresh
+    original = int.from_bytes(rtx_header[start : start + 2], "big")
+    return 0 < (first_fresh - original) & 0xFFFF < 0x8000
 
 
 def _force_keyframe_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
@@ -653,7 +731,8 @@ def _force_keyframe_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> An
     encoder = pad.get_parent_element()
     if stream is not None and encoder is not None:
         with stream._keyframes_lock:
-            force = stream.keyframes.on_frame(time.monotonic())
+            force = stream.keyframes.on_frame(time.monotonic(), stream.keyframe_after_pause)
+            stream.keyframe_after_pause = False
         if force:
             event = _force_key_unit_event()
             stream._forced_seqnums.append(event.get_seqnum())
@@ -661,11 +740,25 @@ def _force_keyframe_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> An
     return gst().PadProbeReturn.OK
 
 
-def _encoded_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
-    """Streaming thread: one access unit out of the encoder."""
+def _on_transport_feedback(session: Any, _spec: Any, ref: weakref.ref[VideoOut]) -> None:
+    """RTCP's thread, at each transport feedback (every ~30 ms): adapt at once (the event
+    loop's poll added up to 50 ms, more on a loaded machine: measured 0.18 s between polls)."""
     stream = ref()
     if stream is not None:
-        stream.frames_encoded += 1
+        stream.adapt_bitrate(time.monotonic())
+
+
+def _encoded_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
+    """Streaming thread: one access unit out of the encoder; its size joins the sender's queue
+    estimate."""
+    stream = ref()
+    if stream is None:
+        return gst().PadProbeReturn.OK
+    stream.frames_encoded += 1
+    buffer = info.get_buffer()
+    if buffer is not None:
+        with stream._keyframes_lock:
+            stream.budget.on_encoded(buffer.get_size(), time.monotonic())
     return gst().PadProbeReturn.OK
 
 
