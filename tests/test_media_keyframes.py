@@ -16,6 +16,7 @@ from brasidas.media.video import VideoOut, VideoSettings
 
 def test_the_first_frame_after_a_drain_pause_is_a_keyframe_whatever_the_gap() -> None:
     clock = KeyframeClock(30, min_request_gap_s=0.25)
+    clock.congested = True  # a drain pause comes with a capacity drop: keyframes are queued
     assert clock.on_frame(0.0)
     assert not clock.on_frame(0.1)
     # 0.1 s after the last keyframe a request waits out the gap; a resume does not.
