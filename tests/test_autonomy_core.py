@@ -576,3 +576,48 @@ def test_a_mission_with_an_end_starts_from_its_first_waypoint() -> None:
     assert p.cursor == Cursor()
     p.set_route(Route((second, loop.waypoints[0], first)))  # a patrol goes on toward its target
     assert p.cursor.index == 2  # toward "first", where it was heading
+
+
+def test_a_pose_inside_a_building_backs_out_the_way_it_came() -> None:
+    """The pose slipped into the shed (a starved machine dead-reckoning through a turn): the
+    patrol does not hold there for ever but backs along its trail, slowly, to where it was
+    clear of the shed, then plans again; an obstacle behind holds it; with no trail (it
+    never was outside) it holds, saying why."""
+    area = parse_map(demo())
+    p = patrol()
+    p.set_map(area)
+    p.set_route(parse_waypoints(demo_route(), area.points))
+    p.start()
+
+    def at(time: float, east: float, north: float, heading_deg: float) -> Estimate:
+        x, y = area.local(*offset(LAT, LON, east, north))  # metres from the start
+        return Estimate(time, x, y, math.radians(heading_deg), 1.0, 0.1, 0.05)
+
+    for i in range(21):  # east along the shed's south side, 2 m from its wall (y = 10)
+        x = 8.0 + 0.5 * i
+        p.step(at(i * 0.1, x, 8.0, 0.0), 0.1)
+    assert p.status().state is PatrolState.PATROLLING
+    slipped = at(3.0, 18.0, 11.0, 90.0)  # facing in
+    command = p.step(slipped, 0.1)
+    assert p.status().state is PatrolState.PATROLLING, p.status()
+    assert p.status().reason == "inside keep-out zone 'shed': backing out the way it came"
+    assert command.linear < 0  # the way it came is behind it
+    assert abs(command.linear) <= p.p.align_speed
+    p.blocked = (False, True)  # the lidar sees something behind
+    assert p.step(slipped, 0.1).linear == 0
+    assert p.status().state is PatrolState.HOLDING
+    assert "an obstacle in the way it came" in p.status().reason
+    p.blocked = (False, False)
+    out = at(4.0, 18.0, 8.5, 90.0)
+    p.step(out, 0.1)  # out: the patrol goes on from there
+    assert p.status().state is PatrolState.PATROLLING
+    assert p.status().reason == ""
+    assert p.planned_path and math.dist(p.planned_path[0], (out.x, out.y)) < 0.5
+
+    fresh = patrol()  # never outside: no way back to take
+    fresh.set_map(area)
+    fresh.set_route(parse_waypoints(demo_route(), area.points))
+    fresh.start()
+    assert fresh.step(slipped, 0.1).linear == 0
+    assert fresh.status().state is PatrolState.HOLDING
+    assert fresh.status().reason == "inside keep-out zone 'shed': no way it came to back out by"

@@ -6,16 +6,26 @@ plans with :class:`~brasidas.autonomy.planner.Planner`, follows with
 :class:`~brasidas.autonomy.follower.PurePursuit` and holds still, saying why, when it cannot
 drive safely: no fix or a stale one, the pose outside the boundary or inside a keep-out.
 
+A pose inside one of the map's keep-out zones (a building) is not held on for ever: the
+robot cannot have driven through a wall its lidar stops it short of, so either the estimate
+slipped (a starved machine dead-reckoning through a turn) or the zone is not a wall. Either
+way the way out a user expects is the way it came: the patrol keeps a trail of its recent
+positions outside the map's keep-outs and backs along it, slowly (the lidar guards what is
+behind), to the last one clear of the zone, then plans again from there.
+
 Shapely (and NumPy under it) is imported only once there is a map: a platform without one
 does not pay ~17 MB for them.
 """
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from brasidas.autonomy.follower import FollowerParameters, PurePursuit
+from brasidas.autonomy.geo import wrap
 from brasidas.autonomy.localization import Estimate
 from brasidas.autonomy.route import Cursor, Route, RouteError
 from brasidas.messages import PatrolState, PatrolStatus
@@ -40,6 +50,14 @@ class PatrolParameters:
     """Normalized forward command while the heading is not known yet (driving straight)."""
     align_room_m: float = 3.0
     """Room needed straight ahead to drive for a heading."""
+    trail_step_m: float = 0.5
+    """The trail of positions outside the map's keep-outs keeps one every this far ..."""
+    trail_length: int = 60
+    """... this many (30 m: the way back out of a zone the pose slipped into)."""
+    back_out_margin_m: float = 1.0
+    """Backing out of a keep-out ends at a trail point at least this far from it."""
+    back_out_max_m: float = 15.0
+    """Backed out this far and still inside: held (the pose is not to be trusted)."""
 
 
 @dataclass(frozen=True)
@@ -66,6 +84,8 @@ class PlanRequest:
     """A leg asked ahead: the waypoint it starts from (-1: from where the robot was)."""
 
 
+BACK_OUT_TURN_RAD = math.radians(45.0)
+"""A heading error this large turns at the full rate (backing out)."""
 BUILDING = "the map changed: waiting for the new plan (being built)"
 SEEN_IN_THE_WAY = "no waypoint can be reached past the obstacles the lidar sees: waiting for them"
 
@@ -77,6 +97,9 @@ class Command:
 
 
 STOP = Command(0.0, 0.0)
+
+
+INSIDE = "inside keep-out zone"
 
 
 class Patrol:
@@ -123,6 +146,13 @@ class Patrol:
         self._skips = 0
         self._completed = False
         """The route's laps are driven (a mission's end): start begins it again."""
+        self._trail: deque[XY] = deque(maxlen=parameters.trail_length)
+        """Recent positions outside the map's keep-outs (the way back out of one)."""
+        self._backing: tuple[XY, float] | None = None
+        """Backing out of a keep-out: to this trail point, and how far it has gone so far."""
+        self._backed_from: XY | None = None
+        self._inside_seen = False
+        """The keep-out the pose is in is one the lidar saw (it guards the robot: held)."""
 
     # ------------------------------------------------------------------ inputs
 
@@ -137,6 +167,8 @@ class Patrol:
         self._running = False
         self._path = None
         self._forget_plans()
+        self._trail.clear()  # another map, perhaps another frame
+        self._backing = None
         if area is None:  # said at once, not only from the next step
             self._settle(PatrolState.IDLE, "no map")
         else:
@@ -318,11 +350,15 @@ class Patrol:
                 return self._settle(PatrolState.HOLDING, self._planner_down)
             return self._settle(PatrolState.HOLDING, BUILDING)
         hold = self._hazard(estimate, fix_age)
+        if hold.startswith(INSIDE) and not self._inside_seen and estimate is not None:
+            return self._back_out(estimate, hold)
+        self._backing = None
         if hold:
             self._needs_plan = True
             self._waiting = None  # replanned from where the robot is when it may go on
             return self._settle(PatrolState.HOLDING, hold)
         assert estimate is not None
+        self._remember(estimate)
         if self._unreachable_revision == self.map_revision:
             return self._settle(PatrolState.HOLDING, SEEN_IN_THE_WAY)
         here = (estimate.x, estimate.y)
@@ -431,8 +467,65 @@ class Patrol:
             return "outside the map's boundary"
         zone = self.area.keepout_at(estimate.x, estimate.y)
         if zone is not None:
-            return f"inside keep-out zone {zone!r}"
+            self._inside_seen = zone.startswith(SEEN_KEEPOUT_PREFIX)
+            return f"{INSIDE} {zone!r}"
         return ""
+
+    def _remember(self, estimate: Estimate) -> None:
+        """The trail: where the robot was, outside the map's keep-outs (checked just now)."""
+        here = (estimate.x, estimate.y)
+        trail = self._trail
+        if not trail or math.dist(trail[-1], here) >= self.p.trail_step_m:
+            trail.append(here)
+
+    def _back_out(self, estimate: Estimate, inside: str) -> Command:
+        """Back along the trail to its last point clear of the keep-out the pose is in."""
+        from shapely import Point
+
+        assert self.area is not None
+        here = (estimate.x, estimate.y)
+        self._needs_plan = True  # from wherever it comes out
+        self._waiting = None
+        if self._backing is None:
+            target = next(
+                (
+                    point
+                    for point in reversed(self._trail)
+                    if not self.area.meets_keepout(
+                        Point(point).buffer(self.p.back_out_margin_m, quad_segs=4),
+                        seen_too=False,
+                    )
+                ),
+                self._trail[-1] if self._trail else None,
+            )
+            if target is None:
+                return self._settle(PatrolState.HOLDING, f"{inside}: no way it came to back out by")
+            self._backing = (target, 0.0)
+            self._backed_from = here
+        target, backed = self._backing
+        if self._backed_from is not None:
+            backed += math.dist(self._backed_from, here)
+        self._backed_from = here
+        self._backing = (target, backed)
+        if backed > self.p.back_out_max_m:
+            return self._settle(
+                PatrolState.HOLDING,
+                f"{inside}: backed out {backed:.0f} m and still inside (the pose is doubtful)",
+            )
+        ahead, behind = self.blocked
+        bearing = math.atan2(target[1] - here[1], target[0] - here[0])
+        error = wrap(bearing - estimate.yaw)
+        forward = abs(error) < math.pi / 2  # the point is ahead (backed past it): drive to it
+        if not forward:
+            error = wrap(error - math.pi)  # the rear's heading error, reversing
+        if (behind and not forward) or (ahead and forward):
+            return self._settle(
+                PatrolState.HOLDING, f"{inside}: an obstacle in the way it came (waiting)"
+            )
+        self._settle(PatrolState.PATROLLING, f"{inside}: backing out the way it came")
+        turn = max(-1.0, min(1.0, error / BACK_OUT_TURN_RAD))
+        speed = self.p.align_speed * max(0.0, math.cos(error))
+        return Command(speed if forward else -speed, turn)
 
     def _align(self, here: XY) -> Command:
         """Drive straight ahead for a course over ground (the heading is unknown at start)."""
