@@ -199,9 +199,14 @@ class _Skips(logging.Handler):
     def __init__(self) -> None:
         super().__init__(logging.WARNING)
         self.count = 0
+        self.last: list[str] = []
+        """The latest few (why)."""
 
     def emit(self, record: logging.LogRecord) -> None:
-        self.count += "skipped" in record.getMessage()
+        message = record.getMessage()
+        if "skipped" in message:
+            self.count += 1
+            self.last = [*self.last[-4:], message]
 
 
 async def run() -> dict[str, Any]:
@@ -358,6 +363,7 @@ async def run() -> dict[str, Any]:
         "town_lidar_laps_completed_pct": round(100 * laps_done / max(1, attempted), 1),
         "town_lidar_laps_clean": clean_laps,
         "town_lidar_waypoints_skipped": skips.count,
+        "town_lidar_last_skips": skips.last,
         "town_lidar_collisions": int(collisions),
         "town_lidar_pedestrian_contacts_robot_moving_into": robot_into_person,
         "town_lidar_pedestrian_contacts_walked_into_robot": person_into_robot,

@@ -509,7 +509,13 @@ class Localizer(Actor):
                 return True  # no heading yet: the fusion waits for the robot to move
             self.fusion.heading_rad = math.radians(90.0 - course)
         x, y = self.frame.to_local(fix.latitude, fix.longitude)
+        relocalized = self.fusion.relocalized
         verdict: GpsVerdict = self.fusion.gps(x, y, fix.stamp, self.fix_sigma(fix))
+        if self.fusion.relocalized != relocalized:
+            _LOGGER.warning(
+                "re-localized to the GPS: the pose had dead-reckoned %.1f m off it",
+                verdict.innovation_m,
+            )
         if verdict.accepted:
             self.measured_at = fix.stamp
             if fix.speed_mps is not None and self.fusion.time - fix.stamp <= DOPPLER_FRESH_S:
@@ -536,6 +542,7 @@ class Localizer(Actor):
             "gps_rejected": self.fusion.rejected,
             "map_matches": self.fusion.map_accepted,
             "map_refused": self.fusion.map_refused + self.map_refusals,
+            "relocalized": self.fusion.relocalized,
         }
 
 

@@ -621,3 +621,53 @@ def test_a_pose_inside_a_building_backs_out_the_way_it_came() -> None:
     assert fresh.step(slipped, 0.1).linear == 0
     assert fresh.status().state is PatrolState.HOLDING
     assert fresh.status().reason == "inside keep-out zone 'shed': no way it came to back out by"
+
+
+@pytest.mark.parametrize("seen", [True, False])
+def test_no_headway_backs_away_the_way_it_came_and_plans_again(seen: bool) -> None:
+    """The lidar stops the robot short of a post on its path (seen late, or a way out of a
+    zone's clearance hugging it): driving forward without headway for 3 s it backs 1.5 m
+    the way it came and plans again from there, instead of asking into the post for ever.
+    Without the lidar's obstacles in the map a new plan would lead the same way: it waits."""
+    area = parse_map(demo())
+    post = offset(LAT, LON, 12.0, -3.0)  # well off the path: only the zone's presence counts
+    ring = [[lon, lat] for lat, lon in (offset(*post, e, n) for e, n in _SQUARE)]
+    feature = {
+        "type": "Feature",
+        "id": "lidar:1",
+        "properties": {"role": "keepout"},
+        "geometry": {"type": "Polygon", "coordinates": [ring]},
+    }
+    p = patrol()
+    p.set_map(area.with_keepouts(add=[feature]) if seen else area)
+    p.set_route(parse_waypoints(demo_route(), area.points))
+    p.start()
+
+    def at(time: float, east: float) -> Estimate:
+        x, y = area.local(*offset(LAT, LON, east, 0.0))
+        return Estimate(time, x, y, 0.0, 1.0, 0.1, 0.05)
+
+    for i in range(11):  # east along the south side to 5 m
+        p.step(at(i * 0.1, 0.5 * i), 0.1)
+    time = 1.0
+    for _ in range(31):  # stopped there (the arbiter holds the command at zero)
+        time += 0.1
+        command = p.step(at(time, 5.0), 0.1)
+    if not seen:
+        assert command.linear > 0 and p.status().reason == ""
+        return
+    assert command.linear < 0, p.status()
+    assert p.status().state is PatrolState.PATROLLING
+    assert p.status().reason == "no headway: backing away to plan again"
+    east = 5.0
+    while command.linear < 0:  # back along the trail
+        time += 0.1
+        east -= 0.1
+        command = p.step(at(time, east), 0.1)
+        assert east > 3.0
+    assert 3.3 <= east <= 3.8  # about 1.5 m back (to the trail point), then forward again
+    assert command.linear > 0
+    assert p.status().reason == ""
+
+
+_SQUARE = ((-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5))

@@ -58,6 +58,12 @@ class PatrolParameters:
     """Backing out of a keep-out ends at a trail point at least this far from it."""
     back_out_max_m: float = 15.0
     """Backed out this far and still inside: held (the pose is not to be trusted)."""
+    stuck_s: float = 3.0
+    """Driving forward and not :data:`STUCK_MOVE_M` further in this long (the lidar stops it
+    short of an obstacle on the path: one seen late, hugged by a way out of its zone's
+    clearance) ..."""
+    unstick_m: float = 1.5
+    """... it backs this far the way it came and plans again."""
 
 
 @dataclass(frozen=True)
@@ -84,6 +90,9 @@ class PlanRequest:
     """A leg asked ahead: the waypoint it starts from (-1: from where the robot was)."""
 
 
+STUCK_MOVE_M = 0.3
+ARRIVED_BACK_M = 0.3
+"""Backing to a point ends this near it."""
 BACK_OUT_TURN_RAD = math.radians(45.0)
 """A heading error this large turns at the full rate (backing out)."""
 BUILDING = "the map changed: waiting for the new plan (being built)"
@@ -152,6 +161,10 @@ class Patrol:
         """Backing out of a keep-out: to this trail point, and how far it has gone so far."""
         self._backed_from: XY | None = None
         self._inside_seen = False
+        self._progress: tuple[XY, float, float] | None = None
+        """Driving forward: where and when it last made headway, and the last step's time."""
+        self._unsticking: tuple[XY, XY] | None = None
+        """Stuck: backing to this point (the trail's) from that one, then planning again."""
         """The keep-out the pose is in is one the lidar saw (it guards the robot: held)."""
 
     # ------------------------------------------------------------------ inputs
@@ -364,6 +377,10 @@ class Patrol:
         here = (estimate.x, estimate.y)
         if not estimate.heading_known:
             return self._align(here)
+        if self._unsticking is not None:
+            backing = self._unstick(estimate)
+            if backing is not None:
+                return backing
         for _ in range(self.route.stops):
             if self._needs_plan or self._path is None:
                 if self._planner is None:
@@ -396,7 +413,10 @@ class Patrol:
                 self._needs_plan = True
                 continue
             self._settle(PatrolState.PATROLLING, "")
-            return Command(steering.linear, steering.angular)
+            command = Command(steering.linear, steering.angular)
+            if self._stuck(estimate, command):
+                return self._start_unsticking(estimate)
+            return command
         return self._none_reachable()
 
     def _none_reachable(self) -> Command:
@@ -512,20 +532,87 @@ class Patrol:
                 PatrolState.HOLDING,
                 f"{inside}: backed out {backed:.0f} m and still inside (the pose is doubtful)",
             )
+        command = self._back_to(estimate, target)
+        if command is None:
+            return self._settle(
+                PatrolState.HOLDING, f"{inside}: an obstacle in the way it came (waiting)"
+            )
+        self._settle(PatrolState.PATROLLING, f"{inside}: backing out the way it came")
+        return command
+
+    def _back_to(self, estimate: Estimate, target: XY) -> Command | None:
+        """Slowly to ``target``, reversing when it is behind (the way it came); None when the
+        lidar stops that way."""
         ahead, behind = self.blocked
-        bearing = math.atan2(target[1] - here[1], target[0] - here[0])
+        bearing = math.atan2(target[1] - estimate.y, target[0] - estimate.x)
         error = wrap(bearing - estimate.yaw)
         forward = abs(error) < math.pi / 2  # the point is ahead (backed past it): drive to it
         if not forward:
             error = wrap(error - math.pi)  # the rear's heading error, reversing
         if (behind and not forward) or (ahead and forward):
-            return self._settle(
-                PatrolState.HOLDING, f"{inside}: an obstacle in the way it came (waiting)"
-            )
-        self._settle(PatrolState.PATROLLING, f"{inside}: backing out the way it came")
+            return None
         turn = max(-1.0, min(1.0, error / BACK_OUT_TURN_RAD))
         speed = self.p.align_speed * max(0.0, math.cos(error))
         return Command(speed if forward else -speed, turn)
+
+    def _stuck(self, estimate: Estimate, command: Command) -> bool:
+        """Driving forward without headway for :attr:`PatrolParameters.stuck_s`."""
+        here, now = (estimate.x, estimate.y), estimate.time
+        progress = self._progress
+        area = self.area
+        planned_around = area is not None and any(
+            k.startswith(SEEN_KEEPOUT_PREFIX) for k in area.keepouts
+        )  # what stops it is in the plan (without, a new plan would lead it back the same way)
+        if command.linear <= 0.05 or not planned_around:
+            self._progress = None
+            return False
+        if (
+            progress is None
+            or now - progress[2] > 1.0  # not driving since (held, turned on the spot)
+            or math.dist(progress[0], here) > STUCK_MOVE_M
+        ):
+            self._progress = (here, now, now)
+            return False
+        self._progress = (progress[0], progress[1], now)
+        return now - progress[1] >= self.p.stuck_s
+
+    def _start_unsticking(self, estimate: Estimate) -> Command:
+        """Back the way it came (the trail; straight back without one) for a fresh plan."""
+        here = (estimate.x, estimate.y)
+        self._progress = None
+        target = next(
+            (
+                point
+                for point in reversed(self._trail)
+                if math.dist(point, here) >= self.p.unstick_m
+            ),
+            (
+                here[0] - self.p.unstick_m * math.cos(estimate.yaw),
+                here[1] - self.p.unstick_m * math.sin(estimate.yaw),
+            ),
+        )
+        self._unsticking = (target, here)
+        self.events.append(
+            PatrolEvent("stuck", self.cursor.index, "no headway: backing away to plan again")
+        )
+        command = self._unstick(estimate)
+        return command if command is not None else STOP
+
+    def _unstick(self, estimate: Estimate) -> Command | None:
+        """Backing away while stuck; None when done (or the way back is blocked too): the
+        patrol plans again from here."""
+        assert self._unsticking is not None
+        target, start = self._unsticking
+        here = (estimate.x, estimate.y)
+        command = None
+        if math.dist(here, start) < self.p.unstick_m and math.dist(here, target) > ARRIVED_BACK_M:
+            command = self._back_to(estimate, target)
+        if command is None:
+            self._unsticking = None
+            self._needs_plan = True
+            return None
+        self._settle(PatrolState.PATROLLING, "no headway: backing away to plan again")
+        return command
 
     def _align(self, here: XY) -> Command:
         """Drive straight ahead for a course over ground (the heading is unknown at start)."""
