@@ -23,8 +23,11 @@ light of a bright day (``sim.lux`` 60,000). Against the simulator's truth, sampl
 - the minimum clearance to an obstacle's edge, the distance driven.
 
 ``--laps N`` (``BENCH_LAPS``, or ``BENCH_TOWN_LAPS``; default 50) laps; ``BENCH_TOWN_SEED``;
-``BENCH_TOWN_KMH`` the patrol's speed (default the platform's). Real time: a lap takes
-about 70 s at 6 km/h.
+``BENCH_TOWN_KMH`` the patrol's speed (default the platform's); ``BENCH_TOWN_STALL_S`` stalls
+the localization's worker that long every few seconds (a starved CPU, without loading a shared
+machine); ``BENCH_TOWN_TRACE`` a file for the truth, the estimate and the patrol's state
+(JSON lines, twice a second). Real time: a lap takes about 60 s at 18 km/h and 100 s at
+6 km/h, so the full 50 laps take about an hour and a half at 6 km/h.
 """
 
 from __future__ import annotations

@@ -60,9 +60,10 @@ JUMP_FLOOR_M = 1.0
 odometry's own error (a scan registered to a single post) would fail the chi-square test, and
 an honest fix refused is one the pose no longer follows. A spoofer pulling by less than this
 at a time is a drag, which the drag test catches."""
-DEAD_RECKONING_DRIFT = 0.5
+DEAD_RECKONING_DRIFT = 1.0
 """How far the pose may have drifted per metre driven on the motion prior (open loop: a
-heading half a radian off after a stalled scan in a turn)."""
+heading 60° off, as a starved machine's stalled scans in a turn on the spot left it; at most
+it is 2, the heading reversed)."""
 MAX_AHEAD_S = 0.2
 """A fix newer than the last odometry step is compared with the estimate carried at most this
 far ahead along that step (the scans stalled: beyond it, it is compared with the last step)."""
