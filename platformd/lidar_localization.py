@@ -165,6 +165,9 @@ class Localizer(Actor):
         out), to read its yaw at each scan's time."""
         """The IMU's latest yaw (rad) and its time."""
         self._yaw_at_scan: float | None = None
+        """The IMU's yaw at the last scan it was known for."""
+        self._turn_without_imu = 0.0
+        """The turn the scans since then were given without it (the command's, or found)."""
         self.imu_jumps = 0
         self.scans_done = 0
         """Scans processed, with the fixes due with them, and published."""
@@ -291,13 +294,17 @@ class Localizer(Actor):
         if scan is None:
             return None
         yaw = self._imu_yaw_at(scan.time)
-        previous, self._yaw_at_scan = self._yaw_at_scan, yaw
-        if yaw is None:
+        if yaw is None:  # kept: the IMU's turn meanwhile is taken when it is back
             return None
+        previous, self._yaw_at_scan = self._yaw_at_scan, yaw
         last = self.last
         if previous is None or last is None or scan.time <= last.time:
             return 0.0
-        return (yaw - previous) / (scan.time - last.time)
+        # Across scans it was stale for (a starved reader), the IMU's turn is what the prior's
+        # (the command's) was not: taken as none, a turn on the spot was missed by 95°.
+        turn = yaw - previous - self._turn_without_imu
+        self._turn_without_imu = 0.0
+        return turn / (scan.time - last.time)
 
     # ------------------------------------------------------------------ worker thread
 
@@ -324,6 +331,8 @@ class Localizer(Actor):
             rate = yaw_rate if yaw_rate is not None else turn
             points = scan_points(scan, speed, rate)
             step = self.odometry.update(points, scan.time, speed, rate)
+            if yaw_rate is None:
+                self._turn_without_imu += step.delta.yaw_rad
             if step.source != "lidar" and (self.last is None or self.last.source == "lidar"):
                 _LOGGER.info("lidar odometry on the motion prior: %s", step.reason)
             self.last = step

@@ -60,10 +60,11 @@ JUMP_FLOOR_M = 1.0
 odometry's own error (a scan registered to a single post) would fail the chi-square test, and
 an honest fix refused is one the pose no longer follows. A spoofer pulling by less than this
 at a time is a drag, which the drag test catches."""
-DEAD_RECKONING_DRIFT = 1.0
-"""How far the pose may have drifted per metre driven on the motion prior (open loop: a
-heading 60° off, as a starved machine's stalled scans in a turn on the spot left it; at most
-it is 2, the heading reversed)."""
+DEAD_RECKONING_DRIFT = 2.0
+"""How far the pose may have drifted per metre driven on the motion prior: as far as the
+heading reversed (open loop, on a starved machine a turn on the spot was missed by 95° and
+the pose ran 5 m off in 3.6 m of driving). Only a fix further than the robot can have got is
+a jump the prior can tell: with scans that do not register, little else can be."""
 MAX_AHEAD_S = 0.2
 """A fix newer than the last odometry step is compared with the estimate carried at most this
 far ahead along that step (the scans stalled: beyond it, it is compared with the last step)."""
