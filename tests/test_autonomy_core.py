@@ -668,6 +668,18 @@ def test_no_headway_backs_away_the_way_it_came_and_plans_again(seen: bool) -> No
     assert 3.3 <= east <= 3.8  # about 1.5 m back (to the trail point), then forward again
     assert command.linear > 0
     assert p.status().reason == ""
+    # Stuck again, now beside a post that blocks both ways: it turns on the spot until the
+    # way ahead is clear, then plans again.
+    p.blocked = (True, True)
+    for _ in range(31):
+        time += 0.1
+        command = p.step(at(time, east), 0.1)
+    assert (command.linear, p.status().reason) == (0.0, "no headway, boxed in: turning on the spot")
+    assert command.angular != 0
+    p.blocked = (False, True)
+    time += 0.1
+    assert p.step(at(time, east), 0.1).linear > 0
+    assert p.status().reason == ""
 
 
 _SQUARE = ((-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5))

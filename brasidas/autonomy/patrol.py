@@ -93,6 +93,8 @@ class PlanRequest:
 STUCK_MOVE_M = 0.3
 ARRIVED_BACK_M = 0.3
 """Backing to a point ends this near it."""
+SPIN_TURN = 0.5
+"""Normalized turn on the spot when boxed in."""
 BACK_OUT_TURN_RAD = math.radians(45.0)
 """A heading error this large turns at the full rate (backing out)."""
 BUILDING = "the map changed: waiting for the new plan (being built)"
@@ -164,6 +166,8 @@ class Patrol:
         self._progress: tuple[XY, float, float] | None = None
         """Driving forward: where and when it last made headway, and the last step's time."""
         self._unsticking: tuple[XY, XY] | None = None
+        self._spun: tuple[float, float] | None = None
+        """Boxed in, turning on the spot: the last yaw and how far it has turned."""
         """Stuck: backing to this point (the trail's) from that one, then planning again."""
         """The keep-out the pose is in is one the lidar saw (it guards the robot: held)."""
 
@@ -607,12 +611,31 @@ class Patrol:
         command = None
         if math.dist(here, start) < self.p.unstick_m and math.dist(here, target) > ARRIVED_BACK_M:
             command = self._back_to(estimate, target)
+            if command is None and self.blocked == (True, True):
+                return self._spin(estimate)
         if command is None:
             self._unsticking = None
+            self._spun = None
             self._needs_plan = True
             return None
         self._settle(PatrolState.PATROLLING, "no headway: backing away to plan again")
         return command
+
+    def _spin(self, estimate: Estimate) -> Command | None:
+        """Boxed in (an obstacle beside it is in the way both ahead and behind): turn on the
+        spot, which is never limited, until the way ahead is clear, at most half a turn."""
+        if self._spun is None:
+            self._spun = (estimate.yaw, 0.0)
+        last, turned = self._spun
+        turned += abs(wrap(estimate.yaw - last))
+        self._spun = (estimate.yaw, turned)
+        if turned >= math.pi:
+            self._unsticking = None
+            self._spun = None
+            self._needs_plan = True
+            return None
+        self._settle(PatrolState.PATROLLING, "no headway, boxed in: turning on the spot")
+        return Command(0.0, SPIN_TURN)
 
     def _align(self, here: XY) -> Command:
         """Drive straight ahead for a course over ground (the heading is unknown at start)."""
