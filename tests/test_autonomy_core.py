@@ -683,3 +683,40 @@ def test_no_headway_backs_away_the_way_it_came_and_plans_again(seen: bool) -> No
 
 
 _SQUARE = ((-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5))
+
+
+def test_inside_a_zone_the_lidar_saw_it_yields_then_backs_out() -> None:
+    """A zone the lidar drew over the robot: a person about to cross its way is waited for;
+    one still there after 5 s (a post it came too near) is backed out of the way it came,
+    not held on for ever."""
+    area = parse_map(demo())
+    post = offset(LAT, LON, 5.0, 0.0)
+    ring = [[lon, lat] for lat, lon in (offset(*post, e, n) for e, n in _SQUARE)]
+    feature = {
+        "type": "Feature",
+        "id": "lidar:9",
+        "properties": {"role": "keepout"},
+        "geometry": {"type": "Polygon", "coordinates": [ring]},
+    }
+    p = patrol()
+    p.set_map(area)
+    p.set_route(parse_waypoints(demo_route(), area.points))
+    p.start()
+
+    def at(time: float, east: float) -> Estimate:
+        x, y = area.local(*offset(LAT, LON, east, 0.0))
+        return Estimate(time, x, y, 0.0, 1.0, 0.1, 0.05)
+
+    for i in range(10):  # east along the south side to 4.5 m
+        p.step(at(i * 0.1, 0.5 * i), 0.1)
+    p.update_map(area.with_keepouts(add=[feature]))  # it came up to the post: zone over it
+    time = 1.0
+    for _ in range(49):  # yields for 5 s
+        time += 0.1
+        assert p.step(at(time, 5.0), 0.1).linear == 0
+        assert p.status().state is PatrolState.HOLDING
+        assert p.status().reason == "inside keep-out zone 'lidar:9'"
+    time += 0.5
+    command = p.step(at(time, 5.0), 0.1)
+    assert command.linear < 0, p.status()
+    assert p.status().reason == "inside keep-out zone 'lidar:9': backing out the way it came"

@@ -58,6 +58,9 @@ class PatrolParameters:
     """Backing out of a keep-out ends at a trail point at least this far from it."""
     back_out_max_m: float = 15.0
     """Backed out this far and still inside: held (the pose is not to be trusted)."""
+    yield_s: float = 5.0
+    """Inside a zone the lidar saw this long (not a person about to cross, who passes): it
+    backs out the way it came."""
     stuck_s: float = 3.0
     """Driving forward and not :data:`STUCK_MOVE_M` further in this long (the lidar stops it
     short of an obstacle on the path: one seen late, hugged by a way out of its zone's
@@ -167,6 +170,8 @@ class Patrol:
         """Driving forward: where and when it last made headway, and the last step's time."""
         self._unsticking: tuple[XY, XY] | None = None
         self._spun: tuple[float, float] | None = None
+        self._inside_since: float | None = None
+        """Since when the pose is inside a zone the lidar saw."""
         """Boxed in, turning on the spot: the last yaw and how far it has turned."""
         """Stuck: backing to this point (the trail's) from that one, then planning again."""
         """The keep-out the pose is in is one the lidar saw (it guards the robot: held)."""
@@ -367,8 +372,17 @@ class Patrol:
                 return self._settle(PatrolState.HOLDING, self._planner_down)
             return self._settle(PatrolState.HOLDING, BUILDING)
         hold = self._hazard(estimate, fix_age)
-        if hold.startswith(INSIDE) and not self._inside_seen and estimate is not None:
-            return self._back_out(estimate, hold)
+        if hold.startswith(INSIDE) and estimate is not None:
+            if not self._inside_seen:
+                return self._back_out(estimate, hold)
+            # One the lidar saw: a person about to cross is yielded to; one that stays (a post
+            # it came too near, its zone drawn over the robot) is backed out of.
+            if self._inside_since is None:
+                self._inside_since = estimate.time
+            if estimate.time - self._inside_since >= self.p.yield_s:
+                return self._back_out(estimate, hold)
+        else:
+            self._inside_since = None
         self._backing = None
         if hold:
             self._needs_plan = True
@@ -517,7 +531,7 @@ class Patrol:
                     for point in reversed(self._trail)
                     if not self.area.meets_keepout(
                         Point(point).buffer(self.p.back_out_margin_m, quad_segs=4),
-                        seen_too=False,
+                        seen_too=self._inside_seen,
                     )
                 ),
                 self._trail[-1] if self._trail else None,
