@@ -25,7 +25,8 @@ light of a bright day (``sim.lux`` 60,000). Against the simulator's truth, sampl
 ``--laps N`` (``BENCH_LAPS``, or ``BENCH_TOWN_LAPS``; default 50) laps; ``BENCH_TOWN_SEED``;
 ``BENCH_TOWN_KMH`` the patrol's speed (default the platform's); ``BENCH_TOWN_STALL_S`` stalls
 the localization's worker that long every few seconds (a starved CPU, without loading a shared
-machine); ``BENCH_TOWN_TRACE`` a file for the truth, the estimate and the patrol's state
+machine); ``BENCH_TOWN_MINUTES`` a time budget (the laps finished by then are reported);
+``BENCH_TOWN_TRACE`` a file for the truth, the estimate and the patrol's state
 (JSON lines, twice a second). Real time: a lap takes about 60 s at 18 km/h and 100 s at
 6 km/h, so the full 50 laps take about an hour and a half at 6 km/h.
 """
@@ -60,6 +61,8 @@ STALL_S = float(os.environ.get("BENCH_TOWN_STALL_S", "0"))
 """A starved CPU without loading the shared machine: the localization's worker stalls this
 long every :data:`STALL_EVERY_S` (0: never)."""
 STALL_EVERY_S = 7.0
+MINUTES = float(os.environ.get("BENCH_TOWN_MINUTES", "0"))
+"""Stop after this long (0: when the laps are done), reporting the laps finished by then."""
 OBSTACLES = 25
 PEDESTRIANS = 5
 LUX = 60_000.0
@@ -278,7 +281,8 @@ async def run() -> dict[str, Any]:
         last_lap = 0
         trace: list[str] = []
         last_trace = 0.0
-        while laps_done + len(stuck) < LAPS:
+        give_up = time.monotonic() + MINUTES * 60 if MINUTES > 0 else math.inf
+        while laps_done + len(stuck) < LAPS and time.monotonic() < give_up:
             await asyncio.sleep(0.05)
             pose = vehicle.pose()
             world = simulator.generator.world
