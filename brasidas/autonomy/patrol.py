@@ -11,7 +11,10 @@ robot cannot have driven through a wall its lidar stops it short of, so either t
 slipped (a starved machine dead-reckoning through a turn) or the zone is not a wall. Either
 way the way out a user expects is the way it came: the patrol keeps a trail of its recent
 positions outside the map's keep-outs and backs along it, slowly (the lidar guards what is
-behind), to the last one clear of the zone, then plans again from there.
+behind), to the last one clear of the zone, then plans again from there. Inside a zone the
+lidar drew it first yields (a person about to cross its way), then backs out the same way.
+Driving forward without headway (stopped by the lidar short of an obstacle on its path) it
+backs a little the way it came, or turns on the spot when boxed in, and plans again.
 
 Shapely (and NumPy under it) is imported only once there is a map: a platform without one
 does not pay ~17 MB for them.
@@ -94,6 +97,7 @@ class PlanRequest:
 
 
 STUCK_MOVE_M = 0.3
+"""Headway: this much further along while driving forward."""
 ARRIVED_BACK_M = 0.3
 """Backing to a point ends this near it."""
 SPIN_TURN = 0.5
@@ -166,15 +170,15 @@ class Patrol:
         """Backing out of a keep-out: to this trail point, and how far it has gone so far."""
         self._backed_from: XY | None = None
         self._inside_seen = False
+        """The keep-out the pose is in is one the lidar saw (yielded to first)."""
+        self._inside_since: float | None = None
+        """Since when the pose is inside a zone the lidar saw."""
         self._progress: tuple[XY, float, float] | None = None
         """Driving forward: where and when it last made headway, and the last step's time."""
         self._unsticking: tuple[XY, XY] | None = None
-        self._spun: tuple[float, float] | None = None
-        self._inside_since: float | None = None
-        """Since when the pose is inside a zone the lidar saw."""
-        """Boxed in, turning on the spot: the last yaw and how far it has turned."""
         """Stuck: backing to this point (the trail's) from that one, then planning again."""
-        """The keep-out the pose is in is one the lidar saw (it guards the robot: held)."""
+        self._spun: tuple[float, float] | None = None
+        """Boxed in, turning on the spot: the last yaw and how far it has turned."""
 
     # ------------------------------------------------------------------ inputs
 
