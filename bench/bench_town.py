@@ -23,8 +23,12 @@ light of a bright day (``sim.lux`` 60,000). Against the simulator's truth, sampl
 - the minimum clearance to an obstacle's edge, the distance driven.
 
 ``--laps N`` (``BENCH_LAPS``, or ``BENCH_TOWN_LAPS``; default 50) laps; ``BENCH_TOWN_SEED``;
-``BENCH_TOWN_KMH`` the patrol's speed (default the platform's). Real time: a lap takes
-about 70 s at 6 km/h.
+``BENCH_TOWN_KMH`` the patrol's speed (default the platform's); ``BENCH_TOWN_STALL_S`` stalls
+the localization's worker that long every few seconds (a starved CPU, without loading a shared
+machine); ``BENCH_TOWN_MINUTES`` a time budget (the laps finished by then are reported);
+``BENCH_TOWN_TRACE`` a file for the truth, the estimate and the patrol's state
+(JSON lines, twice a second). Real time: a lap takes about 60 s at 18 km/h and 100 s at
+6 km/h, so the full 50 laps take about an hour and a half at 6 km/h.
 """
 
 from __future__ import annotations
@@ -51,6 +55,14 @@ from platformd.sim.demo_area import LOOP, offset
 LAPS = int(os.environ.get("BENCH_LAPS") or os.environ.get("BENCH_TOWN_LAPS") or "50")
 KMH = os.environ.get("BENCH_TOWN_KMH", "")
 SEED = int(os.environ.get("BENCH_TOWN_SEED", "1"))
+TRACE = os.environ.get("BENCH_TOWN_TRACE", "")
+"""A file to write the truth, the estimate and the patrol's state to twice a second."""
+STALL_S = float(os.environ.get("BENCH_TOWN_STALL_S", "0"))
+"""A starved CPU without loading the shared machine: the localization's worker stalls this
+long every :data:`STALL_EVERY_S` (0: never)."""
+STALL_EVERY_S = 7.0
+MINUTES = float(os.environ.get("BENCH_TOWN_MINUTES", "0"))
+"""Stop after this long (0: when the laps are done), reporting the laps finished by then."""
 OBSTACLES = 25
 PEDESTRIANS = 5
 LUX = 60_000.0
@@ -136,15 +148,71 @@ def _contact(pose: Any, x: float, y: float, post: np.ndarray, ctx: Any) -> str:
     )
 
 
+def _append(path: Path, text: str) -> None:
+    with path.open("a") as file:
+        file.write(text)
+
+
+def _trace_line(ctx: Any, simulator: Any, pose: Any, x: float, y: float, proximity: Any) -> str:
+    """Truth and estimate in the simulator's frame, the patrol's state (for finding causes)."""
+    estimate = ctx.bus.last(topics.POSE)
+    status = ctx.bus.last(topics.PATROL_STATUS)
+    fields: dict[str, Any] = {
+        "t": round(time.monotonic(), 2),
+        "true": [round(x, 2), round(y, 2), round(math.degrees(pose.yaw_rad), 1)],
+        "speed": round(pose.speed_mps, 2),
+    }
+    if estimate is not None and simulator.origin is not None:
+        ex, ey = simulator.origin.to_local(estimate.latitude, estimate.longitude)
+        fields["est"] = [round(ex, 2), round(ey, 2), round(math.degrees(estimate.yaw_rad), 1)]
+        fields["err"] = round(math.hypot(ex - x, ey - y), 2)
+        fields["sigma"] = round(estimate.sigma_xy_m, 2)
+        fields["source"] = estimate.source
+        fields["heading_known"] = estimate.heading_known
+    if _LOCALIZERS:
+        fields["gps_refusal"] = _LOCALIZERS[0].gps_refusal
+    if status is not None:
+        fields["patrol"] = [status.state.value, status.reason, status.waypoint, status.lap]
+    if proximity is not None:
+        fields["limits"] = [proximity.forward_limit, proximity.reverse_limit, proximity.reason]
+    return json.dumps(fields)
+
+
+_LOCALIZERS: list[Any] = []
+"""The localizer (seen by :func:`_stall_localization`), for the trace."""
+
+
+def _stall_localization() -> None:
+    """Make the localization's worker thread stall now and then (a loaded machine)."""
+    from platformd.lidar_localization import Localizer
+
+    process = Localizer.process
+    due = [time.monotonic() + STALL_EVERY_S]
+
+    def stalling(self: Localizer, *args: Any, **kwargs: Any) -> Any:
+        _LOCALIZERS[:] = [self]
+        if time.monotonic() >= due[0]:
+            due[0] = time.monotonic() + STALL_EVERY_S * random.uniform(0.5, 1.5)
+            time.sleep(STALL_S)
+        return process(self, *args, **kwargs)
+
+    Localizer.process = stalling  # type: ignore[method-assign]
+
+
 class _Skips(logging.Handler):
     """Counts the patrol's "waypoint … skipped" warnings."""
 
     def __init__(self) -> None:
         super().__init__(logging.WARNING)
         self.count = 0
+        self.last: list[str] = []
+        """The latest few (why)."""
 
     def emit(self, record: logging.LogRecord) -> None:
-        self.count += "skipped" in record.getMessage()
+        message = record.getMessage()
+        if "skipped" in message:
+            self.count += 1
+            self.last = [*self.last[-4:], message]
 
 
 async def run() -> dict[str, Any]:
@@ -168,6 +236,8 @@ async def run() -> dict[str, Any]:
             *([f"platform.max_speed_kmh={KMH}", f"autonomy.cruise_speed_kmh={KMH}"] if KMH else []),
         ],
     )  # fmt: skip
+    if STALL_S > 0:
+        _stall_localization()
     skips = _Skips()
     logging.getLogger("platformd.autonomy.patrol").addHandler(skips)
     daemon = PlatformDaemon(config, None)
@@ -209,7 +279,10 @@ async def run() -> dict[str, Any]:
         was_stopped = was_touching = False
         lap_started = time.monotonic()
         last_lap = 0
-        while laps_done + len(stuck) < LAPS:
+        trace: list[str] = []
+        last_trace = 0.0
+        give_up = time.monotonic() + MINUTES * 60 if MINUTES > 0 else math.inf
+        while laps_done + len(stuck) < LAPS and time.monotonic() < give_up:
             await asyncio.sleep(0.05)
             pose = vehicle.pose()
             world = simulator.generator.world
@@ -246,6 +319,12 @@ async def run() -> dict[str, Any]:
                     person_into_robot += 1
             was_near_person = near_person
             proximity = ctx.bus.last(topics.PROXIMITY)
+            if TRACE and time.monotonic() - last_trace > 0.5:
+                last_trace = time.monotonic()
+                trace.append(_trace_line(ctx, simulator, pose, x, y, proximity) + "\n")
+                if len(trace) >= 20:
+                    await asyncio.to_thread(_append, Path(TRACE), "".join(trace))
+                    trace.clear()
             # The limit the arbiter applies to the patrol's ask (along its arc, if it turns).
             stopped = proximity is not None and limit_for(proximity, *asked)[0] == 0.0
             status = ctx.bus.last(topics.PATROL_STATUS)
@@ -291,6 +370,7 @@ async def run() -> dict[str, Any]:
         "town_lidar_laps_completed_pct": round(100 * laps_done / max(1, attempted), 1),
         "town_lidar_laps_clean": clean_laps,
         "town_lidar_waypoints_skipped": skips.count,
+        "town_lidar_last_skips": skips.last,
         "town_lidar_collisions": int(collisions),
         "town_lidar_pedestrian_contacts_robot_moving_into": robot_into_person,
         "town_lidar_pedestrian_contacts_walked_into_robot": person_into_robot,

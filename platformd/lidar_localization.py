@@ -236,6 +236,9 @@ class Localizer(Actor):
         out), to read its yaw at each scan's time."""
         """The IMU's latest yaw (rad) and its time."""
         self._yaw_at_scan: float | None = None
+        """The IMU's yaw at the last scan it was known for."""
+        self._turn_without_imu = 0.0
+        """The turn the scans since then were given without it (the command's, or found)."""
         self.imu_jumps = 0
         self.scans_done = 0
         """Scans processed, with the fixes due with them, and published."""
@@ -364,13 +367,17 @@ class Localizer(Actor):
         if scan is None:
             return None
         yaw = self._imu_yaw_at(scan.time)
-        previous, self._yaw_at_scan = self._yaw_at_scan, yaw
-        if yaw is None:
+        if yaw is None:  # kept: the IMU's turn meanwhile is taken when it is back
             return None
+        previous, self._yaw_at_scan = self._yaw_at_scan, yaw
         last = self.last
         if previous is None or last is None or scan.time <= last.time:
             return 0.0
-        return (yaw - previous) / (scan.time - last.time)
+        # Across scans it was stale for (a starved reader), the IMU's turn is what the prior's
+        # (the command's) was not: taken as none, a turn on the spot was missed by 95°.
+        turn = yaw - previous - self._turn_without_imu
+        self._turn_without_imu = 0.0
+        return turn / (scan.time - last.time)
 
     # ------------------------------------------------------------------ worker thread
 
@@ -398,6 +405,8 @@ class Localizer(Actor):
             rate = yaw_rate if yaw_rate is not None else turn
             points = scan_points(scan, speed, rate)
             step = self.odometry.update(points, scan.time, speed, rate)
+            if yaw_rate is None:
+                self._turn_without_imu += step.delta.yaw_rad
             if step.source != "lidar" and (self.last is None or self.last.source == "lidar"):
                 _LOGGER.info("lidar odometry on the motion prior: %s", step.reason)
             self.last = step
@@ -727,7 +736,13 @@ class Localizer(Actor):
                 return True  # no heading yet: the fusion waits for the robot to move
             self.fusion.heading_rad = math.radians(90.0 - course)
         x, y = self.frame.to_local(fix.latitude, fix.longitude)
+        relocalized = self.fusion.relocalized
         verdict: GpsVerdict = self.fusion.gps(x, y, fix.stamp, self.fix_sigma(fix))
+        if self.fusion.relocalized != relocalized:
+            _LOGGER.warning(
+                "re-localized to the GPS: the pose had dead-reckoned %.1f m off it",
+                verdict.innovation_m,
+            )
         if verdict.accepted:
             self.measured_at = fix.stamp
             if fix.speed_mps is not None and self.fusion.time - fix.stamp <= DOPPLER_FRESH_S:
@@ -757,6 +772,7 @@ class Localizer(Actor):
             "keyframes": len(self.graph.poses) if self.graph is not None else 0,
             "loop_closures": self.graph.closures if self.graph is not None else 0,
             "grid_rebuilds": self.grid_rebuilds,
+            "relocalized": self.fusion.relocalized,
         }
 
 

@@ -6,7 +6,14 @@ within ``MATCH_M`` of) a keep-out the map already has, is added as keep-out ``li
 disc around it); one not seen for ``FORGET_S`` is removed. The patrol re-plans around them in
 its planner process, or holds saying why when no path is left (its "unreachable" reasons).
 Changes go to the patrol at most every ``UPDATE_S``: within 1 s of an obstacle appearing,
-within 3 s of it being gone. They are never written to ``map.file`` (the obstacle may be gone
+within 3 s of it being gone.
+
+Each track keeps a smoothed velocity (a cluster's centre jitters 0.1-0.2 m a scan as the view
+of it changes: two scans give no speed, a few updates do). A person walking (faster than
+``MOVING_MPS``) gets a keep-out stretched along the way they go, ``PREDICT_S`` ahead, redrawn
+as they move (``REDRAW_M``): the patrol plans round where they are going, and a robot whose
+way they are about to cross is inside it and holds for them, as a driver yields. Before, the
+zone stayed where the person was first seen while they walked on. They are never written to ``map.file`` (the obstacle may be gone
 by the next start), and the simulated lidar does not see them as walls.
 
 The geometry (matching, the map's keep-out test) runs in a worker thread.
@@ -23,7 +30,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from shapely.geometry import Point
+from shapely.geometry import LineString, Point
 
 from brasidas import topics
 from brasidas.actor import Actor
@@ -51,6 +58,16 @@ MAX_ZONES = 24
 RANGE_M = 8.0
 """Only obstacles this near are mapped: far returns are thin and noisy."""
 MIN_RADIUS_M = 0.25
+VELOCITY_GAIN = 0.4
+"""The share of each update's measured velocity taken into the track's smoothed one."""
+MAX_SPEED_MPS = 3.0
+"""A faster jump between updates is a mismatch or a jittery centre, not a walk: capped."""
+MOVING_MPS = 0.5
+"""A track this fast (smoothed) is moving: its zone is stretched along its way."""
+PREDICT_S = 1.5
+"""How far ahead a moving obstacle's zone reaches, in seconds of its velocity."""
+REDRAW_M = 0.5
+"""A zone is redrawn when its track has moved (or its predicted end) this far from it."""
 
 
 @dataclass
@@ -64,12 +81,22 @@ class Track:
     seen: int = 1
     zone_id: str | None = None
     """Its keep-out's id once added."""
+    velocity: tuple[float, float] = (0.0, 0.0)
+    """Smoothed, metres a second east and north in the area map's frame."""
+    drawn: tuple[float, float, float, float] | None = None
+    """Where its zone was drawn: the area map's x, y and the predicted end's."""
+
+    @property
+    def moving(self) -> bool:
+        return math.hypot(*self.velocity) >= MOVING_MPS
 
 
 @dataclass
 class ZoneChanges:
     add: list[dict[str, Any]] = field(default_factory=list)
     remove: list[str] = field(default_factory=list)
+    redrawn: dict[str, str] = field(default_factory=dict)
+    """New zone id: the one it replaces (kept if the change is refused)."""
 
 
 class ObstacleZones(Actor):
@@ -126,6 +153,7 @@ class ObstacleZones(Actor):
             if track is None:
                 self.tracks.append(Track(latitude, longitude, radius, now))
             else:
+                _follow(track, area, x, y, now)
                 track.latitude, track.longitude = latitude, longitude
                 track.radius_m = max(track.radius_m * 0.8, radius)
                 track.last_seen = now
@@ -143,8 +171,14 @@ class ObstacleZones(Actor):
         for track in kept:
             if track.zone_id is None and track.seen >= CONFIRM_SCANS and zones < MAX_ZONES:
                 track.zone_id = f"{TEMPORARY_KEEPOUT_PREFIX}{next(self._ids)}"
-                changes.add.append(_feature(track))
+                changes.add.append(_feature(track, area))
                 zones += 1
+            elif track.zone_id is not None and _moved(track, area):
+                old = track.zone_id
+                track.zone_id = f"{TEMPORARY_KEEPOUT_PREFIX}{next(self._ids)}"
+                changes.remove.append(old)
+                changes.add.append(_feature(track, area))
+                changes.redrawn[track.zone_id] = old
         return changes
 
     def _nearest(self, area: AreaMap, x: float, y: float) -> Track | None:
@@ -168,9 +202,11 @@ class ObstacleZones(Actor):
         except ValueError as err:  # MapError: e.g. the robot is inside one (it moved)
             self.failures += 1
             _LOGGER.warning("obstacle keep-outs not applied: %s", err)
+            added = {f["id"] for f in changes.add}
             for track in self.tracks:
-                if any(f["id"] == track.zone_id for f in changes.add):
-                    track.zone_id = None
+                if track.zone_id is not None and track.zone_id in added:
+                    # A redrawn zone keeps its old one (still on the map), a new one is none.
+                    track.zone_id = changes.redrawn.get(track.zone_id)
             return
         self.updates += 1
         _LOGGER.info(
@@ -188,16 +224,48 @@ def _known(area: AreaMap, x: float, y: float, radius: float) -> bool:
     return False
 
 
-def _feature(track: Track) -> dict[str, Any]:
-    frame = LocalFrame(track.latitude, track.longitude)
+def _follow(track: Track, area: AreaMap, x: float, y: float, now: float) -> None:
+    """The track's smoothed velocity, from where it was to ``x``, ``y`` (the map's frame)."""
+    dt = now - track.last_seen
+    if dt <= 0.0:
+        return
+    tx, ty = area.local(track.latitude, track.longitude)
+    vx, vy = (x - tx) / dt, (y - ty) / dt
+    speed = math.hypot(vx, vy)
+    if speed > MAX_SPEED_MPS:
+        vx, vy = vx * MAX_SPEED_MPS / speed, vy * MAX_SPEED_MPS / speed
+    ox, oy = track.velocity
+    track.velocity = (ox + VELOCITY_GAIN * (vx - ox), oy + VELOCITY_GAIN * (vy - oy))
+
+
+def _reach(track: Track, area: AreaMap) -> tuple[float, float, float, float]:
+    """Where the track is and where its zone reaches to (itself when not moving)."""
+    x, y = area.local(track.latitude, track.longitude)
+    if not track.moving:
+        return x, y, x, y
+    vx, vy = track.velocity
+    return x, y, x + vx * PREDICT_S, y + vy * PREDICT_S
+
+
+def _moved(track: Track, area: AreaMap) -> bool:
+    """Its zone no longer covers where it is, or where it goes."""
+    if track.drawn is None:
+        return False
+    x, y, ex, ey = _reach(track, area)
+    dx, dy, dex, dey = track.drawn
+    return math.hypot(x - dx, y - dy) > REDRAW_M or math.hypot(ex - dex, ey - dey) > REDRAW_M
+
+
+def _feature(track: Track, area: AreaMap) -> dict[str, Any]:
+    """Its keep-out: a disc, stretched along its way when it moves."""
+    reach = _reach(track, area)
+    track.drawn = reach
+    x, y, ex, ey = reach
+    shape = Point(x, y) if (ex, ey) == (x, y) else LineString([(x, y), (ex, ey)])
     ring = []
-    for k in range(9):
-        angle = 2 * math.pi * k / 8
-        latitude, longitude = frame.to_geo(
-            track.radius_m * math.cos(angle), track.radius_m * math.sin(angle)
-        )
+    for px, py in shape.buffer(track.radius_m, quad_segs=2).exterior.coords:
+        latitude, longitude = area.frame.to_geo(px, py)
         ring.append([round(longitude, 8), round(latitude, 8)])
-    ring[-1] = ring[0]
     return {
         "type": "Feature",
         "id": track.zone_id,

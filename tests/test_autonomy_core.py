@@ -576,3 +576,147 @@ def test_a_mission_with_an_end_starts_from_its_first_waypoint() -> None:
     assert p.cursor == Cursor()
     p.set_route(Route((second, loop.waypoints[0], first)))  # a patrol goes on toward its target
     assert p.cursor.index == 2  # toward "first", where it was heading
+
+
+def test_a_pose_inside_a_building_backs_out_the_way_it_came() -> None:
+    """The pose slipped into the shed (a starved machine dead-reckoning through a turn): the
+    patrol does not hold there for ever but backs along its trail, slowly, to where it was
+    clear of the shed, then plans again; an obstacle behind holds it; with no trail (it
+    never was outside) it holds, saying why."""
+    area = parse_map(demo())
+    p = patrol()
+    p.set_map(area)
+    p.set_route(parse_waypoints(demo_route(), area.points))
+    p.start()
+
+    def at(time: float, east: float, north: float, heading_deg: float) -> Estimate:
+        x, y = area.local(*offset(LAT, LON, east, north))  # metres from the start
+        return Estimate(time, x, y, math.radians(heading_deg), 1.0, 0.1, 0.05)
+
+    for i in range(21):  # east along the shed's south side, 2 m from its wall (y = 10)
+        x = 8.0 + 0.5 * i
+        p.step(at(i * 0.1, x, 8.0, 0.0), 0.1)
+    assert p.status().state is PatrolState.PATROLLING
+    slipped = at(3.0, 18.0, 11.0, 90.0)  # facing in
+    command = p.step(slipped, 0.1)
+    assert p.status().state is PatrolState.PATROLLING, p.status()
+    assert p.status().reason == "inside keep-out zone 'shed': backing out the way it came"
+    assert command.linear < 0  # the way it came is behind it
+    assert abs(command.linear) <= p.p.align_speed
+    p.blocked = (False, True)  # the lidar sees something behind
+    assert p.step(slipped, 0.1).linear == 0
+    assert p.status().state is PatrolState.HOLDING
+    assert "an obstacle in the way it came" in p.status().reason
+    p.blocked = (False, False)
+    out = at(4.0, 18.0, 8.5, 90.0)
+    p.step(out, 0.1)  # out: the patrol goes on from there
+    assert p.status().state is PatrolState.PATROLLING
+    assert p.status().reason == ""
+    assert p.planned_path and math.dist(p.planned_path[0], (out.x, out.y)) < 0.5
+
+    fresh = patrol()  # never outside: no way back to take
+    fresh.set_map(area)
+    fresh.set_route(parse_waypoints(demo_route(), area.points))
+    fresh.start()
+    assert fresh.step(slipped, 0.1).linear == 0
+    assert fresh.status().state is PatrolState.HOLDING
+    assert fresh.status().reason == "inside keep-out zone 'shed': no way it came to back out by"
+
+
+@pytest.mark.parametrize("seen", [True, False])
+def test_no_headway_backs_away_the_way_it_came_and_plans_again(seen: bool) -> None:
+    """The lidar stops the robot short of a post on its path (seen late, or a way out of a
+    zone's clearance hugging it): driving forward without headway for 3 s it backs 1.5 m
+    the way it came and plans again from there, instead of asking into the post for ever.
+    Without the lidar's obstacles in the map a new plan would lead the same way: it waits."""
+    area = parse_map(demo())
+    post = offset(LAT, LON, 12.0, -3.0)  # well off the path: only the zone's presence counts
+    ring = [[lon, lat] for lat, lon in (offset(*post, e, n) for e, n in _SQUARE)]
+    feature = {
+        "type": "Feature",
+        "id": "lidar:1",
+        "properties": {"role": "keepout"},
+        "geometry": {"type": "Polygon", "coordinates": [ring]},
+    }
+    p = patrol()
+    p.set_map(area.with_keepouts(add=[feature]) if seen else area)
+    p.set_route(parse_waypoints(demo_route(), area.points))
+    p.start()
+
+    def at(time: float, east: float) -> Estimate:
+        x, y = area.local(*offset(LAT, LON, east, 0.0))
+        return Estimate(time, x, y, 0.0, 1.0, 0.1, 0.05)
+
+    for i in range(11):  # east along the south side to 5 m
+        p.step(at(i * 0.1, 0.5 * i), 0.1)
+    time = 1.0
+    for _ in range(31):  # stopped there (the arbiter holds the command at zero)
+        time += 0.1
+        command = p.step(at(time, 5.0), 0.1)
+    if not seen:
+        assert command.linear > 0 and p.status().reason == ""
+        return
+    assert command.linear < 0, p.status()
+    assert p.status().state is PatrolState.PATROLLING
+    assert p.status().reason == "no headway: backing away to plan again"
+    east = 5.0
+    while command.linear < 0:  # back along the trail
+        time += 0.1
+        east -= 0.1
+        command = p.step(at(time, east), 0.1)
+        assert east > 3.0
+    assert 3.3 <= east <= 3.8  # about 1.5 m back (to the trail point), then forward again
+    assert command.linear > 0
+    assert p.status().reason == ""
+    # Stuck again, now beside a post that blocks both ways: it turns on the spot until the
+    # way ahead is clear, then plans again.
+    p.blocked = (True, True)
+    for _ in range(31):
+        time += 0.1
+        command = p.step(at(time, east), 0.1)
+    assert (command.linear, p.status().reason) == (0.0, "no headway, boxed in: turning on the spot")
+    assert command.angular != 0
+    p.blocked = (False, True)
+    time += 0.1
+    assert p.step(at(time, east), 0.1).linear > 0
+    assert p.status().reason == ""
+
+
+_SQUARE = ((-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5))
+
+
+def test_inside_a_zone_the_lidar_saw_it_yields_then_backs_out() -> None:
+    """A zone the lidar drew over the robot: a person about to cross its way is waited for;
+    one still there after 5 s (a post it came too near) is backed out of the way it came,
+    not held on for ever."""
+    area = parse_map(demo())
+    post = offset(LAT, LON, 5.0, 0.0)
+    ring = [[lon, lat] for lat, lon in (offset(*post, e, n) for e, n in _SQUARE)]
+    feature = {
+        "type": "Feature",
+        "id": "lidar:9",
+        "properties": {"role": "keepout"},
+        "geometry": {"type": "Polygon", "coordinates": [ring]},
+    }
+    p = patrol()
+    p.set_map(area)
+    p.set_route(parse_waypoints(demo_route(), area.points))
+    p.start()
+
+    def at(time: float, east: float) -> Estimate:
+        x, y = area.local(*offset(LAT, LON, east, 0.0))
+        return Estimate(time, x, y, 0.0, 1.0, 0.1, 0.05)
+
+    for i in range(10):  # east along the south side to 4.5 m
+        p.step(at(i * 0.1, 0.5 * i), 0.1)
+    p.update_map(area.with_keepouts(add=[feature]))  # it came up to the post: zone over it
+    time = 1.0
+    for _ in range(49):  # yields for 5 s
+        time += 0.1
+        assert p.step(at(time, 5.0), 0.1).linear == 0
+        assert p.status().state is PatrolState.HOLDING
+        assert p.status().reason == "inside keep-out zone 'lidar:9'"
+    time += 0.5
+    command = p.step(at(time, 5.0), 0.1)
+    assert command.linear < 0, p.status()
+    assert p.status().reason == "inside keep-out zone 'lidar:9': backing out the way it came"

@@ -110,3 +110,56 @@ def test_without_gps_the_odometry_carries_the_pose_and_says_so() -> None:
     drive.run(3)
     assert drive.verdicts[-1][1] is True  # the GPS returns and is trusted at once
     assert drive.fusion.pose().source == "gps+lidar"
+
+
+def test_a_pose_dead_reckoned_off_the_gps_is_relocalized_not_locked_out() -> None:
+    """On the motion prior (the scans not registering: an open town in bright sun) with RTK
+    fixes, a stalled scan in a turn leaves the heading 30° off: the pose runs metres off
+    the GPS. The GPS is not refused for good (a pose left dead-reckoning held the patrol
+    "inside" a building): after a few fixes that agree the pose is back on it."""
+    fusion = PoseFusion(gps_sigma_m=0.02)
+    fusion.heading_rad = 0.0
+    now, x = 0.0, 0.0
+    for _ in range(50):  # east at 5 m/s, RTK fixes at 10 Hz
+        now += 0.1
+        x += 0.5
+        fusion.predict(Pose2D(0.5, 0.0, 0.0), "prior", now)
+        assert fusion.gps(x, 0.0, now).accepted
+    # The stall: 0.6 s in one step, on a turn the prior got wrong (30° right).
+    now += 0.6
+    x += 3.0
+    fusion.predict(Pose2D(2.6, -1.5, math.radians(-30.0)), "prior", now)
+    verdicts = []
+    for _ in range(30):  # the truth goes on east; the pose thinks it heads 30° right
+        now += 0.1
+        x += 0.5
+        fusion.predict(Pose2D(0.5, 0.0, 0.0), "prior", now)
+        verdicts.append(fusion.gps(x, 0.0, now))
+    refused = [v for v in verdicts if not v.accepted]
+    assert refused and refused[0].innovation_m > 1.0  # it did run off the GPS
+    assert verdicts[-1].accepted
+    assert fusion.relocalized >= 1
+    pose = fusion.pose()
+    assert math.hypot(pose.x_m - x, pose.y_m) < 0.3
+
+
+def test_a_spoofed_jump_stays_refused_however_long_the_prior_drives() -> None:
+    """The re-localization is bounded by what dead reckoning could drift: a 30 m jump
+    after 10 m on the prior is still a jump."""
+    fusion = PoseFusion(gps_sigma_m=0.02)
+    fusion.heading_rad = 0.0
+    now, x = 0.0, 0.0
+    for _ in range(10):
+        now += 0.1
+        x += 0.5
+        fusion.predict(Pose2D(0.5, 0.0, 0.0), "prior", now)
+        fusion.gps(x, 0.0, now)
+    verdicts = []
+    for _ in range(20):  # 10 m more, the spoofer 30 m north
+        now += 0.1
+        x += 0.5
+        fusion.predict(Pose2D(0.5, 0.0, 0.0), "prior", now)
+        verdicts.append(fusion.gps(x, 30.0, now))
+    assert not any(v.accepted for v in verdicts)
+    assert all(v.reason.startswith("jump: ") for v in verdicts)
+    assert fusion.relocalized == 0

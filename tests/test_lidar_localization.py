@@ -220,3 +220,35 @@ def test_the_imu_turn_is_read_at_each_scans_time_and_a_reset_is_not_a_turn() -> 
     assert all(r is not None and abs(r - 0.5) < 0.01 for r in rates[1:]), rates
     # The IMU goes silent: no turn is read from its last yaw (the command's is used).
     assert localizer._yaw_rate(dataclasses.replace(empty, time=13.0)) is None
+
+
+def test_a_turn_made_while_the_imu_was_stale_is_taken_when_it_is_back() -> None:
+    """A starved IMU reader: its samples stop for a second while the robot turns on the spot
+    by 90° (commanded turn unknown to the prior: none), then come again. The turn the IMU
+    saw meanwhile is given to the next scan, less what the scans took without it; before,
+    the next scan after a stale IMU was given no turn and the heading stayed 90° off."""
+    localizer = Localizer(Bus(), 5.0)
+    empty = RobotScan(0.0, (), (), 0, ())
+
+    def imu(t: float, yaw: float) -> None:
+        localizer._on_attitude(Attitude(1, 0, 0, 0, 0, 0, math.degrees(yaw), stamp=t))
+
+    for k in range(11):  # standing, facing east, an IMU sample each 50 ms up to 10.5 s
+        imu(10.0 + k * 0.05, 0.0)
+    t = 10.0
+    for _ in range(5):
+        t += 0.1
+        localizer.process(dataclasses.replace(empty, time=t), [], 0.0, 0.0)
+        localizer._yaw_rate(dataclasses.replace(empty, time=t))
+    for _ in range(10):  # the IMU silent for a second: the prior turns by the command (0)
+        t += 0.1
+        scan = dataclasses.replace(empty, time=t)
+        rate = localizer._yaw_rate(scan)
+        localizer.process(scan, [], 0.0, rate, commanded_turn=0.0)
+    imu(t + 0.05, math.radians(90.0))  # back: it turned left by 90° meanwhile
+    t += 0.1
+    scan = dataclasses.replace(empty, time=t)
+    rate = localizer._yaw_rate(scan)
+    assert rate is not None
+    localizer.process(scan, [], 0.0, rate)
+    assert abs(math.degrees(localizer.odometry.pose.yaw_rad) - 90.0) < 2.0

@@ -6,16 +6,29 @@ plans with :class:`~brasidas.autonomy.planner.Planner`, follows with
 :class:`~brasidas.autonomy.follower.PurePursuit` and holds still, saying why, when it cannot
 drive safely: no fix or a stale one, the pose outside the boundary or inside a keep-out.
 
+A pose inside one of the map's keep-out zones (a building) is not held on for ever: the
+robot cannot have driven through a wall its lidar stops it short of, so either the estimate
+slipped (a starved machine dead-reckoning through a turn) or the zone is not a wall. Either
+way the way out a user expects is the way it came: the patrol keeps a trail of its recent
+positions outside the map's keep-outs and backs along it, slowly (the lidar guards what is
+behind), to the last one clear of the zone, then plans again from there. Inside a zone the
+lidar drew it first yields (a person about to cross its way), then backs out the same way.
+Driving forward without headway (stopped by the lidar short of an obstacle on its path) it
+backs a little the way it came, or turns on the spot when boxed in, and plans again.
+
 Shapely (and NumPy under it) is imported only once there is a map: a platform without one
 does not pay ~17 MB for them.
 """
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from brasidas.autonomy.follower import FollowerParameters, PurePursuit
+from brasidas.autonomy.geo import wrap
 from brasidas.autonomy.localization import Estimate
 from brasidas.autonomy.route import Cursor, Route, RouteError
 from brasidas.messages import PatrolState, PatrolStatus
@@ -40,6 +53,23 @@ class PatrolParameters:
     """Normalized forward command while the heading is not known yet (driving straight)."""
     align_room_m: float = 3.0
     """Room needed straight ahead to drive for a heading."""
+    trail_step_m: float = 0.5
+    """The trail of positions outside the map's keep-outs keeps one every this far ..."""
+    trail_length: int = 60
+    """... this many (30 m: the way back out of a zone the pose slipped into)."""
+    back_out_margin_m: float = 1.0
+    """Backing out of a keep-out ends at a trail point at least this far from it."""
+    back_out_max_m: float = 15.0
+    """Backed out this far and still inside: held (the pose is not to be trusted)."""
+    yield_s: float = 5.0
+    """Inside a zone the lidar saw this long (not a person about to cross, who passes): it
+    backs out the way it came."""
+    stuck_s: float = 3.0
+    """Driving forward and not :data:`STUCK_MOVE_M` further in this long (the lidar stops it
+    short of an obstacle on the path: one seen late, hugged by a way out of its zone's
+    clearance) ..."""
+    unstick_m: float = 1.5
+    """... it backs this far the way it came and plans again."""
 
 
 @dataclass(frozen=True)
@@ -66,6 +96,14 @@ class PlanRequest:
     """A leg asked ahead: the waypoint it starts from (-1: from where the robot was)."""
 
 
+STUCK_MOVE_M = 0.3
+"""Headway: this much further along while driving forward."""
+ARRIVED_BACK_M = 0.3
+"""Backing to a point ends this near it."""
+SPIN_TURN = 0.5
+"""Normalized turn on the spot when boxed in."""
+BACK_OUT_TURN_RAD = math.radians(45.0)
+"""A heading error this large turns at the full rate (backing out)."""
 BUILDING = "the map changed: waiting for the new plan (being built)"
 SEEN_IN_THE_WAY = "no waypoint can be reached past the obstacles the lidar sees: waiting for them"
 
@@ -77,6 +115,9 @@ class Command:
 
 
 STOP = Command(0.0, 0.0)
+
+
+INSIDE = "inside keep-out zone"
 
 
 class Patrol:
@@ -123,6 +164,21 @@ class Patrol:
         self._skips = 0
         self._completed = False
         """The route's laps are driven (a mission's end): start begins it again."""
+        self._trail: deque[XY] = deque(maxlen=parameters.trail_length)
+        """Recent positions outside the map's keep-outs (the way back out of one)."""
+        self._backing: tuple[XY, float] | None = None
+        """Backing out of a keep-out: to this trail point, and how far it has gone so far."""
+        self._backed_from: XY | None = None
+        self._inside_seen = False
+        """The keep-out the pose is in is one the lidar saw (yielded to first)."""
+        self._inside_since: float | None = None
+        """Since when the pose is inside a zone the lidar saw."""
+        self._progress: tuple[XY, float, float] | None = None
+        """Driving forward: where and when it last made headway, and the last step's time."""
+        self._unsticking: tuple[XY, XY] | None = None
+        """Stuck: backing to this point (the trail's) from that one, then planning again."""
+        self._spun: tuple[float, float] | None = None
+        """Boxed in, turning on the spot: the last yaw and how far it has turned."""
 
     # ------------------------------------------------------------------ inputs
 
@@ -137,6 +193,8 @@ class Patrol:
         self._running = False
         self._path = None
         self._forget_plans()
+        self._trail.clear()  # another map, perhaps another frame
+        self._backing = None
         if area is None:  # said at once, not only from the next step
             self._settle(PatrolState.IDLE, "no map")
         else:
@@ -318,16 +376,33 @@ class Patrol:
                 return self._settle(PatrolState.HOLDING, self._planner_down)
             return self._settle(PatrolState.HOLDING, BUILDING)
         hold = self._hazard(estimate, fix_age)
+        if hold.startswith(INSIDE) and estimate is not None:
+            if not self._inside_seen:
+                return self._back_out(estimate, hold)
+            # One the lidar saw: a person about to cross is yielded to; one that stays (a post
+            # it came too near, its zone drawn over the robot) is backed out of.
+            if self._inside_since is None:
+                self._inside_since = estimate.time
+            if estimate.time - self._inside_since >= self.p.yield_s:
+                return self._back_out(estimate, hold)
+        else:
+            self._inside_since = None
+        self._backing = None
         if hold:
             self._needs_plan = True
             self._waiting = None  # replanned from where the robot is when it may go on
             return self._settle(PatrolState.HOLDING, hold)
         assert estimate is not None
+        self._remember(estimate)
         if self._unreachable_revision == self.map_revision:
             return self._settle(PatrolState.HOLDING, SEEN_IN_THE_WAY)
         here = (estimate.x, estimate.y)
         if not estimate.heading_known:
             return self._align(here)
+        if self._unsticking is not None:
+            backing = self._unstick(estimate)
+            if backing is not None:
+                return backing
         for _ in range(self.route.stops):
             if self._needs_plan or self._path is None:
                 if self._planner is None:
@@ -360,7 +435,10 @@ class Patrol:
                 self._needs_plan = True
                 continue
             self._settle(PatrolState.PATROLLING, "")
-            return Command(steering.linear, steering.angular)
+            command = Command(steering.linear, steering.angular)
+            if self._stuck(estimate, command):
+                return self._start_unsticking(estimate)
+            return command
         return self._none_reachable()
 
     def _none_reachable(self) -> Command:
@@ -431,8 +509,151 @@ class Patrol:
             return "outside the map's boundary"
         zone = self.area.keepout_at(estimate.x, estimate.y)
         if zone is not None:
-            return f"inside keep-out zone {zone!r}"
+            self._inside_seen = zone.startswith(SEEN_KEEPOUT_PREFIX)
+            return f"{INSIDE} {zone!r}"
         return ""
+
+    def _remember(self, estimate: Estimate) -> None:
+        """The trail: where the robot was, outside the map's keep-outs (checked just now)."""
+        here = (estimate.x, estimate.y)
+        trail = self._trail
+        if not trail or math.dist(trail[-1], here) >= self.p.trail_step_m:
+            trail.append(here)
+
+    def _back_out(self, estimate: Estimate, inside: str) -> Command:
+        """Back along the trail to its last point clear of the keep-out the pose is in."""
+        from shapely import Point
+
+        assert self.area is not None
+        here = (estimate.x, estimate.y)
+        self._needs_plan = True  # from wherever it comes out
+        self._waiting = None
+        if self._backing is None:
+            target = next(
+                (
+                    point
+                    for point in reversed(self._trail)
+                    if not self.area.meets_keepout(
+                        Point(point).buffer(self.p.back_out_margin_m, quad_segs=4),
+                        seen_too=self._inside_seen,
+                    )
+                ),
+                self._trail[-1] if self._trail else None,
+            )
+            if target is None:
+                return self._settle(PatrolState.HOLDING, f"{inside}: no way it came to back out by")
+            self._backing = (target, 0.0)
+            self._backed_from = here
+        target, backed = self._backing
+        if self._backed_from is not None:
+            backed += math.dist(self._backed_from, here)
+        self._backed_from = here
+        self._backing = (target, backed)
+        if backed > self.p.back_out_max_m:
+            return self._settle(
+                PatrolState.HOLDING,
+                f"{inside}: backed out {backed:.0f} m and still inside (the pose is doubtful)",
+            )
+        command = self._back_to(estimate, target)
+        if command is None:
+            return self._settle(
+                PatrolState.HOLDING, f"{inside}: an obstacle in the way it came (waiting)"
+            )
+        self._settle(PatrolState.PATROLLING, f"{inside}: backing out the way it came")
+        return command
+
+    def _back_to(self, estimate: Estimate, target: XY) -> Command | None:
+        """Slowly to ``target``, reversing when it is behind (the way it came); None when the
+        lidar stops that way."""
+        ahead, behind = self.blocked
+        bearing = math.atan2(target[1] - estimate.y, target[0] - estimate.x)
+        error = wrap(bearing - estimate.yaw)
+        forward = abs(error) < math.pi / 2  # the point is ahead (backed past it): drive to it
+        if not forward:
+            error = wrap(error - math.pi)  # the rear's heading error, reversing
+        if (behind and not forward) or (ahead and forward):
+            return None
+        turn = max(-1.0, min(1.0, error / BACK_OUT_TURN_RAD))
+        speed = self.p.align_speed * max(0.0, math.cos(error))
+        return Command(speed if forward else -speed, turn)
+
+    def _stuck(self, estimate: Estimate, command: Command) -> bool:
+        """Driving forward without headway for :attr:`PatrolParameters.stuck_s`."""
+        here, now = (estimate.x, estimate.y), estimate.time
+        progress = self._progress
+        area = self.area
+        planned_around = area is not None and any(
+            k.startswith(SEEN_KEEPOUT_PREFIX) for k in area.keepouts
+        )  # what stops it is in the plan (without, a new plan would lead it back the same way)
+        if command.linear <= 0.05 or not planned_around:
+            self._progress = None
+            return False
+        if (
+            progress is None
+            or now - progress[2] > 1.0  # not driving since (held, turned on the spot)
+            or math.dist(progress[0], here) > STUCK_MOVE_M
+        ):
+            self._progress = (here, now, now)
+            return False
+        self._progress = (progress[0], progress[1], now)
+        return now - progress[1] >= self.p.stuck_s
+
+    def _start_unsticking(self, estimate: Estimate) -> Command:
+        """Back the way it came (the trail; straight back without one) for a fresh plan."""
+        here = (estimate.x, estimate.y)
+        self._progress = None
+        target = next(
+            (
+                point
+                for point in reversed(self._trail)
+                if math.dist(point, here) >= self.p.unstick_m
+            ),
+            (
+                here[0] - self.p.unstick_m * math.cos(estimate.yaw),
+                here[1] - self.p.unstick_m * math.sin(estimate.yaw),
+            ),
+        )
+        self._unsticking = (target, here)
+        self.events.append(
+            PatrolEvent("stuck", self.cursor.index, "no headway: backing away to plan again")
+        )
+        command = self._unstick(estimate)
+        return command if command is not None else STOP
+
+    def _unstick(self, estimate: Estimate) -> Command | None:
+        """Backing away while stuck; None when done (or the way back is blocked too): the
+        patrol plans again from here."""
+        assert self._unsticking is not None
+        target, start = self._unsticking
+        here = (estimate.x, estimate.y)
+        command = None
+        if math.dist(here, start) < self.p.unstick_m and math.dist(here, target) > ARRIVED_BACK_M:
+            command = self._back_to(estimate, target)
+            if command is None and self.blocked == (True, True):
+                return self._spin(estimate)
+        if command is None:
+            self._unsticking = None
+            self._spun = None
+            self._needs_plan = True
+            return None
+        self._settle(PatrolState.PATROLLING, "no headway: backing away to plan again")
+        return command
+
+    def _spin(self, estimate: Estimate) -> Command | None:
+        """Boxed in (an obstacle beside it is in the way both ahead and behind): turn on the
+        spot, which is never limited, until the way ahead is clear, at most half a turn."""
+        if self._spun is None:
+            self._spun = (estimate.yaw, 0.0)
+        last, turned = self._spun
+        turned += abs(wrap(estimate.yaw - last))
+        self._spun = (estimate.yaw, turned)
+        if turned >= math.pi:
+            self._unsticking = None
+            self._spun = None
+            self._needs_plan = True
+            return None
+        self._settle(PatrolState.PATROLLING, "no headway, boxed in: turning on the spot")
+        return Command(0.0, SPIN_TURN)
 
     def _align(self, here: XY) -> Command:
         """Drive straight ahead for a course over ground (the heading is unknown at start)."""
