@@ -447,6 +447,55 @@ def test_an_obstacle_that_vanishes_close_up_keeps_the_stop() -> None:
     assert proximity(to_robot(scan_of({}), geometry), geometry, far).forward_limit == 1.0
 
 
+TOWN = Geometry(LidarSection(), braking_mps2=4.2, max_speed_mps=6 / 3.6)
+"""The town bench's: the sensor 0.25 m ahead of the centre, 6 km/h top speed."""
+
+
+def seen_at(x_m: float, y_m: float, geometry: Geometry = TOWN) -> dict[float, float]:
+    """A small object at (x_m ahead, y_m left) of the robot's centre, as its sensor sees it."""
+    dx, dy = x_m - geometry.lidar.mount_x_m, y_m - geometry.lidar.mount_y_m
+    return wall(-math.degrees(math.atan2(dy, dx)) % 360.0, math.hypot(dx, dy), 12)
+
+
+def test_a_post_passed_close_by_does_not_stop_the_turns_once_it_is_behind() -> None:
+    """The tightest arcs' corridors are small circles beside the robot (a left turn at ratio 8:
+    radius 1.67 / (8 x 1.5 rad/s) = 0.14 m): a post passed 0.45 m off on the left is in them
+    (stopped: "0.2 m in the turn left"), then drops out as the robot drives on. Their stop
+    stood for good before (nothing else enters them), and any sharp left turn later stopped
+    the robot with the nearest post metres away: the town's false stops."""
+    beside = proximity(to_robot(scan_of(seen_at(0.0, 0.45)), TOWN), TOWN)
+    assert limit_for(beside, 0.1, 0.8) == (0.0, "stopped: obstacle 0.2 m in the turn left")
+    previous = beside
+    for behind_m in (1.0, 2.0, 3.0):  # driving on: the post 1-3 m behind on the left
+        previous = proximity(to_robot(scan_of(seen_at(-behind_m, 0.45)), TOWN), TOWN, previous)
+    assert previous.nearest_m is not None and previous.nearest_m > 2.5
+    assert all(limit == 1.0 for _ratio, limit, _why in previous.turns), previous.turns
+    assert limit_for(previous, 0.1, 0.8) == (1.0, "")  # a sharp left turn: clear
+    # The patrol asks a gentle left turn and is slowed to a crawl: the same turn rate slower is
+    # the tightest arc, clear as well.
+    assert limit_for(previous, 1.0, 0.4)[0] == 1.0
+    # Nothing seen at all afterwards (open ground): nothing held either.
+    empty = proximity(to_robot(scan_of({}), TOWN), TOWN, beside)
+    assert limit_for(empty, 0.1, 0.8) == (1.0, "")
+
+
+def test_an_obstacle_that_vanishes_close_up_in_a_turn_keeps_the_turns_stop() -> None:
+    """Into the blind zone (within body_radius_m of the sensor) while turning: the arc's stop
+    stands, scan after scan, until it is seen again."""
+    close = proximity(to_robot(scan_of(seen_at(0.35, 0.15)), TOWN), TOWN)
+    assert limit_for(close, 0.1, 0.8)[0] == 0.0
+    assert limit_for(close, 0.3, 0.3)[0] == 0.0
+    gone = close
+    for _ in range(3):
+        gone = proximity(to_robot(scan_of({}), TOWN), TOWN, gone)
+        assert limit_for(gone, 0.1, 0.8)[0] == 0.0
+        assert limit_for(gone, 0.3, 0.3)[0] == 0.0
+        assert limit_for(gone, 0.3, 0.3)[1].startswith("stopped: obstacle")
+    # Seen again, farther off ahead (taken away): released.
+    away = proximity(to_robot(scan_of(wall(0, 6.0)), TOWN), TOWN, gone)
+    assert limit_for(away, 0.1, 0.8)[0] == 1.0
+
+
 async def test_an_obstacle_becomes_a_keepout_the_patrol_plans_around_then_leaves(
     robot_factory: Any, tmp_path: Path
 ) -> None:

@@ -147,18 +147,27 @@ def proximity(
         nearest_bearing = round(math.degrees(float(bearings[i])) % 360.0, 1)
     # Vanished this close: into the sensor's blind zone, not away (it would be seen going).
     held = lidar.body_radius_m + BLIND_MARGIN_M
-    if forward_free is None and previous and (previous.forward_free_m or held) < held:
-        forward_free = previous.forward_free_m
-    if reverse_free is None and previous and (previous.reverse_free_m or held) < held:
-        reverse_free = previous.reverse_free_m
+    forward_blind = reverse_blind = False
+    if previous is not None:
+        forward_blind = forward_free is None and _closer(previous.forward_free_m, held)
+        reverse_blind = reverse_free is None and _closer(previous.reverse_free_m, held)
+        if forward_blind:
+            forward_free = previous.forward_free_m
+        if reverse_blind:
+            reverse_free = previous.reverse_free_m
     forward, forward_why = _limit(forward_free, "ahead", geometry, dead_s, speed_mps)
     reverse, reverse_why = _limit(reverse_free, "behind", geometry, dead_s, -speed_mps)
     reason = forward_why or reverse_why
     turns: list[tuple[float, float, str]] = []
+    # An arc's stop stands only while the stop ahead or behind is held for the blind zone
+    # (which lies in those corridors), not for an obstacle that left the arc's corridor as the
+    # robot drove on: a tight arc's corridor is a small circle beside the robot, which a post
+    # passed close by leaves and nothing else enters; its stop would stand for good.
+    blind = forward_blind or reverse_blind
     held_turns = {ratio: (limit, why) for ratio, limit, why in previous.turns} if previous else {}
     for ratio in (*TURN_RATIOS, *(-r for r in TURN_RATIOS)):
         free = _arc_free(x[used], y[used], ratio, geometry)
-        if free is None and ratio in held_turns and held_turns[ratio][0] == 0.0:
+        if free is None and blind and ratio in held_turns and held_turns[ratio][0] == 0.0:
             turns.append((ratio, *held_turns[ratio]))  # into the blind zone: the stop stands
             continue
         side = "left" if ratio > 0 else "right"
@@ -174,6 +183,10 @@ def proximity(
         reason=reason,
         turns=tuple(turns),
     )
+
+
+def _closer(free_m: float | None, than_m: float) -> bool:
+    return free_m is not None and free_m < than_m
 
 
 def _arc_free(x: np.ndarray, y: np.ndarray, ratio: float, geometry: Geometry) -> float | None:
