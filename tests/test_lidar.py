@@ -479,6 +479,25 @@ def test_a_post_passed_close_by_does_not_stop_the_turns_once_it_is_behind() -> N
     assert limit_for(empty, 0.1, 0.8) == (1.0, "")
 
 
+def test_a_post_beside_the_sensor_left_by_turning_on_the_spot_holds_nothing() -> None:
+    """Boxed in beside a post (front left, 0.32 m from the sensor: not its blind zone), the
+    patrol turns on the spot to the right: the post leaves the corridor ahead and the arc's
+    sideways, not into the blind zone. Before, both stops stood for good: forward held as
+    "0.1 m ahead" (under the blind margin in front) and the gentler left arcs with it."""
+    beside = proximity(to_robot(scan_of(seen_at(0.3, 0.32)), TOWN), TOWN)
+    assert beside.forward_limit == 0.0
+    assert limit_for(beside, 0.5, 0.5)[0] == 0.0  # a left arc of ratio 1
+    turned = math.radians(40)  # the post, seen from the robot, 40 degrees further left
+    r, bearing = math.hypot(0.3, 0.32), math.atan2(0.32, 0.3) + turned
+    after = proximity(
+        to_robot(scan_of(seen_at(r * math.cos(bearing), r * math.sin(bearing))), TOWN),
+        TOWN,
+        beside,
+    )
+    assert after.forward_limit == 1.0, after.reason
+    assert limit_for(after, 0.5, 0.5) == (1.0, "")
+
+
 def test_an_obstacle_that_vanishes_close_up_in_a_turn_keeps_the_turns_stop() -> None:
     """Into the blind zone (within body_radius_m of the sensor) while turning: the arc's stop
     stands, scan after scan, until it is seen again."""

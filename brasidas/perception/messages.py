@@ -55,6 +55,9 @@ class Proximity:
     """Forward limits along arcs: (turn ratio, limit, reason) where the ratio is the command's
     angular over its linear (both fractions of full scale; positive: left), the corridor
     following the arc the robot drives (:func:`brasidas.perception.limits.forward_for`)."""
+    sensor_nearest_m: float | None = None
+    """The nearest return's distance from the sensor; kept while what was that close is
+    held as gone into the sensor's blind zone."""
 
 
 @dataclass(frozen=True)

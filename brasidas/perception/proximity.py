@@ -145,22 +145,31 @@ def proximity(
         i = int(np.argmin(np.where(used, ranges, np.inf)))
         nearest = round(float(ranges[i]), 3)
         nearest_bearing = round(math.degrees(float(bearings[i])) % 360.0, 1)
-    # Vanished this close: into the sensor's blind zone, not away (it would be seen going).
+    sensor_nearest = (
+        float(np.hypot(x[used] - lidar.mount_x_m, y[used] - lidar.mount_y_m).min())
+        if used.any()
+        else None
+    )
+    # Vanished this close to the sensor: into its blind zone, not away (it would be seen
+    # going). Not something beside the robot that the corridor left (a turn on the spot).
     held = lidar.body_radius_m + BLIND_MARGIN_M
     forward_blind = reverse_blind = False
     if previous is not None:
-        forward_blind = forward_free is None and _closer(previous.forward_free_m, held)
-        reverse_blind = reverse_free is None and _closer(previous.reverse_free_m, held)
+        vanished = _closer(previous.sensor_nearest_m, held) and not _closer(sensor_nearest, held)
+        forward_blind = vanished and forward_free is None and _closer(previous.forward_free_m, held)
+        reverse_blind = vanished and reverse_free is None and _closer(previous.reverse_free_m, held)
         if forward_blind:
             forward_free = previous.forward_free_m
         if reverse_blind:
             reverse_free = previous.reverse_free_m
+        if forward_blind or reverse_blind:  # held until something is seen there again
+            sensor_nearest = previous.sensor_nearest_m
     forward, forward_why = _limit(forward_free, "ahead", geometry, dead_s, speed_mps)
     reverse, reverse_why = _limit(reverse_free, "behind", geometry, dead_s, -speed_mps)
     reason = forward_why or reverse_why
     turns: list[tuple[float, float, str]] = []
-    # An arc's stop stands only while the stop ahead or behind is held for the blind zone
-    # (which lies in those corridors), not for an obstacle that left the arc's corridor as the
+    # An arc's stop stands likewise only while that hold does (the blind zone lies in the
+    # corridors ahead and behind), not for an obstacle that left the arc's corridor as the
     # robot drove on: a tight arc's corridor is a small circle beside the robot, which a post
     # passed close by leaves and nothing else enters; its stop would stand for good.
     blind = forward_blind or reverse_blind
@@ -182,6 +191,7 @@ def proximity(
         nearest_bearing_deg=nearest_bearing,
         reason=reason,
         turns=tuple(turns),
+        sensor_nearest_m=None if sensor_nearest is None else round(sensor_nearest, 3),
     )
 
 
