@@ -16,7 +16,7 @@ from brasidas.autonomy.areamap import MapError, parse_map
 from brasidas.autonomy.follower import FollowerParameters, PurePursuit
 from brasidas.autonomy.geo import LocalFrame
 from brasidas.autonomy.localization import Estimate, FilterParameters, PoseFilter
-from brasidas.autonomy.patrol import Patrol, PatrolParameters
+from brasidas.autonomy.patrol import STOP, Patrol, PatrolParameters
 from brasidas.autonomy.planner import Planner, Unreachable, cross_track
 from brasidas.autonomy.route import (
     Cursor,
@@ -301,8 +301,9 @@ def test_pure_pursuit_turns_on_the_spot_then_steers_and_arrives() -> None:
 
 def test_patrol_states_map_reload_override_and_stale_fix() -> None:
     p = patrol()
-    assert p.step(None, None) == (p.step(None, None))
+    assert p.step(None, None) == STOP  # no map, no fix: nothing moves
     assert p.status().state is PatrolState.IDLE
+    assert p.status().reason == "no map"
     area = parse_map(demo())
     p.set_map(area)
     p.set_route(parse_waypoints(demo_route(), area.points))
@@ -623,6 +624,27 @@ def test_a_pose_inside_a_building_backs_out_the_way_it_came() -> None:
     assert fresh.status().reason == "inside keep-out zone 'shed': no way it came to back out by"
 
 
+_SQUARE = ((-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5))
+
+
+def lidar_square(zone_id: str, east: float, north: float) -> dict[str, Any]:
+    """A 1 m square keep-out the lidar drew, centred ``east``, ``north`` m from the start."""
+    post = offset(LAT, LON, east, north)
+    ring = [[lon, lat] for lat, lon in (offset(*post, e, n) for e, n in _SQUARE)]
+    return {
+        "type": "Feature",
+        "id": zone_id,
+        "properties": {"role": "keepout"},
+        "geometry": {"type": "Polygon", "coordinates": [ring]},
+    }
+
+
+def east_of_start(area: Any, time: float, east: float) -> Estimate:
+    """The robot ``east`` m east of the start, heading east at 1 m/s."""
+    x, y = area.local(*offset(LAT, LON, east, 0.0))
+    return Estimate(time, x, y, 0.0, 1.0, 0.1, 0.05)
+
+
 @pytest.mark.parametrize("seen", [True, False])
 def test_no_headway_backs_away_the_way_it_came_and_plans_again(seen: bool) -> None:
     """The lidar stops the robot short of a post on its path (seen late, or a way out of a
@@ -630,22 +652,15 @@ def test_no_headway_backs_away_the_way_it_came_and_plans_again(seen: bool) -> No
     the way it came and plans again from there, instead of asking into the post for ever.
     Without the lidar's obstacles in the map a new plan would lead the same way: it waits."""
     area = parse_map(demo())
-    post = offset(LAT, LON, 12.0, -3.0)  # well off the path: only the zone's presence counts
-    ring = [[lon, lat] for lat, lon in (offset(*post, e, n) for e, n in _SQUARE)]
-    feature = {
-        "type": "Feature",
-        "id": "lidar:1",
-        "properties": {"role": "keepout"},
-        "geometry": {"type": "Polygon", "coordinates": [ring]},
-    }
+    # Well off the path: only the zone's presence counts.
+    feature = lidar_square("lidar:1", 12.0, -3.0)
     p = patrol()
     p.set_map(area.with_keepouts(add=[feature]) if seen else area)
     p.set_route(parse_waypoints(demo_route(), area.points))
     p.start()
 
     def at(time: float, east: float) -> Estimate:
-        x, y = area.local(*offset(LAT, LON, east, 0.0))
-        return Estimate(time, x, y, 0.0, 1.0, 0.1, 0.05)
+        return east_of_start(area, time, east)
 
     for i in range(11):  # east along the south side to 5 m
         p.step(at(i * 0.1, 0.5 * i), 0.1)
@@ -654,7 +669,8 @@ def test_no_headway_backs_away_the_way_it_came_and_plans_again(seen: bool) -> No
         time += 0.1
         command = p.step(at(time, 5.0), 0.1)
     if not seen:
-        assert command.linear > 0 and p.status().reason == ""
+        assert command.linear > 0
+        assert p.status().reason == ""
         return
     assert command.linear < 0, p.status()
     assert p.status().state is PatrolState.PATROLLING
@@ -682,30 +698,19 @@ def test_no_headway_backs_away_the_way_it_came_and_plans_again(seen: bool) -> No
     assert p.status().reason == ""
 
 
-_SQUARE = ((-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5))
-
-
 def test_inside_a_zone_the_lidar_saw_it_yields_then_backs_out() -> None:
     """A zone the lidar drew over the robot: a person about to cross its way is waited for;
     one still there after 5 s (a post it came too near) is backed out of the way it came,
     not held on for ever."""
     area = parse_map(demo())
-    post = offset(LAT, LON, 5.0, 0.0)
-    ring = [[lon, lat] for lat, lon in (offset(*post, e, n) for e, n in _SQUARE)]
-    feature = {
-        "type": "Feature",
-        "id": "lidar:9",
-        "properties": {"role": "keepout"},
-        "geometry": {"type": "Polygon", "coordinates": [ring]},
-    }
+    feature = lidar_square("lidar:9", 5.0, 0.0)
     p = patrol()
     p.set_map(area)
     p.set_route(parse_waypoints(demo_route(), area.points))
     p.start()
 
     def at(time: float, east: float) -> Estimate:
-        x, y = area.local(*offset(LAT, LON, east, 0.0))
-        return Estimate(time, x, y, 0.0, 1.0, 0.1, 0.05)
+        return east_of_start(area, time, east)
 
     for i in range(10):  # east along the south side to 4.5 m
         p.step(at(i * 0.1, 0.5 * i), 0.1)
