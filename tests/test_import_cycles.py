@@ -8,6 +8,7 @@ Importing ``a.b.c`` also runs the packages ``a`` and ``a.b``.
 from __future__ import annotations
 
 import ast
+import functools
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -96,7 +97,10 @@ def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     return components
 
 
+@functools.cache
 def import_graph() -> dict[str, set[str]]:
+    """Every module's imports (parsed once per process: each parse of the tree took ~2 s of
+    CPU, and three tests read it; none changes it)."""
     modules = module_files()
     return {
         name: imports_of(name, path.read_text(), path.name == "__init__.py", modules)
