@@ -16,7 +16,14 @@ from typing import Any
 
 from conftest import wait_until
 from support.cli import run_cli
-from support.console import Factory, frames_decoded, rover, screenshots, sim_platform
+from support.console import (
+    SETTLED_JS,
+    Factory,
+    frames_decoded,
+    rover,
+    screenshots,
+    sim_platform,
+)
 
 from brasidas import topics
 from brasidas.annunciator import LINK_LOST
@@ -66,13 +73,8 @@ def battery_reading(text: str | None) -> tuple[float, int]:
 async def labels_apart(page: Any) -> list[str]:
     """The map's labels shown, none covering another once the view settles (a zoom animates
     for a quarter second); returns their texts."""
-    settled = """() => new Promise((done) => {
-      const frames = () => requestAnimationFrame(() => requestAnimationFrame(done));
-      const wait = () => document.querySelector("#map.leaflet-zoom-anim") ? setTimeout(wait, 50) : frames();
-      wait();
-    })"""
     labels: dict[str, Any] = {}
-    await page.evaluate(settled)  # the zoom's animation over, the declutter after it run
+    await page.evaluate(SETTLED_JS)  # the zoom's animation over, the declutter after it run
     for _ in range(50):
         labels = await page.evaluate(OVERLAP_JS)
         if not labels["overlaps"]:
