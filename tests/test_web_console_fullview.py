@@ -8,7 +8,7 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from support.console import Factory, console, frames_decoded, rover, screenshots
+from support.console import SETTLED_JS, Factory, console, frames_decoded, rover, screenshots
 
 from stationd.daemon import StationDaemon
 
@@ -112,7 +112,7 @@ async def test_the_full_view_fills_the_screen_with_the_instruments_over_it(
     await expect(page.locator("#side")).to_be_hidden()
     for width, height in SIZES:
         await page.set_viewport_size({"width": width, "height": height})
-        await page.wait_for_timeout(400)
+        await page.evaluate(SETTLED_JS)
         screen = {"x": 0.0, "y": 0.0, "width": float(width), "height": float(height)}
         main = await box_of(page, "main")
         video = await box_of(page, "#video-box")
@@ -137,7 +137,7 @@ async def test_the_full_view_fills_the_screen_with_the_instruments_over_it(
     await expect(page.locator("#side")).to_be_visible()
     for width, height in SIZES:
         await page.set_viewport_size({"width": width, "height": height})
-        await page.wait_for_timeout(400)
+        await page.evaluate(SETTLED_JS)
         screen = {"x": 0.0, "y": 0.0, "width": float(width), "height": float(height)}
         drawer = await box_of(page, "#side")
         for name in ("#override", "#streams", "#patrol-state", "#compass", "#notifications"):
@@ -151,7 +151,7 @@ async def test_the_full_view_fills_the_screen_with_the_instruments_over_it(
     await panels.click()
     await page.keyboard.press("KeyM")
     await expect(page.locator("body")).to_have_class(re.compile(r"\bmap-main\b"))
-    await page.wait_for_timeout(400)
+    await page.evaluate(SETTLED_JS)
     area, main = await box_of(page, "#map"), await box_of(page, "main")
     assert area["width"] >= main["width"] - 2
     assert area["height"] >= main["height"] - 2
