@@ -56,10 +56,13 @@ soak: deps
 	$(PY) -m bench.soak --minutes 30
 
 # Parallel workers (pytest-xdist): the suite mostly waits on sockets, processes and Chromium
-# (a 2-worker run used 0.7 of its 2 cores), but at 4 workers on a loaded 2-core machine 7
-# real-time tests failed: one worker a core. A test sharing a module's rig keeps to one
-# worker; BROWSER_LANES in tests/support/markers.py browser tests at once. `make test TEST_WORKERS=0` runs it in one process.
-TEST_WORKERS ?= 2
+# (a 2-worker run used 0.7 of its 2 cores): 4 workers, two a core here (8 min at 2, ~5 at 4).
+# The tests that failed at 4 on a loaded machine were fixed at their cause. A test sharing a
+# module's rig keeps to one worker; browser tests run in BROWSER_LANES lanes of one worker
+# each (tests/support/markers.py). `make test TEST_WORKERS=0` runs it in one process.
+TEST_WORKERS ?= 4
+BROWSER_LANES ?= 1
+export BROWSER_LANES
 PYTEST := $(PY) -m pytest -q -p no:cacheprovider --durations=15 -n $(TEST_WORKERS) --dist loadgroup
 
 test: deps

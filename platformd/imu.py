@@ -425,7 +425,7 @@ class ImuReader(Actor):
             self._last_attitude_at = now
             w, x, y, z = self.filter.q
             roll, pitch, yaw = euler_deg(self.filter.q)
-            self.attitude = Attitude(w, x, y, z, roll, pitch, yaw)
+            self.attitude = Attitude(w, x, y, z, roll, pitch, yaw, stamp=now)  # its sample's time
             self.bus.publish(topics.ATTITUDE, self.attitude)
 
     def _calibrated(self, bias: GyroBias) -> None:

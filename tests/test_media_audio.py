@@ -199,19 +199,23 @@ async def test_offline_camera_fails_with_its_url_and_recovers_when_it_appears() 
 
 
 CYCLES_SCRIPT = """
-import asyncio, json, sys
+import asyncio, ctypes, json, sys
 from pathlib import Path
 from brasidas.media.pipeline import StreamState
 from brasidas.media.video import VideoOut, VideoSettings
 
+LIBC = ctypes.CDLL("libc.so.6")
+
 def rss_mb():
+    # Freed heap glibc still holds goes back first: what is left is what is in use.
+    LIBC.malloc_trim(0)
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
 
 async def main(port):
     stream = VideoOut("navcam", VideoSettings(test_source=True, width=160, height=120, port=port))
-    for _ in range(20):  # warm up: plugin loading, allocator pools, executor threads
+    for _ in range(WARM_UP):  # plugin loading, allocator pools, thread stacks: to their plateau
         await stream.start()
         await stream.stop()
     before = rss_mb()
@@ -221,8 +225,13 @@ async def main(port):
         await stream.stop()
     print(json.dumps({"before": before, "after": rss_mb(), "playing": playing}))
 
+WARM_UP = 50
 asyncio.run(main(int(sys.argv[1])))
 """
+MAX_GROWTH_MB = 3.0
+"""Over 200 cycles: a leak of 15 kB a cycle fails. Once warm (50 cycles; 20 were not always
+enough on a loaded machine: the pools were still growing) and with freed heap returned
+(``malloc_trim``), RSS stays within half a megabyte here, at a load of 8 too."""
 
 
 async def test_200_starts_and_stops_leave_memory_flat() -> None:
@@ -244,7 +253,7 @@ async def test_200_starts_and_stops_leave_memory_flat() -> None:
     figures = json.loads(out.decode().strip().splitlines()[-1])
     assert figures["playing"] == 200
     growth = figures["after"] - figures["before"]
-    assert growth < 6.0, f"RSS grew {growth:.1f} MB over 200 start/stop cycles"
+    assert growth < MAX_GROWTH_MB, f"RSS grew {growth:.1f} MB over 200 start/stop cycles"
 
 
 # --------------------------------------------------------------------------- two stations

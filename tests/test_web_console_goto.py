@@ -62,7 +62,12 @@ async def test_click_on_the_map_slide_and_the_platform_goes_there(
     await expect(page.locator("#map .goto-target")).to_have_count(1)
     await screenshots(page, "console-goto")
     await slider.fill("40")  # let go half-way: nothing goes
-    await page.wait_for_timeout(300)
+    # A go-to sent takes the slider and the flag away at once (before its call is answered):
+    # both still up means none was sent (a pause, then the patrol's state, passed whenever
+    # the call was slower than the pause).
+    await expect(slider).to_have_value("0")
+    await expect(slider).to_be_visible()
+    await expect(page.locator("#map .goto-target")).to_have_count(1)
     assert (await station.ctx.api.call_local("patrol_get", platform_id="web-rover"))[
         "state"
     ] != "patrolling"

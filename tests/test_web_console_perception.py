@@ -10,6 +10,7 @@ import asyncio
 import math
 import os
 import re
+import statistics
 from pathlib import Path
 from typing import Any
 
@@ -57,25 +58,24 @@ async def test_the_map_shows_the_scan_the_obstacle_and_the_grid(
     await platform.ctx.rpc.call_local("patrol_start")
     # The scan around the platform once its heading is known (it moves: a scan is not drawn
     # facing a guessed way).
-    await at_least(points, 3)
+    await at_least(points, 3, timeout=40.0)  # a loaded machine takes its time to arm and plan
     # The post seen: a ring where it is (within its radius and the sensor's noise).
     await at_least(page.locator("#map path.lidar-obstacle"), 1)
+    # Measured once the start's turn is over: in it (60°/s) the estimated heading trails the
+    # turn by the IMU's last reading, 2-15° on a loaded machine, 0.3-2.6 m at the post's 10 m:
+    # the estimator's lag while turning, not where the page draws what the lidar saw.
+    await turned(platform.ctx.sim.vehicle)
     post = offset(LAT, LON, POST[0], POST[1])
-    ring = await page.locator("#map path.lidar-obstacle").first.bounding_box()
-    mapbox = await page.locator("#map").bounding_box()
-    where = await page.evaluate(f"window.navcam.mapPixel({post[0]}, {post[1]})")
-    assert ring is not None
-    assert mapbox is not None
-    centre = (
-        ring["x"] + ring["width"] / 2 - mapbox["x"],
-        ring["y"] + ring["height"] / 2 - mapbox["y"],
-    )
     metres_per_px = await metres_per_pixel(page)
     # The ring is the cluster of the post's near face (up to its radius short of its centre),
     # seen from the pose in the scan's middle and moved into the pose telemetry shows with it
-    # (the robot turned since): only the estimated pose's own error remains.
-    off = math.dist(centre, (where["x"], where["y"])) * metres_per_px
-    assert off < POST[2] + 1.0, (centre, where, off)
+    # (the robot turned since): only the estimated pose's own error remains. Read over a
+    # second of scans, the middle one counts (one report's pose may be a GPS jitter off).
+    offs: list[float] = []
+    for _ in range(6):
+        offs.append(await post_ring_off(page, post) * metres_per_px)
+        await asyncio.sleep(0.2)
+    assert statistics.median(offs) < POST[2] + 1.0, [round(o, 2) for o in offs]
     # It became the patrol's temporary keep-out, drawn in the lidar's colour.
     await at_least(page.locator("#map path.area-lidar"), 1)
     # The grid: fetched when the platform's revision moves, under everything.
@@ -107,6 +107,38 @@ async def test_the_map_shows_the_scan_the_obstacle_and_the_grid(
             await page.locator(".leaflet-control-zoom-in").click()
         await page.wait_for_timeout(1000)
         await page.screenshot(path=str(DOCS / "console-lidar.png"))
+
+
+async def turned(vehicle: Any, seconds: float = 0.5, timeout: float = 30.0) -> None:
+    """Until the simulated vehicle (the truth) has not turned for ``seconds``: by then the
+    IMU's last reading has caught up with the turn, and the page has drawn a scan taken since."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    since: float | None = None
+    rate = 0.0
+    while since is None or loop.time() - since < seconds:
+        assert loop.time() < deadline, f"still turning at {rate:.0f}°/s"
+        rate = math.degrees(vehicle.pose().yaw_rate_rad_s)
+        since = (since or loop.time()) if abs(rate) < 8.0 else None
+        await asyncio.sleep(0.05)
+
+
+async def post_ring_off(page: Any, post: tuple[float, float]) -> float:
+    """Pixels from the post to the nearest ring, read at one moment (the page redraws at each
+    report; the demo map's shed makes rings too); infinite without a ring."""
+    drawn = await page.evaluate(
+        """([lat, lon]) => {
+            const map = document.getElementById("map").getBoundingClientRect();
+            const rings = [...document.querySelectorAll("#map path.lidar-obstacle")].map((e) => {
+                const box = e.getBoundingClientRect();
+                return [box.x + box.width / 2 - map.x, box.y + box.height / 2 - map.y];
+            });
+            return { rings, post: window.navcam.mapPixel(lat, lon) };
+        }""",
+        list(post),
+    )
+    where = (drawn["post"]["x"], drawn["post"]["y"])
+    return min((math.dist(ring, where) for ring in drawn["rings"]), default=math.inf)
 
 
 async def at_least(locator: Any, count: int, timeout: float = 20.0) -> None:

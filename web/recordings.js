@@ -288,7 +288,7 @@ function bytesOf(base64) {
 // is kept, fed only the units it has not had, and every one of them is drawn at its recorded
 // offset from the previous tick (divided by the speed), spread over the next tick: playback
 // shows the recorded frame rate, one tick late.
-let video = null; // {decoder, lastFed (ns), paced: timestamp → its tick's pacing, flushed}
+let video = null; // {decoder, lastFed (ns), paced: timestamp → {pacing, timeNs}, queue: decoded frames to draw, in order, flushed}
 let generation = 0;
 let framesDrawn = 0;
 
@@ -306,7 +306,23 @@ function draw(frame, timeNs) {
 function resetVideo() {
   generation += 1; // frames still waiting for their moment are dropped
   if (video && video.decoder.state !== "closed") video.decoder.close();
+  for (const { frame } of video?.queue ?? []) frame.close();
   video = null;
+}
+
+/** Draw the chain's decoded frames one after another, each at its moment or, if that passed,
+ * right after the one before: one timer per frame let a late tick's last frames come up after
+ * the next tick's first ones (the picture stepped back, and a frame shown counted as later). */
+function drawWhenDue(chain, mine) {
+  const head = chain.queue[0];
+  if (!head) return;
+  setTimeout(() => {
+    if (mine !== generation) return; // resetVideo closed the queue's frames
+    chain.queue.shift();
+    draw(head.frame, head.timeNs);
+    head.frame.close();
+    drawWhenDue(chain, mine);
+  }, Math.max(0, head.dueMs - performance.now()));
 }
 
 /** Decode ``units`` on ``chain``; played, the units new since the previous tick show at their
@@ -314,7 +330,7 @@ function resetVideo() {
 function feed(chain, units, pacing, first) {
   units.forEach((unit, i) => {
     const timestamp = Math.round(unit.time / 1000);
-    if (pacing && unit.time > pacing.fromNs) chain.paced.set(timestamp, pacing);
+    if (pacing && unit.time > pacing.fromNs) chain.paced.set(timestamp, { pacing, timeNs: unit.time });
     const type = (first && i === 0) || isKey(unit.data) ? "key" : "delta";
     chain.decoder.decode(new EncodedVideoChunk({ type, timestamp, data: unit.data }));
   });
@@ -354,26 +370,23 @@ async function decodeFrames(frames, pacing, after) {
   resetVideo();
   const mine = generation;
   const lastStamp = Math.round(last / 1000);
-  const chain = { decoder: null, lastFed: last, paced: new Map(), flushed: !pacing };
+  const chain = { decoder: null, lastFed: last, paced: new Map(), queue: [], flushed: !pacing };
   chain.decoder = new VideoDecoder({
     output: (frame) => {
-      const at = chain.paced.get(frame.timestamp);
+      const paced = chain.paced.get(frame.timestamp);
       chain.paced.delete(frame.timestamp);
-      const timeNs = frame.timestamp * 1000;
-      if (mine !== generation || (!at && (pacing || frame.timestamp !== lastStamp))) {
+      if (mine !== generation || (!paced && (pacing || frame.timestamp !== lastStamp))) {
         frame.close();
         return;
       }
-      if (!at) { // paused: the moment's frame
+      if (!paced) { // paused: the moment's frame
         draw(frame, last);
         frame.close();
         return;
       }
-      const delay = at.wallMs + (timeNs - at.fromNs) / 1e6 / at.speed - performance.now();
-      setTimeout(() => {
-        if (mine === generation) draw(frame, timeNs);
-        frame.close();
-      }, Math.max(0, delay));
+      const { pacing: at, timeNs } = paced;
+      chain.queue.push({ frame, timeNs, dueMs: at.wallMs + (timeNs - at.fromNs) / 1e6 / at.speed });
+      if (chain.queue.length === 1) drawWhenDue(chain, mine);
     },
     error: (error) => { message.textContent = `video: ${error.message}`; },
   });

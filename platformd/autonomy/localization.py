@@ -64,6 +64,8 @@ class Localization(Actor):
         self.filter = PoseFilter(parameters)
         self.period = 1.0 / rate_hz
         self._clock = clock
+        self._monotonic = clock is None
+        """On the loop's clock, ``time.monotonic``: the IMU's readings carry their time on it."""
         self.frame: LocalFrame | None = None
         self._last_fix: float | None = None
         self.fixes = 0
@@ -169,7 +171,11 @@ class Localization(Actor):
         self.fixes += 1
 
     def _on_attitude(self, attitude: Attitude) -> None:
-        now, yaw = self._now(), math.radians(attitude.yaw_deg)
+        # At the reading's own time: a loaded loop hands over the IMU's batches late and two
+        # at once, and the yaw's change over their arrival times read as a turn of hundreds
+        # of °/s, dead-reckoned into the heading until the next (tens of degrees off).
+        now = attitude.stamp if self._monotonic else self._now()
+        yaw = math.radians(attitude.yaw_deg)
         self.filter.imu_yaw(now, yaw)
         imu = self._imu
         imu.append((now, yaw))

@@ -17,6 +17,7 @@ goes to whichever worker is free. The markers are registered in pyproject.toml.
 from __future__ import annotations
 
 import functools
+import os
 import zlib
 from pathlib import Path
 
@@ -96,9 +97,12 @@ SLOW_TESTS = frozenset(
 """Single tests of seconds each (3 s or more in a 2-worker ``--durations=0`` run; file::name,
 parameters aside) in otherwise quick modules."""
 
-BROWSER_LANES = 1
-"""Browser tests that may run at once (on as many workers). A test's lane follows from its
-name alone, so a new test moves no other test to another lane."""
+BROWSER_LANES = max(1, int(os.environ.get("BROWSER_LANES", "1")))
+"""Browser tests that may run at once (on as many workers; ``make test BROWSER_LANES=2``).
+A test's lane follows from its name alone, so a new test moves no other test to another
+lane. One: a 2-worker run's browser lane held 242 s of its 922 s of tests, a quarter, so at
+four workers it ends with the others, and two Chromiums drawing at once on two cores starve
+each other's page timing."""
 
 SHARED_SCOPES = frozenset({"module", "package", "class"})
 
