@@ -378,3 +378,24 @@ def test_an_overuse_no_receiver_report_confirms_pauses_but_cuts_only_to_what_arr
     controller.on_transport(_window(1500, 1000, 60.0), 1500, 0.0)
     assert controller.on_transport(_window(1500, 1000, 60.0), 1500, 0.1) == 850
     assert controller.paused_at == 0.1
+
+
+def test_a_queue_seen_packet_by_packet_pauses_cuts_once_and_ignores_what_was_sent_before() -> None:
+    controller = BitrateController(1500, 150)
+    # One feedback: a 90 ms queue drained at a quarter of what is sent: pause, deep cut.
+    kbps = controller.on_queue(1600, 400, 1500, 10.0, sent_at=9.99, clear=True)
+    assert controller.paused_at == 10.0
+    assert kbps is not None and kbps <= 450
+    # The next feedbacks still report packets sent before that cut: no second cut.
+    assert controller.on_queue(1600, 300, 1500, 10.03, sent_at=9.995) is None
+    assert controller.queue_overuses == 1
+    # A packet sent after it still queueing: cut again, toward what the link delivers.
+    assert controller.on_queue(600, 400, 1500, 10.3, sent_at=10.2) is not None
+    assert controller.effective_kbps(1500) < 400
+    assert controller.pauses == 1
+
+
+def test_a_queue_confirmed_by_two_feedbacks_cuts_by_half_at_most() -> None:
+    controller = BitrateController(1500, 150)
+    assert controller.on_queue(1600, 300, 1500, 5.0, sent_at=4.99) == 750
+    assert controller.pauses == 1

@@ -155,6 +155,9 @@ class BitrateController:
         self.transport_at: float | None = None
         """When transport feedback last came: while it comes, it alone lowers the bitrate."""
         self.overuses = 0
+        self.queue_overuses = 0
+        """Of those, seen packet by packet (:meth:`on_queue`)."""
+        self._queue_cut_at: float | None = None
         self.queue_ms = 0.0
         """The link's queue as the delay's growth estimates it (ms of waiting)."""
         self.capacity_kbps = 0.0
@@ -235,6 +238,33 @@ class BitrateController:
         if not confirmed and (self._overuse_streak < OVERUSE_READS or not spanned):
             self._candidate = (report, now)
             return None
+        return self._overuse(report, ceiling_kbps, now, confirmed=confirmed)
+
+    def on_queue(
+        self,
+        sent_kbps: float,
+        capacity_kbps: float,
+        ceiling_kbps: int,
+        now: float,
+        *,
+        sent_at: float,
+        clear: bool = False,
+    ) -> int | None:
+        """The per-packet feedback saw a queue fed faster than the link drains it
+        (:class:`~brasidas.media.twcc.QueueDetector`), its newest packet sent at
+        ``sent_at``: over capacity now, 0.15-0.2 s before the averaged windows show it.
+        Pause (the first time) and cut under what the link delivered; ``clear`` (one
+        feedback showed a long queue drained at under half the rate sent) cuts as deep as a
+        receiver report counting the loss. A queue of packets sent before the last such cut
+        was cut for already. The new bitrate, else None."""
+        if self._queue_cut_at is not None and sent_at <= self._queue_cut_at:
+            return None
+        self.queue_overuses += 1
+        self._queue_cut_at = now
+        report = TransportReport(
+            sent_kbps=sent_kbps, received_kbps=capacity_kbps, delay_trend_ms=0.0
+        )
+        confirmed = clear or self._loss_confirms(now)
         return self._overuse(report, ceiling_kbps, now, confirmed=confirmed)
 
     def confirm_pending(self, ceiling_kbps: int, now: float) -> int | None:
