@@ -196,10 +196,6 @@ DELIVERED_SHARE = 0.75
 """A queue that the link drains at under this share of what is sent grows."""
 CONFIRM_GAP_S = 0.02
 """Two feedbacks showing the overuse, at least this far apart (not one RTCP compound)."""
-CLEAR_QUEUE_MS = 2 * QUEUE_MS
-CLEAR_DELIVERED_SHARE = DELIVERED_SHARE / 2
-"""A queue this long drained at under this share of what is sent is confirmed by its one
-feedback (a stall's backlog arrives at once: its rate reads high, not low)."""
 QUEUE_FALLING_MS = 10.0
 """The second may show a queue this much shorter at most (a stall's backlog drains fast)."""
 
@@ -215,8 +211,6 @@ class QueueOveruse:
     at: float
     newest_sent_at: float
     """When the newest packet reported left (what was sent after a cut is not yet in it)."""
-    clear: bool
-    """Seen in one feedback: a long queue drained at under half of what is sent."""
 
 
 @dataclass
@@ -319,20 +313,15 @@ class QueueDetector:
         if not overused:
             receiver.candidate = None
             return None
-        clear = (
-            self.queue_ms > CLEAR_QUEUE_MS
-            and self.capacity_kbps < CLEAR_DELIVERED_SHARE * sent_kbps
-        )
         candidate = receiver.candidate
-        if not clear:
-            if candidate is None or now - candidate[0] < CONFIRM_GAP_S:
-                receiver.candidate = candidate or (now, self.queue_ms)
-                return None
-            if self.queue_ms < candidate[1] - QUEUE_FALLING_MS:
-                receiver.candidate = (now, self.queue_ms)  # draining: no confirmation yet
-                return None
+        if candidate is None or now - candidate[0] < CONFIRM_GAP_S:
+            receiver.candidate = candidate or (now, self.queue_ms)
+            return None
+        if self.queue_ms < candidate[1] - QUEUE_FALLING_MS:
+            receiver.candidate = (now, self.queue_ms)  # draining: no confirmation yet
+            return None
         receiver.candidate = None
-        return QueueOveruse(self.queue_ms, self.capacity_kbps, sent_kbps, now, newest[1], clear)
+        return QueueOveruse(self.queue_ms, self.capacity_kbps, sent_kbps, now, newest[1])
 
     @staticmethod
     def _unwrapped_round(receiver: _Receiver, reference: int) -> int:

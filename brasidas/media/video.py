@@ -316,7 +316,6 @@ class VideoOut(FanOutStream[VideoSettings]):
                 ceiling,
                 now,
                 sent_at=queued.newest_sent_at,
-                clear=queued.clear,
             )
         if transport is not None:
             fell = self.bitrate.on_transport(transport, ceiling, now) or fell
