@@ -382,21 +382,14 @@ def test_an_overuse_no_receiver_report_confirms_pauses_but_cuts_only_to_what_arr
 
 def test_a_queue_seen_packet_by_packet_pauses_cuts_once_and_ignores_what_was_sent_before() -> None:
     controller = BitrateController(1500, 150)
-    # A queue drained at a quarter of what is sent: pause, half the bitrate at once.
+    # A queue drained at a quarter of what is sent: pause, the deep cut at once.
     kbps = controller.on_queue(1600, 400, 1500, 10.0, sent_at=9.99)
     assert controller.paused_at == 10.0
-    assert kbps == 750
+    assert kbps == 450
     # The next feedbacks still report packets sent before that cut: no second cut.
     assert controller.on_queue(1600, 300, 1500, 10.03, sent_at=9.995) is None
     assert controller.queue_overuses == 1
     # A packet sent after it still queueing: cut again, toward what the link delivers.
-    assert controller.on_queue(900, 400, 1500, 10.3, sent_at=10.2) is not None
-    assert controller.effective_kbps(1500) == 375
-    assert controller.pauses == 1
-
-
-def test_a_queue_with_a_receiver_report_counting_the_loss_cuts_deep_at_the_pause() -> None:
-    controller = BitrateController(1500, 150)
-    _report_loss(controller, 0.5, at=4.98)
-    assert controller.on_queue(1600, 450, 1500, 5.0, sent_at=4.99) == 450
+    assert controller.on_queue(600, 300, 1500, 10.3, sent_at=10.2) is not None
+    assert controller.effective_kbps(1500) == 255
     assert controller.pauses == 1
