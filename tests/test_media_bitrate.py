@@ -378,3 +378,18 @@ def test_an_overuse_no_receiver_report_confirms_pauses_but_cuts_only_to_what_arr
     controller.on_transport(_window(1500, 1000, 60.0), 1500, 0.0)
     assert controller.on_transport(_window(1500, 1000, 60.0), 1500, 0.1) == 850
     assert controller.paused_at == 0.1
+
+
+def test_a_queue_seen_packet_by_packet_pauses_cuts_once_and_ignores_what_was_sent_before() -> None:
+    controller = BitrateController(1500, 150)
+    # A queue drained at a quarter of what is sent: pause, the deep cut at once.
+    kbps = controller.on_queue(1600, 400, 1500, 10.0, sent_at=9.99)
+    assert controller.paused_at == 10.0
+    assert kbps == 450
+    # The next feedbacks still report packets sent before that cut: no second cut.
+    assert controller.on_queue(1600, 300, 1500, 10.03, sent_at=9.995) is None
+    assert controller.queue_overuses == 1
+    # A packet sent after it still queueing: cut again, toward what the link delivers.
+    assert controller.on_queue(600, 300, 1500, 10.3, sent_at=10.2) is not None
+    assert controller.effective_kbps(1500) == 255
+    assert controller.pauses == 1

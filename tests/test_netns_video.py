@@ -161,6 +161,10 @@ async def test_the_bitrate_falls_under_a_rate_limit(watching: Fleet) -> None:
     await wait_for(enough, timeout=40, step=0.5)
     before = await _navcam(fleet)
     assert before["overuses"] == 0, before
+    # Read packet by packet too: every feedback parsed, random loss no queue.
+    feedback = before["transport_feedback"]
+    assert feedback["feedbacks"] > 0 and feedback["malformed"] == 0, feedback
+    assert feedback["overuses"] == 0, feedback
     assert before["bitrate_kbps"] == before["bitrate_ceiling_kbps"], before
     fleet.net.impair("rover", up=Profile(rate_kbps=500), down=Profile())
     start = (await _navcam(fleet))["bitrate_kbps"]
@@ -182,7 +186,11 @@ async def test_the_bitrate_falls_under_a_rate_limit(watching: Fleet) -> None:
     # The queue building behind the limit was seen in the delay (before any receiver report
     # counted its losses) and the bitrate cut to under what arrived. No frame went into the
     # overflowing queue while it drained; the picture restarted at a keyframe made after.
-    assert (await _navcam(fleet))["overuses"] >= 1
+    after = await _navcam(fleet)
+    assert after["overuses"] >= 1
+    # Seen in the feedback's packets themselves (each against its own send time), not only
+    # in rtpsession's 300 ms averages.
+    assert after["transport_feedback"]["overuses"] >= 1, after["transport_feedback"]
 
     async def restarted() -> bool:
         with contextlib.suppress(RpcFailed):

@@ -69,6 +69,14 @@ from brasidas.media.repair import (
     add_repair_sender,
     fec_percentage,
 )
+from brasidas.media.twcc import (
+    RTCP_RTPFB,
+    TWCC_FMT,
+    QueueDetector,
+    QueueOveruse,
+    SendHistory,
+    transport_seq,
+)
 
 ENCODERS: tuple[str, ...] = ("v4l2h264enc", "omxh264enc", "x264enc", "openh264enc")
 """Hardware first (current Raspberry Pi, old Raspbian), then software; first found wins."""
@@ -216,6 +224,11 @@ class VideoOut(FanOutStream[VideoSettings]):
         self.transport: TransportReport | None = None
         """The newest window of transport-wide feedback (what arrived, the delay's trend)."""
         self._transport_seen: Any = None
+        self.send_history = SendHistory()
+        """Each packet's send time and size by its transport-wide number (streaming thread)."""
+        self.queue_detector = QueueDetector()
+        """The link's queue from each transport feedback, packet by packet (RTCP's thread)."""
+        self._queue_overuse: QueueOveruse | None = None
         """Each receiver's highest sequence number in its last report used (new ones only)."""
         self.access_unit_sinks: list[AccessUnitSink] = []
         """Who gets the encoded stream (the recorder): a tee after the encoder feeds them,
@@ -238,6 +251,12 @@ class VideoOut(FanOutStream[VideoSettings]):
             "transport": vars(self.transport) if self.transport is not None else None,
             "overuses": self.bitrate.overuses,
             "queue_ms": round(self.bitrate.queue_ms, 1),
+            "transport_feedback": {
+                **vars(self.queue_detector.counters),
+                "queue_ms": round(self.queue_detector.queue_ms, 1),
+                "capacity_kbps": round(self.queue_detector.capacity_kbps),
+                "overuses": self.bitrate.queue_overuses,
+            },
             "retransmissions_dropped": self.retransmissions_dropped,
             "drain_pauses": self.bitrate.pauses,
             "frames_skipped": self.budget.skipped,
@@ -288,10 +307,20 @@ class VideoOut(FanOutStream[VideoSettings]):
         loss = self._newest_reported_loss(now)
         transport = self._newest_transport_report()
         paused_at = self.bitrate.paused_at
+        queued, self._queue_overuse = self._queue_overuse, None
+        fell = None
+        if queued is not None and now - queued.at < QUEUE_OVERUSE_FRESH_S:
+            fell = self.bitrate.on_queue(
+                queued.sent_kbps,
+                queued.capacity_kbps,
+                ceiling,
+                now,
+                sent_at=queued.newest_sent_at,
+            )
         if transport is not None:
-            fell = self.bitrate.on_transport(transport, ceiling, now)
+            fell = self.bitrate.on_transport(transport, ceiling, now) or fell
         else:
-            fell = self.bitrate.confirm_pending(ceiling, now)
+            fell = self.bitrate.confirm_pending(ceiling, now) or fell
         if self.bitrate.paused_at != paused_at:
             # The queue overflows: no frame until it drained, then a keyframe (the frames
             # sent meanwhile lost packets: the receivers wait for one).
@@ -527,6 +556,12 @@ class VideoOut(FanOutStream[VideoSettings]):
             session = self._rtpbin.emit("get-session", 0)
             if session is not None and session.find_property("twcc-stats") is not None:
                 session.connect("notify::twcc-stats", _on_transport_feedback, weakref.ref(self))
+            internal = self._rtpbin.emit("get-internal-session", 0)
+            if internal is not None:
+                internal.connect("on-feedback-rtcp", _on_feedback_rtcp, weakref.ref(self))
+            self._rtpbin.get_static_pad("send_rtp_src_0").add_probe(
+                Gst.PadProbeType.BUFFER, _sent_probe, weakref.ref(self)
+            )
             rtx = pipeline.get_by_name("rtxsend")
             self._rtx_pad = rtx.get_static_pad("src") if rtx is not None else None
             self._rtx_probe = None
@@ -746,6 +781,46 @@ def _on_transport_feedback(session: Any, _spec: Any, ref: weakref.ref[VideoOut])
     stream = ref()
     if stream is not None:
         stream.adapt_bitrate(time.monotonic())
+
+
+QUEUE_OVERUSE_FRESH_S = 0.1
+"""A queue seen packet by packet is acted on this soon or not at all (the lock was held)."""
+TRANSPORT_SEQ_READ = 48
+"""Bytes of each packet read for its transport-wide sequence number (header, extensions)."""
+
+
+def _sent_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
+    """Streaming thread, each packet leaving rtpbin (media, retransmission, FEC): its
+    transport-wide number, size and send time, for the per-packet feedback."""
+    stream = ref()
+    buffer = info.get_buffer()
+    if stream is not None and buffer is not None:
+        seq = transport_seq(buffer.extract_dup(0, TRANSPORT_SEQ_READ), TWCC_EXT_ID)
+        if seq is not None:
+            stream.send_history.on_sent(seq, buffer.get_size(), time.monotonic())
+    return gst().PadProbeReturn.OK
+
+
+def _on_feedback_rtcp(
+    session: Any,
+    kind: int,
+    fmt: int,
+    sender_ssrc: int,
+    _media_ssrc: int,
+    fci: Any,
+    ref: weakref.ref[VideoOut],
+) -> None:
+    """RTCP's thread, each feedback message: a transport-wide one is read packet by packet;
+    a queue it confirms adapts the bitrate at once."""
+    stream = ref()
+    if stream is None or kind != RTCP_RTPFB or fmt != TWCC_FMT or fci is None:
+        return
+    now = time.monotonic()
+    payload = fci.extract_dup(0, fci.get_size())
+    overuse = stream.queue_detector.on_feedback(payload, sender_ssrc, stream.send_history, now)
+    if overuse is not None:
+        stream._queue_overuse = overuse
+        stream.adapt_bitrate(now)
 
 
 def _encoded_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
