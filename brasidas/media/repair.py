@@ -241,6 +241,55 @@ class RepairCounters:
     """Losses the depayloader answered by asking the sender for a keyframe."""
     fec_recovered: int = 0
     """Packets rebuilt from the ULPFEC packets, without a retransmission."""
+    keyframes_after_silence: int = 0
+    """Keyframes asked at the first packet after a silence that skipped frames past their
+    deadline (:class:`SilenceWatch`), not after the repairs that could no longer help."""
+    keyframe_requests_held: int = 0
+    """The depayloader's own requests dropped because one was asked just before."""
+
+
+KEYFRAME_ASKED_HOLD_S = 0.15
+"""After the receiver asked for a keyframe at a silence's end, the depayloader's own request
+(made once the jitter buffer has given the silence's packets up, ~5-40 ms later) would only
+make the sender defer a second keyframe by its rate limit: dropped for this long."""
+
+
+@dataclass
+class SilenceWatch:
+    """Sans-IO: each media packet's arrival (sequence number, RTP timestamp, time) against the
+    one before. When the link was silent so long that a whole frame was skipped and that
+    frame's display deadline (due at the silence's start + a frame, plus the jitter buffer's
+    :data:`REPAIR_LATENCY_MS`) has passed, its repair comes too late: the picture can only
+    come back with a keyframe, and :meth:`on_packet` says so at once, at the first packet after
+    the silence. A shorter silence (a 100 ms blackout at 30 fps) is repaired in time; so is a
+    lost packet at 5 fps (its frame is 200 ms away, not skipped)."""
+
+    latency_s: float = REPAIR_LATENCY_MS / 1000
+    clock_rate: int = 90000
+    last: tuple[int, int, float] | None = None
+    """(sequence number, RTP timestamp, arrival) of the newest packet."""
+    frame_ticks: int = 0
+    """RTP ticks between two consecutive frames (learnt where no packet was missing)."""
+
+    def on_packet(self, seq: int, timestamp: int, now: float) -> bool:
+        """One media packet arrived at ``now`` (seconds): True if a keyframe is needed now."""
+        if self.last is None:
+            self.last = (seq, timestamp, now)
+            return False
+        last_seq, last_timestamp, last_arrival = self.last
+        seq_step = (seq - last_seq) & 0xFFFF
+        ticks = (timestamp - last_timestamp) & 0xFFFFFFFF
+        if seq_step == 0 or seq_step >= 0x8000 or ticks >= 0x80000000:
+            return False  # a duplicate or a reordered packet: the newest stays the newest
+        self.last = (seq, timestamp, now)
+        if seq_step == 1:
+            if ticks > 0:
+                self.frame_ticks = ticks
+            return False
+        if self.frame_ticks <= 0 or 2 * ticks < 3 * self.frame_ticks:
+            return False  # no whole frame skipped: the missing packets are repaired in time
+        first_skipped_due = last_arrival + self.frame_ticks / self.clock_rate
+        return now >= first_skipped_due + self.latency_s
 
 
 @dataclass
@@ -252,6 +301,12 @@ class RepairReceiver:
     jitterbuffers: list[Any] = field(default_factory=list)
     fec_decoders: list[Any] = field(default_factory=list)
     keyframe_requests: int = 0
+    silence: SilenceWatch = field(default_factory=SilenceWatch)
+    keyframes_after_silence: int = 0
+    keyframe_requests_held: int = 0
+    asked_at: float | None = None
+    """time.monotonic() of the newest keyframe asked after a silence."""
+    depayloader_sink: Any = None
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def set_feedback(self, host: str, port: int) -> None:
@@ -259,7 +314,11 @@ class RepairReceiver:
         self.feedback_sink.set_property("clients", f"{host}:{port}" if port else "")
 
     def counters(self) -> RepairCounters:
-        counters = RepairCounters(keyframe_requests=self.keyframe_requests)
+        counters = RepairCounters(
+            keyframe_requests=self.keyframe_requests,
+            keyframes_after_silence=self.keyframes_after_silence,
+            keyframe_requests_held=self.keyframe_requests_held,
+        )
         with self._lock:
             buffers = list(self.jitterbuffers)
             decoders = list(self.fec_decoders)
@@ -275,6 +334,29 @@ class RepairReceiver:
             if ok and rtt:
                 counters.rtt_ms = round(rtt / 1e6, 1)
         return counters
+
+    def ask_keyframe(self, now: float) -> None:
+        """Streaming thread: a PLI to the sender now, the way the depayloader asks (upstream
+        from its sink pad: the RTP session turns it into the feedback packet at once)."""
+        pad = self.depayloader_sink
+        if pad is None or not pad.is_linked():
+            return
+        self.asked_at = now
+        self.keyframes_after_silence += 1
+        Gst = gst()
+        pad.push_event(
+            Gst.Event.new_custom(
+                Gst.EventType.CUSTOM_UPSTREAM,
+                Gst.Structure.new_from_string(_SILENCE_KEYFRAME_REQUEST),
+            )
+        )
+
+
+_SILENCE_KEYFRAME_REQUEST = (
+    "GstForceKeyUnit, running-time=(guint64)18446744073709551615, all-headers=(boolean)true,"
+    " count=(uint)0, after-silence=(boolean)true"
+)
+"""The depayloader's own request's fields (the RTP session reads them), and a mark of ours."""
 
 
 def _uint(structure: Any, key: str) -> int:
@@ -386,9 +468,11 @@ def add_repair_receiver(
     session.set_property("rtcp-min-interval", FEEDBACK_INTERVAL_NS)
     if depayloader.find_property("request-keyframe") is not None:
         depayloader.set_property("request-keyframe", True)
-        depayloader.get_static_pad("sink").add_probe(
+        receiver.depayloader_sink = depayloader.get_static_pad("sink")
+        receiver.depayloader_sink.add_probe(
             gst().PadProbeType.EVENT_UPSTREAM, _count_keyframe_request, receiver
         )
+        source.get_static_pad("src").add_probe(gst().PadProbeType.BUFFER, _watch_silence, receiver)
     return receiver
 
 
@@ -422,8 +506,27 @@ def _follow_round_trip(pad: Any, info: Any, next_at: list[float]) -> Any:
 def _count_keyframe_request(pad: Any, info: Any, receiver: RepairReceiver) -> Any:
     event = info.get_event()
     structure = event.get_structure() if event is not None else None
-    if structure is not None and structure.get_name() == "GstForceKeyUnit":
-        receiver.keyframe_requests += 1
+    if structure is None or structure.get_name() != "GstForceKeyUnit":
+        return gst().PadProbeReturn.OK
+    if not structure.has_field("after-silence") and receiver.asked_at is not None:
+        if time.monotonic() - receiver.asked_at < KEYFRAME_ASKED_HOLD_S:
+            receiver.keyframe_requests_held += 1
+            return gst().PadProbeReturn.DROP
+    receiver.keyframe_requests += 1
+    return gst().PadProbeReturn.OK
+
+
+def _watch_silence(pad: Any, info: Any, receiver: RepairReceiver) -> Any:
+    """Streaming thread, each packet as it arrives (before the jitter buffer and before its
+    NACKs for the silence's packets): a keyframe at once when the silence skipped frames past
+    their deadline."""
+    buffer = info.get_buffer()
+    header = buffer.extract_dup(0, 8) if buffer is not None else b""
+    if len(header) == 8 and header[1] & 0x7F == MEDIA_PAYLOAD_TYPE:
+        now = time.monotonic()
+        seq = int.from_bytes(header[2:4], "big")
+        if receiver.silence.on_packet(seq, int.from_bytes(header[4:8], "big"), now):
+            receiver.ask_keyframe(now)
     return gst().PadProbeReturn.OK
 
 
