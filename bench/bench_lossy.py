@@ -232,8 +232,14 @@ async def _row(
         "keyframe_requests_deferred": sender.get("keyframe_requests_deferred", 0)
         - sender_before.get("keyframe_requests_deferred", 0),
         "lost_unrepaired": repair.get("lost"),
+        # Keyframes the station asked at the first packet after a blackout (its frames past
+        # their deadline), and the depayloader's own requests dropped as the same one.
+        "keyframes_after_silence": repair.get("keyframes_after_silence"),
+        "keyframe_requests_held": repair.get("keyframe_requests_held"),
+        "tail_copies": sender.get("tail_copies", 0) - sender_before.get("tail_copies", 0),
         # Where frames go on a perfect link under load: packets the receiver's jitter buffer
-        # had to give up as too late (a frame that cannot arrive in time is dropped), packets
+        # had to give up as too late (a frame that cannot arrive in time is dropped; and the
+        # copies of frames' last packets whose first copy had passed: see tail_copies), packets
         # the emulator's sockets dropped (the kernel, its thread starved), sequence gaps seen
         # at the station's socket.
         "late_dropped": repair.get("late"),

@@ -11,6 +11,7 @@ from conftest import free_udp_port, wait_until
 
 from brasidas.media.gst import has_element
 from brasidas.media.keyframes import KeyframeClock
+from brasidas.media.repair import REPAIR_LATENCY_MS, SilenceWatch
 from brasidas.media.video import VideoOut, VideoSettings
 
 
@@ -25,6 +26,46 @@ def test_the_first_frame_after_a_drain_pause_is_a_keyframe_whatever_the_gap() ->
     assert clock.on_frame(0.2, resume=True)
     assert clock.counters.resumed == 1
     assert not clock.on_frame(0.24)  # the pending request was answered by it
+
+
+def _frames(watch: SilenceWatch, seq: int, ts: int, at: float, count: int, fps: int) -> int:
+    """``count`` frames of 3 packets each from ``at`` (s): asks nothing on a clean stream."""
+    for frame in range(count):
+        for packet in range(3):
+            now = at + frame / fps + packet * 0.0005
+            assert not watch.on_packet(seq & 0xFFFF, ts + frame * 90000 // fps, now)
+            seq += 1
+    return seq
+
+
+def test_a_keyframe_is_asked_at_the_first_packet_after_a_silence_past_the_deadline() -> None:
+    watch = SilenceWatch()
+    seq = _frames(watch, 65530, 1000, 0.0, 10, 30)  # the sequence wraps on the way
+    last_arrival = 9 / 30 + 0.001
+    # A 300 ms blackout at 30 fps: the first frame skipped was due a frame after the silence
+    # began; its deadline (+ REPAIR_LATENCY_MS) has passed when the link is back. The first
+    # packet after it asks, before any repair could arrive (nor would a repair show a frame).
+    back = last_arrival + 0.3
+    assert back > last_arrival + 1 / 30 + REPAIR_LATENCY_MS / 1000
+    assert watch.on_packet((seq + 27) & 0xFFFF, 1000 + 19 * 3000, back)
+    # Once: the packets after it are contiguous again.
+    assert not watch.on_packet((seq + 28) & 0xFFFF, 1000 + 19 * 3000, back + 0.0005)
+    # A retransmission or a reordered packet (older) asks nothing either.
+    assert not watch.on_packet((seq + 5) & 0xFFFF, 1000 + 11 * 3000, back + 0.001)
+
+
+def test_a_silence_repaired_in_time_asks_no_keyframe() -> None:
+    watch = SilenceWatch()
+    seq = _frames(watch, 100, 0, 0.0, 10, 30)
+    # A 100 ms blackout at 30 fps: three frames skipped, all within their deadline.
+    assert not watch.on_packet(seq + 9, 13 * 3000, 9 / 30 + 0.1)
+    # At 5 fps a lost packet (even a whole frame's tail) shows only 200 ms on: no frame is
+    # skipped, the repair is in time.
+    slow = SilenceWatch()
+    seq = _frames(slow, 0, 0, 0.0, 5, 5)
+    assert not slow.on_packet(seq + 1, 5 * 18000, 1.0)
+    # Two frames skipped at 5 fps (400 ms): the first one's deadline has passed.
+    assert slow.on_packet(seq + 8, 8 * 18000, 4 / 5 + 0.6)
 
 
 def test_the_interval_follows_the_framerate_and_requests_are_rate_limited() -> None:

@@ -9,6 +9,7 @@ import statistics
 from conftest import free_udp_port, wait_until
 from lossy_udp import LossyRelay
 
+from brasidas.media.repair import LossyLinkTails
 from brasidas.media.video import PAYLOAD_TYPE, VideoIn, VideoOut, VideoSettings
 
 
@@ -78,3 +79,38 @@ async def test_at_30_fps_no_copies_are_sent() -> None:
     finally:
         await sender.stop()
         await receiver.stop()
+
+
+def test_a_lossy_link_turns_the_copies_on_at_any_framerate_and_a_clean_one_off() -> None:
+    tails = LossyLinkTails()
+    assert not tails.update(0, 65000, 0.0)
+    # 190 packets a second (30 fps), 10 % of them asked for again: a lossy link.
+    assert tails.update(19, (65000 + 190) & 0xFFFF, 1.0)  # the sequence wraps on the way
+    # 2 % asked for: still on (it turns off below 1 %, not at the threshold it came on at).
+    assert tails.update(23, (65000 + 380) & 0xFFFF, 2.0)
+    assert not tails.update(24, (65000 + 570) & 0xFFFF, 3.0)
+    # 2 % does not turn them on either.
+    assert not tails.update(28, (65000 + 760) & 0xFFFF, 4.0)
+
+
+async def test_at_30_fps_a_lossy_link_gets_the_copies() -> None:
+    port = free_udp_port()
+    receiver = VideoIn("rx", host="127.0.0.1", port=port)
+    await receiver.start()
+    relay = LossyRelay(("127.0.0.1", port), loss=0.1, seed=3)
+    sender = VideoOut(
+        "navcam",
+        VideoSettings(test_source=True, host="127.0.0.1", port=relay.port, framerate=30),
+    )
+    try:
+        await sender.start()
+        assert sender.feedback is not None
+        receiver.set_feedback("127.0.0.1", sender.feedback.port)
+        # The receiver asks for a tenth of the packets again: the sender copies each frame's
+        # last packet, which would otherwise show missing only with the next frame.
+        await wait_until(lambda: sender.tail_copies_sent() >= 30, timeout=30)
+        assert sender.lossy_tails.on
+    finally:
+        await sender.stop()
+        await receiver.stop()
+        relay.close()

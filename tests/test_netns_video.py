@@ -120,6 +120,7 @@ async def test_a_loss_beyond_repair_asks_the_encoder_for_a_keyframe(watching: Fl
 
     await wait_for(flowing, timeout=40, step=0.5)
     asked = (await _navcam(fleet))["keyframes_requested"]
+    before = (await _receiver(fleet))["repair"]
     # A cut longer than the repair budget: those frames are gone, the depayloader asks. Five
     # budgets long, so that a loaded machine's late scheduling cannot stretch the budget over it.
     relay.cut()
@@ -137,6 +138,10 @@ async def test_a_loss_beyond_repair_asks_the_encoder_for_a_keyframe(watching: Fl
     await wait_for(answered, timeout=10, step=0.2)
     rx = await _receiver(fleet)
     assert rx["repair"]["keyframe_requests"] >= 1, rx
+    # Asked by the receiver at the first packet after the silence (its frames were past their
+    # deadline), not after the jitter buffer gave their repairs up. (A loaded machine's stall
+    # of either process may make another silence: at least one.)
+    assert rx["repair"]["keyframes_after_silence"] > before["keyframes_after_silence"], rx
 
     async def picture_back() -> bool:
         return (await _receiver(fleet))["frames"] > frames + 5

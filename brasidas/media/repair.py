@@ -124,6 +124,43 @@ TAIL_COPY_MAX_FPS = 10
 """At this framerate or below each frame's last packet is sent twice (:class:`TailCopies`)."""
 
 
+TAIL_COPY_NACKED_ON = 0.03
+"""Above :data:`TAIL_COPY_MAX_FPS` the copies are sent while the receivers ask again for at
+least this share of the packets sent (a lossy link: at 10 % loss a tenth of the 30 fps frames
+lost their last packet, which showed only with the next frame, 33 ms on: g2g p95 ~60 ms)."""
+TAIL_COPY_NACKED_OFF = 0.01
+"""... and until the share fell below this (no flapping around one threshold)."""
+TAIL_COPY_WINDOW_S = 1.0
+
+
+@dataclass
+class LossyLinkTails:
+    """Sans-IO: whether a lossy link asks for the frames' last packets twice at any framerate,
+    from the share of the sent packets the receivers asked for again (NACK) in the last
+    :data:`TAIL_COPY_WINDOW_S`. Not from the receivers' reported loss: RTCP counts a copy as a
+    packet received, so the loss would read ~0 once the copies are on (and feed the bitrate
+    controller that too)."""
+
+    on: bool = False
+    mark: tuple[float, int, int] | None = None
+    """(time, retransmission requests, payloader sequence number) at the window's start."""
+
+    def update(self, requests: int, seq: int, now: float) -> bool:
+        """The sender's NACK count and newest sequence number at ``now`` (s): copies wanted?"""
+        if self.mark is None or requests < self.mark[1]:
+            self.mark = (now, requests, seq)
+            return self.on
+        at, asked_before, seq_before = self.mark
+        if now - at < TAIL_COPY_WINDOW_S:
+            return self.on
+        self.mark = (now, requests, seq)
+        sent = (seq - seq_before) & 0xFFFF
+        if sent > 0:
+            share = (requests - asked_before) / sent
+            self.on = share >= (TAIL_COPY_NACKED_OFF if self.on else TAIL_COPY_NACKED_ON)
+        return self.on
+
+
 class TailCopies:
     """Each frame's last packet (RTP marker) sent a second time, as is, while the framerate is
     at most :data:`TAIL_COPY_MAX_FPS`. A receiver sees a packet missing only when a later one
@@ -140,6 +177,7 @@ class TailCopies:
         self.sent = sent
         self._probe: tuple[Any, int] | None = None
         self._follow: Callable[[], None] = lambda: None
+        self._lock = threading.Lock()  # followed from the event loop and RTCP's thread
 
     def attach(self, rtpbin: Any, sink: Any, wanted: Callable[[], bool]) -> None:
         """Copy the marker packets leaving ``rtpbin`` to ``sink``'s clients while ``wanted()``
@@ -161,8 +199,10 @@ class TailCopies:
         follow()
 
     def follow(self) -> None:
-        """Event loop: add or remove the copying as the stream's framerate now asks."""
-        self._follow()
+        """Any thread: add or remove the copying as the stream's framerate (or the link's
+        loss) now asks."""
+        with self._lock:
+            self._follow()
 
     def send(self, packet: bytes, sink: Any) -> None:
         """Streaming thread: ``packet`` to each of ``sink``'s clients, from its socket."""
@@ -245,6 +285,55 @@ class RepairCounters:
     """Losses the depayloader answered by asking the sender for a keyframe."""
     fec_recovered: int = 0
     """Packets rebuilt from the ULPFEC packets, without a retransmission."""
+    keyframes_after_silence: int = 0
+    """Keyframes asked at the first packet after a silence that skipped frames past their
+    deadline (:class:`SilenceWatch`), not after the repairs that could no longer help."""
+    keyframe_requests_held: int = 0
+    """The depayloader's own requests dropped because one was asked just before."""
+
+
+KEYFRAME_ASKED_HOLD_S = 0.15
+"""After the receiver asked for a keyframe at a silence's end, the depayloader's own request
+(made once the jitter buffer has given the silence's packets up, ~5-40 ms later) would only
+make the sender defer a second keyframe by its rate limit: dropped for this long."""
+
+
+@dataclass
+class SilenceWatch:
+    """Sans-IO: each media packet's arrival (sequence number, RTP timestamp, time) against the
+    one before. When the link was silent so long that a whole frame was skipped and that
+    frame's display deadline (due at the silence's start + a frame, plus the jitter buffer's
+    :data:`REPAIR_LATENCY_MS`) has passed, its repair comes too late: the picture can only
+    come back with a keyframe, and :meth:`on_packet` says so at once, at the first packet after
+    the silence. A shorter silence (a 100 ms blackout at 30 fps) is repaired in time; so is a
+    lost packet at 5 fps (its frame is 200 ms away, not skipped)."""
+
+    latency_s: float = REPAIR_LATENCY_MS / 1000
+    clock_rate: int = 90000
+    last: tuple[int, int, float] | None = None
+    """(sequence number, RTP timestamp, arrival) of the newest packet."""
+    frame_ticks: int = 0
+    """RTP ticks between two consecutive frames (learnt where no packet was missing)."""
+
+    def on_packet(self, seq: int, timestamp: int, now: float) -> bool:
+        """One media packet arrived at ``now`` (seconds): True if a keyframe is needed now."""
+        if self.last is None:
+            self.last = (seq, timestamp, now)
+            return False
+        last_seq, last_timestamp, last_arrival = self.last
+        seq_step = (seq - last_seq) & 0xFFFF
+        ticks = (timestamp - last_timestamp) & 0xFFFFFFFF
+        if seq_step == 0 or seq_step >= 0x8000 or ticks >= 0x80000000:
+            return False  # a duplicate or a reordered packet: the newest stays the newest
+        self.last = (seq, timestamp, now)
+        if seq_step == 1:
+            if ticks > 0:
+                self.frame_ticks = ticks
+            return False
+        if self.frame_ticks <= 0 or 2 * ticks < 3 * self.frame_ticks:
+            return False  # no whole frame skipped: the missing packets are repaired in time
+        first_skipped_due = last_arrival + self.frame_ticks / self.clock_rate
+        return now >= first_skipped_due + self.latency_s
 
 
 @dataclass
@@ -256,6 +345,12 @@ class RepairReceiver:
     jitterbuffers: list[Any] = field(default_factory=list)
     fec_decoders: list[Any] = field(default_factory=list)
     keyframe_requests: int = 0
+    silence: SilenceWatch = field(default_factory=SilenceWatch)
+    keyframes_after_silence: int = 0
+    keyframe_requests_held: int = 0
+    asked_at: float | None = None
+    """time.monotonic() of the newest keyframe asked after a silence."""
+    depayloader_sink: Any = None
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def set_feedback(self, host: str, port: int) -> None:
@@ -263,7 +358,11 @@ class RepairReceiver:
         self.feedback_sink.set_property("clients", f"{host}:{port}" if port else "")
 
     def counters(self) -> RepairCounters:
-        counters = RepairCounters(keyframe_requests=self.keyframe_requests)
+        counters = RepairCounters(
+            keyframe_requests=self.keyframe_requests,
+            keyframes_after_silence=self.keyframes_after_silence,
+            keyframe_requests_held=self.keyframe_requests_held,
+        )
         with self._lock:
             buffers = list(self.jitterbuffers)
             decoders = list(self.fec_decoders)
@@ -279,6 +378,29 @@ class RepairReceiver:
             if ok and rtt:
                 counters.rtt_ms = round(rtt / 1e6, 1)
         return counters
+
+    def ask_keyframe(self, now: float) -> None:
+        """Streaming thread: a PLI to the sender now, the way the depayloader asks (upstream
+        from its sink pad: the RTP session turns it into the feedback packet at once)."""
+        pad = self.depayloader_sink
+        if pad is None or not pad.is_linked():
+            return
+        self.asked_at = now
+        self.keyframes_after_silence += 1
+        Gst = gst()
+        pad.push_event(
+            Gst.Event.new_custom(
+                Gst.EventType.CUSTOM_UPSTREAM,
+                Gst.Structure.new_from_string(_SILENCE_KEYFRAME_REQUEST),
+            )
+        )
+
+
+_SILENCE_KEYFRAME_REQUEST = (
+    "GstForceKeyUnit, running-time=(guint64)18446744073709551615, all-headers=(boolean)true,"
+    " count=(uint)0, after-silence=(boolean)true"
+)
+"""The depayloader's own request's fields (the RTP session reads them), and a mark of ours."""
 
 
 def _uint(structure: Any, key: str) -> int:
@@ -393,9 +515,11 @@ def add_repair_receiver(
         internal.set_property("twcc-feedback-interval", TRANSPORT_FEEDBACK_INTERVAL_NS)
     if depayloader.find_property("request-keyframe") is not None:
         depayloader.set_property("request-keyframe", True)
-        depayloader.get_static_pad("sink").add_probe(
+        receiver.depayloader_sink = depayloader.get_static_pad("sink")
+        receiver.depayloader_sink.add_probe(
             gst().PadProbeType.EVENT_UPSTREAM, _count_keyframe_request, receiver
         )
+        source.get_static_pad("src").add_probe(gst().PadProbeType.BUFFER, _watch_silence, receiver)
     return receiver
 
 
@@ -429,8 +553,27 @@ def _follow_round_trip(pad: Any, info: Any, next_at: list[float]) -> Any:
 def _count_keyframe_request(pad: Any, info: Any, receiver: RepairReceiver) -> Any:
     event = info.get_event()
     structure = event.get_structure() if event is not None else None
-    if structure is not None and structure.get_name() == "GstForceKeyUnit":
-        receiver.keyframe_requests += 1
+    if structure is None or structure.get_name() != "GstForceKeyUnit":
+        return gst().PadProbeReturn.OK
+    if not structure.has_field("after-silence") and receiver.asked_at is not None:
+        if time.monotonic() - receiver.asked_at < KEYFRAME_ASKED_HOLD_S:
+            receiver.keyframe_requests_held += 1
+            return gst().PadProbeReturn.DROP
+    receiver.keyframe_requests += 1
+    return gst().PadProbeReturn.OK
+
+
+def _watch_silence(pad: Any, info: Any, receiver: RepairReceiver) -> Any:
+    """Streaming thread, each packet as it arrives (before the jitter buffer and before its
+    NACKs for the silence's packets): a keyframe at once when the silence skipped frames past
+    their deadline."""
+    buffer = info.get_buffer()
+    header = buffer.extract_dup(0, 8) if buffer is not None else b""
+    if len(header) == 8 and header[1] & 0x7F == MEDIA_PAYLOAD_TYPE:
+        now = time.monotonic()
+        seq = int.from_bytes(header[2:4], "big")
+        if receiver.silence.on_packet(seq, int.from_bytes(header[4:8], "big"), now):
+            receiver.ask_keyframe(now)
     return gst().PadProbeReturn.OK
 
 

@@ -63,6 +63,7 @@ from brasidas.media.repair import (
     RTX_PAYLOAD_TYPE,
     TAIL_COPY_MAX_FPS,
     FeedbackSocket,
+    LossyLinkTails,
     RepairReceiver,
     TailCopies,
     add_repair_receiver,
@@ -208,6 +209,8 @@ class VideoOut(FanOutStream[VideoSettings]):
         """Our own force-key-unit events, told apart from a receiver's request (PLI/FIR)."""
         self.feedback: FeedbackSocket | None = None
         self._tail_copies: TailCopies | None = None
+        self.lossy_tails = LossyLinkTails()
+        """Copies of the frames' last packets at any framerate while the link is lossy."""
         self.bitrate = BitrateController(settings.effective_bitrate_kbps(), MIN_BITRATE_KBPS)
         self._rtpbin: Any = None
         self._rtx_pad: Any = None
@@ -300,7 +303,21 @@ class VideoOut(FanOutStream[VideoSettings]):
         with self._adapt_lock:
             if self._rtpbin is None or self._encoder is None:
                 return None
-            return self._adapt_bitrate(now)
+            kbps = self._adapt_bitrate(now)
+            self._follow_lossy_tails(now)
+            return kbps
+
+    def _follow_lossy_tails(self, now: float) -> None:
+        """Copy the frames' last packets at any framerate while the link is lossy (the share
+        of packets the receivers asked for again; :class:`LossyLinkTails`)."""
+        rtx = self._rtpbin.get_by_name("rtxsend") if self._rtpbin is not None else None
+        pay = self.pipeline.get_by_name("pay") if self.pipeline is not None else None
+        if rtx is None or pay is None or self._tail_copies is None:
+            return
+        was = self.lossy_tails.on
+        requests = int(rtx.get_property("num-rtx-requests"))
+        if self.lossy_tails.update(requests, int(pay.get_property("seqnum")), now) != was:
+            self._tail_copies.follow()
 
     def _adapt_bitrate(self, now: float) -> int | None:
         ceiling = self.settings.effective_bitrate_kbps()
@@ -702,7 +719,12 @@ def _copy_tails(ref: weakref.ref[VideoOut]) -> bool:
     """Any thread: send each frame's last packet twice (few frames a second, far apart)?"""
     stream = ref()
     # The framerate asked for, not the one thinned for a full link: a copy would add to it.
-    return stream is not None and stream.settings.framerate <= TAIL_COPY_MAX_FPS
+    if stream is None:
+        return False
+    if stream.settings.framerate <= TAIL_COPY_MAX_FPS:
+        return True
+    # A lossy link's, but not into a queue that overflows (its loss is not the link's).
+    return stream.lossy_tails.on and stream.retransmit and not stream.keyframes.congested
 
 
 def _thinning_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
