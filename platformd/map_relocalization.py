@@ -1,0 +1,114 @@
+"""Placing the robot in its saved map without GPS, and noticing when it is no longer there.
+
+The localizer (:mod:`platformd.lidar_localization`) owns one :class:`MapPlacer` per loaded grid
+and calls it from its worker thread (never the event loop: a search takes tenths of a second in
+a room, seconds in a town). Without GPS the fusion starts only once a scan is placed in the
+saved map with confidence (:mod:`brasidas.perception.relocalize`); until then, and while a
+place is ambiguous, the robot holds and says why, and a new search is made every
+``RETRY_S`` (the operator may drive it by hand to a place that tells). After it is placed, every
+``CHECK_EVERY`` scans the scan's fit to the saved map at the fused pose is measured over the
+points that fall where the map knows something (a place it never mapped says nothing); ``LOST_AFTER``
+poor fits in a row and the match is lost: the robot holds and searches again.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from brasidas.perception.grid import OccupancyGrid
+from brasidas.perception.odometry import Pose2D
+from brasidas.perception.relocalize import GridRelocalizer, Relocalization
+
+_LOGGER = logging.getLogger(__name__)
+
+RETRY_S = 2.0
+"""Between searches while the robot is not placed."""
+CHECK_EVERY = 5
+"""Scans between fits to the saved map once placed (2 Hz for a 10 Hz lidar)."""
+LOST_FIT = 0.3
+LOST_AFTER = 6
+"""Fits under ``LOST_FIT`` in a row (3 s) after which the match is lost."""
+MIN_KNOWN_POINTS = 40
+"""A fit over fewer points the map knows something about tells nothing."""
+PLACED_SIGMAS = (0.15, math.radians(2.0))
+"""The fusion's start at a placed pose (the refined registration's, the grid's cells)."""
+SEARCHING = "searching the saved map for the robot (no GPS)"
+
+
+class MapPlacer:
+    """(Worker thread.) A loaded grid in; scans in, a confident pose or why not out."""
+
+    def __init__(self, grid: OccupancyGrid) -> None:
+        self.relocalizer = GridRelocalizer(grid)
+        self.status = SEARCHING
+        """What the operator is told: searching, placed (with the fit), why not, or lost."""
+        self.placed = False
+        self.last: Relocalization | None = None
+        self.searches = 0
+        self.placements = 0
+        self.losses = 0
+        self._searched_at: float | None = None
+        self._poor = 0
+        self._scans = 0
+
+    @property
+    def hold(self) -> str:
+        """Why the pose must not be driven on now ("" once placed)."""
+        return "" if self.placed else self.status
+
+    def search(self, points: NDArray[np.float64], now: float, hint: Pose2D | None) -> Pose2D | None:
+        """The scan placed in the map; None when not (yet): not due, or not confident."""
+        if self._searched_at is not None and now - self._searched_at < RETRY_S:
+            return None
+        self._searched_at = now
+        self.searches += 1
+        answer = self.relocalizer.locate(points, hint)
+        self.last = answer
+        if answer.pose is None:
+            status = f"holding, not placed in the saved map: {answer.reason}"
+            if status != self.status:
+                _LOGGER.warning("localization: %s", status)
+            self.status = status
+            return None
+        self.placed = True
+        self.placements += 1
+        self._poor = 0
+        self.status = (
+            f"placed in the saved map (fit {100 * answer.score:.0f} %, next best "
+            f"{100 * answer.runner_up:.0f} %)"
+        )
+        _LOGGER.info(
+            "localization: %s at (%.1f, %.1f) m, %.0f° in %.2f s",
+            self.status,
+            answer.pose.x_m,
+            answer.pose.y_m,
+            math.degrees(answer.pose.yaw_rad),
+            answer.seconds,
+        )
+        return answer.pose
+
+    def check(self, points: NDArray[np.float64], pose: Pose2D) -> bool:
+        """Every ``CHECK_EVERY`` scans once placed: the scan's fit at ``pose``; True when the
+        match has just been lost."""
+        self._scans += 1
+        if not self.placed or self._scans % CHECK_EVERY:
+            return False
+        fit = self.relocalizer.known_fit(points, pose, MIN_KNOWN_POINTS)
+        if fit is None:
+            return False  # off the saved map: the new scans map it, nothing to compare
+        self._poor = self._poor + 1 if fit < LOST_FIT else 0
+        if self._poor < LOST_AFTER:
+            return False
+        self.placed = False
+        self.losses += 1
+        self._poor = 0
+        self._searched_at = None
+        self.status = (
+            f"lost: the scans no longer fit the saved map ({100 * fit:.0f} %); searching it again"
+        )
+        _LOGGER.warning("localization: %s", self.status)
+        return True
