@@ -488,8 +488,16 @@ class Localizer(Actor):
             return
         if placer.placed:
             here = Pose2D(*(float(v) for v in self.fusion.state))
-            if placer.check(points, here):
+            match, lost = placer.track(points, here)
+            if lost:
                 self.hold = placer.hold
+            elif match is not None:
+                pose, covariance = match
+                if self.fusion.map_fix(pose.x_m, pose.y_m, pose.yaw_rad, covariance, now):
+                    self.measured_at = now
+                    self._map_disagreements = 0
+                else:  # a filter sure of a wrong heading (a turn on the prior) would lock it out
+                    self._disagreed()
             return
         placed = placer.search(points, now, None)
         self.hold = placer.hold

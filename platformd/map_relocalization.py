@@ -6,8 +6,10 @@ a room, seconds in a town). Without GPS the fusion starts only once a scan is pl
 saved map with confidence (:mod:`brasidas.perception.relocalize`); until then, and while a
 place is ambiguous, the robot holds and says why, and a new search is made every
 ``RETRY_S`` (the operator may drive it by hand to a place that tells). After it is placed, every
-``CHECK_EVERY`` scans the scan's fit to the saved map at the fused pose is measured over the
-points that fall where the map knows something (a place it never mapped says nothing); ``LOST_AFTER``
+``CHECK_EVERY`` scans the scan is registered to the saved map from the fused pose: a clear fit
+nearby is an absolute measurement for the fusion (as the area map's walls are with GPS), which
+keeps the odometry's drift out. Where it does not fit, its fit is measured over the points
+that fall where the map knows something (a place it never mapped says nothing); ``LOST_AFTER``
 poor fits in a row and the match is lost: the robot holds and searches again.
 """
 
@@ -36,6 +38,13 @@ MIN_KNOWN_POINTS = 40
 """A fit over fewer points the map knows something about tells nothing."""
 PLACED_SIGMAS = (0.15, math.radians(2.0))
 """The fusion's start at a placed pose (the refined registration's, the grid's cells)."""
+TRACK_FIT = 0.6
+"""A registration to the saved map is fused only where this much of the scan fits it."""
+TRACK_MAX_M = 1.0
+TRACK_MAX_RAD = math.radians(10.0)
+"""...and only this close to the fused pose (further: a look-alike place, not a correction)."""
+TRACK_COVARIANCE = np.diag((0.1**2, 0.1**2, math.radians(1.0) ** 2))
+"""Of a registration to the saved grid (its 0.1 m cells)."""
 SEARCHING = "searching the saved map for the robot (no GPS)"
 
 
@@ -91,24 +100,40 @@ class MapPlacer:
         )
         return answer.pose
 
-    def check(self, points: NDArray[np.float64], pose: Pose2D) -> bool:
-        """Every ``CHECK_EVERY`` scans once placed: the scan's fit at ``pose``; True when the
-        match has just been lost."""
+    def track(
+        self, points: NDArray[np.float64], pose: Pose2D
+    ) -> tuple[tuple[Pose2D, NDArray[np.float64]] | None, bool]:
+        """Every ``CHECK_EVERY`` scans once placed: the scan registered to the saved map from
+        ``pose`` (the fused pose), as an absolute measurement for the fusion (pose and
+        covariance; None when it does not fit there clearly), and whether the match has just
+        been lost (``LOST_AFTER`` poor fits in a row)."""
         self._scans += 1
         if not self.placed or self._scans % CHECK_EVERY:
-            return False
-        fit = self.relocalizer.known_fit(points, pose, MIN_KNOWN_POINTS)
-        if fit is None:
-            return False  # off the saved map: the new scans map it, nothing to compare
-        self._poor = self._poor + 1 if fit < LOST_FIT else 0
+            return None, False
+        match = self.relocalizer.register(points, pose)
+        if match is not None:
+            fitted, fit = match
+            off = pose.between(fitted)
+            if (
+                fit >= TRACK_FIT
+                and math.hypot(off.x_m, off.y_m) <= TRACK_MAX_M
+                and abs(off.yaw_rad) <= TRACK_MAX_RAD
+            ):
+                self._poor = 0
+                return (fitted, TRACK_COVARIANCE), False
+        fit_known = self.relocalizer.known_fit(points, pose, MIN_KNOWN_POINTS)
+        if fit_known is None:
+            return None, False  # off the saved map: the new scans map it, nothing to compare
+        self._poor = self._poor + 1 if fit_known < LOST_FIT else 0
         if self._poor < LOST_AFTER:
-            return False
+            return None, False
         self.placed = False
         self.losses += 1
         self._poor = 0
         self._searched_at = None
         self.status = (
-            f"lost: the scans no longer fit the saved map ({100 * fit:.0f} %); searching it again"
+            f"lost: the scans no longer fit the saved map ({100 * fit_known:.0f} %); "
+            "searching it again"
         )
         _LOGGER.warning("localization: %s", self.status)
-        return True
+        return None, True

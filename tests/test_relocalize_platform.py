@@ -28,7 +28,7 @@ from platformd.mode import ModeArbiter
 from platformd.session_table import Session
 from platformd.sim.demo_area import offset
 from platformd.sim.lidar import LidarWorld, load_obstacles, world_polygons
-from platformd.sim.survey import survey
+from platformd.sim.survey import ROOM_POSTS, ROOM_WALLS, obstacles_geojson, survey
 
 T = TypeVar("T")
 pytestmark = pytest.mark.slow  # three daemons, ~20 s of patrol
@@ -40,35 +40,23 @@ SAVED = Pose2D(-8.0, -2.0, 0.0)
 START = Pose2D(0.0, 4.0, math.pi / 2)
 """Where it is started: 10 m from there, facing north (90° turned)."""
 OPERATOR = Session("operator", "station-1", "127.0.0.1", None, 0.0, 0.0)
-ROOM = [
-    (-11.0, -8.0, 5.0, -7.7),
-    (-11.0, 7.7, 5.0, 8.0),
-    (-11.0, -8.0, -10.7, 8.0),
-    (4.7, -8.0, 5.0, 3.0),  # a doorway in the east wall, north of 3 m
-    (-6.0, -7.7, -5.8, -4.0),  # a partition
-]
-POSTS = [(-9.0, 5.0), (3.0, -6.0), (-7.0, -5.5)]
-BARE = [(-11.0, -5.0, 5.0, -4.7), (-11.0, 4.7, 5.0, 5.0), (-11.0, -5.0, -10.7, 5.0)]
-BARE += [(4.7, -5.0, 5.0, 5.0)]
+BARE = (
+    (-11.0, -5.0, 5.0, -4.7),
+    (-11.0, 4.7, 5.0, 5.0),
+    (-11.0, -5.0, -10.7, 5.0),
+    (4.7, -5.0, 5.0, 5.0),
+)
 """A bare rectangle: every place in it has a twin, turned half round."""
 
 
-def obstacles(tmp_path: Path, walls: list[tuple[float, ...]], posts: list[tuple[float, float]]) -> str:
+def obstacles(
+    tmp_path: Path,
+    walls: tuple[tuple[float, float, float, float], ...],
+    posts: tuple[tuple[float, float], ...],
+) -> str:
     """The room, known to the simulator only (the area map has no keep-outs)."""
-
-    def feature(geometry: dict[str, Any], **properties: Any) -> dict[str, Any]:
-        return {"type": "Feature", "properties": properties, "geometry": geometry}
-
-    features = []
-    for x0, y0, x1, y1 in walls:
-        ring = [offset(LAT, LON, x, y) for x, y in ((x0, y0), (x1, y0), (x1, y1), (x0, y1))]
-        coordinates = [[[lon, lat] for lat, lon in [*ring, ring[0]]]]
-        features.append(feature({"type": "Polygon", "coordinates": coordinates}))
-    for east, north in posts:
-        lat, lon = offset(LAT, LON, east, north)
-        features.append(feature({"type": "Point", "coordinates": [lon, lat]}, radius_m=0.3))
     path = tmp_path / "room.geojson"
-    path.write_text(json.dumps({"type": "FeatureCollection", "features": features}))
+    path.write_text(json.dumps(obstacles_geojson(LAT, LON, walls, posts)))
     return str(path)
 
 
@@ -150,7 +138,7 @@ def moved_m(robot: Robot) -> float:
 async def test_without_gps_a_robot_carried_10_m_is_placed_in_its_saved_map_and_patrols(
     tmp_path: Path,
 ) -> None:
-    room = obstacles(tmp_path, ROOM, POSTS)
+    room = obstacles(tmp_path, ROOM_WALLS, ROOM_POSTS)
     saved_map(tmp_path, room)
     daemon, robot = await start(tmp_path, room)
     try:
@@ -181,7 +169,7 @@ async def test_without_gps_a_robot_carried_10_m_is_placed_in_its_saved_map_and_p
 
 
 async def test_a_start_the_saved_map_cannot_tell_apart_holds_and_says_why(tmp_path: Path) -> None:
-    room = obstacles(tmp_path, BARE, [])
+    room = obstacles(tmp_path, BARE, ())
     saved_map(tmp_path, room)
     daemon, robot = await start(tmp_path, room)
     try:
@@ -207,7 +195,7 @@ async def test_a_start_the_saved_map_cannot_tell_apart_holds_and_says_why(tmp_pa
 async def test_with_no_saved_map_and_no_gps_the_patrol_holds_and_hand_driving_works(
     tmp_path: Path,
 ) -> None:
-    room = obstacles(tmp_path, ROOM, POSTS)
+    room = obstacles(tmp_path, ROOM_WALLS, ROOM_POSTS)
     daemon, robot = await start(tmp_path, room)
     try:
         localizer = actor(daemon, Localizer)

@@ -193,6 +193,17 @@ class GridRelocalizer:
         in_free[inside] = self.free[cells[inside, 1], cells[inside, 0]]
         return float(np.mean(on_walls) - np.mean(in_free & ~on_walls))
 
+    def register(
+        self, points_xy: NDArray[np.float64], guess: Pose2D
+    ) -> tuple[Pose2D, float] | None:
+        """The scan registered to the walls from ``guess`` and its fit; None when it has too
+        few returns, or the walls in sight leave a direction free (a corridor)."""
+        points = points_xy[np.hypot(points_xy[:, 0], points_xy[:, 1]) >= MIN_RANGE_M]
+        if len(points) < MIN_POINTS or self._target is None:
+            return None
+        pose, fit, degenerate = self._refine(points, guess)
+        return None if degenerate else (pose, fit)
+
     def known_fit(
         self, points_xy: NDArray[np.float64], pose: Pose2D, min_points: int
     ) -> float | None:
