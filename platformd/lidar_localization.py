@@ -459,7 +459,7 @@ class Localizer(Actor):
             self.frame = LocalFrame(*anchor)
         placer = self.placer
         if placer is not None:
-            placed = placer.search(points, now, saved)
+            placed = placer.search(points, now, saved, self.odometry.pose)
             self.hold = placer.hold
             if placed is None:
                 return
@@ -499,7 +499,7 @@ class Localizer(Actor):
                 else:  # a filter sure of a wrong heading (a turn on the prior) would lock it out
                     self._disagreed()
             return
-        placed = placer.search(points, now, None)
+        placed = placer.search(points, now, None, self.odometry.pose)
         self.hold = placer.hold
         if placed is not None:
             self.fusion.moved_to(placed)
@@ -742,6 +742,8 @@ class Localizer(Actor):
         self.geo_anchored = grid.geo
         self.placer = MapPlacer(grid) if self.gps_wait is not None else None
         try:
+            if not keyframes_path(path).exists():  # a grid saved without (an older file)
+                raise FileNotFoundError(keyframes_path(path))
             self._loaded_keyframes = load_keyframes(keyframes_path(path))
         except FileNotFoundError:
             self._grid_base = grid

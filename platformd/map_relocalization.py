@@ -3,7 +3,8 @@
 The localizer (:mod:`platformd.lidar_localization`) owns one :class:`MapPlacer` per loaded grid
 and calls it from its worker thread (never the event loop: a search takes tenths of a second in
 a room, seconds in a town). Without GPS the fusion starts only once a scan is placed in the
-saved map with confidence (:mod:`brasidas.perception.relocalize`); until then, and while a
+saved map with confidence (:mod:`brasidas.perception.relocalize`) and the next scan, searched
+for afresh, is found where the odometry says (a confirmed place); until then, and while a
 place is ambiguous, the robot holds and says why, and a new search is made every
 ``RETRY_S`` (the operator may drive it by hand to a place that tells). After it is placed, every
 ``CHECK_EVERY`` scans the scan is registered to the saved map from the fused pose: a clear fit
@@ -29,19 +30,22 @@ _LOGGER = logging.getLogger(__name__)
 
 RETRY_S = 2.0
 """Between searches while the robot is not placed."""
-CHECK_EVERY = 5
-"""Scans between fits to the saved map once placed (2 Hz for a 10 Hz lidar)."""
+CHECK_EVERY = 3
+"""Scans between registrations to the saved map once placed (3 a second for a 10 Hz lidar)."""
 LOST_FIT = 0.3
-LOST_AFTER = 6
-"""Fits under ``LOST_FIT`` in a row (3 s) after which the match is lost."""
+LOST_AFTER = 10
+"""Fits under ``LOST_FIT`` in a row (3 s at 10 Hz) after which the match is lost."""
 MIN_KNOWN_POINTS = 40
 """A fit over fewer points the map knows something about tells nothing."""
 PLACED_SIGMAS = (0.15, math.radians(2.0))
 """The fusion's start at a placed pose (the refined registration's, the grid's cells)."""
+CONFIRM_M = 0.3
+CONFIRM_RAD = math.radians(3.0)
+"""The second scan's place must be this close to the first's carried by the odometry."""
 TRACK_FIT = 0.6
 """A registration to the saved map is fused only where this much of the scan fits it."""
-TRACK_MAX_M = 1.0
-TRACK_MAX_RAD = math.radians(10.0)
+TRACK_MAX_M = 1.5
+TRACK_MAX_RAD = math.radians(25.0)
 """...and only this close to the fused pose (further: a look-alike place, not a correction)."""
 TRACK_COVARIANCE = np.diag((0.1**2, 0.1**2, math.radians(1.0) ** 2))
 """Of a registration to the saved grid (its 0.1 m cells)."""
@@ -61,6 +65,9 @@ class MapPlacer:
         self.placements = 0
         self.losses = 0
         self._searched_at: float | None = None
+        self._candidate: tuple[Pose2D, Pose2D] | None = None
+        """A place found, waiting for the next scan to confirm it: (place, odometry then)."""
+        self.unconfirmed = 0
         self._poor = 0
         self._scans = 0
 
@@ -69,19 +76,50 @@ class MapPlacer:
         """Why the pose must not be driven on now ("" once placed)."""
         return "" if self.placed else self.status
 
-    def search(self, points: NDArray[np.float64], now: float, hint: Pose2D | None) -> Pose2D | None:
-        """The scan placed in the map; None when not (yet): not due, or not confident."""
-        if self._searched_at is not None and now - self._searched_at < RETRY_S:
+    def search(
+        self, points: NDArray[np.float64], now: float, hint: Pose2D | None, odometry: Pose2D
+    ) -> Pose2D | None:
+        """The scan placed in the map; None when not (yet): not due, not confident, or not yet
+        confirmed. ``odometry``: the odometry's pose now (its own frame), to carry a candidate
+        to the next scan. A place is taken only when the next scan, searched for afresh, is
+        found where the first place moved by the odometry says it should be: one scan can
+        fit a wrong place well (a moving robot's skewed scan, a passer-by)."""
+        candidate = self._candidate
+        if (
+            candidate is None
+            and self._searched_at is not None
+            and now - self._searched_at < RETRY_S
+        ):
             return None
         self._searched_at = now
         self.searches += 1
         answer = self.relocalizer.locate(points, hint)
         self.last = answer
         if answer.pose is None:
+            self._candidate = None
             status = f"holding, not placed in the saved map: {answer.reason}"
             if status != self.status:
                 _LOGGER.warning("localization: %s", status)
             self.status = status
+            return None
+        if candidate is None:
+            self._candidate = (answer.pose, odometry)
+            self.status = (
+                "holding: a place found in the saved map, confirming it with the next scan"
+            )
+            return None
+        self._candidate = None
+        first, odometry_then = candidate
+        expected = first.compose(odometry_then.between(odometry))
+        off = expected.between(answer.pose)
+        if math.hypot(off.x_m, off.y_m) > CONFIRM_M or abs(off.yaw_rad) > CONFIRM_RAD:
+            self.unconfirmed += 1
+            self.status = (
+                "holding, not placed in the saved map: the next scan was found "
+                f"{math.hypot(off.x_m, off.y_m):.1f} m, {math.degrees(abs(off.yaw_rad)):.0f}° "
+                "from the first"
+            )
+            _LOGGER.warning("localization: %s", self.status)
             return None
         self.placed = True
         self.placements += 1

@@ -17,6 +17,8 @@ from platformd.sim.lidar import LidarWorld
 from platformd.sim.survey import ROOM_POSTS, ROOM_WALLS, cast_scan, survey, world_of
 
 LAT, LON = 37.9415, 23.6530
+STILL = Pose2D(0.0, 0.0, 0.0)
+"""The odometry's pose while the robot stands still."""
 
 
 ROOM = world_of(ROOM_WALLS, ROOM_POSTS)
@@ -81,7 +83,9 @@ def test_the_placer_holds_until_placed_and_loses_a_pose_that_no_longer_fits() ->
     assert placer.hold.startswith("searching")
     truth = Pose2D(-4.0, 3.0, 1.0)
     scan = cast_scan(ROOM, truth)
-    placed = placer.search(scan, 0.0, None)
+    assert placer.search(scan, 0.0, None, STILL) is None  # found: confirmed by the next scan
+    assert placer.hold.startswith("holding: a place found")
+    placed = placer.search(scan, 0.1, None, STILL)
     assert placed is not None and placer.hold == ""
     assert math.hypot(placed.x_m - truth.x_m, placed.y_m - truth.y_m) < 0.15
     # Scans that fit where it is: never lost; every CHECK_EVERY-th is registered to the map,
@@ -100,12 +104,33 @@ def test_the_placer_holds_until_placed_and_loses_a_pose_that_no_longer_fits() ->
     assert lost[-1] and not any(lost[:-1])
     assert placer.hold.startswith("lost")
     # A retry is due at once: placed again.
-    assert placer.search(scan, 0.5, None) is not None
+    assert placer.search(scan, 0.5, None, STILL) is None
+    assert placer.search(scan, 0.6, None, STILL) is not None
+
+
+def test_a_place_the_next_scan_does_not_confirm_is_not_taken() -> None:
+    placer = MapPlacer(mapping_drive(ROOM))
+    first = Pose2D(-4.0, 3.0, 1.0)
+    assert placer.search(cast_scan(ROOM, first), 0.0, None, STILL) is None
+    # The next scan is found 1 m on, but the odometry says the robot did not move: one of the
+    # two places is wrong, and neither is taken.
+    moved = Pose2D(-3.0, 3.0, 1.0)
+    assert placer.search(cast_scan(ROOM, moved), 0.1, None, STILL) is None
+    assert not placer.placed and placer.unconfirmed == 1
+    assert "from the first" in placer.hold
+    # Searched again later, with the odometry's 1 m east between the two scans: placed.
+    assert placer.search(cast_scan(ROOM, first), 2.5, None, STILL) is None
+    odometry = Pose2D(1.0 * math.cos(1.0), -1.0 * math.sin(1.0), 0.0)  # 1 m east, robot frame
+    placed = placer.search(cast_scan(ROOM, moved), 2.6, None, odometry)
+    assert placed is not None
+    assert math.hypot(placed.x_m - moved.x_m, placed.y_m - moved.y_m) < 0.15
 
 
 def test_scans_beyond_the_saved_map_do_not_lose_the_match() -> None:
     placer = MapPlacer(mapping_drive(ROOM))
-    assert placer.search(cast_scan(ROOM, Pose2D(-4.0, 3.0, 1.0)), 0.0, None) is not None
+    scan = cast_scan(ROOM, Pose2D(-4.0, 3.0, 1.0))
+    assert placer.search(scan, 0.0, None, STILL) is None
+    assert placer.search(scan, 0.1, None, STILL) is not None
     outside = world_of(((40.0, 40.0, 60.0, 40.3), (40.0, 50.0, 60.0, 50.3)))
     here = Pose2D(50.0, 45.0, 0.0)  # a place the saved map never saw
     scan = cast_scan(outside, here)

@@ -153,7 +153,7 @@ async def test_without_gps_a_robot_carried_10_m_is_placed_in_its_saved_map_and_p
         assert abs(math.remainder(fused.yaw_rad - actual.yaw_rad, 2 * math.pi)) < math.radians(3)
         section = actor(daemon, LidarReader).section()
         assert section.map_place.startswith("placed in the saved map"), section.map_place
-        assert section.localization in ("lidar", "prior"), section.localization
+        assert section.localization in ("map+lidar", "lidar", "prior"), section.localization
 
         errors: list[float] = []
         robot.watchers.append(lambda pose, _here: errors.append(pose_error_m(pose, robot)))
@@ -162,6 +162,7 @@ async def test_without_gps_a_robot_carried_10_m_is_placed_in_its_saved_map_and_p
         assert len(errors) > 50
         assert max(errors) < 0.6, max(errors)
         assert placer.losses == 0
+        assert localizer.fusion.map_accepted > 0  # registered to the saved map as it went
         assert localizer.fusion.accepted == 0  # no GPS at all: the saved map did it
     finally:
         robot.close()
