@@ -502,6 +502,11 @@ class Localizer(Actor):
         placed = placer.search(points, now, None, self.odometry.pose)
         self.hold = placer.hold
         if placed is not None:
+            # The graph's path since it was lost is the drifted one: a loop it closed would
+            # take the pose back there. A new graph from here, on the saved map's keyframes.
+            if self.graph is not None:
+                self._loaded_keyframes = self.graph.keyframes()[: self.graph.first_live]
+                self.graph = None
             self.fusion.moved_to(placed)
             self.fusion.cov = np.diag(
                 (PLACED_SIGMAS[0] ** 2, PLACED_SIGMAS[0] ** 2, PLACED_SIGMAS[1] ** 2)

@@ -33,8 +33,8 @@ RETRY_S = 2.0
 CHECK_EVERY = 3
 """Scans between registrations to the saved map once placed (3 a second for a 10 Hz lidar)."""
 LOST_FIT = 0.3
-LOST_AFTER = 10
-"""Fits under ``LOST_FIT`` in a row (3 s at 10 Hz) after which the match is lost."""
+LOST_AFTER = 6
+"""Fits under ``LOST_FIT`` in a row (1.8 s at 10 Hz) after which the match is lost."""
 MIN_KNOWN_POINTS = 40
 """A fit over fewer points the map knows something about tells nothing."""
 PLACED_SIGMAS = (0.15, math.radians(2.0))
