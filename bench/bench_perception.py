@@ -39,8 +39,12 @@ motor controller in the loop: its 10 Hz refresh would add up to 100 ms, a fixed 
 - **GPS-less loop** (:mod:`bench.perception_slam`): SLAM in the map's own frame, the end
   error with loop closure and without, CPU per keyframe.
 
+- **relocalization** (:mod:`bench.perception_reloc`): seeded starts placed in a saved map
+  (right, wrong, refused; error; search CPU), and the GPS-less patrol through the daemon.
+
 Seeded (``sim.seed``); ``BENCH_PERCEPTION_TRIALS`` (default 50) pop-ups. ``--rows`` picks
-among ``stop`` (pop-up, approach, starved, CPU), ``localization`` and ``heartbeat``. Figures not reached
+among ``stop`` (pop-up, approach, starved, CPU), ``localization``, ``relocalization`` and
+``heartbeat``. Figures not reached
 (the town's 50 laps, a replayed CARMEN log) are listed under ``not_measured``.
 """
 
@@ -467,6 +471,7 @@ async def _loop_heartbeat(seconds: float = HEARTBEAT_S) -> dict[str, Any]:
 
 async def run() -> dict[str, Any]:
     from bench.perception_carmen import carmen_rows
+    from bench.perception_reloc import gpsless_patrol_rows, relocalization_rows
     from bench.perception_slam import slam_rows
 
     rows = [r for r in os.environ.get("BENCH_ROWS", "").split(",") if r]
@@ -482,6 +487,9 @@ async def run() -> dict[str, Any]:
         localization |= await asyncio.to_thread(
             _localization, spoofing=False, map_shift_m=(0.3, -0.2), label="ld19_map_off_0.36m"
         )
+    if not rows or "relocalization" in rows:
+        localization |= await asyncio.to_thread(relocalization_rows)
+        localization |= await gpsless_patrol_rows()
     if rows and "stop" not in rows:
         return localization | heartbeat
     rig = Rig(seed=1)

@@ -38,7 +38,13 @@ from brasidas.messages import (
     Velocity,
     VelocityLinkStats,
 )
-from brasidas.perception.messages import FusedPosition, LidarPose, Proximity, RobotScan
+from brasidas.perception.messages import (
+    FusedPosition,
+    LidarPose,
+    PoseHold,
+    Proximity,
+    RobotScan,
+)
 
 if TYPE_CHECKING:  # numpy: not for every importer of the topics
     from brasidas.perception.view import GridImage
@@ -141,6 +147,9 @@ OCCUPANCY_GRID: Topic[GridImage] = Topic("occupancy_grid", retain=True)
 LIDAR_POSE: Topic[LidarPose] = Topic("lidar_pose", retain=True)
 """The lidar localization's fused pose, after each scan (platformd.lidar_localization): what
 ``POSE`` rests on while it registers (platformd.autonomy.localization)."""
+POSE_HOLD: Topic[PoseHold] = Topic("pose_hold", retain=True)
+"""Why ``LIDAR_POSE`` must not be driven on now, or "" (platformd.lidar_localization): autonomy
+publishes no ``POSE`` from it and the patrol holds with the reason."""
 GPS_ACCEPTED: Topic[GpsFix] = Topic("gps_accepted")
 """Each fix the lidar localization's gate did not refuse (all of them before it starts): the
 only fixes the GPS+IMU filter follows while ``lidar.odometry`` is on."""

@@ -75,7 +75,7 @@ from brasidas.perception.fusion import (
 )
 from brasidas.perception.grid import GridError, OccupancyGrid
 from brasidas.perception.map_match import MapMatch
-from brasidas.perception.messages import LidarPose, RobotScan
+from brasidas.perception.messages import LidarPose, PoseHold, RobotScan
 from brasidas.perception.odometry import (
     LidarOdometry,
     OdometryStep,
@@ -90,6 +90,7 @@ from brasidas.perception.pose_graph import (
 )
 from platformd.lidar_models import TEMPORARY_KEEPOUT_PREFIX
 from platformd.map_match_process import MapMatchProcess, Pending
+from platformd.map_relocalization import PLACED_SIGMAS, MapPlacer
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -138,6 +139,11 @@ REBUILD_SHIFT_M = 0.1
 a known place closes a loop at every keyframe)."""
 REBUILD_EVERY_S = 10.0
 """At most one grid rebuild this often (200 keyframes take ~0.3 s of CPU to rebuild)."""
+OWN_FRAME_HOLD = (
+    "no GPS, and no saved map tied to it: the route's latitudes and longitudes cannot be "
+    "placed in the robot's own map frame (hand driving only)"
+)
+"""The patrol's hold in a map frame of the robot's own."""
 GRAPH_START_SIGMAS = (0.01, 0.01, 0.001)
 """The first node of a graph begun with the fusion: the frame is where it starts."""
 
@@ -186,6 +192,11 @@ class Localizer(Actor):
         """Started without GPS, in the map's own frame."""
         self.geo_anchored = False
         """The local frame's anchor is a GPS position (a fix, or a grid saved under GPS)."""
+        self.placer: MapPlacer | None = None
+        """(Worker thread.) The loaded grid searched for the robot when there is no GPS."""
+        self.hold = ""
+        """(Worker thread.) Why the pose must not be driven on now ("" when it may)."""
+        self._hold_published: str | None = None
         self._fix_seen = False
         self._first_scan_at: float | None = None
         self.gps_sigma = gps_sigma_m
@@ -281,6 +292,9 @@ class Localizer(Actor):
     def _publish(self, accepted: list[GpsFix]) -> None:
         for fix in accepted:
             self.bus.publish(topics.GPS_ACCEPTED, fix)
+        if self.hold != self._hold_published:
+            self._hold_published = self.hold
+            self.bus.publish(topics.POSE_HOLD, PoseHold(self.hold))
         fused, frame = self.fused, self.frame
         if fused is None or frame is None:
             return
@@ -399,7 +413,6 @@ class Localizer(Actor):
         and honest fixes, even RTK ones, be refused as a jump."""
         points: NDArray[np.float64] = np.empty((0, 2))
         if scan is not None:
-            self._maybe_start_without_gps(scan.time)
             speed, turn, doubt = self._drive_to(scan.time, speed_mps, commanded_turn)
             self.odometry.yaw_slack_rad = None if yaw_rate is not None else NO_GYRO_YAW_SLACK_RAD
             rate = yaw_rate if yaw_rate is not None else turn
@@ -412,6 +425,8 @@ class Localizer(Actor):
             self.last = step
             prior_doubt = doubt if step.source != "lidar" else 0.0
             self.fusion.predict(step.delta, step.source, scan.time, prior_doubt)
+            self._maybe_start_without_gps(scan.time, points)
+            self._check_placed(scan.time, points)
             if step.source == "lidar" and self.fusion.started:
                 self.measured_at = scan.time
             self._collect_map_match()
@@ -425,9 +440,10 @@ class Localizer(Actor):
             self._map(scan.time, points)
         return accepted
 
-    def _maybe_start_without_gps(self, now: float) -> None:
+    def _maybe_start_without_gps(self, now: float, points: NDArray[np.float64]) -> None:
         """(Worker thread.) No fix at all for ``gps_wait_s`` of scans: start in the map's own
-        frame, at the saved pose (a loaded grid) or the origin of a new map."""
+        frame, where the scan is placed in a loaded grid (:mod:`platformd.map_relocalization`:
+        not before it is placed with confidence), or at the origin of a new map."""
         if self._first_scan_at is None:
             self._first_scan_at = now
         if self.fusion.started or self.gps_wait is None:
@@ -441,17 +457,60 @@ class Localizer(Actor):
             area = self._area()
             anchor = (area.frame.latitude, area.frame.longitude) if area is not None else (0, 0)
             self.frame = LocalFrame(*anchor)
-        if saved is not None:
+        placer = self.placer
+        if placer is not None:
+            placed = placer.search(points, now, saved, self.odometry.pose)
+            self.hold = placer.hold
+            if placed is None:
+                return
+            self.fusion.start_at(placed, *PLACED_SIGMAS, now)
+        elif saved is not None:
             self.fusion.start_at(saved, *SAVED_POSE_SIGMAS, now)
         else:
             self.fusion.start_at(Pose2D(0.0, 0.0, 0.0), 0.0, 0.0, now)
         self.map_frame = True
+        if not self.geo_anchored:
+            self.hold = OWN_FRAME_HOLD
         _LOGGER.info(
             "localization: no GPS: in the map's own frame, %s",
-            f"from the saved pose ({saved.x_m:.1f}, {saved.y_m:.1f}) m"
+            "placed in the saved map"
+            if placer is not None
+            else f"from the saved pose ({saved.x_m:.1f}, {saved.y_m:.1f}) m"
             if saved is not None
             else "a new map from here",
         )
+
+    def _check_placed(self, now: float, points: NDArray[np.float64]) -> None:
+        """(Worker thread.) Once placed in the saved map without GPS: the scan still fits it,
+        else the robot holds and the map is searched again; a new place moves the pose."""
+        placer = self.placer
+        if placer is None or not self.map_frame or not self.fusion.started:
+            return
+        if placer.placed:
+            here = Pose2D(*(float(v) for v in self.fusion.state))
+            match, lost = placer.track(points, here)
+            if lost:
+                self.hold = placer.hold
+            elif match is not None:
+                pose, covariance = match
+                if self.fusion.map_fix(pose.x_m, pose.y_m, pose.yaw_rad, covariance, now):
+                    self.measured_at = now
+                    self._map_disagreements = 0
+                else:  # a filter sure of a wrong heading (a turn on the prior) would lock it out
+                    self._disagreed()
+            return
+        placed = placer.search(points, now, None, self.odometry.pose)
+        self.hold = placer.hold
+        if placed is not None:
+            # The graph's path since it was lost is the drifted one: a loop it closed would
+            # take the pose back there. A new graph from here, on the saved map's keyframes.
+            if self.graph is not None:
+                self._loaded_keyframes = self.graph.keyframes()[: self.graph.first_live]
+                self.graph = None
+            self.fusion.moved_to(placed)
+            self.fusion.cov = np.diag(
+                (PLACED_SIGMAS[0] ** 2, PLACED_SIGMAS[0] ** 2, PLACED_SIGMAS[1] ** 2)
+            )
 
     def _keyframe(self, step: OdometryStep | None, points: NDArray[np.float64]) -> None:
         """(Worker thread.) The scan's step into the pose graph; a loop it closes corrects the
@@ -686,7 +745,10 @@ class Localizer(Actor):
         self.grid = grid
         self.frame = LocalFrame(grid.latitude, grid.longitude)
         self.geo_anchored = grid.geo
+        self.placer = MapPlacer(grid) if self.gps_wait is not None else None
         try:
+            if not keyframes_path(path).exists():  # a grid saved without (an older file)
+                raise FileNotFoundError(keyframes_path(path))
             self._loaded_keyframes = load_keyframes(keyframes_path(path))
         except FileNotFoundError:
             self._grid_base = grid
@@ -760,6 +822,14 @@ class Localizer(Actor):
         self.gps_refusal = refusal
         return verdict.accepted
 
+    def map_place(self) -> str:
+        """Without GPS, where the robot stands in its map: placed in the saved map (and how
+        well), or why its pose is not driven on; "" with GPS."""
+        if self.hold:
+            return self.hold
+        placer = self.placer
+        return placer.status if placer is not None and self.map_frame else ""
+
     def counters(self) -> dict[str, int]:
         return {
             "scans": self.odometry.scans,
@@ -773,6 +843,9 @@ class Localizer(Actor):
             "loop_closures": self.graph.closures if self.graph is not None else 0,
             "grid_rebuilds": self.grid_rebuilds,
             "relocalized": self.fusion.relocalized,
+            "map_searches": self.placer.searches if self.placer is not None else 0,
+            "map_placements": self.placer.placements if self.placer is not None else 0,
+            "map_lost": self.placer.losses if self.placer is not None else 0,
         }
 
 

@@ -300,6 +300,7 @@ def _localization(localizer: Localizer | None) -> dict[str, Any]:
         "gps_accepted": localizer.fusion.accepted,
         "gps_rejected": localizer.fusion.rejected,
         "gps_refusal": localizer.gps_refusal,
+        "map_place": localizer.map_place(),
     }
 
 

@@ -134,6 +134,9 @@ class Patrol:
         self._running = False
         """The operator wants it to patrol (start), as against stop."""
         self._override = False
+        self.pose_hold = ""
+        """Why the localization's pose must not be driven on (the platform sets it): the
+        reason held for instead of "no GPS fix"."""
         self._unreachable_revision: int | None = None
         """Every waypoint was unreachable past seen obstacles at this map revision: held."""
         self.blocked: tuple[bool, bool] = (False, False)
@@ -501,7 +504,7 @@ class Patrol:
 
     def _hazard(self, estimate: Estimate | None, fix_age: float | None) -> str:
         if estimate is None or fix_age is None:
-            return "no GPS fix"
+            return self.pose_hold or "no GPS fix"
         if fix_age > self.p.fix_stale_s:
             return f"GPS fix lost or stale ({fix_age:.1f} s old)"
         assert self.area is not None

@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
-SCHEMA_VERSION = 15
+SCHEMA_VERSION = 18
 """Version of the schema (and the datagram layout); the first byte of every datagram.
 4: the failsafe, speed_cap and turret sections, the velocity link's ``held`` drops.
 5: the lights' ``errors`` (GPIO lines), the turret's ``streams``.
@@ -36,7 +36,8 @@ SCHEMA_VERSION = 15
 12: the perception section (the lidar: scan rate, nearest obstacle, speed limit and why).
 13: the autonomy section's ``home`` (the route's home, else the first fix; issue 31).
 14: perception's localization (source, uncertainty) and GPS gate (accepted, refused, why).
-15: the lidar_view section (the scan in 5° sectors, the fused pose, the grid's revision)."""
+15: the lidar_view section (the scan in 5° sectors, the fused pose, the grid's revision).
+18: perception's ``map_place`` (without GPS: placed in the saved map, searching, or why not)."""
 ERROR_KEY = "!"
 """A section's wire map holding only this key is that section's error."""
 STALE_PERIODS = 3.0
@@ -500,6 +501,12 @@ class Perception(Section):
     gps_rejected: int = field(default=0, metadata=wire("gr", doc="GPS fixes refused by the gate"))
     gps_refusal: str = field(
         default="", metadata=wire("gx", doc="why GPS is refused now (jump, drag), never followed")
+    )
+    map_place: str = field(
+        default="",
+        metadata=wire(
+            "mp", doc="without GPS: placed in the saved map (its fit), searching, or why it holds"
+        ),
     )
 
 

@@ -95,3 +95,12 @@ class LidarPose:
     measured_at: float | None
     """When it last rested on a measurement (a registered scan, a map match or an accepted
     fix): dead reckoning since then is the commanded speed's and the gyro's."""
+
+
+@dataclass(frozen=True)
+class PoseHold:
+    """Why the lidar localization's pose must not be driven on ("" when it may): searching a
+    saved map for the robot, an ambiguous place, the match lost, or a map frame of the robot's
+    own (no GPS ever: a route in latitude and longitude means nothing in it)."""
+
+    reason: str

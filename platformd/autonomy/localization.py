@@ -9,7 +9,9 @@ lidar localization's (``LIDAR_POSE``: scan registration fused with the GPS fixes
 accepted, and the area map's walls) while it registers scans, carried forward to now; the
 GPS+IMU filter stands in when it does not (no pose yet, scans on the motion prior, lidar
 silent), and it too follows only the fixes the gate accepted (``GPS_ACCEPTED``): a fix
-refused as a jump or a drag is never followed, by either.
+refused as a jump or a drag is never followed, by either. While the lidar localization says its
+pose must not be driven on (``POSE_HOLD``: without GPS, not yet placed in a saved map tied to
+latitude and longitude, or in a map frame of the robot's own) no pose is published.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from brasidas.autonomy.geo import LocalFrame, heading_to_yaw, wrap
 from brasidas.autonomy.localization import FilterParameters, PoseFilter
 from brasidas.bus import Bus
 from brasidas.messages import Attitude, GpsFix, MotionState, PoseEstimate
-from brasidas.perception.messages import LidarPose
+from brasidas.perception.messages import LidarPose, PoseHold
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -59,6 +61,8 @@ class Localization(Actor):
         super().__init__(bus)
         self.lidar_localized = lidar_localized
         self._lidar: LidarPose | None = None
+        self.hold = ""
+        """Why the lidar localization's pose must not be driven on (``POSE_HOLD``)."""
         self._imu: collections.deque[tuple[float, float]] = collections.deque(maxlen=IMU_HISTORY)
         """(time, yaw) of the IMU's recent attitudes, on this actor's clock."""
         self.filter = PoseFilter(parameters)
@@ -82,6 +86,7 @@ class Localization(Actor):
         """Subscribe to the sensors (retained values arrive at once)."""
         if self.lidar_localized:
             self.subscribe(topics.GPS_ACCEPTED, self._on_fix)
+            self.subscribe(topics.POSE_HOLD, self._on_hold)
             self.subscribe(topics.LIDAR_POSE, self._on_lidar)
         else:
             self.subscribe(topics.GPS_FIX, self._on_fix)
@@ -94,6 +99,8 @@ class Localization(Actor):
             return None
         now = self._now()
         lidar = self._lidar
+        if self.hold:  # not placed in a map tied to latitude and longitude: nothing to drive on
+            return None
         if lidar is not None and lidar.measured_at is not None:
             return self._publish_lidar(now, self.frame, lidar)
         if not self.filter.initialized:
@@ -150,9 +157,12 @@ class Localization(Actor):
         self.bus.publish(topics.POSE, pose)
         return pose
 
+    def _on_hold(self, hold: PoseHold) -> None:
+        self.hold = hold.reason
+
     def _on_lidar(self, pose: LidarPose) -> None:
         self._lidar = pose
-        if self.frame is None:
+        if self.frame is None and not self.hold:
             self.frame = LocalFrame(pose.latitude, pose.longitude)
 
     def _now(self) -> float:

@@ -55,6 +55,7 @@ from brasidas.messages import (
     PoseEstimate,
     Velocity,
 )
+from brasidas.perception.messages import PoseHold
 from platformd.automation import report_switch
 from platformd.autonomy.planner_client import PlannerProcess
 from platformd.commands import CommandRouter, SystemCommand
@@ -145,6 +146,7 @@ class PatrolActor(Actor):
         if self.commands is not None:
             self.on_remove(self.commands.register(self.name, {PATROL: self._command_switch}))
         self.subscribe(topics.POSE, self._on_pose)
+        self.subscribe(topics.POSE_HOLD, self._on_pose_hold)
         self.subscribe(topics.OVERRIDE_STATE, self._on_override)
         try:
             async with asyncio.TaskGroup() as group:
@@ -322,6 +324,8 @@ class PatrolActor(Actor):
 
     def _estimate(self) -> tuple[Estimate | None, float | None]:
         pose, area = self._pose, self.core.area
+        if self.core.pose_hold:  # the last pose was in a place no longer trusted
+            return None, None
         if pose is None or area is None or pose.fix_age_s is None:
             return None, None
         assert self._clock is not None
@@ -340,6 +344,9 @@ class PatrolActor(Actor):
 
     def _on_pose(self, pose: PoseEstimate) -> None:
         self._pose = pose
+
+    def _on_pose_hold(self, hold: PoseHold) -> None:
+        self.core.pose_hold = hold.reason
 
     def _on_override(self, state: OverrideState) -> None:
         self.core.set_override(state.engaged)
