@@ -627,10 +627,12 @@ def test_a_pose_inside_a_building_backs_out_the_way_it_came() -> None:
 _SQUARE = ((-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5))
 
 
-def lidar_square(zone_id: str, east: float, north: float) -> dict[str, Any]:
-    """A 1 m square keep-out the lidar drew, centred ``east``, ``north`` m from the start."""
+def lidar_square(zone_id: str, east: float, north: float, half: float = 0.5) -> dict[str, Any]:
+    """A square keep-out the lidar drew (``half`` its side), centred ``east``, ``north`` m
+    from the start."""
     post = offset(LAT, LON, east, north)
-    ring = [[lon, lat] for lat, lon in (offset(*post, e, n) for e, n in _SQUARE)]
+    corners = ((e * 2 * half, n * 2 * half) for e, n in _SQUARE)
+    ring = [[lon, lat] for lat, lon in (offset(*post, e, n) for e, n in corners)]
     return {
         "type": "Feature",
         "id": zone_id,
@@ -725,3 +727,52 @@ def test_inside_a_zone_the_lidar_saw_it_yields_then_backs_out() -> None:
     command = p.step(at(time, 5.0), 0.1)
     assert command.linear < 0, p.status()
     assert p.status().reason == "inside keep-out zone 'lidar:9': backing out the way it came"
+
+
+def test_beside_a_post_facing_it_the_patrol_leaves_its_zone_the_nearest_way() -> None:
+    """The town's deadlock: the robot came down beside a post, turned on the spot towards
+    it, and the lidar drew the post's zone over it. The way it came was ahead, past the
+    post, so the lidar stopped that way: it held "waiting" for a post to leave, for ever.
+    It now leaves the zone the nearest way (reversing off the post), then plans again."""
+    area = parse_map(demo())
+    zone = lidar_square("lidar:1141", 5.0, 0.0, half=1.0)  # east 4-6, north -1-1
+    p = patrol()
+    p.set_map(area)
+    p.set_route(parse_waypoints(demo_route(), area.points))
+    p.start()
+
+    def at(time: float, east: float, north: float, heading_deg: float) -> Estimate:
+        x, y = area.local(*offset(LAT, LON, east, north))
+        return Estimate(time, x, y, math.radians(heading_deg), 1.0, 0.1, 0.05)
+
+    time = 0.0
+    for i in range(8):  # west along north 2.5 to east 4.5: the trail, clear of the zone
+        time += 0.1
+        p.step(at(time, 8.0 - 0.5 * i, 2.5, 180.0), 0.1)
+    time += 0.1
+    p.step(at(time, 4.2, 1.5, -90.0), 0.1)
+    p.update_map(area.with_keepouts(add=[zone]))
+    beside = 60.0  # turned towards the post: the trail's last clear point is ahead-left
+    for _ in range(51):  # a person is yielded to for 5 s
+        time += 0.1
+        p.step(at(time, 4.2, 0.5, beside), 0.1)
+    p.blocked = (True, True)  # boxed in (a person behind it too): it waits, saying so
+    time += 0.1
+    assert p.step(at(time, 4.2, 0.5, beside), 0.1).linear == 0
+    assert p.status().state is PatrolState.HOLDING
+    assert p.status().reason.endswith("an obstacle in the way it came (waiting)")
+    p.blocked = (True, False)  # the person went: only the post ahead
+    time += 0.1
+    command = p.step(at(time, 4.2, 0.5, beside), 0.1)
+    assert p.status().state is PatrolState.PATROLLING, p.status()
+    assert p.status().reason == "inside keep-out zone 'lidar:1141': leaving it the nearest way"
+    assert command.linear < 0  # off the post, towards the zone's west edge behind it
+    east = 4.2
+    while p.status().reason.endswith("leaving it the nearest way"):
+        time += 0.1
+        east -= 0.05
+        p.blocked = (True, False) if east > 3.9 else (False, False)
+        command = p.step(at(time, east, 0.5, beside), 0.1)
+        assert east > 3.0  # out within a metre
+    assert east < 4.05  # out of the zone (its edge at 4 m) before it plans again
+    assert p.status().state is PatrolState.PATROLLING

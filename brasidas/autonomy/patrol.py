@@ -558,12 +558,56 @@ class Patrol:
                 f"{inside}: backed out {backed:.0f} m and still inside (the pose is doubtful)",
             )
         command = self._back_to(estimate, target)
-        if command is None:
-            return self._settle(
-                PatrolState.HOLDING, f"{inside}: an obstacle in the way it came (waiting)"
-            )
-        self._settle(PatrolState.PATROLLING, f"{inside}: backing out the way it came")
-        return command
+        if command is not None:
+            self._settle(PatrolState.PATROLLING, f"{inside}: backing out the way it came")
+            return command
+        if self._inside_seen:
+            # A zone the lidar drew over a post it came too near, the way it came blocked (by
+            # that post, when it turned towards it): waiting would be for ever.
+            command = self._leave_seen(estimate)
+            if command is not None:
+                self._settle(PatrolState.PATROLLING, f"{inside}: leaving it the nearest way")
+                return command
+        return self._settle(
+            PatrolState.HOLDING, f"{inside}: an obstacle in the way it came (waiting)"
+        )
+
+    def _leave_seen(self, estimate: Estimate) -> Command | None:
+        """Out of the lidar's zone the robot is in, the shortest way: towards the zone's
+        nearest edge, or else straight the way the lidar leaves free if it leads away from
+        the zone's middle; None when neither can be driven (something that moves will)."""
+        from shapely import Point
+        from shapely.ops import nearest_points
+
+        assert self.area is not None
+        zone_id = self.area.keepout_at(estimate.x, estimate.y)
+        if zone_id is None:
+            return None
+        zone = self.area.keepouts[zone_id]
+        here = Point(estimate.x, estimate.y)
+        middle = zone.centroid
+        edge = nearest_points(zone.boundary, here)[0]
+        dx, dy = edge.x - here.x, edge.y - here.y
+        length = math.hypot(dx, dy)
+        if length < 1e-6:  # on the edge: straight away from the middle
+            dx, dy = here.x - middle.x, here.y - middle.y
+            length = math.hypot(dx, dy) or 1.0
+        reach = length + self.p.back_out_margin_m
+        command = self._back_to(
+            estimate, (here.x + dx / length * reach, here.y + dy / length * reach)
+        )
+        if command is not None:
+            return command
+        ahead, behind = self.blocked
+        # > 0: driving forward leads away from the zone's middle, < 0: reversing does.
+        outward = (here.x - middle.x) * math.cos(estimate.yaw) + (here.y - middle.y) * math.sin(
+            estimate.yaw
+        )
+        if outward > 0 and not ahead:
+            return Command(self.p.align_speed, 0.0)
+        if outward < 0 and not behind:
+            return Command(-self.p.align_speed, 0.0)
+        return None
 
     def _back_to(self, estimate: Estimate, target: XY) -> Command | None:
         """Slowly to ``target``, reversing when it is behind (the way it came); None when the
