@@ -27,7 +27,7 @@ import shapely
 import small_gicp
 from numpy.typing import NDArray
 
-from brasidas.perception.odometry import DEGENERATE_RATIO, LAYERS_M, Pose2D
+from brasidas.perception.odometry import DEGENERATE_RATIO, Pose2D, extrude
 
 SAMPLE_M = 0.1
 DOWNSAMPLE_M = 0.15
@@ -92,7 +92,7 @@ class MapMatcher:
         self._tree: small_gicp.KdTree | None = None
         if self.walls:
             self._target, self._tree = small_gicp.preprocess_points(
-                _extrude(walls_xy), DOWNSAMPLE_M, num_neighbors=10
+                extrude(walls_xy), DOWNSAMPLE_M, num_neighbors=10
             )
         self.matches = 0
         self.refused = 0
@@ -151,18 +151,7 @@ class MapMatcher:
             return "no walls in the map"
         if len(points_xy) < MIN_POINTS:
             return f"{len(points_xy)} returns (< {MIN_POINTS})"
-        source, _ = small_gicp.preprocess_points(
-            _extrude(points_xy), DOWNSAMPLE_M, num_neighbors=10
-        )
-        result = small_gicp.align(
-            self._target,
-            source,
-            self._tree,
-            guess.matrix(),
-            registration_type="GICP",
-            max_correspondence_distance=MAX_CORRESPONDENCE_M,
-            max_iterations=MAX_ITERATIONS,
-        )
+        result, source = align_to_walls(self._target, self._tree, points_xy, guess)
         if not result.converged:
             return "registration to the map did not converge"
         pose = Pose2D.of_matrix(np.asarray(result.T_target_source))
@@ -224,6 +213,25 @@ def _covariance(hessian: NDArray[np.float64], yaw: float) -> tuple[NDArray[np.fl
     return covariance, note
 
 
-def _extrude(points_xy: NDArray[np.float64]) -> NDArray[np.float64]:
-    n = len(points_xy)
-    return np.vstack([np.column_stack((points_xy, np.full(n, z))) for z in LAYERS_M])
+def align_to_walls(
+    target: small_gicp.PointCloud,
+    tree: small_gicp.KdTree,
+    points_xy: NDArray[np.float64],
+    guess: Pose2D,
+    *,
+    downsample_m: float = DOWNSAMPLE_M,
+    max_correspondence_m: float = MAX_CORRESPONDENCE_M,
+) -> tuple[small_gicp.RegistrationResult, small_gicp.PointCloud]:
+    """A scan's points registered by GICP to walls prepared with their kd-tree, from
+    ``guess``; and the scan as registered (downsampled, with covariances)."""
+    source, _ = small_gicp.preprocess_points(extrude(points_xy), downsample_m, num_neighbors=10)
+    result = small_gicp.align(
+        target,
+        source,
+        tree,
+        guess.matrix(),
+        registration_type="GICP",
+        max_correspondence_distance=max_correspondence_m,
+        max_iterations=MAX_ITERATIONS,
+    )
+    return result, source

@@ -178,7 +178,7 @@ class LidarOdometry:
         n = len(points_xy)
         if n < self.min_points:
             return self._fallback(now, guess, prior, f"{n} returns (< {self.min_points})", n)
-        cloud = _extrude(points_xy)
+        cloud = extrude(points_xy)
         source, _ = small_gicp.preprocess_points(cloud, DOWNSAMPLE_M, num_neighbors=10)
         if self.keyframe is None:  # the first scan starts the map
             self.map.insert(source, guess.matrix())
@@ -222,10 +222,11 @@ class LidarOdometry:
         return OdometryStep(now, guess, prior, "prior", reason, points, 0)
 
 
-def _extrude(points_xy: NDArray[np.float64]) -> NDArray[np.float64]:
+def extrude(points_xy: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Layers at each of :data:`LAYERS_M` (a wall is a plane to GICP); the first
+    ``len(points_xy)`` rows are the lowest layer."""
     n = len(points_xy)
-    layers = [np.column_stack((points_xy, np.full(n, z))) for z in LAYERS_M]
-    return np.vstack(layers)
+    return np.vstack([np.column_stack((points_xy, np.full(n, z))) for z in LAYERS_M])
 
 
 def _new_map() -> small_gicp.GaussianVoxelMap:

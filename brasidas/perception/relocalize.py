@@ -28,7 +28,8 @@ import small_gicp
 from numpy.typing import NDArray
 
 from brasidas.perception.grid import OccupancyGrid
-from brasidas.perception.odometry import DEGENERATE_RATIO, LAYERS_M, Pose2D
+from brasidas.perception.map_match import align_to_walls
+from brasidas.perception.odometry import DEGENERATE_RATIO, Pose2D, extrude
 
 OCCUPIED_LOG_ODDS = 1.0
 """A cell hit more often than crossed (two hits net): a wall of the map."""
@@ -53,7 +54,6 @@ DISTINCT_M = 1.0
 DISTINCT_RAD = math.radians(20.0)
 DOWNSAMPLE_M = 0.1
 MAX_CORRESPONDENCE_M = 1.0
-MAX_ITERATIONS = 30
 INLIER_M = 0.15
 MIN_FIT = 0.6
 """Of the scan's points, the share that must lie on the map's walls at the pose found (less
@@ -117,7 +117,7 @@ class GridRelocalizer:
         self._tree: small_gicp.KdTree | None = None
         if len(self.walls) >= MIN_POINTS:
             self._target, self._tree = small_gicp.preprocess_points(
-                _extrude(self.walls), DOWNSAMPLE_M, num_neighbors=10
+                extrude(self.walls), DOWNSAMPLE_M, num_neighbors=10
             )
 
     def positions(self) -> NDArray[np.float64]:
@@ -182,7 +182,7 @@ class GridRelocalizer:
         in the map's free space (the confidence test's measure; also to tell a lost match)."""
         assert self._tree is not None
         world = _transform(points_xy, pose)
-        _index, squared = self._tree.batch_nearest_neighbor_search(_extrude(world)[: len(world)])
+        _index, squared = self._tree.batch_nearest_neighbor_search(extrude(world)[: len(world)])
         on_walls = np.asarray(squared) < INLIER_M**2
         cells = np.floor((world - self.origin) / self.resolution).astype(np.intp)
         rows, cols = self.free.shape
@@ -262,15 +262,13 @@ class GridRelocalizer:
         """``guess`` registered to the walls: the pose, its fit, and whether the walls leave a
         direction free."""
         assert self._target is not None and self._tree is not None
-        source, _ = small_gicp.preprocess_points(_extrude(points), DOWNSAMPLE_M, num_neighbors=10)
-        result = small_gicp.align(
+        result, _ = align_to_walls(
             self._target,
-            source,
             self._tree,
-            guess.matrix(),
-            registration_type="GICP",
-            max_correspondence_distance=MAX_CORRESPONDENCE_M,
-            max_iterations=MAX_ITERATIONS,
+            points,
+            guess,
+            downsample_m=DOWNSAMPLE_M,
+            max_correspondence_m=MAX_CORRESPONDENCE_M,
         )
         pose = Pose2D.of_matrix(np.asarray(result.T_target_source)) if result.converged else guess
         eigen = np.linalg.eigvalsh(np.asarray(result.H)[3:5, 3:5])
@@ -302,10 +300,3 @@ def _transform(points_xy: NDArray[np.float64], pose: Pose2D) -> NDArray[np.float
             pose.y_m + s * points_xy[:, 0] + c * points_xy[:, 1],
         )
     )
-
-
-def _extrude(points_xy: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Layers at each of the odometry's heights (a wall is a plane to GICP); the first
-    ``len(points_xy)`` rows are the lowest layer."""
-    n = len(points_xy)
-    return np.vstack([np.column_stack((points_xy, np.full(n, z))) for z in LAYERS_M])
