@@ -135,22 +135,9 @@ def moved_m(robot: Robot) -> float:
     return math.hypot(here.x_m - START.x_m, here.y_m - START.y_m)
 
 
-SAFE_HOLDS = ("GPS fix", "planning the path", "holding, not placed", "holding: a place", "lost:")
-"""Holds on the way: a pose late on a loaded machine, a new plan, and the saved map's own
-(a starved machine's odometry can drift off the map: the robot holds and is placed again)."""
-
-
-async def laps_on_the_saved_map(robot: Robot, laps: int, timeout: float = 120.0) -> None:
-    def done() -> bool:
-        status = robot.status
-        if status.state == "holding" and not status.reason.startswith(SAFE_HOLDS):
-            raise AssertionError(f"holding: {status.reason}; history {robot.history()}")
-        return status.lap >= laps
-
-    try:
-        await wait_until(done, timeout)
-    except TimeoutError:
-        raise AssertionError(f"not {laps} laps in {timeout:g} s: {robot.history()}") from None
+SAVED_MAP_HOLDS = ("holding, not placed", "holding: a place", "lost:")
+"""The saved map's own holds on the way (a starved machine's odometry can drift off the map:
+the robot holds and is placed again)."""
 
 
 async def test_without_gps_a_robot_carried_10_m_is_placed_in_its_saved_map_and_patrols(
@@ -176,7 +163,7 @@ async def test_without_gps_a_robot_carried_10_m_is_placed_in_its_saved_map_and_p
         errors: list[float] = []
         robot.watchers.append(lambda pose, _here: errors.append(pose_error_m(pose, robot)))
         await robot.call("patrol_start")
-        await laps_on_the_saved_map(robot, 1)
+        await robot.drive_laps(1, 120.0, also_transient=SAVED_MAP_HOLDS)
         assert len(errors) > 50
         # The patrol's pose against the truth: a wrong place (10 m, 90° off) or a drift left
         # uncorrected would be metres. The worst is a pose late on a loaded machine (at 2 m/s

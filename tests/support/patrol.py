@@ -108,15 +108,22 @@ class Robot:
                 changes.append(change)
         return changes
 
-    async def drive_laps(self, laps: int, timeout: float = 150.0) -> None:
+    async def drive_laps(
+        self, laps: int, timeout: float = 150.0, also_transient: tuple[str, ...] = ()
+    ) -> None:
         """Until the patrol has completed ``laps``; fails at once, with the patrol's history,
-        if it holds for anything but a late fix (a busy machine can delay one) or the new
-        plan of a changed map (built off the event loop)."""
+        if it holds for anything but a late fix (a busy machine can delay one), the new
+        plan of a changed map (built off the event loop) or ``also_transient``'s reasons."""
 
         def done() -> bool:
             status = self.status
             # a late fix, a map change, a plan asked of the planner process
-            transient = ("GPS fix", "waiting for the new plan", "planning the path")
+            transient = (
+                "GPS fix",
+                "waiting for the new plan",
+                "planning the path",
+                *also_transient,
+            )
             if status.state == "holding" and not any(t in status.reason for t in transient):
                 raise AssertionError(f"holding: {status.reason}; history {self.history()}")
             return status.lap >= laps
