@@ -146,14 +146,19 @@ async def test_every_channel_the_station_advertises_is_fed(
             lines = await client
         finally:
             client.cancel()
-        # The platform's recording of the same minute, fetched as an operator would.
+        # The platform's recording of the same minute, fetched as an operator would, until its
+        # closed chunks hold what was fed live (the writer's thread may lag under load).
         (active,) = (tmp_path / "recordings").glob("*.mcap.active")
         copy = tmp_path / "now.mcap"
-        code, _, err = await run_cli(
-            station, "logs", "rover-fa", "get", active.name, "-o", str(copy)
-        )
-        assert code == 0, err
-    recorded_topics = await asyncio.to_thread(topics_of, copy)
+        fed = {"/gps", "/pose", "/navcam", "/commands", "/state", "/motor/command"}
+        recorded_topics: dict[str, str] = {}
+        deadline = asyncio.get_running_loop().time() + 20
+        while not fed <= recorded_topics.keys() and asyncio.get_running_loop().time() < deadline:
+            code, _, err = await run_cli(
+                station, "logs", "rover-fa", "get", active.name, "-o", str(copy)
+            )
+            assert code == 0, err
+            recorded_topics = await asyncio.to_thread(topics_of, copy)
     advertised = {line["advertised"]: line["schema"] for line in lines if "advertised" in line}
     messages: dict[str, list[dict[str, Any]]] = {}
     for line in lines:
@@ -185,7 +190,7 @@ async def test_every_channel_the_station_advertises_is_fed(
     channels = {spec.topic: spec.schema_name for spec in recorded.all_channels()}
     assert {topic: channels.get(topic) for topic in advertised} == advertised
     shared = advertised.keys() & recorded_topics.keys()
-    assert {"/gps", "/pose", "/navcam", "/commands", "/state", "/motor/command"} <= shared
+    assert fed <= shared, fed - shared
     assert {topic: recorded_topics[topic] for topic in shared} == {
         topic: advertised[topic] for topic in shared
     }
