@@ -93,6 +93,12 @@ class KeyframeClock:
         last = self._last_forced if self.congested else self._last_requested
         return last is None or now - last >= self.min_request_gap_s
 
+    def answers_now(self, now: float) -> bool:
+        """Whether a request waits and its gap is over: the next frame answers it, so a
+        copy of the newest frame may be encoded at once (:mod:`~brasidas.media.keyframe_now`)
+        instead of waiting for the camera's next."""
+        return self._pending and self._gap_over(now)
+
     def on_frame(self, now: float, resume: bool = False) -> bool:
         """A raw frame goes into the encoder: True when it must be encoded as a keyframe.
         ``resume``: the first frame after the sender paused for a link's queue to drain (a

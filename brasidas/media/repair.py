@@ -292,6 +292,15 @@ class RepairCounters:
     """The depayloader's own requests dropped because one was asked just before."""
 
 
+SILENCE_DROPOUT_MS = 1
+"""The jitter buffer's ``max-dropout-time`` while a silence beyond repair ends: any gap of
+at least its floor (30 packets) is then given up at once, not asked for again."""
+SILENCE_FASTSTART_PACKETS = 3
+"""... and its ``faststart-min-packets`` meanwhile: the packets after that gap go out as soon
+as this many are in a row, not after the whole ``latency`` (a new stream's wait)."""
+DEFAULT_DROPOUT_MS = 60000
+"""rtpjitterbuffer's own ``max-dropout-time`` (and ``faststart-min-packets`` 0), set back."""
+
 KEYFRAME_ASKED_HOLD_S = 0.15
 """After the receiver asked for a keyframe at a silence's end, the depayloader's own request
 (made once the jitter buffer has given the silence's packets up, ~5-40 ms later) would only
@@ -350,6 +359,8 @@ class RepairReceiver:
     keyframe_requests_held: int = 0
     asked_at: float | None = None
     """time.monotonic() of the newest keyframe asked after a silence."""
+    skipping_until: float | None = None
+    """The jitter buffers give a silence's gap up at once until then (:meth:`skip_silence`)."""
     depayloader_sink: Any = None
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -394,6 +405,33 @@ class RepairReceiver:
                 Gst.Structure.new_from_string(_SILENCE_KEYFRAME_REQUEST),
             )
         )
+
+    def skip_silence(self, now: float) -> None:
+        """Streaming thread, before the packet that ended the silence enters the jitter buffer:
+        its frames are beyond repair and the picture comes back only with the keyframe just
+        asked, so the gap is not asked for again and does not hold that keyframe back. (With
+        their defaults the jitter buffers asked for the last ``latency`` of the silence's
+        packets, ~60 at 30 fps, and let nothing out until those had come: the keyframe waited
+        5-35 ms behind retransmissions that no decoder could use.) A gap of at least 30 packets
+        makes rtpjitterbuffer start afresh at the first packets in a row after it."""
+        with self._lock:
+            buffers = list(self.jitterbuffers)
+        for jitterbuffer in buffers:
+            jitterbuffer.set_property("max-dropout-time", SILENCE_DROPOUT_MS)
+            jitterbuffer.set_property("faststart-min-packets", SILENCE_FASTSTART_PACKETS)
+        self.skipping_until = now + KEYFRAME_ASKED_HOLD_S
+
+    def end_skipping(self, now: float) -> None:
+        """Streaming thread: the jitter buffers' own settings back once the silence's gap was
+        given up (a later gap is asked for again as usual)."""
+        if self.skipping_until is None or now < self.skipping_until:
+            return
+        self.skipping_until = None
+        with self._lock:
+            buffers = list(self.jitterbuffers)
+        for jitterbuffer in buffers:
+            jitterbuffer.set_property("max-dropout-time", DEFAULT_DROPOUT_MS)
+            jitterbuffer.set_property("faststart-min-packets", 0)
 
 
 _SILENCE_KEYFRAME_REQUEST = (
@@ -574,6 +612,9 @@ def _watch_silence(pad: Any, info: Any, receiver: RepairReceiver) -> Any:
         seq = int.from_bytes(header[2:4], "big")
         if receiver.silence.on_packet(seq, int.from_bytes(header[4:8], "big"), now):
             receiver.ask_keyframe(now)
+            receiver.skip_silence(now)
+        else:
+            receiver.end_skipping(now)
     return gst().PadProbeReturn.OK
 
 

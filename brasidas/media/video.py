@@ -51,6 +51,7 @@ from brasidas.media.gst import (
     set_prop,
     stamp_capture_time,
 )
+from brasidas.media.keyframe_now import KeyframeNow
 from brasidas.media.keyframes import (
     KEYFRAME_INTERVAL_S,
     REFRESH_KEYFRAME_INTERVAL_S,
@@ -205,6 +206,9 @@ class VideoOut(FanOutStream[VideoSettings]):
         """The ULPFEC overhead now (percent of the media packets)."""
         self._keyframes_lock = threading.Lock()
         """The clock is used by the streaming thread, RTCP's thread and the event loop."""
+        self._keyframe_now: KeyframeNow | None = None
+        """Answers a request with the newest frame encoded again at once (not with intra
+        refresh: x264 then answers with a new sweep, not a keyframe)."""
         self._forced_seqnums: collections.deque[int] = collections.deque(maxlen=8)
         """Our own force-key-unit events, told apart from a receiver's request (PLI/FIR)."""
         self.feedback: FeedbackSocket | None = None
@@ -276,6 +280,7 @@ class VideoOut(FanOutStream[VideoSettings]):
             "tail_copies": self.tail_copies_sent(),
             "keyframes_requested": self.keyframes.counters.requested,
             "keyframe_requests_deferred": self.keyframes.counters.deferred,
+            "keyframes_at_once": self.keyframes_at_once,
         }
 
     def tail_copies_sent(self) -> int:
@@ -477,9 +482,27 @@ class VideoOut(FanOutStream[VideoSettings]):
             self._rtx_probe = None
 
     def request_keyframe(self) -> None:
-        """Make the next frame a keyframe (rate-limited: deferred, never dropped); any thread."""
+        """Make the next frame a keyframe (rate-limited: deferred, never dropped); any thread.
+        Answered at once by the newest frame encoded again, unless the link is congested (the
+        copy would add to its queue: the next frame answers, as before)."""
+        now = time.monotonic()
         with self._keyframes_lock:
-            self.keyframes.request(time.monotonic())
+            self.keyframes.request(now)
+            at_once = (
+                self.keyframes.answers_now(now)
+                and not self.keyframes.congested
+                and not self.keyframe_after_pause
+                and self.budget.paused_until <= now
+                and self.thinning == 1
+            )
+        keyframe_now = self._keyframe_now
+        if at_once and keyframe_now is not None:
+            keyframe_now.ask()
+
+    @property
+    def keyframes_at_once(self) -> int:
+        """Requests answered at once by the newest frame encoded again (this pipeline's)."""
+        return self._keyframe_now.injected if self._keyframe_now is not None else 0
 
     def set_framerate(self, fps: int) -> None:
         """Change the sent framerate; applied live (keyframe interval follows). Event loop."""
@@ -611,6 +634,8 @@ class VideoOut(FanOutStream[VideoSettings]):
                 REFRESH_KEYFRAME_INTERVAL_S if refresh else KEYFRAME_INTERVAL_S
             )
             self.keyframes.set_framerate(self.settings.framerate)
+        if not refresh:
+            self._keyframe_now = KeyframeNow(encoder.get_static_pad("sink"), self.name)
         encoder.get_static_pad("sink").add_probe(
             Gst.PadProbeType.BUFFER, _force_keyframe_probe, ref
         )
@@ -641,6 +666,9 @@ class VideoOut(FanOutStream[VideoSettings]):
             self.feedback = None
         if self._tail_copies is not None:
             self._tail_copies.close()
+        if self._keyframe_now is not None:
+            self._keyframe_now.close()
+            self._keyframe_now = None
 
     def _add_tap(self, pipeline: Any, tee: Any) -> None:
         """tee → leaky queue → h264parse (SPS/PPS on every keyframe, Annex B, whole access
@@ -787,8 +815,17 @@ def _force_keyframe_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> An
     stream = ref()
     encoder = pad.get_parent_element()
     if stream is not None and encoder is not None:
+        now = time.monotonic()
+        keyframe_now = stream._keyframe_now
         with stream._keyframes_lock:
-            force = stream.keyframes.on_frame(time.monotonic(), stream.keyframe_after_pause)
+            if keyframe_now is not None and keyframe_now.is_injecting():
+                # The newest frame again, for a request: only while one still waits.
+                wanted = stream.keyframes.answers_now(now)
+                if not keyframe_now.admit(info.get_buffer(), wanted):
+                    return gst().PadProbeReturn.DROP
+            elif keyframe_now is not None:
+                keyframe_now.keep(info.get_buffer())
+            force = stream.keyframes.on_frame(now, stream.keyframe_after_pause)
             stream.keyframe_after_pause = False
         if force:
             event = _force_key_unit_event()

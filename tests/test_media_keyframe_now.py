@@ -1,0 +1,152 @@
+"""The picture back right after a blackout: the sender answers a keyframe request with the
+newest frame encoded again at once (not with the camera's next capture), and the receiver
+gives up the silence's packets instead of holding the keyframe behind their repair."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from dataclasses import dataclass
+
+from conftest import free_udp_port, wait_until
+from lossy_udp import LossyRelay
+
+from brasidas.media.keyframes import KeyframeClock
+from brasidas.media.repair import DEFAULT_DROPOUT_MS
+from brasidas.media.video import VideoIn, VideoOut, VideoSettings
+
+
+@dataclass(frozen=True)
+class _AccessUnit:
+    keyframe: bool
+    captured_ns: int
+
+
+class _Encoded:
+    """The encoded stream as sent (the recorder's tap): each access unit's kind and the
+    capture time of the picture it holds."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.units: list[_AccessUnit] = []
+
+    def __call__(self, annex_b: bytes, keyframe: bool, captured_ns: int) -> None:
+        with self._lock:
+            self.units.append(_AccessUnit(keyframe, captured_ns))
+
+    def since(self, start: int) -> list[_AccessUnit]:
+        with self._lock:
+            return self.units[start:]
+
+    def count(self) -> int:
+        with self._lock:
+            return len(self.units)
+
+
+def test_a_request_is_answered_now_only_once_its_gap_is_over() -> None:
+    clock = KeyframeClock(30, min_request_gap_s=0.25)
+    assert clock.on_frame(0.0)
+    assert not clock.answers_now(0.01)  # nothing asked
+    clock.request(0.02)
+    assert clock.answers_now(0.02)
+    assert clock.on_frame(0.021)  # the frame encoded at once answers it
+    assert not clock.answers_now(0.03)
+    clock.request(0.1)  # 80 ms after the last one asked: deferred to the gap's end
+    assert not clock.answers_now(0.1)
+    assert clock.answers_now(0.28)
+
+
+async def _just_after_a_frame(log: _Encoded) -> int:
+    """Wait for the next access unit; returns how many there are then."""
+    count = log.count()
+    await wait_until(lambda: log.count() > count, timeout=10)
+    return log.count()
+
+
+async def test_a_keyframe_request_is_answered_by_the_newest_frame_encoded_at_once() -> None:
+    log = _Encoded()
+    # 2 fps: the camera's next frame is 500 ms away when the request comes.
+    settings = VideoSettings(test_source=True, port=free_udp_port(), framerate=2)
+    stream = VideoOut("navcam", settings)
+    stream.access_unit_sinks.append(log)
+    try:
+        await stream.start()
+        await wait_until(lambda: log.count() >= 3, timeout=10)
+        start = await _just_after_a_frame(log)
+        newest = log.since(start - 1)[0]
+        assert not newest.keyframe
+        stream.request_keyframe()
+        await wait_until(lambda: log.count() > start, timeout=10)
+        answer = log.since(start)[0]
+        # The very next access unit is the keyframe, of the same picture as the frame before
+        # it (its capture time): encoded at once, not at the camera's next capture.
+        assert answer.keyframe
+        assert answer.captured_ns == newest.captured_ns
+        assert stream.describe()["keyframes_at_once"] == 1
+
+        # On a congested link the copy would only add to the queue: the camera's next frame
+        # answers, as before.
+        stream.keyframes.congested = True
+        await asyncio.sleep(0.3)  # the rate limit's gap since the last keyframe asked
+        start = await _just_after_a_frame(log)
+        newest = log.since(start - 1)[0]
+        stream.request_keyframe()
+        await wait_until(lambda: log.count() > start, timeout=10)
+        answer = log.since(start)[0]
+        assert answer.keyframe
+        assert answer.captured_ns > newest.captured_ns
+        assert stream.describe()["keyframes_at_once"] == 1
+    finally:
+        await stream.stop()
+
+
+class _Blackout(LossyRelay):
+    """A loopback UDP relay that loses everything while ``cut``."""
+
+    def __init__(self, to: tuple[str, int]) -> None:
+        self.cut = False  # before the relay's thread starts
+        super().__init__(to, loss=0.0)
+
+    def lost(self, data: bytes) -> bool:
+        return self.cut
+
+
+async def test_after_a_blackout_beyond_repair_its_packets_are_not_asked_for_again() -> None:
+    port = free_udp_port()
+    receiver = VideoIn("rx", host="127.0.0.1", port=port)
+    await receiver.start()
+    media = _Blackout(("127.0.0.1", port))
+    sender = VideoOut(
+        "navcam",
+        VideoSettings(test_source=True, host="127.0.0.1", port=media.port, pattern="smpte"),
+    )
+    feedback: _Blackout | None = None
+    try:
+        await sender.start()
+        assert sender.feedback is not None
+        feedback = _Blackout(("127.0.0.1", sender.feedback.port))
+        receiver.set_feedback("127.0.0.1", feedback.port)
+        await wait_until(lambda: receiver.frames >= 30, timeout=20)
+        assert receiver.repairs is not None
+        before = receiver.repairs.counters()
+        frames = receiver.frames
+        media.cut = feedback.cut = True
+        await asyncio.sleep(0.4)  # ~10 frames, ~50 packets: past the repair's 200 ms
+        media.cut = feedback.cut = False
+        await wait_until(lambda: receiver.frames >= frames + 30, timeout=20)
+        after = receiver.repairs.counters()
+        # A keyframe was asked at the first packet after the silence, and none of the
+        # silence's packets: no decoder could use them. (The jitter buffer asked for the last
+        # 200 ms of them, ~40, and let the keyframe out only once they had come.)
+        assert after.keyframes_after_silence == before.keyframes_after_silence + 1, after
+        assert after.retransmission_requests - before.retransmission_requests < 5, after
+        # Its own settings back for the next gap (a lost packet is asked for again).
+        jitterbuffer = receiver.repairs.jitterbuffers[0]
+        assert jitterbuffer.get_property("max-dropout-time") == DEFAULT_DROPOUT_MS
+        assert jitterbuffer.get_property("faststart-min-packets") == 0
+    finally:
+        await sender.stop()
+        await receiver.stop()
+        media.close()
+        if feedback is not None:
+            feedback.close()
