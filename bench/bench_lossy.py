@@ -8,8 +8,8 @@ frames, glass-to-glass at the station's decoder, bitrate, the sender's retransmi
 keyframe requests, and deadman stops (telemetry's deadman flag, sampled every 100 ms).
 
 Rows are named ``fps{30,5}_loss{0,1,2,5,10}`` (random loss both ways), ``fps30_burst{100,300}ms``
-(the link cut that long every 5 s) and ``fps30_cap500k`` (capacity 2 Mbit/s, dropped to
-500 kbit/s after 5 s). ``--seconds N`` (default 60) sets each row's length, ``--rows a,b``
+(the link cut that long every 5 s), ``fps30_cap500k`` (capacity 2 Mbit/s, dropped to
+500 kbit/s after 5 s) and ``fps30_loss{0,10}_delay20`` (20 ms each way, a mesh's hops). ``--seconds N`` (default 60) sets each row's length, ``--rows a,b``
 runs only those rows (``BENCH_SECONDS``, ``BENCH_ROWS`` in the environment).
 """
 
@@ -49,6 +49,8 @@ class Row:
     burst_s: float = 0.0
     cap_kbps: tuple[float, float] | None = None
     """Capacity before and after the drop."""
+    delay_s: float = 0.0
+    """One way, each way (a mesh's hops): the repair then costs a real round trip."""
 
 
 ROWS: dict[str, Row] = {
@@ -57,6 +59,10 @@ ROWS: dict[str, Row] = {
     "fps30_burst100ms": Row(30, burst_s=0.1),
     "fps30_burst300ms": Row(30, burst_s=0.3),
     "fps30_cap500k": Row(30, cap_kbps=(2000, 500)),
+    # A mesh's round trip (20 ms each way): glass-to-glass at 10 % loss against the same
+    # link's lossless figure, the repair's round trip then the one that counts.
+    "fps30_loss0_delay20": Row(30, delay_s=0.02),
+    "fps30_loss10_delay20": Row(30, 0.1, delay_s=0.02),
 }
 
 
@@ -97,7 +103,11 @@ async def _row(
         command=5,
         payload=f"navcam={row.fps}",
     )
-    first = Profile(rate_kbps=row.cap_kbps[0]) if row.cap_kbps else Profile(loss=row.loss)
+    first = (
+        Profile(rate_kbps=row.cap_kbps[0])
+        if row.cap_kbps
+        else Profile(loss=row.loss, delay=row.delay_s)
+    )
     fleet.net.impair(host.name, down=first, up=first)
     sender_before = await _navcam(fleet, station, platform_id)
     await fleet.api(station, "receive", platform_id=platform_id, stream="navcam")

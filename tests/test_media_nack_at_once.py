@@ -1,0 +1,152 @@
+"""A lost packet is asked for as soon as its gap shows, and asked again soon after a round
+trip: the repair's wait is the link's round trip, not the RTCP schedule's."""
+
+from __future__ import annotations
+
+import statistics
+import threading
+import time
+
+from conftest import free_udp_port, wait_until
+from lossy_udp import LossyRelay
+
+from brasidas.media.repair import (
+    REPAIR_LATENCY_MS,
+    RTX_MAX_RETRIES,
+    asks_repair,
+    rtx_retry_ms,
+)
+from brasidas.media.video import PAYLOAD_TYPE, VideoIn, VideoOut, VideoSettings
+
+RTCP_RTPFB = 205
+NACK_FMT = 1
+
+
+def nacked(rtcp: bytes) -> list[int]:
+    """The sequence numbers a (compound or reduced-size) RTCP packet asks for (RFC 4585)."""
+    asked: list[int] = []
+    offset = 0
+    while offset + 4 <= len(rtcp):
+        length = (int.from_bytes(rtcp[offset + 2 : offset + 4], "big") + 1) * 4
+        if rtcp[offset + 1] == RTCP_RTPFB and rtcp[offset] & 0x1F == NACK_FMT:
+            fci = rtcp[offset + 12 : offset + length]
+            for at in range(0, len(fci) - 3, 4):
+                pid = int.from_bytes(fci[at : at + 2], "big")
+                mask = int.from_bytes(fci[at + 2 : at + 4], "big")
+                asked.append(pid)
+                asked += [(pid + bit + 1) & 0xFFFF for bit in range(16) if mask >> bit & 1]
+        offset += length
+    return asked
+
+
+class _DropSome(LossyRelay):
+    """Loses the first copy of every 15th media packet that is not a frame's last (so the
+    gap shows at once, at the next packet of the same frame); notes when each gap showed."""
+
+    def __init__(self, to: tuple[str, int]) -> None:
+        self._lock = threading.Lock()  # before the relay's thread starts
+        self.missing: set[int] = set()
+        self.gap_seen: dict[int, float] = {}
+        self._count = 0
+        super().__init__(to, loss=0.0)
+
+    def lost(self, data: bytes) -> bool:
+        if len(data) < 4 or data[1] & 0x7F != PAYLOAD_TYPE:
+            return False
+        seq = int.from_bytes(data[2:4], "big")
+        with self._lock:
+            for missing in self.missing:
+                if missing not in self.gap_seen and (seq - missing) & 0xFFFF < 0x8000:
+                    self.gap_seen[missing] = time.monotonic()
+            if data[1] & 0x80 or seq in self.missing:
+                return False
+            self._count += 1
+            if self._count % 15:
+                return False
+            self.missing.add(seq)
+            return True
+
+
+class _Feedback(LossyRelay):
+    """Passes the receiver's RTCP on, noting when each NACKed sequence number was asked."""
+
+    def __init__(self, to: tuple[str, int]) -> None:
+        self._lock = threading.Lock()
+        self.asked: dict[int, float] = {}
+        """When each sequence number was first asked for."""
+        self.times: dict[int, list[float]] = {}
+        """Every datagram's time that asked for it."""
+        super().__init__(to, loss=0.0)
+
+    def lost(self, data: bytes) -> bool:
+        now = time.monotonic()
+        with self._lock:
+            for seq in nacked(data):
+                self.asked.setdefault(seq, now)
+                self.times.setdefault(seq, []).append(now)
+        return False
+
+
+async def test_a_missing_packet_is_asked_for_as_soon_as_its_gap_shows() -> None:
+    port = free_udp_port()
+    receiver = VideoIn("rx", host="127.0.0.1", port=port)
+    await receiver.start()
+    media = _DropSome(("127.0.0.1", port))
+    sender = VideoOut(
+        "navcam",
+        VideoSettings(test_source=True, host="127.0.0.1", port=media.port, pattern="smpte"),
+    )
+    feedback: _Feedback | None = None
+    try:
+        await sender.start()
+        assert sender.feedback is not None
+        feedback = back = _Feedback(("127.0.0.1", sender.feedback.port))
+        receiver.set_feedback("127.0.0.1", back.port)
+        await wait_until(lambda: len(back.asked) >= 40, timeout=30)
+        with media._lock, back._lock:
+            waits = [
+                (back.asked[seq] - seen) * 1000
+                for seq, seen in media.gap_seen.items()
+                if seq in back.asked
+            ]
+        assert len(waits) >= 30, waits
+        # Each NACK left with the packet after the gap, give or take the threads' scheduling.
+        # (Held to the RTCP schedule, AVPF's one early packet per interval, whose early slots
+        # the transport-wide feedback also takes: 13 ms at the median, 23 at p90.)
+        within = sum(wait < 10 for wait in waits) / len(waits)
+        assert within >= 0.75, (statistics.median(waits), sorted(waits))
+        # Each ask went twice (a lost NACK cost its frame a second try), the copy at once.
+        with back._lock:
+            twice = [len([t for t in at if t - at[0] < 0.005]) >= 2 for at in back.times.values()]
+        assert sum(twice) >= 0.9 * len(twice), back.times
+        # And each was repaired.
+        assert receiver.repairs is not None
+        counters = receiver.repairs.counters()
+        assert counters.lost == 0, counters
+        assert counters.nack_copies >= len(twice) / 2, counters
+    finally:
+        await sender.stop()
+        await receiver.stop()
+        media.close()
+        if feedback is not None:
+            feedback.close()
+
+
+def test_only_feedback_that_asks_for_a_repair_is_copied() -> None:
+    receiver_report = bytes([0x81, 201, 0, 7]) + bytes(28)
+    nack = bytes([0x81, RTCP_RTPFB, 0, 3]) + bytes(8) + bytes([0x12, 0x34, 0, 0])
+    transport_wide = bytes([0x8F, RTCP_RTPFB, 0, 2]) + bytes(8)
+    assert asks_repair(receiver_report + nack)
+    assert asks_repair(nack)  # reduced size: the NACK alone
+    assert not asks_repair(receiver_report + transport_wide)
+    assert not asks_repair(bytes([0x81, RTCP_RTPFB]))  # truncated: not read as one
+
+
+def test_a_repair_is_asked_again_after_a_round_trip_and_a_half_not_33_ms() -> None:
+    # A lost NACK or retransmission (a fifth of the first tries at 10 % loss each way) cost
+    # its frame the 33 ms floor on a 2 ms round trip.
+    assert rtx_retry_ms(2.0) <= 10
+    assert rtx_retry_ms(30.0) == 45  # a round trip and a half on a slow link
+    # The tries still cover the whole budget at the shortest wait (a stall of a loaded
+    # machine does not use them all up before the frame's deadline).
+    assert RTX_MAX_RETRIES * rtx_retry_ms(0.5) >= REPAIR_LATENCY_MS * 0.9
