@@ -246,6 +246,9 @@ async def _row(
         # their deadline), and the depayloader's own requests dropped as the same one.
         "keyframes_after_silence": repair.get("keyframes_after_silence"),
         "keyframe_requests_held": repair.get("keyframe_requests_held"),
+        # Requests answered at once by the newest frame encoded again (not the camera's next).
+        "keyframes_at_once": sender.get("keyframes_at_once", 0)
+        - sender_before.get("keyframes_at_once", 0),
         "tail_copies": sender.get("tail_copies", 0) - sender_before.get("tail_copies", 0),
         # Where frames go on a perfect link under load: packets the receiver's jitter buffer
         # had to give up as too late (a frame that cannot arrive in time is dropped; and the

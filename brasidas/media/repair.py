@@ -27,10 +27,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from brasidas.media.gst import caps, gst, make
-from brasidas.media.twcc import RTCP_RTPFB
-
-NACK_FMT = 1
-"""RTPFB's generic NACK (RFC 4585 6.2.1)."""
 
 MEDIA_PAYLOAD_TYPE = 96
 """The H.264 packets' payload type (the sender's ``rtph264pay pt``)."""
@@ -307,8 +303,6 @@ class RepairCounters:
     deadline (:class:`SilenceWatch`), not after the repairs that could no longer help."""
     keyframe_requests_held: int = 0
     """The depayloader's own requests dropped because one was asked just before."""
-    nack_copies: int = 0
-    """Feedback packets asking for a repair sent twice (:func:`_send_nacks_twice`)."""
 
 
 SILENCE_DROPOUT_MS = 1
@@ -378,7 +372,6 @@ class RepairReceiver:
     keyframe_requests_held: int = 0
     asked_at: float | None = None
     """time.monotonic() of the newest keyframe asked after a silence."""
-    nack_copies: int = 0
     skipping_until: float | None = None
     """The jitter buffers give a silence's gap up at once until then (:meth:`skip_silence`)."""
     depayloader_sink: Any = None
@@ -393,7 +386,6 @@ class RepairReceiver:
             keyframe_requests=self.keyframe_requests,
             keyframes_after_silence=self.keyframes_after_silence,
             keyframe_requests_held=self.keyframe_requests_held,
-            nack_copies=self.nack_copies,
         )
         with self._lock:
             buffers = list(self.jitterbuffers)
@@ -460,37 +452,6 @@ _SILENCE_KEYFRAME_REQUEST = (
     " count=(uint)0, after-silence=(boolean)true"
 )
 """The depayloader's own request's fields (the RTP session reads them), and a mark of ours."""
-
-
-def asks_repair(rtcp: bytes) -> bool:
-    """Whether an RTCP packet (compound or reduced-size) holds a NACK (RFC 4585 RTPFB 1)."""
-    offset = 0
-    while offset + 4 <= len(rtcp):
-        if rtcp[offset + 1] == RTCP_RTPFB and rtcp[offset] & 0x1F == NACK_FMT:
-            return True
-        offset += (int.from_bytes(rtcp[offset + 2 : offset + 4], "big") + 1) * 4
-    return False
-
-
-def _send_nacks_twice(pad: Any, info: Any, data: tuple[RepairReceiver, threading.local]) -> Any:
-    """RTCP's thread, each feedback packet leaving the receiver: one that asks for a repair
-    goes twice. A lost NACK cost its frame a second try, a round trip and a half later, and
-    at 10 % loss each way a first try fails 19 % of the time (the NACK or the copy lost): a
-    tenth of the frames at 30 fps, the p95 of glass-to-glass. Sent twice, the sender answers
-    each it gets: 3.6 % fail. The cost is the repairs sent twice when both arrive, on a link
-    that loses packets (on a clean one there are no NACKs to copy)."""
-    receiver, copying = data
-    buffer = info.get_buffer()
-    if getattr(copying, "now", False) or buffer is None:
-        return gst().PadProbeReturn.OK
-    if asks_repair(buffer.extract_dup(0, min(buffer.get_size(), 1500))):
-        copying.now = True  # the copy passes this probe as it is
-        try:
-            pad.push(buffer.copy_region(gst().BufferCopyFlags.MEMORY, 0, buffer.get_size()))
-            receiver.nack_copies += 1
-        finally:
-            copying.now = False
-    return gst().PadProbeReturn.OK
 
 
 def _uint(structure: Any, key: str) -> int:
@@ -597,9 +558,6 @@ def add_repair_receiver(
         pipeline.add(element)
     _link(source, "src", rtpbin, "recv_rtp_sink_0")
     _link(rtpbin, "send_rtcp_src_0", feedback_sink, "sink")
-    rtpbin.get_static_pad("send_rtcp_src_0").add_probe(
-        gst().PadProbeType.BUFFER, _send_nacks_twice, (receiver, threading.local())
-    )
     session = rtpbin.emit("get-session", 0)
     session.set_property("rtcp-fraction", FEEDBACK_BYTES_PER_S)
     session.set_property("rtcp-min-interval", FEEDBACK_INTERVAL_NS)
