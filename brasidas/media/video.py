@@ -99,6 +99,13 @@ X264_VBV_MS = 200
 """x264's rate-control buffer: how far one frame may exceed the bitrate's share (measured at
 a 2 Mbit/s → 500 kbit/s drop: with 600 ms, the keyframe after it was lost to the link's
 queue and the picture froze 0.8-1.1 s; with 200 ms, 0.5-0.6 s)."""
+X264_RECOVERY_VBV_MS = 50
+"""x264's rate-control buffer from a drain pause until the bitrate is no longer held
+(:class:`~brasidas.media.bitrate.FrameBudget`'s window): the keyframe after the pause is then
+made at the lowered bitrate's size, not at what the buffer still allowed (measured at the cut
+to 450 kbit/s: 5.7 kB at 320x240, 7.5 kB at 640x480 with 200 ms, each ~100 ms of a
+500 kbit/s link before the picture could restart; 1.9-2.0 kB with 50 ms, and the frames
+after it within the bitrate at once instead of a second's catching up)."""
 ENCODER_GOP_S = 10
 """The encoder's own keyframe interval, a backstop only: :class:`KeyframeClock` forces the
 keyframes, at the current framerate (the encoders' own settings cannot change while running)."""
@@ -219,6 +226,8 @@ class VideoOut(FanOutStream[VideoSettings]):
         self.resolution = ResolutionChoice()
         """Half the picture's width and height while the bitrate is too low for all of it."""
         self._scale_filter: Any = None
+        self._vbv_ms = X264_VBV_MS
+        """x264's rate-control buffer now (:meth:`_follow_recovery_vbv`)."""
         self.retransmit = True
         self.retransmissions_dropped = 0
         self._dropped_seen = 0
@@ -389,8 +398,20 @@ class VideoOut(FanOutStream[VideoSettings]):
             _set_bitrate(self._encoder, self.encoder_name, self.media_bitrate_kbps())
         with self._keyframes_lock:
             self.budget.set_rate(self.current_bitrate_kbps(), now)
+        self._follow_recovery_vbv(now)
         self._follow_resolution(now)
         return kbps
+
+    def _follow_recovery_vbv(self, now: float) -> None:
+        """x264's short rate-control buffer while the bitrate is held after a drain pause
+        (:data:`X264_RECOVERY_VBV_MS`), its usual one after; applied live (x264 reconfigures
+        at its next frame, before the keyframe the pause ends with)."""
+        if self.encoder_name != "x264enc" or self._encoder is None:
+            return
+        vbv_ms = X264_RECOVERY_VBV_MS if now < self.budget.enforced_until else X264_VBV_MS
+        if vbv_ms != self._vbv_ms:
+            self._vbv_ms = vbv_ms
+            self._encoder.set_property("vbv-buf-capacity", vbv_ms)
 
     def _follow_resolution(self, now: float) -> None:
         """Halve the picture's size when the bitrate cannot carry all of it, and back (the
@@ -525,6 +546,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         convert = make("videoconvert")
         encoder = make(encoder_name, "encoder")
         _configure_encoder(encoder, encoder_name, s)
+        self._vbv_ms = X264_VBV_MS  # as configured; a held bitrate's shorter one follows
         _set_bitrate(encoder, encoder_name, self.media_bitrate_kbps())  # as adapted so far
         h264_caps = _h264_caps(encoder_name)
         if s.uses_intra_refresh(encoder_name):
