@@ -10,11 +10,19 @@ from __future__ import annotations
 
 import threading
 import time
+import weakref
 
 from conftest import free_udp_port, wait_until
 
+from brasidas.media.gst import gst
 from brasidas.media.twcc import QueueOveruse
-from brasidas.media.video import X264_RECOVERY_VBV_MS, X264_VBV_MS, VideoOut, VideoSettings
+from brasidas.media.video import (
+    X264_RECOVERY_VBV_MS,
+    X264_VBV_MS,
+    VideoOut,
+    VideoSettings,
+    _thinning_probe,
+)
 
 CUT_KBPS = 450
 """Where the pause's deep cut takes the 1.5 Mbit/s ceiling (0.3x)."""
@@ -73,3 +81,22 @@ async def test_the_keyframe_after_a_drain_pause_is_small_for_the_lowered_bitrate
         assert encoder.get_property("vbv-buf-capacity") == X264_VBV_MS
     finally:
         await stream.stop()
+
+
+def test_the_thinning_lets_the_frame_that_ends_a_drain_pause_through() -> None:
+    Gst = gst()
+    stream = VideoOut("navcam", VideoSettings())
+    stream.thinning = 2  # the link forced the bitrate down: one frame in two is encoded
+
+    def passes() -> bool:
+        # The probe reads only the stream (the pad and the buffer are not looked at).
+        verdict = _thinning_probe(None, None, weakref.ref(stream))
+        return bool(verdict == Gst.PadProbeReturn.OK)
+
+    # The pause ended: the next camera frame is its keyframe, whatever the thinning's cadence
+    # (it would have dropped this one: a frame, 33 ms, more of a frozen picture).
+    stream.keyframe_after_pause = True
+    assert passes()
+    stream.keyframe_after_pause = False  # the keyframe probe took it
+    # The cadence starts from it: one in two after.
+    assert [passes() for _ in range(4)] == [False, True, False, True]
