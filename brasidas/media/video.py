@@ -230,6 +230,9 @@ class VideoOut(FanOutStream[VideoSettings]):
         """x264's rate-control buffer now (:meth:`_follow_recovery_vbv`)."""
         self.retransmit = True
         self.retransmissions_dropped = 0
+        self.retransmissions_emptied = 0
+        """Packets sent before a drain pause, asked for again after it: sent without their
+        media (:func:`emptied_retransmission`), so no receiver waits for them."""
         self._dropped_seen = 0
         """False while the link's queue overflows: retransmissions are dropped (read by the
         streaming thread)."""
@@ -270,6 +273,7 @@ class VideoOut(FanOutStream[VideoSettings]):
                 "overuses": self.bitrate.queue_overuses,
             },
             "retransmissions_dropped": self.retransmissions_dropped,
+            "retransmissions_emptied": self.retransmissions_emptied,
             "drain_pauses": self.bitrate.pauses,
             "frames_skipped": self.budget.skipped,
             "keyframes_after_pause": self.keyframes.counters.resumed,
@@ -786,8 +790,19 @@ def _retransmission_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> An
     header = buffer.extract_dup(0, RTX_HEADER_READ) if buffer is not None else b""
     if len(header) < 2 or header[1] & 0x7F not in (RTX_PAYLOAD_TYPE, FEC_RTX_PAYLOAD_TYPE):
         return gst().PadProbeReturn.OK
-    if stream.retransmit and not _sent_before(header, stream.stale_before):
+    stale_packet = _sent_before(header, stream.stale_before)
+    if stream.retransmit and not stale_packet:
         return gst().PadProbeReturn.OK
+    if stale and stale_packet and header[1] & 0x7F == RTX_PAYLOAD_TYPE:
+        emptied = emptied_retransmission(header, buffer.get_size())
+        if emptied is None:
+            return gst().PadProbeReturn.OK  # one emptied here, on its way out
+        # Sent again without its media: the receivers stop waiting for it at once (their
+        # jitter buffer held the keyframe after the pause behind it for its whole repair
+        # budget, measured 100-200 ms) and take it for lost.
+        stream.retransmissions_emptied += 1
+        pad.push(gst().Buffer.new_wrapped(emptied))
+        return gst().PadProbeReturn.DROP
     stream.retransmissions_dropped += 1
     return gst().PadProbeReturn.DROP
 
@@ -796,12 +811,35 @@ RTX_HEADER_READ = 64
 """Bytes of a retransmission read for its original sequence number (header, extensions)."""
 
 
+def _payload_start(rtp_header: bytes) -> int:
+    """Where an RTP packet's payload starts (after its CSRCs and header extensions)."""
+    start = 12 + (rtp_header[0] & 0x0F) * 4
+    if rtp_header[0] & 0x10 and len(rtp_header) >= start + 4:  # header extensions
+        start += 4 + 4 * int.from_bytes(rtp_header[start + 2 : start + 4], "big")
+    return start
+
+
+GIVEN_UP_PAYLOAD = b"\x0c\x80"
+"""The media a retransmission of a packet given up carries: an H.264 filler-data NAL unit
+(type 12: no picture; x264 makes none here). A receiver takes it for that packet lost
+(:func:`_given_up_probe`); rtph264depay crashes on an empty payload (GStreamer 1.22)."""
+
+
+def emptied_retransmission(rtx_header: bytes, size: int) -> bytes | None:
+    """A retransmission (``size`` bytes, its first bytes ``rtx_header``) with its media
+    replaced by :data:`GIVEN_UP_PAYLOAD`, after its header and original sequence number
+    (RFC 4588). None when it is that already, or its header was not read whole."""
+    end = _payload_start(rtx_header) + 2
+    if len(rtx_header) < end or size <= end + len(GIVEN_UP_PAYLOAD):
+        return None
+    # No padding: the cut took it (its length byte ended the packet).
+    return bytes([rtx_header[0] & ~0x20 & 0xFF]) + rtx_header[1:end] + GIVEN_UP_PAYLOAD
+
+
 def _sent_before(rtx_header: bytes, first_fresh: int) -> bool:
     """Whether a retransmission's original packet (its sequence number opens the payload,
     RFC 4588) came before ``first_fresh`` (16-bit sequence arithmetic)."""
-    start = 12 + (rtx_header[0] & 0x0F) * 4
-    if rtx_header[0] & 0x10 and len(rtx_header) >= start + 4:  # header extensions
-        start += 4 + 4 * int.from_bytes(rtx_header[start + 2 : start + 4], "big")
+    start = _payload_start(rtx_header)
     if len(rtx_header) < start + 2:
         return False  # not read here: counted as fresh
     original = int.from_bytes(rtx_header[start : start + 2], "big")
@@ -816,8 +854,15 @@ def _force_keyframe_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> An
     encoder = pad.get_parent_element()
     if stream is not None and encoder is not None:
         with stream._keyframes_lock:
-            force = stream.keyframes.on_frame(time.monotonic(), stream.keyframe_after_pause)
+            resume = stream.keyframe_after_pause
+            force = stream.keyframes.on_frame(time.monotonic(), resume)
             stream.keyframe_after_pause = False
+        pay = stream.pipeline.get_by_name("pay") if resume and stream.pipeline else None
+        if pay is not None:
+            # The picture restarts here: what was sent before is stale too (a frame already
+            # in the encoder as the pause began went out after it, into the full queue, and
+            # its retransmissions held this keyframe back ~100 ms, measured).
+            stream.stale_before = (int(pay.get_property("seqnum")) + 1) & 0xFFFF
         if force:
             event = _force_key_unit_event()
             stream._forced_seqnums.append(event.get_seqnum())
@@ -1033,6 +1078,8 @@ class VideoIn(PipelineStream):
         self.frames = 0
         self.stamped = 0
         self.frames_depayloaded = 0
+        self.given_up = 0
+        """Packets the sender said it gave up (:func:`_given_up_probe`): lost at once."""
         """Access units out of the depayloader, to the decoder (frames is what it decoded):
         where a frame went that every packet of reached the station."""
         self.rtp_bytes = 0
@@ -1063,6 +1110,7 @@ class VideoIn(PipelineStream):
             "rtp_lost": self.rtp_lost,
             "longest_freeze_ms": round(self.longest_freeze_ms, 1),
             "frames_depayloaded": self.frames_depayloaded,
+            "packets_given_up": self.given_up,
             # time.monotonic() of the newest frame (one clock for every process on the host:
             # the bench times the picture's return after a blackout by it).
             "last_frame_monotonic": self.last_frame_at,
@@ -1203,6 +1251,9 @@ class VideoIn(PipelineStream):
         depay.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _depayloaded_probe, weakref.ref(self)
         )
+        depay.get_static_pad("sink").add_probe(
+            Gst.PadProbeType.BUFFER, _given_up_probe, weakref.ref(self)
+        )
         return pipeline
 
 
@@ -1222,6 +1273,33 @@ def _latency_probe(pad: Any, info: Any, data: tuple[weakref.ref[VideoIn], Any]) 
             stream.last_latency_ms = age
             stream.latencies.append(age)
     return gst().PadProbeReturn.OK
+
+
+def _given_up_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
+    """Streaming thread, out of the jitter buffer: a packet the sender gave up (sent before a
+    drain pause, asked for after it: :data:`GIVEN_UP_PAYLOAD`) is lost, as the jitter buffer
+    would have said at the end of its repair budget (the depayloader drops its frame and
+    waits for the keyframe that follows); never a picture."""
+    Gst = gst()
+    buffer = info.get_buffer()
+    size = buffer.get_size() if buffer is not None else 0
+    if not 12 + len(GIVEN_UP_PAYLOAD) <= size <= RTX_HEADER_READ:
+        return Gst.PadProbeReturn.OK
+    packet = buffer.extract_dup(0, size)
+    if packet[-len(GIVEN_UP_PAYLOAD) :] != GIVEN_UP_PAYLOAD:
+        return Gst.PadProbeReturn.OK
+    if _payload_start(packet) != size - len(GIVEN_UP_PAYLOAD) or packet[0] & 0x20:
+        return Gst.PadProbeReturn.OK
+    stream = ref()
+    if stream is not None:
+        stream.given_up += 1
+    seq = int.from_bytes(packet[2:4], "big")
+    lost = Gst.Structure.new_from_string(
+        f"GstRTPPacketLost, seqnum=(uint){seq}, timestamp=(guint64){buffer.pts},"
+        " duration=(guint64)0, retry=(uint)0"
+    )
+    pad.send_event(Gst.Event.new_custom(Gst.EventType.CUSTOM_DOWNSTREAM, lost))
+    return Gst.PadProbeReturn.DROP
 
 
 def _depayloaded_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
