@@ -1293,6 +1293,11 @@ def _given_up_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
     stream = ref()
     if stream is not None:
         stream.given_up += 1
+        if stream.repairs is not None:
+            # The keyframe follows these packets (the sender gave them up for it): the
+            # depayloader's own request for one, at this loss, is held (a second keyframe
+            # 33 ms after the first, on the link just drained, traced).
+            stream.repairs.asked_at = time.monotonic()
     seq = int.from_bytes(packet[2:4], "big")
     lost = Gst.Structure.new_from_string(
         f"GstRTPPacketLost, seqnum=(uint){seq}, timestamp=(guint64){buffer.pts},"
