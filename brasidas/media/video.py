@@ -1093,6 +1093,8 @@ class VideoIn(PipelineStream):
         self._last_seq: int | None = None
         self.last_frame_at: float | None = None
         self.longest_freeze_ms = 0.0
+        self.longest_freeze_ended: float | None = None
+        """time.monotonic() of the frame that ended the longest freeze (when it happened)."""
         """The longest wait between two decoded frames (a loss freezes to the next keyframe)."""
         self.gaps_ms: collections.deque[float] = collections.deque(maxlen=window)
         """Recent waits between two decoded frames (ms), appended on the streaming thread."""
@@ -1109,6 +1111,7 @@ class VideoIn(PipelineStream):
             "rtp_packets": self.rtp_packets,
             "rtp_lost": self.rtp_lost,
             "longest_freeze_ms": round(self.longest_freeze_ms, 1),
+            "longest_freeze_ended_monotonic": self.longest_freeze_ended,
             "frames_depayloaded": self.frames_depayloaded,
             "packets_given_up": self.given_up,
             # time.monotonic() of the newest frame (one clock for every process on the host:
@@ -1174,7 +1177,9 @@ class VideoIn(PipelineStream):
         """Streaming thread: one decoded frame."""
         if self.last_frame_at is not None:
             gap = (now - self.last_frame_at) * 1000
-            self.longest_freeze_ms = max(self.longest_freeze_ms, gap)
+            if gap > self.longest_freeze_ms:
+                self.longest_freeze_ms = gap
+                self.longest_freeze_ended = now
             self.gaps_ms.append(gap)
         self.last_frame_at = now
 
