@@ -764,6 +764,13 @@ def _thinning_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
         resuming = stream.keyframe_after_pause
     if not admitted:
         return gst().PadProbeReturn.DROP
+    pay = stream.pipeline.get_by_name("pay") if resuming and stream.pipeline else None
+    if pay is not None:
+        # The picture restarts with this frame: what was sent before it is stale too (a frame
+        # already in the encoder as the pause began went out after it, into the full queue,
+        # and its retransmissions held the keyframe back ~100 ms, measured). The frames
+        # before it are through the payloader: the encoder takes them one at a time, here.
+        stream.stale_before = (int(pay.get_property("seqnum")) + 1) & 0xFFFF
     if stream.thinning <= 1:
         return gst().PadProbeReturn.OK
     if resuming:
@@ -854,15 +861,8 @@ def _force_keyframe_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> An
     encoder = pad.get_parent_element()
     if stream is not None and encoder is not None:
         with stream._keyframes_lock:
-            resume = stream.keyframe_after_pause
-            force = stream.keyframes.on_frame(time.monotonic(), resume)
+            force = stream.keyframes.on_frame(time.monotonic(), stream.keyframe_after_pause)
             stream.keyframe_after_pause = False
-        pay = stream.pipeline.get_by_name("pay") if resume and stream.pipeline else None
-        if pay is not None:
-            # The picture restarts here: what was sent before is stale too (a frame already
-            # in the encoder as the pause began went out after it, into the full queue, and
-            # its retransmissions held this keyframe back ~100 ms, measured).
-            stream.stale_before = (int(pay.get_property("seqnum")) + 1) & 0xFFFF
         if force:
             event = _force_key_unit_event()
             stream._forced_seqnums.append(event.get_seqnum())
