@@ -1079,6 +1079,12 @@ class VideoIn(PipelineStream):
         self.stamped = 0
         self.frames_depayloaded = 0
         self.given_up = 0
+        self._depayloader_sink: Any = None
+        self._watching_given_up = False
+        """The probe for packets given up is on the depayloader only for a while after one
+        arrived (:meth:`watch_given_up`): a Python probe on every packet there is a GIL
+        round on the jitter buffer's thread each (a latency tail under load)."""
+        self.given_up_watch_until = 0.0
         """Packets the sender said it gave up (:func:`_given_up_probe`): lost at once."""
         """Access units out of the depayloader, to the decoder (frames is what it decoded):
         where a frame went that every packet of reached the station."""
@@ -1103,6 +1109,16 @@ class VideoIn(PipelineStream):
 
     def destination(self) -> str:
         return f"{self.host}:{self.port}"
+
+    def watch_given_up(self, now: float) -> None:
+        """Streaming thread (the socket's): a retransmission the sender gave up arrived; it
+        comes out of the jitter buffer in order, where :func:`_given_up_probe` takes it for
+        lost. Watched there for :data:`GIVEN_UP_WATCH_S` after the last one."""
+        self.given_up_watch_until = now + GIVEN_UP_WATCH_S
+        pad = self._depayloader_sink
+        if not self._watching_given_up and pad is not None:
+            self._watching_given_up = True
+            pad.add_probe(gst().PadProbeType.BUFFER, _given_up_probe, weakref.ref(self))
 
     def describe(self) -> dict[str, Any]:
         return {
@@ -1256,9 +1272,8 @@ class VideoIn(PipelineStream):
         depay.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _depayloaded_probe, weakref.ref(self)
         )
-        depay.get_static_pad("sink").add_probe(
-            Gst.PadProbeType.BUFFER, _given_up_probe, weakref.ref(self)
-        )
+        self._depayloader_sink = depay.get_static_pad("sink")
+        self._watching_given_up = False
         return pipeline
 
 
@@ -1286,16 +1301,15 @@ def _given_up_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
     would have said at the end of its repair budget (the depayloader drops its frame and
     waits for the keyframe that follows); never a picture."""
     Gst = gst()
-    buffer = info.get_buffer()
-    size = buffer.get_size() if buffer is not None else 0
-    if not 12 + len(GIVEN_UP_PAYLOAD) <= size <= RTX_HEADER_READ:
-        return Gst.PadProbeReturn.OK
-    packet = buffer.extract_dup(0, size)
-    if packet[-len(GIVEN_UP_PAYLOAD) :] != GIVEN_UP_PAYLOAD:
-        return Gst.PadProbeReturn.OK
-    if _payload_start(packet) != size - len(GIVEN_UP_PAYLOAD) or packet[0] & 0x20:
-        return Gst.PadProbeReturn.OK
     stream = ref()
+    buffer = info.get_buffer()
+    if not _is_given_up(buffer):
+        if stream is None or time.monotonic() > stream.given_up_watch_until:
+            if stream is not None:
+                stream._watching_given_up = False
+            return Gst.PadProbeReturn.REMOVE  # passes this packet on, and stops looking
+        return Gst.PadProbeReturn.OK
+    packet = buffer.extract_dup(0, 4)
     if stream is not None:
         stream.given_up += 1
         if stream.repairs is not None:
@@ -1310,6 +1324,25 @@ def _given_up_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
     )
     pad.send_event(Gst.Event.new_custom(Gst.EventType.CUSTOM_DOWNSTREAM, lost))
     return Gst.PadProbeReturn.DROP
+
+
+GIVEN_UP_WATCH_S = 1.0
+"""The depayloader is watched for packets given up this long after one arrived (the sender
+gives up packets for a second after a drain pause)."""
+
+
+def _is_given_up(buffer: Any) -> bool:
+    """Whether an RTP packet (a retransmission, or what it restored) is one the sender gave
+    up: its payload only :data:`GIVEN_UP_PAYLOAD` (after the original number, if RTX)."""
+    size = buffer.get_size() if buffer is not None else 0
+    if not 12 + len(GIVEN_UP_PAYLOAD) <= size <= RTX_HEADER_READ:
+        return False
+    packet = buffer.extract_dup(0, size)
+    if packet[-len(GIVEN_UP_PAYLOAD) :] != GIVEN_UP_PAYLOAD or packet[0] & 0x20:
+        return False
+    media = size - len(GIVEN_UP_PAYLOAD)
+    start = _payload_start(packet)
+    return start == media or (packet[1] & 0x7F == RTX_PAYLOAD_TYPE and start + 2 == media)
 
 
 def _depayloaded_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
@@ -1344,4 +1377,6 @@ def _bytes_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
         # The media and its FEC share one sequence; retransmissions have their own.
         if len(header) == 4 and header[1] & 0x7F in (PAYLOAD_TYPE, FEC_PAYLOAD_TYPE):
             stream.count_packet(int.from_bytes(header[2:4], "big"))
+        elif len(header) == 4 and header[1] & 0x7F == RTX_PAYLOAD_TYPE and _is_given_up(buffer):
+            stream.watch_given_up(time.monotonic())
     return gst().PadProbeReturn.OK
