@@ -167,11 +167,15 @@ async def _row(
             if back is not None:
                 recoveries.append(back)
 
+    dropped_at = [0.0]
+    """time.monotonic() of the capacity drop (one clock for every process on the host)."""
+
     async def capacity_drop() -> None:
         assert row.cap_kbps is not None
         await asyncio.sleep(CAP_DROP_AFTER_S)
         drop = Profile(rate_kbps=row.cap_kbps[1])
         fleet.net.impair(host.name, down=drop, up=drop)
+        dropped_at[0] = time.monotonic()
 
     async with asyncio.TaskGroup() as group:
         tasks = [group.create_task(drive())]
@@ -265,6 +269,9 @@ async def _row(
         "deadman_stops_in_blackouts": deadman["in_blackouts"],
         "teleop_set_gap_max_ms": round(sent["gap_max"] * 1000),
         "cap_worst_after_freeze_ms": frozen_cap_ms,
+        # Where the capacity drop's longest freeze was: at the drop (its detection, the drain
+        # pause, the keyframe after it) or later (the climb back into the link, seconds on).
+        "longest_freeze_began_after_drop_ms": _after_drop(end, dropped_at[0]),
         **_recovery(recoveries, row),
         "seconds": round(elapsed, 1),
         "loadavg": round(os.getloadavg()[0], 2),
@@ -367,6 +374,15 @@ def _recovery(recoveries: list[float], row: Row) -> dict[str, Any]:
         "recovery_p50_ms": round(statistics.median(recoveries), 1),
         "recovery_max_ms": round(max(recoveries), 1),
     }
+
+
+def _after_drop(receiver: dict[str, Any], dropped_at: float) -> int | None:
+    """When the receiver's longest freeze began, in ms after the capacity drop (None: no
+    drop in the row, or no freeze measured)."""
+    ended = receiver.get("longest_freeze_ended_monotonic")
+    if not dropped_at or not isinstance(ended, float):
+        return None
+    return round((ended - dropped_at) * 1000 - float(receiver.get("longest_freeze_ms") or 0))
 
 
 def _over(gap: Any, interval_ms: float) -> float | None:

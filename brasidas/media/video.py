@@ -100,6 +100,13 @@ X264_VBV_MS = 200
 """x264's rate-control buffer: how far one frame may exceed the bitrate's share (measured at
 a 2 Mbit/s → 500 kbit/s drop: with 600 ms, the keyframe after it was lost to the link's
 queue and the picture froze 0.8-1.1 s; with 200 ms, 0.5-0.6 s)."""
+X264_RECOVERY_VBV_MS = 50
+"""x264's rate-control buffer from a drain pause until the bitrate is no longer held
+(:class:`~brasidas.media.bitrate.FrameBudget`'s window): the keyframe after the pause is then
+made at the lowered bitrate's size, not at what the buffer still allowed (measured at the cut
+to 450 kbit/s: 5.7 kB at 320x240, 7.5 kB at 640x480 with 200 ms, each ~100 ms of a
+500 kbit/s link before the picture could restart; 1.9-2.0 kB with 50 ms, and the frames
+after it within the bitrate at once instead of a second's catching up)."""
 ENCODER_GOP_S = 10
 """The encoder's own keyframe interval, a backstop only: :class:`KeyframeClock` forces the
 keyframes, at the current framerate (the encoders' own settings cannot change while running)."""
@@ -223,8 +230,13 @@ class VideoOut(FanOutStream[VideoSettings]):
         self.resolution = ResolutionChoice()
         """Half the picture's width and height while the bitrate is too low for all of it."""
         self._scale_filter: Any = None
+        self._vbv_ms = X264_VBV_MS
+        """x264's rate-control buffer now (:meth:`_follow_recovery_vbv`)."""
         self.retransmit = True
         self.retransmissions_dropped = 0
+        self.retransmissions_emptied = 0
+        """Packets sent before a drain pause, asked for again after it: sent without their
+        media (:func:`emptied_retransmission`), so no receiver waits for them."""
         self._dropped_seen = 0
         """False while the link's queue overflows: retransmissions are dropped (read by the
         streaming thread)."""
@@ -265,6 +277,7 @@ class VideoOut(FanOutStream[VideoSettings]):
                 "overuses": self.bitrate.queue_overuses,
             },
             "retransmissions_dropped": self.retransmissions_dropped,
+            "retransmissions_emptied": self.retransmissions_emptied,
             "drain_pauses": self.bitrate.pauses,
             "frames_skipped": self.budget.skipped,
             "keyframes_after_pause": self.keyframes.counters.resumed,
@@ -394,8 +407,20 @@ class VideoOut(FanOutStream[VideoSettings]):
             _set_bitrate(self._encoder, self.encoder_name, self.media_bitrate_kbps())
         with self._keyframes_lock:
             self.budget.set_rate(self.current_bitrate_kbps(), now)
+        self._follow_recovery_vbv(now)
         self._follow_resolution(now)
         return kbps
+
+    def _follow_recovery_vbv(self, now: float) -> None:
+        """x264's short rate-control buffer while the bitrate is held after a drain pause
+        (:data:`X264_RECOVERY_VBV_MS`), its usual one after; applied live (x264 reconfigures
+        at its next frame, before the keyframe the pause ends with)."""
+        if self.encoder_name != "x264enc" or self._encoder is None:
+            return
+        vbv_ms = X264_RECOVERY_VBV_MS if now < self.budget.enforced_until else X264_VBV_MS
+        if vbv_ms != self._vbv_ms:
+            self._vbv_ms = vbv_ms
+            self._encoder.set_property("vbv-buf-capacity", vbv_ms)
 
     def _follow_resolution(self, now: float) -> None:
         """Halve the picture's size when the bitrate cannot carry all of it, and back (the
@@ -548,6 +573,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         convert = make("videoconvert")
         encoder = make(encoder_name, "encoder")
         _configure_encoder(encoder, encoder_name, s)
+        self._vbv_ms = X264_VBV_MS  # as configured; a held bitrate's shorter one follows
         _set_bitrate(encoder, encoder_name, self.media_bitrate_kbps())  # as adapted so far
         h264_caps = _h264_caps(encoder_name)
         if s.uses_intra_refresh(encoder_name):
@@ -763,9 +789,22 @@ def _thinning_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
         return gst().PadProbeReturn.OK
     with stream._keyframes_lock:
         admitted = stream.budget.admit(time.monotonic())
+        resuming = stream.keyframe_after_pause
     if not admitted:
         return gst().PadProbeReturn.DROP
+    pay = stream.pipeline.get_by_name("pay") if resuming and stream.pipeline else None
+    if pay is not None:
+        # The picture restarts with this frame: what was sent before it is stale too (a frame
+        # already in the encoder as the pause began went out after it, into the full queue,
+        # and its retransmissions held the keyframe back ~100 ms, measured). The frames
+        # before it are through the payloader: the encoder takes them one at a time, here.
+        stream.stale_before = (int(pay.get_property("seqnum")) + 1) & 0xFFFF
     if stream.thinning <= 1:
+        return gst().PadProbeReturn.OK
+    if resuming:
+        # The keyframe a drain pause ends with: the picture restarts with this frame, not
+        # with the thinning's next one (measured: a frame, 33-66 ms, more frozen).
+        stream._frames_seen = 0
         return gst().PadProbeReturn.OK
     stream._frames_seen += 1
     if stream._frames_seen % stream.thinning:
@@ -786,8 +825,19 @@ def _retransmission_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> An
     header = buffer.extract_dup(0, RTX_HEADER_READ) if buffer is not None else b""
     if len(header) < 2 or header[1] & 0x7F not in (RTX_PAYLOAD_TYPE, FEC_RTX_PAYLOAD_TYPE):
         return gst().PadProbeReturn.OK
-    if stream.retransmit and not _sent_before(header, stream.stale_before):
+    stale_packet = _sent_before(header, stream.stale_before)
+    if stream.retransmit and not stale_packet:
         return gst().PadProbeReturn.OK
+    if stale and stale_packet and header[1] & 0x7F == RTX_PAYLOAD_TYPE:
+        emptied = emptied_retransmission(header, buffer.get_size())
+        if emptied is None:
+            return gst().PadProbeReturn.OK  # one emptied here, on its way out
+        # Sent again without its media: the receivers stop waiting for it at once (their
+        # jitter buffer held the keyframe after the pause behind it for its whole repair
+        # budget, measured 100-200 ms) and take it for lost.
+        stream.retransmissions_emptied += 1
+        pad.push(gst().Buffer.new_wrapped(emptied))
+        return gst().PadProbeReturn.DROP
     stream.retransmissions_dropped += 1
     return gst().PadProbeReturn.DROP
 
@@ -796,12 +846,35 @@ RTX_HEADER_READ = 64
 """Bytes of a retransmission read for its original sequence number (header, extensions)."""
 
 
+def _payload_start(rtp_header: bytes) -> int:
+    """Where an RTP packet's payload starts (after its CSRCs and header extensions)."""
+    start = 12 + (rtp_header[0] & 0x0F) * 4
+    if rtp_header[0] & 0x10 and len(rtp_header) >= start + 4:  # header extensions
+        start += 4 + 4 * int.from_bytes(rtp_header[start + 2 : start + 4], "big")
+    return start
+
+
+GIVEN_UP_PAYLOAD = b"\x0c\x80"
+"""The media a retransmission of a packet given up carries: an H.264 filler-data NAL unit
+(type 12: no picture; x264 makes none here). A receiver takes it for that packet lost
+(:func:`_given_up_probe`); rtph264depay crashes on an empty payload (GStreamer 1.22)."""
+
+
+def emptied_retransmission(rtx_header: bytes, size: int) -> bytes | None:
+    """A retransmission (``size`` bytes, its first bytes ``rtx_header``) with its media
+    replaced by :data:`GIVEN_UP_PAYLOAD`, after its header and original sequence number
+    (RFC 4588). None when it is that already, or its header was not read whole."""
+    end = _payload_start(rtx_header) + 2
+    if len(rtx_header) < end or size <= end + len(GIVEN_UP_PAYLOAD):
+        return None
+    # No padding: the cut took it (its length byte ended the packet).
+    return bytes([rtx_header[0] & ~0x20 & 0xFF]) + rtx_header[1:end] + GIVEN_UP_PAYLOAD
+
+
 def _sent_before(rtx_header: bytes, first_fresh: int) -> bool:
     """Whether a retransmission's original packet (its sequence number opens the payload,
     RFC 4588) came before ``first_fresh`` (16-bit sequence arithmetic)."""
-    start = 12 + (rtx_header[0] & 0x0F) * 4
-    if rtx_header[0] & 0x10 and len(rtx_header) >= start + 4:  # header extensions
-        start += 4 + 4 * int.from_bytes(rtx_header[start + 2 : start + 4], "big")
+    start = _payload_start(rtx_header)
     if len(rtx_header) < start + 2:
         return False  # not read here: counted as fresh
     original = int.from_bytes(rtx_header[start : start + 2], "big")
@@ -1042,6 +1115,14 @@ class VideoIn(PipelineStream):
         self.frames = 0
         self.stamped = 0
         self.frames_depayloaded = 0
+        self.given_up = 0
+        self._depayloader_sink: Any = None
+        self._watching_given_up = False
+        """The probe for packets given up is on the depayloader only for a while after one
+        arrived (:meth:`watch_given_up`): a Python probe on every packet there is a GIL
+        round on the jitter buffer's thread each (a latency tail under load)."""
+        self.given_up_watch_until = 0.0
+        """Packets the sender said it gave up (:func:`_given_up_probe`): lost at once."""
         """Access units out of the depayloader, to the decoder (frames is what it decoded):
         where a frame went that every packet of reached the station."""
         self.rtp_bytes = 0
@@ -1055,6 +1136,8 @@ class VideoIn(PipelineStream):
         self._last_seq: int | None = None
         self.last_frame_at: float | None = None
         self.longest_freeze_ms = 0.0
+        self.longest_freeze_ended: float | None = None
+        """time.monotonic() of the frame that ended the longest freeze (when it happened)."""
         """The longest wait between two decoded frames (a loss freezes to the next keyframe)."""
         self.gaps_ms: collections.deque[float] = collections.deque(maxlen=window)
         """Recent waits between two decoded frames (ms), appended on the streaming thread."""
@@ -1064,6 +1147,16 @@ class VideoIn(PipelineStream):
     def destination(self) -> str:
         return f"{self.host}:{self.port}"
 
+    def watch_given_up(self, now: float) -> None:
+        """Streaming thread (the socket's): a retransmission the sender gave up arrived; it
+        comes out of the jitter buffer in order, where :func:`_given_up_probe` takes it for
+        lost. Watched there for :data:`GIVEN_UP_WATCH_S` after the last one."""
+        self.given_up_watch_until = now + GIVEN_UP_WATCH_S
+        pad = self._depayloader_sink
+        if not self._watching_given_up and pad is not None:
+            self._watching_given_up = True
+            pad.add_probe(gst().PadProbeType.BUFFER, _given_up_probe, weakref.ref(self))
+
     def describe(self) -> dict[str, Any]:
         return {
             **super().describe(),
@@ -1071,7 +1164,9 @@ class VideoIn(PipelineStream):
             "rtp_packets": self.rtp_packets,
             "rtp_lost": self.rtp_lost,
             "longest_freeze_ms": round(self.longest_freeze_ms, 1),
+            "longest_freeze_ended_monotonic": self.longest_freeze_ended,
             "frames_depayloaded": self.frames_depayloaded,
+            "packets_given_up": self.given_up,
             # time.monotonic() of the newest frame (one clock for every process on the host:
             # the bench times the picture's return after a blackout by it).
             "last_frame_monotonic": self.last_frame_at,
@@ -1135,7 +1230,9 @@ class VideoIn(PipelineStream):
         """Streaming thread: one decoded frame."""
         if self.last_frame_at is not None:
             gap = (now - self.last_frame_at) * 1000
-            self.longest_freeze_ms = max(self.longest_freeze_ms, gap)
+            if gap > self.longest_freeze_ms:
+                self.longest_freeze_ms = gap
+                self.longest_freeze_ended = now
             self.gaps_ms.append(gap)
         self.last_frame_at = now
 
@@ -1212,6 +1309,8 @@ class VideoIn(PipelineStream):
         depay.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _depayloaded_probe, weakref.ref(self)
         )
+        self._depayloader_sink = depay.get_static_pad("sink")
+        self._watching_given_up = False
         return pipeline
 
 
@@ -1231,6 +1330,56 @@ def _latency_probe(pad: Any, info: Any, data: tuple[weakref.ref[VideoIn], Any]) 
             stream.last_latency_ms = age
             stream.latencies.append(age)
     return gst().PadProbeReturn.OK
+
+
+def _given_up_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
+    """Streaming thread, out of the jitter buffer: a packet the sender gave up (sent before a
+    drain pause, asked for after it: :data:`GIVEN_UP_PAYLOAD`) is lost, as the jitter buffer
+    would have said at the end of its repair budget (the depayloader drops its frame and
+    waits for the keyframe that follows); never a picture."""
+    Gst = gst()
+    stream = ref()
+    buffer = info.get_buffer()
+    if not _is_given_up(buffer):
+        if stream is None or time.monotonic() > stream.given_up_watch_until:
+            if stream is not None:
+                stream._watching_given_up = False
+            return Gst.PadProbeReturn.REMOVE  # passes this packet on, and stops looking
+        return Gst.PadProbeReturn.OK
+    packet = buffer.extract_dup(0, 4)
+    if stream is not None:
+        stream.given_up += 1
+        if stream.repairs is not None:
+            # The keyframe follows these packets (the sender gave them up for it): the
+            # depayloader's own request for one, at this loss, is held (a second keyframe
+            # 33 ms after the first, on the link just drained, traced).
+            stream.repairs.asked_at = time.monotonic()
+    seq = int.from_bytes(packet[2:4], "big")
+    lost = Gst.Structure.new_from_string(
+        f"GstRTPPacketLost, seqnum=(uint){seq}, timestamp=(guint64){buffer.pts},"
+        " duration=(guint64)0, retry=(uint)0"
+    )
+    pad.send_event(Gst.Event.new_custom(Gst.EventType.CUSTOM_DOWNSTREAM, lost))
+    return Gst.PadProbeReturn.DROP
+
+
+GIVEN_UP_WATCH_S = 1.0
+"""The depayloader is watched for packets given up this long after one arrived (the sender
+gives up packets for a second after a drain pause)."""
+
+
+def _is_given_up(buffer: Any) -> bool:
+    """Whether an RTP packet (a retransmission, or what it restored) is one the sender gave
+    up: its payload only :data:`GIVEN_UP_PAYLOAD` (after the original number, if RTX)."""
+    size = buffer.get_size() if buffer is not None else 0
+    if not 12 + len(GIVEN_UP_PAYLOAD) <= size <= RTX_HEADER_READ:
+        return False
+    packet = buffer.extract_dup(0, size)
+    if packet[-len(GIVEN_UP_PAYLOAD) :] != GIVEN_UP_PAYLOAD or packet[0] & 0x20:
+        return False
+    media = size - len(GIVEN_UP_PAYLOAD)
+    start = _payload_start(packet)
+    return start == media or (packet[1] & 0x7F == RTX_PAYLOAD_TYPE and start + 2 == media)
 
 
 def _depayloaded_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
@@ -1265,4 +1414,6 @@ def _bytes_probe(pad: Any, info: Any, ref: weakref.ref[VideoIn]) -> Any:
         # The media and its FEC share one sequence; retransmissions have their own.
         if len(header) == 4 and header[1] & 0x7F in (PAYLOAD_TYPE, FEC_PAYLOAD_TYPE):
             stream.count_packet(int.from_bytes(header[2:4], "big"))
+        elif len(header) == 4 and header[1] & 0x7F == RTX_PAYLOAD_TYPE and _is_given_up(buffer):
+            stream.watch_given_up(time.monotonic())
     return gst().PadProbeReturn.OK
