@@ -26,7 +26,7 @@ import itertools
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -278,15 +278,15 @@ def _feature(track: Track, area: AreaMap) -> dict[str, Any]:
 
 
 def clear_of_robot(
-    features: list[dict[str, Any]], area: AreaMap, latitude: float, longitude: float
-) -> list[dict[str, Any]]:
+    features: Sequence[Mapping[str, Any]], area: AreaMap, latitude: float, longitude: float
+) -> list[Mapping[str, Any]]:
     """(Worker thread.) The lidar's new zones without the part under the robot
     (``ROBOT_CUT_M`` round it): a post it is passing close to still enters the plan, which then
     keeps the path off it, and neither that zone nor the others' are refused because the robot
     is in one (before, the whole update was, and the planner did not know the post it passed)."""
     x, y = area.local(latitude, longitude)
     spot = Point(x, y)
-    kept: list[dict[str, Any]] = []
+    kept: list[Mapping[str, Any]] = []
     for feature in features:
         ring = feature["geometry"]["coordinates"][0]
         zone = Polygon([area.local(lat, lon) for lon, lat in ring])
@@ -302,7 +302,7 @@ def clear_of_robot(
         for px, py in part.exterior.coords:
             lat, lon = area.frame.to_geo(px, py)
             coords.append([round(lon, 8), round(lat, 8)])
-        kept.append(feature | {"geometry": {"type": "Polygon", "coordinates": [coords]}})
+        kept.append(dict(feature) | {"geometry": {"type": "Polygon", "coordinates": [coords]}})
     return kept
 
 

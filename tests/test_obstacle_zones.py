@@ -104,12 +104,12 @@ def test_a_zone_drawn_over_the_robot_still_reaches_the_planner_with_the_others()
 
     def change(base: AreaMap, add: list[dict[str, Any]]) -> AreaMap:
         changed, _, _ = PatrolActor._changed_map(
-            SimpleNamespace(),
+            SimpleNamespace(),  # type: ignore[arg-type]  # (it needs no storage: not stored)
             base,
             add,
             [],
             (LAT, LON),
-            False,  # type: ignore[arg-type]
+            False,
         )
         return changed
 
@@ -127,12 +127,12 @@ def test_a_zone_drawn_over_the_robot_still_reaches_the_planner_with_the_others()
     with pytest.raises(MapError):
         own = lidar_zone(area, "shed", x, y, 0.4) | {"properties": {"role": "keepout"}}
         PatrolActor._changed_map(
-            SimpleNamespace(),
+            SimpleNamespace(),  # type: ignore[arg-type]
             area,
             [own],
             [],
             (LAT, LON),
-            False,  # type: ignore[arg-type]
+            False,
         )
 
 

@@ -489,7 +489,7 @@ class PatrolActor(Actor):
         if not store and position is not None:
             from platformd.obstacle_zones import clear_of_robot
 
-            add = clear_of_robot(list(add), base, *position)
+            add = clear_of_robot(add, base, *position)
         area = base.with_keepouts(add=add, remove=remove)
         area.keepout_index()  # here, not at the patrol's next step on the event loop
         if position is not None:
