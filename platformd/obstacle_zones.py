@@ -26,11 +26,11 @@ import itertools
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from shapely.geometry import LineString, Point
+from shapely.geometry import LineString, Point, Polygon
 
 from brasidas import topics
 from brasidas.actor import Actor
@@ -68,6 +68,9 @@ PREDICT_S = 1.5
 """How far ahead a moving obstacle's zone reaches, in seconds of its velocity."""
 REDRAW_M = 0.5
 """A zone is redrawn when its track has moved (or its predicted end) this far from it."""
+ROBOT_CUT_M = 0.1
+"""A new zone over the robot is applied without this much round it (:func:`clear_of_robot`)."""
+MIN_CUT_AREA_M2 = 0.02
 
 
 @dataclass
@@ -272,6 +275,35 @@ def _feature(track: Track, area: AreaMap) -> dict[str, Any]:
         "properties": {"role": "keepout", "source": "lidar"},
         "geometry": {"type": "Polygon", "coordinates": [ring]},
     }
+
+
+def clear_of_robot(
+    features: Sequence[Mapping[str, Any]], area: AreaMap, latitude: float, longitude: float
+) -> list[Mapping[str, Any]]:
+    """(Worker thread.) The lidar's new zones without the part under the robot
+    (``ROBOT_CUT_M`` round it): a post it is passing close to still enters the plan, which then
+    keeps the path off it, and neither that zone nor the others' are refused because the robot
+    is in one (before, the whole update was, and the planner did not know the post it passed)."""
+    x, y = area.local(latitude, longitude)
+    spot = Point(x, y)
+    kept: list[Mapping[str, Any]] = []
+    for feature in features:
+        ring = feature["geometry"]["coordinates"][0]
+        zone = Polygon([area.local(lat, lon) for lon, lat in ring])
+        if not zone.contains(spot):
+            kept.append(feature)
+            continue
+        rest = zone.difference(spot.buffer(ROBOT_CUT_M, quad_segs=4))
+        parts = [rest] if isinstance(rest, Polygon) else list(getattr(rest, "geoms", []))
+        part = max(parts, key=lambda g: g.area, default=None)
+        if part is None or part.area < MIN_CUT_AREA_M2:
+            continue  # (almost) all of it under the robot: its body, not a post beside it
+        coords = []
+        for px, py in part.exterior.coords:
+            lat, lon = area.frame.to_geo(px, py)
+            coords.append([round(lon, 8), round(lat, 8)])
+        kept.append(dict(feature) | {"geometry": {"type": "Polygon", "coordinates": [coords]}})
+    return kept
 
 
 def start(ctx: PlatformContext) -> ObstacleZones:

@@ -776,3 +776,46 @@ def test_beside_a_post_facing_it_the_patrol_leaves_its_zone_the_nearest_way() ->
         assert east > 3.0  # out within a metre
     assert east < 4.05  # out of the zone (its edge at 4 m) before it plans again
     assert p.status().state is PatrolState.PATROLLING
+
+
+def test_boxed_in_inside_a_zone_the_patrol_stops_after_a_while_for_the_operator() -> None:
+    """Inside a zone the lidar drew, the way it came blocked and obstacles ahead and behind
+    that do not go: it waited for ever before ("an obstacle in the way it came (waiting)").
+    After ``boxed_in_s`` (the estimate's clock, stepped) the patrol stops with the reason and
+    stays stopped when the way clears: the operator decides. A wait that ends in time (the
+    way clears) starts the count again."""
+    area = parse_map(demo())
+    zone = lidar_square("lidar:7", 5.0, 0.0, half=1.0)
+    p = patrol()
+    p.set_map(area)
+    p.set_route(parse_waypoints(demo_route(), area.points))
+    p.start()
+
+    def at(time: float) -> Estimate:
+        x, y = area.local(*offset(LAT, LON, 4.2, 0.5))
+        return Estimate(time, x, y, math.radians(60.0), 1.0, 0.1, 0.05)
+
+    time = 0.0
+    p.step(at(time), 0.1)
+    p.update_map(area.with_keepouts(add=[zone]))
+    p.blocked = (True, True)
+    while not p.status().reason.endswith("(waiting)"):  # yielded to, then boxed in
+        time += 0.5
+        p.step(at(time), 0.1)
+        assert time < p.p.yield_s + 2.0, p.status()
+    boxed_at = time
+    while time < boxed_at + p.p.boxed_in_s - 0.5:
+        time += 0.5
+        assert p.step(at(time), 0.1).linear == 0
+        assert p.status().state is PatrolState.HOLDING
+    time = boxed_at + p.p.boxed_in_s
+    assert p.step(at(time), 0.1) == STOP
+    assert p.status().state is PatrolState.STOPPED
+    assert p.status().reason == (
+        "inside keep-out zone 'lidar:7': boxed in for 60 s (obstacles ahead and behind): "
+        "patrol stopped, the operator decides"
+    )
+    p.blocked = (False, False)  # the way clears: it does not drive off on its own
+    time += 0.5
+    assert p.step(at(time), 0.1) == STOP
+    assert p.status().state is PatrolState.STOPPED

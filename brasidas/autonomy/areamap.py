@@ -115,8 +115,11 @@ class AreaMap:
         assert self._index is not None
         return self._index
 
-    def check_position(self, latitude: float, longitude: float, what: str = "the robot") -> None:
-        """Raise :class:`MapError` when a position is outside the boundary or in a keep-out."""
+    def check_position(
+        self, latitude: float, longitude: float, what: str = "the robot", *, seen_too: bool = True
+    ) -> None:
+        """Raise :class:`MapError` when a position is outside the boundary or in a keep-out;
+        ``seen_too=False``: one of the map's own, not the lidar's (the patrol leaves those)."""
         x, y = self.local(latitude, longitude)
         if not self.inside(x, y):
             # To the drivable area: a point in a hole is near its edge, not the outer ring's.
@@ -125,6 +128,17 @@ class AreaMap:
                 f"({self.boundary.distance(Point(x, y)):.1f} m from it)"
             )
         zone = self.keepout_at(x, y)
+        if zone is not None and not seen_too and zone.startswith(SEEN_KEEPOUT_PREFIX):
+            tree, ids = self.keepout_index()
+            hits = tree.query(Point(x, y), predicate="intersects")
+            zone = next(
+                (
+                    ids[int(i)]
+                    for i in sorted(hits)
+                    if not ids[int(i)].startswith(SEEN_KEEPOUT_PREFIX)
+                ),
+                None,
+            )
         if zone is not None:
             raise MapError(f"{what} ({latitude:.6f}, {longitude:.6f}) is in keep-out zone {zone!r}")
 

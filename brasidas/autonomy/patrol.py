@@ -70,6 +70,9 @@ class PatrolParameters:
     clearance) ..."""
     unstick_m: float = 1.5
     """... it backs this far the way it came and plans again."""
+    boxed_in_s: float = 60.0
+    """Inside a keep-out and boxed in both ways this long (obstacles ahead and behind that do
+    not go): the patrol stops, saying so, and the operator decides (not a wait for ever)."""
 
 
 @dataclass(frozen=True)
@@ -182,6 +185,8 @@ class Patrol:
         """Stuck: backing to this point (the trail's) from that one, then planning again."""
         self._spun: tuple[float, float] | None = None
         """Boxed in, turning on the spot: the last yaw and how far it has turned."""
+        self._boxed_since: float | None = None
+        """Since when it waits inside a keep-out, boxed in both ways."""
 
     # ------------------------------------------------------------------ inputs
 
@@ -391,6 +396,7 @@ class Patrol:
         else:
             self._inside_since = None
         self._backing = None
+        self._boxed_since = None
         if hold:
             self._needs_plan = True
             self._waiting = None  # replanned from where the robot is when it may go on
@@ -559,6 +565,7 @@ class Patrol:
             )
         command = self._back_to(estimate, target)
         if command is not None:
+            self._boxed_since = None
             self._settle(PatrolState.PATROLLING, f"{inside}: backing out the way it came")
             return command
         if self._inside_seen:
@@ -566,8 +573,19 @@ class Patrol:
             # that post, when it turned towards it): waiting would be for ever.
             command = self._leave_seen(estimate)
             if command is not None:
+                self._boxed_since = None
                 self._settle(PatrolState.PATROLLING, f"{inside}: leaving it the nearest way")
                 return command
+        if self._boxed_since is None:
+            self._boxed_since = estimate.time
+        waited = estimate.time - self._boxed_since
+        if waited >= self.p.boxed_in_s:
+            self._boxed_since = None
+            self.stop(
+                f"{inside}: boxed in for {waited:.0f} s (obstacles ahead and behind): "
+                "patrol stopped, the operator decides"
+            )
+            return STOP
         return self._settle(
             PatrolState.HOLDING, f"{inside}: an obstacle in the way it came (waiting)"
         )

@@ -17,6 +17,11 @@ corridor follows the arc the command drives, not only straight ahead: a post the
 towards is in its way before it is ahead (limits for :data:`TURN_RATIOS`, the motion arbiter
 takes the one of its command). Reversing likewise, straight, for what is behind. Turning on
 the spot is never limited (a skid-steer robot turns inside its footprint).
+
+Passing an obstacle beside the body (within :data:`SIDE_MARGIN_M` of its side, anywhere along
+its length) caps the speed, forward and in turns, from :data:`SIDE_SPEED_MPS` at the body's side
+up to full at the margin, as ArduPilot's proximity avoidance slows a vehicle closing in:
+a post passed with centimetres to spare is passed slowly, never stopped for.
 """
 
 from __future__ import annotations
@@ -39,6 +44,10 @@ STOP_BELOW = 0.02
 TURN_RATIOS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 """Angular over linear command (fractions of full scale) of the arcs limits are made for,
 each way; a command between two takes the lower of their limits."""
+SIDE_MARGIN_M = 0.3
+"""An obstacle this near the body's side slows the robot (:func:`side_limit`)."""
+SIDE_SPEED_MPS = 0.5
+"""The speed passing an obstacle at the body's side (it rises to full at the margin)."""
 MAX_ARC_RAD = math.pi
 """How far round an arc the corridor goes (further, the robot has turned back)."""
 
@@ -165,6 +174,9 @@ def proximity(
         if forward_blind or reverse_blind:  # held until something is seen there again
             sensor_nearest = previous.sensor_nearest_m
     forward, forward_why = _limit(forward_free, "ahead", geometry, dead_s, speed_mps)
+    side, side_why = side_limit(x[used], y[used], geometry)
+    if side < forward:
+        forward, forward_why = side, side_why
     reverse, reverse_why = _limit(reverse_free, "behind", geometry, dead_s, -speed_mps)
     reason = forward_why or reverse_why
     turns: list[tuple[float, float, str]] = []
@@ -179,8 +191,9 @@ def proximity(
         if free is None and blind and ratio in held_turns and held_turns[ratio][0] == 0.0:
             turns.append((ratio, *held_turns[ratio]))  # into the blind zone: the stop stands
             continue
-        side = "left" if ratio > 0 else "right"
-        turns.append((ratio, *_limit(free, f"in the turn {side}", geometry, dead_s, speed_mps)))
+        way = "left" if ratio > 0 else "right"
+        limit = _limit(free, f"in the turn {way}", geometry, dead_s, speed_mps)
+        turns.append((ratio, *(limit if limit[0] <= side else (side, side_why))))
     return Proximity(
         time=scan.time,
         forward_limit=forward,
@@ -193,6 +206,24 @@ def proximity(
         turns=tuple(turns),
         sensor_nearest_m=None if sensor_nearest is None else round(sensor_nearest, 3),
     )
+
+
+def side_limit(x: np.ndarray, y: np.ndarray, geometry: Geometry) -> tuple[float, str]:
+    """The forward cap (fraction of top speed) and its reason for returns beside the body
+    (robot frame, metres): along its length, outside its half-width by under the margin."""
+    lidar = geometry.lidar
+    length = max(abs(lidar.mount_x_m), lidar.half_width_m)  # the body's half-length, about
+    gap = np.abs(y) - lidar.half_width_m
+    beside = (np.abs(x) <= length) & (gap > 0) & (gap < SIDE_MARGIN_M)
+    if not beside.any():
+        return 1.0, ""
+    nearest = float(gap[beside].min())
+    slow = min(SIDE_SPEED_MPS, geometry.max_speed_mps)
+    speed = slow + (geometry.max_speed_mps - slow) * nearest / SIDE_MARGIN_M
+    fraction = min(1.0, speed / geometry.max_speed_mps)
+    if fraction >= 1.0:
+        return 1.0, ""
+    return fraction, f"slowed to {speed:.1f} m/s: obstacle {nearest:.2f} m beside"
 
 
 def _closer(free_m: float | None, than_m: float) -> bool:

@@ -486,10 +486,16 @@ class PatrolActor(Actor):
     ) -> tuple[AreaMap, bytes, bytes]:
         """(Worker thread.) The map with keep-outs changed, checked and stored; its text and
         the changes' (for the planner process)."""
+        if not store and position is not None:
+            from platformd.obstacle_zones import clear_of_robot
+
+            add = clear_of_robot(add, base, *position)
         area = base.with_keepouts(add=add, remove=remove)
         area.keepout_index()  # here, not at the patrol's next step on the event loop
         if position is not None:
-            area.check_position(*position)
+            # The lidar's zones it is in already are the patrol's to leave (back out): they
+            # must not keep other obstacles out of the plan.
+            area.check_position(*position, seen_too=store)
         text = _map_bytes(area)
         if store:
             write_atomically(self.storage.map_file, text.decode())
