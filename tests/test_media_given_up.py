@@ -11,14 +11,12 @@ from __future__ import annotations
 import asyncio
 import time
 
-from conftest import free_udp_port, wait_until
+from conftest import wait_until
 from lossy_udp import LossyRelay
+from support.video_link import video_link
 
 from brasidas.media.video import (
     GIVEN_UP_PAYLOAD,
-    VideoIn,
-    VideoOut,
-    VideoSettings,
     emptied_retransmission,
 )
 
@@ -50,23 +48,12 @@ def test_a_given_up_retransmission_keeps_its_header_and_original_number_only() -
 
 
 async def test_packets_given_up_are_lost_at_once_at_the_receiver_and_the_picture_goes_on() -> None:
-    port = free_udp_port()
-    receiver = VideoIn("rx", host="127.0.0.1", port=port)
-    await receiver.start()
-    relay = LossyRelay(("127.0.0.1", port), loss=0.05, seed=3)
-    settings = VideoSettings(
-        test_source=True,
-        host="127.0.0.1",
-        port=relay.port,
-        encoder="x264enc",
-        pattern="smpte",
-        motion=4,
-    )
-    sender = VideoOut("navcam", settings)
-    try:
-        await sender.start()
-        assert sender.feedback is not None and sender.pipeline is not None
-        receiver.set_feedback("127.0.0.1", sender.feedback.port)
+    def lossy(to: tuple[str, int]) -> LossyRelay:
+        return LossyRelay(to, loss=0.05, seed=3)
+
+    async with video_link(lossy, encoder="x264enc", pattern="smpte", motion=4) as link:
+        sender, receiver = link.sender, link.receiver
+        assert sender.pipeline is not None
         await wait_until(lambda: receiver.frames >= 30, timeout=20)
         # As after a drain pause: every packet sent so far and for a while yet is stale.
         pay = sender.pipeline.get_by_name("pay")
@@ -88,7 +75,3 @@ async def test_packets_given_up_are_lost_at_once_at_the_receiver_and_the_picture
         # rtph264depay crashed the receiver on an empty payload).
         await wait_until(lambda: receiver.frames >= frames + 30, timeout=20)
         await asyncio.sleep(0)
-    finally:
-        await sender.stop()
-        await receiver.stop()
-        relay.close()

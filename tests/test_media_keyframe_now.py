@@ -10,10 +10,11 @@ from dataclasses import dataclass
 
 from conftest import free_udp_port, wait_until
 from lossy_udp import LossyRelay
+from support.video_link import video_link
 
 from brasidas.media.keyframes import KeyframeClock
 from brasidas.media.repair import DEFAULT_DROPOUT_MS
-from brasidas.media.video import VideoIn, VideoOut, VideoSettings
+from brasidas.media.video import VideoOut, VideoSettings
 
 
 @dataclass(frozen=True)
@@ -112,20 +113,9 @@ class _Blackout(LossyRelay):
 
 
 async def test_after_a_blackout_beyond_repair_its_packets_are_not_asked_for_again() -> None:
-    port = free_udp_port()
-    receiver = VideoIn("rx", host="127.0.0.1", port=port)
-    await receiver.start()
-    media = _Blackout(("127.0.0.1", port))
-    sender = VideoOut(
-        "navcam",
-        VideoSettings(test_source=True, host="127.0.0.1", port=media.port, pattern="smpte"),
-    )
-    feedback: _Blackout | None = None
-    try:
-        await sender.start()
-        assert sender.feedback is not None
-        feedback = _Blackout(("127.0.0.1", sender.feedback.port))
-        receiver.set_feedback("127.0.0.1", feedback.port)
+    async with video_link(_Blackout, _Blackout, pattern="smpte") as link:
+        receiver, media, feedback = link.receiver, link.media, link.feedback
+        assert feedback is not None
         await wait_until(lambda: receiver.frames >= 30, timeout=20)
         assert receiver.repairs is not None
         before = receiver.repairs.counters()
@@ -144,9 +134,3 @@ async def test_after_a_blackout_beyond_repair_its_packets_are_not_asked_for_agai
         jitterbuffer = receiver.repairs.jitterbuffers[0]
         assert jitterbuffer.get_property("max-dropout-time") == DEFAULT_DROPOUT_MS
         assert jitterbuffer.get_property("faststart-min-packets") == 0
-    finally:
-        await sender.stop()
-        await receiver.stop()
-        media.close()
-        if feedback is not None:
-            feedback.close()

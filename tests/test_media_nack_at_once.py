@@ -7,10 +7,11 @@ import statistics
 import threading
 import time
 
-from conftest import free_udp_port, wait_until
+from conftest import wait_until
 from lossy_udp import LossyRelay
+from support.video_link import video_link
 
-from brasidas.media.video import PAYLOAD_TYPE, VideoIn, VideoOut, VideoSettings
+from brasidas.media.video import PAYLOAD_TYPE
 
 RTCP_RTPFB = 205
 NACK_FMT = 1
@@ -79,20 +80,9 @@ class _Feedback(LossyRelay):
 
 
 async def test_a_missing_packet_is_asked_for_as_soon_as_its_gap_shows() -> None:
-    port = free_udp_port()
-    receiver = VideoIn("rx", host="127.0.0.1", port=port)
-    await receiver.start()
-    media = _DropSome(("127.0.0.1", port))
-    sender = VideoOut(
-        "navcam",
-        VideoSettings(test_source=True, host="127.0.0.1", port=media.port, pattern="smpte"),
-    )
-    feedback: _Feedback | None = None
-    try:
-        await sender.start()
-        assert sender.feedback is not None
-        feedback = back = _Feedback(("127.0.0.1", sender.feedback.port))
-        receiver.set_feedback("127.0.0.1", back.port)
+    async with video_link(_DropSome, _Feedback, pattern="smpte") as link:
+        receiver, media, back = link.receiver, link.media, link.feedback
+        assert back is not None
         await wait_until(lambda: len(back.asked) >= 40, timeout=30)
         with media._lock, back._lock:
             waits = [
@@ -109,9 +99,3 @@ async def test_a_missing_packet_is_asked_for_as_soon_as_its_gap_shows() -> None:
         # And each was repaired.
         assert receiver.repairs is not None
         assert receiver.repairs.counters().lost == 0
-    finally:
-        await sender.stop()
-        await receiver.stop()
-        media.close()
-        if feedback is not None:
-            feedback.close()
