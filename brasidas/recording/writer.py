@@ -367,11 +367,12 @@ class Recorder:
     def _stop_recording(self, reason: str, *, write_failed: bool = False) -> None:
         if self._stopped_for:
             return
+        # Said before it shows in the stats: whoever sees the reason finds the warning logged.
+        _LOGGER.warning("recorder stopped: %s", reason)
         self._stopped_for = reason
         self._write_failed = write_failed
         self.stats.recording = False
         self.stats.reason = reason
-        _LOGGER.warning("recorder stopped: %s", reason)
         self._close_file()
         self._event(3, f"recording stopped: {reason}")
 
