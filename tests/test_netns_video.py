@@ -164,6 +164,13 @@ async def test_the_bitrate_falls_under_a_rate_limit(watching: Fleet) -> None:
         return (await _receiver(fleet))["frames"] >= 90
 
     await wait_for(enough, timeout=40, step=0.5)
+
+    async def at_ceiling() -> bool:
+        navcam = await _navcam(fleet)
+        return bool(navcam["bitrate_kbps"] == navcam["bitrate_ceiling_kbps"])
+
+    # (The previous test's link cut may still hold the bitrate down: it climbs back.)
+    await wait_for(at_ceiling, timeout=20, step=0.25)
     before = await _navcam(fleet)
     assert before["overuses"] == 0, before
     # Read packet by packet too: every feedback parsed, random loss no queue.
