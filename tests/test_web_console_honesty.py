@@ -261,16 +261,22 @@ async def test_a_route_edit_keeps_the_loop_and_counts_from_one(
     await page.get_by_role("button", name="edit route").click()
     # A point halfway between the first two, inside the field.
     lat, lon = (shown[0]["lat"] + shown[1]["lat"]) / 2, (shown[0]["lon"] + shown[1]["lon"]) / 2
-    box = await page.locator("#map").bounding_box()
-    assert box is not None
     markers = page.locator('#map [title^="waypoint "]')
     for _ in range(5):  # a click while the map still settles (fitted to the area) can be lost
+        # The map's place is read at each try: panels filling in as telemetry arrives move it.
+        box = await page.locator("#map").bounding_box()
+        assert box is not None
         at = await page.evaluate(f"window.navcam.mapPixel({lat}, {lon})")
-        await page.mouse.click(box["x"] + at["x"], box["y"] + at["y"])
+        x, y = box["x"] + at["x"], box["y"] + at["y"]
+        under = await page.evaluate(
+            f"(() => {{ const e = document.elementFromPoint({x}, {y});"
+            " return e ? `${e.tagName}.${e.getAttribute('class')} ${e.title ?? ''}` : null; })()"
+        )
+        await page.mouse.click(x, y)
         with contextlib.suppress(AssertionError):
             await expect(markers).to_have_count(6, timeout=2_000)
             break
-    await expect(markers).to_have_count(6)
+    assert await markers.count() == 6, f"the clicks at ({x:.0f}, {y:.0f}) hit {under}"
     await page.get_by_role("button", name="send route").click()
     answer = page.locator("#patrol-answer")
     await expect(answer).to_contain_text("route sent: 6 waypoints, closed", timeout=10_000)
@@ -279,6 +285,8 @@ async def test_a_route_edit_keeps_the_loop_and_counts_from_one(
     assert (routed[0]["lat"], routed[0]["lon"]) == (routed[-1]["lat"], routed[-1]["lon"])
     # A refusal numbers the waypoint as the page does: the map's far corner, outside.
     await page.get_by_role("button", name="edit route").click()
+    box = await page.locator("#map").bounding_box()
+    assert box is not None
     await page.mouse.click(box["x"] + box["width"] - 6, box["y"] + box["height"] - 6)
     await page.get_by_role("button", name="send route").click()
     await expect(answer).to_contain_text("waypoint 6", timeout=10_000)

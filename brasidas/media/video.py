@@ -884,7 +884,10 @@ def _sent_before(rtx_header: bytes, first_fresh: int) -> bool:
 def _force_keyframe_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
     """Streaming thread, before a raw frame enters the encoder: force it to a keyframe when
     the clock says so (the encoder applies a pending force-key-unit to its next frame). The
-    encoder is found from the pad: a reference held by the probe would keep it alive."""
+    encoder is found from the pad: a reference held by the probe would keep it alive. The event
+    goes to the encoder's source pad, not to the element: ``Element.send_event`` takes the
+    encoder's state lock, which a stop holds while it waits for this thread's stream lock (a
+    deadlock, ~1 stop in 400 here, that left the pipeline abandoned and its memory held)."""
     stream = ref()
     encoder = pad.get_parent_element()
     if stream is not None and encoder is not None:
@@ -903,7 +906,7 @@ def _force_keyframe_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> An
         if force:
             event = _force_key_unit_event()
             stream._forced_seqnums.append(event.get_seqnum())
-            encoder.send_event(event)
+            encoder.get_static_pad("src").send_event(event)
     return gst().PadProbeReturn.OK
 
 
