@@ -246,7 +246,10 @@ def test_a_capacity_drop_confirmed_by_a_report_losing_most_packets_pauses_at_the
     controller.on_transport(_window(1800, 400, 60.0), 1500, 0.4)
     assert controller.paused_at == 0.2
     assert controller.effective_kbps(1500) < 500
-    # A second overuse a while later is a new drop: a new pause.
+    # A second overuse a while later (the feedback coming all along) is a new drop: a new
+    # pause.
+    for step in range(5, 20):
+        controller.on_transport(_window(450, 450, 0.0), 1500, step * READ_S)
     _report_loss(controller, 0.5, 2.0)
     controller.on_transport(_window(450, 200, 40.0), 1500, 2.0)
     assert controller.paused_at == 2.0
@@ -393,3 +396,70 @@ def test_a_queue_seen_packet_by_packet_pauses_cuts_once_and_ignores_what_was_sen
     assert controller.on_queue(600, 300, 1500, 10.3, sent_at=10.2) is not None
     assert controller.effective_kbps(1500) == 255
     assert controller.pauses == 1
+
+
+BLACKOUT_WINDOWS = [
+    # (s after the first, sent kbit/s, received kbit/s, delay trend ms) read by the sender
+    # around a 300 ms link cut at 0.346-0.646 s (fps30_burst300ms, recorded).
+    (0.000, 1353.1, 1356.2, -0.003),
+    (0.033, 1504.4, 1503.5, 0.027),
+    (0.066, 1367.7, 1370.3, 0.001),
+    (0.099, 1502.4, 1502.5, -0.010),
+    (0.132, 1502.1, 1502.1, -0.005),
+    (0.166, 1504.6, 1504.7, 0.002),
+    (0.199, 1379.6, 1384.3, -0.014),
+    (0.233, 1367.6, 1371.1, 0.002),
+    (0.267, 1505.9, 1504.9, -0.010),
+    (0.299, 1505.0, 1504.1, 0.037),
+    (0.333, 1504.4, 1505.2, -0.027),
+    # The feedback comes back: the first window spans the silence.
+    (0.667, 3005.5, 1294.7, 0.976),
+    (0.673, 1416.0, 212.7, 0.048),
+    (0.699, 1517.8, 442.7, 0.072),
+    (0.833, 1203.2, 411.6, 0.025),
+    (0.932, 1028.6, 362.3, 0.035),
+    (1.032, 1501.0, 1500.0, 0.001),
+]
+BLACKOUT_REPORT_AT = 0.699
+"""A receiver report counting 58 of the 80 packets since its last lost (the cut's)."""
+
+
+def test_a_link_cut_and_its_lost_packets_are_not_an_overuse() -> None:
+    controller = BitrateController(1500, 150)
+    for at, sent, received, trend in BLACKOUT_WINDOWS:
+        if at == BLACKOUT_REPORT_AT:
+            controller.note_report(1, 5000, 100, at - 0.03)
+            controller.note_report(1, 5080, 158, at)
+        controller.on_transport(TransportReport(sent, received, trend), 1500, at)
+        controller.confirm_pending(1500, at)
+        controller.update(0.7 if at > 0.6 else 0.0, 1500, at)
+    # The old reading: +92 ms of "queue" across the gap, confirmed by the report: three cuts
+    # to 350 kbit/s and a drain pause.
+    assert controller.overuses == 0
+    assert controller.paused_at is None
+    assert controller.effective_kbps(1500) == 1500
+    assert controller.silences == 1
+    # A real capacity drop after it, the feedback coming all along, is still cut at once.
+    now = 1.032
+    for _ in range(5):
+        now += 0.033
+        controller.on_transport(_window(1500, 1495, 0.0), 1500, now)
+    controller.on_transport(_window(1470, 977, 56.0), 1500, now + 0.033)
+    _report_loss(controller, 0.5, now + 0.06)
+    assert controller.on_transport(_window(1870, 640, 105.0), 1500, now + 0.066) is not None
+    assert controller.paused_at == now + 0.066
+
+
+def test_slow_feedback_is_learned_as_usual_not_read_as_silences() -> None:
+    # At a low bitrate the receivers' feedback comes every ~100-250 ms: after the first few,
+    # no silence, and a capacity drop there is still seen.
+    controller = BitrateController(300, 100)
+    now = 0.0
+    for _ in range(20):
+        controller.on_transport(_window(300, 300, 0.0), 300, now)
+        now += 0.25
+    silences = controller.silences
+    controller.on_transport(_window(300, 200, 40.0), 300, now)
+    _report_loss(controller, 0.5, now + 0.2)
+    assert controller.on_transport(_window(300, 150, 60.0), 300, now + 0.25) is not None
+    assert controller.silences == silences

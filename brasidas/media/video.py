@@ -269,6 +269,7 @@ class VideoOut(FanOutStream[VideoSettings]):
             "reported_jitter_ms": self.reported_jitter_ms,
             "transport": vars(self.transport) if self.transport is not None else None,
             "overuses": self.bitrate.overuses,
+            "transport_silences": self.bitrate.silences,
             "queue_ms": round(self.bitrate.queue_ms, 1),
             "transport_feedback": {
                 **vars(self.queue_detector.counters),
