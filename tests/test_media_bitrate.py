@@ -463,3 +463,21 @@ def test_slow_feedback_is_learned_as_usual_not_read_as_silences() -> None:
     _report_loss(controller, 0.5, now + 0.2)
     assert controller.on_transport(_window(300, 150, 60.0), 300, now + 0.25) is not None
     assert controller.silences == silences
+
+
+def test_the_feedback_silent_through_a_drain_pause_still_cuts_on() -> None:
+    # The encoder sent nothing for the pause, so no feedback came: not a link cut, and the
+    # lagging windows after it go on cutting while the queue still grows.
+    controller = BitrateController(1500, 150)
+    now = 0.0
+    for _ in range(10):
+        controller.on_transport(_window(1500, 1490, 0.0), 1500, now)
+        now += 0.033
+    _report_loss(controller, 0.5, now)
+    # (Read every 33 ms, a window adds a ninth of its growth.)
+    assert controller.on_transport(_window(1470, 977, 300.0), 1500, now) is not None
+    assert controller.paused_at == now
+    cut = controller.effective_kbps(1500)
+    controller.on_transport(_window(1870, 357, 256.0), 1500, now + 0.2)
+    assert controller.silences == 0
+    assert controller.effective_kbps(1500) < cut

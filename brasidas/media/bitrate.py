@@ -236,7 +236,9 @@ class BitrateController:
         last = self.transport_at
         new_share = 1.0 if last is None else min(1.0, (now - last) / TRANSPORT_WINDOW_S)
         self.transport_at = now
-        if last is not None and self._silent_since(now - last):
+        # (Not the silence of our own drain pause: nothing was sent, nothing is reported.)
+        own_pause = self.paused_at is not None and now - self.paused_at < PAUSE_AGAIN_AFTER_S
+        if last is not None and self._silent_since(now - last) and not own_pause:
             # The delay's trend across the silence and the packets it lost are the cut's, not
             # a queue's: the estimate starts again after it.
             self.silences += 1
