@@ -481,3 +481,21 @@ def test_the_feedback_silent_through_a_drain_pause_still_cuts_on() -> None:
     controller.on_transport(_window(1870, 357, 256.0), 1500, now + 0.2)
     assert controller.silences == 0
     assert controller.effective_kbps(1500) < cut
+
+
+def test_a_queue_seen_packet_by_packet_just_after_a_silence_lets_the_windows_cut_on() -> None:
+    # A loaded machine's stall (0.2 s without feedback), then a capacity drop the per-packet
+    # feedback sees at once: the windows after it are the drop's, and confirm it.
+    controller = BitrateController(1500, 150)
+    now = 0.0
+    for _ in range(10):
+        controller.on_transport(_window(1500, 1490, 0.0), 1500, now)
+        now += 0.033
+    now += 0.2
+    controller.on_transport(_window(1500, 1400, 0.0), 1500, now)
+    assert controller.silences == 1
+    assert controller.on_queue(1600, 500, 1500, now + 0.03, sent_at=now) is not None
+    _report_loss(controller, 0.5, now + 0.06)
+    controller.on_transport(_window(1470, 700, 300.0), 1500, now + 0.066)
+    assert controller.overuses == 2
+    assert controller.collapsed_at == now + 0.066

@@ -323,6 +323,9 @@ class BitrateController:
     ) -> int | None:
         """The link is over its capacity: pause (the first time), cut under what arrived."""
         self._candidate = None
+        # Seen packet by packet within a silence's windows (a loaded machine's stall just
+        # before a capacity drop): the windows decide again, the next cuts confirm the drop.
+        self.silence_ended_at = None
         pausing = self.paused_at is None or now - self.paused_at >= PAUSE_AGAIN_AFTER_S
         if pausing:
             self.paused_at = now
