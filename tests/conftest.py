@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import pytest_asyncio
 from hypothesis import HealthCheck, settings
 from support import markers
 from support.browser import SharedChromium
@@ -81,9 +82,40 @@ THREAD_GRACE = 2.0
 """Seconds a test's threads get to finish after it (a pipeline's last state change)."""
 
 
+def on_the_tests_loop(request: pytest.FixtureRequest, name: str) -> Any:
+    """The fixture ``name`` in the variant for the loop this test runs on: ``name`` on its
+    own loop, ``session_loop_<name>`` on the worker's session loop (the browser tests,
+    :func:`support.markers.on_the_session_loop`). A fixture's loop is fixed where it is
+    defined, so a fixture both kinds of test use is defined once for each."""
+    if markers.on_the_session_loop(request.node):
+        return request.getfixturevalue(f"session_loop_{name}")
+    return request.getfixturevalue(f"own_loop_{name}")
+
+
 @pytest.fixture(autouse=True)
-async def verify_no_lingering_tasks() -> AsyncIterator[None]:
+def verify_no_lingering_tasks(request: pytest.FixtureRequest) -> None:
     """Fail a test that leaves tasks running, timers scheduled or threads working."""
+    on_the_tests_loop(request, "verify_no_lingering_tasks")
+
+
+@pytest.fixture
+async def own_loop_verify_no_lingering_tasks() -> AsyncIterator[None]:
+    async with no_lingering_tasks():
+        yield
+
+
+@pytest_asyncio.fixture(loop_scope="session")
+async def session_loop_verify_no_lingering_tasks(playwright_driver: Any) -> AsyncIterator[None]:
+    # The driver's own tasks (started by the worker's first browser test) are not the
+    # test's. The test body runs on the loop current when it starts: this one.
+    asyncio.set_event_loop(asyncio.get_running_loop())
+    async with no_lingering_tasks():
+        yield
+
+
+@contextlib.asynccontextmanager
+async def no_lingering_tasks() -> AsyncIterator[None]:
+    """Fail if the block leaves tasks running, timers scheduled or threads working."""
     loop = asyncio.get_running_loop()
     tasks_before = asyncio.all_tasks()
     timers_before = set(_timers(loop))
@@ -217,28 +249,30 @@ def free_tcp_port() -> int:
 @pytest.fixture(scope="session")
 def chromium(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SharedChromium]:
     """The worker's one headless Chromium (tests/support/browser.py), started when first used."""
-    directory = tmp_path_factory.mktemp("chromium")
-    with pytest.MonkeyPatch.context() as patch:
-        # Each browser test starts Playwright's driver, a Node process: Node's compile cache
-        # spares it compiling the driver's code again each time (a quarter of its start's CPU).
-        patch.setenv("NODE_COMPILE_CACHE", str(directory / "node-compile-cache"))
-        running = SharedChromium(directory)
-        yield running
-        running.close()
+    running = SharedChromium(tmp_path_factory.mktemp("chromium"))
+    yield running
+    running.close()
 
 
-@pytest.fixture
-async def browser(chromium: SharedChromium) -> AsyncIterator[Any]:
-    """The worker's Chromium, connected for this test: each ``new_page`` or ``new_context``
-    is a fresh context (no cookies or storage from another test), all closed after it."""
+@pytest_asyncio.fixture(scope="session", loop_scope="session")
+async def playwright_driver() -> AsyncIterator[Any]:
+    """The worker's one Playwright driver (a Node process, 0.5-1.2 s to start), on the
+    session loop the browser tests run on: a driver is bound to the loop that started it."""
     from playwright.async_api import async_playwright
 
     async with async_playwright() as playwright:
-        connected = await playwright.chromium.connect_over_cdp(chromium.endpoint())
-        try:
-            yield connected
-        finally:
-            await connected.close()
+        yield playwright
+
+
+@pytest_asyncio.fixture(loop_scope="session")
+async def browser(chromium: SharedChromium, playwright_driver: Any) -> AsyncIterator[Any]:
+    """The worker's Chromium, connected for this test: each ``new_page`` or ``new_context``
+    is a fresh context (no cookies or storage from another test), all closed after it."""
+    connected = await playwright_driver.chromium.connect_over_cdp(chromium.endpoint())
+    try:
+        yield connected
+    finally:
+        await connected.close()
 
 
 @pytest.fixture
@@ -268,9 +302,31 @@ def quiet_platform_config(*overrides: str) -> PlatformConfig:
     return load_config(PlatformConfig, None, [*defaults, *overrides])
 
 
+PlatformFactory = Callable[..., Awaitable[PlatformDaemon]]
+
+
 @pytest.fixture
-async def platform_factory() -> AsyncIterator[Callable[..., Awaitable[PlatformDaemon]]]:
+def platform_factory(request: pytest.FixtureRequest) -> PlatformFactory:
     """Start in-process platforms; all are stopped after the test."""
+    factory: PlatformFactory = on_the_tests_loop(request, "platform_factory")
+    return factory
+
+
+@pytest.fixture
+async def own_loop_platform_factory() -> AsyncIterator[PlatformFactory]:
+    async with platforms_started() as start:
+        yield start
+
+
+@pytest_asyncio.fixture(loop_scope="session")
+async def session_loop_platform_factory() -> AsyncIterator[PlatformFactory]:
+    async with platforms_started() as start:
+        yield start
+
+
+@contextlib.asynccontextmanager
+async def platforms_started() -> AsyncIterator[PlatformFactory]:
+    """A function that starts an in-process platform; every one it started is stopped on exit."""
     started: list[PlatformDaemon] = []
 
     async def start(config: PlatformConfig, fleet_key: bytes | None) -> PlatformDaemon:
@@ -279,9 +335,11 @@ async def platform_factory() -> AsyncIterator[Callable[..., Awaitable[PlatformDa
         await daemon.start()
         return daemon
 
-    yield start
-    for daemon in started:
-        await daemon.stop()
+    try:
+        yield start
+    finally:
+        for daemon in started:
+            await daemon.stop()
 
 
 def velocities_dropped(daemon: PlatformDaemon, reason: str) -> int:
@@ -326,9 +384,25 @@ def station_settings() -> tuple[str, ...]:
 
 
 @pytest.fixture
-async def station(
+def station(
+    request: pytest.FixtureRequest, fleet_key: bytes, station_settings: tuple[str, ...]
+) -> StationDaemon:
+    """A station on loopback (:func:`running_station`) with ``station_settings``."""
+    daemon: StationDaemon = on_the_tests_loop(request, "station")
+    return daemon
+
+
+@pytest.fixture
+async def own_loop_station(
     fleet_key: bytes, station_settings: tuple[str, ...]
 ) -> AsyncIterator[StationDaemon]:
-    """A station on loopback (:func:`running_station`) with ``station_settings``."""
+    async with running_station(fleet_key, *station_settings) as daemon:
+        yield daemon
+
+
+@pytest_asyncio.fixture(loop_scope="session")
+async def session_loop_station(
+    fleet_key: bytes, station_settings: tuple[str, ...]
+) -> AsyncIterator[StationDaemon]:
     async with running_station(fleet_key, *station_settings) as daemon:
         yield daemon

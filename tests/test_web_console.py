@@ -6,7 +6,7 @@ import re
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
 
-import pytest
+import pytest_asyncio
 from conftest import free_tcp_port, quiet_platform_config, running_station, wait_until
 
 from brasidas import topics
@@ -45,7 +45,7 @@ JSON.parse = function (text, reviver) {
 """
 
 
-@pytest.fixture
+@pytest_asyncio.fixture(loop_scope="session")  # its one test is a browser test
 async def station(fleet_key: bytes) -> AsyncIterator[StationDaemon]:
     async with running_station(fleet_key) as daemon:
         yield daemon

@@ -676,3 +676,6 @@ async def test_a_remote_operator_needs_https_and_gets_video_over_it(
         await page.goto(f"https://station.test:{daemon.console_https_port}/?platform=web-rover")
         await expect(page.locator("#api-state")).to_have_text("station connected")
         await frames_decoded(page, at_least=5)
+        # Closed by the browser first: a station stopping under open TLS connections leaves
+        # their shutdown timers (30 s each) on the loop.
+        await context.close()

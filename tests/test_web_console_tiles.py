@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import aiohttp
-import pytest
+import pytest_asyncio
 from aiohttp import web
 from conftest import running_station
 from support.console import Factory, console, rover, screenshots
@@ -65,7 +65,7 @@ def write_mbtiles(path: Path) -> dict[tuple[int, int, int], bytes]:
     return tiles
 
 
-@pytest.fixture
+@pytest_asyncio.fixture(loop_scope="session")  # its one test is a browser test
 async def tiled(
     fleet_key: bytes, tmp_path: Path
 ) -> AsyncIterator[tuple[StationDaemon, dict[tuple[int, int, int], bytes]]]:

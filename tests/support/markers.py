@@ -117,6 +117,17 @@ def module_markers(path: Path) -> frozenset[str]:
     return frozenset(found)
 
 
+SESSION_LOOP = pytest.mark.asyncio(loop_scope="session")
+"""The loop of a test that uses the ``browser`` fixture: the worker's session loop, where its
+one Playwright driver runs (a driver per test cost a Node start, 0.5-1.2 s, each)."""
+
+
+def on_the_session_loop(item: pytest.Item) -> bool:
+    """The test runs on the worker's session loop (its async fixtures must too)."""
+    mark = item.get_closest_marker("asyncio")
+    return mark is not None and mark.kwargs.get("loop_scope") == "session"
+
+
 def shares_a_rig(item: pytest.Item) -> bool:
     """The test uses a fixture that outlives it (module, package or class scope)."""
     info = getattr(item, "_fixtureinfo", None)
@@ -138,6 +149,8 @@ def apply(items: list[pytest.Item]) -> None:
         marks = module_markers(path)
         if "browser" in getattr(item, "fixturenames", ()):  # conftest's shared Chromium
             marks |= {"browser", "slow"}
+            # First, so it is the mark pytest-asyncio reads (auto mode's plain one follows).
+            item.add_marker(SESSION_LOOP, append=False)
         for name in marks:
             item.add_marker(name)
         if f"{path.name}::{getattr(item, 'originalname', item.name)}" in SLOW_TESTS:
