@@ -101,6 +101,22 @@ def _window(sent: float, received: float, growth_ms: float) -> TransportReport:
     return TransportReport(sent, received, delay_trend_ms=growth_ms / packets)
 
 
+def _clean_windows(
+    controller: BitrateController,
+    sent: float,
+    received: float,
+    count: int,
+    every: float,
+    start: float = 0.0,
+) -> float:
+    """``count`` windows of a link without a queue, one every ``every`` s: the next time."""
+    now = start
+    for _ in range(count):
+        controller.on_transport(_window(sent, received, 0.0), sent, now)
+        now += every
+    return now
+
+
 def test_a_queue_building_cuts_the_bitrate_to_under_what_arrived_at_once() -> None:
     controller = BitrateController(1500, 150)
     now = 0.0
@@ -440,10 +456,7 @@ def test_a_link_cut_and_its_lost_packets_are_not_an_overuse() -> None:
     assert controller.effective_kbps(1500) == 1500
     assert controller.silences == 1
     # A real capacity drop after it, the feedback coming all along, is still cut at once.
-    now = 1.032
-    for _ in range(5):
-        now += 0.033
-        controller.on_transport(_window(1500, 1495, 0.0), 1500, now)
+    now = _clean_windows(controller, 1500, 1495, 5, 0.033, start=1.065) - 0.033
     controller.on_transport(_window(1470, 977, 56.0), 1500, now + 0.033)
     _report_loss(controller, 0.5, now + 0.06)
     assert controller.on_transport(_window(1870, 640, 105.0), 1500, now + 0.066) is not None
@@ -454,10 +467,7 @@ def test_slow_feedback_is_learned_as_usual_not_read_as_silences() -> None:
     # At a low bitrate the receivers' feedback comes every ~100-250 ms: after the first few,
     # no silence, and a capacity drop there is still seen.
     controller = BitrateController(300, 100)
-    now = 0.0
-    for _ in range(20):
-        controller.on_transport(_window(300, 300, 0.0), 300, now)
-        now += 0.25
+    now = _clean_windows(controller, 300, 300, 20, 0.25)
     silences = controller.silences
     controller.on_transport(_window(300, 200, 40.0), 300, now)
     _report_loss(controller, 0.5, now + 0.2)
@@ -469,10 +479,7 @@ def test_the_feedback_silent_through_a_drain_pause_still_cuts_on() -> None:
     # The encoder sent nothing for the pause, so no feedback came: not a link cut, and the
     # lagging windows after it go on cutting while the queue still grows.
     controller = BitrateController(1500, 150)
-    now = 0.0
-    for _ in range(10):
-        controller.on_transport(_window(1500, 1490, 0.0), 1500, now)
-        now += 0.033
+    now = _clean_windows(controller, 1500, 1490, 10, 0.033)
     _report_loss(controller, 0.5, now)
     # (Read every 33 ms, a window adds a ninth of its growth.)
     assert controller.on_transport(_window(1470, 977, 300.0), 1500, now) is not None
@@ -487,11 +494,7 @@ def test_a_queue_seen_packet_by_packet_just_after_a_silence_lets_the_windows_cut
     # A loaded machine's stall (0.2 s without feedback), then a capacity drop the per-packet
     # feedback sees at once: the windows after it are the drop's, and confirm it.
     controller = BitrateController(1500, 150)
-    now = 0.0
-    for _ in range(10):
-        controller.on_transport(_window(1500, 1490, 0.0), 1500, now)
-        now += 0.033
-    now += 0.2
+    now = _clean_windows(controller, 1500, 1490, 10, 0.033) + 0.2
     controller.on_transport(_window(1500, 1400, 0.0), 1500, now)
     assert controller.silences == 1
     assert controller.on_queue(1600, 500, 1500, now + 0.03, sent_at=now) is not None
