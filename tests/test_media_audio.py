@@ -227,13 +227,12 @@ async def main(port):
         {"before": before, "after": rss_mb(), "playing": playing, "abandoned": stream.abandoned}
     ))
 
-WARM_UP = 150
+WARM_UP = 50
 asyncio.run(main(int(sys.argv[1])))
 """
 MAX_GROWTH_MB = 3.0
-"""Over 200 cycles: a leak of 15 kB a cycle fails. Once warm (150 cycles; 20, then 50, were
-not always enough in a whole-suite run: the pools were still growing, +3.2-4.0 MB with no
-pipeline left behind, where the same 200 cycles grow 0.3-0.9 MB alone) and with freed heap returned
+"""Over 200 cycles: a leak of 15 kB a cycle fails. Once warm (50 cycles; 20 were not always
+enough on a loaded machine: the pools were still growing) and with freed heap returned
 (``malloc_trim``), RSS stays within half a megabyte here, at a load of 8 too."""
 
 
@@ -249,13 +248,7 @@ async def test_200_starts_and_stops_leave_memory_flat() -> None:
         stderr=asyncio.subprocess.PIPE,
         # A leak, not glibc's per-thread arenas: each pipeline's threads (rtpbin's RTCP ones
         # too) may open an arena of their own, ~5 MB of RSS over 200 cycles that is no leak.
-        # Nor glibc's cache of freed thread stacks, which holds as many as were ever alive at
-        # once: more on a loaded machine, whose threads end later.
-        env={
-            **os.environ,
-            "MALLOC_ARENA_MAX": "2",
-            "GLIBC_TUNABLES": "glibc.pthread.stack_cache_size=0",
-        },
+        env={**os.environ, "MALLOC_ARENA_MAX": "2"},
     )
     out, err = await asyncio.wait_for(process.communicate(), 120)
     assert process.returncode == 0, err.decode()[-2000:]
