@@ -305,32 +305,45 @@ class FoxgloveLive(Actor):
             platform.state(change, now)
         for message in messages:
             platform.log(message.spec, message.data, message.time_ns)
+        # A revision counts as published only once fetched: a fetch that failed (a slow link, a
+        # timeout) is tried again at the next snapshot, not left until the robot's next change.
         autonomy = snapshot.get(Autonomy)
         if autonomy is not None and autonomy.map_rev != platform.map_rev:
-            platform.map_rev = autonomy.map_rev
-            await self._map(platform)
+            if await self._map(platform):
+                platform.map_rev = autonomy.map_rev
         view = snapshot.get(LidarView)
         if view is not None and view.grid_rev and view.grid_rev != platform.grid_rev:
-            platform.grid_rev = view.grid_rev
-            await self._grid(platform)
+            if await self._grid(platform):
+                platform.grid_rev = view.grid_rev
 
-    async def _map(self, platform: _PlatformChannels) -> None:
-        with contextlib.suppress(RpcError, ConnectionError, TimeoutError):
+    async def _map(self, platform: _PlatformChannels) -> bool:
+        """The route and areas (``/map``), fetched when their revision moves; False: not fetched."""
+        try:
             answer = await self.ctx.api.call_local("map_get", platform_id=platform.platform_id)
-            if isinstance(answer, dict) and answer.get("map") is not None:
-                platform.map_data = schemas.encode_geojson(answer["map"])
-                platform.log(schemas.MAP, platform.map_data, time.time_ns())
+        except (RpcError, ConnectionError, TimeoutError):
+            return False
+        if isinstance(answer, dict) and answer.get("map") is not None:
+            platform.map_data = schemas.encode_geojson(answer["map"])
+            platform.log(schemas.MAP, platform.map_data, time.time_ns())
+        return True
 
-    async def _grid(self, platform: _PlatformChannels) -> None:
-        """The occupancy grid (``/grid``, foxglove.Grid), fetched when its revision moves."""
-        with contextlib.suppress(RpcError, ConnectionError, TimeoutError, GridRefused):
+    async def _grid(self, platform: _PlatformChannels) -> bool:
+        """The occupancy grid (``/grid``, foxglove.Grid), fetched when its revision moves;
+        False: not fetched."""
+        try:
             answer = await self.ctx.api.call_local(
                 "perception_grid", platform_id=platform.platform_id
             )
-            if isinstance(answer, dict) and answer.get("rev"):
-                message = projection.grid_message(grid_from_json(answer), time.time_ns())
-                platform.grid_data = message.data
-                platform.log(message.spec, message.data, message.time_ns)
+            if not (isinstance(answer, dict) and answer.get("rev")):
+                return False
+            message = projection.grid_message(grid_from_json(answer), time.time_ns())
+        except (RpcError, ConnectionError, TimeoutError):
+            return False
+        except GridRefused:
+            return True  # a grid this station refuses (too big, malformed) is not asked again
+        platform.grid_data = message.data
+        platform.log(message.spec, message.data, message.time_ns)
+        return True
 
     # ------------------------------------------------------------------ video (loop)
 

@@ -8,6 +8,8 @@ from __future__ import annotations
 import asyncio
 import base64
 import math
+import types
+import warnings
 import zlib
 from pathlib import Path
 from typing import Any
@@ -21,6 +23,7 @@ from support.patrol import LAT, LON, RTK, Robot, at
 
 from brasidas import topics
 from brasidas.autonomy.geo import LocalFrame
+from brasidas.bus import Bus
 from brasidas.codecs.telemetry_schema import (
     LidarView,
     Snapshot,
@@ -162,6 +165,51 @@ def test_the_projection_puts_the_scan_and_fused_pose_on_their_channels() -> None
     assert base64.b64decode(grid["data"]) == image.cells
     assert grid["pose"]["position"]["x"] == image.x_m
     assert UNKNOWN not in image.cells[: image.columns]  # the crop starts at what was seen
+
+
+def test_a_long_seen_free_cell_is_0_percent_without_overflow() -> None:
+    """Log-odds far past float32 exp()'s range (a cell seen free for minutes) read 0 % and
+    100 %, without a RuntimeWarning (one rose from a driven loop's grid)."""
+    log_odds, origin = grid_with_post()
+    log_odds[log_odds < 0] = -500.0
+    log_odds[log_odds > 0] = 500.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        image = grid_image(LAT, LON, origin, 0.1, log_odds, scans=3)
+    assert image is not None
+    assert set(image.cells) == {0, 100}
+
+
+async def test_foxglove_live_fetches_a_grid_again_after_a_failed_fetch() -> None:
+    """A grid revision whose fetch failed (a timeout on a loaded link) is fetched at the next
+    snapshot: a robot that stopped draws no new revision, so waiting for one left ``/grid``
+    empty (a Foxglove client waited 60 s for it in a whole-suite run)."""
+    import foxglove
+
+    from stationd.foxglove_live import FoxgloveLive, _PlatformChannels
+
+    log_odds, origin = grid_with_post()
+    image = grid_image(LAT, LON, origin, 0.1, log_odds, scans=3)
+    assert image is not None
+    answers: list[Any] = [TimeoutError(), image.to_json(4)]
+
+    async def call_local(method: str, **params: Any) -> Any:
+        assert (method, params) == ("perception_grid", {"platform_id": "rover-g"})
+        answer = answers.pop(0)
+        if isinstance(answer, Exception):
+            raise answer
+        return answer
+
+    ctx: Any = types.SimpleNamespace(bus=Bus(), api=types.SimpleNamespace(call_local=call_local))
+    live = FoxgloveLive(ctx)
+    platform = _PlatformChannels("rover-g", foxglove.Context())
+    for _ in range(2):  # the same revision twice: the robot drew no new grid
+        platform.pending = Snapshot({LidarView: LidarView(grid_rev=4)})
+        await live._project(platform)
+    assert answers == []
+    assert platform.grid_data is not None
+    assert base64.b64decode(orjson.loads(platform.grid_data)["data"]) == image.cells
+    assert platform.grid_rev == 4
 
 
 async def test_through_the_daemon_the_scan_grid_and_fused_pose_are_shown_and_recorded(

@@ -219,7 +219,10 @@ def grid_image(
     # The block's most occupied seen cell: an obstacle anywhere in it is kept.
     strongest = np.where(blocks != 0, blocks, -np.inf).max(axis=2)
     known = np.isfinite(strongest)
-    percent = np.rint(100.0 / (1.0 + np.exp(-np.where(known, strongest, 0.0))))
+    # Within +-30 (0 % and 100 % once rounded): a long-seen free cell's float32 log-odds past
+    # -88 overflowed exp() (a RuntimeWarning a driven loop raised) for the same 0 %.
+    odds = np.clip(np.where(known, strongest, 0.0), -30.0, 30.0)
+    percent = np.rint(100.0 / (1.0 + np.exp(-odds)))
     cells = np.where(known, percent, UNKNOWN).astype(np.uint8)
     return GridImage(
         latitude,
