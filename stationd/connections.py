@@ -57,6 +57,10 @@ class ConnectionManager(Actor):
         """Per platform being connected: its lock and how many callers want it."""
         self._reconnecting: dict[str, str] = {}
         """Platforms whose lost session is being re-established, with their signaling URL."""
+        self._stopping = False
+        """The station is stopping: no session is opened any more. Other actors still run
+        while the stop hooks do, and one asking for a platform then (Foxglove live fetching a
+        grid) opened a session nothing would close, its heartbeat task left running."""
 
     async def run(self) -> None:
         async with asyncio.TaskGroup() as watchers:
@@ -68,6 +72,7 @@ class ConnectionManager(Actor):
 
     async def async_stop(self) -> None:
         """Close every session: platforms release the manual override at once (R-17)."""
+        self._stopping = True
         await asyncio.gather(
             *(connection.close() for connection in list(self.ctx.connections.values())),
             return_exceptions=True,
@@ -100,6 +105,7 @@ class ConnectionManager(Actor):
         existing = self.ctx.connections.get(platform_id)
         if existing is not None and not existing.closed.is_set():
             return existing
+        self._refuse_if_stopping(platform_id)
         url = url or await self._resolve(platform_id)
         connection = PlatformConnection(
             platform_id,
@@ -114,6 +120,9 @@ class ConnectionManager(Actor):
             raise RpcError(UNAVAILABLE, f"{platform_id}: {err}") from None
         except (OSError, TimeoutError, RpcError) as err:
             raise RpcError(UNAVAILABLE, f"{platform_id}: cannot connect to {url}: {err}") from None
+        if self._stopping:  # the stop hook ran while this one was opening: it missed it
+            await connection.close()
+            self._refuse_if_stopping(platform_id)
         connection.on_control_lost = functools.partial(self._on_control_lost, platform_id)
         self.ctx.connections[platform_id] = connection
         if self._watchers is not None:
@@ -123,6 +132,10 @@ class ConnectionManager(Actor):
             topics.PLATFORM_CONNECTED, PlatformLink(platform_id, connection.session_id)
         )
         return connection
+
+    def _refuse_if_stopping(self, platform_id: str) -> None:
+        if self._stopping:
+            raise RpcError(UNAVAILABLE, f"{platform_id}: the station is stopping")
 
     async def _resolve(self, platform_id: str) -> str:
         if self.ctx.api.has("list_platforms"):

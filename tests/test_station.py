@@ -11,6 +11,7 @@ from conftest import free_tcp_port, quiet_platform_config, wait_until
 from support.cli import run_cli
 
 from brasidas import topics
+from brasidas.codecs.jsonrpc import RpcError
 from brasidas.config import StationConfig, load_config
 from brasidas.messages import PlatformLink
 from platformd.app import PlatformDaemon
@@ -77,6 +78,26 @@ async def test_station_shutdown_releases_the_override(
         await station.stop()
     await wait_until(lambda: not platform.bus.last(topics.OVERRIDE_STATE).engaged)
     assert platform.ctx.sessions.sessions == {}
+
+
+async def test_no_session_is_opened_once_the_station_is_stopping(
+    station: StationDaemon, platform_factory: Factory, fleet_key: bytes
+) -> None:
+    """Other actors run on while the stop hooks do: one asking for a platform then (Foxglove
+    live fetching a grid) opened a session nothing closed, its heartbeat task left running."""
+    platform = await platform_factory(quiet_platform_config(), fleet_key)
+    manager = station.ctx.connection_manager
+    assert manager is not None
+    url = platform.ctx.signaling_url
+    opening = asyncio.create_task(manager.ensure("brasidas-1", url))
+    await asyncio.sleep(0)  # under way: past the checks, waiting on the platform
+    await manager.async_stop()
+    for attempt in (opening, manager.ensure("brasidas-1", url)):
+        with pytest.raises(RpcError, match="stopping"):
+            await attempt
+    assert station.ctx.connections == {}
+    await wait_until(lambda: platform.ctx.sessions.sessions == {})
+    assert not [t for t in asyncio.all_tasks() if t.get_name().startswith("heartbeat:")]
 
 
 async def test_platform_going_away_is_noticed(
