@@ -131,6 +131,14 @@ class MapMatchProcess:
         self._walls = self._ensure().submit(_set_walls, self._rings)
 
     def close(self) -> None:
+        """Stop the child now, whatever it is doing: a shutdown alone lets it finish the work
+        in hand (a town's walls, a search: seconds on a loaded machine), the platform's stop
+        waiting on it or leaving the pool's thread behind."""
         if self._pool is not None:
+            # The executor has no public way to end its workers before Python 3.14
+            # (``terminate_workers``): its process table is what that one reads too.
+            workers = list(self._pool._processes.values())
             self._pool.shutdown(wait=False, cancel_futures=True)
+            for worker in workers:
+                worker.terminate()
             self._pool = None

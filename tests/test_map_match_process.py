@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 import time
 
 import numpy as np
@@ -64,3 +65,25 @@ def test_a_scan_fits_the_walls_in_the_child_and_a_killed_child_is_restarted() ->
         assert isinstance(again, MapMatch), again
     finally:
         maps.close()
+
+
+def test_closing_ends_a_busy_child_at_once() -> None:
+    """A platform that stops does not wait on the child's work in hand, nor leave the pool's
+    thread behind it (a test's leak check caught both once under load)."""
+    maps = MapMatchProcess()
+    try:
+        busy = maps._ensure().submit(time.sleep, 30)  # stands for a slow wall build
+        pool = maps._pool
+        assert pool is not None
+        while not busy.running():
+            time.sleep(0.01)
+        (worker,) = pool._processes.values()
+        threads_before = set(threading.enumerate())
+    finally:
+        maps.close()
+    worker.join(timeout=2)
+    assert worker.exitcode is not None, "the child still runs"
+    deadline = time.monotonic() + 2
+    while any(t.is_alive() for t in threads_before if "Executor" in type(t).__name__):
+        assert time.monotonic() < deadline, "the pool's thread still runs"
+        time.sleep(0.01)
