@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import json
+import warnings
 from collections.abc import Awaitable, Callable
 from typing import Any
 
@@ -13,6 +15,7 @@ import pytest
 from conftest import free_udp_port, quiet_platform_config, wait_until
 
 from platformd.app import PlatformDaemon
+from stationd.console.hub import start_in
 from stationd.daemon import StationDaemon
 from stationd.video_feed import AccessUnit, FanOut, Viewer, decode_header
 
@@ -224,3 +227,32 @@ async def _frames(
                 if message.type is aiohttp.WSMsgType.BINARY:
                     frames.append(decode_header(message.data))
     return frames
+
+
+async def test_work_for_a_stopping_hub_is_closed_not_left_unawaited() -> None:
+    """A page closing while the console hub stops: its media socket's close goes nowhere (the
+    server closes it), without raising from the page's handler or a never-awaited coroutine."""
+    started: list[str] = []
+
+    async def close_socket() -> None:
+        started.append("closed")
+
+    async def stop_hub(group: asyncio.TaskGroup) -> None:
+        raise RuntimeError("the hub stops")
+
+    with pytest.raises(ExceptionGroup):
+        async with asyncio.TaskGroup() as group:
+            group.create_task(stop_hub(group))
+            await asyncio.sleep(1)  # cancelled: the group aborts
+    work = close_socket()
+    with warnings.catch_warnings(record=True) as warned:
+        warnings.simplefilter("always")  # a never-awaited coroutine warns when collected
+        assert not start_in(group, work, "console:1:media")
+        assert not start_in(None, close_socket(), "console:1:media")
+        gc.collect()
+    assert [str(w.message) for w in warned] == []
+    assert work.cr_frame is None  # closed, not pending
+    assert started == []
+    async with asyncio.TaskGroup() as group:
+        assert start_in(group, close_socket(), "console:1:media")
+    assert started == ["closed"]

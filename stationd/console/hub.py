@@ -9,6 +9,7 @@ import itertools
 import json
 import logging
 import time
+from collections.abc import Coroutine
 from typing import Any
 
 from aiohttp import web
@@ -32,6 +33,21 @@ from stationd.context import StationContext
 from stationd.video_feed import Feed
 
 _LOGGER = logging.getLogger(__name__)
+
+
+def start_in(group: asyncio.TaskGroup | None, work: Coroutine[Any, Any, Any], name: str) -> bool:
+    """``work`` as a task of ``group``; False, and ``work`` closed unstarted, when the group
+    takes no more (the hub is stopping, and its stop does that work: the pipelines stopped,
+    the server closing its sockets). A page closing just then raised from its handler and
+    left a "never awaited" coroutine behind."""
+    try:
+        if group is None:
+            raise RuntimeError("no group")
+        group.create_task(work, name=name)
+    except RuntimeError:
+        work.close()
+        return False
+    return True
 
 
 class ConsoleHub(ConsoleMedia, ConsoleDrive, Actor):
@@ -98,8 +114,7 @@ class ConsoleHub(ConsoleMedia, ConsoleDrive, Actor):
                 for kind, watch in list(session.watches.items()):
                     if watch.feed is feed:
                         self._unwatch(session, kind)
-            if self._group is not None:
-                self._group.create_task(feed.depayloader.stop(), name=f"console:stop:{key}")
+            start_in(self._group, feed.depayloader.stop(), f"console:stop:{key}")
         for session in self.sessions.values():
             if session.talk_platform == platform_id:
                 self._stop_talk(session)
@@ -161,11 +176,9 @@ class ConsoleHub(ConsoleMedia, ConsoleDrive, Actor):
             self._release_when_gone(session, platform_id)
         for task in list(session.tasks):
             task.cancel("console closed")
-        if session.media_ws is not None and self._group is not None:
+        if session.media_ws is not None:
             # The page's video worker's socket goes with the page's own.
-            self._group.create_task(
-                session.media_ws.close(), name=f"console:{session.number}:media"
-            )
+            start_in(self._group, session.media_ws.close(), f"console:{session.number}:media")
             session.media_ws = None
 
     async def _send(self, session: ConsoleSession, method: str, params: Any) -> None:
