@@ -4,10 +4,13 @@ reported in the perception telemetry and raised by the annunciator (90.30)."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import math
 from collections.abc import Callable
 from pathlib import Path
+
+import pytest
 
 from brasidas import topics
 from brasidas.annunciator import GPS_REJECTED, Annunciator
@@ -220,6 +223,41 @@ def test_the_imu_turn_is_read_at_each_scans_time_and_a_reset_is_not_a_turn() -> 
     assert all(r is not None and abs(r - 0.5) < 0.01 for r in rates[1:]), rates
     # The IMU goes silent: no turn is read from its last yaw (the command's is used).
     assert localizer._yaw_rate(dataclasses.replace(empty, time=13.0)) is None
+
+
+async def test_a_scan_waits_for_the_imu_sample_of_its_time() -> None:
+    """On a loaded machine a scan can reach the localizer before the IMU's sample of the same
+    moment: read at once, the turn between went to the next scan instead, and the scan's
+    registration, degrees off that prior, fell back to it. It waits for the sample (briefly)."""
+    bus = Bus()
+    localizer = Localizer(bus, 5.0)
+    empty = RobotScan(0.0, (), (), 0, ())
+
+    def imu(t: float, yaw_deg: float) -> None:
+        bus.publish(topics.ATTITUDE, Attitude(1, 0, 0, 0, 0, 0, yaw_deg, stamp=t))
+
+    async def scan_at(t: float) -> None:
+        done = localizer.odometry.scans + 1
+        bus.publish(topics.LIDAR_SCAN, dataclasses.replace(empty, time=t))
+        await _until(lambda: localizer.scans_done >= done)
+
+    task = asyncio.create_task(localizer.run())
+    try:
+        for k in range(11):  # standing still, facing east, to 10.5 s
+            imu(10.0 + k * 0.05, 0.0)
+        await scan_at(10.5)
+        bus.publish(topics.LIDAR_SCAN, dataclasses.replace(empty, time=10.6))
+        await _until(lambda: localizer.imu_waits == 1)  # its IMU sample not in yet
+        imu(10.55, 0.0)
+        await asyncio.sleep(0.05)  # (not a condition: that it goes on waiting)
+        assert localizer.scans_done == 1
+        imu(10.65, 10.0)  # turned 10° meanwhile: half of it by the scan's time
+        await _until(lambda: localizer.scans_done == 2)
+        assert math.degrees(localizer.last.delta.yaw_rad) == pytest.approx(5.0, abs=0.1)
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
 
 
 def test_a_turn_made_while_the_imu_was_stale_is_taken_when_it_is_back() -> None:
