@@ -213,7 +213,7 @@ async def test_grid_labels_keep_off_the_waypoint_numbers(
     page = await console(browser, station, "web-rover")
     labels = page.locator("#map .waypoint-label")
     await expect(labels).to_have_count(4, timeout=15_000)
-    await page.wait_for_timeout(500)
+    await page.evaluate(SETTLED_JS)
     route = (await station.ctx.api.call_local("map_get", platform_id="web-rover"))["route"]
     (lat0, lon0), (lat1, lon1) = (
         (route[0]["lat"], route[0]["lon"]),
