@@ -13,7 +13,7 @@ from conftest import free_udp_port, quiet_platform_config, wait_until
 
 from brasidas import topics
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, RpcError
-from brasidas.media.gst import gst
+from brasidas.media.gst import caps, gst, link_all, make
 from brasidas.media.pipeline import PipelineStream, StreamState
 from brasidas.media.video import VideoIn, VideoOut, VideoSettings
 from brasidas.messages import StreamStatus
@@ -116,7 +116,7 @@ async def test_navcam_streams_only_when_asked_and_carries_capture_time(
         assert (await command(conn, 3))["accepted"]  # pause all
         await asyncio.sleep(0.2)
         assert await frames_in(receiver, 0.4) == 0
-        assert states[-1].state == "paused"
+        assert states[-1].state == "paused", states[-1]
         assert (await command(conn, 1, "127.0.0.1"))["accepted"]  # resume (bare host payload)
         await wait_until(lambda: receiver.frames > 0 and states[-1].state == "playing")
         assert (await command(conn, 2))["accepted"]  # stop all
@@ -240,6 +240,87 @@ async def test_camera_lost_mid_stream_fails_and_comes_back(receiver: VideoIn) ->
         finally:
             await stream.stop()
             supervisor.cancel()
+
+
+async def test_a_framerate_asked_inside_a_renegotiation_waits_for_it(receiver: VideoIn) -> None:
+    """A framerate asked while the streaming thread is inside the camera's caps query, which
+    the previous change started (held open here by a probe), waits for it: the stream keeps
+    playing, at the last framerate asked. Set at once from the event loop, the rate filter's
+    caps changed between the query's two halves (30 fps down, 15 back): an empty answer, the
+    source stopped with "not-negotiated", a failed stream (the override's 30 fps, then
+    ``navcam=15``, under load)."""
+    Gst = gst()
+    stream = VideoOut("navcam", VideoSettings(test_source=True, port=receiver.port, framerate=5))
+    armed, in_query, resume = threading.Event(), threading.Event(), threading.Event()
+    source_asked: list[bool] = []
+    held: list[bool] = []
+
+    def source_asks(pad: Any, info: Any) -> Any:
+        query = info.get_query()
+        if armed.is_set() and query is not None and query.type == Gst.QueryType.CAPS:
+            source_asked.append(True)
+        return Gst.PadProbeReturn.OK
+
+    def hold_the_source_query(pad: Any, info: Any) -> Any:
+        query = info.get_query()
+        if query is not None and query.type == Gst.QueryType.CAPS and source_asked and not held:
+            held.append(True)
+            in_query.set()
+            resume.wait(5)
+        return Gst.PadProbeReturn.OK
+
+    try:
+        assert await stream.start() is StreamState.PLAYING
+        await wait_until(lambda: receiver.frames >= 2, timeout=8)
+        queries = Gst.PadProbeType.QUERY_DOWNSTREAM
+        source = stream.pipeline.get_by_name("source")
+        source.get_static_pad("src").add_probe(queries, source_asks)
+        rate = stream.pipeline.get_by_name("rate")
+        rate.get_static_pad("src").add_probe(queries, hold_the_source_query)
+        armed.set()
+        stream.set_framerate(30)  # the camera renegotiates: held inside its caps query
+        assert await asyncio.to_thread(in_query.wait, 5)
+        stream.set_framerate(15)
+        resume.set()
+        frames = receiver.frames
+        failed = lambda: stream.state is StreamState.FAILED  # noqa: E731
+        await wait_until(lambda: receiver.frames > frames + 10 or failed(), timeout=8)
+        assert stream.state is StreamState.PLAYING, stream.reason
+        assert stream.failures == 0
+        encoder = stream.pipeline.get_by_name("encoder")
+        fed = encoder.get_static_pad("sink").get_current_caps().get_structure(0)
+        assert fed.get_fraction("framerate")[1:] == (15, 1)
+    finally:
+        resume.set()
+        await stream.stop()
+
+
+class _Unnegotiable(PipelineStream):
+    """A live source whose two filters ask for different sizes: nothing negotiates."""
+
+    def build(self) -> Any:
+        pipeline = gst().Pipeline.new("unnegotiable")
+        small, large = make("capsfilter"), make("capsfilter")
+        chain = [make("videotestsrc", "source", is_live=True), small, large, make("fakesink")]
+        for element in chain:
+            pipeline.add(element)
+        link_all(*chain)
+        small.set_property("caps", caps("video/x-raw,width=320"))  # after linking: at runtime
+        large.set_property("caps", caps("video/x-raw,width=640"))
+        return pipeline
+
+
+async def test_a_failure_says_why_the_streaming_stopped() -> None:
+    """GStreamer's "Internal data stream error" says nothing by itself: the reason carries
+    the cause from its debug string (the next failure nobody can reproduce is readable)."""
+    stream = _Unnegotiable("unnegotiable")
+    try:
+        await stream.start()
+        await wait_until(lambda: stream.state is StreamState.FAILED, timeout=5)
+        assert stream.reason.startswith("source: Internal data stream error"), stream.reason
+        assert "reason not-negotiated" in stream.reason, stream.reason
+    finally:
+        await stream.stop()
 
 
 def slices_per_access_unit(data: bytes) -> int:

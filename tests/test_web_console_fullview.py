@@ -213,7 +213,7 @@ async def test_grid_labels_keep_off_the_waypoint_numbers(
     page = await console(browser, station, "web-rover")
     labels = page.locator("#map .waypoint-label")
     await expect(labels).to_have_count(4, timeout=15_000)
-    await page.wait_for_timeout(500)
+    await page.evaluate(SETTLED_JS)
     route = (await station.ctx.api.call_local("map_get", platform_id="web-rover"))["route"]
     (lat0, lon0), (lat1, lon1) = (
         (route[0]["lat"], route[0]["lon"]),
@@ -273,10 +273,9 @@ async def test_grid_labels_keep_off_the_waypoint_numbers(
     sent = await station.ctx.api.call_local("patrol_get", platform_id="web-rover")
     assert sent["waypoints"] == len(waypoints), sent
     await expect(labels).to_have_count(len(waypoints), timeout=10_000)
-    await page.wait_for_timeout(500)
     for width, height in SIZES:
         await page.set_viewport_size({"width": width, "height": height})
-        await page.wait_for_timeout(500)
+        await page.evaluate(SETTLED_JS)  # the resize's new tiles placed, not a fixed 500 ms
         assert await grid_clear_of_waypoints(page) > 0
     # The targeted labels moved along their line or hid: they did not stay under the numbers.
     moved = await page.evaluate(
@@ -288,3 +287,56 @@ async def test_grid_labels_keep_off_the_waypoint_numbers(
     assert any(moved), moved
     await page.set_viewport_size({"width": 1366, "height": 768})
     await screenshots(page, "console-grid-labels")
+
+
+# Every grid label's box made an obstacle, so that each must move along its line: the boxes the
+# placement reserves (pushed onto `placed` in label order, one per label left shown) against
+# where the moved labels are then drawn.
+RESERVED_AND_DRAWN_JS = """async () => {
+  const { placeGridLabels } = await import('/static/map.js');
+  const container = document.getElementById('map');
+  const labels = [...container.querySelectorAll('.grid-label')];
+  const placed = labels.map((label) => label.getBoundingClientRect());
+  const before = placed.length;
+  placeGridLabels(container, placed);
+  const shown = labels.filter((label) => !label.classList.contains('label-hidden'));
+  return placed.slice(before).map((box, index) => {
+    const drawn = shown[index].getBoundingClientRect();
+    return { text: shown[index].textContent, spot: shown[index].dataset.spot,
+             reserved: [box.left, box.top, box.right, box.bottom],
+             drawn: [drawn.left, drawn.top, drawn.right, drawn.bottom] };
+  });
+}"""
+
+
+async def test_a_grid_label_is_drawn_where_its_room_was_measured(
+    station: StationDaemon, browser: Any
+) -> None:
+    """A grid label moved along its line is drawn exactly in the box the declutter found free
+    for it, at a whole and a half zoom step. Its spot is a fraction of the tile's edge inside
+    the grid line: measured on the tile's outer box, a label moved half an edge landed half a
+    pixel (zoomed in, more) beside its measured box, over a neighbour's edge."""
+    page = await console(browser, station)
+    # The drawn tiles' scale (1 at a whole zoom step), once the map is at a half step if asked.
+    scale_js = """(half) => new Promise((done) => {
+      const tile = () => document.querySelector('#map .grid-tile');
+      const scale = () => tile().getBoundingClientRect().width / tile().offsetWidth;
+      const zooming = () => document.querySelector('#map .leaflet-zoom-anim');
+      const check = () => (!half || (Math.abs(scale() - 1) > 0.1 && !zooming()) ? done(scale()) : requestAnimationFrame(check));
+      check();
+    })"""
+    map_box = await box_of(page, "#map")
+    await page.evaluate(SETTLED_JS)
+    for step in ("whole", "half"):
+        if step == "half":  # a small turn of the wheel: half a step (the map snaps to 0.5)
+            await page.mouse.move(map_box["x"] + 40, map_box["y"] + map_box["height"] / 2)
+            await page.mouse.wheel(0, -20)
+            await page.evaluate(scale_js, True)
+            await page.evaluate(SETTLED_JS)
+        scale = await page.evaluate(scale_js, False)
+        assert (scale == 1) == (step == "whole"), (step, scale)
+        moves = await page.evaluate(RESERVED_AND_DRAWN_JS)
+        assert moves, f"no grid label could move at a {step} step"
+        for move in moves:
+            for reserved, drawn in zip(move["reserved"], move["drawn"], strict=True):
+                assert abs(reserved - drawn) < 0.02, (step, scale, move)

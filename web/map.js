@@ -479,18 +479,29 @@ function metricGrid() {
   });
 }
 
-/** Grid labels off everything in ``placed`` (boxes): each tries its spots along its line and
- * is hidden when none is free. Reads every box first and writes after (one layout). */
-function placeGridLabels(container, placed) {
+/** The length of a grid tile's edge a label's spot is a fraction of, in screen pixels: its
+ * padding box (the `left`/`top` percentages' base, inside the grid line's border) at the
+ * view's scale. Not its border box, 1 px longer: a label moved by it lands up to half a pixel
+ * (more when zoomed in) from where its room was measured, over its neighbour's edge. */
+function spotEdges(tile) {
+  const box = tile.getBoundingClientRect();
+  if (!tile.offsetWidth || !tile.offsetHeight) return { across: 0, down: 0 };
+  return { across: (tile.clientWidth * box.width) / tile.offsetWidth, down: (tile.clientHeight * box.height) / tile.offsetHeight };
+}
+
+/** Grid labels off everything in ``placed`` (boxes; each label's chosen box is added to it):
+ * each tries its spots along its line and is hidden when none is free. Reads every box first
+ * and writes after (one layout). */
+export function placeGridLabels(container, placed) {
   const overlaps = (box) => placed.some((o) => box.left < o.right && o.left < box.right && box.top < o.bottom && o.top < box.bottom);
   const labels = [...container.querySelectorAll(".grid-label")];
-  const measured = labels.map((label) => ({ label, box: label.getBoundingClientRect(), tile: label.parentElement.getBoundingClientRect() }));
-  const chosen = measured.map(({ label, box, tile }) => {
-    if (!box.width || !tile.width) return null;
+  const measured = labels.map((label) => ({ label, box: label.getBoundingClientRect(), edges: spotEdges(label.parentElement) }));
+  const chosen = measured.map(({ label, box, edges }) => {
+    if (!box.width || !edges.across) return null;
     const north = label.classList.contains("grid-north");
     const from = Number(label.dataset.spot);
     for (const spot of GRID_LABEL_SPOTS) {
-      const shift = (spot - from) * (north ? tile.width : tile.height);
+      const shift = (spot - from) * (north ? edges.across : edges.down);
       const moved = north
         ? { left: box.left + shift, right: box.right + shift, top: box.top, bottom: box.bottom }
         : { left: box.left, right: box.right, top: box.top + shift, bottom: box.bottom + shift };

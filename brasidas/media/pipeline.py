@@ -76,6 +76,7 @@ class PipelineStream:
         self._generation = 0
         self._playing_since: float | None = None
         self._last_error = ""
+        self._last_error_detail = ""
         self._attempt_failed = False
         self._drain_pending = False
         self._lock = asyncio.Lock()
@@ -215,7 +216,7 @@ class PipelineStream:
                 self._fail(str(err))
                 return
             self._attach(pipeline)
-        self._last_error = ""
+        self._last_error = self._last_error_detail = ""
         self._attempt_failed = False
         gst_state = Gst.State.PLAYING if target is StreamState.PLAYING else Gst.State.PAUSED
         pipeline = self.pipeline
@@ -224,7 +225,8 @@ class PipelineStream:
         if generation != self._generation:
             return  # torn down meanwhile
         if result == Gst.StateChangeReturn.FAILURE:
-            self._fail(self._last_error or f"{self.name}: pipeline refused to start")
+            reason = self._last_error or f"{self.name}: pipeline refused to start"
+            self._fail(reason, self._last_error_detail)
             return
         if self._attempt_failed:
             return  # an error message beat us here
@@ -287,13 +289,18 @@ class PipelineStream:
         self._playing_since = None
         self.on_torn_down()
 
-    def _fail(self, reason: str) -> None:
+    def _fail(self, reason: str, detail: str = "") -> None:
+        """``detail``: GStreamer's debug string (where it was raised), logged with the reason:
+        what the next failure nobody can reproduce needs."""
         if self._attempt_failed:
             return  # the same attempt reported twice (bus error and set_state result)
         self._attempt_failed = True
         self.failures += 1
         self.reason = reason
-        _LOGGER.warning("stream %s failed: %s", self.name, reason)
+        if detail:
+            _LOGGER.warning("stream %s failed: %s [%s]", self.name, reason, detail)
+        else:
+            _LOGGER.warning("stream %s failed: %s", self.name, reason)
         self._set_state(StreamState.FAILED)
         self._failed.set()
 
@@ -318,9 +325,7 @@ class PipelineStream:
         if generation != self._generation or not kind:
             return
         if kind == "error":
-            self._fail(self.explain(text))
-            if detail:
-                _LOGGER.debug("stream %s error detail: %s", self.name, detail)
+            self._fail(self.explain(text), detail)
         elif kind == "eos":
             self._fail(f"{self.name}: end of stream (source stopped)")
         elif kind == "warning":
@@ -334,6 +339,20 @@ class PipelineStream:
 
     def on_element_message(self, kind: str, text: str) -> None:
         """Other forwarded messages (``kind`` is the structure name); override as needed."""
+
+
+ERROR_CAUSE_MAX_CHARS = 160
+
+
+def error_text(source: str, message: str, detail: str | None) -> str:
+    """``source: message (cause)``, the cause being the last line of GStreamer's debug string:
+    a source's "Internal data stream error" says why its streaming stopped only there
+    ("streaming stopped, reason not-negotiated (-4)")."""
+    lines = [line.strip() for line in (detail or "").splitlines() if line.strip()]
+    cause = lines[-1][:ERROR_CAUSE_MAX_CHARS] if lines else ""
+    if not cause or cause in message:
+        return f"{source}: {message}"
+    return f"{source}: {message} ({cause})"
 
 
 def _iterate(iterator: Any) -> list[Any]:
@@ -374,10 +393,11 @@ def _sync_handler(bus: Any, message: Any, data: tuple[Any, ...]) -> Any:
     if mtype == Gst.MessageType.ERROR:
         err, detail = message.parse_error()
         source = message.src.get_name() if message.src is not None else "pipeline"
-        kind, text = "error", f"{source}: {err.message}"
+        kind, text = "error", error_text(source, err.message, detail)
         stream = ref()
         if stream is not None:
-            stream._last_error = text  # read by the executor thread's caller after set_state
+            # Read by the executor thread's caller after set_state.
+            stream._last_error, stream._last_error_detail = text, detail or ""
     elif mtype == Gst.MessageType.EOS:
         kind = "eos"
     elif mtype == Gst.MessageType.WARNING:

@@ -71,6 +71,7 @@ from brasidas.media.repair import (
     add_repair_sender,
     fec_percentage,
 )
+from brasidas.media.streaming_caps import StreamingThreadCaps
 from brasidas.media.twcc import (
     RTCP_RTPFB,
     TWCC_FMT,
@@ -230,6 +231,9 @@ class VideoOut(FanOutStream[VideoSettings]):
         self.resolution = ResolutionChoice()
         """Half the picture's width and height while the bitrate is too low for all of it."""
         self._scale_filter: Any = None
+        self._streaming_caps: StreamingThreadCaps | None = None
+        """The rate and scale filters' new caps, set by the streaming thread (never from
+        another thread inside one of its caps queries: the stream would fail)."""
         self._vbv_ms = X264_VBV_MS
         """x264's rate-control buffer now (:meth:`_follow_recovery_vbv`)."""
         self.retransmit = True
@@ -428,7 +432,10 @@ class VideoOut(FanOutStream[VideoSettings]):
         encoder restarts on the new size with a keyframe and its new SPS; decoders follow)."""
         s = self.settings
         paused = self.budget.paused_until > now
-        if self._scale_filter is None or (self.bitrate.settling(now) and not paused):
+        scale_filter, streaming_caps = self._scale_filter, self._streaming_caps
+        if scale_filter is None or streaming_caps is None:
+            return
+        if self.bitrate.settling(now) and not paused:
             # Not while a queue drains after a cut: the new size costs a keyframe, and the
             # receivers are waiting for one already (measured: a freeze at the drop twice as
             # long). But during the pause: the keyframe after it is made at the new size (a
@@ -441,7 +448,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         ):
             return
         width, height = self.resolution.size(s.width, s.height)
-        self._scale_filter.set_property("caps", caps(f"video/x-raw,width={width},height={height}"))
+        streaming_caps.want(scale_filter, f"video/x-raw,width={width},height={height}")
 
     def media_bitrate_kbps(self) -> int:
         """The encoder's share of the bitrate: the FEC packets are carried within it."""
@@ -540,13 +547,18 @@ class VideoOut(FanOutStream[VideoSettings]):
             self.keyframes.set_framerate(fps)
         if self._tail_copies is not None:
             self._tail_copies.follow()
-        if self._encoder is not None and self._rate_filter is not None:
+        streaming_caps = self._streaming_caps
+        if (
+            self._encoder is not None
+            and self._rate_filter is not None
+            and streaming_caps is not None
+        ):
             _set_bitrate(self._encoder, self.encoder_name, self.media_bitrate_kbps())
             if s.uses_intra_refresh(self.encoder_name):
                 # x264 reads it when the new caps restart it: one refresh wave a second.
                 _set_keyframe_interval(self._encoder, self.encoder_name, fps)
             # New caps renegotiate downstream: the encoder restarts with the new rate.
-            self._rate_filter.set_property("caps", caps(f"video/x-raw,framerate={fps}/1"))
+            streaming_caps.want(self._rate_filter, f"video/x-raw,framerate={fps}/1")
 
     # ------------------------------------------------------------------ pipeline
 
@@ -567,10 +579,14 @@ class VideoOut(FanOutStream[VideoSettings]):
                 make("clockoverlay", time_format="%H:%M:%S", halignment="left", valignment="top")
             ]
         rate = make("videorate", drop_only=True)
-        rate_filter = make("capsfilter", caps=caps(f"video/x-raw,framerate={s.framerate}/1"))
+        rate_filter = make(
+            "capsfilter", "rate", caps=caps(f"video/x-raw,framerate={s.framerate}/1")
+        )
         width, height = self.resolution.size(s.width, s.height)
         scale = make("videoscale")
-        scale_filter = make("capsfilter", caps=caps(f"video/x-raw,width={width},height={height}"))
+        scale_filter = make(
+            "capsfilter", "scale", caps=caps(f"video/x-raw,width={width},height={height}")
+        )
         convert = make("videoconvert")
         encoder = make(encoder_name, "encoder")
         _configure_encoder(encoder, encoder_name, s)
@@ -644,6 +660,8 @@ class VideoOut(FanOutStream[VideoSettings]):
         self._encoder = encoder
         self._rate_filter = rate_filter
         self._scale_filter = scale_filter
+        self._streaming_caps = StreamingThreadCaps()
+        self._streaming_caps.watch(stamp.get_static_pad("sink"))  # upstream of both filters
         rate_filter.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _thinning_probe, weakref.ref(self)
         )
@@ -682,6 +700,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         self._encoder = None
         self._rate_filter = None
         self._scale_filter = None
+        self._streaming_caps = None
         with self._adapt_lock:
             self._rtpbin = None
         self._rtx_pad = None

@@ -86,10 +86,11 @@ DOCS = Path(__file__).resolve().parents[2] / "docs"
 
 SETTLED_JS = """() => new Promise((done) => {
   const frames = () => requestAnimationFrame(() => requestAnimationFrame(done));
-  const wait = () => document.querySelector("#map.leaflet-zoom-anim") ? setTimeout(wait, 50) : frames();
+  const wait = () => document.querySelector("#map .leaflet-zoom-anim") ? setTimeout(wait, 50) : frames();
   wait();
 })"""
-"""Resolves once the map's zoom animation is over and two frames more have run: the page's
+"""Resolves once the map's zoom animation is over (Leaflet marks its map pane, inside #map,
+while it runs) and two frames more have run: the page's
 resize handlers, its ResizeObservers (the map's, the plots') and what they left for the next
 frame (the map's label declutter) have all run."""
 
