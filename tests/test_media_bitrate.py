@@ -438,11 +438,16 @@ BLACKOUT_WINDOWS = [
 ]
 BLACKOUT_REPORT_AT = 0.699
 """A receiver report counting 58 of the 80 packets since its last lost (the cut's)."""
+BLACKOUT_PACKET_QUEUE_MS = {0.299: 77.5, 0.667: 104.7, 0.673: 5.0, 0.699: 7.3}
+"""The per-packet feedback's newest wait just before these windows (recorded at cuts: a loaded
+machine's lone spike, then the first after the cut counts a packet the relay held across it);
+1 ms before the others."""
 
 
 def test_a_link_cut_and_its_lost_packets_are_not_an_overuse() -> None:
     controller = BitrateController(1500, 150)
     for at, sent, received, trend in BLACKOUT_WINDOWS:
+        controller.note_queue(BLACKOUT_PACKET_QUEUE_MS.get(at, 1.0))
         if at == BLACKOUT_REPORT_AT:
             controller.note_report(1, 5000, 100, at - 0.03)
             controller.note_report(1, 5080, 158, at)
@@ -502,3 +507,27 @@ def test_a_queue_seen_packet_by_packet_just_after_a_silence_lets_the_windows_cut
     controller.on_transport(_window(1470, 700, 300.0), 1500, now + 0.066)
     assert controller.overuses == 2
     assert controller.collapsed_at == now + 0.066
+
+
+def test_a_capacity_drop_that_holds_its_feedback_back_is_cut_at_the_first_window_after() -> None:
+    # 2 Mbit/s → 500 kbit/s: the per-packet feedback reads the queue building (21, 45 ms),
+    # then the capped return link holds the feedback back 0.25 s (measured 0.05-0.6 s). The
+    # window after it is the queue's, confirmed by the receivers' loss: pause and cut at once,
+    # not set aside as a link cut's until the per-packet path confirms it later.
+    controller = BitrateController(1500, 150)
+    now = 0.0
+    for _ in range(20):
+        controller.note_queue(1.0)
+        controller.on_transport(_window(1500, 1490, 0.0), 1500, now)
+        now += 0.025
+    controller.note_queue(21.0)
+    assert controller.on_transport(_window(1450, 1300, 15.0), 1500, now + 0.03) is None
+    controller.note_queue(45.0)
+    assert controller.on_transport(_window(1450, 1150, 25.0), 1500, now + 0.06) is None
+    stalled_until = now + 0.31
+    controller.note_queue(150.0)
+    _report_loss(controller, 0.5, stalled_until - 0.01)
+    kbps = controller.on_transport(_window(1450, 500, 120.0), 1500, stalled_until)
+    assert kbps is not None and kbps <= 450
+    assert controller.paused_at == stalled_until
+    assert (controller.silences, controller.queue_stalls) == (0, 1)

@@ -137,6 +137,16 @@ across the gap, 92 ms of "queue growth", and the blackout's packets all lost, de
 confirmed by a receiver report losing 58 of 80: three cuts to 350 kbit/s on a link that never
 changed). A queue over capacity keeps the feedback coming, only slower."""
 SILENCE_INTERVALS = 3.0
+QUEUE_BEFORE_SILENCE_MS = 15.0
+"""A silence that came while the per-packet feedback saw a queue this long twice running (its
+newest packet's wait, :class:`~brasidas.media.twcc.QueueDetector`) is the queue's own, not a cut: at a capacity
+drop the capped return link holds the feedback back too (measured at 2 Mbit/s → 500 kbit/s:
+the feedback slowed from every 25 ms to 50-90 ms, stalled 0.6 s on a loaded machine, while the
+first feedbacks after the drop read waits of 21, 31, 63 ms); set aside, the drop waited for the
+per-packet path (gaps 198-275 ms against ~100). A link cut drops, it does not queue: the
+feedbacks before each 300 ms blackout read 0-12 ms, a loaded machine's lone spike up to 78 ms
+(so two readings), the first after it up to 105 ms (a packet held in the relay across the cut:
+so the readings before the silence decide)."""
 AFTER_SILENCE_S = TRANSPORT_WINDOW_S + 0.05
 """The windows read this long after a silence still count its lost packets: none decides."""
 PAUSE_AGAIN_AFTER_S = 1.0
@@ -190,6 +200,12 @@ class BitrateController:
         self.silence_ended_at: float | None = None
         self._feedback_interval_s: float | None = None
         """The usual time between windows read (smoothed)."""
+        self.queue_stalls = 0
+        """Silences that came while a queue built (:data:`QUEUE_BEFORE_SILENCE_MS`): read on."""
+        self._packet_queues_ms = (0.0, 0.0)
+        """The per-packet feedback's two newest queues (:meth:`note_queue`)."""
+        self._queue_at_last_window_ms = 0.0
+        """That queue when the last window was read: the one before a silence after it."""
 
     def note_report(self, receiver: int, highest_seq: int, lost: int, now: float) -> None:
         """A receiver report's cumulative counts (its extended highest sequence number and
@@ -210,6 +226,11 @@ class BitrateController:
                     self.report_loss = share
                     self._report_loss_at = now
                 return
+
+    def note_queue(self, queue_ms: float) -> None:
+        """Each transport feedback's wait of its newest packet in the link's queue (read packet
+        by packet): a silence after a queue is the queue's, not a cut."""
+        self._packet_queues_ms = (self._packet_queues_ms[1], queue_ms)
 
     def _loss_confirms(self, now: float) -> bool:
         at = self._report_loss_at
@@ -238,12 +259,22 @@ class BitrateController:
         self.transport_at = now
         # (Not the silence of our own drain pause: nothing was sent, nothing is reported.)
         own_pause = self.paused_at is not None and now - self.paused_at < PAUSE_AGAIN_AFTER_S
+        # (The per-packet readings at the window before the silence: the newest may be the
+        # first feedback after it, which can count a packet held across a cut.)
+        queue_before, self._queue_at_last_window_ms = (
+            self._queue_at_last_window_ms,
+            min(self._packet_queues_ms),
+        )
         if last is not None and self._silent_since(now - last) and not own_pause:
-            # The delay's trend across the silence and the packets it lost are the cut's, not
-            # a queue's: the estimate starts again after it.
-            self.silences += 1
-            self.silence_ended_at = now
-            self.queue_ms = 0.0
+            if queue_before >= QUEUE_BEFORE_SILENCE_MS:
+                # A queue building held its own feedback back: the windows read on.
+                self.queue_stalls += 1
+            else:
+                # The delay's trend across the silence and the packets it lost are the cut's,
+                # not a queue's: the estimate starts again after it.
+                self.silences += 1
+                self.silence_ended_at = now
+                self.queue_ms = 0.0
         if self._after_silence(now):
             self._overuse_streak = 0
             self._candidate = None

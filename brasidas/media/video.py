@@ -274,6 +274,7 @@ class VideoOut(FanOutStream[VideoSettings]):
             "transport": vars(self.transport) if self.transport is not None else None,
             "overuses": self.bitrate.overuses,
             "transport_silences": self.bitrate.silences,
+            "transport_queue_stalls": self.bitrate.queue_stalls,
             "queue_ms": round(self.bitrate.queue_ms, 1),
             "transport_feedback": {
                 **vars(self.queue_detector.counters),
@@ -973,6 +974,7 @@ def _on_feedback_rtcp(
     now = time.monotonic()
     payload = fci.extract_dup(0, fci.get_size())
     overuse = stream.queue_detector.on_feedback(payload, sender_ssrc, stream.send_history, now)
+    stream.bitrate.note_queue(stream.queue_detector.queue_ms)
     if overuse is not None:
         stream._queue_overuse = overuse
         stream.adapt_bitrate(now)
