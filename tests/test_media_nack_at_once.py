@@ -9,29 +9,10 @@ import time
 
 from conftest import wait_until
 from lossy_udp import LossyRelay
+from support.rtcp import nacked
 from support.video_link import video_link
 
 from brasidas.media.video import PAYLOAD_TYPE
-
-RTCP_RTPFB = 205
-NACK_FMT = 1
-
-
-def nacked(rtcp: bytes) -> list[int]:
-    """The sequence numbers a (compound or reduced-size) RTCP packet asks for (RFC 4585)."""
-    asked: list[int] = []
-    offset = 0
-    while offset + 4 <= len(rtcp):
-        length = (int.from_bytes(rtcp[offset + 2 : offset + 4], "big") + 1) * 4
-        if rtcp[offset + 1] == RTCP_RTPFB and rtcp[offset] & 0x1F == NACK_FMT:
-            fci = rtcp[offset + 12 : offset + length]
-            for at in range(0, len(fci) - 3, 4):
-                pid = int.from_bytes(fci[at : at + 2], "big")
-                mask = int.from_bytes(fci[at + 2 : at + 4], "big")
-                asked.append(pid)
-                asked += [(pid + bit + 1) & 0xFFFF for bit in range(16) if mask >> bit & 1]
-        offset += length
-    return asked
 
 
 class _DropSome(LossyRelay):

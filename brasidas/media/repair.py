@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from brasidas.media.gst import caps, gst, make
+from brasidas.media.reask import EarlyReask, attach_early_reask
 
 MEDIA_PAYLOAD_TYPE = 96
 """The H.264 packets' payload type (the sender's ``rtph264pay pt``)."""
@@ -300,6 +301,9 @@ class RepairCounters:
     deadline (:class:`SilenceWatch`), not after the repairs that could no longer help."""
     keyframe_requests_held: int = 0
     """The depayloader's own requests dropped because one was asked just before."""
+    early_reasks: int = 0
+    """Packets asked for once more a round trip after their first ask, before the jitter
+    buffer's own retry (:mod:`brasidas.media.reask`)."""
 
 
 SILENCE_DROPOUT_MS = 1
@@ -362,6 +366,7 @@ class RepairReceiver:
     rtpbin: Any
     feedback_sink: Any
     jitterbuffers: list[Any] = field(default_factory=list)
+    reasks: list[EarlyReask] = field(default_factory=list)
     fec_decoders: list[Any] = field(default_factory=list)
     keyframe_requests: int = 0
     silence: SilenceWatch = field(default_factory=SilenceWatch)
@@ -387,6 +392,7 @@ class RepairReceiver:
         with self._lock:
             buffers = list(self.jitterbuffers)
             decoders = list(self.fec_decoders)
+            counters.early_reasks = sum(reask.reasked for reask in self.reasks)
         for decoder in decoders:
             counters.fec_recovered += int(decoder.get_property("recovered"))
         for jitterbuffer in buffers:
@@ -519,8 +525,10 @@ def add_repair_receiver(
         jitterbuffer.get_static_pad("src").add_probe(
             gst().PadProbeType.BUFFER, _follow_round_trip, [0.0]
         )
+        reask = attach_early_reask(jitterbuffer)
         with receiver._lock:
             receiver.jitterbuffers.append(jitterbuffer)
+            receiver.reasks.append(reask)
 
     def pad_added(_bin: Any, pad: Any) -> None:
         if not pad.get_name().startswith("recv_rtp_src_"):
