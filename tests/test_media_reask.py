@@ -10,7 +10,7 @@ import time
 import pytest
 from conftest import wait_until
 from lossy_udp import LossyRelay
-from support.rtcp import nacked
+from support.rtcp import NackLog
 from support.video_link import video_link
 
 from brasidas.media.reask import (
@@ -160,24 +160,8 @@ class _DropTwice(LossyRelay):
             return True
 
 
-class _Feedback(LossyRelay):
-    """Passes the receiver's RTCP on, noting when each sequence number was asked for."""
-
-    def __init__(self, to: tuple[str, int]) -> None:
-        self._lock = threading.Lock()
-        self.asked: dict[int, list[float]] = {}
-        super().__init__(to, loss=0.0)
-
-    def lost(self, data: bytes) -> bool:
-        now = time.monotonic()
-        with self._lock:
-            for seq in nacked(data):
-                self.asked.setdefault(seq, []).append(now)
-        return False
-
-
 async def test_a_packet_whose_retransmission_was_lost_is_asked_again_within_a_round_trip() -> None:
-    async with video_link(_DropTwice, _Feedback, pattern="smpte") as link:
+    async with video_link(_DropTwice, NackLog, pattern="smpte") as link:
         receiver, media, back = link.receiver, link.media, link.feedback
         assert back is not None
         await wait_until(lambda: len(media.second_retransmission) >= 16, timeout=40)

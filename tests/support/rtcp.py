@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import threading
+import time
+
+from lossy_udp import LossyRelay
+
 RTCP_RTPFB = 205
 NACK_FMT = 1
 
@@ -21,3 +26,20 @@ def nacked(rtcp: bytes) -> list[int]:
                 asked += [(pid + bit + 1) & 0xFFFF for bit in range(16) if mask >> bit & 1]
         offset += length
     return asked
+
+
+class NackLog(LossyRelay):
+    """Passes the receiver's RTCP on, noting when each sequence number was asked for (NACK)."""
+
+    def __init__(self, to: tuple[str, int]) -> None:
+        self._lock = threading.Lock()  # before the relay's thread starts
+        self.asked: dict[int, list[float]] = {}
+        """Sequence number → the times it was asked for, in order."""
+        super().__init__(to, loss=0.0)
+
+    def lost(self, data: bytes) -> bool:
+        now = time.monotonic()
+        with self._lock:
+            for seq in nacked(data):
+                self.asked.setdefault(seq, []).append(now)
+        return False
