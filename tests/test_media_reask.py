@@ -20,6 +20,7 @@ from brasidas.media.reask import (
     REASK_MARGIN_S,
     REASK_MIN_SAMPLES,
     EarlyReask,
+    rtx_original_seq,
 )
 from brasidas.media.repair import RTX_PAYLOAD_TYPE, RTX_RETRY_MIN_MS
 from brasidas.media.video import PAYLOAD_TYPE
@@ -112,18 +113,6 @@ def test_the_missing_packets_followed_are_bounded() -> None:
     assert list(reask.pending) == [99999]
 
 
-def _rtx_original_seq(data: bytes) -> int | None:
-    """The original sequence number an RFC 4588 retransmission carries (None: not one)."""
-    if len(data) < 12 or data[1] & 0x7F != RTX_PAYLOAD_TYPE:
-        return None
-    offset = 12 + 4 * (data[0] & 0x0F)
-    if data[0] & 0x10:  # a header extension (the transport-wide sequence number)
-        offset += 4 + 4 * int.from_bytes(data[offset + 2 : offset + 4], "big")
-    if len(data) < offset + 2:
-        return None
-    return int.from_bytes(data[offset : offset + 2], "big")
-
-
 class _DropTwice(LossyRelay):
     """Loses the first copy of every 15th media packet that is not a frame's last, and of
     every second of those also the first retransmission; notes when the lost retransmission
@@ -140,8 +129,10 @@ class _DropTwice(LossyRelay):
 
     def lost(self, data: bytes) -> bool:
         now = time.monotonic()
+        if len(data) < 4:
+            return False
         with self._lock:
-            original = _rtx_original_seq(data)
+            original = rtx_original_seq(data) if data[1] & 0x7F == RTX_PAYLOAD_TYPE else None
             if original is not None and self.missing.get(original):
                 if original not in self.first_retransmission:
                     self.first_retransmission[original] = now
@@ -190,3 +181,14 @@ async def test_a_packet_whose_retransmission_was_lost_is_asked_again_within_a_ro
         counters = receiver.repairs.counters()
         assert counters.early_reasks >= within, counters
         assert counters.lost == 0, counters
+
+
+def test_a_retransmission_names_the_packet_it_repairs() -> None:
+    # RFC 4588: the original sequence number first in the payload, after the header, its
+    # CSRCs and a header extension (the transport-wide sequence number's, RFC 8285).
+    header = bytes([0x90, RTX_PAYLOAD_TYPE, 0, 7]) + bytes(8)
+    extension = bytes([0xBE, 0xDE, 0, 1, 0x10, 0, 42, 0])
+    assert rtx_original_seq(header + extension + (4660).to_bytes(2, "big") + b"x") == 4660
+    assert rtx_original_seq(bytes([0x81, RTX_PAYLOAD_TYPE]) + bytes(14) + b"\x00\x09") == 9
+    assert rtx_original_seq(header + extension) is None
+    assert rtx_original_seq(b"") is None
