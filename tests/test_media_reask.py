@@ -191,4 +191,5 @@ def test_a_retransmission_names_the_packet_it_repairs() -> None:
     assert rtx_original_seq(header + extension + (4660).to_bytes(2, "big") + b"x") == 4660
     assert rtx_original_seq(bytes([0x81, RTX_PAYLOAD_TYPE]) + bytes(14) + b"\x00\x09") == 9
     assert rtx_original_seq(header + extension) is None
+    assert rtx_original_seq(header + extension[:2]) is None  # cut inside the extension
     assert rtx_original_seq(b"") is None

@@ -78,7 +78,7 @@ class EarlyReask:
         return self.wait(retry_s)
 
     def on_arrived(self, seq: int, now: float) -> None:
-        """A packet (or a copy of it) reached the jitter buffer."""
+        """A packet (or a copy of it, or its retransmission) reached the receiver."""
         entry = self.pending.pop(seq, None)
         if entry is not None and not entry[1]:
             self.samples.append(now - entry[0])
@@ -127,8 +127,12 @@ class ReaskFollower:
 def rtx_original_seq(data: bytes) -> int | None:
     """The original sequence number an RFC 4588 retransmission (``data``, from its RTP
     header on) carries; None if it is cut short."""
-    offset = 12 + 4 * (data[0] & 0x0F) if data else 0
-    if data and data[0] & 0x10 and len(data) >= offset + 4:  # a header extension (TWCC's)
+    if len(data) < 12:
+        return None
+    offset = 12 + 4 * (data[0] & 0x0F)
+    if data[0] & 0x10:  # a header extension (the transport-wide sequence number's)
+        if len(data) < offset + 4:
+            return None
         offset += 4 + 4 * int.from_bytes(data[offset + 2 : offset + 4], "big")
     if len(data) < offset + 2:
         return None
