@@ -254,6 +254,8 @@ async def _row(
         "keyframe_requests_deferred": sender.get("keyframe_requests_deferred", 0)
         - sender_before.get("keyframe_requests_deferred", 0),
         "lost_unrepaired": repair.get("lost"),
+        # Packets asked for once more a round trip after the first ask (not the 33 ms retry).
+        "early_reasks": repair.get("early_reasks"),
         # Keyframes the station asked at the first packet after a blackout (its frames past
         # their deadline), and the depayloader's own requests dropped as the same one.
         "keyframes_after_silence": repair.get("keyframes_after_silence"),

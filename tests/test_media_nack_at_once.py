@@ -9,29 +9,10 @@ import time
 
 from conftest import wait_until
 from lossy_udp import LossyRelay
+from support.rtcp import NackLog
 from support.video_link import video_link
 
 from brasidas.media.video import PAYLOAD_TYPE
-
-RTCP_RTPFB = 205
-NACK_FMT = 1
-
-
-def nacked(rtcp: bytes) -> list[int]:
-    """The sequence numbers a (compound or reduced-size) RTCP packet asks for (RFC 4585)."""
-    asked: list[int] = []
-    offset = 0
-    while offset + 4 <= len(rtcp):
-        length = (int.from_bytes(rtcp[offset + 2 : offset + 4], "big") + 1) * 4
-        if rtcp[offset + 1] == RTCP_RTPFB and rtcp[offset] & 0x1F == NACK_FMT:
-            fci = rtcp[offset + 12 : offset + length]
-            for at in range(0, len(fci) - 3, 4):
-                pid = int.from_bytes(fci[at : at + 2], "big")
-                mask = int.from_bytes(fci[at + 2 : at + 4], "big")
-                asked.append(pid)
-                asked += [(pid + bit + 1) & 0xFFFF for bit in range(16) if mask >> bit & 1]
-        offset += length
-    return asked
 
 
 class _DropSome(LossyRelay):
@@ -62,31 +43,14 @@ class _DropSome(LossyRelay):
             return True
 
 
-class _Feedback(LossyRelay):
-    """Passes the receiver's RTCP on, noting when each NACKed sequence number was asked."""
-
-    def __init__(self, to: tuple[str, int]) -> None:
-        self._lock = threading.Lock()
-        self.asked: dict[int, float] = {}
-        """When each sequence number was first asked for."""
-        super().__init__(to, loss=0.0)
-
-    def lost(self, data: bytes) -> bool:
-        now = time.monotonic()
-        with self._lock:
-            for seq in nacked(data):
-                self.asked.setdefault(seq, now)
-        return False
-
-
 async def test_a_missing_packet_is_asked_for_as_soon_as_its_gap_shows() -> None:
-    async with video_link(_DropSome, _Feedback, pattern="smpte") as link:
+    async with video_link(_DropSome, NackLog, pattern="smpte") as link:
         receiver, media, back = link.receiver, link.media, link.feedback
         assert back is not None
         await wait_until(lambda: len(back.asked) >= 40, timeout=30)
         with media._lock, back._lock:
             waits = [
-                (back.asked[seq] - seen) * 1000
+                (back.asked[seq][0] - seen) * 1000
                 for seq, seen in media.gap_seen.items()
                 if seq in back.asked
             ]

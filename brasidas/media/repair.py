@@ -27,6 +27,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from brasidas.media.gst import caps, gst, make
+from brasidas.media.reask import (
+    RTX_HEADER_READ,
+    ReaskFollower,
+    attach_early_reask,
+    rtx_original_seq,
+)
 
 MEDIA_PAYLOAD_TYPE = 96
 """The H.264 packets' payload type (the sender's ``rtph264pay pt``)."""
@@ -300,6 +306,9 @@ class RepairCounters:
     deadline (:class:`SilenceWatch`), not after the repairs that could no longer help."""
     keyframe_requests_held: int = 0
     """The depayloader's own requests dropped because one was asked just before."""
+    early_reasks: int = 0
+    """Packets asked for once more a round trip after their first ask, before the jitter
+    buffer's own retry (:mod:`brasidas.media.reask`)."""
 
 
 SILENCE_DROPOUT_MS = 1
@@ -362,6 +371,7 @@ class RepairReceiver:
     rtpbin: Any
     feedback_sink: Any
     jitterbuffers: list[Any] = field(default_factory=list)
+    reasks: list[ReaskFollower] = field(default_factory=list)
     fec_decoders: list[Any] = field(default_factory=list)
     keyframe_requests: int = 0
     silence: SilenceWatch = field(default_factory=SilenceWatch)
@@ -387,6 +397,7 @@ class RepairReceiver:
         with self._lock:
             buffers = list(self.jitterbuffers)
             decoders = list(self.fec_decoders)
+            counters.early_reasks = sum(follower.reask.reasked for follower in self.reasks)
         for decoder in decoders:
             counters.fec_recovered += int(decoder.get_property("recovered"))
         for jitterbuffer in buffers:
@@ -519,8 +530,10 @@ def add_repair_receiver(
         jitterbuffer.get_static_pad("src").add_probe(
             gst().PadProbeType.BUFFER, _follow_round_trip, [0.0]
         )
+        reask = attach_early_reask(jitterbuffer)
         with receiver._lock:
             receiver.jitterbuffers.append(jitterbuffer)
+            receiver.reasks.append(reask)
 
     def pad_added(_bin: Any, pad: Any) -> None:
         if not pad.get_name().startswith("recv_rtp_src_"):
@@ -569,7 +582,7 @@ def add_repair_receiver(
         receiver.depayloader_sink.add_probe(
             gst().PadProbeType.EVENT_UPSTREAM, _count_keyframe_request, receiver
         )
-        source.get_static_pad("src").add_probe(gst().PadProbeType.BUFFER, _watch_silence, receiver)
+    source.get_static_pad("src").add_probe(gst().PadProbeType.BUFFER, _watch_silence, receiver)
     return receiver
 
 
@@ -616,12 +629,25 @@ def _count_keyframe_request(pad: Any, info: Any, receiver: RepairReceiver) -> An
 def _watch_silence(pad: Any, info: Any, receiver: RepairReceiver) -> Any:
     """Streaming thread, each packet as it arrives (before the jitter buffer and before its
     NACKs for the silence's packets): a keyframe at once when the silence skipped frames past
-    their deadline."""
+    their deadline. And each packet's arrival, a retransmission's as its original, for the
+    early asks (:mod:`brasidas.media.reask`): one probe a packet, not two."""
     buffer = info.get_buffer()
     header = buffer.extract_dup(0, 8) if buffer is not None else b""
-    if len(header) == 8 and header[1] & 0x7F == MEDIA_PAYLOAD_TYPE:
-        now = time.monotonic()
+    if len(header) < 8:
+        return gst().PadProbeReturn.OK
+    now = time.monotonic()
+    payload_type = header[1] & 0x7F
+    if payload_type == RTX_PAYLOAD_TYPE:
+        original = rtx_original_seq(buffer.extract_dup(0, min(buffer.get_size(), RTX_HEADER_READ)))
+        if original is not None:
+            for follower in receiver.reasks:
+                follower.arrived(original, now)
+    elif payload_type == MEDIA_PAYLOAD_TYPE:
         seq = int.from_bytes(header[2:4], "big")
+        for follower in receiver.reasks:
+            follower.arrived(seq, now)
+        if receiver.depayloader_sink is None:  # no keyframe requests: no silence to end
+            return gst().PadProbeReturn.OK
         if receiver.silence.on_packet(seq, int.from_bytes(header[4:8], "big"), now):
             receiver.ask_keyframe(now)
             receiver.skip_silence(now)
