@@ -531,3 +531,64 @@ def test_a_capacity_drop_that_holds_its_feedback_back_is_cut_at_the_first_window
     assert kbps is not None and kbps <= 450
     assert controller.paused_at == stalled_until
     assert (controller.silences, controller.queue_stalls) == (0, 1)
+
+
+POLL_S = 0.05
+"""The sender's look at the feedback (:data:`~brasidas.media.bitrate.TRANSPORT_POLL_S`)."""
+
+
+def _cut_link(controller: BitrateController, start: float, seconds: float) -> float:
+    """A running 1500 kbit/s link (windows every 30 ms, a clean receiver report every 0.5 s),
+    then cut both ways for ``seconds``: the sender's polls find nothing. The time it returns."""
+    now = start
+    while now < start + 2.0:
+        controller.on_transport(_window(1500, 1495, 0.0), 1500, now)
+        report = round((now - start) / 0.03) % 17 == 0
+        controller.update(0.0 if report else None, 1500, now)
+        now += 0.03
+    for _ in range(round(seconds / POLL_S)):
+        controller.update(None, 1500, now)
+        now += POLL_S
+    return now
+
+
+def test_a_receiver_report_across_a_long_cut_counts_the_cuts_loss_not_congestion() -> None:
+    # Back after 1.5 s (older than the feedback's freshness), the report first: it counts
+    # 94 % of the packets since the last lost (recorded), all of them the cut's.
+    controller = BitrateController(1500, 150)
+    now = _cut_link(controller, 0.0, 1.5)
+    assert controller.update(0.94, 1500, now + 0.01) is None
+    _clean_windows(controller, 1500, 1495, 10, 0.03, start=now + 0.04)
+    # The old reading: a collapse, 1500 → 150 kbit/s (the floor) on an unchanged link.
+    assert controller.effective_kbps(1500) == 1500
+    assert (controller.silences, controller.cut_reports) == (1, 1)
+    # The feedback first, the report 30 ms on: not smoothed in either (the old code held
+    # 47 % of "loss" for the next report: FEC up, no climbing).
+    now = _cut_link(controller, now + 0.4, 1.5)
+    _clean_windows(controller, 1500, 1495, 2, 0.03, start=now + 0.01)
+    controller.update(0.94, 1500, now + 0.04)
+    assert controller.loss == 0.0
+    assert controller.cut_reports == 2
+    # The link back with a quarter of its capacity: the windows still cut at once, and the
+    # next report's loss counts again.
+    now = _clean_windows(controller, 1500, 1495, 10, 0.03, start=now + 0.07) - 0.03
+    controller.on_transport(_window(1470, 977, 56.0), 1500, now + 0.033)
+    _report_loss(controller, 0.5, now + 0.06)
+    assert controller.on_transport(_window(1870, 640, 105.0), 1500, now + 0.066) is not None
+    controller.update(0.5, 1500, now + 0.07)
+    assert controller.loss == 0.25
+    assert controller.effective_kbps(1500) <= 500
+
+
+def test_reports_that_keep_coming_through_a_feedback_silence_still_decide() -> None:
+    # The feedback stops (a receiver without it now), the reports go on: the loss decides.
+    controller = BitrateController(1500, 150)
+    now = _clean_windows(controller, 1500, 1495, 10, 0.03)
+    for _ in range(8):
+        controller.update(0.0, 1500, now)
+        now += STEP_S / 2
+    _steps(controller, 0.66, 3, now)
+    # (At most the first after the feedback stopped is set aside: its interval holds the
+    # silence's start, which a cut's does too.)
+    assert controller.cut_reports <= 1
+    assert controller.effective_kbps(1500) < 500

@@ -107,7 +107,11 @@ QUEUE_LEAK = 0.9
 OVERUSE_BACKOFF = 0.85
 """Over capacity, the bitrate falls to this share of what arrived: the queue drains."""
 TRANSPORT_FRESH_S = 1.0
-"""Transport feedback this recent decides decreases (receivers without it: the loss does)."""
+"""Transport feedback this recent decides decreases (receivers without it: the loss does). A
+receiver report whose interval spans a link cut (:data:`SILENCE_S`) counts the cut's packets,
+not a queue's, and neither decides nor smooths in: after a cut longer than this, the first
+report came back before the feedback did (or with it) and read 60-90 % lost, a collapse cut to
+a tenth of the bitrate on a link whose capacity never changed."""
 RTX_PAUSE_S = 0.3
 """Retransmissions stop this long after the last window that saw the queue building (one
 window: the queue has drained by then, at the cut bitrate), or until a window shows it
@@ -206,6 +210,12 @@ class BitrateController:
         """The per-packet feedback's two newest queues (:meth:`note_queue`)."""
         self._queue_at_last_window_ms = 0.0
         """That queue when the last window was read: the one before a silence after it."""
+        self._silence_began_at: float | None = None
+        """When the feedback before the last silence came (the link cut's start, about)."""
+        self._report_at: float | None = None
+        """When the last receiver report with a fraction lost came (:meth:`update`)."""
+        self.cut_reports = 0
+        """Receiver reports set aside: their interval spanned a link cut."""
 
     def note_report(self, receiver: int, highest_seq: int, lost: int, now: float) -> None:
         """A receiver report's cumulative counts (its extended highest sequence number and
@@ -246,6 +256,27 @@ class BitrateController:
         self._feedback_interval_s = gap_s if usual is None else 0.8 * usual + 0.2 * gap_s
         return silent
 
+    def _report_spans_cut(self, now: float) -> bool:
+        """Whether a receiver report at ``now`` is the first since a link cut began: the
+        feedback went silent (or is silent now, the report back first) and the reports with
+        it. Reports that kept coming through a feedback silence count as ever."""
+        began = self._silence_began_at
+        at = self.transport_at
+        own_pause = self.paused_at is not None and now - self.paused_at < PAUSE_AGAIN_AFTER_S
+        usual = self._feedback_interval_s
+        if (
+            at is not None
+            and usual is not None
+            and now - at > max(SILENCE_S, SILENCE_INTERVALS * usual)
+            and self._queue_at_last_window_ms < QUEUE_BEFORE_SILENCE_MS
+            and not own_pause
+        ):
+            began = at
+        if began is None:
+            return False
+        last = self._report_at
+        return last is None or last < began + SILENCE_S
+
     def _after_silence(self, now: float) -> bool:
         at = self.silence_ended_at
         return at is not None and 0 <= now - at < AFTER_SILENCE_S
@@ -274,6 +305,7 @@ class BitrateController:
                 # not a queue's: the estimate starts again after it.
                 self.silences += 1
                 self.silence_ended_at = now
+                self._silence_began_at = last
                 self.queue_ms = 0.0
         if self._after_silence(now):
             self._overuse_streak = 0
@@ -391,6 +423,13 @@ class BitrateController:
     def update(self, loss: float | None, ceiling_kbps: int, now: float) -> int | None:
         """A report's fraction lost (None: no receiver reported) at ``now``; the new
         target when it changed, else None."""
+        if loss is not None:
+            spans_cut = self._report_spans_cut(now)
+            self._report_at = now
+            if spans_cut:
+                # The cut's lost packets: no congestion to cut for, no loss to repair.
+                self.cut_reports += 1
+                loss = None
         if loss is not None:
             self.loss = SMOOTHING * loss + (1 - SMOOTHING) * self.loss
         loss_decides = True

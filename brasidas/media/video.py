@@ -275,6 +275,7 @@ class VideoOut(FanOutStream[VideoSettings]):
             "overuses": self.bitrate.overuses,
             "transport_silences": self.bitrate.silences,
             "transport_queue_stalls": self.bitrate.queue_stalls,
+            "reports_across_cuts": self.bitrate.cut_reports,
             "queue_ms": round(self.bitrate.queue_ms, 1),
             "transport_feedback": {
                 **vars(self.queue_detector.counters),
