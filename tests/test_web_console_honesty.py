@@ -259,19 +259,26 @@ async def test_a_route_edit_keeps_the_loop_and_counts_from_one(
     assert len(shown) == 5
     assert shown[0] == shown[-1]  # a loop of four points
     await page.get_by_role("button", name="edit route").click()
-    # A point halfway between the first two, inside the field.
-    lat, lon = (shown[0]["lat"] + shown[1]["lat"]) / 2, (shown[0]["lon"] + shown[1]["lon"]) / 2
     markers = page.locator('#map [title^="waypoint "]')
     for _ in range(5):  # a click while the map still settles (fitted to the area) can be lost
-        # The map's place is read at each try: panels filling in as telemetry arrives move it.
+        # A point between the first two, inside the field, where nothing drawn over the map
+        # takes the click: the robot's name beside its arrow covered the halfway point at
+        # some fits (a click on it is the robot's, as an operator's would be). The map's
+        # place is read at each try: panels filling in as telemetry arrives move it.
         box = await page.locator("#map").bounding_box()
         assert box is not None
-        at = await page.evaluate(f"window.navcam.mapPixel({lat}, {lon})")
-        x, y = box["x"] + at["x"], box["y"] + at["y"]
-        under = await page.evaluate(
-            f"(() => {{ const e = document.elementFromPoint({x}, {y});"
-            " return e ? `${e.tagName}.${e.getAttribute('class')} ${e.title ?? ''}` : null; })()"
-        )
+        for share in (0.5, 0.35, 0.65, 0.25, 0.75):
+            lat = shown[0]["lat"] + share * (shown[1]["lat"] - shown[0]["lat"])
+            lon = shown[0]["lon"] + share * (shown[1]["lon"] - shown[0]["lon"])
+            at = await page.evaluate(f"window.navcam.mapPixel({lat}, {lon})")
+            x, y = box["x"] + at["x"], box["y"] + at["y"]
+            under = await page.evaluate(
+                f"(() => {{ const e = document.elementFromPoint({x}, {y});"
+                " return e ? `${e.tagName}.${e.getAttribute('class')} ${e.title ?? ''}"
+                " ${e.closest('.leaflet-marker-pane') ? 'marker' : 'map'}` : null; })()"
+            )
+            if under is not None and under.endswith(" map"):
+                break
         await page.mouse.click(x, y)
         with contextlib.suppress(AssertionError):
             await expect(markers).to_have_count(6, timeout=2_000)
