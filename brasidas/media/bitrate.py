@@ -246,11 +246,20 @@ class BitrateController:
         at = self._report_loss_at
         return at is not None and now - at < TRANSPORT_WINDOW_S and not self._after_silence(at)
 
+    def _is_silence(self, gap_s: float) -> bool:
+        """Whether feedback ``gap_s`` apart had a silence between them (by the usual interval)."""
+        usual = self._feedback_interval_s
+        return usual is not None and gap_s > max(SILENCE_S, SILENCE_INTERVALS * usual)
+
+    def _own_pause(self, now: float) -> bool:
+        """Within our own drain pause's reach: nothing was sent, nothing is reported."""
+        return self.paused_at is not None and now - self.paused_at < PAUSE_AGAIN_AFTER_S
+
     def _silent_since(self, gap_s: float) -> bool:
         """Whether windows ``gap_s`` apart had a silence between them (and the usual interval
         learned from the others)."""
         usual = self._feedback_interval_s
-        silent = usual is not None and gap_s > max(SILENCE_S, SILENCE_INTERVALS * usual)
+        silent = self._is_silence(gap_s)
         # Silences count too (less): a feedback that slowed for good (a lowered bitrate's)
         # is the usual interval within a few windows.
         self._feedback_interval_s = gap_s if usual is None else 0.8 * usual + 0.2 * gap_s
@@ -262,14 +271,11 @@ class BitrateController:
         it. Reports that kept coming through a feedback silence count as ever."""
         began = self._silence_began_at
         at = self.transport_at
-        own_pause = self.paused_at is not None and now - self.paused_at < PAUSE_AGAIN_AFTER_S
-        usual = self._feedback_interval_s
         if (
             at is not None
-            and usual is not None
-            and now - at > max(SILENCE_S, SILENCE_INTERVALS * usual)
+            and self._is_silence(now - at)
             and self._queue_at_last_window_ms < QUEUE_BEFORE_SILENCE_MS
-            and not own_pause
+            and not self._own_pause(now)
         ):
             began = at
         if began is None:
@@ -288,15 +294,14 @@ class BitrateController:
         last = self.transport_at
         new_share = 1.0 if last is None else min(1.0, (now - last) / TRANSPORT_WINDOW_S)
         self.transport_at = now
-        # (Not the silence of our own drain pause: nothing was sent, nothing is reported.)
-        own_pause = self.paused_at is not None and now - self.paused_at < PAUSE_AGAIN_AFTER_S
         # (The per-packet readings at the window before the silence: the newest may be the
         # first feedback after it, which can count a packet held across a cut.)
         queue_before, self._queue_at_last_window_ms = (
             self._queue_at_last_window_ms,
             min(self._packet_queues_ms),
         )
-        if last is not None and self._silent_since(now - last) and not own_pause:
+        # (Not the silence of our own drain pause: nothing was sent, nothing is reported.)
+        if last is not None and self._silent_since(now - last) and not self._own_pause(now):
             if queue_before >= QUEUE_BEFORE_SILENCE_MS:
                 # A queue building held its own feedback back: the windows read on.
                 self.queue_stalls += 1
@@ -389,7 +394,7 @@ class BitrateController:
         # Seen packet by packet within a silence's windows (a loaded machine's stall just
         # before a capacity drop): the windows decide again, the next cuts confirm the drop.
         self.silence_ended_at = None
-        pausing = self.paused_at is None or now - self.paused_at >= PAUSE_AGAIN_AFTER_S
+        pausing = not self._own_pause(now)
         if pausing:
             self.paused_at = now
             self.pauses += 1
