@@ -101,11 +101,6 @@ async def test_a_keyframe_request_is_answered_by_the_newest_frame_encoded_at_onc
         await stream.stop()
 
 
-RTCP_PSFB = 206
-PLI_FMT = 1
-FIR_FMT = 4
-
-
 class _Blackout(LossyRelay):
     """A loopback UDP relay that loses everything while ``cut``."""
 
@@ -139,54 +134,3 @@ async def test_after_a_blackout_beyond_repair_its_packets_are_not_asked_for_agai
         jitterbuffer = receiver.repairs.jitterbuffers[0]
         assert jitterbuffer.get_property("max-dropout-time") == DEFAULT_DROPOUT_MS
         assert jitterbuffer.get_property("faststart-min-packets") == 0
-
-
-def _asks_keyframe(rtcp: bytes) -> bool:
-    """A (compound) RTCP packet holding a PLI or a FIR (RFC 4585, 5104)."""
-    offset = 0
-    while offset + 4 <= len(rtcp):
-        if rtcp[offset + 1] == RTCP_PSFB and rtcp[offset] & 0x1F in (PLI_FMT, FIR_FMT):
-            return True
-        offset += (int.from_bytes(rtcp[offset + 2 : offset + 4], "big") + 1) * 4
-    return False
-
-
-class _BlackoutLosingTheFirstAsk(_Blackout):
-    """Cut while ``cut``; then loses the first keyframe request after it (``lose_next_ask``)."""
-
-    def __init__(self, to: tuple[str, int]) -> None:
-        self.lose_next_ask = False
-        self.asks_lost = 0
-        super().__init__(to)
-
-    def lost(self, data: bytes) -> bool:
-        if self.cut:
-            return True
-        if self.lose_next_ask and _asks_keyframe(data):
-            self.lose_next_ask = False
-            self.asks_lost += 1
-            return True
-        return False
-
-
-async def test_a_keyframe_request_lost_after_a_blackout_is_asked_again() -> None:
-    """One RTCP packet asks for the keyframe that restarts the picture after a blackout: lost
-    (1 in 20 at 5 % loss), the picture stayed broken until the encoder's next periodic
-    keyframe. Not answered in KEYFRAME_ANSWER_S, it is asked again."""
-    async with video_link(_Blackout, _BlackoutLosingTheFirstAsk, pattern="smpte") as link:
-        receiver, sender, media, feedback = link.receiver, link.sender, link.media, link.feedback
-        assert feedback is not None
-        await wait_until(lambda: receiver.frames >= 30, timeout=20)
-        assert receiver.repairs is not None
-        before = receiver.repairs.counters()
-        asked = sender.describe()["keyframes_requested"]
-        media.cut = feedback.cut = True
-        feedback.lose_next_ask = True
-        await asyncio.sleep(0.4)  # past the repair's 200 ms
-        media.cut = feedback.cut = False
-        await wait_until(lambda: feedback.asks_lost == 1, timeout=10)
-        await wait_until(lambda: sender.describe()["keyframes_requested"] > asked, timeout=10)
-        after = receiver.repairs.counters()
-        assert after.keyframes_after_silence == before.keyframes_after_silence + 1, after
-        assert after.keyframes_asked_again == before.keyframes_asked_again + 1, after
-        await wait_until(lambda: receiver.repairs.keyframe_due_by is None, timeout=10)

@@ -309,9 +309,6 @@ class RepairCounters:
     early_reasks: int = 0
     """Packets asked for once more a round trip after their first ask, before the jitter
     buffer's own retry (:mod:`brasidas.media.reask`)."""
-    keyframes_asked_again: int = 0
-    """Keyframes asked after a silence and asked again: none had come in
-    :data:`KEYFRAME_ANSWER_S` (the request or the keyframe lost on the link)."""
 
 
 SILENCE_DROPOUT_MS = 1
@@ -323,13 +320,6 @@ as this many are in a row, not after the whole ``latency`` (a new stream's wait)
 DEFAULT_DROPOUT_MS = 60000
 """rtpjitterbuffer's own ``max-dropout-time`` (and ``faststart-min-packets`` 0), set back."""
 
-KEYFRAME_ANSWER_S = 0.4
-"""How long the keyframe asked at a silence's end may take to come before it is asked again.
-Its request is one RTCP packet: lost (1 in 20 at 5 % loss), the picture stayed broken until
-the encoder's next periodic keyframe, the depayloader's own request being held meanwhile."""
-KEYFRAME_ASKS_AGAIN_MAX = 3
-"""Asked again at most this often for one silence (a sender that cannot answer is not
-flooded)."""
 KEYFRAME_ASKED_HOLD_S = 0.15
 """After the receiver asked for a keyframe at a silence's end, the depayloader's own request
 (made once the jitter buffer has given the silence's packets up, ~5-40 ms later) would only
@@ -389,10 +379,6 @@ class RepairReceiver:
     keyframe_requests_held: int = 0
     asked_at: float | None = None
     """time.monotonic() of the newest keyframe asked after a silence."""
-    keyframe_due_by: float | None = None
-    """When the keyframe asked after a silence is overdue (None: none is owed)."""
-    keyframe_asks_left: int = 0
-    keyframes_asked_again: int = 0
     skipping_until: float | None = None
     """The jitter buffers give a silence's gap up at once until then (:meth:`skip_silence`)."""
     depayloader_sink: Any = None
@@ -407,7 +393,6 @@ class RepairReceiver:
             keyframe_requests=self.keyframe_requests,
             keyframes_after_silence=self.keyframes_after_silence,
             keyframe_requests_held=self.keyframe_requests_held,
-            keyframes_asked_again=self.keyframes_asked_again,
         )
         with self._lock:
             buffers = list(self.jitterbuffers)
@@ -432,32 +417,8 @@ class RepairReceiver:
         pad = self.depayloader_sink
         if pad is None or not pad.is_linked():
             return
-        self.keyframes_after_silence += 1
-        self.keyframe_asks_left = KEYFRAME_ASKS_AGAIN_MAX
-        self._push_keyframe_request(pad, now)
-
-    def keyframe_arrived(self) -> None:
-        """Streaming thread: a keyframe left the depayloader: none is owed any more."""
-        self.keyframe_due_by = None
-
-    def ask_again_if_unanswered(self, now: float) -> None:
-        """Streaming thread, at each packet: the keyframe asked after a silence that has not
-        come in :data:`KEYFRAME_ANSWER_S` is asked again (at most
-        :data:`KEYFRAME_ASKS_AGAIN_MAX` times)."""
-        due = self.keyframe_due_by
-        if due is None or now < due:
-            return
-        pad = self.depayloader_sink
-        if self.keyframe_asks_left <= 0 or pad is None or not pad.is_linked():
-            self.keyframe_due_by = None
-            return
-        self.keyframe_asks_left -= 1
-        self.keyframes_asked_again += 1
-        self._push_keyframe_request(pad, now)
-
-    def _push_keyframe_request(self, pad: Any, now: float) -> None:
         self.asked_at = now
-        self.keyframe_due_by = now + KEYFRAME_ANSWER_S
+        self.keyframes_after_silence += 1
         Gst = gst()
         pad.push_event(
             Gst.Event.new_custom(
@@ -621,9 +582,6 @@ def add_repair_receiver(
         receiver.depayloader_sink.add_probe(
             gst().PadProbeType.EVENT_UPSTREAM, _count_keyframe_request, receiver
         )
-        depayloader.get_static_pad("src").add_probe(
-            gst().PadProbeType.BUFFER, _note_keyframe, receiver
-        )
     source.get_static_pad("src").add_probe(gst().PadProbeType.BUFFER, _watch_silence, receiver)
     return receiver
 
@@ -668,16 +626,6 @@ def _count_keyframe_request(pad: Any, info: Any, receiver: RepairReceiver) -> An
     return gst().PadProbeReturn.OK
 
 
-def _note_keyframe(pad: Any, info: Any, receiver: RepairReceiver) -> Any:
-    """Streaming thread, each access unit out of the depayloader: a keyframe pays what is
-    owed."""
-    buffer = info.get_buffer()
-    if receiver.keyframe_due_by is not None and buffer is not None:
-        if not buffer.has_flags(gst().BufferFlags.DELTA_UNIT):
-            receiver.keyframe_arrived()
-    return gst().PadProbeReturn.OK
-
-
 def _watch_silence(pad: Any, info: Any, receiver: RepairReceiver) -> Any:
     """Streaming thread, each packet as it arrives (before the jitter buffer and before its
     NACKs for the silence's packets): a keyframe at once when the silence skipped frames past
@@ -705,7 +653,6 @@ def _watch_silence(pad: Any, info: Any, receiver: RepairReceiver) -> Any:
             receiver.skip_silence(now)
         else:
             receiver.end_skipping(now)
-            receiver.ask_again_if_unanswered(now)
     return gst().PadProbeReturn.OK
 
 
