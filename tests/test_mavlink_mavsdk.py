@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import free_udp_port, wait_until
+from conftest import free_udp_port, until_armable, wait_until
 from mavlink_gcs import LAT, LON, sim_rover_config
 from mavlink_gcs import at as position
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
@@ -125,6 +125,9 @@ async def test_mavsdk_uploads_a_qgc_plan_downloads_it_and_starts_the_mission(
         assert abs(position.latitude_deg - LAT) < 1e-3
         assert abs(position.longitude_deg - LON) < 1e-3
 
+        # The pre-arm checks passed first, as a pilot waits for them (the start arms through
+        # them; the simulated controller may answer seconds late on a loaded machine).
+        await until_armable(daemon.ctx)
         await missions.start_mission()
         await wait_until(lambda: patrolling(daemon), timeout=10)
 

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import free_udp_port, wait_until
+from conftest import free_udp_port, until_armable, wait_until
 from mavlink_gcs import FAST_ROVER, Gcs, at, qgc_connect, sim_rover_config
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -154,6 +154,9 @@ async def test_guided_goes_to_a_point_around_the_keepout_and_rtl_comes_home(
     await wait_until(lambda: patrol.core.area is not None and patrol.core.route.waypoints)
     route = patrol.core.route
     await gcs.expect("HOME_POSITION", timeout=15)
+    # QGroundControl's "Ready To Fly" first: a go-to arms through the pre-arm checks (the
+    # simulated controller answering), and a loaded machine may take seconds to pass them.
+    await until_armable(daemon.ctx)
     goal = at(30, 25)  # the straight line from the start crosses the shed (east 15-25, north 10-20)
     since = gcs.mark()
     gcs.send(
