@@ -12,11 +12,10 @@ import re
 from typing import Any
 
 import pytest
-from conftest import wait_until
+from conftest import until_armable
 from support.cli import run_cli
 from support.console import Factory, console, rover, screenshots
 
-from brasidas import topics
 from stationd.client import PlatformConnection
 from stationd.daemon import StationDaemon
 
@@ -53,6 +52,7 @@ async def test_click_on_the_map_slide_and_the_platform_goes_there(
     ne = route[2]  # the demo loop's far corner, past the shed
     goto = page.get_by_role("button", name="go to a point")
     await expect(goto).to_be_enabled()
+    await until_armable(platform.ctx)  # (a go-to arms through the pre-arm checks)
     # A click on the map without *go to* pressed sends nothing; with it, a flag and a slider.
     await goto.click()
     await expect(goto).to_have_attribute("aria-pressed", "true")
@@ -122,7 +122,9 @@ async def test_the_goto_command_drives_there_and_says_why_not(
     platform = await rover(platform_factory, fleet_key, station)
     url = platform.ctx.signaling_url
     assert (await run_cli(station, "connect", "web-rover", "--url", url))[0] == 0
-    await wait_until(lambda: platform.bus.last(topics.GPS_FIX) is not None, 15)  # pre-arm
+    # The pre-arm checks (a fix, the simulated controller answering: seconds on a loaded
+    # machine) first: a go-to arms through them, and is refused before.
+    await until_armable(platform.ctx)
     shown = await station.ctx.api.call_local("map_get", platform_id="web-rover")
     lat, lon = shown["route"][1]["lat"], shown["route"][1]["lon"]
     code, out, err = await run_cli(station, "goto", "web-rover", f"{lat},{lon}")
