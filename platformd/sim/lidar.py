@@ -3,9 +3,8 @@
 The sensor turns at 10 Hz and sends 12 points a frame (:mod:`brasidas.codecs.ldlidar`), one
 frame every 12 / (points per second): 2.7 ms for the LD19 (4,500 points/s), 0.56 ms for the
 STL-27L (21,600 points/s). A pty does not pace bytes, so the simulator does: every 10 ms it
-writes the frames whose time has come, each cast from the vehicle's pose at that moment
-(between the last tick's pose and this one's; a scan taken while moving is skewed, as a real
-one is), all in one batch.
+writes the frames whose time has come, cast in one batch from the vehicle's pose at that tick
+(a scan taken while moving is skewed, as a real one is).
 
 What it sees, ray-cast in the plane of the sensor (``lidar.height_m``):
 
@@ -429,8 +428,6 @@ class LidarSimulator(Actor):
         period = self.generator.model.frame_period_s
         started = self._clock()
         sent = 0
-        # The previous tick: its time, and the vehicle's x, y and yaw then.
-        last: tuple[float, float, float, float] | None = None
         while True:
             await asyncio.sleep(TICK_S)
             if self.world_source is not None:
@@ -442,16 +439,13 @@ class LidarSimulator(Actor):
             if due > 0.5 / period:  # the loop stalled: skip, as a sensor's turn goes on
                 sent += due - 1
                 due = 1
+            # The frames due are cast from the pose now, the time the reader will stamp them
+            # with: a loop running late (10 ms or more) sends frames as fresh as their stamp.
             pose = self.vehicle.pose()
             x, y = self._position(pose)
-            here = (now, x, y, pose.yaw_rad)
             times = [started + (sent + i) * period for i in range(due)]
-            # Each frame from where the vehicle was at its time: between the last tick's
-            # pose and this one's (a scan taken while moving is skewed).
-            xs, ys, yaws = _between(last or here, here, times)
-            self.line.write(self.generator.batch(times, xs, ys, yaws))
+            self.line.write(self.generator.batch(times, [x] * due, [y] * due, [pose.yaw_rad] * due))
             sent += due
-            last = here
 
     def _position(self, pose: Pose) -> tuple[float, float]:
         if self.origin is None:
@@ -461,26 +455,6 @@ class LidarSimulator(Actor):
     def close(self) -> None:
         """Close the pty (idempotent)."""
         self.line.close()
-
-
-def _between(
-    before: tuple[float, float, float, float],
-    after: tuple[float, float, float, float],
-    times: list[float],
-) -> tuple[list[float], list[float], list[float]]:
-    """x, y and yaw at each of ``times``, straight from ``before`` to ``after`` (each a time,
-    x, y and yaw); times outside take the nearer end."""
-    t0, x0, y0, yaw0 = before
-    t1, x1, y1, yaw1 = after
-    turn = math.atan2(math.sin(yaw1 - yaw0), math.cos(yaw1 - yaw0))
-    span = t1 - t0
-    xs, ys, yaws = [], [], []
-    for t in times:
-        f = min(1.0, max(0.0, (t - t0) / span)) if span > 0 else 1.0
-        xs.append(x0 + (x1 - x0) * f)
-        ys.append(y0 + (y1 - y0) * f)
-        yaws.append(yaw0 + turn * f)
-    return xs, ys, yaws
 
 
 class MapWorld:
