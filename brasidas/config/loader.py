@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import inspect
 import ipaddress
 import itertools
@@ -317,7 +318,7 @@ def _build(cls: type[C], values: dict[str, dict[str, tuple[Any, str]]], base: C 
     sections: dict[str, Any] = {}
     for item in dataclasses.fields(cls):  # type: ignore[arg-type]
         section_type = _section_type(cls, item.name)
-        hints = typing.get_type_hints(section_type)
+        hints = _hints(section_type)
         current = (
             getattr(base, item.name) if base is not None else _default_section(item, section_type)
         )
@@ -390,8 +391,15 @@ def _default_section(item: dataclasses.Field[Any], section_type: type) -> Any:
 
 
 def _section_type(cls: type, name: str) -> type:
-    section: type = typing.get_type_hints(cls)[name]
+    section: type = _hints(cls)[name]
     return section
+
+
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    """The class's resolved annotations, once: resolving them (string annotations, compiled
+    each time) was most of loading a config."""
+    return typing.get_type_hints(cls)
 
 
 def _suggest(name: str, known: Iterable[str]) -> str:

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from shapely.geometry import Polygon, box
 
-from brasidas.codecs.ldlidar import LidarDecoder, ScanAssembler
+from brasidas.codecs.ldlidar import FRAME_BYTES, LidarDecoder, ScanAssembler
 from brasidas.config.lidar import LidarSection
 from brasidas.perception.messages import RobotScan
 from brasidas.perception.proximity import Geometry, to_robot
@@ -100,6 +100,8 @@ class SimulatedDrive:
         self.gyro_bias = self.rng.gauss(0.0, 0.002)
         self.next_fix = 1.0
         self.laps = 0
+        self._last_start = -1
+        """The last frame's start angle (0.01 degree): where the assembler's revolution wraps."""
 
     def _t(self) -> float:
         return self.now
@@ -111,28 +113,45 @@ class SimulatedDrive:
         command = 0.0
         fix: tuple[float, float] | None = None
         while True:
-            self.now += frame_s
-            pose = self.vehicle.pose()
-            command = self._steer(pose)
-            gyro.append(pose.yaw_rate_rad_s)
-            if self.now >= self.next_fix:
-                self.next_fix += 1.0
-                self.gps.epoch(pose, EPOCH + dt.timedelta(seconds=self.now))
-                east, north = self.gps.error
-                fix = (pose.x_m + east, pose.y_m + north)
-            data = self.generator.frame(pose, self.now, pose.x_m, pose.y_m)
-            for frame in self.decoder.feed(data, self.now):
-                scan = self.assembler.feed(frame)
-                if scan is not None:
-                    noise = self.rng.gauss(0.0, self.gyro_noise)
-                    return DriveStep(
-                        time=self.now,
-                        truth=pose,
-                        scan=to_robot(scan, self.geometry),
-                        speed_command_mps=command,
-                        gyro_rad_s=sum(gyro) / len(gyro) + self.gyro_bias + noise,
-                        gps=fix,
-                    )
+            # Drive through the frames up to the one that starts the next revolution (the
+            # assembler's wrap), then cast them in one batch, each from its own pose.
+            times: list[float] = []
+            xs: list[float] = []
+            ys: list[float] = []
+            yaws: list[float] = []
+            for start in self.generator.next_starts():
+                self.now += frame_s
+                pose = self.vehicle.pose()
+                command = self._steer(pose)
+                gyro.append(pose.yaw_rate_rad_s)
+                if self.now >= self.next_fix:
+                    self.next_fix += 1.0
+                    self.gps.epoch(pose, EPOCH + dt.timedelta(seconds=self.now))
+                    east, north = self.gps.error
+                    fix = (pose.x_m + east, pose.y_m + north)
+                times.append(self.now)
+                xs.append(pose.x_m)
+                ys.append(pose.y_m)
+                yaws.append(pose.yaw_rad)
+                wrapped = 0 <= self._last_start and start < self._last_start
+                self._last_start = start
+                if wrapped:
+                    break
+            data = self.generator.batch(times, xs, ys, yaws)
+            scan = None
+            for i, now in enumerate(times):
+                for frame in self.decoder.feed(data[i * FRAME_BYTES : (i + 1) * FRAME_BYTES], now):
+                    scan = self.assembler.feed(frame) or scan
+            if scan is not None:
+                noise = self.rng.gauss(0.0, self.gyro_noise)
+                return DriveStep(
+                    time=self.now,
+                    truth=pose,
+                    scan=to_robot(scan, self.geometry),
+                    speed_command_mps=command,
+                    gyro_rad_s=sum(gyro) / len(gyro) + self.gyro_bias + noise,
+                    gps=fix,
+                )
 
     def _steer(self, pose: Pose) -> float:
         tx, ty = self.waypoints[self.target]
