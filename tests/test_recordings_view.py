@@ -16,6 +16,7 @@ from typing import Any
 from conftest import free_udp_port, quiet_platform_config, running_station, wait_until
 from mcap.reader import make_reader
 from support.cli import run_cli
+from support.console import SETTLED_JS
 
 from brasidas import topics
 from platformd.app import PlatformDaemon
@@ -240,7 +241,7 @@ async def test_seeking_shows_that_times_position_and_frame(
         await expect(rows).not_to_contain_text(re.compile(r"\d\.\d{4,}"))
         for width, height in ((1366, 768), (1920, 1080)):
             await page.set_viewport_size({"width": width, "height": height})
-            await page.wait_for_timeout(300)
+            await page.evaluate(SETTLED_JS)  # the resize handlers and observers have run
             for part in ("#rec-instruments", "#rec-log", "#rec-plot", "#rec-map"):
                 box = await page.locator(part).bounding_box()
                 assert box is not None, (part, box)

@@ -17,7 +17,14 @@ from typing import Any
 
 import pytest
 from conftest import wait_until
-from support.console import Factory, console, frames_decoded, rover, screenshots
+from support.console import (
+    FRAMES_COUNTED,
+    Factory,
+    console,
+    frames_decoded,
+    rover,
+    screenshots,
+)
 
 from brasidas import topics
 from brasidas.annunciator import LINK_LOST
@@ -106,7 +113,9 @@ async def test_the_pages_latency_reaches_the_speed_cap(
     age counts, and the cap falls below the assumption's."""
     from playwright.async_api import expect
 
-    platform = await rover(platform_factory, fleet_key, station, "safety.report_max_age_s=1.5")
+    platform = await rover(
+        platform_factory, fleet_key, station, "safety.report_max_age_s=1.5", FRAMES_COUNTED
+    )
     page = await console(browser, station, "web-rover")
     await frames_decoded(page, at_least=10)
     override = page.get_by_role("button", name="manual override")
@@ -424,7 +433,7 @@ async def test_a_feed_sent_elsewhere_says_so_and_comes_back(
     where it goes, and *ask for the video again* brings it back."""
     from playwright.async_api import expect
 
-    platform = await rover(platform_factory, fleet_key, station)
+    platform = await rover(platform_factory, fleet_key, station, FRAMES_COUNTED)
     page = await console(browser, station, "web-rover")
     await frames_decoded(page, at_least=10)
     view = UdpCatcher()

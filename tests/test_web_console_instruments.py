@@ -89,7 +89,14 @@ async def test_instruments_plots_map_notifications_and_answers(
     from playwright.async_api import expect
 
     platform: PlatformDaemon = await rover(
-        platform_factory, fleet_key, station, "imu.enabled=true", f"sim.heading_deg={HEADING_DEG}"
+        platform_factory,
+        fleet_key,
+        station,
+        "imu.enabled=true",
+        f"sim.heading_deg={HEADING_DEG}",
+        # The battery read 5 times a second, not once: each of the 7 steps below waits for
+        # the page to show the new voltage.
+        "motor.poll_hz=5",
     )
     # A second rover 3 m east of the first, by the demo map's named point "sw": three names
     # that would be written on top of each other.
@@ -231,7 +238,7 @@ async def test_instruments_plots_map_notifications_and_answers(
     await screenshots(page, "console-fleet")
     for width, height in ((1366, 768), (1920, 1080)):  # and no column hides a part below
         await page.set_viewport_size({"width": width, "height": height})
-        await page.wait_for_timeout(300)
+        await page.evaluate(SETTLED_JS)  # the resize handlers and observers have run
         columns = await page.evaluate(
             """["#video-pane", "#middle", "#side"].map((s) => {
               const e = document.querySelector(s); return [s, e.scrollHeight, e.clientHeight];

@@ -8,7 +8,7 @@ import re
 from typing import Any
 
 from conftest import wait_until
-from support.console import Factory, console, frames_decoded, rover
+from support.console import FRAMES_COUNTED, Factory, console, frames_decoded, rover
 
 from stationd.daemon import StationDaemon
 
@@ -18,7 +18,7 @@ async def test_stop_for_an_observer_and_a_silent_platform_greyed_with_its_age(
 ) -> None:
     from playwright.async_api import expect
 
-    platform = await rover(platform_factory, fleet_key, station)
+    platform = await rover(platform_factory, fleet_key, station, FRAMES_COUNTED)
     page = await console(browser, station, "web-rover")
     panel = page.locator("#instruments")
     await expect(page.get_by_label("heading")).not_to_have_text("—", timeout=15_000)

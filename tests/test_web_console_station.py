@@ -21,7 +21,13 @@ from conftest import (
     velocities_dropped,
     wait_until,
 )
-from support.console import Factory, frames_decoded, platforms_in_view, sim_platform
+from support.console import (
+    FRAMES_COUNTED,
+    Factory,
+    frames_decoded,
+    platforms_in_view,
+    sim_platform,
+)
 
 from brasidas import topics
 from brasidas.autonomy.geo import LocalFrame
@@ -241,13 +247,16 @@ async def test_operator_station_in_the_browser(
 ) -> None:
     from playwright.async_api import expect
 
-    rover = await sim_platform(platform_factory, fleet_key, station, "web-rover", 23.6530)
+    rover = await sim_platform(
+        platform_factory, fleet_key, station, "web-rover", 23.6530, FRAMES_COUNTED
+    )
     other = await sim_platform(
         platform_factory,
         fleet_key,
         station,
         "rover-2",
         23.6545,
+        FRAMES_COUNTED,
         'payload.enabled=["turret"]',
         # The silent intruder below holds control (the failsafe's hold) until this console
         # takes it: its session must not end first (after the default 5 s, which is only 3.5 s
@@ -562,6 +571,7 @@ async def test_warnings_audio_link_loss_and_a_closed_page_stops_the_robot(
             station,
             "web-rover",
             23.6530,
+            FRAMES_COUNTED,
             "failsafe.hold_after=0.6",
             # Holding until the operator re-engages (no release, the session outlives the cut).
             "failsafe.release_after=60",

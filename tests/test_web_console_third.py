@@ -11,7 +11,15 @@ from typing import Any
 
 import pytest
 from conftest import wait_until
-from support.console import Factory, console, frames_decoded, platforms_in_view, rover, screenshots
+from support.console import (
+    SETTLED_JS,
+    Factory,
+    console,
+    frames_decoded,
+    platforms_in_view,
+    rover,
+    screenshots,
+)
 
 from brasidas import topics
 from brasidas.annunciator import PATROL_HOLDING
@@ -144,7 +152,7 @@ async def test_a_ticked_checkbox_or_the_fps_box_keep_no_drive_keys(
     await expect(page.locator("#plots .plot")).to_have_count(5, timeout=10_000)
     for width, height in ((1366, 768), (1920, 1080)):
         await page.set_viewport_size({"width": width, "height": height})
-        await page.wait_for_timeout(300)
+        await page.evaluate(SETTLED_JS)  # the resize handlers and observers have run
         for plot in await page.locator("#plots .plot canvas").all():
             size = await plot.bounding_box()
             assert size is not None, size

@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from support.console import Factory, console, frames_decoded, rover
+from support.console import FRAMES_COUNTED, Factory, console, frames_decoded, rover
 
 from stationd.daemon import StationDaemon
 
@@ -18,7 +18,7 @@ async def test_the_overlay_shows_the_bitrate_and_repairs(
 ) -> None:
     from playwright.async_api import expect
 
-    await rover(platform_factory, fleet_key, station)
+    await rover(platform_factory, fleet_key, station, FRAMES_COUNTED)
     page = await console(browser, station, "web-rover")
     await frames_decoded(page, at_least=10)
     link = page.get_by_label("video link")

@@ -18,6 +18,10 @@ from stationd.daemon import StationDaemon
 
 Factory = Callable[..., Awaitable[PlatformDaemon]]
 
+FRAMES_COUNTED = "navcam.idle_framerate=15"
+"""The setting of a test that waits for tens of decoded frames before the override is engaged
+(30 fps): at 15 fps they come in a third of the idle 5 fps's time."""
+
 
 async def sim_platform(
     factory: Factory, key: bytes, station: StationDaemon, name: str, longitude: float, *extra: str

@@ -1,6 +1,7 @@
 """The suite's markers, given by what a test module uses, and its parallel workers' groups.
 
-``browser``: drives headless Chromium (Playwright). ``netns``: builds network namespaces.
+``browser``: drives headless Chromium (Playwright; the tests that use the ``browser``
+fixture, the one way to it). ``netns``: builds network namespaces.
 ``interop``: talks to a real third-party client (MAVProxy, MAVSDK, the Foxglove client).
 ``slow``: any of those, or a module listed in :data:`SLOW_MODULES` (each of its tests waits
 seconds of real time); ``make test-quick`` runs the rest. A test may also carry a marker
@@ -151,6 +152,10 @@ def apply(items: list[pytest.Item]) -> None:
             marks |= {"browser", "slow"}
             # First, so it is the mark pytest-asyncio reads (auto mode's plain one follows).
             item.add_marker(SESSION_LOOP, append=False)
+        else:
+            # Every Chromium is the ``browser`` fixture's: a test of a browser module without
+            # it (a replay cache's quota, a codec) waits in no browser lane.
+            marks -= {"browser"}
         for name in marks:
             item.add_marker(name)
         if f"{path.name}::{getattr(item, 'originalname', item.name)}" in SLOW_TESTS:
