@@ -59,7 +59,16 @@ async def watching(fleet: Fleet) -> AsyncIterator[Fleet]:
     await fleet.connect(station, ROVER)
     lossy = Profile(loss=0.05, delay=0.01)
     fleet.net.impair("rover", down=lossy, up=lossy)
-    await fleet.api(station, "receive", platform_id=ROVER, stream="navcam")
+
+    async def receiving() -> bool:
+        try:  # the station waits 1 s for the platform's answers, over the lossy link (a retry
+            # replaces the receiver the failed call made)
+            await fleet.api(station, "receive", platform_id=ROVER, stream="navcam")
+        except RpcFailed:
+            return False
+        return True
+
+    await wait_for(receiving, timeout=15, step=0.5, state=lambda: _state(fleet))
     yield fleet
     relay.clear()
 
