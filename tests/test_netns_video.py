@@ -264,11 +264,13 @@ async def test_a_loss_beyond_repair_asks_the_encoder_for_a_keyframe(watching: Fl
         relay.arrival_taps.remove(asks.on_arrival)
         relay.taps.remove(asks.on_delivery)
     rx = await _receiver(fleet)
-    assert rx["repair"]["keyframe_requests"] >= 1, rx
+    assert rx["repair"]["keyframe_requests"] >= 1, f"{rx}"
     # Asked by the receiver at the first packet after the silence (its frames were past their
     # deadline), not after the jitter buffer gave their repairs up. (A loaded machine's stall
     # of either process may make another silence: at least one.)
-    assert rx["repair"]["keyframes_after_silence"] > before["keyframes_after_silence"], rx
+    assert rx["repair"]["keyframes_after_silence"] > before["keyframes_after_silence"], (
+        f"{await state()}"
+    )
 
     async def picture_back() -> bool:
         return (await _receiver(fleet))["frames"] > frames + 5
