@@ -225,8 +225,15 @@ class Fleet:
         self.daemons.clear()
 
 
-async def wait_for(predicate: Callable[[], Any], timeout: float = 10.0, step: float = 0.05) -> Any:
-    """Await an async or sync ``predicate`` until truthy; its value. Fails after ``timeout``."""
+async def wait_for(
+    predicate: Callable[[], Any],
+    timeout: float = 10.0,
+    step: float = 0.05,
+    *,
+    state: Callable[[], Any] | None = None,
+) -> Any:
+    """Await an async or sync ``predicate`` until truthy; its value. Fails after ``timeout``,
+    saying what ``state()`` (sync or async) returns then: what the test saw instead."""
     deadline = time.monotonic() + timeout
     while True:
         value = predicate()
@@ -235,7 +242,16 @@ async def wait_for(predicate: Callable[[], Any], timeout: float = 10.0, step: fl
         if value:
             return value
         if time.monotonic() > deadline:
-            raise AssertionError(f"condition not met within {timeout} s")
+            message = f"condition not met within {timeout} s"
+            if state is not None:
+                try:
+                    seen = state()
+                    if asyncio.iscoroutine(seen):
+                        seen = await seen
+                except Exception as error:  # the state's own RPC may fail over a cut link
+                    seen = f"(state unavailable: {error!r})"
+                message += f": {seen}"
+            raise AssertionError(message)
         await asyncio.sleep(step)
 
 

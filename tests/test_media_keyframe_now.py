@@ -8,10 +8,12 @@ import asyncio
 import threading
 from dataclasses import dataclass
 
+import pytest
 from conftest import free_udp_port, wait_until
 from lossy_udp import LossyRelay
 from support.video_link import video_link
 
+from brasidas.media import video
 from brasidas.media.keyframes import KeyframeClock
 from brasidas.media.repair import DEFAULT_DROPOUT_MS
 from brasidas.media.video import VideoOut, VideoSettings
@@ -134,3 +136,89 @@ async def test_after_a_blackout_beyond_repair_its_packets_are_not_asked_for_agai
         jitterbuffer = receiver.repairs.jitterbuffers[0]
         assert jitterbuffer.get_property("max-dropout-time") == DEFAULT_DROPOUT_MS
         assert jitterbuffer.get_property("faststart-min-packets") == 0
+
+
+RTCP_PSFB = 206
+PLI_FMT = 1
+FIR_FMT = 4
+
+
+def _asks_keyframe(rtcp: bytes) -> bool:
+    """A (compound or reduced-size) RTCP packet holding a PLI or a FIR (RFC 4585, 5104)."""
+    offset = 0
+    while offset + 4 <= len(rtcp):
+        if rtcp[offset + 1] == RTCP_PSFB and rtcp[offset] & 0x1F in (PLI_FMT, FIR_FMT):
+            return True
+        offset += (int.from_bytes(rtcp[offset + 2 : offset + 4], "big") + 1) * 4
+    return False
+
+
+class _BlackoutLosingAnAsk(_Blackout):
+    """Cut while ``cut``; and loses the next keyframe request after ``lose_next_ask`` is set."""
+
+    def __init__(self, to: tuple[str, int]) -> None:
+        self.lose_next_ask = False
+        self.asks_lost = 0
+        self.asks_passed = 0
+        super().__init__(to)
+
+    def lost(self, data: bytes) -> bool:
+        if self.cut:
+            return True
+        if _asks_keyframe(data):
+            if self.lose_next_ask:
+                self.lose_next_ask = False
+                self.asks_lost += 1
+                return True
+            self.asks_passed += 1
+        return False
+
+
+async def test_a_keyframe_request_lost_after_a_blackout_is_asked_again(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A request is one RTCP packet: lost (1 in 20 at 5 % loss) after a blackout, nothing else
+    asked (the depayloader's own request is held behind it) and the picture stayed broken to
+    the encoder's next periodic keyframe. Not answered in KEYFRAME_ANSWER_S, it is asked
+    again. The sender's periodic keyframes are put off here (a minute), so that only a
+    request can bring the picture back (and the bitrate's drain pause off)."""
+    monkeypatch.setattr(video, "ENCODER_GOP_S", 60)  # the encoder's own backstop too
+    async with video_link(_Blackout, _BlackoutLosingAnAsk, pattern="smpte") as link:
+        receiver, sender, media, feedback = link.receiver, link.sender, link.media, link.feedback
+        assert feedback is not None
+        # Nor does the bitrate adapt: the blackout's feedback silence may end in a drain
+        # pause, and the keyframe it ends with would bring the picture back first.
+        monkeypatch.setattr(sender, "adapt_bitrate", lambda now: None)
+        with sender._keyframes_lock:
+            sender.keyframes.interval_s = 60.0
+            sender.keyframes.set_framerate(sender.settings.framerate)
+        await wait_until(lambda: receiver.frames >= 30, timeout=20)
+        assert receiver.repairs is not None
+        await wait_until(lambda: not receiver.repairs.counters().keyframe_owed, timeout=10)
+        before = receiver.repairs.counters()
+        asked = sender.describe()["keyframes_requested"]
+        media.cut = feedback.cut = True
+        feedback.lose_next_ask = True
+        await asyncio.sleep(0.4)  # past the repair's 200 ms
+        frames = receiver.frames
+        media.cut = feedback.cut = False
+        await wait_until(lambda: feedback.asks_lost == 1, timeout=10)
+
+        def state() -> str:
+            assert receiver.repairs is not None
+            return (
+                f"{receiver.repairs.counters()}, asks passed {feedback.asks_passed}, sender "
+                f"{ {k: v for k, v in sender.describe().items() if 'keyframe' in k} }"
+            )
+
+        # The picture back within a second (the keyframe asked again), not a minute on.
+        try:
+            await wait_until(lambda: receiver.frames >= frames + 5, timeout=5)
+        except TimeoutError:
+            raise AssertionError(f"no picture 5 s after the blackout: {state()}") from None
+        assert sender.describe()["keyframes_requested"] > asked, state()
+        after = receiver.repairs.counters()
+        assert after.keyframes_after_silence == before.keyframes_after_silence + 1, after
+        assert after.keyframes_asked_again >= before.keyframes_asked_again + 1, after
+        assert after.keyframes_asked_again <= before.keyframes_asked_again + 3, after
+        await wait_until(lambda: not receiver.repairs.counters().keyframe_owed, timeout=5)

@@ -11,7 +11,13 @@ from conftest import free_udp_port, wait_until
 
 from brasidas.media.gst import has_element
 from brasidas.media.keyframes import KeyframeClock
-from brasidas.media.repair import REPAIR_LATENCY_MS, SilenceWatch
+from brasidas.media.repair import (
+    KEYFRAME_ANSWER_S,
+    KEYFRAME_ASKS_AGAIN_MAX,
+    REPAIR_LATENCY_MS,
+    KeyframeOwed,
+    SilenceWatch,
+)
 from brasidas.media.video import VideoOut, VideoSettings
 
 
@@ -26,6 +32,28 @@ def test_the_first_frame_after_a_drain_pause_is_a_keyframe_whatever_the_gap() ->
     assert clock.on_frame(0.2, resume=True)
     assert clock.counters.resumed == 1
     assert not clock.on_frame(0.24)  # the pending request was answered by it
+
+
+def test_a_keyframe_not_come_is_asked_again_a_bounded_number_of_times() -> None:
+    owed = KeyframeOwed()
+    assert not owed.ask_again(0.0)  # nothing asked
+    owed.asked(1.0)
+    assert not owed.ask_again(1.0 + KEYFRAME_ANSWER_S - 0.01)  # its answer may still come
+    assert owed.ask_again(1.0 + KEYFRAME_ANSWER_S)
+    assert not owed.ask_again(1.0 + KEYFRAME_ANSWER_S + 0.01)  # the next wait starts now
+    # Asked again by the depayloader meanwhile: the wait starts again, the budget stays.
+    owed.asked(2.0)
+    at = 2.0
+    for _ in range(KEYFRAME_ASKS_AGAIN_MAX - 1):
+        at += KEYFRAME_ANSWER_S
+        assert owed.ask_again(at)
+    assert not owed.ask_again(at + KEYFRAME_ANSWER_S)  # given up: the periodic one comes
+    assert owed.due is None and owed.asked_again == KEYFRAME_ASKS_AGAIN_MAX
+    # A keyframe pays what is owed: nothing is asked again.
+    owed.asked(10.0)
+    owed.arrived()
+    assert not owed.ask_again(20.0)
+    assert owed.asked_again == KEYFRAME_ASKS_AGAIN_MAX
 
 
 def _frames(watch: SilenceWatch, seq: int, ts: int, at: float, count: int, fps: int) -> int:

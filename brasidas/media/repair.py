@@ -309,6 +309,11 @@ class RepairCounters:
     early_reasks: int = 0
     """Packets asked for once more a round trip after their first ask, before the jitter
     buffer's own retry (:mod:`brasidas.media.reask`)."""
+    keyframes_asked_again: int = 0
+    """Keyframe requests sent again because no keyframe came :data:`KEYFRAME_ANSWER_S` after
+    the last (the request or the keyframe lost on the link: :class:`KeyframeOwed`)."""
+    keyframe_owed: bool = False
+    """A keyframe was asked for and none has come out of the depayloader since."""
 
 
 SILENCE_DROPOUT_MS = 1
@@ -324,6 +329,50 @@ KEYFRAME_ASKED_HOLD_S = 0.15
 """After the receiver asked for a keyframe at a silence's end, the depayloader's own request
 (made once the jitter buffer has given the silence's packets up, ~5-40 ms later) would only
 make the sender defer a second keyframe by its rate limit: dropped for this long."""
+KEYFRAME_ANSWER_S = 0.3
+"""How long a keyframe asked for may take to come out of the depayloader before it is asked
+again: the request's way to the sender, the keyframe's way back (the sender answers at once)
+and the jitter buffer's wait for its repairs (:data:`REPAIR_LATENCY_MS`)."""
+KEYFRAME_ASKS_AGAIN_MAX = 3
+"""Asked again at most this often for one keyframe owed: a sender that cannot answer (or a
+link that carries nothing back) is not asked every :data:`KEYFRAME_ANSWER_S` for ever; the
+periodic keyframe heals the picture then."""
+
+
+@dataclass
+class KeyframeOwed:
+    """Sans-IO: a keyframe asked for (PLI/FIR) that has not come yet, and when to ask again.
+    A request is one RTCP packet: lost on the link (1 in 20 at 5 % loss), nothing else asked
+    (the depayloader asks once per loss, and its request right after a silence's is held), and
+    the picture stayed broken until the encoder's next periodic keyframe. Times in seconds."""
+
+    due: float | None = None
+    """When the keyframe is overdue (None: none owed)."""
+    asks_left: int = 0
+    asked_again: int = 0
+
+    def asked(self, now: float) -> None:
+        """A request went to the sender (the receiver's own or the depayloader's)."""
+        if self.due is None:
+            self.asks_left = KEYFRAME_ASKS_AGAIN_MAX
+        self.due = now + KEYFRAME_ANSWER_S
+
+    def arrived(self) -> None:
+        """A keyframe came out of the depayloader: the picture restarts, nothing is owed."""
+        self.due = None
+
+    def ask_again(self, now: float) -> bool:
+        """At each packet: True when the keyframe is overdue and may be asked for again (it
+        then counts as asked now)."""
+        if self.due is None or now < self.due:
+            return False
+        if self.asks_left <= 0:
+            self.due = None  # given up: the periodic keyframe comes within a second
+            return False
+        self.asks_left -= 1
+        self.asked_again += 1
+        self.due = now + KEYFRAME_ANSWER_S
+        return True
 
 
 @dataclass
@@ -381,8 +430,13 @@ class RepairReceiver:
     """time.monotonic() of the newest keyframe asked after a silence."""
     skipping_until: float | None = None
     """The jitter buffers give a silence's gap up at once until then (:meth:`skip_silence`)."""
+    owed: KeyframeOwed | None = field(default_factory=KeyframeOwed)
+    """The keyframe asked for and not come yet (None: not followed, as with intra refresh,
+    where no keyframe answers a request)."""
     depayloader_sink: Any = None
     _lock: threading.Lock = field(default_factory=threading.Lock)
+    _owed_lock: threading.Lock = field(default_factory=threading.Lock)
+    """The keyframe owed: asked on the streaming threads, paid on the jitter buffer's."""
 
     def set_feedback(self, host: str, port: int) -> None:
         """Send RTCP feedback to the sender's ``rtcp_port`` (applied live)."""
@@ -394,6 +448,11 @@ class RepairReceiver:
             keyframes_after_silence=self.keyframes_after_silence,
             keyframe_requests_held=self.keyframe_requests_held,
         )
+        owed = self.owed
+        if owed is not None:
+            with self._owed_lock:
+                counters.keyframes_asked_again = owed.asked_again
+                counters.keyframe_owed = owed.due is not None
         with self._lock:
             buffers = list(self.jitterbuffers)
             decoders = list(self.fec_decoders)
@@ -419,13 +478,34 @@ class RepairReceiver:
             return
         self.asked_at = now
         self.keyframes_after_silence += 1
-        Gst = gst()
-        pad.push_event(
-            Gst.Event.new_custom(
-                Gst.EventType.CUSTOM_UPSTREAM,
-                Gst.Structure.new_from_string(_SILENCE_KEYFRAME_REQUEST),
-            )
-        )
+        _push_keyframe_request(pad, _SILENCE_KEYFRAME_REQUEST)
+
+    def keyframe_asked(self, now: float) -> None:
+        """Any thread: a keyframe request went to the sender."""
+        owed = self.owed
+        if owed is not None:
+            with self._owed_lock:
+                owed.asked(now)
+
+    def keyframe_arrived(self) -> None:
+        """Streaming thread: a keyframe came out of the depayloader."""
+        owed = self.owed
+        if owed is not None and owed.due is not None:
+            with self._owed_lock:
+                owed.arrived()
+
+    def ask_again_if_owed(self, now: float) -> None:
+        """Streaming thread, at each media packet: the keyframe asked for is asked for again
+        when it has not come in :data:`KEYFRAME_ANSWER_S` (:class:`KeyframeOwed`)."""
+        owed = self.owed
+        pad = self.depayloader_sink
+        if owed is None or owed.due is None or pad is None or not pad.is_linked():
+            return
+        with self._owed_lock:
+            again = owed.ask_again(now)
+        if again:
+            self.asked_at = now  # the depayloader's own request meanwhile is held, as above
+            _push_keyframe_request(pad, _KEYFRAME_ASKED_AGAIN)
 
     def skip_silence(self, now: float) -> None:
         """Streaming thread, before the packet that ended the silence enters the jitter buffer:
@@ -460,6 +540,20 @@ _SILENCE_KEYFRAME_REQUEST = (
     " count=(uint)0, after-silence=(boolean)true"
 )
 """The depayloader's own request's fields (the RTP session reads them), and a mark of ours."""
+_KEYFRAME_ASKED_AGAIN = (
+    "GstForceKeyUnit, running-time=(guint64)18446744073709551615, all-headers=(boolean)true,"
+    " count=(uint)0, asked-again=(boolean)true"
+)
+"""The same, asked again for a keyframe owed (never held, and not a new debt)."""
+
+
+def _push_keyframe_request(pad: Any, fields: str) -> None:
+    """Streaming thread: a keyframe request upstream from the depayloader's sink pad (the RTP
+    session turns it into a PLI/FIR at once)."""
+    Gst = gst()
+    pad.push_event(
+        Gst.Event.new_custom(Gst.EventType.CUSTOM_UPSTREAM, Gst.Structure.new_from_string(fields))
+    )
 
 
 def _uint(structure: Any, key: str) -> int:
@@ -582,6 +676,9 @@ def add_repair_receiver(
         receiver.depayloader_sink.add_probe(
             gst().PadProbeType.EVENT_UPSTREAM, _count_keyframe_request, receiver
         )
+        depayloader.get_static_pad("src").add_probe(
+            gst().PadProbeType.BUFFER, _note_keyframe, receiver
+        )
     source.get_static_pad("src").add_probe(gst().PadProbeType.BUFFER, _watch_silence, receiver)
     return receiver
 
@@ -618,11 +715,27 @@ def _count_keyframe_request(pad: Any, info: Any, receiver: RepairReceiver) -> An
     structure = event.get_structure() if event is not None else None
     if structure is None or structure.get_name() != "GstForceKeyUnit":
         return gst().PadProbeReturn.OK
+    now = time.monotonic()
+    if structure.has_field("asked-again"):
+        receiver.keyframe_requests += 1
+        return gst().PadProbeReturn.OK
     if not structure.has_field("after-silence") and receiver.asked_at is not None:
-        if time.monotonic() - receiver.asked_at < KEYFRAME_ASKED_HOLD_S:
+        if now - receiver.asked_at < KEYFRAME_ASKED_HOLD_S:
             receiver.keyframe_requests_held += 1
             return gst().PadProbeReturn.DROP
     receiver.keyframe_requests += 1
+    receiver.keyframe_asked(now)
+    return gst().PadProbeReturn.OK
+
+
+def _note_keyframe(pad: Any, info: Any, receiver: RepairReceiver) -> Any:
+    """Streaming thread, each access unit out of the depayloader: one without the
+    DELTA_UNIT flag holds an IDR picture (rtph264depay clears the flag only for an access unit
+    with an IDR slice or the SPS/PPS sent with one; after a loss it lets nothing out before an
+    IDR slice starts a picture), and pays the keyframe owed."""
+    buffer = info.get_buffer()
+    if buffer is not None and not buffer.has_flags(gst().BufferFlags.DELTA_UNIT):
+        receiver.keyframe_arrived()
     return gst().PadProbeReturn.OK
 
 
@@ -653,6 +766,7 @@ def _watch_silence(pad: Any, info: Any, receiver: RepairReceiver) -> Any:
             receiver.skip_silence(now)
         else:
             receiver.end_skipping(now)
+            receiver.ask_again_if_owed(now)
     return gst().PadProbeReturn.OK
 
 

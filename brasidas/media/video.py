@@ -1323,6 +1323,8 @@ class VideoIn(PipelineStream):
         depay.set_property("wait-for-keyframe", not self.intra_refresh)
         if self.intra_refresh and depay.find_property("request-keyframe") is not None:
             depay.set_property("request-keyframe", False)
+        if self.intra_refresh and self.repairs is not None:
+            self.repairs.owed = None  # a request starts a new sweep: no keyframe answers it
         decoder.get_static_pad("src").add_probe(
             Gst.PadProbeType.BUFFER, _latency_probe, (weakref.ref(self), ntp_caps())
         )
