@@ -628,3 +628,34 @@ async def test_a_planner_process_that_cannot_start_is_said_and_tried_again(
         await asyncio.gather(task, return_exceptions=True)
     assert lost[0].startswith("the planner process could not start"), lost
     assert not planner.request_plan(1, 1, (0.0, 0.0), (1.0, 1.0))  # none to ask: said
+
+
+async def test_a_stopped_planner_closes_its_socket_through_its_transport() -> None:
+    """The planner's socket was closed under its live transport at a stop: the event loop kept
+    that transport on a descriptor number the next open reused, so a serial device opened
+    later with that number failed ("File descriptor N is used by transport"), whenever the
+    old transport was not yet collected (a profiler holding frames showed it)."""
+    from platformd.autonomy.planner_client import PlannerProcess, PlannerState
+
+    planner = PlannerProcess(lambda answer: None, lambda reason: None)
+    loop = asyncio.get_running_loop()
+    task = loop.create_task(planner.run())
+    try:
+        await wait_until(lambda: planner.state is PlannerState.RUNNING, 20)
+        writer = planner._writer  # held, as a late collection would
+        assert writer is not None
+        number = writer.get_extra_info("socket").fileno()
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    assert writer.transport.is_closing()
+    # The next descriptors opened take the freed number: one of them can be watched.
+    pipes = [os.pipe() for _ in range(4)]
+    try:
+        assert number in [fd for pair in pipes for fd in pair]
+        loop.add_reader(number, lambda: None)
+        loop.remove_reader(number)
+    finally:
+        for pair in pipes:
+            for fd in pair:
+                os.close(fd)

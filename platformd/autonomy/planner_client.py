@@ -170,6 +170,7 @@ class PlannerProcess:
         finally:
             theirs.close()
         self.pid = process.pid
+        writer: asyncio.StreamWriter | None = None
         try:
             reader, writer = await asyncio.open_unix_connection(sock=ours)
             self._writer = writer
@@ -193,6 +194,11 @@ class PlannerProcess:
         finally:
             self._writer = None
             self.pid = None
+            # Through its transport, which the loop then forgets: the socket closed under it
+            # left the loop watching a number the next open reused ("File descriptor N is used
+            # by transport" for a serial device opened after a stop).
+            if writer is not None:
+                writer.close()
             ours.close()
             if process.returncode is None:
                 with contextlib.suppress(ProcessLookupError):
