@@ -81,9 +81,11 @@ class PerceptionView(Actor):
         while True:
             self.publish_pose()
             now = self.clock.time()
-            if now - self._grid_at >= self.grid_period_s:
+            # The period counts from the last image made: a grid with nothing new, or one
+            # that grew while its image was made, is looked at again at the next tick (the
+            # console's first grid waited a whole period after the start's empty look).
+            if now - self._grid_at >= self.grid_period_s and await self.refresh_grid():
                 self._grid_at = now
-                await self.refresh_grid()
             await sleep(self.clock, POSE_PERIOD_S)
 
     def publish_pose(self) -> None:

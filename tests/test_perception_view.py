@@ -398,3 +398,38 @@ def test_a_planner_change_geos_cannot_make_falls_back_to_a_full_build(
     finally:
         left.close()
         right.close()
+
+
+async def test_the_first_grid_image_comes_at_the_first_look_with_scans_not_a_period_later() -> None:
+    """The start's look found no grid yet and still started the period: the console's first
+    grid came a whole ``lidar.grid_period_s`` later (6.7 s of a browser test's wait)."""
+    from brasidas.clock import ManualClock
+    from brasidas.perception.grid import OccupancyGrid
+    from brasidas.perception.odometry import Pose2D
+    from platformd.perception_view import POSE_PERIOD_S, PerceptionView
+
+    clock = ManualClock()
+    localizer: Any = types.SimpleNamespace(grid=None, fused=None, frame=None)
+    reader: Any = types.SimpleNamespace(clock=clock, last=None, localizer=localizer)
+    view = PerceptionView(Bus(), reader, clock=clock, grid_period_s=5.0)
+    task = asyncio.get_running_loop().create_task(view.run())
+    try:
+        for _ in range(3):  # the start's looks: no grid yet
+            await asyncio.sleep(0)
+        grid = OccupancyGrid(LAT, LON)
+        wall = np.column_stack((np.full(40, 3.0), np.linspace(-2.0, 2.0, 40)))
+        grid.integrate(Pose2D(0.0, 0.0, 0.0), wall)
+        localizer.grid = grid
+        clock.advance(POSE_PERIOD_S)
+        await wait_until(lambda: view.grid_rev == 1, 5)
+        # Then the period holds: a scan more is drawn only 5 s after that image.
+        grid.integrate(Pose2D(0.1, 0.0, 0.0), wall)
+        clock.advance(POSE_PERIOD_S)
+        for _ in range(20):
+            await asyncio.sleep(0.01)
+        assert view.grid_rev == 1
+        clock.advance(5.0)
+        await wait_until(lambda: view.grid_rev == 2, 5)
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
