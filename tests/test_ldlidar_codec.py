@@ -7,10 +7,12 @@ import struct
 
 from brasidas.codecs.ldlidar import (
     FRAME_BYTES,
+    POINTS_PER_FRAME,
     LidarDecoder,
     ScanAssembler,
     crc8,
     encode_frame,
+    encode_frames,
 )
 
 
@@ -96,3 +98,31 @@ def test_assembler_cuts_a_scan_where_the_angle_wraps() -> None:
     assert len(scans) == 1
     assert len(scans[0].angles_deg) == 360
     assert scans[0].ranges_m[0] == 1.0
+
+
+def test_frames_packed_together_are_each_frame_as_encode_frame_packs_it() -> None:
+    """The simulator's batch packing and the one-frame packing are one format: the same bytes
+    for the same fields, halves rounded and out-of-range values clamped alike."""
+    import numpy as np
+
+    rng = np.random.default_rng(7)
+    count = 50
+    starts = rng.uniform(0, 360, count).round(3)
+    starts[:3] = (0.125, 359.995, 10.005)  # halves to even; past 359.995 wraps to 0
+    ends = (starts + rng.uniform(0, 20, count)) % 360
+    distances = rng.integers(-5, 70_000, (count, POINTS_PER_FRAME))
+    intensities = rng.integers(-3, 300, (count, POINTS_PER_FRAME))
+    stamps = rng.integers(0, 30_000, count)
+    packed = encode_frames(3600, starts, ends, distances, intensities, stamps)
+    one_by_one = b"".join(
+        encode_frame(
+            3600,
+            float(starts[i]),
+            float(ends[i]),
+            distances[i].tolist(),
+            intensities[i].tolist(),
+            int(stamps[i]),
+        )
+        for i in range(count)
+    )
+    assert packed == one_by_one

@@ -26,9 +26,11 @@ a header) and ``crc_errors`` (a header followed by 45 bytes that fail the CRC).
 
 from __future__ import annotations
 
+import functools
 import struct
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 HEADER = 0x54
 VER_LEN = 0x2C
@@ -106,6 +108,58 @@ def encode_frame(
         timestamp_ms % 0x10000,
     )
     return body + bytes((crc8(body),))
+
+
+def encode_frames(
+    speed_dps: int,
+    starts_deg: Any,
+    ends_deg: Any,
+    distances_mm: Any,
+    intensities: Any,
+    timestamps_ms: Any,
+) -> bytes:
+    """Many frames back to back, each as :func:`encode_frame` packs it, in one NumPy pass (the
+    simulator sends hundreds a second): ``starts_deg``, ``ends_deg``, ``timestamps_ms`` one
+    value a frame, ``distances_mm`` and ``intensities`` shaped (frames, 12)."""
+    import numpy as np  # here: the reader's import of this codec stays light
+
+    count = len(starts_deg)
+    wire = np.zeros(count, dtype=_wire_dtype())
+    wire["header"] = HEADER
+    wire["ver_len"] = VER_LEN
+    wire["speed"] = speed_dps & 0xFFFF
+    wire["start"] = np.rint(np.asarray(starts_deg, dtype=float) * 100).astype(np.int64) % 36000
+    points = wire["points"]
+    points["distance"] = np.clip(np.asarray(distances_mm).astype(np.int64), 0, 0xFFFF)
+    points["intensity"] = np.clip(np.asarray(intensities).astype(np.int64), 0, 0xFF)
+    wire["end"] = np.rint(np.asarray(ends_deg, dtype=float) * 100).astype(np.int64) % 36000
+    wire["timestamp"] = np.asarray(timestamps_ms).astype(np.int64) % 0x10000
+    data = wire.view(np.uint8).reshape(count, FRAME_BYTES)
+    table = np.array(CRC_TABLE, dtype=np.uint8)
+    crc = np.zeros(count, dtype=np.uint8)
+    for column in data[:, : FRAME_BYTES - 1].T:
+        crc = table[crc ^ column]
+    data[:, FRAME_BYTES - 1] = crc
+    return bytes(data.tobytes())
+
+
+@functools.cache
+def _wire_dtype() -> Any:
+    """A frame's fields as a NumPy record, laid out as :data:`_BODY` plus the CRC."""
+    import numpy as np
+
+    return np.dtype(
+        [
+            ("header", "u1"),
+            ("ver_len", "u1"),
+            ("speed", "<u2"),
+            ("start", "<u2"),
+            ("points", [("distance", "<u2"), ("intensity", "u1")], (POINTS_PER_FRAME,)),
+            ("end", "<u2"),
+            ("timestamp", "<u2"),
+            ("crc", "u1"),
+        ]
+    )
 
 
 class LidarDecoder:

@@ -42,7 +42,7 @@ from shapely.geometry import MultiPolygon, Point, Polygon, shape
 from brasidas.actor import Actor, Supervisor
 from brasidas.autonomy.geo import LocalFrame
 from brasidas.bus import Bus
-from brasidas.codecs.ldlidar import CRC_TABLE, FRAME_BYTES, HEADER, POINTS_PER_FRAME, VER_LEN
+from brasidas.codecs.ldlidar import POINTS_PER_FRAME, encode_frames
 from brasidas.config import PlatformConfig
 from brasidas.config.lidar import LidarSection
 from platformd.lidar_models import MODELS, TEMPORARY_KEEPOUT_PREFIX
@@ -325,22 +325,14 @@ class ScanGenerator:
         self.frames += count
         # As round() and int() on each point (round half to even, truncation), for all the
         # frames at once: per-frame numpy and struct calls were most of a simulated drive.
-        wire = np.zeros(count, dtype=_WIRE)
-        wire["header"] = HEADER
-        wire["ver_len"] = VER_LEN
-        wire["speed"] = self.speed_dps & 0xFFFF
-        wire["start"] = np.rint(angles[:, 0] * 100).astype(np.int64) % 36000
-        points = wire["points"]
-        points["distance"] = np.clip(np.rint(ranges * 1000.0), 0, 0xFFFF)
-        points["intensity"] = np.clip(intensities.astype(np.int64), 0, 0xFF)
-        wire["end"] = np.rint(angles[:, -1] * 100).astype(np.int64) % 36000
-        wire["timestamp"] = (stamps * 1000).astype(np.int64) % 30000
-        data = wire.view(np.uint8).reshape(count, FRAME_BYTES)
-        crc = np.zeros(count, dtype=np.uint8)
-        for column in data[:, : FRAME_BYTES - 1].T:
-            crc = _CRC_TABLE[crc ^ column]
-        data[:, FRAME_BYTES - 1] = crc
-        return data.tobytes()
+        return encode_frames(
+            self.speed_dps,
+            angles[:, 0],
+            angles[:, -1],
+            np.rint(ranges * 1000.0),
+            intensities,
+            (stamps * 1000).astype(np.int64) % 30000,
+        )
 
     def _spans(
         self, sx: NDArray[np.float64], sy: NDArray[np.float64]
@@ -372,22 +364,6 @@ class ScanGenerator:
         lost = self._drop_rng.random(ranges.shape) < p_drop
         seen = finite & ~lost & (safe <= self.reach_m) & (safe >= self.model.min_range_m)
         return np.where(seen, np.round(np.maximum(noisy, 0.0) * 1000.0) / 1000.0, 0.0)
-
-
-_WIRE = np.dtype(
-    [
-        ("header", "u1"),
-        ("ver_len", "u1"),
-        ("speed", "<u2"),
-        ("start", "<u2"),
-        ("points", [("distance", "<u2"), ("intensity", "u1")], (POINTS_PER_FRAME,)),
-        ("end", "<u2"),
-        ("timestamp", "<u2"),
-        ("crc", "u1"),
-    ]
-)
-"""A frame's bytes as :func:`brasidas.codecs.ldlidar.encode_frame` packs them."""
-_CRC_TABLE = np.array(CRC_TABLE, dtype=np.uint8)
 
 
 class LidarSimulator(Actor):
