@@ -262,6 +262,10 @@ async def _row(
         "keyframe_requests_deferred": sender.get("keyframe_requests_deferred", 0)
         - sender_before.get("keyframe_requests_deferred", 0),
         "lost_unrepaired": repair.get("lost"),
+        # Packets asked for the moment their gap arrived (the receiver's own NACK), and of
+        # those the jitter buffer's own first asks let through as copies (a lossy link).
+        "asked_at_once": repair.get("asked_at_once"),
+        "asks_copied": repair.get("asks_copied"),
         # Packets asked for once more a round trip after the first ask (not the 33 ms retry).
         "early_reasks": repair.get("early_reasks"),
         # Keyframes the station asked at the first packet after a blackout (its frames past

@@ -293,6 +293,10 @@ class RtpDepayloader(PipelineStream, abc.ABC):
     def destination(self) -> str:
         return f"{self.host}:{self.port}"
 
+    def on_torn_down(self) -> None:
+        if self.repairs is not None:
+            self.repairs.close()
+
     @abc.abstractmethod
     def depayload(self) -> list[Any]:
         """The elements between ``udpsrc`` and the appsink."""

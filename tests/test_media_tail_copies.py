@@ -9,7 +9,7 @@ import statistics
 from conftest import free_udp_port, wait_until
 from lossy_udp import LossyRelay
 
-from brasidas.media.repair import LossyLinkTails
+from brasidas.media.repair import LossyLink
 from brasidas.media.video import PAYLOAD_TYPE, VideoIn, VideoOut, VideoSettings
 
 
@@ -82,7 +82,7 @@ async def test_at_30_fps_no_copies_are_sent() -> None:
 
 
 def test_a_lossy_link_turns_the_copies_on_at_any_framerate_and_a_clean_one_off() -> None:
-    tails = LossyLinkTails()
+    tails = LossyLink()
     assert not tails.update(0, 65000, 0.0)
     # 190 packets a second (30 fps), 10 % of them asked for again: a lossy link.
     assert tails.update(19, (65000 + 190) & 0xFFFF, 1.0)  # the sequence wraps on the way
@@ -109,7 +109,7 @@ async def test_at_30_fps_a_lossy_link_gets_the_copies() -> None:
         # The receiver asks for a tenth of the packets again: the sender copies each frame's
         # last packet, which would otherwise show missing only with the next frame.
         await wait_until(lambda: sender.tail_copies_sent() >= 30, timeout=30)
-        assert sender.lossy_tails.on
+        assert sender.lossy_link.on
     finally:
         await sender.stop()
         await receiver.stop()

@@ -41,6 +41,9 @@ PENDING_MAX = 512
 """Missing packets followed at most (the oldest is forgotten first)."""
 PENDING_FOR_S = 1.0
 """A packet never repaired is forgotten this long after its first ask."""
+AT_ONCE_KEPT = 64
+"""Packets asked for at once that are remembered until the jitter buffer asks (it asks
+within milliseconds, or not at all when the repair came first)."""
 
 
 @dataclass
@@ -117,11 +120,29 @@ class ReaskFollower:
     lock: threading.Lock = field(default_factory=threading.Lock)
     """The jitter buffer's timer thread, the streaming thread and the clock's thread."""
 
+    at_once: deque[int] = field(default_factory=lambda: deque(maxlen=AT_ONCE_KEPT))
+    """Packets the receiver asked for the moment their gap arrived (newest last)."""
+    copies: bool = False
+    """The link is lossy: the jitter buffer's own first ask for such a packet goes too."""
+    copied: int = 0
+
     def arrived(self, seq: int, now: float) -> None:
         """Streaming thread: a media packet (or a retransmission of it) came in."""
         if self.reask.pending:  # read without the lock: at worst one packet's check is late
             with self.lock:
                 self.reask.on_arrived(seq, now)
+
+    def asked_at_once(self, seqs: list[int]) -> None:
+        """Streaming thread: the receiver asked for ``seqs`` itself, now."""
+        with self.lock:
+            self.at_once.extend(seqs)
+
+    def first_ask_is_copy(self, seq: int) -> bool:
+        """Under the lock: the jitter buffer's first ask for ``seq`` repeats the receiver's."""
+        if seq not in self.at_once:
+            return False
+        self.at_once.remove(seq)
+        return True
 
 
 def rtx_original_seq(data: bytes) -> int | None:
@@ -166,14 +187,20 @@ def _on_request(pad: Any, info: Any, follower: ReaskFollower) -> Any:
     # Its own retry's wait (ms), as it stands (the property would take its lock, held here).
     ok_every, every_ms = structure.get_uint("frequency")
     retry_s = every_ms / 1000 if ok_every else 0.0
+    first = not ok_retry or retry == 0
     with follower.lock:
-        wait = follower.reask.on_asked(seq, retry if ok_retry else 0, time.monotonic(), retry_s)
+        wait = follower.reask.on_asked(seq, 0 if first else retry, time.monotonic(), retry_s)
+        repeat = first and follower.first_ask_is_copy(seq)
+        if repeat and follower.copies:
+            follower.copied += 1
     if wait is not None:
         again = structure.copy()
         again.set_value(_OURS, True)
         clock = Gst.SystemClock.obtain()
         at = clock.new_single_shot_id(clock.get_time() + round(wait * 1e9))
         Gst.Clock.id_wait_async(at, _ask_again, (follower, seq, again))
+    if repeat and not follower.copies:
+        return Gst.PadProbeReturn.DROP  # asked at once already; its retries still go
     return Gst.PadProbeReturn.OK
 
 

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from brasidas.media.gst import caps, gst, make
+from brasidas.media.nack import GapWatch, generic_nack
 from brasidas.media.reask import (
     RTX_HEADER_READ,
     ReaskFollower,
@@ -140,41 +141,84 @@ TAIL_COPY_MAX_FPS = 10
 """At this framerate or below each frame's last packet is sent twice (:class:`TailCopies`)."""
 
 
-TAIL_COPY_NACKED_ON = 0.03
-"""Above :data:`TAIL_COPY_MAX_FPS` the copies are sent while the receivers ask again for at
-least this share of the packets sent (a lossy link: at 10 % loss a tenth of the 30 fps frames
-lost their last packet, which showed only with the next frame, 33 ms on: g2g p95 ~60 ms)."""
-TAIL_COPY_NACKED_OFF = 0.01
+LOSSY_ASKED_ON = 0.03
+"""A link is lossy (:class:`LossyLink`) while at least this share of the packets is asked for
+again (NACK). At 10 % loss a tenth of the 30 fps frames lost their last packet, which showed
+only with the next frame, 33 ms on (g2g p95 ~60 ms): above :data:`TAIL_COPY_MAX_FPS` the
+sender copies the last packets only on a lossy link; and the receiver asks for each missing
+packet twice there (:meth:`RepairReceiver.on_media_packet`)."""
+LOSSY_ASKED_OFF = 0.01
 """... and until the share fell below this (no flapping around one threshold)."""
-TAIL_COPY_WINDOW_S = 1.0
+LOSSY_WINDOW_S = 1.0
 
 
 @dataclass
-class LossyLinkTails:
-    """Sans-IO: whether a lossy link asks for the frames' last packets twice at any framerate,
-    from the share of the sent packets the receivers asked for again (NACK) in the last
-    :data:`TAIL_COPY_WINDOW_S`. Not from the receivers' reported loss: RTCP counts a copy as a
-    packet received, so the loss would read ~0 once the copies are on (and feed the bitrate
-    controller that too)."""
+class LossyLink:
+    """Sans-IO: whether a link is lossy, from the share of the packets sent that were asked
+    for again (NACK) in the last :data:`LOSSY_WINDOW_S`: at the sender, the requests it got;
+    at a receiver, the packets it asked for. Not from the receivers' reported loss: RTCP counts
+    a copy as a packet received, so the loss would read ~0 once the copies are on (and feed the
+    bitrate controller that too)."""
 
     on: bool = False
     mark: tuple[float, int, int] | None = None
-    """(time, retransmission requests, payloader sequence number) at the window's start."""
+    """(time, retransmission requests, newest sequence number) at the window's start."""
 
     def update(self, requests: int, seq: int, now: float) -> bool:
-        """The sender's NACK count and newest sequence number at ``now`` (s): copies wanted?"""
+        """The NACK count and newest sequence number at ``now`` (s): is the link lossy?"""
         if self.mark is None or requests < self.mark[1]:
             self.mark = (now, requests, seq)
             return self.on
         at, asked_before, seq_before = self.mark
-        if now - at < TAIL_COPY_WINDOW_S:
+        if now - at < LOSSY_WINDOW_S:
             return self.on
         self.mark = (now, requests, seq)
         sent = (seq - seq_before) & 0xFFFF
         if sent > 0:
             share = (requests - asked_before) / sent
-            self.on = share >= (TAIL_COPY_NACKED_OFF if self.on else TAIL_COPY_NACKED_ON)
+            self.on = share >= (LOSSY_ASKED_OFF if self.on else LOSSY_ASKED_ON)
         return self.on
+
+
+class SinkSocket:
+    """Datagrams of our own sent from a ``multiudpsink``'s socket to each of its clients. From
+    another port a peer's RTP session takes them for another source colliding with the
+    stream's SSRC and drops them. Used from one streaming thread at a time."""
+
+    def __init__(self, sink: Any) -> None:
+        self.sink = sink
+        self.sock: socket.socket | None = None
+        self.closed = False
+
+    def send(self, packet: bytes) -> int:
+        """``packet`` to each client now: how many it went to (none before the sink has its
+        socket, or where the buffer is full or the peer unreachable: it is dropped, as a
+        datagram on a link would be)."""
+        if self.sock is None:
+            if self.closed:
+                return 0
+            from gi.repository import Gio  # noqa: F401 (the GSocket's methods need its typelib)
+
+            used = self.sink.get_property("used-socket")
+            if used is None:
+                return 0
+            self.sock = socket.socket(fileno=os.dup(used.get_fd()))  # non-blocking (GLib's)
+        sent = 0
+        for client in str(self.sink.get_property("clients") or "").split(","):
+            host, _, port = client.rpartition(":")
+            if host and port.isdigit():
+                try:
+                    self.sock.sendto(packet, (host, int(port)))
+                    sent += 1
+                except OSError:
+                    pass
+        return sent
+
+    def close(self) -> None:
+        self.closed = True
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
 
 
 class TailCopies:
@@ -189,7 +233,7 @@ class TailCopies:
     One per pipeline (its sink's socket); ``sent`` carries over."""
 
     def __init__(self, sent: int = 0) -> None:
-        self.sock: socket.socket | None = None
+        self.out: SinkSocket | None = None
         self.sent = sent
         self._probe: tuple[Any, int] | None = None
         self._follow: Callable[[], None] = lambda: None
@@ -222,26 +266,16 @@ class TailCopies:
 
     def send(self, packet: bytes, sink: Any) -> None:
         """Streaming thread: ``packet`` to each of ``sink``'s clients, from its socket."""
-        if self.sock is None:
-            used = sink.get_property("used-socket")
-            if used is None:
-                return
-            self.sock = socket.socket(fileno=os.dup(used.get_fd()))  # non-blocking (GLib's)
-        for client in str(sink.get_property("clients") or "").split(","):
-            host, _, port = client.rpartition(":")
-            if host and port.isdigit():
-                try:
-                    self.sock.sendto(packet, (host, int(port)))
-                    self.sent += 1
-                except OSError:
-                    pass  # a full buffer or an unreachable station: it was only a copy
+        if self.out is None:
+            self.out = SinkSocket(sink)
+        self.sent += self.out.send(packet)
 
     def close(self) -> None:
         self._probe = None
         self._follow = lambda: None
-        if self.sock is not None:
-            self.sock.close()
-            self.sock = None
+        if self.out is not None:
+            self.out.close()
+            self.out = None
 
 
 def _copy_tail(pad: Any, info: Any, data: tuple[TailCopies, Any, Callable[[], bool]]) -> Any:
@@ -314,6 +348,12 @@ class RepairCounters:
     the last (the request or the keyframe lost on the link: :class:`KeyframeOwed`)."""
     keyframe_owed: bool = False
     """A keyframe was asked for and none has come out of the depayloader since."""
+    asked_at_once: int = 0
+    """Packets asked for (NACK) the moment their gap arrived, by the receiver's own probe
+    (:meth:`RepairReceiver.on_media_packet`), not on RTCP's schedule."""
+    asks_copied: int = 0
+    """Of those, packets the jitter buffer asked for again as its own first ask: a copy of
+    the NACK, sent only while the link is lossy (:class:`LossyLink`)."""
 
 
 SILENCE_DROPOUT_MS = 1
@@ -434,6 +474,12 @@ class RepairReceiver:
     """The keyframe asked for and not come yet (None: not followed, as with intra refresh,
     where no keyframe answers a request)."""
     depayloader_sink: Any = None
+    session: Any = None
+    """The RTP session (its ``internal-ssrc`` signs the NACKs sent at once)."""
+    gaps: GapWatch = field(default_factory=GapWatch)
+    lossy: LossyLink = field(default_factory=LossyLink)
+    asked_at_once: int = 0
+    feedback_out: SinkSocket | None = None
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _owed_lock: threading.Lock = field(default_factory=threading.Lock)
     """The keyframe owed: asked on the streaming threads, paid on the jitter buffer's."""
@@ -441,6 +487,31 @@ class RepairReceiver:
     def set_feedback(self, host: str, port: int) -> None:
         """Send RTCP feedback to the sender's ``rtcp_port`` (applied live)."""
         self.feedback_sink.set_property("clients", f"{host}:{port}" if port else "")
+
+    def close(self) -> None:
+        """The pipeline is torn down: the socket the NACKs sent at once went from is closed."""
+        if self.feedback_out is not None:
+            self.feedback_out.close()
+
+    def on_media_packet(self, ssrc: int, seq: int, now: float, *, silence: bool) -> None:
+        """Streaming thread, each packet of the media's sequence as it comes off the socket
+        (before the jitter buffer): the packets missing just before it are asked for (NACK)
+        now, not on RTCP's schedule (:mod:`brasidas.media.nack`), unless the gap is a silence
+        beyond repair. The jitter buffer's own first ask for them (~1.5 ms later) is then a
+        copy: dropped, except on a lossy link, where a lost NACK cost its frame a second try
+        a round trip later (at 10 % loss each way a first try failed 19 % of the time, and
+        those frames were glass-to-glass p95). The sender answers each copy it gets."""
+        missing = self.gaps.on_packet(ssrc, seq)
+        out = self.feedback_out
+        if missing and not silence and out is not None and self.session is not None:
+            own = int(self.session.get_property("internal-ssrc"))
+            if out.send(generic_nack(own, ssrc, missing)):
+                self.asked_at_once += len(missing)
+                for follower in self.reasks:
+                    follower.asked_at_once(missing)
+        lossy = self.lossy.update(self.asked_at_once, seq, now)
+        for follower in self.reasks:
+            follower.copies = lossy
 
     def counters(self) -> RepairCounters:
         counters = RepairCounters(
@@ -457,6 +528,8 @@ class RepairReceiver:
             buffers = list(self.jitterbuffers)
             decoders = list(self.fec_decoders)
             counters.early_reasks = sum(follower.reask.reasked for follower in self.reasks)
+            counters.asks_copied = sum(follower.copied for follower in self.reasks)
+        counters.asked_at_once = self.asked_at_once
         for decoder in decoders:
             counters.fec_recovered += int(decoder.get_property("recovered"))
         for jitterbuffer in buffers:
@@ -579,7 +652,7 @@ def add_repair_receiver(
     feedback_sink = make(
         "multiudpsink", "rtcp_out", clients="", sync=False, async_=False, auto_multicast=False
     )
-    receiver = RepairReceiver(rtpbin, feedback_sink)
+    receiver = RepairReceiver(rtpbin, feedback_sink, feedback_out=SinkSocket(feedback_sink))
     media_caps = caps(f"{rtp_caps},{FEEDBACK_CAPS}")
     rtx_caps = caps(
         f"application/x-rtp,media=video,clock-rate=90000,encoding-name=RTX,"
@@ -666,6 +739,7 @@ def add_repair_receiver(
     session.set_property("rtcp-fraction", FEEDBACK_BYTES_PER_S)
     session.set_property("rtcp-min-interval", FEEDBACK_INTERVAL_NS)
     internal = session.get_property("internal-session")
+    receiver.session = internal
     if internal is not None:
         internal.set_property("rtcp-reduced-size", REDUCED_SIZE_FEEDBACK)
     if internal is not None and internal.find_property("twcc-feedback-interval") is not None:
@@ -679,7 +753,7 @@ def add_repair_receiver(
         depayloader.get_static_pad("src").add_probe(
             gst().PadProbeType.BUFFER, _note_keyframe, receiver
         )
-    source.get_static_pad("src").add_probe(gst().PadProbeType.BUFFER, _watch_silence, receiver)
+    source.get_static_pad("src").add_probe(gst().PadProbeType.BUFFER, _on_arrival, receiver)
     return receiver
 
 
@@ -739,13 +813,14 @@ def _note_keyframe(pad: Any, info: Any, receiver: RepairReceiver) -> Any:
     return gst().PadProbeReturn.OK
 
 
-def _watch_silence(pad: Any, info: Any, receiver: RepairReceiver) -> Any:
-    """Streaming thread, each packet as it arrives (before the jitter buffer and before its
-    NACKs for the silence's packets): a keyframe at once when the silence skipped frames past
-    their deadline. And each packet's arrival, a retransmission's as its original, for the
-    early asks (:mod:`brasidas.media.reask`): one probe a packet, not two."""
+def _on_arrival(pad: Any, info: Any, receiver: RepairReceiver) -> Any:
+    """Streaming thread, each packet as it arrives (before the jitter buffer): the packets
+    missing before it asked for at once (:meth:`RepairReceiver.on_media_packet`); a keyframe
+    at once when a silence skipped frames past their deadline; and each packet's arrival, a
+    retransmission's as its original, for the early asks (:mod:`brasidas.media.reask`). One
+    probe a packet: each takes the GIL on the streaming thread."""
     buffer = info.get_buffer()
-    header = buffer.extract_dup(0, 8) if buffer is not None else b""
+    header = buffer.extract_dup(0, 12) if buffer is not None else b""
     if len(header) < 8:
         return gst().PadProbeReturn.OK
     now = time.monotonic()
@@ -759,14 +834,25 @@ def _watch_silence(pad: Any, info: Any, receiver: RepairReceiver) -> Any:
         seq = int.from_bytes(header[2:4], "big")
         for follower in receiver.reasks:
             follower.arrived(seq, now)
-        if receiver.depayloader_sink is None:  # no keyframe requests: no silence to end
+        # No keyframe requests (no depayloader asking): no silence to end.
+        silence = receiver.depayloader_sink is not None and receiver.silence.on_packet(
+            seq, int.from_bytes(header[4:8], "big"), now
+        )
+        if len(header) >= 12:
+            receiver.on_media_packet(int.from_bytes(header[8:12], "big"), seq, now, silence=silence)
+        if receiver.depayloader_sink is None:
             return gst().PadProbeReturn.OK
-        if receiver.silence.on_packet(seq, int.from_bytes(header[4:8], "big"), now):
+        if silence:
             receiver.ask_keyframe(now)
             receiver.skip_silence(now)
         else:
             receiver.end_skipping(now)
             receiver.ask_again_if_owed(now)
+    elif payload_type == FEC_PAYLOAD_TYPE and len(header) >= 12:
+        # In the media's own sequence: not a gap.
+        receiver.gaps.on_packet(
+            int.from_bytes(header[8:12], "big"), int.from_bytes(header[2:4], "big")
+        )
     return gst().PadProbeReturn.OK
 
 

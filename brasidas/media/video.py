@@ -64,7 +64,7 @@ from brasidas.media.repair import (
     RTX_PAYLOAD_TYPE,
     TAIL_COPY_MAX_FPS,
     FeedbackSocket,
-    LossyLinkTails,
+    LossyLink,
     RepairReceiver,
     TailCopies,
     add_repair_receiver,
@@ -221,7 +221,7 @@ class VideoOut(FanOutStream[VideoSettings]):
         """Our own force-key-unit events, told apart from a receiver's request (PLI/FIR)."""
         self.feedback: FeedbackSocket | None = None
         self._tail_copies: TailCopies | None = None
-        self.lossy_tails = LossyLinkTails()
+        self.lossy_link = LossyLink()
         """Copies of the frames' last packets at any framerate while the link is lossy."""
         self.bitrate = BitrateController(settings.effective_bitrate_kbps(), MIN_BITRATE_KBPS)
         self._rtpbin: Any = None
@@ -329,19 +329,19 @@ class VideoOut(FanOutStream[VideoSettings]):
             if self._rtpbin is None or self._encoder is None:
                 return None
             kbps = self._adapt_bitrate(now)
-            self._follow_lossy_tails(now)
+            self._follow_lossy_link(now)
             return kbps
 
-    def _follow_lossy_tails(self, now: float) -> None:
+    def _follow_lossy_link(self, now: float) -> None:
         """Copy the frames' last packets at any framerate while the link is lossy (the share
-        of packets the receivers asked for again; :class:`LossyLinkTails`)."""
+        of packets the receivers asked for again; :class:`LossyLink`)."""
         rtx = self._rtpbin.get_by_name("rtxsend") if self._rtpbin is not None else None
         pay = self.pipeline.get_by_name("pay") if self.pipeline is not None else None
         if rtx is None or pay is None or self._tail_copies is None:
             return
-        was = self.lossy_tails.on
+        was = self.lossy_link.on
         requests = int(rtx.get_property("num-rtx-requests"))
-        if self.lossy_tails.update(requests, int(pay.get_property("seqnum")), now) != was:
+        if self.lossy_link.update(requests, int(pay.get_property("seqnum")), now) != was:
             self._tail_copies.follow()
 
     def _adapt_bitrate(self, now: float) -> int | None:
@@ -800,7 +800,7 @@ def _copy_tails(ref: weakref.ref[VideoOut]) -> bool:
     if stream.settings.framerate <= TAIL_COPY_MAX_FPS:
         return True
     # A lossy link's, but not into a queue that overflows (its loss is not the link's).
-    return stream.lossy_tails.on and stream.retransmit and not stream.keyframes.congested
+    return stream.lossy_link.on and stream.retransmit and not stream.keyframes.congested
 
 
 def _thinning_probe(pad: Any, info: Any, ref: weakref.ref[VideoOut]) -> Any:
@@ -1286,6 +1286,10 @@ class VideoIn(PipelineStream):
             "latency_p95_ms": values[min(len(values) - 1, int(len(values) * 0.95))],
             "latency_p99_ms": values[min(len(values) - 1, int(len(values) * 0.99))],
         }
+
+    def on_torn_down(self) -> None:
+        if self.repairs is not None:
+            self.repairs.close()
 
     def build(self) -> Any:
         Gst = gst()

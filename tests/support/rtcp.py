@@ -7,6 +7,10 @@ import time
 
 from lossy_udp import LossyRelay
 
+from brasidas.media.reask import rtx_original_seq
+from brasidas.media.repair import RTX_PAYLOAD_TYPE
+from brasidas.media.video import PAYLOAD_TYPE
+
 RTCP_RTPFB = 205
 NACK_FMT = 1
 
@@ -43,3 +47,41 @@ class NackLog(LossyRelay):
             for seq in nacked(data):
                 self.asked.setdefault(seq, []).append(now)
         return False
+
+
+class DropEvery(LossyRelay):
+    """Loses the first copy of every ``every``-th media packet that is not a frame's last (so
+    the gap shows at once, at the next packet of the same frame); notes when each gap showed
+    and when the lost packet's retransmission passed."""
+
+    def __init__(self, to: tuple[str, int], every: int = 15) -> None:
+        self._lock = threading.Lock()  # before the relay's thread starts
+        self.every = every
+        self.missing: set[int] = set()
+        self.gap_seen: dict[int, float] = {}
+        self.retransmitted: dict[int, float] = {}
+        """Sequence number lost → when its first retransmission passed."""
+        self._count = 0
+        super().__init__(to, loss=0.0)
+
+    def lost(self, data: bytes) -> bool:
+        if len(data) >= 4 and data[1] & 0x7F == RTX_PAYLOAD_TYPE:
+            original = rtx_original_seq(data)
+            with self._lock:
+                if original in self.missing:
+                    self.retransmitted.setdefault(original, time.monotonic())
+            return False
+        if len(data) < 4 or data[1] & 0x7F != PAYLOAD_TYPE:
+            return False
+        seq = int.from_bytes(data[2:4], "big")
+        with self._lock:
+            for missing in self.missing:
+                if missing not in self.gap_seen and (seq - missing) & 0xFFFF < 0x8000:
+                    self.gap_seen[missing] = time.monotonic()
+            if data[1] & 0x80 or seq in self.missing:
+                return False
+            self._count += 1
+            if self._count % self.every:
+                return False
+            self.missing.add(seq)
+            return True
