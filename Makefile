@@ -12,21 +12,21 @@ APT_PACKAGES := python3 python3-venv python3-dev gcc pkg-config \
 	libgirepository1.0-dev libcairo2-dev gir1.2-gstreamer-1.0 gir1.2-gst-plugins-base-1.0 \
 	gir1.2-gst-rtsp-server-1.0 gstreamer1.0-tools gstreamer1.0-plugins-base \
 	gstreamer1.0-plugins-good gstreamer1.0-plugins-bad gstreamer1.0-plugins-ugly \
-	gstreamer1.0-libav gstreamer1.0-x iproute2 chromium libjs-leaflet
+	gstreamer1.0-libav gstreamer1.0-x iproute2 chromium chromium-headless-shell libjs-leaflet
 
 .PHONY: demo test test-quick bench lint deps apt venv clean net-demo soak
 
 deps: $(STAMP_APT) $(STAMP_PIP) $(STAMP_NPM)
 
 # Node from Debian only when there is no npm at all (a machine with another Node keeps it).
-$(STAMP_NPM): package.json package-lock.json $(STAMP_APT)
+$(STAMP_NPM): package.json package-lock.json | $(STAMP_APT)
 	@command -v npm >/dev/null || { echo "installing Debian packages: nodejs npm"; \
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends nodejs npm; }
 	npm ci --no-audit --no-fund --loglevel=error
 	@touch $@
 
-# Debian packages: installed only when one is missing.
-$(STAMP_APT):
+# Debian packages: installed only when one is missing (looked at again when this file changes).
+$(STAMP_APT): Makefile
 	@missing=$$(for p in $(APT_PACKAGES); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q '^install ok installed' || echo $$p; done); \
 	if [ -n "$$missing" ]; then \
 		echo "installing Debian packages:" $$missing; \
@@ -34,7 +34,7 @@ $(STAMP_APT):
 	fi
 	@mkdir -p $(VENV) && touch $@
 
-$(STAMP_PIP): pyproject.toml $(STAMP_APT)
+$(STAMP_PIP): pyproject.toml | $(STAMP_APT)
 	@test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[test,bench]'
