@@ -17,6 +17,7 @@ from typing import Any
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from brasidas.messages import ControllerStatus
 from platformd.mavlink.missions import (
     FENCE_EXCLUSION_CIRCLE,
     FENCE_INCLUSION_VERTEX,
@@ -26,6 +27,8 @@ from platformd.mavlink.missions import (
     route_from_items,
     route_index,
 )
+from platformd.mavlink.model import VehicleState
+from platformd.mavlink.telemetry import status_messages
 from platformd.mavlink.vehicle import (
     MAX_LINKS,
     STRANGER_LINKS,
@@ -418,3 +421,22 @@ def test_a_guided_item_without_a_position_is_denied_with_the_reason() -> None:
         m.get_type() == "STATUSTEXT" and m.text == "go to: no latitude, longitude in a global frame"
         for m in answers
     )
+
+
+def test_a_fitted_motor_controller_is_unhealthy_until_it_has_answered() -> None:
+    """SYS_STATUS's motor-outputs bit: present from the start when a controller is fitted,
+    healthy only once the driver has brought it up (not absent, which reads "none fitted")."""
+    bit = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+
+    def sys_status(state: VehicleState) -> tuple[bool, bool]:
+        message = status_messages(state)[0]
+        present = bool(message.onboard_control_sensors_present & bit)
+        return present, bool(message.onboard_control_sensors_health & bit)
+
+    assert sys_status(VehicleState()) == (False, False)  # none fitted
+    state = VehicleState(motor_present=True)
+    assert sys_status(state) == (True, False)  # fitted, not heard from yet
+    state.controller = ControllerStatus(True)
+    assert sys_status(state) == (True, True)
+    state.controller = ControllerStatus(False, error="controller silent")
+    assert sys_status(state) == (True, False)

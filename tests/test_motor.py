@@ -6,6 +6,7 @@ import asyncio
 import os
 import socket
 import sys
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -28,6 +29,7 @@ from platformd import motor
 from platformd.app import PlatformDaemon
 from platformd.context import PlatformContext
 from platformd.motor import MotorController
+from platformd.motor import controller as motor_controller
 from platformd.sim import SimulatedDevices
 from platformd.sim.ax3500 import Ax3500Simulator, SimOptions
 from platformd.sim.gpio import SimulatedGpio
@@ -238,6 +240,60 @@ async def test_silent_controller_is_reported_and_recovered(tmp_path: Path) -> No
         assert "silent" in status(ctx).error  # type: ignore[union-attr]
         sim.device.silent = False
         await connected(ctx)
+
+
+async def test_a_blocked_event_loop_is_no_silence_of_the_controller(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Synchronous work elsewhere blocks the loop while the first probe is in flight (at a
+    platform's start: the other setups importing their modules): the controller's answer
+    waits unread, which is no silence of the controller's. No ten carriage returns, no wait
+    for a banner, no "not answering" on the way: the first status says it is up."""
+    async with driven(tmp_path) as (ctx, sim):
+        statuses: list[ControllerStatus] = []
+        ctx.bus.subscribe(topics.CONTROLLER_STATUS, statuses.append)
+        device = sim.device
+        feed = device.feed
+        stalled: list[bytes] = []
+
+        def feed_then_stall(data: bytes, now: float) -> bytes:
+            if not stalled:  # the first command, just read off the line
+                stalled.append(data)
+                # The stall itself (not a wait for anything): three reply timeouts long.
+                time.sleep(3 * driver_of(ctx).config.reply_timeout)
+            return feed(data, now)
+
+        # Before the driver's first step: nothing has been awaited since it was started.
+        monkeypatch.setattr(device, "feed", feed_then_stall)
+        await connected(ctx)
+        assert stalled == [b"^00\r"]
+        assert b"\r" * 10 not in device.received_bytes, "the stalled probe counted as lost"
+        assert [s.connected for s in statuses[:1]] == [True]
+
+
+async def test_a_lost_first_probe_costs_no_wait_for_a_banner(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A controller in RS-232 mode that missed the first probe (noise, a stall the budget
+    could not absorb) echoes the ten carriage returns and sends no ``OK``: it is asked again
+    at once and answers, rather than after a wait for the banner of an R/C-mode controller."""
+    monkeypatch.setattr(motor_controller, "BANNER_TIMEOUT", 60.0)  # waiting for it fails
+    async with driven(tmp_path, "motor.reply_timeout=0.1") as (ctx, sim):
+        device = sim.device
+        feed = device.feed
+        lost: list[bytes] = []
+
+        def deaf_once(data: bytes, now: float) -> bytes:
+            if not lost:
+                lost.append(data)
+                return b""
+            return feed(data, now)
+
+        monkeypatch.setattr(device, "feed", deaf_once)
+        await connected(ctx)
+        assert lost == [b"^00\r"]
+        assert b"\r" * 10 in device.received_bytes
+        assert device.mode == "rs232"
 
 
 async def test_rc_mode_and_wrong_motor_mode_are_fixed_at_bring_up(tmp_path: Path) -> None:

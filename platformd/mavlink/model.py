@@ -121,6 +121,8 @@ class VehicleState:
     controller: ControllerStatus | None = None
     imu_ok: bool | None = None
     gps_present: bool = False
+    motor_present: bool = False
+    """A motor controller is fitted: its bit is present, healthy once it has answered."""
     mode: FlightMode = FlightMode.HOLD
     failsafe: bool = False
     armed: bool = True

@@ -146,6 +146,7 @@ class MavlinkService(Actor):
         self.parameters = WritableParameters(parameters_path(config.parameters_file))
         """FENCE_OPTIONS, as ground stations set it (restored in :meth:`open`)."""
         self.vehicle.state.gps_present = ctx.config.gps.enabled
+        self.vehicle.state.motor_present = ctx.config.motor.enabled
         self.transport: asyncio.DatagramTransport | None = None
         self.port = 0
         """The bound UDP port (the kernel's choice for 0)."""

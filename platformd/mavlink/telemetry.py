@@ -180,8 +180,13 @@ def status_messages(state: VehicleState) -> list[Any]:
     if state.prearm_ok is not None:  # "always healthy when armed" (MAVLink's definition)
         sensors.add(mavlink.MAV_SYS_STATUS_PREARM_CHECK, True, state.prearm_ok or state.armed)
     controller = state.controller
+    # Fitted and not heard from yet (the driver still bringing it up): present, not healthy.
+    sensors.add(
+        mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS,
+        state.motor_present or controller is not None,
+        controller is not None and controller.connected,
+    )
     if controller is not None:
-        sensors.add(mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS, True, controller.connected)
         sensors.add(
             mavlink.MAV_SYS_STATUS_SENSOR_BATTERY,
             controller.battery_volts is not None,

@@ -216,8 +216,13 @@ class MotorController(Actor):
         if reply is None:
             link.banner.clear()
             link.write_raw(b"\r" * 10)
-            await link.wait_banner(BANNER_TIMEOUT)
+            # A controller already in RS-232 mode only echoes them and sends no OK: asked
+            # again at once, it answers (its first probe was lost). One leaving R/C mode says
+            # OK when it has switched: waited for if the second probe goes unanswered too.
             reply = await self._probe(link)
+            if reply is None:
+                await link.wait_banner(BANNER_TIMEOUT)
+                reply = await self._probe(link)
             if reply is None:
                 raise LinkError("controller silent, also after ten carriage returns")
         await self._check_mode(link, reply.values[0])

@@ -14,11 +14,17 @@ from enum import Enum
 import serial
 import serial_asyncio
 
+from brasidas.clock import Clock, LoopClock, running_timeout
 from brasidas.codecs import ax3500
 from brasidas.codecs.ax3500 import Command, Exchange, LineParser, Reply
 from platformd.serial_port import OPEN_ERRORS
 
 _LOGGER = logging.getLogger(__name__)
+
+REPLY_CHECKS = 6
+"""A reply's wait is checked this many times: a stall of the event loop costs it one check."""
+REPLY_MOST = 5
+"""However stalled the loop, a reply is given up after this many reply timeouts."""
 
 
 class LinkError(Exception):
@@ -37,8 +43,10 @@ class LinkState(Enum):
 class SerialLink(asyncio.Protocol):
     """One open serial connection to the controller; single use, one command in flight."""
 
-    def __init__(self, reply_timeout: float) -> None:
+    def __init__(self, reply_timeout: float, clock: Clock | None = None) -> None:
         self.reply_timeout = reply_timeout
+        self.clock: Clock = clock or LoopClock()
+        """Times the replies (real time: the answer comes over a real line)."""
         self.state = LinkState.OPEN
         self.parser = LineParser()
         self.banner = asyncio.Event()
@@ -53,9 +61,11 @@ class SerialLink(asyncio.Protocol):
         """Called when a W or an OK line arrives (the owner looks at the counters)."""
 
     @classmethod
-    def attach(cls, device: serial.Serial, reply_timeout: float) -> SerialLink:
+    def attach(
+        cls, device: serial.Serial, reply_timeout: float, clock: Clock | None = None
+    ) -> SerialLink:
         """A link over an open port (from :class:`PortOpener`). Must run on the event loop."""
-        link = cls(reply_timeout)
+        link = cls(reply_timeout, clock)
         try:
             # Usable at once: the transport's connection_made comes a loop turn later.
             link._transport = _EagerSerialTransport(asyncio.get_running_loop(), link, device)
@@ -98,7 +108,13 @@ class SerialLink(asyncio.Protocol):
     # ------------------------------------------------------------------ requests
 
     async def request(self, command: Command) -> Reply:
-        """Send ``command`` and wait for its answer; raises ReplyTimeout or LinkError."""
+        """Send ``command`` and wait for its answer; raises ReplyTimeout or LinkError.
+
+        The wait is ``reply_timeout`` of time the event loop could run: while something else
+        blocks the loop the answer waits unread (on the real line, in the kernel's buffer; from
+        the simulator, which shares the loop, not even written yet), and that is no silence of
+        the controller's. A blocked loop at the start (setups importing their modules) timed
+        the first probe out, and the bring-up then waited 3 s for a banner."""
         if self.state is LinkState.CLOSED or self._transport is None:
             raise LinkError(self.closed_reason or "link closed")
         if self._exchange is not None:
@@ -108,7 +124,10 @@ class SerialLink(asyncio.Protocol):
         self._reply = reply
         try:
             self._write(command.encode())
-            async with asyncio.timeout(self.reply_timeout):
+            timeout = self.reply_timeout
+            async with running_timeout(
+                self.clock, timeout, step=timeout / REPLY_CHECKS, most=timeout * REPLY_MOST
+            ):
                 return await reply
         except TimeoutError:
             raise ReplyTimeout(command.text) from None
