@@ -154,7 +154,10 @@ class _DropTwice(LossyRelay):
 
 
 async def test_a_packet_whose_retransmission_was_lost_is_asked_again_within_a_round_trip() -> None:
-    async with video_link(_DropTwice, NackLog, pattern="smpte") as link:
+    # A moving picture at 4 Mbit/s: more packets a second, the same share of them lost.
+    async with video_link(
+        _DropTwice, NackLog, pattern="smpte", motion=4, bitrate_kbps=4000
+    ) as link:
         receiver, media, back = link.receiver, link.media, link.feedback
         assert back is not None
         await wait_until(lambda: len(media.second_retransmission) >= 16, timeout=40)
