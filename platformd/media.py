@@ -78,10 +78,13 @@ _HOSTNAME = re.compile(
 
 
 def preload(config: PlatformConfig) -> None:
-    """With any stream configured: GStreamer imported and initialised (its registry read), and
-    Gio for the NavCam's repair sockets. Without GStreamer, each stream reports it when built."""
-    camera = config.payload_camera
-    if not (config.navcam.enabled or config.audio.enabled or (camera.enabled and camera.url)):
+    """When the NavCam starts with the daemon (the recorder's copy: :meth:`MediaService.
+    record_navcam`), GStreamer imported and initialised (its registry read) and Gio for the
+    repair sockets. Otherwise that waits for a station's first stream, as it did (~10 MB of
+    resident memory a platform nobody watches does not spend). Without GStreamer, the stream
+    reports it when built."""
+    recorder = config.recorder
+    if not (config.navcam.enabled and recorder.enabled and recorder.video_fps > 0):
         return
     try:
         gst()

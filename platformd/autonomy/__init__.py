@@ -31,7 +31,7 @@ def preload(config: PlatformConfig) -> None:
     """The map parser, with Shapely, when a map loads at start (a stored one, or the --sim
     demo): the worker thread that parses it would import it meanwhile, holding the GIL the
     event loop waits for while it compiles and runs module code."""
-    if config.sim.enabled or map_file(config).is_file():
+    if (config.sim.enabled and config.sim.demo_map) or map_file(config).is_file():
         import brasidas.autonomy.areamap  # noqa: F401
 
 
