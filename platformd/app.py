@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-import importlib
 import logging
 import time
+from types import ModuleType
 from typing import TYPE_CHECKING
 
+from brasidas import subsystems
 from brasidas.actor import Daemon
 from brasidas.codecs.jsonrpc import Dispatcher
 from brasidas.config import PlatformConfig
@@ -52,6 +53,21 @@ SUBSYSTEMS: tuple[str, ...] = (
     "platformd.signaling",
     "platformd.beacon",
 )
+
+
+def load_subsystems(config: PlatformConfig) -> tuple[ModuleType, ...]:
+    """Every subsystem's module in order, and what the simulators and the enabled subsystems
+    will import, imported now: before the loop runs, or before the daemon's first actor
+    (brasidas.subsystems)."""
+    modules = subsystems.load(SUBSYSTEMS, config)
+    if config.sim.enabled:
+        if config.motor.enabled and not config.motor.positional_lights_output:
+            import platformd.sim.gpio
+        if config.lidar.enabled and config.sim.carmen_file:
+            import platformd.sim.carmen
+        elif config.lidar.enabled:
+            import platformd.sim.lidar  # noqa: F401
+    return modules
 
 
 async def start_simulators(ctx: PlatformContext) -> SimulatedDevices:
@@ -112,9 +128,9 @@ class PlatformDaemon(Daemon):
         self.started_at = time.monotonic()
 
     async def start(self) -> None:
+        setups = load_subsystems(self.config)  # before the first actor: imports block the loop
         self.ctx.sim = await start_simulators(self.ctx)
-        for name in SUBSYSTEMS:
-            module = importlib.import_module(name)
+        for module in setups:
             await module.async_setup(self.ctx)
         _LOGGER.info(
             "platform %s up: signaling %s", self.config.platform.id, self.ctx.signaling_url

@@ -166,6 +166,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     if fleet_key is None:
         _LOGGER.warning("running INSECURE: no fleet key, anyone on the network can connect")
+    from platformd.app import load_subsystems
+
+    load_subsystems(config)  # before the loop runs: an import there blocks it
     try:
         asyncio.run(run_daemon(config, fleet_key))
     except ConfigError as err:  # found at start: the id and URL as the beacon carries them

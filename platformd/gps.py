@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import importlib
 import logging
 from typing import Any
 
@@ -22,7 +23,7 @@ from brasidas.actor import Actor
 from brasidas.bus import Bus
 from brasidas.clock import Clock, LoopClock, sleep, timeout_at
 from brasidas.codecs.nmea import EpochAssembler, NmeaDecoder
-from brasidas.config import GpsSection
+from brasidas.config import GpsSection, PlatformConfig
 from brasidas.messages import GpsFix, GpsFixLost, GpsStats, Position
 from platformd.context import PlatformContext, SerialDevice
 from platformd.serial_port import PortOpener, read_line_forever
@@ -177,6 +178,12 @@ class GpsReader(Actor):
 
 def capabilities(config: GpsSection) -> dict[str, Any]:
     return {"port": config.port, "baudrate": config.baudrate}
+
+
+def preload(config: PlatformConfig) -> None:
+    """``datetime.strptime``'s module, which it imports on its first call: pynmea2's dates."""
+    if config.gps.enabled:
+        importlib.import_module("_strptime")
 
 
 async def async_setup(ctx: PlatformContext) -> None:

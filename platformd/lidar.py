@@ -4,7 +4,19 @@ loads neither NumPy nor Shapely at start."""
 
 from __future__ import annotations
 
+from brasidas.config import PlatformConfig
 from platformd.context import PlatformContext
+
+
+def preload(config: PlatformConfig) -> None:
+    """The reader, with NumPy and Shapely, and the views it starts, when ``lidar.enabled``."""
+    if not config.lidar.enabled:
+        return
+    import platformd.lidar_reader
+    import platformd.perception_view
+
+    if config.lidar.map_obstacles:
+        import platformd.obstacle_zones  # noqa: F401
 
 
 async def async_setup(ctx: PlatformContext) -> None:

@@ -54,9 +54,11 @@ from brasidas.codecs.commands import (
     parse_switch,
 )
 from brasidas.codecs.jsonrpc import INVALID_PARAMS, CallContext, RpcError
+from brasidas.config import PlatformConfig
 from brasidas.media.audio import AudioIn, AudioOut, AudioSettings
 from brasidas.media.bitrate import TRANSPORT_POLL_S
 from brasidas.media.fanout import FanOutStream
+from brasidas.media.gst import MediaUnavailable, gst
 from brasidas.media.navcam import FrameratePolicy, navcam_settings, parse_framerate
 from brasidas.media.pipeline import PipelineStream, StreamState
 from brasidas.media.relay import ForwardSettings, RtspForward
@@ -73,6 +75,22 @@ _LOGGER = logging.getLogger(__name__)
 _HOSTNAME = re.compile(
     r"^(?=.{1,253}$)[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?(\.[A-Za-z0-9-]{1,63})*$"
 )
+
+
+def preload(config: PlatformConfig) -> None:
+    """When the NavCam starts with the daemon (the recorder's copy: :meth:`MediaService.
+    record_navcam`), GStreamer imported and initialised (its registry read) and Gio for the
+    repair sockets. Otherwise that waits for a station's first stream, as it did (~10 MB of
+    resident memory a platform nobody watches does not spend). Without GStreamer, the stream
+    reports it when built."""
+    recorder = config.recorder
+    if not (config.navcam.enabled and recorder.enabled and recorder.video_fps > 0):
+        return
+    try:
+        gst()
+    except MediaUnavailable:
+        return
+    from gi.repository import Gio  # noqa: F401  (brasidas.media.repair's GSocket)
 
 
 class MediaService(Actor):

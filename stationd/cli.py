@@ -487,9 +487,10 @@ def _describe_discovered(entry: dict[str, Any]) -> str:
 
 
 def cmd_serve(args: argparse.Namespace, config: StationConfig) -> int:
-    from stationd.daemon import ConsoleMissing, StationDaemon
+    from stationd.daemon import ConsoleMissing, StationDaemon, load_subsystems
 
     fleet_key = station_fleet_key(config)
+    load_subsystems(config)  # before the loop runs: an import there blocks it
 
     async def run() -> None:
         await StationDaemon(config, fleet_key).run(stop_on_signals())

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-import importlib
 import logging
 import ssl
 from pathlib import Path
+from types import ModuleType
 
 from aiohttp import web
 
+from brasidas import subsystems
 from brasidas.actor import Daemon
 from brasidas.admission import ServerAdmission, admission_limits
 from brasidas.codecs.jsonrpc import Dispatcher
@@ -53,6 +54,12 @@ API_MAX_BYTES = STATION_API_MAX_BYTES
 """A map or route file's text as a JSON string and the call around it (brasidas.limits)."""
 
 
+def load_subsystems(config: StationConfig) -> tuple[ModuleType, ...]:
+    """Every subsystem's module in order, and what the enabled ones will import, imported now:
+    before the loop runs, or before the daemon's first actor (brasidas.subsystems)."""
+    return subsystems.load(SUBSYSTEMS, config)
+
+
 class ConsoleMissing(Exception):
     """The browser console's files are not installed."""
 
@@ -88,8 +95,9 @@ class StationDaemon(Daemon):
         tls_sites = []
         if console.tls_cert:  # a bad certificate stops the daemon before anything starts
             tls_sites.append((console.https_host, console.https_port, tls_context(console)))
-        for name in SUBSYSTEMS:
-            await importlib.import_module(name).async_setup(self.ctx)
+        setups = load_subsystems(self.config)  # before the first actor: imports block the loop
+        for module in setups:
+            await module.async_setup(self.ctx)
         local_hosts = frozenset(
             {"127.0.0.1", "localhost", "[::1]", self.config.station.api_host, *console.https_names}
         )

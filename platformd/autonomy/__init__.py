@@ -10,6 +10,7 @@ from brasidas.autonomy.follower import FollowerParameters
 from brasidas.autonomy.localization import FilterParameters
 from brasidas.autonomy.patrol import PatrolParameters
 from brasidas.codecs.telemetry_schema import Automation, Autonomy, Pose
+from brasidas.config import PlatformConfig
 from brasidas.security import state_dir
 from platformd.autonomy.home import Home
 from platformd.autonomy.localization import Localization
@@ -19,6 +20,19 @@ from platformd.context import PlatformContext
 from platformd.sim.demo_area import demo_map, demo_route
 
 TELEMETRY_PATH_POINTS = 30
+
+
+def map_file(config: PlatformConfig) -> Path:
+    """Where the patrol's map is stored (``map.file``, else in the state directory)."""
+    return Path(config.map.file) if config.map.file else state_dir() / "map.geojson"
+
+
+def preload(config: PlatformConfig) -> None:
+    """The map parser, with Shapely, when a map loads at start (a stored one, or the --sim
+    demo): the worker thread that parses it would import it meanwhile, holding the GIL the
+    event loop waits for while it compiles and runs module code."""
+    if (config.sim.enabled and config.sim.demo_map) or map_file(config).is_file():
+        import brasidas.autonomy.areamap  # noqa: F401
 
 
 async def async_setup(ctx: PlatformContext) -> None:
@@ -51,7 +65,7 @@ async def async_setup(ctx: PlatformContext) -> None:
         corridor_m=config.corridor_m,
     )
     storage = Storage(
-        map_file=Path(ctx.config.map.file) if ctx.config.map.file else state_dir() / "map.geojson",
+        map_file=map_file(ctx.config),
         route_file=Path(config.route_file) if config.route_file else state_dir() / "route.json",
     )
     sim = ctx.config.sim

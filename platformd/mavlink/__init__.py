@@ -12,8 +12,20 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from brasidas.config import PlatformConfig
 from platformd.context import PlatformContext
 from platformd.mavlink.signing import load_signing_key
+
+
+def preload(config: PlatformConfig) -> None:
+    """The service with pymavlink when ``mavlink.enabled``; with a lidar, its proximity sender."""
+    if not config.mavlink.enabled:
+        return
+    import platformd.mavlink.service
+
+    if config.lidar.enabled:
+        import platformd.lidar_models
+        import platformd.mavlink.proximity  # noqa: F401
 
 
 async def async_setup(ctx: PlatformContext) -> None:

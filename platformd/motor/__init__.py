@@ -30,11 +30,23 @@ from typing import Any
 
 from brasidas.clock import Clock
 from brasidas.codecs.telemetry_schema import Motor
+from brasidas.config import PlatformConfig
+from brasidas.config.platform import GPIO_PREFIX
 from platformd.context import PlatformContext
 from platformd.motor.controller import MotorController
 from platformd.motor.link import LinkError, ReplyTimeout, SerialLink
 
-__all__ = ["LinkError", "MotorController", "ReplyTimeout", "SerialLink", "async_setup"]
+__all__ = ["LinkError", "MotorController", "ReplyTimeout", "SerialLink", "async_setup", "preload"]
+
+
+def preload(config: PlatformConfig) -> None:
+    """libgpiod's driver when a light hangs off a GPIO line (in --sim, the positional lights
+    when no output is configured: platformd.context)."""
+    motor = config.motor
+    outputs = (motor.main_lights_output, motor.positional_lights_output)
+    on_gpio = any(output.strip().startswith(GPIO_PREFIX) for output in outputs)
+    if motor.enabled and (on_gpio or (config.sim.enabled and not motor.positional_lights_output)):
+        import platformd.motor.gpio  # noqa: F401
 
 
 def capability(controller: MotorController) -> dict[str, Any]:

@@ -7,7 +7,14 @@ from __future__ import annotations
 
 from typing import Any
 
+from brasidas.config import PlatformConfig
 from platformd.context import PlatformContext
+
+
+def preload(config: PlatformConfig) -> None:
+    """Each enabled payload's module."""
+    if "turret" in config.payload.enabled:
+        import platformd.payloads.turret  # noqa: F401
 
 
 async def async_setup(ctx: PlatformContext) -> None:

@@ -17,6 +17,7 @@ import random
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.random  # NumPy imports it on first use: on the loop, in the first scan
 from shapely.geometry import Polygon, box
 
 from brasidas.codecs.ldlidar import FRAME_BYTES, LidarDecoder, ScanAssembler

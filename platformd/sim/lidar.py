@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.random  # NumPy imports it on first use: on the loop, in the first scan
 from numpy.typing import NDArray
 from shapely.geometry import MultiPolygon, Point, Polygon, shape
 

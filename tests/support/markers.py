@@ -40,6 +40,7 @@ SLOW_MODULES = frozenset(
         "test_hostile_process",
         "test_import_cycles",
         "test_leak_check",
+        "test_loop_imports",
         "test_media",
         "test_media_audio",
         "test_media_station",
