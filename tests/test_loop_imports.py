@@ -58,8 +58,13 @@ def imports_on_the_loop(kind: str, settings: tuple[str, ...], state: Path) -> li
 
 @pytest.mark.parametrize(
     ("kind", "settings"),
-    [("platform", PLATFORM), ("station", STATION)],
-    ids=["platform", "station"],
+    [
+        ("platform", PLATFORM),
+        # No recorder: GStreamer is first needed when a station starts the NavCam.
+        ("platform", (*PLATFORM, "recorder.enabled=false")),
+        ("station", STATION),
+    ],
+    ids=["platform", "platform-first-stream", "station"],
 )
 def test_nothing_is_imported_on_the_loop_once_actors_run(
     kind: str, settings: tuple[str, ...], tmp_path: Path

@@ -24,7 +24,7 @@ from enum import StrEnum
 from typing import Any
 
 from brasidas.backoff import Backoff
-from brasidas.media.gst import MediaError, gst, realtime_clock
+from brasidas.media.gst import MediaError, gst, gst_off_the_loop, realtime_clock
 from brasidas.threads import in_daemon_thread
 
 _LOGGER = logging.getLogger(__name__)
@@ -207,9 +207,9 @@ class PipelineStream:
     # ------------------------------------------------------------------ internals (event loop)
 
     async def _go(self, target: StreamState) -> None:
-        Gst = gst()
         if self.pipeline is None:
             try:
+                await gst_off_the_loop()  # a daemon's first stream: GStreamer initialised
                 pipeline = self.build()
             except MediaError as err:
                 self._attempt_failed = False
@@ -218,6 +218,7 @@ class PipelineStream:
             self._attach(pipeline)
         self._last_error = self._last_error_detail = ""
         self._attempt_failed = False
+        Gst = gst()
         gst_state = Gst.State.PLAYING if target is StreamState.PLAYING else Gst.State.PAUSED
         pipeline = self.pipeline
         generation = self._generation

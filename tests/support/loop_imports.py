@@ -1,7 +1,8 @@
 """Run as a script, in a fresh interpreter: ``loop_imports.py platform|station SETTING...``.
 
 Starts the daemon with ``SECTION.KEY=VALUE`` settings, waits until it is in service (the
-platform: armable and its NavCam playing), stops it, and prints as JSON every module looked
+platform: armable and its NavCam playing, started as a station would if the recorder did not),
+stops it, and prints as JSON every module looked
 for on the event loop's thread once the daemon's first actor had started: each one blocked
 the loop (tests/test_loop_imports.py).
 """
@@ -61,6 +62,9 @@ async def main(kind: str, settings: list[str], recorder: LoopImports) -> None:
             await until(lambda: not arming.reasons())
             navcam = media.streams.get("navcam")
             if navcam is not None:
+                if navcam.state.value != "playing" and not navcam.wanted.value == "playing":
+                    # Not the recorder's (switched off): a station's first stream starts it.
+                    await media.start_stream("navcam", "127.0.0.1", 9)
                 await until(lambda: navcam.state.value == "playing")
         finally:
             await platform.stop()
