@@ -9,7 +9,10 @@ list every browser test needs: a fake microphone for push-to-talk, its permissio
 
 from __future__ import annotations
 
+import contextlib
+import os
 import shutil
+import signal
 import subprocess
 import time
 from pathlib import Path
@@ -90,6 +93,10 @@ class SharedChromium:
                 stdin=subprocess.DEVNULL,
                 stdout=log,
                 stderr=log,
+                # A group of its own, ended whole (close): Debian's chromium-headless-shell is
+                # a shell script that does not exec the browser, so ending the script alone
+                # left the browser and its helpers running, one set per test worker and run.
+                start_new_session=True,
             )
         deadline = time.monotonic() + START_TIMEOUT_S
         while not (port_file.exists() and port_file.read_text().strip()):
@@ -105,9 +112,28 @@ class SharedChromium:
         process, self.process = self.process, None
         if process is None:
             return
-        process.terminate()
+        _signal_group(process, signal.SIGTERM)
         try:
             process.wait(10)
         except subprocess.TimeoutExpired:
-            process.kill()
+            _signal_group(process, signal.SIGKILL)
             process.wait()
+        # The browser itself, under the script: its group outlives the script by a moment.
+        deadline = time.monotonic() + 10
+        while _group_alive(process.pid) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        if _group_alive(process.pid):
+            _signal_group(process, signal.SIGKILL)
+
+
+def _signal_group(process: subprocess.Popen[bytes], signum: int) -> None:
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(process.pid, signum)
+
+
+def _group_alive(group: int) -> bool:
+    try:
+        os.killpg(group, 0)
+    except ProcessLookupError:
+        return False
+    return True
