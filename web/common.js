@@ -19,6 +19,12 @@ export function put(element, text) {
   if (element.textContent !== text) element.textContent = text;
 }
 
+/** Set an attribute only when it changed: an SVG attribute (a dial's needle, the stick's dot)
+ * set to the value it has still costs the page a style recalc and a layout. */
+export function attr(element, name, value) {
+  if (element.getAttribute(name) !== value) element.setAttribute(name, value);
+}
+
 export const fixed = (value, digits) => (typeof value === "number" ? value.toFixed(digits) : "—");
 
 /** A section's error text when its source failed, else null. */

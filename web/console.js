@@ -49,5 +49,7 @@ window.navcam = {
   dropStationConnection: () => api.ws?.close(),
   /** Where [lat, lon] is on the map, in pixels from its top-left corner: for clicking it. */
   mapPixel: patrol.mapPixel,
+  /** How many times the map has placed its labels (at most once a frame, after a change). */
+  declutterRuns: () => patrol.map.declutterRuns,
   plotPoints,
 };

@@ -4,7 +4,7 @@
 // age), the speed cap with its reason in plain sight, the command being sent (a small stick),
 // a driving hint. Telemetry older than 2 s is STALE, counted from its last report.
 
-import { $, compassHeading, engagedHere, failure, fixed, put, section, snapshotOf, telemetryAgeMs } from "./common.js";
+import { $, attr, compassHeading, engagedHere, failure, fixed, put, section, snapshotOf, telemetryAgeMs } from "./common.js";
 import { drivingHint, teleop } from "./controls.js";
 import { state, subscribe } from "./store.js";
 import { videoAgeMs } from "./video.js";
@@ -39,11 +39,11 @@ const PITCH_PX_PER_DEGREE = 1.5; // ±30° of pitch fills the dial
 function renderHorizon(attitude) {
   const world = $("#horizon-world");
   const known = typeof attitude?.roll === "number" && typeof attitude?.pitch === "number";
-  $("#horizon-unknown").setAttribute("visibility", known ? "hidden" : "visible");
-  world.setAttribute("visibility", known ? "visible" : "hidden");
+  attr($("#horizon-unknown"), "visibility", known ? "hidden" : "visible");
+  attr(world, "visibility", known ? "visible" : "hidden");
   if (!known) return;
   const pitch = Math.max(-30, Math.min(30, attitude.pitch));
-  world.setAttribute("transform", `rotate(${(-attitude.roll).toFixed(1)} 50 50) translate(0 ${(pitch * PITCH_PX_PER_DEGREE).toFixed(1)})`);
+  attr(world, "transform", `rotate(${(-attitude.roll).toFixed(1)} 50 50) translate(0 ${(pitch * PITCH_PX_PER_DEGREE).toFixed(1)})`);
   world.dataset.roll = attitude.roll.toFixed(1);
   world.dataset.pitch = attitude.pitch.toFixed(1);
 }
@@ -51,15 +51,15 @@ function renderHorizon(attitude) {
 function renderCompass(heading) {
   // No heading: no needle (a needle at north read as "heading north").
   const needle = $("#compass-needle");
-  if (heading != null) needle.setAttribute("transform", `rotate(${heading} 50 50)`);
-  needle.setAttribute("visibility", heading == null ? "hidden" : "visible");
+  if (heading != null) attr(needle, "transform", `rotate(${heading} 50 50)`);
+  attr(needle, "visibility", heading == null ? "hidden" : "visible");
   put($("#heading"), heading == null ? "unknown" : `${String(Math.round(heading) % 360).padStart(3, "0")}°`);
 }
 
 function renderStick() {
   const [linear, angular] = teleop.commanded;
-  $("#stick-dot").setAttribute("cx", String(20 - angular * 16));
-  $("#stick-dot").setAttribute("cy", String(20 - linear * 16));
+  attr($("#stick-dot"), "cx", String(20 - angular * 16));
+  attr($("#stick-dot"), "cy", String(20 - linear * 16));
   $("#stick").dataset.active = String(linear !== 0 || angular !== 0);
 }
 

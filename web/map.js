@@ -20,6 +20,10 @@ export class PlatformMap {
     this.origin = null; // [lat, lon] of local (0, 0)
     this.markers = new Map();
     this.background = null;
+    this.declutterRuns = 0; // read by the tests: one run per frame at most, only after a change
+    this.labelOffsets = new WeakMap(); // a platform's name → side → its box relative to its icon
+    this.tooltipBoxes = new WeakMap(); // a named point's or waypoint's tooltip → direction → box
+    this.labelView = null; // the view tooltipBoxes were measured in
     this.available = Boolean(L);
     if (!this.available) {
       element.textContent = "Map unavailable: Leaflet not installed on the station (make deps installs libjs-leaflet).";
@@ -142,11 +146,15 @@ export class PlatformMap {
     entry.marker.setLatLng(point);
     entry.current = current;
     // A new icon only when it looks different: rebuilding it five times a second is the
-    // page's costliest work otherwise. Its name keeps the side the last declutter gave it.
+    // page's costliest work otherwise. Its name keeps the side the last declutter gave it. A
+    // new heading turns the arrow of the icon drawn (a platform standing still reports one
+    // that wanders: each report would have rebuilt it).
     const look = `${Math.round(heading ?? 0)}|${current}|${connected}`;
     if (entry.look !== look) {
+      const arrow = entry.look?.endsWith(`|${current}|${connected}`) && entry.marker.options.icon.options.html.querySelector?.(".arrow");
+      if (arrow) arrow.style.transform = `rotate(${Number(heading) || 0}deg)`;
+      else entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected, entry.labelSide));
       entry.look = look;
-      entry.marker.setIcon(platformIcon(id, heading ?? 0, current, connected, entry.labelSide));
     }
     if (this.following) this.followPlatforms();
     // Labels are placed again only when the marker moved on screen (a report at 10 Hz of a
@@ -163,10 +171,19 @@ export class PlatformMap {
    * map's named points (right, left, above, below), the route's waypoint numbers (left, above,
    * below), then the grid's distances (along their line), each hidden when no place is free,
    * until the view gives it room. Placed by their drawn boxes, after every view change, marker
-   * move and new grid tile. */
+   * move and new grid tile.
+   *
+   * Every box is read first and every change written after, so a run costs the page one layout
+   * (the one its next frame needs anyway). A label's box on a side it is not on is the one
+   * measured when it last stood there: a platform's name relative to its icon (its offset on
+   * each side is fixed by the stylesheet), a named point's or waypoint's in this view (the same
+   * zoom, pan and map box). Only a side not measured yet is tried on the page (a write and a
+   * forced layout each), once. Trying every side on the page at every marker move was the
+   * console's costliest work: ~15 forced layouts a run, 5 runs a second. */
   declutter() {
     this.declutterPending = false;
     if (!this.available) return;
+    this.declutterRuns += 1;
     // Nor over the map's own controls (zoom, scale bar) or a platform's arrow.
     // Nor over the values bar, a flag, a route's or keep-out's editing markers, a named point.
     const container = this.map.getContainer();
@@ -180,52 +197,88 @@ export class PlatformMap {
       const box = document.querySelector(selector)?.getBoundingClientRect();
       if (box?.width) placed.push(box);
     }
-    const free = (element) => {
-      const box = element.getBoundingClientRect();
-      if (!box.width) return true;
-      return !placed.some((o) => box.left < o.right && o.left < box.right && box.top < o.bottom && o.top < box.bottom);
-    };
-    // `keep`: the shown platform's own name is never hidden; with no side clear of the map's
-    // furniture (zoomed far out, every marker on one spot) it takes its first side anyway.
-    const place = (element, sides, keep = false) => {
-      element.classList.remove("label-hidden");
-      for (const side of sides) {
-        side();
-        if (free(element)) { placed.push(element.getBoundingClientRect()); return; }
-      }
-      if (keep && sides.length) {
-        sides[0]();
-        placed.push(element.getBoundingClientRect());
-        return;
-      }
-      element.classList.add("label-hidden");
-    };
+    // The view the tooltips' measured boxes belong to: any pan, zoom or move of the map
+    // forgets them.
+    const frame = container.getBoundingClientRect();
+    const view = [this.map.getZoom(), this.map.getPixelOrigin(), this.map.containerPointToLayerPoint([0, 0]), frame.left, frame.top, frame.width, frame.height].join();
+    if (view !== this.labelView) { this.labelView = view; this.tooltipBoxes = new WeakMap(); }
+    // Each label in placing order, with its box where it stands now (still reading).
+    const labels = [];
     for (const entry of [...this.markers.values()].sort((a, b) => Number(b.current) - Number(a.current))) {
       const icon = entry.marker.getElement()?.querySelector(".platform-icon");
       const label = icon?.querySelector("span");
       if (!label) continue;
-      const side = (name) => () => {
-        entry.labelSide = name;
-        for (const other of LABEL_SIDES) icon.classList.toggle(`label-${other}`, other === name);
+      const at = icon.getBoundingClientRect();
+      const offsets = this.labelOffsets.get(label) ?? new Map();
+      this.labelOffsets.set(label, offsets);
+      const standing = LABEL_SIDES.find((name) => icon.classList.contains(`label-${name}`)) ?? "right";
+      offsets.set(standing, shifted(label.getBoundingClientRect(), -at.left, -at.top));
+      const standOn = (side) => {
+        entry.labelSide = side;
+        for (const other of LABEL_SIDES) icon.classList.toggle(`label-${other}`, other === side);
       };
       // The side it has first (a label that jumps at every move is hard to follow).
-      const sides = [entry.labelSide ?? "right", ...LABEL_SIDES.filter((name) => name !== (entry.labelSide ?? "right"))];
-      place(label, sides.map(side), entry.current);
+      const first = entry.labelSide ?? "right";
+      labels.push({
+        element: label,
+        sides: [first, ...LABEL_SIDES.filter((name) => name !== first)],
+        keep: entry.current,
+        box: (side) => {
+          if (!offsets.has(side)) { // never measured on this side: on the page, once
+            standOn(side);
+            offsets.set(side, shifted(label.getBoundingClientRect(), -at.left, -at.top));
+          }
+          return shifted(offsets.get(side), at.left, at.top);
+        },
+        standOn,
+      });
     }
     const tooltips = (group, directions) => group?.eachLayer((layer) => {
       const tooltip = layer.getTooltip?.();
       const element = tooltip?.getElement?.();
       if (!element || !tooltip.options.permanent) return;
-      const side = (direction) => () => {
+      const boxes = this.tooltipBoxes.get(element) ?? new Map();
+      this.tooltipBoxes.set(element, boxes);
+      boxes.set(tooltip.options.direction, element.getBoundingClientRect());
+      const standOn = (direction) => {
         if (tooltip.options.direction === direction) return;
         tooltip.options.direction = direction;
         tooltip.update();
       };
-      place(element, directions.map(side));
+      labels.push({
+        element,
+        sides: directions,
+        keep: false,
+        box: (direction) => {
+          if (!boxes.has(direction)) { standOn(direction); boxes.set(direction, element.getBoundingClientRect()); }
+          return boxes.get(direction);
+        },
+        standOn,
+      });
     });
     tooltips(this.area, ["right", "left", "top", "bottom"]);
     for (const { layer } of this.waypointLabels?.values() ?? []) tooltips(layer, ["left", "top", "bottom"]);
-    placeGridLabels(container, placed); // the grid's labels give way to everything else
+    const grid = measureGridLabels(container);
+    // Deciding: each label takes its first free side; the boxes taken are in the way of the
+    // labels after it. `keep`: the shown platform's own name is never hidden; with no side
+    // clear of the map's furniture (zoomed far out, every marker on one spot) it takes its
+    // first side anyway. A label with no free side is hidden on the last side it tried.
+    const overlaps = (box) => placed.some((o) => box.left < o.right && o.left < box.right && box.top < o.bottom && o.top < box.bottom);
+    const chosen = labels.map(({ sides, keep, box }) => {
+      for (const side of sides) {
+        const drawn = box(side);
+        if (!drawn.width || !overlaps(drawn)) { placed.push(drawn); return { side, hidden: false }; }
+      }
+      if (keep && sides.length) { placed.push(box(sides[0])); return { side: sides[0], hidden: false }; }
+      return { side: sides[sides.length - 1], hidden: true };
+    });
+    // Writing: only what changed.
+    labels.forEach(({ element, standOn }, index) => {
+      const { side, hidden } = chosen[index];
+      standOn(side);
+      element.classList.toggle("label-hidden", hidden);
+    });
+    placeGridLabels(container, placed, grid); // the grid's labels give way to everything else
   }
 
   /** One declutter on the next frame, however many changes came before it. */
@@ -431,6 +484,11 @@ export class PlatformMap {
   }
 }
 
+/** ``box`` (a DOMRect's edges) moved by ``dx``, ``dy``. */
+function shifted(box, dx, dy) {
+  return { left: box.left + dx, right: box.right + dx, top: box.top + dy, bottom: box.bottom + dy, width: box.width, height: box.height };
+}
+
 function samePlace(a, b) { return Math.abs(a[0] - b[0]) < 1e-7 && Math.abs(a[1] - b[1]) < 1e-7; }
 
 /** Where a platform's name may be written beside its arrow (console.css .label-*). */
@@ -489,13 +547,17 @@ function spotEdges(tile) {
   return { across: (tile.clientWidth * box.width) / tile.offsetWidth, down: (tile.clientHeight * box.height) / tile.offsetHeight };
 }
 
+/** Every grid label with its box and its tile's edges (reads only). */
+export function measureGridLabels(container) {
+  return [...container.querySelectorAll(".grid-label")].map((label) => ({ label, box: label.getBoundingClientRect(), edges: spotEdges(label.parentElement) }));
+}
+
 /** Grid labels off everything in ``placed`` (boxes; each label's chosen box is added to it):
  * each tries its spots along its line and is hidden when none is free. Reads every box first
- * and writes after (one layout). */
-export function placeGridLabels(container, placed) {
+ * (``measured``: measureGridLabels, when the caller read them with its own) and writes after
+ * (one layout). */
+export function placeGridLabels(container, placed, measured = measureGridLabels(container)) {
   const overlaps = (box) => placed.some((o) => box.left < o.right && o.left < box.right && box.top < o.bottom && o.top < box.bottom);
-  const labels = [...container.querySelectorAll(".grid-label")];
-  const measured = labels.map((label) => ({ label, box: label.getBoundingClientRect(), edges: spotEdges(label.parentElement) }));
   const chosen = measured.map(({ label, box, edges }) => {
     if (!box.width || !edges.across) return null;
     const north = label.classList.contains("grid-north");
