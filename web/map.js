@@ -21,9 +21,9 @@ export class PlatformMap {
     this.markers = new Map();
     this.background = null;
     this.declutterRuns = 0; // read by the tests: one run per frame at most, only after a change
-    this.labelOffsets = new WeakMap(); // a platform's name → side → its box relative to its icon
-    this.tooltipBoxes = new WeakMap(); // a named point's or waypoint's tooltip → direction → box
-    this.labelView = null; // the view tooltipBoxes were measured in
+    this.forgetLabelBoxes(); // labelOffsets: a platform's name → side → its box relative to
+    // its icon; tooltipBoxes: a named point's or waypoint's tooltip → direction → its box, in
+    // the view labelView (zoom, pan, the map's place on the page)
     this.available = Boolean(L);
     if (!this.available) {
       element.textContent = "Map unavailable: Leaflet not installed on the station (make deps installs libjs-leaflet).";
@@ -279,6 +279,14 @@ export class PlatformMap {
       element.classList.toggle("label-hidden", hidden);
     });
     placeGridLabels(container, placed, grid); // the grid's labels give way to everything else
+  }
+
+  /** Forget every label box measured: the next declutter tries each side on the page (for
+   * tests: what it places then is what the remembered boxes must have placed). */
+  forgetLabelBoxes() {
+    this.labelOffsets = new WeakMap();
+    this.tooltipBoxes = new WeakMap();
+    this.labelView = null;
   }
 
   /** One declutter on the next frame, however many changes came before it. */
