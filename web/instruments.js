@@ -139,7 +139,7 @@ function reportRows(report) {
 function renderStatus() {
   const list = $("#status");
   const entry = state.current ? state.telemetry.get(state.current) : null;
-  if (!entry) { list.replaceChildren(); list.dataset.shown = ""; return; }
+  if (!entry) { list.replaceChildren(); list.dataset.shown = ""; list.dataset.names = ""; return; }
   const age = telemetryAgeMs(entry);
   const stale = age > STALE_MS;
   list.classList.toggle("stale", stale);
@@ -148,6 +148,13 @@ function renderStatus() {
   const shown = rows.map((row) => row.join("\t")).join("\n");
   if (list.dataset.shown === shown) return;
   list.dataset.shown = shown;
+  // The same sections as drawn (each report, mostly): their values written in place.
+  const names = rows.map(([name]) => name).join("\n");
+  if (list.dataset.names === names) {
+    rows.forEach(([, value], index) => put(list.children[2 * index + 1], value));
+    return;
+  }
+  list.dataset.names = names;
   list.replaceChildren(...rows.flatMap(([name, value]) => {
     const term = document.createElement("dt");
     term.textContent = name;

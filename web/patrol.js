@@ -15,33 +15,45 @@ export const map = new PlatformMap($("#map"), { onSelect: (id) => select(id) });
 const patrol = { routes: new Map(), keepouts: new Map(), editing: null, drawing: null, loading: null };
 const keepoutButtons = new Map(); // id → its list item (kept: a replaced button loses its click)
 
+const platformRows = new Map(); // id → its row in the platforms table, kept between pushes
+
+/** The row of platform ``id``, made once: each beacon push writes what changed into it (the
+ * table was rebuilt at every push, a few times a second). */
+function platformRow(id) {
+  let known = platformRows.get(id);
+  if (known) return known;
+  const row = document.createElement("tr");
+  row.dataset.platform = id;
+  const cells = [0, 1, 2].map(() => document.createElement("td"));
+  const action = document.createElement("td");
+  const button = document.createElement("button");
+  button.type = "button";
+  button.className = "connect";
+  button.onclick = () => select(id);
+  action.append(button);
+  row.append(...cells, action);
+  known = { row, cells, button };
+  platformRows.set(id, known);
+  return known;
+}
+
 function renderPlatforms() {
   const body = $("#platforms tbody");
-  body.replaceChildren(...state.platforms.map((entry) => {
-    const row = document.createElement("tr");
-    row.dataset.platform = entry.id;
-    if (entry.id === state.current) row.classList.add("current");
+  const rows = state.platforms.map((entry) => {
+    const { row, cells, button } = platformRow(entry.id);
+    row.classList.toggle("current", entry.id === state.current);
     const flags = Object.entries(entry.status ?? {}).filter(([, on]) => on === true).map(([name]) => name).join(" ");
-    for (const text of [entry.id, flags || "—", `${entry.age_s.toFixed(1)} s ago`]) {
-      const cell = document.createElement("td");
-      cell.textContent = text;
-      row.append(cell);
-    }
-    const action = document.createElement("td");
-    const button = document.createElement("button");
-    button.type = "button";
-    button.className = "connect";
+    [entry.id, flags || "—", `${entry.age_s.toFixed(1)} s ago`].forEach((text, index) => put(cells[index], text));
     const connected = state.connections.has(entry.id);
-    button.textContent = entry.id === state.current ? "shown" : connected ? "show" : "connect";
+    put(button, entry.id === state.current ? "shown" : connected ? "show" : "connect");
     button.disabled = entry.id === state.current;
     button.setAttribute("aria-label", `${connected ? "show" : "connect to"} ${entry.id}`);
-    button.onclick = () => select(entry.id);
-    action.append(button);
-    row.append(action);
     map.update(entry.id, entry.position, compassHeading(snapshotOf(entry.id)), { current: entry.id === state.current, connected });
     return row;
-  }));
+  });
+  if (rows.length !== body.children.length || rows.some((row, index) => body.children[index] !== row)) body.replaceChildren(...rows);
   const heard = new Set(state.platforms.map((p) => p.id));
+  for (const id of platformRows.keys()) if (!heard.has(id)) platformRows.delete(id);
   for (const id of map.ids()) if (!heard.has(id)) map.remove(id);
   $("#no-platforms").hidden = state.platforms.length > 0;
 }

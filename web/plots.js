@@ -19,6 +19,18 @@ const COLOURS = ["#fa3", "#5fd0a0", "#7aa2d6"];
 const chosen = new Set(["volts", "latency"]);
 const charts = new Map(); // key → { plot, data }
 let times = [];
+let ago = []; // each sample's time, in seconds before the last one
+
+/** The plots can be seen: their panel open, and not folded into the full view's closed drawer.
+ * Hidden, they go on sampling (the last minute is there when opened) without drawing. */
+function shown() {
+  const body = document.body.classList;
+  return $("#plots-panel").open && !(body.contains("full-bleed") && !body.contains("panels-open"));
+}
+
+function draw() {
+  for (const chart of charts.values()) chart.plot.setData([ago, ...chart.data]);
+}
 
 /** Each plot's height: what the screen leaves for the ticked plots (their panel scrolls past
  * the third), 90 to 160 px: ~35 px was unreadable, and 1920x1080 was left 40 % empty. */
@@ -62,7 +74,7 @@ function sample() {
   times.push(now);
   const drop = times.findIndex((t) => now - t <= WINDOW_S);
   if (drop > 0) times = times.slice(drop);
-  const ago = times.map((t) => t - now);
+  ago = times.map((t) => t - now);
   for (const quantity of QUANTITIES) {
     let chart = charts.get(quantity.key);
     if (!chosen.has(quantity.key)) {
@@ -77,8 +89,8 @@ function sample() {
       while (series.length > times.length) series.shift();
       while (series.length < times.length) series.unshift(null);
     });
-    chart.plot.setData([ago, ...chart.data]);
   }
+  if (shown()) draw();
 }
 
 /** How many points each shown plot holds, per series (numbers, not gaps): for tests. */
@@ -104,6 +116,7 @@ export function startPlots() {
   }
   subscribe("current", () => {
     times = [];
+    ago = [];
     for (const chart of charts.values()) { chart.plot.destroy(); chart.box.remove(); }
     charts.clear();
   });
@@ -113,6 +126,11 @@ export function startPlots() {
     for (const chart of charts.values()) chart.plot.setSize({ width, height: plotHeight() });
   };
   window.addEventListener("resize", resize);
+  // Shown again (the panel opened, the drawer opened, the full view left): drawn at once.
+  let wasShown = shown();
+  const showing = () => { const now = shown(); if (now && !wasShown) draw(); wasShown = now; };
+  $("#plots-panel").addEventListener("toggle", showing);
+  new MutationObserver(showing).observe(document.body, { attributes: true, attributeFilter: ["class"] });
   choices.addEventListener("change", () => setTimeout(() => { sample(); resize(); }, 0));
   setInterval(sample, SAMPLE_MS);
 }
