@@ -118,10 +118,17 @@ async def _rpc(http: aiohttp.ClientSession, base: str, method: str, **params: An
 
 async def _main_thread_ms_per_s(page: Any, seconds: float) -> dict[str, float]:
     """The page's main-thread time per second over ``seconds`` (Chrome's TaskDuration), and its
-    script, layout and style parts: wall time of its tasks, so a loaded machine inflates it."""
+    script, layout and style parts: wall time of its tasks, so a loaded machine inflates it.
+    LayoutCount: the layouts themselves (a count, per second; issue 32's declutter made ~100)."""
     cdp = await page.context.new_cdp_session(page)
     await cdp.send("Performance.enable")
-    names = ("TaskDuration", "ScriptDuration", "LayoutDuration", "RecalcStyleDuration")
+    names = (
+        "TaskDuration",
+        "ScriptDuration",
+        "LayoutDuration",
+        "RecalcStyleDuration",
+        "LayoutCount",
+    )
 
     async def sample() -> dict[str, float]:
         metrics = (await cdp.send("Performance.getMetrics"))["metrics"]
@@ -130,7 +137,12 @@ async def _main_thread_ms_per_s(page: Any, seconds: float) -> dict[str, float]:
     before, started = await sample(), time.monotonic()
     await asyncio.sleep(seconds)
     after, elapsed = await sample(), time.monotonic() - started
-    return {name: round((after[name] - before[name]) / elapsed * 1000, 1) for name in names}
+    return {
+        name: round(
+            (after[name] - before[name]) / elapsed * (1 if name == "LayoutCount" else 1000), 1
+        )
+        for name in names
+    }
 
 
 async def _stale_delays(
@@ -202,12 +214,14 @@ async def _glass_to_glass(page: Any) -> dict[str, Any]:
             "layout": main_thread["LayoutDuration"],
             "style": main_thread["RecalcStyleDuration"],
         },
+        "page_layouts_per_s_every_panel_open": main_thread["LayoutCount"],
         "page_main_thread_ms_per_s_full_view_panels_open": main_thread_full["TaskDuration"],
         "page_main_thread_parts_ms_per_s_full_view": {
             "script": main_thread_full["ScriptDuration"],
             "layout": main_thread_full["LayoutDuration"],
             "style": main_thread_full["RecalcStyleDuration"],
         },
+        "page_layouts_per_s_full_view_panels_open": main_thread_full["LayoutCount"],
     }
 
 
