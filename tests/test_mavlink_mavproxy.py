@@ -215,11 +215,13 @@ async def test_mavproxy_fence_options_take_two_inclusion_fences_as_their_union(
     after ``param set FENCE_OPTIONS 2`` their union; a bit a rover cannot honour is refused;
     the value is kept across a restart (the next upload is still a union)."""
     fence = tmp_path / "two-fields.fence"
-    # Both hold the demo route (0..40 m east, 0..30 m north); only one holds each far point.
+    # Both hold the demo route (0..40 m east, 0..30 m north) and the robot with room for its
+    # GPS error (the simulated receiver's fix was seen 5.7 m west of the start: the overlap's
+    # edge was 5 m away, and the upload refused); only one holds each far point.
     west = [at(-12, -12), at(45, -12), at(45, 42), at(-12, 42)]
-    east = [at(-5, -12), at(52, -12), at(52, 42), at(-5, 42)]
+    east = [at(-9, -12), at(52, -12), at(52, 42), at(-9, 42)]
     write_waypoints(fence, [(0, 0, 5001, 4, lat, lon) for lat, lon in west + east])
-    far_east, far_west = at(48, 15), at(-10, 15)
+    far_east, far_west = at(48, 15), at(-11, 15)
 
     def allowed(daemon: PlatformDaemon, point: tuple[float, float]) -> bool:
         assert daemon.ctx.patrol is not None
