@@ -174,10 +174,12 @@ async def test_a_packet_whose_retransmission_was_lost_is_asked_again_within_a_ro
         assert len(asked_again_after) >= 10, asked_again_after
         # Asked again a round trip (~1 ms on loopback, 5 ms at the floor) after the first
         # ask, give or take the threads' scheduling; the jitter buffer alone asks again
-        # RTX_RETRY_MIN_MS (33 ms) later.
-        # (A loaded machine's stall in a first-round repair makes the wait that long for the
-        # next few: some come with the regular try.)
-        within = sum(after < RTX_RETRY_MIN_MS / 2 for after in asked_again_after)
+        # RTX_RETRY_MIN_MS (33 ms) after its own ask, which follows the receiver's.
+        # (On a loaded machine the round trips the wait is taken from are 10-25 ms: the ask
+        # comes that much later, still at least 5 ms before the retry, by design; a stall in
+        # a first-round repair makes the wait that long for the next few: some come with the
+        # regular try. Without the early ask the second came 32-35 ms after the first.)
+        within = sum(after < RTX_RETRY_MIN_MS - 3 for after in asked_again_after)
         assert within >= 2 / 3 * len(asked_again_after), (
             statistics.median(asked_again_after),
             sorted(asked_again_after),

@@ -120,8 +120,8 @@ class ReaskFollower:
     lock: threading.Lock = field(default_factory=threading.Lock)
     """The jitter buffer's timer thread, the streaming thread and the clock's thread."""
 
-    at_once: deque[int] = field(default_factory=lambda: deque(maxlen=AT_ONCE_KEPT))
-    """Packets the receiver asked for the moment their gap arrived (newest last)."""
+    at_once: dict[int, float] = field(default_factory=dict)
+    """Packets the receiver asked for the moment their gap arrived → when (oldest first)."""
     copies: bool = False
     """The link is lossy: the jitter buffer's own first ask for such a packet goes too."""
     copied: int = 0
@@ -132,17 +132,19 @@ class ReaskFollower:
             with self.lock:
                 self.reask.on_arrived(seq, now)
 
-    def asked_at_once(self, seqs: list[int]) -> None:
-        """Streaming thread: the receiver asked for ``seqs`` itself, now."""
+    def asked_at_once(self, seqs: list[int], now: float) -> None:
+        """Streaming thread: the receiver asked for ``seqs`` itself at ``now``."""
         with self.lock:
-            self.at_once.extend(seqs)
+            for seq in seqs:
+                self.at_once.pop(seq, None)
+                self.at_once[seq] = now
+            while len(self.at_once) > AT_ONCE_KEPT:
+                del self.at_once[next(iter(self.at_once))]
 
-    def first_ask_is_copy(self, seq: int) -> bool:
-        """Under the lock: the jitter buffer's first ask for ``seq`` repeats the receiver's."""
-        if seq not in self.at_once:
-            return False
-        self.at_once.remove(seq)
-        return True
+    def asked_first_at(self, seq: int) -> float | None:
+        """Under the lock: when the receiver itself asked for ``seq``, if it did (the jitter
+        buffer's first ask then repeats it)."""
+        return self.at_once.pop(seq, None)
 
 
 def rtx_original_seq(data: bytes) -> int | None:
@@ -188,16 +190,22 @@ def _on_request(pad: Any, info: Any, follower: ReaskFollower) -> Any:
     ok_every, every_ms = structure.get_uint("frequency")
     retry_s = every_ms / 1000 if ok_every else 0.0
     first = not ok_retry or retry == 0
+    now = time.monotonic()
     with follower.lock:
-        wait = follower.reask.on_asked(seq, 0 if first else retry, time.monotonic(), retry_s)
-        repeat = first and follower.first_ask_is_copy(seq)
+        # Timed from the first ask that went, the receiver's own when it asked at once (the
+        # jitter buffer's comes ~1.5 ms later, more on a loaded machine).
+        asked_at = follower.asked_first_at(seq) if first else None
+        repeat = asked_at is not None
+        first_at = asked_at if asked_at is not None else now
+        wait = follower.reask.on_asked(seq, 0 if first else retry, first_at, retry_s)
         if repeat and follower.copies:
             follower.copied += 1
     if wait is not None:
         again = structure.copy()
         again.set_value(_OURS, True)
         clock = Gst.SystemClock.obtain()
-        at = clock.new_single_shot_id(clock.get_time() + round(wait * 1e9))
+        delay = max(0.0, wait - (now - first_at))
+        at = clock.new_single_shot_id(clock.get_time() + round(delay * 1e9))
         Gst.Clock.id_wait_async(at, _ask_again, (follower, seq, again))
     if repeat and not follower.copies:
         return Gst.PadProbeReturn.DROP  # asked at once already; its retries still go

@@ -508,7 +508,7 @@ class RepairReceiver:
             if out.send(generic_nack(own, ssrc, missing)):
                 self.asked_at_once += len(missing)
                 for follower in self.reasks:
-                    follower.asked_at_once(missing)
+                    follower.asked_at_once(missing, now)
         lossy = self.lossy.update(self.asked_at_once, seq, now)
         for follower in self.reasks:
             follower.copies = lossy
