@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures.thread
 import contextlib
+import itertools
 import logging
 import os
 import socket
@@ -240,16 +241,35 @@ def udp_port_bound(port: int) -> bool:
     return False
 
 
+PORTS_FROM = 22000
+"""Ports handed to the daemons a test starts come from below the kernel's ephemeral range
+(32768 and up): a port found free by binding port 0 and closing was the kernel's to give to
+the next client socket or another worker's probe, and now and then a daemon's bind lost it
+("Address already in use"). Each xdist worker has a block of its own."""
+PORTS_PER_WORKER = 1250
+_next_port = itertools.count()
+
+
+def _free_port(kind: int) -> int:
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw")
+    first = PORTS_FROM + (int(worker) % 8 if worker.isdigit() else 0) * PORTS_PER_WORKER
+    for _ in range(PORTS_PER_WORKER):
+        port = first + next(_next_port) % PORTS_PER_WORKER
+        with socket.socket(socket.AF_INET, kind) as sock:
+            try:
+                sock.bind(("0.0.0.0", port))
+            except OSError:
+                continue  # taken (a daemon of this worker's, or a TCP port in TIME_WAIT)
+            return port
+    raise RuntimeError(f"no free port in {first}..{first + PORTS_PER_WORKER - 1}")
+
+
 def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+    return _free_port(socket.SOCK_DGRAM)
 
 
 def free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+    return _free_port(socket.SOCK_STREAM)
 
 
 @pytest.fixture(scope="session")
